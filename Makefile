@@ -1,0 +1,49 @@
+# renderfarm: `make demo` renders the Cornell box on a local farm; `make test` runs every test.
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+BUILD := build/worker
+JOBS ?= 2
+
+.PHONY: all deps build proto worker test test-cpp test-py lint demo stop bench clean
+
+all: build
+
+deps:
+	@scripts/install-deps.sh
+
+# Python gRPC stubs are generated at build time, never committed.
+proto: deps
+	@$(PY) -m grpc_tools.protoc -I proto --python_out=server --pyi_out=server \
+	  --grpc_python_out=server proto/renderfarm/v1/*.proto
+
+worker: deps
+	@cmake -S worker -B $(BUILD) -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
+	@cmake --build $(BUILD) -j $(JOBS)
+
+build: proto worker
+
+lint: deps
+	$(VENV)/bin/ruff check server tests bench examples
+	$(VENV)/bin/ruff format --check server tests bench examples
+
+test-cpp: worker
+	ctest --test-dir $(BUILD) --output-on-failure -j $(JOBS)
+
+test-py: build
+	$(PY) -m pytest -q server/tests tests
+
+test: lint test-cpp test-py
+
+demo: build
+	@scripts/demo.sh
+
+stop:
+	@scripts/demo.sh stop
+
+bench: build
+	@mkdir -p bench/results
+	@set -e; for b in bench/*.py; do echo "== $$b"; $(PY) $$b; done
+
+clean:
+	rm -rf build .pytest_cache .ruff_cache out

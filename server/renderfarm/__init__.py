@@ -1,0 +1,1 @@
+"""Progressive Monte Carlo render farm."""

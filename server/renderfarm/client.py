@@ -1,0 +1,126 @@
+"""Python client of the REST API; the CLI is built on it.
+
+from renderfarm.client import Client
+c = Client("http://127.0.0.1:8080")
+job = c.submit("examples/cornell-box.gltf", settings={"max_spp": 256})
+job = c.wait(job["id"])
+open("out.png", "wb").write(c.image(job["id"], "png"))
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from .scenes import pack_gltf
+
+FINISHED = ("completed", "failed", "cancelled")
+
+
+class ApiError(RuntimeError):
+    """The server refused a request; `status` is the HTTP status, `field` what was wrong."""
+
+    def __init__(self, status: int, message: str, field: str = ""):
+        super().__init__(f"{message} (HTTP {status})")
+        self.status = status
+        self.message = message
+        self.field = field
+
+
+class Client:
+    def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 60.0):
+        self.url = (url or os.environ.get("RENDERFARM_URL") or "http://127.0.0.1:8080").rstrip("/")
+        token = token or os.environ.get("RENDERFARM_TOKEN")
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _check(self, response: httpx.Response) -> httpx.Response:
+        if response.status_code >= 400:
+            try:
+                body = response.json()
+                message, field = body.get("detail", response.text), body.get("field", "")
+            except ValueError:
+                message, field = response.text, ""
+            raise ApiError(response.status_code, str(message), field)
+        return response
+
+    def submit(
+        self,
+        scene: str | os.PathLike | None = None,
+        *,
+        scene_sha256: str | None = None,
+        settings: dict[str, Any] | None = None,
+        name: str = "",
+    ) -> dict[str, Any]:
+        """Submit a scene file (.glb, or .gltf packed with its files into a .glb) or a stored
+        scene's hash. Returns the job."""
+        if scene is not None:
+            path = Path(scene)
+            data = path.read_bytes() if path.suffix.lower() == ".glb" else pack_gltf(path)
+            upload_name = path.stem + ".glb"
+            fields = {"settings": json.dumps(settings or {}), "name": name or path.stem}
+            files = {"scene": (upload_name, data, "model/gltf-binary")}
+            return self._check(self.http.post("/api/v1/jobs", data=fields, files=files)).json()
+        body = {"scene_sha256": scene_sha256, "settings": settings or {}, "name": name}
+        return self._check(self.http.post("/api/v1/jobs", json=body)).json()
+
+    def get(self, job_id: str) -> dict[str, Any]:
+        return self._check(self.http.get(f"/api/v1/jobs/{job_id}")).json()
+
+    def list(self, state: str = "", page_size: int = 50, page_token: str = "") -> dict[str, Any]:
+        params = {"page_size": page_size}
+        if state:
+            params["state"] = state
+        if page_token:
+            params["page_token"] = page_token
+        return self._check(self.http.get("/api/v1/jobs", params=params)).json()
+
+    def cancel(self, job_id: str) -> dict[str, Any]:
+        return self._check(self.http.post(f"/api/v1/jobs/{job_id}/cancel")).json()
+
+    def workers(self) -> list[dict[str, Any]]:
+        return self._check(self.http.get("/api/v1/workers")).json()
+
+    def image(self, job_id: str, fmt: str = "png", layer: str = "rgb") -> bytes:
+        response = self.http.get(f"/api/v1/jobs/{job_id}/image.{fmt}", params={"layer": layer})
+        return self._check(response).content
+
+    def ready(self) -> bool:
+        try:
+            return self.http.get("/readyz", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def wait(
+        self,
+        job_id: str,
+        on_progress: Callable[[dict[str, Any]], None] | None = None,
+        poll_s: float = 0.5,
+        timeout_s: float | None = None,
+    ) -> dict[str, Any]:
+        """Poll until the job finishes (or timeout_s passes: TimeoutError)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            job = self.get(job_id)
+            if on_progress is not None:
+                on_progress(job)
+            if job["state"] in FINISHED:
+                return job
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"job {job_id} still {job['state']} after {timeout_s} s")
+            time.sleep(poll_s)

@@ -1,0 +1,53 @@
+"""Server settings: one typed object, from defaults < environment (RENDERFARM_*) < CLI flags."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from .jobspec import Limits
+
+
+def default_data_dir() -> Path:
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local/share")
+    return Path(base) / "renderfarm"
+
+
+class Settings(BaseSettings):
+    """Every server setting, documented in the README (`renderfarm server --help` lists them)."""
+
+    model_config = SettingsConfigDict(env_prefix="RENDERFARM_", extra="forbid")
+
+    data_dir: Path = Field(default_factory=default_data_dir, description="state directory")
+    database_url: str = Field(
+        "", description="PostgreSQL URL; empty starts an embedded PostgreSQL in data_dir/pg"
+    )
+    http_host: str = Field("127.0.0.1", description="address of the REST API and dashboard")
+    http_port: int = Field(8080, ge=0, le=65535, description="port of the REST API")
+    grpc_host: str = Field("127.0.0.1", description="address of the gRPC API (jobs, workers)")
+    grpc_port: int = Field(50051, ge=0, le=65535, description="port of the gRPC API")
+    lease_s: float = Field(30.0, gt=0, description="lease of a task; heartbeats extend it")
+    heartbeat_interval_s: float = Field(2.0, gt=0, description="how often workers heartbeat")
+    checkpoint_interval_s: float = Field(
+        2.0, gt=0, description="most seconds of merged work a server crash may lose"
+    )
+    max_upload_bytes: int = Field(256 * 2**20, gt=0, description="largest scene upload")
+    max_width: int = Field(16384, gt=0, description="largest image width a job may ask for")
+    max_height: int = Field(16384, gt=0, description="largest image height a job may ask for")
+    max_pixels: int = Field(64 * 2**20, gt=0, description="largest width x height")
+    max_spp: int = Field(1 << 20, gt=0, description="largest max_spp a job may ask for")
+    max_task_failures: int = Field(
+        3, gt=0, description="failed tasks after which a worker is kept off a job"
+    )
+    worker_token: str = Field("", description="shared token workers must present, if set")
+
+    def limits(self) -> Limits:
+        return Limits(
+            max_width=self.max_width,
+            max_height=self.max_height,
+            max_pixels=self.max_pixels,
+            max_spp=self.max_spp,
+        )

@@ -1,0 +1,286 @@
+"""gRPC services (grpc.aio, same event loop as REST): JobService, SceneService, WorkerService.
+
+Handlers parse, call FarmService and map its errors to status codes:
+SettingsError/SceneError -> INVALID_ARGUMENT, TooLarge -> RESOURCE_EXHAUSTED,
+NotFound -> NOT_FOUND, Unauthenticated -> UNAUTHENTICATED.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import logging
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from .jobspec import SETTING_NAMES, SettingsError
+from .scenes import SceneError
+from .service import (
+    FarmService,
+    JobView,
+    NotFound,
+    TooLarge,
+    Unauthenticated,
+    WorkerSession,
+    decode_result,
+)
+from .states import JobState
+from .v1 import (
+    jobs_pb2,
+    jobs_pb2_grpc,
+    scenes_pb2,
+    scenes_pb2_grpc,
+    workers_pb2,
+    workers_pb2_grpc,
+)
+
+log = logging.getLogger(__name__)
+
+MAX_MESSAGE_BYTES = 512 * 2**20
+
+
+def job_to_proto(view: JobView) -> jobs_pb2.Job:
+    p = view.progress
+    s = view.settings
+    return jobs_pb2.Job(
+        id=view.id,
+        name=view.name,
+        state=jobs_pb2.JobState.Value(view.state.proto_name),
+        settings=jobs_pb2.RenderSettings(**s.to_dict()),
+        scene_sha256=view.scene_sha256,
+        progress=jobs_pb2.JobProgress(
+            tiles_total=p.tiles_total,
+            tiles_done=p.tiles_done,
+            mean_spp=p.mean_spp,
+            error=p.error if p.error is not None else -1.0,
+            eta_s=p.eta_s if p.eta_s is not None else -1.0,
+            samples_merged=p.samples_merged,
+            elapsed_s=p.elapsed_s,
+        ),
+        error=view.error,
+        created_unix_s=view.created_unix_s,
+        finished_unix_s=view.finished_unix_s or 0.0,
+    )
+
+
+def settings_from_proto(msg: jobs_pb2.RenderSettings) -> dict:
+    """Fields left at their zero value mean "use the default" (proto3 has no presence)."""
+    return {name: getattr(msg, name) for name in SETTING_NAMES if getattr(msg, name)}
+
+
+def _maps_errors(method):
+    @functools.wraps(method)
+    async def wrapper(self, request, context):
+        try:
+            return await method(self, request, context)
+        except (SettingsError, SceneError) as e:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"{e.field}: {e}")
+        except TooLarge as e:
+            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, f"{e.field}: {e.message}")
+        except NotFound as e:
+            await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
+
+    return wrapper
+
+
+class JobServicer(jobs_pb2_grpc.JobServiceServicer):
+    def __init__(self, farm: FarmService):
+        self.farm = farm
+
+    @_maps_errors
+    async def SubmitJob(self, request, context):  # noqa: N802 (gRPC method names)
+        which = request.WhichOneof("scene")
+        view = await self.farm.submit(
+            scene_data=request.scene_data if which == "scene_data" else None,
+            scene_sha256=request.scene_sha256 if which == "scene_sha256" else None,
+            filename=request.scene_filename,
+            name=request.name,
+            raw_settings=settings_from_proto(request.settings),
+        )
+        return jobs_pb2.SubmitJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def GetJob(self, request, context):  # noqa: N802
+        return jobs_pb2.GetJobResponse(job=job_to_proto(await self.farm.get(request.job_id)))
+
+    @_maps_errors
+    async def ListJobs(self, request, context):  # noqa: N802
+        state = None
+        if request.state != jobs_pb2.JOB_STATE_UNSPECIFIED:
+            state = JobState(jobs_pb2.JobState.Name(request.state)[len("JOB_STATE_") :].lower())
+        views, token = await self.farm.list(state, request.page_size, request.page_token)
+        return jobs_pb2.ListJobsResponse(
+            jobs=[job_to_proto(v) for v in views], next_page_token=token
+        )
+
+    @_maps_errors
+    async def CancelJob(self, request, context):  # noqa: N802
+        return jobs_pb2.CancelJobResponse(job=job_to_proto(await self.farm.cancel(request.job_id)))
+
+    async def WatchJob(self, request, context):  # noqa: N802
+        try:
+            async for view in self.farm.watch(request.job_id):
+                yield jobs_pb2.WatchJobResponse(job=job_to_proto(view))
+        except NotFound as e:
+            await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
+
+
+class SceneServicer(scenes_pb2_grpc.SceneServiceServicer):
+    def __init__(self, farm: FarmService):
+        self.farm = farm
+
+    @staticmethod
+    def _info(info: dict) -> scenes_pb2.SceneInfo:
+        fmt = (
+            scenes_pb2.SCENE_FORMAT_GLB if info["format"] == "glb" else scenes_pb2.SCENE_FORMAT_GLTF
+        )
+        return scenes_pb2.SceneInfo(
+            sha256=info["sha256"],
+            size_bytes=info["size_bytes"],
+            format=fmt,
+            filename=info["filename"],
+        )
+
+    async def FetchScene(self, request, context):  # noqa: N802
+        try:
+            info = await self.farm.scene_info(request.sha256)
+            first = True
+            async for offset, data in self.farm.scene_chunks(request.sha256):
+                chunk = scenes_pb2.SceneChunk(offset=offset, data=data)
+                if first:
+                    chunk.info.CopyFrom(self._info(info))
+                    first = False
+                yield chunk
+        except NotFound as e:
+            await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
+
+    @_maps_errors
+    async def GetScene(self, request, context):  # noqa: N802
+        info = await self.farm.scene_info(request.sha256)
+        return scenes_pb2.GetSceneResponse(scene=self._info(info))
+
+
+class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
+    def __init__(self, farm: FarmService):
+        self.farm = farm
+
+    async def Connect(self, request_iterator, context):  # noqa: N802
+        first = await anext(request_iterator.__aiter__(), None)
+        if first is None or first.WhichOneof("msg") != "hello":
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION, "send Hello first")
+        hello = first.hello
+        try:
+            session = await self.farm.worker_hello(
+                hello.worker_id,
+                hello.hostname,
+                hello.cores,
+                hello.max_in_flight,
+                hello.version,
+                hello.token,
+            )
+        except Unauthenticated as e:
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, str(e))
+        settings = self.farm.settings
+        yield workers_pb2.ServerMessage(
+            welcome=workers_pb2.Welcome(
+                worker_id=session.worker_id,
+                heartbeat_interval_ms=int(settings.heartbeat_interval_s * 1000),
+                lease_ms=int(settings.lease_s * 1000),
+            )
+        )
+        reader = asyncio.create_task(self._read(session, request_iterator))
+        try:
+            while True:
+                getter = asyncio.create_task(session.outbox.get())
+                done, _ = await asyncio.wait({getter, reader}, return_when=asyncio.FIRST_COMPLETED)
+                if getter not in done:
+                    getter.cancel()
+                    break  # the worker closed its side or the stream broke
+                item = getter.result()
+                if item is None:
+                    break  # replaced by a newer connection, or the server is stopping
+                yield self._message(item)
+        finally:
+            reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await reader
+            await self.farm.worker_gone(session)
+
+    @staticmethod
+    def _message(item) -> workers_pb2.ServerMessage:
+        kind = item[0]
+        if kind == "cancel":
+            return workers_pb2.ServerMessage(cancel=workers_pb2.Cancel(task_ids=item[1]))
+        _, lease, job = item
+        task = workers_pb2.Task(
+            task_id=lease.task_id,
+            job_id=lease.job_id,
+            scene_sha256=job.scene_sha256,
+            tile_index=lease.tile_index,
+            rect=workers_pb2.TileRect(
+                x0=lease.rect.x0, y0=lease.rect.y0, width=lease.rect.width, height=lease.rect.height
+            ),
+            batch_index=lease.batch_index,
+            sample_start=lease.sample_start,
+            sample_count=lease.sample_count,
+            settings=jobs_pb2.RenderSettings(**job.settings.to_dict()),
+        )
+        return workers_pb2.ServerMessage(
+            assign=workers_pb2.Assign(task=task, lease_deadline_unix_ms=int(lease.deadline * 1000))
+        )
+
+    async def _read(self, session: WorkerSession, request_iterator) -> None:
+        async for msg in request_iterator:
+            kind = msg.WhichOneof("msg")
+            if kind == "result":
+                try:
+                    result = decode_result(msg.result)
+                except ValueError as e:
+                    log.warning("malformed result from %s: %s", session.worker_id, e)
+                    continue
+                await self.farm.worker_result(session, msg.result.task_id, result)
+            elif kind == "heartbeat":
+                hb = msg.heartbeat
+                await self.farm.worker_heartbeat(
+                    session, hb.samples_per_s, hb.rays_per_s, hb.busy_threads
+                )
+            elif kind == "failed":
+                f = msg.failed
+                await self.farm.worker_failed(session, f.task_id, f.error, f.retryable)
+
+
+async def start_grpc(farm: FarmService, host: str, port: int) -> tuple[grpc.aio.Server, int]:
+    server = grpc.aio.server(
+        options=[
+            ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+            ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+            ("grpc.keepalive_time_ms", 20000),
+            ("grpc.keepalive_timeout_ms", 10000),
+            ("grpc.http2.max_pings_without_data", 0),
+            ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.http2.min_ping_interval_without_data_ms", 5000),
+        ]
+    )
+    jobs_pb2_grpc.add_JobServiceServicer_to_server(JobServicer(farm), server)
+    scenes_pb2_grpc.add_SceneServiceServicer_to_server(SceneServicer(farm), server)
+    workers_pb2_grpc.add_WorkerServiceServicer_to_server(WorkerServicer(farm), server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    names = (
+        jobs_pb2.DESCRIPTOR.services_by_name["JobService"].full_name,
+        scenes_pb2.DESCRIPTOR.services_by_name["SceneService"].full_name,
+        workers_pb2.DESCRIPTOR.services_by_name["WorkerService"].full_name,
+        health.SERVICE_NAME,
+        reflection.SERVICE_NAME,
+    )
+    reflection.enable_server_reflection(names, server)
+    bound = server.add_insecure_port(f"{host}:{port}")
+    if bound == 0:
+        raise OSError(f"cannot listen for gRPC on {host}:{port}")
+    await server.start()
+    for name in names[:3] + ("",):
+        await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    return server, bound

@@ -1,0 +1,175 @@
+"""Job settings: names, defaults, limits and validation shared by REST, gRPC and the CLI.
+
+Every setting a job accepts is declared once here (SETTINGS). The REST API, the gRPC API and the
+CLI flags are all derived from this table, so they cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+SAMPLERS = ("sobol", "independent")
+INTEGRATORS = ("path", "ao")
+
+
+class SettingsError(ValueError):
+    """A job setting is unknown or out of range. `field` names it (e.g. "settings.max_spp")."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
+        self.message = message
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Server-side limits on what a job may ask for (configurable, see config.Settings)."""
+
+    max_width: int = 16384
+    max_height: int = 16384
+    max_pixels: int = 64 * 2**20
+    max_spp: int = 1 << 20
+    max_time_limit_s: float = 7 * 24 * 3600.0
+
+
+@dataclass(frozen=True)
+class Setting:
+    name: str
+    kind: type
+    default: Any
+    help: str
+
+
+# The one table of job settings. Order is the order shown in docs and --help.
+SETTINGS: tuple[Setting, ...] = (
+    Setting("width", int, 512, "image width in pixels"),
+    Setting("height", int, 512, "image height in pixels"),
+    Setting("tile_size", int, 64, "edge of the square tiles the image is split into, in pixels"),
+    Setting("sampler", str, "sobol", "sample generator: " + ", ".join(SAMPLERS)),
+    Setting("integrator", str, "path", "light transport algorithm: " + ", ".join(INTEGRATORS)),
+    Setting("max_depth", int, 8, "maximum number of bounces of a path"),
+    Setting("seed", int, 0, "seed of every random number; same seed, same image"),
+    Setting(
+        "noise_threshold",
+        float,
+        0.02,
+        "a tile stops once its relative error is below this; 0 renders max_spp everywhere",
+    ),
+    Setting("min_spp", int, 16, "samples per pixel a tile renders before it may stop on noise"),
+    Setting("max_spp", int, 1024, "samples per pixel at which a tile stops regardless of noise"),
+    Setting("time_limit_s", float, 0.0, "wall-clock limit of the job in seconds; 0 = none"),
+    Setting("priority", int, 0, "jobs with higher priority are rendered first"),
+)
+SETTING_NAMES = tuple(s.name for s in SETTINGS)
+# `spp` is accepted as a shorthand for max_spp (the CLI's --spp), never stored.
+ALIASES = {"spp": "max_spp"}
+
+
+@dataclass(frozen=True)
+class JobSettings:
+    width: int = 512
+    height: int = 512
+    tile_size: int = 64
+    sampler: str = "sobol"
+    integrator: str = "path"
+    max_depth: int = 8
+    seed: int = 0
+    noise_threshold: float = 0.02
+    min_spp: int = 16
+    max_spp: int = 1024
+    time_limit_s: float = 0.0
+    priority: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+assert tuple(f.name for f in fields(JobSettings)) == SETTING_NAMES
+assert all(getattr(JobSettings(), s.name) == s.default for s in SETTINGS)
+
+
+def _coerce(name: str, kind: type, value: Any) -> Any:
+    field = f"settings.{name}"
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise SettingsError(field, f"{field} must be an integer, got {value!r}")
+        try:
+            as_float = float(value)
+        except ValueError:
+            raise SettingsError(field, f"{field} must be an integer, got {value!r}") from None
+        if not math.isfinite(as_float) or as_float != int(as_float):
+            raise SettingsError(field, f"{field} must be an integer, got {value!r}")
+        return int(as_float)
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise SettingsError(field, f"{field} must be a number, got {value!r}")
+        try:
+            number = float(value)
+        except ValueError:
+            raise SettingsError(field, f"{field} must be a number, got {value!r}") from None
+        if not math.isfinite(number):
+            raise SettingsError(field, f"{field} must be finite, got {value!r}")
+        return number
+    if not isinstance(value, str):
+        raise SettingsError(field, f"{field} must be a string, got {value!r}")
+    return value.strip().lower()
+
+
+def parse_settings(raw: dict[str, Any] | None, limits: Limits = Limits()) -> JobSettings:
+    """Validate user-supplied settings, fill in defaults and return them.
+
+    Raises SettingsError naming the first offending field: unknown names, wrong types,
+    out-of-range values and limits.
+    """
+    raw = dict(raw or {})
+    values: dict[str, Any] = {}
+    for key, value in raw.items():
+        if not isinstance(key, str):
+            raise SettingsError("settings", f"setting names must be strings, got {key!r}")
+        name = ALIASES.get(key, key)
+        if name not in SETTING_NAMES:
+            raise SettingsError(
+                f"settings.{key}",
+                f"unknown setting {key!r}; known settings: {', '.join(SETTING_NAMES)}",
+            )
+        if value is None:
+            continue
+        kind = next(s.kind for s in SETTINGS if s.name == name)
+        coerced = _coerce(key, kind, value)
+        if name in values and values[name] != coerced:
+            raise SettingsError(f"settings.{key}", f"settings.{key} conflicts with settings.{name}")
+        values[name] = coerced
+    settings = JobSettings(**values)
+    _check_ranges(settings, limits)
+    return settings
+
+
+def _require(ok: bool, name: str, message: str) -> None:
+    if not ok:
+        raise SettingsError(f"settings.{name}", f"settings.{name} {message}")
+
+
+def _check_ranges(s: JobSettings, limits: Limits) -> None:
+    _require(1 <= s.width <= limits.max_width, "width", f"must be in 1..{limits.max_width}")
+    _require(1 <= s.height <= limits.max_height, "height", f"must be in 1..{limits.max_height}")
+    _require(
+        s.width * s.height <= limits.max_pixels,
+        "width",
+        f"width x height must be at most {limits.max_pixels} pixels",
+    )
+    _require(8 <= s.tile_size <= 512, "tile_size", "must be in 8..512")
+    _require(s.sampler in SAMPLERS, "sampler", f"must be one of {', '.join(SAMPLERS)}")
+    _require(s.integrator in INTEGRATORS, "integrator", f"must be one of {', '.join(INTEGRATORS)}")
+    _require(1 <= s.max_depth <= 1024, "max_depth", "must be in 1..1024")
+    _require(0 <= s.seed < 2**63, "seed", "must be in 0..2^63-1")
+    _require(0.0 <= s.noise_threshold <= 10.0, "noise_threshold", "must be in 0..10")
+    _require(1 <= s.max_spp <= limits.max_spp, "max_spp", f"must be in 1..{limits.max_spp}")
+    _require(1 <= s.min_spp <= s.max_spp, "min_spp", f"must be in 1..max_spp ({s.max_spp})")
+    _require(
+        0.0 <= s.time_limit_s <= limits.max_time_limit_s,
+        "time_limit_s",
+        f"must be in 0..{limits.max_time_limit_s:g}",
+    )
+    _require(-1000 <= s.priority <= 1000, "priority", "must be in -1000..1000")

@@ -1,0 +1,564 @@
+"""The scheduler: tiles, batches, leases, in-order merging and stop decisions. No I/O.
+
+One Scheduler holds every unfinished job in memory. Callers (the gRPC worker stream, the REST
+API) tell it what happened (a worker connected, a result arrived, time passed) and read back
+what to do: tasks to send, tasks to cancel, events to store. Time comes from an injected clock so
+tests can drive it.
+
+Determinism (DESIGN.md section 4): a result is identified by (job, tile, batch), not by the lease
+that produced it. Batches of a tile are merged strictly in batch order (early arrivals wait in
+`pending`), and the stop decision after batch k only looks at batches 0..k. Hence the merged
+image is the same whichever worker rendered what, in any order; duplicates and batches past a
+tile's stop point are discarded.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .jobspec import JobSettings
+from .merge import TileAccumulator
+from .states import JobState, StopReason
+from .tiling import Rect, batch_count, batch_range, tile_grid
+
+# How many batches of one tile may be leased or waiting beyond the merged ones when every tile
+# already has work: speculation keeps workers busy on small images at the risk of rendering a
+# batch past the tile's stop point (it is then cancelled or discarded, never merged).
+SPECULATION_DEPTH = 3
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """One task's output as the scheduler needs it (decoded from a TileResult)."""
+
+    job_id: str
+    tile_index: int
+    batch_index: int
+    sample_start: int
+    sample_count: int
+    rect: Rect
+    rgb_sum: np.ndarray
+    luminance_m2: np.ndarray
+    albedo_sum: np.ndarray | None = None
+    normal_sum: np.ndarray | None = None
+    nonfinite: int = 0
+    render_seconds: float = 0.0
+    rays: int = 0
+
+
+@dataclass
+class Lease:
+    task_id: str
+    job_id: str
+    tile_index: int
+    batch_index: int
+    sample_start: int
+    sample_count: int
+    rect: Rect
+    worker_id: str
+    deadline: float
+
+
+@dataclass(frozen=True)
+class StopRecord:
+    tile_index: int
+    batch_index: int  # last merged batch
+    spp: int
+    error: float
+    reason: StopReason
+
+
+@dataclass(frozen=True)
+class Event:
+    kind: str  # "job_started", "tile_stopped", "job_finished", "task_failed", "worker_excluded"
+    job_id: str
+    data: dict
+
+
+@dataclass
+class TileState:
+    index: int
+    rect: Rect
+    acc: TileAccumulator
+    next_batch: int = 0  # lowest batch never leased
+    requeue: set[int] = field(default_factory=set)  # batches whose lease was lost
+    in_flight: dict[int, str] = field(default_factory=dict)  # batch -> task id
+    pending: dict[int, BatchResult] = field(default_factory=dict)  # arrived early
+    stop: StopRecord | None = None
+    error: float = math.inf
+    seconds_per_sample: float = 0.0  # measured render cost per pixel sample
+    dirty: bool = False  # merged since the last checkpoint
+
+    @property
+    def merged(self) -> int:
+        return self.acc.batches
+
+    @property
+    def stopped(self) -> bool:
+        return self.stop is not None
+
+
+@dataclass
+class JobRun:
+    job_id: str
+    settings: JobSettings
+    scene_sha256: str
+    tiles: list[TileState]
+    created: float
+    state: JobState = JobState.QUEUED
+    started: float | None = None
+    finished: float | None = None
+    leased: int = 0  # leases currently out (for fair share)
+    error_message: str = ""
+    excluded_workers: set[str] = field(default_factory=set)
+    failures: dict[str, int] = field(default_factory=dict)  # worker -> failed tasks
+    samples_merged: int = 0
+    version: int = 0  # bumped on every visible change (watchers wait on it)
+
+    @property
+    def batches_per_tile(self) -> int:
+        return batch_count(self.settings.max_spp)
+
+    @property
+    def pixels(self) -> int:
+        return self.settings.width * self.settings.height
+
+
+@dataclass
+class WorkerSlot:
+    worker_id: str
+    credit: int
+    leases: dict[str, Lease] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Progress:
+    tiles_total: int
+    tiles_done: int
+    mean_spp: float
+    error: float
+    eta_s: float
+    samples_merged: int
+    elapsed_s: float
+
+
+class Scheduler:
+    def __init__(
+        self,
+        clock: Callable[[], float] = time.monotonic,
+        lease_s: float = 30.0,
+        max_task_failures: int = 3,
+    ):
+        self.clock = clock
+        self.lease_s = lease_s
+        self.max_task_failures = max_task_failures
+        self.jobs: dict[str, JobRun] = {}
+        self.workers: dict[str, WorkerSlot] = {}
+        self.leases: dict[str, Lease] = {}
+        self.events: list[Event] = []
+        self.cancellations: dict[str, list[str]] = {}  # worker -> task ids to cancel
+        self._task_ids = itertools.count(1)
+
+    # ----------------------------------------------------------------------------- jobs
+    def add_job(
+        self,
+        job_id: str,
+        settings: JobSettings,
+        scene_sha256: str,
+        checkpoint: dict[int, TileAccumulator] | None = None,
+        state: JobState = JobState.QUEUED,
+        elapsed_s: float = 0.0,
+    ) -> JobRun:
+        """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery)."""
+        now = self.clock()
+        tiles = [
+            TileState(i, r, TileAccumulator(r.width, r.height))
+            for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
+        ]
+        job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state)
+        if state == JobState.RUNNING:
+            job.started = now - elapsed_s
+        for index, acc in (checkpoint or {}).items():
+            tile = tiles[index]
+            tile.acc = acc
+            tile.next_batch = acc.batches
+            job.samples_merged += acc.samples * tile.rect.pixels
+            if acc.batches:
+                tile.error = acc.tile_error()
+                self._decide_stop(job, tile)
+        self.jobs[job_id] = job
+        self._maybe_finish(job)
+        return job
+
+    def cancel_job(self, job_id: str) -> JobRun:
+        job = self.jobs[job_id]
+        if not job.state.finished:
+            self._finish(job, JobState.CANCELLED)
+        return job
+
+    def fail_job(self, job_id: str, message: str) -> None:
+        job = self.jobs[job_id]
+        if not job.state.finished:
+            job.error_message = message
+            self._finish(job, JobState.FAILED)
+
+    def forget_job(self, job_id: str) -> None:
+        """Drop a finished job's in-memory state."""
+        job = self.jobs.get(job_id)
+        if job is not None and job.state.finished:
+            del self.jobs[job_id]
+
+    def progress(self, job: JobRun) -> Progress:
+        now = self.clock()
+        done = sum(t.stopped for t in job.tiles)
+        mean_spp = sum(t.acc.samples * t.rect.pixels for t in job.tiles) / job.pixels
+        errors = [t.error for t in job.tiles if t.merged]
+        error = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf
+        elapsed = 0.0 if job.started is None else (job.finished or now) - job.started
+        return Progress(
+            tiles_total=len(job.tiles),
+            tiles_done=done,
+            mean_spp=mean_spp,
+            error=error,
+            eta_s=self._eta(job, elapsed, error),
+            samples_merged=job.samples_merged,
+            elapsed_s=elapsed,
+        )
+
+    def _eta(self, job: JobRun, elapsed: float, error: float) -> float:
+        """Seconds to completion from the measured rates; -1 when unknown.
+
+        Two bounds, whichever comes first: Monte Carlo error falls as 1/sqrt(samples), so the
+        noise target needs elapsed * ((error / threshold)^2 - 1) more seconds; max_spp needs the
+        remaining samples at the measured sample rate. A time limit caps both.
+        """
+        if job.state.finished:
+            return 0.0
+        if job.samples_merged == 0 or elapsed <= 0:
+            return -1.0
+        rate = job.samples_merged / elapsed
+        remaining = sum(
+            (job.settings.max_spp - t.acc.samples) * t.rect.pixels
+            for t in job.tiles
+            if not t.stopped
+        )
+        eta = remaining / rate
+        threshold = job.settings.noise_threshold
+        if threshold > 0 and math.isfinite(error):
+            eta = min(eta, elapsed * max(0.0, (error / threshold) ** 2 - 1.0))
+        if job.settings.time_limit_s > 0:
+            eta = min(eta, max(0.0, job.settings.time_limit_s - elapsed))
+        return eta
+
+    # -------------------------------------------------------------------------- workers
+    def add_worker(self, worker_id: str, credit: int) -> None:
+        if worker_id in self.workers:
+            self.remove_worker(worker_id)
+        self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit))
+
+    def remove_worker(self, worker_id: str) -> list[Lease]:
+        """A worker left (stream closed): hand its leases back to their tiles."""
+        slot = self.workers.pop(worker_id, None)
+        if slot is None:
+            return []
+        lost = list(slot.leases.values())
+        for lease in lost:
+            self._release(lease, requeue=True)
+        self.cancellations.pop(worker_id, None)
+        for job in self.jobs.values():
+            self._check_renderable(job)
+        return lost
+
+    def heartbeat(self, worker_id: str) -> None:
+        """A heartbeat extends every lease of the worker."""
+        slot = self.workers.get(worker_id)
+        if slot is None:
+            return
+        deadline = self.clock() + self.lease_s
+        for lease in slot.leases.values():
+            lease.deadline = deadline
+
+    def expire_leases(self) -> list[Lease]:
+        """Re-queue the batches of leases past their deadline (hung or cut-off workers)."""
+        now = self.clock()
+        expired = [lease for lease in self.leases.values() if lease.deadline < now]
+        for lease in expired:
+            self._release(lease, requeue=True)
+            self.cancellations.setdefault(lease.worker_id, []).append(lease.task_id)
+        return expired
+
+    def tick(self) -> None:
+        """Apply time limits and expire leases; call about once a second."""
+        now = self.clock()
+        for job in list(self.jobs.values()):
+            limit = job.settings.time_limit_s
+            if job.started is not None and not job.state.finished and limit > 0:
+                if now - job.started >= limit:
+                    for tile in job.tiles:
+                        if not tile.stopped:
+                            self._stop_tile(job, tile, StopReason.TIME_LIMIT)
+                    self._maybe_finish(job)
+        self.expire_leases()
+
+    # ------------------------------------------------------------------------- dispatch
+    def assign(self, worker_id: str) -> list[Lease]:
+        """Lease tasks to the worker up to its credit; returns the new leases."""
+        slot = self.workers.get(worker_id)
+        if slot is None:
+            return []
+        new: list[Lease] = []
+        while len(slot.leases) < slot.credit:
+            lease = self._next_task(slot)
+            if lease is None:
+                break
+            new.append(lease)
+        return new
+
+    def _job_order(self, worker_id: str) -> list[JobRun]:
+        """Priority first, then fair share (fewest leases out), then submission order."""
+        live = [
+            j
+            for j in self.jobs.values()
+            if not j.state.finished and worker_id not in j.excluded_workers
+        ]
+        return sorted(live, key=lambda j: (-j.settings.priority, j.leased, j.created))
+
+    def _next_task(self, slot: WorkerSlot) -> Lease | None:
+        for job in self._job_order(slot.worker_id):
+            pick = self._pick_tile_batch(job)
+            if pick is not None:
+                tile, batch = pick
+                return self._lease(job, tile, batch, slot)
+        return None
+
+    def _pick_tile_batch(self, job: JobRun) -> tuple[TileState, int] | None:
+        """The unconverged tile whose error x cost is largest, preferring tiles with no work
+        out; tiles never merged count as infinitely noisy so a full preview comes first."""
+        total = job.batches_per_tile
+        mean_cost = [t.seconds_per_sample for t in job.tiles if t.seconds_per_sample > 0]
+        default_cost = sum(mean_cost) / len(mean_cost) if mean_cost else 1.0
+        best_key = None
+        best: tuple[TileState, int] | None = None
+        for tile in job.tiles:
+            if tile.stopped:
+                continue
+            if tile.requeue:
+                batch = min(tile.requeue)
+            elif tile.next_batch < total:
+                batch = tile.next_batch
+            else:
+                continue
+            depth = len(tile.in_flight) + len(tile.pending)
+            if depth > SPECULATION_DEPTH:
+                continue
+            cost = tile.seconds_per_sample or default_cost
+            urgency = tile.error * cost if math.isfinite(tile.error) else math.inf
+            key = (depth, -urgency, tile.merged, tile.index)
+            if best_key is None or key < best_key:
+                best_key, best = key, (tile, batch)
+        return best
+
+    def _lease(self, job: JobRun, tile: TileState, batch: int, slot: WorkerSlot) -> Lease:
+        start, count = batch_range(batch, job.settings.max_spp)
+        lease = Lease(
+            task_id=f"t{next(self._task_ids)}",
+            job_id=job.job_id,
+            tile_index=tile.index,
+            batch_index=batch,
+            sample_start=start,
+            sample_count=count,
+            rect=tile.rect,
+            worker_id=slot.worker_id,
+            deadline=self.clock() + self.lease_s,
+        )
+        tile.requeue.discard(batch)
+        tile.next_batch = max(tile.next_batch, batch + 1)
+        tile.in_flight[batch] = lease.task_id
+        slot.leases[lease.task_id] = lease
+        self.leases[lease.task_id] = lease
+        job.leased += 1
+        if job.state == JobState.QUEUED:
+            job.state = JobState.RUNNING
+            job.started = self.clock()
+            job.version += 1
+            self.events.append(Event("job_started", job.job_id, {}))
+        return lease
+
+    def _release(self, lease: Lease, requeue: bool) -> None:
+        self.leases.pop(lease.task_id, None)
+        slot = self.workers.get(lease.worker_id)
+        if slot is not None:
+            slot.leases.pop(lease.task_id, None)
+        job = self.jobs.get(lease.job_id)
+        if job is None:
+            return
+        job.leased -= 1
+        tile = job.tiles[lease.tile_index]
+        if tile.in_flight.get(lease.batch_index) == lease.task_id:
+            del tile.in_flight[lease.batch_index]
+            if requeue and not tile.stopped and lease.batch_index >= tile.merged:
+                if lease.batch_index not in tile.pending:
+                    tile.requeue.add(lease.batch_index)
+
+    # -------------------------------------------------------------------------- results
+    def complete(self, task_id: str, result: BatchResult) -> str:
+        """Take a result. Returns "merged", "pending" (waits for earlier batches) or why it
+        was discarded ("duplicate", "tile stopped", "unknown job", "mismatch: ...")."""
+        lease = self.leases.get(task_id)
+        if lease is not None:
+            self._release(lease, requeue=False)
+        job = self.jobs.get(result.job_id)
+        if job is None or job.state.finished:
+            return "unknown job"
+        if not 0 <= result.tile_index < len(job.tiles):
+            return "mismatch: tile index"
+        tile = job.tiles[result.tile_index]
+        problem = self._check_shape(job, tile, result)
+        if problem:
+            return "mismatch: " + problem
+        if result.render_seconds > 0:
+            cost = result.render_seconds / (result.sample_count * tile.rect.pixels)
+            tile.seconds_per_sample = (
+                cost if tile.seconds_per_sample == 0 else 0.7 * tile.seconds_per_sample + 0.3 * cost
+            )
+        if tile.stopped:
+            return "tile stopped"
+        b = result.batch_index
+        if b < tile.merged or b in tile.pending:
+            return "duplicate"
+        tile.requeue.discard(b)
+        # A re-leased copy of this batch is now redundant.
+        other = tile.in_flight.pop(b, None)
+        if other is not None and other in self.leases:
+            redundant = self.leases[other]
+            self._release(redundant, requeue=False)
+            self.cancellations.setdefault(redundant.worker_id, []).append(other)
+        tile.pending[b] = result
+        outcome = "pending"
+        while tile.merged in tile.pending and not tile.stopped:
+            r = tile.pending.pop(tile.merged)
+            tile.acc.merge_batch(
+                r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite
+            )
+            job.samples_merged += r.sample_count * tile.rect.pixels
+            tile.error = tile.acc.tile_error()
+            tile.dirty = True
+            outcome = "merged" if r is result or outcome == "merged" else outcome
+            self._decide_stop(job, tile)
+        job.version += 1
+        self._maybe_finish(job)
+        return outcome
+
+    def _check_shape(self, job: JobRun, tile: TileState, r: BatchResult) -> str:
+        start, count = batch_range(r.batch_index, job.settings.max_spp)
+        if count == 0 or (r.sample_start, r.sample_count) != (start, count):
+            return f"batch {r.batch_index} covers samples {start}+{count}"
+        if r.rect != tile.rect:
+            return "tile rectangle"
+        if r.rgb_sum.size != tile.rect.pixels * 3 or r.luminance_m2.size != tile.rect.pixels:
+            return "array sizes"
+        return ""
+
+    def _decide_stop(self, job: JobRun, tile: TileState) -> None:
+        """The stop rule; uses only this tile's merged batches (0..merged-1)."""
+        s = job.settings
+        n = tile.acc.samples
+        if n >= s.max_spp:
+            self._stop_tile(job, tile, StopReason.MAX_SPP)
+        elif s.noise_threshold > 0 and n >= s.min_spp and tile.error < s.noise_threshold:
+            self._stop_tile(job, tile, StopReason.CONVERGED)
+
+    def _stop_tile(self, job: JobRun, tile: TileState, reason: StopReason) -> None:
+        tile.stop = StopRecord(tile.index, tile.merged - 1, tile.acc.samples, tile.error, reason)
+        tile.dirty = True
+        tile.pending.clear()
+        tile.requeue.clear()
+        for task_id in list(tile.in_flight.values()):
+            lease = self.leases.get(task_id)
+            if lease is not None:
+                self._release(lease, requeue=False)
+                self.cancellations.setdefault(lease.worker_id, []).append(task_id)
+        tile.in_flight.clear()
+        job.version += 1
+        self.events.append(
+            Event(
+                "tile_stopped",
+                job.job_id,
+                {
+                    "tile": tile.index,
+                    "batch": tile.stop.batch_index,
+                    "spp": tile.stop.spp,
+                    "error": tile.stop.error,
+                    "reason": reason.value,
+                },
+            )
+        )
+
+    def _maybe_finish(self, job: JobRun) -> None:
+        if not job.state.finished and all(t.stopped for t in job.tiles):
+            self._finish(job, JobState.COMPLETED)
+
+    def _finish(self, job: JobRun, state: JobState) -> None:
+        if job.state == JobState.QUEUED and state == JobState.COMPLETED:
+            job.started = self.clock()
+        job.state = state
+        job.finished = self.clock()
+        job.version += 1
+        for tile in job.tiles:
+            if state == JobState.CANCELLED and not tile.stopped:
+                tile.requeue.clear()
+                tile.pending.clear()
+            for task_id in list(tile.in_flight.values()):
+                lease = self.leases.get(task_id)
+                if lease is not None:
+                    self._release(lease, requeue=False)
+                    self.cancellations.setdefault(lease.worker_id, []).append(task_id)
+            tile.in_flight.clear()
+        self.events.append(
+            Event("job_finished", job.job_id, {"state": state.value, "error": job.error_message})
+        )
+
+    # ------------------------------------------------------------------------- failures
+    def failed(self, task_id: str, error: str, retryable: bool) -> None:
+        """A worker could not render a task: re-queue it; after max_task_failures failures (or
+        one non-retryable one) keep that worker off the job; fail the job when no connected
+        worker may render it."""
+        lease = self.leases.get(task_id)
+        if lease is None:
+            return
+        self._release(lease, requeue=True)
+        job = self.jobs.get(lease.job_id)
+        if job is None or job.state.finished:
+            return
+        count = job.failures.get(lease.worker_id, 0) + 1
+        job.failures[lease.worker_id] = count
+        self.events.append(
+            Event("task_failed", job.job_id, {"worker": lease.worker_id, "error": error})
+        )
+        if not retryable or count >= self.max_task_failures:
+            job.excluded_workers.add(lease.worker_id)
+            job.error_message = error
+            self.events.append(
+                Event("worker_excluded", job.job_id, {"worker": lease.worker_id, "error": error})
+            )
+            self._check_renderable(job)
+
+    def _check_renderable(self, job: JobRun) -> None:
+        if job.state.finished or not job.excluded_workers:
+            return
+        if self.workers and all(w in job.excluded_workers for w in self.workers):
+            self.fail_job(job.job_id, f"no worker can render this job: {job.error_message}")
+
+    # ---------------------------------------------------------------------------- drain
+    def take_events(self) -> list[Event]:
+        events, self.events = self.events, []
+        return events
+
+    def take_cancellations(self, worker_id: str) -> list[str]:
+        return self.cancellations.pop(worker_id, [])

@@ -1,0 +1,86 @@
+"""Running the server: embedded or external PostgreSQL, REST (uvicorn) and gRPC on one loop."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from collections.abc import Awaitable, Callable
+
+import uvicorn
+
+from .config import Settings
+from .embedded_db import EmbeddedPostgres
+from .grpc_api import start_grpc
+from .metrics import Metrics
+from .rest import create_app
+from .service import FarmService
+from .store import Store
+
+log = logging.getLogger(__name__)
+
+
+async def serve(
+    settings: Settings,
+    on_ready: Callable[[int, int], Awaitable[None]] | None = None,
+    stop_event: asyncio.Event | None = None,
+) -> None:
+    """Run until SIGINT/SIGTERM (or stop_event). on_ready(http_port, grpc_port) runs once both
+    APIs listen (the local farm starts its workers there)."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    embedded = None
+    url = settings.database_url
+    if not url:
+        embedded = EmbeddedPostgres(settings.data_dir)
+        url = await asyncio.to_thread(embedded.start)
+    store = Store(url)
+    try:
+        await store.open()
+        farm = FarmService(settings, store)
+        metrics = Metrics(farm)
+        farm.metrics = metrics
+        await farm.start()
+        grpc_server, grpc_port = await start_grpc(farm, settings.grpc_host, settings.grpc_port)
+        app = create_app(farm, metrics)
+        config = uvicorn.Config(
+            app,
+            host=settings.http_host,
+            port=settings.http_port,
+            log_level="warning",
+            lifespan="off",
+            timeout_graceful_shutdown=3,
+        )
+        http = uvicorn.Server(config)
+        http.install_signal_handlers = lambda: None  # we handle signals below
+        stop = stop_event or asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, stop.set)
+        http_task = asyncio.create_task(http.serve())
+        while not http.started:
+            if http_task.done():
+                http_task.result()
+                raise OSError(
+                    f"cannot listen for HTTP on {settings.http_host}:{settings.http_port}"
+                )
+            await asyncio.sleep(0.02)
+        http_port = http.servers[0].sockets[0].getsockname()[1]
+        log.info(
+            "renderfarm server ready: http://%s:%d  gRPC %s:%d",
+            settings.http_host, http_port, settings.grpc_host, grpc_port,
+        )  # fmt: skip
+        if on_ready is not None:
+            await on_ready(http_port, grpc_port)
+        await stop.wait()
+        log.info("shutting down")
+        await farm.stop()
+        http.should_exit = True
+        await grpc_server.stop(grace=2)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(http_task, timeout=5)
+    finally:
+        await store.close()
+        if embedded is not None:
+            await asyncio.to_thread(embedded.stop)

@@ -1,0 +1,637 @@
+"""FarmService: the one place where API calls, worker streams, the scheduler and the store meet.
+
+Everything runs on one asyncio event loop: the scheduler is plain Python without locks, merges
+are vectorised numpy on tiles (tens of microseconds), and every database call is awaited, so a
+slow database never blocks a merge. REST and gRPC handlers are thin: they parse, call a method
+here, and map the errors below to status codes.
+
+Durability: a submission is acknowledged only after its scene and job rows are committed. Merged
+tiles are checkpointed every `checkpoint_interval_s` by a background task (only tiles that
+changed), and immediately when a job finishes. On start, unfinished jobs resume from their
+checkpoints.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import secrets
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+
+from . import images
+from .config import Settings
+from .jobspec import JobSettings, SettingsError, parse_settings
+from .merge import TileAccumulator
+from .scenes import SceneError, inspect_scene
+from .scheduler import BatchResult, JobRun, Lease, Scheduler
+from .states import JobState, StopReason
+from .store import JobRow, Store, TileRow
+from .tiling import Rect, tile_grid
+
+log = logging.getLogger(__name__)
+
+SCENE_CHUNK_BYTES = 1 << 20
+
+
+class NotFound(LookupError):
+    def __init__(self, what: str):
+        super().__init__(what)
+        self.message = what
+
+
+class TooLarge(ValueError):
+    def __init__(self, field_name: str, message: str):
+        super().__init__(message)
+        self.field = field_name
+        self.message = message
+
+
+class Unauthenticated(PermissionError):
+    pass
+
+
+@dataclass(frozen=True)
+class ProgressView:
+    tiles_total: int
+    tiles_done: int
+    mean_spp: float
+    error: float | None
+    eta_s: float | None
+    samples_merged: int
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class JobView:
+    """A job as the APIs show it (REST JSON and the gRPC Job message are built from this)."""
+
+    id: str
+    name: str
+    state: JobState
+    settings: JobSettings
+    scene_sha256: str
+    progress: ProgressView
+    error: str
+    created_unix_s: float
+    finished_unix_s: float | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "state": self.state.value,
+            "settings": self.settings.to_dict(),
+            "scene_sha256": self.scene_sha256,
+            "progress": self.progress.__dict__,
+            "error": self.error,
+            "created_unix_s": self.created_unix_s,
+            "finished_unix_s": self.finished_unix_s,
+        }
+
+
+@dataclass
+class WorkerSession:
+    worker_id: str
+    hostname: str
+    cores: int
+    version: str
+    outbox: asyncio.Queue = field(default_factory=asyncio.Queue)
+    connected_unix_s: float = field(default_factory=time.time)
+    last_heartbeat_unix_s: float = field(default_factory=time.time)
+    samples_per_s: float = 0.0
+    rays_per_s: float = 0.0
+    busy_threads: int = 0
+    tasks_done: int = 0
+
+
+def _finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+class FarmService:
+    def __init__(self, settings: Settings, store: Store):
+        self.settings = settings
+        self.store = store
+        self.scheduler = Scheduler(
+            clock=time.time, lease_s=settings.lease_s, max_task_failures=settings.max_task_failures
+        )
+        self.sessions: dict[str, WorkerSession] = {}
+        self.names: dict[str, str] = {}  # job id -> name for live jobs
+        self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
+        self._changed = asyncio.Condition()
+        self._tasks: list[asyncio.Task] = []
+        self._last_checkpoint = time.time()
+        self.metrics = None  # a metrics.Metrics, set by the server
+        self.ready = False
+
+    # ------------------------------------------------------------------------- lifecycle
+    async def start(self) -> None:
+        await self.store.mark_all_workers_disconnected()
+        await self._resume_unfinished()
+        self._tasks.append(asyncio.create_task(self._background(), name="farm-background"))
+        self.ready = True
+
+    async def stop(self) -> None:
+        self.ready = False
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        await self.checkpoint(force=True)
+        for session in list(self.sessions.values()):
+            session.outbox.put_nowait(None)
+
+    async def _resume_unfinished(self) -> None:
+        for row in await self.store.unfinished_jobs():
+            settings = JobSettings(**row.settings)
+            checkpoint = {}
+            rects = tile_grid(settings.width, settings.height, settings.tile_size)
+            for t in await self.store.load_tiles(row.id):
+                rect = rects[t.tile_index]
+                checkpoint[t.tile_index] = TileAccumulator.from_bytes(
+                    rect.width, rect.height, t.accumulators, t.samples, t.batches, t.nonfinite
+                )
+            self.scheduler.add_job(
+                row.id,
+                settings,
+                row.scene_sha256,
+                checkpoint=checkpoint,
+                state=JobState(row.state),
+                elapsed_s=row.elapsed_s,
+            )
+            self.scheduler.take_events()  # the stops were recorded before the restart
+            self.names[row.id] = row.name
+            self.created[row.id] = row.created_at.timestamp()
+            merged = sum(acc.batches for acc in checkpoint.values())
+            log.info("resumed job %s from its checkpoint (%d batches merged)", row.id, merged)
+        await self._after_change()
+
+    async def _background(self) -> None:
+        while True:
+            await asyncio.sleep(0.25)
+            try:
+                self.scheduler.tick()
+                await self._after_change()
+                if time.time() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
+                    await self.checkpoint()
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # keep serving; the next round retries the writes
+                log.exception("background round failed")
+
+    # ---------------------------------------------------------------------------- jobs
+    async def submit(
+        self,
+        *,
+        scene_data: bytes | None,
+        scene_sha256: str | None,
+        filename: str,
+        name: str,
+        raw_settings: dict[str, Any] | None,
+    ) -> JobView:
+        settings = parse_settings(raw_settings, self.settings.limits())
+        if scene_data is not None and scene_sha256:
+            raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
+        if scene_data is not None:
+            if len(scene_data) > self.settings.max_upload_bytes:
+                raise TooLarge(
+                    "scene",
+                    f"scene is {len(scene_data)} bytes, more than the server's limit of "
+                    f"{self.settings.max_upload_bytes} bytes",
+                )
+            info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
+            await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
+            sha = info.sha256
+        elif scene_sha256:
+            sha = scene_sha256.strip().lower()
+            if await self.store.get_scene_info(sha) is None:
+                raise NotFound(f"no stored scene with sha256 {sha}")
+            stored = await self.store.get_scene_info(sha)
+            filename = filename or stored["filename"]
+        else:
+            raise SettingsError(
+                "scene", "a scene is required: upload a .glb/.gltf or give scene_sha256"
+            )
+        job_id = secrets.token_hex(6)
+        name = (name or filename or "job").strip()[:200]
+        tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+        row = await self.store.insert_job(job_id, name, settings.to_dict(), sha, tiles)
+        # Stored and committed: only now does the job exist for the scheduler and the caller.
+        self.names[job_id] = name
+        self.created[job_id] = row.created_at.timestamp()
+        self.scheduler.add_job(job_id, settings, sha)
+        await self._after_change()
+        return await self.get(job_id)
+
+    async def get(self, job_id: str) -> JobView:
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None:
+            return self._live_view(job)
+        row = await self.store.get_job(job_id)
+        if row is None:
+            raise NotFound(f"no job with id {job_id!r}")
+        return self._row_view(row)
+
+    async def list(
+        self, state: JobState | None, page_size: int, page_token: str
+    ) -> tuple[list[JobView], str]:
+        page_size = max(1, min(page_size or 50, 500))
+        after = None
+        if page_token:
+            try:
+                stamp, _, last_id = page_token.partition("|")
+                after = (datetime.fromisoformat(stamp), last_id)
+            except ValueError:
+                raise SettingsError(
+                    "page_token", "page_token is not one this server issued"
+                ) from None
+        rows = await self.store.list_jobs(state.value if state else None, page_size + 1, after)
+        more = len(rows) > page_size
+        rows = rows[:page_size]
+        views = []
+        for row in rows:
+            live = self.scheduler.jobs.get(row.id)
+            views.append(self._live_view(live) if live is not None else self._row_view(row))
+        token = f"{rows[-1].created_at.isoformat()}|{rows[-1].id}" if more else ""
+        return views, token
+
+    async def cancel(self, job_id: str) -> JobView:
+        job = self.scheduler.jobs.get(job_id)
+        if job is None:
+            view = await self.get(job_id)  # raises NotFound
+            return view  # already finished: cancelling is a no-op
+        self.scheduler.cancel_job(job_id)
+        await self._after_change()
+        return await self.get(job_id)
+
+    async def watch(self, job_id: str) -> AsyncIterator[JobView]:
+        """The job now, then after every visible change, until it is finished."""
+        view = await self.get(job_id)
+        yield view
+        last = None
+        while not view.state.finished:
+            job = self.scheduler.jobs.get(job_id)
+            version = job.version if job else None
+            async with self._changed:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(
+                        self._changed.wait_for(
+                            lambda seen=version: (
+                                (self.scheduler.jobs.get(job_id) is None)
+                                or self.scheduler.jobs[job_id].version != seen
+                            )
+                        ),
+                        timeout=5.0,
+                    )
+            view = await self.get(job_id)
+            if view != last:
+                yield view
+                last = view
+
+    async def events(self, job_id: str) -> list[dict[str, Any]]:
+        await self.get(job_id)
+        rows = await self.store.list_events(job_id)
+        return [
+            {"id": r["id"], "kind": r["kind"], "data": r["data"], "at": r["at"].timestamp()}
+            for r in rows
+        ]
+
+    def _live_view(self, job: JobRun) -> JobView:
+        p = self.scheduler.progress(job)
+        return JobView(
+            id=job.job_id,
+            name=self.names.get(job.job_id, ""),
+            state=job.state,
+            settings=job.settings,
+            scene_sha256=job.scene_sha256,
+            progress=ProgressView(
+                tiles_total=p.tiles_total,
+                tiles_done=p.tiles_done,
+                mean_spp=p.mean_spp,
+                error=_finite_or_none(p.error),
+                eta_s=p.eta_s if p.eta_s >= 0 else None,
+                samples_merged=p.samples_merged,
+                elapsed_s=p.elapsed_s,
+            ),
+            error=job.error_message if job.state == JobState.FAILED else "",
+            created_unix_s=self.created.get(job.job_id, job.created),
+            finished_unix_s=job.finished,
+        )
+
+    def _row_view(self, row: JobRow) -> JobView:
+        return JobView(
+            id=row.id,
+            name=row.name,
+            state=JobState(row.state),
+            settings=JobSettings(**row.settings),
+            scene_sha256=row.scene_sha256,
+            progress=ProgressView(
+                tiles_total=row.tiles_total,
+                tiles_done=row.tiles_done,
+                mean_spp=row.mean_spp,
+                error=row.error_estimate,
+                eta_s=0.0 if JobState(row.state).finished else None,
+                samples_merged=row.samples_merged,
+                elapsed_s=row.elapsed_s,
+            ),
+            error=row.error,
+            created_unix_s=row.created_at.timestamp(),
+            finished_unix_s=row.finished_at.timestamp() if row.finished_at else None,
+        )
+
+    # -------------------------------------------------------------------------- images
+    async def frame(self, job_id: str) -> images.Frame:
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None:
+            tiles = [(t.rect, t.acc) for t in job.tiles]
+            return images.assemble(job.settings.width, job.settings.height, tiles)
+        row = await self.store.get_job(job_id)
+        if row is None:
+            raise NotFound(f"no job with id {job_id!r}")
+        settings = JobSettings(**row.settings)
+        rects = tile_grid(settings.width, settings.height, settings.tile_size)
+        tiles: list[tuple[Rect, TileAccumulator]] = []
+        for t in await self.store.load_tiles(job_id):
+            rect = rects[t.tile_index]
+            acc = TileAccumulator.from_bytes(
+                rect.width, rect.height, t.accumulators, t.samples, t.batches, t.nonfinite
+            )
+            tiles.append((rect, acc))
+        return images.assemble(settings.width, settings.height, tiles)
+
+    async def image(self, job_id: str, fmt: str, layer: str = "rgb") -> bytes:
+        if fmt not in ("png", "exr"):
+            raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
+        if layer not in images.LAYERS:
+            raise SettingsError(
+                "layer", f"unknown layer {layer!r}; one of {', '.join(images.LAYERS)}"
+            )
+        frame = await self.frame(job_id)
+        loop = asyncio.get_running_loop()
+        if fmt == "exr":
+            return await loop.run_in_executor(None, images.to_exr_bytes, frame)
+        return await loop.run_in_executor(None, images.layer_png_bytes, frame, layer)
+
+    # -------------------------------------------------------------------------- scenes
+    async def scene_info(self, sha256: str) -> dict[str, Any]:
+        info = await self.store.get_scene_info(sha256.strip().lower())
+        if info is None:
+            raise NotFound(f"no stored scene with sha256 {sha256}")
+        return info
+
+    async def scene_chunks(self, sha256: str) -> AsyncIterator[tuple[int, bytes]]:
+        info = await self.scene_info(sha256)
+        offset = 0
+        while offset < info["size_bytes"]:
+            data = await self.store.read_scene(info["sha256"], offset, SCENE_CHUNK_BYTES)
+            if not data:
+                break
+            yield offset, data
+            offset += len(data)
+
+    # ------------------------------------------------------------------------- workers
+    async def worker_hello(
+        self,
+        worker_id: str,
+        hostname: str,
+        cores: int,
+        max_in_flight: int,
+        version: str,
+        token: str,
+    ) -> WorkerSession:
+        if self.settings.worker_token and not secrets.compare_digest(
+            token.encode(), self.settings.worker_token.encode()
+        ):
+            raise Unauthenticated("wrong or missing worker token")
+        worker_id = (worker_id or f"worker-{secrets.token_hex(3)}")[:100]
+        if worker_id in self.sessions:  # a reconnect racing its old stream, or a clash
+            old = self.sessions.pop(worker_id)
+            old.outbox.put_nowait(None)
+            self.scheduler.remove_worker(worker_id)
+        session = WorkerSession(worker_id, hostname[:200], max(1, cores), version[:50])
+        self.sessions[worker_id] = session
+        self.scheduler.add_worker(worker_id, max(1, min(max_in_flight or cores + 2, 256)))
+        await self.store.worker_connected(
+            worker_id, session.hostname, session.cores, session.version
+        )
+        log.info("worker %s connected (%d cores)", worker_id, session.cores)
+        await self._after_change()
+        return session
+
+    async def worker_gone(self, session: WorkerSession) -> None:
+        if self.sessions.get(session.worker_id) is not session:
+            return
+        del self.sessions[session.worker_id]
+        lost = self.scheduler.remove_worker(session.worker_id)
+        log.info("worker %s disconnected, %d tasks re-queued", session.worker_id, len(lost))
+        with contextlib.suppress(Exception):
+            await self.store.worker_disconnected(session.worker_id)
+        await self._after_change()
+
+    async def worker_heartbeat(
+        self, session: WorkerSession, samples_per_s: float, rays_per_s: float, busy: int
+    ) -> None:
+        session.last_heartbeat_unix_s = time.time()
+        session.samples_per_s, session.rays_per_s, session.busy_threads = (
+            samples_per_s,
+            rays_per_s,
+            busy,
+        )
+        self.scheduler.heartbeat(session.worker_id)
+
+    async def worker_result(self, session: WorkerSession, task_id: str, result: BatchResult) -> str:
+        started = time.perf_counter()
+        outcome = self.scheduler.complete(task_id, result)
+        if self.metrics is not None:
+            self.metrics.merge_seconds.observe(time.perf_counter() - started)
+            self.metrics.tasks_completed.labels(outcome.split(":")[0]).inc()
+            self.metrics.task_seconds.observe(result.render_seconds)
+            if outcome in ("merged", "pending"):
+                self.metrics.samples_merged.inc(result.sample_count * result.rect.pixels)
+        session.tasks_done += 1
+        if outcome not in ("merged", "pending"):
+            log.debug("result %s of job %s discarded: %s", task_id, result.job_id, outcome)
+        await self._after_change()
+        return outcome
+
+    async def worker_failed(
+        self, session: WorkerSession, task_id: str, error: str, retryable: bool
+    ):
+        log.warning("worker %s failed task %s: %s", session.worker_id, task_id, error)
+        self.scheduler.failed(task_id, error[:2000], retryable)
+        await self._after_change()
+
+    def workers(self) -> list[dict[str, Any]]:
+        return [
+            {
+                "id": s.worker_id,
+                "hostname": s.hostname,
+                "cores": s.cores,
+                "version": s.version,
+                "connected_unix_s": s.connected_unix_s,
+                "last_heartbeat_unix_s": s.last_heartbeat_unix_s,
+                "tasks_in_flight": len(self.scheduler.workers.get(s.worker_id).leases)
+                if s.worker_id in self.scheduler.workers
+                else 0,
+                "tasks_done": s.tasks_done,
+                "samples_per_s": s.samples_per_s,
+                "rays_per_s": s.rays_per_s,
+                "busy_threads": s.busy_threads,
+            }
+            for s in self.sessions.values()
+        ]
+
+    # -------------------------------------------------------------------- after changes
+    async def _after_change(self) -> None:
+        """Send cancellations and new leases, store events, finish jobs, wake watchers."""
+        for worker_id, session in self.sessions.items():
+            cancels = self.scheduler.take_cancellations(worker_id)
+            if cancels:
+                session.outbox.put_nowait(("cancel", cancels))
+            for lease in self.scheduler.assign(worker_id):
+                session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))
+        events = self.scheduler.take_events()
+        finished = [e.job_id for e in events if e.kind == "job_finished"]
+        if events:
+            await self.store.add_events([(e.job_id, e.kind, e.data) for e in events])
+        for job_id in finished:
+            await self._persist_job(job_id, tiles=True)
+            self._forget_later(job_id)
+        async with self._changed:
+            self._changed.notify_all()
+
+    def _forget_later(self, job_id: str) -> None:
+        """Keep a finished job in memory for a minute (fast image requests), then drop it."""
+
+        async def forget() -> None:
+            await asyncio.sleep(60)
+            self.scheduler.forget_job(job_id)
+            self.names.pop(job_id, None)
+            self.created.pop(job_id, None)
+
+        self._tasks.append(asyncio.create_task(forget()))
+        self._tasks = [t for t in self._tasks if not t.done()]
+
+    async def checkpoint(self, force: bool = False) -> None:
+        """Write every tile merged since the last checkpoint, and each live job's progress."""
+        self._last_checkpoint = time.time()
+        for job in list(self.scheduler.jobs.values()):
+            if job.state.finished and not force:
+                continue
+            await self._persist_job(job.job_id, tiles=True)
+
+    async def _persist_job(self, job_id: str, tiles: bool) -> None:
+        job = self.scheduler.jobs.get(job_id)
+        if job is None:
+            return
+        rows = []
+        if tiles:
+            for t in job.tiles:
+                if t.dirty:
+                    t.dirty = False
+                    rows.append(_tile_row(t))
+        try:
+            await self.store.save_tiles(job_id, rows)
+        except Exception:
+            for t in job.tiles:  # not written: write again next round
+                if any(r.tile_index == t.index for r in rows):
+                    t.dirty = True
+            raise
+        p = self.scheduler.progress(job)
+        await self.store.update_job(
+            job_id,
+            state=job.state.value,
+            error=job.error_message if job.state == JobState.FAILED else "",
+            started=job.started,
+            finished=job.finished,
+            elapsed_s=p.elapsed_s,
+            samples_merged=p.samples_merged,
+            mean_spp=p.mean_spp,
+            error_estimate=_finite_or_none(p.error),
+            tiles_done=p.tiles_done,
+        )
+
+    def stop_records(self, job_id: str) -> list[dict[str, Any]]:
+        job = self.scheduler.jobs.get(job_id)
+        if job is None:
+            return []
+        return [
+            {
+                "tile": t.index,
+                "batch": t.stop.batch_index,
+                "spp": t.stop.spp,
+                "error": _finite_or_none(t.stop.error),
+                "reason": t.stop.reason.value,
+            }
+            for t in job.tiles
+            if t.stop is not None
+        ]
+
+
+def _tile_row(t) -> TileRow:
+    stop = t.stop
+    return TileRow(
+        tile_index=t.index,
+        samples=t.acc.samples,
+        batches=t.acc.batches,
+        nonfinite=t.acc.nonfinite,
+        error=t.error,
+        accumulators=t.acc.to_bytes(),
+        stop_batch=stop.batch_index if stop else None,
+        stop_spp=stop.spp if stop else None,
+        stop_error=stop.error if stop else None,
+        stop_reason=stop.reason.value if stop else None,
+    )
+
+
+def decode_result(msg) -> BatchResult:
+    """A TileResult protobuf message as numpy arrays (little-endian, row-major)."""
+    rect = Rect(msg.rect.x0, msg.rect.y0, msg.rect.width, msg.rect.height)
+    n = rect.pixels
+    rgb = np.frombuffer(msg.rgb_sum, dtype="<f8")
+    m2 = np.frombuffer(msg.luminance_m2, dtype="<f8")
+    albedo = np.frombuffer(msg.albedo_sum, dtype="<f4") if msg.albedo_sum else None
+    normal = np.frombuffer(msg.normal_sum, dtype="<f4") if msg.normal_sum else None
+    if albedo is not None and albedo.size != 3 * n:
+        albedo = None
+    if normal is not None and normal.size != 3 * n:
+        normal = None
+    return BatchResult(
+        job_id=msg.job_id,
+        tile_index=msg.tile_index,
+        batch_index=msg.batch_index,
+        sample_start=msg.sample_start,
+        sample_count=msg.sample_count,
+        rect=rect,
+        rgb_sum=rgb,
+        luminance_m2=m2,
+        albedo_sum=albedo,
+        normal_sum=normal,
+        nonfinite=msg.nonfinite_samples,
+        render_seconds=msg.render_seconds,
+        rays=msg.rays,
+    )
+
+
+__all__ = [
+    "FarmService",
+    "JobView",
+    "Lease",
+    "NotFound",
+    "SceneError",
+    "SettingsError",
+    "StopReason",
+    "TooLarge",
+    "Unauthenticated",
+    "WorkerSession",
+    "decode_result",
+]

@@ -1,0 +1,357 @@
+"""PostgreSQL: the only durable store. Every SQL statement of the server lives in this module.
+
+Schema changes are numbered files in migrations/ (NNNN_name.sql), applied in order at start in
+one transaction each, under an advisory lock so two servers starting together do not race. A
+database whose schema is newer than this code knows is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from importlib import resources
+from typing import Any
+
+import psycopg
+from psycopg.rows import dict_row
+from psycopg_pool import AsyncConnectionPool
+
+_MIGRATION_LOCK = 0x52464D31  # advisory lock key for migrations ("RFM1")
+
+
+class SchemaTooNew(RuntimeError):
+    pass
+
+
+def migrations() -> list[tuple[int, str, str]]:
+    """(version, name, sql) of every migration shipped with the package, in order."""
+    found = []
+    for entry in resources.files("renderfarm.migrations").iterdir():
+        match = re.fullmatch(r"(\d{4})_(\w+)\.sql", entry.name)
+        if match:
+            found.append((int(match.group(1)), match.group(2), entry.read_text()))
+    found.sort()
+    versions = [v for v, _, _ in found]
+    if versions != list(range(1, len(versions) + 1)):
+        raise RuntimeError(f"migrations must be numbered 1..N without gaps, found {versions}")
+    return found
+
+
+@dataclass(frozen=True)
+class JobRow:
+    id: str
+    name: str
+    state: str
+    settings: dict[str, Any]
+    scene_sha256: str
+    error: str
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    elapsed_s: float
+    samples_merged: int
+    mean_spp: float
+    error_estimate: float | None
+    tiles_total: int
+    tiles_done: int
+
+
+@dataclass(frozen=True)
+class TileRow:
+    tile_index: int
+    samples: int
+    batches: int
+    nonfinite: int
+    error: float | None
+    accumulators: bytes
+    stop_batch: int | None
+    stop_spp: int | None
+    stop_error: float | None
+    stop_reason: str | None
+
+
+_JOB_COLUMNS = (
+    "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
+    "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done"
+)
+
+
+class Store:
+    def __init__(self, url: str, min_size: int = 1, max_size: int = 8):
+        self.url = url
+        self.pool = AsyncConnectionPool(
+            url, min_size=min_size, max_size=max_size, open=False, kwargs={"autocommit": True}
+        )
+
+    async def open(self) -> None:
+        await self.pool.open(wait=True, timeout=30)
+        await self.migrate()
+
+    async def close(self) -> None:
+        await self.pool.close()
+
+    async def migrate(self) -> int:
+        """Apply pending migrations; return the schema version."""
+        known = migrations()
+        async with self.pool.connection() as conn:
+            await conn.execute("SELECT pg_advisory_lock(%s)", (_MIGRATION_LOCK,))
+            try:
+                await conn.execute(
+                    "CREATE TABLE IF NOT EXISTS schema_migrations ("
+                    " version integer PRIMARY KEY, name text NOT NULL,"
+                    " applied_at timestamptz NOT NULL DEFAULT now())"
+                )
+                cur = await conn.execute("SELECT coalesce(max(version), 0) FROM schema_migrations")
+                (current,) = await cur.fetchone()
+                if current > len(known):
+                    raise SchemaTooNew(
+                        f"the database schema is version {current}, newer than this server "
+                        f"knows ({len(known)}); upgrade the server instead of downgrading it"
+                    )
+                for version, name, sql in known[current:]:
+                    async with conn.transaction():
+                        await conn.execute(sql)
+                        await conn.execute(
+                            "INSERT INTO schema_migrations (version, name) VALUES (%s, %s)",
+                            (version, name),
+                        )
+                return len(known)
+            finally:
+                await conn.execute("SELECT pg_advisory_unlock(%s)", (_MIGRATION_LOCK,))
+
+    async def ping(self) -> None:
+        async with self.pool.connection(timeout=5) as conn:
+            await conn.execute("SELECT 1")
+
+    # ----------------------------------------------------------------------------- scenes
+    async def put_scene(self, sha256: str, fmt: str, filename: str, data: bytes) -> None:
+        async with self.pool.connection() as conn:
+            await conn.execute(
+                "INSERT INTO scenes (sha256, format, filename, size_bytes, data)"
+                " VALUES (%s, %s, %s, %s, %s) ON CONFLICT (sha256) DO NOTHING",
+                (sha256, fmt, filename, len(data), data),
+            )
+
+    async def get_scene_info(self, sha256: str) -> dict[str, Any] | None:
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "SELECT sha256, format, filename, size_bytes FROM scenes WHERE sha256 = %s",
+                (sha256,),
+            )
+            return await cur.fetchone()
+
+    async def read_scene(self, sha256: str, offset: int, length: int) -> bytes:
+        async with self.pool.connection() as conn:
+            cur = await conn.execute(
+                "SELECT substring(data FROM %s FOR %s) FROM scenes WHERE sha256 = %s",
+                (offset + 1, length, sha256),
+            )
+            row = await cur.fetchone()
+            return bytes(row[0]) if row else b""
+
+    # ------------------------------------------------------------------------------- jobs
+    async def insert_job(
+        self, job_id: str, name: str, settings: dict[str, Any], scene_sha256: str, tiles: int
+    ) -> JobRow:
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "INSERT INTO jobs (id, name, state, settings, scene_sha256, tiles_total)"
+                f" VALUES (%s, %s, 'queued', %s, %s, %s) RETURNING {_JOB_COLUMNS}",
+                (job_id, name, json.dumps(settings), scene_sha256, tiles),
+            )
+            await conn.execute(
+                "INSERT INTO events (job_id, kind, data) VALUES (%s, 'job_submitted', %s)",
+                (job_id, json.dumps({"name": name})),
+            )
+            return JobRow(**await cur.fetchone())
+
+    async def update_job(
+        self,
+        job_id: str,
+        *,
+        state: str,
+        error: str,
+        started: float | None,
+        finished: float | None,
+        elapsed_s: float,
+        samples_merged: int,
+        mean_spp: float,
+        error_estimate: float | None,
+        tiles_done: int,
+    ) -> None:
+        async with self.pool.connection() as conn:
+            await conn.execute(
+                "UPDATE jobs SET state = %s, error = %s,"
+                " started_at = coalesce(started_at, %s), finished_at = %s, elapsed_s = %s,"
+                " samples_merged = %s, mean_spp = %s, error_estimate = %s, tiles_done = %s"
+                " WHERE id = %s",
+                (
+                    state,
+                    error,
+                    _ts(started),
+                    _ts(finished),
+                    elapsed_s,
+                    samples_merged,
+                    mean_spp,
+                    error_estimate,
+                    tiles_done,
+                    job_id,
+                ),
+            )
+
+    async def get_job(self, job_id: str) -> JobRow | None:
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(f"SELECT {_JOB_COLUMNS} FROM jobs WHERE id = %s", (job_id,))
+            row = await cur.fetchone()
+            return JobRow(**row) if row else None
+
+    async def list_jobs(
+        self, state: str | None, limit: int, after: tuple[datetime, str] | None
+    ) -> list[JobRow]:
+        """Newest first; `after` is the (created_at, id) of the last row of the previous page."""
+        where, params = [], []
+        if state:
+            where.append("state = %s")
+            params.append(state)
+        if after:
+            where.append("(created_at, id) < (%s, %s)")
+            params.extend(after)
+        sql = f"SELECT {_JOB_COLUMNS} FROM jobs"
+        if where:
+            sql += " WHERE " + " AND ".join(where)
+        sql += " ORDER BY created_at DESC, id DESC LIMIT %s"
+        params.append(limit)
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(sql, params)
+            return [JobRow(**r) for r in await cur.fetchall()]
+
+    async def unfinished_jobs(self) -> list[JobRow]:
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                f"SELECT {_JOB_COLUMNS} FROM jobs WHERE state IN ('queued', 'running')"
+                " ORDER BY created_at"
+            )
+            return [JobRow(**r) for r in await cur.fetchall()]
+
+    # ------------------------------------------------------------------------------ tiles
+    async def save_tiles(self, job_id: str, rows: list[TileRow]) -> None:
+        if not rows:
+            return
+        async with self.pool.connection() as conn:
+            async with conn.cursor() as cur:
+                await cur.executemany(
+                    "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
+                    " accumulators, stop_batch, stop_spp, stop_error, stop_reason)"
+                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
+                    " ON CONFLICT (job_id, tile_index) DO UPDATE SET samples = excluded.samples,"
+                    " batches = excluded.batches, nonfinite = excluded.nonfinite,"
+                    " error = excluded.error, accumulators = excluded.accumulators,"
+                    " stop_batch = excluded.stop_batch, stop_spp = excluded.stop_spp,"
+                    " stop_error = excluded.stop_error, stop_reason = excluded.stop_reason,"
+                    " updated_at = now()"
+                    # Never move a tile backwards (a slow writer racing a newer checkpoint).
+                    " WHERE tiles.batches <= excluded.batches",
+                    [
+                        (
+                            job_id,
+                            r.tile_index,
+                            r.samples,
+                            r.batches,
+                            r.nonfinite,
+                            _finite(r.error),
+                            r.accumulators,
+                            r.stop_batch,
+                            r.stop_spp,
+                            _finite(r.stop_error),
+                            r.stop_reason,
+                        )
+                        for r in rows
+                    ],
+                )
+
+    async def load_tiles(self, job_id: str) -> list[TileRow]:
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "SELECT tile_index, samples, batches, nonfinite, error, accumulators,"
+                " stop_batch, stop_spp, stop_error, stop_reason"
+                " FROM tiles WHERE job_id = %s ORDER BY tile_index",
+                (job_id,),
+            )
+            return [
+                TileRow(**{**r, "accumulators": bytes(r["accumulators"])})
+                for r in await cur.fetchall()
+            ]
+
+    # ----------------------------------------------------------------------------- events
+    async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
+        if not events:
+            return
+        async with self.pool.connection() as conn:
+            async with conn.cursor() as cur:
+                await cur.executemany(
+                    "INSERT INTO events (job_id, kind, data) VALUES (%s, %s, %s)",
+                    [(j, k, json.dumps(_clean(d), default=str)) for j, k, d in events],
+                )
+
+    async def list_events(self, job_id: str, limit: int = 1000) -> list[dict[str, Any]]:
+        async with self.pool.connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "SELECT id, kind, data, at FROM events WHERE job_id = %s ORDER BY id LIMIT %s",
+                (job_id, limit),
+            )
+            return list(await cur.fetchall())
+
+    # ---------------------------------------------------------------------------- workers
+    async def worker_connected(self, worker_id: str, hostname: str, cores: int, version: str):
+        async with self.pool.connection() as conn:
+            await conn.execute(
+                "INSERT INTO workers (id, hostname, cores, version, connected_at, last_seen,"
+                " connected) VALUES (%s, %s, %s, %s, now(), now(), true)"
+                " ON CONFLICT (id) DO UPDATE SET hostname = excluded.hostname,"
+                " cores = excluded.cores, version = excluded.version,"
+                " connected_at = now(), last_seen = now(), connected = true",
+                (worker_id, hostname, cores, version),
+            )
+
+    async def worker_disconnected(self, worker_id: str) -> None:
+        async with self.pool.connection() as conn:
+            await conn.execute(
+                "UPDATE workers SET connected = false, last_seen = now() WHERE id = %s",
+                (worker_id,),
+            )
+
+    async def mark_all_workers_disconnected(self) -> None:
+        async with self.pool.connection() as conn:
+            await conn.execute("UPDATE workers SET connected = false WHERE connected")
+
+
+def _ts(unix: float | None) -> datetime | None:
+    return None if unix is None else datetime.fromtimestamp(unix, tz=UTC)
+
+
+def _finite(x: float | None) -> float | None:
+    return x if x is not None and math.isfinite(x) else None
+
+
+def _clean(value: Any) -> Any:
+    """JSON has no inf/NaN: store them as null."""
+    if isinstance(value, float):
+        return _finite(value)
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    return value
+
+
+__all__ = ["JobRow", "SchemaTooNew", "Store", "TileRow", "migrations", "psycopg"]

@@ -1,0 +1,114 @@
+"""The progressive merge equals the statistics of all samples computed at once (to 1e-12)."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from renderfarm.merge import DARK_FLOOR, TileAccumulator, luminance
+from renderfarm.tiling import batch_count, batch_range
+
+H, W = 3, 5
+
+
+def _batches(rng, max_spp):
+    """Random per-sample RGB for every batch of the schedule: list of (samples[S,H,W,3])."""
+    out = []
+    for b in range(batch_count(max_spp)):
+        _, count = batch_range(b, max_spp)
+        # Heavy-tailed values, like a path tracer's fireflies, stress the numerics.
+        out.append(rng.lognormal(mean=-1.0, sigma=1.5, size=(count, H, W, 3)))
+    return out
+
+
+def _batch_payload(samples):
+    y = luminance(samples)
+    m2 = ((y - y.mean(axis=0)) ** 2).sum(axis=0)  # two-pass within-batch M2, as a reference
+    return samples.sum(axis=0), m2, samples.shape[0]
+
+
+def _merged(batches, order):
+    acc = TileAccumulator(W, H)
+    for i in order:
+        acc.merge_batch(*_batch_payload(batches[i]))
+    return acc
+
+
+def _close(a, b):
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.max(np.abs(b)))
+
+
+@pytest.mark.parametrize("max_spp", [2, 16, 100, 300])
+def test_merge_equals_all_samples_at_once(max_spp):
+    rng = np.random.default_rng(max_spp)
+    batches = _batches(rng, max_spp)
+    acc = _merged(batches, range(len(batches)))
+    every = np.concatenate(batches)
+    y = luminance(every)
+    _close(acc.rgb_sum, every.sum(axis=0))
+    _close(acc.lum_mean, y.mean(axis=0))
+    _close(acc.m2_within + acc.m2_between, ((y - y.mean(axis=0)) ** 2).sum(axis=0))
+    means = np.stack([luminance(b).mean(axis=0) for b in batches])
+    sizes = np.array([b.shape[0] for b in batches])[:, None, None]
+    _close(acc.m2_between, (sizes * (means - y.mean(axis=0)) ** 2).sum(axis=0))
+    assert acc.samples == max_spp and acc.batches == len(batches)
+
+
+def test_merge_order_does_not_matter():
+    rng = np.random.default_rng(7)
+    batches = _batches(rng, 40)
+    reference = _merged(batches, range(len(batches)))
+    orders = list(itertools.islice(itertools.permutations(range(len(batches))), 0, 720, 37))
+    orders.append(tuple(reversed(range(len(batches)))))
+    for order in orders:
+        acc = _merged(batches, order)
+        for name in ("rgb_sum", "lum_mean", "m2_within", "m2_between"):
+            _close(getattr(acc, name), getattr(reference, name))
+
+
+def test_error_estimate_uses_between_batch_variance():
+    rng = np.random.default_rng(3)
+    batches = _batches(rng, 64)
+    acc = _merged(batches, range(len(batches)))
+    b = len(batches)
+    expected = acc.m2_between / (b - 1) / 64
+    _close(acc.variance_of_mean(), expected)
+    rel = np.sqrt(expected) / np.maximum(acc.lum_mean, DARK_FLOOR)
+    assert acc.tile_error() == pytest.approx(float(np.sqrt(np.mean(rel**2))), rel=1e-12)
+
+
+def test_single_batch_falls_back_to_within_batch_variance():
+    rng = np.random.default_rng(4)
+    samples = rng.random((8, H, W, 3))
+    acc = TileAccumulator(W, H)
+    acc.merge_batch(*_batch_payload(samples))
+    y = luminance(samples)
+    _close(acc.variance_of_mean(), y.var(axis=0, ddof=1) / 8)
+    one = TileAccumulator(W, H)
+    one.merge_batch(*_batch_payload(samples[:1]))
+    assert np.isinf(one.tile_error())
+
+
+def test_between_batch_error_is_calibrated_for_independent_batches():
+    # For i.i.d. samples the estimated variance of the mean must match the true one on average:
+    # uniform samples have variance 1/12 per channel, so luminance variance is sum(w^2)/12.
+    rng = np.random.default_rng(11)
+    acc_vars = []
+    for _ in range(200):
+        acc = TileAccumulator(W, H)
+        for b in range(batch_count(128)):
+            _, count = batch_range(b, 128)
+            acc.merge_batch(*_batch_payload(rng.random((count, H, W, 3))))
+        acc_vars.append(acc.variance_of_mean().mean())
+    true = float((np.array([0.2126, 0.7152, 0.0722]) ** 2).sum() / 12 / 128)
+    assert np.mean(acc_vars) == pytest.approx(true, rel=0.1)
+
+
+def test_checkpoint_round_trip():
+    rng = np.random.default_rng(5)
+    acc = _merged(_batches(rng, 20), range(5))
+    back = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches)
+    for name in ("rgb_sum", "lum_mean", "m2_within", "m2_between", "albedo_sum", "normal_sum"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(acc, name))
+    with pytest.raises(ValueError):
+        TileAccumulator.from_bytes(W, H, acc.to_bytes()[:-8], 1, 1)

@@ -1,0 +1,49 @@
+"""Tiling and the batch schedule: every pixel covered once, every sample index used once."""
+
+import numpy as np
+import pytest
+
+from renderfarm.tiling import batch_count, batch_range, batch_size, batch_start, tile_grid
+
+
+@pytest.mark.parametrize(
+    "width,height,tile", [(512, 512, 64), (100, 37, 16), (1, 1, 8), (65, 64, 64)]
+)
+def test_tiles_cover_the_image_exactly_once(width, height, tile):
+    cover = np.zeros((height, width), dtype=int)
+    for r in tile_grid(width, height, tile):
+        assert 0 < r.width <= tile and 0 < r.height <= tile
+        cover[r.y0 : r.y0 + r.height, r.x0 : r.x0 + r.width] += 1
+    assert (cover == 1).all()
+
+
+def test_tiles_are_row_major():
+    rects = tile_grid(130, 70, 64)
+    assert [(r.x0, r.y0) for r in rects] == [
+        (0, 0),
+        (64, 0),
+        (128, 0),
+        (0, 64),
+        (64, 64),
+        (128, 64),
+    ]
+
+
+@pytest.mark.parametrize("max_spp", [1, 2, 3, 16, 63, 64, 65, 100, 1000, 4096])
+def test_batches_partition_the_sample_range(max_spp):
+    used = []
+    for b in range(batch_count(max_spp)):
+        start, count = batch_range(b, max_spp)
+        assert count > 0
+        used.extend(range(start, start + count))
+    assert used == list(range(max_spp))
+    assert batch_range(batch_count(max_spp), max_spp)[1] == 0
+
+
+def test_unclipped_batches_are_powers_of_two_aligned_to_their_size():
+    # Aligned power-of-two blocks are what makes each sobol batch a complete net.
+    for b in range(40):
+        size, start = batch_size(b), batch_start(b)
+        assert size & (size - 1) == 0
+        assert start % size == 0
+        assert batch_start(b + 1) == start + size

@@ -1,0 +1,164 @@
+"""End to end: the Cornell box through REST on a local farm with 2 real workers."""
+
+from __future__ import annotations
+
+import subprocess
+import time
+
+import grpc
+import numpy as np
+import pytest
+
+from renderfarm.client import ApiError
+from renderfarm.images import read_exr
+from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
+
+from .conftest import CORNELL
+
+SETTINGS = {
+    "width": 64,
+    "height": 64,
+    "tile_size": 16,
+    "max_spp": 16,
+    "noise_threshold": 0,
+    "seed": 7,
+    "sampler": "sobol",
+    "integrator": "path",
+    "max_depth": 8,
+}
+
+
+def _rgb(path) -> np.ndarray:
+    channels = read_exr(str(path))
+    return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+
+
+def _wait_for_workers(client, count: int, timeout_s: float = 30) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(client.workers()) < count:
+        assert time.monotonic() < deadline, "workers did not connect"
+        time.sleep(0.1)
+
+
+@pytest.fixture(scope="module")
+def cornell_job(farm, tmp_path_factory):
+    """Render the Cornell box on the farm once; return (job, path of its EXR)."""
+    from renderfarm.client import Client
+
+    with Client(farm.url, timeout=60) as client:
+        _wait_for_workers(client, 2)
+        job = client.submit(CORNELL, settings=SETTINGS, name="cornell e2e")
+        assert job["state"] in ("queued", "running")
+        job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+        out = tmp_path_factory.mktemp("e2e") / "farm.exr"
+        out.write_bytes(client.image(job["id"], "exr"))
+        png = client.image(job["id"], "png")
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    return job, out
+
+
+def test_job_completes_with_every_sample(cornell_job):
+    job, _ = cornell_job
+    assert job["state"] == "completed", job["error"]
+    p = job["progress"]
+    assert p["tiles_done"] == p["tiles_total"] == 16
+    assert p["mean_spp"] == 16
+    assert p["samples_merged"] == 64 * 64 * 16
+
+
+def test_image_looks_like_a_cornell_box(cornell_job):
+    _, exr = cornell_job
+    channels = read_exr(str(exr))
+    rgb = _rgb(exr)
+    assert np.isfinite(rgb).all() and (rgb >= 0).all()
+    assert (channels["spp"] == 16).all()
+    h, w, _ = rgb.shape
+    mid = slice(int(0.4 * h), int(0.6 * h))
+    left = rgb[mid, int(0.04 * w) : int(0.12 * w)].reshape(-1, 3).mean(axis=0)
+    right = rgb[mid, int(0.88 * w) : int(0.96 * w)].reshape(-1, 3).mean(axis=0)
+    assert left[0] > 2 * left[1] and left[0] > 2 * left[2], f"left wall not red: {left}"
+    assert right[1] > 1.5 * right[0] and right[1] > 1.5 * right[2], f"right wall not green: {right}"
+    luminance = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    top_centre = luminance[: int(0.25 * h), int(0.35 * w) : int(0.65 * w)]
+    walls = max(left @ [0.2126, 0.7152, 0.0722], right @ [0.2126, 0.7152, 0.0722])
+    assert top_centre.max() > 5 * walls, "the ceiling light should outshine the walls"
+
+
+def test_farm_image_equals_standalone_render(cornell_job, worker_binary, tmp_path):
+    """DESIGN.md section 4: the image is a pure function of scene, settings and seed, so the
+    farm (2 workers, tiles and batches in any order) equals one standalone render."""
+    _, farm_exr = cornell_job
+    alone = tmp_path / "alone.exr"
+    subprocess.run(
+        [
+            worker_binary, "render", str(CORNELL), "-o", str(alone),
+            "--width", "64", "--height", "64", "--spp", "16", "--seed", "7",
+            "--sampler", "sobol", "--integrator", "path", "--max-depth", "8", "--threads", "2",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )  # fmt: skip
+    a, b = _rgb(farm_exr), _rgb(alone)
+    assert a.shape == b.shape
+    np.testing.assert_allclose(a, b, rtol=2e-7 * 4, atol=1e-7)
+
+
+def test_grpc_job_service_sees_the_same_state(farm, cornell_job):
+    job, _ = cornell_job
+    with grpc.insecure_channel(farm.grpc_address) as channel:
+        stub = jobs_pb2_grpc.JobServiceStub(channel)
+        got = stub.GetJob(jobs_pb2.GetJobRequest(job_id=job["id"]), timeout=10).job
+        assert got.state == jobs_pb2.JOB_STATE_COMPLETED
+        assert got.progress.samples_merged == job["progress"]["samples_merged"]
+        assert got.settings.max_spp == 16 and got.settings.seed == 7
+        listed = stub.ListJobs(jobs_pb2.ListJobsRequest(page_size=500), timeout=10).jobs
+        assert job["id"] in [j.id for j in listed]
+        with pytest.raises(grpc.RpcError) as err:
+            stub.SubmitJob(
+                jobs_pb2.SubmitJobRequest(
+                    scene_data=b"not a scene", settings=jobs_pb2.RenderSettings(max_spp=4)
+                ),
+                timeout=10,
+            )
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert "glTF" in err.value.details()
+
+
+@pytest.mark.parametrize(
+    "files,settings,status,needle",
+    [
+        ({"scene": ("notes.txt", b"hello, not a scene", "text/plain")}, {}, 400, "not a glTF"),
+        ({}, {}, 400, "scene is required"),
+        (None, {"max_spp": -4}, 400, "settings.max_spp"),
+        (None, {"spp": -1}, 400, "settings.spp"),
+        (None, {"exposure": 2}, 400, "unknown setting 'exposure'"),
+        (None, {"width": 10**9}, 400, "settings.width"),
+        (None, {"sampler": "magic"}, 400, "settings.sampler"),
+    ],
+)
+def test_bad_input_gets_a_clear_4xx(client, files, settings, status, needle):
+    import json
+
+    if files is None:
+        files = {"scene": ("cornell.glb", _glb(), "model/gltf-binary")}
+    # Always multipart, like a browser form: the settings travel as a JSON text field.
+    parts = {**files, "settings": (None, json.dumps(settings))}
+    r = client.http.post("/api/v1/jobs", files=parts)
+    assert r.status_code == status, r.text
+    assert needle in r.json()["detail"]
+
+
+def test_unknown_job_and_stored_scene_are_404(client):
+    with pytest.raises(ApiError) as err:
+        client.get("nosuchjob")
+    assert err.value.status == 404
+    with pytest.raises(ApiError) as err:
+        client.submit(scene_sha256="0" * 64, settings={"max_spp": 1})
+    assert err.value.status == 404 and "no stored scene" in err.value.message
+
+
+def _glb() -> bytes:
+    from renderfarm.scenes import pack_gltf
+
+    return pack_gltf(CORNELL)
