@@ -182,7 +182,7 @@ def test_packing_is_deterministic_and_a_glb_passes_through_unchanged(tmp_path):
 
 def test_unpacked_cornell_gltf_is_refused_naming_the_external_file():
     error = refused(
-        CORNELL_GLTF.read_bytes(), "cornell-box.bin", ".glb", "bundle", filename="cornell-box.gltf"
+        CORNELL_GLTF.read_bytes(), "cornell-box.bin", ".glb", ".glb", filename="cornell-box.gltf"
     )
     assert error.field == "scene.buffers[0].uri"
 
@@ -324,7 +324,7 @@ def mutated(change) -> bytes:
         (lambda d: d.update(meshes=[]), ("no meshes",), "scene.meshes"),
         (
             lambda d: d["buffers"][0].update(uri="triangle.bin"),
-            ("'triangle.bin'", "self-contained", ".glb", "bundle"),
+            ("'triangle.bin'", "self-contained", ".glb", ".glb"),
             "scene.buffers[0].uri",
         ),
         (
