@@ -139,10 +139,26 @@ def parse_settings(raw: dict[str, Any] | None, limits: Limits = Limits()) -> Job
         kind = next(s.kind for s in SETTINGS if s.name == name)
         coerced = _coerce(key, kind, value)
         if name in values and values[name] != coerced:
-            raise SettingsError(f"settings.{key}", f"settings.{key} conflicts with settings.{name}")
+            alias = key if key in ALIASES else next(a for a, n in ALIASES.items() if n == name)
+            raise SettingsError(
+                f"settings.{alias}",
+                f"settings.{alias} is short for settings.{ALIASES[alias]}; they disagree",
+            )
         values[name] = coerced
+    # An unspecified min_spp never exceeds the requested max_spp (so `--spp 4` just works).
+    if "min_spp" not in values and "max_spp" in values:
+        values["min_spp"] = max(1, min(JobSettings.min_spp, values["max_spp"]))
     settings = JobSettings(**values)
-    _check_ranges(settings, limits)
+    try:
+        _check_ranges(settings, limits)
+    except SettingsError as e:
+        # Name the field the way the caller spelled it (spp rather than max_spp).
+        for alias, name in ALIASES.items():
+            if alias in raw and name not in raw and e.field == f"settings.{name}":
+                raise SettingsError(
+                    f"settings.{alias}", e.message.replace(f"settings.{name}", f"settings.{alias}")
+                ) from None
+        raise
     return settings
 
 

@@ -1,0 +1,31 @@
+// Farm mode: a gRPC client of WorkerService.Connect (proto/renderfarm/v1/workers.proto) that
+// renders assigned tile tasks and streams TileResults back, fetching scenes it has not cached
+// through SceneService.FetchScene on the same channel.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <string>
+
+namespace rf {
+
+struct FarmOptions {
+  std::string server;      // host:port
+  uint32_t threads = 1;    // render threads (Hello.cores)
+  uint32_t prefetch = 2;   // extra tasks leased beyond threads (Hello.max_in_flight)
+  std::string cache_dir;   // scene file cache
+  std::string token;       // shared worker token ("" if the server needs none)
+  std::string worker_id;   // Hello.worker_id
+  std::string hostname;
+  size_t scenes_in_memory = 4;  // loaded-scene LRU capacity
+  // Reconnect backoff: initial, doubling up to max; reset after a successful Welcome.
+  double backoff_initial_s = 0.5;
+  double backoff_max_s = 10.0;
+};
+
+// Runs until *stop becomes true (set e.g. by a SIGINT/SIGTERM handler). Then it stops taking
+// new tasks, finishes the tasks being rendered, sends their results, closes the stream and
+// returns 0. Connection failures are retried with exponential backoff; they never end run().
+int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop);
+
+}  // namespace rf

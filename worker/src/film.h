@@ -1,0 +1,52 @@
+// Per-pixel accumulation for a rectangle of the image (TileBuffer, the payload of the farm's
+// TileResult), the standalone image it is resolved into, and OpenEXR output.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace rf {
+
+// Rectangle of the image in pixels, x right and y down from the top-left corner.
+struct PixelRect {
+  uint32_t x0 = 0, y0 = 0, width = 0, height = 0;
+  size_t pixel_count() const { return size_t(width) * size_t(height); }
+};
+
+// Sums over samples [sample_start, sample_start + sample_count) of every pixel of rect.
+// Arrays are row-major over the rect: index = y * rect.width + x, relative to the rect.
+struct TileBuffer {
+  PixelRect rect;
+  uint64_t sample_start = 0;
+  uint32_t sample_count = 0;
+  std::vector<double> rgb_sum;       // 3 per pixel, radiance summed in sample-index order
+  std::vector<double> luminance_m2;  // 1 per pixel, Welford M2 of Y over the batch
+  std::vector<float> albedo_sum;     // 3 per pixel, first-hit base color (0 on miss)
+  std::vector<float> normal_sum;     // 3 per pixel, first-hit shading normal (0 on miss)
+  uint64_t nonfinite_samples = 0;    // samples whose radiance was NaN/Inf, recorded as 0
+  uint64_t rays = 0;                 // closest-hit plus shadow rays
+
+  void reset(PixelRect r, uint64_t start, uint32_t count);
+};
+
+// Little-endian IEEE packing, as the protocol's bytes fields require.
+std::string pack_f64_le(const std::vector<double>& values);
+std::string pack_f32_le(const std::vector<float>& values);
+std::vector<double> unpack_f64_le(const std::string& bytes);
+std::vector<float> unpack_f32_le(const std::string& bytes);
+
+// A full image of per-pixel means: radiance, albedo and normal (3 floats each per pixel).
+struct Image {
+  uint32_t width = 0, height = 0;
+  std::vector<float> rgb, albedo, normal;
+  Image(uint32_t w, uint32_t h);
+  // Stores the tile's means (sums / sample_count) at its rect.
+  void set_from_tile(const TileBuffer& tile);
+};
+
+// Writes R, G, B, albedo.{R,G,B}, normal.{X,Y,Z} as 32-bit float channels. Throws
+// std::runtime_error naming the file on failure.
+void write_exr(const std::string& path, const Image& image);
+
+}  // namespace rf

@@ -1,0 +1,373 @@
+// glTF 2.0 -> SceneDescription via tinygltf. Every index read from the file is range-checked
+// before use, so a malformed file produces a SceneError naming the offending part, never a
+// crash.
+#include <tiny_gltf.h>
+
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <functional>
+#include <set>
+
+#include "scene.h"
+
+namespace rf {
+namespace {
+
+// Textures are not supported yet; skip decoding images entirely (also avoids failing on
+// image formats we could not decode anyway).
+bool skip_image(tinygltf::Image*, const int, std::string*, std::string*, int, int,
+                const unsigned char*, int, void*) {
+  return true;
+}
+
+class Loader {
+ public:
+  Loader(const tinygltf::Model& model, std::string source, std::vector<std::string>* warnings)
+      : model_(model), source_(std::move(source)), warnings_(warnings) {}
+
+  SceneDescription run() {
+    SceneDescription desc;
+    desc.source = source_;
+    static const std::set<std::string> supported = {"KHR_materials_emissive_strength"};
+    for (const std::string& ext : model_.extensionsRequired)
+      if (!supported.count(ext))
+        warn("required extension '" + ext + "' is not supported; loading without it");
+    load_materials(&desc);
+
+    std::vector<int> roots;
+    if (!model_.scenes.empty()) {
+      const int scene_index = model_.defaultScene >= 0 ? model_.defaultScene : 0;
+      if (scene_index >= int(model_.scenes.size()))
+        fail("'scene' refers to missing scene " + std::to_string(scene_index));
+      roots = model_.scenes[size_t(scene_index)].nodes;
+    } else {
+      // No scenes: render every node that is nobody's child.
+      std::vector<bool> is_child(model_.nodes.size(), false);
+      for (const auto& node : model_.nodes)
+        for (int c : node.children)
+          if (c >= 0 && c < int(model_.nodes.size())) is_child[size_t(c)] = true;
+      for (size_t i = 0; i < model_.nodes.size(); ++i)
+        if (!is_child[i]) roots.push_back(int(i));
+    }
+    for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
+    return desc;
+  }
+
+ private:
+  [[noreturn]] void fail(const std::string& what) const { throw SceneError(source_ + ": " + what); }
+  void warn(const std::string& what) {
+    if (warnings_) warnings_->push_back(source_ + ": " + what);
+  }
+
+  void load_materials(SceneDescription* desc) {
+    bool warned_textures = false;
+    for (size_t i = 0; i < model_.materials.size(); ++i) {
+      const tinygltf::Material& gm = model_.materials[i];
+      const std::string where = "material " + std::to_string(i) + " ('" + gm.name + "')";
+      Material m;
+      m.name = gm.name;
+      const auto& base = gm.pbrMetallicRoughness.baseColorFactor;
+      if (base.size() >= 3)
+        m.albedo = Vec3(float(base[0]), float(base[1]), float(base[2]));
+      for (int k = 0; k < 3; ++k)
+        if (!(m.albedo[k] >= 0.f && m.albedo[k] <= 1.f))
+          fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
+      float strength = 1.f;
+      auto ext = gm.extensions.find("KHR_materials_emissive_strength");
+      if (ext != gm.extensions.end() && ext->second.Has("emissiveStrength")) {
+        const tinygltf::Value& v = ext->second.Get("emissiveStrength");
+        if (!v.IsNumber())
+          fail(where + ": KHR_materials_emissive_strength.emissiveStrength is not a number");
+        strength = float(v.GetNumberAsDouble());
+      }
+      if (gm.emissiveFactor.size() >= 3)
+        m.emission = Vec3(float(gm.emissiveFactor[0]), float(gm.emissiveFactor[1]),
+                          float(gm.emissiveFactor[2])) *
+                     strength;
+      for (int k = 0; k < 3; ++k)
+        if (!(m.emission[k] >= 0.f) || !std::isfinite(m.emission[k]))
+          fail(where + ": emissiveFactor x emissiveStrength must be finite and >= 0");
+      const bool textured = gm.pbrMetallicRoughness.baseColorTexture.index >= 0 ||
+                            gm.emissiveTexture.index >= 0 || gm.normalTexture.index >= 0 ||
+                            gm.pbrMetallicRoughness.metallicRoughnessTexture.index >= 0;
+      if (textured && !warned_textures) {
+        warn(where + " (and possibly others) uses textures, which are not supported yet; "
+                     "using the constant factors");
+        warned_textures = true;
+      }
+      desc->materials.push_back(m);
+    }
+    default_material_ = uint32_t(desc->materials.size());
+    desc->materials.push_back(Material{"default", {1.f, 1.f, 1.f}, {0.f, 0.f, 0.f}});
+  }
+
+  Mat4 local_transform(const tinygltf::Node& node, const std::string& where) const {
+    if (node.matrix.size() == 16) {
+      Mat4 m;
+      for (int i = 0; i < 16; ++i) m.m[size_t(i / 4)][size_t(i % 4)] = node.matrix[size_t(i)];
+      return m;
+    }
+    if (!node.matrix.empty()) fail(where + ": 'matrix' must have 16 elements");
+    Mat4 t = Mat4::identity(), r = Mat4::identity(), s = Mat4::identity();
+    if (!node.translation.empty()) {
+      if (node.translation.size() != 3) fail(where + ": 'translation' must have 3 elements");
+      for (int i = 0; i < 3; ++i) t.m[3][size_t(i)] = node.translation[size_t(i)];
+    }
+    if (!node.rotation.empty()) {
+      if (node.rotation.size() != 4) fail(where + ": 'rotation' must have 4 elements");
+      double x = node.rotation[0], y = node.rotation[1], z = node.rotation[2],
+             w = node.rotation[3];
+      const double n = std::sqrt(x * x + y * y + z * z + w * w);
+      if (!(n > 0.0)) fail(where + ": 'rotation' is not a valid quaternion");
+      x /= n, y /= n, z /= n, w /= n;
+      // Unit quaternion to rotation matrix (column-major m[col][row]).
+      r.m[0][0] = 1 - 2 * (y * y + z * z);
+      r.m[0][1] = 2 * (x * y + z * w);
+      r.m[0][2] = 2 * (x * z - y * w);
+      r.m[1][0] = 2 * (x * y - z * w);
+      r.m[1][1] = 1 - 2 * (x * x + z * z);
+      r.m[1][2] = 2 * (y * z + x * w);
+      r.m[2][0] = 2 * (x * z + y * w);
+      r.m[2][1] = 2 * (y * z - x * w);
+      r.m[2][2] = 1 - 2 * (x * x + y * y);
+    }
+    if (!node.scale.empty()) {
+      if (node.scale.size() != 3) fail(where + ": 'scale' must have 3 elements");
+      for (int i = 0; i < 3; ++i) s.m[size_t(i)][size_t(i)] = node.scale[size_t(i)];
+    }
+    return t * r * s;
+  }
+
+  void visit(int index, const Mat4& parent, SceneDescription* desc, int depth) {
+    if (index < 0 || index >= int(model_.nodes.size()))
+      fail("reference to missing node " + std::to_string(index));
+    // glTF node graphs are trees; a deeper chain than the node count means a cycle.
+    if (depth > int(model_.nodes.size())) fail("node hierarchy contains a cycle");
+    const tinygltf::Node& node = model_.nodes[size_t(index)];
+    const std::string where = "node " + std::to_string(index) + " ('" + node.name + "')";
+    const Mat4 world = parent * local_transform(node, where);
+    if (node.camera >= 0 && !desc->camera) take_camera(node, world, where, desc);
+    if (node.mesh >= 0) {
+      if (node.mesh >= int(model_.meshes.size()))
+        fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
+      add_mesh(size_t(node.mesh), world, desc);
+    }
+    for (int child : node.children) visit(child, world, desc, depth + 1);
+  }
+
+  void take_camera(const tinygltf::Node& node, const Mat4& world, const std::string& where,
+                   SceneDescription* desc) {
+    if (node.camera >= int(model_.cameras.size()))
+      fail(where + ": 'camera' refers to missing camera " + std::to_string(node.camera));
+    const tinygltf::Camera& gc = model_.cameras[size_t(node.camera)];
+    if (gc.type != "perspective") return;  // only the first *perspective* camera counts
+    Camera cam;
+    cam.yfov = float(gc.perspective.yfov);
+    if (!(cam.yfov > 0.f && cam.yfov < kPi))
+      fail(where + ": camera " + std::to_string(node.camera) + " has yfov outside (0, pi)");
+    cam.position = world.transform_point({0.f, 0.f, 0.f});
+    const Vec3 fwd = world.transform_vector({0.f, 0.f, -1.f});
+    const Vec3 up = world.transform_vector({0.f, 1.f, 0.f});
+    if (!(length(fwd) > 0.f) || !(length(cross(fwd, up)) > 0.f))
+      fail(where + ": camera transform is singular");
+    cam.forward = normalize(fwd);
+    // Re-orthogonalize in case of shear: right = fwd x up, up = right x fwd.
+    cam.right = normalize(cross(cam.forward, up));
+    cam.up = cross(cam.right, cam.forward);
+    desc->camera = cam;
+  }
+
+  // Reads element i (component c) of an accessor as a double; range-checked by the caller's
+  // prior call to check_accessor.
+  struct View {
+    const unsigned char* base = nullptr;
+    size_t stride = 0;
+    int component_type = 0;
+    size_t count = 0;
+    bool normalized = false;
+    double get(size_t i, int c) const {
+      const unsigned char* p = base + i * stride;
+      switch (component_type) {
+        case TINYGLTF_COMPONENT_TYPE_FLOAT: {
+          float f;
+          std::memcpy(&f, p + 4 * c, 4);
+          return f;
+        }
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT: {
+          uint32_t u;
+          std::memcpy(&u, p + 4 * c, 4);
+          return u;
+        }
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT: {
+          uint16_t u;
+          std::memcpy(&u, p + 2 * c, 2);
+          return u;
+        }
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+          return p[c];
+        default:
+          return 0.0;
+      }
+    }
+  };
+
+  View check_accessor(int index, int want_type, const std::set<int>& component_types,
+                      const std::string& where) const {
+    if (index < 0 || index >= int(model_.accessors.size()))
+      fail(where + " refers to missing accessor " + std::to_string(index));
+    const tinygltf::Accessor& acc = model_.accessors[size_t(index)];
+    const std::string aw = where + " (accessor " + std::to_string(index) + ")";
+    if (acc.type != want_type) fail(aw + ": unexpected accessor 'type'");
+    if (!component_types.count(acc.componentType))
+      fail(aw + ": unsupported 'componentType' " + std::to_string(acc.componentType));
+    if (acc.sparse.isSparse) fail(aw + ": sparse accessors are not supported");
+    if (acc.bufferView < 0 || acc.bufferView >= int(model_.bufferViews.size()))
+      fail(aw + ": missing or invalid 'bufferView'");
+    const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+    if (bv.buffer < 0 || bv.buffer >= int(model_.buffers.size()))
+      fail(aw + ": buffer view refers to a missing buffer");
+    const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
+    const int ncomp = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
+    const int csize = tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType));
+    const size_t elem = size_t(ncomp) * size_t(csize);
+    const size_t stride = bv.byteStride ? bv.byteStride : elem;
+    if (stride < elem) fail(aw + ": 'byteStride' smaller than the element");
+    if (bv.byteOffset > buf.data.size() || bv.byteLength > buf.data.size() - bv.byteOffset)
+      fail(aw + ": buffer view exceeds its buffer");
+    View v;
+    v.component_type = acc.componentType;
+    v.count = acc.count;
+    v.stride = stride;
+    v.normalized = acc.normalized;
+    if (acc.count > 0) {
+      const size_t needed = acc.byteOffset + (acc.count - 1) * stride + elem;
+      if (acc.byteOffset > bv.byteLength || needed > bv.byteLength || needed < acc.byteOffset)
+        fail(aw + ": data exceeds its buffer view");
+    }
+    v.base = buf.data.data() + bv.byteOffset + acc.byteOffset;
+    return v;
+  }
+
+  void add_mesh(size_t mesh_index, const Mat4& world, SceneDescription* desc) {
+    const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
+    const bool mirror = world.det3() < 0.0;
+    for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
+      const tinygltf::Primitive& prim = mesh.primitives[pi];
+      const std::string where = "mesh " + std::to_string(mesh_index) + " ('" + mesh.name +
+                                "') primitive " + std::to_string(pi);
+      if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) {
+        warn(where + ": mode " + std::to_string(prim.mode) +
+             " is not TRIANGLES (4); primitive skipped");
+        continue;
+      }
+      const auto pos_it = prim.attributes.find("POSITION");
+      if (pos_it == prim.attributes.end()) fail(where + ": missing required attribute POSITION");
+      const View pos = check_accessor(pos_it->second, TINYGLTF_TYPE_VEC3,
+                                      {TINYGLTF_COMPONENT_TYPE_FLOAT}, where + " POSITION");
+      View nrm;
+      bool has_normals = false;
+      const auto nrm_it = prim.attributes.find("NORMAL");
+      if (nrm_it != prim.attributes.end()) {
+        nrm = check_accessor(nrm_it->second, TINYGLTF_TYPE_VEC3,
+                             {TINYGLTF_COMPONENT_TYPE_FLOAT}, where + " NORMAL");
+        if (nrm.count != pos.count) fail(where + ": NORMAL and POSITION counts differ");
+        has_normals = true;
+      }
+      uint32_t material = default_material_;
+      if (prim.material >= 0) {
+        if (prim.material >= int(model_.materials.size()))
+          fail(where + ": 'material' refers to missing material " +
+               std::to_string(prim.material));
+        material = uint32_t(prim.material);
+      }
+      std::vector<uint32_t> indices;
+      if (prim.indices >= 0) {
+        const View idx = check_accessor(
+            prim.indices, TINYGLTF_TYPE_SCALAR,
+            {TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE, TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT,
+             TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT},
+            where + " indices");
+        indices.resize(idx.count);
+        for (size_t i = 0; i < idx.count; ++i) {
+          const double v = idx.get(i, 0);
+          if (v >= double(pos.count))
+            fail(where + ": index " + std::to_string(uint64_t(v)) + " out of range (" +
+                 std::to_string(pos.count) + " vertices)");
+          indices[i] = uint32_t(v);
+        }
+      } else {
+        indices.resize(pos.count);
+        for (size_t i = 0; i < pos.count; ++i) indices[i] = uint32_t(i);
+      }
+      if (indices.size() % 3 != 0)
+        warn(where + ": index count is not a multiple of 3; trailing indices ignored");
+      for (size_t t = 0; t + 2 < indices.size(); t += 3) {
+        Triangle tri;
+        tri.material = material;
+        tri.has_normals = has_normals;
+        for (int k = 0; k < 3; ++k) {
+          // A mirroring transform flips the winding (glTF spec, "Transformations"): swap two
+          // vertices so that counter-clockwise stays the front face in world space.
+          const int src = mirror ? (k == 0 ? 0 : 3 - k) : k;
+          const size_t vi = indices[t + size_t(src)];
+          tri.p[k] = world.transform_point(
+              {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))});
+          if (has_normals) {
+            const Vec3 n = world.transform_normal(
+                {float(nrm.get(vi, 0)), float(nrm.get(vi, 1)), float(nrm.get(vi, 2))});
+            const float len = length(n);
+            tri.n[k] = len > 0.f && std::isfinite(len) ? n / len : Vec3();
+            if (!(len > 0.f) || !std::isfinite(len)) tri.has_normals = false;
+          }
+        }
+        desc->triangles.push_back(tri);  // degenerate ones are dropped by Scene
+      }
+    }
+  }
+
+  const tinygltf::Model& model_;
+  std::string source_;
+  std::vector<std::string>* warnings_;
+  uint32_t default_material_ = 0;
+};
+
+SceneDescription finish(bool ok, const tinygltf::Model& model, const std::string& err,
+                        const std::string& warn, const std::string& source,
+                        std::vector<std::string>* warnings) {
+  if (!warn.empty() && warnings) warnings->push_back(source + ": " + warn);
+  if (!ok) throw SceneError(source + ": cannot parse glTF: " + (err.empty() ? "unknown" : err));
+  return Loader(model, source, warnings).run();
+}
+
+}  // namespace
+
+SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw SceneError(path + ": cannot open file");
+  char magic[4] = {0, 0, 0, 0};
+  in.read(magic, 4);
+  const bool binary = in.gcount() == 4 && std::memcmp(magic, "glTF", 4) == 0;
+  in.close();
+  tinygltf::TinyGLTF gltf;
+  gltf.SetImageLoader(skip_image, nullptr);
+  tinygltf::Model model;
+  std::string err, warn;
+  const bool ok = binary ? gltf.LoadBinaryFromFile(&model, &err, &warn, path)
+                         : gltf.LoadASCIIFromFile(&model, &err, &warn, path);
+  return finish(ok, model, err, warn, path, warnings);
+}
+
+SceneDescription load_gltf_from_string(const std::string& json, const std::string& base_dir,
+                                       const std::string& name,
+                                       std::vector<std::string>* warnings) {
+  tinygltf::TinyGLTF gltf;
+  gltf.SetImageLoader(skip_image, nullptr);
+  tinygltf::Model model;
+  std::string err, warn;
+  const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, json.c_str(),
+                                           unsigned(json.size()), base_dir);
+  return finish(ok, model, err, warn, name, warnings);
+}
+
+}  // namespace rf

@@ -1,0 +1,85 @@
+#include "lights.h"
+
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "scene.h"
+#include "test_scenes.h"
+
+namespace rf {
+namespace {
+
+double chi2_critical(int dof) {  // significance 1e-3, Wilson-Hilferty
+  const double k = dof, z = 3.09;
+  const double t = 1.0 - 2.0 / (9.0 * k) + z * std::sqrt(2.0 / (9.0 * k));
+  return k * t * t * t;
+}
+
+TEST(AliasTable, ReproducesItsProbabilities) {
+  const std::vector<double> weights = {1, 2, 3, 0, 4, 10, 0.5, 7};
+  double total = 0;
+  for (double w : weights) total += w;
+  AliasTable table(weights);
+  ASSERT_EQ(table.size(), weights.size());
+  const int n = 200000;
+  std::vector<double> count(weights.size(), 0.0);
+  std::mt19937_64 rng(99);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  for (int i = 0; i < n; ++i) {
+    double pmf = 0;
+    const uint32_t k = table.sample(uni(rng), &pmf);
+    ASSERT_LT(k, weights.size());
+    ASSERT_DOUBLE_EQ(pmf, weights[k] / total);
+    count[k] += 1.0;
+  }
+  EXPECT_EQ(count[3], 0.0);  // zero weight is never chosen
+  double stat = 0.0;
+  int cells = 0;
+  for (size_t k = 0; k < weights.size(); ++k) {
+    if (weights[k] == 0) continue;
+    const double e = n * weights[k] / total;
+    stat += (count[k] - e) * (count[k] - e) / e;
+    ++cells;
+  }
+  EXPECT_LT(stat, chi2_critical(cells - 1));
+}
+
+TEST(AliasTable, AllZeroWeightsGiveAnEmptyTable) {
+  EXPECT_EQ(AliasTable({0.0, 0.0}).size(), 0u);
+}
+
+TEST(LightSet, SelectionProportionalToPowerAndPointsOnTheLight) {
+  SceneDescription desc;
+  desc.source = "two-lights";
+  desc.materials.push_back(Material{"dim", {0, 0, 0}, {1, 1, 1}});
+  desc.materials.push_back(Material{"bright", {0, 0, 0}, {3, 3, 3}});
+  desc.materials.push_back(Material{"diffuse", {0.5f, 0.5f, 0.5f}, {0, 0, 0}});
+  testing::add_quad(&desc, {0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}, 0);    // area 1, L 1
+  testing::add_quad(&desc, {0, 0, 5}, {2, 0, 5}, {2, 2, 5}, {0, 2, 5}, 1);    // area 4, L 3
+  testing::add_quad(&desc, {0, 0, -1}, {9, 0, -1}, {9, 9, -1}, {0, 9, -1}, 2);  // not a light
+  Scene scene(std::move(desc));
+  const LightSet& lights = scene.lights();
+  ASSERT_EQ(lights.size(), 4u);
+  // Power ratio 1 : 12 between the quads; the area pdf of a point is P(quad) / area(quad).
+  EXPECT_NEAR(lights.pdf_area(0), (1.0 / 13.0) / 1.0, 1e-6);
+  EXPECT_NEAR(lights.pdf_area(2), (12.0 / 13.0) / 4.0, 1e-6);
+  EXPECT_EQ(lights.pdf_area(4), 0.f);
+  std::mt19937_64 rng(1);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  int bright = 0;
+  const int n = 100000;
+  for (int i = 0; i < n; ++i) {
+    const LightSample s = lights.sample(uni(rng), uni(rng), uni(rng));
+    const Triangle& t = scene.triangles()[s.prim];
+    // The point lies in the triangle's plane and inside it.
+    EXPECT_NEAR(dot(s.p - t.p[0], t.ng), 0.f, 1e-5f);
+    EXPECT_NEAR(s.pdf_area, lights.pdf_area(s.prim), 1e-7f);
+    bright += s.emission.x > 2.f;
+  }
+  const double p = 12.0 / 13.0;
+  EXPECT_NEAR(double(bright) / n, p, 4.0 * std::sqrt(p * (1 - p) / n));
+}
+
+}  // namespace
+}  // namespace rf

@@ -1,0 +1,212 @@
+// renderfarm-worker: standalone `render` and farm `connect` commands.
+// Exit codes: 0 success, 1 runtime error (unreadable scene, write failure), 2 usage error.
+#include <unistd.h>
+
+#include <atomic>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "farm_client.h"
+#include "film.h"
+#include "integrators.h"
+#include "render.h"
+#include "scene.h"
+#include "scene_cache.h"
+
+namespace {
+
+constexpr int kExitRuntime = 1;
+constexpr int kExitUsage = 2;
+
+const char* kUsage =
+    "usage:\n"
+    "  renderfarm-worker render SCENE.gltf|SCENE.glb -o OUT.exr --spp N [--width W]\n"
+    "      [--height H] [--threads T] [--seed S] [--sampler sobol|independent]\n"
+    "      [--integrator path|ao] [--max-depth D]\n"
+    "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
+    "      [--cache-dir DIR] [--token TOKEN] [--id ID]\n"
+    "  renderfarm-worker --help | --version\n";
+
+struct UsageError {
+  std::string message;
+};
+
+// Parses "--flag value" pairs against the allowed flags; a positional argument is allowed
+// only where `positional` is non-null.
+std::map<std::string, std::string> parse_flags(const std::vector<std::string>& args,
+                                               const std::vector<std::string>& allowed,
+                                               std::vector<std::string>* positional) {
+  std::map<std::string, std::string> out;
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    if (a.size() > 1 && a[0] == '-') {
+      bool known = false;
+      for (const auto& f : allowed) known = known || f == a;
+      if (!known) throw UsageError{"unknown flag '" + a + "'"};
+      if (i + 1 >= args.size()) throw UsageError{"flag '" + a + "' needs a value"};
+      out[a] = args[++i];
+    } else if (positional) {
+      positional->push_back(a);
+    } else {
+      throw UsageError{"unexpected argument '" + a + "'"};
+    }
+  }
+  return out;
+}
+
+uint64_t parse_uint(const std::string& flag, const std::string& value, uint64_t min,
+                    uint64_t max) {
+  if (value.empty() || value.find_first_not_of("0123456789") != std::string::npos)
+    throw UsageError{flag + " expects a non-negative integer, got '" + value + "'"};
+  errno = 0;
+  const unsigned long long v = std::strtoull(value.c_str(), nullptr, 10);
+  if (errno == ERANGE || v < min || v > max)
+    throw UsageError{flag + " must be in [" + std::to_string(min) + ", " + std::to_string(max) +
+                     "], got " + value};
+  return v;
+}
+
+uint32_t default_threads() {
+  const unsigned n = std::thread::hardware_concurrency();
+  return n ? n : 1;
+}
+
+int cmd_render(const std::vector<std::string>& args) {
+  std::vector<std::string> positional;
+  auto flags = parse_flags(args,
+                           {"-o", "--spp", "--width", "--height", "--threads", "--seed",
+                            "--sampler", "--integrator", "--max-depth"},
+                           &positional);
+  if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
+  if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
+  if (!flags.count("--spp")) throw UsageError{"render needs --spp N"};
+  rf::RenderSettings settings;
+  const uint32_t spp =
+      uint32_t(parse_uint("--spp", flags["--spp"], 1, rf::kMaxSamplesPerPixel));
+  if (flags.count("--width")) settings.width = uint32_t(parse_uint("--width", flags["--width"], 1, 65536));
+  if (flags.count("--height"))
+    settings.height = uint32_t(parse_uint("--height", flags["--height"], 1, 65536));
+  uint32_t threads = default_threads();
+  if (flags.count("--threads")) threads = uint32_t(parse_uint("--threads", flags["--threads"], 1, 4096));
+  if (flags.count("--seed")) settings.seed = parse_uint("--seed", flags["--seed"], 0, UINT64_MAX);
+  if (flags.count("--max-depth"))
+    settings.max_depth = uint32_t(parse_uint("--max-depth", flags["--max-depth"], 0, 1024));
+  if (flags.count("--sampler") && !rf::parse_sampler_type(flags["--sampler"], &settings.sampler))
+    throw UsageError{"unknown sampler '" + flags["--sampler"] + "' (expected sobol or independent)"};
+  if (flags.count("--integrator") &&
+      !rf::parse_integrator_type(flags["--integrator"], &settings.integrator))
+    throw UsageError{"unknown integrator '" + flags["--integrator"] + "' (expected path or ao)"};
+  const std::string& scene_path = positional[0];
+  const std::string& out_path = flags["-o"];
+  const std::string err = rf::validate_render_request(
+      settings, {0, 0, settings.width, settings.height}, 0, spp);
+  if (!err.empty()) throw UsageError{err};
+
+  std::vector<std::string> warnings;
+  std::unique_ptr<rf::Scene> scene;
+  try {
+    scene = rf::load_scene(scene_path, &warnings);
+  } catch (const std::exception& e) {
+    for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+    std::cerr << "error: " << e.what() << "\n";
+    return kExitRuntime;
+  }
+  for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+  std::cerr << "rendering " << scene_path << ": " << scene->triangles().size() << " triangles, "
+            << scene->lights().size() << " emissive, " << settings.width << "x"
+            << settings.height << ", " << spp << " spp, " << threads << " threads, "
+            << rf::sampler_type_name(settings.sampler) << "/"
+            << rf::integrator_type_name(settings.integrator) << "\n";
+  rf::RenderStats stats;
+  int last_percent = -1;
+  const rf::Image image =
+      rf::render_image(*scene, settings, spp, threads, &stats, [&](size_t done, size_t total) {
+        const int percent = int(100 * done / total);
+        if (percent != last_percent) {
+          last_percent = percent;
+          std::fprintf(stderr, "\rprogress: %3d%%", percent);
+          std::fflush(stderr);
+        }
+      });
+  std::fprintf(stderr, "\n");
+  try {
+    rf::write_exr(out_path, image);
+  } catch (const std::exception& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return kExitRuntime;
+  }
+  std::fprintf(stderr, "wrote %s in %.3f s: %.0f samples/s, %.2f Mrays/s", out_path.c_str(),
+               stats.seconds, double(stats.samples) / stats.seconds,
+               double(stats.rays) / stats.seconds * 1e-6);
+  if (stats.nonfinite_samples)
+    std::fprintf(stderr, " (%llu non-finite samples recorded as 0)",
+                 static_cast<unsigned long long>(stats.nonfinite_samples));
+  std::fprintf(stderr, "\n");
+  return 0;
+}
+
+std::atomic<bool> g_stop{false};
+extern "C" void on_stop_signal(int) { g_stop.store(true); }
+
+int cmd_connect(const std::vector<std::string>& args) {
+  auto flags = parse_flags(
+      args, {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id"}, nullptr);
+  if (!flags.count("--server") || flags["--server"].empty())
+    throw UsageError{"connect needs --server HOST:PORT"};
+  rf::FarmOptions options;
+  options.server = flags["--server"];
+  options.threads = default_threads();
+  if (flags.count("--threads"))
+    options.threads = uint32_t(parse_uint("--threads", flags["--threads"], 1, 4096));
+  if (flags.count("--prefetch"))
+    options.prefetch = uint32_t(parse_uint("--prefetch", flags["--prefetch"], 0, 4096));
+  options.cache_dir =
+      flags.count("--cache-dir") ? flags["--cache-dir"] : rf::default_scene_cache_dir();
+  if (flags.count("--token")) options.token = flags["--token"];
+  char host[256] = {0};
+  if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "unknown");
+  options.hostname = host;
+  options.worker_id = flags.count("--id") ? flags["--id"]
+                                          : options.hostname + "-" + std::to_string(getpid());
+  struct sigaction sa = {};
+  sa.sa_handler = on_stop_signal;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGINT, &sa, nullptr);
+  sigaction(SIGTERM, &sa, nullptr);
+  return rf::run_farm_client(options, g_stop);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string> args(argv + 1, argv + argc);
+  try {
+    if (args.empty()) throw UsageError{"missing command"};
+    const std::string cmd = args[0];
+    args.erase(args.begin());
+    if (cmd == "--help" || cmd == "-h" || cmd == "help") {
+      std::cout << kUsage;
+      return 0;
+    }
+    if (cmd == "--version") {
+      std::cout << "renderfarm-worker " << RENDERFARM_VERSION << "\n";
+      return 0;
+    }
+    if (cmd == "render") return cmd_render(args);
+    if (cmd == "connect") return cmd_connect(args);
+    throw UsageError{"unknown command '" + cmd + "'"};
+  } catch (const UsageError& e) {
+    std::cerr << "renderfarm-worker: " << e.message << " (see renderfarm-worker --help)\n";
+    return kExitUsage;
+  } catch (const std::exception& e) {
+    std::cerr << "renderfarm-worker: error: " << e.what() << "\n";
+    return kExitRuntime;
+  }
+}

@@ -1,0 +1,49 @@
+// Scene caches of the farm worker: scene files on disk, content-addressed by SHA-256
+// (<dir>/<sha256>.glb|.gltf), and loaded scenes in memory (a small LRU keyed by sha256, each
+// scene loaded once even when several threads ask for it at the same time).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <future>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "scene.h"
+
+namespace rf {
+
+// $XDG_CACHE_HOME/renderfarm/scenes, else ~/.cache/renderfarm/scenes.
+std::string default_scene_cache_dir();
+// sha256 names of the scene files in dir (files named <64 hex>.glb or .gltf).
+std::vector<std::string> list_cached_scenes(const std::string& dir);
+// Path of the cached file for sha256, or "" if there is none.
+std::string find_cached_scene(const std::string& dir, const std::string& sha256);
+
+class SceneCache {
+ public:
+  using Loader = std::function<std::shared_ptr<const Scene>()>;
+  explicit SceneCache(size_t capacity) : capacity_(capacity ? capacity : 1) {}
+  // Returns the scene for key, calling load() if it is not in memory. Concurrent callers for
+  // the same key wait for one load. If load throws, every waiting caller gets the exception
+  // and the next call tries again.
+  std::shared_ptr<const Scene> get(const std::string& key, const Loader& load);
+  size_t size() const;
+
+ private:
+  struct Entry {
+    std::shared_future<std::shared_ptr<const Scene>> scene;
+    uint64_t last_used = 0;
+    bool ready = false;
+  };
+  void evict_locked();
+  size_t capacity_;
+  mutable std::mutex mutex_;
+  std::map<std::string, Entry> entries_;
+  uint64_t clock_ = 0;
+};
+
+}  // namespace rf

@@ -1,0 +1,145 @@
+#include "scene.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+
+#include "test_scenes.h"
+
+namespace rf {
+namespace {
+
+bool any_contains(const std::vector<std::string>& lines, const std::string& needle) {
+  for (const auto& l : lines)
+    if (l.find(needle) != std::string::npos) return true;
+  return false;
+}
+
+TEST(GltfLoader, SmallSceneHierarchyMaterialsAndCamera) {
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(testing::small_gltf_json(), ".", "small.gltf",
+                                                &warnings);
+  EXPECT_TRUE(any_contains(warnings, "EXT_made_up")) << "unsupported required extension";
+  EXPECT_TRUE(any_contains(warnings, "mesh 0 ('floor') primitive 1")) << "LINES skipped";
+  ASSERT_EQ(desc.triangles.size(), 4u);
+  ASSERT_TRUE(desc.camera.has_value());
+  Scene scene(std::move(desc), &warnings);
+  ASSERT_EQ(scene.lights().size(), 2u);
+  // Lamp: local unit square in y = 0 facing -y, under translation (0,2,0) and scale (2,1,2).
+  float lamp_area = 0.f;
+  for (const Triangle& t : scene.triangles()) {
+    const Material& m = scene.material(uint32_t(&t - scene.triangles().data()));
+    if (!m.is_emissive()) {
+      EXPECT_NEAR(t.ng.y, 1.f, 1e-6f);
+      EXPECT_NEAR(m.albedo.y, 0.6f, 1e-6f);
+      continue;
+    }
+    lamp_area += t.area;
+    EXPECT_NEAR(t.ng.y, -1.f, 1e-6f);
+    for (const Vec3& p : t.p) EXPECT_NEAR(p.y, 2.f, 1e-6f);
+    EXPECT_NEAR(m.emission.x, 4.f, 1e-6f);  // emissiveFactor x emissiveStrength
+    EXPECT_NEAR(m.emission.y, 2.f, 1e-6f);
+    EXPECT_NEAR(m.emission.z, 1.f, 1e-6f);
+  }
+  EXPECT_NEAR(lamp_area, 4.f, 1e-5f);
+  // Camera at (0,1,5) rotated by -0.2 rad about X: looks down -Z and slightly down.
+  const Camera& cam = scene.camera();
+  EXPECT_NEAR(cam.position.z, 5.f, 1e-5f);
+  EXPECT_NEAR(cam.forward.y, -std::sin(0.2f), 1e-4f);
+  EXPECT_NEAR(cam.forward.z, -std::cos(0.2f), 1e-4f);
+  EXPECT_NEAR(cam.yfov, 0.7f, 1e-6f);
+  // A ray straight down from above hits the lamp (its back face) first, at y = 2.
+  Hit hit;
+  ASSERT_TRUE(scene.intersect({0.1f, 5.f, 0.2f}, {0.f, -1.f, 0.f}, 1e30f, &hit));
+  EXPECT_NEAR(hit.t, 3.f, 1e-5f);
+  EXPECT_TRUE(scene.material(hit.prim).is_emissive());
+  EXPECT_TRUE(scene.occluded({0.1f, 5.f, 0.2f}, {0.f, -1.f, 0.f}, 10.f));
+  EXPECT_FALSE(scene.occluded({0.1f, 5.f, 0.2f}, {0.f, -1.f, 0.f}, 2.9f));
+  // Below the lamp, the floor.
+  ASSERT_TRUE(scene.intersect({0.f, 1.f, 3.f}, {0.f, -1.f, -2.5f}, 1e30f, &hit));
+  EXPECT_NEAR(hit.p.z, 0.5f, 1e-5f);
+  EXPECT_FALSE(scene.material(hit.prim).is_emissive());
+}
+
+TEST(GltfLoader, ErrorsNameTheProblem) {
+  std::vector<std::string> warnings;
+  try {
+    load_gltf("/nonexistent/scene.gltf", &warnings);
+    FAIL() << "expected SceneError";
+  } catch (const SceneError& e) {
+    EXPECT_NE(std::string(e.what()).find("/nonexistent/scene.gltf"), std::string::npos);
+  }
+  EXPECT_THROW(load_gltf_from_string("{ not json", ".", "broken.gltf", &warnings), SceneError);
+  std::string json = testing::small_gltf_json();
+  const std::string good = "\"indices\": 1";
+  json.replace(json.find(good), good.size(), "\"indices\": 7");
+  try {
+    load_gltf_from_string(json, ".", "bad-index.gltf", &warnings);
+    FAIL() << "expected SceneError";
+  } catch (const SceneError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("bad-index.gltf"), std::string::npos) << what;
+    EXPECT_NE(what.find("indices"), std::string::npos) << what;
+  }
+}
+
+TEST(GltfLoader, MissingMaterialIsNamed) {
+  std::string json = testing::small_gltf_json();
+  const std::string good = "\"material\": 1}";
+  json.replace(json.find(good), good.size(), "\"material\": 5}");
+  try {
+    load_gltf_from_string(json, ".", "bad-material.gltf", nullptr);
+    FAIL() << "expected SceneError";
+  } catch (const SceneError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("bad-material.gltf"), std::string::npos) << what;
+    EXPECT_NE(what.find("material"), std::string::npos) << what;
+  }
+}
+
+TEST(Scene, NoCameraFramesBoundsFromPlusZ) {
+  SceneDescription desc;
+  desc.source = "no-camera";
+  desc.materials.push_back(Material{});
+  testing::add_quad(&desc, {-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}, 0);
+  Triangle degenerate;
+  degenerate.p[0] = degenerate.p[1] = degenerate.p[2] = Vec3(1, 2, 3);
+  desc.triangles.push_back(degenerate);
+  std::vector<std::string> warnings;
+  Scene scene(std::move(desc), &warnings);
+  EXPECT_EQ(scene.triangles().size(), 2u);
+  EXPECT_TRUE(any_contains(warnings, "no perspective camera"));
+  EXPECT_TRUE(any_contains(warnings, "degenerate"));
+  EXPECT_GT(scene.camera().position.z, 1.f);
+  EXPECT_NEAR(scene.camera().forward.z, -1.f, 1e-6f);
+  // The image center sees the quad.
+  Hit hit;
+  EXPECT_TRUE(scene.intersect(scene.camera().position,
+                              scene.camera().ray_direction(32.f, 32.f, 64, 64), 1e30f, &hit));
+}
+
+TEST(Scene, EmptySceneIsAnError) {
+  SceneDescription desc;
+  desc.source = "empty";
+  EXPECT_THROW(Scene scene(std::move(desc)), SceneError);
+}
+
+TEST(Scene, CornellBoxExample) {
+  const std::string path = std::string(RENDERFARM_EXAMPLES_DIR) + "/cornell-box.gltf";
+  std::vector<std::string> warnings;
+  auto scene = load_scene(path, &warnings);
+  EXPECT_GT(scene->triangles().size(), 30u);
+  EXPECT_FALSE(scene->lights().empty());
+  EXPECT_TRUE(scene->has_file_camera());
+  bool red = false, green = false;
+  for (uint32_t i = 0; i < scene->triangles().size(); ++i) {
+    const Vec3 a = scene->material(i).albedo;
+    red = red || (a.x > 0.5f && a.y < 0.2f);
+    green = green || (a.y > 0.3f && a.x < 0.2f);
+  }
+  EXPECT_TRUE(red);
+  EXPECT_TRUE(green);
+}
+
+}  // namespace
+}  // namespace rf

@@ -1,0 +1,126 @@
+// Small 3-vector and 4x4 matrix types for the renderer. Geometry is float (what Embree uses);
+// accumulation happens in double elsewhere.
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+namespace rf {
+
+constexpr float kPi = 3.14159265358979323846f;
+constexpr float kInvPi = 0.31830988618379067154f;
+
+struct Vec3 {
+  float x = 0.f, y = 0.f, z = 0.f;
+  Vec3() = default;
+  constexpr Vec3(float x_, float y_, float z_) : x(x_), y(y_), z(z_) {}
+  float operator[](int i) const { return i == 0 ? x : (i == 1 ? y : z); }
+  float& operator[](int i) { return i == 0 ? x : (i == 1 ? y : z); }
+};
+
+inline Vec3 operator+(Vec3 a, Vec3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+inline Vec3 operator-(Vec3 a, Vec3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+inline Vec3 operator-(Vec3 a) { return {-a.x, -a.y, -a.z}; }
+inline Vec3 operator*(Vec3 a, Vec3 b) { return {a.x * b.x, a.y * b.y, a.z * b.z}; }
+inline Vec3 operator*(Vec3 a, float s) { return {a.x * s, a.y * s, a.z * s}; }
+inline Vec3 operator*(float s, Vec3 a) { return a * s; }
+inline Vec3 operator/(Vec3 a, float s) { return a * (1.f / s); }
+inline Vec3& operator+=(Vec3& a, Vec3 b) { return a = a + b; }
+inline Vec3& operator*=(Vec3& a, Vec3 b) { return a = a * b; }
+inline Vec3& operator*=(Vec3& a, float s) { return a = a * s; }
+
+inline float dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline Vec3 cross(Vec3 a, Vec3 b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+inline float length(Vec3 a) { return std::sqrt(dot(a, a)); }
+inline Vec3 normalize(Vec3 a) { return a / length(a); }
+inline float max_component(Vec3 a) { return std::max(a.x, std::max(a.y, a.z)); }
+inline float max_abs_component(Vec3 a) {
+  return std::max(std::fabs(a.x), std::max(std::fabs(a.y), std::fabs(a.z)));
+}
+inline Vec3 vmin(Vec3 a, Vec3 b) {
+  return {std::min(a.x, b.x), std::min(a.y, b.y), std::min(a.z, b.z)};
+}
+inline Vec3 vmax(Vec3 a, Vec3 b) {
+  return {std::max(a.x, b.x), std::max(a.y, b.y), std::max(a.z, b.z)};
+}
+inline bool is_zero(Vec3 a) { return a.x == 0.f && a.y == 0.f && a.z == 0.f; }
+inline bool is_finite(Vec3 a) {
+  return std::isfinite(a.x) && std::isfinite(a.y) && std::isfinite(a.z);
+}
+// Rec. 709 luminance, the Y the protocol's luminance_m2 is defined on.
+inline float luminance(Vec3 c) { return 0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z; }
+
+// Orthonormal basis around a unit vector n (Duff et al. 2017, "Building an Orthonormal Basis,
+// Revisited"); local z maps to n.
+struct Frame {
+  Vec3 s, t, n;
+  explicit Frame(Vec3 n_) : n(n_) {
+    const float sign = std::copysign(1.f, n.z);
+    const float a = -1.f / (sign + n.z);
+    const float b = n.x * n.y * a;
+    s = {1.f + sign * n.x * n.x * a, sign * b, -sign * n.x};
+    t = {b, sign + n.y * n.y * a, -n.y};
+  }
+  Vec3 to_world(Vec3 v) const { return s * v.x + t * v.y + n * v.z; }
+  Vec3 to_local(Vec3 v) const { return {dot(v, s), dot(v, t), dot(v, n)}; }
+};
+
+// Column-major 4x4 matrix (glTF's storage order): m[col][row].
+struct Mat4 {
+  std::array<std::array<double, 4>, 4> m{};
+  static Mat4 identity() {
+    Mat4 r;
+    for (int i = 0; i < 4; ++i) r.m[i][i] = 1.0;
+    return r;
+  }
+  Mat4 operator*(const Mat4& b) const {
+    Mat4 r;
+    for (int c = 0; c < 4; ++c)
+      for (int rr = 0; rr < 4; ++rr) {
+        double s = 0.0;
+        for (int k = 0; k < 4; ++k) s += m[k][rr] * b.m[c][k];
+        r.m[c][rr] = s;
+      }
+    return r;
+  }
+  Vec3 transform_point(Vec3 p) const {
+    double out[3];
+    for (int r = 0; r < 3; ++r)
+      out[r] = m[0][r] * p.x + m[1][r] * p.y + m[2][r] * p.z + m[3][r];
+    return {float(out[0]), float(out[1]), float(out[2])};
+  }
+  Vec3 transform_vector(Vec3 v) const {
+    double out[3];
+    for (int r = 0; r < 3; ++r) out[r] = m[0][r] * v.x + m[1][r] * v.y + m[2][r] * v.z;
+    return {float(out[0]), float(out[1]), float(out[2])};
+  }
+  // Normals transform with the inverse transpose of the upper 3x3; the cofactor matrix equals
+  // det * inverse-transpose, and the normal is renormalized anyway, so the cofactors suffice
+  // (and stay defined for singular matrices, where we then get a zero vector).
+  Vec3 transform_normal(Vec3 n) const {
+    auto a = [&](int r, int c) { return m[c][r]; };
+    double cof[3][3];
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) {
+        const int r1 = (r + 1) % 3, r2 = (r + 2) % 3, c1 = (c + 1) % 3, c2 = (c + 2) % 3;
+        cof[r][c] = a(r1, c1) * a(r2, c2) - a(r1, c2) * a(r2, c1);
+      }
+    // cof = det * M^-T: flip by det's sign so mirroring transforms keep the normal's side.
+    const double sign = det3() < 0.0 ? -1.0 : 1.0;
+    double out[3];
+    for (int r = 0; r < 3; ++r)
+      out[r] = sign * (cof[r][0] * n.x + cof[r][1] * n.y + cof[r][2] * n.z);
+    return {float(out[0]), float(out[1]), float(out[2])};
+  }
+  double det3() const {
+    auto a = [&](int r, int c) { return m[c][r]; };
+    return a(0, 0) * (a(1, 1) * a(2, 2) - a(1, 2) * a(2, 1)) -
+           a(0, 1) * (a(1, 0) * a(2, 2) - a(1, 2) * a(2, 0)) +
+           a(0, 2) * (a(1, 0) * a(2, 1) - a(1, 1) * a(2, 0));
+  }
+};
+
+}  // namespace rf
