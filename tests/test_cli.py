@@ -1,0 +1,54 @@
+"""The CLI as a user runs it: `renderfarm render` with and without a running server."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from renderfarm.images import read_exr
+
+from .conftest import CORNELL
+
+CLI = [sys.executable, "-m", "renderfarm"]
+
+
+def test_render_starts_a_local_farm_writes_exr_and_png_and_exits(tmp_path):
+    out = tmp_path / "out" / "cornell.exr"
+    env = {k: v for k, v in os.environ.items() if k != "RENDERFARM_URL"}
+    done = subprocess.run(
+        CLI + ["render", str(CORNELL), "-o", str(out), "--workers", "2", "--threads", "1"]
+        + ["--width", "32", "--height", "32", "--spp", "4", "--data-dir", str(tmp_path / "d")],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert f"EXR: {out}" in done.stdout and f"PNG: {out.with_suffix('.png')}" in done.stdout
+    channels = read_exr(str(out))
+    assert channels["R"].shape == (32, 32) and (channels["spp"] == 4).all()
+    assert np.isfinite(channels["R"]).all()
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_render_against_a_server_reports_bad_settings_by_name(farm, tmp_path):
+    done = subprocess.run(
+        CLI + ["render", str(CORNELL), "-o", str(tmp_path / "x.exr"), "--url", farm.url]
+        + ["--sampler", "magic"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 1
+    assert "settings.sampler" in done.stderr and "magic" not in done.stdout
+
+
+def test_render_refuses_a_missing_scene_and_a_non_exr_output(tmp_path):
+    missing = subprocess.run(
+        CLI + ["render", str(tmp_path / "nope.glb"), "-o", str(tmp_path / "x.exr")],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert missing.returncode == 2 and "scene file not found" in missing.stderr
+    png = subprocess.run(
+        CLI + ["render", str(CORNELL), "-o", str(tmp_path / "x.png")],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert png.returncode == 2 and ".exr" in png.stderr
