@@ -162,3 +162,56 @@ def _glb() -> bytes:
     from renderfarm.scenes import pack_gltf
 
     return pack_gltf(CORNELL)
+
+
+def test_stop_records_and_convergence_history(client, cornell_job):
+    job, _ = cornell_job
+    got = client.get(job["id"])
+    stops = got["stops"]
+    assert sorted(s["tile"] for s in stops) == list(range(16))
+    assert all(s["reason"] == "max_spp" and s["spp"] == 16 for s in stops)
+    points = client.http.get(f"/api/v1/jobs/{job['id']}/convergence").json()
+    assert points and points[-1]["mean_spp"] == 16
+    times = [p["t"] for p in points]
+    assert times == sorted(times)
+
+
+def _tiny_hdr(path) -> bytes:
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(8, 4, 3, oiio.FLOAT)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec)
+    out.write_image(np.full((4, 8, 3), 0.5, dtype=np.float32))
+    out.close()
+    return path.read_bytes()
+
+
+def test_environment_map_is_stored_and_referenced_by_hash(client, tmp_path):
+    import hashlib
+    import json
+
+    hdr = _tiny_hdr(tmp_path / "sky.hdr")
+    parts = {
+        "scene": ("cornell.glb", _glb(), "model/gltf-binary"),
+        "environment": ("sky.hdr", hdr, "application/octet-stream"),
+        "settings": (None, json.dumps({"max_spp": 1, "width": 16, "height": 16})),
+    }
+    r = client.http.post("/api/v1/jobs", files=parts)
+    assert r.status_code == 201, r.text
+    job = r.json()
+    assert job["settings"]["environment"] == hashlib.sha256(hdr).hexdigest()
+    client.cancel(job["id"])
+    # The stored map can be named by hash alone; an unknown hash is a 404.
+    again = client.submit(
+        scene_sha256=job["scene_sha256"],
+        settings={"environment": job["settings"]["environment"], "max_spp": 1, "width": 16},
+    )
+    assert again["settings"]["environment"] == job["settings"]["environment"]
+    client.cancel(again["id"])
+    with pytest.raises(ApiError) as err:
+        client.submit(scene_sha256=job["scene_sha256"], settings={"environment": "ab" * 32})
+    assert err.value.status == 404 and "environment" in err.value.message
+    parts["environment"] = ("sky.png", b"\x89PNG\r\n\x1a\n" + b"0" * 32, "image/png")
+    r = client.http.post("/api/v1/jobs", files=parts)
+    assert r.status_code == 400 and r.json()["field"] == "environment"

@@ -33,6 +33,10 @@ class ApiError(RuntimeError):
         self.field = field
 
 
+def _is_sha256(value: str) -> bool:
+    return len(value) == 64 and all(c in "0123456789abcdef" for c in value.lower())
+
+
 class Client:
     def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 60.0):
         self.url = (url or os.environ.get("RENDERFARM_URL") or "http://127.0.0.1:8080").rstrip("/")
@@ -69,14 +73,28 @@ class Client:
     ) -> dict[str, Any]:
         """Submit a scene file (.glb, or .gltf packed with its files into a .glb) or a stored
         scene's hash. Returns the job."""
+        settings = dict(settings or {})
+        env = settings.get("environment")
+        env_file = None
+        if env and not _is_sha256(str(env)):  # a file to upload with the job
+            env_path = Path(env)
+            env_file = (env_path.name, env_path.read_bytes(), "application/octet-stream")
+            del settings["environment"]
         if scene is not None:
             path = Path(scene)
             data = path.read_bytes() if path.suffix.lower() == ".glb" else pack_gltf(path)
             upload_name = path.stem + ".glb"
-            fields = {"settings": json.dumps(settings or {}), "name": name or path.stem}
+            fields = {"settings": json.dumps(settings), "name": name or path.stem}
             files = {"scene": (upload_name, data, "model/gltf-binary")}
+            if env_file:
+                files["environment"] = env_file
             return self._check(self.http.post("/api/v1/jobs", data=fields, files=files)).json()
-        body = {"scene_sha256": scene_sha256, "settings": settings or {}, "name": name}
+        if env_file:
+            files = {"environment": env_file}
+            fields = {"scene_sha256": scene_sha256 or "", "settings": json.dumps(settings)}
+            fields["name"] = name
+            return self._check(self.http.post("/api/v1/jobs", data=fields, files=files)).json()
+        body = {"scene_sha256": scene_sha256, "settings": settings, "name": name}
         return self._check(self.http.post("/api/v1/jobs", json=body)).json()
 
     def get(self, job_id: str) -> dict[str, Any]:

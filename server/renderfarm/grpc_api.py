@@ -42,6 +42,15 @@ log = logging.getLogger(__name__)
 MAX_MESSAGE_BYTES = 512 * 2**20
 
 
+# Job settings whose proto field has another name.
+_PROTO_NAMES = {"environment": "environment_sha256"}
+
+
+def settings_to_proto(settings) -> jobs_pb2.RenderSettings:
+    values = {_PROTO_NAMES.get(k, k): v for k, v in settings.to_dict().items()}
+    return jobs_pb2.RenderSettings(**values)
+
+
 def job_to_proto(view: JobView) -> jobs_pb2.Job:
     p = view.progress
     s = view.settings
@@ -49,7 +58,7 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         id=view.id,
         name=view.name,
         state=jobs_pb2.JobState.Value(view.state.proto_name),
-        settings=jobs_pb2.RenderSettings(**s.to_dict()),
+        settings=settings_to_proto(s),
         scene_sha256=view.scene_sha256,
         progress=jobs_pb2.JobProgress(
             tiles_total=p.tiles_total,
@@ -68,7 +77,12 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
 
 def settings_from_proto(msg: jobs_pb2.RenderSettings) -> dict:
     """Fields left at their zero value mean "use the default" (proto3 has no presence)."""
-    return {name: getattr(msg, name) for name in SETTING_NAMES if getattr(msg, name)}
+    values = {}
+    for name in SETTING_NAMES:
+        value = getattr(msg, _PROTO_NAMES.get(name, name))
+        if value:
+            values[name] = value
+    return values
 
 
 def _maps_errors(method):
@@ -99,6 +113,8 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             filename=request.scene_filename,
             name=request.name,
             raw_settings=settings_from_proto(request.settings),
+            environment_data=request.environment_data or None,
+            environment_filename=request.environment_filename,
         )
         return jobs_pb2.SubmitJobResponse(job=job_to_proto(view))
 
@@ -226,7 +242,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             batch_index=lease.batch_index,
             sample_start=lease.sample_start,
             sample_count=lease.sample_count,
-            settings=jobs_pb2.RenderSettings(**job.settings.to_dict()),
+            settings=settings_to_proto(job.settings),
         )
         return workers_pb2.ServerMessage(
             assign=workers_pb2.Assign(task=task, lease_deadline_unix_ms=int(lease.deadline * 1000))

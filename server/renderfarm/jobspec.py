@@ -7,6 +7,7 @@ CLI flags are all derived from this table, so they cannot drift apart.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -61,6 +62,17 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("max_spp", int, 1024, "samples per pixel at which a tile stops regardless of noise"),
     Setting("time_limit_s", float, 0.0, "wall-clock limit of the job in seconds; 0 = none"),
     Setting("priority", int, 0, "jobs with higher priority are rendered first"),
+    Setting(
+        "environment",
+        str,
+        "",
+        "sha256 of a stored equirectangular .hdr/.exr environment map (uploaded with the job); "
+        "empty = black background",
+    ),
+    Setting("environment_intensity", float, 1.0, "radiance scale of the environment map"),
+    Setting("environment_rotation_deg", float, 0.0, "rotation of the environment about +Y"),
+    Setting("aperture_radius", float, 0.0, "thin lens radius in metres; 0 = pinhole camera"),
+    Setting("focus_distance", float, 0.0, "distance in focus in metres (needed with an aperture)"),
 )
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 # `spp` is accepted as a shorthand for max_spp (the CLI's --spp), never stored.
@@ -81,6 +93,11 @@ class JobSettings:
     max_spp: int = 1024
     time_limit_s: float = 0.0
     priority: int = 0
+    environment: str = ""
+    environment_intensity: float = 1.0
+    environment_rotation_deg: float = 0.0
+    aperture_radius: float = 0.0
+    focus_distance: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -189,3 +206,21 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
         f"must be in 0..{limits.max_time_limit_s:g}",
     )
     _require(-1000 <= s.priority <= 1000, "priority", "must be in -1000..1000")
+    _require(
+        s.environment == "" or re.fullmatch(r"[0-9a-f]{64}", s.environment) is not None,
+        "environment",
+        "must be the sha256 of a stored environment map (64 hex digits)",
+    )
+    _require(0.0 < s.environment_intensity <= 1e6, "environment_intensity", "must be in (0, 1e6]")
+    _require(
+        -360.0 <= s.environment_rotation_deg <= 360.0,
+        "environment_rotation_deg",
+        "must be in -360..360",
+    )
+    _require(0.0 <= s.aperture_radius <= 100.0, "aperture_radius", "must be in 0..100")
+    _require(0.0 <= s.focus_distance <= 1e6, "focus_distance", "must be in 0..1e6")
+    _require(
+        s.aperture_radius == 0.0 or s.focus_distance > 0.0,
+        "focus_distance",
+        "must be positive when aperture_radius is set",
+    )

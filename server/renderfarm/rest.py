@@ -85,7 +85,8 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
         summary="Submit a job",
         description=(
             "multipart/form-data with a file field `scene` (.glb or self-contained .gltf), an "
-            "optional `settings` field holding a JSON object, and an optional `name`; or "
+            "optional `settings` field holding a JSON object, an optional `name`, and an "
+            "optional file field `environment` (.hdr/.exr environment map); or "
             'application/json {"scene_sha256": ..., "settings": {...}, "name": ...} to '
             "render a scene already stored."
         ),
@@ -98,13 +99,24 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
         ctype = request.headers.get("content-type", "")
         scene_data = None
         filename = ""
+        environment_data, environment_filename = None, ""
         if ctype.startswith("multipart/form-data"):
             form = await request.form(max_part_size=limit + 1)
             upload = form.get("scene")
             raw_settings = _json_field(form.get("settings"), "settings")
             name = str(form.get("name") or "")
             sha = str(form.get("scene_sha256") or "") or None
-            unknown = set(form.keys()) - {"scene", "settings", "name", "scene_sha256"}
+            env_upload = form.get("environment")
+            if env_upload is not None and not isinstance(env_upload, str):
+                environment_data = await env_upload.read()
+                environment_filename = env_upload.filename or "environment"
+            unknown = set(form.keys()) - {
+                "scene",
+                "settings",
+                "name",
+                "scene_sha256",
+                "environment",
+            }
             if unknown:
                 raise SettingsError(
                     sorted(unknown)[0], f"unknown form field {sorted(unknown)[0]!r}"
@@ -137,6 +149,8 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
             filename=filename,
             name=name,
             raw_settings=raw_settings,
+            environment_data=environment_data,
+            environment_filename=environment_filename,
         )
         metrics.jobs_submitted.inc()
         return JSONResponse(view.to_json(), status_code=201)
@@ -156,7 +170,14 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     @app.get("/api/v1/jobs/{job_id}", summary="Get a job")
     async def get_job(job_id: str) -> dict:
         view = await farm.get(job_id)
-        return {**view.to_json(), "stops": farm.stop_records(job_id)}
+        return {**view.to_json(), "stops": await farm.stops(job_id)}
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/convergence",
+        summary="Image relative error and mean spp against elapsed time",
+    )
+    async def convergence(job_id: str) -> list[dict]:
+        return await farm.convergence(job_id)
 
     @app.post("/api/v1/jobs/{job_id}/cancel", summary="Cancel a job")
     async def cancel_job(job_id: str) -> dict:

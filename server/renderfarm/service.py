@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import secrets
@@ -30,7 +31,7 @@ from . import images
 from .config import Settings
 from .jobspec import JobSettings, SettingsError, parse_settings
 from .merge import TileAccumulator
-from .scenes import SceneError, inspect_scene
+from .scenes import SceneError, inspect_environment, inspect_scene
 from .scheduler import BatchResult, JobRun, Lease, Scheduler
 from .states import JobState, StopReason
 from .store import JobRow, Store, TileRow
@@ -130,6 +131,8 @@ class FarmService:
         self._tasks: list[asyncio.Task] = []
         self._last_checkpoint = time.time()
         self.metrics = None  # a metrics.Metrics, set by the server
+        # Convergence history of live jobs: (elapsed s, relative error or None, mean spp).
+        self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
 
     # ------------------------------------------------------------------------- lifecycle
@@ -180,6 +183,7 @@ class FarmService:
             await asyncio.sleep(0.25)
             try:
                 self.scheduler.tick()
+                self._sample_history()
                 await self._after_change()
                 if time.time() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
                     await self.checkpoint()
@@ -197,8 +201,11 @@ class FarmService:
         filename: str,
         name: str,
         raw_settings: dict[str, Any] | None,
+        environment_data: bytes | None = None,
+        environment_filename: str = "",
     ) -> JobView:
         settings = parse_settings(raw_settings, self.settings.limits())
+        settings = await self._environment(settings, environment_data, environment_filename)
         if scene_data is not None and scene_sha256:
             raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
         if scene_data is not None:
@@ -231,6 +238,24 @@ class FarmService:
         self.scheduler.add_job(job_id, settings, sha)
         await self._after_change()
         return await self.get(job_id)
+
+    async def _environment(
+        self, settings: JobSettings, data: bytes | None, filename: str
+    ) -> JobSettings:
+        """Store an uploaded environment map, or check that the referenced one is stored."""
+        if data:
+            sha, fmt = inspect_environment(data, filename, self.settings.max_upload_bytes)
+            if settings.environment and settings.environment != sha:
+                raise SettingsError(
+                    "settings.environment", "an environment map was uploaded and another named"
+                )
+            await self.store.put_scene(sha, fmt, filename or f"environment.{fmt}", data)
+            return dataclasses.replace(settings, environment=sha)
+        if settings.environment:
+            info = await self.store.get_scene_info(settings.environment)
+            if info is None or info["format"] not in ("hdr", "exr"):
+                raise NotFound(f"no stored environment map with sha256 {settings.environment}")
+        return settings
 
     async def get(self, job_id: str) -> JobView:
         job = self.scheduler.jobs.get(job_id)
@@ -505,6 +530,9 @@ class FarmService:
             await self.store.add_events([(e.job_id, e.kind, e.data) for e in events])
         for job_id in finished:
             await self._persist_job(job_id, tiles=True)
+            self._sample_history_final(job_id)
+            points = self.history.get(job_id, [])
+            await self.store.add_events([(job_id, "convergence", {"points": points})])
             self._forget_later(job_id)
         async with self._changed:
             self._changed.notify_all()
@@ -515,6 +543,7 @@ class FarmService:
         async def forget() -> None:
             await asyncio.sleep(60)
             self.scheduler.forget_job(job_id)
+            self.history.pop(job_id, None)
             self.names.pop(job_id, None)
             self.created.pop(job_id, None)
 
@@ -559,6 +588,56 @@ class FarmService:
             error_estimate=_finite_or_none(p.error),
             tiles_done=p.tiles_done,
         )
+
+    HISTORY_POINTS = 2000
+
+    def _sample_history(self) -> None:
+        """One (elapsed, error, mean spp) point per running job and round, when it changed."""
+        for job in self.scheduler.jobs.values():
+            if job.state != JobState.RUNNING:
+                continue
+            p = self.scheduler.progress(job)
+            points = self.history.setdefault(job.job_id, [])
+            point = (round(p.elapsed_s, 3), _finite_or_none(p.error), p.mean_spp)
+            if not points or points[-1][1:] != point[1:]:
+                points.append(point)
+            if len(points) > self.HISTORY_POINTS:  # keep the first point, thin the rest
+                del points[1::2]
+
+    def _sample_history_final(self, job_id: str) -> None:
+        job = self.scheduler.jobs.get(job_id)
+        if job is None or job.started is None:
+            return
+        p = self.scheduler.progress(job)
+        points = self.history.setdefault(job_id, [])
+        points.append((round(p.elapsed_s, 3), _finite_or_none(p.error), p.mean_spp))
+
+    async def convergence(self, job_id: str) -> list[dict[str, Any]]:
+        """Image error against time: live from memory, afterwards from the event log."""
+        await self.get(job_id)
+        points = self.history.get(job_id)
+        if points is None:
+            for event in reversed(await self.store.list_events(job_id)):
+                if event["kind"] == "convergence":
+                    points = [tuple(p) for p in event["data"]["points"]]
+                    break
+        return [{"t": t, "error": e, "mean_spp": n} for t, e, n in points or []]
+
+    async def stops(self, job_id: str) -> list[dict[str, Any]]:
+        """Every tile stop of the job: tile, last merged batch, spp, error, reason."""
+        if job_id in self.scheduler.jobs:
+            return self.stop_records(job_id)
+        return [
+            {
+                "tile": t.tile_index,
+                "batch": t.stop_batch,
+                "spp": t.stop_spp,
+                "error": t.stop_error,
+                "reason": t.stop_reason,
+            }
+            for t in await self.store.load_tiles(job_id)
+            if t.stop_reason is not None
+        ]
 
     def stop_records(self, job_id: str) -> list[dict[str, Any]]:
         job = self.scheduler.jobs.get(job_id)

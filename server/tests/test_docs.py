@@ -14,6 +14,7 @@ def test_every_job_setting_is_documented_with_its_default():
         row = next((line for line in README.splitlines() if line.startswith(f"| `{s.name}` |")), "")
         assert row, f"job setting {s.name} missing from the README"
         default = "0" if s.default == 0.0 and s.kind is float else str(s.default)
+        default = '""' if s.default == "" else default
         assert f"`{default}`" in row, f"README default of {s.name} is not {default}"
 
 
