@@ -11,8 +11,8 @@ import re
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-SAMPLERS = ("sobol", "independent")
-INTEGRATORS = ("path", "ao")
+SAMPLERS = ("sobol", "halton", "stratified", "independent")
+INTEGRATORS = ("path", "direct", "ao")
 
 
 class SettingsError(ValueError):

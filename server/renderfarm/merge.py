@@ -83,15 +83,18 @@ class TileAccumulator:
         n = n_a + n_b
         batch_mean = luminance(rgb_sum) / n_b
         delta = batch_mean - self.lum_mean
+        # Copy on write: every merge makes new arrays instead of updating in place, so a
+        # checkpoint can hold on to the arrays of a snapshot() and serialise them in another
+        # thread while merging goes on.
         # m2_between gains delta^2 n_a n_b / n; a single batch has no between part of its own.
-        self.m2_between += delta * delta * (n_a * n_b / n)
-        self.lum_mean += delta * (n_b / n)
-        self.m2_within += luminance_m2
-        self.rgb_sum += rgb_sum
+        self.m2_between = self.m2_between + delta * delta * (n_a * n_b / n)
+        self.lum_mean = self.lum_mean + delta * (n_b / n)
+        self.m2_within = self.m2_within + luminance_m2
+        self.rgb_sum = self.rgb_sum + rgb_sum
         if albedo_sum is not None:
-            self.albedo_sum += np.asarray(albedo_sum, dtype=np.float64).reshape(*shape, 3)
+            self.albedo_sum = self.albedo_sum + np.asarray(albedo_sum).reshape(*shape, 3)
         if normal_sum is not None:
-            self.normal_sum += np.asarray(normal_sum, dtype=np.float64).reshape(*shape, 3)
+            self.normal_sum = self.normal_sum + np.asarray(normal_sum).reshape(*shape, 3)
         self.samples += sample_count
         self.batches += 1
         self.nonfinite += nonfinite
@@ -122,10 +125,17 @@ class TileAccumulator:
     # Checkpoints: the accumulator as bytes, and back (float64 little-endian, fixed order).
     _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between", "albedo_sum", "normal_sum")
 
+    def snapshot(self) -> tuple:
+        """An immutable view of the accumulator (cheap: arrays are replaced, never mutated)."""
+        return tuple(getattr(self, a) for a in self._ARRAYS)
+
+    @staticmethod
+    def snapshot_bytes(snapshot: tuple) -> bytes:
+        """Serialise a snapshot(); safe to call from another thread."""
+        return b"".join(np.ascontiguousarray(a, "<f8").tobytes() for a in snapshot)
+
     def to_bytes(self) -> bytes:
-        return b"".join(
-            np.ascontiguousarray(getattr(self, a), "<f8").tobytes() for a in self._ARRAYS
-        )
+        return self.snapshot_bytes(self.snapshot())
 
     @classmethod
     def from_bytes(

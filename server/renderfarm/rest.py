@@ -9,10 +9,12 @@ from __future__ import annotations
 import asyncio
 import json
 import time
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request
-from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from .jobspec import SETTINGS, SettingsError
@@ -21,6 +23,10 @@ from .scenes import SceneError
 from .service import FarmService, NotFound, TooLarge
 from .states import JobState
 from .webui import index_html
+
+# The dashboard built by `make web` (web/dist in this checkout); webui.py's page stands in for it
+# when it has not been built.
+WEB_DIST = Path(__file__).resolve().parents[2] / "web" / "dist"
 
 
 def _error(status: int, field: str, message: str) -> JSONResponse:
@@ -51,8 +57,17 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
         return _error(404, "", e.message)
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    async def index() -> str:
-        return index_html()
+    async def index() -> Response:
+        built = WEB_DIST / "index.html"
+        if built.is_file():
+            return FileResponse(built, headers={"Cache-Control": "no-cache"})
+        return HTMLResponse(index_html())
+
+    app.mount(
+        "/assets",
+        StaticFiles(directory=WEB_DIST / "assets", check_dir=False),
+        name="dashboard-assets",
+    )
 
     @app.get("/healthz", include_in_schema=False)
     async def healthz() -> dict[str, str]:

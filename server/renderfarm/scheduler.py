@@ -14,6 +14,7 @@ tile's stop point are discarded.
 
 from __future__ import annotations
 
+import heapq
 import itertools
 import math
 import time
@@ -94,6 +95,7 @@ class TileState:
     error: float = math.inf
     seconds_per_sample: float = 0.0  # measured render cost per pixel sample
     dirty: bool = False  # merged since the last checkpoint
+    stamp: int = 0  # bumped on every change; heap entries with an older stamp are stale
 
     @property
     def merged(self) -> int:
@@ -120,10 +122,12 @@ class JobRun:
     failures: dict[str, int] = field(default_factory=dict)  # worker -> failed tasks
     samples_merged: int = 0
     version: int = 0  # bumped on every visible change (watchers wait on it)
-
-    @property
-    def batches_per_tile(self) -> int:
-        return batch_count(self.settings.max_spp)
+    batches_per_tile: int = 0
+    tiles_stopped: int = 0
+    # Dispatch candidates: (key, stamp, tile index), smallest key first; see Scheduler._touch.
+    heap: list[tuple[tuple, int, int]] = field(default_factory=list)
+    cost_sum: float = 0.0  # sum of the measured per-tile costs, for tiles not measured yet
+    cost_count: int = 0
 
     @property
     def pixels(self) -> int:
@@ -182,6 +186,7 @@ class Scheduler:
             for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
         ]
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state)
+        job.batches_per_tile = batch_count(settings.max_spp)
         if state == JobState.RUNNING:
             job.started = now - elapsed_s
         for index, acc in (checkpoint or {}).items():
@@ -193,6 +198,8 @@ class Scheduler:
                 tile.error = acc.tile_error()
                 self._decide_stop(job, tile)
         self.jobs[job_id] = job
+        for tile in tiles:
+            self._touch(job, tile)
         self._maybe_finish(job)
         return job
 
@@ -338,31 +345,45 @@ class Scheduler:
         return None
 
     def _pick_tile_batch(self, job: JobRun) -> tuple[TileState, int] | None:
-        """The unconverged tile whose error x cost is largest, preferring tiles with no work
-        out; tiles never merged count as infinitely noisy so a full preview comes first."""
-        total = job.batches_per_tile
-        mean_cost = [t.seconds_per_sample for t in job.tiles if t.seconds_per_sample > 0]
-        default_cost = sum(mean_cost) / len(mean_cost) if mean_cost else 1.0
-        best_key = None
-        best: tuple[TileState, int] | None = None
-        for tile in job.tiles:
-            if tile.stopped:
+        """The dispatch candidate with the smallest key (see _tile_key)."""
+        heap = job.heap
+        while heap:
+            _, stamp, index = heap[0]
+            tile = job.tiles[index]
+            if stamp != tile.stamp:
+                heapq.heappop(heap)  # stale: the tile changed since this entry was pushed
                 continue
-            if tile.requeue:
-                batch = min(tile.requeue)
-            elif tile.next_batch < total:
-                batch = tile.next_batch
-            else:
-                continue
-            depth = len(tile.in_flight) + len(tile.pending)
-            if depth > SPECULATION_DEPTH:
-                continue
-            cost = tile.seconds_per_sample or default_cost
-            urgency = tile.error * cost if math.isfinite(tile.error) else math.inf
-            key = (depth, -urgency, tile.merged, tile.index)
-            if best_key is None or key < best_key:
-                best_key, best = key, (tile, batch)
-        return best
+            batch = min(tile.requeue) if tile.requeue else tile.next_batch
+            return tile, batch
+        return None
+
+    def _tile_key(self, job: JobRun, tile: TileState) -> tuple | None:
+        """Dispatch order of a tile, or None when it has nothing to lease.
+
+        Tiles with no work out come first (depth), then the largest error x cost (tiles never
+        merged count as infinitely noisy, so a full-frame preview comes first), then the fewest
+        merged batches, then the tile index. Deeper tiles are leased speculatively only when no
+        tile is idle."""
+        if tile.stopped or (not tile.requeue and tile.next_batch >= job.batches_per_tile):
+            return None
+        depth = len(tile.in_flight) + len(tile.pending)
+        if depth > SPECULATION_DEPTH:
+            return None
+        cost = tile.seconds_per_sample or (
+            job.cost_sum / job.cost_count if job.cost_count else 1.0
+        )
+        urgency = tile.error * cost if math.isfinite(tile.error) else math.inf
+        return (depth, -urgency, tile.merged, tile.index)
+
+    def _touch(self, job: JobRun, tile: TileState) -> None:
+        """Re-file a tile after any change to it (O(log n); old entries go stale)."""
+        tile.stamp += 1
+        key = self._tile_key(job, tile)
+        if key is not None:
+            heapq.heappush(job.heap, (key, tile.stamp, tile.index))
+        if len(job.heap) > 4 * len(job.tiles) + 64:  # drop stale entries now and then
+            job.heap = [e for e in job.heap if e[1] == job.tiles[e[2]].stamp]
+            heapq.heapify(job.heap)
 
     def _lease(self, job: JobRun, tile: TileState, batch: int, slot: WorkerSlot) -> Lease:
         start, count = batch_range(batch, job.settings.max_spp)
@@ -383,6 +404,7 @@ class Scheduler:
         slot.leases[lease.task_id] = lease
         self.leases[lease.task_id] = lease
         job.leased += 1
+        self._touch(job, tile)
         if job.state == JobState.QUEUED:
             job.state = JobState.RUNNING
             job.started = self.clock()
@@ -405,6 +427,7 @@ class Scheduler:
             if requeue and not tile.stopped and lease.batch_index >= tile.merged:
                 if lease.batch_index not in tile.pending:
                     tile.requeue.add(lease.batch_index)
+            self._touch(job, tile)
 
     # -------------------------------------------------------------------------- results
     def complete(self, task_id: str, result: BatchResult) -> str:
@@ -424,9 +447,14 @@ class Scheduler:
             return "mismatch: " + problem
         if result.render_seconds > 0:
             cost = result.render_seconds / (result.sample_count * tile.rect.pixels)
-            tile.seconds_per_sample = (
-                cost if tile.seconds_per_sample == 0 else 0.7 * tile.seconds_per_sample + 0.3 * cost
-            )
+            if tile.seconds_per_sample == 0:
+                job.cost_sum += cost
+                job.cost_count += 1
+                tile.seconds_per_sample = cost
+            else:
+                new = 0.7 * tile.seconds_per_sample + 0.3 * cost
+                job.cost_sum += new - tile.seconds_per_sample
+                tile.seconds_per_sample = new
         if tile.stopped:
             return "tile stopped"
         b = result.batch_index
@@ -451,6 +479,7 @@ class Scheduler:
             tile.dirty = True
             outcome = "merged" if r is result or outcome == "merged" else outcome
             self._decide_stop(job, tile)
+        self._touch(job, tile)
         job.version += 1
         self._maybe_finish(job)
         return outcome
@@ -475,6 +504,7 @@ class Scheduler:
             self._stop_tile(job, tile, StopReason.CONVERGED)
 
     def _stop_tile(self, job: JobRun, tile: TileState, reason: StopReason) -> None:
+        job.tiles_stopped += 1
         tile.stop = StopRecord(tile.index, tile.merged - 1, tile.acc.samples, tile.error, reason)
         tile.dirty = True
         tile.pending.clear()
@@ -485,6 +515,7 @@ class Scheduler:
                 self._release(lease, requeue=False)
                 self.cancellations.setdefault(lease.worker_id, []).append(task_id)
         tile.in_flight.clear()
+        self._touch(job, tile)
         job.version += 1
         self.events.append(
             Event(
@@ -501,7 +532,7 @@ class Scheduler:
         )
 
     def _maybe_finish(self, job: JobRun) -> None:
-        if not job.state.finished and all(t.stopped for t in job.tiles):
+        if not job.state.finished and job.tiles_stopped == len(job.tiles):
             self._finish(job, JobState.COMPLETED)
 
     def _finish(self, job: JobRun, state: JobState) -> None:
@@ -520,6 +551,7 @@ class Scheduler:
                     self._release(lease, requeue=False)
                     self.cancellations.setdefault(lease.worker_id, []).append(task_id)
             tile.in_flight.clear()
+        job.heap.clear()  # a finished job leases nothing more
         self.events.append(
             Event("job_finished", job.job_id, {"state": state.value, "error": job.error_message})
         )

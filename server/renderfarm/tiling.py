@@ -70,6 +70,9 @@ def batch_count(max_spp: int) -> int:
     """Number of non-empty batches needed to reach max_spp samples per pixel."""
     if max_spp <= 0:
         return 0
+    ramp_total = sum(_RAMP)
+    if max_spp > ramp_total:  # whole ramp, then ceil((max_spp - ramp) / cap) capped batches
+        return len(_RAMP) + -(-(max_spp - ramp_total) // BATCH_CAP)
     b = 0
     while batch_start(b) + batch_size(b) < max_spp:
         b += 1

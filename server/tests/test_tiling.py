@@ -40,6 +40,14 @@ def test_batches_partition_the_sample_range(max_spp):
     assert batch_range(batch_count(max_spp), max_spp)[1] == 0
 
 
+def test_batch_count_matches_counting_batches_one_by_one():
+    for max_spp in list(range(1, 300)) + [1 << 16, 1 << 20, 12345]:
+        b = 0
+        while batch_start(b) < max_spp:
+            b += 1
+        assert batch_count(max_spp) == b, max_spp
+
+
 def test_unclipped_batches_are_powers_of_two_aligned_to_their_size():
     # Aligned power-of-two blocks are what makes each sobol batch a complete net.
     for b in range(40):

@@ -1,0 +1,219 @@
+"""Server merge throughput through the real gRPC server, with synthetic workers.
+
+A server (embedded PostgreSQL) runs pinned to one CPU core; a load generator pinned to the
+other core opens several WorkerService streams that answer every Assign at once with a
+pre-built 64x64 TileResult. The figures come from the server's own Prometheus metrics:
+results/s merged, MB/s of result payload, and merge latency p50/p99 (interpolated within the
+histogram buckets). Writes bench/results/server_merge.json (key `results_per_s`).
+
+    .venv/bin/python bench/server_merge.py [--seconds 10] [--streams 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import grpc
+import httpx
+import numpy as np
+
+from renderfarm.client import Client
+from renderfarm.localfarm import LocalFarm
+from renderfarm.v1 import workers_pb2
+
+ROOT = Path(__file__).resolve().parents[1]
+TILE = 64
+TARGET = 2000
+
+
+def payload(count: int) -> bytes:
+    """The per-pixel arrays of a TileResult, serialised once (protobuf fields concatenate)."""
+    rng = np.random.default_rng(count)
+    return workers_pb2.TileResult(
+        rgb_sum=(rng.random(TILE * TILE * 3) * count).astype("<f8").tobytes(),
+        luminance_m2=(rng.random(TILE * TILE) * count).astype("<f8").tobytes(),
+        albedo_sum=np.zeros(TILE * TILE * 3, "<f4").tobytes(),
+        normal_sum=np.zeros(TILE * TILE * 3, "<f4").tobytes(),
+    ).SerializeToString()
+
+
+def varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, n = n & 0x7F, n >> 7
+        out.append(byte | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+RESULT_TAG = b"\x12"  # WorkerMessage.result: field 2, length-delimited
+
+
+async def synthetic_worker(address: str, name: str, in_flight: int, stop_at: float) -> int:
+    """One worker stream answering each Assign at once. Messages are framed by hand from a
+    pre-serialised payload so that the load generator costs little CPU per result."""
+    payloads: dict[int, bytes] = {}
+    sent = 0
+    async with grpc.aio.insecure_channel(
+        address, options=[("grpc.max_send_message_length", 64 << 20)]
+    ) as channel:
+        connect = channel.stream_stream(
+            "/renderfarm.v1.WorkerService/Connect",
+            request_serializer=lambda raw: raw,
+            response_deserializer=workers_pb2.ServerMessage.FromString,
+        )
+        outbox: asyncio.Queue = asyncio.Queue()
+        hello = workers_pb2.Hello(worker_id=name, hostname="bench", cores=in_flight)
+        hello.max_in_flight = in_flight
+        await outbox.put(workers_pb2.WorkerMessage(hello=hello).SerializeToString())
+
+        async def requests():
+            while True:
+                msg = await outbox.get()
+                if msg is None:
+                    return
+                yield msg
+
+        call = connect(requests())
+        async for msg in call:
+            if time.monotonic() > stop_at:
+                break
+            if msg.WhichOneof("msg") != "assign":
+                continue
+            task = msg.assign.task
+            arrays = payloads.get(task.sample_count)
+            if arrays is None:
+                arrays = payloads[task.sample_count] = payload(task.sample_count)
+            header = workers_pb2.TileResult(
+                task_id=task.task_id,
+                job_id=task.job_id,
+                tile_index=task.tile_index,
+                batch_index=task.batch_index,
+                sample_start=task.sample_start,
+                sample_count=task.sample_count,
+                rect=task.rect,
+                render_seconds=0.01,
+            ).SerializeToString()
+            inner = header + arrays
+            await outbox.put(RESULT_TAG + varint(len(inner)) + inner)
+            sent += 1
+        await outbox.put(None)
+        call.cancel()
+    return sent
+
+
+def load_generator(address: str, streams: int, seconds: float) -> None:
+    os.sched_setaffinity(0, {1 % os.cpu_count()})
+    stop_at = time.monotonic() + seconds
+
+    async def run():
+        counts = await asyncio.gather(
+            *(synthetic_worker(address, f"bench-{i}", 16, stop_at) for i in range(streams))
+        )
+        print(f"load generator sent {sum(counts)} results", file=sys.stderr)
+
+    asyncio.run(run())
+
+
+def scrape(url: str) -> dict[str, float]:
+    text = httpx.get(f"{url}/metrics", timeout=10).text
+    values = {}
+    for line in text.splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        name, _, value = line.rpartition(" ")
+        values[name] = float(value)
+    return values
+
+
+def quantile(before: dict, after: dict, q: float) -> float:
+    """Quantile of renderfarm_merge_latency_seconds observed between two scrapes."""
+    buckets = []
+    for name, value in after.items():
+        m = re.fullmatch(r'renderfarm_merge_latency_seconds_bucket\{le="([^"]+)"\}', name)
+        if m:
+            buckets.append((float(m.group(1)), value - before.get(name, 0.0)))
+    buckets.sort()
+    total = buckets[-1][1]
+    rank = q * total
+    lower_bound, lower_count = 0.0, 0.0
+    for bound, count in buckets:
+        if count >= rank:
+            if bound == float("inf"):
+                return lower_bound
+            share = (rank - lower_count) / max(count - lower_count, 1e-12)
+            return lower_bound + share * (bound - lower_bound)
+        lower_bound, lower_count = bound, count
+    return lower_bound
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--streams", type=int, default=4)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
+        farm = LocalFarm(workers=0, data_dir=Path(data))
+        farm.start()
+        try:
+            os.sched_setaffinity(farm.server.pid, {0})
+            with Client(farm.url) as client:
+                settings = {
+                    "width": 4096,
+                    "height": 4096,
+                    "tile_size": TILE,
+                    "noise_threshold": 0,
+                    "max_spp": 1 << 20,
+                }
+                job = client.submit(ROOT / "examples" / "cornell-box.gltf", settings=settings)
+            from multiprocessing import Process
+
+            gen = Process(
+                target=load_generator, args=(farm.grpc_address, args.streams, args.seconds + 3)
+            )
+            gen.start()
+            time.sleep(3)  # warm-up: streams connected, first leases out
+            before, t0 = scrape(farm.url), time.monotonic()
+            time.sleep(args.seconds)
+            after, t1 = scrape(farm.url), time.monotonic()
+            gen.join(timeout=60)
+            with Client(farm.url) as client:
+                client.cancel(job["id"])
+        except Exception:
+            print((Path(data) / "server.log").read_text()[-3000:], file=sys.stderr)
+            raise
+        finally:
+            farm.stop()
+    merged_key = 'renderfarm_tasks_completed_total{outcome="merged"}'
+    results = after.get(merged_key, 0.0) - before.get(merged_key, 0.0)
+    elapsed = t1 - t0
+    bytes_per_result = TILE * TILE * (3 * 8 + 8 + 3 * 4 + 3 * 4)
+    figures = {
+        "results_per_s": results / elapsed,
+        "mb_per_s": results * bytes_per_result / elapsed / 1e6,
+        "merge_latency_p50_ms": quantile(before, after, 0.5) * 1e3,
+        "merge_latency_p99_ms": quantile(before, after, 0.99) * 1e3,
+        "target_results_per_s": TARGET,
+        "tile": TILE,
+        "streams": args.streams,
+        "seconds": elapsed,
+        "server_cores": 1,
+    }
+    for key, value in figures.items():
+        print(f"{key:24} {value:,.3f}" if isinstance(value, float) else f"{key:24} {value}")
+    out = ROOT / "bench" / "results" / "server_merge.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+if __name__ == "__main__":
+    main()
