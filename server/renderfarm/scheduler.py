@@ -369,9 +369,7 @@ class Scheduler:
         depth = len(tile.in_flight) + len(tile.pending)
         if depth > SPECULATION_DEPTH:
             return None
-        cost = tile.seconds_per_sample or (
-            job.cost_sum / job.cost_count if job.cost_count else 1.0
-        )
+        cost = tile.seconds_per_sample or (job.cost_sum / job.cost_count if job.cost_count else 1.0)
         urgency = tile.error * cost if math.isfinite(tile.error) else math.inf
         return (depth, -urgency, tile.merged, tile.index)
 
