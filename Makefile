@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 BUILD := build/worker
 JOBS ?= 2
 
-.PHONY: all deps build proto worker test test-cpp test-py lint demo stop bench clean
+.PHONY: all deps build proto worker web test test-cpp test-py test-deploy lint demo stop bench clean
 
 all: build
 
@@ -21,7 +21,13 @@ worker: deps
 	@cmake -S worker -B $(BUILD) -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
 	@cmake --build $(BUILD) -j $(JOBS)
 
-build: proto worker
+# The dashboard: npm packages as locked in web/package-lock.json (installed again only when the
+# lock file changed), then type check and bundle into web/dist, which the server serves at /.
+web: deps
+	@cd web && { [ node_modules/.package-lock.json -nt package-lock.json ] || \
+	  npm ci --no-audit --no-fund --loglevel=error; } && npm run --silent build
+
+build: proto worker web
 
 lint: deps
 	$(VENV)/bin/ruff check server tests bench examples
@@ -31,9 +37,15 @@ test-cpp: worker
 	ctest --test-dir $(BUILD) --output-on-failure -j $(JOBS)
 
 test-py: build
-	$(PY) -m pytest -q server/tests tests
+	$(PY) -m pytest -q server/tests tests --ignore-glob='tests/test_deploy*'
 
-test: lint test-cpp test-py
+test: lint test-cpp test-py test-deploy
+
+# ---- deploy: compose, Kubernetes and image checks (offline), and the multi-host test over
+# network namespaces (root). Tools from scripts/install-deps.sh --deploy-tools.
+test-deploy: build
+	@scripts/install-deps.sh --deploy-tools
+	$(PY) -m pytest -q tests/test_deploy_static.py tests/test_deploy_multihost.py
 
 demo: build
 	@scripts/demo.sh

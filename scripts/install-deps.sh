@@ -1,40 +1,157 @@
 #!/usr/bin/env bash
 # Installs what the project needs on Debian 12 and is missing: apt packages, then the Python
 # virtual environment (.venv) with the server package and its development tools.
-# Used by `make demo`, `make test` and CI; safe to run again (does nothing when all is there).
+# Used by `make demo`, `make test` and CI (without options), and by the Dockerfiles in deploy/
+# (with the options below); safe to run again (does nothing when all is there).
+#
+#   scripts/install-deps.sh                  build packages (apt) + .venv (editable, dev tools)
+#   scripts/install-deps.sh --apt-only       only the apt packages the project builds with
+#   scripts/install-deps.sh --runtime server|worker
+#                                            only the apt packages that component needs to run
+#                                            (the final stage of its container image)
+#   scripts/install-deps.sh --server-venv DIR
+#                                            the server package (not editable, no dev tools) in
+#                                            a new virtual environment DIR (the server image);
+#                                            needs the gRPC stubs (`make proto`) first
+#   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose and
+#                                            iproute2 (apt), kustomize, kubernetes-validate (.venv)
+#   scripts/install-deps.sh --print GROUP    print a package group (build, runtime-server,
+#                                            runtime-worker, deploy, deploy-pip) and exit
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(
+# Everything `make build` compiles and links against, and Python for the server.
+APT_BUILD=(
   build-essential cmake ninja-build pkg-config
   libembree-dev libopenimageio-dev openimageio-tools
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
   libtinygltf-dev nlohmann-json3-dev libssl-dev libgtest-dev libbenchmark-dev libpq-dev
   python3 python3-venv python3-pip
+  chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
 )
+# The shared libraries build/worker/renderfarm-worker is linked against (objdump -p: NEEDED),
+# by the Debian package that ships each; apt brings their own dependencies.
+APT_RUNTIME_WORKER=(
+  libgrpc++1.51 libgrpc29 libabsl20220623 libprotobuf32 libembree3-3 libopenimageio2.4
+  libtinygltf2d libssl3 libstdc++6
+)
+# The server runs from a virtual environment whose wheels bundle their native libraries
+# (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter.
+APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6)
+# The deployment checks: `docker-compose config` validates deploy/compose.yaml, iproute2 builds
+# the network namespaces of the multi-host test.
+APT_DEPLOY=(docker-compose iproute2)
+# Offline validation of the Kubernetes manifests against the API types (schemas in the wheel).
+PIP_DEPLOY=(kubernetes-validate==1.37.0)
+KUSTOMIZE_MODULE=sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
 
-missing=()
-for pkg in "${APT_PACKAGES[@]}"; do
-  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
-done
-if [ ${#missing[@]} -gt 0 ]; then
-  echo "installing Debian packages: ${missing[*]}"
-  SUDO=""
-  [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
-fi
+SUDO=""
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
 
-PYTHON=${PYTHON:-python3}
-if [ ! -x .venv/bin/python ]; then
-  echo "creating the Python virtual environment in .venv"
-  "$PYTHON" -m venv .venv
-fi
-stamp=.venv/.installed-$(sha256sum server/pyproject.toml | cut -c1-16)
-if [ ! -f "$stamp" ]; then
-  echo "installing the server package and its dependencies into .venv"
-  .venv/bin/pip install -q --upgrade pip
-  .venv/bin/pip install -q -e 'server[dev]'
-  rm -f .venv/.installed-*
-  touch "$stamp"
-fi
+apt_install() {
+  local missing=() pkg
+  for pkg in "$@"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+  done
+  if [ ${#missing[@]} -gt 0 ]; then
+    echo "installing Debian packages: ${missing[*]}"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
+  fi
+}
+
+python_venv() {
+  PYTHON=${PYTHON:-python3}
+  if [ ! -x .venv/bin/python ]; then
+    echo "creating the Python virtual environment in .venv"
+    "$PYTHON" -m venv .venv
+  fi
+  local stamp
+  stamp=.venv/.installed-$(sha256sum server/pyproject.toml | cut -c1-16)
+  if [ ! -f "$stamp" ]; then
+    echo "installing the server package and its dependencies into .venv"
+    .venv/bin/pip install -q --upgrade pip
+    .venv/bin/pip install -q -e 'server[dev]'
+    rm -f .venv/.installed-*
+    touch "$stamp"
+  fi
+}
+
+server_venv() {
+  local dir=$1
+  if ! ls server/renderfarm/v1/*_pb2.py >/dev/null 2>&1; then
+    echo "install-deps.sh --server-venv: no gRPC stubs in server/renderfarm/v1; run make proto" >&2
+    exit 1
+  fi
+  "${PYTHON:-python3}" -m venv "$dir"
+  "$dir/bin/pip" install -q --no-cache-dir --upgrade pip
+  "$dir/bin/pip" install -q --no-cache-dir ./server
+}
+
+have_kustomize() {
+  command -v kustomize >/dev/null 2>&1 && return 0
+  [ -x .venv/bin/kustomize ] && return 0
+  # kubectl has kustomize built in; v1.21 and later embed kustomize v4+, which is enough.
+  command -v kubectl >/dev/null 2>&1 && kubectl kustomize --help >/dev/null 2>&1 &&
+    kubectl version --client 2>/dev/null | grep -Eq 'Kustomize Version: v[4-9]'
+}
+
+deploy_tools() {
+  apt_install "${APT_DEPLOY[@]}"
+  python_venv
+  local stamp
+  stamp=.venv/.deploy-$(printf '%s\n' "${PIP_DEPLOY[@]}" | sha256sum | cut -c1-16)
+  if [ ! -f "$stamp" ]; then
+    echo "installing ${PIP_DEPLOY[*]} into .venv"
+    .venv/bin/pip install -q "${PIP_DEPLOY[@]}"
+    rm -f .venv/.deploy-*
+    touch "$stamp"
+  fi
+  if ! have_kustomize; then
+    # Debian 12 has no kustomize of its own: build it from its Go module.
+    command -v go >/dev/null 2>&1 || apt_install golang-go
+    echo "building kustomize ($KUSTOMIZE_MODULE) into .venv/bin"
+    GOBIN="$PWD/.venv/bin" GOFLAGS=-mod=mod go install "$KUSTOMIZE_MODULE"
+  fi
+}
+
+case "${1:-}" in
+  "")
+    apt_install "${APT_BUILD[@]}"
+    # The dashboard's build (web/) needs Node.js and npm; any recent Node already on the
+    # machine is used, Debian's otherwise.
+    command -v npm >/dev/null 2>&1 || apt_install nodejs npm
+    python_venv
+    ;;
+  --apt-only)
+    apt_install "${APT_BUILD[@]}"
+    ;;
+  --runtime)
+    case "${2:-}" in
+      server) apt_install "${APT_RUNTIME_SERVER[@]}" ;;
+      worker) apt_install "${APT_RUNTIME_WORKER[@]}" ;;
+      *) echo "usage: $0 --runtime server|worker" >&2; exit 2 ;;
+    esac
+    ;;
+  --server-venv)
+    [ -n "${2:-}" ] || { echo "usage: $0 --server-venv DIR" >&2; exit 2; }
+    server_venv "$2"
+    ;;
+  --deploy-tools)
+    deploy_tools
+    ;;
+  --print)
+    case "${2:-}" in
+      build) printf '%s\n' "${APT_BUILD[@]}" ;;
+      runtime-server) printf '%s\n' "${APT_RUNTIME_SERVER[@]}" ;;
+      runtime-worker) printf '%s\n' "${APT_RUNTIME_WORKER[@]}" ;;
+      deploy) printf '%s\n' "${APT_DEPLOY[@]}" ;;
+      deploy-pip) printf '%s\n' "${PIP_DEPLOY[@]}" ;;
+      *) echo "usage: $0 --print build|runtime-server|runtime-worker|deploy|deploy-pip" >&2; exit 2 ;;
+    esac
+    ;;
+  *)
+    sed -n '2,20p' "$0" >&2
+    exit 2
+    ;;
+esac

@@ -43,12 +43,18 @@ def threads_per_worker(workers: int) -> int:
 
 
 def spawn_workers(
-    count: int, grpc_address: str, threads: int | None = None, log_dir: Path | None = None
+    count: int,
+    grpc_address: str,
+    threads: int | None = None,
+    log_dir: Path | None = None,
+    first_index: int = 0,
 ) -> list[subprocess.Popen]:
+    """Start `count` workers named HOSTNAME-local-I for I from first_index (ids must differ:
+    a worker connecting with the id of a connected one replaces it)."""
     binary = find_worker_binary()
     threads = threads or threads_per_worker(count)
     procs = []
-    for i in range(count):
+    for i in range(first_index, first_index + count):
         args = [binary, "connect", "--server", grpc_address, "--threads", str(threads)]
         args += ["--id", f"{socket.gethostname()}-local-{i}"]
         out = open(log_dir / f"worker-{i}.log", "ab") if log_dir else subprocess.DEVNULL  # noqa: SIM115

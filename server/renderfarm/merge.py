@@ -11,9 +11,12 @@ and per tile the sample count N (every pixel of a tile has the same count) and t
 m2_within + m2_between is the M2 over all samples, as if computed in one pass.
 
 Error of a pixel's mean (variance of the mean):
-  B >= 2: s^2 = m2_between / (B - 1) per sample, variance of the mean s^2 / N. Batch means of
-          stratified/QMC batches behave like independent replicates, so this stays honest (and
-          conservative for sobol) where the within-pixel sample variance overstates the error.
+  independent sampler: (m2_within + m2_between) / (N - 1) / N, the ordinary sample variance of
+          i.i.d. samples (N - 1 degrees of freedom, unbiased);
+  other samplers, B >= 2: s^2 = m2_between / (B - 1) per sample, variance of the mean
+          s^2 / N. Batch means of stratified/QMC batches behave like independent replicates,
+          so this stays honest (and conservative for sobol) where the within-pixel sample
+          variance overstates the error.
           E[sum_b S_b (m_b - m)^2] = (B - 1) sigma^2 for independent batches of any sizes S_b.
   B == 1: the within-batch estimate m2_within / (N - 1) stands in (infinite while N < 2).
 
@@ -48,9 +51,12 @@ class TileAccumulator:
         "samples",
         "batches",
         "nonfinite",
+        "iid",
     )
 
-    def __init__(self, width: int, height: int):
+    def __init__(self, width: int, height: int, iid: bool = False):
+        # iid: the samples are independent (the `independent` sampler); see variance_of_mean.
+        self.iid = iid
         self.width = width
         self.height = height
         self.rgb_sum = np.zeros((height, width, 3))
@@ -107,6 +113,10 @@ class TileAccumulator:
     def variance_of_mean(self) -> np.ndarray:
         """Per-pixel estimated variance of the mean luminance (inf when unknown)."""
         n = self.samples
+        if self.iid and n >= 2:
+            # Independent samples: the pooled M2 over every sample is exact and has N - 1
+            # degrees of freedom instead of B - 1, so its estimate is far less noisy.
+            return (self.m2_within + self.m2_between) / (n - 1) / n
         if self.batches >= 2:
             return self.m2_between / (self.batches - 1) / n
         if n >= 2:
@@ -139,9 +149,16 @@ class TileAccumulator:
 
     @classmethod
     def from_bytes(
-        cls, width: int, height: int, data: bytes, samples: int, batches: int, nonfinite: int = 0
+        cls,
+        width: int,
+        height: int,
+        data: bytes,
+        samples: int,
+        batches: int,
+        nonfinite: int = 0,
+        iid: bool = False,
     ) -> TileAccumulator:
-        acc = cls(width, height)
+        acc = cls(width, height, iid)
         offset = 0
         for name in cls._ARRAYS:
             target = getattr(acc, name)

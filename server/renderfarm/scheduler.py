@@ -181,8 +181,9 @@ class Scheduler:
     ) -> JobRun:
         """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery)."""
         now = self.clock()
+        iid = settings.sampler == "independent"
         tiles = [
-            TileState(i, r, TileAccumulator(r.width, r.height))
+            TileState(i, r, TileAccumulator(r.width, r.height, iid))
             for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
         ]
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state)

@@ -161,7 +161,13 @@ class FarmService:
             for t in await self.store.load_tiles(row.id):
                 rect = rects[t.tile_index]
                 checkpoint[t.tile_index] = TileAccumulator.from_bytes(
-                    rect.width, rect.height, t.accumulators, t.samples, t.batches, t.nonfinite
+                    rect.width,
+                    rect.height,
+                    t.accumulators,
+                    t.samples,
+                    t.batches,
+                    t.nonfinite,
+                    iid=settings.sampler == "independent",
                 )
             self.scheduler.add_job(
                 row.id,
@@ -388,7 +394,13 @@ class FarmService:
         for t in await self.store.load_tiles(job_id):
             rect = rects[t.tile_index]
             acc = TileAccumulator.from_bytes(
-                rect.width, rect.height, t.accumulators, t.samples, t.batches, t.nonfinite
+                rect.width,
+                rect.height,
+                t.accumulators,
+                t.samples,
+                t.batches,
+                t.nonfinite,
+                iid=settings.sampler == "independent",
             )
             tiles.append((rect, acc))
         return images.assemble(settings.width, settings.height, tiles)

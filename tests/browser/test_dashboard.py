@@ -1,0 +1,252 @@
+"""The dashboard in headless Chromium against a real local farm (2 workers): what users do."""
+
+from __future__ import annotations
+
+import time
+
+from playwright.sync_api import Page, expect
+
+from .conftest import LARGE, canvas_pixels, mean_abs_diff, screenshot
+
+# Small renders that take a few seconds on two one-thread workers, so progress can be watched.
+WATCHED = {"width": 128, "height": 128, "tile_size": 32, "noise_threshold": 0, "max_spp": 256}
+LONG = {"width": 128, "height": 128, "tile_size": 32, "noise_threshold": 0, "max_spp": 65536}
+
+
+PROGRESS = '[data-stat="progress"] [role="progressbar"]'
+LOADED = "() => document.querySelector('.viewer').dataset.loaded || ''"
+
+
+def progress_now(page: Page, attribute: str = "aria-valuenow") -> int:
+    return int(page.locator(PROGRESS).get_attribute(attribute))
+
+
+def wait_layer(page: Page, layer: str, not_key: str = "") -> str:
+    """Waits until the viewer shows `layer` (at another version than `not_key`); its key."""
+    page.wait_for_function(
+        f"([layer, old]) => {{ const k = ({LOADED})(); "
+        "return k.startsWith(layer + ':') && k !== old; }",
+        arg=[layer, not_key],
+    )
+    return page.locator(".viewer").get_attribute("data-loaded")
+
+
+def wait_finished(client, job_id: str, timeout_s: float = 120) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = client.get(job_id)
+        if job["state"] in ("completed", "failed", "cancelled"):
+            return job
+        time.sleep(0.25)
+    raise TimeoutError(f"job {job_id} did not finish in {timeout_s} s")
+
+
+def test_submit_through_the_form_and_watch_the_image_converge(page: Page, scene_glb, client):
+    page.goto("/#/submit")
+    expect(page.locator('[data-setting="max_spp"] input')).to_be_visible()
+    screenshot(page, "submit-empty")
+    page.locator("#scene-file").set_input_files(str(scene_glb))
+    expect(page.locator(".file-info")).to_contain_text("cornell-box.glb")
+    page.fill("#job-name", "browser-watch")
+    for name, value in WATCHED.items():
+        page.fill(f"#setting-{name}", str(value))
+    is_submit = lambda r: r.url.endswith("/api/v1/jobs") and r.request.method == "POST"  # noqa: E731
+    with page.expect_response(is_submit) as posted:
+        page.click("button[type=submit]")
+    assert posted.value.status == 201
+    job_id = posted.value.json()["id"]
+    page.wait_for_url(f"**/#/jobs/{job_id}")
+    expect(page.locator("h1")).to_have_text("browser-watch")
+    assert client.get(job_id)["settings"]["max_spp"] == WATCHED["max_spp"]
+
+    # The preview changes between two moments, fetched as the stream reports merged samples.
+    first_key = wait_layer(page, "rgb")
+    first = canvas_pixels(page)
+    wait_layer(page, "rgb", not_key=first_key)
+    second = canvas_pixels(page)
+    assert mean_abs_diff(first, second) > 0.5, "the preview did not change as samples were merged"
+    screenshot(page, "job-running")
+
+    # The progress bar advances: a value between 0 and all tiles, then all of them.
+    total = progress_now(page, "aria-valuemax")
+    assert total == 16
+    page.wait_for_function(
+        f"() => Number(document.querySelector('{PROGRESS}').getAttribute('aria-valuenow')) > 0",
+        timeout=60_000,
+    )
+    seen = {progress_now(page)}
+
+    # Switch to the relative-error heat map: a false-colour image unlike the render.
+    rgb = canvas_pixels(page)
+    page.get_by_role("radio", name="Relative error").check()
+    wait_layer(page, "error")
+    heat = canvas_pixels(page)
+    assert mean_abs_diff(rgb, heat) > 5
+    coloured = sum(1 for i in range(0, len(heat), 3) if abs(heat[i] - heat[i + 2]) > 8)
+    assert coloured > len(heat) // 3 // 2, "the error layer is not colour-mapped"
+    expect(page.locator(".legend-bar")).to_be_visible()
+    page.get_by_role("checkbox", name="Tile grid").check()
+    screenshot(page, "job-error-heatmap")
+
+    expect(page.locator(".badge").first).to_have_text("completed", timeout=90_000)
+    seen.add(progress_now(page))
+    assert max(seen) == total and len(seen) >= 2, f"progress values seen: {sorted(seen)}"
+    # Converged tiles are marked on the grid, one stop record per tile, the log tells the story.
+    expect(page.locator(".tile-overlay rect.converged")).to_have_count(total)
+    expect(page.locator(".job-lower table tbody tr")).to_have_count(total)
+    expect(page.locator(".event-log")).to_contain_text("job finished")
+    expect(page.locator(".plot-box path.series")).to_have_count(1)
+    expect(page.locator(".plot-box .ref-line").first).to_be_visible()
+    page.get_by_role("radio", name="Image").check()
+    wait_layer(page, "rgb")
+    # Exposure is applied on the canvas: +1 EV brightens the image.
+    before = canvas_pixels(page)
+    page.locator("#exposure").fill("1")
+    brighter = canvas_pixels(page)
+    assert sum(brighter) > sum(before) * 1.2
+    page.locator("#exposure").fill("0")
+    screenshot(page, "job-completed")
+    page.set_viewport_size(LARGE)
+    screenshot(page, "job-completed-large")
+
+    # Downloads are the server's images.
+    with page.expect_download() as png:
+        page.get_by_role("link", name="Download PNG").click()
+    assert png.value.suggested_filename == "browser-watch.png"
+    with page.expect_download() as exr:
+        page.get_by_role("link", name="Download EXR").click()
+    assert exr.value.suggested_filename == "browser-watch.exr"
+
+
+def test_the_server_validation_message_is_shown_beside_its_field(page: Page, problems, scene_glb):
+    page.goto("/#/submit")
+    page.click("button[type=submit]")  # no scene yet: said beside the drop zone, nothing sent
+    expect(page.locator("#scene-error")).to_contain_text("Choose a scene file")
+
+    page.locator("#scene-file").set_input_files(str(scene_glb))
+    page.fill("#setting-max_spp", "0")
+    problems.expect("POST", r"/api/v1/jobs$", 400)
+    with page.expect_response(lambda r: r.url.endswith("/api/v1/jobs")) as posted:
+        page.click("button[type=submit]")
+    body = posted.value.json()
+    assert posted.value.status == 400 and body["field"] == "settings.max_spp"
+    message = page.locator('[data-setting="max_spp"] .field-error')
+    expect(message).to_have_text(body["detail"])
+    expect(page.locator("#setting-max_spp")).to_have_attribute("aria-invalid", "true")
+    expect(page.locator("#setting-max_spp")).to_be_focused()
+    expect(page.locator('[data-setting="min_spp"] .field-error')).to_be_hidden()
+    screenshot(page, "submit-validation-error")
+    # Editing the field clears its message.
+    page.fill("#setting-max_spp", "64")
+    expect(message).to_be_hidden()
+
+
+def test_cancel_a_job_and_see_its_state_change(page: Page, client, scene_glb):
+    job = client.submit(scene_glb, name="browser-cancel", settings=LONG)
+    page.goto(f"/#/jobs/{job['id']}")
+    expect(page.locator(".badge").first).to_have_text("running", timeout=30_000)
+    wait_layer(page, "rgb")
+    page.get_by_role("button", name="Cancel job").click()
+    expect(page.get_by_role("button", name="Keep rendering")).to_be_focused()
+    page.get_by_role("button", name="Yes, cancel").click()
+    expect(page.locator(".badge").first).to_have_text("cancelled")
+    expect(page.get_by_role("button", name="Cancel job")).to_be_hidden()
+    assert client.get(job["id"])["state"] == "cancelled"
+    expect(page.locator(".event-log")).to_contain_text("job finished")
+    screenshot(page, "job-cancelled")
+
+    # The jobs list, filtered to cancelled jobs, shows it too.
+    page.get_by_role("link", name="Jobs", exact=True).first.click()
+    page.locator('[data-filter="cancelled"]').click()
+    page.wait_for_url("**/#/jobs?state=cancelled")
+    row = page.locator(f'tr[data-job-id="{job["id"]}"]')
+    expect(row.locator(".badge")).to_have_text("cancelled")
+    for badge in page.locator(".jobs-table tbody .badge").all():
+        expect(badge).to_have_text("cancelled")
+    screenshot(page, "jobs-cancelled-filter")
+
+
+def test_jobs_list_updates_live_and_filters_by_state(page: Page, client, scene_glb):
+    page.goto("/#/jobs")
+    expect(page.locator("h1")).to_have_text("Jobs")
+    job = client.submit(scene_glb, name="browser-list", settings={**WATCHED, "priority": 3})
+    row = page.locator(f'tr[data-job-id="{job["id"]}"]')
+    expect(row).to_be_visible(timeout=10_000)  # appears without a reload
+    expect(row.locator("td").nth(1)).to_have_text("-")  # owner: not served yet
+    expect(row.locator("td").nth(8)).to_have_text("3")  # priority
+    expect(row.locator(".badge")).to_have_text("running", timeout=30_000)
+    screenshot(page, "jobs-running")
+    expect(row.locator(".badge")).to_have_text("completed", timeout=90_000)
+    expect(row.locator('[role="progressbar"]')).to_have_attribute("aria-valuenow", "16")
+    page.set_viewport_size(LARGE)
+    screenshot(page, "jobs-large")
+
+    page.locator('[data-filter="completed"]').click()
+    page.wait_for_url("**/#/jobs?state=completed")
+    expect(row).to_be_visible()
+    states = page.locator(".jobs-table tbody .badge").all_text_contents()
+    assert states and set(states) == {"completed"}
+    page.locator('[data-filter="queued"]').click()
+    expect(page.locator(".empty")).to_have_text("No queued jobs.")
+
+
+def test_workers_page_shows_both_workers_and_farm_throughput(page: Page, client, scene_glb):
+    deadline = time.monotonic() + 30  # workers connect a moment after the farm is up
+    while len(client.workers()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    ids = sorted(w["id"] for w in client.workers())
+    assert len(ids) == 2
+    job = client.submit(scene_glb, name="browser-workers", settings=LONG)
+    try:
+        page.goto("/#/workers")
+        for worker_id in ids:
+            expect(page.locator(f'tr[data-worker-id="{worker_id}"]')).to_be_visible()
+        expect(page.locator('[data-stat="workers"] .stat-value')).to_have_text("2")
+        # Throughput sampled every 2 s: wait for a line on the chart.
+        samples_chart = page.locator(".chart-row .card").first
+        expect(samples_chart.locator("path.series")).to_have_count(1, timeout=15_000)
+        busy = page.locator(".workers-table .badge").first
+        expect(busy).to_have_text("rendering", timeout=15_000)
+        screenshot(page, "workers")
+        page.set_viewport_size(LARGE)
+        screenshot(page, "workers-large")
+    finally:
+        client.cancel(job["id"])
+        wait_finished(client, job["id"])
+
+
+def test_keyboard_only_navigation(page: Page, client, scene_glb):
+    job = client.submit(scene_glb, name="browser-keys", settings=WATCHED)
+    page.goto("/#/jobs")
+    expect(page.locator(f'tr[data-job-id="{job["id"]}"]')).to_be_visible()
+    # Skip link, then the brand and the main navigation, by Tab alone.
+    page.keyboard.press("Tab")
+    expect(page.locator(".skip-link")).to_be_focused()
+    page.keyboard.press("Tab")
+    page.keyboard.press("Tab")
+    page.keyboard.press("Tab")
+    expect(page.locator('[data-nav="workers"]')).to_be_focused()
+    page.keyboard.press("Enter")
+    expect(page.locator("h1")).to_have_text("Workers")
+    page.goto(f"/#/jobs/{job['id']}")
+    image = page.get_by_role("radio", name="Image")
+    image.focus()
+    page.keyboard.press("ArrowRight")  # radio group: the next layer
+    expect(page.get_by_role("radio", name="Relative error")).to_be_checked()
+    wait_layer(page, "error")
+    page.keyboard.press("Tab")  # the exposure slider is hidden for the heat map: next is Tile grid
+    expect(page.get_by_role("checkbox", name="Tile grid")).to_be_focused()
+    page.keyboard.press("Space")
+    expect(page.get_by_role("checkbox", name="Tile grid")).to_be_checked()
+    wait_finished(client, job["id"])
+
+
+def test_a_narrow_window_keeps_every_page_usable(page: Page, client):
+    page.set_viewport_size({"width": 420, "height": 900})
+    job_id = client.list()["jobs"][0]["id"]
+    for name, url in [("jobs", "/#/jobs"), ("job", f"/#/jobs/{job_id}"), ("submit", "/#/submit")]:
+        page.goto(url)
+        page.wait_for_load_state("networkidle") if name != "job" else page.wait_for_timeout(1000)
+        width = page.evaluate("() => document.documentElement.scrollWidth")
+        assert width <= 420, f"{name} page overflows horizontally ({width} px)"
+        screenshot(page, f"narrow-{name}")

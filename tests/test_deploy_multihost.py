@@ -1,0 +1,187 @@
+"""Multi-host: the compose topology without Docker (deploy/netns/farm.sh). PostgreSQL, the server
+and two workers each on their own host (network namespace) on one LAN of veth links, configured
+by environment variables only, render the Cornell box; then one worker's link is cut in the
+middle of a job, and the job still completes, with the same image.
+
+Everything runs inside namespaces this test creates, on a private /24 that exists only there;
+they are deleted at the end, also when the test fails."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from renderfarm.client import Client
+from renderfarm.images import read_exr
+
+from .conftest import CORNELL, ROOT
+
+FARM = ROOT / "deploy" / "netns" / "farm.sh"
+SETTINGS = {
+    "width": 128,
+    "height": 128,
+    "tile_size": 16,
+    "max_spp": 128,
+    "noise_threshold": 0,
+    "seed": 11,
+    "sampler": "sobol",
+    "integrator": "path",
+    "max_depth": 8,
+}
+TOTAL_SAMPLES = 128 * 128 * 128
+
+pytestmark = pytest.mark.skipif(
+    os.geteuid() != 0 or shutil.which("ip") is None,
+    reason="network namespaces need root and iproute2 (scripts/install-deps.sh --deploy-tools)",
+)
+
+
+def _farm(*args: str, env: dict[str, str] | None = None, timeout: float = 180) -> str:
+    done = subprocess.run(
+        [str(FARM), *args],
+        env={**os.environ, **(env or {})},
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert done.returncode == 0, f"farm.sh {args[0]} failed:\n{done.stdout}\n{done.stderr}"
+    return done.stdout
+
+
+def _state(state_dir: Path) -> dict[str, str]:
+    pairs = (line.split("=", 1) for line in (state_dir / "netfarm.env").read_text().splitlines())
+    return {k: v.strip('"') for k, v in pairs}
+
+
+def _rgb_of(exr: bytes, tmp: Path, name: str) -> np.ndarray:
+    path = tmp / name
+    path.write_bytes(exr)
+    channels = read_exr(str(path))
+    return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+
+
+def _workers(client: Client) -> dict[str, dict]:
+    return {w["id"]: w for w in client.workers()}
+
+
+def _wait(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
+        time.sleep(poll_s)
+
+
+@pytest.fixture()
+def netns_farm(monkeypatch):
+    """Start the four hosts; always tear them down (namespaces, links, processes)."""
+    _farm("sweep")  # leftovers of a test process that was killed before its clean-up
+    state_dir = Path(tempfile.mkdtemp(prefix="netfarm-", dir="/tmp"))
+    env = {
+        "NETFARM_OWNER_PID": str(os.getpid()),
+        "NETFARM_WORKERS": "2",
+        "NETFARM_WORKER_THREADS": "1",
+        "RENDERFARM_LEASE_S": "3",
+        "RENDERFARM_HEARTBEAT_INTERVAL_S": "1",
+        "RENDERFARM_CHECKPOINT_INTERVAL_S": "1",
+    }
+    try:
+        _farm("up", str(state_dir), env=env)
+        state = _state(state_dir)
+        # The LAN is only reachable directly: never through a proxy from the environment.
+        monkeypatch.setenv("NO_PROXY", f"{state['SUBNET']}.0/24,{state['SUBNET']}.3")
+        monkeypatch.setenv("no_proxy", f"{state['SUBNET']}.0/24,{state['SUBNET']}.3")
+        yield state_dir, state
+    finally:
+        try:
+            _farm("down", str(state_dir), timeout=120)
+        finally:
+            prefix = _state(state_dir).get("PREFIX", "") if state_dir.exists() else ""
+            namespaces = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True)
+            shutil.rmtree(state_dir, ignore_errors=True)
+            assert not prefix or f"{prefix}-" not in namespaces.stdout, "namespaces left behind"
+
+
+@pytest.fixture(scope="module")
+def standalone_rgb(worker_binary, tmp_path_factory) -> np.ndarray:
+    out = tmp_path_factory.mktemp("standalone") / "alone.exr"
+    subprocess.run(
+        [
+            worker_binary, "render", str(CORNELL), "-o", str(out),
+            "--width", "128", "--height", "128", "--spp", "128", "--seed", "11",
+            "--sampler", "sobol", "--integrator", "path", "--max-depth", "8", "--threads", "2",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )  # fmt: skip
+    channels = read_exr(str(out))
+    return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+
+
+def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalone_rgb, tmp_path):
+    state_dir, state = netns_farm
+    with Client(state["URL"], timeout=30) as client:
+        assert client.ready()
+        _wait(lambda: len(client.workers()) == 2, 30, "both workers to connect")
+        workers = _workers(client)
+        assert set(workers) == {"worker1", "worker2"}
+
+        # 1. Undisturbed: the four hosts render the Cornell box; the image equals a standalone
+        #    render with the same settings and seed (to float32 rounding).
+        job = client.submit(CORNELL, settings=SETTINGS, name="multihost undisturbed")
+        job = client.wait(job["id"], poll_s=0.2, timeout_s=300)
+        assert job["state"] == "completed", job["error"]
+        assert job["progress"]["samples_merged"] == TOTAL_SAMPLES
+        done = _workers(client)
+        assert done["worker1"]["tasks_done"] > 0 and done["worker2"]["tasks_done"] > 0
+        undisturbed = _rgb_of(client.image(job["id"], "exr"), tmp_path, "undisturbed.exr")
+        np.testing.assert_allclose(undisturbed, standalone_rgb, rtol=8e-7, atol=1e-7)
+
+        # 2. The same job again; once worker1 holds leased tasks, its link goes down.
+        job = client.submit(CORNELL, settings=SETTINGS, name="multihost cut")
+        before = done["worker1"]["tasks_done"]
+
+        def worker1_busy():
+            w = _workers(client).get("worker1")
+            return w if w and w["tasks_done"] > before and w["tasks_in_flight"] > 0 else None
+
+        busy = _wait(worker1_busy, 60, "worker1 to render part of the second job", poll_s=0.05)
+        _farm("cut", str(state_dir), "worker1")
+        cut_at = time.monotonic()
+        running = client.get(job["id"])
+        assert running["state"] == "running", "the job finished before the cut; make it longer"
+        assert running["progress"]["samples_merged"] < TOTAL_SAMPLES
+
+        # The server hears nothing more from worker1: its leases expire (RENDERFARM_LEASE_S=3)
+        # and worker2 renders what worker1 held.
+        job = client.wait(job["id"], poll_s=0.2, timeout_s=300)
+        elapsed = time.monotonic() - cut_at
+        assert job["state"] == "completed", job["error"]
+        assert job["progress"]["samples_merged"] == TOTAL_SAMPLES
+        after = _workers(client)
+        if "worker1" in after:  # still listed until the server notices the dead stream
+            assert after["worker1"]["tasks_done"] == busy["tasks_done"], "worker1 was cut off"
+        assert after["worker2"]["tasks_done"] > done["worker2"]["tasks_done"]
+        cut_rgb = _rgb_of(client.image(job["id"], "exr"), tmp_path, "cut.exr")
+
+        # The database really is a host of its own: the server's connections reach it over
+        # the LAN (TCP from the server's address to PostgreSQL's).
+        sockets = subprocess.run(
+            ["ip", "netns", "exec", f"{state['PREFIX']}-db", "ss", "-Htn", "state", "established"],
+            capture_output=True, text=True, check=True, timeout=10,
+        ).stdout  # fmt: skip
+        assert f"{state['SUBNET']}.2:5432" in sockets and f"{state['SUBNET']}.3:" in sockets
+
+    np.testing.assert_array_equal(cut_rgb, undisturbed)
+    np.testing.assert_allclose(cut_rgb, standalone_rgb, rtol=8e-7, atol=1e-7)
+    print(f"job with worker1 cut off completed {elapsed:.1f} s after the cut")

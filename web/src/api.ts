@@ -1,0 +1,176 @@
+// The server's REST API (/api/v1) as typed functions. Errors carry the server's message and the
+// offending field ({"detail", "field"}), so forms can show them beside the field.
+
+export type JobState = "queued" | "running" | "completed" | "failed" | "cancelled";
+export const JOB_STATES: JobState[] = ["queued", "running", "completed", "failed", "cancelled"];
+
+export interface Progress {
+  tiles_total: number;
+  tiles_done: number;
+  mean_spp: number;
+  error: number | null;
+  eta_s: number | null;
+  samples_merged: number;
+  elapsed_s: number;
+}
+
+export interface JobSettings {
+  width: number;
+  height: number;
+  tile_size: number;
+  noise_threshold: number;
+  min_spp: number;
+  max_spp: number;
+  priority: number;
+  [name: string]: unknown;
+}
+
+export interface Job {
+  id: string;
+  name: string;
+  owner?: string; // not served yet (auth tokens come later)
+  state: JobState;
+  settings: JobSettings;
+  scene_sha256: string;
+  progress: Progress;
+  error: string;
+  created_unix_s: number;
+  finished_unix_s: number | null;
+}
+
+export interface StopRecord {
+  tile: number;
+  batch: number;
+  spp: number;
+  error: number;
+  reason: string;
+}
+
+export interface JobDetail extends Job {
+  stops: StopRecord[];
+}
+
+export interface JobEvent {
+  id: number;
+  kind: string;
+  data: Record<string, unknown>;
+  at: number;
+}
+
+export interface SettingDoc {
+  name: string;
+  type: "int" | "float" | "str" | string;
+  default: unknown;
+  help: string;
+}
+
+export interface Worker {
+  id: string;
+  hostname: string;
+  cores: number;
+  version: string;
+  connected_unix_s: number;
+  last_heartbeat_unix_s: number;
+  tasks_in_flight: number;
+  tasks_done: number;
+  samples_per_s: number;
+  rays_per_s: number;
+  busy_threads: number;
+}
+
+export interface ConvergencePoint {
+  t: number;
+  error: number | null;
+  mean_spp: number;
+}
+
+export const FINISHED: ReadonlySet<JobState> = new Set(["completed", "failed", "cancelled"]);
+
+export class ApiError extends Error {
+  constructor(
+    readonly status: number,
+    message: string,
+    readonly field: string = "",
+  ) {
+    super(message);
+  }
+}
+
+const BASE = "/api/v1";
+
+async function request<T>(path: string, init?: RequestInit): Promise<T> {
+  let response: Response;
+  try {
+    response = await fetch(path, init);
+  } catch {
+    throw new ApiError(0, "the server cannot be reached");
+  }
+  if (!response.ok) {
+    let detail = `${response.status} ${response.statusText}`;
+    let field = "";
+    try {
+      const body = await response.json();
+      if (typeof body.detail === "string") detail = body.detail;
+      if (typeof body.field === "string") field = body.field;
+    } catch {
+      // not JSON: keep the status line
+    }
+    throw new ApiError(response.status, detail, field);
+  }
+  return (await response.json()) as T;
+}
+
+export function listJobs(
+  state: JobState | "",
+  pageSize = 50,
+  pageToken = "",
+): Promise<{ jobs: Job[]; next_page_token: string }> {
+  const q = new URLSearchParams({ page_size: String(pageSize) });
+  if (state) q.set("state", state);
+  if (pageToken) q.set("page_token", pageToken);
+  return request(`${BASE}/jobs?${q}`);
+}
+
+export const getJob = (id: string) => request<JobDetail>(`${BASE}/jobs/${encodeURIComponent(id)}`);
+export const jobEvents = (id: string) =>
+  request<JobEvent[]>(`${BASE}/jobs/${encodeURIComponent(id)}/events`);
+export const cancelJob = (id: string) =>
+  request<Job>(`${BASE}/jobs/${encodeURIComponent(id)}/cancel`, { method: "POST" });
+export const workers = () => request<Worker[]>(`${BASE}/workers`);
+export const convergence = (id: string) =>
+  request<ConvergencePoint[]>(`${BASE}/jobs/${encodeURIComponent(id)}/convergence`);
+
+let settingsDoc: Promise<SettingDoc[]> | null = null;
+export function settings(): Promise<SettingDoc[]> {
+  settingsDoc ??= request<SettingDoc[]>(`${BASE}/settings`).catch((e) => {
+    settingsDoc = null;
+    throw e;
+  });
+  return settingsDoc;
+}
+
+export function submitJob(scene: File, name: string, jobSettings: Record<string, unknown>): Promise<Job> {
+  const form = new FormData();
+  form.append("scene", scene, scene.name);
+  form.append("settings", JSON.stringify(jobSettings));
+  if (name) form.append("name", name);
+  return request<Job>(`${BASE}/jobs`, { method: "POST", body: form });
+}
+
+export const imageUrl = (id: string, fmt: "png" | "exr", layer = "rgb") =>
+  `${BASE}/jobs/${encodeURIComponent(id)}/image.${fmt}` + (fmt === "png" ? `?layer=${layer}` : "");
+
+export const watchUrl = (id: string) => `${BASE}/jobs/${encodeURIComponent(id)}/watch`;
+
+let routes: Promise<Set<string>> | null = null;
+/**
+ * Whether the server offers an API path, from its OpenAPI document (read once). Lets the
+ * dashboard use endpoints that are being added without probing them with failing requests.
+ */
+export async function serverHas(path: string): Promise<boolean> {
+  routes ??= fetch("/openapi.json")
+    .then((r) => (r.ok ? r.json() : { paths: {} }))
+    .then((doc: { paths?: Record<string, unknown> }) => new Set(Object.keys(doc.paths ?? {})))
+    .catch(() => new Set<string>());
+  return (await routes).has(path);
+}

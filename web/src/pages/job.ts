@@ -1,0 +1,344 @@
+// Job page: the image refining live over Server-Sent Events, the error-against-time plot,
+// settings, tile stop records, the event log, cancel and downloads.
+
+import {
+  ApiError,
+  FINISHED,
+  type Job,
+  type JobDetail,
+  type JobEvent,
+  cancelJob,
+  convergence,
+  getJob,
+  imageUrl,
+  jobEvents,
+  serverHas,
+  watchUrl,
+} from "../api";
+import { type ErrorPoint, convergencePlot } from "../chart";
+import { h, replace, setText } from "../dom";
+import { dateTime, duration, label, percent, si, spp } from "../format";
+import { Throttled } from "../throttle";
+import { TileProgress, card, errorVsTarget, setConnection, stat, stateBadge, updateBadge } from "../ui";
+import { Viewer } from "./viewer";
+
+const CONVERGENCE_PATH = "/api/v1/jobs/{job_id}/convergence";
+const MAX_ROWS = 500;
+
+function eventSummary(e: JobEvent): string {
+  const d = e.data ?? {};
+  if (e.kind === "tile_stopped") {
+    return `tile ${d.tile} at ${d.spp} spp, error ${percent(Number(d.error))} (${d.reason})`;
+  }
+  if (e.kind === "convergence" && Array.isArray(d.points)) {
+    return `${d.points.length} error samples recorded for the plot`;
+  }
+  return Object.entries(d)
+    .filter(([, v]) => v !== "" && v !== null && v !== undefined)
+    .map(([k, v]) => `${k}: ${typeof v === "object" ? JSON.stringify(v) : String(v)}`)
+    .join(", ");
+}
+
+export function mountJob(root: HTMLElement, jobId: string): () => void {
+  let disposed = false;
+  let source: EventSource | null = null;
+  const cleanups: (() => void)[] = [];
+  document.title = `Job ${jobId} · renderfarm`;
+  replace(root, h("p", { class: "muted" }, "Loading job…"));
+
+  const start = async () => {
+    let detail: JobDetail;
+    try {
+      detail = await getJob(jobId);
+    } catch (e) {
+      const text = e instanceof ApiError && e.status === 404 ? `There is no job ${jobId}.` : `Cannot load job ${jobId}: ${(e as Error).message}`;
+      replace(root, h("div", { class: "card empty" }, h("p", {}, text), h("a", { href: "#/jobs" }, "Back to the jobs")));
+      return;
+    }
+    if (disposed) return;
+    build(detail);
+  };
+
+  const build = (initial: JobDetail) => {
+    let job: Job = initial;
+    const st = initial.settings;
+    document.title = `${initial.name || initial.id} · renderfarm`;
+
+    // Header and actions.
+    const badge = stateBadge(job.state);
+    const cancelButton = h("button", { type: "button", class: "button danger", "data-action": "cancel" }, "Cancel job");
+    const confirmBox = h(
+      "div",
+      { class: "confirm", hidden: true, role: "group", "aria-label": "Confirm cancel" },
+      h("span", {}, "Stop rendering this job?"),
+      h("button", { type: "button", class: "button danger", "data-action": "confirm-cancel" }, "Yes, cancel"),
+      h("button", { type: "button", class: "button secondary", "data-action": "keep" }, "Keep rendering"),
+    );
+    const safeName = (job.name || job.id).replace(/[^\w.-]+/g, "_");
+    const actions = h(
+      "div",
+      { class: "actions" },
+      h("a", { class: "button secondary", href: imageUrl(jobId, "png"), download: `${safeName}.png` }, "Download PNG"),
+      h("a", { class: "button secondary", href: imageUrl(jobId, "exr"), download: `${safeName}.exr` }, "Download EXR"),
+      cancelButton,
+      confirmBox,
+    );
+    const failure = h("div", { class: "alert", role: "alert", hidden: true });
+
+    // Live figures.
+    const bar = new TileProgress("Tiles converged");
+    const meanSpp = h("span");
+    const error = h("span", { class: "error-vs-target" });
+    const elapsed = h("span");
+    const eta = h("span");
+    const merged = h("span");
+    const stats = h(
+      "div",
+      { class: "stats" },
+      stat("Tiles converged", bar.el, "progress"),
+      stat("Mean spp", meanSpp, "spp"),
+      stat("Error / target", error, "error"),
+      stat("Elapsed", elapsed, "elapsed"),
+      stat("ETA", eta, "eta"),
+      stat("Samples merged", merged, "samples"),
+    );
+
+    const viewer = new Viewer(jobId, st.width, st.height, st.tile_size);
+    cleanups.push(() => viewer.stop());
+
+    // Convergence plot: from the server's history when it has the endpoint, else from the stream.
+    let points: ErrorPoint[] = [];
+    let historyNote = "";
+    const plotBox = h("div", { class: "plot-box" });
+    const plotNote = h("p", { class: "muted small" });
+    const drawPlot = () => {
+      plotBox.replaceChildren(convergencePlot(points, st.noise_threshold > 0 ? st.noise_threshold : null));
+      setText(plotNote, historyNote);
+    };
+    const addPoint = (t: number, e: number | null) => {
+      if (e === null || !(t > 0)) return;
+      const last = points[points.length - 1];
+      if (last && t <= last.t) return;
+      points.push({ t, error: e });
+      if (points.length > 4000) points = points.filter((_, i) => i % 2 === 0 || i === points.length - 1);
+    };
+    const plotThrottle = new Throttled(async () => drawPlot(), 1000);
+    cleanups.push(() => plotThrottle.stop());
+    const loadHistory = async () => {
+      if (!(await serverHas(CONVERGENCE_PATH))) {
+        historyNote = FINISHED.has(job.state)
+          ? "This server keeps no convergence history: the plot holds what this page saw while the job rendered."
+          : "Plotted from the live stream since this page opened.";
+        return;
+      }
+      try {
+        const history = await convergence(jobId);
+        const seen = points;
+        points = [];
+        for (const p of history) addPoint(p.t, p.error);
+        for (const p of seen) addPoint(p.t, p.error);
+        historyNote = "";
+      } catch {
+        historyNote = "Plotted from the live stream since this page opened.";
+      }
+    };
+
+    // Settings.
+    const settingsList = h(
+      "dl",
+      { class: "settings-list" },
+      Object.entries(st).map(([k, v]) => [h("dt", { title: k }, label(k)), h("dd", { class: "mono" }, v === "" ? "-" : String(v))]),
+      h("dt", {}, "Scene"),
+      h("dd", { class: "mono", title: initial.scene_sha256 }, initial.scene_sha256.slice(0, 16) + "…"),
+      h("dt", {}, "Created"),
+      h("dd", {}, dateTime(initial.created_unix_s)),
+      h("dt", {}, "Finished"),
+      h("dd", { "data-field": "finished" }, dateTime(initial.finished_unix_s)),
+    );
+    const finishedCell = settingsList.querySelector<HTMLElement>('[data-field="finished"]')!;
+
+    // Stop records and events.
+    const cols = Math.ceil(st.width / st.tile_size);
+    const stopsBody = h("tbody");
+    const stopsNote = h("p", { class: "muted small" });
+    const stopsTable = h(
+      "div",
+      { class: "table-scroll tall" },
+      h(
+        "table",
+        { class: "table compact" },
+        h("caption", { class: "visually-hidden" }, "Tile stop records"),
+        h("thead", {}, h("tr", {}, ["Tile", "Row, col", "Batch", "spp", "Error", "Reason"].map((t) => h("th", { scope: "col" }, t)))),
+        stopsBody,
+      ),
+    );
+    const eventsList = h("ol", { class: "event-log", reversed: true });
+    const renderStops = (d: JobDetail) => {
+      const stops = [...d.stops].sort((a, b) => a.tile - b.tile);
+      setText(stopsNote, `${stops.length} of ${d.progress.tiles_total} tiles stopped` + (stops.length > MAX_ROWS ? ` (first ${MAX_ROWS} shown)` : ""));
+      stopsBody.replaceChildren(
+        ...stops.slice(0, MAX_ROWS).map((r) =>
+          h(
+            "tr",
+            {},
+            h("td", { class: "num" }, r.tile),
+            h("td", { class: "num" }, `${Math.floor(r.tile / cols)}, ${r.tile % cols}`),
+            h("td", { class: "num" }, r.batch),
+            h("td", { class: "num" }, r.spp),
+            h("td", { class: "num" }, percent(r.error)),
+            h("td", {}, h("span", { class: `reason reason-${r.reason}` }, r.reason.replace(/_/g, " "))),
+          ),
+        ),
+      );
+      viewer.setConverged(stops.map((r) => r.tile));
+    };
+    let finishLogged = false;
+    const renderEvents = (events: JobEvent[]) => {
+      finishLogged = events.some((e) => e.kind === "job_finished");
+      const t0 = initial.created_unix_s;
+      const shown = events.slice(-MAX_ROWS).reverse();
+      eventsList.replaceChildren(
+        ...shown.map((e) =>
+          h(
+            "li",
+            { class: `event event-${e.kind}` },
+            h("time", { class: "mono muted", datetime: new Date(e.at * 1000).toISOString(), title: dateTime(e.at) }, `+${(e.at - t0).toFixed(1)} s`),
+            h("span", { class: "event-kind" }, e.kind.replace(/_/g, " ")),
+            h("span", { class: "muted" }, eventSummary(e)),
+          ),
+        ),
+      );
+    };
+
+    const details = new Throttled(async () => {
+      try {
+        const [d, events] = await Promise.all([getJob(jobId), jobEvents(jobId)]);
+        if (disposed) return;
+        renderStops(d);
+        renderEvents(events);
+      } catch (e) {
+        setConnection(false, (e as Error).message);
+      }
+    }, 1500);
+    cleanups.push(() => details.stop());
+
+    let lastTilesDone = -1;
+    const show = (j: Job) => {
+      const wasFinished = FINISHED.has(job.state);
+      job = j;
+      const p = j.progress;
+      updateBadge(badge, j.state);
+      bar.update(p, j.state);
+      setText(meanSpp, `${spp(p.mean_spp)} / ${j.settings.max_spp}`);
+      errorVsTarget(error, p.error, j.settings.noise_threshold);
+      setText(elapsed, duration(p.elapsed_s));
+      setText(eta, FINISHED.has(j.state) ? "-" : duration(p.eta_s));
+      setText(merged, si(p.samples_merged));
+      setText(finishedCell, dateTime(j.finished_unix_s));
+      const finished = FINISHED.has(j.state);
+      cancelButton.hidden = finished || !confirmBox.hidden;
+      if (finished) confirmBox.hidden = true;
+      failure.hidden = !j.error;
+      setText(failure, j.error ? `This job failed: ${j.error}` : "");
+      addPoint(p.elapsed_s, p.error);
+      plotThrottle.request();
+      viewer.update(p.samples_merged);
+      if (p.tiles_done !== lastTilesDone) {
+        lastTilesDone = p.tiles_done;
+        details.request();
+      }
+      if (finished && !wasFinished) void onFinished();
+    };
+
+    const onFinished = async () => {
+      source?.close();
+      source = null;
+      await Promise.all([viewer.final(job.progress.samples_merged), details.flush(), loadHistory()]);
+      drawPlot();
+      // The server logs the finish right after the state changes: look again until it is there.
+      for (let i = 0; i < 10 && !finishLogged && !disposed; i++) {
+        await new Promise((r) => setTimeout(r, 500));
+        await details.flush();
+      }
+    };
+
+    cancelButton.addEventListener("click", () => {
+      cancelButton.hidden = true;
+      confirmBox.hidden = false;
+      confirmBox.querySelector<HTMLButtonElement>('[data-action="keep"]')!.focus();
+    });
+    confirmBox.querySelector('[data-action="keep"]')!.addEventListener("click", () => {
+      confirmBox.hidden = true;
+      cancelButton.hidden = FINISHED.has(job.state);
+      cancelButton.focus();
+    });
+    confirmBox.querySelector('[data-action="confirm-cancel"]')!.addEventListener("click", async (ev) => {
+      const button = ev.currentTarget as HTMLButtonElement;
+      button.disabled = true;
+      try {
+        show(await cancelJob(jobId));
+      } catch (e) {
+        failure.hidden = false;
+        setText(failure, `Could not cancel: ${(e as Error).message}`);
+      } finally {
+        button.disabled = false;
+      }
+    });
+
+    replace(
+      root,
+      h("nav", { class: "breadcrumb", "aria-label": "Breadcrumb" }, h("a", { href: "#/jobs" }, "Jobs"), h("span", { "aria-hidden": "true" }, " / "), h("span", { class: "mono" }, jobId)),
+      h(
+        "div",
+        { class: "page-head" },
+        h("div", { class: "title-group" }, h("h1", {}, initial.name || "(unnamed)"), badge),
+        actions,
+      ),
+      failure,
+      stats,
+      h(
+        "div",
+        { class: "job-grid" },
+        h("div", { class: "job-main" }, viewer.el),
+        h(
+          "div",
+          { class: "job-side" },
+          card("Error against time", plotBox, plotNote),
+          card("Settings", settingsList),
+        ),
+      ),
+      h(
+        "div",
+        { class: "job-lower" },
+        card("Tile stop records", stopsNote, stopsTable),
+        card("Event log", h("div", { class: "table-scroll tall" }, eventsList)),
+      ),
+    );
+
+    show(initial);
+    renderStops(initial);
+    details.request();
+    if (FINISHED.has(initial.state)) {
+      void onFinished();
+      return;
+    }
+    void loadHistory().then(() => drawPlot());
+    drawPlot();
+    source = new EventSource(watchUrl(jobId));
+    source.addEventListener("job", (ev) => {
+      setConnection(true);
+      if (!disposed) show(JSON.parse((ev as MessageEvent).data) as Job);
+    });
+    source.onerror = () => {
+      // The stream ends after the final state (handled in show); otherwise EventSource retries.
+      if (source && source.readyState !== EventSource.OPEN) setConnection(false, "Live updates interrupted, reconnecting…");
+    };
+  };
+
+  void start();
+  return () => {
+    disposed = true;
+    source?.close();
+    for (const c of cleanups) c();
+  };
+}

@@ -1,0 +1,235 @@
+// The job's image: a canvas showing one layer of the progressive preview, refreshed as samples
+// are merged (at most one request in flight, at most two a second), with exposure for the image,
+// false colour for the error/spp/variance maps and an SVG overlay of the tile grid.
+
+import { imageUrl } from "../api";
+import { applyColourMap, applyExposure, type ColourMap, cssGradient } from "../colormap";
+import { h, s, setText } from "../dom";
+import { Throttled } from "../throttle";
+
+interface Layer {
+  id: string;
+  label: string;
+  colourMap?: ColourMap;
+  legend?: string;
+}
+
+export const LAYERS: Layer[] = [
+  { id: "rgb", label: "Image" },
+  { id: "error", label: "Relative error", colourMap: "inferno", legend: "per-pixel relative error" },
+  { id: "spp", label: "Samples / pixel", colourMap: "viridis", legend: "samples per pixel" },
+  { id: "variance", label: "Std. error", colourMap: "inferno", legend: "standard error of the mean" },
+  { id: "albedo", label: "Albedo" },
+  { id: "normal", label: "Normal" },
+];
+
+export class Viewer {
+  readonly el: HTMLElement;
+  private canvas: HTMLCanvasElement;
+  private overlay: SVGSVGElement;
+  private stage: HTMLDivElement;
+  private legend: HTMLDivElement;
+  private exposureBox: HTMLDivElement;
+  private exposure: HTMLInputElement;
+  private exposureOut: HTMLOutputElement;
+  private gridToggle: HTMLInputElement;
+  private caption: HTMLParagraphElement;
+  private layer = "rgb";
+  private raw: ImageData | null = null;
+  private rawLayer = "";
+  private version = -1; // samples_merged the wanted image reflects
+  private loadedKey = "";
+  private loader: Throttled;
+  private converged = new Set<number>();
+  private tiles = { width: 0, height: 0, size: 1 };
+
+  constructor(
+    private readonly jobId: string,
+    width: number,
+    height: number,
+    tileSize: number,
+  ) {
+    this.tiles = { width, height, size: tileSize };
+    this.canvas = h("canvas", { width, height, class: "preview", "aria-label": "Preview of the render", role: "img" });
+    this.overlay = s("svg", {
+      class: "tile-overlay",
+      viewBox: `0 0 ${width} ${height}`,
+      preserveAspectRatio: "none",
+      "aria-hidden": "true",
+    });
+    this.stage = h("div", { class: "stage" }, this.canvas, this.overlay);
+    this.stage.style.aspectRatio = `${width} / ${height}`;
+    this.stage.style.maxWidth = `calc(68vh * ${width / height})`;
+
+    const radios = LAYERS.map((l) =>
+      h(
+        "label",
+        { class: "seg-option" },
+        h("input", {
+          type: "radio",
+          name: "layer",
+          value: l.id,
+          checked: l.id === this.layer,
+          onchange: () => this.setLayer(l.id),
+        }),
+        h("span", {}, l.label),
+      ),
+    );
+    this.exposure = h("input", {
+      type: "range",
+      id: "exposure",
+      min: -4,
+      max: 4,
+      step: 0.25,
+      value: "0",
+      "aria-describedby": "exposure-note",
+      oninput: () => this.exposureChanged(),
+    });
+    this.exposureOut = h("output", { for: "exposure", class: "mono" }, "+0.00 EV");
+    this.exposureBox = h(
+      "div",
+      { class: "control" },
+      h("label", { for: "exposure" }, "Exposure"),
+      this.exposure,
+      this.exposureOut,
+      h("button", {
+        type: "button",
+        class: "button small secondary",
+        onclick: () => {
+          this.exposure.value = "0";
+          this.exposureChanged();
+        },
+      }, "Reset"),
+    );
+    this.gridToggle = h("input", { type: "checkbox", id: "tile-grid", onchange: () => this.drawOverlay() });
+    this.legend = h("div", { class: "legend-bar", hidden: true });
+    this.caption = h("p", { class: "muted small viewer-caption", "aria-live": "off" });
+
+    this.el = h(
+      "section",
+      { class: "card viewer", "aria-label": "Image" },
+      h(
+        "div",
+        { class: "viewer-toolbar" },
+        h("fieldset", { class: "segmented radio" }, h("legend", { class: "visually-hidden" }, "Layer"), radios),
+        h("div", { class: "viewer-controls" },
+          this.exposureBox,
+          h("div", { class: "control" }, this.gridToggle, h("label", { for: "tile-grid" }, "Tile grid")),
+        ),
+      ),
+      h("div", { class: "stage-wrap" }, this.stage),
+      h("div", { class: "viewer-foot" }, this.legend, this.caption),
+      h("p", { class: "muted small", id: "exposure-note" },
+        "Exposure scales the linear radiance of the sRGB preview (clamped to 1 by the server); the EXR keeps the full range."),
+    );
+    this.loader = new Throttled(() => this.load(), 500);
+  }
+
+  /** New samples were merged: fetch the preview again (throttled). */
+  update(samplesMerged: number): void {
+    if (samplesMerged === this.version) return;
+    this.version = samplesMerged;
+    this.loader.request();
+  }
+
+  async final(samplesMerged: number): Promise<void> {
+    this.version = samplesMerged;
+    await this.loader.flush();
+  }
+
+  setConverged(tiles: Iterable<number>): void {
+    const next = new Set(tiles);
+    if (next.size === this.converged.size) return;
+    this.converged = next;
+    this.drawOverlay();
+  }
+
+  stop(): void {
+    this.loader.stop();
+  }
+
+  private setLayer(id: string): void {
+    this.layer = id;
+    this.el.dataset.layer = id;
+    const layer = LAYERS.find((l) => l.id === id)!;
+    this.exposureBox.hidden = id !== "rgb";
+    this.legend.hidden = !layer.colourMap;
+    if (layer.colourMap) {
+      this.legend.replaceChildren(
+        h("span", {}, "0"),
+        h("span", { class: "legend-gradient", style: `background: ${cssGradient(layer.colourMap)}` }),
+        h("span", {}, `max · ${layer.legend}`),
+      );
+    }
+    void this.loader.flush();
+  }
+
+  private exposureChanged(): void {
+    const ev = Number(this.exposure.value);
+    setText(this.exposureOut, `${ev >= 0 ? "+" : "−"}${Math.abs(ev).toFixed(2)} EV`);
+    this.paint();
+  }
+
+  private async load(): Promise<void> {
+    const layer = this.layer;
+    const version = this.version;
+    const key = `${layer}:${version}`;
+    if (key === this.loadedKey) return;
+    const response = await fetch(`${imageUrl(this.jobId, "png", layer)}&v=${version}`);
+    if (!response.ok) return; // e.g. no samples merged yet; the next update tries again
+    const bitmap = await createImageBitmap(await response.blob());
+    const work = document.createElement("canvas");
+    work.width = bitmap.width;
+    work.height = bitmap.height;
+    const ctx = work.getContext("2d", { willReadFrequently: true })!;
+    ctx.drawImage(bitmap, 0, 0);
+    bitmap.close();
+    this.raw = ctx.getImageData(0, 0, work.width, work.height);
+    this.rawLayer = layer;
+    this.loadedKey = key;
+    this.paint();
+    this.el.dataset.loaded = key; // lets tests wait for a given layer and version
+    setText(this.caption, `${work.width}×${work.height} · ${LAYERS.find((l) => l.id === layer)!.label.toLowerCase()} at ${version.toLocaleString("en")} samples merged`);
+  }
+
+  private paint(): void {
+    if (!this.raw) return;
+    const layer = LAYERS.find((l) => l.id === this.rawLayer)!;
+    let img = this.raw;
+    if (layer.colourMap) img = applyColourMap(img, layer.colourMap);
+    else if (layer.id === "rgb" && Number(this.exposure.value) !== 0) img = applyExposure(img, Number(this.exposure.value));
+    if (this.canvas.width !== img.width || this.canvas.height !== img.height) {
+      this.canvas.width = img.width;
+      this.canvas.height = img.height;
+    }
+    this.canvas.getContext("2d")!.putImageData(img, 0, 0);
+  }
+
+  private drawOverlay(): void {
+    this.overlay.replaceChildren();
+    this.stage.classList.toggle("grid-on", this.gridToggle.checked);
+    if (!this.gridToggle.checked) return;
+    const { width, height, size } = this.tiles;
+    const cols = Math.ceil(width / size);
+    const rows = Math.ceil(height / size);
+    for (let r = 0; r < rows; r++) {
+      for (let c = 0; c < cols; c++) {
+        const index = r * cols + c;
+        const w = Math.min(size, width - c * size);
+        const hgt = Math.min(size, height - r * size);
+        const done = this.converged.has(index);
+        this.overlay.append(
+          s("rect", {
+            x: c * size,
+            y: r * size,
+            width: w,
+            height: hgt,
+            class: done ? "tile converged" : "tile",
+            "vector-effect": "non-scaling-stroke",
+            "data-tile": index,
+          }),
+        );
+      }
+    }
+  }
+}
