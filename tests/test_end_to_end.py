@@ -215,3 +215,18 @@ def test_environment_map_is_stored_and_referenced_by_hash(client, tmp_path):
     parts["environment"] = ("sky.png", b"\x89PNG\r\n\x1a\n" + b"0" * 32, "image/png")
     r = client.http.post("/api/v1/jobs", files=parts)
     assert r.status_code == 400 and r.json()["field"] == "environment"
+
+
+def test_delete_needs_a_finished_job_and_removes_its_data(client):
+    job = client.submit(CORNELL, settings={"width": 16, "height": 16, "max_spp": 1})
+    r = client.http.delete(f"/api/v1/jobs/{job['id']}")
+    if r.status_code == 409:  # still rendering: it must be cancelled first
+        assert "cancel" in r.json()["detail"]
+        client.cancel(job["id"])
+        r = client.http.delete(f"/api/v1/jobs/{job['id']}")
+    assert r.status_code == 204, r.text
+    with pytest.raises(ApiError) as err:
+        client.get(job["id"])
+    assert err.value.status == 404
+    assert client.http.get(f"/api/v1/jobs/{job['id']}/events").status_code == 404
+    assert client.http.delete(f"/api/v1/jobs/{job['id']}").status_code == 404

@@ -20,7 +20,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from .jobspec import SETTINGS, SettingsError
 from .metrics import Metrics
 from .scenes import SceneError
-from .service import FarmService, NotFound, TooLarge
+from .service import Conflict, FarmService, NotFound, TooLarge
 from .states import JobState
 from .webui import index_html
 
@@ -51,6 +51,10 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     @app.exception_handler(TooLarge)
     async def _too_large(_: Request, e: TooLarge):
         return _error(413, e.field, e.message)
+
+    @app.exception_handler(Conflict)
+    async def _conflict(_: Request, e: Conflict):
+        return _error(409, "", e.message)
 
     @app.exception_handler(NotFound)
     async def _not_found(_: Request, e: NotFound):
@@ -197,6 +201,15 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     @app.post("/api/v1/jobs/{job_id}/cancel", summary="Cancel a job")
     async def cancel_job(job_id: str) -> dict:
         return (await farm.cancel(job_id)).to_json()
+
+    @app.delete(
+        "/api/v1/jobs/{job_id}",
+        status_code=204,
+        summary="Delete a finished job with its stored data (cancel a running one first)",
+    )
+    async def delete_job(job_id: str) -> Response:
+        await farm.delete(job_id)
+        return Response(status_code=204)
 
     @app.get("/api/v1/jobs/{job_id}/events", summary="The job's event log")
     async def job_events(job_id: str) -> list[dict]:

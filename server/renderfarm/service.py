@@ -59,6 +59,14 @@ class Unauthenticated(PermissionError):
     pass
 
 
+class Conflict(RuntimeError):
+    """The request is valid but the job's state does not allow it (REST 409)."""
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        self.message = message
+
+
 @dataclass(frozen=True)
 class ProgressView:
     tiles_total: int
@@ -303,6 +311,18 @@ class FarmService:
         self.scheduler.cancel_job(job_id)
         await self._after_change()
         return await self.get(job_id)
+
+    async def delete(self, job_id: str) -> None:
+        """Delete a finished job and its stored data (tiles, events, its scene if unshared).
+        A job still queued or running must be cancelled first."""
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None and not job.state.finished:
+            raise Conflict(f"job {job_id} is {job.state.value}; cancel it before deleting it")
+        if not await self.store.delete_job(job_id):
+            raise NotFound(f"no job with id {job_id!r}")
+        self.scheduler.forget_job(job_id)
+        for table in (self.history, self.names, self.created):
+            table.pop(job_id, None)
 
     async def watch(self, job_id: str) -> AsyncIterator[JobView]:
         """The job now, then after every visible change, until it is finished."""

@@ -232,6 +232,27 @@ class Store:
             await cur.execute(sql, params)
             return [JobRow(**r) for r in await cur.fetchall()]
 
+    async def delete_job(self, job_id: str) -> bool:
+        """Delete a job with its tiles and events; its scene and environment map too when no
+        other job uses them. False when there was no such job."""
+        async with self.pool.connection() as conn:
+            async with conn.transaction():
+                cur = await conn.execute(
+                    "DELETE FROM jobs WHERE id = %s"
+                    " RETURNING scene_sha256, settings->>'environment'",
+                    (job_id,),
+                )
+                row = await cur.fetchone()
+                if row is None:
+                    return False
+                for sha in {row[0], row[1]} - {None, ""}:
+                    await conn.execute(
+                        "DELETE FROM scenes WHERE sha256 = %s AND NOT EXISTS (SELECT 1 FROM jobs"
+                        " WHERE scene_sha256 = %s OR settings->>'environment' = %s)",
+                        (sha, sha, sha),
+                    )
+                return True
+
     async def unfinished_jobs(self) -> list[JobRow]:
         async with self.pool.connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
