@@ -34,6 +34,9 @@ class Settings(BaseSettings):
     checkpoint_interval_s: float = Field(
         2.0, gt=0, description="most seconds of merged work a server crash may lose"
     )
+    drain_timeout_s: float = Field(
+        30.0, ge=0, description="on SIGTERM, how long to wait for tasks in flight to come back"
+    )
     max_upload_bytes: int = Field(256 * 2**20, gt=0, description="largest scene upload")
     max_width: int = Field(16384, gt=0, description="largest image width a job may ask for")
     max_height: int = Field(16384, gt=0, description="largest image height a job may ask for")

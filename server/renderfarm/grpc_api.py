@@ -13,8 +13,10 @@ import functools
 import logging
 
 import grpc
+import psycopg
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
+from psycopg_pool import PoolTimeout
 
 from .jobspec import SETTING_NAMES, SettingsError
 from .scenes import SceneError
@@ -96,6 +98,8 @@ def _maps_errors(method):
             await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, f"{e.field}: {e.message}")
         except NotFound as e:
             await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
+        except (psycopg.Error, PoolTimeout) as e:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, f"database unavailable: {e}")
 
     return wrapper
 

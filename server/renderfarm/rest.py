@@ -12,10 +12,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import psycopg
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST
+from psycopg_pool import PoolTimeout
 
 from .jobspec import SETTINGS, SettingsError
 from .metrics import Metrics
@@ -51,6 +53,14 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     @app.exception_handler(TooLarge)
     async def _too_large(_: Request, e: TooLarge):
         return _error(413, e.field, e.message)
+
+    @app.exception_handler(psycopg.Error)
+    async def _database(_: Request, e: psycopg.Error):
+        return _error(503, "", f"database unavailable, try again: {type(e).__name__}")
+
+    @app.exception_handler(PoolTimeout)
+    async def _pool_timeout(_: Request, e: PoolTimeout):
+        return _error(503, "", "database unavailable, try again")
 
     @app.exception_handler(Conflict)
     async def _conflict(_: Request, e: Conflict):

@@ -74,6 +74,11 @@ async def serve(
         if on_ready is not None:
             await on_ready(http_port, grpc_port)
         await stop.wait()
+        log.info(
+            "draining: no new tasks; waiting up to %g s for tasks in flight",
+            settings.drain_timeout_s,
+        )
+        await farm.drain(settings.drain_timeout_s)
         log.info("shutting down")
         await farm.stop()
         http.should_exit = True

@@ -26,6 +26,8 @@ from datetime import datetime
 from typing import Any
 
 import numpy as np
+import psycopg
+from psycopg_pool import PoolTimeout
 
 from . import images
 from .config import Settings
@@ -139,6 +141,15 @@ class FarmService:
         self._tasks: list[asyncio.Task] = []
         self._last_checkpoint = time.time()
         self.metrics = None  # a metrics.Metrics, set by the server
+        # Writes that must reach the database but may not block merging: flushed by the
+        # background task, retried with backoff while the database is away.
+        self._pending_events: list[tuple[str | None, str, dict[str, Any]]] = []
+        self._pending_finishes: list[str] = []
+        self._db_retry_at = 0.0
+        self._db_failures = 0
+        self.db_errors = 0  # failed database operations since start (metrics)
+        self.database_ok = True
+        self.draining = False
         # Convergence history of live jobs: (elapsed s, relative error or None, mean spp).
         self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
@@ -157,7 +168,11 @@ class FarmService:
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        await self.checkpoint(force=True)
+        if not await self.flush(force=True):
+            log.error(
+                "could not write the last checkpoint; up to the checkpoint interval of merged "
+                "work will be rendered again after a restart"
+            )
         for session in list(self.sessions.values()):
             session.outbox.put_nowait(None)
 
@@ -199,12 +214,55 @@ class FarmService:
                 self.scheduler.tick()
                 self._sample_history()
                 await self._after_change()
-                if time.time() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
-                    await self.checkpoint()
+                await self.flush()
             except asyncio.CancelledError:
                 raise
-            except Exception:  # keep serving; the next round retries the writes
+            except Exception:  # keep serving; the next round retries
                 log.exception("background round failed")
+
+    async def flush(self, force: bool = False) -> bool:
+        """Write pending events, finished jobs and due checkpoints. While the database is away
+        this keeps everything in memory and tries again with exponential backoff (0.5 s
+        doubling to 10 s); merging and serving workers go on meanwhile. True when all written."""
+        now = time.time()
+        if not force and now < self._db_retry_at:
+            return False
+        try:
+            if self._pending_events:
+                batch = list(self._pending_events)
+                await self.store.add_events(batch)
+                del self._pending_events[: len(batch)]
+            while self._pending_finishes:
+                job_id = self._pending_finishes[0]
+                await self._persist_job(job_id, tiles=True)
+                points = self.history.get(job_id, [])
+                await self.store.add_events([(job_id, "convergence", {"points": points})])
+                self._pending_finishes.pop(0)
+                self._forget_later(job_id)
+            if force or now - self._last_checkpoint >= self.settings.checkpoint_interval_s:
+                await self.checkpoint(force=force)
+        except (psycopg.Error, PoolTimeout, OSError) as e:
+            self.db_errors += 1
+            self._db_failures += 1
+            self.database_ok = False
+            delay = min(10.0, 0.5 * 2 ** (self._db_failures - 1))
+            self._db_retry_at = time.time() + delay
+            log.warning("database write failed (%s); retrying in %.1f s", e, delay)
+            return False
+        if not self.database_ok:
+            log.info("database writes caught up")
+        self._db_failures = 0
+        self.database_ok = True
+        return True
+
+    async def drain(self, timeout_s: float) -> None:
+        """Stop leasing and wait (at most timeout_s) for the tasks in flight to come back."""
+        self.draining = True
+        deadline = time.monotonic() + timeout_s
+        while self.scheduler.leases and time.monotonic() < deadline:
+            await asyncio.sleep(0.1)
+        if self.scheduler.leases:
+            log.warning("drain timed out with %d tasks in flight", len(self.scheduler.leases))
 
     # ---------------------------------------------------------------------------- jobs
     async def submit(
@@ -477,9 +535,13 @@ class FarmService:
         session = WorkerSession(worker_id, hostname[:200], max(1, cores), version[:50])
         self.sessions[worker_id] = session
         self.scheduler.add_worker(worker_id, max(1, min(max_in_flight or cores + 2, 256)))
-        await self.store.worker_connected(
-            worker_id, session.hostname, session.cores, session.version
-        )
+        try:  # the worker table is informational: a database outage must not keep workers out
+            await self.store.worker_connected(
+                worker_id, session.hostname, session.cores, session.version
+            )
+        except (psycopg.Error, PoolTimeout, OSError) as e:
+            self.db_errors += 1
+            log.warning("could not record worker %s: %s", worker_id, e)
         log.info("worker %s connected (%d cores)", worker_id, session.cores)
         await self._after_change()
         return session
@@ -490,8 +552,11 @@ class FarmService:
         del self.sessions[session.worker_id]
         lost = self.scheduler.remove_worker(session.worker_id)
         log.info("worker %s disconnected, %d tasks re-queued", session.worker_id, len(lost))
-        with contextlib.suppress(Exception):
+        try:
             await self.store.worker_disconnected(session.worker_id)
+        except (psycopg.Error, PoolTimeout, OSError) as e:
+            self.db_errors += 1
+            log.warning("could not record that worker %s left: %s", session.worker_id, e)
         await self._after_change()
 
     async def worker_heartbeat(
@@ -554,19 +619,18 @@ class FarmService:
             cancels = self.scheduler.take_cancellations(worker_id)
             if cancels:
                 session.outbox.put_nowait(("cancel", cancels))
+            if self.draining:
+                continue
             for lease in self.scheduler.assign(worker_id):
                 session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))
         events = self.scheduler.take_events()
         finished = [e.job_id for e in events if e.kind == "job_finished"]
-        for job_id in finished:  # before any await: readers see the final point at once
+        for job_id in finished:  # readers see the final point at once
             self._sample_history_final(job_id)
-        if events:
-            await self.store.add_events([(e.job_id, e.kind, e.data) for e in events])
-        for job_id in finished:
-            await self._persist_job(job_id, tiles=True)
-            points = self.history.get(job_id, [])
-            await self.store.add_events([(job_id, "convergence", {"points": points})])
-            self._forget_later(job_id)
+        # Stored by flush() from the background task: a slow or absent database never holds
+        # up a merge or a worker stream.
+        self._pending_events.extend((e.job_id, e.kind, e.data) for e in events)
+        self._pending_finishes.extend(finished)
         async with self._changed:
             self._changed.notify_all()
 

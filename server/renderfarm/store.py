@@ -82,8 +82,18 @@ _JOB_COLUMNS = (
 class Store:
     def __init__(self, url: str, min_size: int = 1, max_size: int = 8):
         self.url = url
+        # check: a connection is tested before it is handed out, so connections broken by a
+        # database restart are replaced instead of failing a request; timeout: a caller waits
+        # at most this long for a connection while the database is away.
         self.pool = AsyncConnectionPool(
-            url, min_size=min_size, max_size=max_size, open=False, kwargs={"autocommit": True}
+            url,
+            min_size=min_size,
+            max_size=max_size,
+            open=False,
+            kwargs={"autocommit": True},
+            check=AsyncConnectionPool.check_connection,
+            timeout=5.0,
+            reconnect_timeout=0,  # keep trying for as long as the server runs
         )
 
     async def open(self) -> None:
@@ -318,9 +328,11 @@ class Store:
             return
         async with self.pool.connection() as conn:
             async with conn.cursor() as cur:
+                # Events of a job deleted meanwhile are dropped rather than failing the batch.
                 await cur.executemany(
-                    "INSERT INTO events (job_id, kind, data) VALUES (%s, %s, %s)",
-                    [(j, k, json.dumps(_clean(d), default=str)) for j, k, d in events],
+                    "INSERT INTO events (job_id, kind, data) SELECT %s, %s, %s"
+                    " WHERE EXISTS (SELECT 1 FROM jobs WHERE id = %s)",
+                    [(j, k, json.dumps(_clean(d), default=str), j) for j, k, d in events],
                 )
 
     async def list_events(self, job_id: str, limit: int = 1000) -> list[dict[str, Any]]:
