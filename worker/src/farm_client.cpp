@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <cstdio>
 #include <deque>
@@ -53,13 +54,15 @@ bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std:
   const std::string sampler = in.sampler().empty() ? "sobol" : in.sampler();
   const std::string integrator = in.integrator().empty() ? "path" : in.integrator();
   if (!parse_sampler_type(sampler, &out->sampler)) {
-    *err = "unknown sampler '" + sampler + "' (expected sobol or independent)";
+    *err = "unknown sampler '" + sampler + "' (expected sobol, halton, stratified or independent)";
     return false;
   }
   if (!parse_integrator_type(integrator, &out->integrator)) {
-    *err = "unknown integrator '" + integrator + "' (expected path or ao)";
+    *err = "unknown integrator '" + integrator + "' (expected path, direct or ao)";
     return false;
   }
+  out->aperture_radius = float(in.aperture_radius());
+  out->focus_distance = float(in.focus_distance());
   return true;
 }
 
@@ -99,6 +102,7 @@ class Worker {
   void supervise(Session& s, const std::atomic<bool>& stop);
   void run_task(Session& s, const pb::Task& task, const std::atomic<bool>& cancel);
   std::shared_ptr<const Scene> scene_for(const std::string& sha256);
+  std::shared_ptr<const Environment> environment_for(const pb::RenderSettings& settings);
   std::string fetch_scene(const std::string& sha256);
 
   const FarmOptions& options_;
@@ -106,6 +110,9 @@ class Worker {
   std::unique_ptr<pb::WorkerService::Stub> worker_stub_;
   std::unique_ptr<pb::SceneService::Stub> scene_stub_;
   SceneCache scenes_;
+  // Loaded environment maps by (sha256, intensity, rotation); a handful at most.
+  std::mutex env_mutex_;
+  std::map<std::string, std::shared_ptr<const Environment>> environments_;
   std::mutex mutex_;
   std::condition_variable cv_;
 };
@@ -282,6 +289,13 @@ void Worker::run_task(Session& s, const pb::Task& task, const std::atomic<bool>&
   } catch (const std::exception& e) {
     return fail({std::string("scene: ") + e.what(), true});
   }
+  try {
+    settings.environment = environment_for(task.settings());
+  } catch (const TaskError& e) {
+    return fail(e);
+  } catch (const std::exception& e) {
+    return fail({std::string("environment: ") + e.what(), false});
+  }
   if (cancel) return;
   TileBuffer tile;
   if (!render_rect(*scene, settings, rect, task.sample_start(), task.sample_count(), &tile,
@@ -336,6 +350,43 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
   });
 }
 
+std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSettings& settings) {
+  const std::string& sha256 = settings.environment_sha256();
+  if (sha256.empty()) return nullptr;
+  if (!is_sha256_hex(sha256))
+    throw TaskError{"environment: invalid sha256 '" + sha256 + "'", false};
+  const float intensity =
+      settings.environment_intensity() != 0.0 ? float(settings.environment_intensity()) : 1.f;
+  const float rotation = float(settings.environment_rotation_deg());
+  if (!(intensity > 0.f) || !std::isfinite(intensity) || !std::isfinite(rotation))
+    throw TaskError{"environment: intensity must be > 0 and rotation finite", false};
+  const std::string key = sha256 + "/" + std::to_string(intensity) + "/" + std::to_string(rotation);
+  // One lock around lookup and load: environments change rarely, and loading one twice in
+  // parallel would only waste memory.
+  std::lock_guard<std::mutex> lock(env_mutex_);
+  auto it = environments_.find(key);
+  if (it != environments_.end()) return it->second;
+  std::string path = find_cached_scene(options_.cache_dir, sha256);
+  const bool cached = !path.empty();
+  if (!cached) path = fetch_scene(sha256);
+  std::shared_ptr<const Environment> env;
+  try {
+    env = Environment::load(path, intensity, rotation);
+  } catch (const std::runtime_error&) {
+    // A cached file that no longer matches its name was damaged on disk: fetch it again.
+    if (!cached || sha256_file_hex(path) == sha256) throw;
+    log_line("cached environment " + path + " is corrupt; fetching it again");
+    fs::remove(path);
+    path = fetch_scene(sha256);
+    env = Environment::load(path, intensity, rotation);
+  }
+  if (environments_.size() >= 4) environments_.erase(environments_.begin());
+  environments_[key] = env;
+  log_line("loaded environment " + sha256 + " (" + std::to_string(env->width()) + "x" +
+           std::to_string(env->height()) + ")");
+  return env;
+}
+
 std::string Worker::fetch_scene(const std::string& sha256) {
   std::error_code ec;
   fs::create_directories(options_.cache_dir, ec);
@@ -384,7 +435,12 @@ std::string Worker::fetch_scene(const std::string& sha256) {
   std::string ext;
   if (format == pb::SCENE_FORMAT_GLB) ext = ".glb";
   else if (format == pb::SCENE_FORMAT_GLTF) ext = ".gltf";
-  else ext = first_bytes == "glTF" ? ".glb" : ".gltf";  // unspecified: sniff the magic
+  else if (format == pb::SCENE_FORMAT_HDR) ext = ".hdr";
+  else if (format == pb::SCENE_FORMAT_EXR) ext = ".exr";
+  else if (first_bytes == "glTF") ext = ".glb";  // unspecified: sniff the magic
+  else if (first_bytes.compare(0, 2, "#?") == 0) ext = ".hdr";
+  else if (first_bytes == std::string("\x76\x2f\x31\x01", 4)) ext = ".exr";
+  else ext = ".gltf";
   const fs::path final_path = fs::path(options_.cache_dir) / (sha256 + ext);
   fs::rename(tmp, final_path, ec);  // atomic within one directory
   if (ec) discard("cannot move into the cache: " + ec.message(), true);

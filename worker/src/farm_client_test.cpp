@@ -7,6 +7,8 @@
 #include <chrono>
 #include <condition_variable>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <thread>
 
 #include "integrators.h"
@@ -14,6 +16,8 @@
 #include "renderfarm/v1/workers.grpc.pb.h"
 #include "sha256.h"
 #include "test_scenes.h"
+// Last: OpenImageIO defines byte-swap macros that break protobuf headers included after it.
+#include <OpenImageIO/imageio.h>
 
 namespace pb = renderfarm::v1;
 namespace fs = std::filesystem;
@@ -29,6 +33,9 @@ struct FakeFarm {
   bool stream_ended = false;
   std::string scene_bytes, scene_sha;
   int fetches = 0;
+  // Environment maps, stored and served like scenes.
+  std::string env_bytes, env_sha;
+  int env_fetches = 0;
 
   template <typename Pred>
   bool wait_for(Pred pred, int seconds = 60) {
@@ -81,23 +88,25 @@ class FakeSceneService final : public pb::SceneService::Service {
   explicit FakeSceneService(FakeFarm* farm) : farm_(farm) {}
   grpc::Status FetchScene(grpc::ServerContext*, const pb::FetchSceneRequest* request,
                           grpc::ServerWriter<pb::SceneChunk>* writer) override {
-    if (request->sha256() != farm_->scene_sha)
+    const bool env = !farm_->env_sha.empty() && request->sha256() == farm_->env_sha;
+    if (request->sha256() != farm_->scene_sha && !env)
       return grpc::Status(grpc::StatusCode::NOT_FOUND, "unknown scene");
     {
       std::lock_guard<std::mutex> lock(farm_->mutex);
-      ++farm_->fetches;
+      ++(env ? farm_->env_fetches : farm_->fetches);
     }
+    const std::string& bytes = env ? farm_->env_bytes : farm_->scene_bytes;
     const size_t chunk = 500;  // several chunks to exercise reassembly
-    for (size_t off = 0; off < farm_->scene_bytes.size(); off += chunk) {
+    for (size_t off = 0; off < bytes.size(); off += chunk) {
       pb::SceneChunk c;
       if (off == 0) {
-        c.mutable_info()->set_sha256(farm_->scene_sha);
-        c.mutable_info()->set_size_bytes(farm_->scene_bytes.size());
-        c.mutable_info()->set_format(pb::SCENE_FORMAT_GLTF);
-        c.mutable_info()->set_filename("small.gltf");
+        c.mutable_info()->set_sha256(request->sha256());
+        c.mutable_info()->set_size_bytes(bytes.size());
+        c.mutable_info()->set_format(env ? pb::SCENE_FORMAT_HDR : pb::SCENE_FORMAT_GLTF);
+        c.mutable_info()->set_filename(env ? "sky.hdr" : "small.gltf");
       }
       c.set_offset(off);
-      c.set_data(farm_->scene_bytes.substr(off, chunk));
+      c.set_data(bytes.substr(off, chunk));
       writer->Write(c);
     }
     return grpc::Status::OK;
@@ -135,6 +144,20 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   FakeFarm farm;
   farm.scene_bytes = testing::small_gltf_json();
   farm.scene_sha = sha256_hex(farm.scene_bytes);
+  // A small HDR environment map (Radiance RGBE), written with OpenImageIO.
+  const std::string env_path = ::testing::TempDir() + "/farm_env_test.hdr";
+  {
+    auto out = OIIO::ImageOutput::create(env_path);
+    ASSERT_TRUE(out);
+    OIIO::ImageSpec spec(8, 4, 3, OIIO::TypeDesc::FLOAT);
+    std::vector<float> px(8 * 4 * 3);
+    for (size_t i = 0; i < px.size(); ++i) px[i] = 0.1f + 0.05f * float(i % 7);
+    ASSERT_TRUE(out->open(env_path, spec) && out->write_image(OIIO::TypeDesc::FLOAT, px.data()) &&
+                out->close());
+    std::ifstream in(env_path, std::ios::binary);
+    farm.env_bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    farm.env_sha = sha256_hex(farm.env_bytes);
+  }
   FakeWorkerService worker_service(&farm);
   FakeSceneService scene_service(&farm);
   grpc::ServerBuilder builder;
@@ -199,6 +222,21 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   // After the cancel, a later task still gets rendered.
   assign(make_task("after", farm.scene_sha, 4, "independent"));
   ASSERT_TRUE(farm.wait_for([&] { return has("after", true); }));
+  // Two tasks with the environment map, a thin lens and the new samplers: the map is
+  // fetched once (cached by hash as <sha>.hdr) and the results equal local renders.
+  auto env_task = [&](const std::string& id, const std::string& sampler) {
+    pb::Task t = make_task(id, farm.scene_sha, 4, sampler);
+    t.mutable_settings()->set_environment_sha256(farm.env_sha);
+    t.mutable_settings()->set_environment_intensity(2.0);
+    t.mutable_settings()->set_environment_rotation_deg(30.0);
+    t.mutable_settings()->set_aperture_radius(0.05);
+    t.mutable_settings()->set_focus_distance(5.0);
+    t.mutable_settings()->set_integrator("direct");
+    return t;
+  };
+  assign(env_task("env1", "halton"));
+  assign(env_task("env2", "stratified"));
+  ASSERT_TRUE(farm.wait_for([&] { return has("env1", true) && has("env2", true); }));
 
   stop = true;
   client.join();
@@ -210,6 +248,28 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   EXPECT_FALSE(has("long", true)) << "a cancelled task must send nothing";
   EXPECT_EQ(farm.fetches, 1) << "the scene is fetched once and then cached";
   EXPECT_TRUE(fs::exists(cache / (farm.scene_sha + ".gltf")));
+  EXPECT_EQ(farm.env_fetches, 1) << "the environment is fetched once and then cached";
+  EXPECT_TRUE(fs::exists(cache / (farm.env_sha + ".hdr")));
+  for (const auto& m : farm.received) {
+    if (!m.has_result() || m.result().task_id() != "env1") continue;
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr));
+    RenderSettings settings;
+    settings.width = 16;
+    settings.height = 12;
+    settings.seed = 77;
+    settings.max_depth = 4;
+    settings.sampler = SamplerType::Halton;
+    settings.integrator = IntegratorType::Direct;
+    settings.aperture_radius = 0.05f;
+    settings.focus_distance = 5.f;
+    settings.environment = Environment::load(env_path, 2.f, 30.f);
+    TileBuffer local;
+    ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 4, &local));
+    EXPECT_EQ(unpack_f64_le(m.result().rgb_sum()), local.rgb_sum);
+    double total = 0.0;
+    for (double v : local.rgb_sum) total += v;
+    EXPECT_GT(total, 0.0);
+  }
   for (const auto& m : farm.received) {
     if (m.has_failed()) {
       EXPECT_EQ(m.failed().task_id(), "bad");

@@ -24,6 +24,8 @@ struct TileBuffer {
   std::vector<double> luminance_m2;  // 1 per pixel, Welford M2 of Y over the batch
   std::vector<float> albedo_sum;     // 3 per pixel, first-hit base color (0 on miss)
   std::vector<float> normal_sum;     // 3 per pixel, first-hit shading normal (0 on miss)
+  std::vector<float> depth_sum;      // 1 per pixel, first-hit distance (0 on miss); not part
+                                     // of the farm's TileResult (standalone EXR only)
   uint64_t nonfinite_samples = 0;    // samples whose radiance was NaN/Inf, recorded as 0
   uint64_t rays = 0;                 // closest-hit plus shadow rays
 
@@ -36,16 +38,17 @@ std::string pack_f32_le(const std::vector<float>& values);
 std::vector<double> unpack_f64_le(const std::string& bytes);
 std::vector<float> unpack_f32_le(const std::string& bytes);
 
-// A full image of per-pixel means: radiance, albedo and normal (3 floats each per pixel).
+// A full image of per-pixel means: radiance, albedo and normal (3 floats each per pixel) and
+// depth (1 float per pixel: mean first-hit distance, misses counting as 0).
 struct Image {
   uint32_t width = 0, height = 0;
-  std::vector<float> rgb, albedo, normal;
+  std::vector<float> rgb, albedo, normal, depth;
   Image(uint32_t w, uint32_t h);
   // Stores the tile's means (sums / sample_count) at its rect.
   void set_from_tile(const TileBuffer& tile);
 };
 
-// Writes R, G, B, albedo.{R,G,B}, normal.{X,Y,Z} as 32-bit float channels. Throws
+// Writes R, G, B, albedo.{R,G,B}, normal.{X,Y,Z}, depth as 32-bit float channels. Throws
 // std::runtime_error naming the file on failure.
 void write_exr(const std::string& path, const Image& image);
 

@@ -3,8 +3,10 @@
 // crash.
 #include <tiny_gltf.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <optional>
 #include <fstream>
 #include <functional>
 #include <set>
@@ -14,11 +16,27 @@
 namespace rf {
 namespace {
 
-// Textures are not supported yet; skip decoding images entirely (also avoids failing on
-// image formats we could not decode anyway).
-bool skip_image(tinygltf::Image*, const int, std::string*, std::string*, int, int,
-                const unsigned char*, int, void*) {
+// Images are decoded by OpenImageIO later (TextureSystem), not by tinygltf: keep the encoded
+// bytes tinygltf hands us (from a data: URI, a file next to the .gltf or a GLB buffer view).
+bool keep_encoded_image(tinygltf::Image* image, const int, std::string*, std::string*, int,
+                        int, const unsigned char* bytes, int size, void*) {
+  if (bytes && size > 0) image->image.assign(bytes, bytes + size);
+  image->as_is = true;
   return true;
+}
+
+// Extensions the renderer implements.
+const std::set<std::string>& supported_extensions() {
+  static const std::set<std::string> s = {
+      "KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_ior",
+      "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual"};
+  return s;
+}
+
+float number_or(const tinygltf::Value& obj, const char* key, float fallback) {
+  if (!obj.IsObject() || !obj.Has(key)) return fallback;
+  const tinygltf::Value& v = obj.Get(key);
+  return v.IsNumber() ? float(v.GetNumberAsDouble()) : fallback;
 }
 
 class Loader {
@@ -29,11 +47,18 @@ class Loader {
   SceneDescription run() {
     SceneDescription desc;
     desc.source = source_;
-    static const std::set<std::string> supported = {"KHR_materials_emissive_strength"};
     for (const std::string& ext : model_.extensionsRequired)
-      if (!supported.count(ext))
+      if (!supported_extensions().count(ext))
         warn("required extension '" + ext + "' is not supported; loading without it");
+    for (const std::string& ext : model_.extensionsUsed)
+      if (!supported_extensions().count(ext) &&
+          std::find(model_.extensionsRequired.begin(), model_.extensionsRequired.end(), ext) ==
+              model_.extensionsRequired.end())
+        warn("extension '" + ext + "' is not supported; ignoring it");
+    load_textures(&desc);
     load_materials(&desc);
+    load_lights();
+    count_mesh_uses();
 
     std::vector<int> roots;
     if (!model_.scenes.empty()) {
@@ -54,6 +79,122 @@ class Loader {
     return desc;
   }
 
+  // glTF textures -> TextureSource list (one per glTF texture, same indices).
+  void load_textures(SceneDescription* desc) {
+    auto wrap = [](int mode) {
+      if (mode == TINYGLTF_TEXTURE_WRAP_CLAMP_TO_EDGE) return TextureWrap::Clamp;
+      if (mode == TINYGLTF_TEXTURE_WRAP_MIRRORED_REPEAT) return TextureWrap::Mirror;
+      return TextureWrap::Repeat;
+    };
+    for (size_t i = 0; i < model_.textures.size(); ++i) {
+      const tinygltf::Texture& gt = model_.textures[i];
+      TextureSource src;
+      src.name = "texture " + std::to_string(i) + (gt.name.empty() ? "" : " ('" + gt.name + "')");
+      for (const auto& ext : gt.extensions)
+        warn(src.name + ": extension '" + ext.first + "' is not supported; using 'source'");
+      if (gt.sampler >= 0 && gt.sampler < int(model_.samplers.size())) {
+        src.wrap_s = wrap(model_.samplers[size_t(gt.sampler)].wrapS);
+        src.wrap_t = wrap(model_.samplers[size_t(gt.sampler)].wrapT);
+      }
+      if (gt.source < 0 || gt.source >= int(model_.images.size())) {
+        warn(src.name + ": missing image; texture ignored");
+        src.path.clear();
+      } else {
+        const tinygltf::Image& img = model_.images[size_t(gt.source)];
+        src.bytes = img.image;
+        src.mime_type = img.mimeType;
+        if (src.bytes.empty()) {
+          warn(src.name + ": image " + std::to_string(gt.source) +
+               " could not be loaded (uri '" + img.uri + "'); texture ignored");
+        }
+      }
+      desc->textures.push_back(std::move(src));
+    }
+  }
+
+  // A material's texture slot, with KHR_texture_transform.
+  TextureRef texture_ref(int index, int texcoord, const tinygltf::ExtensionMap& extensions,
+                         const std::string& where) {
+    TextureRef ref;
+    if (index < 0) return ref;
+    if (index >= int(model_.textures.size()))
+      fail(where + ": refers to missing texture " + std::to_string(index));
+    ref.texture = index;
+    ref.texcoord = uint32_t(std::max(0, texcoord));
+    auto it = extensions.find("KHR_texture_transform");
+    if (it != extensions.end()) {
+      const tinygltf::Value& t = it->second;
+      if (t.Has("offset") && t.Get("offset").IsArray() && t.Get("offset").ArrayLen() == 2) {
+        ref.offset[0] = float(t.Get("offset").Get(0).GetNumberAsDouble());
+        ref.offset[1] = float(t.Get("offset").Get(1).GetNumberAsDouble());
+      }
+      if (t.Has("scale") && t.Get("scale").IsArray() && t.Get("scale").ArrayLen() == 2) {
+        ref.scale[0] = float(t.Get("scale").Get(0).GetNumberAsDouble());
+        ref.scale[1] = float(t.Get("scale").Get(1).GetNumberAsDouble());
+      }
+      ref.rotation = number_or(t, "rotation", 0.f);
+      if (t.Has("texCoord") && t.Get("texCoord").IsNumber())
+        ref.texcoord = uint32_t(std::max(0, t.Get("texCoord").GetNumberAsInt()));
+    }
+    if (ref.texcoord > 1) {
+      warn(where + ": TEXCOORD_" + std::to_string(ref.texcoord) +
+           " is not supported (only 0 and 1); texture ignored");
+      ref.texture = -1;
+    }
+    return ref;
+  }
+
+  void load_lights() {
+    auto it = model_.extensions.find("KHR_lights_punctual");
+    if (it == model_.extensions.end()) return;
+    const tinygltf::Value& root = it->second;
+    if (!root.Has("lights") || !root.Get("lights").IsArray()) return;
+    const tinygltf::Value& list = root.Get("lights");
+    for (size_t i = 0; i < list.ArrayLen(); ++i) {
+      const tinygltf::Value& l = list.Get(int(i));
+      PunctualLight light;
+      const std::string where = "KHR_lights_punctual light " + std::to_string(i);
+      const std::string type = l.Has("type") && l.Get("type").IsString()
+                                   ? l.Get("type").Get<std::string>()
+                                   : std::string();
+      if (type == "point") light.type = PunctualType::Point;
+      else if (type == "spot") light.type = PunctualType::Spot;
+      else if (type == "directional") light.type = PunctualType::Directional;
+      else {
+        warn(where + ": unknown type '" + type + "'; light ignored");
+        lights_.push_back(std::nullopt);
+        continue;
+      }
+      Vec3 color(1.f, 1.f, 1.f);
+      if (l.Has("color") && l.Get("color").IsArray() && l.Get("color").ArrayLen() == 3)
+        for (int c = 0; c < 3; ++c)
+          color[c] = float(l.Get("color").Get(c).GetNumberAsDouble());
+      const float intensity = number_or(l, "intensity", 1.f);
+      light.intensity = color * intensity;
+      if (!is_finite(light.intensity) || light.intensity.x < 0.f || light.intensity.y < 0.f ||
+          light.intensity.z < 0.f)
+        fail(where + ": color x intensity must be finite and >= 0");
+      if (l.Has("range")) warn(where + ": 'range' is ignored (physically based falloff)");
+      if (light.type == PunctualType::Spot) {
+        const tinygltf::Value spot = l.Has("spot") ? l.Get("spot") : tinygltf::Value();
+        const float inner = number_or(spot, "innerConeAngle", 0.f);
+        const float outer = number_or(spot, "outerConeAngle", kPi / 4.f);
+        if (!(inner >= 0.f && inner < outer && outer <= kPi / 2.f))
+          fail(where + ": spot cone angles must satisfy 0 <= inner < outer <= pi/2");
+        light.cos_inner = std::cos(inner);
+        light.cos_outer = std::cos(outer);
+      }
+      lights_.push_back(light);
+    }
+  }
+
+  void count_mesh_uses() {
+    mesh_uses_.assign(model_.meshes.size(), 0);
+    for (const auto& node : model_.nodes)
+      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size())) ++mesh_uses_[size_t(node.mesh)];
+    mesh_slot_.assign(model_.meshes.size(), -1);
+  }
+
  private:
   [[noreturn]] void fail(const std::string& what) const { throw SceneError(source_ + ": " + what); }
   void warn(const std::string& what) {
@@ -61,12 +202,69 @@ class Loader {
   }
 
   void load_materials(SceneDescription* desc) {
-    bool warned_textures = false;
     for (size_t i = 0; i < model_.materials.size(); ++i) {
       const tinygltf::Material& gm = model_.materials[i];
       const std::string where = "material " + std::to_string(i) + " ('" + gm.name + "')";
       Material m;
       m.name = gm.name;
+      // glTF defaults: metallic = roughness = 1, a dielectric specular layer of ior 1.5.
+      m.metallic = float(gm.pbrMetallicRoughness.metallicFactor);
+      m.roughness = float(gm.pbrMetallicRoughness.roughnessFactor);
+      m.specular = 1.f;
+      if (!(m.metallic >= 0.f && m.metallic <= 1.f))
+        fail(where + ": pbrMetallicRoughness.metallicFactor must be in [0, 1]");
+      if (!(m.roughness >= 0.f && m.roughness <= 1.f))
+        fail(where + ": pbrMetallicRoughness.roughnessFactor must be in [0, 1]");
+      for (const auto& e : gm.extensions)
+        if (!supported_extensions().count(e.first) && warned_material_ext_.insert(e.first).second)
+          warn(where + ": material extension '" + e.first + "' is not supported; ignoring it");
+      auto tr = gm.extensions.find("KHR_materials_transmission");
+      if (tr != gm.extensions.end()) {
+        m.transmission = number_or(tr->second, "transmissionFactor", 0.f);
+        if (tr->second.Has("transmissionTexture"))
+          warn(where + ": KHR_materials_transmission.transmissionTexture is not supported; "
+                       "using transmissionFactor");
+        if (m.transmission > 0.f && m.roughness > 0.f && warned_rough_glass_.insert(i).second)
+          warn(where + ": transmission is rendered as smooth glass (roughness ignored for it)");
+      }
+      if (!(m.transmission >= 0.f && m.transmission <= 1.f))
+        fail(where + ": KHR_materials_transmission.transmissionFactor must be in [0, 1]");
+      auto io = gm.extensions.find("KHR_materials_ior");
+      if (io != gm.extensions.end()) m.ior = number_or(io->second, "ior", 1.5f);
+      if (!(m.ior >= 1.f && m.ior < 10.f)) {
+        warn(where + ": KHR_materials_ior.ior " + std::to_string(m.ior) +
+             " outside [1, 10) is not supported; using 1.5");
+        m.ior = 1.5f;
+      }
+      auto sp = gm.extensions.find("KHR_materials_specular");
+      if (sp != gm.extensions.end()) {
+        m.specular = std::min(1.f, std::max(0.f, number_or(sp->second, "specularFactor", 1.f)));
+        if (sp->second.Has("specularColorFactor") || sp->second.Has("specularTexture") ||
+            sp->second.Has("specularColorTexture"))
+          warn(where + ": KHR_materials_specular color and textures are not supported; "
+                       "using specularFactor");
+      }
+      const auto& pmr = gm.pbrMetallicRoughness;
+      m.base_color_tex = texture_ref(pmr.baseColorTexture.index, pmr.baseColorTexture.texCoord,
+                                     pmr.baseColorTexture.extensions, where + " baseColorTexture");
+      m.metallic_roughness_tex =
+          texture_ref(pmr.metallicRoughnessTexture.index, pmr.metallicRoughnessTexture.texCoord,
+                      pmr.metallicRoughnessTexture.extensions, where + " metallicRoughnessTexture");
+      m.normal_tex = texture_ref(gm.normalTexture.index, gm.normalTexture.texCoord,
+                                 gm.normalTexture.extensions, where + " normalTexture");
+      m.normal_scale = float(gm.normalTexture.scale);
+      m.emissive_tex = texture_ref(gm.emissiveTexture.index, gm.emissiveTexture.texCoord,
+                                   gm.emissiveTexture.extensions, where + " emissiveTexture");
+      if (gm.occlusionTexture.index >= 0 && !warned_occlusion_) {
+        warn(where + " (and possibly others): occlusionTexture is ignored (a path tracer "
+                     "computes occlusion)");
+        warned_occlusion_ = true;
+      }
+      if (gm.alphaMode != "OPAQUE" && !gm.alphaMode.empty() && !warned_alpha_) {
+        warn(where + " (and possibly others): alphaMode '" + gm.alphaMode +
+             "' is not supported; rendering opaque");
+        warned_alpha_ = true;
+      }
       const auto& base = gm.pbrMetallicRoughness.baseColorFactor;
       if (base.size() >= 3)
         m.albedo = Vec3(float(base[0]), float(base[1]), float(base[2]));
@@ -88,18 +286,14 @@ class Loader {
       for (int k = 0; k < 3; ++k)
         if (!(m.emission[k] >= 0.f) || !std::isfinite(m.emission[k]))
           fail(where + ": emissiveFactor x emissiveStrength must be finite and >= 0");
-      const bool textured = gm.pbrMetallicRoughness.baseColorTexture.index >= 0 ||
-                            gm.emissiveTexture.index >= 0 || gm.normalTexture.index >= 0 ||
-                            gm.pbrMetallicRoughness.metallicRoughnessTexture.index >= 0;
-      if (textured && !warned_textures) {
-        warn(where + " (and possibly others) uses textures, which are not supported yet; "
-                     "using the constant factors");
-        warned_textures = true;
-      }
       desc->materials.push_back(m);
     }
     default_material_ = uint32_t(desc->materials.size());
-    desc->materials.push_back(Material{"default", {1.f, 1.f, 1.f}, {0.f, 0.f, 0.f}});
+    // Primitives without a material: white Lambertian (the glTF default material would be a
+    // white metal, which surprises more than it helps).
+    Material def;
+    def.name = "default";
+    desc->materials.push_back(def);
   }
 
   Mat4 local_transform(const tinygltf::Node& node, const std::string& where) const {
@@ -148,10 +342,37 @@ class Loader {
     const std::string where = "node " + std::to_string(index) + " ('" + node.name + "')";
     const Mat4 world = parent * local_transform(node, where);
     if (node.camera >= 0 && !desc->camera) take_camera(node, world, where, desc);
+    auto light_ext = node.extensions.find("KHR_lights_punctual");
+    if (light_ext != node.extensions.end() && light_ext->second.Has("light")) {
+      const int li = light_ext->second.Get("light").GetNumberAsInt();
+      if (li < 0 || li >= int(lights_.size()))
+        fail(where + ": KHR_lights_punctual.light refers to missing light " + std::to_string(li));
+      if (lights_[size_t(li)]) {
+        PunctualLight light = *lights_[size_t(li)];
+        light.position = world.transform_point({0.f, 0.f, 0.f});
+        const Vec3 dir = world.transform_vector({0.f, 0.f, -1.f});
+        if (!(length(dir) > 0.f)) fail(where + ": light transform is singular");
+        light.direction = normalize(dir);
+        desc->punctual_lights.push_back(light);
+      }
+    }
     if (node.mesh >= 0) {
       if (node.mesh >= int(model_.meshes.size()))
         fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
-      add_mesh(size_t(node.mesh), world, desc);
+      if (mesh_uses_[size_t(node.mesh)] > 1) {
+        // Shared mesh: built once in its own space, placed by an instance.
+        int& slot = mesh_slot_[size_t(node.mesh)];
+        if (slot < 0) {
+          Mesh mesh;
+          mesh.name = model_.meshes[size_t(node.mesh)].name;
+          add_mesh(size_t(node.mesh), Mat4::identity(), &mesh.triangles);
+          slot = int(desc->meshes.size());
+          desc->meshes.push_back(std::move(mesh));
+        }
+        desc->instances.push_back({uint32_t(slot), world});
+      } else {
+        add_mesh(size_t(node.mesh), world, &desc->triangles);
+      }
     }
     for (int child : node.children) visit(child, world, desc, depth + 1);
   }
@@ -249,7 +470,7 @@ class Loader {
     return v;
   }
 
-  void add_mesh(size_t mesh_index, const Mat4& world, SceneDescription* desc) {
+  void add_mesh(size_t mesh_index, const Mat4& world, std::vector<Triangle>* out) {
     const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
     const bool mirror = world.det3() < 0.0;
     for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
@@ -273,6 +494,20 @@ class Loader {
                              {TINYGLTF_COMPONENT_TYPE_FLOAT}, where + " NORMAL");
         if (nrm.count != pos.count) fail(where + ": NORMAL and POSITION counts differ");
         has_normals = true;
+      }
+      View uvs[2];
+      bool has_uv[2] = {false, false};
+      for (int set = 0; set < 2; ++set) {
+        const auto uv_it = prim.attributes.find("TEXCOORD_" + std::to_string(set));
+        if (uv_it == prim.attributes.end()) continue;
+        uvs[set] = check_accessor(uv_it->second, TINYGLTF_TYPE_VEC2,
+                                  {TINYGLTF_COMPONENT_TYPE_FLOAT,
+                                   TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE,
+                                   TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT},
+                                  where + " TEXCOORD_" + std::to_string(set));
+        if (uvs[set].count != pos.count)
+          fail(where + ": TEXCOORD_" + std::to_string(set) + " and POSITION counts differ");
+        has_uv[set] = true;
       }
       uint32_t material = default_material_;
       if (prim.material >= 0) {
@@ -306,11 +541,15 @@ class Loader {
         Triangle tri;
         tri.material = material;
         tri.has_normals = has_normals;
+        tri.has_uv[0] = has_uv[0];
+        tri.has_uv[1] = has_uv[1];
         for (int k = 0; k < 3; ++k) {
           // A mirroring transform flips the winding (glTF spec, "Transformations"): swap two
           // vertices so that counter-clockwise stays the front face in world space.
           const int src = mirror ? (k == 0 ? 0 : 3 - k) : k;
           const size_t vi = indices[t + size_t(src)];
+          for (int set = 0; set < 2; ++set)
+            if (has_uv[set]) tri.uv[set][k] = uv_at(uvs[set], vi);
           tri.p[k] = world.transform_point(
               {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))});
           if (has_normals) {
@@ -321,11 +560,25 @@ class Loader {
             if (!(len > 0.f) || !std::isfinite(len)) tri.has_normals = false;
           }
         }
-        desc->triangles.push_back(tri);  // degenerate ones are dropped by Scene
+        out->push_back(tri);  // degenerate ones are dropped by Scene
       }
     }
   }
 
+  // Texture coordinates; normalized integer components map to [0, 1] (glTF 3.7.2.1).
+  static Point2 uv_at(const View& v, size_t i) {
+    double scale = 1.0;
+    if (v.component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE) scale = 1.0 / 255.0;
+    if (v.component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT) scale = 1.0 / 65535.0;
+    return {float(v.get(i, 0) * scale), float(v.get(i, 1) * scale)};
+  }
+
+  std::vector<std::optional<PunctualLight>> lights_;
+  std::vector<int> mesh_uses_;
+  std::vector<int> mesh_slot_;
+  std::set<std::string> warned_material_ext_;
+  std::set<size_t> warned_rough_glass_;
+  bool warned_occlusion_ = false, warned_alpha_ = false;
   const tinygltf::Model& model_;
   std::string source_;
   std::vector<std::string>* warnings_;
@@ -350,7 +603,7 @@ SceneDescription load_gltf(const std::string& path, std::vector<std::string>* wa
   const bool binary = in.gcount() == 4 && std::memcmp(magic, "glTF", 4) == 0;
   in.close();
   tinygltf::TinyGLTF gltf;
-  gltf.SetImageLoader(skip_image, nullptr);
+  gltf.SetImageLoader(keep_encoded_image, nullptr);
   tinygltf::Model model;
   std::string err, warn;
   const bool ok = binary ? gltf.LoadBinaryFromFile(&model, &err, &warn, path)
@@ -362,7 +615,7 @@ SceneDescription load_gltf_from_string(const std::string& json, const std::strin
                                        const std::string& name,
                                        std::vector<std::string>* warnings) {
   tinygltf::TinyGLTF gltf;
-  gltf.SetImageLoader(skip_image, nullptr);
+  gltf.SetImageLoader(keep_encoded_image, nullptr);
   tinygltf::Model model;
   std::string err, warn;
   const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, json.c_str(),

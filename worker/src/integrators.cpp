@@ -3,6 +3,7 @@
 #include <cmath>
 #include <limits>
 
+#include "estimators.h"
 #include "materials.h"
 #include "sampling.h"
 
@@ -13,6 +14,10 @@ bool parse_integrator_type(const std::string& name, IntegratorType* out) {
     *out = IntegratorType::Path;
     return true;
   }
+  if (name == "direct") {
+    *out = IntegratorType::Direct;
+    return true;
+  }
   if (name == "ao") {
     *out = IntegratorType::AmbientOcclusion;
     return true;
@@ -21,7 +26,15 @@ bool parse_integrator_type(const std::string& name, IntegratorType* out) {
 }
 
 const char* integrator_type_name(IntegratorType t) {
-  return t == IntegratorType::Path ? "path" : "ao";
+  switch (t) {
+    case IntegratorType::Path:
+      return "path";
+    case IntegratorType::Direct:
+      return "direct";
+    case IntegratorType::AmbientOcclusion:
+      return "ao";
+  }
+  return "?";
 }
 
 namespace {
@@ -32,50 +45,222 @@ constexpr float kInfinity = std::numeric_limits<float>::infinity();
 // so the offset along the geometric normal scales with it (with a floor near the origin).
 inline float ray_epsilon(Vec3 p) { return 3e-5f * std::max(max_abs_component(p), 1e-2f); }
 
-struct ShadingPoint {
-  Vec3 ng;  // geometric normal on the side of wo
-  Vec3 ns;  // shading normal on the same side as ng
-  Vec3 origin;  // hit point offset along ng, for rays leaving on the wo side
+// Light selection between the scene's lights and the environment, by power (the scene's own
+// alias table does the rest): P_env = pi^2 R^2 mean luminance, the power an environment of
+// that mean radiance sends through a disk of the scene's bounding radius R.
+struct LightContext {
+  const Environment* env = nullptr;
+  float p_env = 0.f;  // probability of choosing the environment
+  bool any = false;
 };
 
-ShadingPoint make_shading_point(const Hit& hit, Vec3 wo) {
+LightContext light_context(const Scene& scene, const RenderSettings& settings) {
+  LightContext c;
+  c.env = settings.environment.get();
+  const double scene_power = scene.lights().empty() ? 0.0 : scene.lights().total_power();
+  double env_power = 0.0;
+  if (c.env) {
+    const double r = 0.5 * double(scene.diagonal());
+    env_power = double(kPi) * double(kPi) * r * r * double(c.env->mean_luminance());
+  }
+  if (scene_power + env_power > 0.0) {
+    c.any = true;
+    c.p_env = float(env_power / (scene_power + env_power));
+    if (scene_power == 0.0) c.p_env = 1.f;
+    if (env_power == 0.0) c.p_env = 0.f;
+  }
+  return c;
+}
+
+// A surface point ready for shading: material parameters after textures, normals oriented
+// towards wo, and the ray origins for leaving on either side.
+struct ShadingPoint {
+  BsdfParams params;
+  Vec3 albedo;  // base color, the albedo AOV
+  Vec3 ng;      // geometric normal on the side of wo
+  Vec3 ns;      // shading normal (normal-mapped) on the same side as ng
+  Vec3 p;
+  float eps = 0.f;
+  Vec3 above() const { return p + ng * eps; }
+  Vec3 below() const { return p - ng * eps; }
+};
+
+Point2 texcoord(const Hit& hit, const TextureRef& ref) {
+  return ref.apply(hit.uv[std::min<uint32_t>(1u, ref.texcoord)]);
+}
+
+ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
+  const Material& mat = scene.materials()[hit.material];
+  const TextureSet& tex = scene.textures();
   ShadingPoint sp;
-  sp.ng = dot(hit.ng, wo) >= 0.f ? hit.ng : -hit.ng;
-  sp.ns = dot(hit.ns, sp.ng) >= 0.f ? hit.ns : -hit.ns;
-  sp.origin = hit.p + sp.ng * ray_epsilon(hit.p);
+  BsdfParams& bp = sp.params;
+  bp.base = mat.albedo;
+  float metallic = mat.metallic, roughness = mat.roughness;
+  float c[4];
+  if (mat.base_color_tex.valid() &&
+      tex.lookup(mat.base_color_tex.texture, texcoord(hit, mat.base_color_tex), 3, c))
+    bp.base = bp.base * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
+  if (mat.metallic_roughness_tex.valid() &&
+      tex.lookup(mat.metallic_roughness_tex.texture, texcoord(hit, mat.metallic_roughness_tex),
+                 3, c)) {
+    // glTF: roughness in G, metallic in B, both linear.
+    roughness *= c[1];
+    metallic *= c[2];
+  }
+  bp.metallic = std::min(1.f, std::max(0.f, metallic));
+  const float r = std::min(1.f, std::max(0.f, roughness));
+  bp.alpha = std::max(kMinAlpha, r * r);
+  bp.specular = mat.specular;
+  bp.ior = mat.ior;
+  bp.transmission = mat.transmission;
+  sp.albedo = bp.base;
+
+  Vec3 ns = hit.ns;
+  if (mat.normal_tex.valid() && length(hit.dpdu) > 0.f &&
+      tex.lookup(mat.normal_tex.texture, texcoord(hit, mat.normal_tex), 3, c)) {
+    // Tangent-space normal map (glTF 3.9.3): n = normalize((2c - 1) * (scale, scale, 1)) in
+    // the frame (T, B, N) with T the uv tangent made orthogonal to N.
+    const Vec3 tn((2.f * c[0] - 1.f) * mat.normal_scale, (2.f * c[1] - 1.f) * mat.normal_scale,
+                  2.f * c[2] - 1.f);
+    Vec3 t = hit.dpdu - ns * dot(ns, hit.dpdu);
+    const float tl = length(t);
+    if (tl > 0.f && std::isfinite(tl)) {
+      t = t / tl;
+      const Vec3 b = cross(ns, t) * hit.tangent_sign;
+      const Vec3 n = t * tn.x + b * tn.y + ns * tn.z;
+      const float nl = length(n);
+      if (nl > 0.f && std::isfinite(nl)) ns = n / nl;
+    }
+  }
+  bp.front = dot(hit.ng, wo) >= 0.f;
+  sp.ng = bp.front ? hit.ng : -hit.ng;
+  sp.ns = dot(ns, sp.ng) >= 0.f ? ns : -ns;
+  // A shading normal that puts wo below its hemisphere cannot be used (the BSDF would see
+  // wo.z <= 0 and the path would end black): fall back to the geometric normal.
+  if (dot(sp.ns, wo) <= 1e-4f) sp.ns = sp.ng;
+  sp.p = hit.p;
+  sp.eps = ray_epsilon(hit.p);
   return sp;
 }
 
-SampleResult trace_path(const Scene& scene, const RenderSettings& settings,
-                        const SampleStream& s, Vec3 o, Vec3 d) {
+// Next-event estimation: one light (or the environment) chosen by power, its contribution
+// f cos L / pdf, MIS-weighted against BSDF sampling with the power heuristic unless the light
+// is a delta light.
+Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
+                  const Frame& frame, Vec3 wo_local, const SampleStream& s, uint32_t bounce,
+                  uint32_t* rays) {
+  float u_sel = s.get(dim::bounce(bounce, dim::kLightSelect));
+  const Point2 u{s.get(dim::bounce(bounce, dim::kLightU)),
+                 s.get(dim::bounce(bounce, dim::kLightV))};
+  const Vec3 origin = sp.above();
+  if (lc.env && u_sel < lc.p_env) {
+    float pdf = 0.f;
+    const Vec3 wi = lc.env->sample(u, &pdf);
+    pdf *= lc.p_env;
+    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return {};
+    float bsdf_pdf_wi = 0.f;
+    const Vec3 f = bsdf_eval_pdf(sp.params, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
+    if (is_zero(f)) return {};
+    ++*rays;
+    if (scene.occluded(origin, wi, kInfinity)) return {};
+    const float w = power_heuristic(pdf, bsdf_pdf_wi);
+    return f * lc.env->eval(wi) * (w / pdf);
+  }
+  const LightSet& lights = scene.lights();
+  if (lights.empty()) return {};
+  // Reuse the selection variate: rescale the part above p_env to [0, 1).
+  const float p_scene = 1.f - lc.p_env;
+  u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
+  const LightSample ls = lights.sample(u_sel, u.x, u.y);
+  if (ls.punctual >= 0) {
+    const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
+    const float pdf = ls.pdf_area * p_scene;  // selection probability only: a delta light
+    Vec3 wi, Li;
+    float tmax;
+    if (light.type == PunctualType::Directional) {
+      wi = -light.direction;
+      Li = light.intensity;  // irradiance normal to the direction
+      tmax = kInfinity;
+    } else {
+      const Vec3 to = light.position - origin;
+      const float d2 = dot(to, to);
+      if (!(d2 > 0.f)) return {};
+      const float dist = std::sqrt(d2);
+      wi = to / dist;
+      Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
+      tmax = dist;
+    }
+    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return {};
+    const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
+    if (is_zero(f)) return {};
+    ++*rays;
+    if (scene.occluded(origin, wi, tmax)) return {};
+    return f * Li * (1.f / pdf);
+  }
+  const Vec3 to_light = ls.p - origin;
+  const float dist2 = dot(to_light, to_light);
+  const float dist = std::sqrt(dist2);
+  if (!(dist > 0.f)) return {};
+  const Vec3 wi = to_light / dist;
+  const float cos_light = dot(ls.n, -wi);
+  if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return {};
+  float bsdf_pdf_wi = 0.f;
+  const Vec3 f = bsdf_eval_pdf(sp.params, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
+  if (is_zero(f)) return {};
+  const float pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
+  // Stop short of the light's own surface so it does not occlude itself.
+  const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
+  if (!(tmax > 0.f)) return {};
+  ++*rays;
+  if (scene.occluded(origin, wi, tmax)) return {};
+  const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
+  const Vec3 Le = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
+  return f * Le * (w / pdf_light);
+}
+
+SampleResult trace_path(const Scene& scene, const LightContext& lc, const SampleStream& s,
+                        Vec3 o, Vec3 d, uint32_t max_depth) {
   SampleResult result;
   Vec3 radiance(0.f, 0.f, 0.f);
-  Vec3 beta(1.f, 1.f, 1.f);    // path throughput: product of f cos / pdf so far
-  float prev_bsdf_pdf = 0.f;   // solid-angle pdf of the direction d (bounce > 0)
+  Vec3 beta(1.f, 1.f, 1.f);   // path throughput: product of f cos / pdf so far
+  float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
+  bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
+                              // have produced this direction, so emission gets weight 1
   const LightSet& lights = scene.lights();
   for (uint32_t bounce = 0;; ++bounce) {
     Hit hit;
     ++result.rays;
-    if (!scene.intersect(o, d, kInfinity, &hit)) break;  // no environment yet: black
-    const Material& mat = scene.material(hit.prim);
+    if (!scene.intersect(o, d, kInfinity, &hit)) {
+      if (lc.env) {
+        const Vec3 L = lc.env->eval(d);
+        const float w =
+            prev_delta ? 1.f : power_heuristic(prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
+        radiance += beta * L * w;
+      }
+      break;
+    }
     const Vec3 wo = -d;
+    const ShadingPoint sp = make_shading_point(scene, hit, wo);
     if (bounce == 0) {
-      result.albedo = mat.albedo;
-      result.normal = hit.ns;
+      result.albedo = sp.albedo;
+      result.normal = sp.ns;
+      result.depth = hit.t;
     }
     // Emission, one-sided: only the front (counter-clockwise) face emits.
     const float cos_emit = dot(hit.ng, wo);
-    if (mat.is_emissive() && cos_emit > 0.f) {
-      if (bounce == 0) {
-        radiance += beta * mat.emission;  // seen directly: light sampling cannot produce it
+    if (cos_emit > 0.f && scene.materials()[hit.material].is_emissive()) {
+      const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2);
+      if (prev_delta) {
+        radiance += beta * Le;
       } else {
         // The same point could have come from light sampling at the previous vertex: convert
         // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
-        const float pdf_light = lights.pdf_area(hit.prim) * hit.t * hit.t / cos_emit;
-        radiance += beta * mat.emission * power_heuristic(prev_bsdf_pdf, pdf_light);
+        const float pdf_light =
+            (1.f - lc.p_env) * lights.pdf_area(hit.slot, hit.prim) * hit.t * hit.t / cos_emit;
+        radiance += beta * Le * power_heuristic(prev_bsdf_pdf, pdf_light);
       }
     }
-    if (bounce >= settings.max_depth) break;
+    if (bounce >= max_depth) break;
     // Russian roulette after 3 bounces; dividing by the survival probability keeps the
     // estimator unbiased.
     if (bounce >= 3) {
@@ -83,44 +268,28 @@ SampleResult trace_path(const Scene& scene, const RenderSettings& settings,
       if (!(s.get(dim::bounce(bounce, dim::kRoulette)) < q)) break;
       beta = beta / q;
     }
-    const ShadingPoint sp = make_shading_point(hit, wo);
-    const Vec3 f = lambert_f(mat);
-    if (is_zero(mat.albedo)) break;  // black surface: nothing further contributes
+    const Frame frame(sp.ns);
+    const Vec3 wo_local = frame.to_local(wo);
+    if (lc.any && bsdf_has_smooth_part(sp.params))
+      radiance += beta * sample_light(scene, lc, sp, frame, wo_local, s, bounce, &result.rays);
 
-    // Next-event estimation: one point on one emissive triangle.
-    if (!lights.empty()) {
-      const LightSample ls =
-          lights.sample(s.get(dim::bounce(bounce, dim::kLightSelect)),
-                        s.get(dim::bounce(bounce, dim::kLightU)),
-                        s.get(dim::bounce(bounce, dim::kLightV)));
-      const Vec3 to_light = ls.p - sp.origin;
-      const float dist2 = dot(to_light, to_light);
-      const float dist = std::sqrt(dist2);
-      const Vec3 wi = to_light / dist;
-      const float cos_light = dot(ls.n, -wi);
-      const float cos_surface = dot(sp.ns, wi);
-      if (dist > 0.f && cos_light > 0.f && cos_surface > 0.f && dot(sp.ng, wi) > 0.f) {
-        const float pdf_light = ls.pdf_area * dist2 / cos_light;
-        // Stop short of the light's own surface so it does not occlude itself.
-        const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
-        ++result.rays;
-        if (tmax > 0.f && !scene.occluded(sp.origin, wi, tmax)) {
-          const float w = power_heuristic(pdf_light, lambert_pdf(sp.ns, wi));
-          radiance += beta * f * ls.emission * (cos_surface * w / pdf_light);
-        }
-      }
-    }
-
-    // BSDF sampling: cosine-weighted about the shading normal, so f cos / pdf = albedo.
-    const Vec3 local = sample_cosine_hemisphere(
-        {s.get(dim::bounce(bounce, dim::kBsdfU)), s.get(dim::bounce(bounce, dim::kBsdfV))});
-    const float pdf = cosine_hemisphere_pdf(local);
-    const Vec3 wi = normalize(Frame(sp.ns).to_world(local));
-    // Directions below the geometric surface would leak through it: end the path there.
-    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) break;
-    beta *= mat.albedo;
-    prev_bsdf_pdf = pdf;
-    o = sp.origin;
+    BsdfSample bs;
+    if (!bsdf_sample(sp.params, wo_local,
+                     {s.get(dim::bounce(bounce, dim::kBsdfU)),
+                      s.get(dim::bounce(bounce, dim::kBsdfV))},
+                     s.get(dim::bounce(bounce, dim::kLobe)),
+                     s.get(dim::bounce(bounce, dim::kFresnel)), &bs))
+      break;
+    const Vec3 wi = normalize(frame.to_world(bs.wi));
+    // Directions on the wrong side of the geometric surface (possible with shading normals)
+    // would leak light through it: end the path there.
+    const float side = dot(wi, sp.ng);
+    if (bs.transmitted ? side >= 0.f : side <= 0.f) break;
+    if (is_zero(bs.weight)) break;
+    beta *= bs.weight;
+    prev_bsdf_pdf = bs.pdf;
+    prev_delta = bs.delta;
+    o = bs.transmitted ? sp.below() : sp.above();
     d = wi;
   }
   result.radiance = radiance;
@@ -132,16 +301,17 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d)
   Hit hit;
   ++result.rays;
   if (!scene.intersect(o, d, kInfinity, &hit)) return result;  // background = 0
-  result.albedo = scene.material(hit.prim).albedo;
-  result.normal = hit.ns;
-  const ShadingPoint sp = make_shading_point(hit, -d);
+  const ShadingPoint sp = make_shading_point(scene, hit, -d);
+  result.albedo = sp.albedo;
+  result.normal = sp.ns;
+  result.depth = hit.t;
   const Vec3 local = sample_cosine_hemisphere(
       {s.get(dim::bounce(0, dim::kBsdfU)), s.get(dim::bounce(0, dim::kBsdfV))});
   const Vec3 wi = normalize(Frame(sp.ns).to_world(local));
   if (dot(wi, sp.ng) <= 0.f) return result;  // below the surface: blocked by it
   const float radius = 0.1f * scene.diagonal();
   ++result.rays;
-  const float v = scene.occluded(sp.origin, wi, radius) ? 0.f : 1.f;
+  const float v = scene.occluded(sp.above(), wi, radius) ? 0.f : 1.f;
   result.radiance = Vec3(v, v, v);
   return result;
 }
@@ -150,15 +320,33 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d)
 
 SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
                           const Sampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
-  const SampleStream s{&sampler, uint64_t(y) * settings.width + x, index};
+  const PixelSampler pixel_sampler(sampler, uint64_t(y) * settings.width + x);
+  return trace_sample(scene, settings, pixel_sampler, x, y, index);
+}
+
+SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
+                          const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
+  const SampleStream s{&sampler, index};
   // Box filter: the sample position is uniform inside the pixel.
   const float px = float(x) + s.get(dim::kPixelX);
   const float py = float(y) + s.get(dim::kPixelY);
   const Camera& cam = scene.camera();
-  const Vec3 d = cam.ray_direction(px, py, settings.width, settings.height);
-  if (settings.integrator == IntegratorType::AmbientOcclusion)
-    return trace_ao(scene, s, cam.position, d);
-  return trace_path(scene, settings, s, cam.position, d);
+  Vec3 o = cam.position;
+  Vec3 d = cam.ray_direction(px, py, settings.width, settings.height);
+  if (settings.aperture_radius > 0.f) {
+    // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
+    // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
+    // point of the aperture disk and aims at p_focus.
+    const Point2 lens = sample_concentric_disk({s.get(dim::kLensU), s.get(dim::kLensV)});
+    const Vec3 p_focus = o + d * (settings.focus_distance / dot(d, cam.forward));
+    o = o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
+    d = normalize(p_focus - o);
+  }
+  if (settings.integrator == IntegratorType::AmbientOcclusion) return trace_ao(scene, s, o, d);
+  const uint32_t max_depth = settings.integrator == IntegratorType::Direct
+                                 ? std::min<uint32_t>(settings.max_depth, 1u)
+                                 : settings.max_depth;
+  return trace_path(scene, light_context(scene, settings), s, o, d, max_depth);
 }
 
 std::string validate_render_request(const RenderSettings& settings, PixelRect rect,
@@ -171,6 +359,11 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
       uint64_t(rect.y0) + rect.height > settings.height)
     return "tile rect lies outside the " + std::to_string(settings.width) + "x" +
            std::to_string(settings.height) + " image";
+  if (!(settings.aperture_radius >= 0.f) || !std::isfinite(settings.aperture_radius))
+    return "aperture_radius must be finite and >= 0";
+  if (settings.aperture_radius > 0.f &&
+      !(settings.focus_distance > 0.f && std::isfinite(settings.focus_distance)))
+    return "focus_distance must be finite and > 0 when aperture_radius > 0";
   if (count == 0) return "sample count must be > 0";
   if (count > kMaxSamplesPerPixel || start > kMaxSamplesPerPixel ||
       start + count > kMaxSamplesPerPixel)
@@ -188,11 +381,14 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
     for (uint32_t tx = 0; tx < rect.width; ++tx) {
       const size_t i = size_t(ty) * rect.width + tx;
       double sum[3] = {0.0, 0.0, 0.0};
-      double mean_y = 0.0, m2_y = 0.0;
+      RunningStats luminance_stats;
       float albedo[3] = {0.f, 0.f, 0.f}, normal[3] = {0.f, 0.f, 0.f};
+      float depth = 0.f;
+      const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
+                                                    (rect.x0 + tx));
       for (uint32_t k = 0; k < count; ++k) {
         const SampleResult r =
-            trace_sample(scene, settings, sampler, rect.x0 + tx, rect.y0 + ty,
+            trace_sample(scene, settings, pixel_sampler, rect.x0 + tx, rect.y0 + ty,
                          uint32_t(start + k));
         out->rays += r.rays;
         Vec3 L = r.radiance;
@@ -205,18 +401,17 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
           albedo[c] += r.albedo[c];
           normal[c] += r.normal[c];
         }
+        depth += r.depth;
         // Welford's update of the luminance mean and M2.
-        const double y = 0.2126 * double(L.x) + 0.7152 * double(L.y) + 0.0722 * double(L.z);
-        const double delta = y - mean_y;
-        mean_y += delta / double(k + 1);
-        m2_y += delta * (y - mean_y);
+        luminance_stats.add(0.2126 * double(L.x) + 0.7152 * double(L.y) + 0.0722 * double(L.z));
       }
       for (int c = 0; c < 3; ++c) {
         out->rgb_sum[3 * i + size_t(c)] = sum[c];
         out->albedo_sum[3 * i + size_t(c)] = albedo[c];
         out->normal_sum[3 * i + size_t(c)] = normal[c];
       }
-      out->luminance_m2[i] = m2_y;
+      out->luminance_m2[i] = luminance_stats.m2;
+      out->depth_sum[i] = depth;
     }
   }
   return true;

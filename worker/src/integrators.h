@@ -5,17 +5,24 @@
 
 #include <atomic>
 #include <cstdint>
+#include <memory>
 #include <string>
 
+#include "environment.h"
 #include "film.h"
 #include "samplers.h"
 #include "scene.h"
 
 namespace rf {
 
-enum class IntegratorType { Path, AmbientOcclusion };
+// path: unidirectional path tracing, NEE + MIS (power heuristic), Russian roulette after
+//       bounce 3, at most max_depth bounces.
+// direct: the same estimator stopped after one bounce (emission seen directly, plus light
+//       sampled and BSDF sampled direct illumination combined by MIS).
+// ao: ambient occlusion within 10% of the scene diagonal, cosine weighted.
+enum class IntegratorType { Path, Direct, AmbientOcclusion };
 
-// Parses "path" / "ao"; false for anything else.
+// Parses "path" / "direct" / "ao"; false for anything else.
 bool parse_integrator_type(const std::string& name, IntegratorType* out);
 const char* integrator_type_name(IntegratorType t);
 
@@ -25,18 +32,29 @@ struct RenderSettings {
   SamplerType sampler = SamplerType::Sobol;
   IntegratorType integrator = IntegratorType::Path;
   uint32_t max_depth = 8;  // maximum number of bounces; 1 = direct lighting only
+  // Thin lens (pbrt's model): radius of the aperture disk in scene units, 0 = pinhole; points
+  // at focus_distance along the viewing axis are in focus (required > 0 if aperture > 0).
+  float aperture_radius = 0.f;
+  float focus_distance = 0.f;
+  // Environment light (intensity and rotation are applied by the Environment itself); null =
+  // black background.
+  std::shared_ptr<const Environment> environment;
 };
 
 struct SampleResult {
   Vec3 radiance;  // may be non-finite; the caller records that as 0
   Vec3 albedo;    // first-hit base color, 0 on a miss
   Vec3 normal;    // first-hit shading normal (world space, unit), 0 on a miss
+  float depth = 0.f;  // distance from the camera (lens point) to the first hit, 0 on a miss
   uint32_t rays = 0;
 };
 
 // One sample of pixel (x, y) with global sample index `index`.
 SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
                           const Sampler& sampler, uint32_t x, uint32_t y, uint32_t index);
+// The same, with the sampler already bound to the pixel (render_rect's fast path).
+SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
+                          const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index);
 
 // Empty string if rendering samples [start, start + count) of rect is valid for settings,
 // otherwise a message naming the problem.

@@ -39,17 +39,22 @@ TEST(PathIntegrator, PlaneUnderEmitterMatchesClosedForm) {
   // Point under the center: four quarter rectangles of a/2 x b/2 with the point at a corner.
   const double F = 4.0 * form_factor_corner(a / 2, b / 2, c);
   const double expected = rho * L * F;
-  for (SamplerType sampler : {SamplerType::Sobol, SamplerType::Independent}) {
+  for (SamplerType sampler : {SamplerType::Sobol, SamplerType::Independent,
+                              SamplerType::Stratified, SamplerType::Halton}) {
     for (uint32_t depth : {1u, 8u}) {
-      RenderSettings settings;
-      settings.width = settings.height = 1;
-      settings.sampler = sampler;
-      settings.max_depth = depth;
-      settings.seed = 11;
-      const Estimate e = render_pixel(scene, settings, 8192);
-      EXPECT_LT(e.standard_error, 0.02 * expected) << "test would have no power";
-      EXPECT_NEAR(e.mean, expected, 4.0 * e.standard_error + 1e-4 * expected)
-          << sampler_type_name(sampler) << " depth " << depth;
+      for (IntegratorType integrator : {IntegratorType::Path, IntegratorType::Direct}) {
+        RenderSettings settings;
+        settings.width = settings.height = 1;
+        settings.sampler = sampler;
+        settings.integrator = integrator;
+        settings.max_depth = depth;
+        settings.seed = 11;
+        const Estimate e = render_pixel(scene, settings, 4096);
+        EXPECT_LT(e.standard_error, 0.03 * expected) << "test would have no power";
+        EXPECT_NEAR(e.mean, expected, 4.0 * e.standard_error + 1e-4 * expected)
+            << sampler_type_name(sampler) << " depth " << depth << " "
+            << integrator_type_name(integrator);
+      }
     }
   }
 }
@@ -83,7 +88,8 @@ TEST(PathIntegrator, BatchesSumToTheWholeRange) {
   settings.height = 16;
   settings.seed = 3;
   const PixelRect rect{8, 4, 8, 8};
-  for (SamplerType sampler : {SamplerType::Sobol, SamplerType::Independent}) {
+  for (SamplerType sampler : {SamplerType::Sobol, SamplerType::Independent,
+                              SamplerType::Stratified, SamplerType::Halton}) {
     settings.sampler = sampler;
     TileBuffer whole, part;
     ASSERT_TRUE(render_rect(scene, settings, rect, 0, 16, &whole));
@@ -159,8 +165,123 @@ TEST(Integrators, ValidateRequest) {
   EXPECT_NE(validate_render_request(s, {40, 0, 32, 32}, 0, 16), "");
   EXPECT_NE(validate_render_request(s, {0, 0, 8, 8}, 0, 0), "");
   EXPECT_NE(validate_render_request(s, {0, 0, 8, 8}, (1ull << 31) - 4, 8), "");
+  s.aperture_radius = 0.1f;
+  EXPECT_NE(validate_render_request(s, {0, 0, 8, 8}, 0, 16), "");  // focus distance missing
+  s.focus_distance = 2.f;
+  EXPECT_EQ(validate_render_request(s, {0, 0, 8, 8}, 0, 16), "");
+  s.aperture_radius = -1.f;
+  EXPECT_NE(validate_render_request(s, {0, 0, 8, 8}, 0, 16), "");
   IntegratorType t;
   EXPECT_FALSE(parse_integrator_type("bdpt", &t));
+  for (IntegratorType u :
+       {IntegratorType::Path, IntegratorType::Direct, IntegratorType::AmbientOcclusion}) {
+    ASSERT_TRUE(parse_integrator_type(integrator_type_name(u), &t));
+    EXPECT_EQ(t, u);
+  }
+}
+
+// Thin lens: an emitter in the plane of focus is sharp (every lens ray through the pixel
+// reaches the same point on it), while focusing far behind it blurs it away; the depth AOV is
+// the distance to the first hit.
+TEST(Camera, ThinLensFocusesThePlaneOfFocus) {
+  SceneDescription desc;
+  desc.source = "lens";
+  desc.materials.push_back(Material{"emitter", {0, 0, 0}, {2, 2, 2}});
+  const float h = 0.01f;
+  testing::add_quad(&desc, {-h, -h, 0}, {h, -h, 0}, {h, h, 0}, {-h, h, 0}, 0);  // faces +z
+  desc.camera = testing::look_at({0.f, 0.f, 1.f}, {0.f, 0.f, 0.f}, 1e-3f);
+  Scene scene(std::move(desc));
+  RenderSettings settings;
+  settings.width = settings.height = 1;
+  settings.aperture_radius = 0.2f;
+  settings.focus_distance = 1.f;
+  TileBuffer tile;
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 64, &tile));
+  EXPECT_NEAR(tile.rgb_sum[0] / 64.0, 2.0, 1e-6);
+  EXPECT_GT(tile.depth_sum[0] / 64.0, 1.0);  // lens rays are longer than the axis
+  EXPECT_LT(tile.depth_sum[0] / 64.0, 1.03);
+  settings.focus_distance = 10.f;  // lens rays cross the emitter's plane 0.18 r off axis
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 64, &tile));
+  EXPECT_LT(tile.rgb_sum[0] / 64.0, 0.1);
+  settings.aperture_radius = 0.f;  // pinhole: sharp whatever the focus distance
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 16, &tile));
+  EXPECT_NEAR(tile.rgb_sum[0] / 16.0, 2.0, 1e-6);
+  EXPECT_NEAR(tile.depth_sum[0] / 16.0, 1.0, 1e-5);
+}
+
+}  // namespace
+}  // namespace rf
+
+namespace rf {
+namespace {
+
+// KHR_lights_punctual through the glTF loader: a Lambertian (specularFactor 0) quad lit by one
+// light; a narrow camera at +z looks at (x, 0, 0). Delta lights make next-event estimation
+// exact, so the pixel equals rho / pi * E with E the light's irradiance there.
+double lit_quad_radiance(const std::string& light, const std::string& light_node, float x) {
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_specular"],
+  "extensions": {"KHR_lights_punctual": {"lights": [)" + light + R"(]}},
+  "scene": 0, "scenes": [{"nodes": [0, 1]}],
+  "nodes": [{"mesh": 0}, )" + light_node + R"(],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3,
+                              "material": 0}]}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.5, 0.5, 1],
+                 "metallicFactor": 0},
+                 "extensions": {"KHR_materials_specular": {"specularFactor": 0}}}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "lights.gltf", &warnings);
+  EXPECT_TRUE(warnings.empty()) << warnings.front();
+  desc.camera = testing::look_at({x, 0.f, 3.f}, {x, 0.f, 0.f}, 1e-4f);
+  Scene scene(std::move(desc));
+  EXPECT_EQ(scene.lights().punctual().size(), 1u);
+  RenderSettings settings;
+  settings.width = settings.height = 1;
+  TileBuffer tile;
+  EXPECT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 8, &tile));
+  return tile.rgb_sum[0] / 8.0;
+}
+
+TEST(PunctualLights, PointSpotAndDirectionalMatchClosedForms) {
+  const double rho = 0.5;
+  // Point light of intensity 8 at height 2: E = I / d^2.
+  EXPECT_NEAR(lit_quad_radiance(R"({"type": "point", "intensity": 8})",
+                                R"({"translation": [0, 0, 2], "extensions":
+                                   {"KHR_lights_punctual": {"light": 0}}})",
+                                0.f),
+              rho / M_PI * 8.0 / 4.0, 1e-5);
+  // Off axis: E = I cos(theta) / d^2.
+  {
+    const double x = 0.5, d2 = 4.0 + x * x, c = 2.0 / std::sqrt(d2);
+    EXPECT_NEAR(lit_quad_radiance(R"({"type": "point", "intensity": 8, "color": [1, 1, 1]})",
+                                  R"({"translation": [0, 0, 2], "extensions":
+                                     {"KHR_lights_punctual": {"light": 0}}})",
+                                  float(x)),
+                rho / M_PI * 8.0 * c / d2, 1e-5);
+  }
+  // Spot pointing down (-Z): full inside the inner cone, glTF's quadratic ramp between the
+  // cones, nothing outside.
+  const std::string spot = R"({"type": "spot", "intensity": 8,
+                               "spot": {"innerConeAngle": 0.2, "outerConeAngle": 0.3}})";
+  const std::string spot_node =
+      R"({"translation": [0, 0, 2], "extensions": {"KHR_lights_punctual": {"light": 0}}})";
+  EXPECT_NEAR(lit_quad_radiance(spot, spot_node, 0.f), rho / M_PI * 2.0, 1e-5);
+  {
+    const double a = 0.25, x = 2.0 * std::tan(a), d2 = 4.0 + x * x;
+    const double t = (std::cos(a) - std::cos(0.3)) / (std::cos(0.2) - std::cos(0.3));
+    EXPECT_NEAR(lit_quad_radiance(spot, spot_node, float(x)),
+                rho / M_PI * 8.0 * t * t * std::cos(a) / d2, 1e-4);
+  }
+  EXPECT_EQ(lit_quad_radiance(spot, spot_node, 0.8f), 0.0);
+  // Directional light tilted by 0.5 rad about X: E = E0 cos(0.5).
+  const double s = std::sin(0.25), c = std::cos(0.25);
+  EXPECT_NEAR(lit_quad_radiance(R"({"type": "directional", "intensity": 3})",
+                                R"({"rotation": [)" + std::to_string(s) + ", 0, 0, " +
+                                    std::to_string(c) +
+                                    R"(], "extensions": {"KHR_lights_punctual": {"light": 0}}})",
+                                0.f),
+              rho / M_PI * 3.0 * std::cos(0.5), 1e-5);
 }
 
 }  // namespace

@@ -53,38 +53,77 @@ uint32_t AliasTable::sample(float u, double* pmf) const {
   return i;
 }
 
-LightSet::LightSet(const std::vector<Triangle>& triangles, const std::vector<Material>& materials)
-    : triangles_(&triangles), materials_(&materials) {
+float PunctualLight::spot_falloff(float cos_angle) const {
+  if (type != PunctualType::Spot) return 1.f;
+  if (cos_angle <= cos_outer) return 0.f;
+  if (cos_angle >= cos_inner) return 1.f;
+  const float t = (cos_angle - cos_outer) / std::max(1e-6f, cos_inner - cos_outer);
+  return t * t;
+}
+
+LightSet::LightSet(std::vector<Emitter> emitters, const std::vector<Material>& materials,
+                   std::vector<PunctualLight> punctual, float scene_radius) {
   std::vector<double> weights;
-  for (uint32_t i = 0; i < triangles.size(); ++i) {
-    const Triangle& tri = triangles[i];
-    const Vec3 e = materials[tri.material].emission;
-    const double power = double(tri.area) * double(luminance(e));
-    if (power > 0.0) {
-      prims_.push_back(i);
-      weights.push_back(power);
-    }
+  for (const Emitter& e : emitters) {
+    const Vec3 L = materials[e.material].emission;
+    const double power = kPi * double(e.area) * double(luminance(L));
+    if (!(power > 0.0)) continue;
+    emitters_.push_back(e);
+    emission_.push_back(L);
+    weights.push_back(power);
   }
-  if (prims_.empty()) return;
+  for (const PunctualLight& l : punctual) {
+    const double I = std::max(0.f, luminance(l.intensity));
+    double power = 0.0;
+    switch (l.type) {
+      case PunctualType::Point:
+        power = 4.0 * kPi * I;
+        break;
+      case PunctualType::Spot:
+        power = 2.0 * kPi * (1.0 - 0.5 * (double(l.cos_inner) + double(l.cos_outer))) * I;
+        break;
+      case PunctualType::Directional:
+        power = kPi * double(scene_radius) * double(scene_radius) * I;
+        break;
+    }
+    if (!(power > 0.0) || !std::isfinite(power)) continue;
+    punctual_.push_back(l);
+    weights.push_back(power);
+  }
+  for (double w : weights) total_power_ += w;
+  if (weights.empty()) return;
   table_ = AliasTable(weights);
-  pdf_area_by_prim_.assign(triangles.size(), 0.f);
-  for (uint32_t li = 0; li < prims_.size(); ++li) {
-    const Triangle& tri = triangles[prims_[li]];
-    pdf_area_by_prim_[prims_[li]] = float(table_.pmf(li) / double(tri.area));
+  for (size_t li = 0; li < emitters_.size(); ++li) {
+    const Emitter& e = emitters_[li];
+    if (pdf_area_by_slot_.size() <= e.slot) pdf_area_by_slot_.resize(e.slot + 1);
+    std::vector<float>& v = pdf_area_by_slot_[e.slot];
+    if (v.size() <= e.prim) v.resize(e.prim + 1, 0.f);
+    v[e.prim] = float(table_.pmf(uint32_t(li)) / double(e.area));
   }
 }
 
 LightSample LightSet::sample(float u_select, float u, float v) const {
   const uint32_t li = table_.sample(u_select);
-  const uint32_t prim = prims_[li];
-  const Triangle& tri = (*triangles_)[prim];
-  const Point2 b = sample_triangle({u, v});
   LightSample s;
-  s.p = tri.p[0] * b.x + tri.p[1] * b.y + tri.p[2] * (1.f - b.x - b.y);
-  s.n = tri.ng;
-  s.emission = (*materials_)[tri.material].emission;
-  s.pdf_area = pdf_area_by_prim_[prim];
-  s.prim = prim;
+  if (li >= emitters_.size()) {
+    const uint32_t pi = li - uint32_t(emitters_.size());
+    const PunctualLight& l = punctual_[pi];
+    s.punctual = int(pi);
+    s.p = l.type == PunctualType::Directional ? -l.direction : l.position;
+    s.emission = l.intensity;
+    s.pdf_area = float(table_.pmf(li));
+    return s;
+  }
+  const Emitter& e = emitters_[li];
+  const Point2 b = sample_triangle({u, v});
+  s.p = e.p[0] * b.x + e.p[1] * b.y + e.p[2] * (1.f - b.x - b.y);
+  s.n = e.ng;
+  s.emission = emission_[li];
+  s.pdf_area = float(table_.pmf(li) / double(e.area));
+  s.prim = e.prim;
+  s.slot = e.slot;
+  s.b1 = b.y;
+  s.b2 = 1.f - b.x - b.y;
   return s;
 }
 

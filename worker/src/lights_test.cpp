@@ -83,3 +83,56 @@ TEST(LightSet, SelectionProportionalToPowerAndPointsOnTheLight) {
 
 }  // namespace
 }  // namespace rf
+
+namespace rf {
+namespace {
+
+// One alias table over every light: emitters and punctual lights are chosen in proportion
+// to their power (triangle: pi A L; point: 4 pi I; spot: 2 pi (1 - mean cone cos) I;
+// directional: pi R^2 E).
+TEST(LightSet, PunctualAndAreaLightsShareOneTableByPower) {
+  SceneDescription desc;
+  desc.source = "mixed-lights";
+  desc.materials.push_back(Material{"lamp", {0, 0, 0}, {2, 2, 2}});
+  testing::add_quad(&desc, {0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}, 0);  // area 1, L 2
+  PunctualLight point;
+  point.type = PunctualType::Point;
+  point.intensity = Vec3(3, 3, 3);
+  PunctualLight spot;
+  spot.type = PunctualType::Spot;
+  spot.intensity = Vec3(5, 5, 5);
+  spot.cos_inner = 0.9f;
+  spot.cos_outer = 0.7f;
+  PunctualLight sun;
+  sun.type = PunctualType::Directional;
+  sun.intensity = Vec3(1, 1, 1);
+  desc.punctual_lights = {point, spot, sun};
+  Scene scene(std::move(desc));
+  const LightSet& lights = scene.lights();
+  ASSERT_EQ(lights.size(), 5u);
+  const double r = 0.5 * scene.diagonal();
+  const double powers[] = {M_PI * 0.5 * 2, M_PI * 0.5 * 2, 4 * M_PI * 3,
+                           2 * M_PI * (1 - 0.8) * 5, M_PI * r * r * 1};
+  double total = 0;
+  for (double p : powers) total += p;
+  EXPECT_NEAR(lights.total_power(), total, 1e-4 * total);
+  std::mt19937_64 rng(2);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  std::vector<double> count(5, 0.0);
+  const int n = 200000;
+  for (int i = 0; i < n; ++i) {
+    const LightSample s = lights.sample(uni(rng), uni(rng), uni(rng));
+    count[s.punctual >= 0 ? 2 + size_t(s.punctual) : s.prim] += 1;
+    const double expected_pmf = powers[s.punctual >= 0 ? 2 + s.punctual : int(s.prim)] / total;
+    if (s.punctual >= 0) {
+      ASSERT_NEAR(s.pdf_area, expected_pmf, 1e-5);
+    }
+  }
+  for (size_t k = 0; k < 5; ++k) {
+    const double p = powers[k] / total;
+    EXPECT_NEAR(count[k] / n, p, 4 * std::sqrt(p * (1 - p) / n)) << k;
+  }
+}
+
+}  // namespace
+}  // namespace rf

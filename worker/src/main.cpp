@@ -3,6 +3,8 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cerrno>
+#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -13,6 +15,7 @@
 #include <thread>
 #include <vector>
 
+#include "bench.h"
 #include "farm_client.h"
 #include "film.h"
 #include "integrators.h"
@@ -28,8 +31,13 @@ constexpr int kExitUsage = 2;
 const char* kUsage =
     "usage:\n"
     "  renderfarm-worker render SCENE.gltf|SCENE.glb -o OUT.exr --spp N [--width W]\n"
-    "      [--height H] [--threads T] [--seed S] [--sampler sobol|independent]\n"
-    "      [--integrator path|ao] [--max-depth D]\n"
+    "      [--height H] [--threads T] [--seed S]\n"
+    "      [--sampler sobol|halton|stratified|independent] [--integrator path|direct|ao]\n"
+    "      [--max-depth D] [--aperture-radius R --focus-distance F]\n"
+    "      [--environment MAP.hdr|MAP.exr [--environment-intensity X]\n"
+    "       [--environment-rotation-deg D]]\n"
+    "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
+    "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
     "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
     "      [--cache-dir DIR] [--token TOKEN] [--id ID]\n"
     "  renderfarm-worker --help | --version\n";
@@ -73,6 +81,15 @@ uint64_t parse_uint(const std::string& flag, const std::string& value, uint64_t 
   return v;
 }
 
+double parse_double(const std::string& flag, const std::string& value) {
+  char* end = nullptr;
+  errno = 0;
+  const double v = std::strtod(value.c_str(), &end);
+  if (value.empty() || end != value.c_str() + value.size() || errno == ERANGE || !std::isfinite(v))
+    throw UsageError{flag + " expects a finite number, got '" + value + "'"};
+  return v;
+}
+
 uint32_t default_threads() {
   const unsigned n = std::thread::hardware_concurrency();
   return n ? n : 1;
@@ -82,7 +99,9 @@ int cmd_render(const std::vector<std::string>& args) {
   std::vector<std::string> positional;
   auto flags = parse_flags(args,
                            {"-o", "--spp", "--width", "--height", "--threads", "--seed",
-                            "--sampler", "--integrator", "--max-depth"},
+                            "--sampler", "--integrator", "--max-depth", "--aperture-radius",
+                            "--focus-distance", "--environment", "--environment-intensity",
+                            "--environment-rotation-deg"},
                            &positional);
   if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
   if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
@@ -99,10 +118,27 @@ int cmd_render(const std::vector<std::string>& args) {
   if (flags.count("--max-depth"))
     settings.max_depth = uint32_t(parse_uint("--max-depth", flags["--max-depth"], 0, 1024));
   if (flags.count("--sampler") && !rf::parse_sampler_type(flags["--sampler"], &settings.sampler))
-    throw UsageError{"unknown sampler '" + flags["--sampler"] + "' (expected sobol or independent)"};
+    throw UsageError{"unknown sampler '" + flags["--sampler"] +
+                     "' (expected sobol, halton, stratified or independent)"};
   if (flags.count("--integrator") &&
       !rf::parse_integrator_type(flags["--integrator"], &settings.integrator))
-    throw UsageError{"unknown integrator '" + flags["--integrator"] + "' (expected path or ao)"};
+    throw UsageError{"unknown integrator '" + flags["--integrator"] +
+                     "' (expected path, direct or ao)"};
+  if (flags.count("--aperture-radius"))
+    settings.aperture_radius = float(parse_double("--aperture-radius", flags["--aperture-radius"]));
+  if (flags.count("--focus-distance"))
+    settings.focus_distance = float(parse_double("--focus-distance", flags["--focus-distance"]));
+  float env_intensity = 1.f, env_rotation = 0.f;
+  if (flags.count("--environment-intensity")) {
+    env_intensity = float(parse_double("--environment-intensity", flags["--environment-intensity"]));
+    if (!(env_intensity > 0.f)) throw UsageError{"--environment-intensity must be > 0"};
+  }
+  if (flags.count("--environment-rotation-deg"))
+    env_rotation =
+        float(parse_double("--environment-rotation-deg", flags["--environment-rotation-deg"]));
+  if (!flags.count("--environment") &&
+      (flags.count("--environment-intensity") || flags.count("--environment-rotation-deg")))
+    throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
   const std::string& scene_path = positional[0];
   const std::string& out_path = flags["-o"];
   const std::string err = rf::validate_render_request(
@@ -119,6 +155,15 @@ int cmd_render(const std::vector<std::string>& args) {
     return kExitRuntime;
   }
   for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+  if (flags.count("--environment")) {
+    try {
+      settings.environment =
+          rf::Environment::load(flags["--environment"], env_intensity, env_rotation);
+    } catch (const std::exception& e) {
+      std::cerr << "error: " << e.what() << "\n";
+      return kExitRuntime;
+    }
+  }
   std::cerr << "rendering " << scene_path << ": " << scene->triangles().size() << " triangles, "
             << scene->lights().size() << " emissive, " << settings.width << "x"
             << settings.height << ", " << spp << " spp, " << threads << " threads, "
@@ -149,6 +194,47 @@ int cmd_render(const std::vector<std::string>& args) {
     std::fprintf(stderr, " (%llu non-finite samples recorded as 0)",
                  static_cast<unsigned long long>(stats.nonfinite_samples));
   std::fprintf(stderr, "\n");
+  return 0;
+}
+
+int cmd_bench(const std::vector<std::string>& args) {
+  auto flags = parse_flags(args,
+                           {"--cornell", "--json", "--width", "--height", "--spp", "--triangles",
+                            "--threads"},
+                           nullptr);
+  if (!flags.count("--cornell")) throw UsageError{"bench needs --cornell SCENE.gltf"};
+  rf::BenchOptions options;
+  options.cornell_path = flags["--cornell"];
+  if (flags.count("--width")) options.width = uint32_t(parse_uint("--width", flags["--width"], 1, 8192));
+  if (flags.count("--height"))
+    options.height = uint32_t(parse_uint("--height", flags["--height"], 1, 8192));
+  if (flags.count("--spp")) options.spp = uint32_t(parse_uint("--spp", flags["--spp"], 1, 65536));
+  if (flags.count("--triangles"))
+    options.mesh_triangles =
+        uint32_t(parse_uint("--triangles", flags["--triangles"], 16, 100000000));
+  if (flags.count("--threads")) {
+    options.threads.clear();
+    std::string list = flags["--threads"];
+    size_t pos = 0;
+    while (pos <= list.size()) {
+      const size_t comma = list.find(',', pos);
+      const std::string item = list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos);
+      options.threads.push_back(uint32_t(parse_uint("--threads", item, 1, 4096)));
+      if (comma == std::string::npos) break;
+      pos = comma + 1;
+    }
+  }
+  const std::string json = rf::run_bench(options);
+  if (flags.count("--json")) {
+    std::ofstream out(flags["--json"]);
+    out << json << "\n";
+    if (!out) {
+      std::cerr << "error: cannot write " << flags["--json"] << "\n";
+      return kExitRuntime;
+    }
+  } else {
+    std::cout << json << "\n";
+  }
   return 0;
 }
 
@@ -201,6 +287,7 @@ int main(int argc, char** argv) {
     }
     if (cmd == "render") return cmd_render(args);
     if (cmd == "connect") return cmd_connect(args);
+    if (cmd == "bench") return cmd_bench(args);
     throw UsageError{"unknown command '" + cmd + "'"};
   } catch (const UsageError& e) {
     std::cerr << "renderfarm-worker: " << e.message << " (see renderfarm-worker --help)\n";

@@ -44,18 +44,31 @@ TEST(RenderImage, WritesExrWithAllChannels) {
   const OIIO::ImageSpec& spec = in->spec();
   EXPECT_EQ(spec.width, 20);
   EXPECT_EQ(spec.height, 10);
-  ASSERT_EQ(spec.nchannels, 9);
-  std::vector<float> pixels(20 * 10 * 9);
-  ASSERT_TRUE(in->read_image(0, 0, 0, 9, OIIO::TypeDesc::FLOAT, pixels.data()));
-  for (int c = 0; c < 9; ++c) {
+  ASSERT_EQ(spec.nchannels, 10);
+  std::vector<float> pixels(20 * 10 * 10);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 10, OIIO::TypeDesc::FLOAT, pixels.data()));
+  bool saw_depth = false;
+  for (int c = 0; c < 10; ++c) {
     const std::string name = spec.channelnames[size_t(c)];
+    if (name == "depth") {
+      saw_depth = true;
+      float max_depth = 0.f;
+      for (size_t i = 0; i < 200; ++i) {
+        ASSERT_EQ(pixels[10 * i + size_t(c)], image.depth[i]);
+        max_depth = std::max(max_depth, image.depth[i]);
+      }
+      EXPECT_GT(max_depth, 1.f);  // the plane is ~3 units from the camera
+      continue;
+    }
     const std::vector<float>* plane = name.rfind("albedo.", 0) == 0   ? &image.albedo
                                       : name.rfind("normal.", 0) == 0 ? &image.normal
                                                                       : &image.rgb;
     const char last = name.back();
     const int k = (last == 'R' || last == 'X') ? 0 : (last == 'G' || last == 'Y') ? 1 : 2;
-    for (size_t i = 0; i < 200; ++i) ASSERT_EQ(pixels[9 * i + size_t(c)], (*plane)[3 * i + size_t(k)]) << name;
+    for (size_t i = 0; i < 200; ++i)
+      ASSERT_EQ(pixels[10 * i + size_t(c)], (*plane)[3 * i + size_t(k)]) << name;
   }
+  EXPECT_TRUE(saw_depth);
   in->close();
   std::remove(path.c_str());
 }

@@ -13,11 +13,56 @@ bool parse_sampler_type(const std::string& name, SamplerType* out) {
     *out = SamplerType::Independent;
     return true;
   }
+  if (name == "stratified") {
+    *out = SamplerType::Stratified;
+    return true;
+  }
+  if (name == "halton") {
+    *out = SamplerType::Halton;
+    return true;
+  }
   return false;
 }
 
 const char* sampler_type_name(SamplerType t) {
-  return t == SamplerType::Sobol ? "sobol" : "independent";
+  switch (t) {
+    case SamplerType::Sobol:
+      return "sobol";
+    case SamplerType::Independent:
+      return "independent";
+    case SamplerType::Stratified:
+      return "stratified";
+    case SamplerType::Halton:
+      return "halton";
+  }
+  return "?";
+}
+
+BatchRange batch_range(uint32_t b) {
+  // Ramp 1, 1, 2, 4, 8, 16, 32 (batches 0..6), then kBatchCap = 64 from batch 7 on.
+  BatchRange r;
+  r.index = b;
+  if (b == 0) {
+    r.start = 0;
+    r.size = 1;
+  } else if (b < 7) {
+    r.start = uint64_t(1) << (b - 1);
+    r.size = uint32_t(1) << (b - 1);
+  } else {
+    r.start = 64 + uint64_t(b - 7) * kBatchCap;
+    r.size = kBatchCap;
+  }
+  return r;
+}
+
+BatchRange batch_containing(uint64_t i) {
+  if (i == 0) return batch_range(0);
+  if (i < 64) {
+    uint32_t log2 = 0;
+    while ((uint64_t(2) << log2) <= i) ++log2;  // floor(log2 i)
+    return batch_range(log2 + 1);
+  }
+  return batch_range(uint32_t(7 + (i - 64) / kBatchCap));
 }
 
 uint64_t mix64(uint64_t x) {
@@ -38,11 +83,11 @@ uint64_t hash4(uint64_t a, uint64_t b, uint64_t c, uint64_t d) {
 }
 
 uint32_t reverse_bits32(uint32_t x) {
+  // Byte swap (one instruction), then reverse the bits inside each byte.
+  x = __builtin_bswap32(x);
   x = ((x >> 1) & 0x55555555u) | ((x & 0x55555555u) << 1);
   x = ((x >> 2) & 0x33333333u) | ((x & 0x33333333u) << 2);
-  x = ((x >> 4) & 0x0f0f0f0fu) | ((x & 0x0f0f0f0fu) << 4);
-  x = ((x >> 8) & 0x00ff00ffu) | ((x & 0x00ff00ffu) << 8);
-  return (x >> 16) | (x << 16);
+  return ((x >> 4) & 0x0f0f0f0fu) | ((x & 0x0f0f0f0fu) << 4);
 }
 
 uint32_t laine_karras_permutation(uint32_t x, uint32_t seed) {
@@ -95,7 +140,25 @@ struct SobolMatrices {
       // v_k = m_k / 2^k as a 32-bit fraction.
       for (int k = 1; k <= 32; ++k) v[d][k - 1] = m[k] << (32 - k);
     }
+    // Byte tables: bytes[d][b][x] = XOR of the columns selected by byte b of the index
+    // having value x, so a point costs four lookups instead of a loop over 32 bits.
+    for (int d = 0; d < 4; ++d)
+      for (int b = 0; b < 4; ++b)
+        for (uint32_t x = 0; x < 256; ++x) {
+          uint32_t acc = 0;
+          for (int k = 0; k < 8; ++k)
+            if (x & (1u << k)) acc ^= v[size_t(d)][size_t(8 * b + k)];
+          bytes[size_t(d)][size_t(b)][x] = acc;
+          // Bit-reversed domain: reversed[d](y) = reverse(sobol32(reverse(y))), the XOR of
+          // reverse(v[31 - j]) over the set bits j of y (reversal is linear over XOR).
+          uint32_t acc_r = 0;
+          for (int k = 0; k < 8; ++k)
+            if (x & (1u << k)) acc_r ^= reverse_bits32(v[size_t(d)][size_t(31 - (8 * b + k))]);
+          reversed[size_t(d)][size_t(b)][x] = acc_r;
+        }
   }
+  std::array<std::array<std::array<uint32_t, 256>, 4>, 4> bytes{};
+  std::array<std::array<std::array<uint32_t, 256>, 4>, 4> reversed{};
 };
 
 const SobolMatrices& sobol_matrices() {
@@ -107,21 +170,166 @@ const SobolMatrices& sobol_matrices() {
 constexpr uint64_t kShuffleTag = 0x53485546464c4531ull;  // "SHUFFLE1"
 constexpr uint64_t kScrambleTag = 0x534352414d424c31ull;  // "SCRAMBL1"
 constexpr uint64_t kIndependentTag = 0x494e444550454e44ull;  // "INDEPEND"
+constexpr uint64_t kJitterTag = 0x4a49545445523031ull;       // "JITTER01"
+constexpr uint64_t kLatinTag = 0x4c4154494e485950ull;        // "LATINHYP"
+constexpr uint64_t kHaltonTag = 0x48414c544f4e3031ull;       // "HALTON01"
+
+struct Primes {
+  std::array<uint32_t, kHaltonDimensions> p{};
+  Primes() {
+    uint32_t n = 0;
+    for (uint32_t c = 2; n < kHaltonDimensions; ++c) {
+      bool prime = true;
+      for (uint32_t k = 0; k < n && p[k] * p[k] <= c; ++k)
+        if (c % p[k] == 0) {
+          prime = false;
+          break;
+        }
+      if (prime) p[n++] = c;
+    }
+  }
+};
+
+const Primes& primes() {
+  static const Primes table;
+  return table;
+}
+
+uint32_t independent_bits(uint64_t seed, uint64_t pixel, uint32_t index, uint32_t dimension) {
+  return uint32_t(hash4(seed ^ kIndependentTag, pixel, index, dimension) >> 32);
+}
+
+uint32_t permute_index_impl(uint32_t i, uint32_t n, uint64_t seed);
+
+// Random permutation of the k-bit integers. (The nested uniform scramble restricted to k
+// bits is one too, but for a fixed k its family has only 2^k members of the form
+// P(j + seed), so two dimensions' permutations would be shifts of one another: correlated.)
+uint32_t permute_bits(uint32_t j, uint32_t k, uint64_t seed) {
+  if (k == 0) return 0;
+  return permute_index_impl(j, 1u << k, seed);
+}
+
+uint32_t stratified_bits(uint64_t seed, uint64_t pixel, uint32_t index, uint32_t dimension) {
+  const BatchRange batch = batch_containing(index);
+  const uint32_t j = uint32_t(index - batch.start);
+  uint32_t k = 0;
+  while ((1u << k) < batch.size) ++k;
+  const uint32_t jitter = uint32_t(hash4(seed ^ kJitterTag, pixel, index, dimension) >> 32);
+  if (dimension < 2) {
+    // Jittered grid on the pixel: 2^kx columns by 2^ky rows. Sample j takes cell pi(j) =
+    // row * 2^kx + column, pi a random permutation per (seed, pixel, batch): the whole batch
+    // covers every cell once, and each sample alone is uniform over the pixel, so a batch
+    // clipped at max_spp stays unbiased.
+    const uint32_t kx = (k + 1) / 2, ky = k / 2;
+    const uint32_t kd = dimension == 0 ? kx : ky;
+    const uint64_t grid_seed = hash4(seed ^ kLatinTag, pixel, batch.index, 0);
+    const uint32_t c = permute_bits(j, k, grid_seed);
+    const uint32_t cell = dimension == 0 ? (c & ((1u << kx) - 1u)) : (c >> kx);
+    if (kd == 0) return jitter;
+    return (cell << (32 - kd)) | (jitter >> kd);
+  }
+  // Latin hypercube: sample j takes stratum pi_d(j) of S in this dimension.
+  if (k == 0) return jitter;
+  const uint64_t perm_seed = hash4(seed ^ kLatinTag, pixel, batch.index, dimension);
+  const uint32_t stratum = permute_bits(j, k, perm_seed);
+  return (stratum << (32 - k)) | (jitter >> k);
+}
+
+// Radical inverse of index in base b with digit i replaced by (a_i d + c_i) mod b: a random
+// affine permutation of the digits per position (a_i in [1, b - 1], c_i in [0, b - 1]; b is
+// prime, so d -> a d + c is a bijection). The c_i come from the base-b digits of h_shift, the
+// a_i from the base-(b - 1) digits of h_mult (64 random bits each cover the ~34 bits of
+// digits a value needs). Digits are permuted down to 2^-34, including the zero digits above
+// the index, so that with uniform c_i every digit, hence the value, is exactly uniform.
+uint32_t halton_scrambled(uint32_t index, uint32_t base, uint64_t h_shift, uint64_t h_mult) {
+  if (base == 2) {
+    // Base 2: the only permutations of {0, 1} are identity and swap, i.e. an xor per digit.
+    return reverse_bits32(index) ^ uint32_t(h_shift >> 32);
+  }
+  double value = 0.0;
+  const double inv_base = 1.0 / double(base);
+  double weight = inv_base;
+  uint32_t rest = index;
+  for (; weight > 0x1p-34; weight *= inv_base) {
+    const uint32_t digit = rest % base;
+    rest /= base;
+    const uint32_t c = uint32_t(h_shift % base);
+    h_shift /= base;
+    const uint32_t a = 1 + uint32_t(h_mult % (base - 1));
+    h_mult /= (base - 1);
+    value += double((uint64_t(a) * digit + c) % base) * weight;
+  }
+  const double scaled = value * 4294967296.0;
+  return scaled >= 4294967295.0 ? 0xffffffffu : uint32_t(scaled);
+}
 
 }  // namespace
 
+uint32_t halton_base(uint32_t d) { return primes().p[d % kHaltonDimensions]; }
+
+uint32_t permute_index(uint32_t i, uint32_t n, uint64_t seed) {
+  return permute_index_impl(i, n, seed);
+}
+
+namespace {
+uint32_t permute_index_impl(uint32_t i, uint32_t n, uint64_t seed) {
+  if (n <= 1) return 0;
+  uint32_t mask = n - 1;
+  mask |= mask >> 1;
+  mask |= mask >> 2;
+  mask |= mask >> 4;
+  mask |= mask >> 8;
+  mask |= mask >> 16;
+  const uint32_t s0 = uint32_t(seed), s1 = uint32_t(seed >> 32);
+  // Every step is a bijection of [0, mask]: xor with a constant, multiplication by an odd
+  // number, xor-shift right, addition modulo mask + 1. Cycle-walking until the value lands in
+  // [0, n) turns a permutation of [0, mask] into one of [0, n).
+  const uint32_t s2 = uint32_t(mix64(seed ^ 0x5851f42d4c957f2dull));
+  const uint32_t s3 = uint32_t(mix64(seed ^ 0x14057b7ef767814full) >> 32);
+  // Kensler's (2013) shape of round, with seed-dependent multipliers and offsets: an
+  // xor-shift right of half the width spreads high bits down, the odd multipliers spread low
+  // bits up.
+  uint32_t half = 1;
+  while ((mask >> half) > (1u << half)) ++half;
+  do {
+    i ^= s0 & mask;
+    i = (i * (s1 | 1u)) & mask;
+    i ^= i >> half;
+    i = (i + s2) & mask;
+    i = (i * (s3 | 1u)) & mask;
+    i ^= i >> half;
+    i ^= (s0 >> 16) & mask;
+    i = (i * ((s2 >> 8) | 1u)) & mask;
+    i ^= (i >> (half > 1 ? half - 1 : 1));
+    i = (i * ((s1 >> 7) | 1u)) & mask;
+    i ^= i >> half;
+  } while (i >= n);
+  // A final rotation by a seeded offset makes each output exactly equally likely.
+  return uint32_t((uint64_t(i) + (mix64(seed) % n)) % n);
+}
+}  // namespace
+
 uint32_t sobol32(uint32_t index, uint32_t d) {
-  const auto& v = sobol_matrices().v[d & 3u];
-  uint32_t x = 0;
-  for (int k = 0; index != 0; ++k, index >>= 1)
-    if (index & 1u) x ^= v[k];
-  return x;
+  static const SobolMatrices& m = sobol_matrices();
+  const auto& t = m.bytes[d & 3u];
+  return t[0][index & 0xffu] ^ t[1][(index >> 8) & 0xffu] ^ t[2][(index >> 16) & 0xffu] ^
+         t[3][index >> 24];
 }
 
 uint32_t Sampler::bits(uint64_t pixel, uint32_t sample_index, uint32_t dimension) const {
-  if (type_ == SamplerType::Independent) {
-    const uint64_t h = hash4(seed_ ^ kIndependentTag, pixel, sample_index, dimension);
-    return uint32_t(h >> 32);
+  switch (type_) {
+    case SamplerType::Independent:
+      return independent_bits(seed_, pixel, sample_index, dimension);
+    case SamplerType::Stratified:
+      return stratified_bits(seed_, pixel, sample_index, dimension);
+    case SamplerType::Halton:
+      if (dimension >= kHaltonDimensions)
+        return independent_bits(seed_, pixel, sample_index, dimension);
+      return halton_scrambled(sample_index, primes().p[dimension],
+                              halton_shift_seed(pixel, dimension),
+                              halton_mult_seed(pixel, dimension));
+    case SamplerType::Sobol:
+      break;
   }
   // Padded 2D Sobol (Burley 2020's scheme with pairs instead of quadruples): dimensions come in
   // pairs (pixel x/y, lens u/v, light u/v, ...); each pair takes Sobol dimensions 0 and 1, whose
@@ -130,11 +338,71 @@ uint32_t Sampler::bits(uint64_t pixel, uint32_t sample_index, uint32_t dimension
   // per-pixel, per-dimension seed. Pairs of higher Sobol dimensions are not (0, m, 2)-nets
   // (dimensions 2 and 3 share their first direction numbers), which is why pairs, not groups of
   // four, are padded.
-  const uint32_t pair = dimension / 2u;
-  const uint32_t shuffle_seed = uint32_t(hash4(seed_, pixel, kShuffleTag, pair) >> 32);
-  const uint32_t scramble_seed = uint32_t(hash4(seed_, pixel, kScrambleTag, dimension) >> 32);
-  const uint32_t shuffled = nested_uniform_scramble(sample_index, shuffle_seed);
-  return nested_uniform_scramble(sobol32(shuffled, dimension % 2u), scramble_seed);
+  return sobol_bits(sample_index, dimension, sobol_shuffle_seed(pixel, dimension),
+                    sobol_scramble_seed(pixel, dimension));
+}
+
+uint64_t Sampler::halton_shift_seed(uint64_t pixel, uint32_t dimension) const {
+  return hash4(seed_ ^ kHaltonTag, pixel, dimension, 1);
+}
+
+uint64_t Sampler::halton_mult_seed(uint64_t pixel, uint32_t dimension) const {
+  return hash4(seed_ ^ kHaltonTag, pixel, dimension, 2);
+}
+
+uint32_t Sampler::halton_value_bits(uint32_t sample_index, uint32_t dimension, uint64_t shift_seed,
+                                    uint64_t mult_seed) {
+  return halton_scrambled(sample_index, primes().p[dimension % kHaltonDimensions], shift_seed,
+                          mult_seed);
+}
+
+uint32_t Sampler::sobol_shuffle_seed(uint64_t pixel, uint32_t dimension) const {
+  return uint32_t(hash4(seed_, pixel, kShuffleTag, dimension / 2u) >> 32);
+}
+
+uint32_t Sampler::sobol_scramble_seed(uint64_t pixel, uint32_t dimension) const {
+  return uint32_t(hash4(seed_, pixel, kScrambleTag, dimension) >> 32);
+}
+
+uint32_t Sampler::sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t shuffle_seed,
+                             uint32_t scramble_seed) {
+  // nested_uniform_scramble(sobol32(nested_uniform_scramble(i, s1)), s2), computed in the
+  // bit-reversed domain to save two of the four bit reversals:
+  //   y = LK(reverse(i), s1)  (so the shuffled index is reverse(y)),
+  //   z = reverse(sobol32(reverse(y))) by the reversed tables,  result = reverse(LK(z, s2)).
+  static const SobolMatrices& m = sobol_matrices();
+  const uint32_t y = laine_karras_permutation(reverse_bits32(sample_index), shuffle_seed);
+  const auto& t = m.reversed[dimension % 2u];
+  const uint32_t z = t[0][y & 0xffu] ^ t[1][(y >> 8) & 0xffu] ^ t[2][(y >> 16) & 0xffu] ^
+                     t[3][y >> 24];
+  return reverse_bits32(laine_karras_permutation(z, scramble_seed));
+}
+
+float PixelSampler::value(uint32_t sample_index, uint32_t dimension) const {
+  const SamplerType type = sampler_->type();
+  if ((type != SamplerType::Sobol && type != SamplerType::Halton) ||
+      dimension >= kCachedDimensions)
+    return sampler_->value(pixel_, sample_index, dimension);
+  const uint64_t bit = uint64_t(1) << (dimension % 64);
+  uint64_t& valid = valid_[dimension / 64];
+  if (type == SamplerType::Halton) {
+    if (!(valid & bit)) {
+      halton_[dimension][0] = sampler_->halton_shift_seed(pixel_, dimension);
+      halton_[dimension][1] = sampler_->halton_mult_seed(pixel_, dimension);
+      valid |= bit;
+    }
+    return fraction_to_float(Sampler::halton_value_bits(sample_index, dimension,
+                                                        halton_[dimension][0],
+                                                        halton_[dimension][1]));
+  }
+  if (!(valid & bit)) {
+    if (dimension % 2u == 0 || !(valid & (bit >> 1)))
+      shuffle_[dimension / 2] = sampler_->sobol_shuffle_seed(pixel_, dimension);
+    scramble_[dimension] = sampler_->sobol_scramble_seed(pixel_, dimension);
+    valid |= bit;
+  }
+  return fraction_to_float(
+      Sampler::sobol_bits(sample_index, dimension, shuffle_[dimension / 2], scramble_[dimension]));
 }
 
 }  // namespace rf

@@ -5,11 +5,37 @@
 //
 // Dimension layout used by the integrators (never depends on what happened on the path):
 //   0, 1   pixel jitter (box filter: sample position (x + u0, y + u1))
-//   2, 3   lens (reserved)
+//   2, 3   thin lens position (concentric disk)
 //   4 + 8 b + k   for bounce b: k = 0-1 light position, 2-3 BSDF direction, 4 light
-//                 selection, 5 Russian roulette, 6-7 spare.
+//                 selection, 5 Russian roulette, 6 BSDF lobe selection, 7 glass
+//                 reflect/refract choice.
 // 2D quantities sit on an even dimension and the next one: the sobol sampler pads pairs
-// (2p, 2p + 1), each pair a scrambled (0, m, 2)-net.
+// (2p, 2p + 1), each pair a scrambled (0, m, 2)-net; the stratified sampler stratifies the
+// pixel pair on a jittered grid and every other dimension by a Latin hypercube.
+//
+// Samplers:
+//   independent  hashed values, no correlation between samples.
+//   stratified   each batch of the farm's fixed schedule (batch_containing) is stratified on
+//                its own: for a batch of S = 2^k samples, sample j of the batch falls in cell
+//                j of a 2^ceil(k/2) x 2^floor(k/2) jittered grid on the pixel pair, and every
+//                other dimension d gets a Latin hypercube: stratum pi_d(j) of S with
+//                pi_d a random permutation that is a pure function of (seed, pixel, batch,
+//                d); the pairs (2p, 2p + 1) with p >= 1 are therefore N-rooks patterns. The
+//                stratification uses the unclipped batch size, so a batch clipped at
+//                max_spp is a subset of a stratified batch (still unbiased: every sample is
+//                marginally uniform).
+//   halton       radical inverse in the d-th prime base b with random digit permutations
+//                (Matousek's random digit scrambling, with permutations from the affine
+//                family): digit position i of dimension d is mapped by
+//                digit -> (a_i digit + c_i) mod b, a_i in [1, b - 1], c_i in [0, b - 1], drawn
+//                as a pure function of (seed, pixel, d, i) (for b = 2 this is every
+//                permutation: an xor per digit). Each pixel therefore gets an independently
+//                randomized Halton sequence (a per-pixel digit scramble; no index offset and
+//                no Cranley-Patterson rotation). Digits are permuted down to 2^-34, including
+//                the zero digits above the index, so every value is exactly uniform over the
+//                randomization. Dimensions >= kHaltonDimensions (bounce 31 and deeper) fall
+//                back to independent values.
+//   sobol        Owen-scrambled Sobol (0, m, 2)-nets on padded pairs (see samplers.cpp).
 #pragma once
 
 #include <cstdint>
@@ -17,9 +43,9 @@
 
 namespace rf {
 
-enum class SamplerType { Sobol, Independent };
+enum class SamplerType { Sobol, Independent, Stratified, Halton };
 
-// Parses "sobol" / "independent"; false for anything else.
+// Parses "sobol" / "independent" / "stratified" / "halton"; false for anything else.
 bool parse_sampler_type(const std::string& name, SamplerType* out);
 const char* sampler_type_name(SamplerType t);
 
@@ -31,9 +57,32 @@ namespace dim {
 constexpr uint32_t kPixelX = 0, kPixelY = 1, kLensU = 2, kLensV = 3;
 constexpr uint32_t kFirstBounce = 4, kPerBounce = 8;
 constexpr uint32_t kLightU = 0, kLightV = 1, kBsdfU = 2, kBsdfV = 3, kLightSelect = 4,
-                   kRoulette = 5;
+                   kRoulette = 5, kLobe = 6, kFresnel = 7;
 inline uint32_t bounce(uint32_t b, uint32_t k) { return kFirstBounce + kPerBounce * b + k; }
 }  // namespace dim
+
+// ---- The farm's fixed batch schedule (server/renderfarm/tiling.py): sizes 1, 1, 2, 4, 8, 16,
+// 32, then 64 forever; batch b starts at the sum of the earlier sizes, so every batch is a power
+// of two aligned to its size. Sizes here are unclipped (max_spp clips only the last batch).
+struct BatchRange {
+  uint32_t index = 0;  // b
+  uint64_t start = 0;  // first global sample index of the batch
+  uint32_t size = 0;   // S_b, a power of two
+};
+constexpr uint32_t kBatchCap = 64;
+BatchRange batch_range(uint32_t batch_index);
+// The batch whose [start, start + size) contains sample_index.
+BatchRange batch_containing(uint64_t sample_index);
+
+// Number of Halton dimensions (one prime base each); higher dimensions are independent.
+constexpr uint32_t kHaltonDimensions = 256;
+// The d-th prime (d < kHaltonDimensions): 2, 3, 5, 7, ...
+uint32_t halton_base(uint32_t d);
+// A random permutation of [0, n) evaluated at i (cycle-walking a hashed bijection on the next
+// power of two, followed by a hashed rotation so that every output is exactly equally likely
+// over seeds up to hash quality). n >= 1, i < n. The stratified sampler's cell and
+// Latin hypercube permutations.
+uint32_t permute_index(uint32_t i, uint32_t n, uint64_t seed);
 
 // ---- Building blocks, exposed for the tests.
 uint64_t mix64(uint64_t x);  // splitmix64 finalizer: a bijection with full avalanche
@@ -60,18 +109,49 @@ class Sampler {
   float value(uint64_t pixel, uint32_t sample_index, uint32_t dimension) const {
     return fraction_to_float(bits(pixel, sample_index, dimension));
   }
+  // The sobol sampler's two per-(pixel, dimension) seeds (index shuffle of the dimension's
+  // pair, value scramble of the dimension) and its value given them.
+  uint32_t sobol_shuffle_seed(uint64_t pixel, uint32_t dimension) const;
+  uint32_t sobol_scramble_seed(uint64_t pixel, uint32_t dimension) const;
+  static uint32_t sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t shuffle_seed,
+                             uint32_t scramble_seed);
+  // The halton sampler's per-(pixel, dimension) random bits (digit shifts, digit multipliers)
+  // and its value given them (dimension < kHaltonDimensions).
+  uint64_t halton_shift_seed(uint64_t pixel, uint32_t dimension) const;
+  uint64_t halton_mult_seed(uint64_t pixel, uint32_t dimension) const;
+  static uint32_t halton_value_bits(uint32_t sample_index, uint32_t dimension,
+                                    uint64_t shift_seed, uint64_t mult_seed);
 
  private:
   SamplerType type_;
   uint64_t seed_;
 };
 
+// The sampler bound to one pixel: the same values as Sampler::value(pixel, ...), with the
+// per-(pixel, dimension) scrambling seeds of the sobol sampler computed once per pixel and
+// dimension instead of once per sample (they do not depend on the sample index). Not
+// thread-safe (the cache is filled lazily): one per thread.
+class PixelSampler {
+ public:
+  PixelSampler(const Sampler& sampler, uint64_t pixel) : sampler_(&sampler), pixel_(pixel) {}
+  uint64_t pixel() const { return pixel_; }
+  float value(uint32_t sample_index, uint32_t dimension) const;
+
+ private:
+  static constexpr uint32_t kCachedDimensions = 128;
+  const Sampler* sampler_;
+  uint64_t pixel_;
+  mutable uint32_t shuffle_[kCachedDimensions / 2] = {};
+  mutable uint32_t scramble_[kCachedDimensions] = {};
+  mutable uint64_t halton_[kCachedDimensions][2] = {};
+  mutable uint64_t valid_[kCachedDimensions / 64] = {};
+};
+
 // Convenience view for one (pixel, sample) pair.
 struct SampleStream {
-  const Sampler* sampler;
-  uint64_t pixel;
+  const PixelSampler* sampler;
   uint32_t index;
-  float get(uint32_t dimension) const { return sampler->value(pixel, index, dimension); }
+  float get(uint32_t dimension) const { return sampler->value(index, dimension); }
 };
 
 }  // namespace rf

@@ -26,7 +26,8 @@ std::vector<Key> all_keys() {
 // pbrt's Sampler.ConsistentValues, adapted: the same (seed, pixel, index, dim) gives the same
 // value whatever order, thread or batch asks for it.
 TEST(Samplers, ConsistentValues) {
-  for (SamplerType type : {SamplerType::Sobol, SamplerType::Independent}) {
+  for (SamplerType type : {SamplerType::Sobol, SamplerType::Independent,
+                           SamplerType::Stratified, SamplerType::Halton}) {
     const Sampler sampler(type, 42);
     const std::vector<Key> keys = all_keys();
     std::vector<uint32_t> reference(keys.size());
@@ -39,6 +40,17 @@ TEST(Samplers, ConsistentValues) {
     const Sampler again(type, 42);
     for (size_t i : order)
       ASSERT_EQ(again.bits(keys[i].pixel, keys[i].index, keys[i].dim), reference[i]);
+    // The per-pixel cached path (render_rect's) gives the same values, in any order.
+    for (size_t i : order) {
+      const PixelSampler ps(sampler, keys[i].pixel);
+      ASSERT_EQ(ps.value(keys[i].index, keys[i].dim), fraction_to_float(reference[i]));
+    }
+    for (uint64_t pixel : {0ull, 511ull}) {
+      const PixelSampler ps(sampler, pixel);
+      for (uint32_t dim = 140; dim-- > 0;)
+        for (uint32_t index : {69u, 3u, 0u})
+          ASSERT_EQ(ps.value(index, dim), sampler.value(pixel, index, dim));
+    }
     // Two threads, interleaved halves.
     std::vector<uint32_t> threaded(keys.size());
     auto work = [&](size_t first) {
@@ -195,7 +207,129 @@ TEST(Samplers, ParseNames) {
   EXPECT_EQ(t, SamplerType::Sobol);
   EXPECT_TRUE(parse_sampler_type("independent", &t));
   EXPECT_EQ(t, SamplerType::Independent);
-  EXPECT_FALSE(parse_sampler_type("halton", &t));
+  EXPECT_TRUE(parse_sampler_type("halton", &t));
+  EXPECT_EQ(t, SamplerType::Halton);
+  EXPECT_TRUE(parse_sampler_type("stratified", &t));
+  EXPECT_EQ(t, SamplerType::Stratified);
+  EXPECT_FALSE(parse_sampler_type("sobol2", &t));
+  for (SamplerType u : {SamplerType::Sobol, SamplerType::Independent, SamplerType::Stratified,
+                        SamplerType::Halton}) {
+    ASSERT_TRUE(parse_sampler_type(sampler_type_name(u), &t));
+    EXPECT_EQ(t, u);
+  }
+}
+
+// The schedule of server/renderfarm/tiling.py, written out from its specification: sizes
+// 1, 1, 2, 4, 8, 16, 32, 64, 64, 64, ...; batch b starts at the sum of the earlier sizes.
+TEST(BatchSchedule, MatchesTheFarmSchedule) {
+  const uint64_t starts[] = {0, 1, 2, 4, 8, 16, 32, 64, 128, 192, 256, 320};
+  const uint32_t sizes[] = {1, 1, 2, 4, 8, 16, 32, 64, 64, 64, 64, 64};
+  for (uint32_t b = 0; b < 12; ++b) {
+    EXPECT_EQ(batch_range(b).start, starts[b]) << b;
+    EXPECT_EQ(batch_range(b).size, sizes[b]) << b;
+    EXPECT_EQ(batch_range(b).index, b);
+  }
+  // Every index lies in exactly one batch; batches are powers of two aligned to their size.
+  uint32_t expected_batch = 0;
+  for (uint64_t i = 0; i < 5000; ++i) {
+    if (i == batch_range(expected_batch).start + batch_range(expected_batch).size)
+      ++expected_batch;
+    const BatchRange r = batch_containing(i);
+    ASSERT_EQ(r.index, expected_batch) << i;
+    ASSERT_LE(r.start, i);
+    ASSERT_LT(i, r.start + r.size);
+    ASSERT_EQ(r.size & (r.size - 1), 0u);
+    ASSERT_EQ(r.start % r.size, 0u);
+  }
+  EXPECT_EQ(batch_containing(63).index, 6u);
+  EXPECT_EQ(batch_containing(64).index, 7u);
+  EXPECT_EQ(batch_containing(191).index, 8u);
+  EXPECT_EQ(batch_containing((uint64_t(1) << 31) - 1).start % 64, 0u);
+}
+
+TEST(Samplers, StratifiedBatchIsAJitteredGridPaddedWithLatinHypercubes) {
+  const Sampler s(SamplerType::Stratified, 9);
+  for (uint64_t pixel : {0ull, 77ull}) {
+    for (uint32_t b = 0; b < 10; ++b) {
+      const BatchRange r = batch_range(b);
+      uint32_t k = 0;
+      while ((1u << k) < r.size) ++k;
+      const uint32_t nx = 1u << ((k + 1) / 2), ny = 1u << (k / 2);
+      std::vector<int> cells(r.size, 0);
+      std::vector<std::vector<int>> strata(6, std::vector<int>(r.size, 0));
+      for (uint32_t j = 0; j < r.size; ++j) {
+        const uint32_t i = uint32_t(r.start + j);
+        const uint32_t cx = uint32_t(s.value(pixel, i, 0) * float(nx));
+        const uint32_t cy = uint32_t(s.value(pixel, i, 1) * float(ny));
+        ++cells[cy * nx + cx];
+        for (uint32_t d = 2; d < 8; ++d) ++strata[d - 2][uint32_t(s.value(pixel, i, d) * float(r.size))];
+      }
+      for (int c : cells) EXPECT_EQ(c, 1) << "batch " << b;
+      for (const auto& st : strata)
+        for (int c : st) EXPECT_EQ(c, 1) << "batch " << b;
+    }
+  }
+  // Different batches use different Latin hypercube permutations: batch 8 and 9 differ.
+  int same = 0;
+  for (uint32_t j = 0; j < 64; ++j)
+    same += uint32_t(s.value(0, 128 + j, 4) * 64.f) == uint32_t(s.value(0, 192 + j, 4) * 64.f);
+  EXPECT_LT(same, 16);
+}
+
+TEST(Samplers, HaltonFirstBToTheMPointsFillEveryElementaryInterval) {
+  // Digit permutations keep the radical inverse's defining property: indices 0 .. b^m - 1
+  // hit each interval [k b^-m, (k + 1) b^-m) exactly once.
+  const Sampler s(SamplerType::Halton, 4);
+  for (uint32_t dim : {0u, 1u, 2u, 5u, 40u}) {
+    const uint32_t b = halton_base(dim);
+    uint32_t n = b;
+    while (n * b <= 256) n *= b;
+    std::vector<int> hits(n, 0);
+    for (uint32_t i = 0; i < n; ++i) ++hits[uint32_t(double(s.value(12, i, dim)) * n)];
+    for (int h : hits) EXPECT_EQ(h, 1) << "dim " << dim << " base " << b;
+  }
+  EXPECT_EQ(halton_base(0), 2u);
+  EXPECT_EQ(halton_base(1), 3u);
+  EXPECT_EQ(halton_base(5), 13u);
+  EXPECT_EQ(halton_base(255), 1619u);
+}
+
+TEST(Samplers, SobolFastPathEqualsTheDefinition) {
+  // sobol_bits works in the bit-reversed domain; it must equal the nested definition.
+  for (uint32_t i : {0u, 1u, 2u, 7u, 100u, 65535u, 123456789u, 0xffffffffu})
+    for (uint32_t dim : {0u, 1u, 6u, 9u})
+      for (uint32_t s1 : {0u, 0x9e3779b9u})
+        for (uint32_t s2 : {0u, 0x7f4a7c15u})
+          ASSERT_EQ(Sampler::sobol_bits(i, dim, s1, s2),
+                    nested_uniform_scramble(sobol32(nested_uniform_scramble(i, s1), dim % 2), s2));
+}
+
+TEST(Samplers, PermuteIndexIsAPermutation) {
+  for (uint32_t n : {1u, 2u, 3u, 5u, 64u, 97u, 1619u})
+    for (uint64_t seed : {0ull, 1ull, 0xdeadbeefull}) {
+      std::vector<int> seen(n, 0);
+      for (uint32_t i = 0; i < n; ++i) ++seen[permute_index(i, n, seed)];
+      for (int c : seen) ASSERT_EQ(c, 1) << n;
+    }
+}
+
+// Randomized samplers are unbiased only if every single value is uniform over the
+// randomization: check the marginal distribution of one (index, dimension) over pixels.
+TEST(Samplers, StratifiedAndHaltonValuesAreUniformOverTheRandomization) {
+  for (SamplerType type : {SamplerType::Stratified, SamplerType::Halton}) {
+    const Sampler s(type, 11);
+    for (uint32_t index : {0u, 5u, 100u})
+      for (uint32_t dim : {0u, 1u, 3u, 6u, 300u}) {
+        const int bins = 64, n = 40000;
+        std::vector<double> count(bins, 0.0);
+        for (int p = 0; p < n; ++p) count[size_t(s.value(uint64_t(p), index, dim) * bins)] += 1.0;
+        double stat = 0.0;
+        const double e = double(n) / bins;
+        for (double c : count) stat += (c - e) * (c - e) / e;
+        EXPECT_LT(stat, chi2_critical(bins - 1))
+            << sampler_type_name(type) << " index " << index << " dim " << dim;
+      }
+  }
 }
 
 }  // namespace

@@ -8,6 +8,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <vector>
 
 #include "vecmath.h"
 
@@ -118,5 +120,175 @@ inline float power_heuristic(float pdf_a, float pdf_b) {
   if (std::isinf(a)) return 1.f;
   return a / (a + b);
 }
+
+// ---- GGX (Trowbridge-Reitz) microfacet distribution, isotropic roughness alpha > 0, in the
+// local frame of the (shading) normal. D is a density of microfacet normals per unit
+// projected area: integral of D(m) m.z dm over the hemisphere = 1.
+inline float ggx_d(Vec3 m, float alpha) {
+  if (m.z <= 0.f) return 0.f;
+  const float a2 = alpha * alpha;
+  const float c2 = m.z * m.z;
+  const float t = c2 * (a2 - 1.f) + 1.f;
+  return a2 / (kPi * t * t);
+}
+// Smith Lambda of direction w (Heitz 2014, eq. 72): (-1 + sqrt(1 + alpha^2 tan^2)) / 2.
+inline float ggx_lambda(Vec3 w, float alpha) {
+  const float c2 = w.z * w.z;
+  if (c2 <= 0.f) return 1e30f;
+  const float t2 = std::max(0.f, 1.f - c2) / c2;
+  return 0.5f * (-1.f + std::sqrt(1.f + alpha * alpha * t2));
+}
+inline float ggx_g1(Vec3 w, float alpha) { return 1.f / (1.f + ggx_lambda(w, alpha)); }
+// Height-correlated Smith masking-shadowing G2 (Heitz 2014, eq. 99).
+inline float ggx_g2(Vec3 wo, Vec3 wi, float alpha) {
+  return 1.f / (1.f + ggx_lambda(wo, alpha) + ggx_lambda(wi, alpha));
+}
+
+namespace detail {
+struct VndfFrame {
+  Vec3 vh, t1, t2;
+  float s;
+};
+inline VndfFrame vndf_frame(Vec3 wo, float alpha) {
+  VndfFrame f;
+  f.vh = normalize(Vec3(alpha * wo.x, alpha * wo.y, wo.z));
+  const float lensq = f.vh.x * f.vh.x + f.vh.y * f.vh.y;
+  f.t1 = lensq > 0.f ? Vec3(-f.vh.y, f.vh.x, 0.f) / std::sqrt(lensq) : Vec3(1.f, 0.f, 0.f);
+  f.t2 = cross(f.vh, f.t1);
+  f.s = 0.5f * (1.f + f.vh.z);
+  return f;
+}
+}  // namespace detail
+
+// ---- GGX visible normals (Heitz 2018, "Sampling the GGX Distribution of Visible Normals"):
+// maps u to a microfacet normal m distributed as D_wo(m) = G1(wo) max(0, wo.m) D(m) / wo.z.
+// Requires wo.z > 0 (unit, local frame).
+inline Vec3 sample_ggx_vndf(Vec3 wo, float alpha, Point2 u) {
+  const detail::VndfFrame f = detail::vndf_frame(wo, alpha);
+  const float r = std::sqrt(u.x), phi = 2.f * kPi * u.y;
+  const float p1 = r * std::cos(phi);
+  float p2 = r * std::sin(phi);
+  p2 = (1.f - f.s) * std::sqrt(std::max(0.f, 1.f - p1 * p1)) + f.s * p2;
+  const Vec3 nh = f.t1 * p1 + f.t2 * p2 + f.vh * std::sqrt(std::max(0.f, 1.f - p1 * p1 - p2 * p2));
+  return normalize(Vec3(alpha * nh.x, alpha * nh.y, std::max(1e-7f, nh.z)));
+}
+// Density of sample_ggx_vndf per unit solid angle of m.
+inline float ggx_vndf_pdf(Vec3 wo, Vec3 m, float alpha) {
+  if (wo.z <= 0.f) return 0.f;
+  return ggx_g1(wo, alpha) * std::max(0.f, dot(wo, m)) * ggx_d(m, alpha) / wo.z;
+}
+inline Point2 invert_ggx_vndf(Vec3 wo, float alpha, Vec3 m) {
+  const detail::VndfFrame f = detail::vndf_frame(wo, alpha);
+  const Vec3 nh = normalize(Vec3(m.x / alpha, m.y / alpha, m.z));
+  const float p1 = dot(nh, f.t1);
+  const float p2w = dot(nh, f.t2);
+  const float p2 = (p2w - (1.f - f.s) * std::sqrt(std::max(0.f, 1.f - p1 * p1))) / f.s;
+  float phi = std::atan2(p2, p1);
+  if (phi < 0.f) phi += 2.f * kPi;
+  return {std::min(1.f, p1 * p1 + p2 * p2), phi / (2.f * kPi)};
+}
+
+// ---- Piecewise-constant 1D distribution on [0, 1) with n equal cells (pbrt's
+// PiecewiseConstant1D). Weights >= 0; if all are 0 the distribution is uniform.
+class Distribution1D {
+ public:
+  Distribution1D() = default;
+  explicit Distribution1D(const std::vector<float>& weights) : func_(weights) {
+    const size_t n = func_.size();
+    cdf_.assign(n + 1, 0.0);
+    for (size_t i = 0; i < n; ++i) {
+      func_[i] = std::isfinite(func_[i]) ? std::max(0.f, func_[i]) : 0.f;
+      cdf_[i + 1] = cdf_[i] + double(func_[i]) / double(n);
+    }
+    integral_ = cdf_[n];
+    if (!(integral_ > 0.0)) {
+      for (size_t i = 0; i < n; ++i) {
+        func_[i] = 1.f;
+        cdf_[i + 1] = double(i + 1) / double(n);
+      }
+      integral_ = 1.0;
+    } else {
+      for (size_t i = 1; i <= n; ++i) cdf_[i] /= integral_;
+    }
+  }
+  size_t size() const { return func_.size(); }
+  double integral() const { return integral_; }  // mean of the weights
+  // x in [0, 1); *pdf = density at x (func / integral); *cell = the cell of x.
+  float sample(float u, float* pdf, size_t* cell) const {
+    const size_t n = func_.size();
+    // Largest i with cdf[i] <= u.
+    size_t i = size_t(std::upper_bound(cdf_.begin(), cdf_.end(), double(u)) - cdf_.begin());
+    i = std::min(n - 1, i > 0 ? i - 1 : 0);
+    while (i + 1 < n && func_[i] == 0.f) ++i;  // never land in an empty cell
+    const double width = cdf_[i + 1] - cdf_[i];
+    double du = width > 0.0 ? (double(u) - cdf_[i]) / width : 0.5;
+    du = std::min(std::max(du, 0.0), 1.0);
+    if (pdf) *pdf = float(double(func_[i]) / integral_);
+    if (cell) *cell = i;
+    const float x = float((double(i) + du) / double(n));
+    return std::min(x, 0.99999994f);
+  }
+  float pdf(float x) const {
+    const size_t n = func_.size();
+    const size_t i = std::min(n - 1, size_t(std::max(0.f, x) * float(n)));
+    return float(double(func_[i]) / integral_);
+  }
+  float invert(float x) const {
+    const size_t n = func_.size();
+    const size_t i = std::min(n - 1, size_t(std::max(0.f, x) * float(n)));
+    const double frac = double(x) * double(n) - double(i);
+    return float(cdf_[i] + frac * (cdf_[i + 1] - cdf_[i]));
+  }
+  float weight(size_t i) const { return func_[i]; }
+
+ private:
+  std::vector<float> func_;
+  std::vector<double> cdf_;
+  double integral_ = 0.0;
+};
+
+// ---- Piecewise-constant 2D distribution on [0, 1)^2 over an nu x nv grid (row-major
+// weights[v * nu + u]): the row v by its marginal, then u by the row's conditional.
+class Distribution2D {
+ public:
+  Distribution2D() = default;
+  Distribution2D(const std::vector<float>& weights, size_t nu, size_t nv) {
+    std::vector<float> marginal(nv);
+    rows_.reserve(nv);
+    for (size_t v = 0; v < nv; ++v) {
+      rows_.emplace_back(std::vector<float>(weights.begin() + std::ptrdiff_t(v * nu),
+                                            weights.begin() + std::ptrdiff_t((v + 1) * nu)));
+      // An all-zero row became uniform inside Distribution1D; its marginal weight stays 0.
+      double sum = 0.0;
+      for (size_t u = 0; u < nu; ++u) sum += std::max(0.f, weights[v * nu + u]);
+      marginal[v] = float(sum / double(nu));
+    }
+    marginal_ = Distribution1D(marginal);
+  }
+  // Density with respect to area of [0, 1)^2.
+  Point2 sample(Point2 u, float* pdf) const {
+    float pv = 0.f, pu = 0.f;
+    size_t row = 0;
+    const float y = marginal_.sample(u.y, &pv, &row);
+    const float x = rows_[row].sample(u.x, &pu, nullptr);
+    if (pdf) *pdf = pv * pu;
+    return {x, y};
+  }
+  float pdf(Point2 p) const {
+    const size_t nv = rows_.size();
+    const size_t row = std::min(nv - 1, size_t(std::max(0.f, p.y) * float(nv)));
+    return marginal_.pdf(p.y) * rows_[row].pdf(p.x);
+  }
+  Point2 invert(Point2 p) const {
+    const size_t nv = rows_.size();
+    const size_t row = std::min(nv - 1, size_t(std::max(0.f, p.y) * float(nv)));
+    return {rows_[row].invert(p.x), marginal_.invert(p.y)};
+  }
+  bool empty() const { return rows_.empty(); }
+
+ private:
+  std::vector<Distribution1D> rows_;
+  Distribution1D marginal_;
+};
 
 }  // namespace rf

@@ -175,11 +175,129 @@ TEST(Warps, ConcentricDiskRoundTrip) {
     }
 }
 
+TEST(Warps, ConcentricDiskPdfAndChiSquare) {
+  // The pdf integrates to 1 over the bounding square (it is 1/pi on the disk, 0 outside).
+  const int g = 1000;
+  double integral = 0.0;
+  for (int i = 0; i < g; ++i)
+    for (int j = 0; j < g; ++j)
+      integral += concentric_disk_pdf({-1.f + (i + 0.5f) * 2.f / g, -1.f + (j + 0.5f) * 2.f / g}) *
+                  (4.0 / (double(g) * g));
+  EXPECT_NEAR(integral, 1.0, 2e-3);
+  const int cells = 16, sub = 16, samples = 200000;
+  std::vector<double> observed(cells * cells, 0.0), expected(cells * cells, 0.0);
+  std::mt19937_64 rng(8);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  for (int s = 0; s < samples; ++s) {
+    const Point2 p = sample_concentric_disk({uni(rng), uni(rng)});
+    const int ix = std::min(cells - 1, int((p.x + 1.f) * 0.5f * cells));
+    const int iy = std::min(cells - 1, int((p.y + 1.f) * 0.5f * cells));
+    observed[size_t(iy * cells + ix)] += 1.0;
+  }
+  for (int iy = 0; iy < cells; ++iy)
+    for (int ix = 0; ix < cells; ++ix) {
+      double mass = 0.0;
+      for (int a = 0; a < sub; ++a)
+        for (int b = 0; b < sub; ++b) {
+          const float x = -1.f + (ix + (a + 0.5f) / sub) * 2.f / cells;
+          const float y = -1.f + (iy + (b + 0.5f) / sub) * 2.f / cells;
+          mass += concentric_disk_pdf({x, y}) * 4.0 / (double(cells) * cells * sub * sub);
+        }
+      expected[size_t(iy * cells + ix)] = mass * samples;
+    }
+  int dof = 0;
+  const double stat = chi2_statistic(observed, expected, &dof);
+  EXPECT_LT(stat, chi2_critical(dof));
+}
+
 TEST(Warps, PowerHeuristic) {
   EXPECT_FLOAT_EQ(power_heuristic(1.f, 1.f), 0.5f);
   EXPECT_FLOAT_EQ(power_heuristic(3.f, 1.f), 0.9f);
   EXPECT_FLOAT_EQ(power_heuristic(0.f, 1.f), 0.f);
   EXPECT_FLOAT_EQ(power_heuristic(2.f, 1.f) + power_heuristic(1.f, 2.f), 1.f);
+}
+
+TEST(Warps, GgxVisibleNormals) {
+  for (float alpha : {0.35f, 0.8f})
+    for (Vec3 wo : {normalize(Vec3(0.f, 0.f, 1.f)), normalize(Vec3(0.4f, -0.2f, 0.7f)),
+                    normalize(Vec3(-0.9f, 0.1f, 0.25f))}) {
+      auto pdf = [&](Vec3 m) { return ggx_vndf_pdf(wo, m, alpha); };
+      EXPECT_NEAR(integrate_sphere(pdf, 800, 400), 1.0, 5e-3) << alpha << " " << wo.z;
+      // D itself is normalized over projected area: integral of D(m) m.z = 1.
+      EXPECT_NEAR(integrate_sphere([&](Vec3 m) { return ggx_d(m, alpha) * std::max(0.f, m.z); },
+                                   800, 400),
+                  1.0, 5e-3);
+      auto sample = [&](Point2 u) { return sample_ggx_vndf(wo, alpha, u); };
+      EXPECT_TRUE(sphere_chi2_passes(sample, pdf)) << alpha << " " << wo.z;
+      for (int i = 1; i < 20; ++i)
+        for (int j = 1; j < 20; ++j) {
+          const Point2 u{i / 20.f, j / 20.f};
+          const Point2 back = invert_ggx_vndf(wo, alpha, sample(u));
+          EXPECT_NEAR(back.x, u.x, 1e-3f);
+          EXPECT_NEAR(back.y, u.y, 1e-3f);
+        }
+    }
+}
+
+TEST(Warps, PiecewiseConstant1D) {
+  const Distribution1D d({1.f, 0.f, 3.f, 0.5f, 2.f});
+  double integral = 0.0;
+  for (int i = 0; i < 10000; ++i) integral += d.pdf((i + 0.5f) / 10000.f) / 10000.0;
+  EXPECT_NEAR(integral, 1.0, 1e-4);
+  for (int i = 1; i < 200; ++i) {
+    const float u = i / 200.f;
+    float pdf = 0.f;
+    const float x = d.sample(u, &pdf, nullptr);
+    EXPECT_GT(pdf, 0.f);  // never in the empty cell
+    EXPECT_FLOAT_EQ(pdf, d.pdf(x));
+    EXPECT_NEAR(d.invert(x), u, 1e-5f);
+  }
+  // Chi-square over the 5 cells.
+  std::mt19937_64 rng(4);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  const int n = 100000;
+  std::vector<double> observed(5, 0.0), expected(5, 0.0);
+  for (int s = 0; s < n; ++s) observed[size_t(d.sample(uni(rng), nullptr, nullptr) * 5)] += 1;
+  for (int c = 0; c < 5; ++c) expected[size_t(c)] = d.pdf((c + 0.5f) / 5.f) / 5.0 * n;
+  int dof = 0;
+  const double stat = chi2_statistic(observed, expected, &dof);
+  EXPECT_LT(stat, chi2_critical(dof));
+}
+
+TEST(Warps, PiecewiseConstant2D) {
+  const size_t nu = 8, nv = 6;
+  std::vector<float> w(nu * nv);
+  for (size_t i = 0; i < w.size(); ++i) w[i] = float((i * 7) % 5) + (i % 11 == 0 ? 0.f : 0.25f);
+  const Distribution2D d(w, nu, nv);
+  double integral = 0.0;
+  const int g = 400;
+  for (int i = 0; i < g; ++i)
+    for (int j = 0; j < g; ++j) integral += d.pdf({(i + 0.5f) / g, (j + 0.5f) / g}) / (g * g);
+  EXPECT_NEAR(integral, 1.0, 1e-3);
+  for (int i = 1; i < 30; ++i)
+    for (int j = 1; j < 30; ++j) {
+      const Point2 u{i / 30.f, j / 30.f};
+      float pdf = 0.f;
+      const Point2 p = d.sample(u, &pdf);
+      EXPECT_NEAR(pdf, d.pdf(p), 1e-4f * pdf);
+      const Point2 back = d.invert(p);
+      EXPECT_NEAR(back.x, u.x, 1e-4f);
+      EXPECT_NEAR(back.y, u.y, 1e-4f);
+    }
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  const int n = 200000;
+  std::vector<double> observed(nu * nv, 0.0), expected(nu * nv, 0.0);
+  for (int s = 0; s < n; ++s) {
+    const Point2 p = d.sample({uni(rng), uni(rng)}, nullptr);
+    observed[std::min(nv - 1, size_t(p.y * nv)) * nu + std::min(nu - 1, size_t(p.x * nu))] += 1;
+  }
+  for (size_t v = 0; v < nv; ++v)
+    for (size_t u = 0; u < nu; ++u)
+      expected[v * nu + u] = d.pdf({(u + 0.5f) / nu, (v + 0.5f) / nv}) / double(nu * nv) * n;
+  int dof = 0;
+  const double stat = chi2_statistic(observed, expected, &dof);
+  EXPECT_LT(stat, chi2_critical(dof));
 }
 
 }  // namespace

@@ -1,5 +1,7 @@
-// Scene: triangles in world space, materials, emissive-triangle lights and a camera, with an
-// Embree BVH for ray queries. Units are the glTF file's (metres by convention).
+// Scene: triangles in world space plus instanced meshes, materials, textures, lights and a
+// camera, with an Embree BVH for ray queries (a mesh used by several nodes is built once as
+// its own Embree scene and placed by instance geometries). Units are the glTF file's (metres
+// by convention).
 #pragma once
 
 #include <cstdint>
@@ -11,6 +13,7 @@
 
 #include "lights.h"
 #include "materials.h"
+#include "textures.h"
 #include "vecmath.h"
 
 namespace rf {
@@ -34,29 +37,65 @@ struct Camera {
 };
 
 struct Triangle {
-  Vec3 p[3];                // world-space vertices in glTF winding order
-  Vec3 n[3];                // world-space unit vertex normals (valid if has_normals)
+  Vec3 p[3];                // vertices in glTF winding order (world space, or the mesh's
+                            // local space for instanced meshes)
+  Vec3 n[3];                // unit vertex normals (valid if has_normals)
+  Point2 uv[2][3];          // TEXCOORD_0 and TEXCOORD_1 per vertex (valid if has_uv[set])
   bool has_normals = false;
-  uint32_t material = 0;    // index into Scene::materials()
+  bool has_uv[2] = {false, false};
+  uint32_t material = 0;    // index into the scene's materials
   Vec3 ng;                  // unit geometric normal normalize(cross(p1-p0, p2-p0)): the front
   float area = 0.f;
+};
+
+// A mesh shared by several nodes, in its own local space.
+struct Mesh {
+  std::string name;
+  std::vector<Triangle> triangles;
+};
+struct Instance {
+  uint32_t mesh = 0;  // index into SceneDescription::meshes
+  Mat4 to_world = Mat4::identity();
+};
+
+// An image of the scene, by its encoded bytes (embedded) or its file path.
+struct TextureSource {
+  std::string name;  // for messages
+  std::vector<unsigned char> bytes;
+  std::string mime_type;
+  std::string path;  // used if bytes is empty
+  TextureWrap wrap_s = TextureWrap::Repeat, wrap_t = TextureWrap::Repeat;
 };
 
 // Everything needed to build a Scene; filled by the glTF loader or directly by tests.
 struct SceneDescription {
   std::string source;  // file name or description, used in messages
-  std::vector<Triangle> triangles;
+  std::vector<Triangle> triangles;  // world space (meshes used by one node end up here)
   std::vector<Material> materials;  // at least one if there are triangles
   std::optional<Camera> camera;     // none: the Scene frames the bounding box from +Z
+  std::vector<Mesh> meshes;         // instanced meshes
+  std::vector<Instance> instances;
+  std::vector<PunctualLight> punctual_lights;
+  // Textures referenced by Material::*_tex.texture (indices into this list).
+  std::vector<TextureSource> textures;
 };
+
+// Geometry slot of a hit: 0 for the world triangles, 1 + i for instance i.
+constexpr uint32_t kWorldSlot = 0;
 
 struct Hit {
   float t = 0.f;       // ray parameter (distance for unit directions)
-  uint32_t prim = 0;   // triangle index
+  uint32_t prim = 0;   // triangle index within its slot's triangle list
+  uint32_t slot = kWorldSlot;
   float b1 = 0.f, b2 = 0.f;  // barycentrics of vertices 1 and 2
   Vec3 p;              // world position
   Vec3 ng;             // unit geometric normal (front side, see Triangle::ng)
   Vec3 ns;             // unit shading normal (interpolated, or ng without vertex normals)
+  uint32_t material = 0;
+  Point2 uv[2];        // interpolated texture coordinates (0 where the mesh has none)
+  Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<normal_tex.texcoord> for
+                       // normal mapping (0 if undefined)
+  float tangent_sign = 1.f;  // handedness of (dpdu, dpdv, ng)
 };
 
 class Scene {
@@ -70,6 +109,8 @@ class Scene {
 
   // Closest hit along o + t d for t in (0, tmax); d need not be unit (t is then in units of d).
   bool intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const;
+  // Closest hit distance only (no hit record); the benchmark's raw Embree rate uses it.
+  bool intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const;
   // True if anything blocks o + t d for t in (0, tmax).
   bool occluded(Vec3 o, Vec3 d, float tmax) const;
 
@@ -78,6 +119,20 @@ class Scene {
   const Material& material(uint32_t prim) const {
     return desc_.materials[desc_.triangles[prim].material];
   }
+  const std::vector<Material>& materials() const { return desc_.materials; }
+  const TextureSet& textures() const { return textures_; }
+  // Triangle prim of a slot, in that slot's space, and the slot's transform.
+  const Triangle& triangle(uint32_t slot, uint32_t prim) const {
+    return slot == kWorldSlot ? desc_.triangles[prim]
+                              : desc_.meshes[desc_.instances[slot - 1].mesh].triangles[prim];
+  }
+  // Emitted radiance of the front face of triangle prim of slot at barycentrics (b1, b2),
+  // including the emissive texture.
+  Vec3 emission(uint32_t slot, uint32_t prim, float b1, float b2) const;
+  size_t instance_count() const { return desc_.instances.size(); }
+  size_t mesh_count() const { return desc_.meshes.size(); }
+  // Triangles in the world after instancing (world triangles + sum over instances).
+  uint64_t world_triangle_count() const;
   const Camera& camera() const { return camera_; }
   bool has_file_camera() const { return desc_.camera.has_value(); }
   const LightSet& lights() const { return lights_; }
@@ -90,9 +145,22 @@ class Scene {
   Camera camera_;
   LightSet lights_;
   Vec3 bmin_, bmax_;
+  TextureSet textures_;
   struct Embree;
   std::unique_ptr<Embree> embree_;
 };
+
+// Benchmark hook: while a thread has a RayLog installed, every ray it traces through
+// Scene::intersect/occluded is appended to it (so the benchmark can replay the path tracer's
+// exact rays through bare rtcIntersect1/rtcOccluded1). One thread-local pointer test per ray
+// when unused.
+struct LoggedRay {
+  Vec3 o, d;
+  float tmax;
+  bool shadow;
+};
+using RayLog = std::vector<LoggedRay>;
+void set_thread_ray_log(RayLog* log);
 
 // Loads a .gltf (embedded data: URIs or files next to it) or .glb. Throws SceneError naming
 // the file and the offending node/mesh/accessor/field. Warnings go to *warnings.

@@ -22,7 +22,8 @@ std::vector<std::string> list_cached_scenes(const std::string& dir) {
   for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
     const fs::path& p = it->path();
     const std::string ext = p.extension().string();
-    if ((ext == ".glb" || ext == ".gltf") && is_sha256_hex(p.stem().string()) &&
+    if ((ext == ".glb" || ext == ".gltf" || ext == ".hdr" || ext == ".exr") &&
+        is_sha256_hex(p.stem().string()) &&
         it->is_regular_file(ec))
       out.push_back(p.stem().string());
   }
@@ -30,7 +31,7 @@ std::vector<std::string> list_cached_scenes(const std::string& dir) {
 }
 
 std::string find_cached_scene(const std::string& dir, const std::string& sha256) {
-  for (const char* ext : {".glb", ".gltf"}) {
+  for (const char* ext : {".glb", ".gltf", ".hdr", ".exr"}) {
     const fs::path p = fs::path(dir) / (sha256 + ext);
     std::error_code ec;
     if (fs::is_regular_file(p, ec)) return p.string();

@@ -1,5 +1,6 @@
-// Scene caches of the farm worker: scene files on disk, content-addressed by SHA-256
-// (<dir>/<sha256>.glb|.gltf), and loaded scenes in memory (a small LRU keyed by sha256, each
+// Scene caches of the farm worker: scene files (and environment maps, which the server stores
+// and serves like scenes) on disk, content-addressed by SHA-256
+// (<dir>/<sha256>.glb|.gltf|.hdr|.exr), and loaded scenes in memory (a small LRU keyed by sha256, each
 // scene loaded once even when several threads ask for it at the same time).
 #pragma once
 
@@ -18,7 +19,7 @@ namespace rf {
 
 // $XDG_CACHE_HOME/renderfarm/scenes, else ~/.cache/renderfarm/scenes.
 std::string default_scene_cache_dir();
-// sha256 names of the scene files in dir (files named <64 hex>.glb or .gltf).
+// sha256 names of the cached files in dir (files named <64 hex>.glb/.gltf/.hdr/.exr).
 std::vector<std::string> list_cached_scenes(const std::string& dir);
 // Path of the cached file for sha256, or "" if there is none.
 std::string find_cached_scene(const std::string& dir, const std::string& sha256);

@@ -4,6 +4,7 @@
 
 #include <fstream>
 
+#include "integrators.h"
 #include "test_scenes.h"
 
 namespace rf {
@@ -139,6 +140,76 @@ TEST(Scene, CornellBoxExample) {
   }
   EXPECT_TRUE(red);
   EXPECT_TRUE(green);
+}
+
+}  // namespace
+}  // namespace rf
+
+namespace rf {
+namespace {
+
+// A mesh used by two nodes is built once (one Embree scene, two instances), its emissive
+// triangles become lights with the instance transforms, and the floor between two instanced
+// emitters receives the closed-form irradiance of both (form factors by the corner formula).
+TEST(Instancing, SharedMeshIsBuiltOnceAndLightsTheFloorCorrectly) {
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_materials_specular"],
+  "scene": 0, "scenes": [{"nodes": [0, 1, 2]}],
+  "nodes": [
+    {"mesh": 0, "scale": [10, 10, 1]},
+    {"mesh": 1, "translation": [0.6, 0, 1], "rotation": [1, 0, 0, 0], "scale": [0.25, 0.25, 1]},
+    {"mesh": 1, "translation": [-0.6, 0, 1], "rotation": [1, 0, 0, 0], "scale": [0.25, 0.25, 1]}
+  ],
+  "meshes": [
+    {"name": "floor", "primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1},
+                                       "indices": 3, "material": 0}]},
+    {"name": "lamp", "primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1},
+                                      "indices": 3, "material": 1}]}
+  ],
+  "materials": [
+    {"pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.5, 0.5, 1], "metallicFactor": 0},
+     "extensions": {"KHR_materials_specular": {"specularFactor": 0}}},
+    {"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0},
+     "emissiveFactor": [1, 1, 1]}
+  ],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "instances.gltf", &warnings);
+  EXPECT_EQ(desc.meshes.size(), 1u);
+  EXPECT_EQ(desc.instances.size(), 2u);
+  EXPECT_EQ(desc.triangles.size(), 2u);  // the floor, used once, is flattened
+  desc.camera = testing::look_at({0.f, 0.f, 3.f}, {0.f, 0.f, 0.f}, 1e-4f);
+  Scene scene(std::move(desc), &warnings);
+  EXPECT_EQ(scene.mesh_count(), 1u);
+  EXPECT_EQ(scene.instance_count(), 2u);
+  EXPECT_EQ(scene.world_triangle_count(), 6u);
+  EXPECT_EQ(scene.lights().emitter_count(), 4u);
+  // The instanced emitters face down (rotated 180 degrees about X).
+  Hit hit;
+  ASSERT_TRUE(scene.intersect({0.6f, 0.f, 0.5f}, {0.f, 0.f, 1.f}, 10.f, &hit));
+  EXPECT_NE(hit.slot, kWorldSlot);
+  EXPECT_NEAR(hit.t, 0.5f, 1e-5f);
+  EXPECT_NEAR(hit.ng.z, -1.f, 1e-5f);
+  EXPECT_NEAR(hit.p.x, 0.6f, 1e-5f);
+  auto corner = [](double a, double b, double c) {
+    const double X = a / c, Y = b / c;
+    const double sx = std::sqrt(1 + X * X), sy = std::sqrt(1 + Y * Y);
+    return (X / sx * std::atan(Y / sx) + Y / sy * std::atan(X / sy)) / (2 * M_PI);
+  };
+  // Each emitter spans x in [0.35, 0.85] (mirrored for the other), y in [-0.25, 0.25]: two
+  // corner rectangles of the [0, 0.85] strip minus those of [0, 0.35].
+  const double F_one = 2 * (corner(0.85, 0.25, 1) - corner(0.35, 0.25, 1));
+  const double expected = 0.5 * 1.0 * 2 * F_one;
+  RenderSettings settings;
+  settings.width = settings.height = 1;
+  settings.seed = 4;
+  settings.sampler = SamplerType::Independent;
+  TileBuffer tile;
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 4096, &tile));
+  const double mean = tile.rgb_sum[0] / 4096;
+  const double se = std::sqrt(tile.luminance_m2[0] / 4095 / 4096);
+  EXPECT_LT(se, 0.02 * expected);
+  EXPECT_NEAR(mean, expected, 4 * se);
 }
 
 }  // namespace

@@ -1,6 +1,15 @@
 #include "test_scenes.h"
 
+#include <OpenImageIO/imageio.h>
+
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
 #include <cstring>
+#include <fstream>
+#include <iterator>
+#include <stdexcept>
 #include <vector>
 
 namespace rf {
@@ -13,6 +22,27 @@ void add_quad(SceneDescription* desc, Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32
   a.material = b.material = material;
   desc->triangles.push_back(a);
   desc->triangles.push_back(b);
+}
+
+void add_sphere(SceneDescription* desc, Vec3 center, float radius, uint32_t material, int rings,
+                int segments) {
+  auto point = [&](int i, int j) {
+    const float theta = kPi * float(i) / float(rings), phi = 2.f * kPi * float(j) / float(segments);
+    return center + Vec3(std::sin(theta) * std::cos(phi), std::cos(theta),
+                         -std::sin(theta) * std::sin(phi)) *
+                        radius;
+  };
+  for (int i = 0; i < rings; ++i)
+    for (int j = 0; j < segments; ++j) {
+      // Counter-clockwise seen from outside.
+      const Vec3 a = point(i, j), b = point(i + 1, j), c = point(i + 1, j + 1), d = point(i, j + 1);
+      Triangle t0, t1;
+      t0.p[0] = a, t0.p[1] = b, t0.p[2] = c;
+      t1.p[0] = a, t1.p[1] = c, t1.p[2] = d;
+      t0.material = t1.material = material;
+      desc->triangles.push_back(t0);  // the pole's degenerate ones are dropped by Scene
+      desc->triangles.push_back(t1);
+    }
 }
 
 Camera look_at(Vec3 eye, Vec3 target, float yfov) {
@@ -122,6 +152,52 @@ std::string small_gltf_json() {
   "buffers": [{"byteLength": 132, "uri": ")" +
          uri + R"("}]
 })";
+}
+
+std::string quad_gltf_buffers_json() {
+  std::vector<unsigned char> buf;
+  put_floats(&buf, {-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0});       // [0, 48) positions
+  put_floats(&buf, {0, 0, 1, 0, 0, 1, 0, 0, 1, 0, 0, 1});           // [48, 96) normals
+  put_floats(&buf, {0, 1, 1, 1, 1, 0, 0, 0});                       // [96, 128) uv
+  for (uint16_t i : {0, 1, 2, 0, 2, 3}) {                           // [128, 140) indices
+    buf.push_back(uint8_t(i & 0xff));
+    buf.push_back(uint8_t(i >> 8));
+  }
+  return R"("accessors": [
+    {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+     "min": [-1, -1, 0], "max": [1, 1, 0]},
+    {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC3"},
+    {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC2"},
+    {"bufferView": 3, "componentType": 5123, "count": 6, "type": "SCALAR"}
+  ],
+  "bufferViews": [
+    {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 48, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 96, "byteLength": 32},
+    {"buffer": 0, "byteOffset": 128, "byteLength": 12}
+  ],
+  "buffers": [{"byteLength": 140, "uri": "data:application/octet-stream;base64,)" +
+         base64(buf) + R"("}])";
+}
+
+std::string png_data_uri(int width, int height, int channels,
+                         const std::vector<unsigned char>& pixels) {
+  static int counter = 0;
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("rf_test_" + std::to_string(::getpid()) + "_" +
+                             std::to_string(++counter) + ".png"))
+                               .string();
+  auto out = OIIO::ImageOutput::create(path);
+  if (!out) throw std::runtime_error("cannot create PNG writer");
+  OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
+  if (!out->open(path, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels.data()) ||
+      !out->close())
+    throw std::runtime_error("cannot write " + path);
+  std::ifstream in(path, std::ios::binary);
+  const std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)),
+                                         std::istreambuf_iterator<char>());
+  std::remove(path.c_str());
+  return "data:image/png;base64," + base64(bytes);
 }
 
 }  // namespace testing

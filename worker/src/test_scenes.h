@@ -2,6 +2,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 #include "scene.h"
 
@@ -21,6 +22,22 @@ SceneDescription plane_under_emitter(float rho, float L, float a, float b, float
 // (uint16) floor quad, a non-indexed emissive quad (emissiveStrength 4) under a translated and
 // scaled parent node, a camera on a rotated node, and a LINES primitive that must be skipped.
 std::string small_gltf_json();
+
+// JSON members "accessors", "bufferViews" and "buffers" (no surrounding braces) of a unit
+// quad: z = 0, x and y in [-1, 1], facing +z, as accessors 0 POSITION, 1 NORMAL,
+// 2 TEXCOORD_0 = ((x + 1) / 2, (1 - y) / 2) (glTF's v points down the image) and 3 uint16
+// indices.
+std::string quad_gltf_buffers_json();
+
+// A PNG of width x height 8-bit pixels (channels per pixel, row-major from the top) as a
+// data: URI.
+std::string png_data_uri(int width, int height, int channels,
+                         const std::vector<unsigned char>& pixels);
+
+// A flat-shaded (no vertex normals: shading normal = geometric normal) UV sphere of
+// 2 * rings * (segments) triangles, outward facing.
+void add_sphere(SceneDescription* desc, Vec3 center, float radius, uint32_t material,
+                int rings = 48, int segments = 96);
 
 // Camera looking from eye to target with +Y-ish up.
 Camera look_at(Vec3 eye, Vec3 target, float yfov);

