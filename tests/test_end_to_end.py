@@ -230,3 +230,26 @@ def test_delete_needs_a_finished_job_and_removes_its_data(client):
     assert err.value.status == 404
     assert client.http.get(f"/api/v1/jobs/{job['id']}/events").status_code == 404
     assert client.http.delete(f"/api/v1/jobs/{job['id']}").status_code == 404
+
+
+def test_environment_map_job_equals_the_standalone_render(client, worker_binary, tmp_path):
+    """An uploaded environment map reaches the workers (fetched by hash like a scene) and lights
+    the scene exactly as the standalone renderer's --environment does."""
+    hdr = tmp_path / "sky.hdr"
+    _tiny_hdr(hdr)
+    settings = {"width": 24, "height": 24, "tile_size": 8, "max_spp": 8, "noise_threshold": 0}
+    settings |= {"seed": 2, "environment": str(hdr), "environment_intensity": 3.0}
+    job = client.submit(CORNELL, settings=settings)
+    job = client.wait(job["id"], poll_s=0.1, timeout_s=300)
+    assert job["state"] == "completed", job["error"]
+    farm_exr = tmp_path / "farm.exr"
+    farm_exr.write_bytes(client.image(job["id"], "exr"))
+    alone, plain = tmp_path / "alone.exr", tmp_path / "plain.exr"
+    common = [worker_binary, "render", str(CORNELL), "--width", "24", "--height", "24"]
+    common += ["--spp", "8", "--seed", "2"]
+    sky = ["--environment", str(hdr), "--environment-intensity", "3"]
+    subprocess.run([*common, "-o", str(alone), *sky], check=True, capture_output=True, timeout=300)
+    np.testing.assert_allclose(_rgb(farm_exr), _rgb(alone), rtol=1e-6, atol=1e-7)
+    subprocess.run([*common, "-o", str(plain)], check=True, capture_output=True, timeout=300)
+    # The open front of the box lets the sky in: the environment adds light.
+    assert _rgb(alone).mean() > _rgb(plain).mean()

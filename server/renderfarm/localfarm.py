@@ -106,6 +106,13 @@ class LocalFarm:
         return f"127.0.0.1:{self.grpc_port}"
 
     def start(self, ready_timeout_s: float = 120.0) -> LocalFarm:
+        self.start_server(ready_timeout_s)
+        log_dir = Path(self.data_dir) if self.data_dir else None
+        self.worker_procs = spawn_workers(self.workers, self.grpc_address, self.threads, log_dir)
+        return self
+
+    def start_server(self, ready_timeout_s: float = 120.0) -> None:
+        """(Re)start the server process on the same ports and data directory."""
         args = [sys.executable, "-m", "renderfarm", "server"]
         args += ["--http-port", str(self.http_port), "--grpc-port", str(self.grpc_port)]
         if self.data_dir is not None:
@@ -126,8 +133,6 @@ class LocalFarm:
                     self.stop()
                     raise TimeoutError(f"the server was not ready after {ready_timeout_s} s")
                 time.sleep(0.1)
-        self.worker_procs = spawn_workers(self.workers, self.grpc_address, self.threads, log_dir)
-        return self
 
     def stop(self) -> None:
         stop_processes(self.worker_procs)
