@@ -28,6 +28,7 @@ APT_BUILD=(
   libtinygltf-dev nlohmann-json3-dev libssl-dev libgtest-dev libbenchmark-dev libpq-dev
   python3 python3-venv python3-pip
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
+  prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
 )
 # The shared libraries build/worker/renderfarm-worker is linked against (objdump -p: NEEDED),
 # by the Debian package that ships each; apt brings their own dependencies.

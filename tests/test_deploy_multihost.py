@@ -130,7 +130,7 @@ def standalone_rgb(worker_binary, tmp_path_factory) -> np.ndarray:
 
 def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalone_rgb, tmp_path):
     state_dir, state = netns_farm
-    with Client(state["URL"], timeout=30) as client:
+    with Client(state["URL"], token=state["ADMIN_TOKEN"], timeout=30) as client:
         assert client.ready()
         _wait(lambda: len(client.workers()) == 2, 30, "both workers to connect")
         workers = _workers(client)
@@ -155,9 +155,12 @@ def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalon
             w = _workers(client).get("worker1")
             return w if w and w["tasks_done"] > before and w["tasks_in_flight"] > 0 else None
 
-        busy = _wait(worker1_busy, 60, "worker1 to render part of the second job", poll_s=0.05)
+        _wait(worker1_busy, 60, "worker1 to render part of the second job", poll_s=0.05)
         _farm("cut", str(state_dir), "worker1")
         cut_at = time.monotonic()
+        # Counted after the cut: tasks worker1 finished while the cut was being made count as
+        # before it; nothing may be added once its link is down.
+        busy = _workers(client)["worker1"]
         running = client.get(job["id"])
         assert running["state"] == "running", "the job finished before the cut; make it longer"
         assert running["progress"]["samples_merged"] < TOTAL_SAMPLES

@@ -30,7 +30,12 @@ DASHBOARD = DEPLOY / "grafana" / "dashboards" / "renderfarm.json"
 # The Kubernetes versions the manifests must be valid for: the oldest with gRPC probes GA, and
 # the newest whose schemas kubernetes-validate ships.
 K8S_OLDEST = "1.27.0"
-COMPOSE_ENV = {"RENDERFARM_DB_PASSWORD": "pw0123", "RENDERFARM_GRAFANA_PASSWORD": "pw4567"}
+COMPOSE_ENV = {
+    "RENDERFARM_DB_PASSWORD": "pw0123",
+    "RENDERFARM_GRAFANA_PASSWORD": "pw4567",
+    "RENDERFARM_ADMIN_TOKEN": "adm0123",
+    "RENDERFARM_WORKER_TOKEN": "wrk4567",
+}
 
 
 def _run(args, **kwargs) -> subprocess.CompletedProcess:
@@ -277,6 +282,9 @@ def test_compose_file_passes_docker_compose_config(compose_config):
         env["RENDERFARM_DATABASE_URL"] == "postgresql://renderfarm:pw0123@postgres:5432/renderfarm"
     )
     assert env["RENDERFARM_HTTP_HOST"] == env["RENDERFARM_GRPC_HOST"] == "0.0.0.0"
+    # Beyond loopback the server requires both tokens; compose refuses to start without them.
+    assert env["RENDERFARM_ADMIN_TOKEN"] == "adm0123"
+    assert env["RENDERFARM_WORKER_TOKEN"] == worker["environment"]["RENDERFARM_WORKER_TOKEN"]
     assert server["build"]["dockerfile"] == "deploy/docker/server.Dockerfile"
     assert worker["build"]["dockerfile"] == "deploy/docker/worker.Dockerfile"
     assert Path(server["build"]["context"]).resolve() == ROOT
@@ -290,6 +298,9 @@ def test_compose_file_passes_docker_compose_config(compose_config):
 def test_compose_refuses_missing_passwords_and_invalid_files(tmp_path):
     out = _compose("config", env={"RENDERFARM_GRAFANA_PASSWORD": "x"})
     assert out.returncode != 0 and "RENDERFARM_DB_PASSWORD" in out.stderr
+    no_token = {k: v for k, v in COMPOSE_ENV.items() if k != "RENDERFARM_ADMIN_TOKEN"}
+    out = _compose("config", env=no_token)
+    assert out.returncode != 0 and "RENDERFARM_ADMIN_TOKEN" in out.stderr
     # The check is a real schema validation: a misspelt key is an error.
     broken = tmp_path / "compose.yaml"
     broken.write_text(COMPOSE.read_text().replace("restart: unless-stopped", "restrat: always", 1))
@@ -314,7 +325,7 @@ def test_compose_settings_are_environment_variables_documented_in_the_readme(com
     defaults = Settings()
     for key, value in env.items():
         field = key.removeprefix("RENDERFARM_").lower()
-        if field in ("database_url", "http_host", "grpc_host", "worker_token"):
+        if field in ("database_url", "http_host", "grpc_host", "worker_token", "admin_token"):
             continue
         assert float(value) == float(getattr(defaults, field)), key
 
@@ -383,8 +394,8 @@ def _kustomize() -> list[str]:
 
 SECRETS = {
     "external-db": "RENDERFARM_DATABASE_URL=postgresql://rf:pw@db.internal:5432/renderfarm\n"
-    "RENDERFARM_WORKER_TOKEN=tok\n",
-    "cloudnative-pg": "RENDERFARM_WORKER_TOKEN=tok\n",
+    "RENDERFARM_WORKER_TOKEN=tok\nRENDERFARM_ADMIN_TOKEN=adm\n",
+    "cloudnative-pg": "RENDERFARM_WORKER_TOKEN=tok\nRENDERFARM_ADMIN_TOKEN=adm\n",
 }
 
 

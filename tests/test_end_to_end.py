@@ -253,3 +253,27 @@ def test_environment_map_job_equals_the_standalone_render(client, worker_binary,
     subprocess.run([*common, "-o", str(plain)], check=True, capture_output=True, timeout=300)
     # The open front of the box lets the sky in: the environment adds light.
     assert _rgb(alone).mean() > _rgb(plain).mean()
+
+
+def test_grpc_tells_an_explicit_zero_from_an_unset_setting(farm, cornell_job, client):
+    """RenderSettings fields are proto3 `optional`: noise_threshold 0 (render max_spp
+    everywhere) is not mistaken for "use the default" (0.02)."""
+    job, _ = cornell_job
+    with grpc.insecure_channel(farm.grpc_address) as channel:
+        stub = jobs_pb2_grpc.JobServiceStub(channel)
+        settings = jobs_pb2.RenderSettings(noise_threshold=0.0, max_spp=1, width=8, height=8)
+        got = stub.SubmitJob(
+            jobs_pb2.SubmitJobRequest(scene_sha256=job["scene_sha256"], settings=settings),
+            timeout=10,
+        ).job
+        unset = stub.SubmitJob(
+            jobs_pb2.SubmitJobRequest(
+                scene_sha256=job["scene_sha256"],
+                settings=jobs_pb2.RenderSettings(max_spp=1, width=8, height=8),
+            ),
+            timeout=10,
+        ).job
+    assert got.settings.noise_threshold == 0.0
+    assert unset.settings.noise_threshold == pytest.approx(0.02)
+    for j in (got, unset):
+        client.cancel(j.id)

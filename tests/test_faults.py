@@ -146,32 +146,37 @@ def _pg_ctl(pgdata: Path, *args: str) -> None:
     subprocess.run(cmd, check=True, capture_output=True, timeout=60)
 
 
-def test_database_restart_mid_job_loses_nothing(tmp_path, reference):
+def test_database_restart_mid_job_loses_nothing(tmp_path):
     """PostgreSQL stops mid-job: the server keeps merging, reports unready, and once the
-    database is back it catches up; the job, its tiles and its events are all stored."""
+    database is back it catches up; the job, every merged sample, its tiles and its events
+    are all stored. (A long job at low resolution, so it is still running when the database
+    goes away and comes back.)"""
+    settings = {"width": 48, "height": 48, "tile_size": 16, "max_spp": 6144, "noise_threshold": 0}
+    total = 48 * 48 * 6144
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
             wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
-            job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(lambda: merged_fraction(client, job["id"]) > 0.2, 300, "20% merged")
+            job = client.submit(CORNELL, settings=settings)
+
+            def merged() -> int:
+                return client.get(job["id"])["progress"]["samples_merged"]
+
+            wait_for(lambda: merged() > 0.05 * total, 300, "5% merged")
             pgdata = data / "pg"
             _pg_ctl(pgdata, "stop", "-m", "fast", "-w")
             try:
+                during = merged()
+                wait_for(lambda: merged() > during, 60, "merging to go on without the database")
                 wait_for(lambda: not client.ready(), 30, "the server to report unready")
-                during = client.get(job["id"])["progress"]["samples_merged"]
-                wait_for(
-                    lambda: client.get(job["id"])["progress"]["samples_merged"] > during,
-                    60,
-                    "merging to go on without the database",
-                )
+                assert client.get(job["id"])["state"] == "running"
             finally:
                 _pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"),
                         "-o", f'-h "" -k {pgdata}')  # fmt: skip
             wait_for(client.ready, 60, "the server to be ready again")
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
-            assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+            assert job["progress"]["samples_merged"] == total
         url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
 
         def stored():
@@ -191,7 +196,7 @@ def test_database_restart_mid_job_loses_nothing(tmp_path, reference):
         state, (tiles, min_samples), kinds = wait_for(
             lambda: stored() if stored()[0] == "completed" else None, 30, "the final state stored"
         )
-        assert tiles == 36 and min_samples == 256
+        assert tiles == 9 and min_samples == 6144
         assert {"job_submitted", "job_started", "tile_stopped", "job_finished"} <= kinds
 
 

@@ -201,9 +201,15 @@ PG_EOF
     > "$STATE/db/createdb.log" 2>&1
   local database_url="postgresql://renderfarm:$password@$subnet.2:$PG_PORT/renderfarm"
 
+  # Tokens: the server listens beyond loopback, so it requires an API token for clients and a
+  # worker token (it refuses to start without them). Given ones are used, else new random ones.
+  local admin_token=${RENDERFARM_ADMIN_TOKEN:-$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')}
+  local worker_token=${RENDERFARM_WORKER_TOKEN:-$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')}
+
   # Server host: `renderfarm server` configured by the environment alone.
   mkdir -p "$STATE/server"
   ip netns exec "$(ns server)" env \
+    RENDERFARM_ADMIN_TOKEN="$admin_token" RENDERFARM_WORKER_TOKEN="$worker_token" \
     RENDERFARM_DATABASE_URL="$database_url" \
     RENDERFARM_DATA_DIR="$STATE/server" \
     RENDERFARM_HTTP_HOST=0.0.0.0 RENDERFARM_HTTP_PORT=$HTTP_PORT \
@@ -216,6 +222,7 @@ PG_EOF
     mkdir -p "$STATE/worker$i"
     ip netns exec "$(ns "worker$i")" env \
       RENDERFARM_SERVER="$subnet.3:$GRPC_PORT" \
+      RENDERFARM_WORKER_TOKEN="$worker_token" \
       RENDERFARM_WORKER_ID="worker$i" \
       RENDERFARM_WORKER_THREADS="$threads" \
       RENDERFARM_WORKER_CACHE_DIR="$STATE/worker$i/scenes" \
@@ -226,6 +233,7 @@ PG_EOF
   {
     echo "URL=http://$subnet.3:$HTTP_PORT"
     echo "GRPC=$subnet.3:$GRPC_PORT"
+    echo "ADMIN_TOKEN=$admin_token"
   } >> "$STATE/netfarm.env"
   echo "netns farm $PREFIX up: REST http://$subnet.3:$HTTP_PORT  gRPC $subnet.3:$GRPC_PORT" \
     " database $subnet.2:$PG_PORT  workers $workers  state $STATE"

@@ -1,4 +1,6 @@
-"""The `renderfarm` command: server, up, render, submit, ls, get, cancel, workers."""
+"""The `renderfarm` command: server, up, render, submit, ls, get, watch, cancel, rm, workers,
+token. Client commands talk to $RENDERFARM_URL (or --url) with $RENDERFARM_TOKEN (or --token)
+through renderfarm.client; `token` works on the database with the server's settings."""
 
 from __future__ import annotations
 
@@ -61,7 +63,7 @@ def _server_settings(args: argparse.Namespace, **overrides: Any):
 def _client(args: argparse.Namespace):
     from .client import Client
 
-    return Client(args.url)
+    return Client(args.url, token=getattr(args, "token", None))
 
 
 def _print_json(value: Any) -> None:
@@ -94,19 +96,32 @@ def progress_line(job: dict[str, Any], width: int = 24) -> str:
     )
 
 
-def _watch(client, job_id: str, quiet: bool) -> dict[str, Any]:
+def _watch(client, job_id: str, quiet: bool, as_json: bool = False) -> dict[str, Any]:
+    """Follow the job's Server-Sent Events until it finishes: a progress bar on a terminal,
+    one line per second otherwise, one JSON object per update with as_json."""
     tty = sys.stderr.isatty()
+    last_line = 0.0
 
     def show(job: dict[str, Any]) -> None:
+        nonlocal last_line
+        if as_json:
+            sys.stdout.write(json.dumps(job) + "\n")
+            sys.stdout.flush()
+            return
         if quiet:
             return
+        finished = job["state"] in ("completed", "failed", "cancelled")
+        if not tty and not finished and time.monotonic() - last_line < 1.0:
+            return
+        last_line = time.monotonic()
         line = progress_line(job)
         sys.stderr.write(("\r" + line + "\033[K") if tty else line + "\n")
         sys.stderr.flush()
 
-    poll = 0.25 if tty else 2.0
-    job = client.wait(job_id, on_progress=show, poll_s=poll)
-    if tty and not quiet:
+    job: dict[str, Any] = {}
+    for job in client.watch(job_id):
+        show(job)
+    if tty and not quiet and not as_json:
         sys.stderr.write("\n")
     return job
 
@@ -258,7 +273,70 @@ def cmd_get(args: argparse.Namespace) -> int:
 def cmd_cancel(args: argparse.Namespace) -> int:
     with _client(args) as client:
         job = client.cancel(args.job_id)
-        print(f"{job['id']} {job['state']}")
+        if args.json:
+            _print_json(job)
+        else:
+            print(f"{job['id']} {job['state']}")
+    return 0
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        job = _watch(client, args.job_id, quiet=False, as_json=args.json)
+        return 0 if job.get("state") == "completed" else 1
+
+
+def cmd_rm(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        for job_id in args.job_ids:
+            client.delete(job_id)
+            if args.json:
+                _print_json({"id": job_id, "deleted": True})
+            else:
+                print(f"{job_id} deleted")
+    return 0
+
+
+def cmd_token(args: argparse.Namespace) -> int:
+    from . import tokens
+
+    settings = _server_settings(args)
+    if args.token_command == "create":
+        try:
+            info, token = tokens.create(settings, args.name, args.admin)
+        except ValueError as e:
+            print(f"renderfarm token create: {e}", file=sys.stderr)
+            return 1
+        if args.json:
+            _print_json({**info, "token": token})
+        else:
+            role = "admin " if info["admin"] else ""
+            print(f"created {role}token {info['id']} ({info['name']}); it is shown only once:")
+            print(token)
+        return 0
+    if args.token_command == "ls":
+        listed = tokens.list_all(settings)
+        if args.json:
+            _print_json(listed)
+            return 0
+        print(f"{'ID':8}  {'NAME':24}  {'ADMIN':5}  {'CREATED':19}  REVOKED")
+        for t in listed:
+            created = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t["created_unix_s"]))
+            revoked = (
+                time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t["revoked_unix_s"]))
+                if t["revoked_unix_s"]
+                else "-"
+            )
+            print(f"{t['id']:8}  {t['name']:24}  {str(t['admin']).lower():5}  {created}  {revoked}")
+        return 0
+    revoked = tokens.revoke(settings, args.token_id)
+    if revoked is None:
+        print(f"renderfarm token revoke: no live token with id {args.token_id}", file=sys.stderr)
+        return 1
+    if args.json:
+        _print_json(revoked)
+    else:
+        print(f"revoked token {revoked['id']} ({revoked['name']})")
     return 0
 
 
@@ -317,21 +395,46 @@ def build_parser() -> argparse.ArgumentParser:
     for name, func, help_text in (
         ("ls", cmd_ls, "list jobs"),
         ("get", cmd_get, "show a job"),
+        ("watch", cmd_watch, "follow a job with a progress bar until it finishes"),
         ("cancel", cmd_cancel, "cancel a job"),
+        ("rm", cmd_rm, "delete finished jobs with their stored data"),
         ("workers", cmd_workers, "list connected workers"),
     ):
         q = sub.add_parser(name, help=help_text)
-        if name in ("get", "cancel"):
+        if name in ("get", "cancel", "watch"):
             q.add_argument("job_id")
+        if name == "rm":
+            q.add_argument("job_ids", nargs="+", metavar="job_id")
         if name == "ls":
             q.add_argument("--state", default=None, help="only jobs in this state")
             q.add_argument("--limit", type=int, default=50)
         q.set_defaults(func=func)
     p.set_defaults(func=cmd_submit)
+    client_commands = ("submit", "ls", "get", "watch", "cancel", "rm", "workers")
     for action in sub.choices.values():
-        if action.prog.split()[-1] in ("submit", "ls", "get", "cancel", "workers"):
+        if action.prog.split()[-1] in client_commands:
             action.add_argument("--url", default=None, help="server URL (default $RENDERFARM_URL)")
+            action.add_argument(
+                "--token", default=None, help="API token (default $RENDERFARM_TOKEN)"
+            )
             action.add_argument("--json", action="store_true", help="machine-readable output")
+
+    p = sub.add_parser(
+        "token",
+        help="API tokens (admin): create, ls, revoke; on the database of the server's settings",
+    )
+    token_sub = p.add_subparsers(dest="token_command", required=True)
+    q = token_sub.add_parser("create", help="create a token and print it (once)")
+    q.add_argument("name", help="owner name: the token's jobs are stored under it")
+    q.add_argument("--admin", action="store_true", help="may read, cancel and delete every job")
+    q = token_sub.add_parser("ls", help="list tokens (never the tokens themselves)")
+    q = token_sub.add_parser("revoke", help="revoke a token by id")
+    q.add_argument("token_id")
+    for q in token_sub.choices.values():
+        q.add_argument("--json", action="store_true", help="machine-readable output")
+        for flag in ("--data-dir", "--database-url"):
+            q.add_argument(flag, default=None, help="as for `renderfarm server`")
+        q.set_defaults(func=cmd_token)
     return parser
 
 

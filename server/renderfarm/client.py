@@ -1,18 +1,23 @@
 """Python client of the REST API; the CLI is built on it.
 
 from renderfarm.client import Client
-c = Client("http://127.0.0.1:8080")
+c = Client("http://127.0.0.1:8080")          # or $RENDERFARM_URL; token: $RENDERFARM_TOKEN
 job = c.submit("examples/cornell-box.gltf", settings={"max_spp": 256})
-job = c.wait(job["id"])
+for job in c.watch(job["id"]):                # Server-Sent Events until the job finishes
+    print(job["progress"]["tiles_done"], job["state"])
 open("out.png", "wb").write(c.image(job["id"], "png"))
+
+Errors the server answers with raise ApiError (status, message, field). An https URL is checked
+against the system's certificates, or against RENDERFARM_CA_FILE / ca_file when given.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import ssl
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -37,12 +42,23 @@ def _is_sha256(value: str) -> bool:
     return len(value) == 64 and all(c in "0123456789abcdef" for c in value.lower())
 
 
+BUNDLE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
+
+
 class Client:
-    def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 60.0):
+    def __init__(
+        self,
+        url: str | None = None,
+        token: str | None = None,
+        timeout: float = 60.0,
+        ca_file: str | None = None,
+    ):
         self.url = (url or os.environ.get("RENDERFARM_URL") or "http://127.0.0.1:8080").rstrip("/")
         token = token or os.environ.get("RENDERFARM_TOKEN")
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+        ca_file = ca_file or os.environ.get("RENDERFARM_CA_FILE")
+        verify = ssl.create_default_context(cafile=ca_file) if ca_file else True
+        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout, verify=verify)
 
     def close(self) -> None:
         self.http.close()
@@ -82,8 +98,11 @@ class Client:
             del settings["environment"]
         if scene is not None:
             path = Path(scene)
-            data = path.read_bytes() if path.suffix.lower() == ".glb" else pack_gltf(path)
-            upload_name = path.stem + ".glb"
+            if path.name.lower().endswith(BUNDLE_SUFFIXES):  # unpacked and packed by the server
+                data, upload_name = path.read_bytes(), path.name
+            else:
+                data = path.read_bytes() if path.suffix.lower() == ".glb" else pack_gltf(path)
+                upload_name = path.stem + ".glb"
             fields = {"settings": json.dumps(settings), "name": name or path.stem}
             files = {"scene": (upload_name, data, "model/gltf-binary")}
             if env_file:
@@ -110,6 +129,40 @@ class Client:
 
     def cancel(self, job_id: str) -> dict[str, Any]:
         return self._check(self.http.post(f"/api/v1/jobs/{job_id}/cancel")).json()
+
+    def delete(self, job_id: str) -> None:
+        self._check(self.http.delete(f"/api/v1/jobs/{job_id}"))
+
+    def events(self, job_id: str) -> list[dict[str, Any]]:
+        return self._check(self.http.get(f"/api/v1/jobs/{job_id}/events")).json()
+
+    def scene(self, sha256: str) -> dict[str, Any]:
+        return self._check(self.http.get(f"/api/v1/scenes/{sha256}")).json()
+
+    def whoami(self) -> dict[str, Any]:
+        return self._check(self.http.get("/api/v1/whoami")).json()
+
+    def watch(self, job_id: str, timeout_s: float | None = None) -> Iterator[dict[str, Any]]:
+        """The job now and after every change (Server-Sent Events), until it finishes."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        with self.http.stream(
+            "GET", f"/api/v1/jobs/{job_id}/watch", timeout=httpx.Timeout(30.0, read=60.0)
+        ) as response:
+            if response.status_code >= 400:
+                response.read()
+                self._check(response)
+            data: list[str] = []
+            for line in response.iter_lines():
+                if line.startswith("data:"):
+                    data.append(line[5:].strip())
+                elif not line and data:
+                    job = json.loads("\n".join(data))
+                    data = []
+                    yield job
+                    if job["state"] in FINISHED:
+                        return
+                if deadline is not None and time.monotonic() > deadline:
+                    raise TimeoutError(f"job {job_id} still running after {timeout_s} s")
 
     def workers(self) -> list[dict[str, Any]]:
         return self._check(self.http.get("/api/v1/workers")).json()

@@ -46,6 +46,23 @@ class Settings(BaseSettings):
         3, gt=0, description="failed tasks after which a worker is kept off a job"
     )
     worker_token: str = Field("", description="shared token workers must present, if set")
+    admin_token: str = Field(
+        "",
+        description="an admin API token (named admin) the server makes sure exists; for "
+        "deployments that keep it in a secret",
+    )
+    tls_cert_file: str = Field(
+        "", description="PEM certificate (chain): serve REST and gRPC over TLS when set"
+    )
+    tls_key_file: str = Field("", description="PEM private key of tls_cert_file")
+
+    def tls(self) -> tuple[Path, Path] | None:
+        """(certificate, key) when TLS is configured; ValueError when only one is set."""
+        if not self.tls_cert_file and not self.tls_key_file:
+            return None
+        if not (self.tls_cert_file and self.tls_key_file):
+            raise ValueError("TLS needs both tls_cert_file and tls_key_file")
+        return Path(self.tls_cert_file), Path(self.tls_key_file)
 
     def limits(self) -> Limits:
         return Limits(

@@ -2,7 +2,13 @@
 
 Handlers parse, call FarmService and map its errors to status codes:
 SettingsError/SceneError -> INVALID_ARGUMENT, TooLarge -> RESOURCE_EXHAUSTED,
-NotFound -> NOT_FOUND, Unauthenticated -> UNAUTHENTICATED.
+NotFound -> NOT_FOUND, Conflict -> FAILED_PRECONDITION, AuthError/Unauthenticated ->
+UNAUTHENTICATED, Forbidden -> PERMISSION_DENIED. The details read "FIELD: message" and the
+trailing metadata `renderfarm-field` names the field, like the REST body's "field".
+
+Clients authenticate with the metadata `authorization: Bearer TOKEN` (JobService,
+SceneService.GetScene); workers with Hello.token. SceneService.FetchScene is open to anyone who
+knows a scene's full SHA-256 (workers call it without client tokens).
 """
 
 from __future__ import annotations
@@ -11,16 +17,18 @@ import asyncio
 import contextlib
 import functools
 import logging
+from pathlib import Path
 
 import grpc
-import psycopg
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
-from psycopg_pool import PoolTimeout
 
+from . import apicommon
+from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
 from .jobspec import SETTING_NAMES, SettingsError
 from .scenes import SceneError
 from .service import (
+    Conflict,
     FarmService,
     JobView,
     NotFound,
@@ -74,17 +82,43 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         error=view.error,
         created_unix_s=view.created_unix_s,
         finished_unix_s=view.finished_unix_s or 0.0,
+        owner=view.owner,
     )
 
 
 def settings_from_proto(msg: jobs_pb2.RenderSettings) -> dict:
-    """Fields left at their zero value mean "use the default" (proto3 has no presence)."""
+    """The settings a request set (fields are proto3 `optional`: unset means the default)."""
     values = {}
     for name in SETTING_NAMES:
-        value = getattr(msg, _PROTO_NAMES.get(name, name))
-        if value:
-            values[name] = value
+        field = _PROTO_NAMES.get(name, name)
+        if msg.HasField(field):
+            values[name] = getattr(msg, field)
     return values
+
+
+def _status(e: Exception) -> tuple[grpc.StatusCode, str, str] | None:
+    """(code, details, field) of an error FarmService or the checks raise; None: not ours."""
+    if isinstance(e, (SettingsError, SceneError)):
+        return grpc.StatusCode.INVALID_ARGUMENT, f"{e.field}: {e}", e.field
+    if isinstance(e, TooLarge):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED, f"{e.field}: {e.message}", e.field
+    if isinstance(e, NotFound):
+        return grpc.StatusCode.NOT_FOUND, e.message, ""
+    if isinstance(e, Conflict):
+        return grpc.StatusCode.FAILED_PRECONDITION, e.message, ""
+    if isinstance(e, AuthError):
+        return grpc.StatusCode.UNAUTHENTICATED, e.message, "authorization"
+    if isinstance(e, Forbidden):
+        return grpc.StatusCode.PERMISSION_DENIED, e.message, "job_id"
+    return None
+
+
+_API_ERRORS = (SettingsError, SceneError, TooLarge, NotFound, Conflict, AuthError, Forbidden)
+
+
+async def _abort(context, e: Exception) -> None:
+    code, details, field = _status(e)
+    await context.abort(code, details, trailing_metadata=(("renderfarm-field", field),))
 
 
 def _maps_errors(method):
@@ -92,71 +126,123 @@ def _maps_errors(method):
     async def wrapper(self, request, context):
         try:
             return await method(self, request, context)
-        except (SettingsError, SceneError) as e:
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"{e.field}: {e}")
-        except TooLarge as e:
-            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, f"{e.field}: {e.message}")
-        except NotFound as e:
-            await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
-        except (psycopg.Error, PoolTimeout) as e:
-            await context.abort(grpc.StatusCode.UNAVAILABLE, f"database unavailable: {e}")
+        except _API_ERRORS as e:
+            await _abort(context, e)
 
     return wrapper
 
 
+def _image_format(value: int) -> str:
+    return "exr" if value == jobs_pb2.IMAGE_FORMAT_EXR else "png"
+
+
+async def _caller(auth: Authenticator, context) -> Caller:
+    metadata = dict(context.invocation_metadata() or ())
+    return await auth.caller(bearer(metadata.get("authorization")))
+
+
 class JobServicer(jobs_pb2_grpc.JobServiceServicer):
-    def __init__(self, farm: FarmService):
+    def __init__(self, farm: FarmService, auth: Authenticator):
         self.farm = farm
+        self.auth = auth
 
     @_maps_errors
     async def SubmitJob(self, request, context):  # noqa: N802 (gRPC method names)
+        who = await _caller(self.auth, context)
         which = request.WhichOneof("scene")
-        view = await self.farm.submit(
+        checked = apicommon.submission(
             scene_data=request.scene_data if which == "scene_data" else None,
             scene_sha256=request.scene_sha256 if which == "scene_sha256" else None,
             filename=request.scene_filename,
             name=request.name,
-            raw_settings=settings_from_proto(request.settings),
             environment_data=request.environment_data or None,
             environment_filename=request.environment_filename,
+            max_upload_bytes=self.farm.settings.max_upload_bytes,
         )
+        view = await self.farm.submit(
+            **checked.kwargs(), raw_settings=settings_from_proto(request.settings), caller=who
+        )
+        if self.farm.metrics is not None:
+            self.farm.metrics.jobs_submitted.inc()
         return jobs_pb2.SubmitJobResponse(job=job_to_proto(view))
 
     @_maps_errors
     async def GetJob(self, request, context):  # noqa: N802
-        return jobs_pb2.GetJobResponse(job=job_to_proto(await self.farm.get(request.job_id)))
+        who = await _caller(self.auth, context)
+        view = await self.farm.get(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.GetJobResponse(job=job_to_proto(view))
 
     @_maps_errors
     async def ListJobs(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
         state = None
         if request.state != jobs_pb2.JOB_STATE_UNSPECIFIED:
-            state = JobState(jobs_pb2.JobState.Name(request.state)[len("JOB_STATE_") :].lower())
-        views, token = await self.farm.list(state, request.page_size, request.page_token)
+            try:
+                name = jobs_pb2.JobState.Name(request.state)
+            except ValueError:
+                raise SettingsError("state", f"unknown state {request.state}") from None
+            state = JobState(name[len("JOB_STATE_") :].lower())
+        views, token = await self.farm.list(
+            state, request.page_size, apicommon.page_token(request.page_token), caller=who
+        )
         return jobs_pb2.ListJobsResponse(
             jobs=[job_to_proto(v) for v in views], next_page_token=token
         )
 
     @_maps_errors
     async def CancelJob(self, request, context):  # noqa: N802
-        return jobs_pb2.CancelJobResponse(job=job_to_proto(await self.farm.cancel(request.job_id)))
+        who = await _caller(self.auth, context)
+        view = await self.farm.cancel(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.CancelJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def DeleteJob(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        await self.farm.delete(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.DeleteJobResponse()
+
+    @_maps_errors
+    async def GetImage(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        fmt = _image_format(request.format)
+        data = await self.farm.image(
+            apicommon.job_id(request.job_id), fmt, request.layer or "rgb", who
+        )
+        return jobs_pb2.GetImageResponse(
+            data=data,
+            format=jobs_pb2.IMAGE_FORMAT_EXR if fmt == "exr" else jobs_pb2.IMAGE_FORMAT_PNG,
+            media_type=apicommon.IMAGE_MEDIA_TYPES[fmt],
+        )
+
+    @_maps_errors
+    async def ListWorkers(self, request, context):  # noqa: N802
+        await _caller(self.auth, context)
+        return jobs_pb2.ListWorkersResponse(
+            workers=[jobs_pb2.WorkerStatus(**w) for w in self.farm.workers()]
+        )
 
     async def WatchJob(self, request, context):  # noqa: N802
         try:
-            async for view in self.farm.watch(request.job_id):
+            who = await _caller(self.auth, context)
+            async for view in self.farm.watch(apicommon.job_id(request.job_id), who):
                 yield jobs_pb2.WatchJobResponse(job=job_to_proto(view))
-        except NotFound as e:
-            await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
+        except _API_ERRORS as e:
+            await _abort(context, e)
 
 
 class SceneServicer(scenes_pb2_grpc.SceneServiceServicer):
-    def __init__(self, farm: FarmService):
+    def __init__(self, farm: FarmService, auth: Authenticator):
         self.farm = farm
+        self.auth = auth
 
     @staticmethod
     def _info(info: dict) -> scenes_pb2.SceneInfo:
-        fmt = (
-            scenes_pb2.SCENE_FORMAT_GLB if info["format"] == "glb" else scenes_pb2.SCENE_FORMAT_GLTF
-        )
+        fmt = {
+            "glb": scenes_pb2.SCENE_FORMAT_GLB,
+            "gltf": scenes_pb2.SCENE_FORMAT_GLTF,
+            "hdr": scenes_pb2.SCENE_FORMAT_HDR,
+            "exr": scenes_pb2.SCENE_FORMAT_EXR,
+        }[info["format"]]
         return scenes_pb2.SceneInfo(
             sha256=info["sha256"],
             size_bytes=info["size_bytes"],
@@ -179,7 +265,8 @@ class SceneServicer(scenes_pb2_grpc.SceneServiceServicer):
 
     @_maps_errors
     async def GetScene(self, request, context):  # noqa: N802
-        info = await self.farm.scene_info(request.sha256)
+        await _caller(self.auth, context)
+        info = await self.farm.scene_info(apicommon.scene_sha256(request.sha256))
         return scenes_pb2.GetSceneResponse(scene=self._info(info))
 
 
@@ -229,12 +316,13 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                 await reader
             await self.farm.worker_gone(session)
 
-    @staticmethod
-    def _message(item) -> workers_pb2.ServerMessage:
+    def _message(self, item) -> workers_pb2.ServerMessage:
         kind = item[0]
         if kind == "cancel":
             return workers_pb2.ServerMessage(cancel=workers_pb2.Cancel(task_ids=item[1]))
         _, lease, job = item
+        if self.farm.metrics is not None:
+            self.farm.metrics.tasks_assigned.inc()
         task = workers_pb2.Task(
             task_id=lease.task_id,
             job_id=lease.job_id,
@@ -269,10 +357,20 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                 )
             elif kind == "failed":
                 f = msg.failed
+                if self.farm.metrics is not None:
+                    self.farm.metrics.tasks_failed.labels(str(bool(f.retryable)).lower()).inc()
                 await self.farm.worker_failed(session, f.task_id, f.error, f.retryable)
 
 
-async def start_grpc(farm: FarmService, host: str, port: int) -> tuple[grpc.aio.Server, int]:
+async def start_grpc(
+    farm: FarmService,
+    host: str,
+    port: int,
+    auth: Authenticator | None = None,
+    tls: tuple[Path, Path] | None = None,
+) -> tuple[grpc.aio.Server, int]:
+    """Start the gRPC server; TLS with (certificate, key) PEM files when given."""
+    auth = auth or Authenticator.for_settings(farm.store, farm.settings)
     server = grpc.aio.server(
         options=[
             ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
@@ -284,8 +382,8 @@ async def start_grpc(farm: FarmService, host: str, port: int) -> tuple[grpc.aio.
             ("grpc.http2.min_ping_interval_without_data_ms", 5000),
         ]
     )
-    jobs_pb2_grpc.add_JobServiceServicer_to_server(JobServicer(farm), server)
-    scenes_pb2_grpc.add_SceneServiceServicer_to_server(SceneServicer(farm), server)
+    jobs_pb2_grpc.add_JobServiceServicer_to_server(JobServicer(farm, auth), server)
+    scenes_pb2_grpc.add_SceneServiceServicer_to_server(SceneServicer(farm, auth), server)
     workers_pb2_grpc.add_WorkerServiceServicer_to_server(WorkerServicer(farm), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
@@ -297,7 +395,11 @@ async def start_grpc(farm: FarmService, host: str, port: int) -> tuple[grpc.aio.
         reflection.SERVICE_NAME,
     )
     reflection.enable_server_reflection(names, server)
-    bound = server.add_insecure_port(f"{host}:{port}")
+    if tls is not None:
+        credentials = grpc.ssl_server_credentials([(tls[1].read_bytes(), tls[0].read_bytes())])
+        bound = server.add_secure_port(f"{host}:{port}", credentials)
+    else:
+        bound = server.add_insecure_port(f"{host}:{port}")
     if bound == 0:
         raise OSError(f"cannot listen for gRPC on {host}:{port}")
     await server.start()

@@ -114,7 +114,7 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
             raise SettingsError(field, f"{field} must be an integer, got {value!r}")
         try:
             as_float = float(value)
-        except ValueError:
+        except (ValueError, OverflowError):
             raise SettingsError(field, f"{field} must be an integer, got {value!r}") from None
         if not math.isfinite(as_float) or as_float != int(as_float):
             raise SettingsError(field, f"{field} must be an integer, got {value!r}")
@@ -124,7 +124,7 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
             raise SettingsError(field, f"{field} must be a number, got {value!r}")
         try:
             number = float(value)
-        except ValueError:
+        except (ValueError, OverflowError):
             raise SettingsError(field, f"{field} must be a number, got {value!r}") from None
         if not math.isfinite(number):
             raise SettingsError(field, f"{field} must be finite, got {value!r}")
@@ -224,3 +224,32 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
         "focus_distance",
         "must be positive when aperture_radius is set",
     )
+
+
+# ------------------------------------------------------------------ request fields beside settings
+# Shared by REST and gRPC, so both refuse the same input with the same field named.
+JOB_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+SHA256_PATTERN = re.compile(r"[0-9a-f]{64}")
+
+
+def check_text(field: str, value: str, max_length: int = 1000) -> str:
+    """A free-text request field (job name, file name): no NUL or control characters."""
+    if len(value) > max_length:
+        raise SettingsError(field, f"{field} is longer than {max_length} characters")
+    if any(ord(c) < 32 and c not in "\t" for c in value):
+        raise SettingsError(field, f"{field} contains a control character")
+    return value
+
+
+def check_sha256(field: str, value: str) -> str:
+    """A scene or environment hash: 64 lowercase hex digits (upper case is accepted)."""
+    digest = value.strip().lower()
+    if not SHA256_PATTERN.fullmatch(digest):
+        raise SettingsError(field, f"{field} must be a sha256 (64 hex digits), got {value[:80]!r}")
+    return digest
+
+
+def is_job_id(value: str) -> bool:
+    """Whether `value` could name a job (ids are 12 hex digits; older ones up to 64 of
+    [A-Za-z0-9_-]). Anything else is answered "not found" without asking the database."""
+    return JOB_ID_PATTERN.fullmatch(value) is not None

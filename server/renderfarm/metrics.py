@@ -6,7 +6,7 @@ from collections import Counter as Tally
 from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from .states import JobState
 
@@ -53,6 +53,11 @@ class _FarmCollector:
             rays.add_metric([s.worker_id], s.rays_per_s)
         yield samples
         yield rays
+        yield CounterMetricFamily(
+            "renderfarm_database_errors",
+            "Database operations that failed (connection lost, timeout, SQL error)",
+            value=farm.store.errors,
+        )
 
 
 class Metrics:
@@ -68,6 +73,18 @@ class Metrics:
             ["outcome"],
             registry=self.registry,
         )
+        self.tasks_assigned = Counter(
+            "renderfarm_tasks_assigned", "Tasks leased to workers", registry=self.registry
+        )
+        self.tasks_failed = Counter(
+            "renderfarm_tasks_failed",
+            "Tasks a worker reported as failed, by whether they may be retried",
+            ["retryable"],
+            registry=self.registry,
+        )
+        for retryable in ("true", "false"):  # exposed at 0 before the first failure
+            self.tasks_failed.labels(retryable)
+        self.tasks_completed.labels("merged")
         self.samples_merged = Counter(
             "renderfarm_samples_merged", "Pixel samples merged", registry=self.registry
         )

@@ -1,7 +1,10 @@
 """REST API /api/v1 (FastAPI; OpenAPI at /docs and /openapi.json). Mirrors gRPC JobService.
 
-Errors are JSON {"detail": message, "field": name-of-the-offending-field}: 400 bad settings or
-scene, 404 unknown job or scene, 413 upload too large, 503 not ready.
+Every response is declared (pydantic models below), so the OpenAPI document describes exactly
+what the server sends; tests/test_openapi_fuzz.py holds the server to it. Errors are JSON
+{"detail": message, "field": name-of-the-offending-field}: 400 bad input, 401 no or bad token,
+403 another owner's job, 404 unknown job or scene, 409 state conflict, 413 upload too large,
+503 not ready.
 """
 
 from __future__ import annotations
@@ -10,20 +13,22 @@ import asyncio
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-import psycopg
-from fastapi import FastAPI, HTTPException, Request
+from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST
-from psycopg_pool import PoolTimeout
+from pydantic import BaseModel, Field, create_model
 
+from . import apicommon
+from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
+from .images import LAYERS
 from .jobspec import SETTINGS, SettingsError
 from .metrics import Metrics
 from .scenes import SceneError
 from .service import Conflict, FarmService, NotFound, TooLarge
-from .states import JobState
 from .webui import index_html
 
 # The dashboard built by `make web` (web/dist in this checkout); webui.py's page stands in for it
@@ -31,16 +36,186 @@ from .webui import index_html
 WEB_DIST = Path(__file__).resolve().parents[2] / "web" / "dist"
 
 
-def _error(status: int, field: str, message: str) -> JSONResponse:
-    return JSONResponse(status_code=status, content={"detail": message, "field": field})
+# ------------------------------------------------------------------------------ response models
+class ErrorBody(BaseModel):
+    detail: str = Field(description="what is wrong, for people")
+    field: str = Field("", description="the offending field, e.g. settings.max_spp; may be empty")
 
 
-def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
+JobSettingsModel = create_model(
+    "JobSettings",
+    **{s.name: (s.kind, Field(s.default, description=s.help)) for s in SETTINGS},
+)
+
+
+class Progress(BaseModel):
+    tiles_total: int
+    tiles_done: int = Field(description="tiles that have stopped")
+    mean_spp: float
+    error: float | None = Field(description="RMS relative error over tiles; null before a merge")
+    eta_s: float | None = Field(description="seconds to completion; null when unknown")
+    samples_merged: int
+    elapsed_s: float
+
+
+class Job(BaseModel):
+    id: str
+    name: str
+    state: Literal["queued", "running", "completed", "failed", "cancelled"]
+    settings: JobSettingsModel  # type: ignore[valid-type]
+    scene_sha256: str
+    progress: Progress
+    error: str = Field(description="why the job failed, when it did")
+    created_unix_s: float
+    finished_unix_s: float | None
+    owner: str = Field(description="name of the API token that submitted it; empty without auth")
+
+
+class StopRecord(BaseModel):
+    tile: int
+    batch: int | None
+    spp: int | None
+    error: float | None
+    reason: str | None
+
+
+class JobDetail(Job):
+    stops: list[StopRecord] = Field(description="every tile stop: tile, batch, spp, error, reason")
+
+
+class JobPage(BaseModel):
+    jobs: list[Job]
+    next_page_token: str = Field(description="pass as page_token for the next page; empty: done")
+
+
+class JobEvent(BaseModel):
+    id: int
+    kind: str
+    data: dict[str, Any]
+    at: float
+
+
+class ConvergencePoint(BaseModel):
+    t: float
+    error: float | None
+    mean_spp: float
+
+
+class WorkerInfo(BaseModel):
+    id: str
+    hostname: str
+    cores: int
+    version: str
+    connected_unix_s: float
+    last_heartbeat_unix_s: float
+    tasks_in_flight: int
+    tasks_done: int
+    samples_per_s: float
+    rays_per_s: float
+    busy_threads: int
+
+
+class SceneInfo(BaseModel):
+    sha256: str
+    format: Literal["glb", "gltf", "hdr", "exr"]
+    filename: str
+    size_bytes: int
+
+
+class SettingDoc(BaseModel):
+    name: str
+    type: Literal["int", "float", "str"]
+    default: int | float | str
+    help: str
+
+
+class WhoAmI(BaseModel):
+    owner: str = Field(description="owner name of the caller's jobs; empty when auth is off")
+    admin: bool
+
+
+def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    described = {
+        400: "invalid request (the field is named)",
+        401: "no API token, or an unknown or revoked one",
+        403: "the job belongs to another owner",
+        404: "no such job or scene",
+        409: "the job's state does not allow this",
+        413: "upload too large",
+    }
+    return {c: {"model": ErrorBody, "description": described[c]} for c in (400, 401, *codes)}
+
+
+def _error(status: int, field: str, message: str, headers: dict | None = None) -> JSONResponse:
+    return JSONResponse(
+        status_code=status, content={"detail": message, "field": field}, headers=headers
+    )
+
+
+_SUBMIT_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "scene": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": ".glb, self-contained .gltf, or a .zip/.tar(.gz) bundle "
+                        "of one .gltf with its files",
+                    },
+                    "settings": {"type": "string", "description": "job settings, a JSON object"},
+                    "name": {"type": "string"},
+                    "scene_sha256": {"type": "string", "description": "a stored scene instead"},
+                    "environment": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "equirectangular .hdr/.exr environment map",
+                    },
+                },
+                "additionalProperties": False,
+            }
+        },
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "scene_sha256": {"type": "string"},
+                    "settings": {"type": "object"},
+                    "name": {"type": "string"},
+                },
+                "required": ["scene_sha256"],
+                "additionalProperties": False,
+            }
+        },
+    },
+}
+
+
+def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None = None) -> FastAPI:
+    auth = auth or Authenticator.for_settings(farm.store, farm.settings)
     app = FastAPI(
         title="renderfarm",
         version="1",
-        description="Progressive Monte Carlo render farm. Submit glTF scenes, watch them converge.",
+        description=(
+            "Progressive Monte Carlo render farm. Submit glTF scenes, watch them converge. "
+            "Send `Authorization: Bearer TOKEN` once the server has API tokens."
+        ),
     )
+
+    async def caller(request: Request) -> Caller:
+        return await auth.caller(bearer(request.headers.get("authorization")))
+
+    Auth = Depends(caller)  # noqa: N806 (a dependency, read like a type)
+
+    @app.exception_handler(AuthError)
+    async def _auth_error(_: Request, e: AuthError):
+        return _error(401, "authorization", e.message, {"WWW-Authenticate": "Bearer"})
+
+    @app.exception_handler(Forbidden)
+    async def _forbidden(_: Request, e: Forbidden):
+        return _error(403, "job_id", e.message)
 
     @app.exception_handler(SettingsError)
     async def _settings_error(_: Request, e: SettingsError):
@@ -54,14 +229,6 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     async def _too_large(_: Request, e: TooLarge):
         return _error(413, e.field, e.message)
 
-    @app.exception_handler(psycopg.Error)
-    async def _database(_: Request, e: psycopg.Error):
-        return _error(503, "", f"database unavailable, try again: {type(e).__name__}")
-
-    @app.exception_handler(PoolTimeout)
-    async def _pool_timeout(_: Request, e: PoolTimeout):
-        return _error(503, "", "database unavailable, try again")
-
     @app.exception_handler(Conflict)
     async def _conflict(_: Request, e: Conflict):
         return _error(409, "", e.message)
@@ -69,6 +236,17 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     @app.exception_handler(NotFound)
     async def _not_found(_: Request, e: NotFound):
         return _error(404, "", e.message)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, e: RequestValidationError):
+        first = e.errors()[0] if e.errors() else {}
+        where = [str(p) for p in first.get("loc", ()) if p not in ("query", "path", "body")]
+        name = ".".join(where)
+        return _error(400, name, f"{name or 'request'}: {first.get('msg', 'invalid')}")
+
+    @app.exception_handler(HTTPException)
+    async def _http(_: Request, e: HTTPException):
+        return _error(e.status_code, "", str(e.detail))
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     async def index() -> Response:
@@ -101,29 +279,47 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
     async def prometheus() -> Response:
         return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
-    @app.get("/api/v1/settings", summary="Job settings with their defaults")
-    async def settings_doc() -> list[dict[str, Any]]:
+    @app.get(
+        "/api/v1/settings",
+        summary="Job settings with their defaults",
+        response_model=list[SettingDoc],
+        responses=_errors(),
+    )
+    async def settings_doc(_: Caller = Auth) -> list[dict[str, Any]]:
         return [
             {"name": s.name, "type": s.kind.__name__, "default": s.default, "help": s.help}
             for s in SETTINGS
         ]
+
+    @app.get(
+        "/api/v1/whoami",
+        summary="The caller: owner name and admin flag",
+        response_model=WhoAmI,
+        responses=_errors(),
+    )
+    async def whoami(who: Caller = Auth) -> dict[str, Any]:
+        return {"owner": who.owner, "admin": who.admin}
 
     @app.post(
         "/api/v1/jobs",
         status_code=201,
         summary="Submit a job",
         description=(
-            "multipart/form-data with a file field `scene` (.glb or self-contained .gltf), an "
+            "multipart/form-data with a file field `scene` (.glb, self-contained .gltf, or a "
+            ".zip/.tar/.tar.gz bundle holding one .gltf and the files it references), an "
             "optional `settings` field holding a JSON object, an optional `name`, and an "
             "optional file field `environment` (.hdr/.exr environment map); or "
             'application/json {"scene_sha256": ..., "settings": {...}, "name": ...} to '
             "render a scene already stored."
         ),
+        response_model=Job,
+        responses=_errors(404, 413),
+        openapi_extra={"requestBody": _SUBMIT_BODY},
     )
-    async def submit(request: Request) -> JSONResponse:
+    async def submit(request: Request, who: Caller = Auth) -> JSONResponse:
         limit = farm.settings.max_upload_bytes
         length = request.headers.get("content-length")
-        if length and length.isdigit() and int(length) > limit + 1024 * 1024:
+        if length and length.isdigit() and int(length) > 2 * limit + 1024 * 1024:
             raise TooLarge("scene", f"request is {length} bytes, over the limit of {limit} bytes")
         ctype = request.headers.get("content-type", "")
         scene_data = None
@@ -131,14 +327,6 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
         environment_data, environment_filename = None, ""
         if ctype.startswith("multipart/form-data"):
             form = await request.form(max_part_size=limit + 1)
-            upload = form.get("scene")
-            raw_settings = _json_field(form.get("settings"), "settings")
-            name = str(form.get("name") or "")
-            sha = str(form.get("scene_sha256") or "") or None
-            env_upload = form.get("environment")
-            if env_upload is not None and not isinstance(env_upload, str):
-                environment_data = await env_upload.read()
-                environment_filename = env_upload.filename or "environment"
             unknown = set(form.keys()) - {
                 "scene",
                 "settings",
@@ -148,11 +336,21 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
             }
             if unknown:
                 raise SettingsError(
-                    sorted(unknown)[0], f"unknown form field {sorted(unknown)[0]!r}"
+                    sorted(unknown)[0][:100], f"unknown form field {sorted(unknown)[0][:100]!r}"
                 )
+            upload = form.get("scene")
+            raw_settings = _json_field(form.get("settings"), "settings")
+            name = _text_field(form.get("name"), "name")
+            sha = _text_field(form.get("scene_sha256"), "scene_sha256") or None
+            env_upload = form.get("environment")
+            if env_upload is not None and not isinstance(env_upload, str):
+                environment_data = await env_upload.read()
+                environment_filename = env_upload.filename or "environment"
             if upload is not None and not isinstance(upload, str):
                 scene_data = await upload.read()
                 filename = upload.filename or "scene"
+            elif isinstance(upload, str) and upload:
+                raise SettingsError("scene", "scene must be a file upload, not a text field")
         elif ctype.startswith("application/json"):
             try:
                 body = await request.json()
@@ -162,79 +360,110 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
                 raise SettingsError("body", "request body must be a JSON object")
             unknown = set(body) - {"scene_sha256", "settings", "name"}
             if unknown:
-                raise SettingsError(sorted(unknown)[0], f"unknown field {sorted(unknown)[0]!r}")
+                raise SettingsError(
+                    sorted(unknown)[0][:100], f"unknown field {sorted(unknown)[0][:100]!r}"
+                )
             raw_settings = body.get("settings")
             if raw_settings is not None and not isinstance(raw_settings, dict):
                 raise SettingsError("settings", "settings must be a JSON object")
-            name = str(body.get("name") or "")
-            sha = str(body.get("scene_sha256") or "") or None
+            name = _text_field(body.get("name"), "name")
+            sha = _text_field(body.get("scene_sha256"), "scene_sha256") or None
         else:
             raise SettingsError(
                 "content-type", "send multipart/form-data (with a scene file) or application/json"
             )
-        view = await farm.submit(
+        checked = apicommon.submission(
             scene_data=scene_data,
             scene_sha256=sha,
             filename=filename,
             name=name,
-            raw_settings=raw_settings,
             environment_data=environment_data,
             environment_filename=environment_filename,
+            max_upload_bytes=limit,
         )
+        view = await farm.submit(**checked.kwargs(), raw_settings=raw_settings, caller=who)
         metrics.jobs_submitted.inc()
         return JSONResponse(view.to_json(), status_code=201)
 
-    @app.get("/api/v1/jobs", summary="List jobs, newest first")
-    async def list_jobs(state: str = "", page_size: int = 50, page_token: str = "") -> dict:
-        wanted = None
-        if state:
-            try:
-                wanted = JobState(state)
-            except ValueError:
-                states = ", ".join(s.value for s in JobState)
-                raise SettingsError("state", f"unknown state {state!r}; one of {states}") from None
-        views, token = await farm.list(wanted, page_size, page_token)
+    @app.get(
+        "/api/v1/jobs",
+        summary="List jobs, newest first (your own; every owner's for admins)",
+        response_model=JobPage,
+        responses=_errors(),
+    )
+    async def list_jobs(
+        state: str = "", page_size: int = 50, page_token: str = "", who: Caller = Auth
+    ) -> dict:
+        wanted = apicommon.job_state(state)
+        views, token = await farm.list(
+            wanted, page_size, apicommon.page_token(page_token), caller=who
+        )
         return {"jobs": [v.to_json() for v in views], "next_page_token": token}
 
-    @app.get("/api/v1/jobs/{job_id}", summary="Get a job")
-    async def get_job(job_id: str) -> dict:
-        view = await farm.get(job_id)
+    @app.get(
+        "/api/v1/jobs/{job_id}",
+        summary="Get a job",
+        response_model=JobDetail,
+        responses=_errors(403, 404),
+    )
+    async def get_job(job_id: str, who: Caller = Auth) -> dict:
+        view = await farm.get(apicommon.job_id(job_id), who)
         return {**view.to_json(), "stops": await farm.stops(job_id)}
 
     @app.get(
         "/api/v1/jobs/{job_id}/convergence",
         summary="Image relative error and mean spp against elapsed time",
+        response_model=list[ConvergencePoint],
+        responses=_errors(403, 404),
     )
-    async def convergence(job_id: str) -> list[dict]:
-        return await farm.convergence(job_id)
+    async def convergence(job_id: str, who: Caller = Auth) -> list[dict]:
+        return await farm.convergence(apicommon.job_id(job_id), who)
 
-    @app.post("/api/v1/jobs/{job_id}/cancel", summary="Cancel a job")
-    async def cancel_job(job_id: str) -> dict:
-        return (await farm.cancel(job_id)).to_json()
+    @app.post(
+        "/api/v1/jobs/{job_id}/cancel",
+        summary="Cancel a job (a finished job is left as it is)",
+        response_model=Job,
+        responses=_errors(403, 404),
+    )
+    async def cancel_job(job_id: str, who: Caller = Auth) -> dict:
+        return (await farm.cancel(apicommon.job_id(job_id), who)).to_json()
 
     @app.delete(
         "/api/v1/jobs/{job_id}",
         status_code=204,
         summary="Delete a finished job with its stored data (cancel a running one first)",
+        response_class=Response,
+        responses=_errors(403, 404, 409),
     )
-    async def delete_job(job_id: str) -> Response:
-        await farm.delete(job_id)
+    async def delete_job(job_id: str, who: Caller = Auth) -> Response:
+        await farm.delete(apicommon.job_id(job_id), who)
         return Response(status_code=204)
 
-    @app.get("/api/v1/jobs/{job_id}/events", summary="The job's event log")
-    async def job_events(job_id: str) -> list[dict]:
-        return await farm.events(job_id)
+    @app.get(
+        "/api/v1/jobs/{job_id}/events",
+        summary="The job's event log",
+        response_model=list[JobEvent],
+        responses=_errors(403, 404),
+    )
+    async def job_events(job_id: str, who: Caller = Auth) -> list[dict]:
+        return await farm.events(apicommon.job_id(job_id), who)
 
     @app.get(
         "/api/v1/jobs/{job_id}/watch",
         summary="Server-Sent Events: the job now and after every change, until it finishes",
+        description="Each event is `event: job` with the job as JSON in `data:`.",
+        response_class=StreamingResponse,
+        responses={
+            200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}},
+            **_errors(403, 404),
+        },
     )
-    async def watch(job_id: str) -> StreamingResponse:
-        await farm.get(job_id)  # 404 before the stream starts
+    async def watch(job_id: str, who: Caller = Auth) -> StreamingResponse:
+        await farm.get(apicommon.job_id(job_id), who)  # 404/403 before the stream starts
 
         async def stream():
             last_sent = 0.0
-            async for view in farm.watch(job_id):
+            async for view in farm.watch(job_id, who):
                 # At most ~10 updates a second per watcher; the final state is always sent.
                 wait = 0.1 - (time.monotonic() - last_sent)
                 if wait > 0 and not view.state.finished:
@@ -245,25 +474,58 @@ def create_app(farm: FarmService, metrics: Metrics) -> FastAPI:
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
-    @app.get("/api/v1/jobs/{job_id}/image.{fmt}", summary="The image (also while rendering)")
-    async def image(job_id: str, fmt: str, layer: str = "rgb") -> Response:
-        data = await farm.image(job_id, fmt, layer)
-        media = "image/png" if fmt == "png" else "image/x-exr"
+    @app.get(
+        "/api/v1/jobs/{job_id}/image.{fmt}",
+        summary="The image (also while rendering): image.png (one layer) or image.exr (all)",
+        response_class=Response,
+        responses={
+            200: {
+                "content": {
+                    "image/png": {"schema": {"type": "string", "format": "binary"}},
+                    "image/x-exr": {"schema": {"type": "string", "format": "binary"}},
+                }
+            },
+            **_errors(403, 404),
+        },
+    )
+    async def image(
+        job_id: str, fmt: Literal["png", "exr"], layer: str = "rgb", who: Caller = Auth
+    ) -> Response:
+        if layer not in LAYERS:
+            raise SettingsError(
+                "layer", f"unknown layer {layer[:40]!r}; one of {', '.join(LAYERS)}"
+            )
+        data = await farm.image(apicommon.job_id(job_id), fmt, layer, who)
+        media = apicommon.IMAGE_MEDIA_TYPES[fmt]
         return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
 
-    @app.get("/api/v1/workers", summary="Connected workers")
-    async def workers() -> list[dict]:
+    @app.get(
+        "/api/v1/workers",
+        summary="Connected workers",
+        response_model=list[WorkerInfo],
+        responses=_errors(),
+    )
+    async def workers(_: Caller = Auth) -> list[dict]:
         return farm.workers()
 
-    @app.get("/api/v1/scenes/{sha256}", summary="A stored scene's metadata")
-    async def scene(sha256: str) -> dict:
-        return await farm.scene_info(sha256)
-
-    @app.exception_handler(HTTPException)
-    async def _http(_: Request, e: HTTPException):
-        return _error(e.status_code, "", str(e.detail))
+    @app.get(
+        "/api/v1/scenes/{sha256}",
+        summary="A stored scene's metadata",
+        response_model=SceneInfo,
+        responses=_errors(404),
+    )
+    async def scene(sha256: str, _: Caller = Auth) -> dict:
+        return await farm.scene_info(apicommon.scene_sha256(sha256))
 
     return app
+
+
+def _text_field(value: Any, field: str) -> str:
+    if value is None:
+        return ""
+    if not isinstance(value, str):
+        raise SettingsError(field, f"{field} must be text")
+    return value
 
 
 def _json_field(value: Any, field: str) -> dict | None:
@@ -273,7 +535,7 @@ def _json_field(value: Any, field: str) -> dict | None:
         raise SettingsError(field, f"{field} must be a JSON object in a text field")
     try:
         parsed = json.loads(value)
-    except ValueError:
+    except (ValueError, RecursionError):
         raise SettingsError(field, f"{field} is not valid JSON") from None
     if not isinstance(parsed, dict):
         raise SettingsError(field, f"{field} must be a JSON object")

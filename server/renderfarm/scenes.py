@@ -17,6 +17,7 @@ import binascii
 import hashlib
 import json
 import os
+import posixpath
 import re
 import struct
 import urllib.parse
@@ -585,11 +586,63 @@ def pack_gltf(path: str | os.PathLike[str], *, max_bytes: int = DEFAULT_MAX_BYTE
         raise SceneError(f"{name} is empty")
     if _strip_json_prefix(raw)[:1] != b"{":
         raise SceneError(f"{name} is not a glTF 2.0 file: {_describe_non_gltf(raw)}")
-    document = _parse_json(raw, name)
-    _check_asset(document)
-
     base_dir = gltf_path.parent
     root = base_dir.resolve()
+
+    def read(uri: str, field: str, what: str) -> tuple[str, bytes]:
+        return _read_uri(uri, base_dir, root, field, what)
+
+    return _pack_document(raw, name, read, max_bytes)
+
+
+def pack_gltf_files(
+    files: dict[str, bytes], gltf_path: str, *, max_bytes: int = DEFAULT_MAX_BYTES
+) -> bytes:
+    """Pack the .gltf at `gltf_path` of an in-memory file map (POSIX relative paths, as from
+    an extracted bundle) and the files it references into one GLB.
+
+    A uri resolves relative to the .gltf's directory within the map and must name a file of the
+    map; one that climbs out of the map (``..`` past its root) or is absolute is refused.
+    """
+    name = posixpath.basename(gltf_path)
+    raw = files[gltf_path]
+    base_dir = posixpath.dirname(gltf_path)
+
+    def read(uri: str, field: str, what: str) -> tuple[str, bytes]:
+        if uri[:5].lower() == "data:":
+            return _data_uri_payload(uri, field)
+        parts = urllib.parse.urlsplit(uri)
+        relative = urllib.parse.unquote(parts.path)
+        if parts.scheme or parts.netloc:
+            raise SceneError(
+                f"{what} refers to {_shown(uri)}, which is not a relative path in the bundle",
+                field,
+            )
+        if not relative:
+            raise SceneError(f"{what} has an empty uri", field)
+        if "\0" in relative or relative.startswith(("/", "\\")) or ":" in relative[:3]:
+            raise SceneError(
+                f"{what} refers to {_shown(uri)}; only paths relative to the .gltf are allowed",
+                field,
+            )
+        joined = posixpath.normpath(posixpath.join(base_dir, relative.replace("\\", "/")))
+        if joined == ".." or joined.startswith("../"):
+            raise SceneError(f"{what} refers to {_shown(uri)}, which is outside the bundle", field)
+        if joined not in files:
+            raise SceneError(f"{what} refers to {_shown(uri)}, which is not in the bundle", field)
+        return "", files[joined]
+
+    return _pack_document(raw, name, read, max_bytes)
+
+
+def _pack_document(raw: bytes, name: str, read, max_bytes: int) -> bytes:
+    """The GLB of the .gltf text `raw`, with every uri fetched by read(uri, field, what)."""
+    if not raw:
+        raise SceneError(f"{name} is empty")
+    if _strip_json_prefix(raw)[:1] != b"{":
+        raise SceneError(f"{name} is not a glTF 2.0 file: {_describe_non_gltf(raw)}")
+    document = _parse_json(raw, name)
+    _check_asset(document)
     blob = bytearray()
 
     def append(data: bytes) -> int:
@@ -614,7 +667,7 @@ def pack_gltf(path: str | os.PathLike[str], *, max_bytes: int = DEFAULT_MAX_BYTE
                 f"buffer {i} has no uri; in a .gltf every buffer must name its data",
                 f"{field}.uri",
             )
-        _mime, data = _read_uri(uri, base_dir, root, f"{field}.uri", f"buffer {i}")
+        _mime, data = read(uri, f"{field}.uri", f"buffer {i}")
         if len(data) < byte_length:
             raise SceneError(
                 f"buffer {i} byteLength is {byte_length} bytes, larger than its data "
@@ -640,7 +693,7 @@ def pack_gltf(path: str | os.PathLike[str], *, max_bytes: int = DEFAULT_MAX_BYTE
             continue
         if not isinstance(uri, str):
             raise SceneError(f"image {i} uri must be a string", f"{field}.uri")
-        data_mime, data = _read_uri(uri, base_dir, root, f"{field}.uri", f"image {i}")
+        data_mime, data = read(uri, f"{field}.uri", f"image {i}")
         if not data:
             raise SceneError(f"image {i} ({_shown(uri)}) is empty", f"{field}.uri")
         mime = _image_mime_type(uri, data_mime, image.get("mimeType"), data)

@@ -10,6 +10,7 @@ from collections.abc import Awaitable, Callable
 
 import uvicorn
 
+from .auth import Authenticator, check_exposure, ensure_configured_token
 from .config import Settings
 from .embedded_db import EmbeddedPostgres
 from .grpc_api import start_grpc
@@ -37,12 +38,25 @@ async def serve(
     store = Store(url)
     try:
         await store.open()
+        tls = settings.tls()
+        await ensure_configured_token(store, settings.admin_token)
+        refusal = check_exposure(
+            settings.http_host,
+            settings.grpc_host,
+            await store.live_token_count(),
+            settings.worker_token,
+        )
+        if refusal:
+            raise RuntimeError(refusal)
+        auth = Authenticator.for_settings(store, settings)
         farm = FarmService(settings, store)
         metrics = Metrics(farm)
         farm.metrics = metrics
         await farm.start()
-        grpc_server, grpc_port = await start_grpc(farm, settings.grpc_host, settings.grpc_port)
-        app = create_app(farm, metrics)
+        grpc_server, grpc_port = await start_grpc(
+            farm, settings.grpc_host, settings.grpc_port, auth=auth, tls=tls
+        )
+        app = create_app(farm, metrics, auth=auth)
         config = uvicorn.Config(
             app,
             host=settings.http_host,
@@ -50,6 +64,8 @@ async def serve(
             log_level="warning",
             lifespan="off",
             timeout_graceful_shutdown=3,
+            ssl_certfile=str(tls[0]) if tls else None,
+            ssl_keyfile=str(tls[1]) if tls else None,
         )
         http = uvicorn.Server(config)
         http.install_signal_handlers = lambda: None  # we handle signals below
@@ -68,8 +84,9 @@ async def serve(
             await asyncio.sleep(0.02)
         http_port = http.servers[0].sockets[0].getsockname()[1]
         log.info(
-            "renderfarm server ready: http://%s:%d  gRPC %s:%d",
-            settings.http_host, http_port, settings.grpc_host, grpc_port,
+            "renderfarm server ready: %s://%s:%d  gRPC %s:%d%s",
+            "https" if tls else "http", settings.http_host, http_port, settings.grpc_host,
+            grpc_port, " (TLS)" if tls else "",
         )  # fmt: skip
         if on_ready is not None:
             await on_ready(http_port, grpc_port)

@@ -30,6 +30,7 @@ import psycopg
 from psycopg_pool import PoolTimeout
 
 from . import images
+from .auth import LOCAL_USER, Caller, Forbidden
 from .config import Settings
 from .jobspec import JobSettings, SettingsError, parse_settings
 from .merge import TileAccumulator
@@ -93,6 +94,7 @@ class JobView:
     error: str
     created_unix_s: float
     finished_unix_s: float | None
+    owner: str = ""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -105,6 +107,7 @@ class JobView:
             "error": self.error,
             "created_unix_s": self.created_unix_s,
             "finished_unix_s": self.finished_unix_s,
+            "owner": self.owner,
         }
 
 
@@ -137,6 +140,7 @@ class FarmService:
         self.sessions: dict[str, WorkerSession] = {}
         self.names: dict[str, str] = {}  # job id -> name for live jobs
         self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
+        self.owners: dict[str, str] = {}  # job id -> owner (token name) for live jobs
         self._changed = asyncio.Condition()
         self._tasks: list[asyncio.Task] = []
         self._last_checkpoint = time.time()
@@ -203,6 +207,7 @@ class FarmService:
             self.scheduler.take_events()  # the stops were recorded before the restart
             self.names[row.id] = row.name
             self.created[row.id] = row.created_at.timestamp()
+            self.owners[row.id] = row.owner
             merged = sum(acc.batches for acc in checkpoint.values())
             log.info("resumed job %s from its checkpoint (%d batches merged)", row.id, merged)
         await self._after_change()
@@ -275,6 +280,7 @@ class FarmService:
         raw_settings: dict[str, Any] | None,
         environment_data: bytes | None = None,
         environment_filename: str = "",
+        caller: Caller = LOCAL_USER,
     ) -> JobView:
         settings = parse_settings(raw_settings, self.settings.limits())
         settings = await self._environment(settings, environment_data, environment_filename)
@@ -303,8 +309,11 @@ class FarmService:
         job_id = secrets.token_hex(6)
         name = (name or filename or "job").strip()[:200]
         tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
-        row = await self.store.insert_job(job_id, name, settings.to_dict(), sha, tiles)
+        row = await self.store.insert_job(
+            job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner
+        )
         # Stored and committed: only now does the job exist for the scheduler and the caller.
+        self.owners[job_id] = caller.owner
         self.names[job_id] = name
         self.created[job_id] = row.created_at.timestamp()
         self.scheduler.add_job(job_id, settings, sha)
@@ -329,17 +338,21 @@ class FarmService:
                 raise NotFound(f"no stored environment map with sha256 {settings.environment}")
         return settings
 
-    async def get(self, job_id: str) -> JobView:
+    async def get(self, job_id: str, caller: Caller = LOCAL_USER) -> JobView:
         job = self.scheduler.jobs.get(job_id)
         if job is not None:
-            return self._live_view(job)
-        row = await self.store.get_job(job_id)
-        if row is None:
-            raise NotFound(f"no job with id {job_id!r}")
-        return self._row_view(row)
+            view = self._live_view(job)
+        else:
+            row = await self.store.get_job(job_id)
+            if row is None:
+                raise NotFound(f"no job with id {job_id!r}")
+            view = self._row_view(row)
+        if not caller.may_access(view.owner):
+            raise Forbidden(f"job {job_id} belongs to another owner")
+        return view
 
     async def list(
-        self, state: JobState | None, page_size: int, page_token: str
+        self, state: JobState | None, page_size: int, page_token: str, caller: Caller = LOCAL_USER
     ) -> tuple[list[JobView], str]:
         page_size = max(1, min(page_size or 50, 500))
         after = None
@@ -351,7 +364,10 @@ class FarmService:
                 raise SettingsError(
                     "page_token", "page_token is not one this server issued"
                 ) from None
-        rows = await self.store.list_jobs(state.value if state else None, page_size + 1, after)
+        owner = None if caller.admin else caller.owner  # admins see every owner's jobs
+        rows = await self.store.list_jobs(
+            state.value if state else None, page_size + 1, after, owner=owner
+        )
         more = len(rows) > page_size
         rows = rows[:page_size]
         views = []
@@ -361,30 +377,31 @@ class FarmService:
         token = f"{rows[-1].created_at.isoformat()}|{rows[-1].id}" if more else ""
         return views, token
 
-    async def cancel(self, job_id: str) -> JobView:
+    async def cancel(self, job_id: str, caller: Caller = LOCAL_USER) -> JobView:
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
         if job is None:
-            view = await self.get(job_id)  # raises NotFound
             return view  # already finished: cancelling is a no-op
         self.scheduler.cancel_job(job_id)
         await self._after_change()
         return await self.get(job_id)
 
-    async def delete(self, job_id: str) -> None:
+    async def delete(self, job_id: str, caller: Caller = LOCAL_USER) -> None:
         """Delete a finished job and its stored data (tiles, events, its scene if unshared).
         A job still queued or running must be cancelled first."""
+        await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
         if job is not None and not job.state.finished:
             raise Conflict(f"job {job_id} is {job.state.value}; cancel it before deleting it")
         if not await self.store.delete_job(job_id):
             raise NotFound(f"no job with id {job_id!r}")
         self.scheduler.forget_job(job_id)
-        for table in (self.history, self.names, self.created):
+        for table in (self.history, self.names, self.created, self.owners):
             table.pop(job_id, None)
 
-    async def watch(self, job_id: str) -> AsyncIterator[JobView]:
+    async def watch(self, job_id: str, caller: Caller = LOCAL_USER) -> AsyncIterator[JobView]:
         """The job now, then after every visible change, until it is finished."""
-        view = await self.get(job_id)
+        view = await self.get(job_id, caller)
         yield view
         last = None
         while not view.state.finished:
@@ -406,8 +423,8 @@ class FarmService:
                 yield view
                 last = view
 
-    async def events(self, job_id: str) -> list[dict[str, Any]]:
-        await self.get(job_id)
+    async def events(self, job_id: str, caller: Caller = LOCAL_USER) -> list[dict[str, Any]]:
+        await self.get(job_id, caller)
         rows = await self.store.list_events(job_id)
         return [
             {"id": r["id"], "kind": r["kind"], "data": r["data"], "at": r["at"].timestamp()}
@@ -434,6 +451,7 @@ class FarmService:
             error=job.error_message if job.state == JobState.FAILED else "",
             created_unix_s=self.created.get(job.job_id, job.created),
             finished_unix_s=job.finished,
+            owner=self.owners.get(job.job_id, ""),
         )
 
     def _row_view(self, row: JobRow) -> JobView:
@@ -455,6 +473,7 @@ class FarmService:
             error=row.error,
             created_unix_s=row.created_at.timestamp(),
             finished_unix_s=row.finished_at.timestamp() if row.finished_at else None,
+            owner=row.owner,
         )
 
     # -------------------------------------------------------------------------- images
@@ -483,13 +502,16 @@ class FarmService:
             tiles.append((rect, acc))
         return images.assemble(settings.width, settings.height, tiles)
 
-    async def image(self, job_id: str, fmt: str, layer: str = "rgb") -> bytes:
+    async def image(
+        self, job_id: str, fmt: str, layer: str = "rgb", caller: Caller = LOCAL_USER
+    ) -> bytes:
         if fmt not in ("png", "exr"):
             raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
         if layer not in images.LAYERS:
             raise SettingsError(
                 "layer", f"unknown layer {layer!r}; one of {', '.join(images.LAYERS)}"
             )
+        await self.get(job_id, caller)  # raises NotFound / Forbidden
         frame = await self.frame(job_id)
         loop = asyncio.get_running_loop()
         if fmt == "exr":
@@ -643,6 +665,7 @@ class FarmService:
             self.history.pop(job_id, None)
             self.names.pop(job_id, None)
             self.created.pop(job_id, None)
+            self.owners.pop(job_id, None)
 
         self._tasks.append(asyncio.create_task(forget()))
         self._tasks = [t for t in self._tasks if not t.done()]
@@ -718,9 +741,9 @@ class FarmService:
         points = self.history.setdefault(job_id, [])
         points.append((round(p.elapsed_s, 3), _finite_or_none(p.error), p.mean_spp))
 
-    async def convergence(self, job_id: str) -> list[dict[str, Any]]:
+    async def convergence(self, job_id: str, caller: Caller = LOCAL_USER) -> list[dict[str, Any]]:
         """Image error against time: live from memory, afterwards from the event log."""
-        await self.get(job_id)
+        await self.get(job_id, caller)
         points = self.history.get(job_id)
         if points is None:
             for event in reversed(await self.store.list_events(job_id)):

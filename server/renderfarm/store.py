@@ -7,9 +7,11 @@ database whose schema is newer than this code knows is refused.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import resources
@@ -17,7 +19,7 @@ from typing import Any
 
 import psycopg
 from psycopg.rows import dict_row
-from psycopg_pool import AsyncConnectionPool
+from psycopg_pool import AsyncConnectionPool, PoolTimeout
 
 _MIGRATION_LOCK = 0x52464D31  # advisory lock key for migrations ("RFM1")
 
@@ -57,6 +59,17 @@ class JobRow:
     error_estimate: float | None
     tiles_total: int
     tiles_done: int
+    owner: str = ""
+
+
+@dataclass(frozen=True)
+class TokenRow:
+    id: str
+    name: str
+    sha256: str
+    admin: bool
+    created_at: datetime
+    revoked_at: datetime | None
 
 
 @dataclass(frozen=True)
@@ -75,8 +88,9 @@ class TileRow:
 
 _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
-    "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done"
+    "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner"
 )
+_TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
 
 class Store:
@@ -95,6 +109,18 @@ class Store:
             timeout=5.0,
             reconnect_timeout=0,  # keep trying for as long as the server runs
         )
+        # Failed database operations since start (renderfarm_database_errors_total).
+        self.errors = 0
+
+    @contextlib.asynccontextmanager
+    async def _connection(self, timeout: float | None = None) -> AsyncIterator[Any]:
+        """A pooled connection; every database failure inside is counted, then re-raised."""
+        try:
+            async with self.pool.connection(timeout=timeout) as conn:
+                yield conn
+        except (psycopg.Error, PoolTimeout, OSError):
+            self.errors += 1
+            raise
 
     async def open(self) -> None:
         await self.pool.open(wait=True, timeout=30)
@@ -106,7 +132,7 @@ class Store:
     async def migrate(self) -> int:
         """Apply pending migrations; return the schema version."""
         known = migrations()
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             await conn.execute("SELECT pg_advisory_lock(%s)", (_MIGRATION_LOCK,))
             try:
                 await conn.execute(
@@ -133,12 +159,12 @@ class Store:
                 await conn.execute("SELECT pg_advisory_unlock(%s)", (_MIGRATION_LOCK,))
 
     async def ping(self) -> None:
-        async with self.pool.connection(timeout=5) as conn:
+        async with self._connection(timeout=5) as conn:
             await conn.execute("SELECT 1")
 
     # ----------------------------------------------------------------------------- scenes
     async def put_scene(self, sha256: str, fmt: str, filename: str, data: bytes) -> None:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             await conn.execute(
                 "INSERT INTO scenes (sha256, format, filename, size_bytes, data)"
                 " VALUES (%s, %s, %s, %s, %s) ON CONFLICT (sha256) DO NOTHING",
@@ -146,7 +172,7 @@ class Store:
             )
 
     async def get_scene_info(self, sha256: str) -> dict[str, Any] | None:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT sha256, format, filename, size_bytes FROM scenes WHERE sha256 = %s",
@@ -155,7 +181,7 @@ class Store:
             return await cur.fetchone()
 
     async def read_scene(self, sha256: str, offset: int, length: int) -> bytes:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = await conn.execute(
                 "SELECT substring(data FROM %s FOR %s) FROM scenes WHERE sha256 = %s",
                 (offset + 1, length, sha256),
@@ -165,14 +191,20 @@ class Store:
 
     # ------------------------------------------------------------------------------- jobs
     async def insert_job(
-        self, job_id: str, name: str, settings: dict[str, Any], scene_sha256: str, tiles: int
+        self,
+        job_id: str,
+        name: str,
+        settings: dict[str, Any],
+        scene_sha256: str,
+        tiles: int,
+        owner: str = "",
     ) -> JobRow:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
-                "INSERT INTO jobs (id, name, state, settings, scene_sha256, tiles_total)"
-                f" VALUES (%s, %s, 'queued', %s, %s, %s) RETURNING {_JOB_COLUMNS}",
-                (job_id, name, json.dumps(settings), scene_sha256, tiles),
+                "INSERT INTO jobs (id, name, state, settings, scene_sha256, tiles_total, owner)"
+                f" VALUES (%s, %s, 'queued', %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}",
+                (job_id, name, json.dumps(settings), scene_sha256, tiles, owner),
             )
             await conn.execute(
                 "INSERT INTO events (job_id, kind, data) VALUES (%s, 'job_submitted', %s)",
@@ -194,7 +226,7 @@ class Store:
         error_estimate: float | None,
         tiles_done: int,
     ) -> None:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             await conn.execute(
                 "UPDATE jobs SET state = %s, error = %s,"
                 " started_at = coalesce(started_at, %s), finished_at = %s, elapsed_s = %s,"
@@ -215,20 +247,28 @@ class Store:
             )
 
     async def get_job(self, job_id: str) -> JobRow | None:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(f"SELECT {_JOB_COLUMNS} FROM jobs WHERE id = %s", (job_id,))
             row = await cur.fetchone()
             return JobRow(**row) if row else None
 
     async def list_jobs(
-        self, state: str | None, limit: int, after: tuple[datetime, str] | None
+        self,
+        state: str | None,
+        limit: int,
+        after: tuple[datetime, str] | None,
+        owner: str | None = None,
     ) -> list[JobRow]:
-        """Newest first; `after` is the (created_at, id) of the last row of the previous page."""
+        """Newest first; `after` is the (created_at, id) of the last row of the previous page;
+        `owner` (when not None) keeps only that owner's jobs."""
         where, params = [], []
         if state:
             where.append("state = %s")
             params.append(state)
+        if owner is not None:
+            where.append("owner = %s")
+            params.append(owner)
         if after:
             where.append("(created_at, id) < (%s, %s)")
             params.extend(after)
@@ -237,7 +277,7 @@ class Store:
             sql += " WHERE " + " AND ".join(where)
         sql += " ORDER BY created_at DESC, id DESC LIMIT %s"
         params.append(limit)
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(sql, params)
             return [JobRow(**r) for r in await cur.fetchall()]
@@ -245,7 +285,7 @@ class Store:
     async def delete_job(self, job_id: str) -> bool:
         """Delete a job with its tiles and events; its scene and environment map too when no
         other job uses them. False when there was no such job."""
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             async with conn.transaction():
                 cur = await conn.execute(
                     "DELETE FROM jobs WHERE id = %s"
@@ -264,7 +304,7 @@ class Store:
                 return True
 
     async def unfinished_jobs(self) -> list[JobRow]:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 f"SELECT {_JOB_COLUMNS} FROM jobs WHERE state IN ('queued', 'running')"
@@ -276,7 +316,7 @@ class Store:
     async def save_tiles(self, job_id: str, rows: list[TileRow]) -> None:
         if not rows:
             return
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             async with conn.cursor() as cur:
                 await cur.executemany(
                     "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
@@ -309,7 +349,7 @@ class Store:
                 )
 
     async def load_tiles(self, job_id: str) -> list[TileRow]:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT tile_index, samples, batches, nonfinite, error, accumulators,"
@@ -326,7 +366,7 @@ class Store:
     async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
         if not events:
             return
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             async with conn.cursor() as cur:
                 # Events of a job deleted meanwhile are dropped rather than failing the batch.
                 await cur.executemany(
@@ -336,7 +376,7 @@ class Store:
                 )
 
     async def list_events(self, job_id: str, limit: int = 1000) -> list[dict[str, Any]]:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT id, kind, data, at FROM events WHERE job_id = %s ORDER BY id LIMIT %s",
@@ -346,7 +386,7 @@ class Store:
 
     # ---------------------------------------------------------------------------- workers
     async def worker_connected(self, worker_id: str, hostname: str, cores: int, version: str):
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             await conn.execute(
                 "INSERT INTO workers (id, hostname, cores, version, connected_at, last_seen,"
                 " connected) VALUES (%s, %s, %s, %s, now(), now(), true)"
@@ -357,15 +397,79 @@ class Store:
             )
 
     async def worker_disconnected(self, worker_id: str) -> None:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             await conn.execute(
                 "UPDATE workers SET connected = false, last_seen = now() WHERE id = %s",
                 (worker_id,),
             )
 
     async def mark_all_workers_disconnected(self) -> None:
-        async with self.pool.connection() as conn:
+        async with self._connection() as conn:
             await conn.execute("UPDATE workers SET connected = false WHERE connected")
+
+    # ------------------------------------------------------------------------- api tokens
+    async def create_token(self, token_id: str, name: str, sha256: str, admin: bool) -> TokenRow:
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "INSERT INTO api_tokens (id, name, sha256, admin) VALUES (%s, %s, %s, %s)"
+                f" RETURNING {_TOKEN_COLUMNS}",
+                (token_id, name, sha256, admin),
+            )
+            return TokenRow(**await cur.fetchone())
+
+    async def list_tokens(self) -> list[TokenRow]:
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(f"SELECT {_TOKEN_COLUMNS} FROM api_tokens ORDER BY created_at, id")
+            return [TokenRow(**r) for r in await cur.fetchall()]
+
+    async def token_by_hash(self, sha256: str) -> TokenRow | None:
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                f"SELECT {_TOKEN_COLUMNS} FROM api_tokens WHERE sha256 = %s", (sha256,)
+            )
+            row = await cur.fetchone()
+            return TokenRow(**row) if row else None
+
+    async def live_token_count(self) -> int:
+        async with self._connection() as conn:
+            cur = await conn.execute("SELECT count(*) FROM api_tokens WHERE revoked_at IS NULL")
+            (count,) = await cur.fetchone()
+            return count
+
+    async def ensure_token(self, token_id: str, name: str, sha256: str, admin: bool) -> bool:
+        """Make sure a token with this hash exists (a revoked one stays revoked); a live token of
+        the same name with another hash is revoked (the configured secret was rotated).
+        True when a token was created."""
+        async with self._connection() as conn:
+            async with conn.transaction():
+                cur = await conn.execute("SELECT 1 FROM api_tokens WHERE sha256 = %s", (sha256,))
+                if await cur.fetchone() is not None:
+                    return False
+                await conn.execute(
+                    "UPDATE api_tokens SET revoked_at = now()"
+                    " WHERE name = %s AND revoked_at IS NULL",
+                    (name,),
+                )
+                await conn.execute(
+                    "INSERT INTO api_tokens (id, name, sha256, admin) VALUES (%s, %s, %s, %s)",
+                    (token_id, name, sha256, admin),
+                )
+                return True
+
+    async def revoke_token(self, token_id: str) -> TokenRow | None:
+        """Revoke a live token (by id); None when there is no such live token."""
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "UPDATE api_tokens SET revoked_at = now() WHERE id = %s AND revoked_at IS NULL"
+                f" RETURNING {_TOKEN_COLUMNS}",
+                (token_id,),
+            )
+            row = await cur.fetchone()
+            return TokenRow(**row) if row else None
 
 
 def _ts(unix: float | None) -> datetime | None:
@@ -387,4 +491,4 @@ def _clean(value: Any) -> Any:
     return value
 
 
-__all__ = ["JobRow", "SchemaTooNew", "Store", "TileRow", "migrations", "psycopg"]
+__all__ = ["JobRow", "SchemaTooNew", "Store", "TileRow", "TokenRow", "migrations", "psycopg"]

@@ -1,0 +1,89 @@
+"""Request checks shared by the REST and gRPC handlers, so both refuse the same input with the
+same field named (tests/test_api_parity.py holds them to it)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from .bundles import scene_upload
+from .jobspec import SettingsError, check_sha256, check_text, is_job_id
+from .service import NotFound
+from .states import JobState
+
+MAX_NAME = 200
+MAX_PAGE_TOKEN = 200
+
+
+@dataclass(frozen=True)
+class Submission:
+    """Checked arguments of FarmService.submit (except settings, which it parses itself)."""
+
+    scene_data: bytes | None
+    scene_sha256: str | None
+    filename: str
+    name: str
+    environment_data: bytes | None
+    environment_filename: str
+
+    def kwargs(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def submission(
+    *,
+    scene_data: bytes | None,
+    scene_sha256: str | None,
+    filename: str,
+    name: str,
+    environment_data: bytes | None,
+    environment_filename: str,
+    max_upload_bytes: int,
+) -> Submission:
+    """Text fields free of control characters, a well-formed scene hash, and a .zip/.tar
+    bundle packed into the .glb the workers will receive."""
+    name = check_text("name", name, 10 * MAX_NAME)
+    filename = check_text("scene_filename", filename, MAX_NAME)
+    environment_filename = check_text("environment_filename", environment_filename, MAX_NAME)
+    if scene_sha256:
+        scene_sha256 = check_sha256("scene_sha256", scene_sha256)
+    if scene_data is not None and scene_sha256:
+        raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
+    scene_data, filename = scene_upload(scene_data, filename, max_upload_bytes)
+    return Submission(
+        scene_data=scene_data,
+        scene_sha256=scene_sha256 or None,
+        filename=filename,
+        name=name,
+        environment_data=environment_data or None,
+        environment_filename=environment_filename,
+    )
+
+
+def job_id(value: str) -> str:
+    """A job id as given, or NotFound for one no job could have (never reaches the database)."""
+    if not is_job_id(value):
+        raise NotFound(f"no job with id {value[:80]!r}")
+    return value
+
+
+def scene_sha256(value: str) -> str:
+    return check_sha256("sha256", value)
+
+
+def job_state(value: str) -> JobState | None:
+    """A state filter ("" = every state)."""
+    if not value:
+        return None
+    try:
+        return JobState(value)
+    except ValueError:
+        states = ", ".join(s.value for s in JobState)
+        raise SettingsError("state", f"unknown state {value[:40]!r}; one of {states}") from None
+
+
+def page_token(value: str) -> str:
+    return check_text("page_token", value, MAX_PAGE_TOKEN)
+
+
+IMAGE_MEDIA_TYPES = {"png": "image/png", "exr": "image/x-exr"}
