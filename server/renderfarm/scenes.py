@@ -611,15 +611,7 @@ def pack_gltf_files(
     def read(uri: str, field: str, what: str) -> tuple[str, bytes]:
         if uri[:5].lower() == "data:":
             return _data_uri_payload(uri, field)
-        parts = urllib.parse.urlsplit(uri)
-        relative = urllib.parse.unquote(parts.path)
-        if parts.scheme or parts.netloc:
-            raise SceneError(
-                f"{what} refers to {_shown(uri)}, which is not a relative path in the bundle",
-                field,
-            )
-        if not relative:
-            raise SceneError(f"{what} has an empty uri", field)
+        relative = _relative_uri_path(uri, field, what, "in the bundle")
         if "\0" in relative or relative.startswith(("/", "\\")) or ":" in relative[:3]:
             raise SceneError(
                 f"{what} refers to {_shown(uri)}; only paths relative to the .gltf are allowed",
@@ -728,19 +720,25 @@ def _shown(uri: str) -> str:
     return repr(uri if len(uri) <= 200 else uri[:200] + "...")
 
 
-def _read_uri(uri: str, base_dir: Path, root: Path, field: str, what: str) -> tuple[str, bytes]:
-    """Return (media type from a data: URI or "", bytes) for a buffer or image uri."""
-    if uri[:5].lower() == "data:":
-        return _data_uri_payload(uri, field)
+def _relative_uri_path(uri: str, field: str, what: str, where: str) -> str:
+    """The percent-decoded path of a uri that must be a relative reference (no scheme, no
+    host, not empty); `where` completes the message ("in the bundle", "next to the .gltf")."""
     parts = urllib.parse.urlsplit(uri)
     relative = urllib.parse.unquote(parts.path)
     if parts.scheme or parts.netloc:
         raise SceneError(
-            f"{what} refers to {_shown(uri)}, which is not a relative path next to the .gltf",
-            field,
+            f"{what} refers to {_shown(uri)}, which is not a relative path {where}", field
         )
     if not relative:
         raise SceneError(f"{what} has an empty uri", field)
+    return relative
+
+
+def _read_uri(uri: str, base_dir: Path, root: Path, field: str, what: str) -> tuple[str, bytes]:
+    """Return (media type from a data: URI or "", bytes) for a buffer or image uri."""
+    if uri[:5].lower() == "data:":
+        return _data_uri_payload(uri, field)
+    relative = _relative_uri_path(uri, field, what, "next to the .gltf")
     if "\0" in relative:
         raise SceneError(f"{what} refers to {_shown(uri)}, which contains a NUL character", field)
     if os.path.isabs(relative) or relative.startswith(("/", "\\")):

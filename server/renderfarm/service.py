@@ -183,19 +183,12 @@ class FarmService:
     async def _resume_unfinished(self) -> None:
         for row in await self.store.unfinished_jobs():
             settings = JobSettings(**row.settings)
-            checkpoint = {}
-            rects = tile_grid(settings.width, settings.height, settings.tile_size)
-            for t in await self.store.load_tiles(row.id):
-                rect = rects[t.tile_index]
-                checkpoint[t.tile_index] = TileAccumulator.from_bytes(
-                    rect.width,
-                    rect.height,
-                    t.accumulators,
-                    t.samples,
-                    t.batches,
-                    t.nonfinite,
-                    iid=settings.sampler == "independent",
-                )
+            checkpoint = {
+                index: acc
+                for index, (_, acc) in _restore_tiles(
+                    settings, await self.store.load_tiles(row.id)
+                ).items()
+            }
             self.scheduler.add_job(
                 row.id,
                 settings,
@@ -486,20 +479,7 @@ class FarmService:
         if row is None:
             raise NotFound(f"no job with id {job_id!r}")
         settings = JobSettings(**row.settings)
-        rects = tile_grid(settings.width, settings.height, settings.tile_size)
-        tiles: list[tuple[Rect, TileAccumulator]] = []
-        for t in await self.store.load_tiles(job_id):
-            rect = rects[t.tile_index]
-            acc = TileAccumulator.from_bytes(
-                rect.width,
-                rect.height,
-                t.accumulators,
-                t.samples,
-                t.batches,
-                t.nonfinite,
-                iid=settings.sampler == "independent",
-            )
-            tiles.append((rect, acc))
+        tiles = list(_restore_tiles(settings, await self.store.load_tiles(job_id)).values())
         return images.assemble(settings.width, settings.height, tiles)
 
     async def image(
@@ -783,6 +763,27 @@ class FarmService:
             for t in job.tiles
             if t.stop is not None
         ]
+
+
+def _restore_tiles(
+    settings: JobSettings, rows: list[TileRow]
+) -> dict[int, tuple[Rect, TileAccumulator]]:
+    """Checkpointed tiles of a job as accumulators, by tile index."""
+    rects = tile_grid(settings.width, settings.height, settings.tile_size)
+    restored = {}
+    for t in rows:
+        rect = rects[t.tile_index]
+        acc = TileAccumulator.from_bytes(
+            rect.width,
+            rect.height,
+            t.accumulators,
+            t.samples,
+            t.batches,
+            t.nonfinite,
+            iid=settings.sampler == "independent",
+        )
+        restored[t.tile_index] = (rect, acc)
+    return restored
 
 
 def _tile_snapshot(t) -> tuple:
