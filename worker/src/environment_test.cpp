@@ -5,17 +5,15 @@
 #include <OpenImageIO/imageio.h>
 #include <gtest/gtest.h>
 
+#include "chi_square.h"
+
 #include <cstdio>
 #include <random>
 
 namespace rf {
 namespace {
 
-double chi2_critical(int dof) {  // significance 1e-3, Wilson-Hilferty
-  const double k = dof, z = 3.09;
-  const double t = 1.0 - 2.0 / (9.0 * k) + z * std::sqrt(2.0 / (9.0 * k));
-  return k * t * t * t;
-}
+using testing::chi2_critical;
 
 // A 32 x 16 map: a smooth gradient, a hot spot and a black band.
 std::shared_ptr<Environment> test_map(float rotation_deg) {

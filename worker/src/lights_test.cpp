@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include "chi_square.h"
+
 #include <random>
 
 #include "scene.h"
@@ -10,11 +12,7 @@
 namespace rf {
 namespace {
 
-double chi2_critical(int dof) {  // significance 1e-3, Wilson-Hilferty
-  const double k = dof, z = 3.09;
-  const double t = 1.0 - 2.0 / (9.0 * k) + z * std::sqrt(2.0 / (9.0 * k));
-  return k * t * t * t;
-}
+using testing::chi2_critical;
 
 TEST(AliasTable, ReproducesItsProbabilities) {
   const std::vector<double> weights = {1, 2, 3, 0, 4, 10, 0.5, 7};

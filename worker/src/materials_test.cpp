@@ -4,17 +4,15 @@
 
 #include <gtest/gtest.h>
 
+#include "chi_square.h"
+
 #include <random>
 #include <vector>
 
 namespace rf {
 namespace {
 
-double chi2_critical(int dof) {  // significance 1e-3, Wilson-Hilferty
-  const double k = dof, z = 3.09;
-  const double t = 1.0 - 2.0 / (9.0 * k) + z * std::sqrt(2.0 / (9.0 * k));
-  return k * t * t * t;
-}
+using testing::chi2_critical;
 
 Vec3 spherical(double z, double phi) {
   const double r = std::sqrt(std::max(0.0, 1.0 - z * z));

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include "chi_square.h"
+
 #include <algorithm>
 #include <random>
 #include <thread>
@@ -169,11 +171,7 @@ TEST(Samplers, IndependentIsNotANet) {
   EXPECT_FALSE(is_02_net(s, 0, 0, 8, 0, 1));
 }
 
-double chi2_critical(int dof) {  // significance 1e-3, Wilson-Hilferty
-  const double k = dof, z = 3.09;
-  const double t = 1.0 - 2.0 / (9.0 * k) + z * std::sqrt(2.0 / (9.0 * k));
-  return k * t * t * t;
-}
+using testing::chi2_critical;
 
 TEST(Samplers, IndependentIsUniform) {
   const Sampler s(SamplerType::Independent, 5);

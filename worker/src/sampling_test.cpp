@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include "chi_square.h"
+
 #include <functional>
 #include <random>
 #include <vector>
@@ -9,13 +11,7 @@
 namespace rf {
 namespace {
 
-// Upper critical value of the chi-square distribution with `dof` degrees of freedom at
-// significance 1e-3 (Wilson-Hilferty approximation, z = 3.09).
-double chi2_critical(int dof) {
-  const double k = dof, z = 3.09;
-  const double t = 1.0 - 2.0 / (9.0 * k) + z * std::sqrt(2.0 / (9.0 * k));
-  return k * t * t * t;
-}
+using testing::chi2_critical;
 
 // Pearson statistic of observed vs expected counts; cells with expected < 5 are pooled.
 double chi2_statistic(const std::vector<double>& observed, const std::vector<double>& expected,
