@@ -156,6 +156,42 @@ def test_workers_need_the_worker_token(secured):
         assert first.welcome.worker_id == "welcome"
 
 
+def test_a_session_cookie_stands_in_for_the_bearer_header(secured):
+    """The dashboard's sign-in: POST /api/v1/session checks the token and sets an HttpOnly
+    SameSite=Strict cookie that authorizes requests without a header; DELETE clears it."""
+    farm, tokens, _ = secured
+    with httpx.Client(base_url=farm.url, timeout=30) as http:
+        bad = http.post("/api/v1/session", json={"token": "rf_not-a-real-token"})
+        assert bad.status_code == 401 and bad.json()["field"] == "authorization"
+        assert "set-cookie" not in bad.headers and not http.cookies
+        assert http.post("/api/v1/session", json={"token": ""}).status_code == 401
+        assert not http.cookies
+        assert http.get("/api/v1/whoami").status_code == 401
+
+        good = http.post("/api/v1/session", json={"token": tokens["alice"]["token"]})
+        assert good.status_code == 200 and good.json() == {"owner": "alice", "admin": False}
+        cookie = good.headers["set-cookie"]
+        assert cookie.startswith(f"renderfarm_token={tokens['alice']['token']};")
+        attributes = {a.strip().lower() for a in cookie.split(";")[1:]}
+        assert {"httponly", "samesite=strict", "path=/"} <= attributes
+        assert "secure" not in attributes  # plain http; Secure is set over TLS
+
+        # Only the cookie: authorized as alice, also for the job list and the stream's path.
+        assert http.get("/api/v1/whoami").json() == {"owner": "alice", "admin": False}
+        assert http.get("/api/v1/jobs").status_code == 200
+        # A header still wins over the cookie.
+        other = {"Authorization": f"Bearer {tokens['bob']['token']}"}
+        assert http.get("/api/v1/whoami", headers=other).json()["owner"] == "bob"
+        wrong = {"Authorization": "Bearer rf_not-a-real-token"}
+        assert http.get("/api/v1/whoami", headers=wrong).status_code == 401
+
+        out = http.delete("/api/v1/session")
+        assert out.status_code == 204
+        assert "renderfarm_token=" in out.headers["set-cookie"]
+        assert not http.cookies
+        assert http.get("/api/v1/whoami").status_code == 401
+
+
 def test_an_admin_token_from_the_environment_turns_auth_on(tmp_path):
     env = {"RENDERFARM_ADMIN_TOKEN": "rf_configured-admin-secret"}
     with LocalFarm(workers=0, data_dir=tmp_path / "d", env=env) as farm:

@@ -100,6 +100,18 @@ def check_exposure(
     )
 
 
+# The dashboard's session cookie (POST /api/v1/session): the API token itself, HttpOnly, so that
+# EventSource and <img> requests, which cannot send an Authorization header, carry it.
+SESSION_COOKIE = "renderfarm_token"
+
+
+def request_token(authorization: str | None, cookie: str | None) -> str | None:
+    """The token of a REST request: the Authorization header, else the session cookie."""
+    if authorization:
+        return bearer(authorization)
+    return cookie.strip() if cookie and cookie.strip() else None
+
+
 def bearer(header_value: str | None) -> str | None:
     """The token of an `Authorization: Bearer TOKEN` value, or None."""
     if not header_value:
@@ -202,6 +214,7 @@ async def create_token(store: Store, name: str, admin: bool) -> tuple[TokenRow, 
 
 __all__ = [
     "LOCAL_USER",
+    "SESSION_COOKIE",
     "AuthError",
     "Authenticator",
     "Caller",
@@ -210,5 +223,6 @@ __all__ = [
     "check_exposure",
     "create_token",
     "is_loopback",
+    "request_token",
     "token_sha256",
 ]

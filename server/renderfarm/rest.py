@@ -23,7 +23,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel, Field, create_model
 
 from . import apicommon
-from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
+from .auth import SESSION_COOKIE, Authenticator, AuthError, Caller, Forbidden, request_token
 from .images import LAYERS
 from .jobspec import SETTINGS, SettingsError
 from .metrics import Metrics
@@ -134,6 +134,10 @@ class WhoAmI(BaseModel):
     admin: bool
 
 
+class SessionIn(BaseModel):
+    token: str = Field(description="an API token, checked like `Authorization: Bearer TOKEN`")
+
+
 def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     described = {
         400: "invalid request (the field is named)",
@@ -200,12 +204,17 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         version="1",
         description=(
             "Progressive Monte Carlo render farm. Submit glTF scenes, watch them converge. "
-            "Send `Authorization: Bearer TOKEN` once the server has API tokens."
+            "Send `Authorization: Bearer TOKEN` once the server has API tokens (browsers: "
+            "POST /api/v1/session for a session cookie instead)."
         ),
     )
 
     async def caller(request: Request) -> Caller:
-        return await auth.caller(bearer(request.headers.get("authorization")))
+        # The header when there is one, else the dashboard's session cookie.
+        token = request_token(
+            request.headers.get("authorization"), request.cookies.get(SESSION_COOKIE)
+        )
+        return await auth.caller(token)
 
     Auth = Depends(caller)  # noqa: N806 (a dependency, read like a type)
 
@@ -299,6 +308,49 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     )
     async def whoami(who: Caller = Auth) -> dict[str, Any]:
         return {"owner": who.owner, "admin": who.admin}
+
+    @app.post(
+        "/api/v1/session",
+        summary="Sign in the dashboard: check a token and keep it in an HttpOnly session cookie",
+        description=(
+            f"On success sets the cookie `{SESSION_COOKIE}` (HttpOnly, SameSite=Strict, Secure "
+            "over TLS), which then authorizes requests without an Authorization header."
+        ),
+        response_model=WhoAmI,
+        responses=_errors(),
+    )
+    async def sign_in(body: SessionIn, request: Request) -> JSONResponse:
+        token = body.token.strip()
+        if not token:
+            raise AuthError("an API token is required")
+        who = await auth.caller(token)  # AuthError: 401, and no cookie
+        response = JSONResponse({"owner": who.owner, "admin": who.admin})
+        response.set_cookie(
+            SESSION_COOKIE,
+            token,
+            httponly=True,
+            samesite="strict",
+            secure=request.url.scheme == "https",
+            path="/",
+        )
+        return response
+
+    @app.delete(
+        "/api/v1/session",
+        status_code=204,
+        summary="Sign out the dashboard: clear the session cookie",
+        response_class=Response,
+    )
+    async def sign_out(request: Request) -> Response:
+        response = Response(status_code=204)
+        response.delete_cookie(
+            SESSION_COOKIE,
+            path="/",
+            httponly=True,
+            samesite="strict",
+            secure=request.url.scheme == "https",
+        )
+        return response
 
     @app.post(
         "/api/v1/jobs",

@@ -70,8 +70,10 @@ class PageProblems:
         self.problems.append(f"request failed: {request.method} {request.url}: {failure}")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Browser:
+    """Chromium for one test module. Module scope: Playwright's sync API runs an event loop in
+    this thread while it is open, which would break asyncio.run() in tests collected later."""
     if not Path(CHROMIUM).exists():
         pytest.fail(
             f"{CHROMIUM} not found: `apt-get install chromium` (scripts/install-deps.sh does)"

@@ -98,7 +98,13 @@ export class ApiError extends Error {
 
 const BASE = "/api/v1";
 
-async function request<T>(path: string, init?: RequestInit): Promise<T> {
+let unauthorized: ((message: string) => void) | null = null;
+/** Called on every 401 answer (no token, or an unknown or revoked one): the sign-in form. */
+export function onUnauthorized(handler: (message: string) => void): void {
+  unauthorized = handler;
+}
+
+async function request<T>(path: string, init?: RequestInit, signingIn = false): Promise<T> {
   let response: Response;
   try {
     response = await fetch(path, init);
@@ -115,10 +121,26 @@ async function request<T>(path: string, init?: RequestInit): Promise<T> {
     } catch {
       // not JSON: keep the status line
     }
+    if (response.status === 401 && !signingIn) unauthorized?.(detail);
     throw new ApiError(response.status, detail, field);
   }
+  if (response.status === 204) return undefined as T;
   return (await response.json()) as T;
 }
+
+export interface Caller {
+  owner: string;
+  admin: boolean;
+}
+
+/** Checks a token and keeps it in the HttpOnly session cookie (which EventSource and images use). */
+export const signIn = (token: string) =>
+  request<Caller>(
+    `${BASE}/session`,
+    { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ token }) },
+    true,
+  );
+export const signOut = () => request<void>(`${BASE}/session`, { method: "DELETE" }, true);
 
 export function listJobs(
   state: JobState | "",

@@ -5,6 +5,7 @@ import { mountJob } from "./pages/job";
 import { mountJobs } from "./pages/jobs";
 import { mountSubmit } from "./pages/submit";
 import { mountWorkers } from "./pages/workers";
+import { initSession } from "./session";
 
 type Unmount = () => void;
 
@@ -37,6 +38,12 @@ function route(): void {
   window.scrollTo(0, 0);
 }
 
+function stop(): void {
+  unmount?.();
+  unmount = null;
+}
+
+initSession(stop, route);
 window.addEventListener("hashchange", route);
 if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", route);
 else route();
