@@ -212,6 +212,10 @@ def test_environment_map_is_stored_and_referenced_by_hash(client, tmp_path):
     with pytest.raises(ApiError) as err:
         client.submit(scene_sha256=job["scene_sha256"], settings={"environment": "ab" * 32})
     assert err.value.status == 404 and "environment" in err.value.message
+    # An environment map is stored beside scenes but cannot be rendered as one.
+    with pytest.raises(ApiError) as err:
+        client.submit(scene_sha256=job["settings"]["environment"], settings={"max_spp": 1})
+    assert err.value.status == 404 and "no stored scene" in err.value.message
     parts["environment"] = ("sky.png", b"\x89PNG\r\n\x1a\n" + b"0" * 32, "image/png")
     r = client.http.post("/api/v1/jobs", files=parts)
     assert r.status_code == 400 and r.json()["field"] == "environment"

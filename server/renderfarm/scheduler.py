@@ -224,7 +224,7 @@ class Scheduler:
 
     def progress(self, job: JobRun) -> Progress:
         now = self.clock()
-        done = sum(t.stopped for t in job.tiles)
+        done = job.tiles_stopped
         mean_spp = sum(t.acc.samples * t.rect.pixels for t in job.tiles) / job.pixels
         errors = [t.error for t in job.tiles if t.merged]
         error = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf

@@ -291,9 +291,10 @@ class FarmService:
             sha = info.sha256
         elif scene_sha256:
             sha = scene_sha256.strip().lower()
-            if await self.store.get_scene_info(sha) is None:
-                raise NotFound(f"no stored scene with sha256 {sha}")
             stored = await self.store.get_scene_info(sha)
+            # Environment maps share the table; only a glTF scene can be rendered as one.
+            if stored is None or stored["format"] not in ("glb", "gltf"):
+                raise NotFound(f"no stored scene with sha256 {sha}")
             filename = filename or stored["filename"]
         else:
             raise SettingsError(

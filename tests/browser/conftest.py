@@ -9,6 +9,7 @@ Screenshots go to tests/browser/artifacts/.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 from dataclasses import dataclass, field
@@ -91,10 +92,10 @@ def problems() -> PageProblems:
     return PageProblems()
 
 
-@pytest.fixture()
-def page(browser: Browser, farm, problems: PageProblems) -> Page:
-    """A fresh page (laptop width) on the farm's dashboard; fails the test on any problem."""
-    context = browser.new_context(viewport=LAPTOP, base_url=farm.url, accept_downloads=True)
+@contextlib.contextmanager
+def watched_page(browser: Browser, url: str, problems: PageProblems, **context_options):
+    """A fresh page (laptop width) on the dashboard at `url`; fails on any problem it saw."""
+    context = browser.new_context(viewport=LAPTOP, base_url=url, **context_options)
     pg = context.new_page()
     pg.set_default_timeout(30_000)
     pg.on("console", problems.on_console)
@@ -105,6 +106,13 @@ def page(browser: Browser, farm, problems: PageProblems) -> Page:
     found = list(problems.problems)
     context.close()
     assert not found, "problems on the page:\n" + "\n".join(found)
+
+
+@pytest.fixture()
+def page(browser: Browser, farm, problems: PageProblems) -> Page:
+    """A fresh page on the shared farm's dashboard; fails the test on any problem."""
+    with watched_page(browser, farm.url, problems, accept_downloads=True) as pg:
+        yield pg
 
 
 @pytest.fixture(scope="session")

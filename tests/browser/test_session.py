@@ -9,7 +9,7 @@ from playwright.sync_api import Browser, Page, expect
 from renderfarm.client import Client
 from renderfarm.localfarm import LocalFarm
 
-from .conftest import LAPTOP, PageProblems, canvas_pixels, mean_abs_diff, screenshot
+from .conftest import PageProblems, canvas_pixels, mean_abs_diff, screenshot, watched_page
 from .test_dashboard import wait_layer
 
 TOKEN = "rf_browser-session-admin-secret"
@@ -29,17 +29,8 @@ def secured_farm(tmp_path_factory, worker_binary):
 
 @pytest.fixture()
 def secured_page(browser: Browser, secured_farm, problems: PageProblems) -> Page:
-    context = browser.new_context(viewport=LAPTOP, base_url=secured_farm.url)
-    pg = context.new_page()
-    pg.set_default_timeout(30_000)
-    pg.on("console", problems.on_console)
-    pg.on("pageerror", lambda e: problems.problems.append(f"uncaught exception: {e}"))
-    pg.on("response", problems.on_response)
-    pg.on("requestfailed", problems.on_request_failed)
-    yield pg
-    found = list(problems.problems)
-    context.close()
-    assert not found, "problems on the page:\n" + "\n".join(found)
+    with watched_page(browser, secured_farm.url, problems) as pg:
+        yield pg
 
 
 def test_sign_in_watch_a_job_through_the_cookie_and_sign_out(

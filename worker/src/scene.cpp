@@ -281,11 +281,8 @@ inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmax) {
   ray->flags = 0;
 }
 
-}  // namespace
-
-void set_thread_ray_log(RayLog* log) { tl_ray_log = log; }
-
-bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
+// Closest hit along o + t d, t in [0, tmax]; hit.geomID is RTC_INVALID_GEOMETRY_ID on a miss.
+inline RTCRayHit trace_closest(RTCScene scene, Vec3 o, Vec3 d, float tmax) {
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
   RTCRayHit rh;
@@ -293,7 +290,16 @@ bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-  rtcIntersect1(embree_->scene, &context, &rh);
+  rtcIntersect1(scene, &context, &rh);
+  return rh;
+}
+
+}  // namespace
+
+void set_thread_ray_log(RayLog* log) { tl_ray_log = log; }
+
+bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmax);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
   *t = rh.ray.tfar;
   return true;
@@ -301,14 +307,7 @@ bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
 
 bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, false});
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
-  RTCRayHit rh;
-  init_ray(&rh.ray, o, d, tmax);
-  rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-  rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-  rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-  rtcIntersect1(embree_->scene, &context, &rh);
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmax);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
   const unsigned top = rh.hit.instID[0] != RTC_INVALID_GEOMETRY_ID ? rh.hit.instID[0]
                                                                     : rh.hit.geomID;
