@@ -30,7 +30,7 @@ def main() -> dict:
         sys.exit(f"{binary} not found: build the worker first (make worker)")
     out = ROOT / "bench" / "results" / "worker_throughput.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    size = os.environ.get("BENCH_SIZE", "96")
+    size = os.environ.get("BENCH_SIZE", "192")
     cmd = [
         str(binary),
         "bench",
@@ -43,7 +43,7 @@ def main() -> dict:
         "--height",
         size,
         "--spp",
-        os.environ.get("BENCH_SPP", "16"),
+        os.environ.get("BENCH_SPP", "32"),
         "--threads",
         os.environ.get("BENCH_THREADS", "1,2"),
     ]

@@ -147,11 +147,10 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
 // f cos L / pdf, MIS-weighted against BSDF sampling with the power heuristic unless the light
 // is a delta light.
 Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
-                  const Frame& frame, Vec3 wo_local, const SampleStream& s, uint32_t bounce,
-                  uint32_t* rays) {
+                  const BsdfLobes& lobes, const Frame& frame, Vec3 wo_local,
+                  const SampleStream& s, uint32_t bounce, uint32_t* rays) {
   float u_sel = s.get(dim::bounce(bounce, dim::kLightSelect));
-  const Point2 u{s.get(dim::bounce(bounce, dim::kLightU)),
-                 s.get(dim::bounce(bounce, dim::kLightV))};
+  const Point2 u = s.get2(dim::bounce(bounce, dim::kLightU));
   const Vec3 origin = sp.above();
   if (lc.env && u_sel < lc.p_env) {
     float pdf = 0.f;
@@ -159,7 +158,7 @@ Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
     pdf *= lc.p_env;
     if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return {};
     float bsdf_pdf_wi = 0.f;
-    const Vec3 f = bsdf_eval_pdf(sp.params, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
+    const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
     if (is_zero(f)) return {};
     ++*rays;
     if (scene.occluded(origin, wi, kInfinity)) return {};
@@ -205,7 +204,7 @@ Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
   const float cos_light = dot(ls.n, -wi);
   if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return {};
   float bsdf_pdf_wi = 0.f;
-  const Vec3 f = bsdf_eval_pdf(sp.params, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
+  const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
   if (is_zero(f)) return {};
   const float pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
   // Stop short of the light's own surface so it does not occlude itself.
@@ -270,15 +269,16 @@ SampleResult trace_path(const Scene& scene, const LightContext& lc, const Sample
     }
     const Frame frame(sp.ns);
     const Vec3 wo_local = frame.to_local(wo);
+    const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
     if (lc.any && bsdf_has_smooth_part(sp.params))
-      radiance += beta * sample_light(scene, lc, sp, frame, wo_local, s, bounce, &result.rays);
+      radiance +=
+          beta * sample_light(scene, lc, sp, lobes, frame, wo_local, s, bounce, &result.rays);
 
     BsdfSample bs;
-    if (!bsdf_sample(sp.params, wo_local,
-                     {s.get(dim::bounce(bounce, dim::kBsdfU)),
-                      s.get(dim::bounce(bounce, dim::kBsdfV))},
+    if (!bsdf_sample(sp.params, lobes, wo_local, s.get2(dim::bounce(bounce, dim::kBsdfU)),
                      s.get(dim::bounce(bounce, dim::kLobe)),
-                     s.get(dim::bounce(bounce, dim::kFresnel)), &bs))
+                     // Read only by the glass lobe: skipped (any value would do) without one.
+                     lobes.glass > 0.f ? s.get(dim::bounce(bounce, dim::kFresnel)) : 0.f, &bs))
       break;
     const Vec3 wi = normalize(frame.to_world(bs.wi));
     // Directions on the wrong side of the geometric surface (possible with shading normals)
@@ -305,8 +305,7 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d)
   result.albedo = sp.albedo;
   result.normal = sp.ns;
   result.depth = hit.t;
-  const Vec3 local = sample_cosine_hemisphere(
-      {s.get(dim::bounce(0, dim::kBsdfU)), s.get(dim::bounce(0, dim::kBsdfV))});
+  const Vec3 local = sample_cosine_hemisphere(s.get2(dim::bounce(0, dim::kBsdfU)));
   const Vec3 wi = normalize(Frame(sp.ns).to_world(local));
   if (dot(wi, sp.ng) <= 0.f) return result;  // below the surface: blocked by it
   const float radius = 0.1f * scene.diagonal();
@@ -314,6 +313,42 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d)
   const float v = scene.occluded(sp.above(), wi, radius) ? 0.f : 1.f;
   result.radiance = Vec3(v, v, v);
   return result;
+}
+
+// What every sample of a render shares: computed once per render_rect.
+struct TraceContext {
+  LightContext lights;
+  float tan_half_fov = 0.f;
+  TraceContext(const Scene& scene, const RenderSettings& settings)
+      : lights(light_context(scene, settings)),
+        tan_half_fov(std::tan(0.5f * scene.camera().yfov)) {}
+};
+
+SampleResult trace_sample_in(const TraceContext& ctx, const Scene& scene,
+                             const RenderSettings& settings, const PixelSampler& sampler,
+                             uint32_t x, uint32_t y, uint32_t index) {
+  const SampleStream s{&sampler, index};
+  // Box filter: the sample position is uniform inside the pixel.
+  const Point2 jitter = s.get2(dim::kPixelX);
+  const float px = float(x) + jitter.x;
+  const float py = float(y) + jitter.y;
+  const Camera& cam = scene.camera();
+  Vec3 o = cam.position;
+  Vec3 d = cam.ray_direction(px, py, settings.width, settings.height, ctx.tan_half_fov);
+  if (settings.aperture_radius > 0.f) {
+    // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
+    // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
+    // point of the aperture disk and aims at p_focus.
+    const Point2 lens = sample_concentric_disk(s.get2(dim::kLensU));
+    const Vec3 p_focus = o + d * (settings.focus_distance / dot(d, cam.forward));
+    o = o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
+    d = normalize(p_focus - o);
+  }
+  if (settings.integrator == IntegratorType::AmbientOcclusion) return trace_ao(scene, s, o, d);
+  const uint32_t max_depth = settings.integrator == IntegratorType::Direct
+                                 ? std::min<uint32_t>(settings.max_depth, 1u)
+                                 : settings.max_depth;
+  return trace_path(scene, ctx.lights, s, o, d, max_depth);
 }
 
 }  // namespace
@@ -326,27 +361,7 @@ SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
 
 SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
                           const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
-  const SampleStream s{&sampler, index};
-  // Box filter: the sample position is uniform inside the pixel.
-  const float px = float(x) + s.get(dim::kPixelX);
-  const float py = float(y) + s.get(dim::kPixelY);
-  const Camera& cam = scene.camera();
-  Vec3 o = cam.position;
-  Vec3 d = cam.ray_direction(px, py, settings.width, settings.height);
-  if (settings.aperture_radius > 0.f) {
-    // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
-    // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
-    // point of the aperture disk and aims at p_focus.
-    const Point2 lens = sample_concentric_disk({s.get(dim::kLensU), s.get(dim::kLensV)});
-    const Vec3 p_focus = o + d * (settings.focus_distance / dot(d, cam.forward));
-    o = o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
-    d = normalize(p_focus - o);
-  }
-  if (settings.integrator == IntegratorType::AmbientOcclusion) return trace_ao(scene, s, o, d);
-  const uint32_t max_depth = settings.integrator == IntegratorType::Direct
-                                 ? std::min<uint32_t>(settings.max_depth, 1u)
-                                 : settings.max_depth;
-  return trace_path(scene, light_context(scene, settings), s, o, d, max_depth);
+  return trace_sample_in(TraceContext(scene, settings), scene, settings, sampler, x, y, index);
 }
 
 std::string validate_render_request(const RenderSettings& settings, PixelRect rect,
@@ -376,6 +391,7 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
                  const std::atomic<bool>* cancel) {
   out->reset(rect, start, count);
   const Sampler sampler(settings.sampler, settings.seed);
+  const TraceContext ctx(scene, settings);
   for (uint32_t ty = 0; ty < rect.height; ++ty) {
     if (cancel && cancel->load(std::memory_order_relaxed)) return false;
     for (uint32_t tx = 0; tx < rect.width; ++tx) {
@@ -387,9 +403,8 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
                                                     (rect.x0 + tx));
       for (uint32_t k = 0; k < count; ++k) {
-        const SampleResult r =
-            trace_sample(scene, settings, pixel_sampler, rect.x0 + tx, rect.y0 + ty,
-                         uint32_t(start + k));
+        const SampleResult r = trace_sample_in(ctx, scene, settings, pixel_sampler,
+                                               rect.x0 + tx, rect.y0 + ty, uint32_t(start + k));
         out->rays += r.rays;
         Vec3 L = r.radiance;
         if (!is_finite(L)) {

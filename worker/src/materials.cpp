@@ -83,28 +83,6 @@ inline float dielectric_f0(const BsdfParams& p) {
   return std::min(1.f, p.specular * r * r);
 }
 
-struct Lobes {
-  float glass = 0.f;  // probability of the delta glass lobe
-  float spec = 0.f;   // probability of GGX among the non-delta lobes
-  float wd = 0.f;     // weight of the dielectric (non-glass, non-metal) part: (1 - m)(1 - t)
-};
-
-// Lobe selection probabilities: a function of wo only, so that bsdf_pdf can recompute them.
-Lobes lobe_probabilities(const BsdfParams& p, Vec3 wo) {
-  Lobes l;
-  l.glass = (1.f - p.metallic) * p.transmission;
-  l.wd = (1.f - p.metallic) * (1.f - p.transmission);
-  const float fw = schlick_weight(wo.z);
-  const float f0d = dielectric_f0(p);
-  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
-  const float fm = luminance(p.base) + (1.f - luminance(p.base)) * fw;
-  const float ws = l.wd * fd + p.metallic * fm;
-  // The cosine lobe also samples the metal's multiple-scattering term.
-  const float ms = p.metallic > 0.f ? p.metallic * (1.f - energy_table().e(wo.z, p.alpha)) : 0.f;
-  const float wdiff = l.wd * (1.f - fd) * std::max(luminance(p.base), 1e-3f) + ms;
-  l.spec = ws + wdiff > 0.f ? ws / (ws + wdiff) : 1.f;
-  return l;
-}
 
 // m * F_ms * (1 - E(mu_o)) (1 - E(mu_i)) / (pi (1 - E_avg)), with Kulla & Conty's colored
 // F_ms = F_avg^2 E_avg / (1 - F_avg (1 - E_avg)) and F_avg = f0 + (1 - f0) / 21 for Schlick.
@@ -123,6 +101,24 @@ Vec3 metal_multiple_scattering(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 }
 
 }  // namespace
+
+// A function of wo only, so that bsdf_pdf can recompute them.
+BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
+  BsdfLobes l;
+  l.glass = (1.f - p.metallic) * p.transmission;
+  const float wd = (1.f - p.metallic) * (1.f - p.transmission);
+  const float fw = schlick_weight(wo.z);
+  const float f0d = dielectric_f0(p);
+  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  const float lum = luminance(p.base);
+  const float fm = lum + (1.f - lum) * fw;
+  const float ws = wd * fd + p.metallic * fm;
+  // The cosine lobe also samples the metal's multiple-scattering term.
+  const float ms = p.metallic > 0.f ? p.metallic * (1.f - energy_table().e(wo.z, p.alpha)) : 0.f;
+  const float wdiff = wd * (1.f - fd) * std::max(lum, 1e-3f) + ms;
+  l.spec = ws + wdiff > 0.f ? ws / (ws + wdiff) : 1.f;
+  return l;
+}
 
 float metal_single_scattering_albedo(float mu, float alpha) {
   return energy_table().e(mu, alpha);
@@ -159,7 +155,7 @@ Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 
 float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   if (wo.z <= 0.f || wi.z <= 0.f) return 0.f;
-  const Lobes l = lobe_probabilities(p, wo);
+  const BsdfLobes l = bsdf_lobes(p, wo);
   const Vec3 h_raw = wo + wi;
   const float hl = length(h_raw);
   float pdf_spec = 0.f;
@@ -174,6 +170,10 @@ float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 }
 
 Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
+  return bsdf_eval_pdf(p, bsdf_lobes(p, wo), wo, wi, pdf);
+}
+
+Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, float* pdf) {
   *pdf = 0.f;
   if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
   const Vec3 h_raw = wo + wi;
@@ -192,7 +192,6 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
   const Vec3 diffuse = p.base * (wd * (1.f - fd) * kInvPi) + metal_multiple_scattering(p, wo, wi);
   const Vec3 specular = (Vec3(1.f, 1.f, 1.f) * (wd * fd) + fm * p.metallic) * spec;
   // pdf: as bsdf_pdf, with G1(wo) = 1 / (1 + Lambda(wo)) reused.
-  const Lobes l = lobe_probabilities(p, wo);
   const float pdf_spec = c > 0.f ? d * c / ((1.f + lambda_o) * wo.z) / (4.f * c) : 0.f;
   *pdf = (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * wi.z * kInvPi);
   return (diffuse + specular) * wi.z;
@@ -200,8 +199,12 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
 
 bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_fresnel,
                  BsdfSample* out) {
+  return bsdf_sample(p, bsdf_lobes(p, wo), wo, u, u_lobe, u_fresnel, out);
+}
+
+bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, float u_lobe,
+                 float u_fresnel, BsdfSample* out) {
   if (wo.z <= 0.f) return false;
-  const Lobes l = lobe_probabilities(p, wo);
   if (u_lobe < l.glass) {
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
     // the indices across the interface in the direction of travel of wi.
@@ -236,7 +239,7 @@ bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_f
   if (wi.z <= 0.f) return false;
   wi = normalize(wi);
   float pdf = 0.f;
-  const Vec3 f = bsdf_eval_pdf(p, wo, wi, &pdf);
+  const Vec3 f = bsdf_eval_pdf(p, l, wo, wi, &pdf);
   if (!(pdf > 0.f)) return false;
   out->wi = wi;
   out->pdf = pdf;

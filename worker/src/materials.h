@@ -81,6 +81,14 @@ struct BsdfSample {
 // scattering compensation (Kulla & Conty 2017), which makes a white rough metal conserve
 // energy exactly (up to its table). eval returns f times |cos_i| for the non-delta part only
 // (0 if wo or wi is below the surface).
+// Lobe selection probabilities, a function of (params, wo) only; the path tracer computes them
+// once per vertex and passes them to the overloads below (the same values as without them).
+struct BsdfLobes {
+  float glass = 0.f;  // probability of the delta glass lobe
+  float spec = 0.f;   // probability of GGX among the non-delta lobes
+};
+BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo);
+
 Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi);
 // Solid-angle density with which bsdf_sample produces wi among the non-delta lobes.
 float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi);
@@ -90,6 +98,9 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf);
 // Returns false if no direction was produced (the path ends).
 bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_fresnel,
                  BsdfSample* out);
+Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Vec3 wi, float* pdf);
+bool bsdf_sample(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Point2 u, float u_lobe,
+                 float u_fresnel, BsdfSample* out);
 // True if the BSDF has a non-delta component (next-event estimation is useful).
 inline bool bsdf_has_smooth_part(const BsdfParams& p) {
   return (1.f - (1.f - p.metallic) * p.transmission) > 0.f;

@@ -166,6 +166,17 @@ const SobolMatrices& sobol_matrices() {
   return matrices;
 }
 
+// The rest of a sobol value once the shuffled index is known in the bit-reversed domain
+// (y = LK(reverse(i), s1)): z = reverse(sobol32(reverse(y))) by the reversed tables of Sobol
+// dimension d (0 or 1), then reverse(LK(z, s2)).
+inline uint32_t sobol_finish(uint32_t y, uint32_t d, uint32_t scramble_seed) {
+  static const SobolMatrices& m = sobol_matrices();
+  const auto& t = m.reversed[d];
+  const uint32_t z = t[0][y & 0xffu] ^ t[1][(y >> 8) & 0xffu] ^ t[2][(y >> 16) & 0xffu] ^
+                     t[3][y >> 24];
+  return reverse_bits32(laine_karras_permutation(z, scramble_seed));
+}
+
 // Domain tags keep the index-shuffle and value-scramble hashes independent.
 constexpr uint64_t kShuffleTag = 0x53485546464c4531ull;  // "SHUFFLE1"
 constexpr uint64_t kScrambleTag = 0x534352414d424c31ull;  // "SCRAMBL1"
@@ -370,12 +381,29 @@ uint32_t Sampler::sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t
   // bit-reversed domain to save two of the four bit reversals:
   //   y = LK(reverse(i), s1)  (so the shuffled index is reverse(y)),
   //   z = reverse(sobol32(reverse(y))) by the reversed tables,  result = reverse(LK(z, s2)).
-  static const SobolMatrices& m = sobol_matrices();
   const uint32_t y = laine_karras_permutation(reverse_bits32(sample_index), shuffle_seed);
-  const auto& t = m.reversed[dimension % 2u];
-  const uint32_t z = t[0][y & 0xffu] ^ t[1][(y >> 8) & 0xffu] ^ t[2][(y >> 16) & 0xffu] ^
-                     t[3][y >> 24];
-  return reverse_bits32(laine_karras_permutation(z, scramble_seed));
+  return sobol_finish(y, dimension % 2u, scramble_seed);
+}
+
+void PixelSampler::fill_sobol_seeds(uint32_t dimension) const {
+  const uint64_t bit = uint64_t(1) << (dimension % 64);
+  uint64_t& valid = valid_[dimension / 64];
+  if (valid & bit) return;
+  if (dimension % 2u == 0 || !(valid & (bit >> 1)))
+    shuffle_[dimension / 2] = sampler_->sobol_shuffle_seed(pixel_, dimension);
+  scramble_[dimension] = sampler_->sobol_scramble_seed(pixel_, dimension);
+  valid |= bit;
+}
+
+Point2 PixelSampler::value2(uint32_t sample_index, uint32_t dimension) const {
+  if (sampler_->type() != SamplerType::Sobol || dimension % 2u != 0 ||
+      dimension + 1 >= kCachedDimensions)
+    return {value(sample_index, dimension), value(sample_index, dimension + 1)};
+  fill_sobol_seeds(dimension);
+  fill_sobol_seeds(dimension + 1);
+  const uint32_t y = laine_karras_permutation(reverse_bits32(sample_index), shuffle_[dimension / 2]);
+  return {fraction_to_float(sobol_finish(y, 0, scramble_[dimension])),
+          fraction_to_float(sobol_finish(y, 1, scramble_[dimension + 1]))};
 }
 
 float PixelSampler::value(uint32_t sample_index, uint32_t dimension) const {
@@ -395,12 +423,7 @@ float PixelSampler::value(uint32_t sample_index, uint32_t dimension) const {
                                                         halton_[dimension][0],
                                                         halton_[dimension][1]));
   }
-  if (!(valid & bit)) {
-    if (dimension % 2u == 0 || !(valid & (bit >> 1)))
-      shuffle_[dimension / 2] = sampler_->sobol_shuffle_seed(pixel_, dimension);
-    scramble_[dimension] = sampler_->sobol_scramble_seed(pixel_, dimension);
-    valid |= bit;
-  }
+  fill_sobol_seeds(dimension);
   return fraction_to_float(
       Sampler::sobol_bits(sample_index, dimension, shuffle_[dimension / 2], scramble_[dimension]));
 }

@@ -41,6 +41,8 @@
 #include <cstdint>
 #include <string>
 
+#include "sampling.h"
+
 namespace rf {
 
 enum class SamplerType { Sobol, Independent, Stratified, Halton };
@@ -136,8 +138,12 @@ class PixelSampler {
   PixelSampler(const Sampler& sampler, uint64_t pixel) : sampler_(&sampler), pixel_(pixel) {}
   uint64_t pixel() const { return pixel_; }
   float value(uint32_t sample_index, uint32_t dimension) const;
+  // The pair (value(i, d), value(i, d + 1)) for an even d. For sobol the two share the pair's
+  // shuffled index, which is then computed once.
+  Point2 value2(uint32_t sample_index, uint32_t dimension) const;
 
  private:
+  void fill_sobol_seeds(uint32_t dimension) const;
   static constexpr uint32_t kCachedDimensions = 128;
   const Sampler* sampler_;
   uint64_t pixel_;
@@ -152,6 +158,8 @@ struct SampleStream {
   const PixelSampler* sampler;
   uint32_t index;
   float get(uint32_t dimension) const { return sampler->value(index, dimension); }
+  // Dimensions (d, d + 1), d even: a 2D quantity's pair.
+  Point2 get2(uint32_t dimension) const { return sampler->value2(index, dimension); }
 };
 
 }  // namespace rf

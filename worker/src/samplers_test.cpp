@@ -52,6 +52,17 @@ TEST(Samplers, ConsistentValues) {
       for (uint32_t dim = 140; dim-- > 0;)
         for (uint32_t index : {69u, 3u, 0u})
           ASSERT_EQ(ps.value(index, dim), sampler.value(pixel, index, dim));
+      // Pairs evaluated together (value2, sharing sobol's shuffled index) equal the values
+      // one at a time, on a fresh sampler (seeds filled by value2) and on a filled one.
+      const PixelSampler fresh(sampler, pixel);
+      for (uint32_t dim = 0; dim < 140; dim += 2)
+        for (uint32_t index : {0u, 5u, 1000u}) {
+          const Point2 a = fresh.value2(index, dim), b = ps.value2(index, dim);
+          ASSERT_EQ(a.x, sampler.value(pixel, index, dim));
+          ASSERT_EQ(a.y, sampler.value(pixel, index, dim + 1));
+          ASSERT_EQ(b.x, a.x);
+          ASSERT_EQ(b.y, a.y);
+        }
     }
     // Two threads, interleaved halves.
     std::vector<uint32_t> threaded(keys.size());

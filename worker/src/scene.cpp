@@ -8,8 +8,8 @@
 
 namespace rf {
 
-Vec3 Camera::ray_direction(float px, float py, uint32_t width, uint32_t height) const {
-  const float tan_half = std::tan(0.5f * yfov);
+Vec3 Camera::ray_direction(float px, float py, uint32_t width, uint32_t height,
+                           float tan_half) const {
   const float aspect = float(width) / float(height);
   // Image plane at distance 1: x in [-aspect tan, aspect tan], y in [-tan, tan], y up.
   const float sx = (2.f * px / float(width) - 1.f) * aspect * tan_half;

@@ -33,7 +33,11 @@ struct Camera {
   float yfov = 0.8f;
   // Unit direction through image position (px, py) in pixels (x right, y down, continuous:
   // pixel (x, y) covers [x, x+1) x [y, y+1)) for an image of width x height pixels.
-  Vec3 ray_direction(float px, float py, uint32_t width, uint32_t height) const;
+  Vec3 ray_direction(float px, float py, uint32_t width, uint32_t height) const {
+    return ray_direction(px, py, width, height, std::tan(0.5f * yfov));
+  }
+  // The same with tan(yfov / 2) computed once by the caller.
+  Vec3 ray_direction(float px, float py, uint32_t width, uint32_t height, float tan_half) const;
 };
 
 struct Triangle {
