@@ -1,9 +1,13 @@
-"""Adaptive stopping against uniform sampling at equal cost, on the Cornell box.
+"""Adaptive stopping against uniform sampling at equal cost, on two scenes.
 
-1. A reference at 4096 spp (128x128).
+The Cornell box (a closed interior: every tile is hard) and a box on a floor under a sky
+(bench/sky_scene.py: half the frame converges at once). On each:
+1. A reference at 4096 spp (Cornell box) or 16384 spp (sky), 128x128.
 2. An adaptive job (noise_threshold T): each tile stops when its error estimate is below T.
 3. A uniform job with the same total number of samples, spread evenly (max_spp = the adaptive
    job's mean spp, rounded down, so the uniform job never gets more samples).
+4. A uniform job at equal render time: its spp scaled by the ratio of the two render times
+   (adaptive jobs spend samples where they cost more or less than the average).
 Both images are compared with the reference: the relative MSE (squared error over
 max(reference, 0.01)^2, what the noise threshold controls), the plain RGB MSE, and the 95th
 percentile and maximum of the tiles' errors. Render time is measured for both. Writes
@@ -11,12 +15,14 @@ bench/results/adaptive_efficiency.json.
 
 What to expect: stopping every tile at the same error gives tile t about sigma_t^2 / T^2
 samples, which has the same expected mean squared error as spreading the same samples evenly
-(sum of sigma_t^2 over the total); it lowers the worst tiles' error (an even image) and saves
-the samples uniform sampling spends on tiles that are easy. The allocation that minimises the
+(sum of sigma_t^2 over the total) when every tile needs more than min_spp, as in the Cornell
+box: there the gain is an even image (lower worst-tile error). Where tiles are easy (the sky),
+they stop at min_spp with an error far below T, and the samples uniform sampling would spend on
+them go to the hard tiles: a lower mean squared error as well. The allocation that minimises the
 mean squared error instead gives tile t samples in proportion to sigma_t / sqrt(cost_t)
 (Neyman allocation).
 
-    .venv/bin/python bench/adaptive_efficiency.py [--threshold 0.05]
+    .venv/bin/python bench/adaptive_efficiency.py [--threshold 0.05] [--sky-threshold 0.02]
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import sky_scene
 
 from renderfarm.client import Client
 from renderfarm.images import read_exr
@@ -40,10 +47,12 @@ SIZE = 128
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
-def render(client: Client, scratch: Path, name: str, **settings) -> tuple[dict, dict, float]:
+def render(
+    client: Client, scratch: Path, scene: Path, name: str, **settings
+) -> tuple[dict, dict, float]:
     base = {"width": SIZE, "height": SIZE, "tile_size": 32, "seed": 3}
     started = time.perf_counter()
-    job = client.submit(SCENE, settings={**base, **settings}, name=name)
+    job = client.submit(scene, settings={**base, **settings}, name=name)
     job = client.wait(job["id"], poll_s=0.1, timeout_s=3600)
     elapsed = time.perf_counter() - started
     path = scratch / f"{name}.exr"
@@ -67,26 +76,43 @@ def errors(ch: dict, ref: dict) -> tuple[float, float, float, float]:
             float(np.percentile(tile_err, 95)), float(tile_err.max()))  # fmt: skip
 
 
-def main() -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threshold", type=float, default=0.05)
-    args = parser.parse_args()
-    with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
-        scratch = Path(data)
-        with LocalFarm(workers=2, data_dir=scratch / "farm", threads=1) as farm:
-            with Client(farm.url, timeout=60) as client:
-                _, ref, _ = render(client, scratch, "reference", noise_threshold=0, max_spp=4096)
-                adaptive, a_img, a_time = render(
-                    client, scratch, "adaptive", noise_threshold=args.threshold, max_spp=4096
-                )
-                spp = int(adaptive["progress"]["mean_spp"])
-                uniform, u_img, u_time = render(
-                    client, scratch, "uniform", noise_threshold=0, max_spp=spp
-                )
+def compare(
+    client: Client, scratch: Path, label: str, scene: Path, threshold: float, ref_spp: int, **extra
+):
+    """Reference, adaptive and uniform renders of one scene; the figures of the comparison."""
+    _, ref, _ = render(client, scratch, scene, f"{label}-reference", noise_threshold=0,
+                       max_spp=ref_spp, **extra)  # fmt: skip
+    adaptive, a_img, a_time = render(
+        client,
+        scratch,
+        scene,
+        f"{label}-adaptive",
+        noise_threshold=threshold,
+        max_spp=4096,
+        **extra,
+    )
+    spp = int(adaptive["progress"]["mean_spp"])
+    _, u_img, u_time = render(
+        client, scratch, scene, f"{label}-uniform", noise_threshold=0, max_spp=spp, **extra
+    )
+    # Uniform again with the spp scaled to the adaptive job's render time: the comparison at
+    # equal time (adaptive tiles spend their samples where a sample costs more or less).
+    spp_t = max(1, round(spp * a_time / u_time))
+    _, t_img, t_time = render(
+        client,
+        scratch,
+        scene,
+        f"{label}-uniform-equal-time",
+        noise_threshold=0,
+        max_spp=spp_t,
+        **extra,
+    )
     a_rel, a_mse, a_p95, a_max = errors(a_img, ref)
     u_rel, u_mse, u_p95, u_max = errors(u_img, ref)
-    figures = {
-        "threshold": args.threshold,
+    t_rel, t_mse, _, _ = errors(t_img, ref)
+    return {
+        "threshold": threshold,
+        "reference_spp": ref_spp,
         "adaptive_mean_spp": adaptive["progress"]["mean_spp"],
         "uniform_spp": spp,
         "adaptive_seconds": a_time,
@@ -97,14 +123,50 @@ def main() -> dict:
         "adaptive_rgb_mse": a_mse,
         "uniform_rgb_mse": u_mse,
         "rgb_mse_ratio_uniform_over_adaptive": u_mse / a_mse,
+        # Efficiency = 1 / (error x time): the gain of adaptive over uniform.
         "adaptive_efficiency_gain": (u_rel * u_time) / (a_rel * a_time),
         "adaptive_tile_error_p95": a_p95,
         "uniform_tile_error_p95": u_p95,
         "adaptive_tile_error_max": a_max,
         "uniform_tile_error_max": u_max,
+        "equal_time_uniform_spp": spp_t,
+        "equal_time_uniform_seconds": t_time,
+        "equal_time_uniform_relative_mse": t_rel,
+        "equal_time_uniform_rgb_mse": t_mse,
+        "equal_time_relative_mse_ratio_uniform_over_adaptive": t_rel / a_rel,
+        "equal_time_rgb_mse_ratio_uniform_over_adaptive": t_mse / a_mse,
     }
-    for key, value in figures.items():
-        print(f"{key:42} {value:.6g}")
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threshold", type=float, default=0.05, help="Cornell box")
+    parser.add_argument("--sky-threshold", type=float, default=0.02, help="box under a sky")
+    args = parser.parse_args()
+    figures = {}
+    with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
+        scratch = Path(data)
+        sky_gltf, sky_hdr = sky_scene.write(scratch / "sky")
+        with LocalFarm(workers=2, data_dir=scratch / "farm", threads=1) as farm:
+            with Client(farm.url, timeout=60) as client:
+                figures["cornell"] = compare(
+                    client, scratch, "cornell", SCENE, args.threshold, ref_spp=4096
+                )
+                # The sky scene is cheap per sample: a tighter threshold and a deeper reference
+                # (the reference's own noise must stay well below the threshold).
+                figures["sky_box"] = compare(
+                    client,
+                    scratch,
+                    "sky",
+                    sky_gltf,
+                    args.sky_threshold,
+                    ref_spp=16384,
+                    environment=str(sky_hdr),
+                )
+    for scene, values in figures.items():
+        print(scene)
+        for key, value in values.items():
+            print(f"  {key:42} {value:.6g}")
     out = ROOT / "bench" / "results" / "adaptive_efficiency.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(figures, indent=2) + "\n")

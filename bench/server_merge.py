@@ -2,7 +2,9 @@
 
 A server (embedded PostgreSQL) runs pinned to one CPU core; a load generator pinned to the
 other core opens several WorkerService streams that answer every Assign at once with a
-pre-built 64x64 TileResult. The figures come from the server's own Prometheus metrics:
+pre-built 64x64 TileResult shaped like the C++ worker's: float32 sums, and albedo/normal sums
+only when the task does not say skip_aovs (the first 16 samples of a pixel). The figures come
+from the server's own Prometheus metrics:
 results/s merged, MB/s of result payload, and merge latency p50/p99 (interpolated within the
 histogram buckets). Writes bench/results/server_merge.json (key `results_per_s`).
 
@@ -32,17 +34,20 @@ from renderfarm.v1 import workers_pb2
 ROOT = Path(__file__).resolve().parents[1]
 TILE = 64
 TARGET = 2000
+EXTRA_ENV = {k: v for k, v in os.environ.items() if k.startswith("RENDERFARM_")}
 
 
-def payload(count: int) -> bytes:
+def payload(count: int, aovs: bool) -> bytes:
     """The per-pixel arrays of a TileResult, serialised once (protobuf fields concatenate)."""
     rng = np.random.default_rng(count)
-    return workers_pb2.TileResult(
-        rgb_sum=(rng.random(TILE * TILE * 3) * count).astype("<f8").tobytes(),
-        luminance_m2=(rng.random(TILE * TILE) * count).astype("<f8").tobytes(),
-        albedo_sum=np.zeros(TILE * TILE * 3, "<f4").tobytes(),
-        normal_sum=np.zeros(TILE * TILE * 3, "<f4").tobytes(),
-    ).SerializeToString()
+    result = workers_pb2.TileResult(
+        rgb_sum=(rng.random(TILE * TILE * 3) * count).astype("<f4").tobytes(),
+        luminance_m2=(rng.random(TILE * TILE) * count).astype("<f4").tobytes(),
+    )
+    if aovs:
+        result.albedo_sum = np.full(TILE * TILE * 3, 0.5 * count, "<f4").tobytes()
+        result.normal_sum = np.full(TILE * TILE * 3, 0.5 * count, "<f4").tobytes()
+    return result.SerializeToString()
 
 
 def varint(n: int) -> bytes:
@@ -60,7 +65,7 @@ RESULT_TAG = b"\x12"  # WorkerMessage.result: field 2, length-delimited
 async def synthetic_worker(address: str, name: str, in_flight: int, stop_at: float) -> int:
     """One worker stream answering each Assign at once. Messages are framed by hand from a
     pre-serialised payload so that the load generator costs little CPU per result."""
-    payloads: dict[int, bytes] = {}
+    payloads: dict[tuple[int, bool], bytes] = {}
     sent = 0
     async with grpc.aio.insecure_channel(
         address, options=[("grpc.max_send_message_length", 64 << 20)]
@@ -89,9 +94,10 @@ async def synthetic_worker(address: str, name: str, in_flight: int, stop_at: flo
             if msg.WhichOneof("msg") != "assign":
                 continue
             task = msg.assign.task
-            arrays = payloads.get(task.sample_count)
+            key = (task.sample_count, not task.skip_aovs)
+            arrays = payloads.get(key)
             if arrays is None:
-                arrays = payloads[task.sample_count] = payload(task.sample_count)
+                arrays = payloads[key] = payload(*key)
             header = workers_pb2.TileResult(
                 task_id=task.task_id,
                 job_id=task.job_id,
@@ -161,7 +167,7 @@ def main() -> dict:
     parser.add_argument("--streams", type=int, default=4)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
-        farm = LocalFarm(workers=0, data_dir=Path(data))
+        farm = LocalFarm(workers=0, data_dir=Path(data), env=EXTRA_ENV)
         farm.start()
         try:
             os.sched_setaffinity(farm.server.pid, {0})
@@ -191,7 +197,8 @@ def main() -> dict:
             print((Path(data) / "server.log").read_text()[-3000:], file=sys.stderr)
             raise
         finally:
-            farm.stop()
+            # The last checkpoint of a 4096-tile job is about a gigabyte: give it time.
+            farm.stop(timeout=180)
     merged_key = 'renderfarm_tasks_completed_total{outcome="merged"}'
     results = after.get(merged_key, 0.0) - before.get(merged_key, 0.0)
     elapsed = t1 - t0

@@ -47,6 +47,7 @@ def job_from_proto(job: jobs_pb2.Job) -> dict[str, Any]:
         "progress": {
             "tiles_total": p.tiles_total,
             "tiles_done": p.tiles_done,
+            "tiles_previewed": p.tiles_previewed,
             "mean_spp": p.mean_spp,
             "error": None if p.error < 0 else p.error,
             "eta_s": None if p.eta_s < 0 else p.eta_s,

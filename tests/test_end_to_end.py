@@ -61,7 +61,7 @@ def test_job_completes_with_every_sample(cornell_job):
     job, _ = cornell_job
     assert job["state"] == "completed", job["error"]
     p = job["progress"]
-    assert p["tiles_done"] == p["tiles_total"] == 16
+    assert p["tiles_done"] == p["tiles_total"] == p["tiles_previewed"] == 16
     assert p["mean_spp"] == 16
     assert p["samples_merged"] == 64 * 64 * 16
 

@@ -51,6 +51,14 @@ def rgb(path) -> np.ndarray:
     return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
 
 
+AOV_CHANNELS = ("albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z")
+
+
+def aovs(path) -> np.ndarray:
+    ch = read_exr(str(path))
+    return np.stack([ch[name] for name in AOV_CHANNELS], axis=-1)
+
+
 def farm_image(client: Client, job_id: str, tmp_path: Path) -> np.ndarray:
     path = tmp_path / f"{job_id}.exr"
     path.write_bytes(client.image(job_id, "exr"))
@@ -104,7 +112,9 @@ def test_kill_9_one_of_two_workers_mid_job(tmp_path, reference):
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
 
 
-def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(tmp_path, reference):
+def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
+    tmp_path, reference, worker_binary
+):
     """The server is killed outright mid-job and started again: the job resumes from its last
     checkpoint, finishes with the same image, and exactly the samples that were not
     checkpointed are rendered again (counted by the restarted server's own metrics)."""
@@ -131,6 +141,17 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(tmp_pa
             rendered_after_restart = metric(farm.url, "renderfarm_samples_merged_total")
             assert rendered_after_restart == total - checkpointed
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+            # The albedo and normal layers (each pixel's first 16 samples, checkpointed apart
+            # from the statistics) survived the crash: they equal a standalone 16-spp render's.
+            farm_exr = tmp_path / "farm.exr"
+            farm_exr.write_bytes(client.image(job["id"], "exr"))
+    alone = tmp_path / "alone16.exr"
+    args = [worker_binary, "render", str(CORNELL), "-o", str(alone), "--threads", "2"]
+    args += ["--width", "96", "--height", "96", "--spp", "16", "--seed", "21"]
+    subprocess.run(args, check=True, capture_output=True, timeout=600)
+    expected = aovs(alone)
+    assert np.abs(expected).max() > 0.1
+    np.testing.assert_allclose(aovs(farm_exr), expected, rtol=1e-5, atol=1e-6)
 
 
 def _pg_ctl(pgdata: Path, *args: str) -> None:

@@ -38,6 +38,7 @@ from .service import (
     decode_result,
 )
 from .states import JobState
+from .tiling import AOV_SAMPLES
 from .v1 import (
     jobs_pb2,
     jobs_pb2_grpc,
@@ -73,6 +74,7 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         progress=jobs_pb2.JobProgress(
             tiles_total=p.tiles_total,
             tiles_done=p.tiles_done,
+            tiles_previewed=p.tiles_previewed,
             mean_spp=p.mean_spp,
             error=p.error if p.error is not None else -1.0,
             eta_s=p.eta_s if p.eta_s is not None else -1.0,
@@ -273,6 +275,7 @@ class SceneServicer(scenes_pb2_grpc.SceneServiceServicer):
 class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
     def __init__(self, farm: FarmService):
         self.farm = farm
+        self._settings_cache: dict[str, jobs_pb2.RenderSettings] = {}
 
     async def Connect(self, request_iterator, context):  # noqa: N802
         first = await anext(request_iterator.__aiter__(), None)
@@ -301,12 +304,17 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
         reader = asyncio.create_task(self._read(session, request_iterator))
         try:
             while True:
-                getter = asyncio.create_task(session.outbox.get())
-                done, _ = await asyncio.wait({getter, reader}, return_when=asyncio.FIRST_COMPLETED)
-                if getter not in done:
-                    getter.cancel()
-                    break  # the worker closed its side or the stream broke
-                item = getter.result()
+                if not session.outbox.empty():  # no waiting task needed for queued messages
+                    item = session.outbox.get_nowait()
+                else:
+                    getter = asyncio.create_task(session.outbox.get())
+                    done, _ = await asyncio.wait(
+                        {getter, reader}, return_when=asyncio.FIRST_COMPLETED
+                    )
+                    if getter not in done:
+                        getter.cancel()
+                        break  # the worker closed its side or the stream broke
+                    item = getter.result()
                 if item is None:
                     break  # replaced by a newer connection, or the server is stopping
                 yield self._message(item)
@@ -315,6 +323,15 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await reader
             await self.farm.worker_gone(session)
+
+    def _settings_proto(self, job) -> jobs_pb2.RenderSettings:
+        """A job's settings as a message, built once per job (a job's settings never change)."""
+        cached = self._settings_cache.get(job.job_id)
+        if cached is None:
+            cached = self._settings_cache[job.job_id] = settings_to_proto(job.settings)
+            while len(self._settings_cache) > 256:  # oldest first: dicts keep insertion order
+                del self._settings_cache[next(iter(self._settings_cache))]
+        return cached
 
     def _message(self, item) -> workers_pb2.ServerMessage:
         kind = item[0]
@@ -333,9 +350,10 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             ),
             batch_index=lease.batch_index,
             sample_start=lease.sample_start,
+            skip_aovs=lease.sample_start >= AOV_SAMPLES,
             sample_count=lease.sample_count,
-            settings=settings_to_proto(job.settings),
         )
+        task.settings.CopyFrom(self._settings_proto(job))
         return workers_pb2.ServerMessage(
             assign=workers_pb2.Assign(task=task, lease_deadline_unix_ms=int(lease.deadline * 1000))
         )
@@ -379,6 +397,7 @@ async def start_grpc(
             ("grpc.keepalive_timeout_ms", 10000),
             ("grpc.http2.max_pings_without_data", 0),
             ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.http2.max_frame_size", 1 << 20),
             ("grpc.http2.min_ping_interval_without_data_ms", 5000),
         ]
     )

@@ -57,8 +57,8 @@ def assemble(width: int, height: int, tiles: list[tuple[Rect, TileAccumulator]])
         frame.variance[ys, xs] = acc.variance_of_mean()
         frame.spp[ys, xs] = n
         frame.error[ys, xs] = acc.relative_error()
-        frame.albedo[ys, xs] = acc.albedo_sum / n
-        frame.normal[ys, xs] = acc.normal_sum / n
+        frame.albedo[ys, xs] = acc.mean_albedo()
+        frame.normal[ys, xs] = acc.mean_normal()
     return frame
 
 

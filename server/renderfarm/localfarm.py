@@ -134,10 +134,12 @@ class LocalFarm:
                     raise TimeoutError(f"the server was not ready after {ready_timeout_s} s")
                 time.sleep(0.1)
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop workers, then the server; the server gets `timeout` seconds to write its last
+        checkpoint and stop its embedded database before it is killed."""
         stop_processes(self.worker_procs)
         if self.server is not None:
-            stop_processes([self.server], timeout=30)
+            stop_processes([self.server], timeout=timeout)
 
     def __enter__(self) -> LocalFarm:
         return self.start()

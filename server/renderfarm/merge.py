@@ -22,18 +22,25 @@ Error of a pixel's mean (variance of the mean):
 
 Relative error of a pixel: sqrt(variance of the mean) / max(mean luminance, DARK_FLOOR).
 Relative error of a tile: root mean square of its pixels' relative errors.
+
+Albedo and normal sums cover each pixel's first AOV_SAMPLES samples only (tiling.py): batches
+merged after that point do not add to them, whatever they carry.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .tiling import AOV_SAMPLES
+
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ LUMINANCE_WEIGHTS
+    """Rec. 709 luminance of (..., 3) RGB, in float64 whatever the input's precision."""
+    flat = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
+    return np.dot(flat, LUMINANCE_WEIGHTS).reshape(np.shape(rgb)[:-1])
 
 
 class TileAccumulator:
@@ -63,8 +70,9 @@ class TileAccumulator:
         self.lum_mean = np.zeros((height, width))
         self.m2_within = np.zeros((height, width))
         self.m2_between = np.zeros((height, width))
-        self.albedo_sum = np.zeros((height, width, 3))
-        self.normal_sum = np.zeros((height, width, 3))
+        # Sums over at most AOV_SAMPLES samples: float32 holds them to its rounding.
+        self.albedo_sum = np.zeros((height, width, 3), np.float32)
+        self.normal_sum = np.zeros((height, width, 3), np.float32)
         self.samples = 0
         self.batches = 0
         self.nonfinite = 0
@@ -82,25 +90,34 @@ class TileAccumulator:
         if sample_count <= 0:
             raise ValueError("a batch has at least one sample")
         shape = (self.height, self.width)
-        rgb_sum = np.asarray(rgb_sum, dtype=np.float64).reshape(*shape, 3)
-        luminance_m2 = np.asarray(luminance_m2, dtype=np.float64).reshape(shape)
+        # float32 or float64 input (the wire carries float32); all arithmetic is float64.
+        rgb_sum = np.asarray(rgb_sum).reshape(*shape, 3)
+        luminance_m2 = np.asarray(luminance_m2).reshape(shape)
         n_a = float(self.samples)
         n_b = float(sample_count)
         n = n_a + n_b
-        batch_mean = luminance(rgb_sum) / n_b
-        delta = batch_mean - self.lum_mean
+        # delta = batch mean - running mean, the batch mean from the luminance of the sum.
+        delta = luminance(rgb_sum)
+        delta *= 1.0 / n_b
+        delta -= self.lum_mean
         # Copy on write: every merge makes new arrays instead of updating in place, so a
         # checkpoint can hold on to the arrays of a snapshot() and serialise them in another
-        # thread while merging goes on.
+        # thread while merging goes on. (Temporaries are updated in place.)
         # m2_between gains delta^2 n_a n_b / n; a single batch has no between part of its own.
-        self.m2_between = self.m2_between + delta * delta * (n_a * n_b / n)
+        if n_a > 0:
+            gain = delta * delta
+            gain *= n_a * n_b / n
+            self.m2_between = np.add(self.m2_between, gain, out=gain)
         self.lum_mean = self.lum_mean + delta * (n_b / n)
-        self.m2_within = self.m2_within + luminance_m2
-        self.rgb_sum = self.rgb_sum + rgb_sum
-        if albedo_sum is not None:
-            self.albedo_sum = self.albedo_sum + np.asarray(albedo_sum).reshape(*shape, 3)
-        if normal_sum is not None:
-            self.normal_sum = self.normal_sum + np.asarray(normal_sum).reshape(*shape, 3)
+        self.m2_within = np.add(self.m2_within, luminance_m2, dtype=np.float64)
+        self.rgb_sum = np.add(self.rgb_sum, rgb_sum, dtype=np.float64)
+        if self.samples < AOV_SAMPLES:  # in-order merges: self.samples is the batch's start
+            if albedo_sum is not None:
+                aov = np.asarray(albedo_sum).reshape(*shape, 3)
+                self.albedo_sum = np.add(self.albedo_sum, aov, dtype=np.float32)
+            if normal_sum is not None:
+                aov = np.asarray(normal_sum).reshape(*shape, 3)
+                self.normal_sum = np.add(self.normal_sum, aov, dtype=np.float32)
         self.samples += sample_count
         self.batches += 1
         self.nonfinite += nonfinite
@@ -109,6 +126,17 @@ class TileAccumulator:
         if self.samples == 0:
             return np.zeros_like(self.rgb_sum)
         return self.rgb_sum / self.samples
+
+    @property
+    def aov_samples(self) -> int:
+        """Samples behind albedo_sum and normal_sum."""
+        return min(self.samples, AOV_SAMPLES)
+
+    def mean_albedo(self) -> np.ndarray:
+        return self.albedo_sum / max(1, self.aov_samples)
+
+    def mean_normal(self) -> np.ndarray:
+        return self.normal_sum / max(1, self.aov_samples)
 
     def variance_of_mean(self) -> np.ndarray:
         """Per-pixel estimated variance of the mean luminance (inf when unknown)."""
@@ -128,24 +156,68 @@ class TileAccumulator:
         return np.sqrt(self.variance_of_mean()) / np.maximum(self.lum_mean, DARK_FLOOR)
 
     def tile_error(self) -> float:
-        """Root mean square of the pixels' relative errors (inf before any estimate exists)."""
-        rel = self.relative_error()
-        return float(np.sqrt(np.mean(rel * rel)))
+        """Root mean square of the pixels' relative errors (inf before any estimate exists).
 
-    # Checkpoints: the accumulator as bytes, and back (float64 little-endian, fixed order).
-    _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between", "albedo_sum", "normal_sum")
+        The same value as from relative_error(), without its square roots: the mean of
+        M2 / max(mean, DARK_FLOOR)^2, times the scalar factor of variance_of_mean()."""
+        n = self.samples
+        if self.iid and n >= 2:
+            m2, scale = self.m2_within + self.m2_between, 1.0 / ((n - 1) * n)
+        elif self.batches >= 2:
+            m2, scale = self.m2_between, 1.0 / ((self.batches - 1) * n)
+        elif n >= 2:
+            m2, scale = self.m2_within, 1.0 / ((n - 1) * n)
+        else:
+            return float("inf")
+        floor = np.maximum(self.lum_mean, DARK_FLOOR)
+        floor *= floor
+        np.divide(m2, floor, out=floor)
+        return float(np.sqrt(floor.mean() * scale))
+
+    # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order; statistics
+    # float64, AOVs float32). The statistics change with every merge; the AOVs only during the
+    # first AOV_SAMPLES samples, so they are stored apart and written only while they change.
+    _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")
+    _AOV_ARRAYS = ("albedo_sum", "normal_sum")
 
     def snapshot(self) -> tuple:
-        """An immutable view of the accumulator (cheap: arrays are replaced, never mutated)."""
+        """An immutable view of the statistics (cheap: arrays are replaced, never mutated)."""
         return tuple(getattr(self, a) for a in self._ARRAYS)
 
-    @staticmethod
-    def snapshot_bytes(snapshot: tuple) -> bytes:
-        """Serialise a snapshot(); safe to call from another thread."""
-        return b"".join(np.ascontiguousarray(a, "<f8").tobytes() for a in snapshot)
+    def aov_snapshot(self) -> tuple:
+        """The same for the albedo and normal sums."""
+        return tuple(getattr(self, a) for a in self._AOV_ARRAYS)
 
-    def to_bytes(self) -> bytes:
+    @staticmethod
+    def snapshot_bytes(snapshot: tuple, dtype: str = "<f8") -> bytearray:
+        """Serialise a snapshot() (float64) or aov_snapshot() (dtype "<f4") with one copy;
+        safe to call from another thread."""
+        itemsize = np.dtype(dtype).itemsize
+        out = bytearray(itemsize * sum(a.size for a in snapshot))
+        view = np.frombuffer(out, dtype=dtype)
+        offset = 0
+        for a in snapshot:
+            np.copyto(view[offset : offset + a.size], a.reshape(-1))
+            offset += a.size
+        return out
+
+    def to_bytes(self) -> bytearray:
         return self.snapshot_bytes(self.snapshot())
+
+    def aovs_to_bytes(self) -> bytearray:
+        return self.snapshot_bytes(self.aov_snapshot(), "<f4")
+
+    def _load(self, names: tuple, data: bytes, what: str, dtype: str = "<f8") -> None:
+        itemsize = np.dtype(dtype).itemsize
+        expected = itemsize * sum(getattr(self, name).size for name in names)
+        if len(data) != expected:
+            raise ValueError(f"checkpoint {what} has {len(data)} bytes, expected {expected}")
+        offset = 0
+        for name in names:
+            target = getattr(self, name)
+            chunk = np.frombuffer(data, dtype=dtype, count=target.size, offset=offset)
+            target[...] = chunk.reshape(target.shape)
+            offset += target.size * itemsize
 
     @classmethod
     def from_bytes(
@@ -157,16 +229,17 @@ class TileAccumulator:
         batches: int,
         nonfinite: int = 0,
         iid: bool = False,
+        aovs: bytes | None = None,
     ) -> TileAccumulator:
+        """Restore to_bytes() (with aovs_to_bytes(), or zero AOVs when None). Checkpoints
+        written before the AOVs were split off hold both in `data`, and load as well."""
         acc = cls(width, height, iid)
-        offset = 0
-        for name in cls._ARRAYS:
-            target = getattr(acc, name)
-            size = target.size * 8
-            chunk = np.frombuffer(data, dtype="<f8", count=target.size, offset=offset)
-            target[...] = chunk.reshape(target.shape)
-            offset += size
-        if offset != len(data):
-            raise ValueError(f"checkpoint has {len(data)} bytes, expected {offset}")
+        combined = cls._ARRAYS + cls._AOV_ARRAYS
+        if aovs is None and len(data) == 8 * width * height * 12:
+            acc._load(combined, data, "accumulators")
+        else:
+            acc._load(cls._ARRAYS, data, "accumulators")
+            if aovs is not None:
+                acc._load(cls._AOV_ARRAYS, aovs, "aovs", "<f4")
         acc.samples, acc.batches, acc.nonfinite = samples, batches, nonfinite
         return acc

@@ -51,6 +51,9 @@ JobSettingsModel = create_model(
 class Progress(BaseModel):
     tiles_total: int
     tiles_done: int = Field(description="tiles that have stopped")
+    tiles_previewed: int = Field(
+        description="tiles with at least one merged batch (all of them: a full-frame preview)"
+    )
     mean_spp: float
     error: float | None = Field(description="RMS relative error over tiles; null before a merge")
     eta_s: float | None = Field(description="seconds to completion; null when unknown")

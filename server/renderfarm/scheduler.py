@@ -26,7 +26,7 @@ import numpy as np
 from .jobspec import JobSettings
 from .merge import TileAccumulator
 from .states import JobState, StopReason
-from .tiling import Rect, batch_count, batch_range, tile_grid
+from .tiling import AOV_SAMPLES, Rect, batch_count, batch_range, tile_grid
 
 # How many batches of one tile may be leased or waiting beyond the merged ones when every tile
 # already has work: speculation keeps workers busy on small images at the risk of rendering a
@@ -95,6 +95,7 @@ class TileState:
     error: float = math.inf
     seconds_per_sample: float = 0.0  # measured render cost per pixel sample
     dirty: bool = False  # merged since the last checkpoint
+    aovs_dirty: bool = False  # albedo/normal sums changed since the last checkpoint
     stamp: int = 0  # bumped on every change; heap entries with an older stamp are stale
 
     @property
@@ -145,6 +146,7 @@ class WorkerSlot:
 class Progress:
     tiles_total: int
     tiles_done: int
+    tiles_previewed: int
     mean_spp: float
     error: float
     eta_s: float
@@ -232,6 +234,7 @@ class Scheduler:
         return Progress(
             tiles_total=len(job.tiles),
             tiles_done=done,
+            tiles_previewed=sum(1 for t in job.tiles if t.merged),
             mean_spp=mean_spp,
             error=error,
             eta_s=self._eta(job, elapsed, error),
@@ -470,6 +473,7 @@ class Scheduler:
         outcome = "pending"
         while tile.merged in tile.pending and not tile.stopped:
             r = tile.pending.pop(tile.merged)
+            tile.aovs_dirty |= tile.acc.aov_samples < AOV_SAMPLES
             tile.acc.merge_batch(
                 r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite
             )

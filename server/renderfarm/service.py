@@ -74,6 +74,7 @@ class Conflict(RuntimeError):
 class ProgressView:
     tiles_total: int
     tiles_done: int
+    tiles_previewed: int
     mean_spp: float
     error: float | None
     eta_s: float | None
@@ -436,6 +437,7 @@ class FarmService:
             progress=ProgressView(
                 tiles_total=p.tiles_total,
                 tiles_done=p.tiles_done,
+                tiles_previewed=p.tiles_previewed,
                 mean_spp=p.mean_spp,
                 error=_finite_or_none(p.error),
                 eta_s=p.eta_s if p.eta_s >= 0 else None,
@@ -458,6 +460,7 @@ class FarmService:
             progress=ProgressView(
                 tiles_total=row.tiles_total,
                 tiles_done=row.tiles_done,
+                tiles_previewed=row.tiles_previewed,
                 mean_spp=row.mean_spp,
                 error=row.error_estimate,
                 eta_s=0.0 if JobState(row.state).finished else None,
@@ -675,15 +678,16 @@ class FarmService:
         if tiles:
             for t in job.tiles:
                 if t.dirty:
-                    t.dirty = False
-                    snapshots.append(_tile_snapshot(t))
+                    snapshots.append(_tile_snapshot(t, t.aovs_dirty))
+                    t.dirty = t.aovs_dirty = False
         rows = await asyncio.to_thread(lambda: [_tile_row(*snap) for snap in snapshots])
         try:
             await self.store.save_tiles(job_id, rows)
         except Exception:
-            for t in job.tiles:  # not written: write again next round
-                if any(r.tile_index == t.index for r in rows):
-                    t.dirty = True
+            for r in rows:  # not written: write again next round
+                t = job.tiles[r.tile_index]
+                t.dirty = True
+                t.aovs_dirty |= r.aovs is not None
             raise
         p = self.scheduler.progress(job)
         await self.store.update_job(
@@ -697,6 +701,7 @@ class FarmService:
             mean_spp=p.mean_spp,
             error_estimate=_finite_or_none(p.error),
             tiles_done=p.tiles_done,
+            tiles_previewed=p.tiles_previewed,
         )
 
     HISTORY_POINTS = 2000
@@ -782,17 +787,19 @@ def _restore_tiles(
             t.batches,
             t.nonfinite,
             iid=settings.sampler == "independent",
+            aovs=t.aovs,
         )
         restored[t.tile_index] = (rect, acc)
     return restored
 
 
-def _tile_snapshot(t) -> tuple:
+def _tile_snapshot(t, with_aovs: bool) -> tuple:
     acc = t.acc
-    return (t.index, acc.samples, acc.batches, acc.nonfinite, t.error, acc.snapshot(), t.stop)
+    aovs = acc.aov_snapshot() if with_aovs else None
+    return (t.index, acc.samples, acc.batches, acc.nonfinite, t.error, acc.snapshot(), aovs, t.stop)
 
 
-def _tile_row(index, samples, batches, nonfinite, error, arrays, stop) -> TileRow:
+def _tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop) -> TileRow:
     return TileRow(
         tile_index=index,
         samples=samples,
@@ -804,6 +811,7 @@ def _tile_row(index, samples, batches, nonfinite, error, arrays, stop) -> TileRo
         stop_spp=stop.spp if stop else None,
         stop_error=stop.error if stop else None,
         stop_reason=stop.reason.value if stop else None,
+        aovs=None if aovs is None else TileAccumulator.snapshot_bytes(aovs, "<f4"),
     )
 
 
@@ -811,8 +819,9 @@ def decode_result(msg) -> BatchResult:
     """A TileResult protobuf message as numpy arrays (little-endian, row-major)."""
     rect = Rect(msg.rect.x0, msg.rect.y0, msg.rect.width, msg.rect.height)
     n = rect.pixels
-    rgb = np.frombuffer(msg.rgb_sum, dtype="<f8")
-    m2 = np.frombuffer(msg.luminance_m2, dtype="<f8")
+    # float32 (what workers send) or float64, told apart by length.
+    rgb = np.frombuffer(msg.rgb_sum, dtype="<f4" if len(msg.rgb_sum) == 12 * n else "<f8")
+    m2 = np.frombuffer(msg.luminance_m2, dtype="<f4" if len(msg.luminance_m2) == 4 * n else "<f8")
     albedo = np.frombuffer(msg.albedo_sum, dtype="<f4") if msg.albedo_sum else None
     normal = np.frombuffer(msg.normal_sum, dtype="<f4") if msg.normal_sum else None
     if albedo is not None and albedo.size != 3 * n:

@@ -60,6 +60,7 @@ class JobRow:
     tiles_total: int
     tiles_done: int
     owner: str = ""
+    tiles_previewed: int = 0
 
 
 @dataclass(frozen=True)
@@ -79,16 +80,19 @@ class TileRow:
     batches: int
     nonfinite: int
     error: float | None
-    accumulators: bytes
+    accumulators: bytes | bytearray
     stop_batch: int | None
     stop_spp: int | None
     stop_error: float | None
     stop_reason: str | None
+    # Albedo and normal sums; None on save keeps the stored ones (they stop changing early).
+    aovs: bytes | bytearray | None = None
 
 
 _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
-    "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner"
+    "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner, "
+    "tiles_previewed"
 )
 _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
@@ -225,13 +229,14 @@ class Store:
         mean_spp: float,
         error_estimate: float | None,
         tiles_done: int,
+        tiles_previewed: int,
     ) -> None:
         async with self._connection() as conn:
             await conn.execute(
                 "UPDATE jobs SET state = %s, error = %s,"
                 " started_at = coalesce(started_at, %s), finished_at = %s, elapsed_s = %s,"
-                " samples_merged = %s, mean_spp = %s, error_estimate = %s, tiles_done = %s"
-                " WHERE id = %s",
+                " samples_merged = %s, mean_spp = %s, error_estimate = %s, tiles_done = %s,"
+                " tiles_previewed = %s WHERE id = %s",
                 (
                     state,
                     error,
@@ -242,6 +247,7 @@ class Store:
                     mean_spp,
                     error_estimate,
                     tiles_done,
+                    tiles_previewed,
                     job_id,
                 ),
             )
@@ -316,18 +322,19 @@ class Store:
     async def save_tiles(self, job_id: str, rows: list[TileRow]) -> None:
         if not rows:
             return
-        async with self._connection() as conn:
+        # One transaction: one commit (one WAL flush) per checkpoint, not one per tile.
+        async with self._connection() as conn, conn.transaction():
             async with conn.cursor() as cur:
                 await cur.executemany(
                     "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
-                    " accumulators, stop_batch, stop_spp, stop_error, stop_reason)"
-                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
+                    " accumulators, stop_batch, stop_spp, stop_error, stop_reason, aovs)"
+                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
                     " ON CONFLICT (job_id, tile_index) DO UPDATE SET samples = excluded.samples,"
                     " batches = excluded.batches, nonfinite = excluded.nonfinite,"
                     " error = excluded.error, accumulators = excluded.accumulators,"
                     " stop_batch = excluded.stop_batch, stop_spp = excluded.stop_spp,"
                     " stop_error = excluded.stop_error, stop_reason = excluded.stop_reason,"
-                    " updated_at = now()"
+                    " aovs = COALESCE(excluded.aovs, tiles.aovs), updated_at = now()"
                     # Never move a tile backwards (a slow writer racing a newer checkpoint).
                     " WHERE tiles.batches <= excluded.batches",
                     [
@@ -343,6 +350,7 @@ class Store:
                             r.stop_spp,
                             _finite(r.stop_error),
                             r.stop_reason,
+                            r.aovs,
                         )
                         for r in rows
                     ],
@@ -353,12 +361,18 @@ class Store:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT tile_index, samples, batches, nonfinite, error, accumulators,"
-                " stop_batch, stop_spp, stop_error, stop_reason"
+                " stop_batch, stop_spp, stop_error, stop_reason, aovs"
                 " FROM tiles WHERE job_id = %s ORDER BY tile_index",
                 (job_id,),
             )
             return [
-                TileRow(**{**r, "accumulators": bytes(r["accumulators"])})
+                TileRow(
+                    **{
+                        **r,
+                        "accumulators": bytes(r["accumulators"]),
+                        "aovs": None if r["aovs"] is None else bytes(r["aovs"]),
+                    }
+                )
                 for r in await cur.fetchall()
             ]
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from renderfarm.merge import DARK_FLOOR, TileAccumulator, luminance
-from renderfarm.tiling import batch_count, batch_range
+from renderfarm.tiling import AOV_SAMPLES, batch_count, batch_range
 
 H, W = 3, 5
 
@@ -104,11 +104,82 @@ def test_between_batch_error_is_calibrated_for_independent_batches():
     assert np.mean(acc_vars) == pytest.approx(true, rel=0.1)
 
 
+ALL_ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between", "albedo_sum", "normal_sum")
+
+
 def test_checkpoint_round_trip():
     rng = np.random.default_rng(5)
-    acc = _merged(_batches(rng, 20), range(5))
-    back = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches)
-    for name in ("rgb_sum", "lum_mean", "m2_within", "m2_between", "albedo_sum", "normal_sum"):
+    acc = TileAccumulator(W, H)
+    for samples in _batches(rng, 20):
+        aov = rng.random((H, W, 3)).astype(np.float32)
+        acc.merge_batch(*_batch_payload(samples), aov, -aov)
+    assert np.any(acc.albedo_sum != 0) and np.any(acc.normal_sum != 0)
+    back = TileAccumulator.from_bytes(
+        W, H, acc.to_bytes(), acc.samples, acc.batches, aovs=acc.aovs_to_bytes()
+    )
+    for name in ALL_ARRAYS:
         np.testing.assert_array_equal(getattr(back, name), getattr(acc, name))
+    # Without the AOV blob: statistics restored, AOVs zero.
+    bare = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches)
+    np.testing.assert_array_equal(bare.rgb_sum, acc.rgb_sum)
+    assert not np.any(bare.albedo_sum)
+    # The format before the AOVs were split off: all six arrays in one blob.
+    legacy = b"".join(getattr(acc, name).astype("<f8").tobytes() for name in ALL_ARRAYS)
+    old = TileAccumulator.from_bytes(W, H, legacy, acc.samples, acc.batches)
+    for name in ALL_ARRAYS:
+        np.testing.assert_array_equal(getattr(old, name), getattr(acc, name))
     with pytest.raises(ValueError):
         TileAccumulator.from_bytes(W, H, acc.to_bytes()[:-8], 1, 1)
+    with pytest.raises(ValueError):
+        TileAccumulator.from_bytes(W, H, acc.to_bytes(), 1, 1, aovs=b"\0" * 8)
+
+
+@pytest.mark.parametrize("iid", [False, True])
+@pytest.mark.parametrize("max_spp", [1, 2, 40])
+def test_tile_error_is_the_rms_of_the_pixel_errors(iid, max_spp):
+    """tile_error() skips the square roots; relative_error() is the per-pixel definition."""
+    rng = np.random.default_rng(11)
+    acc = TileAccumulator(W, H, iid=iid)
+    for samples in _batches(rng, max_spp):
+        acc.merge_batch(*_batch_payload(samples))
+        rel = acc.relative_error()
+        expected = float(np.sqrt(np.mean(rel * rel)))
+        if np.isinf(expected):
+            assert acc.tile_error() == float("inf")
+        else:
+            assert acc.tile_error() == pytest.approx(expected, rel=1e-12)
+
+
+def test_float32_batches_merge_as_their_float64_values():
+    """The wire carries float32 sums; merging them equals merging the same values as float64."""
+    rng = np.random.default_rng(12)
+    a, b = TileAccumulator(W, H), TileAccumulator(W, H)
+    for samples in _batches(rng, 100):
+        rgb, m2, count = _batch_payload(samples)
+        rgb32, m232 = rgb.astype(np.float32), m2.astype(np.float32)
+        a.merge_batch(rgb32, m232, count)
+        b.merge_batch(rgb32.astype(np.float64), m232.astype(np.float64), count)
+    for name in TileAccumulator._ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert a.rgb_sum.dtype == np.float64
+
+
+def test_aovs_are_means_over_the_first_aov_samples():
+    """Batches after AOV_SAMPLES samples do not change albedo or normal, even if they carry
+    them; the means divide by the samples that did."""
+    acc = TileAccumulator(W, H)
+    total = np.zeros((H, W, 3))
+    for b in range(batch_count(200)):
+        start, count = batch_range(b, 200)
+        albedo = np.full((H, W, 3), float(b + 1)) * count  # batch b's albedo is b + 1
+        if start < AOV_SAMPLES:
+            total += albedo
+        acc.merge_batch(np.ones((H, W, 3)) * count, np.zeros((H, W)), count, albedo, -albedo)
+    assert acc.samples == 200 and acc.aov_samples == AOV_SAMPLES
+    # Batches 0-4 hold 1, 1, 2, 4, 8 samples: (1 + 2 + 2*3 + 4*4 + 8*5) / 16.
+    np.testing.assert_allclose(acc.mean_albedo(), 65 / 16)
+    np.testing.assert_allclose(acc.mean_albedo(), total / AOV_SAMPLES)
+    np.testing.assert_allclose(acc.mean_normal(), -65 / 16)
+    short = TileAccumulator(W, H)
+    short.merge_batch(np.ones((H, W, 3)) * 2, np.zeros((H, W)), 2, np.full((H, W, 3), 3.0))
+    np.testing.assert_allclose(short.mean_albedo(), 1.5)

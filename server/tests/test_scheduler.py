@@ -118,6 +118,13 @@ def test_first_leases_cover_every_tile_before_any_second_batch():
     leases = sched.assign("w")
     assert sorted(lease.tile_index for lease in leases) == list(range(len(leases)))
     assert {lease.batch_index for lease in leases} == {0}
+    # tiles_previewed counts tiles with a merged batch: the preview is full-frame at the end.
+    job = sched.jobs["j"]
+    assert sched.progress(job).tiles_previewed == 0
+    for k, lease in enumerate(leases):
+        sched.complete(lease.task_id, render(SETTINGS, lease))
+        assert sched.progress(job).tiles_previewed == k + 1
+    assert sched.progress(job).tiles_previewed == len(job.tiles)
 
 
 def test_out_of_order_batches_wait_and_duplicates_are_discarded():
@@ -128,6 +135,7 @@ def test_out_of_order_batches_wait_and_duplicates_are_discarded():
     b0, b1, b2, b3 = sched.assign("w")
     assert [b.batch_index for b in (b0, b1, b2, b3)] == [0, 1, 2, 3]
     assert sched.complete(b2.task_id, render(s, b2)) == "pending"
+    assert sched.progress(sched.jobs["j"]).tiles_previewed == 0  # batch 2 waits for 0 and 1
     assert sched.complete(b0.task_id, render(s, b0)) == "merged"
     assert sched.jobs["j"].tiles[0].merged == 1
     assert sched.complete(b1.task_id, render(s, b1)) == "merged"

@@ -7,6 +7,7 @@ export const JOB_STATES: JobState[] = ["queued", "running", "completed", "failed
 export interface Progress {
   tiles_total: number;
   tiles_done: number;
+  tiles_previewed: number;
   mean_spp: number;
   error: number | null;
   eta_s: number | null;

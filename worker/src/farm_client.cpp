@@ -311,10 +311,13 @@ void Worker::run_task(Session& s, const pb::Task& task, const std::atomic<bool>&
   r->set_sample_start(task.sample_start());
   r->set_sample_count(task.sample_count());
   *r->mutable_rect() = task.rect();
-  r->set_rgb_sum(pack_f64_le(tile.rgb_sum));
-  r->set_luminance_m2(pack_f64_le(tile.luminance_m2));
-  r->set_albedo_sum(pack_f32_le(tile.albedo_sum));
-  r->set_normal_sum(pack_f32_le(tile.normal_sum));
+  // float32 on the wire: a batch sum (at most 64 samples, summed in double) rounded once.
+  r->set_rgb_sum(pack_f64_as_f32_le(tile.rgb_sum));
+  r->set_luminance_m2(pack_f64_as_f32_le(tile.luminance_m2));
+  if (!task.skip_aovs()) {
+    r->set_albedo_sum(pack_f32_le(tile.albedo_sum));
+    r->set_normal_sum(pack_f32_le(tile.normal_sum));
+  }
   r->set_nonfinite_samples(tile.nonfinite_samples);
   r->set_render_seconds(std::chrono::duration<double>(Clock::now() - t0).count());
   r->set_rays(tile.rays);

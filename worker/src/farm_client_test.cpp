@@ -116,6 +116,8 @@ class FakeSceneService final : public pb::SceneService::Service {
   FakeFarm* farm_;
 };
 
+std::vector<float> as_floats(const std::vector<double>& v) { return {v.begin(), v.end()}; }
+
 pb::Task make_task(const std::string& id, const std::string& sha, uint32_t spp,
                    const std::string& sampler = "sobol") {
   pb::Task t;
@@ -237,6 +239,11 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   assign(env_task("env1", "halton"));
   assign(env_task("env2", "stratified"));
   ASSERT_TRUE(farm.wait_for([&] { return has("env1", true) && has("env2", true); }));
+  // A task past the AOV samples: the result carries no albedo or normal sums.
+  pb::Task late = make_task("late", farm.scene_sha, 4);
+  late.set_skip_aovs(true);
+  assign(late);
+  ASSERT_TRUE(farm.wait_for([&] { return has("late", true); }));
 
   stop = true;
   client.join();
@@ -246,6 +253,13 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
 
   std::lock_guard<std::mutex> lock(farm.mutex);
   EXPECT_FALSE(has("long", true)) << "a cancelled task must send nothing";
+  for (const auto& m : farm.received)
+    if (m.has_result()) {
+      const bool skipped = m.result().task_id() == "late";
+      EXPECT_EQ(m.result().albedo_sum().empty(), skipped) << m.result().task_id();
+      EXPECT_EQ(m.result().normal_sum().empty(), skipped) << m.result().task_id();
+      EXPECT_FALSE(m.result().rgb_sum().empty());
+    }
   EXPECT_EQ(farm.fetches, 1) << "the scene is fetched once and then cached";
   EXPECT_TRUE(fs::exists(cache / (farm.scene_sha + ".gltf")));
   EXPECT_EQ(farm.env_fetches, 1) << "the environment is fetched once and then cached";
@@ -265,7 +279,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     settings.environment = Environment::load(env_path, 2.f, 30.f);
     TileBuffer local;
     ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 4, &local));
-    EXPECT_EQ(unpack_f64_le(m.result().rgb_sum()), local.rgb_sum);
+    EXPECT_EQ(unpack_f32_le(m.result().rgb_sum()), as_floats(local.rgb_sum));
     double total = 0.0;
     for (double v : local.rgb_sum) total += v;
     EXPECT_GT(total, 0.0);
@@ -292,8 +306,9 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     settings.max_depth = 4;
     TileBuffer local;
     ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 8, &local));
-    EXPECT_EQ(unpack_f64_le(r.rgb_sum()), local.rgb_sum);
-    EXPECT_EQ(unpack_f64_le(r.luminance_m2()), local.luminance_m2);
+    // float32 on the wire: the double batch sums rounded once.
+    EXPECT_EQ(unpack_f32_le(r.rgb_sum()), as_floats(local.rgb_sum));
+    EXPECT_EQ(unpack_f32_le(r.luminance_m2()), as_floats(local.luminance_m2));
     EXPECT_EQ(unpack_f32_le(r.albedo_sum()), local.albedo_sum);
     EXPECT_EQ(unpack_f32_le(r.normal_sum()), local.normal_sum);
     EXPECT_EQ(r.rays(), local.rays);

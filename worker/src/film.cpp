@@ -54,6 +54,9 @@ std::vector<Float> unpack_le(const std::string& bytes) {
 
 std::string pack_f64_le(const std::vector<double>& v) { return pack_le<double, uint64_t>(v); }
 std::string pack_f32_le(const std::vector<float>& v) { return pack_le<float, uint32_t>(v); }
+std::string pack_f64_as_f32_le(const std::vector<double>& v) {
+  return pack_le<float, uint32_t>(std::vector<float>(v.begin(), v.end()));
+}
 std::vector<double> unpack_f64_le(const std::string& b) { return unpack_le<double, uint64_t>(b); }
 std::vector<float> unpack_f32_le(const std::string& b) { return unpack_le<float, uint32_t>(b); }
 

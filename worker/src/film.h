@@ -35,6 +35,8 @@ struct TileBuffer {
 // Little-endian IEEE packing, as the protocol's bytes fields require.
 std::string pack_f64_le(const std::vector<double>& values);
 std::string pack_f32_le(const std::vector<float>& values);
+// Doubles rounded to the nearest float, packed as float32.
+std::string pack_f64_as_f32_le(const std::vector<double>& values);
 std::vector<double> unpack_f64_le(const std::string& bytes);
 std::vector<float> unpack_f32_le(const std::string& bytes);
 
