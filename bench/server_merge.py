@@ -62,11 +62,13 @@ def varint(n: int) -> bytes:
 RESULT_TAG = b"\x12"  # WorkerMessage.result: field 2, length-delimited
 
 
-async def synthetic_worker(address: str, name: str, in_flight: int, stop_at: float) -> int:
+async def synthetic_worker(
+    address: str, name: str, in_flight: int, stop_at: float
+) -> tuple[int, int]:
     """One worker stream answering each Assign at once. Messages are framed by hand from a
     pre-serialised payload so that the load generator costs little CPU per result."""
     payloads: dict[tuple[int, bool], bytes] = {}
-    sent = 0
+    sent = sent_bytes = 0
     async with grpc.aio.insecure_channel(
         address, options=[("grpc.max_send_message_length", 64 << 20)]
     ) as channel:
@@ -111,12 +113,13 @@ async def synthetic_worker(address: str, name: str, in_flight: int, stop_at: flo
             inner = header + arrays
             await outbox.put(RESULT_TAG + varint(len(inner)) + inner)
             sent += 1
+            sent_bytes += len(inner)
         await outbox.put(None)
         call.cancel()
-    return sent
+    return sent, sent_bytes
 
 
-def load_generator(address: str, streams: int, seconds: float) -> None:
+def load_generator(address: str, streams: int, seconds: float, mean_bytes) -> None:
     os.sched_setaffinity(0, {1 % os.cpu_count()})
     stop_at = time.monotonic() + seconds
 
@@ -124,7 +127,9 @@ def load_generator(address: str, streams: int, seconds: float) -> None:
         counts = await asyncio.gather(
             *(synthetic_worker(address, f"bench-{i}", 16, stop_at) for i in range(streams))
         )
-        print(f"load generator sent {sum(counts)} results", file=sys.stderr)
+        sent, sent_bytes = sum(c[0] for c in counts), sum(c[1] for c in counts)
+        print(f"load generator sent {sent} results", file=sys.stderr)
+        mean_bytes.value = sent_bytes / max(1, sent)
 
     asyncio.run(run())
 
@@ -180,10 +185,12 @@ def main() -> dict:
                     "max_spp": 1 << 20,
                 }
                 job = client.submit(ROOT / "examples" / "cornell-box.gltf", settings=settings)
-            from multiprocessing import Process
+            from multiprocessing import Process, Value
 
+            mean_bytes = Value("d", 0.0)
             gen = Process(
-                target=load_generator, args=(farm.grpc_address, args.streams, args.seconds + 3)
+                target=load_generator,
+                args=(farm.grpc_address, args.streams, args.seconds + 3, mean_bytes),
             )
             gen.start()
             time.sleep(3)  # warm-up: streams connected, first leases out
@@ -202,7 +209,7 @@ def main() -> dict:
     merged_key = 'renderfarm_tasks_completed_total{outcome="merged"}'
     results = after.get(merged_key, 0.0) - before.get(merged_key, 0.0)
     elapsed = t1 - t0
-    bytes_per_result = TILE * TILE * (3 * 8 + 8 + 3 * 4 + 3 * 4)
+    bytes_per_result = mean_bytes.value  # mean TileResult size the load generator sent
     figures = {
         "results_per_s": results / elapsed,
         "mb_per_s": results * bytes_per_result / elapsed / 1e6,
