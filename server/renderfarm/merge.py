@@ -138,18 +138,25 @@ class TileAccumulator:
     def mean_normal(self) -> np.ndarray:
         return self.normal_sum / max(1, self.aov_samples)
 
-    def variance_of_mean(self) -> np.ndarray:
-        """Per-pixel estimated variance of the mean luminance (inf when unknown)."""
+    def _variance_terms(self) -> tuple[np.ndarray, float] | None:
+        """(M2, k) with variance of the mean = M2 * k per pixel; None while unknown."""
         n = self.samples
         if self.iid and n >= 2:
             # Independent samples: the pooled M2 over every sample is exact and has N - 1
             # degrees of freedom instead of B - 1, so its estimate is far less noisy.
-            return (self.m2_within + self.m2_between) / (n - 1) / n
+            return self.m2_within + self.m2_between, 1.0 / ((n - 1) * n)
         if self.batches >= 2:
-            return self.m2_between / (self.batches - 1) / n
+            return self.m2_between, 1.0 / ((self.batches - 1) * n)
         if n >= 2:
-            return self.m2_within / (n - 1) / n
-        return np.full((self.height, self.width), np.inf)
+            return self.m2_within, 1.0 / ((n - 1) * n)
+        return None
+
+    def variance_of_mean(self) -> np.ndarray:
+        """Per-pixel estimated variance of the mean luminance (inf when unknown)."""
+        terms = self._variance_terms()
+        if terms is None:
+            return np.full((self.height, self.width), np.inf)
+        return terms[0] * terms[1]
 
     def relative_error(self) -> np.ndarray:
         """Per-pixel standard error over brightness, with DARK_FLOOR for dark pixels."""
@@ -160,15 +167,10 @@ class TileAccumulator:
 
         The same value as from relative_error(), without its square roots: the mean of
         M2 / max(mean, DARK_FLOOR)^2, times the scalar factor of variance_of_mean()."""
-        n = self.samples
-        if self.iid and n >= 2:
-            m2, scale = self.m2_within + self.m2_between, 1.0 / ((n - 1) * n)
-        elif self.batches >= 2:
-            m2, scale = self.m2_between, 1.0 / ((self.batches - 1) * n)
-        elif n >= 2:
-            m2, scale = self.m2_within, 1.0 / ((n - 1) * n)
-        else:
+        terms = self._variance_terms()
+        if terms is None:
             return float("inf")
+        m2, scale = terms
         floor = np.maximum(self.lum_mean, DARK_FLOOR)
         floor *= floor
         np.divide(m2, floor, out=floor)

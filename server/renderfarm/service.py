@@ -184,11 +184,9 @@ class FarmService:
     async def _resume_unfinished(self) -> None:
         for row in await self.store.unfinished_jobs():
             settings = JobSettings(**row.settings)
+            tile_rows = await self.store.load_tiles(row.id)
             checkpoint = {
-                index: acc
-                for index, (_, acc) in _restore_tiles(
-                    settings, await self.store.load_tiles(row.id)
-                ).items()
+                index: acc for index, (_, acc) in _restore_tiles(settings, tile_rows).items()
             }
             self.scheduler.add_job(
                 row.id,
@@ -199,6 +197,12 @@ class FarmService:
                 elapsed_s=row.elapsed_s,
             )
             self.scheduler.take_events()  # the stops were recorded before the restart
+            for t in tile_rows:
+                if t.aovs is None and t.samples > 0:
+                    # A checkpoint from before the AOVs were stored apart: the next one writes
+                    # them in their own column (later ones leave that column alone).
+                    tile = self.scheduler.jobs[row.id].tiles[t.tile_index]
+                    tile.dirty = tile.aovs_dirty = True
             self.names[row.id] = row.name
             self.created[row.id] = row.created_at.timestamp()
             self.owners[row.id] = row.owner
