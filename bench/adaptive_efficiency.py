@@ -109,7 +109,7 @@ def compare(
     )
     a_rel, a_mse, a_p95, a_max = errors(a_img, ref)
     u_rel, u_mse, u_p95, u_max = errors(u_img, ref)
-    t_rel, t_mse, _, _ = errors(t_img, ref)
+    t_rel, t_mse, t_p95, t_max = errors(t_img, ref)
     return {
         "threshold": threshold,
         "reference_spp": ref_spp,
@@ -133,6 +133,8 @@ def compare(
         "equal_time_uniform_seconds": t_time,
         "equal_time_uniform_relative_mse": t_rel,
         "equal_time_uniform_rgb_mse": t_mse,
+        "equal_time_uniform_tile_error_p95": t_p95,
+        "equal_time_uniform_tile_error_max": t_max,
         "equal_time_relative_mse_ratio_uniform_over_adaptive": t_rel / a_rel,
         "equal_time_rgb_mse_ratio_uniform_over_adaptive": t_mse / a_mse,
     }
