@@ -22,7 +22,7 @@ import psycopg
 import pytest
 
 from renderfarm.client import Client
-from renderfarm.embedded_db import pg_ctl
+from renderfarm.embedded_db import EmbeddedPostgres, pg_ctl
 from renderfarm.images import read_exr
 from renderfarm.localfarm import LocalFarm
 
@@ -147,6 +147,11 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             farm_exr.write_bytes(client.image(job["id"], "exr"))
     # The restarted server stopped the embedded PostgreSQL that outlived the killed one.
     assert not (tmp_path / "farm" / "pg" / "postmaster.pid").exists()
+    assert_aovs_of_the_first_16_samples(farm_exr, worker_binary, tmp_path)
+
+
+def assert_aovs_of_the_first_16_samples(farm_exr: Path, worker_binary: str, tmp_path: Path):
+    """The farm's albedo and normal layers equal a standalone 16-spp render's."""
     alone = tmp_path / "alone16.exr"
     args = [worker_binary, "render", str(CORNELL), "-o", str(alone), "--threads", "2"]
     args += ["--width", "96", "--height", "96", "--spp", "16", "--seed", "21"]
@@ -154,6 +159,57 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
     expected = aovs(alone)
     assert np.abs(expected).max() > 0.1
     np.testing.assert_allclose(aovs(farm_exr), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
+    tmp_path, reference, worker_binary
+):
+    """A job checkpointed in the old format (all six arrays in `accumulators`, float64, no
+    `aovs`) resumes with its albedo and normal intact, and its tiles are written again in the
+    new format (statistics, and AOVs apart)."""
+    data = tmp_path / "farm"
+    with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
+        with Client(farm.url) as client:
+            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            job = client.submit(CORNELL, settings=SETTINGS)
+            wait_for(lambda: merged_fraction(client, job["id"]) > 0.3, 300, "30% merged")
+        farm.server.send_signal(signal.SIGTERM)
+        assert farm.server.wait(timeout=60) == 0
+        # Rewrite the checkpoints as the previous format stored them.
+        db = EmbeddedPostgres(data)
+        url = db.start()
+        try:
+            with psycopg.connect(url, autocommit=True) as conn:
+                rows = conn.execute(
+                    "SELECT tile_index, accumulators, aovs FROM tiles WHERE job_id = %s",
+                    (job["id"],),
+                ).fetchall()
+                assert rows and all(aov is not None for _, _, aov in rows)
+                for index, stats, aov in rows:
+                    legacy = bytes(stats) + np.frombuffer(aov, "<f4").astype("<f8").tobytes()
+                    conn.execute(
+                        "UPDATE tiles SET accumulators = %s, aovs = NULL"
+                        " WHERE job_id = %s AND tile_index = %s",
+                        (legacy, job["id"], index),
+                    )
+        finally:
+            db.stop()
+        farm.start_server()
+        with Client(farm.url) as client:
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+            assert job["state"] == "completed"
+            assert_same_image(farm_image(client, job["id"], tmp_path), reference)
+            farm_exr = tmp_path / "farm.exr"
+            farm_exr.write_bytes(client.image(job["id"], "exr"))
+            url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
+            with psycopg.connect(url) as conn:
+                lengths = conn.execute(
+                    "SELECT length(accumulators), length(aovs) FROM tiles WHERE job_id = %s",
+                    (job["id"],),
+                ).fetchall()
+    pixels = 16 * 16
+    assert lengths and all(lengths_ == (pixels * 6 * 8, pixels * 6 * 4) for lengths_ in lengths)
+    assert_aovs_of_the_first_16_samples(farm_exr, worker_binary, tmp_path)
 
 
 def test_database_restart_mid_job_loses_nothing(tmp_path):
