@@ -1,7 +1,7 @@
 """Adaptive stopping against uniform sampling at equal cost, on two scenes.
 
 The Cornell box (a closed interior: every tile is hard) and a box on a floor under a sky
-(bench/sky_scene.py: half the frame converges at once). On each:
+(bench/support/sky_scene.py: half the frame converges at once). On each:
 1. A reference at 4096 spp (Cornell box) or 16384 spp (sky), 128x128.
 2. An adaptive job (noise_threshold T): each tile stops when its error estimate is below T.
 3. A uniform job with the same total number of samples, spread evenly (max_spp = the adaptive
@@ -29,12 +29,12 @@ mean squared error instead gives tile t samples in proportion to sigma_t / sqrt(
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
-import sky_scene
+from support import sky_scene
+from support.results import write_results
 
 from renderfarm.client import Client
 from renderfarm.images import read_exr
@@ -169,9 +169,7 @@ def main() -> dict:
         print(scene)
         for key, value in values.items():
             print(f"  {key:42} {value:.6g}")
-    out = ROOT / "bench" / "results" / "adaptive_efficiency.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(figures, indent=2) + "\n")
+    write_results("adaptive_efficiency", figures)
     return figures
 
 

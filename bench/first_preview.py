@@ -15,11 +15,12 @@ PNG). Target: under 1 s.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
+
+from support.results import write_results
 
 from renderfarm.client import Client
 from renderfarm.images import read_exr
@@ -81,9 +82,7 @@ def main() -> dict:
     }
     for key, value in figures.items():
         print(f"{key:24} {value}")
-    out = ROOT / "bench" / "results" / "first_preview.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(figures, indent=2) + "\n")
+    write_results("first_preview", figures)
     return figures
 
 

@@ -6,11 +6,10 @@ Prints results/s, MB/s merged and merge latency p50/p99; writes bench/results/me
 
 from __future__ import annotations
 
-import json
 import time
-from pathlib import Path
 
 import numpy as np
+from support.results import write_results
 
 from renderfarm.jobspec import JobSettings
 from renderfarm.scheduler import BatchResult, Scheduler
@@ -58,9 +57,7 @@ def main(results_target: int = 20000) -> dict:
     }
     for key, value in figures.items():
         print(f"{key:28} {value:,.3f}" if isinstance(value, float) else f"{key:28} {value}")
-    out = Path(__file__).resolve().parent / "results" / "merge_throughput.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(figures, indent=2) + "\n")
+    write_results("merge_throughput", figures)
     return figures
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import re
 import sys
@@ -26,6 +25,7 @@ from pathlib import Path
 import grpc
 import httpx
 import numpy as np
+from support.results import write_results
 
 from renderfarm.client import Client
 from renderfarm.localfarm import LocalFarm
@@ -223,9 +223,7 @@ def main() -> dict:
     }
     for key, value in figures.items():
         print(f"{key:24} {value:,.3f}" if isinstance(value, float) else f"{key:24} {value}")
-    out = ROOT / "bench" / "results" / "server_merge.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(figures, indent=2) + "\n")
+    write_results("server_merge", figures)
     return figures
 
 

@@ -9,10 +9,11 @@ job. Writes bench/results/tile_size.json; the default tile_size (64) is the one 
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
+
+from support.results import write_results
 
 from renderfarm.client import Client
 from renderfarm.localfarm import LocalFarm
@@ -57,10 +58,8 @@ def main() -> dict:
             f"tile {r['tile_size']:4}  total {r['total_s']:6.2f} s  first preview "
             f"{r['first_preview_s']:5.2f} s  tiles {r['tiles']:4}"
         )
-    out = ROOT / "bench" / "results" / "tile_size.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
     figures = {"resolution": SIZE, "spp": SPP, "runs": rows}
-    out.write_text(json.dumps(figures, indent=2) + "\n")
+    write_results("tile_size", figures)
     return figures
 
 

@@ -84,6 +84,19 @@ def merged_fraction(client: Client, job_id: str) -> float:
     return p["samples_merged"] / (96 * 96 * 256)
 
 
+def submit_when_two_workers(client: Client, until_merged: float) -> dict:
+    """Wait for both workers, submit the SETTINGS job, and wait until that fraction of its
+    samples is merged."""
+    wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+    job = client.submit(CORNELL, settings=SETTINGS)
+    wait_for(
+        lambda: merged_fraction(client, job["id"]) > until_merged,
+        300,
+        f"{until_merged:.0%} merged",
+    )
+    return job
+
+
 def metric(url: str, name: str) -> float:
     text = httpx.get(f"{url}/metrics", timeout=10).text
     total = 0.0
@@ -99,9 +112,7 @@ def test_kill_9_one_of_two_workers_mid_job(tmp_path, reference):
     image equals an undisturbed render."""
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
-            job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(lambda: merged_fraction(client, job["id"]) > 0.2, 300, "20% merged")
+            job = submit_when_two_workers(client, until_merged=0.2)
             victim = farm.worker_procs[0]
             victim.send_signal(signal.SIGKILL)
             victim.wait(timeout=10)
@@ -120,9 +131,7 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
     checkpointed are rendered again (counted by the restarted server's own metrics)."""
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
-            job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(lambda: merged_fraction(client, job["id"]) > 0.4, 300, "40% merged")
+            job = submit_when_two_workers(client, until_merged=0.4)
             time.sleep(1.0)  # at least one checkpoint interval (0.5 s) of merged work
             merged_before_crash = client.get(job["id"])["progress"]["samples_merged"]
         farm.server.send_signal(signal.SIGKILL)
@@ -143,8 +152,7 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
             # The albedo and normal layers (each pixel's first 16 samples, checkpointed apart
             # from the statistics) survived the crash: they equal a standalone 16-spp render's.
-            farm_exr = tmp_path / "farm.exr"
-            farm_exr.write_bytes(client.image(job["id"], "exr"))
+            farm_exr = tmp_path / f"{job['id']}.exr"  # written by farm_image
     # The restarted server stopped the embedded PostgreSQL that outlived the killed one.
     assert not (tmp_path / "farm" / "pg" / "postmaster.pid").exists()
     assert_aovs_of_the_first_16_samples(farm_exr, worker_binary, tmp_path)
@@ -170,9 +178,7 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
-            job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(lambda: merged_fraction(client, job["id"]) > 0.3, 300, "30% merged")
+            job = submit_when_two_workers(client, until_merged=0.3)
         farm.server.send_signal(signal.SIGTERM)
         assert farm.server.wait(timeout=60) == 0
         # Rewrite the checkpoints as the previous format stored them.
@@ -199,8 +205,7 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
-            farm_exr = tmp_path / "farm.exr"
-            farm_exr.write_bytes(client.image(job["id"], "exr"))
+            farm_exr = tmp_path / f"{job['id']}.exr"  # written by farm_image
             url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
             with psycopg.connect(url) as conn:
                 lengths = conn.execute(
@@ -273,9 +278,7 @@ def test_frozen_worker_loses_its_leases_and_its_late_results_change_nothing(tmp_
     late results are discarded (or merged once, with the re-leased copy cancelled)."""
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
-            job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(lambda: merged_fraction(client, job["id"]) > 0.2, 300, "20% merged")
+            job = submit_when_two_workers(client, until_merged=0.2)
             frozen = farm.worker_procs[0]
             frozen.send_signal(signal.SIGSTOP)
             try:
@@ -338,9 +341,7 @@ def test_graceful_shutdown_drains_and_loses_nothing(tmp_path, reference):
     shutdown and renders only the rest."""
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
-            job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(lambda: merged_fraction(client, job["id"]) > 0.3, 300, "30% merged")
+            job = submit_when_two_workers(client, until_merged=0.3)
             seen = client.get(job["id"])["progress"]["samples_merged"]
         farm.server.send_signal(signal.SIGTERM)
         assert farm.server.wait(timeout=60) == 0

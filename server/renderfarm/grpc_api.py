@@ -38,7 +38,7 @@ from .service import (
     decode_result,
 )
 from .states import JobState
-from .tiling import AOV_SAMPLES
+from .tiling import carries_aovs
 from .v1 import (
     jobs_pb2,
     jobs_pb2_grpc,
@@ -350,7 +350,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             ),
             batch_index=lease.batch_index,
             sample_start=lease.sample_start,
-            skip_aovs=lease.sample_start >= AOV_SAMPLES,
+            skip_aovs=not carries_aovs(lease.sample_start),
             sample_count=lease.sample_count,
         )
         task.settings.CopyFrom(self._settings_proto(job))

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .tiling import AOV_SAMPLES
+from .tiling import AOV_SAMPLES, carries_aovs
 
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
@@ -111,7 +111,7 @@ class TileAccumulator:
         self.lum_mean = self.lum_mean + delta * (n_b / n)
         self.m2_within = np.add(self.m2_within, luminance_m2, dtype=np.float64)
         self.rgb_sum = np.add(self.rgb_sum, rgb_sum, dtype=np.float64)
-        if self.samples < AOV_SAMPLES:  # in-order merges: self.samples is the batch's start
+        if carries_aovs(self.samples):  # in-order merges: self.samples is the batch's start
             if albedo_sum is not None:
                 aov = np.asarray(albedo_sum).reshape(*shape, 3)
                 self.albedo_sum = np.add(self.albedo_sum, aov, dtype=np.float32)

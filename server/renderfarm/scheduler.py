@@ -26,7 +26,7 @@ import numpy as np
 from .jobspec import JobSettings
 from .merge import TileAccumulator
 from .states import JobState, StopReason
-from .tiling import AOV_SAMPLES, Rect, batch_count, batch_range, tile_grid
+from .tiling import Rect, batch_count, batch_range, carries_aovs, tile_grid
 
 # How many batches of one tile may be leased or waiting beyond the merged ones when every tile
 # already has work: speculation keeps workers busy on small images at the risk of rendering a
@@ -473,7 +473,7 @@ class Scheduler:
         outcome = "pending"
         while tile.merged in tile.pending and not tile.stopped:
             r = tile.pending.pop(tile.merged)
-            tile.aovs_dirty |= tile.acc.aov_samples < AOV_SAMPLES
+            tile.aovs_dirty |= carries_aovs(r.sample_start)
             tile.acc.merge_batch(
                 r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite
             )

@@ -21,6 +21,14 @@ BATCH_CAP = 64
 # 0-4 of the schedule): they converge far faster than the radiance, and leaving them out of
 # later results makes those 42% smaller. Tasks past it carry skip_aovs (workers.proto).
 AOV_SAMPLES = 16
+
+
+def carries_aovs(sample_start: int) -> bool:
+    """Whether the batch starting at global sample index sample_start adds to the albedo and
+    normal layers (every batch of the schedule lies wholly on one side of AOV_SAMPLES)."""
+    return sample_start < AOV_SAMPLES
+
+
 _RAMP = (1, 1, 2, 4, 8, 16, 32)
 
 

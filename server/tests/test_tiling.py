@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from renderfarm.tiling import batch_count, batch_range, batch_size, batch_start, tile_grid
+from renderfarm.tiling import (
+    AOV_SAMPLES,
+    batch_count,
+    batch_range,
+    batch_size,
+    batch_start,
+    carries_aovs,
+    tile_grid,
+)
 
 
 @pytest.mark.parametrize(
@@ -55,3 +63,13 @@ def test_unclipped_batches_are_powers_of_two_aligned_to_their_size():
         assert size & (size - 1) == 0
         assert start % size == 0
         assert batch_start(b + 1) == start + size
+
+
+def test_aov_batches_are_exactly_the_first_aov_samples():
+    """Each batch lies wholly before or after AOV_SAMPLES; those before cover it exactly."""
+    covered = 0
+    for b in range(20):
+        start, size = batch_start(b), batch_size(b)
+        assert carries_aovs(start) == carries_aovs(start + size - 1)
+        covered += size if carries_aovs(start) else 0
+    assert covered == AOV_SAMPLES

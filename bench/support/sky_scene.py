@@ -69,7 +69,7 @@ def gltf() -> dict:
     pitch = math.radians(-3.0)
     rotation = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
     return {
-        "asset": {"version": "2.0", "generator": "renderfarm bench/sky_scene.py"},
+        "asset": {"version": "2.0", "generator": "renderfarm bench/support/sky_scene.py"},
         "scene": 0,
         "scenes": [{"nodes": [0, 1, 2]}],
         "nodes": [
