@@ -169,6 +169,45 @@ def assert_aovs_of_the_first_16_samples(farm_exr: Path, worker_binary: str, tmp_
     np.testing.assert_allclose(aovs(farm_exr), expected, rtol=1e-5, atol=1e-6)
 
 
+def test_kill_9_server_mid_plan_resumes_the_planned_batches(tmp_path):
+    """An adaptive job whose tiles are in their planned batches (sizes planned from each tile's
+    noise, tiling.plan_batch) when the server is killed resumes with the saved plans: it ends
+    with the image and the per-tile stops of the same job rendered without a crash."""
+    settings = {**SETTINGS, "noise_threshold": 0.05, "max_spp": 2048}
+    data = tmp_path / "farm"
+    with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
+        with Client(farm.url) as client:
+            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            ref = client.wait(client.submit(CORNELL, settings=settings)["id"], timeout_s=600)
+            assert ref["state"] == "completed"
+            total = ref["progress"]["samples_merged"]
+            job = client.submit(CORNELL, settings=settings)
+            wait_for(
+                lambda: client.get(job["id"])["progress"]["samples_merged"] > 0.4 * total,
+                300,
+                "40% of the samples merged",
+            )
+            time.sleep(0.6)  # a checkpoint interval
+        farm.server.send_signal(signal.SIGKILL)
+        farm.server.wait(timeout=10)
+        # The database outlives the killed server: the checkpoint holds planned batches.
+        url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
+        with psycopg.connect(url) as conn:
+            (planned,) = conn.execute(
+                "SELECT count(*) FROM tiles WHERE job_id = %s AND batch_plan IS NOT NULL",
+                (job["id"],),
+            ).fetchone()
+        assert planned > 0
+        farm.start_server()
+        with Client(farm.url) as client:
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
+            assert job["state"] == "completed"
+            assert job["stops"] == ref["stops"]
+            assert_same_image(
+                farm_image(client, job["id"], tmp_path), farm_image(client, ref["id"], tmp_path)
+            )
+
+
 def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
     tmp_path, reference, worker_binary
 ):

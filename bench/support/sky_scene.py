@@ -11,13 +11,13 @@ and returns their paths.
 
 from __future__ import annotations
 
-import base64
 import json
 import math
-import struct
 from pathlib import Path
 
 import numpy as np
+
+from . import quad_mesh
 
 # Axis-aligned box [x0, x1] x [0, h] x [z0, z1] and a large floor at y = 0.
 BOX = (-0.5, 0.5, 1.0, -0.5, 0.5)
@@ -38,33 +38,9 @@ def _quads() -> tuple[list[tuple], list[tuple]]:
     return floor, box
 
 
-def _mesh_bytes(quads: list[tuple]) -> tuple[bytes, bytes, int, list[float], list[float]]:
-    positions = [c for q in quads for c in q]
-    indices = [i for k in range(len(quads)) for i in (4 * k, 4 * k + 1, 4 * k + 2,
-                                                      4 * k, 4 * k + 2, 4 * k + 3)]  # fmt: skip
-    pos = b"".join(struct.pack("<3f", *p) for p in positions)
-    idx = b"".join(struct.pack("<I", i) for i in indices)
-    lo = [min(p[a] for p in positions) for a in range(3)]
-    hi = [max(p[a] for p in positions) for a in range(3)]
-    return pos, idx, len(positions), lo, hi
-
-
 def gltf() -> dict:
-    buffer = b""
-    views, accessors, meshes = [], [], []
-    for name, quads, material in (("floor", _quads()[0], 0), ("box", _quads()[1], 1)):
-        pos, idx, count, lo, hi = _mesh_bytes(quads)
-        for data, target in ((pos, 34962), (idx, 34963)):
-            views.append({"buffer": 0, "byteOffset": len(buffer), "byteLength": len(data),
-                          "target": target})  # fmt: skip
-            buffer += data
-        accessors.append({"bufferView": len(views) - 2, "componentType": 5126, "count": count,
-                          "type": "VEC3", "min": lo, "max": hi})  # fmt: skip
-        accessors.append({"bufferView": len(views) - 1, "componentType": 5125,
-                          "count": len(idx) // 4, "type": "SCALAR"})  # fmt: skip
-        meshes.append({"name": name, "primitives": [{
-            "attributes": {"POSITION": len(accessors) - 2}, "indices": len(accessors) - 1,
-            "material": material}]})  # fmt: skip
+    floor, box = _quads()
+    parts = quad_mesh.meshes([("floor", floor, 0), ("box", box, 1)])
     # Camera at (0, 1.1, 4.5) looking slightly down (pitch -3 degrees about x).
     pitch = math.radians(-3.0)
     rotation = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
@@ -88,33 +64,11 @@ def gltf() -> dict:
                 "perspective": {"yfov": 0.75, "aspectRatio": 1.0, "znear": 0.01},
             }
         ],  # fmt: skip
-        "meshes": meshes,
         "materials": [
-            {
-                "name": "floor",
-                "pbrMetallicRoughness": {
-                    "baseColorFactor": [0.5, 0.5, 0.5, 1],
-                    "metallicFactor": 0.0,
-                    "roughnessFactor": 1.0,
-                },
-            },
-            {
-                "name": "box",
-                "pbrMetallicRoughness": {
-                    "baseColorFactor": [0.8, 0.35, 0.1, 1],
-                    "metallicFactor": 0.0,
-                    "roughnessFactor": 0.5,
-                },
-            },
-        ],  # fmt: skip
-        "accessors": accessors,
-        "bufferViews": views,
-        "buffers": [
-            {
-                "byteLength": len(buffer),
-                "uri": "data:application/octet-stream;base64," + base64.b64encode(buffer).decode(),
-            }
-        ],  # fmt: skip
+            quad_mesh.diffuse("floor", (0.5, 0.5, 0.5)),
+            quad_mesh.diffuse("box", (0.8, 0.35, 0.1), roughness=0.5),
+        ],
+        **parts,
     }
 
 

@@ -20,7 +20,13 @@ Error of a pixel's mean (variance of the mean):
           E[sum_b S_b (m_b - m)^2] = (B - 1) sigma^2 for independent batches of any sizes S_b.
   B == 1: the within-batch estimate m2_within / (N - 1) stands in (infinite while N < 2).
 
-Relative error of a pixel: sqrt(variance of the mean) / max(mean luminance, DARK_FLOOR).
+Relative error of a pixel: s / max(mean luminance - s, DARK_FLOOR), s = sqrt(variance of the
+mean). Dividing by the estimated mean itself would understate the error exactly where the
+estimate is worst: a dark pixel whose few bright samples have inflated its mean also gets a
+large denominator, and a tile whose error lives in a few such pixels stops early (measured in a
+sunlit scene's shadowed strip: stop estimates of 0.06-0.1 against true errors of 0.09-0.3). The
+mean less one standard error is a lower confidence bound on the brightness; for a converged
+pixel (s / mean = e small) it changes the error only by a factor 1 / (1 - e).
 Relative error of a tile: root mean square of its pixels' relative errors.
 
 Albedo and normal sums cover each pixel's first AOV_SAMPLES samples only (tiling.py): batches
@@ -159,22 +165,25 @@ class TileAccumulator:
         return terms[0] * terms[1]
 
     def relative_error(self) -> np.ndarray:
-        """Per-pixel standard error over brightness, with DARK_FLOOR for dark pixels."""
-        return np.sqrt(self.variance_of_mean()) / np.maximum(self.lum_mean, DARK_FLOOR)
+        """Per-pixel standard error over a lower bound of the brightness (module docstring)."""
+        s = np.sqrt(self.variance_of_mean())
+        with np.errstate(invalid="ignore"):  # inf - inf before any estimate: floor, then inf
+            return s / np.maximum(np.nan_to_num(self.lum_mean - s, nan=0.0), DARK_FLOOR)
 
     def tile_error(self) -> float:
-        """Root mean square of the pixels' relative errors (inf before any estimate exists).
-
-        The same value as from relative_error(), without its square roots: the mean of
-        M2 / max(mean, DARK_FLOOR)^2, times the scalar factor of variance_of_mean()."""
+        """Root mean square of the pixels' relative errors (inf before any estimate exists):
+        the value relative_error() gives, with fewer temporaries."""
         terms = self._variance_terms()
         if terms is None:
             return float("inf")
         m2, scale = terms
-        floor = np.maximum(self.lum_mean, DARK_FLOOR)
-        floor *= floor
-        np.divide(m2, floor, out=floor)
-        return float(np.sqrt(floor.mean() * scale))
+        var = m2 * scale
+        bound = np.sqrt(var)
+        np.subtract(self.lum_mean, bound, out=bound)
+        np.maximum(bound, DARK_FLOOR, out=bound)
+        bound *= bound
+        np.divide(var, bound, out=bound)
+        return float(np.sqrt(bound.mean()))
 
     # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order; statistics
     # float64, AOVs float32). The statistics change with every merge; the AOVs only during the

@@ -9,7 +9,9 @@ Determinism (DESIGN.md section 4): a result is identified by (job, tile, batch),
 that produced it. Batches of a tile are merged strictly in batch order (early arrivals wait in
 `pending`), and the stop decision after batch k only looks at batches 0..k. Hence the merged
 image is the same whichever worker rendered what, in any order; duplicates and batches past a
-tile's stop point are discarded.
+tile's stop point are discarded. The same holds for planned batch sizes (tiling.plan_batch):
+batch k's size is planned from the tile's state after batches 0..k-2, once they are merged, so
+one batch can render while the next is leased.
 """
 
 from __future__ import annotations
@@ -26,7 +28,15 @@ import numpy as np
 from .jobspec import JobSettings
 from .merge import TileAccumulator
 from .states import JobState, StopReason
-from .tiling import Rect, batch_count, batch_range, carries_aovs, tile_grid
+from .tiling import (
+    PLANNED_FROM,
+    Rect,
+    batch_range,
+    batch_start,
+    carries_aovs,
+    plan_batch,
+    tile_grid,
+)
 
 # How many batches of one tile may be leased or waiting beyond the merged ones when every tile
 # already has work: speculation keeps workers busy on small images at the risk of rendering a
@@ -97,6 +107,8 @@ class TileState:
     dirty: bool = False  # merged since the last checkpoint
     aovs_dirty: bool = False  # albedo/normal sums changed since the last checkpoint
     stamp: int = 0  # bumped on every change; heap entries with an older stamp are stale
+    # Samples per pixel of planned batches (index >= PLANNED_FROM), by batch index.
+    plan: dict[int, int] = field(default_factory=dict)
 
     @property
     def merged(self) -> int:
@@ -123,7 +135,6 @@ class JobRun:
     failures: dict[str, int] = field(default_factory=dict)  # worker -> failed tasks
     samples_merged: int = 0
     version: int = 0  # bumped on every visible change (watchers wait on it)
-    batches_per_tile: int = 0
     tiles_stopped: int = 0
     # Dispatch candidates: (key, stamp, tile index), smallest key first; see Scheduler._touch.
     heap: list[tuple[tuple, int, int]] = field(default_factory=list)
@@ -180,8 +191,10 @@ class Scheduler:
         checkpoint: dict[int, TileAccumulator] | None = None,
         state: JobState = JobState.QUEUED,
         elapsed_s: float = 0.0,
+        plans: dict[int, dict[int, int]] | None = None,
     ) -> JobRun:
-        """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery)."""
+        """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery),
+        `plans` their planned batch sizes as saved with them (see planned_batches)."""
         now = self.clock()
         iid = settings.sampler == "independent"
         tiles = [
@@ -189,7 +202,6 @@ class Scheduler:
             for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
         ]
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state)
-        job.batches_per_tile = batch_count(settings.max_spp)
         if state == JobState.RUNNING:
             job.started = now - elapsed_s
         for index, acc in (checkpoint or {}).items():
@@ -200,6 +212,12 @@ class Scheduler:
             if acc.batches:
                 tile.error = acc.tile_error()
                 self._decide_stop(job, tile)
+            tile.plan = dict((plans or {}).get(index, {}))
+            if not tile.stopped and tile.merged not in tile.plan:
+                # No saved plan (a checkpoint from before planned batches): plan the next
+                # batch from the state at hand.
+                self._plan(job, tile, tile.merged, tile.acc.samples)
+            self._plan_ahead(job, tile)
         self.jobs[job_id] = job
         for tile in tiles:
             self._touch(job, tile)
@@ -368,7 +386,10 @@ class Scheduler:
         merged count as infinitely noisy, so a full-frame preview comes first), then the fewest
         merged batches, then the tile index. Deeper tiles are leased speculatively only when no
         tile is idle."""
-        if tile.stopped or (not tile.requeue and tile.next_batch >= job.batches_per_tile):
+        if tile.stopped:
+            return None
+        span = self._span(job, tile, min(tile.requeue) if tile.requeue else tile.next_batch)
+        if span is None or span[1] == 0:  # not planned yet, or past max_spp
             return None
         depth = len(tile.in_flight) + len(tile.pending)
         if depth > SPECULATION_DEPTH:
@@ -376,6 +397,40 @@ class Scheduler:
         cost = tile.seconds_per_sample or (job.cost_sum / job.cost_count if job.cost_count else 1.0)
         urgency = tile.error * cost if math.isfinite(tile.error) else math.inf
         return (depth, -urgency, tile.merged, tile.index)
+
+    # ------------------------------------------------------------------- batch planning
+    def _span(self, job: JobRun, tile: TileState, batch: int) -> tuple[int, int] | None:
+        """(first sample index, samples per pixel) of a batch of this tile; count 0 when the
+        batch lies past max_spp, None while its size is not planned yet."""
+        if batch < PLANNED_FROM or job.settings.noise_threshold <= 0:
+            return batch_range(batch, job.settings.max_spp)
+        count = tile.plan.get(batch)
+        return None if count is None else (batch_start(batch), count)
+
+    def _plan(self, job: JobRun, tile: TileState, batch: int, before: int) -> None:
+        s = job.settings
+        if batch >= PLANNED_FROM and s.noise_threshold > 0 and batch not in tile.plan:
+            tile.plan[batch] = plan_batch(
+                tile.acc.samples, tile.error, s.noise_threshold, s.min_spp, s.max_spp, before
+            )
+
+    def _plan_ahead(self, job: JobRun, tile: TileState) -> None:
+        """Plan batch merged + 1 from the merged state (called after each in-order merge)."""
+        if tile.stopped:
+            return
+        following = self._span(job, tile, tile.merged)
+        if following is not None:
+            self._plan(job, tile, tile.merged + 1, tile.acc.samples + following[1])
+
+    @staticmethod
+    def planned_batches(tile: TileState) -> list[int]:
+        """The planned sizes of the batches from max(merged, PLANNED_FROM) on, in order: what a
+        checkpoint saves so that a resumed job renders the same batches."""
+        first = max(tile.merged, PLANNED_FROM)
+        counts = []
+        while first + len(counts) in tile.plan:
+            counts.append(tile.plan[first + len(counts)])
+        return counts
 
     def _touch(self, job: JobRun, tile: TileState) -> None:
         """Re-file a tile after any change to it (O(log n); old entries go stale)."""
@@ -388,7 +443,7 @@ class Scheduler:
             heapq.heapify(job.heap)
 
     def _lease(self, job: JobRun, tile: TileState, batch: int, slot: WorkerSlot) -> Lease:
-        start, count = batch_range(batch, job.settings.max_spp)
+        start, count = self._span(job, tile, batch)
         lease = Lease(
             task_id=f"t{next(self._task_ids)}",
             job_id=job.job_id,
@@ -482,15 +537,18 @@ class Scheduler:
             tile.dirty = True
             outcome = "merged" if r is result or outcome == "merged" else outcome
             self._decide_stop(job, tile)
+            self._plan_ahead(job, tile)
         self._touch(job, tile)
         job.version += 1
         self._maybe_finish(job)
         return outcome
 
     def _check_shape(self, job: JobRun, tile: TileState, r: BatchResult) -> str:
-        start, count = batch_range(r.batch_index, job.settings.max_spp)
-        if count == 0 or (r.sample_start, r.sample_count) != (start, count):
-            return f"batch {r.batch_index} covers samples {start}+{count}"
+        span = self._span(job, tile, r.batch_index)
+        if span is None or span[1] == 0:
+            return f"batch {r.batch_index} is not part of the tile's plan"
+        if (r.sample_start, r.sample_count) != span:
+            return f"batch {r.batch_index} covers samples {span[0]}+{span[1]}"
         if r.rect != tile.rect:
             return "tile rectangle"
         if r.rgb_sum.size != tile.rect.pixels * 3 or r.luminance_m2.size != tile.rect.pixels:

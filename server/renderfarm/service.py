@@ -38,7 +38,7 @@ from .scenes import SceneError, inspect_environment, inspect_scene
 from .scheduler import BatchResult, JobRun, Lease, Scheduler
 from .states import JobState, StopReason
 from .store import JobRow, Store, TileRow
-from .tiling import Rect, tile_grid
+from .tiling import PLANNED_FROM, Rect, tile_grid
 
 log = logging.getLogger(__name__)
 
@@ -188,11 +188,13 @@ class FarmService:
             checkpoint = {
                 index: acc for index, (_, acc) in _restore_tiles(settings, tile_rows).items()
             }
+            plans = {t.tile_index: _plan_of(t) for t in tile_rows if t.batch_plan}
             self.scheduler.add_job(
                 row.id,
                 settings,
                 row.scene_sha256,
                 checkpoint=checkpoint,
+                plans=plans,
                 state=JobState(row.state),
                 elapsed_s=row.elapsed_s,
             )
@@ -797,13 +799,23 @@ def _restore_tiles(
     return restored
 
 
+def _plan_of(row: TileRow) -> dict[int, int]:
+    """A saved batch plan as {batch index: samples per pixel} (see Scheduler.planned_batches)."""
+    first = max(row.batches, PLANNED_FROM)
+    return {first + i: count for i, count in enumerate(row.batch_plan or [])}
+
+
 def _tile_snapshot(t, with_aovs: bool) -> tuple:
     acc = t.acc
     aovs = acc.aov_snapshot() if with_aovs else None
-    return (t.index, acc.samples, acc.batches, acc.nonfinite, t.error, acc.snapshot(), aovs, t.stop)
+    plan = None if t.stopped else Scheduler.planned_batches(t) or None
+    return (
+        t.index, acc.samples, acc.batches, acc.nonfinite, t.error, acc.snapshot(), aovs, t.stop,
+        plan,
+    )  # fmt: skip
 
 
-def _tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop) -> TileRow:
+def _tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop, plan) -> TileRow:
     return TileRow(
         tile_index=index,
         samples=samples,
@@ -816,6 +828,7 @@ def _tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop) -> 
         stop_error=stop.error if stop else None,
         stop_reason=stop.reason.value if stop else None,
         aovs=None if aovs is None else TileAccumulator.snapshot_bytes(aovs, "<f4"),
+        batch_plan=plan,
     )
 
 

@@ -87,6 +87,8 @@ class TileRow:
     stop_reason: str | None
     # Albedo and normal sums; None on save keeps the stored ones (they stop changing early).
     aovs: bytes | bytearray | None = None
+    # Planned batch sizes (Scheduler.planned_batches); None: nothing planned.
+    batch_plan: list[int] | None = None
 
 
 _JOB_COLUMNS = (
@@ -327,14 +329,16 @@ class Store:
             async with conn.cursor() as cur:
                 await cur.executemany(
                     "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
-                    " accumulators, stop_batch, stop_spp, stop_error, stop_reason, aovs)"
-                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
+                    " accumulators, stop_batch, stop_spp, stop_error, stop_reason, aovs,"
+                    " batch_plan)"
+                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
                     " ON CONFLICT (job_id, tile_index) DO UPDATE SET samples = excluded.samples,"
                     " batches = excluded.batches, nonfinite = excluded.nonfinite,"
                     " error = excluded.error, accumulators = excluded.accumulators,"
                     " stop_batch = excluded.stop_batch, stop_spp = excluded.stop_spp,"
                     " stop_error = excluded.stop_error, stop_reason = excluded.stop_reason,"
-                    " aovs = COALESCE(excluded.aovs, tiles.aovs), updated_at = now()"
+                    " aovs = COALESCE(excluded.aovs, tiles.aovs),"
+                    " batch_plan = excluded.batch_plan, updated_at = now()"
                     # Never move a tile backwards (a slow writer racing a newer checkpoint).
                     " WHERE tiles.batches <= excluded.batches",
                     [
@@ -351,6 +355,7 @@ class Store:
                             _finite(r.stop_error),
                             r.stop_reason,
                             r.aovs,
+                            r.batch_plan,
                         )
                         for r in rows
                     ],
@@ -361,7 +366,7 @@ class Store:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT tile_index, samples, batches, nonfinite, error, accumulators,"
-                " stop_batch, stop_spp, stop_error, stop_reason, aovs"
+                " stop_batch, stop_spp, stop_error, stop_reason, aovs, batch_plan"
                 " FROM tiles WHERE job_id = %s ORDER BY tile_index",
                 (job_id,),
             )

@@ -10,10 +10,18 @@ a full-frame preview quickly and two batches (a between-batch variance) almost a
 batch [start, start + S) with S a power of two is aligned to S, so for the sobol sampler each
 batch is a complete scrambled (0, m, 2)-net. The cap keeps tasks short enough for fine-grained
 scheduling and cancellation.
+
+With a noise threshold, the capped batches (from PLANNED_FROM on) are planned: a tile's last
+batches are cut down to the samples its own noise predicts it still needs (plan_batch), so that
+it stops close to the threshold instead of up to a whole batch past it. A planned batch keeps
+its place in the index schedule and renders a prefix of it, [start_b, start_b + count); the
+indices it leaves out are never used. Each sample is still uniform (and for sobol, a prefix of
+an aligned block of a scrambled net is well spread), so the estimate stays unbiased.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 BATCH_CAP = 64
@@ -76,6 +84,37 @@ def batch_range(batch_index: int, max_spp: int) -> tuple[int, int]:
     start = batch_start(batch_index)
     count = max(0, min(batch_size(batch_index), max_spp - start))
     return start, count
+
+
+# First batch whose size a tile with a noise threshold plans (the ramp is fixed: the preview and
+# the first variance estimates come from it).
+PLANNED_FROM = len(_RAMP)
+# Planned batches are multiples of this many samples (and at least this many).
+PLAN_GRAIN = 8
+# A tile plans for PLAN_MARGIN times the samples its error predicts: the stop then lands at
+# about threshold / sqrt(PLAN_MARGIN), with room for the noise of the error estimate itself.
+PLAN_MARGIN = 1.1
+
+
+def plan_batch(
+    samples: int, error: float, threshold: float, min_spp: int, max_spp: int, before: int
+) -> int:
+    """Samples per pixel of a tile's next planned batch (0: none, max_spp is reached).
+
+    `samples` and `error` are the tile's merged samples per pixel and relative error when the
+    plan is made; `before` is how many samples per pixel the tile will have merged before this
+    batch (the merged ones plus those of batches already planned). Monte Carlo error falls as
+    1/sqrt(n), so the tile needs about samples * (error / threshold)^2 in all: the batch takes
+    what is missing, rounded up to PLAN_GRAIN, at most BATCH_CAP; at least PLAN_GRAIN when the
+    prediction says the tile is done before it (it is then usually cancelled unrendered).
+    """
+    count = BATCH_CAP
+    if threshold > 0 and math.isfinite(error) and samples > 0:
+        need = max(float(min_spp), samples * (error / threshold) ** 2 * PLAN_MARGIN)
+        missing = need - before
+        if missing < BATCH_CAP:
+            count = max(PLAN_GRAIN, PLAN_GRAIN * math.ceil(missing / PLAN_GRAIN))
+    return max(0, min(count, max_spp - before))
 
 
 def batch_count(max_spp: int) -> int:

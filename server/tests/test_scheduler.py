@@ -5,6 +5,7 @@ import random
 import numpy as np
 import pytest
 
+from renderfarm import scheduler as scheduler_module
 from renderfarm.jobspec import JobSettings
 from renderfarm.scheduler import BatchResult, Scheduler
 from renderfarm.states import JobState, StopReason
@@ -297,3 +298,57 @@ def test_results_for_unknown_tiles_are_refused(bad_index):
     r = render(SETTINGS, lease)
     bad = BatchResult(**{**r.__dict__, "tile_index": bad_index})
     assert sched.complete(lease.task_id, bad).startswith("mismatch")
+
+
+PLANNED = JobSettings(width=32, height=16, tile_size=16, noise_threshold=0.04, max_spp=1024)
+
+
+def test_planned_batches_stop_hard_tiles_near_the_threshold_with_fewer_samples(monkeypatch):
+    planned = run_farm(PLANNED, workers=2, seed=7).jobs["j"]
+    monkeypatch.setattr(scheduler_module, "PLANNED_FROM", 10**9)  # the fixed schedule only
+    fixed = run_farm(PLANNED, workers=2, seed=7).jobs["j"]
+    hard = [i for i, t in enumerate(planned.tiles) if t.rect.x0 >= 16]
+    for job in (planned, fixed):
+        for i in hard:
+            stop = job.tiles[i].stop
+            assert stop.reason == StopReason.CONVERGED and stop.spp > 64  # past the ramp
+            assert stop.error < PLANNED.noise_threshold
+    # The fixed schedule can only stop at 64 + 64 k samples; the plan cuts the last batch to
+    # what the error predicts, so the stop lands closer to the threshold.
+    assert all(fixed.tiles[i].stop.spp % 64 == 0 for i in hard)
+    for i in hard:
+        assert planned.tiles[i].stop.spp < fixed.tiles[i].stop.spp
+        assert planned.tiles[i].stop.error > fixed.tiles[i].stop.error
+        assert planned.tiles[i].stop.error > 0.85 * PLANNED.noise_threshold
+
+
+def test_resume_mid_plan_renders_the_planned_batches():
+    """A checkpoint taken while tiles have planned batches, restored with its plans, finishes
+    with the image and stops of an uninterrupted run."""
+    reference = run_farm(PLANNED, workers=1, seed=0).jobs["j"]
+    first = Scheduler(clock=FakeClock())
+    first.add_job("j", PLANNED, "scene")
+    first.add_worker("w", 2)
+    job = first.jobs["j"]
+    for _ in range(10000):  # until every live tile is past the ramp (its batches are planned)
+        if all(t.stopped or t.merged >= 8 for t in job.tiles):
+            break
+        for lease in first.assign("w"):
+            first.complete(lease.task_id, render(PLANNED, lease))
+    live = [t for t in job.tiles if not t.stopped]
+    assert live and all(Scheduler.planned_batches(t) for t in live)
+    checkpoint = {t.index: t.acc for t in job.tiles}
+    plans = {
+        t.index: {max(t.merged, 7) + i: c for i, c in enumerate(Scheduler.planned_batches(t))}
+        for t in live
+    }
+    resumed = Scheduler(clock=FakeClock())
+    resumed.add_job("j", PLANNED, "scene", checkpoint=checkpoint, plans=plans,
+                    state=JobState.RUNNING)  # fmt: skip
+    resumed.add_worker("w", 3)
+    while not resumed.jobs["j"].state.finished:
+        for lease in resumed.assign("w"):
+            resumed.complete(lease.task_id, render(PLANNED, lease))
+    for a, b in zip(reference.tiles, resumed.jobs["j"].tiles, strict=True):
+        np.testing.assert_array_equal(a.acc.rgb_sum, b.acc.rgb_sum)
+        assert a.stop == b.stop

@@ -5,11 +5,14 @@ import pytest
 
 from renderfarm.tiling import (
     AOV_SAMPLES,
+    BATCH_CAP,
+    PLAN_GRAIN,
     batch_count,
     batch_range,
     batch_size,
     batch_start,
     carries_aovs,
+    plan_batch,
     tile_grid,
 )
 
@@ -73,3 +76,21 @@ def test_aov_batches_are_exactly_the_first_aov_samples():
         assert carries_aovs(start) == carries_aovs(start + size - 1)
         covered += size if carries_aovs(start) else 0
     assert covered == AOV_SAMPLES
+
+
+def test_planned_batch_takes_what_the_error_says_is_missing():
+    # 64 spp at twice the threshold: 1/sqrt(n) says 4 x 64 = 256 spp, 281.6 with the margin.
+    assert plan_batch(64, 0.02, 0.01, 16, 4096, before=128) == BATCH_CAP  # 153.6 missing
+    assert plan_batch(64, 0.02, 0.01, 16, 4096, before=256) == 32  # 25.6 -> a multiple of 8
+    assert plan_batch(64, 0.02, 0.01, 16, 4096, before=272) == 16  # 9.6 missing
+    assert plan_batch(64, 0.02, 0.01, 16, 4096, before=400) == PLAN_GRAIN  # done before it
+
+
+def test_planned_batch_respects_min_and_max_spp_and_unknown_error():
+    assert plan_batch(64, 0.001, 0.01, 500, 4096, before=128) == BATCH_CAP  # min_spp not met
+    assert plan_batch(64, 0.001, 0.01, 200, 4096, before=160) == 40  # up to min_spp
+    assert plan_batch(64, 0.02, 0.01, 16, 300, before=256) == 32
+    assert plan_batch(64, 0.02, 0.01, 16, 270, before=256) == 14  # clipped at max_spp
+    assert plan_batch(64, 0.02, 0.01, 16, 256, before=256) == 0  # no batch past max_spp
+    assert plan_batch(64, float("inf"), 0.01, 16, 4096, before=128) == BATCH_CAP
+    assert plan_batch(64, 0.02, 0.0, 16, 4096, before=256) == BATCH_CAP  # no threshold
