@@ -165,25 +165,16 @@ class TileAccumulator:
         return terms[0] * terms[1]
 
     def relative_error(self) -> np.ndarray:
-        """Per-pixel standard error over a lower bound of the brightness (module docstring)."""
+        """Per-pixel standard error over a lower bound of the brightness (module docstring);
+        inf before any estimate exists (the bound is then the floor)."""
         s = np.sqrt(self.variance_of_mean())
-        with np.errstate(invalid="ignore"):  # inf - inf before any estimate: floor, then inf
-            return s / np.maximum(np.nan_to_num(self.lum_mean - s, nan=0.0), DARK_FLOOR)
+        return s / np.maximum(self.lum_mean - s, DARK_FLOOR)
 
     def tile_error(self) -> float:
-        """Root mean square of the pixels' relative errors (inf before any estimate exists):
-        the value relative_error() gives, with fewer temporaries."""
-        terms = self._variance_terms()
-        if terms is None:
-            return float("inf")
-        m2, scale = terms
-        var = m2 * scale
-        bound = np.sqrt(var)
-        np.subtract(self.lum_mean, bound, out=bound)
-        np.maximum(bound, DARK_FLOOR, out=bound)
-        bound *= bound
-        np.divide(var, bound, out=bound)
-        return float(np.sqrt(bound.mean()))
+        """Root mean square of the pixels' relative errors (inf before any estimate exists)."""
+        rel = self.relative_error()
+        rel *= rel
+        return float(np.sqrt(rel.mean()))
 
     # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order; statistics
     # float64, AOVs float32). The statistics change with every merge; the AOVs only during the

@@ -191,10 +191,10 @@ class Scheduler:
         checkpoint: dict[int, TileAccumulator] | None = None,
         state: JobState = JobState.QUEUED,
         elapsed_s: float = 0.0,
-        plans: dict[int, dict[int, int]] | None = None,
+        plans: dict[int, list[int]] | None = None,
     ) -> JobRun:
         """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery),
-        `plans` their planned batch sizes as saved with them (see planned_batches)."""
+        `plans` their planned batch sizes as planned_batches() gave them at that checkpoint."""
         now = self.clock()
         iid = settings.sampler == "independent"
         tiles = [
@@ -212,7 +212,8 @@ class Scheduler:
             if acc.batches:
                 tile.error = acc.tile_error()
                 self._decide_stop(job, tile)
-            tile.plan = dict((plans or {}).get(index, {}))
+            first = max(tile.merged, PLANNED_FROM)
+            tile.plan = {first + i: count for i, count in enumerate((plans or {}).get(index, []))}
             if not tile.stopped and tile.merged not in tile.plan:
                 # No saved plan (a checkpoint from before planned batches): plan the next
                 # batch from the state at hand.

@@ -38,7 +38,7 @@ from .scenes import SceneError, inspect_environment, inspect_scene
 from .scheduler import BatchResult, JobRun, Lease, Scheduler
 from .states import JobState, StopReason
 from .store import JobRow, Store, TileRow
-from .tiling import PLANNED_FROM, Rect, tile_grid
+from .tiling import Rect, tile_grid
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +188,7 @@ class FarmService:
             checkpoint = {
                 index: acc for index, (_, acc) in _restore_tiles(settings, tile_rows).items()
             }
-            plans = {t.tile_index: _plan_of(t) for t in tile_rows if t.batch_plan}
+            plans = {t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan}
             self.scheduler.add_job(
                 row.id,
                 settings,
@@ -797,12 +797,6 @@ def _restore_tiles(
         )
         restored[t.tile_index] = (rect, acc)
     return restored
-
-
-def _plan_of(row: TileRow) -> dict[int, int]:
-    """A saved batch plan as {batch index: samples per pixel} (see Scheduler.planned_batches)."""
-    first = max(row.batches, PLANNED_FROM)
-    return {first + i: count for i, count in enumerate(row.batch_plan or [])}
 
 
 def _tile_snapshot(t, with_aovs: bool) -> tuple:

@@ -138,7 +138,8 @@ def test_checkpoint_round_trip():
 @pytest.mark.parametrize("iid", [False, True])
 @pytest.mark.parametrize("max_spp", [1, 2, 40])
 def test_tile_error_is_the_rms_of_the_pixel_errors(iid, max_spp):
-    """tile_error() skips the square roots; relative_error() is the per-pixel definition."""
+    """tile_error() is the RMS of relative_error(), the per-pixel definition, at every stage
+    (inf while no estimate exists)."""
     rng = np.random.default_rng(11)
     acc = TileAccumulator(W, H, iid=iid)
     for samples in _batches(rng, max_spp):

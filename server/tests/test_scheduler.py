@@ -338,10 +338,7 @@ def test_resume_mid_plan_renders_the_planned_batches():
     live = [t for t in job.tiles if not t.stopped]
     assert live and all(Scheduler.planned_batches(t) for t in live)
     checkpoint = {t.index: t.acc for t in job.tiles}
-    plans = {
-        t.index: {max(t.merged, 7) + i: c for i, c in enumerate(Scheduler.planned_batches(t))}
-        for t in live
-    }
+    plans = {t.index: Scheduler.planned_batches(t) for t in live}
     resumed = Scheduler(clock=FakeClock())
     resumed.add_job("j", PLANNED, "scene", checkpoint=checkpoint, plans=plans,
                     state=JobState.RUNNING)  # fmt: skip
