@@ -1,12 +1,13 @@
 """Server merge throughput through the real gRPC server, with synthetic workers.
 
-A server (embedded PostgreSQL) runs pinned to one CPU core; a load generator pinned to the
-other core opens several WorkerService streams that answer every Assign at once with a
-pre-built 64x64 TileResult shaped like the C++ worker's: float32 sums, and albedo/normal sums
-only when the task does not say skip_aovs (the first 16 samples of a pixel). The figures come
-from the server's own Prometheus metrics:
-results/s merged, MB/s of result payload, and merge latency p50/p99 (interpolated within the
-histogram buckets). Writes bench/results/server_merge.json (key `results_per_s`).
+A server runs pinned to one CPU core (every thread of it: asyncio, gRPC's poller and event
+engine, the checkpoint thread); a load generator and the embedded PostgreSQL are pinned to the
+other core. The generator opens several WorkerService streams that answer every Assign at once
+with a pre-built 64x64 TileResult shaped like the C++ worker's: float32 sums, and albedo/normal
+sums only when the task does not say skip_aovs (the first 16 samples of a pixel). The figures
+come from the server's own Prometheus metrics: results/s merged, MB/s of result payload, and
+merge latency p50/p99 (interpolated within the histogram buckets). Writes
+bench/results/server_merge.json (key `results_per_s`).
 
     .venv/bin/python bench/server_merge.py [--seconds 10] [--streams 4]
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
 import re
 import sys
@@ -134,6 +136,31 @@ def load_generator(address: str, streams: int, seconds: float, mean_bytes) -> No
     asyncio.run(run())
 
 
+def pin_process(pid: int, cpus: set[int]) -> None:
+    """Pin every thread of a process (threads started later inherit it from their parent)."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setaffinity(int(tid), cpus)
+
+
+def postgres_pids(data: Path) -> list[int]:
+    """The embedded PostgreSQL's postmaster and its children (later ones inherit its pinning);
+    none when the server uses a database of its own (RENDERFARM_DATABASE_URL)."""
+    pidfile = data / "pg" / "postmaster.pid"
+    if not pidfile.exists():
+        return []
+    postmaster = int(pidfile.read_text().split()[0])
+    found = [postmaster]
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                # /proc/PID/stat: "pid (comm) state ppid ..."; comm may hold spaces.
+                fields = (entry / "stat").read_text().rpartition(")")[2].split()
+                if int(fields[1]) == postmaster:
+                    found.append(int(entry.name))
+    return found
+
+
 def scrape(url: str) -> dict[str, float]:
     text = httpx.get(f"{url}/metrics", timeout=10).text
     values = {}
@@ -175,7 +202,9 @@ def main() -> dict:
         farm = LocalFarm(workers=0, data_dir=Path(data), env=EXTRA_ENV)
         farm.start()
         try:
-            os.sched_setaffinity(farm.server.pid, {0})
+            pin_process(farm.server.pid, {0})
+            for pid in postgres_pids(Path(data)):
+                pin_process(pid, {1 % os.cpu_count()})
             with Client(farm.url) as client:
                 settings = {
                     "width": 4096,

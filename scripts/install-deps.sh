@@ -26,7 +26,7 @@ APT_BUILD=(
   libembree-dev libopenimageio-dev openimageio-tools
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
   libtinygltf-dev nlohmann-json3-dev libssl-dev libgtest-dev libbenchmark-dev libpq-dev
-  python3 python3-venv python3-pip
+  python3 python3-venv python3-pip python3-dev  # headers: the server's C merge loops
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
   prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
 )
@@ -68,7 +68,9 @@ python_venv() {
     "$PYTHON" -m venv .venv
   fi
   local stamp
-  stamp=.venv/.installed-$(sha256sum server/pyproject.toml | cut -c1-16)
+  # Installed again when the package's metadata or its compiled part changes.
+  stamp=.venv/.installed-$(cat server/pyproject.toml server/setup.py server/renderfarm/_kernels.c |
+    sha256sum | cut -c1-16)
   if [ ! -f "$stamp" ]; then
     echo "installing the server package and its dependencies into .venv"
     .venv/bin/pip install -q --upgrade pip

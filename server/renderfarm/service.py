@@ -830,15 +830,15 @@ def decode_result(msg) -> BatchResult:
     """A TileResult protobuf message as numpy arrays (little-endian, row-major)."""
     rect = Rect(msg.rect.x0, msg.rect.y0, msg.rect.width, msg.rect.height)
     n = rect.pixels
+    # Each read of a bytes field copies it out of the message: read each once.
+    rgb_raw, m2_raw = msg.rgb_sum, msg.luminance_m2
+    albedo_raw, normal_raw = msg.albedo_sum, msg.normal_sum
     # float32 (what workers send) or float64, told apart by length.
-    rgb = np.frombuffer(msg.rgb_sum, dtype="<f4" if len(msg.rgb_sum) == 12 * n else "<f8")
-    m2 = np.frombuffer(msg.luminance_m2, dtype="<f4" if len(msg.luminance_m2) == 4 * n else "<f8")
-    albedo = np.frombuffer(msg.albedo_sum, dtype="<f4") if msg.albedo_sum else None
-    normal = np.frombuffer(msg.normal_sum, dtype="<f4") if msg.normal_sum else None
-    if albedo is not None and albedo.size != 3 * n:
-        albedo = None
-    if normal is not None and normal.size != 3 * n:
-        normal = None
+    rgb = np.frombuffer(rgb_raw, dtype="<f4" if len(rgb_raw) == 12 * n else "<f8")
+    m2 = np.frombuffer(m2_raw, dtype="<f4" if len(m2_raw) == 4 * n else "<f8")
+    # AOVs are float32; absent, or of the wrong size, they are left out.
+    albedo = np.frombuffer(albedo_raw, dtype="<f4") if len(albedo_raw) == 12 * n else None
+    normal = np.frombuffer(normal_raw, dtype="<f4") if len(normal_raw) == 12 * n else None
     return BatchResult(
         job_id=msg.job_id,
         tile_index=msg.tile_index,

@@ -185,3 +185,42 @@ def test_aovs_are_means_over_the_first_aov_samples():
     short = TileAccumulator(W, H)
     short.merge_batch(np.ones((H, W, 3)) * 2, np.zeros((H, W)), 2, np.full((H, W, 3), 3.0))
     np.testing.assert_allclose(short.mean_albedo(), 1.5)
+
+
+def test_bad_batches_are_refused_and_change_nothing():
+    """The fused merge loop checks sizes itself: a batch of the wrong size raises ValueError
+    and leaves the statistics as they were."""
+    rng = np.random.default_rng(13)
+    acc = TileAccumulator(W, H)
+    acc.merge_batch(*_batch_payload(_batches(rng, 2)[0]))
+    before = acc.snapshot()
+    rgb, m2, count = _batch_payload(_batches(rng, 4)[2])
+    for bad in (
+        (rgb.reshape(-1)[:-3], m2, count),  # a pixel short
+        (rgb, m2.reshape(-1)[:-1], count),
+        (np.concatenate([rgb.reshape(-1), rgb.reshape(-1)]), m2, count),  # twice the pixels
+    ):
+        with pytest.raises(ValueError):
+            acc.merge_batch(*bad)
+    assert acc.samples == 1 and acc.batches == 1
+    for old, new in zip(before, acc.snapshot(), strict=True):
+        assert old is new
+
+
+def test_merge_takes_any_array_layout_and_keeps_snapshots():
+    """Non-contiguous and integer batches merge as their float64 values; a snapshot() taken
+    before a merge still holds the values it had (checkpoints serialise it in a thread)."""
+    a, b = TileAccumulator(W, H), TileAccumulator(W, H)
+    rgb = np.arange(H * W * 3 * 2).reshape(H, W, 6)[:, :, ::2]  # strided int64
+    m2 = np.arange(H * W * 2, dtype=np.float32).reshape(H, 2 * W)[:, ::2]
+    for acc in (a, b):
+        acc.merge_batch(np.ones((H, W, 3)), np.zeros((H, W)), 1)
+    kept = a.snapshot()
+    copies = [x.copy() for x in kept]
+    a.merge_batch(rgb, m2, 4)
+    b.merge_batch(np.ascontiguousarray(rgb, np.float64), np.ascontiguousarray(m2), 4)
+    for name in TileAccumulator._ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    for x, y in zip(kept, copies, strict=True):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(a.rgb_sum, 1 + rgb)
