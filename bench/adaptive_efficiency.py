@@ -14,7 +14,8 @@ On each:
 4. A uniform job at equal render time: its spp scaled by the ratio of the two render times
    (adaptive jobs spend samples where they cost more or less than the average).
 Both images are compared with the reference: the relative MSE (squared error over
-max(reference, 0.01)^2, what the noise threshold controls), the plain RGB MSE, and the 95th
+max(reference, 0.01)^2, what the noise threshold controls), the plain RGB MSE, the display MSE
+(of the sRGB-encoded image as the PNG preview shows it, in 8-bit levels squared), and the 95th
 percentile and maximum of the tiles' errors. Render time is the server's elapsed_s of the job
 (first lease to last merge). Writes
 bench/results/adaptive_efficiency.json.
@@ -45,7 +46,7 @@ from support import shelter_scene, sky_scene
 from support.results import write_results
 
 from renderfarm.client import Client
-from renderfarm.images import read_exr
+from renderfarm.images import read_exr, srgb_encode
 from renderfarm.localfarm import LocalFarm
 from renderfarm.merge import DARK_FLOOR
 
@@ -71,17 +72,24 @@ def rgb(ch: dict) -> np.ndarray:
     return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1).astype(np.float64)
 
 
-def errors(ch: dict, ref: dict) -> tuple[float, float, float, float]:
-    """Relative MSE, RGB MSE, and the 95th percentile and maximum of the tiles' RMS relative
-    errors (32x32 tiles): adaptive stopping evens these out."""
+def errors(ch: dict, ref: dict) -> dict[str, float]:
+    """Relative MSE, RGB MSE, display MSE, and the 95th percentile and maximum of the tiles'
+    RMS relative errors (32x32 tiles): adaptive stopping evens these out."""
     a, r = rgb(ch), rgb(ref)
     # Luminance relative error, the quantity the noise threshold controls (README).
     rel = (((a - r) @ LUMA) / np.maximum(r @ LUMA, DARK_FLOOR)) ** 2
     size = rel.shape[0]
     tiles = rel.reshape(size // 32, 32, size // 32, 32).mean(axis=(1, 3))
     tile_err = np.sqrt(tiles).ravel()
-    return (float(rel.mean()), float(np.mean((a - r) ** 2)),
-            float(np.percentile(tile_err, 95)), float(tile_err.max()))  # fmt: skip
+    return {
+        "relative_mse": float(rel.mean()),
+        "rgb_mse": float(np.mean((a - r) ** 2)),
+        # The image as the PNG preview shows it (sRGB-encoded, clipped to [0, 1]), in 8-bit
+        # levels squared: the error a viewer sees.
+        "display_mse": float(np.mean(((srgb_encode(a) - srgb_encode(r)) * 255.0) ** 2)),
+        "tile_error_p95": float(np.percentile(tile_err, 95)),
+        "tile_error_max": float(tile_err.max()),
+    }
 
 
 def compare(
@@ -124,10 +132,8 @@ def compare(
         max_spp=spp_t,
         **extra,
     )
-    a_rel, a_mse, a_p95, a_max = errors(a_img, ref)
-    u_rel, u_mse, u_p95, u_max = errors(u_img, ref)
-    t_rel, t_mse, t_p95, t_max = errors(t_img, ref)
-    return {
+    a, u, t = errors(a_img, ref), errors(u_img, ref), errors(t_img, ref)
+    figures = {
         "size": size,
         "threshold": threshold,
         "reference_spp": ref_spp,
@@ -135,27 +141,20 @@ def compare(
         "uniform_spp": spp,
         "adaptive_seconds": a_time,
         "uniform_seconds": u_time,
-        "adaptive_relative_mse": a_rel,
-        "uniform_relative_mse": u_rel,
-        "relative_mse_ratio_uniform_over_adaptive": u_rel / a_rel,
-        "adaptive_rgb_mse": a_mse,
-        "uniform_rgb_mse": u_mse,
-        "rgb_mse_ratio_uniform_over_adaptive": u_mse / a_mse,
-        # Efficiency = 1 / (error x time): the gain of adaptive over uniform.
-        "adaptive_efficiency_gain": (u_rel * u_time) / (a_rel * a_time),
-        "adaptive_tile_error_p95": a_p95,
-        "uniform_tile_error_p95": u_p95,
-        "adaptive_tile_error_max": a_max,
-        "uniform_tile_error_max": u_max,
         "equal_time_uniform_spp": spp_t,
         "equal_time_uniform_seconds": t_time,
-        "equal_time_uniform_relative_mse": t_rel,
-        "equal_time_uniform_rgb_mse": t_mse,
-        "equal_time_uniform_tile_error_p95": t_p95,
-        "equal_time_uniform_tile_error_max": t_max,
-        "equal_time_relative_mse_ratio_uniform_over_adaptive": t_rel / a_rel,
-        "equal_time_rgb_mse_ratio_uniform_over_adaptive": t_mse / a_mse,
+        # Efficiency = 1 / (error x time): the gain of adaptive over uniform.
+        "adaptive_efficiency_gain": (u["relative_mse"] * u_time) / (a["relative_mse"] * a_time),
     }
+    for key in a:
+        figures[f"adaptive_{key}"] = a[key]
+        figures[f"uniform_{key}"] = u[key]
+        figures[f"equal_time_uniform_{key}"] = t[key]
+    for key in ("relative_mse", "rgb_mse", "display_mse"):
+        # Above 1: adaptive stopping has the lower error.
+        figures[f"{key}_ratio_uniform_over_adaptive"] = u[key] / a[key]
+        figures[f"equal_time_{key}_ratio_uniform_over_adaptive"] = t[key] / a[key]
+    return figures
 
 
 def main() -> dict:
