@@ -65,7 +65,7 @@ def _batch_array(values) -> np.ndarray:
 
 
 class TileAccumulator:
-    """Merged statistics of one tile. Plain numpy, no I/O; merge order is the caller's job."""
+    """Merged statistics of one tile. No I/O; merge order is the caller's job."""
 
     __slots__ = (
         "height",
@@ -161,17 +161,18 @@ class TileAccumulator:
     def mean_normal(self) -> np.ndarray:
         return self.normal_sum / max(1, self.aov_samples)
 
-    def _variance_terms(self) -> tuple[np.ndarray, float] | None:
-        """(M2, k) with variance of the mean = M2 * k per pixel; None while unknown."""
+    def _variance_terms(self) -> tuple[tuple[np.ndarray, ...], float] | None:
+        """(M2 arrays, k) with variance of the mean = sum(M2 arrays) * k per pixel; None while
+        unknown."""
         n = self.samples
         if self.iid and n >= 2:
             # Independent samples: the pooled M2 over every sample is exact and has N - 1
             # degrees of freedom instead of B - 1, so its estimate is far less noisy.
-            return self.m2_within + self.m2_between, 1.0 / ((n - 1) * n)
+            return (self.m2_within, self.m2_between), 1.0 / ((n - 1) * n)
         if self.batches >= 2:
-            return self.m2_between, 1.0 / ((self.batches - 1) * n)
+            return (self.m2_between,), 1.0 / ((self.batches - 1) * n)
         if n >= 2:
-            return self.m2_within, 1.0 / ((n - 1) * n)
+            return (self.m2_within,), 1.0 / ((n - 1) * n)
         return None
 
     def variance_of_mean(self) -> np.ndarray:
@@ -179,7 +180,8 @@ class TileAccumulator:
         terms = self._variance_terms()
         if terms is None:
             return np.full((self.height, self.width), np.inf)
-        return terms[0] * terms[1]
+        m2, k = terms
+        return sum(m2[1:], m2[0]) * k
 
     def relative_error(self) -> np.ndarray:
         """Per-pixel standard error over a lower bound of the brightness (module docstring);
@@ -190,16 +192,13 @@ class TileAccumulator:
     def tile_error(self) -> float:
         """Root mean square of the pixels' relative_error() (inf before any estimate exists),
         in one fused pass (_kernels.c)."""
-        n = self.samples
-        if self.iid and n >= 2:
-            m2, extra, k = self.m2_within, self.m2_between, 1.0 / ((n - 1) * n)
-        else:
-            terms = self._variance_terms()
-            if terms is None:
-                return float("inf")
-            (m2, k), extra = terms, None
+        terms = self._variance_terms()
+        if terms is None:
+            return float("inf")
+        m2, k = terms
         pixels = self.height * self.width
-        total = _kernels.squared_relative_error(pixels, self.lum_mean, m2, extra, k, DARK_FLOOR)
+        extra = m2[1] if len(m2) > 1 else None
+        total = _kernels.squared_relative_error(pixels, self.lum_mean, m2[0], extra, k, DARK_FLOOR)
         return math.sqrt(total / pixels)
 
     # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order; statistics
