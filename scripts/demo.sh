@@ -44,6 +44,6 @@ for _ in $(seq 1 100); do
 done
 
 .venv/bin/renderfarm render examples/cornell-box.gltf -o out/cornell-box.exr --url "$URL" \
-  --width 512 --height 512 --noise-threshold 0.06 --max-spp 512
+  --width 512 --height 512 --noise-threshold 0.08 --max-spp 1024
 echo "Dashboard: $URL/   API docs: $URL/docs"
 echo "The farm keeps running; stop it with: make stop"
