@@ -490,19 +490,27 @@ class Scheduler:
     # -------------------------------------------------------------------------- results
     def complete(self, task_id: str, result: BatchResult) -> str:
         """Take a result. Returns "merged", "pending" (waits for earlier batches) or why it
-        was discarded ("duplicate", "tile stopped", "unknown job", "mismatch: ...")."""
+        was discarded ("duplicate", "tile stopped", "unknown job", "mismatch: ...").
+
+        A mismatched result of a live lease counts as a failure of its task (failed()): the
+        batch is leased again, and a worker that keeps sending bad results is kept off the job."""
         lease = self.leases.get(task_id)
-        if lease is not None:
-            self._release(lease, requeue=False)
         job = self.jobs.get(result.job_id)
         if job is None or job.state.finished:
+            if lease is not None:
+                self._release(lease, requeue=False)
             return "unknown job"
         if not 0 <= result.tile_index < len(job.tiles):
-            return "mismatch: tile index"
-        tile = job.tiles[result.tile_index]
-        problem = self._check_shape(job, tile, result)
+            problem = "tile index"
+        else:
+            tile = job.tiles[result.tile_index]
+            problem = self._check_shape(job, tile, result)
         if problem:
+            if lease is not None:
+                self.failed(task_id, f"result refused: {problem}", retryable=True)
             return "mismatch: " + problem
+        if lease is not None:
+            self._release(lease, requeue=False)
         if result.render_seconds > 0:
             cost = result.render_seconds / (result.sample_count * tile.rect.pixels)
             if tile.seconds_per_sample == 0:
@@ -554,6 +562,10 @@ class Scheduler:
             return "tile rectangle"
         if r.rgb_sum.size != tile.rect.pixels * 3 or r.luminance_m2.size != tile.rect.pixels:
             return "array sizes"
+        # A NaN or infinity would poison the tile's sums for good (workers count non-finite
+        # samples and send zeros in their place).
+        if not (np.isfinite(r.rgb_sum).all() and np.isfinite(r.luminance_m2).all()):
+            return "non-finite values"
         return ""
 
     def _decide_stop(self, job: JobRun, tile: TileState) -> None:

@@ -298,6 +298,32 @@ def test_results_for_unknown_tiles_are_refused(bad_index):
     r = render(SETTINGS, lease)
     bad = BatchResult(**{**r.__dict__, "tile_index": bad_index})
     assert sched.complete(lease.task_id, bad).startswith("mismatch")
+    # The batch is not lost: it is leased again (the refusal counts as a failed task).
+    (again,) = sched.assign("w")
+    assert (again.tile_index, again.batch_index) == (lease.tile_index, lease.batch_index)
+    assert sched.complete(again.task_id, render(SETTINGS, again)) == "merged"
+
+
+@pytest.mark.parametrize("bad_value", [np.nan, np.inf])
+def test_non_finite_results_are_refused_and_the_worker_is_kept_off(bad_value):
+    """A NaN or infinity from a faulty worker never reaches a tile's sums: the result is
+    refused, its batch leased again, and after max_task_failures such results the worker is
+    kept off the job (which fails when no worker is left)."""
+    sched = Scheduler(clock=FakeClock(), max_task_failures=2)
+    sched.add_job("j", SETTINGS, "scene")
+    sched.add_worker("bad", 1)
+    for attempt in range(2):
+        (lease,) = sched.assign("bad")
+        assert lease.batch_index == 0 and lease.tile_index == 0
+        r = render(SETTINGS, lease)
+        field = "rgb_sum" if attempt == 0 else "luminance_m2"
+        values = getattr(r, field).copy()
+        values.flat[5] = bad_value
+        outcome = sched.complete(lease.task_id, BatchResult(**{**r.__dict__, field: values}))
+        assert outcome == "mismatch: non-finite values"
+        assert sched.jobs["j"].tiles[0].merged == 0 and sched.jobs["j"].tiles[0].acc.samples == 0
+    assert "bad" in sched.jobs["j"].excluded_workers
+    assert sched.jobs["j"].state == JobState.FAILED
 
 
 PLANNED = JobSettings(width=32, height=16, tile_size=16, noise_threshold=0.04, max_spp=1024)
