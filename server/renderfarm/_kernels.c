@@ -1,6 +1,7 @@
 /* Fused per-pixel loops of the progressive merge (merge.py): one pass over a tile's arrays
- * instead of a dozen numpy passes. The arithmetic is merge.py's, term for term; merge.py's
- * docstring has the statistics and tests/test_merge.py checks these loops against numpy.
+ * instead of a dozen numpy passes. merge.py's docstring states the statistics; the tests in
+ * server/tests/test_merge.py check these loops against numpy (relative_error(), and the
+ * statistics of all samples computed at once).
  *
  * Every array is a C-contiguous buffer (numpy arrays, bytes); float64 unless said otherwise.
  * Batch arrays come off the wire as float32 or float64, told apart by their byte length.
@@ -14,7 +15,7 @@
 #include <stdint.h>
 #include <string.h>
 
-/* Rec. 709 luminance weights, as merge.LUMINANCE_WEIGHTS. */
+/* Rec. 709 luminance weights. */
 static const double kLumR = 0.2126, kLumG = 0.7152, kLumB = 0.0722;
 
 typedef struct {

@@ -48,14 +48,7 @@ import numpy as np
 from . import _kernels
 from .tiling import AOV_SAMPLES, carries_aovs
 
-LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of (..., 3) RGB, in float64 whatever the input's precision."""
-    flat = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
-    return np.dot(flat, LUMINANCE_WEIGHTS).reshape(np.shape(rgb)[:-1])
 
 
 def _batch_array(values) -> np.ndarray:

@@ -5,10 +5,15 @@ import itertools
 import numpy as np
 import pytest
 
-from renderfarm.merge import DARK_FLOOR, TileAccumulator, luminance
+from renderfarm.merge import DARK_FLOOR, TileAccumulator
 from renderfarm.tiling import AOV_SAMPLES, batch_count, batch_range
 
 H, W = 3, 5
+
+
+def luminance(rgb):
+    """Rec. 709 luminance, the reference for the merge's own (_kernels.c)."""
+    return np.asarray(rgb, dtype=np.float64) @ np.array([0.2126, 0.7152, 0.0722])
 
 
 def _batches(rng, max_spp):
