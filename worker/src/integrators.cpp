@@ -148,9 +148,9 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
 // is a delta light.
 Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                   const BsdfLobes& lobes, const Frame& frame, Vec3 wo_local,
-                  const SampleStream& s, uint32_t bounce, uint32_t* rays) {
-  float u_sel = s.get(dim::bounce(bounce, dim::kLightSelect));
-  const Point2 u = s.get2(dim::bounce(bounce, dim::kLightU));
+                  const BounceSamples& s, uint32_t* rays) {
+  float u_sel = s.get(dim::kLightSelect);
+  const Point2 u = s.get2(dim::kLightU);
   const Vec3 origin = sp.above();
   if (lc.env && u_sel < lc.p_env) {
     float pdf = 0.f;
@@ -227,6 +227,9 @@ SampleResult trace_path(const Scene& scene, const LightContext& lc, const Sample
                               // have produced this direction, so emission gets weight 1
   const LightSet& lights = scene.lights();
   for (uint32_t bounce = 0;; ++bounce) {
+    // This vertex's sample values, computed before the ray is traced: their latency-bound
+    // hash chains then overlap with the traversal instead of delaying the shading after it.
+    const BounceSamples u(s, bounce);
     Hit hit;
     ++result.rays;
     if (!scene.intersect(o, d, kInfinity, &hit)) {
@@ -264,7 +267,7 @@ SampleResult trace_path(const Scene& scene, const LightContext& lc, const Sample
     // estimator unbiased.
     if (bounce >= 3) {
       const float q = std::min(0.95f, max_component(beta));
-      if (!(s.get(dim::bounce(bounce, dim::kRoulette)) < q)) break;
+      if (!(u.get(dim::kRoulette) < q)) break;
       beta = beta / q;
     }
     const Frame frame(sp.ns);
@@ -272,13 +275,12 @@ SampleResult trace_path(const Scene& scene, const LightContext& lc, const Sample
     const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
     if (lc.any && bsdf_has_smooth_part(sp.params))
       radiance +=
-          beta * sample_light(scene, lc, sp, lobes, frame, wo_local, s, bounce, &result.rays);
+          beta * sample_light(scene, lc, sp, lobes, frame, wo_local, u, &result.rays);
 
     BsdfSample bs;
-    if (!bsdf_sample(sp.params, lobes, wo_local, s.get2(dim::bounce(bounce, dim::kBsdfU)),
-                     s.get(dim::bounce(bounce, dim::kLobe)),
+    if (!bsdf_sample(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
                      // Read only by the glass lobe: skipped (any value would do) without one.
-                     lobes.glass > 0.f ? s.get(dim::bounce(bounce, dim::kFresnel)) : 0.f, &bs))
+                     lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs))
       break;
     const Vec3 wi = normalize(frame.to_world(bs.wi));
     // Directions on the wrong side of the geometric surface (possible with shading normals)

@@ -406,6 +406,85 @@ Point2 PixelSampler::value2(uint32_t sample_index, uint32_t dimension) const {
           fraction_to_float(sobol_finish(y, 1, scramble_[dimension + 1]))};
 }
 
+namespace {
+
+// 4-lane unsigned 32-bit vectors (GCC/Clang vector extensions: SSE4.1 on x86-64-v2, NEON on
+// ARM), for value8's four pairs side by side.
+typedef uint32_t U32x4 __attribute__((vector_size(16)));
+typedef uint8_t U8x16 __attribute__((vector_size(16)));
+typedef int32_t I32x4 __attribute__((vector_size(16)));
+typedef float F32x4 __attribute__((vector_size(16)));
+
+inline U32x4 laine_karras4(U32x4 x, U32x4 seed) {
+  x += seed;
+  x ^= x * 0x6c50b47cu;
+  x ^= x * 0xb82f1e52u;
+  x ^= x * 0xc7afe638u;
+  x ^= x * 0x8d22f6e6u;
+  return x;
+}
+
+inline U32x4 reverse_bits4(U32x4 x) {
+  const U8x16 bytes = reinterpret_cast<U8x16>(x);
+  x = reinterpret_cast<U32x4>(
+      __builtin_shuffle(bytes, U8x16{3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12}));
+  x = ((x >> 1) & 0x55555555u) | ((x & 0x55555555u) << 1);
+  x = ((x >> 2) & 0x33333333u) | ((x & 0x33333333u) << 2);
+  return ((x >> 4) & 0x0f0f0f0fu) | ((x & 0x0f0f0f0fu) << 4);
+}
+
+// Sobol dimension 1 in the bit-reversed domain, without tables. Its generator matrix is
+// Pascal's triangle mod 2 (primitive polynomial x + 1, m_1 = 1: m_k = m_(k-1) xor 2 m_(k-1)):
+// output digit j is the xor of the index bits k whose binary expansion contains j's (Lucas).
+// With w = reverse(y) the index and z = reverse(sobol32(w)), bit j of z is that xor over the
+// bits k of w with k a superset of j: the subset-sum transform over GF(2), five xor-shifts.
+inline U32x4 sobol1_reversed4(U32x4 w) {
+  w ^= (w >> 1) & 0x55555555u;
+  w ^= (w >> 2) & 0x33333333u;
+  w ^= (w >> 4) & 0x0f0f0f0fu;
+  w ^= (w >> 8) & 0x00ff00ffu;
+  w ^= (w >> 16) & 0x0000ffffu;
+  return w;
+}
+
+inline F32x4 fraction_to_float4(U32x4 v) {
+  return __builtin_convertvector(reinterpret_cast<I32x4>(v >> 8), F32x4) * (1.f / 16777216.f);
+}
+
+}  // namespace
+
+bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) const {
+  if (sampler_->type() != SamplerType::Sobol || first % 4u != 0 ||
+      first + 8 > kCachedDimensions)
+    return false;
+  const uint32_t group = uint32_t(1) << (first / 4);
+  if (!(valid8_ & group)) {
+    for (uint32_t d = first; d < first + 8; ++d) fill_sobol_seeds(d);
+    valid8_ |= group;
+  }
+  // As sobol_bits, for the pairs (first + 2p, first + 2p + 1) in lanes p = 0..3: the shuffled
+  // index w = reverse(y) with y = LK(reverse(i), shuffle_p); then z = reverse(sobol32(w)),
+  // which is w itself for Sobol dimension 0 (van der Corput: sobol32 = reverse) and
+  // sobol1_reversed4(w) for dimension 1; the value is reverse(LK(z, scramble)).
+  U32x4 shuffle, even_seed, odd_seed;
+  __builtin_memcpy(&shuffle, &shuffle_[first / 2], sizeof shuffle);
+  U32x4 lo, hi;
+  __builtin_memcpy(&lo, &scramble_[first], sizeof lo);
+  __builtin_memcpy(&hi, &scramble_[first + 4], sizeof hi);
+  even_seed = __builtin_shuffle(lo, hi, U32x4{0, 2, 4, 6});
+  odd_seed = __builtin_shuffle(lo, hi, U32x4{1, 3, 5, 7});
+  const U32x4 y = laine_karras4(U32x4{} + reverse_bits32(sample_index), shuffle);
+  const U32x4 w = reverse_bits4(y);
+  const F32x4 even = fraction_to_float4(reverse_bits4(laine_karras4(w, even_seed)));
+  const F32x4 odd = fraction_to_float4(reverse_bits4(laine_karras4(sobol1_reversed4(w),
+                                                                   odd_seed)));
+  const F32x4 out_lo = __builtin_shuffle(even, odd, I32x4{0, 4, 1, 5});
+  const F32x4 out_hi = __builtin_shuffle(even, odd, I32x4{2, 6, 3, 7});
+  __builtin_memcpy(out, &out_lo, sizeof out_lo);
+  __builtin_memcpy(out + 4, &out_hi, sizeof out_hi);
+  return true;
+}
+
 float PixelSampler::value(uint32_t sample_index, uint32_t dimension) const {
   const SamplerType type = sampler_->type();
   if ((type != SamplerType::Sobol && type != SamplerType::Halton) ||

@@ -141,16 +141,23 @@ class PixelSampler {
   // The pair (value(i, d), value(i, d + 1)) for an even d. For sobol the two share the pair's
   // shuffled index, which is then computed once.
   Point2 value2(uint32_t sample_index, uint32_t dimension) const;
+  // The eight values value(i, first + k), k = 0..7, for first a multiple of 4 below
+  // kCachedDimensions - 7 (one bounce's dimensions), computed together. For sobol the four
+  // pairs go through the scrambles side by side in 4-lane vectors, with Sobol dimension 1
+  // computed arithmetically instead of by tables; returns false (and leaves out alone) for
+  // the other samplers, whose values the caller should ask for one at a time when needed.
+  bool value8(uint32_t sample_index, uint32_t first, float out[8]) const;
+  static constexpr uint32_t kCachedDimensions = 128;
 
  private:
   void fill_sobol_seeds(uint32_t dimension) const;
-  static constexpr uint32_t kCachedDimensions = 128;
   const Sampler* sampler_;
   uint64_t pixel_;
   mutable uint32_t shuffle_[kCachedDimensions / 2] = {};
   mutable uint32_t scramble_[kCachedDimensions] = {};
   mutable uint64_t halton_[kCachedDimensions][2] = {};
   mutable uint64_t valid_[kCachedDimensions / 64] = {};
+  mutable uint32_t valid8_ = 0;  // bit first / 4: value8's seeds for first.. first + 7 filled
 };
 
 // Convenience view for one (pixel, sample) pair.
@@ -160,6 +167,30 @@ struct SampleStream {
   float get(uint32_t dimension) const { return sampler->value(index, dimension); }
   // Dimensions (d, d + 1), d even: a 2D quantity's pair.
   Point2 get2(uint32_t dimension) const { return sampler->value2(index, dimension); }
+};
+
+// The dimensions of one bounce (dim::bounce(b, 0..7)) of one sample. For sobol all eight are
+// computed at once on construction (cheaper together than the five to eight a bounce reads,
+// one at a time); for the other samplers each is computed when read, so that dimensions a
+// path does not use (roulette before bounce 3, the glass choice without glass) cost nothing.
+class BounceSamples {
+ public:
+  BounceSamples(const SampleStream& s, uint32_t bounce)
+      : stream_(s), first_(dim::bounce(bounce, 0)) {
+    batched_ = first_ + 8 <= PixelSampler::kCachedDimensions &&
+               s.sampler->value8(s.index, first_, values_);
+  }
+  float get(uint32_t k) const { return batched_ ? values_[k] : stream_.get(first_ + k); }
+  // k even: the pair (k, k + 1).
+  Point2 get2(uint32_t k) const {
+    return batched_ ? Point2{values_[k], values_[k + 1]} : stream_.get2(first_ + k);
+  }
+
+ private:
+  SampleStream stream_;
+  uint32_t first_;
+  bool batched_ = false;
+  float values_[8];
 };
 
 }  // namespace rf
