@@ -106,17 +106,31 @@ Vec3 metal_multiple_scattering(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
   BsdfLobes l;
   l.glass = (1.f - p.metallic) * p.transmission;
-  const float wd = (1.f - p.metallic) * (1.f - p.transmission);
+  l.wd = (1.f - p.metallic) * (1.f - p.transmission);
   const float fw = schlick_weight(wo.z);
-  const float f0d = dielectric_f0(p);
-  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  l.f0d = dielectric_f0(p);
+  const float fd = p.specular > 0.f ? l.f0d + (p.specular - l.f0d) * fw : 0.f;
   const float lum = luminance(p.base);
   const float fm = lum + (1.f - lum) * fw;
-  const float ws = wd * fd + p.metallic * fm;
+  const float ws = l.wd * fd + p.metallic * fm;
   // The cosine lobe also samples the metal's multiple-scattering term.
-  const float ms = p.metallic > 0.f ? p.metallic * (1.f - energy_table().e(wo.z, p.alpha)) : 0.f;
-  const float wdiff = wd * (1.f - fd) * std::max(lum, 1e-3f) + ms;
+  float ms = 0.f;
+  if (p.metallic > 0.f) {
+    const EnergyTable& t = energy_table();
+    const float e_o = t.e(wo.z, p.alpha);
+    ms = p.metallic * (1.f - e_o);
+    const float e_avg = t.e_avg(p.alpha);
+    const float k = ms / (kPi * (1.f - e_avg));
+    for (int c = 0; c < 3; ++c) {
+      const float f_avg = p.base[c] + (1.f - p.base[c]) / 21.f;
+      l.ms[c] = k * f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
+    }
+  }
+  const float wdiff = l.wd * (1.f - fd) * std::max(lum, 1e-3f) + ms;
   l.spec = ws + wdiff > 0.f ? ws / (ws + wdiff) : 1.f;
+  const float c2 = wo.z * wo.z;
+  l.root_o = std::sqrt(c2 + p.alpha * p.alpha * std::max(0.f, 1.f - c2));
+  l.pdf_k = wo.z > 0.f ? 1.f / (2.f * (wo.z + l.root_o)) : 0.f;
   return l;
 }
 
@@ -176,24 +190,35 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
 Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, float* pdf) {
   *pdf = 0.f;
   if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
-  const Vec3 h_raw = wo + wi;
-  const float hl = length(h_raw);
-  if (!(hl > 0.f)) return {0.f, 0.f, 0.f};
-  const Vec3 h = h_raw / hl;
-  const float c = std::max(0.f, dot(wo, h));
-  const float wd = (1.f - p.metallic) * (1.f - p.transmission);
+  // The same quantities as bsdf_eval_cos and bsdf_pdf, rearranged to need two square roots
+  // and two divisions (the functions above are the readable reference the tests hold this
+  // one to):
+  //   h = (wo + wi) / |wo + wi| with |wo + wi|^2 = 4 c^2, c = wo.h;
+  //   D = alpha^2 / (pi t^2), t = h_z^2 (alpha^2 - 1) + 1 = (s_z^2 (alpha^2 - 1) + 4 c^2) / 4c^2
+  //   with s = wo + wi;
+  //   1 + Lambda(wo) + Lambda(wi) = (root_o / cos_o + root_i / cos_i) / 2, so
+  //   D G2 / (4 cos_o cos_i) = D / (2 (root_o cos_i + root_i cos_o));
+  //   the VNDF pdf of wi, G1(wo) D (wo.h) / cos_o / (4 wo.h) = D pdf_k.
+  const Vec3 sum = wo + wi;
+  const float c2 = 0.25f * dot(sum, sum);  // not (1 + wo.wi) / 2: no cancellation when wi ~ -wo
+  if (!(c2 > 0.f)) return {0.f, 0.f, 0.f};
+  const float c = std::sqrt(c2);
   const float fw = schlick_weight(c);
-  const float f0d = dielectric_f0(p);
-  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  const float fd = p.specular > 0.f ? l.f0d + (p.specular - l.f0d) * fw : 0.f;
+  const float a2 = p.alpha * p.alpha;
+  const float sz = sum.z;
+  const float four_c2 = 4.f * c2;
+  const float den = sz * sz * (a2 - 1.f) + four_c2;
+  const float d = a2 * four_c2 * four_c2 / (kPi * den * den);
+  const float ci2 = wi.z * wi.z;
+  const float root_i = std::sqrt(ci2 + a2 * std::max(0.f, 1.f - ci2));
+  const float spec = d / (2.f * (l.root_o * wi.z + root_i * wo.z));
+  const float spec_weight_d = l.wd * fd;
+  Vec3 diffuse = p.base * (l.wd * (1.f - fd) * kInvPi);
+  if (p.metallic > 0.f) diffuse += l.ms * (1.f - energy_table().e(wi.z, p.alpha));
   const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
-  const float d = ggx_d(h, p.alpha);
-  const float lambda_o = ggx_lambda(wo, p.alpha);
-  const float spec = d / ((1.f + lambda_o + ggx_lambda(wi, p.alpha)) * 4.f * wo.z * wi.z);
-  const Vec3 diffuse = p.base * (wd * (1.f - fd) * kInvPi) + metal_multiple_scattering(p, wo, wi);
-  const Vec3 specular = (Vec3(1.f, 1.f, 1.f) * (wd * fd) + fm * p.metallic) * spec;
-  // pdf: as bsdf_pdf, with G1(wo) = 1 / (1 + Lambda(wo)) reused.
-  const float pdf_spec = c > 0.f ? d * c / ((1.f + lambda_o) * wo.z) / (4.f * c) : 0.f;
-  *pdf = (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * wi.z * kInvPi);
+  const Vec3 specular = (Vec3(spec_weight_d, spec_weight_d, spec_weight_d) + fm * p.metallic) * spec;
+  *pdf = (1.f - l.glass) * (l.spec * d * l.pdf_k + (1.f - l.spec) * wi.z * kInvPi);
   return (diffuse + specular) * wi.z;
 }
 

@@ -48,6 +48,11 @@ struct Material {
   float normal_scale = 1.f;      // normalTexture.scale
   TextureRef base_color_tex{}, metallic_roughness_tex{}, normal_tex{}, emissive_tex{};
   bool is_emissive() const { return !is_zero(emission); }
+  // True if shading reads texture coordinates at the hit point (the emissive texture is read
+  // by Scene::emission, which interpolates its own).
+  bool reads_uv() const {
+    return base_color_tex.valid() || metallic_roughness_tex.valid() || normal_tex.valid();
+  }
 };
 
 // Material parameters at one surface point, after texture lookups.
@@ -83,9 +88,17 @@ struct BsdfSample {
 // (0 if wo or wi is below the surface).
 // Lobe selection probabilities, a function of (params, wo) only; the path tracer computes them
 // once per vertex and passes them to the overloads below (the same values as without them).
+// With them come the wo-dependent terms of the evaluation, so that evaluating several
+// directions at one vertex (light sample, BSDF sample) computes them once.
 struct BsdfLobes {
   float glass = 0.f;  // probability of the delta glass lobe
   float spec = 0.f;   // probability of GGX among the non-delta lobes
+  float wd = 0.f;     // (1 - metallic)(1 - transmission): weight of the dielectric base
+  float f0d = 0.f;    // dielectric Fresnel at normal incidence, specular * ((ior-1)/(ior+1))^2
+  float root_o = 0.f;  // sqrt(cos_o^2 + alpha^2 (1 - cos_o^2)) = 2 cos_o (Lambda(wo) + 1/2)
+  float pdf_k = 0.f;   // 1 / (2 (cos_o + root_o)) = G1(wo) / (4 cos_o): GGX pdf = D pdf_k
+  Vec3 ms;             // metal multiple scattering without its (1 - E(mu_i)) factor (0 if
+                       // not metallic)
 };
 BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo);
 

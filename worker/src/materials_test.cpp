@@ -130,6 +130,38 @@ TEST(Bsdf, SamplesFollowThePdfAndWeightsAreFCosOverPdf) {
     }
 }
 
+// bsdf_eval_pdf (the path tracer's evaluation: wo terms precomputed per vertex, the GGX terms
+// rearranged) equals the reference formulas of bsdf_eval_cos and bsdf_pdf in every channel,
+// over a grid of directions including grazing ones and for roughness down to kMinAlpha.
+TEST(Bsdf, JointEvaluationEqualsTheReferenceFormulas) {
+  std::vector<BsdfParams> materials = test_materials();
+  materials.push_back(params({0.9f, 0.9f, 0.9f}, 1.f, 0.f));        // mirror-like metal
+  materials.push_back(params({0.2f, 0.6f, 0.9f}, 0.f, 0.05f, 1.f));  // glossy plastic
+  materials.push_back(params({0.6f, 0.6f, 0.6f}, 0.f, 1.f, 0.f));    // pure Lambert
+  int compared = 0;
+  for (const BsdfParams& p : materials)
+    for (double zo : {0.02, 0.3, 0.7, 0.999})
+      for (double zi : {0.01, 0.2, 0.5, 0.9, 1.0})
+        for (double phi : {0.0, 1.0, 2.5, 3.14159}) {
+          const Vec3 wo = spherical(zo, 0.4), wi = spherical(zi, 0.4 + phi);
+          float pdf = -1.f;
+          const Vec3 f = bsdf_eval_pdf(p, bsdf_lobes(p, wo), wo, wi, &pdf);
+          const Vec3 f_ref = bsdf_eval_cos(p, wo, wi);
+          const float pdf_ref = bsdf_pdf(p, wo, wi);
+          ASSERT_NEAR(pdf, pdf_ref, 1e-3f * pdf_ref + 1e-6f) << zo << " " << zi << " " << phi;
+          for (int c = 0; c < 3; ++c)
+            ASSERT_NEAR(f[c], f_ref[c], 1e-3f * f_ref[c] + 1e-6f) << zo << " " << zi << " " << phi;
+          ++compared;
+        }
+  EXPECT_EQ(compared, 8 * 4 * 5 * 4);
+  // Below either hemisphere: zero, with zero pdf.
+  const BsdfParams p = test_materials()[0];
+  float pdf = 1.f;
+  EXPECT_TRUE(is_zero(bsdf_eval_pdf(p, bsdf_lobes(p, kOutgoing[0]), kOutgoing[0],
+                                    Vec3(0.f, 0.6f, -0.8f), &pdf)));
+  EXPECT_EQ(pdf, 0.f);
+}
+
 // Directional albedo integral of f cos over the hemisphere, by quadrature.
 Vec3 albedo(const BsdfParams& p, Vec3 wo, int n = 500) {
   Vec3 sum;

@@ -334,8 +334,9 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
   const uint32_t set = std::min<uint32_t>(1u, mat.normal_tex.texcoord);
   Vec3 dpdu(0.f, 0.f, 0.f);
   float sign = 1.f;
+  const bool reads_uv = mat.reads_uv();
   for (int k = 0; k < 2; ++k) {
-    if (!tri.has_uv[k]) {
+    if (!tri.has_uv[k] || !reads_uv) {
       hit->uv[k] = Point2{0.f, 0.f};
       continue;
     }

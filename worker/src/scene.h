@@ -96,7 +96,8 @@ struct Hit {
   Vec3 ng;             // unit geometric normal (front side, see Triangle::ng)
   Vec3 ns;             // unit shading normal (interpolated, or ng without vertex normals)
   uint32_t material = 0;
-  Point2 uv[2];        // interpolated texture coordinates (0 where the mesh has none)
+  Point2 uv[2];        // interpolated texture coordinates (0 where the mesh has none, or
+                       // where the material reads no texture but the emissive one)
   Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<normal_tex.texcoord> for
                        // normal mapping (0 if undefined)
   float tangent_sign = 1.f;  // handedness of (dpdu, dpdv, ng)
