@@ -28,7 +28,12 @@ from renderfarm.localfarm import LocalFarm
 
 from .conftest import CORNELL
 
-SETTINGS = {"width": 96, "height": 96, "tile_size": 16, "max_spp": 256, "noise_threshold": 0}
+# Long enough (about 9.4M samples) that a fault injected a second after a fraction of the job
+# merged still lands mid-job on a fast renderer: at 256 spp two one-thread workers finished the
+# whole job within that second, and the server-kill test killed a finished job.
+SPP = 1024
+TOTAL = 96 * 96 * SPP
+SETTINGS = {"width": 96, "height": 96, "tile_size": 16, "max_spp": SPP, "noise_threshold": 0}
 SETTINGS |= {"seed": 21}
 FAST_LEASES = {
     "RENDERFARM_LEASE_S": "2",
@@ -41,7 +46,7 @@ FAST_LEASES = {
 def reference(worker_binary, tmp_path_factory) -> np.ndarray:
     out = tmp_path_factory.mktemp("ref") / "alone.exr"
     args = [worker_binary, "render", str(CORNELL), "-o", str(out), "--threads", "2"]
-    args += ["--width", "96", "--height", "96", "--spp", "256", "--seed", "21"]
+    args += ["--width", "96", "--height", "96", "--spp", str(SPP), "--seed", "21"]
     subprocess.run(args, check=True, capture_output=True, timeout=600)
     return rgb(out)
 
@@ -81,7 +86,7 @@ def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.05):
 
 def merged_fraction(client: Client, job_id: str) -> float:
     p = client.get(job_id)["progress"]
-    return p["samples_merged"] / (96 * 96 * 256)
+    return p["samples_merged"] / TOTAL
 
 
 def submit_when_two_workers(client: Client, until_merged: float) -> dict:
@@ -118,7 +123,7 @@ def test_kill_9_one_of_two_workers_mid_job(tmp_path, reference):
             victim.wait(timeout=10)
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
-            assert job["progress"]["samples_merged"] == 96 * 96 * 256
+            assert job["progress"]["samples_merged"] == TOTAL
             assert len(client.workers()) == 1
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
 
@@ -134,6 +139,7 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             job = submit_when_two_workers(client, until_merged=0.4)
             time.sleep(1.0)  # at least one checkpoint interval (0.5 s) of merged work
             merged_before_crash = client.get(job["id"])["progress"]["samples_merged"]
+            assert merged_before_crash < TOTAL, "the job finished before the server was killed"
         farm.server.send_signal(signal.SIGKILL)
         farm.server.wait(timeout=10)
         farm.start_server()
@@ -145,7 +151,7 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             assert resumed["state"] == "running"
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
-            total = 96 * 96 * 256
+            total = TOTAL
             assert job["progress"]["samples_merged"] == total
             rendered_after_restart = metric(farm.url, "renderfarm_samples_merged_total")
             assert rendered_after_restart == total - checkpointed
@@ -332,7 +338,7 @@ def test_frozen_worker_loses_its_leases_and_its_late_results_change_nothing(tmp_
                 frozen.send_signal(signal.SIGCONT)
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
-            assert job["progress"]["samples_merged"] == 96 * 96 * 256
+            assert job["progress"]["samples_merged"] == TOTAL
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
 
 
@@ -392,7 +398,7 @@ def test_graceful_shutdown_drains_and_loses_nothing(tmp_path, reference):
             assert resumed >= seen  # the last checkpoint has everything merged before exit
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
-            total = 96 * 96 * 256
+            total = TOTAL
             assert metric(farm.url, "renderfarm_samples_merged_total") == total - resumed
             assert_same_image(farm_image(client, job["id"], tmp_path), reference)
 
