@@ -320,10 +320,10 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d)
 // What every sample of a render shares: computed once per render_rect.
 struct TraceContext {
   LightContext lights;
-  float tan_half_fov = 0.f;
+  Camera::Raster raster;
   TraceContext(const Scene& scene, const RenderSettings& settings)
       : lights(light_context(scene, settings)),
-        tan_half_fov(std::tan(0.5f * scene.camera().yfov)) {}
+        raster(scene.camera().raster(settings.width, settings.height)) {}
 };
 
 SampleResult trace_sample_in(const TraceContext& ctx, const Scene& scene,
@@ -336,7 +336,7 @@ SampleResult trace_sample_in(const TraceContext& ctx, const Scene& scene,
   const float py = float(y) + jitter.y;
   const Camera& cam = scene.camera();
   Vec3 o = cam.position;
-  Vec3 d = cam.ray_direction(px, py, settings.width, settings.height, ctx.tan_half_fov);
+  Vec3 d = ctx.raster.direction(px, py);
   if (settings.aperture_radius > 0.f) {
     // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
     // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform

@@ -17,6 +17,21 @@ Vec3 Camera::ray_direction(float px, float py, uint32_t width, uint32_t height,
   return normalize(forward + right * sx + up * sy);
 }
 
+Camera::Raster Camera::raster(uint32_t width, uint32_t height) const {
+  // sx = (2 px / width - 1) aspect tan_half, sy = (1 - 2 py / height) tan_half, as above.
+  const float tan_half = std::tan(0.5f * yfov);
+  const float aspect = float(width) / float(height);
+  Raster r;
+  r.right = right;
+  r.up = up;
+  r.forward = forward;
+  r.kx = 2.f * aspect * tan_half / float(width);
+  r.bx = -aspect * tan_half;
+  r.ky = -2.f * tan_half / float(height);
+  r.by = tan_half;
+  return r;
+}
+
 struct Scene::Embree {
   RTCDevice device = nullptr;
   RTCScene scene = nullptr;

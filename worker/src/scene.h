@@ -38,6 +38,17 @@ struct Camera {
   }
   // The same with tan(yfov / 2) computed once by the caller.
   Vec3 ray_direction(float px, float py, uint32_t width, uint32_t height, float tan_half) const;
+
+  // ray_direction for one image size with its per-image factors computed once: the image-plane
+  // point is (px kx + bx, py ky + by) instead of three divisions per ray.
+  struct Raster {
+    Vec3 right, up, forward;
+    float kx = 0.f, bx = 0.f, ky = 0.f, by = 0.f;
+    Vec3 direction(float px, float py) const {
+      return normalize(forward + right * (px * kx + bx) + up * (py * ky + by));
+    }
+  };
+  Raster raster(uint32_t width, uint32_t height) const;
 };
 
 struct Triangle {

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <fstream>
+#include <utility>
 
 #include "integrators.h"
 #include "test_scenes.h"
@@ -95,6 +96,26 @@ TEST(GltfLoader, MissingMaterialIsNamed) {
     const std::string what = e.what();
     EXPECT_NE(what.find("bad-material.gltf"), std::string::npos) << what;
     EXPECT_NE(what.find("material"), std::string::npos) << what;
+  }
+}
+
+TEST(Camera, RasterDirectionsEqualRayDirection) {
+  Camera cam;
+  cam.position = Vec3(1.f, 2.f, 3.f);
+  cam.forward = normalize(Vec3(0.3f, -0.2f, -1.f));
+  cam.right = normalize(cross(cam.forward, Vec3(0.f, 1.f, 0.f)));
+  cam.up = cross(cam.right, cam.forward);
+  cam.yfov = 0.9f;
+  for (auto [w, h] : {std::pair<uint32_t, uint32_t>{640, 480}, {17, 301}, {1, 1}}) {
+    const Camera::Raster r = cam.raster(w, h);
+    for (float fx : {0.f, 0.25f, 0.5f, 0.999f})
+      for (float fy : {0.f, 0.4f, 1.f}) {
+        const float px = fx * float(w), py = fy * float(h);
+        const Vec3 a = r.direction(px, py), b = cam.ray_direction(px, py, w, h);
+        EXPECT_NEAR(a.x, b.x, 2e-6f);
+        EXPECT_NEAR(a.y, b.y, 2e-6f);
+        EXPECT_NEAR(a.z, b.z, 2e-6f);
+      }
   }
 }
 
