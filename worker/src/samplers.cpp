@@ -90,9 +90,12 @@ uint32_t reverse_bits32(uint32_t x) {
   return ((x >> 4) & 0x0f0f0f0fu) | ((x & 0x0f0f0f0fu) << 4);
 }
 
-uint32_t laine_karras_permutation(uint32_t x, uint32_t seed) {
-  // Burley 2020, improved constants: every step only propagates information from lower to
-  // higher bits, so (after the bit reversals around it) it is a nested uniform scramble.
+namespace {
+// Burley 2020, improved constants: every step only propagates information from lower to
+// higher bits, so (after the bit reversals around it) it is a nested uniform scramble. T is
+// uint32_t or a vector of them (value8's lanes).
+template <typename T>
+inline T laine_karras_steps(T x, T seed) {
   x += seed;
   x ^= x * 0x6c50b47cu;
   x ^= x * 0xb82f1e52u;
@@ -100,6 +103,9 @@ uint32_t laine_karras_permutation(uint32_t x, uint32_t seed) {
   x ^= x * 0x8d22f6e6u;
   return x;
 }
+}  // namespace
+
+uint32_t laine_karras_permutation(uint32_t x, uint32_t seed) { return laine_karras_steps(x, seed); }
 
 uint32_t nested_uniform_scramble(uint32_t x, uint32_t seed) {
   return reverse_bits32(laine_karras_permutation(reverse_bits32(x), seed));
@@ -415,14 +421,7 @@ typedef uint8_t U8x16 __attribute__((vector_size(16)));
 typedef int32_t I32x4 __attribute__((vector_size(16)));
 typedef float F32x4 __attribute__((vector_size(16)));
 
-inline U32x4 laine_karras4(U32x4 x, U32x4 seed) {
-  x += seed;
-  x ^= x * 0x6c50b47cu;
-  x ^= x * 0xb82f1e52u;
-  x ^= x * 0xc7afe638u;
-  x ^= x * 0x8d22f6e6u;
-  return x;
-}
+inline U32x4 laine_karras4(U32x4 x, U32x4 seed) { return laine_karras_steps(x, seed); }
 
 inline U32x4 reverse_bits4(U32x4 x) {
   const U8x16 bytes = reinterpret_cast<U8x16>(x);
