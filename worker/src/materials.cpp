@@ -84,20 +84,25 @@ inline float dielectric_f0(const BsdfParams& p) {
 }
 
 
-// m * F_ms * (1 - E(mu_o)) (1 - E(mu_i)) / (pi (1 - E_avg)), with Kulla & Conty's colored
-// F_ms = F_avg^2 E_avg / (1 - F_avg (1 - E_avg)) and F_avg = f0 + (1 - f0) / 21 for Schlick.
+// Kulla & Conty's colored F_ms = F_avg^2 E_avg / (1 - F_avg (1 - E_avg)), with
+// F_avg = f0 + (1 - f0) / 21 for Schlick and f0 = base.
+Vec3 metal_ms_fresnel(const BsdfParams& p, float e_avg) {
+  Vec3 f_ms;
+  for (int c = 0; c < 3; ++c) {
+    const float f_avg = p.base[c] + (1.f - p.base[c]) / 21.f;
+    f_ms[c] = f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
+  }
+  return f_ms;
+}
+
+// m * F_ms * (1 - E(mu_o)) (1 - E(mu_i)) / (pi (1 - E_avg)).
 Vec3 metal_multiple_scattering(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   if (p.metallic <= 0.f) return {0.f, 0.f, 0.f};
   const EnergyTable& t = energy_table();
   const float e_avg = t.e_avg(p.alpha);
   const float k = p.metallic * (1.f - t.e(wo.z, p.alpha)) * (1.f - t.e(wi.z, p.alpha)) /
                   (kPi * (1.f - e_avg));
-  Vec3 f_ms;
-  for (int c = 0; c < 3; ++c) {
-    const float f_avg = p.base[c] + (1.f - p.base[c]) / 21.f;
-    f_ms[c] = f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
-  }
-  return f_ms * k;
+  return metal_ms_fresnel(p, e_avg) * k;
 }
 
 }  // namespace
@@ -120,11 +125,7 @@ BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
     const float e_o = t.e(wo.z, p.alpha);
     ms = p.metallic * (1.f - e_o);
     const float e_avg = t.e_avg(p.alpha);
-    const float k = ms / (kPi * (1.f - e_avg));
-    for (int c = 0; c < 3; ++c) {
-      const float f_avg = p.base[c] + (1.f - p.base[c]) / 21.f;
-      l.ms[c] = k * f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
-    }
+    l.ms = metal_ms_fresnel(p, e_avg) * (ms / (kPi * (1.f - e_avg)));
   }
   const float wdiff = l.wd * (1.f - fd) * std::max(lum, 1e-3f) + ms;
   l.spec = ws + wdiff > 0.f ? ws / (ws + wdiff) : 1.f;

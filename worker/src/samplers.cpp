@@ -465,13 +465,12 @@ bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) c
   // index w = reverse(y) with y = LK(reverse(i), shuffle_p); then z = reverse(sobol32(w)),
   // which is w itself for Sobol dimension 0 (van der Corput: sobol32 = reverse) and
   // sobol1_reversed4(w) for dimension 1; the value is reverse(LK(z, scramble)).
-  U32x4 shuffle, even_seed, odd_seed;
+  U32x4 shuffle, lo, hi;
   __builtin_memcpy(&shuffle, &shuffle_[first / 2], sizeof shuffle);
-  U32x4 lo, hi;
   __builtin_memcpy(&lo, &scramble_[first], sizeof lo);
   __builtin_memcpy(&hi, &scramble_[first + 4], sizeof hi);
-  even_seed = __builtin_shuffle(lo, hi, U32x4{0, 2, 4, 6});
-  odd_seed = __builtin_shuffle(lo, hi, U32x4{1, 3, 5, 7});
+  const U32x4 even_seed = __builtin_shuffle(lo, hi, U32x4{0, 2, 4, 6});
+  const U32x4 odd_seed = __builtin_shuffle(lo, hi, U32x4{1, 3, 5, 7});
   const U32x4 y = laine_karras4(U32x4{} + reverse_bits32(sample_index), shuffle);
   const U32x4 w = reverse_bits4(y);
   const F32x4 even = fraction_to_float4(reverse_bits4(laine_karras4(w, even_seed)));

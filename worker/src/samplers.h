@@ -177,8 +177,8 @@ class BounceSamples {
  public:
   BounceSamples(const SampleStream& s, uint32_t bounce)
       : stream_(s), first_(dim::bounce(bounce, 0)) {
-    batched_ = first_ + 8 <= PixelSampler::kCachedDimensions &&
-               s.sampler->value8(s.index, first_, values_);
+    // value8 declines dimensions beyond its cache (bounce 15 and deeper) and other samplers.
+    batched_ = s.sampler->value8(s.index, first_, values_);
   }
   float get(uint32_t k) const { return batched_ ? values_[k] : stream_.get(first_ + k); }
   // k even: the pair (k, k + 1).

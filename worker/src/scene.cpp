@@ -8,17 +8,8 @@
 
 namespace rf {
 
-Vec3 Camera::ray_direction(float px, float py, uint32_t width, uint32_t height,
-                           float tan_half) const {
-  const float aspect = float(width) / float(height);
-  // Image plane at distance 1: x in [-aspect tan, aspect tan], y in [-tan, tan], y up.
-  const float sx = (2.f * px / float(width) - 1.f) * aspect * tan_half;
-  const float sy = (1.f - 2.f * py / float(height)) * tan_half;
-  return normalize(forward + right * sx + up * sy);
-}
-
 Camera::Raster Camera::raster(uint32_t width, uint32_t height) const {
-  // sx = (2 px / width - 1) aspect tan_half, sy = (1 - 2 py / height) tan_half, as above.
+  // sx = (2 px / width - 1) aspect tan_half, sy = (1 - 2 py / height) tan_half.
   const float tan_half = std::tan(0.5f * yfov);
   const float aspect = float(width) / float(height);
   Raster r;

@@ -33,14 +33,14 @@ struct Camera {
   float yfov = 0.8f;
   // Unit direction through image position (px, py) in pixels (x right, y down, continuous:
   // pixel (x, y) covers [x, x+1) x [y, y+1)) for an image of width x height pixels.
+  // The renderer computes raster(width, height) once per render and asks it per sample.
   Vec3 ray_direction(float px, float py, uint32_t width, uint32_t height) const {
-    return ray_direction(px, py, width, height, std::tan(0.5f * yfov));
+    return raster(width, height).direction(px, py);
   }
-  // The same with tan(yfov / 2) computed once by the caller.
-  Vec3 ray_direction(float px, float py, uint32_t width, uint32_t height, float tan_half) const;
 
-  // ray_direction for one image size with its per-image factors computed once: the image-plane
-  // point is (px kx + bx, py ky + by) instead of three divisions per ray.
+  // Directions for one image size: the image plane at distance 1 spans x in
+  // [-aspect tan(yfov/2), aspect tan(yfov/2)] and y in [-tan(yfov/2), tan(yfov/2)] (y up), and
+  // pixel position (px, py) maps to (px kx + bx, py ky + by) on it.
   struct Raster {
     Vec3 right, up, forward;
     float kx = 0.f, bx = 0.f, ky = 0.f, by = 0.f;
