@@ -143,30 +143,41 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   return sp;
 }
 
+// A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
+// origin + t wi for t in (0, tmax).
+struct LightRay {
+  Vec3 origin, wi;
+  float tmax = 0.f;
+  Vec3 contribution;
+};
+
 // Next-event estimation: one light (or the environment) chosen by power, its contribution
 // f cos L / pdf, MIS-weighted against BSDF sampling with the power heuristic unless the light
-// is a delta light.
-Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
+// is a delta light. False if the sample contributes nothing whatever the visibility (no shadow
+// ray is needed); otherwise *out holds the shadow ray and the unoccluded contribution.
+bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                   const BsdfLobes& lobes, const Frame& frame, Vec3 wo_local,
-                  const BounceSamples& s, uint32_t* rays) {
+                  const BounceSamples& s, LightRay* out) {
   float u_sel = s.get(dim::kLightSelect);
   const Point2 u = s.get2(dim::kLightU);
   const Vec3 origin = sp.above();
+  out->origin = origin;
   if (lc.env && u_sel < lc.p_env) {
     float pdf = 0.f;
     const Vec3 wi = lc.env->sample(u, &pdf);
     pdf *= lc.p_env;
-    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return {};
+    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return false;
     float bsdf_pdf_wi = 0.f;
     const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
-    if (is_zero(f)) return {};
-    ++*rays;
-    if (scene.occluded(origin, wi, kInfinity)) return {};
+    if (is_zero(f)) return false;
     const float w = power_heuristic(pdf, bsdf_pdf_wi);
-    return f * lc.env->eval(wi) * (w / pdf);
+    out->wi = wi;
+    out->tmax = kInfinity;
+    out->contribution = f * lc.env->eval(wi) * (w / pdf);
+    return true;
   }
   const LightSet& lights = scene.lights();
-  if (lights.empty()) return {};
+  if (lights.empty()) return false;
   // Reuse the selection variate: rescale the part above p_env to [0, 1).
   const float p_scene = 1.f - lc.p_env;
   u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
@@ -183,119 +194,177 @@ Vec3 sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
     } else {
       const Vec3 to = light.position - origin;
       const float d2 = dot(to, to);
-      if (!(d2 > 0.f)) return {};
+      if (!(d2 > 0.f)) return false;
       const float dist = std::sqrt(d2);
       wi = to / dist;
       Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
       tmax = dist;
     }
-    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return {};
+    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return false;
     const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
-    if (is_zero(f)) return {};
-    ++*rays;
-    if (scene.occluded(origin, wi, tmax)) return {};
-    return f * Li * (1.f / pdf);
+    if (is_zero(f)) return false;
+    out->wi = wi;
+    out->tmax = tmax;
+    out->contribution = f * Li * (1.f / pdf);
+    return true;
   }
   const Vec3 to_light = ls.p - origin;
   const float dist2 = dot(to_light, to_light);
   const float dist = std::sqrt(dist2);
-  if (!(dist > 0.f)) return {};
+  if (!(dist > 0.f)) return false;
   const Vec3 wi = to_light / dist;
   const float cos_light = dot(ls.n, -wi);
-  if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return {};
+  if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return false;
   float bsdf_pdf_wi = 0.f;
   const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
-  if (is_zero(f)) return {};
+  if (is_zero(f)) return false;
   const float pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
   // Stop short of the light's own surface so it does not occlude itself.
   const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
-  if (!(tmax > 0.f)) return {};
-  ++*rays;
-  if (scene.occluded(origin, wi, tmax)) return {};
+  if (!(tmax > 0.f)) return false;
   const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
   const Vec3 Le = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
-  return f * Le * (w / pdf_light);
+  out->wi = wi;
+  out->tmax = tmax;
+  out->contribution = f * Le * (w / pdf_light);
+  return true;
 }
 
-SampleResult trace_path(const Scene& scene, const LightContext& lc, const SampleStream& s,
-                        Vec3 o, Vec3 d, uint32_t max_depth) {
-  SampleResult result;
-  Vec3 radiance(0.f, 0.f, 0.f);
-  Vec3 beta(1.f, 1.f, 1.f);   // path throughput: product of f cos / pdf so far
+// One sample's path while it is traced in a packet: its state between bounces.
+struct PathState {
+  SampleStream s{nullptr, 0};
+  SampleResult result;  // radiance accumulates here
+  Vec3 o, d;            // the ray of the next bounce
+  Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
   float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
   bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
                               // have produced this direction, so emission gets weight 1
-  const LightSet& lights = scene.lights();
-  for (uint32_t bounce = 0;; ++bounce) {
-    // This vertex's sample values, computed before the ray is traced: their latency-bound
-    // hash chains then overlap with the traversal instead of delaying the shading after it.
-    const BounceSamples u(s, bounce);
-    Hit hit;
-    ++result.rays;
-    if (!scene.intersect(o, d, kInfinity, &hit)) {
-      if (lc.env) {
-        const Vec3 L = lc.env->eval(d);
-        const float w =
-            prev_delta ? 1.f : power_heuristic(prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
-        radiance += beta * L * w;
-      }
-      break;
-    }
-    const Vec3 wo = -d;
-    const ShadingPoint sp = make_shading_point(scene, hit, wo);
-    if (bounce == 0) {
-      result.albedo = sp.albedo;
-      result.normal = sp.ns;
-      result.depth = hit.t;
-    }
-    // Emission, one-sided: only the front (counter-clockwise) face emits.
-    const float cos_emit = dot(hit.ng, wo);
-    if (cos_emit > 0.f && scene.materials()[hit.material].is_emissive()) {
-      const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2);
-      if (prev_delta) {
-        radiance += beta * Le;
-      } else {
-        // The same point could have come from light sampling at the previous vertex: convert
-        // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
-        const float pdf_light =
-            (1.f - lc.p_env) * lights.pdf_area(hit.slot, hit.prim) * hit.t * hit.t / cos_emit;
-        radiance += beta * Le * power_heuristic(prev_bsdf_pdf, pdf_light);
-      }
-    }
-    if (bounce >= max_depth) break;
-    // Russian roulette after 3 bounces; dividing by the survival probability keeps the
-    // estimator unbiased.
-    if (bounce >= 3) {
-      const float q = std::min(0.95f, max_component(beta));
-      if (!(u.get(dim::kRoulette) < q)) break;
-      beta = beta / q;
-    }
-    const Frame frame(sp.ns);
-    const Vec3 wo_local = frame.to_local(wo);
-    const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
-    if (lc.any && bsdf_has_smooth_part(sp.params))
-      radiance +=
-          beta * sample_light(scene, lc, sp, lobes, frame, wo_local, u, &result.rays);
+  bool alive = false;
+  BounceSamples u;  // this bounce's sample values
+  Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
+};
 
-    BsdfSample bs;
-    if (!bsdf_sample(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
-                     // Read only by the glass lobe: skipped (any value would do) without one.
-                     lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs))
-      break;
-    const Vec3 wi = normalize(frame.to_world(bs.wi));
-    // Directions on the wrong side of the geometric surface (possible with shading normals)
-    // would leak light through it: end the path there.
-    const float side = dot(wi, sp.ng);
-    if (bs.transmitted ? side >= 0.f : side <= 0.f) break;
-    if (is_zero(bs.weight)) break;
-    beta *= bs.weight;
-    prev_bsdf_pdf = bs.pdf;
-    prev_delta = bs.delta;
-    o = bs.transmitted ? sp.below() : sp.above();
-    d = wi;
+// Everything one path does at the vertex its ray found (hit null: the ray escaped): emission,
+// Russian roulette, the light sample (its shadow ray goes into lane `lane` of *shadow) and the
+// BSDF sample that gives the next ray. Clears p.alive when the path ends here.
+void shade_vertex(const Scene& scene, const LightContext& lc, PathState& p, const Hit* hit,
+                  uint32_t bounce, uint32_t max_depth, RayPacket* shadow, int lane) {
+  const Vec3 d = p.d;
+  SampleResult& result = p.result;
+  if (!hit) {
+    if (lc.env) {
+      const Vec3 L = lc.env->eval(d);
+      const float w =
+          p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
+      result.radiance += p.beta * L * w;
+    }
+    p.alive = false;
+    return;
   }
-  result.radiance = radiance;
-  return result;
+  const Vec3 wo = -d;
+  const ShadingPoint sp = make_shading_point(scene, *hit, wo);
+  if (bounce == 0) {
+    result.albedo = sp.albedo;
+    result.normal = sp.ns;
+    result.depth = hit->t;
+  }
+  // Emission, one-sided: only the front (counter-clockwise) face emits.
+  const float cos_emit = dot(hit->ng, wo);
+  if (cos_emit > 0.f && scene.materials()[hit->material].is_emissive()) {
+    const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2);
+    if (p.prev_delta) {
+      result.radiance += p.beta * Le;
+    } else {
+      // The same point could have come from light sampling at the previous vertex: convert
+      // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
+      const float pdf_light = (1.f - lc.p_env) * scene.lights().pdf_area(hit->slot, hit->prim) *
+                              hit->t * hit->t / cos_emit;
+      result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
+    }
+  }
+  p.alive = false;
+  if (bounce >= max_depth) return;
+  const BounceSamples& u = p.u;
+  // Russian roulette after 3 bounces; dividing by the survival probability keeps the
+  // estimator unbiased.
+  if (bounce >= 3) {
+    const float q = std::min(0.95f, max_component(p.beta));
+    if (!(u.get(dim::kRoulette) < q)) return;
+    p.beta = p.beta / q;
+  }
+  const Frame frame(sp.ns);
+  const Vec3 wo_local = frame.to_local(wo);
+  const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
+  LightRay light;
+  if (lc.any && bsdf_has_smooth_part(sp.params) &&
+      sample_light(scene, lc, sp, lobes, frame, wo_local, u, &light)) {
+    shadow->active[lane] = true;
+    shadow->o[lane] = light.origin;
+    shadow->d[lane] = light.wi;
+    shadow->tmax[lane] = light.tmax;
+    p.nee = p.beta * light.contribution;
+    ++result.rays;
+  }
+
+  BsdfSample bs;
+  if (!bsdf_sample(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
+                   // Read only by the glass lobe: skipped (any value would do) without one.
+                   lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs))
+    return;
+  const Vec3 wi = normalize(frame.to_world(bs.wi));
+  // Directions on the wrong side of the geometric surface (possible with shading normals)
+  // would leak light through it: end the path there.
+  const float side = dot(wi, sp.ng);
+  if (bs.transmitted ? side >= 0.f : side <= 0.f) return;
+  if (is_zero(bs.weight)) return;
+  p.beta *= bs.weight;
+  p.prev_bsdf_pdf = bs.pdf;
+  p.prev_delta = bs.delta;
+  p.o = bs.transmitted ? sp.below() : sp.above();
+  p.d = wi;
+  p.alive = true;
+}
+
+// Traces the live paths of paths[0, kPacketSize) together, bounce by bounce: the rays of a
+// bounce go to Embree as one packet query and their shadow rays as another. Each path computes
+// exactly what it would alone (the same sample values, the same sums in the same order); the
+// packets only let Embree share traversal between similar rays (a pixel's camera rays, shadow
+// rays towards the same light) and let the shading of independent paths overlap.
+void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
+                 uint32_t max_depth) {
+  RayPacket rays, shadow;
+  Hit hits[kPacketSize];
+  bool found[kPacketSize], blocked[kPacketSize];
+  for (uint32_t bounce = 0;; ++bounce) {
+    bool any = false;
+    for (int i = 0; i < kPacketSize; ++i) {
+      PathState& p = paths[i];
+      rays.active[i] = p.alive;
+      if (!p.alive) continue;
+      any = true;
+      // This vertex's sample values, computed before the ray is traced: their latency-bound
+      // hash chains then overlap with the traversal instead of delaying the shading after it.
+      p.u = BounceSamples(p.s, bounce);
+      rays.o[i] = p.o;
+      rays.d[i] = p.d;
+      rays.tmax[i] = kInfinity;
+      ++p.result.rays;
+    }
+    if (!any) return;
+    scene.intersect(rays, hits, found);
+    bool any_shadow = false;
+    for (int i = 0; i < kPacketSize; ++i) {
+      shadow.active[i] = false;
+      if (!rays.active[i]) continue;
+      shade_vertex(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
+                   &shadow, i);
+      any_shadow = any_shadow || shadow.active[i];
+    }
+    if (!any_shadow) continue;
+    scene.occluded(shadow, blocked);
+    for (int i = 0; i < kPacketSize; ++i)
+      if (shadow.active[i] && !blocked[i]) paths[i].result.radiance += paths[i].nee;
+  }
 }
 
 SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d) {
@@ -326,31 +395,52 @@ struct TraceContext {
         raster(scene.camera().raster(settings.width, settings.height)) {}
 };
 
-SampleResult trace_sample_in(const TraceContext& ctx, const Scene& scene,
-                             const RenderSettings& settings, const PixelSampler& sampler,
-                             uint32_t x, uint32_t y, uint32_t index) {
-  const SampleStream s{&sampler, index};
+// Sample `index` of pixel (x, y) up to its camera ray: a path ready for its first bounce.
+PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
+  PathState p;
+  p.s = SampleStream{&sampler, index};
   // Box filter: the sample position is uniform inside the pixel.
-  const Point2 jitter = s.get2(dim::kPixelX);
+  const Point2 jitter = p.s.get2(dim::kPixelX);
   const float px = float(x) + jitter.x;
   const float py = float(y) + jitter.y;
   const Camera& cam = scene.camera();
-  Vec3 o = cam.position;
-  Vec3 d = ctx.raster.direction(px, py);
+  p.o = cam.position;
+  p.d = ctx.raster.direction(px, py);
   if (settings.aperture_radius > 0.f) {
     // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
     // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
     // point of the aperture disk and aims at p_focus.
-    const Point2 lens = sample_concentric_disk(s.get2(dim::kLensU));
-    const Vec3 p_focus = o + d * (settings.focus_distance / dot(d, cam.forward));
-    o = o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
-    d = normalize(p_focus - o);
+    const Point2 lens = sample_concentric_disk(p.s.get2(dim::kLensU));
+    const Vec3 p_focus = p.o + p.d * (settings.focus_distance / dot(p.d, cam.forward));
+    p.o = p.o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
+    p.d = normalize(p_focus - p.o);
   }
-  if (settings.integrator == IntegratorType::AmbientOcclusion) return trace_ao(scene, s, o, d);
-  const uint32_t max_depth = settings.integrator == IntegratorType::Direct
-                                 ? std::min<uint32_t>(settings.max_depth, 1u)
-                                 : settings.max_depth;
-  return trace_path(scene, ctx.lights, s, o, d, max_depth);
+  p.alive = true;
+  return p;
+}
+
+uint32_t path_max_depth(const RenderSettings& settings) {
+  return settings.integrator == IntegratorType::Direct ? std::min<uint32_t>(settings.max_depth, 1u)
+                                                       : settings.max_depth;
+}
+
+// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
+void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                   const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
+                   uint32_t n, SampleResult* out) {
+  if (settings.integrator == IntegratorType::AmbientOcclusion) {
+    for (uint32_t k = 0; k < n; ++k) {
+      const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
+      out[k] = trace_ao(scene, p.s, p.o, p.d);
+    }
+    return;
+  }
+  PathState paths[kPacketSize];
+  for (uint32_t k = 0; k < n; ++k)
+    paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k);
+  trace_paths(scene, ctx.lights, paths, path_max_depth(settings));
+  for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
 }
 
 }  // namespace
@@ -363,7 +453,9 @@ SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
 
 SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
                           const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
-  return trace_sample_in(TraceContext(scene, settings), scene, settings, sampler, x, y, index);
+  SampleResult result;
+  trace_samples(TraceContext(scene, settings), scene, settings, sampler, x, y, index, 1, &result);
+  return result;
 }
 
 std::string validate_render_request(const RenderSettings& settings, PixelRect rect,
@@ -404,9 +496,14 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       float depth = 0.f;
       const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
                                                     (rect.x0 + tx));
+      SampleResult results[kPacketSize];
       for (uint32_t k = 0; k < count; ++k) {
-        const SampleResult r = trace_sample_in(ctx, scene, settings, pixel_sampler,
-                                               rect.x0 + tx, rect.y0 + ty, uint32_t(start + k));
+        // The pixel's samples go through the path tracer kPacketSize at a time.
+        const uint32_t lane = k % kPacketSize;
+        if (lane == 0)
+          trace_samples(ctx, scene, settings, pixel_sampler, rect.x0 + tx, rect.y0 + ty,
+                        uint32_t(start + k), std::min<uint32_t>(kPacketSize, count - k), results);
+        const SampleResult& r = results[lane];
         out->rays += r.rays;
         Vec3 L = r.radiance;
         if (!is_finite(L)) {

@@ -175,6 +175,8 @@ struct SampleStream {
 // path does not use (roulette before bounce 3, the glass choice without glass) cost nothing.
 class BounceSamples {
  public:
+  // No values: a placeholder to be assigned before use.
+  BounceSamples() : stream_{nullptr, 0}, first_(0) {}
   BounceSamples(const SampleStream& s, uint32_t bounce)
       : stream_(s), first_(dim::bounce(bounce, 0)) {
     // value8 declines dimensions beyond its cache (bounce 15 and deeper) and other samplers.

@@ -315,15 +315,88 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, false});
   const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmax);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
-  const unsigned top = rh.hit.instID[0] != RTC_INVALID_GEOMETRY_ID ? rh.hit.instID[0]
-                                                                    : rh.hit.geomID;
+  complete_hit(rh.hit.instID[0] != RTC_INVALID_GEOMETRY_ID ? rh.hit.instID[0] : rh.hit.geomID,
+               rh.hit.primID, rh.hit.u, rh.hit.v, rh.ray.tfar, hit);
+  return true;
+}
+
+namespace {
+
+// The fields of lane i of an Embree packet ray (inactive lanes get a valid empty ray too, so
+// that no lane holds uninitialised floats).
+template <typename PacketRay>
+void init_packet_ray(PacketRay* ray, int i, const RayPacket& rays) {
+  const bool on = rays.active[i];
+  const Vec3 o = on ? rays.o[i] : Vec3(0.f, 0.f, 0.f);
+  const Vec3 d = on ? rays.d[i] : Vec3(0.f, 0.f, 1.f);
+  ray->org_x[i] = o.x;
+  ray->org_y[i] = o.y;
+  ray->org_z[i] = o.z;
+  ray->dir_x[i] = d.x;
+  ray->dir_y[i] = d.y;
+  ray->dir_z[i] = d.z;
+  ray->tnear[i] = 0.f;
+  ray->tfar[i] = on ? rays.tmax[i] : 0.f;
+  ray->time[i] = 0.f;
+  ray->mask[i] = 0xffffffffu;
+  ray->id[i] = 0;
+  ray->flags[i] = 0;
+}
+
+}  // namespace
+
+void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
+  static_assert(kPacketSize == 8, "the packet queries are rtcIntersect8 / rtcOccluded8");
+  alignas(32) int valid[8];
+  alignas(32) RTCRayHit8 rh;
+  for (int i = 0; i < 8; ++i) {
+    valid[i] = rays.active[i] ? -1 : 0;
+    if (rays.active[i] && tl_ray_log)
+      tl_ray_log->push_back({rays.o[i], rays.d[i], rays.tmax[i], false});
+    init_packet_ray(&rh.ray, i, rays);
+    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.primID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+  }
+  RTCIntersectContext context;
+  rtcInitIntersectContext(&context);
+  rtcIntersect8(valid, embree_->scene, &context, &rh);
+  for (int i = 0; i < 8; ++i) {
+    if (!rays.active[i]) continue;
+    found[i] = rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID;
+    if (!found[i]) continue;
+    complete_hit(rh.hit.instID[0][i] != RTC_INVALID_GEOMETRY_ID ? rh.hit.instID[0][i]
+                                                                : rh.hit.geomID[i],
+                 rh.hit.primID[i], rh.hit.u[i], rh.hit.v[i], rh.ray.tfar[i], &hits[i]);
+  }
+}
+
+void Scene::occluded(const RayPacket& rays, bool* blocked) const {
+  alignas(32) int valid[8];
+  alignas(32) RTCRay8 ray;
+  for (int i = 0; i < 8; ++i) {
+    valid[i] = rays.active[i] ? -1 : 0;
+    if (rays.active[i] && tl_ray_log)
+      tl_ray_log->push_back({rays.o[i], rays.d[i], rays.tmax[i], true});
+    init_packet_ray(&ray, i, rays);
+  }
+  RTCIntersectContext context;
+  rtcInitIntersectContext(&context);
+  rtcOccluded8(valid, embree_->scene, &context, &ray);
+  // Embree sets tfar to -inf in the lanes where it finds an occluder.
+  for (int i = 0; i < 8; ++i)
+    if (rays.active[i]) blocked[i] = ray.tfar[i] < 0.f;
+}
+
+void Scene::complete_hit(unsigned top, unsigned prim, float u, float v, float t,
+                         Hit* hit) const {
   const uint32_t slot = top < embree_->slot_of_geom.size() ? embree_->slot_of_geom[top] : 0;
-  const Triangle& tri = triangle(slot, rh.hit.primID);
-  hit->t = rh.ray.tfar;
-  hit->prim = rh.hit.primID;
+  const Triangle& tri = triangle(slot, prim);
+  hit->t = t;
+  hit->prim = prim;
   hit->slot = slot;
-  hit->b1 = rh.hit.u;
-  hit->b2 = rh.hit.v;
+  hit->b1 = u;
+  hit->b2 = v;
   hit->material = tri.material;
   const float b0 = 1.f - hit->b1 - hit->b2;
   // Barycentric position is more accurate than o + t d far from the origin.
@@ -379,7 +452,6 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
   hit->ns = ns;
   hit->dpdu = dpdu;
   hit->tangent_sign = sign;
-  return true;
 }
 
 bool Scene::occluded(Vec3 o, Vec3 d, float tmax) const {

@@ -95,6 +95,16 @@ struct SceneDescription {
   std::vector<TextureSource> textures;
 };
 
+// Up to kPacketSize rays queried together (one Embree packet query, rtcIntersect8 /
+// rtcOccluded8); lanes with active false are skipped. Each active lane's result is the one the
+// single-ray query gives for that ray.
+constexpr int kPacketSize = 8;
+struct RayPacket {
+  Vec3 o[kPacketSize], d[kPacketSize];
+  float tmax[kPacketSize];
+  bool active[kPacketSize] = {};
+};
+
 // Geometry slot of a hit: 0 for the world triangles, 1 + i for instance i.
 constexpr uint32_t kWorldSlot = 0;
 
@@ -129,6 +139,10 @@ class Scene {
   bool intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const;
   // True if anything blocks o + t d for t in (0, tmax).
   bool occluded(Vec3 o, Vec3 d, float tmax) const;
+  // intersect / occluded for the active lanes of a packet: found[i] / blocked[i] and hits[i]
+  // are written for active lanes only.
+  void intersect(const RayPacket& rays, Hit* hits, bool* found) const;
+  void occluded(const RayPacket& rays, bool* blocked) const;
 
   const std::string& source() const { return desc_.source; }
   const std::vector<Triangle>& triangles() const { return desc_.triangles; }
@@ -162,12 +176,15 @@ class Scene {
   LightSet lights_;
   Vec3 bmin_, bmax_;
   TextureSet textures_;
+  // The hit record of Embree's closest hit (top-level geometry `top`, triangle prim,
+  // barycentrics (u, v), distance t).
+  void complete_hit(unsigned top, unsigned prim, float u, float v, float t, Hit* hit) const;
   struct Embree;
   std::unique_ptr<Embree> embree_;
 };
 
 // Benchmark hook: while a thread has a RayLog installed, every ray it traces through
-// Scene::intersect/occluded is appended to it (so the benchmark can replay the path tracer's
+// Scene::intersect/occluded (single rays and packet lanes) is appended to it (so the benchmark can replay the path tracer's
 // exact rays through bare rtcIntersect1/rtcOccluded1). One thread-local pointer test per ray
 // when unused.
 struct LoggedRay {

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <fstream>
+#include <random>
 #include <utility>
 
 #include "integrators.h"
@@ -239,6 +240,102 @@ TEST(Instancing, SharedMeshIsBuiltOnceAndLightsTheFloorCorrectly) {
   const double se = std::sqrt(tile.luminance_m2[0] / 4095 / 4096);
   EXPECT_LT(se, 0.02 * expected);
   EXPECT_NEAR(mean, expected, 4 * se);
+}
+
+}  // namespace
+}  // namespace rf
+
+namespace rf {
+namespace {
+
+// The packet queries (rtcIntersect8 / rtcOccluded8) return, lane by lane, what the single-ray
+// queries return: on world triangles and on instances (one mirrored), for rays that start
+// inside, outside and on the far side of the geometry, with finite and infinite tmax, and
+// with any set of active lanes. Inactive lanes' outputs are left as they were.
+TEST(Scene, PacketQueriesEqualSingleRayQueries) {
+  SceneDescription desc;
+  Material grey;
+  grey.albedo = Vec3(0.5f, 0.5f, 0.5f);
+  desc.materials = {grey};
+  testing::add_sphere(&desc, {0.f, 0.f, 0.f}, 1.f, 0, 12, 24);
+  testing::add_quad(&desc, {-3, -1, 3}, {3, -1, 3}, {3, -1, -3}, {-3, -1, -3}, 0);
+  Mesh mesh;
+  mesh.name = "small sphere";
+  {
+    SceneDescription part;
+    testing::add_sphere(&part, {0.f, 0.f, 0.f}, 0.5f, 0, 8, 16);
+    mesh.triangles = part.triangles;
+  }
+  desc.meshes = {mesh};
+  for (float sx : {1.f, -1.f}) {
+    Instance inst;
+    inst.to_world = Mat4::identity();
+    inst.to_world.m[0][0] = sx;  // the second instance is mirrored
+    inst.to_world.m[3][0] = 2.0 * sx;  // m[col][row]: column 3 is the translation
+    inst.to_world.m[3][1] = 0.5;
+    desc.instances.push_back(inst);
+  }
+  Scene scene(std::move(desc));
+  ASSERT_EQ(scene.instance_count(), 2u);
+
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> coord(-4.f, 4.f), unit(0.f, 1.f);
+  int hits_found = 0, blocked_found = 0, compared = 0;
+  int slot_hits[3] = {0, 0, 0};
+  for (int packet = 0; packet < 400; ++packet) {
+    RayPacket rays;
+    for (int i = 0; i < kPacketSize; ++i) {
+      rays.active[i] = unit(rng) < 0.7f;
+      rays.o[i] = Vec3(coord(rng), coord(rng), coord(rng));
+      // Aim near the origin so that most rays hit something.
+      const Vec3 target(0.5f * coord(rng), 0.25f * coord(rng), 0.5f * coord(rng));
+      rays.d[i] = normalize(target - rays.o[i]);
+      rays.tmax[i] = unit(rng) < 0.5f ? std::numeric_limits<float>::infinity() : 8.f * unit(rng);
+    }
+    Hit hits[kPacketSize];
+    bool found[kPacketSize], blocked[kPacketSize];
+    for (int i = 0; i < kPacketSize; ++i) {
+      hits[i].prim = 12345;  // sentinels for inactive lanes
+      found[i] = blocked[i] = true;
+    }
+    scene.intersect(rays, hits, found);
+    scene.occluded(rays, blocked);
+    for (int i = 0; i < kPacketSize; ++i) {
+      if (!rays.active[i]) {
+        EXPECT_EQ(hits[i].prim, 12345u);
+        EXPECT_TRUE(found[i] && blocked[i]);
+        continue;
+      }
+      ++compared;
+      Hit single;
+      const bool single_found = scene.intersect(rays.o[i], rays.d[i], rays.tmax[i], &single);
+      ASSERT_EQ(found[i], single_found) << "packet " << packet << " lane " << i;
+      EXPECT_EQ(blocked[i], scene.occluded(rays.o[i], rays.d[i], rays.tmax[i]));
+      EXPECT_EQ(blocked[i], single_found);  // closest hit exists iff something blocks
+      hits_found += single_found;
+      blocked_found += blocked[i];
+      if (!single_found) continue;
+      ++slot_hits[std::min<uint32_t>(2u, single.slot)];
+      EXPECT_EQ(hits[i].slot, single.slot);
+      EXPECT_EQ(hits[i].prim, single.prim);
+      EXPECT_EQ(hits[i].material, single.material);
+      EXPECT_FLOAT_EQ(hits[i].t, single.t);
+      EXPECT_FLOAT_EQ(hits[i].b1, single.b1);
+      EXPECT_FLOAT_EQ(hits[i].b2, single.b2);
+      for (int c = 0; c < 3; ++c) {
+        EXPECT_FLOAT_EQ(hits[i].p[c], single.p[c]);
+        EXPECT_FLOAT_EQ(hits[i].ng[c], single.ng[c]);
+        EXPECT_FLOAT_EQ(hits[i].ns[c], single.ns[c]);
+      }
+    }
+  }
+  // The comparison covered hits on the world triangles, on both instances, and misses.
+  EXPECT_GT(slot_hits[0], 100);
+  EXPECT_GT(slot_hits[1], 20);
+  EXPECT_GT(slot_hits[2], 20);
+  EXPECT_GT(hits_found, compared / 4);
+  EXPECT_LT(hits_found, compared);
+  EXPECT_EQ(blocked_found, hits_found);
 }
 
 }  // namespace
