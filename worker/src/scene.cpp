@@ -322,11 +322,14 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
 
 namespace {
 
-// The fields of lane i of an Embree packet ray (inactive lanes get a valid empty ray too, so
-// that no lane holds uninitialised floats).
+// Lane i of an Embree packet query: its valid flag, and its ray's fields (inactive lanes get
+// an empty ray too, so that no lane holds uninitialised floats). Active lanes go to the
+// thread's ray log if one is installed.
 template <typename PacketRay>
-void init_packet_ray(PacketRay* ray, int i, const RayPacket& rays) {
+void init_packet_lane(PacketRay* ray, int* valid, int i, const RayPacket& rays, bool shadow) {
   const bool on = rays.active[i];
+  valid[i] = on ? -1 : 0;
+  if (on && tl_ray_log) tl_ray_log->push_back({rays.o[i], rays.d[i], rays.tmax[i], shadow});
   const Vec3 o = on ? rays.o[i] : Vec3(0.f, 0.f, 0.f);
   const Vec3 d = on ? rays.d[i] : Vec3(0.f, 0.f, 1.f);
   ray->org_x[i] = o.x;
@@ -345,15 +348,13 @@ void init_packet_ray(PacketRay* ray, int i, const RayPacket& rays) {
 
 }  // namespace
 
+static_assert(kPacketSize == 8, "the packet queries are rtcIntersect8 / rtcOccluded8");
+
 void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
-  static_assert(kPacketSize == 8, "the packet queries are rtcIntersect8 / rtcOccluded8");
-  alignas(32) int valid[8];
+  alignas(32) int valid[kPacketSize];
   alignas(32) RTCRayHit8 rh;
-  for (int i = 0; i < 8; ++i) {
-    valid[i] = rays.active[i] ? -1 : 0;
-    if (rays.active[i] && tl_ray_log)
-      tl_ray_log->push_back({rays.o[i], rays.d[i], rays.tmax[i], false});
-    init_packet_ray(&rh.ray, i, rays);
+  for (int i = 0; i < kPacketSize; ++i) {
+    init_packet_lane(&rh.ray, valid, i, rays, false);
     rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
@@ -361,7 +362,7 @@ void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
   rtcIntersect8(valid, embree_->scene, &context, &rh);
-  for (int i = 0; i < 8; ++i) {
+  for (int i = 0; i < kPacketSize; ++i) {
     if (!rays.active[i]) continue;
     found[i] = rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID;
     if (!found[i]) continue;
@@ -372,19 +373,14 @@ void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
 }
 
 void Scene::occluded(const RayPacket& rays, bool* blocked) const {
-  alignas(32) int valid[8];
+  alignas(32) int valid[kPacketSize];
   alignas(32) RTCRay8 ray;
-  for (int i = 0; i < 8; ++i) {
-    valid[i] = rays.active[i] ? -1 : 0;
-    if (rays.active[i] && tl_ray_log)
-      tl_ray_log->push_back({rays.o[i], rays.d[i], rays.tmax[i], true});
-    init_packet_ray(&ray, i, rays);
-  }
+  for (int i = 0; i < kPacketSize; ++i) init_packet_lane(&ray, valid, i, rays, true);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
   rtcOccluded8(valid, embree_->scene, &context, &ray);
   // Embree sets tfar to -inf in the lanes where it finds an occluder.
-  for (int i = 0; i < 8; ++i)
+  for (int i = 0; i < kPacketSize; ++i)
     if (rays.active[i]) blocked[i] = ray.tfar[i] < 0.f;
 }
 
