@@ -298,10 +298,7 @@ void shade_vertex(const Scene& scene, const LightContext& lc, PathState& p, cons
   LightRay light;
   if (lc.any && bsdf_has_smooth_part(sp.params) &&
       sample_light(scene, lc, sp, lobes, frame, wo_local, u, &light)) {
-    shadow->active[lane] = true;
-    shadow->o[lane] = light.origin;
-    shadow->d[lane] = light.wi;
-    shadow->tmax[lane] = light.tmax;
+    shadow->set(lane, light.origin, light.wi, light.tmax);
     p.nee = p.beta * light.contribution;
     ++result.rays;
   }
@@ -345,9 +342,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       // This vertex's sample values, computed before the ray is traced: their latency-bound
       // hash chains then overlap with the traversal instead of delaying the shading after it.
       p.u = BounceSamples(p.s, bounce);
-      rays.o[i] = p.o;
-      rays.d[i] = p.d;
-      rays.tmax[i] = kInfinity;
+      rays.set(i, p.o, p.d, kInfinity);
       ++p.result.rays;
     }
     if (!any) return;

@@ -3,7 +3,9 @@
 #include <embree3/rtcore.h>
 
 #include <cmath>
+#include <cstddef>
 #include <cstdio>
+#include <cstring>
 #include <limits>
 
 namespace rf {
@@ -322,28 +324,25 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
 
 namespace {
 
-// Lane i of an Embree packet query: its valid flag, and its ray's fields (inactive lanes get
-// an empty ray too, so that no lane holds uninitialised floats). Active lanes go to the
-// thread's ray log if one is installed.
-template <typename PacketRay>
-void init_packet_lane(PacketRay* ray, int* valid, int i, const RayPacket& rays, bool shadow) {
-  const bool on = rays.active[i];
-  valid[i] = on ? -1 : 0;
-  if (on && tl_ray_log) tl_ray_log->push_back({rays.o[i], rays.d[i], rays.tmax[i], shadow});
-  const Vec3 o = on ? rays.o[i] : Vec3(0.f, 0.f, 0.f);
-  const Vec3 d = on ? rays.d[i] : Vec3(0.f, 0.f, 1.f);
-  ray->org_x[i] = o.x;
-  ray->org_y[i] = o.y;
-  ray->org_z[i] = o.z;
-  ray->dir_x[i] = d.x;
-  ray->dir_y[i] = d.y;
-  ray->dir_z[i] = d.z;
-  ray->tnear[i] = 0.f;
-  ray->tfar[i] = on ? rays.tmax[i] : 0.f;
-  ray->time[i] = 0.f;
-  ray->mask[i] = 0xffffffffu;
-  ray->id[i] = 0;
-  ray->flags[i] = 0;
+// An Embree packet query's valid flags and rays: a copy of *rays, whose layout is RTCRay8's.
+// Active lanes go to the thread's ray log if one is installed.
+void fill_packet(RTCRay8* ray, int* valid, const RayPacket& rays, bool shadow) {
+  static_assert(offsetof(RayPacket, org_x) == offsetof(RTCRay8, org_x) &&
+                    offsetof(RayPacket, tnear) == offsetof(RTCRay8, tnear) &&
+                    offsetof(RayPacket, dir_x) == offsetof(RTCRay8, dir_x) &&
+                    offsetof(RayPacket, time) == offsetof(RTCRay8, time) &&
+                    offsetof(RayPacket, tfar) == offsetof(RTCRay8, tfar) &&
+                    offsetof(RayPacket, mask) == offsetof(RTCRay8, mask) &&
+                    offsetof(RayPacket, id) == offsetof(RTCRay8, id) &&
+                    offsetof(RayPacket, flags) == offsetof(RTCRay8, flags) &&
+                    offsetof(RayPacket, active) == sizeof(RTCRay8),
+                "RayPacket must have RTCRay8's layout");
+  std::memcpy(ray, &rays, sizeof(RTCRay8));
+  for (int i = 0; i < kPacketSize; ++i) valid[i] = rays.active[i] ? -1 : 0;
+  if (tl_ray_log)
+    for (int i = 0; i < kPacketSize; ++i)
+      if (rays.active[i])
+        tl_ray_log->push_back({rays.origin(i), rays.direction(i), rays.tfar[i], shadow});
 }
 
 }  // namespace
@@ -353,8 +352,8 @@ static_assert(kPacketSize == 8, "the packet queries are rtcIntersect8 / rtcOcclu
 void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
   alignas(32) int valid[kPacketSize];
   alignas(32) RTCRayHit8 rh;
+  fill_packet(&rh.ray, valid, rays, false);
   for (int i = 0; i < kPacketSize; ++i) {
-    init_packet_lane(&rh.ray, valid, i, rays, false);
     rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
@@ -375,7 +374,7 @@ void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
 void Scene::occluded(const RayPacket& rays, bool* blocked) const {
   alignas(32) int valid[kPacketSize];
   alignas(32) RTCRay8 ray;
-  for (int i = 0; i < kPacketSize; ++i) init_packet_lane(&ray, valid, i, rays, true);
+  fill_packet(&ray, valid, rays, true);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
   rtcOccluded8(valid, embree_->scene, &context, &ray);

@@ -97,12 +97,31 @@ struct SceneDescription {
 
 // Up to kPacketSize rays queried together (one Embree packet query, rtcIntersect8 /
 // rtcOccluded8); lanes with active false are skipped. Each active lane's result is the one the
-// single-ray query gives for that ray.
+// single-ray query gives for that ray. The rays are stored as arrays in the layout of Embree's
+// RTCRay8, so that a query copies them whole; the fields the renderer does not vary are set
+// once, here.
 constexpr int kPacketSize = 8;
 struct RayPacket {
-  Vec3 o[kPacketSize], d[kPacketSize];
-  float tmax[kPacketSize];
+  alignas(32) float org_x[kPacketSize] = {};
+  float org_y[kPacketSize] = {}, org_z[kPacketSize] = {}, tnear[kPacketSize] = {};
+  float dir_x[kPacketSize] = {}, dir_y[kPacketSize] = {}, dir_z[kPacketSize] = {};
+  float time[kPacketSize] = {}, tfar[kPacketSize] = {};
+  uint32_t mask[kPacketSize] = {~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u};
+  uint32_t id[kPacketSize] = {}, flags[kPacketSize] = {};
   bool active[kPacketSize] = {};
+  // Lane i becomes active with the ray o + t d, t in (0, tmax).
+  void set(int i, Vec3 o, Vec3 d, float tmax) {
+    org_x[i] = o.x;
+    org_y[i] = o.y;
+    org_z[i] = o.z;
+    dir_x[i] = d.x;
+    dir_y[i] = d.y;
+    dir_z[i] = d.z;
+    tfar[i] = tmax;
+    active[i] = true;
+  }
+  Vec3 origin(int i) const { return {org_x[i], org_y[i], org_z[i]}; }
+  Vec3 direction(int i) const { return {dir_x[i], dir_y[i], dir_z[i]}; }
 };
 
 // Geometry slot of a hit: 0 for the world triangles, 1 + i for instance i.

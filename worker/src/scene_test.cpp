@@ -285,12 +285,12 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
   for (int packet = 0; packet < 400; ++packet) {
     RayPacket rays;
     for (int i = 0; i < kPacketSize; ++i) {
-      rays.active[i] = unit(rng) < 0.7f;
-      rays.o[i] = Vec3(coord(rng), coord(rng), coord(rng));
+      const Vec3 o(coord(rng), coord(rng), coord(rng));
       // Aim near the origin so that most rays hit something.
       const Vec3 target(0.5f * coord(rng), 0.25f * coord(rng), 0.5f * coord(rng));
-      rays.d[i] = normalize(target - rays.o[i]);
-      rays.tmax[i] = unit(rng) < 0.5f ? std::numeric_limits<float>::infinity() : 8.f * unit(rng);
+      rays.set(i, o, normalize(target - o),
+               unit(rng) < 0.5f ? std::numeric_limits<float>::infinity() : 8.f * unit(rng));
+      rays.active[i] = unit(rng) < 0.7f;
     }
     Hit hits[kPacketSize];
     bool found[kPacketSize], blocked[kPacketSize];
@@ -308,9 +308,9 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
       }
       ++compared;
       Hit single;
-      const bool single_found = scene.intersect(rays.o[i], rays.d[i], rays.tmax[i], &single);
+      const bool single_found = scene.intersect(rays.origin(i), rays.direction(i), rays.tfar[i], &single);
       ASSERT_EQ(found[i], single_found) << "packet " << packet << " lane " << i;
-      EXPECT_EQ(blocked[i], scene.occluded(rays.o[i], rays.d[i], rays.tmax[i]));
+      EXPECT_EQ(blocked[i], scene.occluded(rays.origin(i), rays.direction(i), rays.tfar[i]));
       EXPECT_EQ(blocked[i], single_found);  // closest hit exists iff something blocks
       hits_found += single_found;
       blocked_found += blocked[i];
