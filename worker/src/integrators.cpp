@@ -336,11 +336,13 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     bool any = false;
     for (int i = 0; i < kPacketSize; ++i) {
       PathState& p = paths[i];
-      rays.active[i] = p.alive;
-      if (!p.alive) continue;
+      if (!p.alive) {
+        rays.active[i] = false;
+        continue;
+      }
       any = true;
-      // This vertex's sample values, computed before the ray is traced: their latency-bound
-      // hash chains then overlap with the traversal instead of delaying the shading after it.
+      // This vertex's sample values, for every lane before the query: the lanes' latency-bound
+      // hash chains are independent, so they overlap each other.
       p.u = BounceSamples(p.s, bounce);
       rays.set(i, p.o, p.d, kInfinity);
       ++p.result.rays;

@@ -317,8 +317,8 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, false});
   const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmax);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
-  complete_hit(rh.hit.instID[0] != RTC_INVALID_GEOMETRY_ID ? rh.hit.instID[0] : rh.hit.geomID,
-               rh.hit.primID, rh.hit.u, rh.hit.v, rh.ray.tfar, hit);
+  complete_hit(rh.hit.geomID, rh.hit.instID[0], rh.hit.primID, rh.hit.u, rh.hit.v, rh.ray.tfar,
+               hit);
   return true;
 }
 
@@ -365,9 +365,8 @@ void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
     if (!rays.active[i]) continue;
     found[i] = rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID;
     if (!found[i]) continue;
-    complete_hit(rh.hit.instID[0][i] != RTC_INVALID_GEOMETRY_ID ? rh.hit.instID[0][i]
-                                                                : rh.hit.geomID[i],
-                 rh.hit.primID[i], rh.hit.u[i], rh.hit.v[i], rh.ray.tfar[i], &hits[i]);
+    complete_hit(rh.hit.geomID[i], rh.hit.instID[0][i], rh.hit.primID[i], rh.hit.u[i],
+                 rh.hit.v[i], rh.ray.tfar[i], &hits[i]);
   }
 }
 
@@ -383,8 +382,10 @@ void Scene::occluded(const RayPacket& rays, bool* blocked) const {
     if (rays.active[i]) blocked[i] = ray.tfar[i] < 0.f;
 }
 
-void Scene::complete_hit(unsigned top, unsigned prim, float u, float v, float t,
+void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                          Hit* hit) const {
+  // A hit inside an instance names the instance as the top-level geometry.
+  const unsigned top = inst != RTC_INVALID_GEOMETRY_ID ? inst : geom;
   const uint32_t slot = top < embree_->slot_of_geom.size() ? embree_->slot_of_geom[top] : 0;
   const Triangle& tri = triangle(slot, prim);
   hit->t = t;

@@ -195,17 +195,18 @@ class Scene {
   LightSet lights_;
   Vec3 bmin_, bmax_;
   TextureSet textures_;
-  // The hit record of Embree's closest hit (top-level geometry `top`, triangle prim,
-  // barycentrics (u, v), distance t).
-  void complete_hit(unsigned top, unsigned prim, float u, float v, float t, Hit* hit) const;
+  // The hit record of Embree's closest hit (geometry geom, inside instance inst or none,
+  // triangle prim, barycentrics (u, v), distance t).
+  void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
+                    Hit* hit) const;
   struct Embree;
   std::unique_ptr<Embree> embree_;
 };
 
 // Benchmark hook: while a thread has a RayLog installed, every ray it traces through
-// Scene::intersect/occluded (single rays and packet lanes) is appended to it (so the benchmark can replay the path tracer's
-// exact rays through bare rtcIntersect1/rtcOccluded1). One thread-local pointer test per ray
-// when unused.
+// Scene::intersect/occluded (single rays and packet lanes) is appended to it, so the benchmark
+// can replay the path tracer's exact rays through bare rtcIntersect1/rtcOccluded1. One
+// thread-local pointer test per query when unused.
 struct LoggedRay {
   Vec3 o, d;
   float tmax;
