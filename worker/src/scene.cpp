@@ -242,6 +242,9 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
     }
     embree_->mesh_scenes.push_back(ms);
   }
+  instance_xf_.reserve(desc_.instances.size());
+  for (const Instance& inst : desc_.instances)
+    instance_xf_.push_back(Affine3f::from(inst.to_world));
   for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
     const Instance& inst = desc_.instances[k];
     RTCScene ms = embree_->mesh_scenes[inst.mesh];
@@ -434,14 +437,14 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
     }
   }
   if (slot != kWorldSlot) {
-    const Mat4& m = desc_.instances[slot - 1].to_world;
-    p = m.transform_point(p);
-    const Vec3 ngw = m.transform_normal(ng);
-    const Vec3 nsw = m.transform_normal(ns);
-    ng = length(ngw) > 0.f ? normalize(ngw) : ng;
-    ns = length(nsw) > 0.f ? normalize(nsw) : ng;
-    dpdu = m.transform_vector(dpdu);
-    if (m.det3() < 0.0) sign = -sign;
+    const Affine3f& m = instance_xf_[slot - 1];
+    p = m.point(p);
+    const Vec3 ngw = m.normal(ng), nsw = m.normal(ns);
+    const float ngl = length(ngw), nsl = length(nsw);
+    ng = ngl > 0.f ? ngw / ngl : ng;
+    ns = nsl > 0.f ? nsw / nsl : ng;
+    dpdu = m.vector(dpdu);
+    if (m.mirror) sign = -sign;
   }
   hit->p = p;
   hit->ng = ng;

@@ -195,6 +195,7 @@ class Scene {
   LightSet lights_;
   Vec3 bmin_, bmax_;
   TextureSet textures_;
+  std::vector<Affine3f> instance_xf_;  // desc_.instances[k].to_world, for hits in slot k + 1
   // The hit record of Embree's closest hit (geometry geom, inside instance inst or none,
   // triangle prim, barycentrics (u, v), distance t).
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,

@@ -242,6 +242,55 @@ TEST(Instancing, SharedMeshIsBuiltOnceAndLightsTheFloorCorrectly) {
   EXPECT_NEAR(mean, expected, 4 * se);
 }
 
+// The float transform a hit in an instance uses equals the double Mat4 arithmetic it
+// replaces: points, vectors, normals (after normalizing: the normal matrix is only defined up
+// to a positive factor) and handedness, for rotations, non-uniform and mirroring scales and
+// translations.
+TEST(Instancing, FloatTransformEqualsDoubleMatrix) {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  int mirrored = 0;
+  for (int trial = 0; trial < 200; ++trial) {
+    // M = R S with R a random rotation (normalized quaternion) and S a random diagonal.
+    double q[4];
+    double qn = 0.0;
+    for (double& c : q) {
+      c = u(rng);
+      qn += c * c;
+    }
+    for (double& c : q) c /= std::sqrt(qn);
+    const double w = q[0], x = q[1], y = q[2], z = q[3];
+    const double R[3][3] = {{1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)},
+                            {2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)},
+                            {2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)}};
+    double S[3];
+    for (double& s : S) s = (0.2 + 2.0 * std::fabs(u(rng))) * (u(rng) < -0.6 ? -1.0 : 1.0);
+    Mat4 m = Mat4::identity();
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) m.m[size_t(c)][size_t(r)] = R[r][c] * S[c];
+      m.m[3][size_t(r)] = 20.0 * u(rng);
+    }
+    const Affine3f a = Affine3f::from(m);
+    const bool flips = S[0] * S[1] * S[2] < 0.0;
+    EXPECT_EQ(a.mirror, flips);
+    mirrored += flips;
+    for (int k = 0; k < 5; ++k) {
+      const Vec3 v(float(u(rng)), float(u(rng)), float(u(rng)));
+      const Vec3 p = v * 5.f;
+      const Vec3 want_p = m.transform_point(p), got_p = a.point(p);
+      const Vec3 want_v = m.transform_vector(v), got_v = a.vector(v);
+      const Vec3 want_n = normalize(m.transform_normal(v)), got_n = normalize(a.normal(v));
+      for (int c = 0; c < 3; ++c) {
+        EXPECT_NEAR(got_p[c], want_p[c], 1e-5f * (1.f + std::fabs(want_p[c])));
+        EXPECT_NEAR(got_v[c], want_v[c], 1e-5f * (1.f + std::fabs(want_v[c])));
+        EXPECT_NEAR(got_n[c], want_n[c], 1e-5f);
+      }
+    }
+  }
+  EXPECT_GT(mirrored, 20);
+  EXPECT_LT(mirrored, 180);
+}
+
 }  // namespace
 }  // namespace rf
 

@@ -123,4 +123,35 @@ struct Mat4 {
   }
 };
 
+// A Mat4's affine part in float, with its normal matrix and handedness computed once: what a
+// hit inside an instance needs per query (Mat4's double arithmetic, with the cofactors and the
+// determinant recomputed per call, cost about as much as the rest of the hit record).
+struct Affine3f {
+  float m[3][4] = {};  // m[row][col]; column 3 is the translation
+  float n[3][3] = {};  // sign(det) * cofactor matrix: normals, up to length, side kept
+  bool mirror = false;  // det < 0: the transform flips handedness
+  static Affine3f from(const Mat4& a) {
+    Affine3f x;
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 4; ++c) x.m[r][c] = float(a.m[size_t(c)][size_t(r)]);
+    const Vec3 cols[3] = {a.transform_normal({1.f, 0.f, 0.f}), a.transform_normal({0.f, 1.f, 0.f}),
+                          a.transform_normal({0.f, 0.f, 1.f})};
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) x.n[r][c] = cols[c][r];
+    x.mirror = a.det3() < 0.0;
+    return x;
+  }
+  Vec3 vector(Vec3 v) const {
+    return {m[0][0] * v.x + m[0][1] * v.y + m[0][2] * v.z,
+            m[1][0] * v.x + m[1][1] * v.y + m[1][2] * v.z,
+            m[2][0] * v.x + m[2][1] * v.y + m[2][2] * v.z};
+  }
+  Vec3 point(Vec3 p) const { return vector(p) + Vec3(m[0][3], m[1][3], m[2][3]); }
+  Vec3 normal(Vec3 v) const {
+    return {n[0][0] * v.x + n[0][1] * v.y + n[0][2] * v.z,
+            n[1][0] * v.x + n[1][1] * v.y + n[1][2] * v.z,
+            n[2][0] * v.x + n[2][1] * v.y + n[2][2] * v.z};
+  }
+};
+
 }  // namespace rf
