@@ -1,10 +1,11 @@
 """Worker render throughput: the C++ path tracer against Embree's raw ray rate.
 
-Runs `renderfarm-worker bench` (worker/src/bench.cpp), which renders the Cornell box and a
-generated scene of at least 1M triangles (built in memory, never written to disk) at 1 and 2
-threads, records the path tracer's rays and replays them through bare rtcIntersect1 /
-rtcOccluded1 in the same process. Prints samples/s, Mrays/s, the 1 -> 2 thread scaling and the
-ratio of the path tracer's ray rate to the raw rate (targets: >= 0.6 and >= 1.8x), and writes
+Runs `renderfarm-worker bench` (worker/src/bench.cpp), which renders the Cornell box, a
+generated scene of at least 1M triangles and a generated scene of 144 Embree instances of one
+mesh (both built in memory, never written to disk) at 1 and 2 threads, records the path
+tracer's rays and replays them through bare rtcIntersect1 / rtcOccluded1 in the same process.
+Prints samples/s, Mrays/s, the 1 -> 2 thread scaling and the ratio of the path tracer's ray
+rate to the raw rate (targets: >= 0.6 and >= 1.8x), and writes
 bench/results/worker_throughput.json.
 
 Environment: RENDERFARM_WORKER (binary, default build/worker/renderfarm-worker),

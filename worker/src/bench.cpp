@@ -140,24 +140,9 @@ nlohmann::json bench_scene(const std::string& name, const Scene& scene,
   return out;
 }
 
-}  // namespace
-
-SceneDescription generate_bench_scene(uint32_t triangles) {
-  SceneDescription desc;
-  desc.source = "generated:" + std::to_string(triangles) + "-triangle displaced sphere";
-  Material sphere;
-  sphere.name = "plastic";
-  sphere.albedo = Vec3(0.6f, 0.35f, 0.2f);
-  sphere.roughness = 0.4f;
-  sphere.specular = 1.f;
-  Material floor;
-  floor.name = "floor";
-  floor.albedo = Vec3(0.7f, 0.7f, 0.7f);
-  Material lamp;
-  lamp.name = "lamp";
-  lamp.albedo = Vec3(0.f, 0.f, 0.f);
-  lamp.emission = Vec3(12.f, 11.f, 9.f);
-  desc.materials = {sphere, floor, lamp};
+// About `triangles` flat triangles (at least that many) of a bumpy unit sphere centred at
+// (0, 1.05, 0), appended to *out with material `material`.
+void append_displaced_sphere(uint32_t triangles, uint32_t material, std::vector<Triangle>* out) {
   // rings x segments quads, 2 triangles each, segments = 2 rings; the pole rows lose their
   // degenerate halves, so add a ring to stay above the requested count.
   const uint32_t rings = uint32_t(std::ceil(std::sqrt(double(triangles) / 4.0))) + 1;
@@ -170,34 +155,104 @@ SceneDescription generate_bench_scene(uint32_t triangles) {
     return Vec3(r * std::sin(theta) * std::cos(phi), 1.05f + r * std::cos(theta),
                 -r * std::sin(theta) * std::sin(phi));
   };
-  desc.triangles.reserve(size_t(rings) * segments * 2 + 4);
   for (uint32_t i = 0; i < rings; ++i)
     for (uint32_t j = 0; j < segments; ++j) {
       const Vec3 a = point(i, j), b = point(i + 1, j), c = point(i + 1, j + 1), d = point(i, j + 1);
       Triangle t0, t1;
       t0.p[0] = a, t0.p[1] = b, t0.p[2] = c;
       t1.p[0] = a, t1.p[1] = c, t1.p[2] = d;
-      t0.material = t1.material = 0;
-      desc.triangles.push_back(t0);
-      desc.triangles.push_back(t1);
+      t0.material = t1.material = material;
+      out->push_back(t0);
+      out->push_back(t1);
     }
+}
+
+// The bench scenes' floor (material 1) and lamp (material 2).
+void append_floor_and_lamp(float half_size, float lamp_half, std::vector<Triangle>* out) {
   auto quad = [&](Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32_t m) {
     Triangle a, b;
     a.p[0] = p0, a.p[1] = p1, a.p[2] = p2;
     b.p[0] = p0, b.p[1] = p2, b.p[2] = p3;
     a.material = b.material = m;
-    desc.triangles.push_back(a);
-    desc.triangles.push_back(b);
+    out->push_back(a);
+    out->push_back(b);
   };
-  quad({-4, 0, 4}, {4, 0, 4}, {4, 0, -4}, {-4, 0, -4}, 1);                  // floor, faces +y
-  quad({-0.6f, 3.5f, -0.6f}, {0.6f, 3.5f, -0.6f}, {0.6f, 3.5f, 0.6f}, {-0.6f, 3.5f, 0.6f}, 2);
+  const float h = half_size, l = lamp_half;
+  quad({-h, 0, h}, {h, 0, h}, {h, 0, -h}, {-h, 0, -h}, 1);  // floor, faces +y
+  quad({-l, 3.5f, -l}, {l, 3.5f, -l}, {l, 3.5f, l}, {-l, 3.5f, l}, 2);  // lamp, faces -y
+}
+
+// Plastic spheres (material 0), a grey floor (1) and a warm lamp (2).
+std::vector<Material> bench_materials() {
+  Material sphere;
+  sphere.name = "plastic";
+  sphere.albedo = Vec3(0.6f, 0.35f, 0.2f);
+  sphere.roughness = 0.4f;
+  sphere.specular = 1.f;
+  Material floor;
+  floor.name = "floor";
+  floor.albedo = Vec3(0.7f, 0.7f, 0.7f);
+  Material lamp;
+  lamp.name = "lamp";
+  lamp.albedo = Vec3(0.f, 0.f, 0.f);
+  lamp.emission = Vec3(12.f, 11.f, 9.f);
+  return {sphere, floor, lamp};
+}
+
+Camera bench_camera(Vec3 position, Vec3 target, float yfov) {
   Camera cam;
-  cam.position = Vec3(0.f, 1.6f, 4.2f);
-  cam.forward = normalize(Vec3(0.f, 1.f, 0.f) - cam.position);
+  cam.position = position;
+  cam.forward = normalize(target - position);
   cam.right = normalize(cross(cam.forward, Vec3(0.f, 1.f, 0.f)));
   cam.up = cross(cam.right, cam.forward);
-  cam.yfov = 0.7f;
-  desc.camera = cam;
+  cam.yfov = yfov;
+  return cam;
+}
+
+}  // namespace
+
+SceneDescription generate_bench_scene(uint32_t triangles) {
+  SceneDescription desc;
+  desc.source = "generated:" + std::to_string(triangles) + "-triangle displaced sphere";
+  desc.materials = bench_materials();
+  desc.triangles.reserve(size_t(triangles) + size_t(triangles) / 8 + 64);
+  append_displaced_sphere(triangles, 0, &desc.triangles);
+  append_floor_and_lamp(4.f, 0.6f, &desc.triangles);
+  desc.camera = bench_camera(Vec3(0.f, 1.6f, 4.2f), Vec3(0.f, 1.f, 0.f), 0.7f);
+  return desc;
+}
+
+SceneDescription generate_instanced_bench_scene(uint32_t triangles_per_mesh, uint32_t grid) {
+  SceneDescription desc;
+  desc.source = "generated:" + std::to_string(grid * grid) + " instances of a " +
+                std::to_string(triangles_per_mesh) + "-triangle displaced sphere";
+  desc.materials = bench_materials();
+  Mesh mesh;
+  mesh.name = "sphere";
+  append_displaced_sphere(triangles_per_mesh, 0, &mesh.triangles);
+  desc.meshes.push_back(std::move(mesh));
+  // A grid of spheres on the floor, each turned about +y and scaled by its own amount
+  // (deterministic), every third one mirrored.
+  const float spacing = 7.f / float(grid);
+  for (uint32_t i = 0; i < grid; ++i)
+    for (uint32_t j = 0; j < grid; ++j) {
+      const uint32_t k = i * grid + j;
+      const double angle = 2.399963 * k;  // the golden angle: no two alike
+      const double scale = spacing * (0.3 + 0.12 * std::sin(1.7 * k));
+      const double mirror = k % 3 == 0 ? -1.0 : 1.0;
+      Instance inst;
+      Mat4& m = inst.to_world;
+      m.m[0][0] = mirror * scale * std::cos(angle);
+      m.m[0][2] = -mirror * scale * std::sin(angle);
+      m.m[1][1] = scale;
+      m.m[2][0] = scale * std::sin(angle);
+      m.m[2][2] = scale * std::cos(angle);
+      m.m[3][0] = -3.5 + spacing * (double(j) + 0.5);
+      m.m[3][2] = -3.5 + spacing * (double(i) + 0.5);
+      desc.instances.push_back(inst);
+    }
+  append_floor_and_lamp(4.f, 1.2f, &desc.triangles);
+  desc.camera = bench_camera(Vec3(0.f, 3.2f, 4.6f), Vec3(0.f, 0.f, -0.3f), 0.9f);
   return desc;
 }
 
@@ -220,6 +275,20 @@ std::string run_bench(const BenchOptions& options) {
                 static_cast<unsigned long long>(big.world_triangle_count()), build);
     nlohmann::json s = bench_scene("1M-mesh", big, options);
     s["build_seconds"] = build;
+    scenes.push_back(s);
+  }
+  {
+    const auto t0 = Clock::now();
+    Scene forest(generate_instanced_bench_scene(options.instance_triangles, options.instance_grid));
+    const double build = seconds_since(t0);
+    std::printf("generated scene: %zu instances of one %llu-triangle mesh, built in %.2f s\n",
+                forest.instance_count(),
+                static_cast<unsigned long long>(forest.world_triangle_count() / 
+                                                std::max<size_t>(1, forest.instance_count())),
+                build);
+    nlohmann::json s = bench_scene("instanced", forest, options);
+    s["build_seconds"] = build;
+    s["instances"] = forest.instance_count();
     scenes.push_back(s);
   }
   doc["scenes"] = scenes;

@@ -389,3 +389,33 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
 
 }  // namespace
 }  // namespace rf
+
+#include "bench.h"
+
+namespace rf {
+namespace {
+
+// The benchmark's instanced scene: every instance is the one mesh, turned, scaled and (every
+// third) mirrored, standing on the floor. A ray straight down onto each instance's axis hits
+// that instance's top with the normal facing up, towards the ray, mirrored or not.
+TEST(Instancing, BenchSceneInstancesStandOnTheFloorFacingOut) {
+  const uint32_t grid = 3;
+  Scene scene(generate_instanced_bench_scene(256, grid));
+  ASSERT_EQ(scene.instance_count(), size_t(grid * grid));
+  ASSERT_EQ(scene.mesh_count(), 1u);
+  const float spacing = 7.f / float(grid);
+  for (uint32_t i = 0; i < grid; ++i)
+    for (uint32_t j = 0; j < grid; ++j) {
+      const float x = -3.5f + spacing * (float(j) + 0.5f), z = -3.5f + spacing * (float(i) + 0.5f);
+      Hit hit;
+      ASSERT_TRUE(scene.intersect({x, 3.f, z}, {0.f, -1.f, 0.f}, 10.f, &hit));
+      EXPECT_EQ(hit.slot, 1 + i * grid + j);
+      EXPECT_GT(hit.p.y, 0.05f);
+      // The coarse mesh's polar triangles lean about 35 degrees: up, not exactly up.
+      EXPECT_GT(hit.ng.y, 0.7f) << "instance " << i * grid + j;
+      EXPECT_GT(hit.ns.y, 0.7f);
+    }
+}
+
+}  // namespace
+}  // namespace rf
