@@ -52,3 +52,16 @@ def test_render_refuses_a_missing_scene_and_a_non_exr_output(tmp_path):
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert png.returncode == 2 and ".exr" in png.stderr
+
+
+def test_worker_render_refuses_a_bad_output_before_rendering(worker_binary, tmp_path):
+    # 2^31 spp would take days: the refusal must come before the render starts.
+    base = [worker_binary, "render", str(CORNELL), "--spp", "2147483648", "--threads", "1"]
+    for out, says in (
+        (tmp_path / "x.png", ".exr"),
+        (tmp_path / "missing" / "x.exr", "does not exist"),
+    ):
+        done = subprocess.run(base + ["-o", str(out)], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2, done.stderr
+        assert says in done.stderr and "rendering" not in done.stderr
+        assert not out.exists()

@@ -4,10 +4,12 @@
 
 #include <atomic>
 #include <cerrno>
+#include <cctype>
 #include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -95,6 +97,23 @@ uint32_t default_threads() {
   return n ? n : 1;
 }
 
+// The output must be an .exr (10 channels: RGB and the AOVs) in an existing, writable
+// directory.
+void check_output_path(const std::string& path) {
+  const std::filesystem::path p(path);
+  std::string ext = p.extension().string();
+  for (char& c : ext) c = char(std::tolower(static_cast<unsigned char>(c)));
+  if (ext != ".exr")
+    throw UsageError{"-o must name an .exr file (RGB, albedo, normal and depth channels), got '" +
+                     path + "'"};
+  const std::filesystem::path dir = p.has_parent_path() ? p.parent_path() : ".";
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec))
+    throw UsageError{"-o " + path + ": directory " + dir.string() + " does not exist"};
+  if (::access(dir.c_str(), W_OK) != 0)
+    throw UsageError{"-o " + path + ": directory " + dir.string() + " is not writable"};
+}
+
 int cmd_render(const std::vector<std::string>& args) {
   std::vector<std::string> positional;
   auto flags = parse_flags(args,
@@ -141,6 +160,8 @@ int cmd_render(const std::vector<std::string>& args) {
     throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
   const std::string& scene_path = positional[0];
   const std::string& out_path = flags["-o"];
+  // Checked before the render, not after it: a long render must not be lost to a typo.
+  check_output_path(out_path);
   const std::string err = rf::validate_render_request(
       settings, {0, 0, settings.width, settings.height}, 0, spp);
   if (!err.empty()) throw UsageError{err};
