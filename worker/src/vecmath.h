@@ -128,7 +128,8 @@ struct Mat4 {
 // determinant recomputed per call, cost about as much as the rest of the hit record).
 struct Affine3f {
   float m[3][4] = {};  // m[row][col]; column 3 is the translation
-  float n[3][3] = {};  // sign(det) * cofactor matrix: normals, up to length, side kept
+  float n[3][3] = {};  // sign(det) * cofactor matrix / its largest entry: normals, up to
+                       // length, side kept
   bool mirror = false;  // det < 0: the transform flips handedness
   static Affine3f from(const Mat4& a) {
     Affine3f x;
@@ -136,8 +137,13 @@ struct Affine3f {
       for (int c = 0; c < 4; ++c) x.m[r][c] = float(a.m[size_t(c)][size_t(r)]);
     const Vec3 cols[3] = {a.transform_normal({1.f, 0.f, 0.f}), a.transform_normal({0.f, 1.f, 0.f}),
                           a.transform_normal({0.f, 0.f, 1.f})};
+    // Scaled to a largest entry of 1: normals need only the direction, and a tiny or huge
+    // scale must not underflow or overflow the float entries.
+    float top = 0.f;
     for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) x.n[r][c] = cols[c][r];
+      for (int c = 0; c < 3; ++c) top = std::max(top, std::fabs(cols[c][r]));
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) x.n[r][c] = top > 0.f ? cols[c][r] / top : 0.f;
     x.mirror = a.det3() < 0.0;
     return x;
   }
