@@ -97,7 +97,7 @@ nlohmann::json bench_scene(const std::string& name, const Scene& scene,
     if (threads == options.threads.front()) render_image(scene, settings, 1, threads, nullptr);
     // Best of kRepeats for both rates: on a shared machine the fastest run is the one least
     // disturbed by other processes, and the two sides get the same treatment.
-    constexpr int kRepeats = 3;
+    constexpr int kRepeats = 5;
     RenderStats stats;
     uint64_t checksum = 0;
     double raw = 0.0;
