@@ -289,6 +289,18 @@ TEST(Instancing, FloatTransformEqualsDoubleMatrix) {
   }
   EXPECT_GT(mirrored, 20);
   EXPECT_LT(mirrored, 180);
+  // Scales whose cofactors (scale^2) leave float's range still give unit normals.
+  for (double s : {1e-25, 1e25}) {
+    Mat4 m = Mat4::identity();
+    m.m[0][0] = s;
+    m.m[1][1] = 2.0 * s;
+    m.m[2][2] = -s;
+    const Affine3f a = Affine3f::from(m);
+    EXPECT_TRUE(a.mirror);
+    const Vec3 n = a.normal({0.f, 0.f, 1.f});
+    ASSERT_GT(length(n), 0.f) << "scale " << s;
+    EXPECT_NEAR(normalize(n).z, -1.f, 1e-6f) << "scale " << s;
+  }
 }
 
 }  // namespace

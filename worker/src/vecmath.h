@@ -99,20 +99,22 @@ struct Mat4 {
   }
   // Normals transform with the inverse transpose of the upper 3x3; the cofactor matrix equals
   // det * inverse-transpose, and the normal is renormalized anyway, so the cofactors suffice
-  // (and stay defined for singular matrices, where we then get a zero vector).
-  Vec3 transform_normal(Vec3 n) const {
-    auto a = [&](int r, int c) { return m[c][r]; };
-    double cof[3][3];
+  // (and stay defined for singular matrices, where we then get a zero vector). nm[r][c] =
+  // sign(det) cofactor(r, c): the sign keeps the normal's side under mirroring transforms.
+  void normal_matrix(double nm[3][3]) const {
+    auto a = [&](int r, int c) { return m[size_t(c)][size_t(r)]; };
+    const double sign = det3() < 0.0 ? -1.0 : 1.0;
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 3; ++c) {
         const int r1 = (r + 1) % 3, r2 = (r + 2) % 3, c1 = (c + 1) % 3, c2 = (c + 2) % 3;
-        cof[r][c] = a(r1, c1) * a(r2, c2) - a(r1, c2) * a(r2, c1);
+        nm[r][c] = sign * (a(r1, c1) * a(r2, c2) - a(r1, c2) * a(r2, c1));
       }
-    // cof = det * M^-T: flip by det's sign so mirroring transforms keep the normal's side.
-    const double sign = det3() < 0.0 ? -1.0 : 1.0;
+  }
+  Vec3 transform_normal(Vec3 n) const {
+    double nm[3][3];
+    normal_matrix(nm);
     double out[3];
-    for (int r = 0; r < 3; ++r)
-      out[r] = sign * (cof[r][0] * n.x + cof[r][1] * n.y + cof[r][2] * n.z);
+    for (int r = 0; r < 3; ++r) out[r] = nm[r][0] * n.x + nm[r][1] * n.y + nm[r][2] * n.z;
     return {float(out[0]), float(out[1]), float(out[2])};
   }
   double det3() const {
@@ -128,22 +130,23 @@ struct Mat4 {
 // determinant recomputed per call, cost about as much as the rest of the hit record).
 struct Affine3f {
   float m[3][4] = {};  // m[row][col]; column 3 is the translation
-  float n[3][3] = {};  // sign(det) * cofactor matrix / its largest entry: normals, up to
-                       // length, side kept
+  float n[3][3] = {};  // Mat4::normal_matrix / its largest entry: normals, up to length,
+                       // side kept
   bool mirror = false;  // det < 0: the transform flips handedness
   static Affine3f from(const Mat4& a) {
     Affine3f x;
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 4; ++c) x.m[r][c] = float(a.m[size_t(c)][size_t(r)]);
-    const Vec3 cols[3] = {a.transform_normal({1.f, 0.f, 0.f}), a.transform_normal({0.f, 1.f, 0.f}),
-                          a.transform_normal({0.f, 0.f, 1.f})};
-    // Scaled to a largest entry of 1: normals need only the direction, and a tiny or huge
-    // scale must not underflow or overflow the float entries.
-    float top = 0.f;
+    // The normal matrix scaled in double to a largest entry of 1 before it becomes float:
+    // normals need only its direction, and a tiny or huge scale must not underflow or
+    // overflow the float entries.
+    double nm[3][3];
+    a.normal_matrix(nm);
+    double top = 0.0;
+    for (const auto& row : nm)
+      for (double v : row) top = std::max(top, std::fabs(v));
     for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) top = std::max(top, std::fabs(cols[c][r]));
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) x.n[r][c] = top > 0.f ? cols[c][r] / top : 0.f;
+      for (int c = 0; c < 3; ++c) x.n[r][c] = top > 0.0 ? float(nm[r][c] / top) : 0.f;
     x.mirror = a.det3() < 0.0;
     return x;
   }
