@@ -60,6 +60,8 @@ nlohmann::json bench_scene(const std::string& name, const Scene& scene,
   nlohmann::json out;
   out["scene"] = name;
   out["triangles"] = scene.world_triangle_count();
+  // Instanced triangles share their mesh's storage: bytes per triangle stored, not placed.
+  out["scene_memory_bytes"] = scene.memory_bytes();
   out["width"] = options.width;
   out["height"] = options.height;
   out["spp"] = options.spp;
@@ -141,41 +143,49 @@ nlohmann::json bench_scene(const std::string& name, const Scene& scene,
 }
 
 // About `triangles` flat triangles (at least that many) of a bumpy unit sphere centred at
-// (0, 1.05, 0), appended to *out with material `material`.
-void append_displaced_sphere(uint32_t triangles, uint32_t material, std::vector<Triangle>* out) {
+// (0, 1.05, 0), appended to *out with material `material`: an indexed mesh, each vertex shared
+// by the triangles around it, as in a glTF file.
+void append_displaced_sphere(uint32_t triangles, uint32_t material, TriangleMesh* out) {
   // rings x segments quads, 2 triangles each, segments = 2 rings; the pole rows lose their
   // degenerate halves, so add a ring to stay above the requested count.
   const uint32_t rings = uint32_t(std::ceil(std::sqrt(double(triangles) / 4.0))) + 1;
   const uint32_t segments = 2 * rings;
-  auto point = [&](uint32_t i, uint32_t j) {
-    const float theta = kPi * float(i) / float(rings);
-    const float phi = 2.f * kPi * float(j % segments) / float(segments);
-    const float r = 1.f + 0.04f * std::sin(13.f * theta) * std::sin(11.f * phi) +
-                    0.01f * std::sin(61.f * theta + 3.f * phi);
-    return Vec3(r * std::sin(theta) * std::cos(phi), 1.05f + r * std::cos(theta),
-                -r * std::sin(theta) * std::sin(phi));
-  };
+  const uint32_t first = uint32_t(out->positions.size());
+  out->positions.reserve(out->positions.size() + size_t(rings + 1) * segments + 1);
+  for (uint32_t i = 0; i <= rings; ++i)
+    for (uint32_t j = 0; j < segments; ++j) {
+      const float theta = kPi * float(i) / float(rings);
+      const float phi = 2.f * kPi * float(j) / float(segments);
+      const float r = 1.f + 0.04f * std::sin(13.f * theta) * std::sin(11.f * phi) +
+                      0.01f * std::sin(61.f * theta + 3.f * phi);
+      out->positions.push_back(Vec3(r * std::sin(theta) * std::cos(phi),
+                                    1.05f + r * std::cos(theta),
+                                    -r * std::sin(theta) * std::sin(phi)));
+    }
+  auto vertex = [&](uint32_t i, uint32_t j) { return first + i * segments + j % segments; };
+  const size_t quads = size_t(rings) * segments;
+  out->indices.reserve(out->indices.size() + 6 * quads);
+  out->material.reserve(out->material.size() + 2 * quads);
+  out->flags.reserve(out->flags.size() + 2 * quads);
   for (uint32_t i = 0; i < rings; ++i)
     for (uint32_t j = 0; j < segments; ++j) {
-      const Vec3 a = point(i, j), b = point(i + 1, j), c = point(i + 1, j + 1), d = point(i, j + 1);
-      Triangle t0, t1;
-      t0.p[0] = a, t0.p[1] = b, t0.p[2] = c;
-      t1.p[0] = a, t1.p[1] = c, t1.p[2] = d;
-      t0.material = t1.material = material;
-      out->push_back(t0);
-      out->push_back(t1);
+      const uint32_t a = vertex(i, j), b = vertex(i + 1, j), c = vertex(i + 1, j + 1),
+                     d = vertex(i, j + 1);
+      out->indices.insert(out->indices.end(), {a, b, c, a, c, d});
+      out->material.insert(out->material.end(), {material, material});
+      out->flags.insert(out->flags.end(), {uint8_t(0), uint8_t(0)});
     }
 }
 
 // The bench scenes' floor (material 1) and lamp (material 2).
-void append_floor_and_lamp(float half_size, float lamp_half, std::vector<Triangle>* out) {
+void append_floor_and_lamp(float half_size, float lamp_half, TriangleMesh* out) {
   auto quad = [&](Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32_t m) {
     Triangle a, b;
     a.p[0] = p0, a.p[1] = p1, a.p[2] = p2;
     b.p[0] = p0, b.p[1] = p2, b.p[2] = p3;
     a.material = b.material = m;
-    out->push_back(a);
-    out->push_back(b);
+    out->add(a);
+    out->add(b);
   };
   const float h = half_size, l = lamp_half;
   quad({-h, 0, h}, {h, 0, h}, {h, 0, -h}, {-h, 0, -h}, 1);  // floor, faces +y
@@ -215,9 +225,8 @@ SceneDescription generate_bench_scene(uint32_t triangles) {
   SceneDescription desc;
   desc.source = "generated:" + std::to_string(triangles) + "-triangle displaced sphere";
   desc.materials = bench_materials();
-  desc.triangles.reserve(size_t(triangles) + size_t(triangles) / 8 + 64);
-  append_displaced_sphere(triangles, 0, &desc.triangles);
-  append_floor_and_lamp(4.f, 0.6f, &desc.triangles);
+  append_displaced_sphere(triangles, 0, &desc.world);
+  append_floor_and_lamp(4.f, 0.6f, &desc.world);
   desc.camera = bench_camera(Vec3(0.f, 1.6f, 4.2f), Vec3(0.f, 1.f, 0.f), 0.7f);
   return desc;
 }
@@ -229,7 +238,7 @@ SceneDescription generate_instanced_bench_scene(uint32_t triangles_per_mesh, uin
   desc.materials = bench_materials();
   Mesh mesh;
   mesh.name = "sphere";
-  append_displaced_sphere(triangles_per_mesh, 0, &mesh.triangles);
+  append_displaced_sphere(triangles_per_mesh, 0, &mesh.geometry);
   desc.meshes.push_back(std::move(mesh));
   // A grid of spheres on the floor, each turned about +y and scaled by its own amount
   // (deterministic), every third one mirrored.
@@ -251,7 +260,7 @@ SceneDescription generate_instanced_bench_scene(uint32_t triangles_per_mesh, uin
       m.m[3][2] = -3.5 + spacing * (double(i) + 0.5);
       desc.instances.push_back(inst);
     }
-  append_floor_and_lamp(4.f, 1.2f, &desc.triangles);
+  append_floor_and_lamp(4.f, 1.2f, &desc.world);
   desc.camera = bench_camera(Vec3(0.f, 3.2f, 4.6f), Vec3(0.f, 0.f, -0.3f), 0.9f);
   return desc;
 }
@@ -271,8 +280,11 @@ std::string run_bench(const BenchOptions& options) {
     const auto t0 = Clock::now();
     Scene big(generate_bench_scene(options.mesh_triangles));
     const double build = seconds_since(t0);
-    std::printf("generated scene: %llu triangles, built in %.2f s\n",
-                static_cast<unsigned long long>(big.world_triangle_count()), build);
+    std::printf("generated scene: %llu triangles, built in %.2f s, %s in memory (%.0f bytes "
+                "per triangle)\n",
+                static_cast<unsigned long long>(big.world_triangle_count()), build,
+                format_bytes(big.memory_bytes()).c_str(),
+                double(big.memory_bytes()) / double(big.world_triangle_count()));
     nlohmann::json s = bench_scene("1M-mesh", big, options);
     s["build_seconds"] = build;
     scenes.push_back(s);
@@ -282,9 +294,10 @@ std::string run_bench(const BenchOptions& options) {
     Scene forest(generate_instanced_bench_scene(options.instance_triangles, options.instance_grid));
     const double build = seconds_since(t0);
     std::printf("generated scene: %zu instances of one mesh, %llu triangles in all, built in "
-                "%.2f s\n",
+                "%.2f s, %s in memory\n",
                 forest.instance_count(),
-                static_cast<unsigned long long>(forest.world_triangle_count()), build);
+                static_cast<unsigned long long>(forest.world_triangle_count()), build,
+                format_bytes(forest.memory_bytes()).c_str());
     nlohmann::json s = bench_scene("instanced", forest, options);
     s["build_seconds"] = build;
     s["instances"] = forest.instance_count();

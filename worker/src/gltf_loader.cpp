@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <optional>
 #include <fstream>
@@ -75,6 +76,7 @@ class Loader {
       for (size_t i = 0; i < model_.nodes.size(); ++i)
         if (!is_child[i]) roots.push_back(int(i));
     }
+    reserve(world_counts(roots), &desc.world);
     for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
     return desc;
   }
@@ -186,6 +188,70 @@ class Loader {
       }
       lights_.push_back(light);
     }
+  }
+
+  // Vertex and triangle counts of meshes, for reserving TriangleMesh arrays exactly (no
+  // growth slack, no copies while a scene of millions of triangles loads). Accessors that are
+  // invalid count as empty here; add_mesh reports them.
+  struct Counts {
+    size_t vertices = 0, triangles = 0;
+    bool normals = false, uv[2] = {false, false};
+    void operator+=(const Counts& o) {
+      vertices += o.vertices;
+      triangles += o.triangles;
+      normals = normals || o.normals;
+      uv[0] = uv[0] || o.uv[0];
+      uv[1] = uv[1] || o.uv[1];
+    }
+  };
+  size_t accessor_count(int index) const {
+    return index >= 0 && index < int(model_.accessors.size())
+               ? model_.accessors[size_t(index)].count
+               : 0;
+  }
+  Counts mesh_counts(size_t mesh_index) const {
+    Counts c;
+    for (const tinygltf::Primitive& prim : model_.meshes[mesh_index].primitives) {
+      if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) continue;
+      const auto pos = prim.attributes.find("POSITION");
+      if (pos == prim.attributes.end()) continue;
+      const size_t nv = accessor_count(pos->second);
+      c.vertices += nv;
+      c.triangles += (prim.indices >= 0 ? accessor_count(prim.indices) : nv) / 3;
+      c.normals = c.normals || prim.attributes.count("NORMAL");
+      c.uv[0] = c.uv[0] || prim.attributes.count("TEXCOORD_0");
+      c.uv[1] = c.uv[1] || prim.attributes.count("TEXCOORD_1");
+    }
+    return c;
+  }
+  // What visit() will flatten into the world mesh: meshes used by one node, for the nodes
+  // reachable from the roots.
+  Counts world_counts(const std::vector<int>& roots) const {
+    Counts c;
+    std::vector<bool> seen(model_.nodes.size(), false);
+    std::vector<int> stack(roots.begin(), roots.end());
+    while (!stack.empty()) {
+      const int i = stack.back();
+      stack.pop_back();
+      if (i < 0 || i >= int(model_.nodes.size()) || seen[size_t(i)]) continue;
+      seen[size_t(i)] = true;
+      const tinygltf::Node& node = model_.nodes[size_t(i)];
+      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) &&
+          mesh_uses_[size_t(node.mesh)] == 1)
+        c += mesh_counts(size_t(node.mesh));
+      stack.insert(stack.end(), node.children.begin(), node.children.end());
+    }
+    return c;
+  }
+  static void reserve(const Counts& c, TriangleMesh* mesh) {
+    // One vertex more: Embree reads the last vertex with a 16-byte load.
+    mesh->positions.reserve(c.vertices + 1);
+    if (c.normals) mesh->normals.reserve(c.vertices);
+    for (int set = 0; set < 2; ++set)
+      if (c.uv[set]) mesh->uv[set].reserve(c.vertices);
+    mesh->indices.reserve(3 * c.triangles);
+    mesh->material.reserve(c.triangles);
+    mesh->flags.reserve(c.triangles);
   }
 
   void count_mesh_uses() {
@@ -365,13 +431,14 @@ class Loader {
         if (slot < 0) {
           Mesh mesh;
           mesh.name = model_.meshes[size_t(node.mesh)].name;
-          add_mesh(size_t(node.mesh), Mat4::identity(), &mesh.triangles);
+          reserve(mesh_counts(size_t(node.mesh)), &mesh.geometry);
+          add_mesh(size_t(node.mesh), Mat4::identity(), &mesh.geometry);
           slot = int(desc->meshes.size());
           desc->meshes.push_back(std::move(mesh));
         }
         desc->instances.push_back({uint32_t(slot), world});
       } else {
-        add_mesh(size_t(node.mesh), world, &desc->triangles);
+        add_mesh(size_t(node.mesh), world, &desc->world);
       }
     }
     for (int child : node.children) visit(child, world, desc, depth + 1);
@@ -470,7 +537,7 @@ class Loader {
     return v;
   }
 
-  void add_mesh(size_t mesh_index, const Mat4& world, std::vector<Triangle>* out) {
+  void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out) {
     const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
     const bool mirror = world.det3() < 0.0;
     for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
@@ -537,31 +604,56 @@ class Loader {
       }
       if (indices.size() % 3 != 0)
         warn(where + ": index count is not a multiple of 3; trailing indices ignored");
+      // The primitive's vertices, each transformed once, appended after the mesh's others.
+      const uint32_t first = uint32_t(out->positions.size());
+      if (size_t(first) + pos.count > size_t(UINT32_MAX))
+        fail(where + ": more than 2^32 vertices in one mesh");
+      // Attribute arrays are written for every vertex once any primitive has them (zeros
+      // where a primitive has not).
+      const bool write_normals = out->use_normals(has_normals);
+      const bool write_uv[2] = {out->use_uv(0, has_uv[0]), out->use_uv(1, has_uv[1])};
+      // A vertex whose normal does not survive the transform (zero or non-finite) takes the
+      // normals of the triangles that use it away.
+      std::vector<bool> bad_normal;
+      if (has_normals) bad_normal.assign(pos.count, false);
+      for (size_t vi = 0; vi < pos.count; ++vi) {
+        out->positions.push_back(world.transform_point(
+            {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))}));
+        if (write_normals) {
+          Vec3 n;
+          if (has_normals) {
+            n = world.transform_normal(
+                {float(nrm.get(vi, 0)), float(nrm.get(vi, 1)), float(nrm.get(vi, 2))});
+            const float len = length(n);
+            if (len > 0.f && std::isfinite(len)) {
+              n = n / len;
+            } else {
+              n = Vec3();
+              bad_normal[vi] = true;
+            }
+          }
+          out->normals.push_back(n);
+        }
+        for (int set = 0; set < 2; ++set)
+          if (write_uv[set])
+            out->uv[set].push_back(has_uv[set] ? uv_at(uvs[set], vi) : Point2{0.f, 0.f});
+      }
+      const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
+                                         (has_uv[1] ? TriangleMesh::kHasUv1 : 0));
       for (size_t t = 0; t + 2 < indices.size(); t += 3) {
-        Triangle tri;
-        tri.material = material;
-        tri.has_normals = has_normals;
-        tri.has_uv[0] = has_uv[0];
-        tri.has_uv[1] = has_uv[1];
+        bool normals_ok = has_normals;
         for (int k = 0; k < 3; ++k) {
           // A mirroring transform flips the winding (glTF spec, "Transformations"): swap two
           // vertices so that counter-clockwise stays the front face in world space.
           const int src = mirror ? (k == 0 ? 0 : 3 - k) : k;
-          const size_t vi = indices[t + size_t(src)];
-          for (int set = 0; set < 2; ++set)
-            if (has_uv[set]) tri.uv[set][k] = uv_at(uvs[set], vi);
-          tri.p[k] = world.transform_point(
-              {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))});
-          if (has_normals) {
-            const Vec3 n = world.transform_normal(
-                {float(nrm.get(vi, 0)), float(nrm.get(vi, 1)), float(nrm.get(vi, 2))});
-            const float len = length(n);
-            tri.n[k] = len > 0.f && std::isfinite(len) ? n / len : Vec3();
-            if (!(len > 0.f) || !std::isfinite(len)) tri.has_normals = false;
-          }
+          const uint32_t vi = indices[t + size_t(src)];
+          if (has_normals && bad_normal[vi]) normals_ok = false;
+          out->indices.push_back(first + vi);
         }
-        out->push_back(tri);  // degenerate ones are dropped by Scene
+        out->material.push_back(material);
+        out->flags.push_back(uint8_t(base_flags | (normals_ok ? TriangleMesh::kHasNormals : 0)));
       }
+      // Degenerate triangles are dropped by Scene.
     }
   }
 

@@ -102,6 +102,14 @@ LightSet::LightSet(std::vector<Emitter> emitters, const std::vector<Material>& m
   }
 }
 
+size_t LightSet::memory_bytes() const {
+  size_t n = emitters_.capacity() * sizeof(Emitter) +
+             punctual_.capacity() * sizeof(PunctualLight) + emission_.capacity() * sizeof(Vec3) +
+             table_.memory_bytes() + pdf_area_by_slot_.capacity() * sizeof(std::vector<float>);
+  for (const std::vector<float>& v : pdf_area_by_slot_) n += v.capacity() * sizeof(float);
+  return n;
+}
+
 LightSample LightSet::sample(float u_select, float u, float v) const {
   const uint32_t li = table_.sample(u_select);
   LightSample s;

@@ -12,7 +12,6 @@
 
 namespace rf {
 
-struct Triangle;
 struct Material;
 
 // Walker/Vose alias table: O(1) sampling of a discrete distribution.
@@ -25,6 +24,10 @@ class AliasTable {
   // Maps u in [0,1) to an index; *pmf receives its probability.
   uint32_t sample(float u, double* pmf = nullptr) const;
   double pmf(uint32_t i) const { return pmf_[i]; }
+  size_t memory_bytes() const {
+    return (prob_.capacity() + pmf_.capacity()) * sizeof(double) +
+           alias_.capacity() * sizeof(uint32_t);
+  }
 
  private:
   std::vector<double> prob_;     // acceptance probability of column i
@@ -95,6 +98,8 @@ class LightSet {
   }
   float pdf_area(uint32_t prim) const { return pdf_area(0, prim); }
   const std::vector<PunctualLight>& punctual() const { return punctual_; }
+  // Bytes held by the tables.
+  size_t memory_bytes() const;
 
  private:
   std::vector<Emitter> emitters_;

@@ -69,7 +69,7 @@ TEST(LightSet, SelectionProportionalToPowerAndPointsOnTheLight) {
   const int n = 100000;
   for (int i = 0; i < n; ++i) {
     const LightSample s = lights.sample(uni(rng), uni(rng), uni(rng));
-    const Triangle& t = scene.triangles()[s.prim];
+    const Triangle t = scene.world().triangle(s.prim);
     // The point lies in the triangle's plane and inside it.
     EXPECT_NEAR(dot(s.p - t.p[0], t.ng), 0.f, 1e-5f);
     EXPECT_NEAR(s.pdf_area, lights.pdf_area(s.prim), 1e-7f);

@@ -185,7 +185,8 @@ int cmd_render(const std::vector<std::string>& args) {
       return kExitRuntime;
     }
   }
-  std::cerr << "rendering " << scene_path << ": " << scene->triangles().size() << " triangles, "
+  std::cerr << "rendering " << scene_path << ": " << scene->world_triangle_count() << " triangles ("
+            << rf::format_bytes(scene->memory_bytes()) << " in memory), "
             << scene->lights().size() << " emissive, " << settings.width << "x"
             << settings.height << ", " << spp << " spp, " << threads << " threads, "
             << rf::sampler_type_name(settings.sampler) << "/"

@@ -2,6 +2,7 @@
 
 #include <embree3/rtcore.h>
 
+#include <atomic>
 #include <cmath>
 #include <cstddef>
 #include <cstdio>
@@ -30,6 +31,7 @@ struct Scene::Embree {
   RTCScene scene = nullptr;
   std::vector<RTCScene> mesh_scenes;
   std::vector<uint32_t> slot_of_geom;  // top-level geometry ID -> slot
+  std::atomic<int64_t> bytes{0};       // what the device has allocated (memory monitor)
   ~Embree() {
     if (scene) rtcReleaseScene(scene);
     for (RTCScene s : mesh_scenes)
@@ -46,66 +48,115 @@ void embree_error(void* /*user*/, RTCError code, const char* message) {
   std::fprintf(stderr, "embree error %d: %s\n", int(code), message ? message : "");
 }
 
-// Computes ng and area, drops degenerate (zero-area or non-finite) triangles, which have no
-// normal and cannot be hit or sampled meaningfully. Returns how many were dropped.
-size_t clean_triangles(std::vector<Triangle>* triangles, size_t material_count,
-                       const std::string& where) {
-  std::vector<Triangle> kept;
-  kept.reserve(triangles->size());
-  for (Triangle& tri : *triangles) {
-    if (tri.material >= material_count)
-      throw SceneError(where + ": triangle refers to missing material " +
-                       std::to_string(tri.material));
-    const Vec3 c = cross(tri.p[1] - tri.p[0], tri.p[2] - tri.p[0]);
-    const float len = length(c);
-    if (!(len > 0.f) || !std::isfinite(len) || !is_finite(tri.p[0]) || !is_finite(tri.p[1]) ||
-        !is_finite(tri.p[2]))
-      continue;
-    tri.area = 0.5f * len;
-    tri.ng = c / len;
-    kept.push_back(tri);
-  }
-  const size_t dropped = triangles->size() - kept.size();
-  *triangles = std::move(kept);
-  return dropped;
+// Makes v's capacity its size + extra, copying it if it has more (or less) than that.
+template <typename T>
+void fit(std::vector<T>* v, size_t extra) {
+  if (v->empty() || v->capacity() == v->size() + extra) return;
+  std::vector<T> tight;
+  tight.reserve(v->size() + extra);
+  tight.assign(v->begin(), v->end());
+  v->swap(tight);
 }
 
-RTCGeometry triangle_geometry(RTCDevice device, const std::vector<Triangle>& triangles,
-                              const std::string& source) {
-  RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
-  const size_t n = triangles.size();
-  auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(
-      geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), 3 * n));
-  auto* indices = static_cast<unsigned*>(rtcSetNewGeometryBuffer(
-      geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(unsigned), n));
-  if (!vertices || !indices) {
-    rtcReleaseGeometry(geom);
-    throw SceneError(source + ": Embree could not allocate geometry buffers");
-  }
+// Checks a mesh's materials and indices and drops its degenerate triangles (zero area or
+// non-finite vertices), which have no normal and cannot be hit or sampled meaningfully.
+// Returns how many were dropped. Their vertices stay (unreferenced).
+size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& where) {
+  const size_t n = mesh->size(), nv = mesh->positions.size();
+  if (mesh->indices.size() != 3 * n || mesh->flags.size() != n)
+    throw SceneError(where + ": inconsistent triangle mesh: " + std::to_string(n) +
+                     " materials, " + std::to_string(mesh->indices.size()) + " indices and " +
+                     std::to_string(mesh->flags.size()) + " flags (one material and one flags "
+                     "byte per triangle, three indices)");
+  if (!mesh->normals.empty() && mesh->normals.size() != nv)
+    throw SceneError(where + ": triangle mesh has normals for some vertices only");
+  for (int set = 0; set < 2; ++set)
+    if (!mesh->uv[set].empty() && mesh->uv[set].size() != nv)
+      throw SceneError(where + ": triangle mesh has TEXCOORD_" + std::to_string(set) +
+                       " for some vertices only");
+  size_t kept = 0;
+  mesh->face_normals.assign(n, Vec3());
   for (size_t i = 0; i < n; ++i) {
-    for (int k = 0; k < 3; ++k) {
-      const Vec3& p = triangles[i].p[k];
-      vertices[9 * i + 3 * size_t(k) + 0] = p.x;
-      vertices[9 * i + 3 * size_t(k) + 1] = p.y;
-      vertices[9 * i + 3 * size_t(k) + 2] = p.z;
-      indices[3 * i + size_t(k)] = unsigned(3 * i + size_t(k));
+    if (mesh->material[i] >= material_count)
+      throw SceneError(where + ": triangle refers to missing material " +
+                       std::to_string(mesh->material[i]));
+    const uint32_t* v = &mesh->indices[3 * i];
+    if (v[0] >= nv || v[1] >= nv || v[2] >= nv)
+      throw SceneError(where + ": triangle " + std::to_string(i) + " refers to a missing vertex");
+    uint8_t flags = mesh->flags[i];
+    if (mesh->normals.empty()) flags &= uint8_t(~TriangleMesh::kHasNormals);
+    if (mesh->uv[0].empty()) flags &= uint8_t(~TriangleMesh::kHasUv0);
+    if (mesh->uv[1].empty()) flags &= uint8_t(~TriangleMesh::kHasUv1);
+    const Vec3 p0 = mesh->positions[v[0]], p1 = mesh->positions[v[1]], p2 = mesh->positions[v[2]];
+    const Vec3 c = cross(p1 - p0, p2 - p0);
+    const float len = length(c);
+    if (!(len > 0.f) || !std::isfinite(len) || !is_finite(p0) || !is_finite(p1) ||
+        !is_finite(p2))
+      continue;
+    mesh->face_normals[kept] = c / len;
+    if (kept != i) {
+      for (int k = 0; k < 3; ++k) mesh->indices[3 * kept + size_t(k)] = v[k];
+      mesh->material[kept] = mesh->material[i];
     }
+    mesh->flags[kept] = flags;
+    ++kept;
   }
+  mesh->indices.resize(3 * kept);
+  mesh->material.resize(kept);
+  mesh->flags.resize(kept);
+  mesh->face_normals.resize(kept);
+  // No growth slack is kept for the scene's lifetime (a description built by push_back may
+  // hold up to twice its size). Positions keep room for one more vertex: Embree reads the
+  // last vertex with a 16-byte load, so the float after it must be readable.
+  fit(&mesh->positions, 1);
+  fit(&mesh->normals, 0);
+  fit(&mesh->uv[0], 0);
+  fit(&mesh->uv[1], 0);
+  fit(&mesh->indices, 0);
+  fit(&mesh->material, 0);
+  fit(&mesh->flags, 0);
+  fit(&mesh->face_normals, 0);
+  return n - kept;
+}
+
+// An Embree triangle geometry that reads the mesh's positions and indices in place (clean_mesh
+// left the room after the last vertex that Embree's 16-byte loads need).
+RTCGeometry triangle_geometry(RTCDevice device, const TriangleMesh& mesh) {
+  RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
+  rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                             mesh.positions.data(), 0, sizeof(Vec3), mesh.positions.size());
+  rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                             mesh.indices.data(), 0, 3 * sizeof(uint32_t), mesh.size());
   rtcCommitGeometry(geom);
   return geom;
+}
+
+void grow_bounds(const TriangleMesh& mesh, Vec3* lo, Vec3* hi) {
+  for (uint32_t v : mesh.indices) {
+    *lo = vmin(*lo, mesh.positions[v]);
+    *hi = vmax(*hi, mesh.positions[v]);
+  }
+}
+
+// Embree's memory monitor: counts the device's allocations (bytes > 0) and frees (< 0).
+bool count_embree_bytes(void* user, ssize_t bytes, bool /*post*/) {
+  static_cast<std::atomic<int64_t>*>(user)->fetch_add(int64_t(bytes), std::memory_order_relaxed);
+  return true;  // never refuse an allocation
 }
 
 }  // namespace
 
 Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
     : desc_(std::move(desc)), embree_(new Embree) {
-  if (desc_.triangles.empty() && desc_.instances.empty())
+  static_assert(sizeof(Vec3) == 3 * sizeof(float) && sizeof(Point2) == 2 * sizeof(float),
+                "Embree reads TriangleMesh::positions as packed float triples");
+  if (desc_.world.empty() && desc_.instances.empty())
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
   if (desc_.materials.empty()) desc_.materials.push_back(Material{});
   const size_t nmat = desc_.materials.size();
-  size_t dropped = clean_triangles(&desc_.triangles, nmat, desc_.source);
+  size_t dropped = clean_mesh(&desc_.world, nmat, desc_.source);
   for (Mesh& mesh : desc_.meshes)
-    dropped += clean_triangles(&mesh.triangles, nmat, desc_.source + " mesh '" + mesh.name + "'");
+    dropped += clean_mesh(&mesh.geometry, nmat, desc_.source + " mesh '" + mesh.name + "'");
   if (dropped && warnings)
     warnings->push_back(desc_.source + ": skipped " + std::to_string(dropped) +
                         " degenerate triangle(s)");
@@ -118,25 +169,17 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
   bmin_ = Vec3(std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
                std::numeric_limits<float>::max());
   bmax_ = -bmin_;
-  for (const Triangle& tri : desc_.triangles)
-    for (const Vec3& p : tri.p) {
-      bmin_ = vmin(bmin_, p);
-      bmax_ = vmax(bmax_, p);
-    }
+  grow_bounds(desc_.world, &bmin_, &bmax_);
   std::vector<std::pair<Vec3, Vec3>> mesh_bounds;
   for (const Mesh& mesh : desc_.meshes) {
     Vec3 lo(1e30f, 1e30f, 1e30f), hi = -lo;
-    for (const Triangle& tri : mesh.triangles)
-      for (const Vec3& p : tri.p) {
-        lo = vmin(lo, p);
-        hi = vmax(hi, p);
-      }
+    grow_bounds(mesh.geometry, &lo, &hi);
     mesh_bounds.push_back({lo, hi});
   }
   bool any_instance = false;
   for (const Instance& inst : desc_.instances) {
     const auto& b = mesh_bounds[inst.mesh];
-    if (desc_.meshes[inst.mesh].triangles.empty()) continue;
+    if (desc_.meshes[inst.mesh].geometry.empty()) continue;
     any_instance = true;
     for (int c = 0; c < 8; ++c) {
       const Vec3 corner((c & 1) ? b.second.x : b.first.x, (c & 2) ? b.second.y : b.first.y,
@@ -146,7 +189,7 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
       bmax_ = vmax(bmax_, w);
     }
   }
-  if (desc_.triangles.empty() && !any_instance)
+  if (desc_.world.empty() && !any_instance)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
 
   // Textures: an image OpenImageIO cannot read is dropped with a warning naming it; the
@@ -173,18 +216,18 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
 
   // Lights: emissive world triangles and emissive triangles of every instance.
   std::vector<Emitter> emitters;
-  for (uint32_t i = 0; i < desc_.triangles.size(); ++i) {
-    const Triangle& tri = desc_.triangles[i];
-    if (!desc_.materials[tri.material].is_emissive()) continue;
+  for (uint32_t i = 0; i < desc_.world.size(); ++i) {
+    if (!desc_.materials[desc_.world.material[i]].is_emissive()) continue;
+    const Triangle tri = desc_.world.triangle(i);
     emitters.push_back({{tri.p[0], tri.p[1], tri.p[2]}, tri.ng, tri.area, kWorldSlot, i,
                         tri.material});
   }
   for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
     const Instance& inst = desc_.instances[k];
-    const std::vector<Triangle>& tris = desc_.meshes[inst.mesh].triangles;
-    for (uint32_t i = 0; i < tris.size(); ++i) {
-      const Triangle& tri = tris[i];
-      if (!desc_.materials[tri.material].is_emissive()) continue;
+    const TriangleMesh& mesh = desc_.meshes[inst.mesh].geometry;
+    for (uint32_t i = 0; i < mesh.size(); ++i) {
+      if (!desc_.materials[mesh.material[i]].is_emissive()) continue;
+      const Triangle tri = mesh.triangle(i);
       Emitter e;
       for (int v = 0; v < 3; ++v) e.p[v] = inst.to_world.transform_point(tri.p[v]);
       const Vec3 c = cross(e.p[1] - e.p[0], e.p[2] - e.p[0]);
@@ -221,9 +264,10 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
   embree_->device = rtcNewDevice(nullptr);
   if (!embree_->device) throw SceneError(desc_.source + ": cannot create Embree device");
   rtcSetDeviceErrorFunction(embree_->device, embree_error, nullptr);
+  rtcSetDeviceMemoryMonitorFunction(embree_->device, count_embree_bytes, &embree_->bytes);
   embree_->scene = rtcNewScene(embree_->device);
-  if (!desc_.triangles.empty()) {
-    RTCGeometry geom = triangle_geometry(embree_->device, desc_.triangles, desc_.source);
+  if (!desc_.world.empty()) {
+    RTCGeometry geom = triangle_geometry(embree_->device, desc_.world);
     const unsigned id = rtcAttachGeometry(embree_->scene, geom);
     rtcReleaseGeometry(geom);  // the scene holds the reference now
     if (embree_->slot_of_geom.size() <= id) embree_->slot_of_geom.resize(id + 1);
@@ -232,9 +276,9 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
   // One Embree scene per shared mesh, built once, placed by instance geometries.
   for (const Mesh& mesh : desc_.meshes) {
     RTCScene ms = nullptr;
-    if (!mesh.triangles.empty()) {
+    if (!mesh.geometry.empty()) {
       ms = rtcNewScene(embree_->device);
-      RTCGeometry geom = triangle_geometry(embree_->device, mesh.triangles, desc_.source);
+      RTCGeometry geom = triangle_geometry(embree_->device, mesh.geometry);
       rtcAttachGeometry(ms, geom);
       rtcReleaseGeometry(geom);
       rtcSetSceneBuildQuality(ms, RTC_BUILD_QUALITY_HIGH);
@@ -242,6 +286,9 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
     }
     embree_->mesh_scenes.push_back(ms);
   }
+  slot_mesh_.push_back(&desc_.world);
+  for (const Instance& inst : desc_.instances)
+    slot_mesh_.push_back(&desc_.meshes[inst.mesh].geometry);
   instance_xf_.reserve(desc_.instances.size());
   for (const Instance& inst : desc_.instances)
     instance_xf_.push_back(Affine3f::from(inst.to_world));
@@ -268,8 +315,8 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
 Scene::~Scene() = default;
 
 uint64_t Scene::world_triangle_count() const {
-  uint64_t n = desc_.triangles.size();
-  for (const Instance& inst : desc_.instances) n += desc_.meshes[inst.mesh].triangles.size();
+  uint64_t n = desc_.world.size();
+  for (const Instance& inst : desc_.instances) n += desc_.meshes[inst.mesh].geometry.size();
   return n;
 }
 
@@ -390,42 +437,48 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   // A hit inside an instance names the instance as the top-level geometry.
   const unsigned top = inst != RTC_INVALID_GEOMETRY_ID ? inst : geom;
   const uint32_t slot = top < embree_->slot_of_geom.size() ? embree_->slot_of_geom[top] : 0;
-  const Triangle& tri = triangle(slot, prim);
+  const TriangleMesh& mesh = *slot_mesh_[slot];
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  const uint8_t flags = mesh.flags[prim];
   hit->t = t;
   hit->prim = prim;
   hit->slot = slot;
   hit->b1 = u;
   hit->b2 = v;
-  hit->material = tri.material;
+  hit->material = mesh.material[prim];
   const float b0 = 1.f - hit->b1 - hit->b2;
+  const Vec3 p0 = mesh.positions[vi[0]], p1 = mesh.positions[vi[1]], p2 = mesh.positions[vi[2]];
   // Barycentric position is more accurate than o + t d far from the origin.
-  Vec3 p = tri.p[0] * b0 + tri.p[1] * hit->b1 + tri.p[2] * hit->b2;
-  Vec3 ng = tri.ng;
+  Vec3 p = p0 * b0 + p1 * hit->b1 + p2 * hit->b2;
+  Vec3 ng = mesh.face_normals[prim];
   Vec3 ns = ng;
-  if (tri.has_normals) {
-    const Vec3 n = tri.n[0] * b0 + tri.n[1] * hit->b1 + tri.n[2] * hit->b2;
+  if (flags & TriangleMesh::kHasNormals) {
+    const Vec3 n = mesh.normals[vi[0]] * b0 + mesh.normals[vi[1]] * hit->b1 +
+                   mesh.normals[vi[2]] * hit->b2;
     const float len = length(n);
     if (len > 0.f && std::isfinite(len)) ns = n / len;
   }
   // Tangent for normal mapping, from the uv parameterization of the normal map's set.
-  const Material& mat = desc_.materials[tri.material];
+  const Material& mat = desc_.materials[hit->material];
   const uint32_t set = std::min<uint32_t>(1u, mat.normal_tex.texcoord);
   Vec3 dpdu(0.f, 0.f, 0.f);
   float sign = 1.f;
   const bool reads_uv = mat.reads_uv();
   for (int k = 0; k < 2; ++k) {
-    if (!tri.has_uv[k] || !reads_uv) {
+    if (!(flags & (TriangleMesh::kHasUv0 << k)) || !reads_uv) {
       hit->uv[k] = Point2{0.f, 0.f};
       continue;
     }
-    hit->uv[k] = Point2{tri.uv[k][0].x * b0 + tri.uv[k][1].x * hit->b1 + tri.uv[k][2].x * hit->b2,
-                        tri.uv[k][0].y * b0 + tri.uv[k][1].y * hit->b1 + tri.uv[k][2].y * hit->b2};
+    const Point2 t0 = mesh.uv[k][vi[0]], t1 = mesh.uv[k][vi[1]], t2 = mesh.uv[k][vi[2]];
+    hit->uv[k] = Point2{t0.x * b0 + t1.x * hit->b1 + t2.x * hit->b2,
+                        t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
   }
-  if (mat.normal_tex.valid() && tri.has_uv[set]) {
+  if (mat.normal_tex.valid() && (flags & (TriangleMesh::kHasUv0 << set))) {
     // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
-    const Vec3 dp1 = tri.p[1] - tri.p[0], dp2 = tri.p[2] - tri.p[0];
-    const float du1 = tri.uv[set][1].x - tri.uv[set][0].x, du2 = tri.uv[set][2].x - tri.uv[set][0].x;
-    const float dv1 = tri.uv[set][1].y - tri.uv[set][0].y, dv2 = tri.uv[set][2].y - tri.uv[set][0].y;
+    const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
+    const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
+    const float du1 = t1.x - t0.x, du2 = t2.x - t0.x;
+    const float dv1 = t1.y - t0.y, dv2 = t2.y - t0.y;
     const float det = du1 * dv2 - dv1 * du2;
     if (std::fabs(det) > 1e-12f) {
       const float inv = 1.f / det;
@@ -465,21 +518,84 @@ bool Scene::occluded(Vec3 o, Vec3 d, float tmax) const {
 }
 
 Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
-  const Triangle& tri = triangle(slot, prim);
-  const Material& m = desc_.materials[tri.material];
+  const TriangleMesh& mesh = *slot_mesh_[slot];
+  const Material& m = desc_.materials[mesh.material[prim]];
   Vec3 e = m.emission;
   if (m.emissive_tex.valid()) {
     const uint32_t set = std::min<uint32_t>(1u, m.emissive_tex.texcoord);
-    if (tri.has_uv[set]) {
+    if (mesh.flags[prim] & (TriangleMesh::kHasUv0 << set)) {
+      const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+      const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
       const float b0 = 1.f - b1 - b2;
-      const Point2 uv{tri.uv[set][0].x * b0 + tri.uv[set][1].x * b1 + tri.uv[set][2].x * b2,
-                      tri.uv[set][0].y * b0 + tri.uv[set][1].y * b1 + tri.uv[set][2].y * b2};
+      const Point2 uv{t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
       float c[3];
       if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
         e = e * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
     }
   }
   return e;
+}
+
+size_t TriangleMesh::memory_bytes() const {
+  return positions.capacity() * sizeof(Vec3) + normals.capacity() * sizeof(Vec3) +
+         (uv[0].capacity() + uv[1].capacity()) * sizeof(Point2) +
+         (indices.capacity() + material.capacity()) * sizeof(uint32_t) + flags.capacity() +
+         face_normals.capacity() * sizeof(Vec3);
+}
+
+std::string format_bytes(size_t bytes) {
+  char text[32];
+  const double b = double(bytes);
+  if (b < 1e6)
+    std::snprintf(text, sizeof text, "%.1f kB", b * 1e-3);
+  else if (b < 1e9)
+    std::snprintf(text, sizeof text, "%.1f MB", b * 1e-6);
+  else
+    std::snprintf(text, sizeof text, "%.2f GB", b * 1e-9);
+  return text;
+}
+
+size_t Scene::memory_bytes() const {
+  size_t n = desc_.world.memory_bytes() + lights_.memory_bytes() +
+             instance_xf_.capacity() * sizeof(Affine3f) +
+             desc_.instances.capacity() * sizeof(Instance);
+  for (const Mesh& mesh : desc_.meshes) n += mesh.geometry.memory_bytes();
+  return n + size_t(std::max<int64_t>(0, embree_->bytes.load(std::memory_order_relaxed)));
+}
+
+void TriangleMesh::add(const Triangle& t) {
+  const bool write_normals = use_normals(t.has_normals);
+  const bool write_uv[2] = {use_uv(0, t.has_uv[0]), use_uv(1, t.has_uv[1])};
+  const uint32_t first = uint32_t(positions.size());
+  for (int k = 0; k < 3; ++k) {
+    positions.push_back(t.p[k]);
+    if (write_normals) normals.push_back(t.has_normals ? t.n[k] : Vec3());
+    for (int set = 0; set < 2; ++set)
+      if (write_uv[set]) uv[set].push_back(t.has_uv[set] ? t.uv[set][k] : Point2{0.f, 0.f});
+    indices.push_back(first + uint32_t(k));
+  }
+  material.push_back(t.material);
+  flags.push_back(uint8_t((t.has_normals ? kHasNormals : 0) | (t.has_uv[0] ? kHasUv0 : 0) |
+                          (t.has_uv[1] ? kHasUv1 : 0)));
+}
+
+Triangle TriangleMesh::triangle(size_t i) const {
+  Triangle t;
+  const uint32_t* vi = &indices[3 * i];
+  t.material = material[i];
+  t.has_normals = (flags[i] & kHasNormals) != 0;
+  for (int set = 0; set < 2; ++set) t.has_uv[set] = (flags[i] & (kHasUv0 << set)) != 0;
+  for (int k = 0; k < 3; ++k) {
+    t.p[k] = positions[vi[k]];
+    if (t.has_normals) t.n[k] = normals[vi[k]];
+    for (int set = 0; set < 2; ++set)
+      if (t.has_uv[set]) t.uv[set][k] = uv[set][vi[k]];
+  }
+  const Vec3 c = cross(t.p[1] - t.p[0], t.p[2] - t.p[0]);
+  const float len = length(c);
+  t.area = 0.5f * len;
+  t.ng = len > 0.f ? c / len : Vec3();
+  return t;
 }
 
 std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings) {

@@ -51,6 +51,8 @@ struct Camera {
   Raster raster(uint32_t width, uint32_t height) const;
 };
 
+// One triangle with its attributes, by value: how tests and generated scenes describe
+// geometry (TriangleMesh::add) and what TriangleMesh::triangle gathers back.
 struct Triangle {
   Vec3 p[3];                // vertices in glTF winding order (world space, or the mesh's
                             // local space for instanced meshes)
@@ -59,14 +61,59 @@ struct Triangle {
   bool has_normals = false;
   bool has_uv[2] = {false, false};
   uint32_t material = 0;    // index into the scene's materials
-  Vec3 ng;                  // unit geometric normal normalize(cross(p1-p0, p2-p0)): the front
+  // Filled by TriangleMesh::triangle (ignored by add): the unit geometric normal
+  // normalize(cross(p1 - p0, p2 - p0)), whose side is the front face, and the area.
+  Vec3 ng;
   float area = 0.f;
+};
+
+// Indexed triangles in glTF's own layout: each vertex is stored once and shared by the
+// triangles that use it, and Embree reads the positions and indices in place (shared
+// buffers, not copies). About 45 bytes per triangle for a typical closed mesh with normals
+// and one uv set, against 144 for a Triangle. Each per-vertex attribute array is either
+// empty or as long as positions; a triangle's flags say which of them it has (a mesh merges
+// primitives with and without normals or texture coordinates).
+struct TriangleMesh {
+  enum : uint8_t { kHasNormals = 1, kHasUv0 = 2, kHasUv1 = 4 };
+  std::vector<Vec3> positions;
+  std::vector<Vec3> normals;       // unit vertex normals
+  std::vector<Point2> uv[2];       // TEXCOORD_0 and TEXCOORD_1
+  std::vector<uint32_t> indices;   // 3 per triangle, counter-clockwise = front face
+  std::vector<uint32_t> material;  // per triangle: index into the scene's materials
+  std::vector<uint8_t> flags;      // per triangle: kHas* bits
+  // Per triangle: the unit geometric normal normalize(cross(p1 - p0, p2 - p0)). Computed by
+  // Scene (which drops the triangles that have none); descriptions leave it empty. Kept
+  // rather than recomputed per hit (a square root and a division): 12 bytes a triangle save
+  // about 1.5% of the Cornell box's instructions.
+  std::vector<Vec3> face_normals;
+
+  size_t size() const { return material.size(); }
+  bool empty() const { return material.empty(); }
+  // Bytes held by the arrays (their capacity).
+  size_t memory_bytes() const;
+  // Appends t as a triangle with three vertices of its own.
+  void add(const Triangle& t);
+  // Triangle i with its attributes, geometric normal and area.
+  Triangle triangle(size_t i) const;
+  // Before appending vertices that have normals (needed) or not: whether their normals must
+  // be appended too. That is so if they have them, or if earlier vertices had them; in the
+  // first case the vertices before that had none get zeros, so the array stays as long as
+  // positions.
+  bool use_normals(bool needed) {
+    if (needed) normals.resize(positions.size());
+    return needed || !normals.empty();
+  }
+  // The same for TEXCOORD_<set>.
+  bool use_uv(int set, bool needed) {
+    if (needed) uv[set].resize(positions.size());
+    return needed || !uv[set].empty();
+  }
 };
 
 // A mesh shared by several nodes, in its own local space.
 struct Mesh {
   std::string name;
-  std::vector<Triangle> triangles;
+  TriangleMesh geometry;
 };
 struct Instance {
   uint32_t mesh = 0;  // index into SceneDescription::meshes
@@ -85,7 +132,7 @@ struct TextureSource {
 // Everything needed to build a Scene; filled by the glTF loader or directly by tests.
 struct SceneDescription {
   std::string source;  // file name or description, used in messages
-  std::vector<Triangle> triangles;  // world space (meshes used by one node end up here)
+  TriangleMesh world;  // world space (meshes used by one node end up here)
   std::vector<Material> materials;  // at least one if there are triangles
   std::optional<Camera> camera;     // none: the Scene frames the bounding box from +Z
   std::vector<Mesh> meshes;         // instanced meshes
@@ -129,7 +176,7 @@ constexpr uint32_t kWorldSlot = 0;
 
 struct Hit {
   float t = 0.f;       // ray parameter (distance for unit directions)
-  uint32_t prim = 0;   // triangle index within its slot's triangle list
+  uint32_t prim = 0;   // triangle index within its slot's TriangleMesh
   uint32_t slot = kWorldSlot;
   float b1 = 0.f, b2 = 0.f;  // barycentrics of vertices 1 and 2
   Vec3 p;              // world position
@@ -164,17 +211,17 @@ class Scene {
   void occluded(const RayPacket& rays, bool* blocked) const;
 
   const std::string& source() const { return desc_.source; }
-  const std::vector<Triangle>& triangles() const { return desc_.triangles; }
+  // The world triangles (meshes used by one node, in world space).
+  const TriangleMesh& world() const { return desc_.world; }
+  // Material of world triangle prim.
   const Material& material(uint32_t prim) const {
-    return desc_.materials[desc_.triangles[prim].material];
+    return desc_.materials[desc_.world.material[prim]];
   }
   const std::vector<Material>& materials() const { return desc_.materials; }
   const TextureSet& textures() const { return textures_; }
-  // Triangle prim of a slot, in that slot's space, and the slot's transform.
-  const Triangle& triangle(uint32_t slot, uint32_t prim) const {
-    return slot == kWorldSlot ? desc_.triangles[prim]
-                              : desc_.meshes[desc_.instances[slot - 1].mesh].triangles[prim];
-  }
+  // The triangles of a geometry slot (the world, or instance slot - 1's mesh), in that slot's
+  // space.
+  const TriangleMesh& slot_mesh(uint32_t slot) const { return *slot_mesh_[slot]; }
   // Emitted radiance of the front face of triangle prim of slot at barycentrics (b1, b2),
   // including the emissive texture.
   Vec3 emission(uint32_t slot, uint32_t prim, float b1, float b2) const;
@@ -182,6 +229,10 @@ class Scene {
   size_t mesh_count() const { return desc_.meshes.size(); }
   // Triangles in the world after instancing (world triangles + sum over instances).
   uint64_t world_triangle_count() const;
+  // Bytes the scene holds: its triangle meshes and light tables, and everything Embree
+  // allocated for it (BVHs, instance data). Textures are not included: OpenImageIO's
+  // TextureSystem caches tiles in a budget of its own.
+  size_t memory_bytes() const;
   const Camera& camera() const { return camera_; }
   bool has_file_camera() const { return desc_.camera.has_value(); }
   const LightSet& lights() const { return lights_; }
@@ -196,6 +247,7 @@ class Scene {
   Vec3 bmin_, bmax_;
   TextureSet textures_;
   std::vector<Affine3f> instance_xf_;  // desc_.instances[k].to_world, for hits in slot k + 1
+  std::vector<const TriangleMesh*> slot_mesh_;  // per slot: &desc_.world, then the meshes
   // The hit record of Embree's closest hit (geometry geom, inside instance inst or none,
   // triangle prim, barycentrics (u, v), distance t).
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
@@ -203,6 +255,9 @@ class Scene {
   struct Embree;
   std::unique_ptr<Embree> embree_;
 };
+
+// "812.5 kB", "12.3 MB" or "1.23 GB" (powers of 10), for messages about memory_bytes.
+std::string format_bytes(size_t bytes);
 
 // Benchmark hook: while a thread has a RayLog installed, every ray it traces through
 // Scene::intersect/occluded (single rays and packet lanes) is appended to it, so the benchmark

@@ -6,6 +6,7 @@
 #include <random>
 #include <utility>
 
+#include "bench.h"
 #include "integrators.h"
 #include "test_scenes.h"
 
@@ -24,14 +25,15 @@ TEST(GltfLoader, SmallSceneHierarchyMaterialsAndCamera) {
                                                 &warnings);
   EXPECT_TRUE(any_contains(warnings, "EXT_made_up")) << "unsupported required extension";
   EXPECT_TRUE(any_contains(warnings, "mesh 0 ('floor') primitive 1")) << "LINES skipped";
-  ASSERT_EQ(desc.triangles.size(), 4u);
+  ASSERT_EQ(desc.world.size(), 4u);
   ASSERT_TRUE(desc.camera.has_value());
   Scene scene(std::move(desc), &warnings);
   ASSERT_EQ(scene.lights().size(), 2u);
   // Lamp: local unit square in y = 0 facing -y, under translation (0,2,0) and scale (2,1,2).
   float lamp_area = 0.f;
-  for (const Triangle& t : scene.triangles()) {
-    const Material& m = scene.material(uint32_t(&t - scene.triangles().data()));
+  for (uint32_t i = 0; i < scene.world().size(); ++i) {
+    const Triangle t = scene.world().triangle(i);
+    const Material& m = scene.material(i);
     if (!m.is_emissive()) {
       EXPECT_NEAR(t.ng.y, 1.f, 1e-6f);
       EXPECT_NEAR(m.albedo.y, 0.6f, 1e-6f);
@@ -128,6 +130,157 @@ TEST(Camera, RasterDirectionsFollowThePinholeModel) {
   }
 }
 
+// TriangleMesh::add keeps every attribute array as long as positions once any triangle has
+// that attribute (zeros for the vertices before), whichever triangle comes first, and
+// triangle() gathers back what was added, with the analytic normal and area.
+TEST(TriangleMesh, AddKeepsAttributeArraysAlignedAndGathersBack) {
+  Triangle plain, with_normals, with_uv1;
+  plain.p[0] = {0, 0, 0}, plain.p[1] = {2, 0, 0}, plain.p[2] = {0, 3, 0};
+  with_normals = plain;
+  with_normals.has_normals = true;
+  with_normals.n[0] = {0, 0, 1}, with_normals.n[1] = {0, 0.6f, 0.8f};
+  with_normals.n[2] = {1, 0, 0};
+  with_normals.material = 1;
+  with_uv1 = plain;
+  with_uv1.has_uv[1] = true;
+  with_uv1.uv[1][0] = {0.1f, 0.2f}, with_uv1.uv[1][1] = {0.3f, 0.4f};
+  with_uv1.uv[1][2] = {0.5f, 0.6f};
+  with_uv1.material = 2;
+
+  TriangleMesh mesh;
+  for (const Triangle& t : {plain, with_normals, with_uv1}) mesh.add(t);
+  ASSERT_EQ(mesh.size(), 3u);
+  EXPECT_EQ(mesh.positions.size(), 9u);
+  EXPECT_EQ(mesh.normals.size(), 9u);
+  EXPECT_TRUE(mesh.uv[0].empty());
+  EXPECT_EQ(mesh.uv[1].size(), 9u);
+  const Triangle a = mesh.triangle(0), b = mesh.triangle(1), c = mesh.triangle(2);
+  EXPECT_FALSE(a.has_normals || a.has_uv[0] || a.has_uv[1]);
+  EXPECT_TRUE(b.has_normals && !b.has_uv[1]);
+  EXPECT_TRUE(c.has_uv[1] && !c.has_normals);
+  EXPECT_EQ(b.material, 1u);
+  EXPECT_EQ(c.material, 2u);
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_EQ(b.n[k].y, with_normals.n[k].y);
+    EXPECT_EQ(b.n[k].z, with_normals.n[k].z);
+    EXPECT_EQ(c.uv[1][k].x, with_uv1.uv[1][k].x);
+    EXPECT_EQ(c.uv[1][k].y, with_uv1.uv[1][k].y);
+  }
+  // Legs 2 and 3 in the z = 0 plane, counter-clockwise seen from +z.
+  EXPECT_FLOAT_EQ(b.area, 3.f);
+  EXPECT_FLOAT_EQ(b.ng.z, 1.f);
+
+  // The first triangle has normals: the array starts with it.
+  TriangleMesh first;
+  first.add(with_normals);
+  first.add(plain);
+  EXPECT_EQ(first.normals.size(), 6u);
+  EXPECT_EQ(first.triangle(0).n[1].y, 0.6f);
+  EXPECT_FALSE(first.triangle(1).has_normals);
+}
+
+// Scene drops a degenerate triangle from the middle of a mesh and the triangles after it keep
+// their own material, normals and face normal; an inconsistent mesh is refused.
+TEST(Scene, DropsDegenerateTrianglesAndRefusesInconsistentMeshes) {
+  SceneDescription desc;
+  desc.source = "compaction";
+  desc.materials = {Material{}, Material{}};
+  Triangle good, degenerate, second;
+  good.p[0] = {-1, -1, 0}, good.p[1] = {1, -1, 0}, good.p[2] = {1, 1, 0};
+  degenerate.p[0] = degenerate.p[1] = degenerate.p[2] = Vec3(0, 0, 5);
+  second.p[0] = {-1, -1, 0}, second.p[1] = {-1, 1, 0}, second.p[2] = {1, 1, 0};  // faces -z
+  second.material = 1;
+  second.has_normals = true;
+  for (int k = 0; k < 3; ++k) second.n[k] = Vec3(0, 0, -1);
+  desc.world.add(good);
+  desc.world.add(degenerate);
+  desc.world.add(second);
+  const SceneDescription copy = desc;
+  std::vector<std::string> warnings;
+  {
+    Scene scene(std::move(desc), &warnings);
+    ASSERT_EQ(scene.world().size(), 2u);
+    EXPECT_TRUE(any_contains(warnings, "skipped 1 degenerate"));
+    EXPECT_EQ(scene.world().material[1], 1u);
+    EXPECT_TRUE(scene.world().flags[1] & TriangleMesh::kHasNormals);
+    EXPECT_FLOAT_EQ(scene.world().face_normals[0].z, 1.f);
+    EXPECT_FLOAT_EQ(scene.world().face_normals[1].z, -1.f);
+    // A ray from below meets the second triangle's front face; the hit carries its data.
+    Hit hit;
+    ASSERT_TRUE(scene.intersect({-0.5f, 0.5f, -2.f}, {0.f, 0.f, 1.f}, 10.f, &hit));
+    EXPECT_EQ(hit.prim, 1u);
+    EXPECT_EQ(hit.material, 1u);
+    EXPECT_FLOAT_EQ(hit.ng.z, -1.f);
+    EXPECT_FLOAT_EQ(hit.ns.z, -1.f);
+    EXPECT_NEAR(hit.t, 2.f, 1e-5f);
+  }
+  SceneDescription bad_index = copy;
+  bad_index.world.indices[4] = 99;
+  EXPECT_THROW(Scene scene(std::move(bad_index)), SceneError);
+  SceneDescription short_normals = copy;
+  short_normals.world.normals.pop_back();
+  EXPECT_THROW(Scene scene(std::move(short_normals)), SceneError);
+  SceneDescription missing_flags = copy;
+  missing_flags.world.flags.pop_back();
+  EXPECT_THROW(Scene scene(std::move(missing_flags)), SceneError);
+}
+
+// memory_bytes counts the geometry arrays and what Embree allocated (the BVH, which the
+// device's memory monitor reports). For an indexed mesh of 200K triangles that is, per
+// triangle, about 45 bytes of geometry (12 of indices, 4 material, 1 flags, 12 face normal,
+// about half a vertex of 12) and about 65 of BVH; 144 bytes per triangle would mean the
+// geometry is stored per triangle again.
+TEST(Scene, MemoryBytesCountsGeometryAndBvh) {
+  const Scene scene(generate_bench_scene(200000));
+  const double n = double(scene.world_triangle_count());
+  const double geometry = double(scene.world().memory_bytes());
+  const double total = double(scene.memory_bytes());
+  EXPECT_GT(geometry / n, 29.0);  // indices, material, flags, face normal at least
+  EXPECT_LT(geometry / n, 50.0);
+  EXPECT_GT(total - geometry, 20.0 * n) << "Embree's BVH is not counted";
+  EXPECT_LT(total / n, 144.0);
+}
+
+// The loader keeps glTF's indexing (a quad's 4 vertices are stored once, not per triangle),
+// writes each attribute for every vertex of a mesh once any primitive has it, with per-
+// triangle flags for the primitives that do, and flips the winding under a mirroring node so
+// that the front face stays the one the normals point to.
+TEST(GltfLoader, IndexedPrimitivesShareVerticesUnderAMirror) {
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0, "scale": [-1, 1, 1], "translation": [0, 0, 2]}],
+  "meshes": [{"primitives": [
+    {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3},
+    {"attributes": {"POSITION": 0, "TEXCOORD_0": 2}, "indices": 3}
+  ]}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  std::vector<std::string> warnings;
+  const SceneDescription desc = load_gltf_from_string(json, "", "mirror.gltf", &warnings);
+  const TriangleMesh& w = desc.world;
+  ASSERT_EQ(w.size(), 4u);
+  EXPECT_EQ(w.positions.size(), 8u);  // 4 + 4, not 3 per triangle
+  EXPECT_EQ(w.normals.size(), 8u);
+  EXPECT_EQ(w.uv[0].size(), 8u);
+  EXPECT_TRUE(w.uv[1].empty());
+  for (size_t i = 0; i < 4; ++i) {
+    const Triangle t = w.triangle(i);
+    EXPECT_EQ(t.has_normals, i < 2) << i;
+    EXPECT_EQ(t.has_uv[0], i >= 2) << i;
+    // The quad faces +z and the mirror is in x: the front face still faces +z.
+    EXPECT_FLOAT_EQ(t.ng.z, 1.f) << i;
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_FLOAT_EQ(t.p[k].z, 2.f);
+      if (t.has_normals) {
+        EXPECT_FLOAT_EQ(t.n[k].z, 1.f);
+      }
+    }
+  }
+  // Vertex 1 of the quad, (1, -1, 0), lands at (-1, -1, 2); its uv is (1, 1).
+  EXPECT_FLOAT_EQ(w.positions[1].x, -1.f);
+  EXPECT_FLOAT_EQ(w.uv[0][5].x, 1.f);
+  EXPECT_FLOAT_EQ(w.uv[0][5].y, 1.f);
+}
+
 TEST(Scene, NoCameraFramesBoundsFromPlusZ) {
   SceneDescription desc;
   desc.source = "no-camera";
@@ -135,10 +288,10 @@ TEST(Scene, NoCameraFramesBoundsFromPlusZ) {
   testing::add_quad(&desc, {-1, -1, 0}, {1, -1, 0}, {1, 1, 0}, {-1, 1, 0}, 0);
   Triangle degenerate;
   degenerate.p[0] = degenerate.p[1] = degenerate.p[2] = Vec3(1, 2, 3);
-  desc.triangles.push_back(degenerate);
+  desc.world.add(degenerate);
   std::vector<std::string> warnings;
   Scene scene(std::move(desc), &warnings);
-  EXPECT_EQ(scene.triangles().size(), 2u);
+  EXPECT_EQ(scene.world().size(), 2u);
   EXPECT_TRUE(any_contains(warnings, "no perspective camera"));
   EXPECT_TRUE(any_contains(warnings, "degenerate"));
   EXPECT_GT(scene.camera().position.z, 1.f);
@@ -159,11 +312,11 @@ TEST(Scene, CornellBoxExample) {
   const std::string path = std::string(RENDERFARM_EXAMPLES_DIR) + "/cornell-box.gltf";
   std::vector<std::string> warnings;
   auto scene = load_scene(path, &warnings);
-  EXPECT_GT(scene->triangles().size(), 30u);
+  EXPECT_GT(scene->world().size(), 30u);
   EXPECT_FALSE(scene->lights().empty());
   EXPECT_TRUE(scene->has_file_camera());
   bool red = false, green = false;
-  for (uint32_t i = 0; i < scene->triangles().size(); ++i) {
+  for (uint32_t i = 0; i < scene->world().size(); ++i) {
     const Vec3 a = scene->material(i).albedo;
     red = red || (a.x > 0.5f && a.y < 0.2f);
     green = green || (a.y > 0.3f && a.x < 0.2f);
@@ -207,7 +360,7 @@ TEST(Instancing, SharedMeshIsBuiltOnceAndLightsTheFloorCorrectly) {
   SceneDescription desc = load_gltf_from_string(json, "", "instances.gltf", &warnings);
   EXPECT_EQ(desc.meshes.size(), 1u);
   EXPECT_EQ(desc.instances.size(), 2u);
-  EXPECT_EQ(desc.triangles.size(), 2u);  // the floor, used once, is flattened
+  EXPECT_EQ(desc.world.size(), 2u);  // the floor, used once, is flattened
   desc.camera = testing::look_at({0.f, 0.f, 3.f}, {0.f, 0.f, 0.f}, 1e-4f);
   Scene scene(std::move(desc), &warnings);
   EXPECT_EQ(scene.mesh_count(), 1u);
@@ -325,7 +478,7 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
   {
     SceneDescription part;
     testing::add_sphere(&part, {0.f, 0.f, 0.f}, 0.5f, 0, 8, 16);
-    mesh.triangles = part.triangles;
+    mesh.geometry = part.world;
   }
   desc.meshes = {mesh};
   for (float sx : {1.f, -1.f}) {

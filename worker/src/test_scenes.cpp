@@ -20,8 +20,8 @@ void add_quad(SceneDescription* desc, Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32
   a.p[0] = p0, a.p[1] = p1, a.p[2] = p2;
   b.p[0] = p0, b.p[1] = p2, b.p[2] = p3;
   a.material = b.material = material;
-  desc->triangles.push_back(a);
-  desc->triangles.push_back(b);
+  desc->world.add(a);
+  desc->world.add(b);
 }
 
 void add_sphere(SceneDescription* desc, Vec3 center, float radius, uint32_t material, int rings,
@@ -40,8 +40,8 @@ void add_sphere(SceneDescription* desc, Vec3 center, float radius, uint32_t mate
       t0.p[0] = a, t0.p[1] = b, t0.p[2] = c;
       t1.p[0] = a, t1.p[1] = c, t1.p[2] = d;
       t0.material = t1.material = material;
-      desc->triangles.push_back(t0);  // the pole's degenerate ones are dropped by Scene
-      desc->triangles.push_back(t1);
+      desc->world.add(t0);  // the pole's degenerate ones are dropped by Scene
+      desc->world.add(t1);
     }
 }
 

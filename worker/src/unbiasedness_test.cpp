@@ -103,7 +103,9 @@ TEST(WhiteFurnace, AlbedoHalfSingleBounceAndInfiniteBounceSeries) {
   m.emission = Vec3(1.f, 1.f, 1.f);
   desc.materials.push_back(m);
   testing::add_sphere(&desc, {0, 0, 0}, 1.f, 0, 16, 32);
-  for (Triangle& t : desc.triangles) std::swap(t.p[1], t.p[2]);  // face inwards
+  // Face inwards: reverse every triangle's winding.
+  for (size_t i = 0; i < desc.world.size(); ++i)
+    std::swap(desc.world.indices[3 * i + 1], desc.world.indices[3 * i + 2]);
   desc.camera = testing::look_at({0.f, 0.f, 0.f}, {0.f, 0.f, -1.f}, 1.2f);
   Scene scene(std::move(desc));
   RenderSettings settings;
