@@ -2,11 +2,12 @@
 
 Writes a .glb of a wavy indexed grid (NORMAL, TEXCOORD_0, uint32 indices: the layout exporters
 produce) under an emissive quad to a temporary directory, renders it with
-`renderfarm-worker render` at a tiny size, and reports: the file size, the scene memory the
-worker prints (its triangle meshes, light tables and Embree's BVH), bytes per triangle, the
-process's peak RSS (getrusage of the child: includes the shared libraries, about 125 MB, and
-the glTF parser's copy of the file while loading) and the wall time of the whole run (load,
-BVH build and a 64x64, 1 spp render). Writes bench/results/scene_memory.json.
+`renderfarm-worker render` at a tiny size with each BVH layout (`--bvh fast` and
+`--bvh compact`), and reports per layout: the scene memory the worker prints (its triangle
+meshes, light tables and Embree's BVH), bytes per triangle, the worker process's peak RSS
+(wait4's figure for that child: it includes the shared libraries, about 125 MB, and the glTF
+parser's copy of the file while loading) and the wall time of the whole run (load, BVH build
+and a 64x64, 1 spp render). Writes bench/results/scene_memory.json.
 
 Environment: RENDERFARM_WORKER (binary, default build/worker/renderfarm-worker),
 BENCH_GRID (quads per side, default 1415: 4.0M triangles).
@@ -17,7 +18,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import resource
 import struct
 import subprocess
 import sys
@@ -117,48 +117,56 @@ def grid_glb(n: int, path: Path) -> int:
     return 2 * n * n + 2
 
 
+def run_worker(cmd: list[str], log: Path) -> tuple[int, str, int, float]:
+    """Runs cmd with stderr to log; returns its exit status, stderr, peak RSS in bytes (this
+    child's own, from wait4) and wall seconds."""
+    t0 = time.monotonic()
+    with open(log, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+    seconds = time.monotonic() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+    return proc.returncode, log.read_text(), usage.ru_maxrss * 1024, seconds  # KiB on Linux
+
+
 def main() -> dict:
     binary = Path(os.environ.get("RENDERFARM_WORKER", ROOT / "build/worker/renderfarm-worker"))
     if not binary.exists():
         sys.exit(f"{binary} not found: build the worker first (make worker)")
     grid = int(os.environ.get("BENCH_GRID", "1415"))
+    figures = {"benchmark": "scene_memory", "grid": grid, "layouts": {}}
     with tempfile.TemporaryDirectory(prefix="rf-scene-memory-") as tmp:
         scene = Path(tmp) / "grid.glb"
         triangles = grid_glb(grid, scene)
         file_bytes = scene.stat().st_size
-        cmd = [str(binary), "render", str(scene), "-o", str(Path(tmp) / "out.exr"),
-               "--spp", "1", "--width", "64", "--height", "64", "--threads", "2"]  # fmt: skip
-        t0 = time.monotonic()
-        run = subprocess.run(cmd, capture_output=True, text=True, check=False)
-        seconds = time.monotonic() - t0
-    if run.returncode != 0:
-        sys.exit(f"renderfarm-worker failed ({run.returncode}):\n{run.stderr}")
-    # The child is the only one this process has waited for: its peak RSS, in KiB on Linux.
-    peak_rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
-    m = re.search(r": (\d+) triangles \(([\d.]+) (kB|MB|GB) in memory\)", run.stderr)
-    if not m:
-        sys.exit(f"no scene line in the worker's output:\n{run.stderr}")
-    scale = {"kB": 1e3, "MB": 1e6, "GB": 1e9}[m.group(3)]
-    scene_bytes = float(m.group(2)) * scale
-    loaded = int(m.group(1))
-    figures = {
-        "benchmark": "scene_memory",
-        "grid": grid,
-        "triangles": loaded,
-        "file_bytes": file_bytes,
-        "scene_memory_bytes": scene_bytes,
-        "bytes_per_triangle": scene_bytes / loaded,
-        "peak_rss_bytes": peak_rss,
-        "seconds_load_build_render": seconds,
-        "command": " ".join(cmd[:2] + ["grid.glb"] + cmd[3:4] + ["out.exr"] + cmd[5:]),
-    }
-    if loaded != triangles:
-        sys.exit(f"the worker loaded {loaded} triangles, the file has {triangles}")
-    print(
-        f"{loaded:,} triangles ({file_bytes / 1e6:.0f} MB .glb): scene {scene_bytes / 1e6:.0f} MB "
-        f"in memory ({scene_bytes / loaded:.0f} bytes per triangle), peak RSS "
-        f"{peak_rss / 1e6:.0f} MB, load + build + render {seconds:.2f} s"
-    )
+        figures["triangles"] = triangles
+        figures["file_bytes"] = file_bytes
+        for bvh in ("fast", "compact"):
+            cmd = [str(binary), "render", str(scene), "-o", str(Path(tmp) / "out.exr"),
+                   "--spp", "1", "--width", "64", "--height", "64", "--threads", "2",
+                   "--bvh", bvh]  # fmt: skip
+            code, stderr, peak_rss, seconds = run_worker(cmd, Path(tmp) / "stderr.txt")
+            if code != 0:
+                sys.exit(f"renderfarm-worker failed ({code}):\n{stderr}")
+            m = re.search(r": (\d+) triangles \(([\d.]+) (kB|MB|GB) in memory\)", stderr)
+            if not m:
+                sys.exit(f"no scene line in the worker's output:\n{stderr}")
+            if int(m.group(1)) != triangles:
+                sys.exit(f"the worker loaded {m.group(1)} triangles, the file has {triangles}")
+            scene_bytes = float(m.group(2)) * {"kB": 1e3, "MB": 1e6, "GB": 1e9}[m.group(3)]
+            figures["layouts"][bvh] = {
+                "scene_memory_bytes": scene_bytes,
+                "bytes_per_triangle": scene_bytes / triangles,
+                "peak_rss_bytes": peak_rss,
+                "seconds_load_build_render": seconds,
+                "command": " ".join(["renderfarm-worker", "render", "grid.glb", *cmd[3:]]),
+            }
+            print(
+                f"--bvh {bvh:7}: {triangles:,} triangles ({file_bytes / 1e6:.0f} MB .glb): "
+                f"scene {scene_bytes / 1e6:.0f} MB in memory ({scene_bytes / triangles:.0f} "
+                f"bytes per triangle), peak RSS {peak_rss / 1e6:.0f} MB, load + build + render "
+                f"{seconds:.2f} s"
+            )
     out = write_results("scene_memory", figures)
     print(f"wrote {out.relative_to(ROOT)}")
     return figures

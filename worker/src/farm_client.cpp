@@ -340,18 +340,19 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
       for (const auto& w : warnings) log_line("warning: " + w);
       log_line("scene " + sha256.substr(0, 12) + ": " +
                std::to_string(scene->world_triangle_count()) + " triangles, " +
-               format_bytes(scene->memory_bytes()) + " in memory");
+               format_bytes(scene->memory_bytes()) + " in memory (" +
+               bvh_layout_name(options_.bvh) + " BVH)");
       return scene;
     };
     try {
-      return loaded(load_scene(path, &warnings));
+      return loaded(load_scene(path, &warnings, options_.bvh));
     } catch (const SceneError&) {
       // A cached file that no longer matches its name was damaged on disk: fetch it again.
       if (fetched || sha256_file_hex(path) == sha256) throw;
       log_line("cached scene " + path + " is corrupt; fetching it again");
       fs::remove(path);
       path = fetch_scene(sha256);
-      return loaded(load_scene(path, &warnings));
+      return loaded(load_scene(path, &warnings, options_.bvh));
     }
   });
 }

@@ -7,6 +7,8 @@
 #include <cstdint>
 #include <string>
 
+#include "scene.h"
+
 namespace rf {
 
 struct FarmOptions {
@@ -18,6 +20,7 @@ struct FarmOptions {
   std::string worker_id;   // Hello.worker_id
   std::string hostname;
   size_t scenes_in_memory = 4;  // loaded-scene LRU capacity
+  BvhLayout bvh = BvhLayout::Fast;  // how loaded scenes build their BVH
   // Reconnect backoff: initial, doubling up to max; reset after a successful Welcome.
   double backoff_initial_s = 0.5;
   double backoff_max_s = 10.0;

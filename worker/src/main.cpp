@@ -37,11 +37,11 @@ const char* kUsage =
     "      [--sampler sobol|halton|stratified|independent] [--integrator path|direct|ao]\n"
     "      [--max-depth D] [--aperture-radius R --focus-distance F]\n"
     "      [--environment MAP.hdr|MAP.exr [--environment-intensity X]\n"
-    "       [--environment-rotation-deg D]]\n"
+    "       [--environment-rotation-deg D]] [--bvh fast|compact]\n"
     "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
     "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
     "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
-    "      [--cache-dir DIR] [--token TOKEN] [--id ID]\n"
+    "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
     "  renderfarm-worker --help | --version\n";
 
 struct UsageError {
@@ -114,13 +114,21 @@ void check_output_path(const std::string& path) {
     throw UsageError{"-o " + path + ": directory " + dir.string() + " is not writable"};
 }
 
+// --bvh fast|compact (default fast): the layout of the scenes' Embree BVH.
+rf::BvhLayout parse_bvh_flag(std::map<std::string, std::string>& flags) {
+  rf::BvhLayout bvh = rf::BvhLayout::Fast;
+  if (flags.count("--bvh") && !rf::parse_bvh_layout(flags["--bvh"], &bvh))
+    throw UsageError{"unknown --bvh '" + flags["--bvh"] + "' (expected fast or compact)"};
+  return bvh;
+}
+
 int cmd_render(const std::vector<std::string>& args) {
   std::vector<std::string> positional;
   auto flags = parse_flags(args,
                            {"-o", "--spp", "--width", "--height", "--threads", "--seed",
                             "--sampler", "--integrator", "--max-depth", "--aperture-radius",
                             "--focus-distance", "--environment", "--environment-intensity",
-                            "--environment-rotation-deg"},
+                            "--environment-rotation-deg", "--bvh"},
                            &positional);
   if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
   if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
@@ -158,6 +166,7 @@ int cmd_render(const std::vector<std::string>& args) {
   if (!flags.count("--environment") &&
       (flags.count("--environment-intensity") || flags.count("--environment-rotation-deg")))
     throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
+  const rf::BvhLayout bvh = parse_bvh_flag(flags);
   const std::string& scene_path = positional[0];
   const std::string& out_path = flags["-o"];
   // Checked before the render, not after it: a long render must not be lost to a typo.
@@ -169,7 +178,7 @@ int cmd_render(const std::vector<std::string>& args) {
   std::vector<std::string> warnings;
   std::unique_ptr<rf::Scene> scene;
   try {
-    scene = rf::load_scene(scene_path, &warnings);
+    scene = rf::load_scene(scene_path, &warnings, bvh);
   } catch (const std::exception& e) {
     for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
     std::cerr << "error: " << e.what() << "\n";
@@ -265,7 +274,8 @@ extern "C" void on_stop_signal(int) { g_stop.store(true); }
 
 int cmd_connect(const std::vector<std::string>& args) {
   auto flags = parse_flags(
-      args, {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id"}, nullptr);
+      args, {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id", "--bvh"},
+      nullptr);
   if (!flags.count("--server") || flags["--server"].empty())
     throw UsageError{"connect needs --server HOST:PORT"};
   rf::FarmOptions options;
@@ -278,6 +288,7 @@ int cmd_connect(const std::vector<std::string>& args) {
   options.cache_dir =
       flags.count("--cache-dir") ? flags["--cache-dir"] : rf::default_scene_cache_dir();
   if (flags.count("--token")) options.token = flags["--token"];
+  options.bvh = parse_bvh_flag(flags);
   char host[256] = {0};
   if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "unknown");
   options.hostname = host;

@@ -146,7 +146,22 @@ bool count_embree_bytes(void* user, ssize_t bytes, bool /*post*/) {
 
 }  // namespace
 
-Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
+bool parse_bvh_layout(const std::string& name, BvhLayout* out) {
+  if (name == "fast") {
+    *out = BvhLayout::Fast;
+  } else if (name == "compact") {
+    *out = BvhLayout::Compact;
+  } else {
+    return false;
+  }
+  return true;
+}
+
+const char* bvh_layout_name(BvhLayout layout) {
+  return layout == BvhLayout::Compact ? "compact" : "fast";
+}
+
+Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayout bvh)
     : desc_(std::move(desc)), embree_(new Embree) {
   static_assert(sizeof(Vec3) == 3 * sizeof(float) && sizeof(Point2) == 2 * sizeof(float),
                 "Embree reads TriangleMesh::positions as packed float triples");
@@ -265,7 +280,10 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
   if (!embree_->device) throw SceneError(desc_.source + ": cannot create Embree device");
   rtcSetDeviceErrorFunction(embree_->device, embree_error, nullptr);
   rtcSetDeviceMemoryMonitorFunction(embree_->device, count_embree_bytes, &embree_->bytes);
+  const RTCSceneFlags scene_flags =
+      bvh == BvhLayout::Compact ? RTC_SCENE_FLAG_COMPACT : RTC_SCENE_FLAG_NONE;
   embree_->scene = rtcNewScene(embree_->device);
+  rtcSetSceneFlags(embree_->scene, scene_flags);
   if (!desc_.world.empty()) {
     RTCGeometry geom = triangle_geometry(embree_->device, desc_.world);
     const unsigned id = rtcAttachGeometry(embree_->scene, geom);
@@ -278,6 +296,7 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings)
     RTCScene ms = nullptr;
     if (!mesh.geometry.empty()) {
       ms = rtcNewScene(embree_->device);
+      rtcSetSceneFlags(ms, scene_flags);
       RTCGeometry geom = triangle_geometry(embree_->device, mesh.geometry);
       rtcAttachGeometry(ms, geom);
       rtcReleaseGeometry(geom);
@@ -598,8 +617,9 @@ Triangle TriangleMesh::triangle(size_t i) const {
   return t;
 }
 
-std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings) {
-  return std::make_unique<Scene>(load_gltf(path, warnings), warnings);
+std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
+                                  BvhLayout bvh) {
+  return std::make_unique<Scene>(load_gltf(path, warnings), warnings, bvh);
 }
 
 }  // namespace rf

@@ -241,6 +241,36 @@ TEST(Scene, MemoryBytesCountsGeometryAndBvh) {
   EXPECT_LT(total / n, 144.0);
 }
 
+// --bvh compact builds Embree's compact layout: the same closest hits (a ray through an edge
+// may name either triangle that shares it) in less memory.
+TEST(Scene, CompactBvhGivesTheSameHitsInLessMemory) {
+  const Scene fast(generate_bench_scene(50000), nullptr, BvhLayout::Fast);
+  const Scene compact(generate_bench_scene(50000), nullptr, BvhLayout::Compact);
+  EXPECT_LT(double(compact.memory_bytes()), 0.85 * double(fast.memory_bytes()));
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> uni(-1.f, 1.f);
+  int hits = 0, same_prim = 0;
+  const int n = 20000;
+  for (int i = 0; i < n; ++i) {
+    // From around the sphere towards its centre region, so that most rays hit it.
+    const Vec3 o(3.f * uni(rng), 1.05f + 3.f * uni(rng), 3.f * uni(rng));
+    const Vec3 d = normalize(Vec3(0.5f * uni(rng), 1.05f + 0.5f * uni(rng), 0.5f * uni(rng)) - o);
+    Hit a, b;
+    const bool ha = fast.intersect(o, d, 1e30f, &a), hb = compact.intersect(o, d, 1e30f, &b);
+    ASSERT_EQ(ha, hb) << i;
+    if (!ha) continue;
+    ++hits;
+    EXPECT_NEAR(a.t, b.t, 1e-5f * a.t) << i;
+    same_prim += a.prim == b.prim && a.slot == b.slot;
+  }
+  EXPECT_GT(hits, n / 2);
+  EXPECT_GE(same_prim, hits - hits / 1000);
+  BvhLayout parsed = BvhLayout::Fast;
+  EXPECT_TRUE(parse_bvh_layout("compact", &parsed));
+  EXPECT_EQ(parsed, BvhLayout::Compact);
+  EXPECT_FALSE(parse_bvh_layout("small", &parsed));
+}
+
 // The loader keeps glTF's indexing (a quad's 4 vertices are stored once, not per triangle),
 // writes each attribute for every vertex of a mesh once any primitive has it, with per-
 // triangle flags for the primitives that do, and flips the winding under a mirroring node so
