@@ -65,3 +65,24 @@ def test_worker_render_refuses_a_bad_output_before_rendering(worker_binary, tmp_
         assert done.returncode == 2, done.stderr
         assert says in done.stderr and "rendering" not in done.stderr
         assert not out.exists()
+
+
+def test_worker_render_bvh_layouts_give_the_same_image(worker_binary, tmp_path):
+    base = [worker_binary, "render", str(CORNELL), "--spp", "8", "--threads", "1"]
+    base += ["--width", "48", "--height", "36"]
+    images = {}
+    for bvh in ("fast", "compact"):
+        out = tmp_path / f"{bvh}.exr"
+        done = subprocess.run(
+            base + ["-o", str(out), "--bvh", bvh], capture_output=True, text=True, timeout=120
+        )
+        assert done.returncode == 0, done.stderr
+        assert " in memory)" in done.stderr  # the scene line reports its memory
+        images[bvh] = read_exr(str(out))
+    for name, fast in images["fast"].items():
+        np.testing.assert_array_equal(fast, images["compact"][name], err_msg=name)
+    bad = subprocess.run(
+        base + ["-o", str(tmp_path / "x.exr"), "--bvh", "small"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert bad.returncode == 2 and "fast or compact" in bad.stderr
