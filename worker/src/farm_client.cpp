@@ -73,7 +73,7 @@ class Worker {
         channel_(std::move(channel)),
         worker_stub_(pb::WorkerService::NewStub(channel_)),
         scene_stub_(pb::SceneService::NewStub(channel_)),
-        scenes_(options.scenes_in_memory) {}
+        scenes_(options.scenes_in_memory, options.scene_memory_budget) {}
 
   // One Connect stream from Hello to its end. Returns true if a Welcome was received.
   bool run_session(const std::atomic<bool>& stop);
@@ -464,6 +464,11 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
   auto channel =
       grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
   Worker worker(options, channel);
+  log_line("loaded scenes kept in memory: up to " + std::to_string(options.scenes_in_memory) +
+           (options.scene_memory_budget
+                ? " or " + format_bytes(options.scene_memory_budget) + " (--scene-memory-mb)"
+                : std::string()) +
+           ", " + bvh_layout_name(options.bvh) + " BVH");
   double backoff = options.backoff_initial_s;
   while (!stop) {
     if (worker.run_session(stop)) backoff = options.backoff_initial_s;

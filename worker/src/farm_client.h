@@ -20,6 +20,7 @@ struct FarmOptions {
   std::string worker_id;   // Hello.worker_id
   std::string hostname;
   size_t scenes_in_memory = 4;  // loaded-scene LRU capacity
+  size_t scene_memory_budget = 0;  // bytes of loaded scenes kept (SceneCache), 0: no limit
   BvhLayout bvh = BvhLayout::Fast;  // how loaded scenes build their BVH
   // Reconnect backoff: initial, doubling up to max; reset after a successful Welcome.
   double backoff_initial_s = 0.5;

@@ -42,6 +42,7 @@ const char* kUsage =
     "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
     "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
     "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
+    "      [--scene-memory-mb M]\n"
     "  renderfarm-worker --help | --version\n";
 
 struct UsageError {
@@ -274,7 +275,9 @@ extern "C" void on_stop_signal(int) { g_stop.store(true); }
 
 int cmd_connect(const std::vector<std::string>& args) {
   auto flags = parse_flags(
-      args, {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id", "--bvh"},
+      args,
+      {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id", "--bvh",
+       "--scene-memory-mb"},
       nullptr);
   if (!flags.count("--server") || flags["--server"].empty())
     throw UsageError{"connect needs --server HOST:PORT"};
@@ -289,6 +292,13 @@ int cmd_connect(const std::vector<std::string>& args) {
       flags.count("--cache-dir") ? flags["--cache-dir"] : rf::default_scene_cache_dir();
   if (flags.count("--token")) options.token = flags["--token"];
   options.bvh = parse_bvh_flag(flags);
+  // Loaded scenes kept in memory between tasks: half the machine's memory unless told.
+  const long pages = sysconf(_SC_PHYS_PAGES), page_size = sysconf(_SC_PAGESIZE);
+  options.scene_memory_budget =
+      flags.count("--scene-memory-mb")
+          ? size_t(parse_uint("--scene-memory-mb", flags["--scene-memory-mb"], 1, 1u << 30)) *
+                1000000
+          : (pages > 0 && page_size > 0 ? size_t(pages) * size_t(page_size) / 2 : 0);
   char host[256] = {0};
   if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "unknown");
   options.hostname = host;

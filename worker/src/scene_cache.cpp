@@ -1,5 +1,6 @@
 #include "scene_cache.h"
 
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 
@@ -62,8 +63,11 @@ std::shared_ptr<const Scene> SceneCache::get(const std::string& key, const Loade
       promise.set_value(scene);
       std::lock_guard<std::mutex> lock(mutex_);
       auto it = entries_.find(key);
-      if (it != entries_.end()) it->second.ready = true;
-      evict_locked();
+      if (it != entries_.end()) {
+        it->second.ready = true;
+        it->second.bytes = scene ? scene->memory_bytes() : 0;
+      }
+      evict_locked(key);
     } catch (...) {
       promise.set_exception(std::current_exception());
       std::lock_guard<std::mutex> lock(mutex_);
@@ -73,18 +77,32 @@ std::shared_ptr<const Scene> SceneCache::get(const std::string& key, const Loade
   return future.get();
 }
 
-void SceneCache::evict_locked() {
+size_t SceneCache::memory_bytes_locked() const {
+  size_t bytes = 0;
+  for (const auto& e : entries_) bytes += e.second.bytes;
+  return bytes;
+}
+
+void SceneCache::evict_locked(const std::string& keep) {
   // Drop the least recently used loaded scenes; callers still rendering keep theirs alive
   // through their shared_ptr.
-  while (entries_.size() > capacity_) {
+  while (entries_.size() > capacity_ ||
+         (memory_budget_ > 0 && memory_bytes_locked() > memory_budget_)) {
+    uint64_t newest = 0;
+    for (const auto& e : entries_) newest = std::max(newest, e.second.last_used);
     auto victim = entries_.end();
     for (auto it = entries_.begin(); it != entries_.end(); ++it)
-      if (it->second.ready && (victim == entries_.end() ||
-                               it->second.last_used < victim->second.last_used))
+      if (it->second.ready && it->first != keep && it->second.last_used != newest &&
+          (victim == entries_.end() || it->second.last_used < victim->second.last_used))
         victim = it;
     if (victim == entries_.end()) return;
     entries_.erase(victim);
   }
+}
+
+size_t SceneCache::memory_bytes() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return memory_bytes_locked();
 }
 
 size_t SceneCache::size() const {
