@@ -465,6 +465,7 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
       grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
   Worker worker(options, channel);
   log_line("loaded scenes kept in memory: up to " + std::to_string(options.scenes_in_memory) +
+           " scenes" +
            (options.scene_memory_budget
                 ? " or " + format_bytes(options.scene_memory_budget) + " (--scene-memory-mb)"
                 : std::string()) +

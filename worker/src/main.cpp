@@ -270,6 +270,20 @@ int cmd_bench(const std::vector<std::string>& args) {
   return 0;
 }
 
+// The memory this process may use: the machine's, or less under a cgroup limit (a container's
+// memory limit, v2 memory.max or v1 memory.limit_in_bytes). 0 if unknown.
+size_t available_memory() {
+  const long pages = sysconf(_SC_PHYS_PAGES), page_size = sysconf(_SC_PAGESIZE);
+  size_t bytes = pages > 0 && page_size > 0 ? size_t(pages) * size_t(page_size) : 0;
+  for (const char* path :
+       {"/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"}) {
+    std::ifstream in(path);
+    unsigned long long limit = 0;
+    if (in >> limit && limit > 0 && (bytes == 0 || limit < bytes)) bytes = size_t(limit);
+  }
+  return bytes;
+}
+
 std::atomic<bool> g_stop{false};
 extern "C" void on_stop_signal(int) { g_stop.store(true); }
 
@@ -292,13 +306,12 @@ int cmd_connect(const std::vector<std::string>& args) {
       flags.count("--cache-dir") ? flags["--cache-dir"] : rf::default_scene_cache_dir();
   if (flags.count("--token")) options.token = flags["--token"];
   options.bvh = parse_bvh_flag(flags);
-  // Loaded scenes kept in memory between tasks: half the machine's memory unless told.
-  const long pages = sysconf(_SC_PHYS_PAGES), page_size = sysconf(_SC_PAGESIZE);
+  // Loaded scenes kept in memory between tasks: half the worker's memory unless told.
   options.scene_memory_budget =
       flags.count("--scene-memory-mb")
           ? size_t(parse_uint("--scene-memory-mb", flags["--scene-memory-mb"], 1, 1u << 30)) *
                 1000000
-          : (pages > 0 && page_size > 0 ? size_t(pages) * size_t(page_size) / 2 : 0);
+          : available_memory() / 2;
   char host[256] = {0};
   if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "unknown");
   options.hostname = host;
