@@ -233,17 +233,26 @@ class FarmService:
         if not force and now < self._db_retry_at:
             return False
         try:
-            if self._pending_events:
+            # Both lists are taken at one instant: _after_change extends them together, so
+            # every finish taken here has its job_finished event in the batch, which is written
+            # first: a job is never stored as finished before its event. What arrives during
+            # the writes is written by the next pass (a few passes at most, so a steady stream
+            # of events cannot hold the background round here).
+            for _ in range(4):
                 batch = list(self._pending_events)
-                await self.store.add_events(batch)
-                del self._pending_events[: len(batch)]
-            while self._pending_finishes:
-                job_id = self._pending_finishes[0]
-                await self._persist_job(job_id, tiles=True)
-                points = self.history.get(job_id, [])
-                await self.store.add_events([(job_id, "convergence", {"points": points})])
-                self._pending_finishes.pop(0)
-                self._forget_later(job_id)
+                finishes = len(self._pending_finishes)
+                if not batch and not finishes:
+                    break
+                if batch:
+                    await self.store.add_events(batch)
+                    del self._pending_events[: len(batch)]
+                for _ in range(finishes):
+                    job_id = self._pending_finishes[0]
+                    await self._persist_job(job_id, tiles=True)
+                    points = self.history.get(job_id, [])
+                    await self.store.add_events([(job_id, "convergence", {"points": points})])
+                    self._pending_finishes.pop(0)
+                    self._forget_later(job_id)
             if force or now - self._last_checkpoint >= self.settings.checkpoint_interval_s:
                 await self.checkpoint(force=force)
         except (psycopg.Error, PoolTimeout, OSError) as e:

@@ -1,0 +1,51 @@
+"""FarmService.flush without a database: what it writes, in which order."""
+
+from __future__ import annotations
+
+import asyncio
+
+from renderfarm.config import Settings
+from renderfarm.service import FarmService
+
+
+class RecordingStore:
+    """Records add_events calls; `during` runs once, inside the first write (as a merge that
+    lands while the write awaits the database would)."""
+
+    def __init__(self):
+        self.log: list[tuple[str, object]] = []
+        self.during = None
+
+    async def add_events(self, batch):
+        self.log.append(("events", [(job, kind) for job, kind, _ in batch]))
+        if self.during:
+            hook, self.during = self.during, None
+            hook()
+        await asyncio.sleep(0)
+
+
+def test_a_job_is_never_stored_finished_before_its_event(tmp_path):
+    store = RecordingStore()
+    service = FarmService(Settings(data_dir=tmp_path), store)
+
+    async def persist(job_id, tiles):  # the job row with its final state
+        store.log.append(("job", job_id))
+
+    service._persist_job = persist
+    service._forget_later = lambda job_id: None
+    service._pending_events.append(("a", "tile_stopped", {}))
+
+    def job_b_finishes():  # what _after_change does when a job finishes: both lists at once
+        service._pending_events.append(("b", "job_finished", {}))
+        service._pending_finishes.append("b")
+
+    store.during = job_b_finishes
+    assert asyncio.run(service.flush(force=True))
+    order = [entry for entry in store.log if entry != ("events", [("b", "convergence")])]
+    assert order == [
+        ("events", [("a", "tile_stopped")]),
+        ("events", [("b", "job_finished")]),
+        ("job", "b"),
+    ]
+    # Everything that arrived during the flush was written by it.
+    assert not service._pending_events and not service._pending_finishes
