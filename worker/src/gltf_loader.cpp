@@ -4,12 +4,14 @@
 #include <tiny_gltf.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <optional>
 #include <fstream>
 #include <functional>
+#include <map>
 #include <set>
 
 #include "scene.h"
@@ -190,6 +192,20 @@ class Loader {
     }
   }
 
+  // The accessors of a primitive's vertex attributes (POSITION, NORMAL, TEXCOORD_0,
+  // TEXCOORD_1; -1 where absent). Primitives of one mesh with the same key share their
+  // vertices (exporters often give every material's primitive the whole vertex buffer).
+  using VertexKey = std::array<int, 4>;
+  static VertexKey vertex_key(const tinygltf::Primitive& prim) {
+    VertexKey key{-1, -1, -1, -1};
+    const char* names[4] = {"POSITION", "NORMAL", "TEXCOORD_0", "TEXCOORD_1"};
+    for (size_t i = 0; i < 4; ++i) {
+      const auto it = prim.attributes.find(names[i]);
+      if (it != prim.attributes.end()) key[i] = it->second;
+    }
+    return key;
+  }
+
   // Vertex and triangle counts of meshes, for reserving TriangleMesh arrays exactly (no
   // growth slack, no copies while a scene of millions of triangles loads). Accessors that are
   // invalid count as empty here; add_mesh reports them.
@@ -211,12 +227,13 @@ class Loader {
   }
   Counts mesh_counts(size_t mesh_index) const {
     Counts c;
+    std::set<VertexKey> seen;
     for (const tinygltf::Primitive& prim : model_.meshes[mesh_index].primitives) {
       if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) continue;
       const auto pos = prim.attributes.find("POSITION");
       if (pos == prim.attributes.end()) continue;
       const size_t nv = accessor_count(pos->second);
-      c.vertices += nv;
+      if (seen.insert(vertex_key(prim)).second) c.vertices += nv;
       c.triangles += (prim.indices >= 0 ? accessor_count(prim.indices) : nv) / 3;
       c.normals = c.normals || prim.attributes.count("NORMAL");
       c.uv[0] = c.uv[0] || prim.attributes.count("TEXCOORD_0");
@@ -537,9 +554,54 @@ class Loader {
     return v;
   }
 
+  // Appends a primitive's vertices to *out, transformed by world: *first is the index of the
+  // first, bad_normal[i] tells the vertices whose normal does not survive the transform (zero
+  // or non-finite), which take the normals of the triangles that use them away.
+  void append_vertices(const View& pos, const View* nrm, const View uvs[2], const bool has_uv[2],
+                       const Mat4& world, TriangleMesh* out, uint32_t* first,
+                       std::vector<bool>* bad_normal, const std::string& where) {
+    *first = uint32_t(out->positions.size());
+    if (size_t(*first) + pos.count > size_t(UINT32_MAX))
+      fail(where + ": more than 2^32 vertices in one mesh");
+    // Attribute arrays are written for every vertex once any primitive has them (zeros
+    // where a primitive has not).
+    const bool write_normals = out->use_normals(nrm != nullptr);
+    const bool write_uv[2] = {out->use_uv(0, has_uv[0]), out->use_uv(1, has_uv[1])};
+    if (nrm) bad_normal->assign(pos.count, false);
+    for (size_t vi = 0; vi < pos.count; ++vi) {
+      out->positions.push_back(world.transform_point(
+          {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))}));
+      if (write_normals) {
+        Vec3 n;
+        if (nrm) {
+          n = world.transform_normal(
+              {float(nrm->get(vi, 0)), float(nrm->get(vi, 1)), float(nrm->get(vi, 2))});
+          const float len = length(n);
+          if (len > 0.f && std::isfinite(len)) {
+            n = n / len;
+          } else {
+            n = Vec3();
+            (*bad_normal)[vi] = true;
+          }
+        }
+        out->normals.push_back(n);
+      }
+      for (int set = 0; set < 2; ++set)
+        if (write_uv[set])
+          out->uv[set].push_back(has_uv[set] ? uv_at(uvs[set], vi) : Point2{0.f, 0.f});
+    }
+  }
+
   void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out) {
     const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
     const bool mirror = world.det3() < 0.0;
+    // Vertices already appended for this mesh by an earlier primitive with the same
+    // attribute accessors: their first index, and which of them lost their normal.
+    struct Appended {
+      uint32_t first = 0;
+      std::vector<bool> bad_normal;
+    };
+    std::map<VertexKey, Appended> appended;
     for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
       const tinygltf::Primitive& prim = mesh.primitives[pi];
       const std::string where = "mesh " + std::to_string(mesh_index) + " ('" + mesh.name +
@@ -604,40 +666,13 @@ class Loader {
       }
       if (indices.size() % 3 != 0)
         warn(where + ": index count is not a multiple of 3; trailing indices ignored");
-      // The primitive's vertices, each transformed once, appended after the mesh's others.
-      const uint32_t first = uint32_t(out->positions.size());
-      if (size_t(first) + pos.count > size_t(UINT32_MAX))
-        fail(where + ": more than 2^32 vertices in one mesh");
-      // Attribute arrays are written for every vertex once any primitive has them (zeros
-      // where a primitive has not).
-      const bool write_normals = out->use_normals(has_normals);
-      const bool write_uv[2] = {out->use_uv(0, has_uv[0]), out->use_uv(1, has_uv[1])};
-      // A vertex whose normal does not survive the transform (zero or non-finite) takes the
-      // normals of the triangles that use it away.
-      std::vector<bool> bad_normal;
-      if (has_normals) bad_normal.assign(pos.count, false);
-      for (size_t vi = 0; vi < pos.count; ++vi) {
-        out->positions.push_back(world.transform_point(
-            {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))}));
-        if (write_normals) {
-          Vec3 n;
-          if (has_normals) {
-            n = world.transform_normal(
-                {float(nrm.get(vi, 0)), float(nrm.get(vi, 1)), float(nrm.get(vi, 2))});
-            const float len = length(n);
-            if (len > 0.f && std::isfinite(len)) {
-              n = n / len;
-            } else {
-              n = Vec3();
-              bad_normal[vi] = true;
-            }
-          }
-          out->normals.push_back(n);
-        }
-        for (int set = 0; set < 2; ++set)
-          if (write_uv[set])
-            out->uv[set].push_back(has_uv[set] ? uv_at(uvs[set], vi) : Point2{0.f, 0.f});
-      }
+      // The primitive's vertices, each transformed once, appended after the mesh's others
+      // (or those of an earlier primitive with the same attribute accessors).
+      const auto [entry, fresh] = appended.try_emplace(vertex_key(prim));
+      if (fresh) append_vertices(pos, has_normals ? &nrm : nullptr, uvs, has_uv, world, out,
+                                 &entry->second.first, &entry->second.bad_normal, where);
+      const uint32_t first = entry->second.first;
+      const std::vector<bool>& bad_normal = entry->second.bad_normal;
       const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
                                          (has_uv[1] ? TriangleMesh::kHasUv1 : 0));
       for (size_t t = 0; t + 2 < indices.size(); t += 3) {

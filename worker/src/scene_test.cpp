@@ -311,6 +311,32 @@ TEST(GltfLoader, IndexedPrimitivesShareVerticesUnderAMirror) {
   EXPECT_FLOAT_EQ(w.uv[0][5].y, 1.f);
 }
 
+// Primitives of one mesh that use the same attribute accessors (one per material, as
+// exporters often write them) share their vertices: stored once, not once per primitive.
+TEST(GltfLoader, PrimitivesWithTheSameAccessorsShareTheirVertices) {
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "materials": [{}, {"emissiveFactor": [1, 1, 1]}],
+  "meshes": [{"primitives": [
+    {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3, "material": 0},
+    {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3, "material": 1},
+    {"attributes": {"POSITION": 0}, "indices": 3, "material": 1}
+  ]}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  std::vector<std::string> warnings;
+  const SceneDescription desc = load_gltf_from_string(json, "", "shared.gltf", &warnings);
+  const TriangleMesh& w = desc.world;
+  ASSERT_EQ(w.size(), 6u);
+  EXPECT_EQ(w.positions.size(), 8u);  // 4 shared by the first two primitives, 4 for the third
+  for (size_t k = 0; k < 6; ++k) EXPECT_EQ(w.indices[6 + k], w.indices[k]);
+  EXPECT_GE(w.indices[12], 4u);
+  EXPECT_EQ(w.material[0], 0u);
+  EXPECT_EQ(w.material[2], 1u);
+  EXPECT_TRUE(w.flags[2] & TriangleMesh::kHasNormals);
+  EXPECT_FALSE(w.flags[4] & TriangleMesh::kHasNormals);
+}
+
 TEST(Scene, NoCameraFramesBoundsFromPlusZ) {
   SceneDescription desc;
   desc.source = "no-camera";
