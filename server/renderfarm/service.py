@@ -689,20 +689,22 @@ class FarmService:
             return
         # Snapshots are taken here, on the loop (cheap: accumulators are copy-on-write); the
         # bytes are made in a worker thread so merging is not stalled by large checkpoints.
-        snapshots = []
+        snapshots, taken = [], []  # taken: (tile, whether its AOVs were snapshotted too)
         if tiles:
             for t in job.tiles:
                 if t.dirty:
                     snapshots.append(_tile_snapshot(t, t.aovs_dirty))
+                    taken.append((t, t.aovs_dirty))
                     t.dirty = t.aovs_dirty = False
-        rows = await asyncio.to_thread(lambda: [_tile_row(*snap) for snap in snapshots])
         try:
+            rows = await asyncio.to_thread(lambda: [_tile_row(*snap) for snap in snapshots])
             await self.store.save_tiles(job_id, rows)
-        except Exception:
-            for r in rows:  # not written: write again next round
-                t = job.tiles[r.tile_index]
+        except BaseException:
+            # Not written (a database error, or the task cancelled mid-checkpoint by stop(),
+            # whose final checkpoint must then write these tiles): write them again.
+            for t, aovs in taken:
                 t.dirty = True
-                t.aovs_dirty |= r.aovs is not None
+                t.aovs_dirty |= aovs
             raise
         p = self.scheduler.progress(job)
         await self.store.update_job(

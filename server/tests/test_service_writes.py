@@ -1,10 +1,12 @@
-"""FarmService.flush without a database: what it writes, in which order."""
+"""FarmService's database writes without a database: what they write, in which order, and
+what happens when they are interrupted."""
 
 from __future__ import annotations
 
 import asyncio
 
 from renderfarm.config import Settings
+from renderfarm.jobspec import JobSettings
 from renderfarm.service import FarmService
 
 
@@ -49,3 +51,39 @@ def test_a_job_is_never_stored_finished_before_its_event(tmp_path):
     ]
     # Everything that arrived during the flush was written by it.
     assert not service._pending_events and not service._pending_finishes
+
+
+class StallingStore:
+    """save_tiles waits until cancelled, as a write to a slow database would when the server
+    stops."""
+
+    def __init__(self):
+        self.entered = asyncio.Event()
+
+    async def save_tiles(self, job_id, rows):
+        self.entered.set()
+        await asyncio.Event().wait()
+
+
+def test_a_checkpoint_cancelled_mid_write_leaves_its_tiles_to_the_next(tmp_path):
+    store = StallingStore()
+    service = FarmService(Settings(data_dir=tmp_path), store)
+    settings = JobSettings(width=16, height=16, tile_size=8, max_spp=4)
+    job = service.scheduler.add_job("j", settings, "0" * 64)
+    for t in job.tiles[:3]:
+        t.dirty = True
+    job.tiles[1].aovs_dirty = True
+
+    async def interrupted():
+        task = asyncio.create_task(service._persist_job("j", tiles=True))
+        await store.entered.wait()
+        task.cancel()
+        try:
+            await task
+        except asyncio.CancelledError:
+            pass
+
+    asyncio.run(interrupted())
+    # The next checkpoint (stop()'s last one) writes them: nothing merged is lost.
+    assert [t.dirty for t in job.tiles] == [True, True, True, False]
+    assert [t.aovs_dirty for t in job.tiles] == [False, True, False, False]
