@@ -48,6 +48,15 @@ void embree_error(void* /*user*/, RTCError code, const char* message) {
   std::fprintf(stderr, "embree error %d: %s\n", int(code), message ? message : "");
 }
 
+// The unit normal of the triangle's front (counter-clockwise) side in *n, and |cross(p1 - p0,
+// p2 - p0)|, twice its area; *n is left alone when that is 0 or not finite.
+float face_normal(Vec3 p0, Vec3 p1, Vec3 p2, Vec3* n) {
+  const Vec3 c = cross(p1 - p0, p2 - p0);
+  const float len = length(c);
+  if (len > 0.f && std::isfinite(len)) *n = c / len;
+  return len;
+}
+
 // Makes v's capacity its size + extra, copying it if it has more (or less) than that.
 template <typename T>
 void fit(std::vector<T>* v, size_t extra) {
@@ -88,12 +97,10 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
     if (mesh->uv[0].empty()) flags &= uint8_t(~TriangleMesh::kHasUv0);
     if (mesh->uv[1].empty()) flags &= uint8_t(~TriangleMesh::kHasUv1);
     const Vec3 p0 = mesh->positions[v[0]], p1 = mesh->positions[v[1]], p2 = mesh->positions[v[2]];
-    const Vec3 c = cross(p1 - p0, p2 - p0);
-    const float len = length(c);
+    const float len = face_normal(p0, p1, p2, &mesh->face_normals[kept]);
     if (!(len > 0.f) || !std::isfinite(len) || !is_finite(p0) || !is_finite(p1) ||
         !is_finite(p2))
       continue;
-    mesh->face_normals[kept] = c / len;
     if (kept != i) {
       for (int k = 0; k < 3; ++k) mesh->indices[3 * kept + size_t(k)] = v[k];
       mesh->material[kept] = mesh->material[i];
@@ -245,12 +252,10 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       const Triangle tri = mesh.triangle(i);
       Emitter e;
       for (int v = 0; v < 3; ++v) e.p[v] = inst.to_world.transform_point(tri.p[v]);
-      const Vec3 c = cross(e.p[1] - e.p[0], e.p[2] - e.p[0]);
-      const float len = length(c);
+      const float len = face_normal(e.p[0], e.p[1], e.p[2], &e.ng);
       if (!(len > 0.f) || !std::isfinite(len)) continue;
       // The front face stays the front face under mirroring transforms: follow the
       // transformed normal, not the (flipped) winding.
-      e.ng = c / len;
       if (dot(e.ng, inst.to_world.transform_normal(tri.ng)) < 0.f) e.ng = -e.ng;
       e.area = 0.5f * len;
       e.slot = 1 + k;
@@ -610,10 +615,7 @@ Triangle TriangleMesh::triangle(size_t i) const {
     for (int set = 0; set < 2; ++set)
       if (t.has_uv[set]) t.uv[set][k] = uv[set][vi[k]];
   }
-  const Vec3 c = cross(t.p[1] - t.p[0], t.p[2] - t.p[0]);
-  const float len = length(c);
-  t.area = 0.5f * len;
-  t.ng = len > 0.f ? c / len : Vec3();
+  t.area = 0.5f * face_normal(t.p[0], t.p[1], t.p[2], &t.ng);
   return t;
 }
 
