@@ -9,7 +9,8 @@ rate to the raw rate (targets: >= 0.6 and >= 1.8x), and writes
 bench/results/worker_throughput.json.
 
 Environment: RENDERFARM_WORKER (binary, default build/worker/renderfarm-worker),
-BENCH_SPP / BENCH_SIZE / BENCH_THREADS to change the workload.
+BENCH_SPP / BENCH_SIZE / BENCH_THREADS to change the workload, BENCH_SCENES (a comma-separated
+subset of cornell,mesh,instanced) to run only some of the scenes.
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ def main() -> dict:
         os.environ.get("BENCH_SPP", "32"),
         "--threads",
         os.environ.get("BENCH_THREADS", "1,2"),
+        "--scenes",
+        os.environ.get("BENCH_SCENES", "cornell,mesh,instanced"),
     ]
     subprocess.run(cmd, check=True)
     doc = json.loads(out.read_text())

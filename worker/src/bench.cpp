@@ -63,6 +63,8 @@ nlohmann::json bench_scene(const std::string& name, const Scene& scene,
   // Everything the scene holds (Scene::memory_bytes). Instances share their mesh's storage:
   // for the instanced scene this does not grow with `triangles`.
   out["scene_memory_bytes"] = scene.memory_bytes();
+  // 16: one native 16-wide Embree query per packet; 8: two 8-wide ones (no AVX-512).
+  out["packet_query_width"] = scene.packet_query_width();
   out["width"] = options.width;
   out["height"] = options.height;
   out["spp"] = options.spp;
@@ -272,12 +274,12 @@ std::string run_bench(const BenchOptions& options) {
   doc["hardware_threads"] = std::thread::hardware_concurrency();
   doc["targets"] = {{"ray_rate_vs_raw", 0.6}, {"scaling_1_to_2_threads", 1.8}};
   nlohmann::json scenes = nlohmann::json::array();
-  {
+  if (options.cornell) {
     std::vector<std::string> warnings;
     auto cornell = load_scene(options.cornell_path, &warnings);
     scenes.push_back(bench_scene("cornell", *cornell, options));
   }
-  {
+  if (options.mesh) {
     const auto t0 = Clock::now();
     Scene big(generate_bench_scene(options.mesh_triangles));
     const double build = seconds_since(t0);
@@ -290,7 +292,7 @@ std::string run_bench(const BenchOptions& options) {
     s["build_seconds"] = build;
     scenes.push_back(s);
   }
-  {
+  if (options.instanced) {
     const auto t0 = Clock::now();
     Scene forest(generate_instanced_bench_scene(options.instance_triangles, options.instance_grid));
     const double build = seconds_since(t0);

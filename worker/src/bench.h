@@ -20,6 +20,9 @@ struct BenchOptions {
   uint32_t width = 96, height = 96;
   uint32_t spp = 16;
   std::vector<uint32_t> threads = {1, 2};
+  // Which scenes to run (all by default): the Cornell box, the generated >= 1M-triangle mesh
+  // and the instanced scene.
+  bool cornell = true, mesh = true, instanced = true;
 };
 
 // A procedural scene: a displaced sphere of about `triangles` flat triangles on a floor under

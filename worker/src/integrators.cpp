@@ -343,7 +343,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       any = true;
       // This vertex's sample values, for every lane before the query: the lanes' latency-bound
       // hash chains are independent, so they overlap each other.
-      p.u = BounceSamples(p.s, bounce);
+      p.u.reset(p.s, bounce);
       rays.set(i, p.o, p.d, kInfinity);
       ++p.result.rays;
     }

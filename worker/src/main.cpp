@@ -40,6 +40,7 @@ const char* kUsage =
     "       [--environment-rotation-deg D]] [--bvh fast|compact]\n"
     "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
     "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
+    "      [--scenes cornell,mesh,instanced]\n"
     "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
     "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
     "      [--scene-memory-mb M]\n"
@@ -232,11 +233,10 @@ int cmd_render(const std::vector<std::string>& args) {
 int cmd_bench(const std::vector<std::string>& args) {
   auto flags = parse_flags(args,
                            {"--cornell", "--json", "--width", "--height", "--spp", "--triangles",
-                            "--threads"},
+                            "--threads", "--scenes"},
                            nullptr);
-  if (!flags.count("--cornell")) throw UsageError{"bench needs --cornell SCENE.gltf"};
   rf::BenchOptions options;
-  options.cornell_path = flags["--cornell"];
+  options.cornell_path = flags.count("--cornell") ? flags["--cornell"] : "";
   if (flags.count("--width")) options.width = uint32_t(parse_uint("--width", flags["--width"], 1, 8192));
   if (flags.count("--height"))
     options.height = uint32_t(parse_uint("--height", flags["--height"], 1, 8192));
@@ -256,6 +256,29 @@ int cmd_bench(const std::vector<std::string>& args) {
       pos = comma + 1;
     }
   }
+  if (flags.count("--scenes")) {
+    options.cornell = options.mesh = options.instanced = false;
+    std::string list = flags["--scenes"];
+    size_t pos = 0;
+    while (true) {
+      const size_t comma = list.find(',', pos);
+      const std::string item = list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos);
+      if (item == "cornell") {
+        options.cornell = true;
+      } else if (item == "mesh") {
+        options.mesh = true;
+      } else if (item == "instanced") {
+        options.instanced = true;
+      } else {
+        throw UsageError{"--scenes takes a comma-separated list of cornell, mesh and "
+                         "instanced, not '" + item + "'"};
+      }
+      if (comma == std::string::npos) break;
+      pos = comma + 1;
+    }
+  }
+  if (options.cornell && options.cornell_path.empty())
+    throw UsageError{"bench needs --cornell SCENE.gltf (or --scenes without cornell)"};
   const std::string json = rf::run_bench(options);
   if (flags.count("--json")) {
     std::ofstream out(flags["--json"]);

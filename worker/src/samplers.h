@@ -177,8 +177,12 @@ class BounceSamples {
  public:
   // No values: a placeholder to be assigned before use.
   BounceSamples() : stream_{nullptr, 0}, first_(0) {}
-  BounceSamples(const SampleStream& s, uint32_t bounce)
-      : stream_(s), first_(dim::bounce(bounce, 0)) {
+  BounceSamples(const SampleStream& s, uint32_t bounce) { reset(s, bounce); }
+  // Becomes BounceSamples(s, bounce) in place: the path tracer refills one per bounce, and
+  // building a temporary and copying it makes the copy's loads wait for value8's stores.
+  void reset(const SampleStream& s, uint32_t bounce) {
+    stream_ = s;
+    first_ = dim::bounce(bounce, 0);
     // value8 declines dimensions beyond its cache (bounce 15 and deeper) and other samplers.
     batched_ = s.sampler->value8(s.index, first_, values_);
   }

@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 
 namespace rf {
 
@@ -285,6 +286,8 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
   if (!embree_->device) throw SceneError(desc_.source + ": cannot create Embree device");
   rtcSetDeviceErrorFunction(embree_->device, embree_error, nullptr);
   rtcSetDeviceMemoryMonitorFunction(embree_->device, count_embree_bytes, &embree_->bytes);
+  packet_query_width_ =
+      rtcGetDeviceProperty(embree_->device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED) ? 16 : 8;
   const RTCSceneFlags scene_flags =
       bvh == BvhLayout::Compact ? RTC_SCENE_FLAG_COMPACT : RTC_SCENE_FLAG_NONE;
   embree_->scene = rtcNewScene(embree_->device);
@@ -398,62 +401,127 @@ bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
 
 namespace {
 
-// An Embree packet query's valid flags and rays: a copy of *rays, whose layout is RTCRay8's.
-// Active lanes go to the thread's ray log if one is installed.
-void fill_packet(RTCRay8* ray, int* valid, const RayPacket& rays, bool shadow) {
-  static_assert(offsetof(RayPacket, org_x) == offsetof(RTCRay8, org_x) &&
-                    offsetof(RayPacket, tnear) == offsetof(RTCRay8, tnear) &&
-                    offsetof(RayPacket, dir_x) == offsetof(RTCRay8, dir_x) &&
-                    offsetof(RayPacket, time) == offsetof(RTCRay8, time) &&
-                    offsetof(RayPacket, tfar) == offsetof(RTCRay8, tfar) &&
-                    offsetof(RayPacket, mask) == offsetof(RTCRay8, mask) &&
-                    offsetof(RayPacket, id) == offsetof(RTCRay8, id) &&
-                    offsetof(RayPacket, flags) == offsetof(RTCRay8, flags) &&
-                    offsetof(RayPacket, active) == sizeof(RTCRay8),
-                "RayPacket must have RTCRay8's layout");
-  std::memcpy(ray, &rays, sizeof(RTCRay8));
-  for (int i = 0; i < kPacketSize; ++i) valid[i] = rays.active[i] ? -1 : 0;
+// The valid flags and rays of an Embree packet query of width N (8 or 16) over lanes
+// [first, first + N) of *rays. Active lanes go to the thread's ray log if one is installed.
+template <int N, typename RayN>
+void fill_packet(RayN* ray, int* valid, const RayPacket& rays, int first, bool shadow) {
+  static_assert(offsetof(RayPacket, org_x) == offsetof(RTCRay16, org_x) &&
+                    offsetof(RayPacket, tnear) == offsetof(RTCRay16, tnear) &&
+                    offsetof(RayPacket, dir_x) == offsetof(RTCRay16, dir_x) &&
+                    offsetof(RayPacket, time) == offsetof(RTCRay16, time) &&
+                    offsetof(RayPacket, tfar) == offsetof(RTCRay16, tfar) &&
+                    offsetof(RayPacket, mask) == offsetof(RTCRay16, mask) &&
+                    offsetof(RayPacket, id) == offsetof(RTCRay16, id) &&
+                    offsetof(RayPacket, flags) == offsetof(RTCRay16, flags) &&
+                    offsetof(RayPacket, active) == sizeof(RTCRay16),
+                "RayPacket must have RTCRay16's layout");
+  static_assert(N == kPacketSize || N == kPacketSize / 2, "a whole packet or half of one");
+  if constexpr (N == kPacketSize) {
+    std::memcpy(ray, &rays, sizeof(RTCRay16));
+  } else {
+    const auto copy = [first](auto* to, const auto* from) {
+      std::memcpy(to, from + first, N * sizeof(*from));
+    };
+    copy(ray->org_x, rays.org_x);
+    copy(ray->org_y, rays.org_y);
+    copy(ray->org_z, rays.org_z);
+    copy(ray->tnear, rays.tnear);
+    copy(ray->dir_x, rays.dir_x);
+    copy(ray->dir_y, rays.dir_y);
+    copy(ray->dir_z, rays.dir_z);
+    copy(ray->time, rays.time);
+    copy(ray->tfar, rays.tfar);
+    copy(ray->mask, rays.mask);
+    copy(ray->id, rays.id);
+    copy(ray->flags, rays.flags);
+  }
+  for (int i = 0; i < N; ++i) valid[i] = rays.active[first + i] ? -1 : 0;
   if (tl_ray_log)
-    for (int i = 0; i < kPacketSize; ++i)
+    for (int i = first; i < first + N; ++i)
       if (rays.active[i])
         tl_ray_log->push_back({rays.origin(i), rays.direction(i), rays.tfar[i], shadow});
 }
 
+bool any_active(const RayPacket& rays, int first, int n) {
+  for (int i = first; i < first + n; ++i)
+    if (rays.active[i]) return true;
+  return false;
+}
+
+template <typename T>
+void rtc_intersect(const int* valid, RTCScene scene, RTCIntersectContext* context, T* rh) {
+  if constexpr (std::is_same_v<T, RTCRayHit16>) {
+    rtcIntersect16(valid, scene, context, rh);
+  } else {
+    rtcIntersect8(valid, scene, context, rh);
+  }
+}
+
+template <typename T>
+void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* context, T* ray) {
+  if constexpr (std::is_same_v<T, RTCRay16>) {
+    rtcOccluded16(valid, scene, context, ray);
+  } else {
+    rtcOccluded8(valid, scene, context, ray);
+  }
+}
+
 }  // namespace
 
-static_assert(kPacketSize == 8, "the packet queries are rtcIntersect8 / rtcOccluded8");
-
-void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
-  alignas(32) int valid[kPacketSize];
-  alignas(32) RTCRayHit8 rh;
-  fill_packet(&rh.ray, valid, rays, false);
-  for (int i = 0; i < kPacketSize; ++i) {
+template <int N, typename RayHitN>
+void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found) const {
+  alignas(64) int valid[N];
+  alignas(64) RayHitN rh;
+  fill_packet<N>(&rh.ray, valid, rays, first, false);
+  for (int i = 0; i < N; ++i) {
     rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
   }
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
-  rtcIntersect8(valid, embree_->scene, &context, &rh);
-  for (int i = 0; i < kPacketSize; ++i) {
-    if (!rays.active[i]) continue;
-    found[i] = rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID;
-    if (!found[i]) continue;
+  rtc_intersect(valid, embree_->scene, &context, &rh);
+  for (int i = 0; i < N; ++i) {
+    const int lane = first + i;
+    if (!rays.active[lane]) continue;
+    found[lane] = rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID;
+    if (!found[lane]) continue;
     complete_hit(rh.hit.geomID[i], rh.hit.instID[0][i], rh.hit.primID[i], rh.hit.u[i],
-                 rh.hit.v[i], rh.ray.tfar[i], &hits[i]);
+                 rh.hit.v[i], rh.ray.tfar[i], &hits[lane]);
   }
 }
 
-void Scene::occluded(const RayPacket& rays, bool* blocked) const {
-  alignas(32) int valid[kPacketSize];
-  alignas(32) RTCRay8 ray;
-  fill_packet(&ray, valid, rays, true);
+template <int N, typename RayN>
+void Scene::occluded_lanes(const RayPacket& rays, int first, bool* blocked) const {
+  alignas(64) int valid[N];
+  alignas(64) RayN ray;
+  fill_packet<N>(&ray, valid, rays, first, true);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
-  rtcOccluded8(valid, embree_->scene, &context, &ray);
+  rtc_occluded(valid, embree_->scene, &context, &ray);
   // Embree sets tfar to -inf in the lanes where it finds an occluder.
-  for (int i = 0; i < kPacketSize; ++i)
-    if (rays.active[i]) blocked[i] = ray.tfar[i] < 0.f;
+  for (int i = 0; i < N; ++i)
+    if (rays.active[first + i]) blocked[first + i] = ray.tfar[i] < 0.f;
+}
+
+void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
+  if (packet_query_width_ == kPacketSize) {
+    intersect_lanes<kPacketSize, RTCRayHit16>(rays, 0, hits, found);
+    return;
+  }
+  for (int first = 0; first < kPacketSize; first += kPacketSize / 2)
+    if (any_active(rays, first, kPacketSize / 2))
+      intersect_lanes<kPacketSize / 2, RTCRayHit8>(rays, first, hits, found);
+}
+
+void Scene::occluded(const RayPacket& rays, bool* blocked) const {
+  if (packet_query_width_ == kPacketSize) {
+    occluded_lanes<kPacketSize, RTCRay16>(rays, 0, blocked);
+    return;
+  }
+  for (int first = 0; first < kPacketSize; first += kPacketSize / 2)
+    if (any_active(rays, first, kPacketSize / 2))
+      occluded_lanes<kPacketSize / 2, RTCRay8>(rays, first, blocked);
 }
 
 void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,

@@ -142,18 +142,21 @@ struct SceneDescription {
   std::vector<TextureSource> textures;
 };
 
-// Up to kPacketSize rays queried together (one Embree packet query, rtcIntersect8 /
-// rtcOccluded8); lanes with active false are skipped. Each active lane's result is the one the
-// single-ray query gives for that ray. The rays are stored as arrays in the layout of Embree's
-// RTCRay8, so that a query copies them whole; the fields the renderer does not vary are set
-// once, here.
-constexpr int kPacketSize = 8;
+// Up to kPacketSize rays queried together; lanes with active false are skipped. Each active
+// lane's result is the one the single-ray query gives for that ray. The rays are stored as
+// arrays in the layout of Embree's RTCRay16, so that a query copies them whole; the fields the
+// renderer does not vary are set once, here. Where Embree has native 16-wide packet kernels
+// (AVX-512) a query is one rtcIntersect16 / rtcOccluded16; elsewhere it is two 8-wide queries
+// on the halves (Embree would otherwise emulate 16-wide packets through its stream interface,
+// which is slower).
+constexpr int kPacketSize = 16;
 struct RayPacket {
-  alignas(32) float org_x[kPacketSize] = {};
+  alignas(64) float org_x[kPacketSize] = {};
   float org_y[kPacketSize] = {}, org_z[kPacketSize] = {}, tnear[kPacketSize] = {};
   float dir_x[kPacketSize] = {}, dir_y[kPacketSize] = {}, dir_z[kPacketSize] = {};
   float time[kPacketSize] = {}, tfar[kPacketSize] = {};
-  uint32_t mask[kPacketSize] = {~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u};
+  uint32_t mask[kPacketSize] = {~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u,
+                                ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u};
   uint32_t id[kPacketSize] = {}, flags[kPacketSize] = {};
   bool active[kPacketSize] = {};
   // Lane i becomes active with the ray o + t d, t in (0, tmax).
@@ -219,6 +222,11 @@ class Scene {
   // are written for active lanes only.
   void intersect(const RayPacket& rays, Hit* hits, bool* found) const;
   void occluded(const RayPacket& rays, bool* blocked) const;
+  // How the packet queries reach Embree: 16 when one native 16-wide query serves a packet
+  // (the default where Embree reports native 16-wide support), 8 for two 8-wide queries. The
+  // results are the same either way; tests set both.
+  int packet_query_width() const { return packet_query_width_; }
+  void set_packet_query_width(int width) { packet_query_width_ = width == 16 ? 16 : 8; }
 
   const std::string& source() const { return desc_.source; }
   // The world triangles (meshes used by one node, in world space).
@@ -260,10 +268,16 @@ class Scene {
   std::vector<const TriangleMesh*> slot_mesh_;  // per slot: &desc_.world, then the meshes
   // The hit record of Embree's closest hit (geometry geom, inside instance inst or none,
   // triangle prim, barycentrics (u, v), distance t).
+  // One Embree packet query of width N over lanes [first, first + N) of a packet.
+  template <int N, typename RayHitN>
+  void intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found) const;
+  template <int N, typename RayN>
+  void occluded_lanes(const RayPacket& rays, int first, bool* blocked) const;
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                     Hit* hit) const;
   struct Embree;
   std::unique_ptr<Embree> embree_;
+  int packet_query_width_ = 8;
 };
 
 // "812.5 kB", "12.3 MB" or "1.23 GB" (powers of 10), for messages about memory_bytes.

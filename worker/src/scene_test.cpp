@@ -518,11 +518,14 @@ TEST(Instancing, FloatTransformEqualsDoubleMatrix) {
 namespace rf {
 namespace {
 
-// The packet queries (rtcIntersect8 / rtcOccluded8) return, lane by lane, what the single-ray
-// queries return: on world triangles and on instances (one mirrored), for rays that start
-// inside, outside and on the far side of the geometry, with finite and infinite tmax, and
-// with any set of active lanes. Inactive lanes' outputs are left as they were.
-TEST(Scene, PacketQueriesEqualSingleRayQueries) {
+// The packet queries (one 16-wide Embree query, or two 8-wide ones) return, lane by lane, what
+// the single-ray queries return: on world triangles and on instances (one mirrored), for rays
+// that start inside, outside and on the far side of the geometry, with finite and infinite
+// tmax, and with any set of active lanes (including a packet half with none). Inactive lanes'
+// outputs are left as they were.
+class PacketQueries : public ::testing::TestWithParam<int> {};
+
+TEST_P(PacketQueries, EqualSingleRayQueries) {
   SceneDescription desc;
   Material grey;
   grey.albedo = Vec3(0.5f, 0.5f, 0.5f);
@@ -547,6 +550,8 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
   }
   Scene scene(std::move(desc));
   ASSERT_EQ(scene.instance_count(), 2u);
+  scene.set_packet_query_width(GetParam());
+  ASSERT_EQ(scene.packet_query_width(), GetParam());
 
   std::mt19937 rng(7);
   std::uniform_real_distribution<float> coord(-4.f, 4.f), unit(0.f, 1.f);
@@ -562,6 +567,11 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
                unit(rng) < 0.5f ? std::numeric_limits<float>::infinity() : 8.f * unit(rng));
       rays.active[i] = unit(rng) < 0.7f;
     }
+    // Every fourth packet has an empty second half, every eighth an empty first half.
+    if (packet % 4 == 1)
+      for (int i = kPacketSize / 2; i < kPacketSize; ++i) rays.active[i] = false;
+    if (packet % 8 == 3)
+      for (int i = 0; i < kPacketSize / 2; ++i) rays.active[i] = false;
     Hit hits[kPacketSize];
     bool found[kPacketSize], blocked[kPacketSize];
     for (int i = 0; i < kPacketSize; ++i) {
@@ -607,6 +617,8 @@ TEST(Scene, PacketQueriesEqualSingleRayQueries) {
   EXPECT_LT(hits_found, compared);
   EXPECT_EQ(blocked_found, hits_found);
 }
+
+INSTANTIATE_TEST_SUITE_P(Scene, PacketQueries, ::testing::Values(8, 16));
 
 }  // namespace
 }  // namespace rf
