@@ -266,9 +266,10 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
     """PostgreSQL stops mid-job: the server keeps merging, reports unready, and once the
     database is back it catches up; the job, every merged sample, its tiles and its events
     are all stored. (A long job at low resolution, so it is still running when the database
-    goes away and comes back.)"""
-    settings = {"width": 48, "height": 48, "tile_size": 16, "max_spp": 6144, "noise_threshold": 0}
-    total = 48 * 48 * 6144
+    goes away; whether it is still running or has finished by the time the server notices the
+    outage depends on the renderer's speed, and both must be caught up on.)"""
+    settings = {"width": 48, "height": 48, "tile_size": 16, "max_spp": 12288, "noise_threshold": 0}
+    total = 48 * 48 * 12288
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
@@ -283,9 +284,9 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
             pg_ctl(pgdata, "stop", "-m", "fast", "-w")
             try:
                 during = merged()
+                assert during < total, "the job ended before the database went away"
                 wait_for(lambda: merged() > during, 60, "merging to go on without the database")
                 wait_for(lambda: not client.ready(), 30, "the server to report unready")
-                assert client.get(job["id"])["state"] == "running"
             finally:
                 pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"),
                         "-o", f'-h "" -k {pgdata}')  # fmt: skip
@@ -312,7 +313,7 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
         state, (tiles, min_samples), kinds = wait_for(
             lambda: stored() if stored()[0] == "completed" else None, 30, "the final state stored"
         )
-        assert tiles == 9 and min_samples == 6144
+        assert tiles == 9 and min_samples == settings["max_spp"]
         assert {"job_submitted", "job_started", "tile_stopped", "job_finished"} <= kinds
     # The server stops the cluster it was given back (started by pg_ctl, not by pgserver).
     assert not (data / "pg" / "postmaster.pid").exists()
