@@ -419,21 +419,15 @@ void fill_packet(RayN* ray, int* valid, const RayPacket& rays, int first, bool s
   if constexpr (N == kPacketSize) {
     std::memcpy(ray, &rays, sizeof(RTCRay16));
   } else {
-    const auto copy = [first](auto* to, const auto* from) {
-      std::memcpy(to, from + first, N * sizeof(*from));
-    };
-    copy(ray->org_x, rays.org_x);
-    copy(ray->org_y, rays.org_y);
-    copy(ray->org_z, rays.org_z);
-    copy(ray->tnear, rays.tnear);
-    copy(ray->dir_x, rays.dir_x);
-    copy(ray->dir_y, rays.dir_y);
-    copy(ray->dir_z, rays.dir_z);
-    copy(ray->time, rays.time);
-    copy(ray->tfar, rays.tfar);
-    copy(ray->mask, rays.mask);
-    copy(ray->id, rays.id);
-    copy(ray->flags, rays.flags);
+    // Both layouts are the same twelve 4-byte fields, each an array over the lanes: copy
+    // lanes [first, first + N) of each.
+    constexpr int kFields = 12;
+    static_assert(sizeof(RayN) == kFields * N * 4 && offsetof(RayN, flags) == (kFields - 1) * N * 4,
+                  "twelve 4-byte fields of N lanes each");
+    const auto* from = reinterpret_cast<const unsigned char*>(&rays);
+    auto* to = reinterpret_cast<unsigned char*>(ray);
+    for (int f = 0; f < kFields; ++f)
+      std::memcpy(to + f * N * 4, from + (f * kPacketSize + first) * 4, N * 4);
   }
   for (int i = 0; i < N; ++i) valid[i] = rays.active[first + i] ? -1 : 0;
   if (tl_ray_log)
