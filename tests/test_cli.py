@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -86,3 +87,25 @@ def test_worker_render_bvh_layouts_give_the_same_image(worker_binary, tmp_path):
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert bad.returncode == 2 and "fast or compact" in bad.stderr
+
+
+def test_worker_bench_runs_the_chosen_scenes_and_names_bad_ones(worker_binary, tmp_path):
+    out = tmp_path / "bench.json"
+    done = subprocess.run(
+        [worker_binary, "bench", "--scenes", "cornell", "--cornell", str(CORNELL)]
+        + ["--json", str(out), "--threads", "1", "--spp", "2", "--width", "16", "--height", "16"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    scenes = json.loads(out.read_text())["scenes"]
+    assert [s["scene"] for s in scenes] == ["cornell"]
+    assert scenes[0]["packet_query_width"] in (8, 16)
+    for args, says in (
+        (["--scenes", "cornell,teapot", "--cornell", str(CORNELL)], "not 'teapot'"),
+        (["--scenes", "cornell"], "needs --cornell"),
+        (["--threads", "1,,2", "--cornell", str(CORNELL)], "--threads"),
+    ):
+        bad = subprocess.run(
+            [worker_binary, "bench", *args], capture_output=True, text=True, timeout=60
+        )
+        assert bad.returncode == 2 and says in bad.stderr, bad.stderr

@@ -230,6 +230,18 @@ int cmd_render(const std::vector<std::string>& args) {
   return 0;
 }
 
+// "a,b,,c" -> {"a", "b", "", "c"}: empty items are kept, for the caller to reject.
+std::vector<std::string> split_commas(const std::string& list) {
+  std::vector<std::string> items;
+  size_t pos = 0;
+  for (;;) {
+    const size_t comma = list.find(',', pos);
+    items.push_back(list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos));
+    if (comma == std::string::npos) return items;
+    pos = comma + 1;
+  }
+}
+
 int cmd_bench(const std::vector<std::string>& args) {
   auto flags = parse_flags(args,
                            {"--cornell", "--json", "--width", "--height", "--spp", "--triangles",
@@ -246,23 +258,12 @@ int cmd_bench(const std::vector<std::string>& args) {
         uint32_t(parse_uint("--triangles", flags["--triangles"], 16, 100000000));
   if (flags.count("--threads")) {
     options.threads.clear();
-    std::string list = flags["--threads"];
-    size_t pos = 0;
-    while (pos <= list.size()) {
-      const size_t comma = list.find(',', pos);
-      const std::string item = list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos);
+    for (const std::string& item : split_commas(flags["--threads"]))
       options.threads.push_back(uint32_t(parse_uint("--threads", item, 1, 4096)));
-      if (comma == std::string::npos) break;
-      pos = comma + 1;
-    }
   }
   if (flags.count("--scenes")) {
     options.cornell = options.mesh = options.instanced = false;
-    std::string list = flags["--scenes"];
-    size_t pos = 0;
-    while (true) {
-      const size_t comma = list.find(',', pos);
-      const std::string item = list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos);
+    for (const std::string& item : split_commas(flags["--scenes"])) {
       if (item == "cornell") {
         options.cornell = true;
       } else if (item == "mesh") {
@@ -273,8 +274,6 @@ int cmd_bench(const std::vector<std::string>& args) {
         throw UsageError{"--scenes takes a comma-separated list of cornell, mesh and "
                          "instanced, not '" + item + "'"};
       }
-      if (comma == std::string::npos) break;
-      pos = comma + 1;
     }
   }
   if (options.cornell && options.cornell_path.empty())

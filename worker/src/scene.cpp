@@ -8,7 +8,6 @@
 #include <cstdio>
 #include <cstring>
 #include <limits>
-#include <type_traits>
 
 namespace rf {
 
@@ -442,22 +441,18 @@ bool any_active(const RayPacket& rays, int first, int n) {
   return false;
 }
 
-template <typename T>
-void rtc_intersect(const int* valid, RTCScene scene, RTCIntersectContext* context, T* rh) {
-  if constexpr (std::is_same_v<T, RTCRayHit16>) {
-    rtcIntersect16(valid, scene, context, rh);
-  } else {
-    rtcIntersect8(valid, scene, context, rh);
-  }
+// The Embree packet query of each width, chosen by overload.
+void rtc_intersect(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRayHit8* rh) {
+  rtcIntersect8(valid, scene, c, rh);
 }
-
-template <typename T>
-void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* context, T* ray) {
-  if constexpr (std::is_same_v<T, RTCRay16>) {
-    rtcOccluded16(valid, scene, context, ray);
-  } else {
-    rtcOccluded8(valid, scene, context, ray);
-  }
+void rtc_intersect(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRayHit16* rh) {
+  rtcIntersect16(valid, scene, c, rh);
+}
+void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRay8* ray) {
+  rtcOccluded8(valid, scene, c, ray);
+}
+void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRay16* ray) {
+  rtcOccluded16(valid, scene, c, ray);
 }
 
 }  // namespace
