@@ -99,13 +99,15 @@ LightSet::LightSet(std::vector<Emitter> emitters, const std::vector<Material>& m
     std::vector<float>& v = pdf_area_by_slot_[e.slot];
     if (v.size() <= e.prim) v.resize(e.prim + 1, 0.f);
     v[e.prim] = float(table_.pmf(uint32_t(li)) / double(e.area));
+    emitter_pdf_area_.push_back(v[e.prim]);
   }
 }
 
 size_t LightSet::memory_bytes() const {
   size_t n = emitters_.capacity() * sizeof(Emitter) +
              punctual_.capacity() * sizeof(PunctualLight) + emission_.capacity() * sizeof(Vec3) +
-             table_.memory_bytes() + pdf_area_by_slot_.capacity() * sizeof(std::vector<float>);
+             table_.memory_bytes() + pdf_area_by_slot_.capacity() * sizeof(std::vector<float>) +
+             emitter_pdf_area_.capacity() * sizeof(float);
   for (const std::vector<float>& v : pdf_area_by_slot_) n += v.capacity() * sizeof(float);
   return n;
 }
@@ -127,7 +129,7 @@ LightSample LightSet::sample(float u_select, float u, float v) const {
   s.p = e.p[0] * b.x + e.p[1] * b.y + e.p[2] * (1.f - b.x - b.y);
   s.n = e.ng;
   s.emission = emission_[li];
-  s.pdf_area = float(table_.pmf(li) / double(e.area));
+  s.pdf_area = emitter_pdf_area_[li];
   s.prim = e.prim;
   s.slot = e.slot;
   s.b1 = b.y;

@@ -107,6 +107,7 @@ class LightSet {
   std::vector<Vec3> emission_;  // per emitter
   AliasTable table_;  // emitters first, then punctual lights
   std::vector<std::vector<float>> pdf_area_by_slot_;
+  std::vector<float> emitter_pdf_area_;  // pdf_area of each emitter, as sample() returns it
   double total_power_ = 0.0;
 };
 

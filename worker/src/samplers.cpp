@@ -186,6 +186,7 @@ inline uint32_t sobol_finish(uint32_t y, uint32_t d, uint32_t scramble_seed) {
 // Domain tags keep the index-shuffle and value-scramble hashes independent.
 constexpr uint64_t kShuffleTag = 0x53485546464c4531ull;  // "SHUFFLE1"
 constexpr uint64_t kScrambleTag = 0x534352414d424c31ull;  // "SCRAMBL1"
+constexpr uint64_t kSobolKeyTag = 0x534f424f4c4b4559ull;  // "SOBOLKEY"
 constexpr uint64_t kIndependentTag = 0x494e444550454e44ull;  // "INDEPEND"
 constexpr uint64_t kJitterTag = 0x4a49545445523031ull;       // "JITTER01"
 constexpr uint64_t kLatinTag = 0x4c4154494e485950ull;        // "LATINHYP"
@@ -373,12 +374,29 @@ uint32_t Sampler::halton_value_bits(uint32_t sample_index, uint32_t dimension, u
                           mult_seed);
 }
 
+uint64_t Sampler::sobol_pixel_key(uint64_t pixel) const {
+  return mix64(mix64(seed_ ^ kSobolKeyTag) ^ pixel);
+}
+
+// The pixel's seeds are positions of a splitmix64 stream started at its key: mix64 adds the
+// golden-ratio increment itself, so seed (tag, n) is output number tag + n of that stream. The
+// shuffle and scramble tags are about 2^50 positions apart (no dimension reaches the other's), and different pixels' streams overlap only
+// if their random 64-bit keys do, so every seed is an independent-looking 64-bit hash at the
+// cost of one mix64 (four for hash4 of (seed, pixel, tag, dimension)).
+uint32_t Sampler::sobol_shuffle_seed_for(uint64_t key, uint32_t dimension) {
+  return uint32_t(mix64(key + (kShuffleTag + dimension / 2u) * 0x9e3779b97f4a7c15ull) >> 32);
+}
+
+uint32_t Sampler::sobol_scramble_seed_for(uint64_t key, uint32_t dimension) {
+  return uint32_t(mix64(key + (kScrambleTag + dimension) * 0x9e3779b97f4a7c15ull) >> 32);
+}
+
 uint32_t Sampler::sobol_shuffle_seed(uint64_t pixel, uint32_t dimension) const {
-  return uint32_t(hash4(seed_, pixel, kShuffleTag, dimension / 2u) >> 32);
+  return sobol_shuffle_seed_for(sobol_pixel_key(pixel), dimension);
 }
 
 uint32_t Sampler::sobol_scramble_seed(uint64_t pixel, uint32_t dimension) const {
-  return uint32_t(hash4(seed_, pixel, kScrambleTag, dimension) >> 32);
+  return sobol_scramble_seed_for(sobol_pixel_key(pixel), dimension);
 }
 
 uint32_t Sampler::sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t shuffle_seed,
@@ -396,8 +414,8 @@ void PixelSampler::fill_sobol_seeds(uint32_t dimension) const {
   uint64_t& valid = valid_[dimension / 64];
   if (valid & bit) return;
   if (dimension % 2u == 0 || !(valid & (bit >> 1)))
-    shuffle_[dimension / 2] = sampler_->sobol_shuffle_seed(pixel_, dimension);
-  scramble_[dimension] = sampler_->sobol_scramble_seed(pixel_, dimension);
+    shuffle_[dimension / 2] = Sampler::sobol_shuffle_seed_for(key_, dimension);
+  scramble_[dimension] = Sampler::sobol_scramble_seed_for(key_, dimension);
   valid |= bit;
 }
 

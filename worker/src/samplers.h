@@ -112,9 +112,14 @@ class Sampler {
     return fraction_to_float(bits(pixel, sample_index, dimension));
   }
   // The sobol sampler's two per-(pixel, dimension) seeds (index shuffle of the dimension's
-  // pair, value scramble of the dimension) and its value given them.
+  // pair, value scramble of the dimension) and its value given them. The seeds are hashes of
+  // the pixel's key (a hash of seed and pixel) with the dimension: the _for forms take the key,
+  // so that a pixel's many dimensions hash the (seed, pixel) pair once.
   uint32_t sobol_shuffle_seed(uint64_t pixel, uint32_t dimension) const;
   uint32_t sobol_scramble_seed(uint64_t pixel, uint32_t dimension) const;
+  uint64_t sobol_pixel_key(uint64_t pixel) const;
+  static uint32_t sobol_shuffle_seed_for(uint64_t key, uint32_t dimension);
+  static uint32_t sobol_scramble_seed_for(uint64_t key, uint32_t dimension);
   static uint32_t sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t shuffle_seed,
                              uint32_t scramble_seed);
   // The halton sampler's per-(pixel, dimension) random bits (digit shifts, digit multipliers)
@@ -135,7 +140,10 @@ class Sampler {
 // thread-safe (the cache is filled lazily): one per thread.
 class PixelSampler {
  public:
-  PixelSampler(const Sampler& sampler, uint64_t pixel) : sampler_(&sampler), pixel_(pixel) {}
+  PixelSampler(const Sampler& sampler, uint64_t pixel)
+      : sampler_(&sampler),
+        pixel_(pixel),
+        key_(sampler.type() == SamplerType::Sobol ? sampler.sobol_pixel_key(pixel) : 0) {}
   uint64_t pixel() const { return pixel_; }
   float value(uint32_t sample_index, uint32_t dimension) const;
   // The pair (value(i, d), value(i, d + 1)) for an even d. For sobol the two share the pair's
@@ -153,6 +161,7 @@ class PixelSampler {
   void fill_sobol_seeds(uint32_t dimension) const;
   const Sampler* sampler_;
   uint64_t pixel_;
+  uint64_t key_;  // Sampler::sobol_pixel_key(pixel_) (sobol only)
   mutable uint32_t shuffle_[kCachedDimensions / 2] = {};
   mutable uint32_t scramble_[kCachedDimensions] = {};
   mutable uint64_t halton_[kCachedDimensions][2] = {};
