@@ -382,5 +382,42 @@ TEST(Samplers, StratifiedAndHaltonValuesAreUniformOverTheRandomization) {
   }
 }
 
+// The sobol sampler's per-pixel seeds (hashes of the pixel's key with the dimension) must make
+// a pixel's dimensions independent of each other and of its neighbours': over many pixels, the
+// pairs (value of dimension a, value of dimension b) at one sample index, and (dimension a at
+// pixel p, dimension a at pixel p + 1), fill the unit square uniformly.
+TEST(Samplers, SobolSeedsDecorrelateDimensionsAndPixels) {
+  const Sampler s(SamplerType::Sobol, 5);
+  const int side = 16, n = 40000;
+  auto chi2 = [&](auto&& point) {
+    std::vector<double> count(side * side, 0.0);
+    for (int p = 0; p < n; ++p) {
+      const auto [u, v] = point(uint64_t(p) * 7919u);
+      count[size_t(int(u * side) * side + int(v * side))] += 1.0;
+    }
+    const double e = double(n) / (side * side);
+    double stat = 0.0;
+    for (double c : count) stat += (c - e) * (c - e) / e;
+    return stat;
+  };
+  for (uint32_t index : {0u, 3u, 64u}) {
+    for (auto [a, b] : {std::pair{0u, 1u}, {0u, 4u}, {4u, 12u}, {5u, 6u}, {2u, 100u},
+                        {8u, 9u}}) {
+      const double stat = chi2([&](uint64_t pixel) {
+        return std::pair{s.value(pixel, index, a), s.value(pixel, index, b)};
+      });
+      EXPECT_LT(stat, chi2_critical(side * side - 1))
+          << "index " << index << " dimensions " << a << ", " << b;
+    }
+    for (uint32_t d : {0u, 7u, 40u}) {
+      const double stat = chi2([&](uint64_t pixel) {
+        return std::pair{s.value(pixel, index, d), s.value(pixel + 1, index, d)};
+      });
+      EXPECT_LT(stat, chi2_critical(side * side - 1))
+          << "index " << index << " dimension " << d << " of neighbouring pixels";
+    }
+  }
+}
+
 }  // namespace
 }  // namespace rf
