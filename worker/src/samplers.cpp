@@ -378,11 +378,12 @@ uint64_t Sampler::sobol_pixel_key(uint64_t pixel) const {
   return mix64(mix64(seed_ ^ kSobolKeyTag) ^ pixel);
 }
 
-// The pixel's seeds are positions of a splitmix64 stream started at its key: mix64 adds the
+// The pixel's seeds are outputs of a splitmix64 stream started at its key: mix64 adds the
 // golden-ratio increment itself, so seed (tag, n) is output number tag + n of that stream. The
-// shuffle and scramble tags are about 2^50 positions apart (no dimension reaches the other's), and different pixels' streams overlap only
-// if their random 64-bit keys do, so every seed is an independent-looking 64-bit hash at the
-// cost of one mix64 (four for hash4 of (seed, pixel, tag, dimension)).
+// shuffle and scramble tags are about 2^50 outputs apart (no dimension reaches the other's),
+// and different pixels' streams overlap only if their random 64-bit keys nearly coincide, so
+// every seed is an independent-looking hash for one mix64 (hash4 of (seed, pixel, tag,
+// dimension) took four).
 uint32_t Sampler::sobol_shuffle_seed_for(uint64_t key, uint32_t dimension) {
   return uint32_t(mix64(key + (kShuffleTag + dimension / 2u) * 0x9e3779b97f4a7c15ull) >> 32);
 }
