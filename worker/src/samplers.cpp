@@ -356,8 +356,9 @@ uint32_t Sampler::bits(uint64_t pixel, uint32_t sample_index, uint32_t dimension
   // per-pixel, per-dimension seed. Pairs of higher Sobol dimensions are not (0, m, 2)-nets
   // (dimensions 2 and 3 share their first direction numbers), which is why pairs, not groups of
   // four, are padded.
-  return sobol_bits(sample_index, dimension, sobol_shuffle_seed(pixel, dimension),
-                    sobol_scramble_seed(pixel, dimension));
+  const uint64_t key = sobol_pixel_key(pixel);
+  return sobol_bits(sample_index, dimension, sobol_shuffle_seed(key, dimension),
+                    sobol_scramble_seed(key, dimension));
 }
 
 uint64_t Sampler::halton_shift_seed(uint64_t pixel, uint32_t dimension) const {
@@ -384,20 +385,12 @@ uint64_t Sampler::sobol_pixel_key(uint64_t pixel) const {
 // and different pixels' streams overlap only if their random 64-bit keys nearly coincide, so
 // every seed is an independent-looking hash for one mix64 (hash4 of (seed, pixel, tag,
 // dimension) took four).
-uint32_t Sampler::sobol_shuffle_seed_for(uint64_t key, uint32_t dimension) {
+uint32_t Sampler::sobol_shuffle_seed(uint64_t key, uint32_t dimension) {
   return uint32_t(mix64(key + (kShuffleTag + dimension / 2u) * 0x9e3779b97f4a7c15ull) >> 32);
 }
 
-uint32_t Sampler::sobol_scramble_seed_for(uint64_t key, uint32_t dimension) {
+uint32_t Sampler::sobol_scramble_seed(uint64_t key, uint32_t dimension) {
   return uint32_t(mix64(key + (kScrambleTag + dimension) * 0x9e3779b97f4a7c15ull) >> 32);
-}
-
-uint32_t Sampler::sobol_shuffle_seed(uint64_t pixel, uint32_t dimension) const {
-  return sobol_shuffle_seed_for(sobol_pixel_key(pixel), dimension);
-}
-
-uint32_t Sampler::sobol_scramble_seed(uint64_t pixel, uint32_t dimension) const {
-  return sobol_scramble_seed_for(sobol_pixel_key(pixel), dimension);
 }
 
 uint32_t Sampler::sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t shuffle_seed,
@@ -415,8 +408,8 @@ void PixelSampler::fill_sobol_seeds(uint32_t dimension) const {
   uint64_t& valid = valid_[dimension / 64];
   if (valid & bit) return;
   if (dimension % 2u == 0 || !(valid & (bit >> 1)))
-    shuffle_[dimension / 2] = Sampler::sobol_shuffle_seed_for(key_, dimension);
-  scramble_[dimension] = Sampler::sobol_scramble_seed_for(key_, dimension);
+    shuffle_[dimension / 2] = Sampler::sobol_shuffle_seed(key_, dimension);
+  scramble_[dimension] = Sampler::sobol_scramble_seed(key_, dimension);
   valid |= bit;
 }
 

@@ -112,14 +112,12 @@ class Sampler {
     return fraction_to_float(bits(pixel, sample_index, dimension));
   }
   // The sobol sampler's two per-(pixel, dimension) seeds (index shuffle of the dimension's
-  // pair, value scramble of the dimension) and its value given them. The seeds are hashes of
-  // the pixel's key (a hash of seed and pixel) with the dimension: the _for forms take the key,
-  // so that a pixel's many dimensions hash the (seed, pixel) pair once.
-  uint32_t sobol_shuffle_seed(uint64_t pixel, uint32_t dimension) const;
-  uint32_t sobol_scramble_seed(uint64_t pixel, uint32_t dimension) const;
+  // pair, value scramble of the dimension) and its value given them. The seeds hash the
+  // pixel's key (a hash of seed and pixel) with the dimension, so that a pixel's many
+  // dimensions hash the (seed, pixel) pair once.
   uint64_t sobol_pixel_key(uint64_t pixel) const;
-  static uint32_t sobol_shuffle_seed_for(uint64_t key, uint32_t dimension);
-  static uint32_t sobol_scramble_seed_for(uint64_t key, uint32_t dimension);
+  static uint32_t sobol_shuffle_seed(uint64_t key, uint32_t dimension);
+  static uint32_t sobol_scramble_seed(uint64_t key, uint32_t dimension);
   static uint32_t sobol_bits(uint32_t sample_index, uint32_t dimension, uint32_t shuffle_seed,
                              uint32_t scramble_seed);
   // The halton sampler's per-(pixel, dimension) random bits (digit shifts, digit multipliers)
