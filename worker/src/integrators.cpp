@@ -144,20 +144,27 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
 }
 
 // A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
-// origin + t wi for t in (0, tmax).
+// origin + t wi for t in (0, tmax). Between the halves of a vertex's shading (see
+// shade_vertex_begin) the BSDF value of a non-delta light sample is still pending in the
+// packet's BsdfEvalBatch: the contribution is then f L w / pdf with f from slot `slot`.
 struct LightRay {
   Vec3 origin, wi;
   float tmax = 0.f;
   Vec3 contribution;
+  int slot = -1;       // BsdfEvalBatch slot of f and the BSDF pdf of wi (-1: contribution set)
+  Vec3 radiance;       // L arriving along wi if unblocked (pending only)
+  float pdf_light = 0.f;  // solid-angle pdf of wi from light selection and sampling (pending)
 };
 
 // Next-event estimation: one light (or the environment) chosen by power, its contribution
 // f cos L / pdf, MIS-weighted against BSDF sampling with the power heuristic unless the light
 // is a delta light. False if the sample contributes nothing whatever the visibility (no shadow
-// ray is needed); otherwise *out holds the shadow ray and the unoccluded contribution.
+// ray is needed); otherwise *out holds the shadow ray and either the unoccluded contribution
+// (delta lights) or, for lights with a pdf, the BSDF evaluation queued in *batch that
+// finish_light_sample turns into the contribution.
 bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
-                  const BsdfLobes& lobes, const Frame& frame, Vec3 wo_local,
-                  const BounceSamples& s, LightRay* out) {
+                  const Frame& frame, Vec3 wo_local, const BounceSamples& s,
+                  BsdfEvalBatch* batch, int lane, LightRay* out) {
   float u_sel = s.get(dim::kLightSelect);
   const Point2 u = s.get2(dim::kLightU);
   const Vec3 origin = sp.above();
@@ -167,13 +174,11 @@ bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
     const Vec3 wi = lc.env->sample(u, &pdf);
     pdf *= lc.p_env;
     if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return false;
-    float bsdf_pdf_wi = 0.f;
-    const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
-    if (is_zero(f)) return false;
-    const float w = power_heuristic(pdf, bsdf_pdf_wi);
     out->wi = wi;
     out->tmax = kInfinity;
-    out->contribution = f * lc.env->eval(wi) * (w / pdf);
+    out->radiance = lc.env->eval(wi);
+    out->pdf_light = pdf;
+    out->slot = batch->add(lane, 0, frame.to_local(wi));
     return true;
   }
   const LightSet& lights = scene.lights();
@@ -206,6 +211,7 @@ bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
     out->wi = wi;
     out->tmax = tmax;
     out->contribution = f * Li * (1.f / pdf);
+    out->slot = -1;
     return true;
   }
   const Vec3 to_light = ls.p - origin;
@@ -215,18 +221,24 @@ bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
   const Vec3 wi = to_light / dist;
   const float cos_light = dot(ls.n, -wi);
   if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return false;
-  float bsdf_pdf_wi = 0.f;
-  const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
-  if (is_zero(f)) return false;
-  const float pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
   // Stop short of the light's own surface so it does not occlude itself.
   const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
   if (!(tmax > 0.f)) return false;
-  const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
-  const Vec3 Le = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
   out->wi = wi;
   out->tmax = tmax;
-  out->contribution = f * Le * (w / pdf_light);
+  out->radiance = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
+  out->pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
+  out->slot = batch->add(lane, 0, frame.to_local(wi));
+  return true;
+}
+
+// The contribution of a light sample whose BSDF evaluation was queued, once the batch has been
+// evaluated; false if it contributes nothing (f = 0).
+bool finish_light_sample(const BsdfEvalBatch& batch, LightRay* light) {
+  const Vec3 f = batch.f(light->slot);
+  if (is_zero(f)) return false;
+  const float w = power_heuristic(light->pdf_light, batch.pdf(light->slot));
+  light->contribution = f * light->radiance * (w / light->pdf_light);
   return true;
 }
 
@@ -242,15 +254,29 @@ struct PathState {
   bool alive = false;
   BounceSamples u;  // this bounce's sample values
   Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
+  // Between the halves of a vertex's shading (shade_vertex_begin, then shade_vertex_end_light
+  // and shade_vertex_end_bsdf):
+  bool has_light = false;  // `light` holds a light sample (its f may be pending)
+  LightRay light;
+  int bsdf_slot = -2;      // BsdfEvalBatch slot of the sampled direction's f and pdf; -1: the
+                           // sample (glass) is complete; -2: the path ends at this vertex
+  BsdfSample bs;
+  Vec3 next_o, next_d;     // the next ray if the path goes on
 };
 
-// Everything one path does at the vertex its ray found (hit null: the ray escaped): emission,
-// Russian roulette, the light sample (its shadow ray goes into lane `lane` of *shadow) and the
-// BSDF sample that gives the next ray. Clears p.alive when the path ends here.
-void shade_vertex(const Scene& scene, const LightContext& lc, PathState& p, const Hit* hit,
-                  uint32_t bounce, uint32_t max_depth, RayPacket* shadow, int lane) {
+// The first half of what a path does at the vertex its ray found (hit null: the ray escaped):
+// emission, Russian roulette, the light sample and the BSDF sample's direction. The BSDF values
+// both samples need are queued in *batch (one evaluation for a packet's lanes together);
+// shade_vertex_end_light and shade_vertex_end_bsdf finish the vertex once the batch has been
+// evaluated.
+void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
+                        const Hit* hit, uint32_t bounce, uint32_t max_depth,
+                        BsdfEvalBatch* batch, int lane) {
   const Vec3 d = p.d;
   SampleResult& result = p.result;
+  p.alive = false;
+  p.has_light = false;
+  p.bsdf_slot = -2;
   if (!hit) {
     if (lc.env) {
       const Vec3 L = lc.env->eval(d);
@@ -258,7 +284,6 @@ void shade_vertex(const Scene& scene, const LightContext& lc, PathState& p, cons
           p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
       result.radiance += p.beta * L * w;
     }
-    p.alive = false;
     return;
   }
   const Vec3 wo = -d;
@@ -282,7 +307,6 @@ void shade_vertex(const Scene& scene, const LightContext& lc, PathState& p, cons
       result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
     }
   }
-  p.alive = false;
   if (bounce >= max_depth) return;
   const BounceSamples& u = p.u;
   // Russian roulette after 3 bounces; dividing by the survival probability keeps the
@@ -295,72 +319,112 @@ void shade_vertex(const Scene& scene, const LightContext& lc, PathState& p, cons
   const Frame frame(sp.ns);
   const Vec3 wo_local = frame.to_local(wo);
   const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
-  LightRay light;
-  if (lc.any && bsdf_has_smooth_part(sp.params) &&
-      sample_light(scene, lc, sp, lobes, frame, wo_local, u, &light)) {
-    shadow->set(lane, light.origin, light.wi, light.tmax);
-    p.nee = p.beta * light.contribution;
-    ++result.rays;
-  }
+  batch->set_vertex(lane, sp.params, lobes, wo_local);
+  p.has_light = lc.any && bsdf_has_smooth_part(sp.params) &&
+                sample_light(scene, lc, sp, frame, wo_local, u, batch, lane, &p.light);
 
-  BsdfSample bs;
-  if (!bsdf_sample(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
-                   // Read only by the glass lobe: skipped (any value would do) without one.
-                   lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs))
-    return;
+  BsdfSample& bs = p.bs;
+  const BsdfSampleStep step =
+      bsdf_sample_direction(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
+                            // Read only by the glass lobe: skipped (any value would do) without
+                            // one.
+                            lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
+  if (step == BsdfSampleStep::Failed) return;
   const Vec3 wi = normalize(frame.to_world(bs.wi));
   // Directions on the wrong side of the geometric surface (possible with shading normals)
   // would leak light through it: end the path there.
   const float side = dot(wi, sp.ng);
   if (bs.transmitted ? side >= 0.f : side <= 0.f) return;
+  p.next_o = bs.transmitted ? sp.below() : sp.above();
+  p.next_d = wi;
+  p.bsdf_slot = step == BsdfSampleStep::Done ? -1 : batch->add(lane, 1, bs.wi);
+}
+
+// The second half, in two parts for the lanes that need them. The light sample's shadow ray
+// goes into lane `lane` of *shadow (p.has_light)...
+void shade_vertex_end_light(PathState& p, const BsdfEvalBatch& batch, RayPacket* shadow,
+                            int lane) {
+  if (p.light.slot < 0 || finish_light_sample(batch, &p.light)) {
+    shadow->set(lane, p.light.origin, p.light.wi, p.light.tmax);
+    p.nee = p.beta * p.light.contribution;
+    ++p.result.rays;
+  }
+}
+
+// ... then, if p.bsdf_slot != -2, the BSDF sample gives the next ray (p.alive) unless the path
+// ends here. It runs after the light part, whose throughput is the one before this vertex's
+// BSDF.
+void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
+  BsdfSample& bs = p.bs;
+  if (p.bsdf_slot >= 0 && !bsdf_sample_finish(batch.f(p.bsdf_slot), batch.pdf(p.bsdf_slot), &bs))
+    return;
   if (is_zero(bs.weight)) return;
   p.beta *= bs.weight;
   p.prev_bsdf_pdf = bs.pdf;
   p.prev_delta = bs.delta;
-  p.o = bs.transmitted ? sp.below() : sp.above();
-  p.d = wi;
+  p.o = p.next_o;
+  p.d = p.next_d;
   p.alive = true;
 }
 
 // Traces the live paths of paths[0, kPacketSize) together, bounce by bounce: the rays of a
-// bounce go to Embree as one packet query and their shadow rays as another. Each path computes
-// exactly what it would alone (the same sample values, the same sums in the same order); the
-// packets only let Embree share traversal between similar rays (a pixel's camera rays, shadow
-// rays towards the same light) and let the shading of independent paths overlap.
+// bounce go to Embree as one packet query and their shadow rays as another, and the BSDF
+// evaluations of the bounce's vertices are computed together. Each path computes exactly what
+// it would alone (the same sample values, the same sums in the same order); the packets only
+// let Embree share traversal between similar rays (a pixel's camera rays, shadow rays towards
+// the same light) and let the shading of independent paths overlap.
 void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
                  uint32_t max_depth) {
+  static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
   RayPacket rays, shadow;
   Hit hits[kPacketSize];
   bool found[kPacketSize], blocked[kPacketSize];
+  BsdfEvalBatch batch;
+  // Lanes are visited through bit masks of the live ones: whether a path is still alive is
+  // data the branch predictor cannot learn, and a branch per lane per loop mispredicts often.
   for (uint32_t bounce = 0;; ++bounce) {
-    bool any = false;
+    uint32_t live = 0;
     for (int i = 0; i < kPacketSize; ++i) {
-      PathState& p = paths[i];
-      if (!p.alive) {
-        rays.active[i] = false;
-        continue;
-      }
-      any = true;
+      rays.active[i] = paths[i].alive;
+      shadow.active[i] = false;
+      live |= uint32_t(paths[i].alive) << i;
+    }
+    if (!live) return;
+    for (uint32_t m = live; m; m &= m - 1) {
+      PathState& p = paths[__builtin_ctz(m)];
       // This vertex's sample values, for every lane before the query: the lanes' latency-bound
       // hash chains are independent, so they overlap each other.
       p.u.reset(p.s, bounce);
-      rays.set(i, p.o, p.d, kInfinity);
+      rays.set(__builtin_ctz(m), p.o, p.d, kInfinity);
       ++p.result.rays;
     }
-    if (!any) return;
     scene.intersect(rays, hits, found);
-    bool any_shadow = false;
-    for (int i = 0; i < kPacketSize; ++i) {
-      shadow.active[i] = false;
-      if (!rays.active[i]) continue;
-      shade_vertex(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
-                   &shadow, i);
-      any_shadow = any_shadow || shadow.active[i];
+    batch.clear();
+    for (uint32_t m = live; m; m &= m - 1) {
+      const int i = __builtin_ctz(m);
+      shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
+                         &batch, i);
     }
-    if (!any_shadow) continue;
+    batch.evaluate();
+    uint32_t with_light = 0, going_on = 0;
+    for (int i = 0; i < kPacketSize; ++i) {
+      with_light |= uint32_t(paths[i].has_light) << i;
+      going_on |= uint32_t(paths[i].bsdf_slot != -2) << i;
+    }
+    for (uint32_t m = with_light & live; m; m &= m - 1) {
+      const int i = __builtin_ctz(m);
+      shade_vertex_end_light(paths[i], batch, &shadow, i);
+    }
+    for (uint32_t m = going_on & live; m; m &= m - 1)
+      shade_vertex_end_bsdf(paths[__builtin_ctz(m)], batch);
+    uint32_t shadowed = 0;
+    for (int i = 0; i < kPacketSize; ++i) shadowed |= uint32_t(shadow.active[i]) << i;
+    if (!shadowed) continue;
     scene.occluded(shadow, blocked);
-    for (int i = 0; i < kPacketSize; ++i)
-      if (shadow.active[i] && !blocked[i]) paths[i].result.radiance += paths[i].nee;
+    for (; shadowed; shadowed &= shadowed - 1) {
+      PathState& p = paths[__builtin_ctz(shadowed)];
+      if (!blocked[__builtin_ctz(shadowed)]) p.result.radiance += p.nee;
+    }
   }
 }
 

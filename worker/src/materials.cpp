@@ -230,7 +230,22 @@ bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_f
 
 bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, float u_lobe,
                  float u_fresnel, BsdfSample* out) {
-  if (wo.z <= 0.f) return false;
+  switch (bsdf_sample_direction(p, l, wo, u, u_lobe, u_fresnel, out)) {
+    case BsdfSampleStep::Failed:
+      return false;
+    case BsdfSampleStep::Done:
+      return true;
+    case BsdfSampleStep::NeedsEval:
+      break;
+  }
+  float pdf = 0.f;
+  const Vec3 f = bsdf_eval_pdf(p, l, wo, out->wi, &pdf);
+  return bsdf_sample_finish(f, pdf, out);
+}
+
+BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                     Point2 u, float u_lobe, float u_fresnel, BsdfSample* out) {
+  if (wo.z <= 0.f) return BsdfSampleStep::Failed;
   if (u_lobe < l.glass) {
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
     // the indices across the interface in the direction of travel of wi.
@@ -242,7 +257,7 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
       out->wi = Vec3(-wo.x, -wo.y, wo.z);
       out->weight = Vec3(1.f, 1.f, 1.f);
       out->transmitted = false;
-      return true;
+      return BsdfSampleStep::Done;
     }
     const float sin_t2 = (1.f - wo.z * wo.z) / (eta * eta);
     const float cos_t = std::sqrt(std::max(0.f, 1.f - sin_t2));
@@ -251,7 +266,7 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
     // the transmitted light is tinted by the base color (glTF transmission).
     out->weight = p.base * (1.f / (eta * eta));
     out->transmitted = true;
-    return true;
+    return BsdfSampleStep::Done;
   }
   // Non-delta lobes: reuse u_lobe, rescaled, to choose GGX or diffuse.
   const float u_rest = l.glass < 1.f ? (u_lobe - l.glass) / (1.f - l.glass) : 0.f;
@@ -262,17 +277,102 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
   } else {
     wi = sample_cosine_hemisphere(u);
   }
-  if (wi.z <= 0.f) return false;
-  wi = normalize(wi);
-  float pdf = 0.f;
-  const Vec3 f = bsdf_eval_pdf(p, l, wo, wi, &pdf);
+  if (wi.z <= 0.f) return BsdfSampleStep::Failed;
+  out->wi = normalize(wi);
+  return BsdfSampleStep::NeedsEval;
+}
+
+bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out) {
   if (!(pdf > 0.f)) return false;
-  out->wi = wi;
   out->pdf = pdf;
   out->delta = false;
   out->transmitted = false;
   out->weight = f * (1.f / pdf);
   return true;
+}
+
+float BsdfEvalBatch::metal_ms_factor(float cos_i, float alpha) {
+  return 1.f - energy_table().e(cos_i, alpha);
+}
+
+void BsdfEvalBatch::evaluate() {
+  // The blocks of four slots with any queued, visited through a mask (which blocks are in
+  // use changes from packet to packet: a branch per block would mispredict).
+  uint32_t blocks = 0;
+  for (int b = 0; b < kSlots / 4; ++b) blocks |= uint32_t(((used_ >> (4 * b)) & 0xfu) != 0) << b;
+  for (; blocks; blocks &= blocks - 1) evaluate_block(4 * __builtin_ctz(blocks));
+}
+
+namespace {
+
+// 4-lane float vectors (GCC/Clang vector extensions: SSE on x86-64, NEON on ARM).
+typedef float F32x4 __attribute__((vector_size(16)));
+typedef int32_t I32x4 __attribute__((vector_size(16)));
+
+inline F32x4 load4(const float* p) {
+  F32x4 v;
+  __builtin_memcpy(&v, p, sizeof v);
+  return v;
+}
+inline void store4(float* p, F32x4 v) { __builtin_memcpy(p, &v, sizeof v); }
+inline F32x4 splat4(float x) { return F32x4{x, x, x, x}; }
+// The lane-wise std::min(a, b) = b < a ? b : a and std::max(a, b) = a < b ? b : a.
+inline F32x4 min4(F32x4 a, F32x4 b) { return b < a ? b : a; }
+inline F32x4 max4(F32x4 a, F32x4 b) { return a < b ? b : a; }
+inline F32x4 select4(I32x4 mask, F32x4 a, F32x4 b) { return mask ? a : b; }
+// Correctly rounded square root, as std::sqrt.
+inline F32x4 sqrt4(F32x4 v) {
+#if defined(__SSE__)
+  return __builtin_ia32_sqrtps(v);
+#else
+  return F32x4{std::sqrt(v[0]), std::sqrt(v[1]), std::sqrt(v[2]), std::sqrt(v[3])};
+#endif
+}
+
+}  // namespace
+
+// bsdf_eval_pdf's arithmetic on four slots at a time, every operation in the scalar function's
+// order (see there for the derivation); its early returns become a selection of zeros.
+void BsdfEvalBatch::evaluate_block(int i) {
+  const int v = i % kLanes;  // the slots' vertices
+  const F32x4 zero = splat4(0.f), one = splat4(1.f);
+  const F32x4 wo_z = load4(&wo_[2][v]), wi_z = load4(&wi_[2][i]);
+  const F32x4 sx = load4(&wo_[0][v]) + load4(&wi_[0][i]);
+  const F32x4 sy = load4(&wo_[1][v]) + load4(&wi_[1][i]);
+  const F32x4 sz = wo_z + wi_z;
+  const F32x4 c2 = 0.25f * (sx * sx + sy * sy + sz * sz);
+  const I32x4 valid = (wo_z > zero) & (wi_z > zero) & (c2 > zero);
+  const F32x4 c = sqrt4(c2);
+  const F32x4 m = min4(one, max4(zero, one - c));
+  const F32x4 m2 = m * m;
+  const F32x4 fw = m2 * m2 * m;
+  const F32x4 specular = load4(&specular_[v]), f0d = load4(&f0d_[v]);
+  const F32x4 fd = select4(specular > zero, f0d + (specular - f0d) * fw, zero);
+  const F32x4 alpha = load4(&alpha_[v]);
+  const F32x4 a2 = alpha * alpha;
+  const F32x4 four_c2 = 4.f * c2;
+  const F32x4 den = sz * sz * (a2 - 1.f) + four_c2;
+  const F32x4 d = a2 * four_c2 * four_c2 / (kPi * den * den);
+  const F32x4 ci2 = wi_z * wi_z;
+  const F32x4 root_i = sqrt4(ci2 + a2 * max4(zero, one - ci2));
+  const F32x4 spec = d / (2.f * (load4(&root_o_[v]) * wi_z + root_i * wo_z));
+  const F32x4 wd = load4(&wd_[v]);
+  const F32x4 spec_weight_d = wd * fd;
+  const F32x4 kd = wd * (1.f - fd) * kInvPi;
+  const F32x4 metallic = load4(&metallic_[v]);
+  const F32x4 ms_factor = load4(&ms_factor_[i]);
+  for (int ch = 0; ch < 3; ++ch) {
+    const F32x4 base = load4(&base_[ch][v]);
+    // ms is 0 for non-metals, where bsdf_eval_pdf adds nothing: x + 0 = x.
+    const F32x4 diffuse = base * kd + load4(&ms_[ch][v]) * ms_factor;
+    const F32x4 fm = base + (1.f - base) * fw;
+    const F32x4 specular_ch = (spec_weight_d + fm * metallic) * spec;
+    store4(&f_[ch][i], select4(valid, (diffuse + specular_ch) * wi_z, zero));
+  }
+  const F32x4 lobe = load4(&spec_[v]);
+  const F32x4 pdf = (1.f - load4(&glass_[v])) *
+                    (lobe * d * load4(&pdf_k_[v]) + (1.f - lobe) * wi_z * kInvPi);
+  store4(&pdf_[i], select4(valid, pdf, zero));
 }
 
 }  // namespace rf

@@ -9,6 +9,7 @@
 // light.
 #pragma once
 
+#include <cstdint>
 #include <string>
 
 #include "sampling.h"
@@ -114,6 +115,86 @@ bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_f
 Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Vec3 wi, float* pdf);
 bool bsdf_sample(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Point2 u, float u_lobe,
                  float u_fresnel, BsdfSample* out);
+// bsdf_sample in two halves, for callers that evaluate many BSDFs together (BsdfEvalBatch):
+// bsdf_sample_direction chooses the lobe and the direction. It returns Failed (no direction:
+// the path ends), Done (the glass lobe: *out is complete) or NeedsEval: out->wi is set, and
+// bsdf_sample_finish(f, pdf, out) with (f, pdf) = bsdf_eval_pdf(p, lobes, wo, out->wi)
+// completes *out (false: the path ends). Together they give bsdf_sample's result exactly.
+enum class BsdfSampleStep { Failed, Done, NeedsEval };
+BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
+                                     Point2 u, float u_lobe, float u_fresnel, BsdfSample* out);
+bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out);
+
+// The bsdf_eval_pdf evaluations of up to kLanes vertices (a packet's paths), two directions
+// each (a light sample and a BSDF sample), computed together with bit for bit the same
+// results. One evaluation is a chain of two square roots and two divisions that waits on
+// itself; here the inputs are stored as one array per quantity, so that the arithmetic runs
+// in 4-wide SIMD lanes over independent evaluations, every operation in the scalar function's
+// order (IEEE arithmetic then rounds each lane exactly as the scalar code does). A vertex's
+// parameters are stored once for both of its directions.
+class BsdfEvalBatch {
+ public:
+  static constexpr int kLanes = 16;
+  // Slot `lane` is the vertex's first direction, slot kLanes + lane its second.
+  static constexpr int kSlots = 2 * kLanes;
+  // Forgets the queued evaluations.
+  void clear() { used_ = 0; }
+  // The vertex of `lane`: its BSDF, lobes (bsdf_lobes(p, wo)) and wo, for the directions
+  // queued for it until the next clear.
+  void set_vertex(int lane, const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo) {
+    wo_[0][lane] = wo.x;
+    wo_[1][lane] = wo.y;
+    wo_[2][lane] = wo.z;
+    base_[0][lane] = p.base.x;
+    base_[1][lane] = p.base.y;
+    base_[2][lane] = p.base.z;
+    ms_[0][lane] = lobes.ms.x;
+    ms_[1][lane] = lobes.ms.y;
+    ms_[2][lane] = lobes.ms.z;
+    metallic_[lane] = p.metallic;
+    alpha_[lane] = p.alpha;
+    specular_[lane] = p.specular;
+    f0d_[lane] = lobes.f0d;
+    wd_[lane] = lobes.wd;
+    glass_[lane] = lobes.glass;
+    spec_[lane] = lobes.spec;
+    root_o_[lane] = lobes.root_o;
+    pdf_k_[lane] = lobes.pdf_k;
+  }
+  // Queues bsdf_eval_pdf(p, lobes, wo, wi) for lane's vertex as its direction `which` (0 or 1)
+  // and returns its slot.
+  int add(int lane, int which, Vec3 wi) {
+    const int slot = which * kLanes + lane;
+    wi_[0][slot] = wi.x;
+    wi_[1][slot] = wi.y;
+    wi_[2][slot] = wi.z;
+    // The metal term's table lookup is a gather: done here, as bsdf_eval_pdf does it.
+    ms_factor_[slot] = metallic_[lane] > 0.f && wo_[2][lane] > 0.f && wi.z > 0.f
+                           ? metal_ms_factor(wi.z, alpha_[lane])
+                           : 0.f;
+    used_ |= uint32_t(1) << slot;
+    return slot;
+  }
+  // Evaluates the queued slots; f and pdf read their results until the next clear.
+  void evaluate();
+  Vec3 f(int slot) const { return {f_[0][slot], f_[1][slot], f_[2][slot]}; }
+  float pdf(int slot) const { return pdf_[slot]; }
+
+ private:
+  static float metal_ms_factor(float cos_i, float alpha);  // 1 - E(cos_i, alpha)
+  void evaluate_block(int first);  // slots first .. first + 3
+  uint32_t used_ = 0;              // bit s: slot s queued
+  // Vertex inputs by lane and direction inputs by slot. Slots not queued hold zeros or an
+  // earlier evaluation's inputs (finite either way): they are computed and ignored.
+  alignas(64) float wo_[3][kLanes] = {}, base_[3][kLanes] = {}, ms_[3][kLanes] = {};
+  alignas(64) float metallic_[kLanes] = {}, alpha_[kLanes] = {}, specular_[kLanes] = {};
+  alignas(64) float f0d_[kLanes] = {}, wd_[kLanes] = {}, glass_[kLanes] = {};
+  alignas(64) float spec_[kLanes] = {}, root_o_[kLanes] = {}, pdf_k_[kLanes] = {};
+  alignas(64) float wi_[3][kSlots] = {}, ms_factor_[kSlots] = {};
+  // Results.
+  alignas(64) float f_[3][kSlots] = {}, pdf_[kSlots] = {};
+};
+
 // True if the BSDF has a non-delta component (next-event estimation is useful).
 inline bool bsdf_has_smooth_part(const BsdfParams& p) {
   return (1.f - (1.f - p.metallic) * p.transmission) > 0.f;

@@ -6,6 +6,7 @@
 
 #include "chi_square.h"
 
+#include <cstring>
 #include <random>
 #include <vector>
 
@@ -160,6 +161,66 @@ TEST(Bsdf, JointEvaluationEqualsTheReferenceFormulas) {
   EXPECT_TRUE(is_zero(bsdf_eval_pdf(p, bsdf_lobes(p, kOutgoing[0]), kOutgoing[0],
                                     Vec3(0.f, 0.6f, -0.8f), &pdf)));
   EXPECT_EQ(pdf, 0.f);
+}
+
+uint32_t float_bits(float x) {
+  uint32_t u;
+  std::memcpy(&u, &x, sizeof u);
+  return u;
+}
+
+// BsdfEvalBatch (the path tracer's packet-wide evaluation) gives bsdf_eval_pdf's results bit
+// for bit: random materials (metals, glass, the specular factor on and off), random directions
+// including ones below the surface, lanes left out, both directions of a vertex, and batches
+// reused without resetting the slots left over from earlier rounds.
+TEST(Bsdf, BatchEvaluationEqualsTheScalarOneBitForBit) {
+  std::mt19937 rng(20261123);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  const auto direction = [&](float below) {
+    const float z = uni(rng) < below ? -uni(rng) : uni(rng);
+    const float phi = 6.2831853f * uni(rng);
+    const float r = std::sqrt(std::max(0.f, 1.f - z * z));
+    return normalize(Vec3(r * std::cos(phi), r * std::sin(phi), z));
+  };
+  BsdfEvalBatch batch;
+  int compared = 0, nonzero = 0;
+  for (int round = 0; round < 300; ++round) {
+    batch.clear();
+    struct Queued {
+      BsdfParams p;
+      Vec3 wo, wi;
+      int slot;
+    };
+    std::vector<Queued> queued;
+    for (int lane = 0; lane < BsdfEvalBatch::kLanes; ++lane) {
+      if (uni(rng) < 0.25f) continue;  // a dead path
+      BsdfParams p = params({uni(rng), uni(rng), uni(rng)}, uni(rng) < 0.3f ? 0.f : uni(rng),
+                            uni(rng), uni(rng) < 0.2f ? 0.f : uni(rng),
+                            uni(rng) < 0.7f ? 0.f : uni(rng));
+      p.ior = 1.f + uni(rng);
+      const Vec3 wo = direction(0.1f);
+      const BsdfLobes lobes = bsdf_lobes(p, wo);
+      batch.set_vertex(lane, p, lobes, wo);
+      for (int which = 0; which < 2; ++which) {
+        if (uni(rng) < 0.3f) continue;
+        const Vec3 wi = direction(0.2f);
+        queued.push_back({p, wo, wi, batch.add(lane, which, wi)});
+      }
+    }
+    batch.evaluate();
+    for (const Queued& q : queued) {
+      float pdf = -1.f;
+      const Vec3 f = bsdf_eval_pdf(q.p, bsdf_lobes(q.p, q.wo), q.wo, q.wi, &pdf);
+      ASSERT_EQ(float_bits(batch.pdf(q.slot)), float_bits(pdf)) << "round " << round;
+      for (int c = 0; c < 3; ++c)
+        ASSERT_EQ(float_bits(batch.f(q.slot)[c]), float_bits(f[c])) << "round " << round;
+      ++compared;
+      nonzero += pdf > 0.f;
+    }
+  }
+  EXPECT_GT(compared, 5000);
+  EXPECT_GT(nonzero, compared / 2);  // most pairs are above the surface
+  EXPECT_LT(nonzero, compared);      // and some are not
 }
 
 // Directional albedo integral of f cos over the hemisphere, by quadrature.

@@ -23,14 +23,13 @@ struct Point2 {
 inline Point2 sample_concentric_disk(Point2 u) {
   const float a = 2.f * u.x - 1.f, b = 2.f * u.y - 1.f;
   if (a == 0.f && b == 0.f) return {0.f, 0.f};
-  float r, phi;
-  if (std::fabs(a) > std::fabs(b)) {
-    r = a;
-    phi = (kPi / 4.f) * (b / a);
-  } else {
-    r = b;
-    phi = (kPi / 2.f) - (kPi / 4.f) * (a / b);
-  }
+  // The wedge test is a coin flip for the branch predictor: both wedges' angles are computed
+  // and one is selected without a branch.
+  const bool horizontal = std::fabs(a) > std::fabs(b);
+  const float r = select_bits(horizontal, a, b);
+  const float ratio = select_bits(horizontal, b, a) / r;
+  const float phi =
+      select_bits(horizontal, (kPi / 4.f) * ratio, (kPi / 2.f) - (kPi / 4.f) * ratio);
   return {r * std::cos(phi), r * std::sin(phi)};
 }
 // Density per unit area of the disk: 1/pi inside, 0 outside.

@@ -218,8 +218,9 @@ class Scene {
   bool intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const;
   // True if anything blocks o + t d for t in (0, tmax).
   bool occluded(Vec3 o, Vec3 d, float tmax) const;
-  // intersect / occluded for the active lanes of a packet: found[i] / blocked[i] and hits[i]
-  // are written for active lanes only.
+  // intersect / occluded for the active lanes of a packet. found[i] is written for every lane
+  // (false for inactive ones), hits[i] for the lanes found; blocked[i] is meaningful for
+  // active lanes only.
   void intersect(const RayPacket& rays, Hit* hits, bool* found) const;
   void occluded(const RayPacket& rays, bool* blocked) const;
   // How the packet queries reach Embree: 16 when one native 16-wide query serves a packet

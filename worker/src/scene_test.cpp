@@ -582,8 +582,9 @@ TEST_P(PacketQueries, EqualSingleRayQueries) {
     scene.occluded(rays, blocked);
     for (int i = 0; i < kPacketSize; ++i) {
       if (!rays.active[i]) {
+        // Inactive lanes: no hit record written, found false; blocked means nothing there.
         EXPECT_EQ(hits[i].prim, 12345u);
-        EXPECT_TRUE(found[i] && blocked[i]);
+        EXPECT_FALSE(found[i]);
         continue;
       }
       ++compared;

@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 
 namespace rf {
 
@@ -50,6 +52,19 @@ inline bool is_zero(Vec3 a) { return a.x == 0.f && a.y == 0.f && a.z == 0.f; }
 inline bool is_finite(Vec3 a) {
   return std::isfinite(a.x) && std::isfinite(a.y) && std::isfinite(a.z);
 }
+// c ? a : b through bit masks: compilers keep a float ?: as a branch when they judge it
+// predictable, and a branch on random data mispredicts half the time.
+inline float select_bits(bool c, float a, float b) {
+  uint32_t ua, ub;
+  std::memcpy(&ua, &a, sizeof ua);
+  std::memcpy(&ub, &b, sizeof ub);
+  const uint32_t mask = 0u - uint32_t(c);
+  const uint32_t r = (ua & mask) | (ub & ~mask);
+  float out;
+  std::memcpy(&out, &r, sizeof out);
+  return out;
+}
+
 // Rec. 709 luminance, the Y the protocol's luminance_m2 is defined on.
 inline float luminance(Vec3 c) { return 0.2126f * c.x + 0.7152f * c.y + 0.0722f * c.z; }
 
