@@ -178,7 +178,7 @@ bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
     out->tmax = kInfinity;
     out->radiance = lc.env->eval(wi);
     out->pdf_light = pdf;
-    out->slot = batch->add(lane, 0, frame.to_local(wi));
+    out->slot = batch->add_light(lane, frame.to_local(wi));
     return true;
   }
   const LightSet& lights = scene.lights();
@@ -228,7 +228,7 @@ bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
   out->tmax = tmax;
   out->radiance = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
   out->pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
-  out->slot = batch->add(lane, 0, frame.to_local(wi));
+  out->slot = batch->add_light(lane, frame.to_local(wi));
   return true;
 }
 
@@ -261,8 +261,16 @@ struct PathState {
   int bsdf_slot = -2;      // BsdfEvalBatch slot of the sampled direction's f and pdf; -1: the
                            // sample (glass) is complete; -2: the path ends at this vertex
   BsdfSample bs;
-  Vec3 next_o, next_d;     // the next ray if the path goes on
+  Vec3 next_o, next_d;     // the next ray if the path goes on (next_d from the batch if pending)
+  Vec3 ng;                 // the vertex's geometric normal on the side of wo
 };
+
+// Directions on the wrong side of the geometric surface (possible with shading normals)
+// would leak light through it: the path ends there.
+inline bool wrong_side(Vec3 wi, Vec3 ng, bool transmitted) {
+  const float side = dot(wi, ng);
+  return transmitted ? side >= 0.f : side <= 0.f;
+}
 
 // The first half of what a path does at the vertex its ray found (hit null: the ray escaped):
 // emission, Russian roulette, the light sample and the BSDF sample's direction. The BSDF values
@@ -319,7 +327,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   const Frame frame(sp.ns);
   const Vec3 wo_local = frame.to_local(wo);
   const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
-  batch->set_vertex(lane, sp.params, lobes, wo_local);
+  batch->set_vertex(lane, sp.params, lobes, wo_local, frame);
   p.has_light = lc.any && bsdf_has_smooth_part(sp.params) &&
                 sample_light(scene, lc, sp, frame, wo_local, u, batch, lane, &p.light);
 
@@ -330,14 +338,18 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
                             // one.
                             lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
   if (step == BsdfSampleStep::Failed) return;
+  p.ng = sp.ng;
+  if (step == BsdfSampleStep::NeedsEval) {
+    // The batch normalizes the direction and turns it into world space.
+    p.next_o = sp.above();
+    p.bsdf_slot = batch->add_sampled(lane, bs.wi);
+    return;
+  }
   const Vec3 wi = normalize(frame.to_world(bs.wi));
-  // Directions on the wrong side of the geometric surface (possible with shading normals)
-  // would leak light through it: end the path there.
-  const float side = dot(wi, sp.ng);
-  if (bs.transmitted ? side >= 0.f : side <= 0.f) return;
+  if (wrong_side(wi, sp.ng, bs.transmitted)) return;
   p.next_o = bs.transmitted ? sp.below() : sp.above();
   p.next_d = wi;
-  p.bsdf_slot = step == BsdfSampleStep::Done ? -1 : batch->add(lane, 1, bs.wi);
+  p.bsdf_slot = -1;
 }
 
 // The second half, in two parts for the lanes that need them. The light sample's shadow ray
@@ -356,8 +368,12 @@ void shade_vertex_end_light(PathState& p, const BsdfEvalBatch& batch, RayPacket*
 // BSDF.
 void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
   BsdfSample& bs = p.bs;
-  if (p.bsdf_slot >= 0 && !bsdf_sample_finish(batch.f(p.bsdf_slot), batch.pdf(p.bsdf_slot), &bs))
-    return;
+  if (p.bsdf_slot >= 0) {
+    p.next_d = batch.world(p.bsdf_slot);
+    if (wrong_side(p.next_d, p.ng, false) ||
+        !bsdf_sample_finish(batch.f(p.bsdf_slot), batch.pdf(p.bsdf_slot), &bs))
+      return;
+  }
   if (is_zero(bs.weight)) return;
   p.beta *= bs.weight;
   p.prev_bsdf_pdf = bs.pdf;

@@ -238,6 +238,7 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
     case BsdfSampleStep::NeedsEval:
       break;
   }
+  out->wi = normalize(out->wi);
   float pdf = 0.f;
   const Vec3 f = bsdf_eval_pdf(p, l, wo, out->wi, &pdf);
   return bsdf_sample_finish(f, pdf, out);
@@ -278,7 +279,7 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
     wi = sample_cosine_hemisphere(u);
   }
   if (wi.z <= 0.f) return BsdfSampleStep::Failed;
-  out->wi = normalize(wi);
+  out->wi = wi;
   return BsdfSampleStep::NeedsEval;
 }
 
@@ -333,12 +334,32 @@ inline F32x4 sqrt4(F32x4 v) {
 
 // bsdf_eval_pdf's arithmetic on four slots at a time, every operation in the scalar function's
 // order (see there for the derivation); its early returns become a selection of zeros.
+// normalize(v) = v * (1 / sqrt(dot(v, v))), lane-wise.
+inline void normalize4(F32x4& x, F32x4& y, F32x4& z) {
+  const F32x4 inv = 1.f / sqrt4(x * x + y * y + z * z);
+  x = x * inv;
+  y = y * inv;
+  z = z * inv;
+}
+
 void BsdfEvalBatch::evaluate_block(int i) {
   const int v = i % kLanes;  // the slots' vertices
   const F32x4 zero = splat4(0.f), one = splat4(1.f);
-  const F32x4 wo_z = load4(&wo_[2][v]), wi_z = load4(&wi_[2][i]);
-  const F32x4 sx = load4(&wo_[0][v]) + load4(&wi_[0][i]);
-  const F32x4 sy = load4(&wo_[1][v]) + load4(&wi_[1][i]);
+  F32x4 wi_x = load4(&wi_[0][i]), wi_y = load4(&wi_[1][i]), wi_z = load4(&wi_[2][i]);
+  if (i >= kLanes) {
+    // Sampled directions: normalized here, and turned into world space (Frame::to_world,
+    // then normalize) for the next ray.
+    normalize4(wi_x, wi_y, wi_z);
+    F32x4 w[3];
+    for (int c = 0; c < 3; ++c)
+      w[c] = load4(&frame_[0][c][v]) * wi_x + load4(&frame_[1][c][v]) * wi_y +
+             load4(&frame_[2][c][v]) * wi_z;
+    normalize4(w[0], w[1], w[2]);
+    for (int c = 0; c < 3; ++c) store4(&world_[c][i - kLanes], w[c]);
+  }
+  const F32x4 wo_z = load4(&wo_[2][v]);
+  const F32x4 sx = load4(&wo_[0][v]) + wi_x;
+  const F32x4 sy = load4(&wo_[1][v]) + wi_y;
   const F32x4 sz = wo_z + wi_z;
   const F32x4 c2 = 0.25f * (sx * sx + sy * sy + sz * sz);
   const I32x4 valid = (wo_z > zero) & (wi_z > zero) & (c2 > zero);

@@ -117,9 +117,11 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Point2 u,
                  float u_fresnel, BsdfSample* out);
 // bsdf_sample in two halves, for callers that evaluate many BSDFs together (BsdfEvalBatch):
 // bsdf_sample_direction chooses the lobe and the direction. It returns Failed (no direction:
-// the path ends), Done (the glass lobe: *out is complete) or NeedsEval: out->wi is set, and
-// bsdf_sample_finish(f, pdf, out) with (f, pdf) = bsdf_eval_pdf(p, lobes, wo, out->wi)
-// completes *out (false: the path ends). Together they give bsdf_sample's result exactly.
+// the path ends), Done (the glass lobe: *out is complete) or NeedsEval: out->wi is set to
+// the direction before normalization (with z > 0), and bsdf_sample_finish(f, pdf, out) with
+// (f, pdf) = bsdf_eval_pdf(p, lobes, wo, normalize(out->wi)) completes *out (false: the path
+// ends) but for out->wi, which the caller sets to normalize(out->wi). Together they give
+// bsdf_sample's result exactly.
 enum class BsdfSampleStep { Failed, Done, NeedsEval };
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
                                      Point2 u, float u_lobe, float u_fresnel, BsdfSample* out);
@@ -139,9 +141,16 @@ class BsdfEvalBatch {
   static constexpr int kSlots = 2 * kLanes;
   // Forgets the queued evaluations.
   void clear() { used_ = 0; }
-  // The vertex of `lane`: its BSDF, lobes (bsdf_lobes(p, wo)) and wo, for the directions
-  // queued for it until the next clear.
-  void set_vertex(int lane, const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo) {
+  // The vertex of `lane`: its BSDF, lobes (bsdf_lobes(p, wo)), wo and shading frame, for the
+  // directions queued for it until the next clear.
+  void set_vertex(int lane, const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
+                  const Frame& frame) {
+    const Vec3* axes[3] = {&frame.s, &frame.t, &frame.n};
+    for (int a = 0; a < 3; ++a) {
+      frame_[a][0][lane] = axes[a]->x;
+      frame_[a][1][lane] = axes[a]->y;
+      frame_[a][2][lane] = axes[a]->z;
+    }
     wo_[0][lane] = wo.x;
     wo_[1][lane] = wo.y;
     wo_[2][lane] = wo.z;
@@ -161,26 +170,36 @@ class BsdfEvalBatch {
     root_o_[lane] = lobes.root_o;
     pdf_k_[lane] = lobes.pdf_k;
   }
-  // Queues bsdf_eval_pdf(p, lobes, wo, wi) for lane's vertex as its direction `which` (0 or 1)
-  // and returns its slot.
-  int add(int lane, int which, Vec3 wi) {
-    const int slot = which * kLanes + lane;
-    wi_[0][slot] = wi.x;
-    wi_[1][slot] = wi.y;
-    wi_[2][slot] = wi.z;
-    // The metal term's table lookup is a gather: done here, as bsdf_eval_pdf does it.
-    ms_factor_[slot] = metallic_[lane] > 0.f && wo_[2][lane] > 0.f && wi.z > 0.f
-                           ? metal_ms_factor(wi.z, alpha_[lane])
-                           : 0.f;
-    used_ |= uint32_t(1) << slot;
-    return slot;
-  }
-  // Evaluates the queued slots; f and pdf read their results until the next clear.
+  // Queues bsdf_eval_pdf(p, lobes, wo, wi) for lane's vertex as its first direction (a light
+  // sample) and returns its slot.
+  int add_light(int lane, Vec3 wi) { return add(lane, lane, wi); }
+  // Queues the second direction, a sampled one not yet normalized (bsdf_sample_direction's
+  // NeedsEval): evaluate normalizes it, evaluates bsdf_eval_pdf(p, lobes, wo, normalize(wi))
+  // and computes the world-space direction normalize(frame.to_world(normalize(wi))), which
+  // world() returns.
+  int add_sampled(int lane, Vec3 wi) { return add(lane, kLanes + lane, wi); }
+  // Evaluates the queued slots; f, pdf and world read their results until the next clear.
   void evaluate();
   Vec3 f(int slot) const { return {f_[0][slot], f_[1][slot], f_[2][slot]}; }
   float pdf(int slot) const { return pdf_[slot]; }
+  Vec3 world(int slot) const {
+    return {world_[0][slot - kLanes], world_[1][slot - kLanes], world_[2][slot - kLanes]};
+  }
 
  private:
+  int add(int lane, int slot, Vec3 wi) {
+    wi_[0][slot] = wi.x;
+    wi_[1][slot] = wi.y;
+    wi_[2][slot] = wi.z;
+    // The metal term's table lookup is a gather: done here, as bsdf_eval_pdf does it (on the
+    // normalized direction: a sampled one is normalized here for it, rarely).
+    ms_factor_[slot] = 0.f;
+    if (metallic_[lane] > 0.f && wo_[2][lane] > 0.f && wi.z > 0.f)
+      ms_factor_[slot] =
+          metal_ms_factor(slot >= kLanes ? normalize(wi).z : wi.z, alpha_[lane]);
+    used_ |= uint32_t(1) << slot;
+    return slot;
+  }
   static float metal_ms_factor(float cos_i, float alpha);  // 1 - E(cos_i, alpha)
   void evaluate_block(int first);  // slots first .. first + 3
   uint32_t used_ = 0;              // bit s: slot s queued
@@ -190,9 +209,10 @@ class BsdfEvalBatch {
   alignas(64) float metallic_[kLanes] = {}, alpha_[kLanes] = {}, specular_[kLanes] = {};
   alignas(64) float f0d_[kLanes] = {}, wd_[kLanes] = {}, glass_[kLanes] = {};
   alignas(64) float spec_[kLanes] = {}, root_o_[kLanes] = {}, pdf_k_[kLanes] = {};
+  alignas(64) float frame_[3][3][kLanes] = {};  // axis (s, t, n), component, lane
   alignas(64) float wi_[3][kSlots] = {}, ms_factor_[kSlots] = {};
   // Results.
-  alignas(64) float f_[3][kSlots] = {}, pdf_[kSlots] = {};
+  alignas(64) float f_[3][kSlots] = {}, pdf_[kSlots] = {}, world_[3][kLanes] = {};
 };
 
 // True if the BSDF has a non-delta component (next-event estimation is useful).

@@ -169,10 +169,11 @@ uint32_t float_bits(float x) {
   return u;
 }
 
-// BsdfEvalBatch (the path tracer's packet-wide evaluation) gives bsdf_eval_pdf's results bit
-// for bit: random materials (metals, glass, the specular factor on and off), random directions
-// including ones below the surface, lanes left out, both directions of a vertex, and batches
-// reused without resetting the slots left over from earlier rounds.
+// BsdfEvalBatch (the path tracer's packet-wide evaluation) gives bsdf_eval_pdf's results, and
+// for sampled directions normalize(frame.to_world(normalize(wi))), bit for bit: random
+// materials (metals, glass, the specular factor on and off), random directions including ones
+// below the surface, lanes left out, both directions of a vertex, and batches reused without
+// resetting the slots left over from earlier rounds.
 TEST(Bsdf, BatchEvaluationEqualsTheScalarOneBitForBit) {
   std::mt19937 rng(20261123);
   std::uniform_real_distribution<float> uni(0.f, 1.f);
@@ -183,12 +184,13 @@ TEST(Bsdf, BatchEvaluationEqualsTheScalarOneBitForBit) {
     return normalize(Vec3(r * std::cos(phi), r * std::sin(phi), z));
   };
   BsdfEvalBatch batch;
-  int compared = 0, nonzero = 0;
+  int compared = 0, sampled_compared = 0, nonzero = 0;
   for (int round = 0; round < 300; ++round) {
     batch.clear();
     struct Queued {
       BsdfParams p;
       Vec3 wo, wi;
+      Frame frame;
       int slot;
     };
     std::vector<Queued> queued;
@@ -200,25 +202,40 @@ TEST(Bsdf, BatchEvaluationEqualsTheScalarOneBitForBit) {
       p.ior = 1.f + uni(rng);
       const Vec3 wo = direction(0.1f);
       const BsdfLobes lobes = bsdf_lobes(p, wo);
-      batch.set_vertex(lane, p, lobes, wo);
-      for (int which = 0; which < 2; ++which) {
-        if (uni(rng) < 0.3f) continue;
+      const Frame frame(direction(0.f));
+      batch.set_vertex(lane, p, lobes, wo, frame);
+      // A light sample's direction (unit), then a sampled one (any length, normalized by the
+      // batch, which also returns it in world space).
+      if (uni(rng) < 0.7f) {
         const Vec3 wi = direction(0.2f);
-        queued.push_back({p, wo, wi, batch.add(lane, which, wi)});
+        queued.push_back({p, wo, wi, frame, batch.add_light(lane, wi)});
+      }
+      if (uni(rng) < 0.7f) {
+        const Vec3 wi = direction(0.2f) * (0.2f + 3.f * uni(rng));
+        queued.push_back({p, wo, wi, frame, batch.add_sampled(lane, wi)});
       }
     }
     batch.evaluate();
     for (const Queued& q : queued) {
+      const bool sampled = q.slot >= BsdfEvalBatch::kLanes;
+      const Vec3 wi = sampled ? normalize(q.wi) : q.wi;
       float pdf = -1.f;
-      const Vec3 f = bsdf_eval_pdf(q.p, bsdf_lobes(q.p, q.wo), q.wo, q.wi, &pdf);
+      const Vec3 f = bsdf_eval_pdf(q.p, bsdf_lobes(q.p, q.wo), q.wo, wi, &pdf);
       ASSERT_EQ(float_bits(batch.pdf(q.slot)), float_bits(pdf)) << "round " << round;
       for (int c = 0; c < 3; ++c)
         ASSERT_EQ(float_bits(batch.f(q.slot)[c]), float_bits(f[c])) << "round " << round;
+      if (sampled) {
+        const Vec3 world = normalize(q.frame.to_world(wi));
+        for (int c = 0; c < 3; ++c)
+          ASSERT_EQ(float_bits(batch.world(q.slot)[c]), float_bits(world[c])) << round;
+        ++sampled_compared;
+      }
       ++compared;
       nonzero += pdf > 0.f;
     }
   }
   EXPECT_GT(compared, 5000);
+  EXPECT_GT(sampled_compared, 2000);
   EXPECT_GT(nonzero, compared / 2);  // most pairs are above the surface
   EXPECT_LT(nonzero, compared);      // and some are not
 }
