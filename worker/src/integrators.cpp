@@ -6,6 +6,7 @@
 #include "estimators.h"
 #include "materials.h"
 #include "sampling.h"
+#include "simd.h"
 
 namespace rf {
 
@@ -144,45 +145,131 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
 }
 
 // A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
-// origin + t wi for t in (0, tmax). Between the halves of a vertex's shading (see
-// shade_vertex_begin) the BSDF value of a non-delta light sample is still pending in the
-// packet's BsdfEvalBatch: the contribution is then f L w / pdf with f from slot `slot`.
+// origin + t wi for t in (0, tmax). Delta lights only: the other samples wait in a LightBatch.
 struct LightRay {
   Vec3 origin, wi;
   float tmax = 0.f;
   Vec3 contribution;
-  int slot = -1;       // BsdfEvalBatch slot of f and the BSDF pdf of wi (-1: contribution set)
-  Vec3 radiance;       // L arriving along wi if unblocked (pending only)
-  float pdf_light = 0.f;  // solid-angle pdf of wi from light selection and sampling (pending)
+};
+
+// The light samples of a packet's vertices that wait for their BSDF values (lights with a pdf:
+// emissive triangles and the environment). Area-light samples finish their geometry here
+// (direction, distance, pdf, the tests that drop them), and every waiting sample its MIS
+// weight and contribution, four lanes at a time: the lanes' chains of square roots and
+// divisions run side by side instead of one after another. Each lane computes exactly what
+// the scalar code would, in its order of operations.
+struct LightBatch {
+  static constexpr int kLanes = kPacketSize;
+  uint32_t area = 0;     // lanes with an area-light sample to finish
+  uint32_t waiting = 0;  // lanes with a sample waiting for its BSDF value (area or environment)
+  // Shadow ray origin; point, unit normal and ray_epsilon of the light; geometric normal of the
+  // vertex; p_scene * pdf_area (area lights).
+  alignas(16) float o[3][kLanes] = {}, lp[3][kLanes] = {}, ln[3][kLanes] = {};
+  alignas(16) float ng[3][kLanes] = {}, eps[kLanes] = {}, k[kLanes] = {};
+  // Radiance arriving along wi; solid-angle pdf of wi; the shadow ray (set for the environment,
+  // computed for area lights) and whether the sample is kept.
+  alignas(16) float radiance[3][kLanes] = {}, pdf_light[kLanes] = {};
+  alignas(16) float wi[3][kLanes] = {}, tmax[kLanes] = {};
+  alignas(16) int32_t ok[kLanes] = {};
+  alignas(16) float contribution[3][kLanes] = {};
+
+  void clear() { area = waiting = 0; }
+  // The area-light lanes' shadow rays, pdfs and tests, and their directions queued in *batch.
+  void finish_geometry(BsdfEvalBatch* batch);
+  // After batch->evaluate(): the waiting lanes' contributions, and ok cleared where f = 0.
+  void finish_contributions(const BsdfEvalBatch& batch);
+};
+
+void LightBatch::finish_geometry(BsdfEvalBatch* batch) {
+  const F32x4 zero = splat4(0.f);
+  for (int i = 0; i < kLanes; i += 4) {
+    const uint32_t bits = (area >> i) & 0xfu;
+    if (!bits) continue;
+    const I32x4 mask = lane_mask4(bits);
+    F32x4 t[3];
+    for (int c = 0; c < 3; ++c) t[c] = load4(&lp[c][i]) - load4(&o[c][i]);
+    const F32x4 dist2 = dot4(t[0], t[1], t[2], t[0], t[1], t[2]);
+    const F32x4 dist = sqrt4(dist2);
+    const F32x4 inv = 1.f / dist;  // Vec3 / float multiplies by the reciprocal
+    const F32x4 wx = t[0] * inv, wy = t[1] * inv, wz = t[2] * inv;
+    const F32x4 cos_light =
+        dot4(load4(&ln[0][i]), load4(&ln[1][i]), load4(&ln[2][i]), -wx, -wy, -wz);
+    const F32x4 cos_vertex =
+        dot4(load4(&ng[0][i]), load4(&ng[1][i]), load4(&ng[2][i]), wx, wy, wz);
+    // Stop short of the light's own surface so it does not occlude itself.
+    const F32x4 t_max = dist * (1.f - 1e-4f) - load4(&eps[i]);
+    const I32x4 keep = (dist > zero) & ~(cos_light <= zero) & ~(cos_vertex <= zero) &
+                       (t_max > zero);
+    const F32x4 pdf = load4(&k[i]) * dist2 / cos_light;
+    store4(&wi[0][i], select4(mask, wx, load4(&wi[0][i])));
+    store4(&wi[1][i], select4(mask, wy, load4(&wi[1][i])));
+    store4(&wi[2][i], select4(mask, wz, load4(&wi[2][i])));
+    store4(&tmax[i], select4(mask, t_max, load4(&tmax[i])));
+    store4(&pdf_light[i], select4(mask, pdf, load4(&pdf_light[i])));
+    store4(&ok[i], mask ? keep : load4(&ok[i]));
+  }
+  batch->add_lights_world(area, wi);
+}
+
+void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
+  const F32x4 zero = splat4(0.f), one = splat4(1.f), inf = splat4(kInfinity);
+  for (int i = 0; i < kLanes; i += 4) {
+    const uint32_t bits = (waiting >> i) & 0xfu;
+    if (!bits) continue;
+    const I32x4 mask = lane_mask4(bits);
+    F32x4 f[3];
+    for (int c = 0; c < 3; ++c) f[c] = load4(batch.light_f(c) + i);
+    // power_heuristic(pdf_light, pdf_bsdf).
+    const F32x4 pdf = load4(&pdf_light[i]), pdf_bsdf = load4(batch.light_pdf() + i);
+    const F32x4 a = pdf * pdf, b = pdf_bsdf * pdf_bsdf;
+    const F32x4 w = select4(a == zero, zero, select4(a == inf, one, a / (a + b)));
+    const F32x4 factor = w / pdf;
+    for (int c = 0; c < 3; ++c)
+      store4(&contribution[c][i], f[c] * load4(&radiance[c][i]) * factor);
+    const I32x4 f_zero = (f[0] == zero) & (f[1] == zero) & (f[2] == zero);
+    store4(&ok[i], mask ? (load4(&ok[i]) & ~f_zero) : load4(&ok[i]));
+  }
+}
+
+// What sample_light produced.
+enum class LightSampleKind {
+  None,     // contributes nothing whatever the visibility: no shadow ray
+  Delta,    // a punctual light: *out holds the shadow ray and the unoccluded contribution
+  Waiting,  // a light with a pdf: in the LightBatch, waiting for its BSDF value
 };
 
 // Next-event estimation: one light (or the environment) chosen by power, its contribution
 // f cos L / pdf, MIS-weighted against BSDF sampling with the power heuristic unless the light
-// is a delta light. False if the sample contributes nothing whatever the visibility (no shadow
-// ray is needed); otherwise *out holds the shadow ray and either the unoccluded contribution
-// (delta lights) or, for lights with a pdf, the BSDF evaluation queued in *batch that
-// finish_light_sample turns into the contribution.
-bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
-                  const Frame& frame, Vec3 wo_local, const BounceSamples& s,
-                  BsdfEvalBatch* batch, int lane, LightRay* out) {
+// is a delta light.
+LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
+                             const Frame& frame, Vec3 wo_local, const BounceSamples& s,
+                             BsdfEvalBatch* batch, LightBatch* lb, int lane, LightRay* out) {
   float u_sel = s.get(dim::kLightSelect);
   const Point2 u = s.get2(dim::kLightU);
   const Vec3 origin = sp.above();
-  out->origin = origin;
+  const uint32_t bit = uint32_t(1) << lane;
+  const auto set3 = [lane](float (*to)[LightBatch::kLanes], Vec3 v) {
+    to[0][lane] = v.x;
+    to[1][lane] = v.y;
+    to[2][lane] = v.z;
+  };
   if (lc.env && u_sel < lc.p_env) {
     float pdf = 0.f;
     const Vec3 wi = lc.env->sample(u, &pdf);
     pdf *= lc.p_env;
-    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return false;
-    out->wi = wi;
-    out->tmax = kInfinity;
-    out->radiance = lc.env->eval(wi);
-    out->pdf_light = pdf;
-    out->slot = batch->add_light(lane, frame.to_local(wi));
-    return true;
+    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return LightSampleKind::None;
+    set3(lb->o, origin);
+    set3(lb->wi, wi);
+    lb->tmax[lane] = kInfinity;
+    set3(lb->radiance, lc.env->eval(wi));
+    lb->pdf_light[lane] = pdf;
+    lb->ok[lane] = -1;
+    lb->waiting |= bit;
+    batch->add_light(lane, frame.to_local(wi));
+    return LightSampleKind::Waiting;
   }
   const LightSet& lights = scene.lights();
-  if (lights.empty()) return false;
+  if (lights.empty()) return LightSampleKind::None;
   // Reuse the selection variate: rescale the part above p_env to [0, 1).
   const float p_scene = 1.f - lc.p_env;
   u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
@@ -199,47 +286,32 @@ bool sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint
     } else {
       const Vec3 to = light.position - origin;
       const float d2 = dot(to, to);
-      if (!(d2 > 0.f)) return false;
+      if (!(d2 > 0.f)) return LightSampleKind::None;
       const float dist = std::sqrt(d2);
       wi = to / dist;
       Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
       tmax = dist;
     }
-    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return false;
+    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return LightSampleKind::None;
     const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
-    if (is_zero(f)) return false;
+    if (is_zero(f)) return LightSampleKind::None;
+    out->origin = origin;
     out->wi = wi;
     out->tmax = tmax;
     out->contribution = f * Li * (1.f / pdf);
-    out->slot = -1;
-    return true;
+    return LightSampleKind::Delta;
   }
-  const Vec3 to_light = ls.p - origin;
-  const float dist2 = dot(to_light, to_light);
-  const float dist = std::sqrt(dist2);
-  if (!(dist > 0.f)) return false;
-  const Vec3 wi = to_light / dist;
-  const float cos_light = dot(ls.n, -wi);
-  if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return false;
-  // Stop short of the light's own surface so it does not occlude itself.
-  const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
-  if (!(tmax > 0.f)) return false;
-  out->wi = wi;
-  out->tmax = tmax;
-  out->radiance = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
-  out->pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
-  out->slot = batch->add_light(lane, frame.to_local(wi));
-  return true;
-}
-
-// The contribution of a light sample whose BSDF evaluation was queued, once the batch has been
-// evaluated; false if it contributes nothing (f = 0).
-bool finish_light_sample(const BsdfEvalBatch& batch, LightRay* light) {
-  const Vec3 f = batch.f(light->slot);
-  if (is_zero(f)) return false;
-  const float w = power_heuristic(light->pdf_light, batch.pdf(light->slot));
-  light->contribution = f * light->radiance * (w / light->pdf_light);
-  return true;
+  // An emissive triangle: the rest is LightBatch::finish_geometry's.
+  set3(lb->o, origin);
+  set3(lb->lp, ls.p);
+  set3(lb->ln, ls.n);
+  set3(lb->ng, sp.ng);
+  lb->eps[lane] = ray_epsilon(ls.p);
+  lb->k[lane] = p_scene * ls.pdf_area;
+  set3(lb->radiance, scene.emission(ls.slot, ls.prim, ls.b1, ls.b2));
+  lb->area |= bit;
+  lb->waiting |= bit;
+  return LightSampleKind::Waiting;
 }
 
 // One sample's path while it is traced in a packet: its state between bounces.
@@ -256,8 +328,8 @@ struct PathState {
   Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
   // Between the halves of a vertex's shading (shade_vertex_begin, then shade_vertex_end_light
   // and shade_vertex_end_bsdf):
-  bool has_light = false;  // `light` holds a light sample (its f may be pending)
-  LightRay light;
+  LightSampleKind light_kind = LightSampleKind::None;
+  LightRay light;          // light_kind Delta
   int bsdf_slot = -2;      // BsdfEvalBatch slot of the sampled direction's f and pdf; -1: the
                            // sample (glass) is complete; -2: the path ends at this vertex
   BsdfSample bs;
@@ -279,11 +351,11 @@ inline bool wrong_side(Vec3 wi, Vec3 ng, bool transmitted) {
 // evaluated.
 void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
                         const Hit* hit, uint32_t bounce, uint32_t max_depth,
-                        BsdfEvalBatch* batch, int lane) {
+                        BsdfEvalBatch* batch, LightBatch* lb, int lane) {
   const Vec3 d = p.d;
   SampleResult& result = p.result;
   p.alive = false;
-  p.has_light = false;
+  p.light_kind = LightSampleKind::None;
   p.bsdf_slot = -2;
   if (!hit) {
     if (lc.env) {
@@ -328,8 +400,8 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   const Vec3 wo_local = frame.to_local(wo);
   const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
   batch->set_vertex(lane, sp.params, lobes, wo_local, frame);
-  p.has_light = lc.any && bsdf_has_smooth_part(sp.params) &&
-                sample_light(scene, lc, sp, frame, wo_local, u, batch, lane, &p.light);
+  if (lc.any && bsdf_has_smooth_part(sp.params))
+    p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, batch, lb, lane, &p.light);
 
   BsdfSample& bs = p.bs;
   const BsdfSampleStep step =
@@ -353,14 +425,20 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
 }
 
 // The second half, in two parts for the lanes that need them. The light sample's shadow ray
-// goes into lane `lane` of *shadow (p.has_light)...
-void shade_vertex_end_light(PathState& p, const BsdfEvalBatch& batch, RayPacket* shadow,
-                            int lane) {
-  if (p.light.slot < 0 || finish_light_sample(batch, &p.light)) {
+// goes into lane `lane` of *shadow (a light sample was taken)...
+void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shadow, int lane) {
+  if (p.light_kind == LightSampleKind::Delta) {
     shadow->set(lane, p.light.origin, p.light.wi, p.light.tmax);
     p.nee = p.beta * p.light.contribution;
     ++p.result.rays;
+    return;
   }
+  if (!lb.ok[lane]) return;
+  shadow->set(lane, Vec3(lb.o[0][lane], lb.o[1][lane], lb.o[2][lane]),
+              Vec3(lb.wi[0][lane], lb.wi[1][lane], lb.wi[2][lane]), lb.tmax[lane]);
+  p.nee = p.beta * Vec3(lb.contribution[0][lane], lb.contribution[1][lane],
+                        lb.contribution[2][lane]);
+  ++p.result.rays;
 }
 
 // ... then, if p.bsdf_slot != -2, the BSDF sample gives the next ray (p.alive) unless the path
@@ -396,6 +474,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
   Hit hits[kPacketSize];
   bool found[kPacketSize], blocked[kPacketSize];
   BsdfEvalBatch batch;
+  LightBatch lights;
   // Lanes are visited through bit masks of the live ones: whether a path is still alive is
   // data the branch predictor cannot learn, and a branch per lane per loop mispredicts often.
   for (uint32_t bounce = 0;; ++bounce) {
@@ -416,20 +495,23 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     }
     scene.intersect(rays, hits, found);
     batch.clear();
+    lights.clear();
     for (uint32_t m = live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
       shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
-                         &batch, i);
+                         &batch, &lights, i);
     }
+    lights.finish_geometry(&batch);
     batch.evaluate();
+    lights.finish_contributions(batch);
     uint32_t with_light = 0, going_on = 0;
     for (int i = 0; i < kPacketSize; ++i) {
-      with_light |= uint32_t(paths[i].has_light) << i;
+      with_light |= uint32_t(paths[i].light_kind != LightSampleKind::None) << i;
       going_on |= uint32_t(paths[i].bsdf_slot != -2) << i;
     }
     for (uint32_t m = with_light & live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
-      shade_vertex_end_light(paths[i], batch, &shadow, i);
+      shade_vertex_end_light(paths[i], lights, &shadow, i);
     }
     for (uint32_t m = going_on & live; m; m &= m - 1)
       shade_vertex_end_bsdf(paths[__builtin_ctz(m)], batch);

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "simd.h"
+
 namespace rf {
 
 namespace {
@@ -296,6 +298,28 @@ float BsdfEvalBatch::metal_ms_factor(float cos_i, float alpha) {
   return 1.f - energy_table().e(cos_i, alpha);
 }
 
+void BsdfEvalBatch::add_lights_world(uint32_t lanes, const float (*w)[kLanes]) {
+  for (int i = 0; i < kLanes; i += 4) {
+    const uint32_t bits = (lanes >> i) & 0xfu;
+    if (!bits) continue;
+    const I32x4 mask = lane_mask4(bits);
+    const F32x4 wx = load4(&w[0][i]), wy = load4(&w[1][i]), wz = load4(&w[2][i]);
+    // Frame::to_local: (dot(w, s), dot(w, t), dot(w, n)).
+    for (int a = 0; a < 3; ++a) {
+      const F32x4 local = dot4(wx, wy, wz, load4(&frame_[a][0][i]), load4(&frame_[a][1][i]),
+                               load4(&frame_[a][2][i]));
+      store4(&wi_[a][i], select4(mask, local, load4(&wi_[a][i])));
+    }
+  }
+  for (uint32_t m = lanes; m; m &= m - 1) {
+    const int lane = __builtin_ctz(m);
+    ms_factor_[lane] = 0.f;
+    if (metallic_[lane] > 0.f && wo_[2][lane] > 0.f && wi_[2][lane] > 0.f)
+      ms_factor_[lane] = metal_ms_factor(wi_[2][lane], alpha_[lane]);
+  }
+  used_ |= lanes;
+}
+
 void BsdfEvalBatch::evaluate() {
   // The blocks of four slots with any queued, visited through a mask (which blocks are in
   // use changes from packet to packet: a branch per block would mispredict).
@@ -304,44 +328,8 @@ void BsdfEvalBatch::evaluate() {
   for (; blocks; blocks &= blocks - 1) evaluate_block(4 * __builtin_ctz(blocks));
 }
 
-namespace {
-
-// 4-lane float vectors (GCC/Clang vector extensions: SSE on x86-64, NEON on ARM).
-typedef float F32x4 __attribute__((vector_size(16)));
-typedef int32_t I32x4 __attribute__((vector_size(16)));
-
-inline F32x4 load4(const float* p) {
-  F32x4 v;
-  __builtin_memcpy(&v, p, sizeof v);
-  return v;
-}
-inline void store4(float* p, F32x4 v) { __builtin_memcpy(p, &v, sizeof v); }
-inline F32x4 splat4(float x) { return F32x4{x, x, x, x}; }
-// The lane-wise std::min(a, b) = b < a ? b : a and std::max(a, b) = a < b ? b : a.
-inline F32x4 min4(F32x4 a, F32x4 b) { return b < a ? b : a; }
-inline F32x4 max4(F32x4 a, F32x4 b) { return a < b ? b : a; }
-inline F32x4 select4(I32x4 mask, F32x4 a, F32x4 b) { return mask ? a : b; }
-// Correctly rounded square root, as std::sqrt.
-inline F32x4 sqrt4(F32x4 v) {
-#if defined(__SSE__)
-  return __builtin_ia32_sqrtps(v);
-#else
-  return F32x4{std::sqrt(v[0]), std::sqrt(v[1]), std::sqrt(v[2]), std::sqrt(v[3])};
-#endif
-}
-
-}  // namespace
-
 // bsdf_eval_pdf's arithmetic on four slots at a time, every operation in the scalar function's
 // order (see there for the derivation); its early returns become a selection of zeros.
-// normalize(v) = v * (1 / sqrt(dot(v, v))), lane-wise.
-inline void normalize4(F32x4& x, F32x4& y, F32x4& z) {
-  const F32x4 inv = 1.f / sqrt4(x * x + y * y + z * z);
-  x = x * inv;
-  y = y * inv;
-  z = z * inv;
-}
-
 void BsdfEvalBatch::evaluate_block(int i) {
   const int v = i % kLanes;  // the slots' vertices
   const F32x4 zero = splat4(0.f), one = splat4(1.f);

@@ -178,8 +178,15 @@ class BsdfEvalBatch {
   // and computes the world-space direction normalize(frame.to_world(normalize(wi))), which
   // world() returns.
   int add_sampled(int lane, Vec3 wi) { return add(lane, kLanes + lane, wi); }
+  // add_light for each lane in the bit mask `lanes`, with the direction given in world space
+  // (w[c][lane], c = x, y, z): the queued direction is frame.to_local of it, computed four
+  // lanes at a time.
+  void add_lights_world(uint32_t lanes, const float (*w)[kLanes]);
   // Evaluates the queued slots; f, pdf and world read their results until the next clear.
   void evaluate();
+  // The first directions' results as arrays over the lanes, for reading four at a time.
+  const float* light_f(int channel) const { return f_[channel]; }
+  const float* light_pdf() const { return pdf_; }
   Vec3 f(int slot) const { return {f_[0][slot], f_[1][slot], f_[2][slot]}; }
   float pdf(int slot) const { return pdf_[slot]; }
   Vec3 world(int slot) const {
