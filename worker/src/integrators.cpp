@@ -470,6 +470,7 @@ void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
 void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
                  uint32_t max_depth) {
   static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
+  static_assert(PixelSampler::kLanes16 == kPacketSize, "a sampler lane per packet lane");
   RayPacket rays, shadow;
   Hit hits[kPacketSize];
   bool found[kPacketSize], blocked[kPacketSize];
@@ -485,12 +486,22 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       live |= uint32_t(paths[i].alive) << i;
     }
     if (!live) return;
+    // This vertex's sample values, for every lane at once: the lanes are samples of one pixel
+    // (one PixelSampler) with different sample indices, which the sobol sampler scrambles
+    // side by side in SIMD lanes.
+    uint32_t index[kPacketSize];
+    for (int i = 0; i < kPacketSize; ++i) index[i] = paths[i].s.index;
+    float values[8][PixelSampler::kLanes16];
+    const bool batched = paths[__builtin_ctz(live)].s.sampler->value8_lanes(
+        index, dim::bounce(bounce, 0), values);
     for (uint32_t m = live; m; m &= m - 1) {
-      PathState& p = paths[__builtin_ctz(m)];
-      // This vertex's sample values, for every lane before the query: the lanes' latency-bound
-      // hash chains are independent, so they overlap each other.
-      p.u.reset(p.s, bounce);
-      rays.set(__builtin_ctz(m), p.o, p.d, kInfinity);
+      const int i = __builtin_ctz(m);
+      PathState& p = paths[i];
+      if (batched)
+        p.u.assign(p.s, bounce, values, i);
+      else
+        p.u.reset(p.s, bounce);
+      rays.set(i, p.o, p.d, kInfinity);
       ++p.result.rays;
     }
     scene.intersect(rays, hits, found);

@@ -1,5 +1,9 @@
 #include "samplers.h"
 
+#include <string>
+#include <utility>
+#include <vector>
+
 #include <array>
 
 namespace rf {
@@ -492,6 +496,162 @@ bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) c
   const F32x4 out_hi = __builtin_shuffle(even, odd, I32x4{2, 6, 3, 7});
   __builtin_memcpy(out, &out_lo, sizeof out_lo);
   __builtin_memcpy(out + 4, &out_hi, sizeof out_hi);
+  return true;
+}
+
+namespace {
+
+// Vector types of N lanes (vector_size cannot depend on a template parameter).
+template <int N>
+struct LaneTypes;
+template <>
+struct LaneTypes<4> {
+  typedef uint32_t U __attribute__((vector_size(16)));
+  typedef int32_t I __attribute__((vector_size(16)));
+  typedef float F __attribute__((vector_size(16)));
+  typedef uint8_t B __attribute__((vector_size(16)));
+};
+template <>
+struct LaneTypes<8> {
+  typedef uint32_t U __attribute__((vector_size(32)));
+  typedef int32_t I __attribute__((vector_size(32)));
+  typedef float F __attribute__((vector_size(32)));
+  typedef uint8_t B __attribute__((vector_size(32)));
+};
+template <>
+struct LaneTypes<16> {
+  typedef uint32_t U __attribute__((vector_size(64)));
+  typedef int32_t I __attribute__((vector_size(64)));
+  typedef float F __attribute__((vector_size(64)));
+  typedef uint8_t B __attribute__((vector_size(64)));
+};
+
+// value8's arithmetic for a vector of sample indices (one lane each) and the four pairs of
+// seeds, written once for any vector width N: out[k * stride + lane]. Everything is inlined
+// into the kernels below, each compiled for its instruction set (the helpers work in place,
+// so that no vector is passed by value to a function compiled for a narrower one).
+#define RF_INLINE inline __attribute__((always_inline))
+template <int N>
+struct SobolLanes {
+  using U = typename LaneTypes<N>::U;
+  using I = typename LaneTypes<N>::I;
+  using F = typename LaneTypes<N>::F;
+  using B = typename LaneTypes<N>::B;
+
+  static RF_INLINE void reverse_bits(U& x) {
+    B order;
+    for (int i = 0; i < 4 * N; ++i) order[i] = uint8_t((i & ~3) + 3 - (i & 3));
+    x = reinterpret_cast<U>(__builtin_shuffle(reinterpret_cast<B>(x), order));
+    x = ((x >> 1) & 0x55555555u) | ((x & 0x55555555u) << 1);
+    x = ((x >> 2) & 0x33333333u) | ((x & 0x33333333u) << 2);
+    x = ((x >> 4) & 0x0f0f0f0fu) | ((x & 0x0f0f0f0fu) << 4);
+  }
+  static RF_INLINE void laine_karras(U& x, uint32_t seed) {
+    x += seed;
+    x ^= x * 0x6c50b47cu;
+    x ^= x * 0xb82f1e52u;
+    x ^= x * 0xc7afe638u;
+    x ^= x * 0x8d22f6e6u;
+  }
+  static RF_INLINE void sobol1_reversed(U& w) {
+    w ^= (w >> 1) & 0x55555555u;
+    w ^= (w >> 2) & 0x33333333u;
+    w ^= (w >> 4) & 0x0f0f0f0fu;
+    w ^= (w >> 8) & 0x00ff00ffu;
+    w ^= (w >> 16) & 0x0000ffffu;
+  }
+  static RF_INLINE void store_float(const U& v, float* out) {
+    const F f = __builtin_convertvector(reinterpret_cast<I>(v >> 8), F) * (1.f / 16777216.f);
+    __builtin_memcpy(out, &f, sizeof f);
+  }
+  // N lanes of indices (index[0..N)), seeds of the four pairs, out rows of stride `stride`.
+  static RF_INLINE void run(const uint32_t* index, const uint32_t* shuffle,
+                            const uint32_t* scramble, float* out, int stride) {
+    U r;
+    __builtin_memcpy(&r, index, sizeof r);
+    reverse_bits(r);
+    for (int p = 0; p < 4; ++p) {
+      U w = r;
+      laine_karras(w, shuffle[p]);
+      reverse_bits(w);  // the shuffled index
+      U even = w, odd = w;
+      laine_karras(even, scramble[2 * p]);
+      reverse_bits(even);
+      store_float(even, out + (2 * p) * stride);
+      sobol1_reversed(odd);
+      laine_karras(odd, scramble[2 * p + 1]);
+      reverse_bits(odd);
+      store_float(odd, out + (2 * p + 1) * stride);
+    }
+  }
+};
+#undef RF_INLINE
+
+constexpr int kLanes16 = PixelSampler::kLanes16;
+using Sobol8LanesFn = void (*)(const uint32_t*, const uint32_t*, const uint32_t*, float*);
+
+void sobol8_lanes_sse(const uint32_t* index, const uint32_t* shuffle, const uint32_t* scramble,
+                      float* out) {
+  for (int l = 0; l < kLanes16; l += 4)
+    SobolLanes<4>::run(index + l, shuffle, scramble, out + l, kLanes16);
+}
+
+#if defined(__x86_64__)
+#define RF_LANE_KERNELS_X86 1
+__attribute__((target("avx2"))) void sobol8_lanes_avx2(const uint32_t* index,
+                                                       const uint32_t* shuffle,
+                                                       const uint32_t* scramble, float* out) {
+  for (int l = 0; l < kLanes16; l += 8)
+    SobolLanes<8>::run(index + l, shuffle, scramble, out + l, kLanes16);
+}
+__attribute__((target("avx512f,avx512bw"))) void sobol8_lanes_avx512(const uint32_t* index,
+                                                                     const uint32_t* shuffle,
+                                                                     const uint32_t* scramble,
+                                                                     float* out) {
+  SobolLanes<16>::run(index, shuffle, scramble, out, kLanes16);
+}
+bool has_avx512() {
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw");
+}
+bool has_avx2() {
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2");
+}
+#endif
+
+// The widest kernel this CPU runs (chosen once).
+Sobol8LanesFn choose_sobol8_lanes() {
+#ifdef RF_LANE_KERNELS_X86
+  if (has_avx512()) return sobol8_lanes_avx512;
+  if (has_avx2()) return sobol8_lanes_avx2;
+#endif
+  return sobol8_lanes_sse;
+}
+
+}  // namespace
+
+std::vector<std::pair<std::string, Sobol8LanesKernel>> sobol8_lanes_kernels() {
+  std::vector<std::pair<std::string, Sobol8LanesKernel>> kernels = {{"sse", sobol8_lanes_sse}};
+#ifdef RF_LANE_KERNELS_X86
+  if (has_avx2()) kernels.emplace_back("avx2", sobol8_lanes_avx2);
+  if (has_avx512()) kernels.emplace_back("avx512", sobol8_lanes_avx512);
+#endif
+  return kernels;
+}
+
+bool PixelSampler::value8_lanes(const uint32_t index[kLanes16], uint32_t first,
+                                float out[8][kLanes16]) const {
+  if (sampler_->type() != SamplerType::Sobol || first % 4u != 0 ||
+      first + 8 > kCachedDimensions)
+    return false;
+  const uint32_t group = uint32_t(1) << (first / 4);
+  if (!(valid8_ & group)) {
+    for (uint32_t d = first; d < first + 8; ++d) fill_sobol_seeds(d);
+    valid8_ |= group;
+  }
+  static const Sobol8LanesFn kernel = choose_sobol8_lanes();
+  kernel(index, &shuffle_[first / 2], &scramble_[first], &out[0][0]);
   return true;
 }
 

@@ -39,6 +39,8 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
+#include <utility>
 #include <string>
 
 #include "sampling.h"
@@ -153,6 +155,13 @@ class PixelSampler {
   // computed arithmetically instead of by tables; returns false (and leaves out alone) for
   // the other samplers, whose values the caller should ask for one at a time when needed.
   bool value8(uint32_t sample_index, uint32_t first, float out[8]) const;
+  // value8 for kLanes16 sample indices at once: out[k][lane] = value(index[lane], first + k).
+  // For sobol the lanes go through the scrambles side by side in vectors as wide as the CPU
+  // has (AVX-512, AVX2 or SSE, chosen at run time; integer arithmetic, so every width gives
+  // the same bits); returns false (and leaves out alone) where value8 would.
+  static constexpr int kLanes16 = 16;
+  bool value8_lanes(const uint32_t index[kLanes16], uint32_t first,
+                    float out[8][kLanes16]) const;
   static constexpr uint32_t kCachedDimensions = 128;
 
  private:
@@ -166,6 +175,12 @@ class PixelSampler {
   mutable uint64_t valid_[kCachedDimensions / 64] = {};
   mutable uint32_t valid8_ = 0;  // bit first / 4: value8's seeds for first.. first + 7 filled
 };
+
+// The kernels behind PixelSampler::value8_lanes that this CPU can run, by name ("sse" (4-lane
+// vectors: NEON on ARM), then on x86-64 "avx2" and "avx512" where present), for the tests: kernel(index[16], shuffle seeds of the four pairs, scramble seeds
+// of the eight dimensions, out[8][16]).
+using Sobol8LanesKernel = void (*)(const uint32_t*, const uint32_t*, const uint32_t*, float*);
+std::vector<std::pair<std::string, Sobol8LanesKernel>> sobol8_lanes_kernels();
 
 // Convenience view for one (pixel, sample) pair.
 struct SampleStream {
@@ -192,6 +207,15 @@ class BounceSamples {
     first_ = dim::bounce(bounce, 0);
     // value8 declines dimensions beyond its cache (bounce 15 and deeper) and other samplers.
     batched_ = s.sampler->value8(s.index, first_, values_);
+  }
+  // Becomes BounceSamples(s, bounce) with the eight values given (out[k][lane] of
+  // PixelSampler::value8_lanes for s.index).
+  void assign(const SampleStream& s, uint32_t bounce,
+              const float (*values)[PixelSampler::kLanes16], int lane) {
+    stream_ = s;
+    first_ = dim::bounce(bounce, 0);
+    batched_ = true;
+    for (int k = 0; k < 8; ++k) values_[k] = values[k][lane];
   }
   float get(uint32_t k) const { return batched_ ? values_[k] : stream_.get(first_ + k); }
   // k even: the pair (k, k + 1).

@@ -6,6 +6,8 @@
 
 #include <algorithm>
 #include <random>
+#include <string>
+#include <utility>
 #include <thread>
 #include <vector>
 
@@ -351,6 +353,55 @@ TEST(Samplers, BatchedBounceValuesEqualTheValuesOneAtATime) {
       ASSERT_EQ(p.x, sobol.value(5, 77, dim::bounce(bounce, k)));
       ASSERT_EQ(p.y, sobol.value(5, 77, dim::bounce(bounce, k + 1)));
     }
+  }
+}
+
+TEST(Samplers, LaneBatchedBounceValuesEqualTheValuesOneAtATime) {
+  // value8_lanes computes a bounce's eight sobol dimensions for sixteen sample indices at once,
+  // with the widest kernel this CPU runs; every kernel this CPU can run (SSE always, AVX2 and
+  // AVX-512 where present) must give the scalar definition's values for every lane.
+  const std::vector<std::pair<std::string, Sobol8LanesKernel>> kernels = sobol8_lanes_kernels();
+  ASSERT_GE(kernels.size(), 1u);
+  EXPECT_EQ(kernels[0].first, "sse");
+  std::mt19937 rng(11);
+  const Sampler sobol(SamplerType::Sobol, 7);
+  int compared = 0;
+  for (uint64_t pixel : {0ull, 12345ull, 4000000000ull}) {
+    const PixelSampler ps(sobol, pixel);
+    for (uint32_t first = 0; first + 8 <= PixelSampler::kCachedDimensions; first += 4) {
+      uint32_t index[PixelSampler::kLanes16];
+      for (int l = 0; l < PixelSampler::kLanes16; ++l)
+        index[l] = l < 8 ? uint32_t(first * 3 + l) : uint32_t(rng());
+      float out[8][PixelSampler::kLanes16];
+      ASSERT_TRUE(ps.value8_lanes(index, first, out));
+      // The kernels themselves, on the seeds value8_lanes filled.
+      uint32_t shuffle[4], scramble[8];
+      const uint64_t key = sobol.sobol_pixel_key(pixel);
+      for (uint32_t k = 0; k < 8; ++k) scramble[k] = Sampler::sobol_scramble_seed(key, first + k);
+      for (uint32_t p = 0; p < 4; ++p)
+        shuffle[p] = Sampler::sobol_shuffle_seed(key, first + 2 * p);
+      for (const auto& [name, kernel] : kernels) {
+        float direct[8][PixelSampler::kLanes16];
+        kernel(index, shuffle, scramble, &direct[0][0]);
+        for (uint32_t k = 0; k < 8; ++k)
+          for (int l = 0; l < PixelSampler::kLanes16; ++l) {
+            const float expected = sobol.value(pixel, index[l], first + k);
+            ASSERT_EQ(direct[k][l], expected) << name << " " << first << " lane " << l;
+            ASSERT_EQ(out[k][l], expected) << first << " lane " << l;
+            ++compared;
+          }
+      }
+    }
+  }
+  EXPECT_GE(compared, 3 * 31 * 8 * 16);
+  // The other samplers decline.
+  for (SamplerType type :
+       {SamplerType::Independent, SamplerType::Stratified, SamplerType::Halton}) {
+    const Sampler sampler(type, 7);
+    const PixelSampler ps(sampler, 3);
+    uint32_t index[PixelSampler::kLanes16] = {};
+    float out[8][PixelSampler::kLanes16];
+    EXPECT_FALSE(ps.value8_lanes(index, 4, out));
   }
 }
 
