@@ -566,12 +566,15 @@ struct TraceContext {
 };
 
 // Sample `index` of pixel (x, y) up to its camera ray: a path ready for its first bounce.
+// camera_dims: the sample's values of dimensions kPixelX .. kLensV if already computed, or null.
 PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
-                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
+                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index,
+                     const float* camera_dims = nullptr) {
   PathState p;
   p.s = SampleStream{&sampler, index};
   // Box filter: the sample position is uniform inside the pixel.
-  const Point2 jitter = p.s.get2(dim::kPixelX);
+  const Point2 jitter = camera_dims ? Point2{camera_dims[dim::kPixelX], camera_dims[dim::kPixelY]}
+                                    : p.s.get2(dim::kPixelX);
   const float px = float(x) + jitter.x;
   const float py = float(y) + jitter.y;
   const Camera& cam = scene.camera();
@@ -581,7 +584,9 @@ PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSe
     // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
     // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
     // point of the aperture disk and aims at p_focus.
-    const Point2 lens = sample_concentric_disk(p.s.get2(dim::kLensU));
+    const Point2 lens = sample_concentric_disk(
+        camera_dims ? Point2{camera_dims[dim::kLensU], camera_dims[dim::kLensV]}
+                    : p.s.get2(dim::kLensU));
     const Vec3 p_focus = p.o + p.d * (settings.focus_distance / dot(p.d, cam.forward));
     p.o = p.o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
     p.d = normalize(p_focus - p.o);
@@ -606,9 +611,18 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
     }
     return;
   }
+  // The camera dimensions of all lanes at once where the sampler can (sobol).
+  uint32_t index[kPacketSize];
+  for (uint32_t k = 0; k < uint32_t(kPacketSize); ++k) index[k] = first + k;
+  float values[8][PixelSampler::kLanes16];
+  const bool batched = sampler.value8_lanes(index, dim::kPixelX, values);
   PathState paths[kPacketSize];
-  for (uint32_t k = 0; k < n; ++k)
-    paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k);
+  for (uint32_t k = 0; k < n; ++k) {
+    float camera_dims[4];
+    for (uint32_t d = 0; d < 4; ++d) camera_dims[d] = values[dim::kPixelX + d][k];
+    paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k,
+                          batched ? camera_dims : nullptr);
+  }
   trace_paths(scene, ctx.lights, paths, path_max_depth(settings));
   for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
 }
