@@ -145,7 +145,8 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
 }
 
 // A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
-// origin + t wi for t in (0, tmax). Delta lights only: the other samples wait in a LightBatch.
+// origin + t wi for t in (0, tmax). In the packet tracer only delta lights' samples are held
+// so (the others wait in a LightBatch); the scalar reference holds every light's.
 struct LightRay {
   Vec3 origin, wi;
   float tmax = 0.f;

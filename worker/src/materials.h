@@ -210,8 +210,8 @@ class BsdfEvalBatch {
   static float metal_ms_factor(float cos_i, float alpha);  // 1 - E(cos_i, alpha)
   void evaluate_block(int first);  // slots first .. first + 3
   uint32_t used_ = 0;              // bit s: slot s queued
-  // Vertex inputs by lane and direction inputs by slot. Slots not queued hold zeros or an
-  // earlier evaluation's inputs (finite either way): they are computed and ignored.
+  // Vertex inputs by lane and direction inputs by slot. Slots not queued hold zeros or earlier
+  // inputs (a dropped light sample's may be NaN): they are computed along and never read.
   alignas(64) float wo_[3][kLanes] = {}, base_[3][kLanes] = {}, ms_[3][kLanes] = {};
   alignas(64) float metallic_[kLanes] = {}, alpha_[kLanes] = {}, specular_[kLanes] = {};
   alignas(64) float f0d_[kLanes] = {}, wd_[kLanes] = {}, glass_[kLanes] = {};
