@@ -501,30 +501,22 @@ bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) c
 
 namespace {
 
-// Vector types of N lanes (vector_size cannot depend on a template parameter).
+// Vector types of N lanes. GCC ignores vector_size on a type that depends on a template
+// parameter, so each width is one specialization, stamped out by this macro.
 template <int N>
 struct LaneTypes;
-template <>
-struct LaneTypes<4> {
-  typedef uint32_t U __attribute__((vector_size(16)));
-  typedef int32_t I __attribute__((vector_size(16)));
-  typedef float F __attribute__((vector_size(16)));
-  typedef uint8_t B __attribute__((vector_size(16)));
-};
-template <>
-struct LaneTypes<8> {
-  typedef uint32_t U __attribute__((vector_size(32)));
-  typedef int32_t I __attribute__((vector_size(32)));
-  typedef float F __attribute__((vector_size(32)));
-  typedef uint8_t B __attribute__((vector_size(32)));
-};
-template <>
-struct LaneTypes<16> {
-  typedef uint32_t U __attribute__((vector_size(64)));
-  typedef int32_t I __attribute__((vector_size(64)));
-  typedef float F __attribute__((vector_size(64)));
-  typedef uint8_t B __attribute__((vector_size(64)));
-};
+#define RF_LANE_TYPES(N)                                      \
+  template <>                                                 \
+  struct LaneTypes<N> {                                       \
+    typedef uint32_t U __attribute__((vector_size(4 * N)));   \
+    typedef int32_t I __attribute__((vector_size(4 * N)));    \
+    typedef float F __attribute__((vector_size(4 * N)));      \
+    typedef uint8_t B __attribute__((vector_size(4 * N)));    \
+  };
+RF_LANE_TYPES(4)
+RF_LANE_TYPES(8)
+RF_LANE_TYPES(16)
+#undef RF_LANE_TYPES
 
 // value8's arithmetic for a vector of sample indices (one lane each) and the four pairs of
 // seeds, written once for any vector width N: out[k * stride + lane]. Everything is inlined
