@@ -25,12 +25,14 @@ inline Point2 sample_concentric_disk(Point2 u) {
   if (a == 0.f && b == 0.f) return {0.f, 0.f};
   // The wedge test is a coin flip for the branch predictor: both wedges' angles are computed
   // and one is selected without a branch.
+  // Horizontal wedges: phi = (pi/4)(b/a), the point r (cos phi, sin phi) with r = a. Vertical
+  // ones: phi = pi/2 - psi with psi = (pi/4)(a/b), so the point is r (sin psi, cos psi), r = b.
   const bool horizontal = std::fabs(a) > std::fabs(b);
   const float r = select_bits(horizontal, a, b);
-  const float ratio = select_bits(horizontal, b, a) / r;
-  const float phi =
-      select_bits(horizontal, (kPi / 4.f) * ratio, (kPi / 2.f) - (kPi / 4.f) * ratio);
-  return {r * std::cos(phi), r * std::sin(phi)};
+  const float psi = (kPi / 4.f) * (select_bits(horizontal, b, a) / r);
+  float s, c;
+  sincos_quarter(psi, &s, &c);
+  return {r * select_bits(horizontal, c, s), r * select_bits(horizontal, s, c)};
 }
 // Density per unit area of the disk: 1/pi inside, 0 outside.
 inline float concentric_disk_pdf(Point2 p) { return p.x * p.x + p.y * p.y <= 1.f ? kInvPi : 0.f; }
@@ -162,14 +164,24 @@ inline VndfFrame vndf_frame(Vec3 wo, float alpha) {
 // ---- GGX visible normals (Heitz 2018, "Sampling the GGX Distribution of Visible Normals"):
 // maps u to a microfacet normal m distributed as D_wo(m) = G1(wo) max(0, wo.m) D(m) / wo.z.
 // Requires wo.z > 0 (unit, local frame).
-inline Vec3 sample_ggx_vndf(Vec3 wo, float alpha, Point2 u) {
+// The first step, which depends on u alone: a uniform point of the unit disk in polar
+// coordinates, r = sqrt(u.x), phi = 2 pi u.y.
+inline Point2 sample_polar_disk(Point2 u) {
+  const float r = std::sqrt(u.x);
+  float s, c;
+  sincos_turn(u.y, &s, &c);
+  return {r * c, r * s};
+}
+// The rest, from the disk point d = sample_polar_disk(u).
+inline Vec3 sample_ggx_vndf_from_disk(Vec3 wo, float alpha, Point2 d) {
   const detail::VndfFrame f = detail::vndf_frame(wo, alpha);
-  const float r = std::sqrt(u.x), phi = 2.f * kPi * u.y;
-  const float p1 = r * std::cos(phi);
-  float p2 = r * std::sin(phi);
-  p2 = (1.f - f.s) * std::sqrt(std::max(0.f, 1.f - p1 * p1)) + f.s * p2;
+  const float p1 = d.x;
+  const float p2 = (1.f - f.s) * std::sqrt(std::max(0.f, 1.f - p1 * p1)) + f.s * d.y;
   const Vec3 nh = f.t1 * p1 + f.t2 * p2 + f.vh * std::sqrt(std::max(0.f, 1.f - p1 * p1 - p2 * p2));
   return normalize(Vec3(alpha * nh.x, alpha * nh.y, std::max(1e-7f, nh.z)));
+}
+inline Vec3 sample_ggx_vndf(Vec3 wo, float alpha, Point2 u) {
+  return sample_ggx_vndf_from_disk(wo, alpha, sample_polar_disk(u));
 }
 // Density of sample_ggx_vndf per unit solid angle of m.
 inline float ggx_vndf_pdf(Vec3 wo, Vec3 m, float alpha) {
