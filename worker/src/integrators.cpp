@@ -1,5 +1,6 @@
 #include "integrators.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -232,6 +233,35 @@ void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
   }
 }
 
+// The BSDF samples' disk warps (bsdf_disks) of a packet's lanes, four lanes at a time: they
+// depend on the sample values alone, so they are computed for every live lane before the
+// vertices are shaded, both of them (a lane uses one, known only once its material is).
+struct DiskBatch {
+  static constexpr int kLanes = kPacketSize;
+  alignas(16) float cosine[3][kLanes] = {}, polar[2][kLanes] = {};
+
+  // Lanes `lanes` of the pairs (ux[i], uy[i]); the other lanes of a block of four are computed
+  // too (from whatever values they hold) and never read.
+  void compute(const float* ux, const float* uy, uint32_t lanes) {
+    for (int i = 0; i < kLanes; i += 4) {
+      if (!((lanes >> i) & 0xfu)) continue;
+      const F32x4 x = load4(ux + i), y = load4(uy + i);
+      F32x4 cx, cy, cz, px, py;
+      sample_cosine_hemisphere4(x, y, &cx, &cy, &cz);
+      sample_polar_disk4(x, y, &px, &py);
+      store4(&cosine[0][i], cx);
+      store4(&cosine[1][i], cy);
+      store4(&cosine[2][i], cz);
+      store4(&polar[0][i], px);
+      store4(&polar[1][i], py);
+    }
+  }
+  BsdfDisks get(int lane) const {
+    return {Vec3(cosine[0][lane], cosine[1][lane], cosine[2][lane]),
+            Point2{polar[0][lane], polar[1][lane]}};
+  }
+};
+
 // What sample_light produced.
 enum class LightSampleKind {
   None,     // contributes nothing whatever the visibility: no shadow ray
@@ -352,7 +382,8 @@ inline bool wrong_side(Vec3 wi, Vec3 ng, bool transmitted) {
 // evaluated.
 void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
                         const Hit* hit, uint32_t bounce, uint32_t max_depth,
-                        BsdfEvalBatch* batch, LightBatch* lb, int lane) {
+                        const DiskBatch& disks, BsdfEvalBatch* batch, LightBatch* lb,
+                        int lane) {
   const Vec3 d = p.d;
   SampleResult& result = p.result;
   p.alive = false;
@@ -406,7 +437,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
 
   BsdfSample& bs = p.bs;
   const BsdfSampleStep step =
-      bsdf_sample_direction(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
+      bsdf_sample_direction(sp.params, lobes, wo_local, disks.get(lane), u.get(dim::kLobe),
                             // Read only by the glass lobe: skipped (any value would do) without
                             // one.
                             lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
@@ -477,6 +508,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
   bool found[kPacketSize], blocked[kPacketSize];
   BsdfEvalBatch batch;
   LightBatch lights;
+  DiskBatch disks;
   // Lanes are visited through bit masks of the live ones: whether a path is still alive is
   // data the branch predictor cannot learn, and a branch per lane per loop mispredicts often.
   for (uint32_t bounce = 0;; ++bounce) {
@@ -495,23 +527,32 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     float values[8][PixelSampler::kLanes16];
     const bool batched = paths[__builtin_ctz(live)].s.sampler->value8_lanes(
         index, dim::bounce(bounce, 0), values);
+    if (!batched) {  // the disk pairs are filled lane by lane below; dead lanes get zeros
+      std::fill(values[dim::kBsdfU], values[dim::kBsdfU] + kPacketSize, 0.f);
+      std::fill(values[dim::kBsdfV], values[dim::kBsdfV] + kPacketSize, 0.f);
+    }
     for (uint32_t m = live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
       PathState& p = paths[i];
-      if (batched)
+      if (batched) {
         p.u.assign(p.s, bounce, values, i);
-      else
+      } else {
         p.u.reset(p.s, bounce);
+        const Point2 u = p.u.get2(dim::kBsdfU);
+        values[dim::kBsdfU][i] = u.x;
+        values[dim::kBsdfV][i] = u.y;
+      }
       rays.set(i, p.o, p.d, kInfinity);
       ++p.result.rays;
     }
+    disks.compute(values[dim::kBsdfU], values[dim::kBsdfV], live);
     scene.intersect(rays, hits, found);
     batch.clear();
     lights.clear();
     for (uint32_t m = live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
       shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
-                         &batch, &lights, i);
+                         disks, &batch, &lights, i);
     }
     lights.finish_geometry(&batch);
     batch.evaluate();
@@ -787,9 +828,6 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     p.d = wi;
   }
 }
-
-namespace {
-}  // namespace
 
 SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
                           const Sampler& sampler, uint32_t x, uint32_t y, uint32_t index) {

@@ -232,7 +232,7 @@ bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_f
 
 bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, float u_lobe,
                  float u_fresnel, BsdfSample* out) {
-  switch (bsdf_sample_direction(p, l, wo, u, u_lobe, u_fresnel, out)) {
+  switch (bsdf_sample_direction(p, l, wo, bsdf_disks(u), u_lobe, u_fresnel, out)) {
     case BsdfSampleStep::Failed:
       return false;
     case BsdfSampleStep::Done:
@@ -247,7 +247,8 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
 }
 
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
-                                     Point2 u, float u_lobe, float u_fresnel, BsdfSample* out) {
+                                     const BsdfDisks& disks, float u_lobe, float u_fresnel,
+                                     BsdfSample* out) {
   if (wo.z <= 0.f) return BsdfSampleStep::Failed;
   if (u_lobe < l.glass) {
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
@@ -275,10 +276,10 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
   const float u_rest = l.glass < 1.f ? (u_lobe - l.glass) / (1.f - l.glass) : 0.f;
   Vec3 wi;
   if (u_rest < l.spec) {
-    const Vec3 m = sample_ggx_vndf(wo, p.alpha, u);
+    const Vec3 m = sample_ggx_vndf_from_disk(wo, p.alpha, disks.polar);
     wi = m * (2.f * dot(wo, m)) - wo;
   } else {
-    wi = sample_cosine_hemisphere(u);
+    wi = disks.cosine;
   }
   if (wi.z <= 0.f) return BsdfSampleStep::Failed;
   out->wi = wi;

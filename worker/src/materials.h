@@ -123,8 +123,10 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Point2 u,
 // ends) but for out->wi, which the caller sets to normalize(out->wi). Together they give
 // bsdf_sample's result exactly.
 enum class BsdfSampleStep { Failed, Done, NeedsEval };
+// The direction pair u enters as its warps, disks = bsdf_disks(u).
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
-                                     Point2 u, float u_lobe, float u_fresnel, BsdfSample* out);
+                                     const BsdfDisks& disks, float u_lobe, float u_fresnel,
+                                     BsdfSample* out);
 bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out);
 
 // The bsdf_eval_pdf evaluations of up to kLanes vertices (a packet's paths), two directions

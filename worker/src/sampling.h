@@ -183,6 +183,14 @@ inline Vec3 sample_ggx_vndf_from_disk(Vec3 wo, float alpha, Point2 d) {
 inline Vec3 sample_ggx_vndf(Vec3 wo, float alpha, Point2 u) {
   return sample_ggx_vndf_from_disk(wo, alpha, sample_polar_disk(u));
 }
+// The two warps of a BSDF sample's pair u that depend on u alone: the diffuse lobe's cosine
+// direction and the GGX lobe's disk point. The packet tracer computes both for all its lanes
+// at once (simd.h), before it knows which lobe each lane samples.
+struct BsdfDisks {
+  Vec3 cosine;   // sample_cosine_hemisphere(u)
+  Point2 polar;  // sample_polar_disk(u)
+};
+inline BsdfDisks bsdf_disks(Point2 u) { return {sample_cosine_hemisphere(u), sample_polar_disk(u)}; }
 // Density of sample_ggx_vndf per unit solid angle of m.
 inline float ggx_vndf_pdf(Vec3 wo, Vec3 m, float alpha) {
   if (wo.z <= 0.f) return 0.f;

@@ -3,7 +3,9 @@
 #include <gtest/gtest.h>
 
 #include "chi_square.h"
+#include "simd.h"
 
+#include <cstring>
 #include <functional>
 #include <random>
 #include <vector>
@@ -191,6 +193,39 @@ TEST(Trig, QuarterKernelAndTurnsMatchDoublePrecision) {
     worst = std::max({worst, std::fabs(s - std::sin(phi)), std::fabs(c - std::cos(phi))});
   }
   EXPECT_LT(worst, tol);
+}
+
+// The packet tracer's four-lane disk warps give the scalar warps' bits, including at the
+// disk's centre (0/0 in the concentric map) and at the quarter-turn boundaries.
+TEST(Warps, FourLaneDiskWarpsEqualTheScalarOnesBitForBit) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  std::vector<Point2> us = {{0.5f, 0.5f}, {0.f, 0.f}, {0.5f, 0.125f}, {0.25f, 0.375f},
+                            {0.75f, 0.625f}, {1.f, 0.875f}, {0.5f, 0.9f}, {0.1f, 0.5f}};
+  for (int i = 0; i < 4000; ++i) us.push_back({uni(rng), uni(rng)});
+  const auto bits = [](float f) {
+    uint32_t b;
+    std::memcpy(&b, &f, sizeof b);
+    return b;
+  };
+  for (size_t i = 0; i + 4 <= us.size(); i += 4) {
+    F32x4 ux, uy;
+    for (int k = 0; k < 4; ++k) {
+      ux[k] = us[i + size_t(k)].x;
+      uy[k] = us[i + size_t(k)].y;
+    }
+    F32x4 cx, cy, cz, px, py;
+    sample_cosine_hemisphere4(ux, uy, &cx, &cy, &cz);
+    sample_polar_disk4(ux, uy, &px, &py);
+    for (int k = 0; k < 4; ++k) {
+      const BsdfDisks d = bsdf_disks(us[i + size_t(k)]);
+      ASSERT_EQ(bits(cx[k]), bits(d.cosine.x)) << ux[k] << " " << uy[k];
+      ASSERT_EQ(bits(cy[k]), bits(d.cosine.y)) << ux[k] << " " << uy[k];
+      ASSERT_EQ(bits(cz[k]), bits(d.cosine.z)) << ux[k] << " " << uy[k];
+      ASSERT_EQ(bits(px[k]), bits(d.polar.x)) << ux[k] << " " << uy[k];
+      ASSERT_EQ(bits(py[k]), bits(d.polar.y)) << ux[k] << " " << uy[k];
+    }
+  }
 }
 
 TEST(Warps, ConcentricDiskRoundTrip) {

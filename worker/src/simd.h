@@ -7,6 +7,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include "vecmath.h"
+
 namespace rf {
 
 typedef float F32x4 __attribute__((vector_size(16)));
@@ -53,6 +55,45 @@ inline void normalize4(F32x4& x, F32x4& y, F32x4& z) {
   x = x * inv;
   y = y * inv;
   z = z * inv;
+}
+
+// |v| lane-wise (the sign bit cleared, as std::fabs).
+inline F32x4 abs4(F32x4 v) { return F32x4(I32x4(v) & 0x7fffffff); }
+
+// sincos_turn (vecmath.h) lane-wise: sin and cos of 2 pi u, u in [0, 1].
+inline void sincos_turn4(F32x4 u, F32x4* s, F32x4* c) {
+  const I32x4 q = __builtin_convertvector(4.f * u + 0.5f, I32x4);  // truncates, as int32_t()
+  F32x4 ks, kc;
+  sincos_quarter((u - __builtin_convertvector(q, F32x4) * 0.25f) * (2.f * kPi), &ks, &kc);
+  const I32x4 odd = (q & 1) != 0, negate = (q & 2) != 0;
+  const F32x4 sin_q = odd ? kc : ks, cos_q = odd ? -ks : kc;
+  *s = negate ? -sin_q : sin_q;
+  *c = negate ? -cos_q : cos_q;
+}
+
+// sample_polar_disk (sampling.h) lane-wise.
+inline void sample_polar_disk4(F32x4 ux, F32x4 uy, F32x4* x, F32x4* y) {
+  const F32x4 r = sqrt4(ux);
+  F32x4 s, c;
+  sincos_turn4(uy, &s, &c);
+  *x = r * c;
+  *y = r * s;
+}
+
+// sample_cosine_hemisphere (sampling.h) lane-wise, through its concentric disk.
+inline void sample_cosine_hemisphere4(F32x4 ux, F32x4 uy, F32x4* x, F32x4* y, F32x4* z) {
+  const F32x4 zero = splat4(0.f);
+  const F32x4 a = 2.f * ux - 1.f, b = 2.f * uy - 1.f;
+  const I32x4 horizontal = abs4(a) > abs4(b);
+  const F32x4 r = horizontal ? a : b;
+  const F32x4 psi = (kPi / 4.f) * ((horizontal ? b : a) / r);
+  F32x4 s, c;
+  sincos_quarter(psi, &s, &c);
+  // The centre (a = b = 0, where psi is 0/0) maps to the centre.
+  const I32x4 centre = (a == zero) & (b == zero);
+  *x = centre ? zero : r * (horizontal ? c : s);
+  *y = centre ? zero : r * (horizontal ? s : c);
+  *z = sqrt4(max4(zero, 1.f - *x * *x - *y * *y));
 }
 
 }  // namespace rf
