@@ -23,10 +23,10 @@ struct Point2 {
 inline Point2 sample_concentric_disk(Point2 u) {
   const float a = 2.f * u.x - 1.f, b = 2.f * u.y - 1.f;
   if (a == 0.f && b == 0.f) return {0.f, 0.f};
-  // The wedge test is a coin flip for the branch predictor: both wedges' angles are computed
-  // and one is selected without a branch.
   // Horizontal wedges: phi = (pi/4)(b/a), the point r (cos phi, sin phi) with r = a. Vertical
   // ones: phi = pi/2 - psi with psi = (pi/4)(a/b), so the point is r (sin psi, cos psi), r = b.
+  // The wedge test is a coin flip for the branch predictor: the operands are selected without
+  // a branch.
   const bool horizontal = std::fabs(a) > std::fabs(b);
   const float r = select_bits(horizontal, a, b);
   const float psi = (kPi / 4.f) * (select_bits(horizontal, b, a) / r);
@@ -190,7 +190,9 @@ struct BsdfDisks {
   Vec3 cosine;   // sample_cosine_hemisphere(u)
   Point2 polar;  // sample_polar_disk(u)
 };
-inline BsdfDisks bsdf_disks(Point2 u) { return {sample_cosine_hemisphere(u), sample_polar_disk(u)}; }
+inline BsdfDisks bsdf_disks(Point2 u) {
+  return {sample_cosine_hemisphere(u), sample_polar_disk(u)};
+}
 // Density of sample_ggx_vndf per unit solid angle of m.
 inline float ggx_vndf_pdf(Vec3 wo, Vec3 m, float alpha) {
   if (wo.z <= 0.f) return 0.f;
