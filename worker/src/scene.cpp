@@ -459,7 +459,8 @@ void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCR
 }  // namespace
 
 template <int N, typename RayHitN>
-void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found) const {
+void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found,
+                            bool coherent) const {
   alignas(64) int valid[N];
   alignas(64) RayHitN rh;
   fill_packet<N>(&rh.ray, valid, rays, first, false);
@@ -470,6 +471,8 @@ void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* f
   }
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
+  context.flags =
+      coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
   rtc_intersect(valid, embree_->scene, &context, &rh);
   // Which lanes hit, without a branch per lane (whether a lane is active and hits something
   // is data the branch predictor cannot learn); then the hits one after another.
@@ -499,14 +502,14 @@ void Scene::occluded_lanes(const RayPacket& rays, int first, bool* blocked) cons
   for (int i = 0; i < N; ++i) blocked[first + i] = ray.tfar[i] < 0.f;
 }
 
-void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found) const {
+void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent) const {
   if (packet_query_width_ == kPacketSize) {
-    intersect_lanes<kPacketSize, RTCRayHit16>(rays, 0, hits, found);
+    intersect_lanes<kPacketSize, RTCRayHit16>(rays, 0, hits, found, coherent);
     return;
   }
   for (int first = 0; first < kPacketSize; first += kPacketSize / 2) {
     if (any_active(rays, first, kPacketSize / 2))
-      intersect_lanes<kPacketSize / 2, RTCRayHit8>(rays, first, hits, found);
+      intersect_lanes<kPacketSize / 2, RTCRayHit8>(rays, first, hits, found, coherent);
     else
       std::fill(found + first, found + first + kPacketSize / 2, false);
   }

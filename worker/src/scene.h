@@ -221,7 +221,12 @@ class Scene {
   // intersect / occluded for the active lanes of a packet. found[i] is written for every lane
   // (false for inactive ones), hits[i] for the lanes found; blocked[i] is meaningful for
   // active lanes only.
-  void intersect(const RayPacket& rays, Hit* hits, bool* found) const;
+  // coherent: the rays are alike (a pixel's camera rays, which leave one point in nearly one
+  // direction): Embree traverses such a packet as one frustum (RTC_INTERSECT_CONTEXT_FLAG_
+  // COHERENT), faster for them and far slower for scattered rays; the hits are the same. The
+  // occlusion query has no coherent mode: Embree 3.13's coherent occlusion traversal never
+  // returned for some single rays in our tests (Scene/PacketQueries found one).
+  void intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent = false) const;
   void occluded(const RayPacket& rays, bool* blocked) const;
   // How the packet queries reach Embree: 16 when one native 16-wide query serves a packet
   // (the default where Embree reports native 16-wide support), 8 for two 8-wide queries. The
@@ -271,7 +276,8 @@ class Scene {
   // triangle prim, barycentrics (u, v), distance t).
   // One Embree packet query of width N over lanes [first, first + N) of a packet.
   template <int N, typename RayHitN>
-  void intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found) const;
+  void intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found,
+                       bool coherent) const;
   template <int N, typename RayN>
   void occluded_lanes(const RayPacket& rays, int first, bool* blocked) const;
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,

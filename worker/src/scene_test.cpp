@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cstring>
 #include <fstream>
 #include <random>
 #include <utility>
@@ -12,6 +13,12 @@
 
 namespace rf {
 namespace {
+
+uint32_t bits_of(float f) {
+  uint32_t b;
+  std::memcpy(&b, &f, sizeof b);
+  return b;
+}
 
 bool any_contains(const std::vector<std::string>& lines, const std::string& needle) {
   for (const auto& l : lines)
@@ -522,8 +529,28 @@ namespace {
 // the single-ray queries return: on world triangles and on instances (one mirrored), for rays
 // that start inside, outside and on the far side of the geometry, with finite and infinite
 // tmax, and with any set of active lanes (including a packet half with none). Inactive lanes'
-// outputs are left as they were.
+// outputs are left as they were. The coherent intersection query (a pixel's camera rays) finds
+// the incoherent one's hits to the last bit, on such rays and on scattered ones.
 class PacketQueries : public ::testing::TestWithParam<int> {};
+
+// The coherent packet query finds the hits of the incoherent one (hits, found), to the last
+// bit.
+void expect_coherent_hits_equal(const Scene& scene, const RayPacket& rays, const Hit* hits,
+                                const bool* found) {
+  Hit coherent[kPacketSize];
+  bool coherent_found[kPacketSize];
+  scene.intersect(rays, coherent, coherent_found, true);
+  for (int i = 0; i < kPacketSize; ++i) {
+    ASSERT_EQ(coherent_found[i], found[i]) << "lane " << i;
+    if (!found[i]) continue;
+    EXPECT_EQ(coherent[i].prim, hits[i].prim);
+    EXPECT_EQ(coherent[i].slot, hits[i].slot);
+    EXPECT_EQ(bits_of(coherent[i].t), bits_of(hits[i].t));
+    EXPECT_EQ(bits_of(coherent[i].b1), bits_of(hits[i].b1));
+    EXPECT_EQ(bits_of(coherent[i].b2), bits_of(hits[i].b2));
+    for (int c = 0; c < 3; ++c) EXPECT_EQ(bits_of(coherent[i].p[c]), bits_of(hits[i].p[c]));
+  }
+}
 
 TEST_P(PacketQueries, EqualSingleRayQueries) {
   SceneDescription desc;
@@ -559,10 +586,15 @@ TEST_P(PacketQueries, EqualSingleRayQueries) {
   int slot_hits[3] = {0, 0, 0};
   for (int packet = 0; packet < 400; ++packet) {
     RayPacket rays;
+    // Every third packet is like a pixel's camera rays: one origin, nearly one direction.
+    const bool alike = packet % 3 == 2;
+    const Vec3 eye(coord(rng), coord(rng), coord(rng));
+    const Vec3 aim(0.5f * coord(rng), 0.25f * coord(rng), 0.5f * coord(rng));
     for (int i = 0; i < kPacketSize; ++i) {
-      const Vec3 o(coord(rng), coord(rng), coord(rng));
+      const Vec3 o = alike ? eye : Vec3(coord(rng), coord(rng), coord(rng));
       // Aim near the origin so that most rays hit something.
-      const Vec3 target(0.5f * coord(rng), 0.25f * coord(rng), 0.5f * coord(rng));
+      const Vec3 target = alike ? aim + Vec3(coord(rng), coord(rng), coord(rng)) * 0.01f
+                                : Vec3(0.5f * coord(rng), 0.25f * coord(rng), 0.5f * coord(rng));
       rays.set(i, o, normalize(target - o),
                unit(rng) < 0.5f ? std::numeric_limits<float>::infinity() : 8.f * unit(rng));
       rays.active[i] = unit(rng) < 0.7f;
@@ -580,6 +612,7 @@ TEST_P(PacketQueries, EqualSingleRayQueries) {
     }
     scene.intersect(rays, hits, found);
     scene.occluded(rays, blocked);
+    expect_coherent_hits_equal(scene, rays, hits, found);
     for (int i = 0; i < kPacketSize; ++i) {
       if (!rays.active[i]) {
         // Inactive lanes: no hit record written, found false; blocked means nothing there.
@@ -609,6 +642,24 @@ TEST_P(PacketQueries, EqualSingleRayQueries) {
         EXPECT_FLOAT_EQ(hits[i].ns[c], single.ns[c]);
       }
     }
+  }
+  // Many more packets through both traversals: alike rays, scattered ones and single lanes.
+  for (int packet = 0; packet < 20000; ++packet) {
+    RayPacket rays;
+    const int kind = packet % 3;
+    const Vec3 eye(coord(rng), coord(rng), coord(rng));
+    for (int i = 0; i < kPacketSize; ++i) {
+      const Vec3 o = kind == 0 ? eye : Vec3(coord(rng), coord(rng), coord(rng));
+      const Vec3 target = Vec3(coord(rng), coord(rng), coord(rng)) * (kind == 0 ? 0.05f : 0.5f);
+      rays.set(i, o, normalize(target - o),
+               unit(rng) < 0.5f ? std::numeric_limits<float>::infinity() : 8.f * unit(rng));
+      rays.active[i] = kind == 2 ? i == packet % kPacketSize : unit(rng) < 0.7f;
+    }
+    Hit hits[kPacketSize];
+    bool found[kPacketSize];
+    scene.intersect(rays, hits, found);
+    expect_coherent_hits_equal(scene, rays, hits, found);
+    if (HasFailure()) break;
   }
   // The comparison covered hits on the world triangles, on both instances, and misses.
   EXPECT_GT(slot_hits[0], 100);
