@@ -225,7 +225,7 @@ class Scene {
   // direction): Embree traverses such a packet as one frustum (RTC_INTERSECT_CONTEXT_FLAG_
   // COHERENT), faster for them and far slower for scattered rays; the hits are the same. The
   // occlusion query has no coherent mode: Embree 3.13's coherent occlusion traversal never
-  // returned for some single rays in our tests (Scene/PacketQueries found one).
+  // returned for one of Scene/PacketQueries' scattered rays when we tried it.
   void intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent = false) const;
   void occluded(const RayPacket& rays, bool* blocked) const;
   // How the packet queries reach Embree: 16 when one native 16-wide query serves a packet
