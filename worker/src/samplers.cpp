@@ -468,7 +468,7 @@ inline F32x4 fraction_to_float4(U32x4 v) {
 
 }  // namespace
 
-bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) const {
+bool PixelSampler::prepare8(uint32_t first) const {
   if (sampler_->type() != SamplerType::Sobol || first % 4u != 0 ||
       first + 8 > kCachedDimensions)
     return false;
@@ -477,6 +477,11 @@ bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) c
     for (uint32_t d = first; d < first + 8; ++d) fill_sobol_seeds(d);
     valid8_ |= group;
   }
+  return true;
+}
+
+bool PixelSampler::value8(uint32_t sample_index, uint32_t first, float out[8]) const {
+  if (!prepare8(first)) return false;
   // As sobol_bits, for the pairs (first + 2p, first + 2p + 1) in lanes p = 0..3: the shuffled
   // index w = reverse(y) with y = LK(reverse(i), shuffle_p); then z = reverse(sobol32(w)),
   // which is w itself for Sobol dimension 0 (van der Corput: sobol32 = reverse) and
@@ -634,14 +639,7 @@ std::vector<std::pair<std::string, Sobol8LanesKernel>> sobol8_lanes_kernels() {
 
 bool PixelSampler::value8_lanes(const uint32_t index[kLanes16], uint32_t first,
                                 float out[8][kLanes16]) const {
-  if (sampler_->type() != SamplerType::Sobol || first % 4u != 0 ||
-      first + 8 > kCachedDimensions)
-    return false;
-  const uint32_t group = uint32_t(1) << (first / 4);
-  if (!(valid8_ & group)) {
-    for (uint32_t d = first; d < first + 8; ++d) fill_sobol_seeds(d);
-    valid8_ |= group;
-  }
+  if (!prepare8(first)) return false;
   static const Sobol8LanesFn kernel = choose_sobol8_lanes();
   kernel(index, &shuffle_[first / 2], &scramble_[first], &out[0][0]);
   return true;

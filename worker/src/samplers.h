@@ -166,6 +166,10 @@ class PixelSampler {
 
  private:
   void fill_sobol_seeds(uint32_t dimension) const;
+  // value8's and value8_lanes' common part: false where they decline (not sobol, or first
+  // not one bounce's dimensions within the cache), otherwise true with the seeds of
+  // dimensions first .. first + 7 filled.
+  bool prepare8(uint32_t first) const;
   const Sampler* sampler_;
   uint64_t pixel_;
   uint64_t key_;  // Sampler::sobol_pixel_key(pixel_) (sobol only)
