@@ -9,6 +9,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .jobspec import Limits
+from .scene_check import SceneLimits, machine_memory_bytes
 
 
 def default_data_dir() -> Path:
@@ -55,6 +56,33 @@ class Settings(BaseSettings):
         "", description="PEM certificate (chain): serve REST and gRPC over TLS when set"
     )
     tls_key_file: str = Field("", description="PEM private key of tls_cert_file")
+    tls_client_ca_file: str = Field(
+        "",
+        description="PEM CA bundle: the gRPC port then requires client certificates signed by "
+        "it (mutual TLS for workers and gRPC clients); needs tls_cert_file",
+    )
+    scene_inspector: str = Field(
+        "",
+        description="the renderfarm-worker binary whose loader checks every uploaded scene; "
+        "empty: RENDERFARM_WORKER_BINARY, renderfarm-worker on PATH, or this checkout's build",
+    )
+    max_scene_nodes: int = Field(1_000_000, gt=0, description="most nodes a scene may have")
+    max_scene_depth: int = Field(1024, gt=0, description="deepest node hierarchy accepted")
+    max_scene_triangles: int = Field(
+        1_000_000_000, gt=0, description="most triangles over every mesh use (instances count)"
+    )
+    max_texture_pixels: int = Field(
+        1 << 30, ge=0, description="most pixels in all the images a scene's textures use"
+    )
+    max_scene_memory_mb: int = Field(
+        default_factory=lambda: max(1, machine_memory_bytes() // 2 // 10**6),
+        gt=0,
+        description="most memory a scene may need once loaded on a worker, as the loader "
+        "estimates it (default: half of this machine's memory)",
+    )
+    scene_inspect_cpu_s: float = Field(
+        60.0, gt=0, description="CPU time the server's check of one uploaded scene may take"
+    )
 
     def tls(self) -> tuple[Path, Path] | None:
         """(certificate, key) when TLS is configured; ValueError when only one is set."""
@@ -63,6 +91,24 @@ class Settings(BaseSettings):
         if not (self.tls_cert_file and self.tls_key_file):
             raise ValueError("TLS needs both tls_cert_file and tls_key_file")
         return Path(self.tls_cert_file), Path(self.tls_key_file)
+
+    def client_ca(self) -> Path | None:
+        """The CA of mutual TLS on the gRPC port, if configured (it needs TLS itself)."""
+        if not self.tls_client_ca_file:
+            return None
+        if self.tls() is None:
+            raise ValueError("tls_client_ca_file needs tls_cert_file and tls_key_file")
+        return Path(self.tls_client_ca_file)
+
+    def scene_limits(self) -> SceneLimits:
+        return SceneLimits(
+            max_nodes=self.max_scene_nodes,
+            max_depth=self.max_scene_depth,
+            max_triangles=self.max_scene_triangles,
+            max_texture_pixels=self.max_texture_pixels,
+            max_memory_mb=self.max_scene_memory_mb,
+            cpu_seconds=self.scene_inspect_cpu_s,
+        )
 
     def limits(self) -> Limits:
         return Limits(

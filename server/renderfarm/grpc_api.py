@@ -386,8 +386,11 @@ async def start_grpc(
     port: int,
     auth: Authenticator | None = None,
     tls: tuple[Path, Path] | None = None,
+    client_ca: Path | None = None,
 ) -> tuple[grpc.aio.Server, int]:
-    """Start the gRPC server; TLS with (certificate, key) PEM files when given."""
+    """Start the gRPC server; TLS with (certificate, key) PEM files when given, and with
+    client_ca, mutual TLS: every client (worker or API caller) must present a certificate
+    signed by that CA."""
     auth = auth or Authenticator.for_settings(farm.store, farm.settings)
     server = grpc.aio.server(
         options=[
@@ -415,7 +418,11 @@ async def start_grpc(
     )
     reflection.enable_server_reflection(names, server)
     if tls is not None:
-        credentials = grpc.ssl_server_credentials([(tls[1].read_bytes(), tls[0].read_bytes())])
+        credentials = grpc.ssl_server_credentials(
+            [(tls[1].read_bytes(), tls[0].read_bytes())],
+            root_certificates=client_ca.read_bytes() if client_ca else None,
+            require_client_auth=client_ca is not None,
+        )
         bound = server.add_secure_port(f"{host}:{port}", credentials)
     else:
         bound = server.add_insecure_port(f"{host}:{port}")

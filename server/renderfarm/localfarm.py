@@ -48,6 +48,7 @@ def spawn_workers(
     threads: int | None = None,
     log_dir: Path | None = None,
     first_index: int = 0,
+    extra_args: list[str] | None = None,
 ) -> list[subprocess.Popen]:
     """Start `count` workers named HOSTNAME-local-I for I from first_index (ids must differ:
     a worker connecting with the id of a connected one replaces it)."""
@@ -56,7 +57,7 @@ def spawn_workers(
     procs = []
     for i in range(first_index, first_index + count):
         args = [binary, "connect", "--server", grpc_address, "--threads", str(threads)]
-        args += ["--id", f"{socket.gethostname()}-local-{i}"]
+        args += ["--id", f"{socket.gethostname()}-local-{i}", *(extra_args or [])]
         out = open(log_dir / f"worker-{i}.log", "ab") if log_dir else subprocess.DEVNULL  # noqa: SIM115
         procs.append(subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT))
     return procs
@@ -87,8 +88,15 @@ class LocalFarm:
         grpc_port: int = 0,
         threads: int | None = None,
         env: dict[str, str] | None = None,
+        worker_args: list[str] | None = None,
+        ca_file: str | None = None,
     ):
+        """env: the server's RENDERFARM_* settings (RENDERFARM_TLS_CERT_FILE makes it serve
+        https; ca_file is then the CA the farm's own client checks it against); worker_args:
+        more `renderfarm-worker connect` flags (e.g. --tls --ca-file CA)."""
         self.workers = workers
+        self.worker_args = list(worker_args or [])
+        self.ca_file = ca_file
         self.data_dir = data_dir
         self.http_port = http_port or free_port()
         self.grpc_port = grpc_port or free_port()
@@ -99,7 +107,8 @@ class LocalFarm:
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self.http_port}"
+        scheme = "https" if (self.env or {}).get("RENDERFARM_TLS_CERT_FILE") else "http"
+        return f"{scheme}://127.0.0.1:{self.http_port}"
 
     @property
     def grpc_address(self) -> str:
@@ -108,8 +117,22 @@ class LocalFarm:
     def start(self, ready_timeout_s: float = 120.0) -> LocalFarm:
         self.start_server(ready_timeout_s)
         log_dir = Path(self.data_dir) if self.data_dir else None
-        self.worker_procs = spawn_workers(self.workers, self.grpc_address, self.threads, log_dir)
+        self.worker_procs = spawn_workers(
+            self.workers, self.grpc_address, self.threads, log_dir, extra_args=self.worker_args
+        )
         return self
+
+    def add_workers(self, count: int, threads: int | None = None, extra_args=None) -> None:
+        """Start `count` more workers (numbered after the running ones), with more flags."""
+        log_dir = Path(self.data_dir) if self.data_dir else None
+        self.worker_procs += spawn_workers(
+            count,
+            self.grpc_address,
+            threads or self.threads,
+            log_dir,
+            first_index=len(self.worker_procs),
+            extra_args=[*self.worker_args, *(extra_args or [])],
+        )
 
     def start_server(self, ready_timeout_s: float = 120.0) -> None:
         """(Re)start the server process on the same ports and data directory."""
@@ -123,7 +146,7 @@ class LocalFarm:
         log = open(log_dir / "server.log", "ab") if log_dir else subprocess.DEVNULL  # noqa: SIM115
         env = {**os.environ, **(self.env or {})}
         self.server = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, env=env)
-        with Client(self.url) as client:
+        with Client(self.url, ca_file=self.ca_file) as client:
             deadline = time.monotonic() + ready_timeout_s
             while not client.ready():
                 if self.server.poll() is not None:

@@ -73,7 +73,12 @@ async def serve(
         farm.metrics = metrics
         await farm.start()
         grpc_server, grpc_port = await start_grpc(
-            farm, settings.grpc_host, settings.grpc_port, auth=auth, tls=tls
+            farm,
+            settings.grpc_host,
+            settings.grpc_port,
+            auth=auth,
+            tls=tls,
+            client_ca=settings.client_ca(),
         )
         app = create_app(farm, metrics, auth=auth)
         config = uvicorn.Config(

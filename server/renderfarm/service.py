@@ -23,6 +23,7 @@ import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,7 @@ from .auth import LOCAL_USER, Caller, Forbidden
 from .config import Settings
 from .jobspec import JobSettings, SettingsError, parse_settings
 from .merge import TileAccumulator
+from .scene_check import SceneChecker
 from .scenes import SceneError, inspect_environment, inspect_scene
 from .scheduler import BatchResult, JobRun, Lease, Scheduler
 from .states import JobState, StopReason
@@ -158,6 +160,14 @@ class FarmService:
         # Convergence history of live jobs: (elapsed s, relative error or None, mean spp).
         self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
+        # Every new uploaded scene goes through the workers' own loader before it is stored.
+        from .localfarm import find_worker_binary  # noqa: PLC0415 (localfarm imports the client)
+
+        self.scene_checker = SceneChecker(
+            settings.scene_inspector or find_worker_binary(),
+            settings.scene_limits(),
+            Path(settings.data_dir) / "tmp",
+        )
 
     # ------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
@@ -303,6 +313,8 @@ class FarmService:
                     f"{self.settings.max_upload_bytes} bytes",
                 )
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
+            if await self.store.get_scene_info(info.sha256) is None:
+                await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
             await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
             sha = info.sha256
         elif scene_sha256:

@@ -44,6 +44,23 @@ struct TaskError {
   bool retryable;
 };
 
+// A message that reaches the user (a task's error) names no file of this machine: every
+// occurrence of `path` becomes `name`.
+std::string without_path(std::string message, const std::string& path, const std::string& name) {
+  if (path.empty()) return message;
+  for (size_t at = message.find(path); at != std::string::npos; at = message.find(path, at))
+    message.replace(at, path.size(), name);
+  return message;
+}
+
+// A render in progress: its cancel flag (set by a Cancel from the server, the end of the
+// stream or the time budget), and whether the time budget set it.
+struct RunningTask {
+  std::shared_ptr<std::atomic<bool>> cancel = std::make_shared<std::atomic<bool>>(false);
+  std::shared_ptr<std::atomic<bool>> timed_out = std::make_shared<std::atomic<bool>>(false);
+  std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
+};
+
 // Maps the protocol's settings onto the renderer's; zero/empty fields take the documented
 // defaults (the server normally fills them in).
 bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std::string* err) {
@@ -85,7 +102,7 @@ class Worker {
     std::unique_ptr<grpc::ClientReaderWriter<pb::WorkerMessage, pb::ServerMessage>> stream;
     std::mutex write_mutex;
     std::deque<pb::Task> queue;
-    std::map<std::string, std::shared_ptr<std::atomic<bool>>> running;  // id -> cancel flag
+    std::map<std::string, RunningTask> running;  // by task id
     bool closing = false;      // graceful stop: take no new tasks
     bool over = false;         // stream ended: render threads and supervisor exit
     bool reader_done = false;
@@ -100,7 +117,7 @@ class Worker {
   }
   void render_loop(Session& s);
   void supervise(Session& s, const std::atomic<bool>& stop);
-  void run_task(Session& s, const pb::Task& task, const std::atomic<bool>& cancel);
+  void run_task(Session& s, const pb::Task& task, const RunningTask& running);
   std::shared_ptr<const Scene> scene_for(const std::string& sha256);
   std::shared_ptr<const Environment> environment_for(const pb::RenderSettings& settings);
   std::string fetch_scene(const std::string& sha256);
@@ -162,7 +179,7 @@ bool Worker::run_session(const std::atomic<bool>& stop) {
               for (auto it = s.queue.begin(); it != s.queue.end();)
                 it = it->task_id() == id ? s.queue.erase(it) : it + 1;
               auto r = s.running.find(id);
-              if (r != s.running.end()) r->second->store(true);
+              if (r != s.running.end()) r->second.cancel->store(true);
             }
           }
           cv_.notify_all();
@@ -180,7 +197,7 @@ bool Worker::run_session(const std::atomic<bool>& stop) {
     s.reader_done = true;
     s.over = true;
     s.queue.clear();
-    for (auto& r : s.running) r.second->store(true);
+    for (auto& r : s.running) r.second.cancel->store(true);
   }
   cv_.notify_all();
   for (auto& t : renderers) t.join();
@@ -225,6 +242,14 @@ void Worker::supervise(Session& s, const std::atomic<bool>& stop) {
     }
     if (!s.welcomed) continue;
     const auto now = Clock::now();
+    // The time budget: a render past it stops now and fails (run_task reports it).
+    for (auto& r : s.running)
+      if (!r.second.cancel->load() &&
+          std::chrono::duration<double>(now - r.second.started).count() >
+              options_.task_timeout_s) {
+        r.second.timed_out->store(true);
+        r.second.cancel->store(true);
+      }
     const double elapsed = std::chrono::duration<double>(now - last_beat).count();
     if (elapsed * 1000.0 < double(s.heartbeat_ms)) continue;
     pb::WorkerMessage msg;
@@ -251,18 +276,18 @@ void Worker::render_loop(Session& s) {
     if (s.over || s.queue.empty()) return;  // closing with nothing queued: done
     pb::Task task = std::move(s.queue.front());
     s.queue.pop_front();
-    auto cancel = std::make_shared<std::atomic<bool>>(false);
-    s.running[task.task_id()] = cancel;
+    const RunningTask running = s.running[task.task_id()];  // shares the flags
     lock.unlock();
-    run_task(s, task, *cancel);
+    run_task(s, task, running);
     lock.lock();
     s.running.erase(task.task_id());
     cv_.notify_all();
   }
 }
 
-void Worker::run_task(Session& s, const pb::Task& task, const std::atomic<bool>& cancel) {
+void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& running) {
   const auto t0 = Clock::now();
+  const std::atomic<bool>& cancel = *running.cancel;
   auto fail = [&](const TaskError& e) {
     log_line("task " + task.task_id() + " failed: " + e.message);
     pb::WorkerMessage msg;
@@ -294,14 +319,23 @@ void Worker::run_task(Session& s, const pb::Task& task, const std::atomic<bool>&
   } catch (const TaskError& e) {
     return fail(e);
   } catch (const std::exception& e) {
-    return fail({std::string("environment: ") + e.what(), false});
+    return fail({without_path(std::string("environment: ") + e.what(),
+                              find_cached_scene(options_.cache_dir, task.settings().environment_sha256()),
+                              "environment " + task.settings().environment_sha256().substr(0, 12)),
+                 false});
   }
-  if (cancel) return;
   TileBuffer tile;
-  if (!render_rect(*scene, settings, rect, task.sample_start(), task.sample_count(), &tile,
-                   &cancel) ||
-      cancel)
-    return;  // cancelled: send nothing
+  const bool rendered = !cancel && render_rect(*scene, settings, rect, task.sample_start(),
+                                               task.sample_count(), &tile, &cancel);
+  if (running.timed_out->load()) {
+    char budget[32];
+    std::snprintf(budget, sizeof budget, "%g", options_.task_timeout_s);
+    return fail({std::string("task: rendering one batch took longer than the worker's time "
+                             "budget of ") + budget + " s (--task-timeout-s); the scene is too " +
+                     "costly per sample for this farm",
+                 false});
+  }
+  if (!rendered || cancel) return;  // cancelled: send nothing
   pb::WorkerMessage msg;
   pb::TileResult* r = msg.mutable_result();
   r->set_task_id(task.task_id());
@@ -344,15 +378,23 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
                bvh_layout_name(options_.bvh) + " BVH)");
       return scene;
     };
+    // Farm scenes are uploads: self-contained, within the limits, and named by their hash in
+    // messages (which reach the user) rather than by this machine's cache path.
+    LoadOptions load;
+    load.display_name = "scene " + sha256.substr(0, 12);
+    load.allow_external_files = false;
+    load.limits = options_.limits;
+    load.bvh = options_.bvh;
     try {
-      return loaded(load_scene(path, &warnings, options_.bvh));
+      return loaded(load_scene(path, &warnings, load));
     } catch (const SceneError&) {
       // A cached file that no longer matches its name was damaged on disk: fetch it again.
       if (fetched || sha256_file_hex(path) == sha256) throw;
       log_line("cached scene " + path + " is corrupt; fetching it again");
       fs::remove(path);
+      warnings.clear();
       path = fetch_scene(sha256);
-      return loaded(load_scene(path, &warnings, options_.bvh));
+      return loaded(load_scene(path, &warnings, load));
     }
   });
 }
@@ -406,7 +448,7 @@ std::string Worker::fetch_scene(const std::string& sha256) {
   request.set_sha256(sha256);
   auto reader = scene_stub_->FetchScene(&context, request);
   std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-  if (!out) throw TaskError{"scene fetch: cannot write " + tmp.string(), true};
+  if (!out) throw TaskError{"scene fetch: cannot write to the worker's scene cache", true};
   Sha256 hash;
   uint64_t offset = 0;
   pb::SceneFormat format = pb::SCENE_FORMAT_UNSPECIFIED;
@@ -435,7 +477,7 @@ std::string Worker::fetch_scene(const std::string& sha256) {
   if (!status.ok())
     discard(status.error_message() + " (code " + std::to_string(int(status.error_code())) + ")",
             true);
-  if (!out) discard("cannot write " + tmp.string(), true);
+  if (!out) discard("cannot write to the worker's scene cache", true);
   if (!ordered) discard("chunks arrived out of order", true);
   const std::string got = hash.final_hex();
   if (got != sha256) discard("SHA-256 mismatch (received " + got + ")", true);
@@ -461,9 +503,24 @@ std::string Worker::fetch_scene(const std::string& sha256) {
 int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(64 << 20);
-  auto channel =
-      grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
+  std::shared_ptr<grpc::ChannelCredentials> credentials;
+  if (options.tls) {
+    grpc::SslCredentialsOptions ssl;
+    ssl.pem_root_certs = options.tls_ca_pem;  // "": gRPC's default roots (the system's)
+    ssl.pem_cert_chain = options.tls_cert_pem;
+    ssl.pem_private_key = options.tls_key_pem;
+    credentials = grpc::SslCredentials(ssl);
+    if (!options.tls_server_name.empty())
+      args.SetSslTargetNameOverride(options.tls_server_name);
+  } else {
+    credentials = grpc::InsecureChannelCredentials();
+  }
+  auto channel = grpc::CreateCustomChannel(options.server, credentials, args);
   Worker worker(options, channel);
+  log_line(std::string("connecting to ") + options.server +
+           (options.tls ? " over TLS" + std::string(options.tls_cert_pem.empty() ? "" : " (client "
+                                                                                  "certificate)")
+                        : " without TLS"));
   log_line("loaded scenes kept in memory: up to " + std::to_string(options.scenes_in_memory) +
            " scenes" +
            (options.scene_memory_budget

@@ -22,6 +22,13 @@ struct FarmOptions {
   size_t scenes_in_memory = 4;  // loaded-scene LRU capacity
   size_t scene_memory_budget = 0;  // bytes of loaded scenes kept (SceneCache), 0: no limit
   BvhLayout bvh = BvhLayout::Fast;  // how loaded scenes build their BVH
+  SceneLimits limits;               // what a scene may cost (max_memory_bytes: this machine's)
+  double task_timeout_s = 600.0;    // a task rendering longer fails (not retryable)
+  // TLS (grpc::SslCredentials): the server's CA bundle ("": the system's), the client
+  // certificate chain and key for mutual TLS ("": none), and the name to check in the
+  // server's certificate ("": the host of `server`).
+  bool tls = false;
+  std::string tls_ca_pem, tls_cert_pem, tls_key_pem, tls_server_name;
   // Reconnect backoff: initial, doubling up to max; reset after a successful Welcome.
   double backoff_initial_s = 0.5;
   double backoff_max_s = 10.0;

@@ -7,7 +7,10 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <cctype>
 #include <cstring>
+#include <filesystem>
+#include <iterator>
 #include <optional>
 #include <fstream>
 #include <functional>
@@ -44,15 +47,27 @@ float number_or(const tinygltf::Value& obj, const char* key, float fallback) {
 
 class Loader {
  public:
-  Loader(const tinygltf::Model& model, std::string source, std::vector<std::string>* warnings)
-      : model_(model), source_(std::move(source)), warnings_(warnings) {}
+  Loader(const tinygltf::Model& model, std::string source, std::vector<std::string>* warnings,
+         const LoadOptions& options)
+      : model_(model), source_(std::move(source)), warnings_(warnings), options_(options) {}
 
   SceneDescription run() {
     SceneDescription desc;
     desc.source = source_;
-    for (const std::string& ext : model_.extensionsRequired)
-      if (!supported_extensions().count(ext))
-        warn("required extension '" + ext + "' is not supported; loading without it");
+    desc.limits = options_.limits;
+    desc.stats.nodes = model_.nodes.size();
+    desc.stats.extensions_used = model_.extensionsUsed;
+    // glTF 2.0, 3.12: "loaders must not load an asset that requires an extension they do not
+    // support".
+    for (size_t i = 0; i < model_.extensionsRequired.size(); ++i) {
+      const std::string& ext = model_.extensionsRequired[i];
+      if (!supported_extensions().count(ext)) {
+        std::string list;
+        for (const std::string& s : supported_extensions()) list += (list.empty() ? "" : ", ") + s;
+        fail("extensionsRequired[" + std::to_string(i) + "]: the scene requires extension '" +
+             ext + "', which this renderer does not implement (it implements " + list + ")");
+      }
+    }
     for (const std::string& ext : model_.extensionsUsed)
       if (!supported_extensions().count(ext) &&
           std::find(model_.extensionsRequired.begin(), model_.extensionsRequired.end(), ext) ==
@@ -63,21 +78,26 @@ class Loader {
     load_lights();
     count_mesh_uses();
 
+    if (model_.nodes.size() > options_.limits.max_nodes)
+      fail("nodes: the scene has " + std::to_string(model_.nodes.size()) +
+           " nodes, over the limit of " + std::to_string(options_.limits.max_nodes));
+    const std::vector<int> parent = check_hierarchy();
     std::vector<int> roots;
+    std::string roots_path;
     if (!model_.scenes.empty()) {
       const int scene_index = model_.defaultScene >= 0 ? model_.defaultScene : 0;
       if (scene_index >= int(model_.scenes.size()))
-        fail("'scene' refers to missing scene " + std::to_string(scene_index));
+        fail("scene: refers to missing scene " + std::to_string(scene_index));
       roots = model_.scenes[size_t(scene_index)].nodes;
+      roots_path = "scenes[" + std::to_string(scene_index) + "].nodes";
     } else {
       // No scenes: render every node that is nobody's child.
-      std::vector<bool> is_child(model_.nodes.size(), false);
-      for (const auto& node : model_.nodes)
-        for (int c : node.children)
-          if (c >= 0 && c < int(model_.nodes.size())) is_child[size_t(c)] = true;
       for (size_t i = 0; i < model_.nodes.size(); ++i)
-        if (!is_child[i]) roots.push_back(int(i));
+        if (parent[i] < 0) roots.push_back(int(i));
+      roots_path = "nodes";
     }
+    check_roots(roots, roots_path, parent);
+    check_cost(roots, &desc.stats);
     reserve(world_counts(roots), &desc.world);
     for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
     return desc;
@@ -93,7 +113,7 @@ class Loader {
     for (size_t i = 0; i < model_.textures.size(); ++i) {
       const tinygltf::Texture& gt = model_.textures[i];
       TextureSource src;
-      src.name = "texture " + std::to_string(i) + (gt.name.empty() ? "" : " ('" + gt.name + "')");
+      src.name = "textures[" + std::to_string(i) + "]" + named(gt.name);
       for (const auto& ext : gt.extensions)
         warn(src.name + ": extension '" + ext.first + "' is not supported; using 'source'");
       if (gt.sampler >= 0 && gt.sampler < int(model_.samplers.size())) {
@@ -157,7 +177,7 @@ class Loader {
     for (size_t i = 0; i < list.ArrayLen(); ++i) {
       const tinygltf::Value& l = list.Get(int(i));
       PunctualLight light;
-      const std::string where = "KHR_lights_punctual light " + std::to_string(i);
+      const std::string where = "extensions.KHR_lights_punctual.lights[" + std::to_string(i) + "]";
       const std::string type = l.Has("type") && l.Get("type").IsString()
                                    ? l.Get("type").Get<std::string>()
                                    : std::string();
@@ -221,9 +241,36 @@ class Loader {
     }
   };
   size_t accessor_count(int index) const {
-    return index >= 0 && index < int(model_.accessors.size())
+    if (index < 0 || index >= int(model_.accessors.size())) return 0;
+    return accessor_problem(model_.accessors[size_t(index)]).empty()
                ? model_.accessors[size_t(index)].count
                : 0;
+  }
+
+  // Why an accessor's data is not all in its buffer ("" if it is). check_accessor reports it.
+  std::string accessor_problem(const tinygltf::Accessor& acc) const {
+    if (acc.sparse.isSparse) return "sparse accessors are not supported";
+    if (acc.bufferView < 0 || acc.bufferView >= int(model_.bufferViews.size()))
+      return "missing or invalid 'bufferView'";
+    const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+    if (bv.buffer < 0 || bv.buffer >= int(model_.buffers.size()))
+      return "buffer view refers to a missing buffer";
+    const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
+    const int ncomp = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
+    const int csize = tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType));
+    if (ncomp <= 0 || csize <= 0) return "unsupported 'type' or 'componentType'";
+    const size_t elem = size_t(ncomp) * size_t(csize);
+    const size_t stride = bv.byteStride ? bv.byteStride : elem;
+    if (stride < elem) return "'byteStride' smaller than the element";
+    if (bv.byteOffset > buf.data.size() || bv.byteLength > buf.data.size() - bv.byteOffset)
+      return "buffer view exceeds its buffer";
+    if (acc.count > 0) {
+      // In bytes, without overflow: count - 1 strides and one element after byteOffset.
+      if (acc.byteOffset > bv.byteLength || elem > bv.byteLength - acc.byteOffset ||
+          (acc.count - 1) > (bv.byteLength - acc.byteOffset - elem) / stride)
+        return "data exceeds its buffer view";
+    }
+    return {};
   }
   Counts mesh_counts(size_t mesh_index) const {
     Counts c;
@@ -271,6 +318,119 @@ class Loader {
     mesh->flags.reserve(c.triangles);
   }
 
+  // glTF 2.0, 3.5.3: "the node hierarchy must be a set of disjoint strict trees": no node has
+  // two parents, none is its own ancestor. Checked before anything walks the graph, which is
+  // then a forest: a walk from the roots visits each node once. (A graph that shares children
+  // would make the walk exponential: 40 nodes that each list the next one twice are 2^40
+  // visits.) Returns each node's parent, -1 for none.
+  std::vector<int> check_hierarchy() const {
+    const int n = int(model_.nodes.size());
+    std::vector<int> parent(size_t(n), -1);
+    for (int i = 0; i < n; ++i) {
+      const std::vector<int>& children = model_.nodes[size_t(i)].children;
+      for (size_t k = 0; k < children.size(); ++k) {
+        const int c = children[k];
+        const std::string at =
+            "nodes[" + std::to_string(i) + "].children[" + std::to_string(k) + "]: ";
+        if (c < 0 || c >= n) fail(at + "refers to missing node " + std::to_string(c));
+        if (c == i) fail(at + "node " + std::to_string(i) + " lists itself as its child");
+        if (parent[size_t(c)] >= 0)
+          fail(at + "node " + std::to_string(c) + " is already a child of node " +
+               std::to_string(parent[size_t(c)]) +
+               "; glTF node hierarchies are disjoint strict trees (a node has at most one "
+               "parent)");
+        parent[size_t(c)] = i;
+      }
+    }
+    // With one parent each, a cycle is a loop of parent links: follow them from every node,
+    // marking the nodes on the current walk (1) and those known to reach a root (2).
+    std::vector<uint8_t> state(size_t(n), 0);
+    std::vector<int> walk;
+    for (int i = 0; i < n; ++i) {
+      walk.clear();
+      int j = i;
+      while (j >= 0 && state[size_t(j)] == 0) {
+        state[size_t(j)] = 1;
+        walk.push_back(j);
+        j = parent[size_t(j)];
+      }
+      if (j >= 0 && state[size_t(j)] == 1)
+        fail("nodes[" + std::to_string(parent[size_t(j)]) + "].children: the node hierarchy " +
+             "has a cycle through node " + std::to_string(j));
+      for (int w : walk) state[size_t(w)] = 2;
+    }
+    return parent;
+  }
+
+  void check_roots(const std::vector<int>& roots, const std::string& path,
+                   const std::vector<int>& parent) const {
+    std::set<int> seen;
+    for (size_t k = 0; k < roots.size(); ++k) {
+      const int r = roots[k];
+      const std::string at = path + "[" + std::to_string(k) + "]: ";
+      if (r < 0 || r >= int(model_.nodes.size()))
+        fail(at + "refers to missing node " + std::to_string(r));
+      if (parent[size_t(r)] >= 0)
+        fail(at + "node " + std::to_string(r) + " is a child of node " +
+             std::to_string(parent[size_t(r)]) + " and cannot also be a root");
+      if (!seen.insert(r).second) fail(at + "node " + std::to_string(r) + " is listed twice");
+    }
+  }
+
+  // Depth, triangles over every mesh use and the memory estimate of what the roots reach,
+  // checked against the limits before any geometry is allocated.
+  void check_cost(const std::vector<int>& roots, SceneStats* stats) const {
+    const SceneLimits& limits = options_.limits;
+    std::vector<std::pair<int, uint32_t>> stack;  // (node, depth)
+    for (int r : roots) stack.push_back({r, 1});
+    std::vector<uint64_t> uses(model_.meshes.size(), 0);
+    std::vector<uint64_t> mesh_triangles(model_.meshes.size(), UINT64_MAX);
+    uint64_t instances = 0;
+    while (!stack.empty()) {
+      const auto [i, depth] = stack.back();
+      stack.pop_back();
+      const tinygltf::Node& node = model_.nodes[size_t(i)];
+      const std::string where = "nodes[" + std::to_string(i) + "]";
+      if (depth > limits.max_depth)
+        fail(where + ": the node hierarchy is deeper than the limit of " +
+             std::to_string(limits.max_depth) + " levels");
+      stats->depth = std::max(stats->depth, depth);
+      if (node.mesh >= 0) {
+        if (node.mesh >= int(model_.meshes.size()))
+          fail(where + ".mesh: refers to missing mesh " + std::to_string(node.mesh));
+        uint64_t& tris = mesh_triangles[size_t(node.mesh)];
+        if (tris == UINT64_MAX) tris = mesh_counts(size_t(node.mesh)).triangles;
+        ++uses[size_t(node.mesh)];
+        ++instances;
+        stats->instanced_triangles += tris;
+        if (stats->instanced_triangles > limits.max_instanced_triangles)
+          fail(where + ": the scene's mesh uses add up to more than " +
+               std::to_string(limits.max_instanced_triangles) + " triangles (the limit)");
+      }
+      for (int c : node.children) stack.push_back({c, depth + 1});
+    }
+    // Memory: each mesh once (a mesh used by several nodes is instanced, not copied), its
+    // arrays as TriangleMesh holds them, Embree's BVH (README: about 70 bytes per triangle,
+    // 45 for the compact layout), the instances, and the file's buffers, which the loader
+    // holds until the scene is built.
+    const double bvh_bytes = options_.bvh == BvhLayout::Compact ? 45.0 : 70.0;
+    double bytes = 0.0;
+    for (size_t m = 0; m < model_.meshes.size(); ++m) {
+      if (!uses[m]) continue;
+      const Counts c = mesh_counts(m);
+      const double per_vertex = 12.0 + (c.normals ? 12.0 : 0.0) + (c.uv[0] ? 8.0 : 0.0) +
+                                (c.uv[1] ? 8.0 : 0.0);
+      bytes += double(c.vertices) * per_vertex +
+               double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes);
+    }
+    bytes += double(instances) * 256.0;
+    for (const tinygltf::Buffer& b : model_.buffers) bytes += double(b.data.size());
+    stats->estimated_bytes = uint64_t(bytes);
+    if (limits.max_memory_bytes && stats->estimated_bytes > limits.max_memory_bytes)
+      fail("meshes: the scene needs about " + format_bytes(stats->estimated_bytes) +
+           " of memory once loaded, over the limit of " + format_bytes(limits.max_memory_bytes));
+  }
+
   void count_mesh_uses() {
     mesh_uses_.assign(model_.meshes.size(), 0);
     for (const auto& node : model_.nodes)
@@ -279,7 +439,26 @@ class Loader {
   }
 
  private:
-  [[noreturn]] void fail(const std::string& what) const { throw SceneError(source_ + ": " + what); }
+  // what starts with the glTF path of the offending part ("nodes[3] ('Cube'): ..."): that path
+  // becomes the error's path().
+  [[noreturn]] void fail(const std::string& what) const {
+    throw SceneError(source_ + ": " + what, leading_path(what));
+  }
+  static std::string leading_path(const std::string& what) {
+    size_t end = 0;
+    while (end < what.size() && (std::isalnum(static_cast<unsigned char>(what[end])) ||
+                                 what[end] == '_' || what[end] == '.' || what[end] == '[' ||
+                                 what[end] == ']'))
+      ++end;
+    const std::string path = what.substr(0, end);
+    return path.find('[') != std::string::npos || path == "nodes" || path == "scenes" ||
+                   path == "scene" || path == "meshes"
+               ? path
+               : std::string();
+  }
+  static std::string named(const std::string& name) {
+    return name.empty() ? std::string() : " ('" + name + "')";
+  }
   void warn(const std::string& what) {
     if (warnings_) warnings_->push_back(source_ + ": " + what);
   }
@@ -287,7 +466,7 @@ class Loader {
   void load_materials(SceneDescription* desc) {
     for (size_t i = 0; i < model_.materials.size(); ++i) {
       const tinygltf::Material& gm = model_.materials[i];
-      const std::string where = "material " + std::to_string(i) + " ('" + gm.name + "')";
+      const std::string where = "materials[" + std::to_string(i) + "]" + named(gm.name);
       Material m;
       m.name = gm.name;
       // glTF defaults: metallic = roughness = 1, a dielectric specular layer of ior 1.5.
@@ -422,7 +601,7 @@ class Loader {
     // glTF node graphs are trees; a deeper chain than the node count means a cycle.
     if (depth > int(model_.nodes.size())) fail("node hierarchy contains a cycle");
     const tinygltf::Node& node = model_.nodes[size_t(index)];
-    const std::string where = "node " + std::to_string(index) + " ('" + node.name + "')";
+    const std::string where = "nodes[" + std::to_string(index) + "]" + named(node.name);
     const Mat4 world = parent * local_transform(node, where);
     if (node.camera >= 0 && !desc->camera) take_camera(node, world, where, desc);
     auto light_ext = node.extensions.find("KHR_lights_punctual");
@@ -470,7 +649,8 @@ class Loader {
     Camera cam;
     cam.yfov = float(gc.perspective.yfov);
     if (!(cam.yfov > 0.f && cam.yfov < kPi))
-      fail(where + ": camera " + std::to_string(node.camera) + " has yfov outside (0, pi)");
+      fail("cameras[" + std::to_string(node.camera) + "].perspective.yfov: " +
+           std::to_string(gc.perspective.yfov) + " is outside (0, pi) (camera of " + where + ")");
     cam.position = world.transform_point({0.f, 0.f, 0.f});
     const Vec3 fwd = world.transform_vector({0.f, 0.f, -1.f});
     const Vec3 up = world.transform_vector({0.f, 1.f, 0.f});
@@ -522,34 +702,21 @@ class Loader {
     if (index < 0 || index >= int(model_.accessors.size()))
       fail(where + " refers to missing accessor " + std::to_string(index));
     const tinygltf::Accessor& acc = model_.accessors[size_t(index)];
-    const std::string aw = where + " (accessor " + std::to_string(index) + ")";
+    const std::string aw = "accessors[" + std::to_string(index) + "] (" + where + ")";
     if (acc.type != want_type) fail(aw + ": unexpected accessor 'type'");
     if (!component_types.count(acc.componentType))
       fail(aw + ": unsupported 'componentType' " + std::to_string(acc.componentType));
-    if (acc.sparse.isSparse) fail(aw + ": sparse accessors are not supported");
-    if (acc.bufferView < 0 || acc.bufferView >= int(model_.bufferViews.size()))
-      fail(aw + ": missing or invalid 'bufferView'");
+    const std::string problem = accessor_problem(acc);
+    if (!problem.empty()) fail(aw + ": " + problem);
     const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
-    if (bv.buffer < 0 || bv.buffer >= int(model_.buffers.size()))
-      fail(aw + ": buffer view refers to a missing buffer");
     const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
-    const int ncomp = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
-    const int csize = tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType));
-    const size_t elem = size_t(ncomp) * size_t(csize);
-    const size_t stride = bv.byteStride ? bv.byteStride : elem;
-    if (stride < elem) fail(aw + ": 'byteStride' smaller than the element");
-    if (bv.byteOffset > buf.data.size() || bv.byteLength > buf.data.size() - bv.byteOffset)
-      fail(aw + ": buffer view exceeds its buffer");
+    const size_t elem = size_t(tinygltf::GetNumComponentsInType(uint32_t(acc.type))) *
+                        size_t(tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType)));
     View v;
     v.component_type = acc.componentType;
     v.count = acc.count;
-    v.stride = stride;
+    v.stride = bv.byteStride ? bv.byteStride : elem;
     v.normalized = acc.normalized;
-    if (acc.count > 0) {
-      const size_t needed = acc.byteOffset + (acc.count - 1) * stride + elem;
-      if (acc.byteOffset > bv.byteLength || needed > bv.byteLength || needed < acc.byteOffset)
-        fail(aw + ": data exceeds its buffer view");
-    }
     v.base = buf.data.data() + bv.byteOffset + acc.byteOffset;
     return v;
   }
@@ -604,8 +771,8 @@ class Loader {
     std::map<VertexKey, Appended> appended;
     for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
       const tinygltf::Primitive& prim = mesh.primitives[pi];
-      const std::string where = "mesh " + std::to_string(mesh_index) + " ('" + mesh.name +
-                                "') primitive " + std::to_string(pi);
+      const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
+                                std::to_string(pi) + "]" + named(mesh.name);
       if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) {
         warn(where + ": mode " + std::to_string(prim.mode) +
              " is not TRIANGLES (4); primitive skipped");
@@ -709,45 +876,73 @@ class Loader {
   const tinygltf::Model& model_;
   std::string source_;
   std::vector<std::string>* warnings_;
+  const LoadOptions& options_;
   uint32_t default_material_ = 0;
 };
 
 SceneDescription finish(bool ok, const tinygltf::Model& model, const std::string& err,
                         const std::string& warn, const std::string& source,
-                        std::vector<std::string>* warnings) {
+                        std::vector<std::string>* warnings, const LoadOptions& options) {
   if (!warn.empty() && warnings) warnings->push_back(source + ": " + warn);
   if (!ok) throw SceneError(source + ": cannot parse glTF: " + (err.empty() ? "unknown" : err));
-  return Loader(model, source, warnings).run();
+  return Loader(model, source, warnings, options).run();
+}
+
+// Uploads are self-contained: a file system whose every read is refused, so that a URI in a
+// farm scene can never read a file of the worker's (or of the server's, when it inspects one).
+// Files "exist" so that tinygltf asks to read them and the refusal says why.
+bool no_file_exists(const std::string&, void*) { return true; }
+std::string keep_path(const std::string& path, void*) { return path; }
+bool no_file_read(std::vector<unsigned char>*, std::string* err, const std::string& path, void*) {
+  if (err) *err += "external file '" + path + "' refused: farm scenes must be self-contained\n";
+  return false;
+}
+bool no_file_write(std::string*, const std::string&, const std::vector<unsigned char>&, void*) {
+  return false;
+}
+
+void configure(tinygltf::TinyGLTF* gltf, const LoadOptions& options) {
+  gltf->SetImageLoader(keep_encoded_image, nullptr);
+  if (!options.allow_external_files)
+    gltf->SetFsCallbacks({no_file_exists, keep_path, no_file_read, no_file_write, nullptr});
 }
 
 }  // namespace
 
-SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings) {
+SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings,
+                           const LoadOptions& options) {
+  const std::string source = options.display_name.empty() ? path : options.display_name;
+  // Read here rather than by tinygltf, whose file callbacks may refuse every file.
   std::ifstream in(path, std::ios::binary);
-  if (!in) throw SceneError(path + ": cannot open file");
-  char magic[4] = {0, 0, 0, 0};
-  in.read(magic, 4);
-  const bool binary = in.gcount() == 4 && std::memcmp(magic, "glTF", 4) == 0;
-  in.close();
+  if (!in) throw SceneError(source + ": cannot open file");
+  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (in.bad()) throw SceneError(source + ": cannot read file");
+  const bool binary = bytes.size() >= 4 && std::memcmp(bytes.data(), "glTF", 4) == 0;
   tinygltf::TinyGLTF gltf;
-  gltf.SetImageLoader(keep_encoded_image, nullptr);
+  configure(&gltf, options);
   tinygltf::Model model;
   std::string err, warn;
-  const bool ok = binary ? gltf.LoadBinaryFromFile(&model, &err, &warn, path)
-                         : gltf.LoadASCIIFromFile(&model, &err, &warn, path);
-  return finish(ok, model, err, warn, path, warnings);
+  const std::string base_dir = std::filesystem::path(path).parent_path().string();
+  const bool ok =
+      binary ? gltf.LoadBinaryFromMemory(&model, &err, &warn,
+                                         reinterpret_cast<const unsigned char*>(bytes.data()),
+                                         unsigned(bytes.size()), base_dir)
+             : gltf.LoadASCIIFromString(&model, &err, &warn, bytes.data(), unsigned(bytes.size()),
+                                        base_dir);
+  return finish(ok, model, err, warn, source, warnings, options);
 }
 
 SceneDescription load_gltf_from_string(const std::string& json, const std::string& base_dir,
                                        const std::string& name,
-                                       std::vector<std::string>* warnings) {
+                                       std::vector<std::string>* warnings,
+                                       const LoadOptions& options) {
   tinygltf::TinyGLTF gltf;
-  gltf.SetImageLoader(keep_encoded_image, nullptr);
+  configure(&gltf, options);
   tinygltf::Model model;
   std::string err, warn;
   const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, json.c_str(),
                                            unsigned(json.size()), base_dir);
-  return finish(ok, model, err, warn, name, warnings);
+  return finish(ok, model, err, warn, name, warnings, options);
 }
 
 }  // namespace rf

@@ -879,8 +879,10 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
   const Sampler sampler(settings.sampler, settings.seed);
   const TraceContext ctx(scene, settings);
   for (uint32_t ty = 0; ty < rect.height; ++ty) {
-    if (cancel && cancel->load(std::memory_order_relaxed)) return false;
     for (uint32_t tx = 0; tx < rect.width; ++tx) {
+      // Checked every pixel, so that a cancel (or the worker's time budget) stops even a
+      // render whose pixels are very costly within a second.
+      if (cancel && cancel->load(std::memory_order_relaxed)) return false;
       const size_t i = size_t(ty) * rect.width + tx;
       double sum[3] = {0.0, 0.0, 0.0};
       RunningStats luminance_stats;

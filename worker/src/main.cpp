@@ -17,6 +17,8 @@
 #include <thread>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
 #include "bench.h"
 #include "farm_client.h"
 #include "film.h"
@@ -41,9 +43,14 @@ const char* kUsage =
     "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
     "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
     "      [--scenes cornell,mesh,instanced]\n"
+    "  renderfarm-worker inspect SCENE.gltf|SCENE.glb [--json] [--name NAME]\n"
+    "      [--max-nodes N] [--max-depth D] [--max-triangles T] [--max-texture-pixels P]\n"
+    "      [--max-memory-mb M] [--bvh fast|compact]\n"
     "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
     "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
-    "      [--scene-memory-mb M]\n"
+    "      [--scene-memory-mb M] [--task-timeout-s S] [--max-scene-memory-mb M]\n"
+    "      [--tls] [--ca-file CA.pem] [--cert CERT.pem --key KEY.pem]\n"
+    "      [--tls-server-name NAME]\n"
     "  renderfarm-worker --help | --version\n";
 
 struct UsageError {
@@ -230,6 +237,94 @@ int cmd_render(const std::vector<std::string>& args) {
   return 0;
 }
 
+// --max-* flags of inspect and connect onto the loader's limits.
+void parse_limit_flags(std::map<std::string, std::string>& flags, rf::SceneLimits* limits) {
+  if (flags.count("--max-nodes"))
+    limits->max_nodes = parse_uint("--max-nodes", flags["--max-nodes"], 1, UINT64_MAX);
+  if (flags.count("--max-depth"))
+    limits->max_depth = uint32_t(parse_uint("--max-depth", flags["--max-depth"], 1, 1u << 20));
+  if (flags.count("--max-triangles"))
+    limits->max_instanced_triangles =
+        parse_uint("--max-triangles", flags["--max-triangles"], 1, UINT64_MAX);
+  if (flags.count("--max-texture-pixels"))
+    limits->max_texture_pixels =
+        parse_uint("--max-texture-pixels", flags["--max-texture-pixels"], 0, UINT64_MAX);
+}
+
+// Loads a scene exactly as a farm worker does (self-contained, within the limits: the loader,
+// the textures' headers, the lights and the BVH) and describes it, or says why it is refused.
+// The server runs it on every uploaded scene, under CPU-time and memory limits of its own, so
+// that it accepts a scene only if the workers' loader does. Exit 0 if the scene loads, 1 if it
+// is refused (with --json: {"ok": false, "error": ..., "path": ...} on stdout either way).
+int cmd_inspect(const std::vector<std::string>& args) {
+  std::vector<std::string> positional;
+  std::vector<std::string> allowed = {"--name", "--max-nodes", "--max-depth", "--max-triangles",
+                                      "--max-texture-pixels", "--max-memory-mb", "--bvh"};
+  std::vector<std::string> rest;
+  bool json = false;
+  for (const std::string& a : args) {
+    if (a == "--json") json = true;
+    else rest.push_back(a);
+  }
+  auto flags = parse_flags(rest, allowed, &positional);
+  if (positional.size() != 1) throw UsageError{"inspect expects exactly one scene file"};
+  rf::LoadOptions options;
+  options.allow_external_files = false;
+  options.bvh = parse_bvh_flag(flags);
+  parse_limit_flags(flags, &options.limits);
+  if (flags.count("--max-memory-mb"))
+    options.limits.max_memory_bytes =
+        parse_uint("--max-memory-mb", flags["--max-memory-mb"], 1, UINT64_MAX / 1000000) *
+        1000000;
+  options.display_name = flags.count("--name")
+                             ? flags["--name"]
+                             : std::filesystem::path(positional[0]).filename().string();
+  std::vector<std::string> warnings;
+  nlohmann::json out;
+  std::unique_ptr<rf::Scene> scene;
+  try {
+    scene = rf::load_scene(positional[0], &warnings, options);
+  } catch (const rf::SceneError& e) {
+    out = {{"ok", false}, {"error", e.what()}, {"path", e.path()}, {"warnings", warnings}};
+  } catch (const std::bad_alloc&) {
+    out = {{"ok", false}, {"error", options.display_name + ": out of memory while loading"},
+           {"path", ""}, {"warnings", warnings}};
+  }
+  if (scene) {
+    const rf::SceneStats& st = scene->stats();
+    out = {{"ok", true},
+           {"triangles", scene->world_triangle_count()},
+           {"instanced_triangles", st.instanced_triangles},
+           {"nodes", st.nodes},
+           {"depth", st.depth},
+           {"meshes", scene->mesh_count()},
+           {"instances", scene->instance_count()},
+           {"materials", scene->materials().size()},
+           {"textures", scene->textures().size()},
+           {"texture_pixels", st.texture_pixels},
+           {"emissive_triangles", scene->lights().size()},
+           {"camera", scene->has_file_camera()},
+           {"memory_bytes", scene->memory_bytes()},
+           {"estimated_memory_bytes", st.estimated_bytes},
+           {"extensions_used", st.extensions_used},
+           {"warnings", warnings}};
+  }
+  if (json) {
+    std::cout << out.dump() << "\n";
+  } else if (scene) {
+    for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+    std::cout << options.display_name << ": " << scene->world_triangle_count() << " triangles ("
+              << out["instanced_triangles"] << " over every mesh use), " << out["nodes"]
+              << " nodes, depth " << out["depth"] << ", " << out["textures"] << " textures ("
+              << out["texture_pixels"] << " pixels), "
+              << rf::format_bytes(scene->memory_bytes()) << " in memory\n";
+  } else {
+    for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+    std::cerr << "error: " << out["error"].get<std::string>() << "\n";
+  }
+  return scene ? 0 : kExitRuntime;
+}
+
 // "a,b,,c" -> {"a", "b", "", "c"}: empty items are kept, for the caller to reject.
 std::vector<std::string> split_commas(const std::string& list) {
   std::vector<std::string> items;
@@ -310,10 +405,18 @@ std::atomic<bool> g_stop{false};
 extern "C" void on_stop_signal(int) { g_stop.store(true); }
 
 int cmd_connect(const std::vector<std::string>& args) {
+  std::vector<std::string> rest;
+  bool tls = false;
+  for (const std::string& a : args) {
+    if (a == "--tls") tls = true;
+    else rest.push_back(a);
+  }
   auto flags = parse_flags(
-      args,
+      rest,
       {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id", "--bvh",
-       "--scene-memory-mb"},
+       "--scene-memory-mb", "--task-timeout-s", "--max-scene-memory-mb", "--ca-file", "--cert",
+       "--key", "--tls-server-name", "--max-nodes", "--max-depth", "--max-triangles",
+       "--max-texture-pixels"},
       nullptr);
   if (!flags.count("--server") || flags["--server"].empty())
     throw UsageError{"connect needs --server HOST:PORT"};
@@ -334,6 +437,40 @@ int cmd_connect(const std::vector<std::string>& args) {
           ? size_t(parse_uint("--scene-memory-mb", flags["--scene-memory-mb"], 1, 1u << 30)) *
                 1000000
           : available_memory() / 2;
+  // A task that renders longer than this fails for good (a scene that costs this much per
+  // batch is broken or hostile); its render stops at once.
+  if (flags.count("--task-timeout-s"))
+    options.task_timeout_s = double(parse_uint("--task-timeout-s", flags["--task-timeout-s"], 1,
+                                               7 * 24 * 3600));
+  // A scene whose estimated memory exceeds this is refused for good before it is allocated:
+  // by default, the memory this worker has.
+  options.limits.max_memory_bytes =
+      flags.count("--max-scene-memory-mb")
+          ? parse_uint("--max-scene-memory-mb", flags["--max-scene-memory-mb"], 1,
+                       UINT64_MAX / 1000000) *
+                1000000
+          : available_memory();
+  parse_limit_flags(flags, &options.limits);
+  // TLS: --ca-file, --cert/--key and --tls-server-name imply --tls.
+  auto read_pem = [&](const char* flag) {
+    const std::string& path = flags[flag];
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw UsageError{std::string(flag) + " " + path + ": cannot read the file"};
+    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    if (text.find("-----BEGIN ") == std::string::npos)
+      throw UsageError{std::string(flag) + " " + path + ": not a PEM file"};
+    return text;
+  };
+  if (flags.count("--cert") != flags.count("--key"))
+    throw UsageError{"--cert and --key go together (the client certificate of mutual TLS)"};
+  options.tls = tls || flags.count("--ca-file") || flags.count("--cert") ||
+                flags.count("--tls-server-name");
+  if (flags.count("--ca-file")) options.tls_ca_pem = read_pem("--ca-file");
+  if (flags.count("--cert")) {
+    options.tls_cert_pem = read_pem("--cert");
+    options.tls_key_pem = read_pem("--key");
+  }
+  if (flags.count("--tls-server-name")) options.tls_server_name = flags["--tls-server-name"];
   char host[256] = {0};
   if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "unknown");
   options.hostname = host;
@@ -366,6 +503,7 @@ int main(int argc, char** argv) {
     if (cmd == "render") return cmd_render(args);
     if (cmd == "connect") return cmd_connect(args);
     if (cmd == "bench") return cmd_bench(args);
+    if (cmd == "inspect") return cmd_inspect(args);
     throw UsageError{"unknown command '" + cmd + "'"};
   } catch (const UsageError& e) {
     std::cerr << "renderfarm-worker: " << e.message << " (see renderfarm-worker --help)\n";

@@ -224,8 +224,19 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
     texture_index[i] = t.bytes.empty()
                            ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err)
                            : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err);
-    if (texture_index[i] < 0 && warnings)
-      warnings->push_back(desc_.source + ": texture '" + t.name + "' ignored: " + err);
+    if (texture_index[i] < 0) {
+      if (warnings) warnings->push_back(desc_.source + ": " + t.name + " ignored: " + err);
+      continue;
+    }
+    // Only the image's header has been read so far (OpenImageIO decodes tiles on demand,
+    // into a cache of bounded size), so a huge image is refused before it costs anything.
+    desc_.stats.texture_pixels += textures_.pixels(texture_index[i]);
+    if (desc_.stats.texture_pixels > desc_.limits.max_texture_pixels)
+      throw SceneError(desc_.source + ": textures[" + std::to_string(i) + "]: the textures' " +
+                           "images hold " + std::to_string(desc_.stats.texture_pixels) +
+                           " pixels so far, over the limit of " +
+                           std::to_string(desc_.limits.max_texture_pixels),
+                       "textures[" + std::to_string(i) + "]");
   }
   for (Material& m : desc_.materials)
     for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
@@ -689,8 +700,15 @@ Triangle TriangleMesh::triangle(size_t i) const {
 }
 
 std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
+                                  const LoadOptions& options) {
+  return std::make_unique<Scene>(load_gltf(path, warnings, options), warnings, options.bvh);
+}
+
+std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
                                   BvhLayout bvh) {
-  return std::make_unique<Scene>(load_gltf(path, warnings), warnings, bvh);
+  LoadOptions options;
+  options.bvh = bvh;
+  return load_scene(path, warnings, options);
 }
 
 }  // namespace rf

@@ -19,10 +19,59 @@
 namespace rf {
 
 // Thrown when a scene cannot be loaded or built; the message names the file and the part of
-// it (node, mesh, accessor, field) that is wrong.
+// it (node, mesh, accessor, field) that is wrong. path() is that part as a path into the glTF
+// JSON ("nodes[3].children", "extensionsRequired[0]"), empty when the scene as a whole is
+// refused; the server reports it as the refused field (scene.nodes[3].children).
+// The layout of a scene's Embree BVH, a worker setting (`--bvh`). Fast: Embree's default
+// layout, triangle vertices copied into the BVH's leaves, about 70 bytes per triangle. Compact
+// (RTC_SCENE_FLAG_COMPACT): leaves refer to the shared vertex array instead, about 45 bytes per
+// triangle and a third less peak memory while building, for 10-20% fewer rays per second.
+// Both give the same closest hits.
+enum class BvhLayout { Fast, Compact };
+bool parse_bvh_layout(const std::string& name, BvhLayout* out);
+const char* bvh_layout_name(BvhLayout layout);
+
 class SceneError : public std::runtime_error {
  public:
-  using std::runtime_error::runtime_error;
+  explicit SceneError(const std::string& what, std::string path = {})
+      : std::runtime_error(what), path_(std::move(path)) {}
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+};
+
+// What a scene may cost the process that loads it. The loader checks them on the file's
+// declarations before it allocates anything for the geometry, so an accepted scene cannot
+// exhaust a worker, and a refused one costs no more than parsing its JSON. The server passes
+// its own settings to `renderfarm-worker inspect`; a worker loads farm scenes with the same
+// defaults and its memory as the memory limit.
+struct SceneLimits {
+  uint64_t max_nodes = 1000000;                  // entries of "nodes"
+  uint32_t max_depth = 1024;                     // levels of the node hierarchy
+  uint64_t max_instanced_triangles = 1000000000;  // triangles over every mesh use
+  uint64_t max_texture_pixels = uint64_t(1) << 30;  // summed over the images textures use
+  uint64_t max_memory_bytes = 0;                 // estimated scene memory; 0: no limit
+};
+
+// How a file is loaded: the name its messages use and whether it may read other files.
+struct LoadOptions {
+  std::string display_name;  // "" : the path
+  // Relative URIs resolved next to the file (the standalone `render` command). Farm workers
+  // and `inspect` load uploads, which must be self-contained: they never read another file.
+  bool allow_external_files = true;
+  SceneLimits limits;
+  BvhLayout bvh = BvhLayout::Fast;  // for the memory estimate
+};
+
+// Figures of a loaded scene, for `inspect` and the limits.
+struct SceneStats {
+  uint64_t nodes = 0;                // entries of "nodes"
+  uint32_t depth = 0;                // levels of the hierarchy in use (0: no nodes)
+  uint64_t instanced_triangles = 0;  // triangles over every mesh use
+  uint64_t estimated_bytes = 0;      // the loader's estimate of the scene's memory
+  uint64_t texture_pixels = 0;       // summed over the textures' images (set by Scene)
+  std::vector<std::string> extensions_used;
 };
 
 // Pinhole camera. forward is the viewing direction (glTF camera local -Z), up its +Y,
@@ -140,6 +189,8 @@ struct SceneDescription {
   std::vector<PunctualLight> punctual_lights;
   // Textures referenced by Material::*_tex.texture (indices into this list).
   std::vector<TextureSource> textures;
+  SceneLimits limits;  // what Scene construction may still check (texture pixels)
+  SceneStats stats;
 };
 
 // Up to kPacketSize rays queried together; lanes with active false are skipped. Each active
@@ -192,15 +243,6 @@ struct Hit {
                        // normal mapping (0 if undefined)
   float tangent_sign = 1.f;  // handedness of (dpdu, dpdv, ng)
 };
-
-// The layout of a scene's Embree BVH, a worker setting (`--bvh`). Fast: Embree's default
-// layout, triangle vertices copied into the BVH's leaves, about 70 bytes per triangle. Compact
-// (RTC_SCENE_FLAG_COMPACT): leaves refer to the shared vertex array instead, about 45 bytes per
-// triangle and a third less peak memory while building, for 10-20% fewer rays per second.
-// Both give the same closest hits.
-enum class BvhLayout { Fast, Compact };
-bool parse_bvh_layout(const std::string& name, BvhLayout* out);
-const char* bvh_layout_name(BvhLayout layout);
 
 class Scene {
  public:
@@ -257,6 +299,7 @@ class Scene {
   // allocated for it (BVHs, instance data). Textures are not included: OpenImageIO's
   // TextureSystem caches tiles in a budget of its own.
   size_t memory_bytes() const;
+  const SceneStats& stats() const { return desc_.stats; }
   const Camera& camera() const { return camera_; }
   bool has_file_camera() const { return desc_.camera.has_value(); }
   const LightSet& lights() const { return lights_; }
@@ -304,12 +347,17 @@ void set_thread_ray_log(RayLog* log);
 
 // Loads a .gltf (embedded data: URIs or files next to it) or .glb. Throws SceneError naming
 // the file and the offending node/mesh/accessor/field. Warnings go to *warnings.
-SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings);
+// Scenes over options.limits are refused before their geometry is allocated.
+SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings,
+                           const LoadOptions& options = {});
 // Same, from the text of a .gltf; external URIs are resolved against base_dir.
 SceneDescription load_gltf_from_string(const std::string& json, const std::string& base_dir,
                                        const std::string& name,
-                                       std::vector<std::string>* warnings);
-// load_gltf + Scene construction.
+                                       std::vector<std::string>* warnings,
+                                       const LoadOptions& options = {});
+// load_gltf + Scene construction (with options.bvh).
+std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
+                                  const LoadOptions& options);
 std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
                                   BvhLayout bvh = BvhLayout::Fast);
 

@@ -30,8 +30,8 @@ TEST(GltfLoader, SmallSceneHierarchyMaterialsAndCamera) {
   std::vector<std::string> warnings;
   SceneDescription desc = load_gltf_from_string(testing::small_gltf_json(), ".", "small.gltf",
                                                 &warnings);
-  EXPECT_TRUE(any_contains(warnings, "EXT_made_up")) << "unsupported required extension";
-  EXPECT_TRUE(any_contains(warnings, "mesh 0 ('floor') primitive 1")) << "LINES skipped";
+  EXPECT_TRUE(any_contains(warnings, "EXT_made_up")) << "unsupported extension used";
+  EXPECT_TRUE(any_contains(warnings, "meshes[0].primitives[1] ('floor')")) << "LINES skipped";
   ASSERT_EQ(desc.world.size(), 4u);
   ASSERT_TRUE(desc.camera.has_value());
   Scene scene(std::move(desc), &warnings);
@@ -93,6 +93,99 @@ TEST(GltfLoader, ErrorsNameTheProblem) {
     EXPECT_NE(what.find("bad-index.gltf"), std::string::npos) << what;
     EXPECT_NE(what.find("indices"), std::string::npos) << what;
   }
+}
+
+// The small scene with `from` replaced by `to` once, loaded as an upload: the SceneError's
+// path (the field the server reports), or "" if it loads.
+std::string refusal_path(const std::string& from, const std::string& to,
+                         const SceneLimits& limits = {}, std::string* message = nullptr) {
+  std::string json = testing::small_gltf_json();
+  const size_t at = json.find(from);
+  EXPECT_NE(at, std::string::npos) << from;
+  json.replace(at, from.size(), to);
+  LoadOptions options;
+  options.allow_external_files = false;
+  options.limits = limits;
+  try {
+    load_gltf_from_string(json, ".", "upload.gltf", nullptr, options);
+  } catch (const SceneError& e) {
+    if (message) *message = e.what();
+    return e.path();
+  }
+  return "";
+}
+
+// glTF 2.0, 3.5.3: the node hierarchy is a set of disjoint strict trees.
+TEST(GltfLoader, NodeGraphsThatAreNotTreesAreRefusedNamingTheNode) {
+  const std::string nodes = R"("children": [2]},)";
+  std::string message;
+  // Node 1 lists node 2 twice: two parents' worth of references to one child.
+  EXPECT_EQ(refusal_path(nodes, R"("children": [2, 2]},)", {}, &message),
+            "nodes[1].children[1]");
+  EXPECT_NE(message.find("already a child of node 1"), std::string::npos) << message;
+  EXPECT_EQ(message.find("upload.gltf: nodes[1]"), 0u) << message;
+  // Node 2 (the light) made its own parent's parent: a cycle 1 -> 2 -> 1, and node 1 is still
+  // a root, so it is a child and a root at once.
+  EXPECT_EQ(refusal_path(R"({"name": "light", "mesh": 1})",
+                         R"({"name": "light", "mesh": 1, "children": [1]})"),
+            "nodes[2].children");
+  // The floor listed as a child of the camera while also a root.
+  EXPECT_EQ(refusal_path(R"("camera": 0, "translation")",
+                         R"("camera": 0, "children": [0], "translation")"),
+            "scenes[0].nodes[0]");
+  EXPECT_EQ(refusal_path(nodes, R"("children": [9]},)"), "nodes[1].children[0]");
+  EXPECT_EQ(refusal_path(nodes, R"("children": [1]},)"), "nodes[1].children[0]");
+  EXPECT_EQ(refusal_path(R"("nodes": [0, 1, 3])", R"("nodes": [0, 1, 3, 3])"),
+            "scenes[0].nodes[3]");
+}
+
+TEST(GltfLoader, RequiredExtensionsTheRendererLacksAreRefused) {
+  std::string message;
+  EXPECT_EQ(refusal_path(R"("scene": 0,)",
+                         R"("extensionsRequired": ["KHR_materials_ior", "EXT_made_up"], "scene": 0,)",
+                         {}, &message),
+            "extensionsRequired[1]");
+  EXPECT_NE(message.find("EXT_made_up"), std::string::npos) << message;
+  // Used but not required: a warning, and the scene loads.
+  EXPECT_EQ(refusal_path(R"("scene": 0,)",
+                         R"("extensionsRequired": ["KHR_materials_ior"], "scene": 0,)"),
+            "");
+}
+
+TEST(GltfLoader, LimitsAreCheckedBeforeTheGeometryIsAllocated) {
+  // The small scene: 4 nodes, depth 2 (light-parent -> light), 4 triangles over its meshes.
+  SceneLimits limits;
+  EXPECT_EQ(refusal_path("\"scene\": 0,", "\"scene\": 0,", limits), "");
+  limits.max_nodes = 3;
+  EXPECT_EQ(refusal_path("\"scene\": 0,", "\"scene\": 0,", limits), "nodes");
+  limits = {};
+  limits.max_depth = 1;
+  EXPECT_EQ(refusal_path("\"scene\": 0,", "\"scene\": 0,", limits), "nodes[2]");
+  limits = {};
+  limits.max_instanced_triangles = 3;
+  EXPECT_EQ(refusal_path("\"scene\": 0,", "\"scene\": 0,", limits).rfind("nodes[", 0), 0u);
+  limits = {};
+  limits.max_memory_bytes = 100;  // the data URI's buffer alone is 132 bytes
+  std::string message;
+  EXPECT_EQ(refusal_path("\"scene\": 0,", "\"scene\": 0,", limits, &message), "meshes");
+  EXPECT_NE(message.find("over the limit"), std::string::npos) << message;
+}
+
+TEST(GltfLoader, DeclaredCountsWithoutDataSizeNothing) {
+  // Accessor 0 (the floor's positions) claims 4e9 vertices: refused as data beyond its view,
+  // never reserved (which would be 48 GB).
+  EXPECT_EQ(refusal_path(R"("count": 4, "type": "VEC3")",
+                         R"("count": 4000000000, "type": "VEC3")"),
+            "accessors[0]");
+}
+
+TEST(GltfLoader, UploadsReadNoFileButTheirOwn) {
+  // A buffer URI naming a file: refused for an upload, whatever the file.
+  std::string message;
+  const std::string path =
+      refusal_path("data:application/octet-stream;base64,", "/etc/hostname?", {}, &message);
+  EXPECT_NE(message.find("self-contained"), std::string::npos) << "[" << message << "]";
+  EXPECT_EQ(path, "");
 }
 
 TEST(GltfLoader, MissingMaterialIsNamed) {

@@ -114,7 +114,6 @@ std::string small_gltf_json() {
   return R"({
   "asset": {"version": "2.0"},
   "extensionsUsed": ["KHR_materials_emissive_strength", "EXT_made_up"],
-  "extensionsRequired": ["EXT_made_up"],
   "scene": 0,
   "scenes": [{"nodes": [0, 1, 3]}],
   "nodes": [

@@ -2,6 +2,7 @@
 
 #include <OpenImageIO/texture.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
@@ -71,7 +72,15 @@ int TextureSet::add_file(const std::string& path, TextureWrap wrap_s, TextureWra
       !ts->get_texture_info(e->filename, 0, OIIO::ustring("channels"), OIIO::TypeInt,
                             &channels) ||
       channels <= 0) {
-    if (error) *error = "cannot read image '" + path + "': " + ts->geterror();
+    // The message names no file: the path is this machine's (a cache or temporary file), and
+    // the message reaches the user; the caller names the texture.
+    if (error) {
+      std::string why = ts->geterror();
+      for (size_t at = why.find(path); !path.empty() && at != std::string::npos;
+           at = why.find(path, at))
+        why.replace(at, path.size(), "the image");
+      *error = "OpenImageIO cannot read the image: " + why;
+    }
     return -1;
   }
   e->channels = channels;
@@ -109,18 +118,28 @@ int TextureSet::add_encoded(const std::vector<unsigned char>& bytes, const std::
       std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
       out.write(reinterpret_cast<const char*>(bytes.data()), std::streamsize(bytes.size()));
       if (!out) {
-        if (error) *error = "cannot write " + tmp.string();
+        if (error) *error = "cannot write the image to the temporary directory";
         return -1;
       }
     }
     fs::rename(tmp, path, ec);
     if (ec) {
       fs::remove(tmp, ec);
-      if (error) *error = "cannot write " + path.string();
+      if (error) *error = "cannot write the image to the temporary directory";
       return -1;
     }
   }
   return add_file(path.string(), wrap_s, wrap_t, error);
+}
+
+uint64_t TextureSet::pixels(int texture) const {
+  if (texture < 0 || size_t(texture) >= entries_.size()) return 0;
+  int resolution[2] = {0, 0};
+  OIIO::TextureSystem* ts = texture_system();
+  if (!ts->get_texture_info(entries_[size_t(texture)]->filename, 0, OIIO::ustring("resolution"),
+                            OIIO::TypeDesc(OIIO::TypeDesc::INT, 2), resolution))
+    return 0;
+  return uint64_t(std::max(0, resolution[0])) * uint64_t(std::max(0, resolution[1]));
 }
 
 bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {

@@ -30,6 +30,8 @@ class TextureSet {
   int add_file(const std::string& path, TextureWrap wrap_s, TextureWrap wrap_t,
                std::string* error);
   size_t size() const { return entries_.size(); }
+  // Width x height of texture i's image (its finest level).
+  uint64_t pixels(int texture) const;
 
   // Bilinear lookup at uv (glTF convention: (0, 0) is the top-left corner of the image) of
   // channels [0, n) into out; channels the image lacks read as 1 (alpha) or repeat the last

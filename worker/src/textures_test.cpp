@@ -145,7 +145,7 @@ TEST(Textures, UnsupportedExtensionsAndBrokenImagesWarnAndStillRender) {
   bool named = false, texture = false;
   for (const auto& w : warnings) {
     named = named || w.find("KHR_materials_clearcoat") != std::string::npos;
-    texture = texture || w.find("texture 0") != std::string::npos;
+    texture = texture || w.find("textures[0]") != std::string::npos;
   }
   EXPECT_TRUE(named);
   EXPECT_TRUE(texture);
