@@ -84,6 +84,19 @@ def index_out_of_range(doc: dict) -> None:
     doc["_extra_indices"] = [0, 1, vertices]  # appended to the BIN chunk by hostile()
 
 
+def accessor0(**fields):
+    """Accessor 0 (positions of the first mesh's first primitive) changed."""
+
+    def change(doc: dict) -> None:
+        doc["accessors"][0].update(fields)
+
+    return change
+
+
+def view0_stride(doc: dict) -> None:
+    doc["bufferViews"][doc["accessors"][0]["bufferView"]]["byteStride"] = 64
+
+
 def yfov(value: float):
     def change(doc: dict) -> None:
         doc["cameras"][0]["perspective"]["yfov"] = value
@@ -111,6 +124,11 @@ def hostile(name: str) -> bytes:
         "required-extension": unknown_required_extension,
         "1e8-vertices-without-data": undeclared_vertices(10**8),
         "4e9-vertices-without-data": undeclared_vertices(4 * 10**9),
+        "accessor-count-past-its-view": accessor0(count=10**6),
+        "accessor-offset-past-its-view": accessor0(byteOffset=10**6),
+        "accessor-stride-past-its-view": view0_stride,
+        "accessor-missing-view": accessor0(bufferView=99),
+        "accessor-bad-component-type": accessor0(componentType=1234),
         "yfov-0": yfov(0.0),
         "yfov-3.2": yfov(3.2),
     }
@@ -125,6 +143,11 @@ HOSTILE = [
     ("1e8-vertices-without-data", "scene.accessors[12]", "bufferView"),
     ("4e9-vertices-without-data", "scene.accessors[12]", "bufferView"),
     ("index-out-of-range", "scene.meshes[0].primitives[0]", "out of range"),
+    ("accessor-count-past-its-view", "scene.accessors[0]", "exceeds its buffer view"),
+    ("accessor-offset-past-its-view", "scene.accessors[0]", "exceeds its buffer view"),
+    ("accessor-stride-past-its-view", "scene.accessors[0]", "exceeds its buffer view"),
+    ("accessor-missing-view", "scene.accessors[0]", "'bufferView'"),
+    ("accessor-bad-component-type", "scene", "componentType` in accessor"),
     ("yfov-0", "scene.cameras[0].perspective.yfov", "outside (0, pi)"),
     ("yfov-3.2", "scene.cameras[0].perspective.yfov", "outside (0, pi)"),
     ("number-1e400", "scene", "1e400"),

@@ -22,7 +22,7 @@ import contextlib
 import json
 import logging
 import os
-import resource
+import shutil
 import signal
 import tempfile
 from collections import OrderedDict
@@ -77,6 +77,10 @@ class SceneChecker:
     def __init__(self, binary: str, limits: SceneLimits, tmp_dir: Path, concurrency: int = 1):
         self.binary = binary
         self.limits = limits
+        prlimit = shutil.which("prlimit")
+        if prlimit is None:
+            raise RuntimeError("prlimit (util-linux) is needed to check uploaded scenes")
+        self.prlimit = prlimit
         self.tmp_dir = Path(tmp_dir)
         # One inspection at a time by default: each may use up to max_scene_memory_mb.
         self._slots = asyncio.Semaphore(max(1, concurrency))
@@ -113,18 +117,17 @@ class SceneChecker:
         cpu = max(1, int(limits.cpu_seconds + 0.999))
         address_space = BASE_ADDRESS_SPACE + 2 * size + int(1.5 * limits.max_memory_mb * 10**6)
 
-        def confine() -> None:  # in the child, before exec
-            resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 1))
-            resource.setrlimit(resource.RLIMIT_AS, (address_space, address_space))
-            resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
-
-        args = [self.binary, "inspect", "--json", "--name", name, *limits.flags(), path]
+        # prlimit (util-linux) sets the limits between fork and exec; a preexec_fn would run
+        # Python in a child forked from a process with gRPC's threads, which is not safe.
+        args = [
+            self.prlimit, f"--cpu={cpu}:{cpu + 1}", f"--as={address_space}", "--core=0", "--",
+            self.binary, "inspect", "--json", "--name", name, *limits.flags(), path,
+        ]  # fmt: skip
         proc = await asyncio.create_subprocess_exec(
             *args,
             stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE,
-            preexec_fn=confine,
         )
         # The CPU limit ends a busy loader; the wall-clock one a stalled one (twice the CPU
         # time plus the process's start, which is slow on a loaded machine).
@@ -162,8 +165,9 @@ class SceneChecker:
                 f"{self.limits.cpu_seconds:g} s of CPU time (RENDERFARM_SCENE_INSPECT_CPU_S)"
             )
         return (
-            f"{name}: the scene cannot be loaded within the server's memory limit of "
-            f"{self.limits.max_memory_mb} MB (RENDERFARM_MAX_SCENE_MEMORY_MB)"
+            f"{name}: the scene cannot be loaded within the server's limits of "
+            f"{self.limits.max_memory_mb} MB of memory (RENDERFARM_MAX_SCENE_MEMORY_MB) and "
+            f"{self.limits.cpu_seconds:g} s of CPU time (RENDERFARM_SCENE_INSPECT_CPU_S)"
         )
 
 

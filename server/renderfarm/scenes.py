@@ -2,9 +2,11 @@
 
 Scenes are stored content-addressed (sha256 of the uploaded bytes).  The server accepts a
 binary glTF (.glb) or a self-contained .gltf whose buffers and images are all embedded as
-``data:`` URIs.  :func:`inspect_scene` checks an upload structurally (container layout,
-asset version, buffer/bufferView/accessor ranges) and refuses anything a worker could not
-load with a :class:`SceneError` whose message is meant for the user.
+``data:`` URIs.  :func:`inspect_scene` checks an upload's container (GLB chunks, JSON, asset
+version, buffers, buffer views and images: that it is self-contained) with a
+:class:`SceneError` whose message is meant for the user; what the scene says (accessors,
+meshes, nodes, materials, cameras, extensions) is judged by the workers' own loader
+(scene_check.py) before the server stores it.
 
 :func:`pack_gltf` turns a .gltf with external files next to it into a single GLB, which is
 the form a multi-file scene should be uploaded in.
@@ -41,18 +43,6 @@ GLB_HEADER = struct.Struct("<4sII")
 CHUNK_HEADER = struct.Struct("<II")
 CHUNK_JSON = 0x4E4F534A  # "JSON"
 CHUNK_BIN = 0x004E4942  # "BIN\0"
-
-COMPONENT_SIZES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
-TYPE_COMPONENTS = {
-    "SCALAR": 1,
-    "VEC2": 2,
-    "VEC3": 3,
-    "VEC4": 4,
-    "MAT2": 4,
-    "MAT3": 9,
-    "MAT4": 16,
-}
-INDEX_COMPONENT_TYPES = (5121, 5123, 5125)
 
 IMAGE_MIME_TYPES = {
     ".png": "image/png",
@@ -134,7 +124,8 @@ def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_
 
     buffer_lengths = _check_buffers(document, fmt, bin_chunk)
     view_lengths = _check_buffer_views(document, buffer_lengths)
-    _check_accessors(document, view_lengths)
+    # Accessors, meshes, nodes and everything else the scene says are the loader's to judge
+    # (scene_check.py): here only the container, its buffers and images.
     _check_images(document, view_lengths)
 
     return SceneInfo(
@@ -437,101 +428,6 @@ def _check_buffer_views(document: dict[str, Any], buffer_lengths: list[int]) -> 
                 )
         lengths.append(length)
     return lengths
-
-
-def _element_size(component_type: int, type_name: str) -> int:
-    """Size in bytes of one accessor element, including matrix column padding."""
-    size = COMPONENT_SIZES[component_type]
-    if type_name == "MAT2" and size == 1:
-        return 8  # two columns of 2 bytes, each padded to 4
-    if type_name == "MAT3" and size in (1, 2):
-        return 12 if size == 1 else 24  # three columns of 3 or 6 bytes, padded to 4 or 8
-    return size * TYPE_COMPONENTS[type_name]
-
-
-def _check_range(
-    document: dict[str, Any],
-    view_lengths: list[int],
-    view_index: int,
-    byte_offset: int,
-    count: int,
-    element_size: int,
-    what: str,
-    field: str,
-) -> None:
-    stride = element_size
-    view = document["bufferViews"][view_index]
-    if isinstance(view, dict) and isinstance(view.get("byteStride"), int):
-        stride = max(view["byteStride"], element_size)
-    needed = byte_offset + stride * (count - 1) + element_size
-    if needed > view_lengths[view_index]:
-        raise SceneError(
-            f"{what} needs {needed} bytes of bufferView {view_index}, which has only "
-            f"{view_lengths[view_index]}: it points past its bufferView",
-            field,
-        )
-
-
-def _check_accessors(document: dict[str, Any], view_lengths: list[int]) -> None:
-    for i, accessor in enumerate(_list(document, "accessors")):
-        field = f"scene.accessors[{i}]"
-        accessor = _object(accessor, field)
-        component_type = accessor.get("componentType")
-        if component_type not in COMPONENT_SIZES:
-            raise SceneError(
-                f"accessor {i} has an invalid componentType {component_type!r}",
-                f"{field}.componentType",
-            )
-        type_name = accessor.get("type")
-        if type_name not in TYPE_COMPONENTS:
-            raise SceneError(f"accessor {i} has an invalid type {type_name!r}", f"{field}.type")
-        count = _int(accessor, "count", field, minimum=1)
-        element = _element_size(component_type, type_name)
-        if "bufferView" in accessor:
-            view = _index(accessor, "bufferView", field, len(view_lengths), "bufferView")
-            offset = _int(accessor, "byteOffset", field, default=0)
-            _check_range(
-                document, view_lengths, view, offset, count, element, f"accessor {i}", field
-            )
-        if "sparse" in accessor:
-            _check_sparse(document, view_lengths, accessor, i, count, element)
-
-
-def _check_sparse(
-    document: dict[str, Any],
-    view_lengths: list[int],
-    accessor: dict[str, Any],
-    i: int,
-    count: int,
-    element: int,
-) -> None:
-    field = f"scene.accessors[{i}].sparse"
-    sparse = _object(accessor["sparse"], field)
-    sparse_count = _int(sparse, "count", field, minimum=1)
-    if sparse_count > count:
-        raise SceneError(
-            f"accessor {i} has more sparse entries ({sparse_count}) than elements ({count})",
-            f"{field}.count",
-        )
-    indices = _object(sparse.get("indices"), f"{field}.indices")
-    index_type = indices.get("componentType")
-    if index_type not in INDEX_COMPONENT_TYPES:
-        raise SceneError(
-            f"accessor {i} sparse indices have an invalid componentType {index_type!r}",
-            f"{field}.indices.componentType",
-        )
-    for part, size in (("indices", COMPONENT_SIZES[index_type]), ("values", element)):
-        part_field = f"{field}.{part}"
-        obj = _object(sparse.get(part), part_field)
-        view = _index(obj, "bufferView", part_field, len(view_lengths), "bufferView")
-        offset = _int(obj, "byteOffset", part_field, default=0)
-        needed = offset + size * sparse_count
-        if needed > view_lengths[view]:
-            raise SceneError(
-                f"accessor {i} sparse {part} need {needed} bytes of bufferView {view}, which "
-                f"has only {view_lengths[view]}: they point past their bufferView",
-                part_field,
-            )
 
 
 def _check_images(document: dict[str, Any], view_lengths: list[int]) -> None:
