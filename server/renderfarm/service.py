@@ -455,7 +455,7 @@ class FarmService:
                 tiles_previewed=p.tiles_previewed,
                 mean_spp=p.mean_spp,
                 error=_finite_or_none(p.error),
-                eta_s=p.eta_s if p.eta_s >= 0 else None,
+                eta_s=p.eta_s,
                 samples_merged=p.samples_merged,
                 elapsed_s=p.elapsed_s,
             ),
