@@ -55,6 +55,11 @@ class Settings(BaseSettings):
         "", description="PEM certificate (chain): serve REST and gRPC over TLS when set"
     )
     tls_key_file: str = Field("", description="PEM private key of tls_cert_file")
+    sse_ping_interval_s: float = Field(
+        15.0,
+        gt=0,
+        description="seconds between keep-alive comments on a Server-Sent Events stream (watch)",
+    )
 
     def tls(self) -> tuple[Path, Path] | None:
         """(certificate, key) when TLS is configured; ValueError when only one is set."""
