@@ -528,8 +528,8 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         summary="Server-Sent Events: the job now and after every change, until it finishes",
         description=(
             "Each event is `event: job` with the job as JSON in `data:`. Between events a "
-            "comment line (`: ping ...`) is sent at least every 15 s (RENDERFARM_SSE_PING_"
-            "INTERVAL_S), so that a job waiting in the queue keeps its stream open."
+            "comment line (`: ping ...`) is sent every RENDERFARM_SSE_PING_INTERVAL_S seconds "
+            "(15 by default), so that a job waiting in the queue keeps its stream open."
         ),
         response_class=EventSourceResponse,
         responses={
