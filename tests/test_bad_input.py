@@ -159,3 +159,61 @@ def test_tar_gz_bundles_are_accepted_too(farm):
         r = _submit(client, buf.getvalue(), "cornell.tar.gz", {**TINY, "max_spp": 1})
         assert r.status_code == 201, r.text
         client.wait(r.json()["id"], poll_s=0.2, timeout_s=300)
+
+
+def _nested(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+@pytest.mark.parametrize("depth", [1000, 100_000])
+def test_deeply_nested_json_is_a_400_naming_the_body(small_farm, depth):
+    deep = _nested(depth)
+    glb = ("c.glb", cornell_glb(), "model/gltf-binary")
+    as_json = {"content-type": "application/json"}
+    with Client(small_farm.url) as client:
+        http = client.http
+        cases = [
+            (http.post("/api/v1/jobs", content=deep, headers=as_json), "body"),
+            (http.post("/api/v1/jobs", content=f'{{"settings": {{"width": {deep}}}}}',
+                       headers=as_json), "body"),
+            (http.post("/api/v1/jobs", files={"scene": glb}, data={"settings": deep}),
+             "settings"),
+            (http.post("/api/v1/jobs", files={"scene": glb},
+                       data={"settings": f'{{"width": {deep}}}'}), "settings"),
+            (http.post("/api/v1/session", content=deep, headers=as_json), "body"),
+            (http.post("/api/v1/session", content=f'{{"token": {deep}}}', headers=as_json),
+             "body"),
+        ]  # fmt: skip
+        for r, field in cases:
+            assert r.status_code == 400, (r.request.url, r.text[:300])
+            assert r.json()["field"] == field and "nested too deeply" in r.json()["detail"]
+        assert client.list()["jobs"] == [] or all(
+            j["progress"]["tiles_total"] for j in client.list()["jobs"]
+        )
+
+
+def test_every_error_body_has_detail_and_field(small_farm):
+    """FastAPI's and Starlette's own answers keep the shape: unknown paths, wrong methods,
+    bodies they cannot parse or that miss a field."""
+    as_json = {"content-type": "application/json"}
+    with Client(small_farm.url) as client:
+        http = client.http
+        cases = [
+            (http.get("/no/such/page"), 404, ""),
+            (http.get("/api/v1/nothing-here"), 404, ""),
+            (http.get("/assets/no-such-file.js"), 404, ""),
+            (http.put("/api/v1/jobs"), 405, ""),
+            (http.delete("/healthz"), 405, ""),
+            (http.post("/api/v1/session", content=b"{", headers=as_json), 400, "body"),
+            (http.post("/api/v1/session", content=b"", headers=as_json), 400, "body"),
+            (http.post("/api/v1/session", json={}), 400, "token"),
+            (http.post("/api/v1/session", json={"token": 5}), 400, "token"),
+            (http.post("/api/v1/session", json=[1]), 400, "body"),
+            (http.post("/api/v1/jobs", content=b'{"a": }', headers=as_json), 400, "body"),
+        ]  # fmt: skip
+        for r, status, field in cases:
+            assert r.headers["content-type"] == "application/json", (r.request.url, r.text)
+            body = r.json()
+            assert (r.status_code, body["field"]) == (status, field), (r.request.url, body)
+            assert set(body) == {"detail", "field"} and body["detail"], (r.request.url, body)
+        assert "POST" in http.put("/api/v1/jobs").headers["allow"]  # headers are kept

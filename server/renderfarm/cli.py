@@ -1,6 +1,10 @@
 """The `renderfarm` command: server, up, render, submit, ls, get, watch, cancel, rm, workers,
 token. Client commands talk to $RENDERFARM_URL (or --url) with $RENDERFARM_TOKEN (or --token)
-through renderfarm.client; `token` works on the database with the server's settings."""
+through renderfarm.client; `token` works on the database with the server's settings.
+
+Every error ends the command with one line `renderfarm: MESSAGE` on stderr, never a traceback
+(`--log-level debug` logs it): exit 1 when the server refused or something failed, 2 for a usage
+error or a local file that is missing or unreadable, 130 on Ctrl-C."""
 
 from __future__ import annotations
 
@@ -17,7 +21,102 @@ from typing import Any
 
 from .jobspec import SETTINGS
 
+log = logging.getLogger("renderfarm.cli")
+
+EXIT_FAILED = 1
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+FINISHED = ("completed", "failed", "cancelled")
+
+
+class CliError(Exception):
+    """Ends the command with `renderfarm: message` and the exit code."""
+
+    def __init__(self, message: str, code: int = EXIT_FAILED):
+        super().__init__(message)
+        self.message = message
+        self.code = code
+
+
+def _local_file(path: str, what: str) -> Path:
+    """A file the command reads, or a usage error naming it (before anything is sent)."""
+    try:
+        with open(path, "rb"):
+            pass
+    except FileNotFoundError:
+        raise CliError(f"{what} not found: {path}", EXIT_USAGE) from None
+    except IsADirectoryError:
+        raise CliError(f"{what} is a directory, not a file: {path}", EXIT_USAGE) from None
+    except OSError as e:
+        raise CliError(f"cannot read {what} {path}: {e.strerror or e}", EXIT_USAGE) from None
+    return Path(path)
+
+
+def _check_inputs(args: argparse.Namespace) -> None:
+    """The scene and an environment map given as a file must be readable files."""
+    from .client import _is_sha256
+
+    _local_file(args.scene, "scene file")
+    environment = getattr(args, "environment", None)
+    if environment and not _is_sha256(environment):
+        _local_file(environment, "environment map")
+
+
+def _submit(client, args: argparse.Namespace) -> dict[str, Any]:
+    from .scenes import SceneError
+
+    try:
+        return client.submit(args.scene, settings=_job_settings(args), name=args.name or "")
+    except SceneError as e:  # packing a .gltf found what the server would refuse
+        name = Path(args.scene).name
+        message = e.message if name in e.message else f"{args.scene}: {e.message}"
+        raise CliError(message + (f" [{e.field}]" if e.field != "scene" else "")) from None
+
+
+def _error_message(e: BaseException, url: str | None) -> tuple[str, int]:
+    """What to tell the user about an exception that ended a command, and the exit code."""
+    import httpx
+    import pydantic
+
+    from .client import ApiError
+
+    where = url or os.environ.get("RENDERFARM_URL") or "http://127.0.0.1:8080"
+    if isinstance(e, CliError):
+        return e.message, e.code
+    if isinstance(e, ApiError):
+        return e.message + (f" [{e.field}]" if e.field else ""), EXIT_FAILED
+    if isinstance(e, httpx.UnsupportedProtocol | httpx.InvalidURL):
+        return f"bad server URL {where!r}: give http://HOST:PORT or https://HOST:PORT", EXIT_USAGE
+    if isinstance(e, httpx.ConnectError):
+        reason = str(e)
+        if "CERTIFICATE_VERIFY_FAILED" in reason:
+            detail = reason.split("certificate verify failed:")[-1].split("(_ssl")[0].strip()
+            return (
+                f"cannot verify the TLS certificate of {where} ({detail}); set "
+                "RENDERFARM_CA_FILE to the PEM certificate of the CA that signed it",
+                EXIT_FAILED,
+            )
+        if "Connection refused" in reason:
+            message = f"cannot connect to {where}: connection refused (is the server running?)"
+            return message, EXIT_FAILED
+        return f"cannot connect to {where}: {reason}", EXIT_FAILED
+    if isinstance(e, httpx.TimeoutException):
+        return (
+            f"no answer from {where} in time (RENDERFARM_TIMEOUT_S sets the limit): {e}",
+            EXIT_FAILED,
+        )
+    if isinstance(e, httpx.HTTPError):
+        return f"connection to {where} failed: {e}", EXIT_FAILED
+    if isinstance(e, json.JSONDecodeError):  # a 2xx answer that is not the API's JSON
+        return f"{where} answered, but not as a renderfarm server does (not JSON)", EXIT_FAILED
+    if isinstance(e, pydantic.ValidationError):  # a server setting (flag or environment)
+        first = e.errors()[0]
+        name = str(first["loc"][0]) if first.get("loc") else "settings"
+        flag = "--" + name.replace("_", "-")
+        return f"server setting {flag} (RENDERFARM_{name.upper()}): {first['msg']}", EXIT_USAGE
+    if isinstance(e, OSError):
+        return (f"{e.filename}: " if e.filename else "") + (e.strerror or str(e)), EXIT_FAILED
+    return str(e) or type(e).__name__, EXIT_FAILED
 
 
 def _add_job_settings(parser: argparse.ArgumentParser) -> None:
@@ -60,10 +159,18 @@ def _server_settings(args: argparse.Namespace, **overrides: Any):
     return Settings(**chosen)
 
 
-def _client(args: argparse.Namespace):
+def _client(args: argparse.Namespace, url: str | None = None):
+    import ssl
+
     from .client import Client
 
-    return Client(args.url, token=getattr(args, "token", None))
+    try:
+        return Client(url or args.url, token=getattr(args, "token", None))
+    except ValueError as e:  # RENDERFARM_TIMEOUT_S
+        raise CliError(str(e), EXIT_USAGE) from None
+    except (OSError, ssl.SSLError) as e:  # RENDERFARM_CA_FILE
+        ca = os.environ.get("RENDERFARM_CA_FILE", "")
+        raise CliError(f"cannot read RENDERFARM_CA_FILE {ca}: {e}", EXIT_USAGE) from None
 
 
 def _print_json(value: Any) -> None:
@@ -82,47 +189,65 @@ def _fmt_duration(seconds: float | None) -> str:
     return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m"
 
 
+def _progress_status(job: dict[str, Any]) -> str:
+    """Everything of the progress line after the tile count."""
+    p = job["progress"]
+    error = "-" if p["error"] is None else f"{100 * p['error']:.2f}%"
+    target = job["settings"]["noise_threshold"]
+    return (
+        f"{p['mean_spp']:.1f} spp  error {error} (target {100 * target:.2f}%)  "
+        f"{_fmt_duration(p['elapsed_s'])} elapsed  ETA {_fmt_duration(p['eta_s'])}  {job['state']}"
+    )
+
+
 def progress_line(job: dict[str, Any], width: int = 24) -> str:
     p = job["progress"]
     total = max(1, p["tiles_total"])
     filled = int(width * p["tiles_done"] / total)
     bar = "#" * filled + "-" * (width - filled)
-    error = "-" if p["error"] is None else f"{100 * p['error']:.2f}%"
-    target = job["settings"]["noise_threshold"]
-    return (
-        f"[{bar}] {p['tiles_done']}/{p['tiles_total']} tiles  {p['mean_spp']:.1f} spp  "
-        f"error {error} (target {100 * target:.2f}%)  {_fmt_duration(p['elapsed_s'])} elapsed  "
-        f"ETA {_fmt_duration(p['eta_s'])}  {job['state']}"
-    )
+    return f"[{bar}] {p['tiles_done']}/{p['tiles_total']} tiles  {_progress_status(job)}"
 
 
 def _watch(client, job_id: str, quiet: bool, as_json: bool = False) -> dict[str, Any]:
-    """Follow the job's Server-Sent Events until it finishes: a progress bar on a terminal,
-    one line per second otherwise, one JSON object per update with as_json."""
-    tty = sys.stderr.isatty()
-    last_line = 0.0
+    """Follow the job's Server-Sent Events until it finishes: a live progress bar (rich) when
+    stderr, where it is drawn, is a terminal; one line per second otherwise; one JSON object
+    per update with as_json. A job that did not complete is an error (exit 1)."""
+    from rich.console import Console
 
-    def show(job: dict[str, Any]) -> None:
-        nonlocal last_line
-        if as_json:
-            sys.stdout.write(json.dumps(job) + "\n")
-            sys.stdout.flush()
-            return
-        if quiet:
-            return
-        finished = job["state"] in ("completed", "failed", "cancelled")
-        if not tty and not finished and time.monotonic() - last_line < 1.0:
-            return
-        last_line = time.monotonic()
-        line = progress_line(job)
-        sys.stderr.write(("\r" + line + "\033[K") if tty else line + "\n")
-        sys.stderr.flush()
-
+    console = Console(stderr=True)
     job: dict[str, Any] = {}
-    for job in client.watch(job_id):
-        show(job)
-    if tty and not quiet and not as_json:
-        sys.stderr.write("\n")
+    if as_json or quiet or not console.is_terminal:
+        last_line = 0.0
+        for job in client.watch(job_id):
+            if as_json:
+                sys.stdout.write(json.dumps(job) + "\n")
+                sys.stdout.flush()
+            elif not quiet and (job["state"] in FINISHED or time.monotonic() - last_line >= 1.0):
+                last_line = time.monotonic()
+                sys.stderr.write(progress_line(job) + "\n")
+                sys.stderr.flush()
+    else:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+        columns = (
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("tiles  {task.fields[status]}"),
+        )
+        with Progress(*columns, console=console) as bar:
+            task = bar.add_task(job_id, total=None, status="connecting")
+            for job in client.watch(job_id):
+                p = job["progress"]
+                status = _progress_status(job)
+                bar.update(task, total=p["tiles_total"], completed=p["tiles_done"], status=status)
+    if not job:
+        raise CliError(f"the server sent nothing for job {job_id}")
+    if job["state"] not in FINISHED:
+        raise CliError(f"the server ended the stream of job {job_id} while it was {job['state']}")
+    if job["state"] != "completed":
+        raise CliError(
+            f"job {job_id} {job['state']}" + (f": {job['error']}" if job["error"] else "")
+        )
     return job
 
 
@@ -159,19 +284,12 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .client import ApiError, Client
     from .localfarm import LocalFarm
 
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
-        print(
-            "renderfarm render: -o must name an .exr file (a .png is written beside it)",
-            file=sys.stderr,
-        )
-        return EXIT_USAGE
-    if not Path(args.scene).is_file():
-        print(f"renderfarm render: scene file not found: {args.scene}", file=sys.stderr)
-        return EXIT_USAGE
+        raise CliError("-o must name an .exr file (a .png is written beside it)", EXIT_USAGE)
+    _check_inputs(args)
     url = args.url or os.environ.get("RENDERFARM_URL")
     farm = None
     if not url:
@@ -185,20 +303,22 @@ def cmd_render(args: argparse.Namespace) -> int:
         farm = LocalFarm(workers=args.workers, data_dir=data_dir, threads=args.threads).start()
         url = farm.url
     try:
-        with Client(url) as client:
+        with _client(args, url) as client:
             started = time.monotonic()
-            job = client.submit(args.scene, settings=_job_settings(args), name=args.name or "")
+            job = _submit(client, args)
             if not args.quiet:
                 print(f"job {job['id']} submitted to {url}", file=sys.stderr)
             try:
                 job = _watch(client, job["id"], args.quiet)
             except KeyboardInterrupt:
-                client.cancel(job["id"])
-                print(f"\ncancelled job {job['id']}", file=sys.stderr)
-                return 130
-            if job["state"] != "completed":
-                print(f"job {job['id']} {job['state']}: {job['error']}", file=sys.stderr)
-                return 1
+                try:
+                    client.cancel(job["id"])
+                    print(f"\ncancelled job {job['id']}", file=sys.stderr)
+                except Exception as e:  # the server may be what went away
+                    log.debug("cancelling job %s failed", job["id"], exc_info=True)
+                    message, _ = _error_message(e, url)
+                    print(f"\njob {job['id']} was not cancelled: {message}", file=sys.stderr)
+                return EXIT_INTERRUPTED
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_bytes(client.image(job["id"], "exr"))
             png = out.with_suffix(".png")
@@ -215,27 +335,21 @@ def cmd_render(args: argparse.Namespace) -> int:
             if args.json:
                 _print_json(job)
             return 0
-    except ApiError as e:
-        print(
-            f"renderfarm render: {e.message}" + (f" [{e.field}]" if e.field else ""),
-            file=sys.stderr,
-        )
-        return 1
     finally:
         if farm is not None:
             farm.stop()
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
+    _check_inputs(args)
     with _client(args) as client:
-        job = client.submit(args.scene, settings=_job_settings(args), name=args.name or "")
+        job = _submit(client, args)
         if args.json:
             _print_json(job)
         else:
-            print(job["id"])
+            print(job["id"], flush=True)
         if args.wait:
-            job = _watch(client, job["id"], args.quiet)
-            return 0 if job["state"] == "completed" else 1
+            _watch(client, job["id"], args.quiet)
     return 0
 
 
@@ -282,8 +396,8 @@ def cmd_cancel(args: argparse.Namespace) -> int:
 
 def cmd_watch(args: argparse.Namespace) -> int:
     with _client(args) as client:
-        job = _watch(client, args.job_id, quiet=False, as_json=args.json)
-        return 0 if job.get("state") == "completed" else 1
+        _watch(client, args.job_id, quiet=False, as_json=args.json)
+    return 0
 
 
 def cmd_rm(args: argparse.Namespace) -> int:
@@ -298,15 +412,27 @@ def cmd_rm(args: argparse.Namespace) -> int:
 
 
 def cmd_token(args: argparse.Namespace) -> int:
-    from . import tokens
+    import psycopg
+    from psycopg_pool import PoolTimeout
 
     settings = _server_settings(args)
+    # The pool's retries would log a warning each; the one-line error below says it all.
+    logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
+    try:
+        return _token_command(args, settings)
+    except (psycopg.Error, PoolTimeout) as e:
+        where = "RENDERFARM_DATABASE_URL" if settings.database_url else str(settings.data_dir)
+        raise CliError(f"cannot use the database ({where}): {e}") from None
+
+
+def _token_command(args: argparse.Namespace, settings) -> int:
+    from . import tokens
+
     if args.token_command == "create":
         try:
             info, token = tokens.create(settings, args.name, args.admin)
         except ValueError as e:
-            print(f"renderfarm token create: {e}", file=sys.stderr)
-            return 1
+            raise CliError(str(e)) from None
         if args.json:
             _print_json({**info, "token": token})
         else:
@@ -331,8 +457,7 @@ def cmd_token(args: argparse.Namespace) -> int:
         return 0
     revoked = tokens.revoke(settings, args.token_id)
     if revoked is None:
-        print(f"renderfarm token revoke: no live token with id {args.token_id}", file=sys.stderr)
-        return 1
+        raise CliError(f"no live token with id {args.token_id}")
     if args.json:
         _print_json(revoked)
     else:
@@ -439,8 +564,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .client import ApiError
-
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
@@ -451,11 +574,11 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     try:
         return args.func(args)
-    except ApiError as e:
-        print(f"renderfarm: {e.message}" + (f" [{e.field}]" if e.field else ""), file=sys.stderr)
-        return 1
-    except (FileNotFoundError, TimeoutError, RuntimeError) as e:
-        print(f"renderfarm: {e}", file=sys.stderr)
-        return 1
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as e:  # every error ends in one line; the traceback is for debugging
+        log.debug("the command failed", exc_info=True)
+        message, code = _error_message(e, getattr(args, "url", None))
+        message = " ".join(message.split())  # one line, whatever the message held
+        print("renderfarm: " + (message[:2000] or type(e).__name__), file=sys.stderr)
+        return code

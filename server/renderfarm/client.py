@@ -43,6 +43,21 @@ def _is_sha256(value: str) -> bool:
 
 
 BUNDLE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
+DEFAULT_TIMEOUT_S = 60.0
+
+
+def _timeout_s() -> float:
+    """$RENDERFARM_TIMEOUT_S, or 60: seconds a request may take to connect, send or answer."""
+    text = os.environ.get("RENDERFARM_TIMEOUT_S", "").strip()
+    if not text:
+        return DEFAULT_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0 < value < float("inf"):
+        raise ValueError(f"RENDERFARM_TIMEOUT_S must be a positive number of seconds, not {text!r}")
+    return value
 
 
 class Client:
@@ -50,15 +65,18 @@ class Client:
         self,
         url: str | None = None,
         token: str | None = None,
-        timeout: float = 60.0,
+        timeout: float | None = None,
         ca_file: str | None = None,
     ):
         self.url = (url or os.environ.get("RENDERFARM_URL") or "http://127.0.0.1:8080").rstrip("/")
+        self.timeout = _timeout_s() if timeout is None else timeout
         token = token or os.environ.get("RENDERFARM_TOKEN")
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         ca_file = ca_file or os.environ.get("RENDERFARM_CA_FILE")
         verify = ssl.create_default_context(cafile=ca_file) if ca_file else True
-        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout, verify=verify)
+        self.http = httpx.Client(
+            base_url=self.url, headers=headers, timeout=self.timeout, verify=verify
+        )
 
     def close(self) -> None:
         self.http.close()
@@ -143,10 +161,14 @@ class Client:
         return self._check(self.http.get("/api/v1/whoami")).json()
 
     def watch(self, job_id: str, timeout_s: float | None = None) -> Iterator[dict[str, Any]]:
-        """The job now and after every change (Server-Sent Events), until it finishes."""
+        """The job now and after every change (Server-Sent Events), until it finishes.
+
+        The stream has no read timeout: a job may wait in the queue for any length of time, and
+        the server sends a keep-alive comment at least every 15 s meanwhile (connecting and
+        sending keep the client's timeout)."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self.http.stream(
-            "GET", f"/api/v1/jobs/{job_id}/watch", timeout=httpx.Timeout(30.0, read=60.0)
+            "GET", f"/api/v1/jobs/{job_id}/watch", timeout=httpx.Timeout(self.timeout, read=None)
         ) as response:
             if response.status_code >= 400:
                 response.read()

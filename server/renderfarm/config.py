@@ -83,6 +83,11 @@ class Settings(BaseSettings):
     scene_inspect_cpu_s: float = Field(
         60.0, gt=0, description="CPU time the server's check of one uploaded scene may take"
     )
+    sse_ping_interval_s: float = Field(
+        15.0,
+        gt=0,
+        description="seconds between keep-alive comments on a Server-Sent Events stream (watch)",
+    )
 
     def tls(self) -> tuple[Path, Path] | None:
         """(certificate, key) when TLS is configured; ValueError when only one is set."""

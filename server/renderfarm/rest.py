@@ -4,7 +4,8 @@ Every response is declared (pydantic models below), so the OpenAPI document desc
 what the server sends; tests/test_openapi_fuzz.py holds the server to it. Errors are JSON
 {"detail": message, "field": name-of-the-offending-field}: 400 bad input, 401 no or bad token,
 403 another owner's job, 404 unknown job or scene, 409 state conflict, 413 upload too large,
-503 not ready.
+503 not ready; FastAPI's and Starlette's own answers (unknown route, wrong method, a body they
+cannot parse) and unexpected failures (500) are given the same shape.
 """
 
 from __future__ import annotations
@@ -15,12 +16,14 @@ import time
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel, Field, create_model
+from sse_starlette import EventSourceResponse, ServerSentEvent
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import apicommon
 from .auth import SESSION_COOKIE, Authenticator, AuthError, Caller, Forbidden, request_token
@@ -252,13 +255,30 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, e: RequestValidationError):
         first = e.errors()[0] if e.errors() else {}
-        where = [str(p) for p in first.get("loc", ()) if p not in ("query", "path", "body")]
-        name = ".".join(where)
+        loc = first.get("loc", ())
+        if first.get("type") == "json_invalid":  # its loc is the character offset, not a field
+            return _error(400, "body", "request body is not valid JSON")
+        where = [str(p) for p in loc if p not in ("query", "path", "body")]
+        name = ".".join(where) or ("body" if loc[:1] == ("body",) else "")
         return _error(400, name, f"{name or 'request'}: {first.get('msg', 'invalid')}")
 
-    @app.exception_handler(HTTPException)
-    async def _http(_: Request, e: HTTPException):
-        return _error(e.status_code, "", str(e.detail))
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, e: StarletteHTTPException):
+        # Raised by FastAPI and Starlette themselves: 404 for an unknown path, 405 for a wrong
+        # method, and 400 for a body they could not parse (JSON nested deeper than the parser
+        # goes, broken multipart).
+        if e.status_code != 400:
+            return _error(e.status_code, "", str(e.detail), e.headers)
+        detail = str(e.detail)
+        if isinstance(e.__cause__, RecursionError):
+            detail = "request body is not valid JSON: nested too deeply"
+        return _error(400, "body", detail, e.headers)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(_: Request, e: Exception):
+        # A bug, not the client's fault; Starlette re-raises it after this answer, so the
+        # traceback is still logged.
+        return _error(500, "", "internal server error")
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     async def index() -> Response:
@@ -267,11 +287,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             return FileResponse(built, headers={"Cache-Control": "no-cache"})
         return HTMLResponse(index_html())
 
-    app.mount(
-        "/assets",
-        StaticFiles(directory=WEB_DIST / "assets", check_dir=False),
-        name="dashboard-assets",
-    )
+    app.mount("/assets", _DashboardAssets(directory=WEB_DIST / "assets"), name="dashboard-assets")
 
     @app.get("/healthz", include_in_schema=False)
     async def healthz() -> dict[str, str]:
@@ -411,6 +427,10 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 body = await request.json()
             except ValueError:
                 raise SettingsError("body", "request body is not valid JSON") from None
+            except RecursionError:
+                raise SettingsError(
+                    "body", "request body is not valid JSON: nested too deeply"
+                ) from None
             if not isinstance(body, dict):
                 raise SettingsError("body", "request body must be a JSON object")
             unknown = set(body) - {"scene_sha256", "settings", "name"}
@@ -506,14 +526,18 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     @app.get(
         "/api/v1/jobs/{job_id}/watch",
         summary="Server-Sent Events: the job now and after every change, until it finishes",
-        description="Each event is `event: job` with the job as JSON in `data:`.",
-        response_class=StreamingResponse,
+        description=(
+            "Each event is `event: job` with the job as JSON in `data:`. Between events a "
+            "comment line (`: ping ...`) is sent every RENDERFARM_SSE_PING_INTERVAL_S seconds "
+            "(15 by default), so that a job waiting in the queue keeps its stream open."
+        ),
+        response_class=EventSourceResponse,
         responses={
             200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}},
             **_errors(403, 404),
         },
     )
-    async def watch(job_id: str, who: Caller = Auth) -> StreamingResponse:
+    async def watch(job_id: str, who: Caller = Auth) -> EventSourceResponse:
         await farm.get(apicommon.job_id(job_id), who)  # 404/403 before the stream starts
 
         async def stream():
@@ -523,11 +547,14 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 wait = 0.1 - (time.monotonic() - last_sent)
                 if wait > 0 and not view.state.finished:
                     await asyncio.sleep(wait)
-                    view = await farm.get(job_id)
+                    view = await farm.get(job_id, who)
                 last_sent = time.monotonic()
-                yield f"event: job\ndata: {json.dumps(view.to_json())}\n\n"
+                yield ServerSentEvent(json.dumps(view.to_json()), event="job")
 
-        return StreamingResponse(stream(), media_type="text/event-stream")
+        # Events are sent only on change; the library's keep-alive comments in between stop
+        # clients and proxies from timing out on a job that waits queued. sep="\n" keeps the
+        # framing the dashboard and the client have always read.
+        return EventSourceResponse(stream(), ping=farm.settings.sse_ping_interval_s, sep="\n")
 
     @app.get(
         "/api/v1/jobs/{job_id}/image.{fmt}",
@@ -575,6 +602,20 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     return app
 
 
+class _DashboardAssets(StaticFiles):
+    """web/dist/assets, or 404 for everything under /assets while the dashboard is not built
+    (StaticFiles itself fails with a 500 then); checked per request, so `make web` on a running
+    server is picked up."""
+
+    def __init__(self, directory: Path):
+        super().__init__(directory=directory, check_dir=False)
+
+    async def check_config(self) -> None:
+        if not Path(str(self.directory)).is_dir():
+            raise StarletteHTTPException(404, "the dashboard is not built (make web)")
+        await super().check_config()
+
+
 def _text_field(value: Any, field: str) -> str:
     if value is None:
         return ""
@@ -590,8 +631,10 @@ def _json_field(value: Any, field: str) -> dict | None:
         raise SettingsError(field, f"{field} must be a JSON object in a text field")
     try:
         parsed = json.loads(value)
-    except (ValueError, RecursionError):
+    except ValueError:
         raise SettingsError(field, f"{field} is not valid JSON") from None
+    except RecursionError:
+        raise SettingsError(field, f"{field} is not valid JSON: nested too deeply") from None
     if not isinstance(parsed, dict):
         raise SettingsError(field, f"{field} must be a JSON object")
     return parsed

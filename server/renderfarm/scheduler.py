@@ -20,6 +20,7 @@ import heapq
 import itertools
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -42,6 +43,12 @@ from .tiling import (
 # already has work: speculation keeps workers busy on small images at the risk of rendering a
 # batch past the tile's stop point (it is then cancelled or discarded, never merged).
 SPECULATION_DEPTH = 3
+
+# The ETA divides the samples still needed by the rate at which samples were merged over about
+# this many recent seconds: the rate of the farm as it is now (workers come and go, tiles differ
+# in cost), not an average since the start that includes scene loading and queueing.
+ETA_WINDOW_S = 30.0
+ETA_MAX_POINTS = 4096  # merge records kept per job; a very busy job's window is just shorter
 
 
 @dataclass(frozen=True)
@@ -140,6 +147,8 @@ class JobRun:
     heap: list[tuple[tuple, int, int]] = field(default_factory=list)
     cost_sum: float = 0.0  # sum of the measured per-tile costs, for tiles not measured yet
     cost_count: int = 0
+    # (clock, samples_merged after it) of each merged batch in the ETA window (see _eta).
+    merges: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=ETA_MAX_POINTS))
 
     @property
     def pixels(self) -> int:
@@ -160,7 +169,7 @@ class Progress:
     tiles_previewed: int
     mean_spp: float
     error: float
-    eta_s: float
+    eta_s: float | None  # None until two batches have been merged (no rate yet)
     samples_merged: int
     elapsed_s: float
 
@@ -256,34 +265,50 @@ class Scheduler:
             tiles_previewed=sum(1 for t in job.tiles if t.merged),
             mean_spp=mean_spp,
             error=error,
-            eta_s=self._eta(job, elapsed, error),
+            eta_s=self._eta(job, now, elapsed),
             samples_merged=job.samples_merged,
             elapsed_s=elapsed,
         )
 
-    def _eta(self, job: JobRun, elapsed: float, error: float) -> float:
-        """Seconds to completion from the measured rates; -1 when unknown.
+    def _eta(self, job: JobRun, now: float, elapsed: float) -> float | None:
+        """Seconds to completion: the samples still needed divided by the samples merged per
+        second over the last ETA_WINDOW_S; None until two batches have been merged.
 
-        Two bounds, whichever comes first: Monte Carlo error falls as 1/sqrt(samples), so the
-        noise target needs elapsed * ((error / threshold)^2 - 1) more seconds; max_spp needs the
-        remaining samples at the measured sample rate. A time limit caps both.
+        A tile still rendering needs max_spp samples, or with a noise threshold the samples at
+        which its error would reach the threshold (Monte Carlo error falls as 1/sqrt(samples):
+        n * (error / threshold)^2, within min_spp..max_spp). A tile without an error estimate
+        yet is taken to need what the estimated tiles need on average. A time limit caps it.
         """
         if job.state.finished:
             return 0.0
-        if job.samples_merged == 0 or elapsed <= 0:
-            return -1.0
-        rate = job.samples_merged / elapsed
-        remaining = sum(
-            (job.settings.max_spp - t.acc.samples) * t.rect.pixels
-            for t in job.tiles
-            if not t.stopped
-        )
-        eta = remaining / rate
-        threshold = job.settings.noise_threshold
-        if threshold > 0 and math.isfinite(error):
-            eta = min(eta, elapsed * max(0.0, (error / threshold) ** 2 - 1.0))
-        if job.settings.time_limit_s > 0:
-            eta = min(eta, max(0.0, job.settings.time_limit_s - elapsed))
+        if len(job.merges) < 2:
+            return None
+        since, base = job.merges[0]
+        merged = job.merges[-1][1] - base  # samples merged after the window's first point
+        if now <= since or merged <= 0:
+            return None
+        rate = merged / (now - since)
+        s = job.settings
+        targets: list[float] = []  # estimated final spp of the tiles that have an estimate
+        unknown: list[TileState] = []
+        needed = 0.0
+        for t in job.tiles:
+            if t.stopped:
+                continue
+            if s.noise_threshold <= 0:
+                needed += (s.max_spp - t.acc.samples) * t.rect.pixels
+            elif t.merged and math.isfinite(t.error):
+                target = t.acc.samples * (t.error / s.noise_threshold) ** 2
+                target = min(s.max_spp, max(s.min_spp, t.acc.samples, target))
+                targets.append(target)
+                needed += (target - t.acc.samples) * t.rect.pixels
+            else:
+                unknown.append(t)
+        guess = sum(targets) / len(targets) if targets else s.max_spp
+        needed += sum(max(0.0, guess - t.acc.samples) * t.rect.pixels for t in unknown)
+        eta = needed / rate
+        if s.time_limit_s > 0:
+            eta = min(eta, max(0.0, s.time_limit_s - elapsed))
         return eta
 
     # -------------------------------------------------------------------------- workers
@@ -542,6 +567,7 @@ class Scheduler:
                 r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite
             )
             job.samples_merged += r.sample_count * tile.rect.pixels
+            self._record_merge(job)
             tile.error = tile.acc.tile_error()
             tile.dirty = True
             outcome = "merged" if r is result or outcome == "merged" else outcome
@@ -551,6 +577,14 @@ class Scheduler:
         job.version += 1
         self._maybe_finish(job)
         return outcome
+
+    def _record_merge(self, job: JobRun) -> None:
+        """A point of the ETA's rate window; points older than the window are dropped, but the
+        last one before it stays as the window's start (and at least two stay)."""
+        now = self.clock()
+        job.merges.append((now, job.samples_merged))
+        while len(job.merges) > 2 and job.merges[1][0] <= now - ETA_WINDOW_S:
+            job.merges.popleft()
 
     def _check_shape(self, job: JobRun, tile: TileState, r: BatchResult) -> str:
         span = self._span(job, tile, r.batch_index)

@@ -7,6 +7,7 @@ import contextlib
 import ctypes
 import logging
 import signal
+import socket
 from collections.abc import Awaitable, Callable
 
 import uvicorn
@@ -38,6 +39,19 @@ def tune_allocator() -> bool:
         )
     except (OSError, AttributeError):
         return False
+
+
+def _http_socket(host: str, port: int) -> socket.socket:
+    """The REST API's socket, bound here: uvicorn, binding it itself, logs a failure and exits
+    the process, where this raises an OSError the CLI reports in one line."""
+    sock = socket.socket(family=socket.AF_INET6 if ":" in host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as e:
+        sock.close()
+        raise OSError(e.errno, f"cannot listen for HTTP on {host}:{port}: {e.strerror}") from None
+    return sock
 
 
 async def serve(
@@ -98,7 +112,9 @@ async def serve(
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
-        http_task = asyncio.create_task(http.serve())
+        http_task = asyncio.create_task(
+            http.serve(sockets=[_http_socket(settings.http_host, settings.http_port)])
+        )
         while not http.started:
             if http_task.done():
                 http_task.result()

@@ -31,7 +31,7 @@ import psycopg
 from psycopg_pool import PoolTimeout
 
 from . import images
-from .auth import LOCAL_USER, Caller, Forbidden
+from .auth import Caller, Forbidden
 from .config import Settings
 from .jobspec import JobSettings, SettingsError, parse_settings
 from .merge import TileAccumulator
@@ -299,8 +299,9 @@ class FarmService:
         raw_settings: dict[str, Any] | None,
         environment_data: bytes | None = None,
         environment_filename: str = "",
-        caller: Caller = LOCAL_USER,
+        caller: Caller,
     ) -> JobView:
+        _check_caller(caller)
         settings = parse_settings(raw_settings, self.settings.limits())
         settings = await self._environment(settings, environment_data, environment_filename)
         if scene_data is not None and scene_sha256:
@@ -340,7 +341,7 @@ class FarmService:
         self.created[job_id] = row.created_at.timestamp()
         self.scheduler.add_job(job_id, settings, sha)
         await self._after_change()
-        return await self.get(job_id)
+        return await self.get(job_id, caller)
 
     async def _environment(
         self, settings: JobSettings, data: bytes | None, filename: str
@@ -360,7 +361,8 @@ class FarmService:
                 raise NotFound(f"no stored environment map with sha256 {settings.environment}")
         return settings
 
-    async def get(self, job_id: str, caller: Caller = LOCAL_USER) -> JobView:
+    async def get(self, job_id: str, caller: Caller) -> JobView:
+        _check_caller(caller)
         job = self.scheduler.jobs.get(job_id)
         if job is not None:
             view = self._live_view(job)
@@ -374,8 +376,9 @@ class FarmService:
         return view
 
     async def list(
-        self, state: JobState | None, page_size: int, page_token: str, caller: Caller = LOCAL_USER
+        self, state: JobState | None, page_size: int, page_token: str, caller: Caller
     ) -> tuple[list[JobView], str]:
+        _check_caller(caller)
         page_size = max(1, min(page_size or 50, 500))
         after = None
         if page_token:
@@ -399,16 +402,16 @@ class FarmService:
         token = f"{rows[-1].created_at.isoformat()}|{rows[-1].id}" if more else ""
         return views, token
 
-    async def cancel(self, job_id: str, caller: Caller = LOCAL_USER) -> JobView:
+    async def cancel(self, job_id: str, caller: Caller) -> JobView:
         view = await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
         if job is None:
             return view  # already finished: cancelling is a no-op
         self.scheduler.cancel_job(job_id)
         await self._after_change()
-        return await self.get(job_id)
+        return await self.get(job_id, caller)
 
-    async def delete(self, job_id: str, caller: Caller = LOCAL_USER) -> None:
+    async def delete(self, job_id: str, caller: Caller) -> None:
         """Delete a finished job and its stored data (tiles, events, its scene if unshared).
         A job still queued or running must be cancelled first."""
         await self.get(job_id, caller)  # raises NotFound / Forbidden
@@ -421,11 +424,11 @@ class FarmService:
         for table in (self.history, self.names, self.created, self.owners):
             table.pop(job_id, None)
 
-    async def watch(self, job_id: str, caller: Caller = LOCAL_USER) -> AsyncIterator[JobView]:
+    async def watch(self, job_id: str, caller: Caller) -> AsyncIterator[JobView]:
         """The job now, then after every visible change, until it is finished."""
         view = await self.get(job_id, caller)
         yield view
-        last = None
+        last = view  # unchanged views are not sent again
         while not view.state.finished:
             job = self.scheduler.jobs.get(job_id)
             version = job.version if job else None
@@ -440,12 +443,12 @@ class FarmService:
                         ),
                         timeout=5.0,
                     )
-            view = await self.get(job_id)
+            view = await self.get(job_id, caller)
             if view != last:
                 yield view
                 last = view
 
-    async def events(self, job_id: str, caller: Caller = LOCAL_USER) -> list[dict[str, Any]]:
+    async def events(self, job_id: str, caller: Caller) -> list[dict[str, Any]]:
         await self.get(job_id, caller)
         rows = await self.store.list_events(job_id)
         return [
@@ -467,7 +470,7 @@ class FarmService:
                 tiles_previewed=p.tiles_previewed,
                 mean_spp=p.mean_spp,
                 error=_finite_or_none(p.error),
-                eta_s=p.eta_s if p.eta_s >= 0 else None,
+                eta_s=p.eta_s,
                 samples_merged=p.samples_merged,
                 elapsed_s=p.elapsed_s,
             ),
@@ -513,9 +516,7 @@ class FarmService:
         tiles = list(_restore_tiles(settings, await self.store.load_tiles(job_id)).values())
         return images.assemble(settings.width, settings.height, tiles)
 
-    async def image(
-        self, job_id: str, fmt: str, layer: str = "rgb", caller: Caller = LOCAL_USER
-    ) -> bytes:
+    async def image(self, job_id: str, fmt: str, layer: str, caller: Caller) -> bytes:
         if fmt not in ("png", "exr"):
             raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
         if layer not in images.LAYERS:
@@ -756,7 +757,7 @@ class FarmService:
         points = self.history.setdefault(job_id, [])
         points.append((round(p.elapsed_s, 3), _finite_or_none(p.error), p.mean_spp))
 
-    async def convergence(self, job_id: str, caller: Caller = LOCAL_USER) -> list[dict[str, Any]]:
+    async def convergence(self, job_id: str, caller: Caller) -> list[dict[str, Any]]:
         """Image error against time: live from memory, afterwards from the event log."""
         await self.get(job_id, caller)
         points = self.history.get(job_id)
@@ -798,6 +799,13 @@ class FarmService:
             for t in job.tiles
             if t.stop is not None
         ]
+
+
+def _check_caller(caller: Any) -> None:
+    """Every job operation names its caller: there is no default identity to fall back on
+    (one would grant the local admin's rights to a handler that forgot to pass it)."""
+    if not isinstance(caller, Caller):
+        raise TypeError(f"FarmService needs the caller (an auth.Caller), got {caller!r}")
 
 
 def _restore_tiles(

@@ -375,3 +375,44 @@ def test_resume_mid_plan_renders_the_planned_batches():
     for a, b in zip(reference.tiles, resumed.jobs["j"].tiles, strict=True):
         np.testing.assert_array_equal(a.acc.rgb_sum, b.acc.rgb_sum)
         assert a.stop == b.stop
+
+
+ETA_SETTINGS = JobSettings(width=32, height=32, tile_size=16, noise_threshold=0, max_spp=64)
+
+
+def _two_first_batches(settings):
+    """Four 16x16 tiles; batch 0 (1 spp) of tiles 0 and 1 merged at t=1000 and t=1002, read at
+    t=1004: 256 samples merged in the 4 s since the first merge, 64 samples/s."""
+    clock = FakeClock()
+    sched = Scheduler(clock=clock)
+    job = sched.add_job("j", settings, "scene")
+    sched.add_worker("w", 2)
+    first, second = sched.assign("w")
+    assert sched.progress(job).eta_s is None  # nothing merged
+    clock.now = 1000.0
+    sched.complete(first.task_id, render(settings, first))
+    clock.now = 1001.0
+    assert sched.progress(job).eta_s is None  # one batch: no rate yet
+    clock.now = 1002.0
+    sched.complete(second.task_id, render(settings, second))
+    clock.now = 1004.0
+    return sched, job
+
+
+def test_eta_is_the_samples_still_needed_over_the_recent_sample_rate():
+    sched, job = _two_first_batches(ETA_SETTINGS)
+    # Without a noise threshold every tile renders 64 spp: tiles 0 and 1 need 63 more, tiles 2
+    # and 3 all 64, of 256 pixels each, at 64 samples/s.
+    assert sched.progress(job).eta_s == pytest.approx((63 + 63 + 64 + 64) * 256 / 64)
+
+
+def test_eta_with_a_noise_threshold_uses_each_tiles_error():
+    settings = JobSettings(
+        width=32, height=32, tile_size=16, noise_threshold=0.1, min_spp=16, max_spp=64
+    )
+    sched, job = _two_first_batches(settings)
+    # Error falls as 1/sqrt(spp): tile 0 (1 spp, error 0.6) reaches 0.1 at 36 spp; tile 1
+    # (error 0.2) at 4, raised to min_spp 16; tiles 2 and 3 have no estimate and are taken to
+    # need the mean of those, 26 spp.
+    job.tiles[0].error, job.tiles[1].error = 0.6, 0.2
+    assert sched.progress(job).eta_s == pytest.approx((35 + 15 + 26 + 26) * 256 / 64)
