@@ -164,11 +164,13 @@ def plain_farm(tmp_path_factory):
 @pytest.fixture(scope="module")
 def guarded_farm(tmp_path_factory):
     """One worker, and scene limits small enough to test: 12 nodes, 40 triangles over every
-    mesh use (the Cornell box has 5 nodes and 32 triangles), 2 MB of scene memory."""
+    mesh use (the Cornell box has 5 nodes and 32 triangles), 2 MB of scene memory, 4096
+    texture pixels (one 64x64 image)."""
     env = {
         "RENDERFARM_MAX_SCENE_NODES": "12",
         "RENDERFARM_MAX_SCENE_TRIANGLES": "40",
         "RENDERFARM_MAX_SCENE_MEMORY_MB": "2",
+        "RENDERFARM_MAX_TEXTURE_PIXELS": "4096",
     }
     data = tmp_path_factory.mktemp("guarded")
     with LocalFarm(workers=1, threads=1, data_dir=data, env=env) as farm:
@@ -262,6 +264,45 @@ def test_the_server_limits_are_the_loaders_limits(guarded_farm):
         assert r.json()["field"].startswith("scene.nodes["), r.text
 
 
+def png(width: int, height: int) -> bytes:
+    """A grey 8-bit RGB PNG, written here from the PNG specification (zlib, CRC32)."""
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = zlib.crc32(kind + body) & 0xFFFFFFFF
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+    rows = b"".join(b"\0" + b"\x80" * (3 * width) for _ in range(height))
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
+            + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))  # fmt: skip
+
+
+def textured(*sizes: tuple[int, int]):
+    def change(doc: dict) -> None:
+        import base64
+
+        doc["images"] = [
+            {"uri": "data:image/png;base64," + base64.b64encode(png(w, h)).decode()}
+            for w, h in sizes
+        ]
+        doc["textures"] = [{"source": i} for i in range(len(sizes))]
+        doc["materials"][0].setdefault("pbrMetallicRoughness", {})["baseColorTexture"] = {
+            "index": 0
+        }
+
+    return change
+
+
+def test_texture_pixels_are_limited_from_the_images_headers(guarded_farm):
+    with Client(guarded_farm.url) as client:
+        # 64 x 64 = 4096 pixels: at the limit, accepted; a second 8 x 8 image goes over it.
+        assert _post(client, cornell_variant(textured((64, 64))), "t1.glb").status_code == 201
+        r = _post(client, cornell_variant(textured((64, 64), (8, 8))), "t2.glb")
+        assert (r.status_code, r.json()["field"]) == (400, "scene.textures[1]"), r.text
+        assert "4160 pixels" in r.json()["detail"] and "limit of 4096" in r.json()["detail"]
+
+
 def test_an_accepted_scene_renders(guarded_farm):
     with Client(guarded_farm.url) as client:
         job = client.submit(CORNELL, settings=TINY, name="fine")
@@ -302,6 +343,24 @@ def test_a_task_over_the_workers_time_budget_fails_the_job(tmp_path):
     assert done["state"] == "failed", done
     assert "time budget of 1 s" in done["error"], done
     assert "/" not in done["error"].split("time budget")[0], done  # no local paths
+
+
+def test_a_worker_refuses_a_scene_over_its_own_memory_and_names_no_local_path(tmp_path):
+    """The server (default limits) accepts a 45,000-triangle grid; a worker allowed 1 MB of
+    scene memory refuses it before allocating it, for good, and the job's error names the
+    scene by its hash, not by the worker's cache path."""
+    with LocalFarm(workers=0, data_dir=tmp_path) as farm:
+        farm.add_workers(1, threads=1, extra_args=["--max-scene-memory-mb", "1"])
+        with Client(farm.url) as client:
+            path = tmp_path / "grid.glb"
+            path.write_bytes(grid_glb(150))
+            job = client.submit(path, settings=TINY)
+            done = client.wait(job["id"], timeout_s=120)
+    assert done["state"] == "failed", done
+    error = done["error"]
+    assert f"scene {job['scene_sha256'][:12]}: meshes: " in error, error
+    assert "over the limit of 1.0 MB" in error, error
+    assert "/" not in error, error
 
 
 def test_cancel_reaches_a_running_render(tmp_path):
