@@ -75,6 +75,11 @@ class SceneChecker:
     """Runs the workers' loader on uploaded scenes; remembers the verdicts by content hash."""
 
     def __init__(self, binary: str, limits: SceneLimits, tmp_dir: Path, concurrency: int = 1):
+        if not (os.path.isfile(binary) and os.access(binary, os.X_OK)):
+            raise RuntimeError(
+                f"the scene inspector {binary} is not an executable file "
+                "(RENDERFARM_SCENE_INSPECTOR: a renderfarm-worker binary)"
+            )
         self.binary = binary
         self.limits = limits
         prlimit = shutil.which("prlimit")
