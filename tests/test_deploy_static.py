@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from .conftest import ROOT
+from .tools import require_tool
 
 DEPLOY = ROOT / "deploy"
 INSTALL = ROOT / "scripts" / "install-deps.sh"
@@ -59,8 +60,7 @@ def test_install_script_groups_resolve_in_debian():
     assert _run(["bash", "-n", str(INSTALL)]).returncode == 0
     groups = {g: _group(g) for g in ("build", "runtime-server", "runtime-worker", "deploy")}
     assert "python3" in groups["runtime-server"] and "docker-compose" in groups["deploy"]
-    if shutil.which("apt-cache") is None:
-        pytest.skip("not a Debian system: package names not checked")
+    require_tool(shutil.which("apt-cache") is not None, "apt-cache: package names not checked")
     everything = sorted({p for packages in groups.values() for p in packages})
     # From the local package lists: no network. A name apt does not know is an error.
     shown = _run(["apt-cache", "show", "--no-all-versions", *everything])
@@ -73,8 +73,10 @@ def test_install_script_groups_resolve_in_debian():
 def test_worker_runtime_packages_provide_every_library_the_worker_links(worker_binary):
     """The worker image's final stage installs only `--runtime worker`: it must ship every
     shared library the binary needs (NEEDED entries, by their Debian package)."""
-    if shutil.which("dpkg") is None or shutil.which("objdump") is None:
-        pytest.skip("needs dpkg and objdump")
+    require_tool(
+        shutil.which("dpkg") is not None and shutil.which("objdump") is not None,
+        "dpkg and objdump (binutils, in the build packages)",
+    )
     needed = re.findall(r"NEEDED\s+(\S+)", _run(["objdump", "-p", worker_binary]).stdout)
     assert needed
     cache = _run(["ldconfig", "-p"]).stdout

@@ -15,14 +15,18 @@ from renderfarm.client import Client
 from renderfarm.localfarm import free_port
 
 from .conftest import CORNELL
+from .tools import require_tool
 
 PROMETHEUS = shutil.which("prometheus") or "/usr/bin/prometheus"
 PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
 
-pytestmark = pytest.mark.skipif(
-    not shutil.which(PROMETHEUS) or not shutil.which(PROMTOOL),
-    reason="Debian's prometheus package is not installed (scripts/install-deps.sh installs it)",
-)
+
+@pytest.fixture(scope="module", autouse=True)
+def _prometheus_installed():
+    require_tool(
+        bool(shutil.which(PROMETHEUS) and shutil.which(PROMTOOL)),
+        "Debian's prometheus package is not installed (scripts/install-deps.sh installs it)",
+    )
 
 
 def _wait_for_workers(farm, count: int = 2) -> None:
