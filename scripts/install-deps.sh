@@ -6,6 +6,8 @@
 #
 #   scripts/install-deps.sh                  build packages (apt) + .venv (editable, dev tools)
 #   scripts/install-deps.sh --apt-only       only the apt packages the project builds with
+#   scripts/install-deps.sh --web            only what the dashboard's build (web/) needs:
+#                                            Node.js and npm (the server image's web stage)
 #   scripts/install-deps.sh --runtime server|worker
 #                                            only the apt packages that component needs to run
 #                                            (the final stage of its container image)
@@ -15,7 +17,7 @@
 #                                            needs the gRPC stubs (`make proto`) first
 #   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose and
 #                                            iproute2 (apt), kustomize, kubernetes-validate (.venv)
-#   scripts/install-deps.sh --print GROUP    print a package group (build, runtime-server,
+#   scripts/install-deps.sh --print GROUP    print a package group (build, web, runtime-server,
 #                                            runtime-worker, deploy, deploy-pip) and exit
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,6 +32,9 @@ APT_BUILD=(
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
   prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
 )
+# The dashboard's build (web/: npm ci, npm run build); any recent Node already on the machine is
+# used, Debian's otherwise.
+APT_WEB=(nodejs npm)
 # The shared libraries build/worker/renderfarm-worker is linked against (objdump -p: NEEDED),
 # by the Debian package that ships each; apt brings their own dependencies.
 APT_RUNTIME_WORKER=(
@@ -121,13 +126,14 @@ deploy_tools() {
 case "${1:-}" in
   "")
     apt_install "${APT_BUILD[@]}"
-    # The dashboard's build (web/) needs Node.js and npm; any recent Node already on the
-    # machine is used, Debian's otherwise.
-    command -v npm >/dev/null 2>&1 || apt_install nodejs npm
+    command -v npm >/dev/null 2>&1 || apt_install "${APT_WEB[@]}"
     python_venv
     ;;
   --apt-only)
     apt_install "${APT_BUILD[@]}"
+    ;;
+  --web)
+    command -v npm >/dev/null 2>&1 || apt_install "${APT_WEB[@]}"
     ;;
   --runtime)
     case "${2:-}" in
@@ -146,15 +152,16 @@ case "${1:-}" in
   --print)
     case "${2:-}" in
       build) printf '%s\n' "${APT_BUILD[@]}" ;;
+      web) printf '%s\n' "${APT_WEB[@]}" ;;
       runtime-server) printf '%s\n' "${APT_RUNTIME_SERVER[@]}" ;;
       runtime-worker) printf '%s\n' "${APT_RUNTIME_WORKER[@]}" ;;
       deploy) printf '%s\n' "${APT_DEPLOY[@]}" ;;
       deploy-pip) printf '%s\n' "${PIP_DEPLOY[@]}" ;;
-      *) echo "usage: $0 --print build|runtime-server|runtime-worker|deploy|deploy-pip" >&2; exit 2 ;;
+      *) echo "usage: $0 --print build|web|runtime-server|runtime-worker|deploy|deploy-pip" >&2; exit 2 ;;
     esac
     ;;
   *)
-    sed -n '2,20p' "$0" >&2
+    sed -n '2,22p' "$0" >&2
     exit 2
     ;;
 esac

@@ -57,7 +57,7 @@ def _deployment_section(readme: str) -> str:
 # ------------------------------------------------------------------------ set-up script
 def test_install_script_groups_resolve_in_debian():
     assert _run(["bash", "-n", str(INSTALL)]).returncode == 0
-    groups = {g: _group(g) for g in ("build", "runtime-server", "runtime-worker", "deploy")}
+    groups = {g: _group(g) for g in ("build", "web", "runtime-server", "runtime-worker", "deploy")}
     assert "python3" in groups["runtime-server"] and "docker-compose" in groups["deploy"]
     if shutil.which("apt-cache") is None:
         pytest.skip("not a Debian system: package names not checked")
@@ -118,8 +118,9 @@ def test_dockerfile_multi_stage_slim_non_root_labelled(name):
     assert len(stages) >= 2, "multi-stage: a build stage and a runtime stage"
     for stage in stages:
         assert stage[0][1].split()[0] == "debian:bookworm-slim"
-    build, final = stages[0], stages[-1]
-    assert build[0][1].split()[-1] == "build" and "AS" in build[0][1].upper()
+    build = next(s for s in stages if re.search(r"\sAS\s+build$", s[0][1], re.I))
+    final = stages[-1]
+    assert build is not final
     ops = dict(final)
     user = [rest for op, rest in final if op == "USER"]
     assert user and user[-1].split(":")[0] not in ("0", "root"), "the image runs as non-root"
@@ -155,6 +156,22 @@ def test_dockerfiles_install_through_the_project_scripts():
     assert "scripts/install-deps.sh --apt-only" in server
     assert re.search(r"scripts/install-deps\.sh\s+&&", server), "the default set-up (apt + .venv)"
     assert "make proto" in server and "install-deps.sh --server-venv /opt/renderfarm" in server
+    # The dashboard: a stage with Node from the set-up script runs the Makefile's `web` commands,
+    # and the build stage puts web/dist into the package (renderfarm/web: its package data).
+    web = next(s for s in _stages(DOCKER / "server.Dockerfile") if s[0][1].endswith(" AS web"))
+    web_runs = " ".join(r for op, r in web if op == "RUN")
+    assert "scripts/install-deps.sh --web" in web_runs
+    recipe = re.search(r"^web:.*\n((?:\t.*\n)+)", (ROOT / "Makefile").read_text(), re.M)
+    assert recipe, "the Makefile's web recipe"
+    npm = re.findall(r"npm (?:ci|run)[^;}&|]*", recipe.group(1))
+    assert len(npm) == 2, npm
+    for command in npm:
+        assert command.strip() in web_runs, command
+    assert "COPY --from=web /src/web/dist server/renderfarm/web" in " ".join(
+        f"{op} {r}" for s in _stages(DOCKER / "server.Dockerfile") for op, r in s
+    )
+    pyproject = (ROOT / "server" / "pyproject.toml").read_text()
+    assert re.search(r'^renderfarm = \[.*"web/\*\*/\*"', pyproject, re.M)
     worker = " ".join(
         r for s in _stages(DOCKER / "worker.Dockerfile") for op, r in s if op == "RUN"
     )
@@ -165,7 +182,7 @@ def test_dockerfiles_install_through_the_project_scripts():
     assert f"cmake -S worker -B build/worker {configure.group(1).strip()}" in worker
     # Each mode the Dockerfiles use is one the script knows (it rejects unknown ones).
     text = INSTALL.read_text()
-    for mode in ("--apt-only", "--runtime", "--server-venv"):
+    for mode in ("--apt-only", "--web", "--runtime", "--server-venv"):
         assert re.search(rf"^\s*{mode}\)", text, re.M), mode
 
 

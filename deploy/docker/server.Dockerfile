@@ -3,8 +3,20 @@
 #   docker build -f deploy/docker/server.Dockerfile -t renderfarm/server:0.1.0 .
 # Configured only by RENDERFARM_* environment variables (README, "Server settings").
 
+# ---- web: the dashboard, built with the commands of the Makefile's `web` target (npm ci from
+# web/package-lock.json, then npm run build: type check and bundle into web/dist).
+FROM debian:bookworm-slim AS web
+WORKDIR /src
+COPY scripts/install-deps.sh scripts/install-deps.sh
+RUN scripts/install-deps.sh --web
+COPY web web
+RUN cd web \
+ && npm ci --no-audit --no-fund --loglevel=error \
+ && npm run --silent build
+
 # ---- build: the same set-up as `make demo`, `make test` and CI (scripts/install-deps.sh,
-# `make proto`), then the server package alone into /opt/renderfarm.
+# `make proto`), then the server package alone into /opt/renderfarm. The dashboard goes into the
+# package as its data (renderfarm/web), where the installed server looks for it.
 FROM debian:bookworm-slim AS build
 WORKDIR /src
 COPY scripts/install-deps.sh scripts/install-deps.sh
@@ -12,6 +24,7 @@ RUN scripts/install-deps.sh --apt-only
 COPY Makefile ./
 COPY proto proto
 COPY server server
+COPY --from=web /src/web/dist server/renderfarm/web
 RUN scripts/install-deps.sh \
  && make proto \
  && scripts/install-deps.sh --server-venv /opt/renderfarm \
