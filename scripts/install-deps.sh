@@ -15,8 +15,9 @@
 #                                            the server package (not editable, no dev tools) in
 #                                            a new virtual environment DIR (the server image);
 #                                            needs the gRPC stubs (`make proto`) first
-#   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose and
-#                                            iproute2 (apt), kustomize, kubernetes-validate (.venv)
+#   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose,
+#                                            iproute2 and openssl (apt), kustomize,
+#                                            kubernetes-validate (.venv)
 #   scripts/install-deps.sh --print GROUP    print a package group (build, web, runtime-server,
 #                                            runtime-worker, deploy, deploy-pip) and exit
 set -euo pipefail
@@ -40,13 +41,15 @@ APT_WEB=(nodejs npm)
 APT_RUNTIME_WORKER=(
   libgrpc++1.51 libgrpc29 libabsl20220623 libprotobuf32 libembree3-3 libopenimageio2.4
   libtinygltf2d libssl3 libstdc++6
+  ca-certificates  # the system's CAs, which `connect --tls` checks the server against
 )
 # The server runs from a virtual environment whose wheels bundle their native libraries
-# (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter.
-APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6)
+# (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter, and
+# openssl for the farm's certificates (deploy/docker/make-certs.sh).
+APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6 openssl)
 # The deployment checks: `docker-compose config` validates deploy/compose.yaml, iproute2 builds
-# the network namespaces of the multi-host test.
-APT_DEPLOY=(docker-compose iproute2)
+# the network namespaces of the multi-host test, openssl makes its certificates.
+APT_DEPLOY=(docker-compose iproute2 openssl)
 # Offline validation of the Kubernetes manifests against the API types (schemas in the wheel).
 PIP_DEPLOY=(kubernetes-validate==1.37.0)
 KUSTOMIZE_MODULE=sigs.k8s.io/kustomize/kustomize/v5@v5.5.0

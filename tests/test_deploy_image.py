@@ -216,10 +216,12 @@ def image(tmp_path_factory) -> dict:
     assert copies == ["--from=build /opt/renderfarm /opt/renderfarm"], copies
     entrypoint = json.loads(next(rest for op, rest in final if op == "ENTRYPOINT"))
     venv = roots["build"] / "opt" / "renderfarm"
+    healthcheck = next(rest for op, rest in final if op == "HEALTHCHECK")
     return {
         "venv": venv,
         "dist": roots["web"] / "src" / "web" / "dist",
         "command": [str(venv / "bin" / entrypoint[0]), *entrypoint[1:]],
+        "healthcheck": json.loads(healthcheck[healthcheck.index("CMD ") + 4 :]),
     }
 
 
@@ -267,7 +269,7 @@ def image_server(image, tmp_path_factory):
 
     try:
         _wait(ready, 120, "the image's server to be ready")
-        yield url
+        yield {"url": url, "env": env}
     finally:
         proc.terminate()
         try:
@@ -299,8 +301,16 @@ def test_installed_package_carries_the_dashboard(image):
     assert any(r.startswith("fastapi-offline") for r in requires), requires
 
 
+def test_image_health_check_passes(image, image_server):
+    """The image's HEALTHCHECK command, with the image's PATH and the server's settings."""
+    check = subprocess.run(
+        image["healthcheck"], env=image_server["env"], capture_output=True, text=True, timeout=30
+    )
+    assert check.returncode == 0, check.stderr
+
+
 def test_image_serves_the_dashboard_with_sign_in(image, image_server):
-    url = image_server
+    url = image_server["url"]
     index = httpx.get(f"{url}/", timeout=10)
     assert index.status_code == 200
     assert index.content == (image["dist"] / "index.html").read_bytes(), "not web/dist's index"
@@ -325,7 +335,7 @@ def test_image_serves_the_dashboard_with_sign_in(image, image_server):
 
 @pytest.mark.parametrize("page", ["/docs", "/redoc"])
 def test_image_api_docs_use_only_assets_the_server_serves(image_server, page):
-    url = image_server
+    url = image_server["url"]
     html = httpx.get(f"{url}{page}", timeout=10)
     assert html.status_code == 200 and "text/html" in html.headers["content-type"]
     # Nothing from another host: no absolute or protocol-relative URL anywhere in the page.

@@ -45,6 +45,8 @@ RUN /usr/local/share/renderfarm/scripts/install-deps.sh --runtime server \
  && useradd --system --uid 10001 --user-group --home-dir /var/lib/renderfarm --create-home \
       --shell /usr/sbin/nologin renderfarm
 COPY --from=build /opt/renderfarm /opt/renderfarm
+# Makes a private CA and the farm's certificates when there are none (compose's `certs` service).
+COPY deploy/docker/make-certs.sh /usr/local/bin/renderfarm-make-certs
 ENV PATH=/opt/renderfarm/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
@@ -54,6 +56,8 @@ ENV PATH=/opt/renderfarm/bin:$PATH \
 USER 10001:10001
 WORKDIR /var/lib/renderfarm
 EXPOSE 8080 50051
+# https when the server has a certificate. Readiness of the process on loopback: the certificate
+# is the clients' concern (its names need not include 127.0.0.1), so it is not checked here.
 HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \
-  CMD ["python3", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/readyz' % os.environ.get('RENDERFARM_HTTP_PORT', '8080'), timeout=2)"]
+  CMD ["python3", "-c", "import os, ssl, urllib.request; tls = bool(os.environ.get('RENDERFARM_TLS_CERT_FILE')); urllib.request.urlopen('%s://127.0.0.1:%s/readyz' % ('https' if tls else 'http', os.environ.get('RENDERFARM_HTTP_PORT', '8080')), timeout=2, context=ssl._create_unverified_context() if tls else None)"]
 ENTRYPOINT ["renderfarm", "server"]
