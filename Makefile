@@ -45,7 +45,8 @@ test: lint test-cpp test-py test-deploy
 # network namespaces (root). Tools from scripts/install-deps.sh --deploy-tools.
 test-deploy: build
 	@scripts/install-deps.sh --deploy-tools
-	$(PY) -m pytest -q tests/test_deploy_static.py tests/test_deploy_multihost.py
+	$(PY) -m pytest -q tests/test_deploy_static.py tests/test_deploy_image.py \
+	  tests/test_deploy_multihost.py
 
 demo: build
 	@scripts/demo.sh

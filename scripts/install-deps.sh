@@ -6,6 +6,8 @@
 #
 #   scripts/install-deps.sh                  build packages (apt) + .venv (editable, dev tools)
 #   scripts/install-deps.sh --apt-only       only the apt packages the project builds with
+#   scripts/install-deps.sh --web            only what the dashboard's build (web/) needs:
+#                                            Node.js and npm (the server image's web stage)
 #   scripts/install-deps.sh --runtime server|worker
 #                                            only the apt packages that component needs to run
 #                                            (the final stage of its container image)
@@ -13,9 +15,10 @@
 #                                            the server package (not editable, no dev tools) in
 #                                            a new virtual environment DIR (the server image);
 #                                            needs the gRPC stubs (`make proto`) first
-#   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose and
-#                                            iproute2 (apt), kustomize, kubernetes-validate (.venv)
-#   scripts/install-deps.sh --print GROUP    print a package group (build, runtime-server,
+#   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose,
+#                                            iproute2 and openssl (apt), kustomize,
+#                                            kubernetes-validate (.venv)
+#   scripts/install-deps.sh --print GROUP    print a package group (build, web, runtime-server,
 #                                            runtime-worker, deploy, deploy-pip) and exit
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,18 +33,23 @@ APT_BUILD=(
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
   prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
 )
+# The dashboard's build (web/: npm ci, npm run build); any recent Node already on the machine is
+# used, Debian's otherwise.
+APT_WEB=(nodejs npm)
 # The shared libraries build/worker/renderfarm-worker is linked against (objdump -p: NEEDED),
 # by the Debian package that ships each; apt brings their own dependencies.
 APT_RUNTIME_WORKER=(
   libgrpc++1.51 libgrpc29 libabsl20220623 libprotobuf32 libembree3-3 libopenimageio2.4
   libtinygltf2d libssl3 libstdc++6
+  ca-certificates  # the system's CAs, which `connect --tls` checks the server against
 )
 # The server runs from a virtual environment whose wheels bundle their native libraries
-# (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter.
-APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6)
+# (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter, and
+# openssl for the farm's certificates (deploy/docker/make-certs.sh).
+APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6 openssl)
 # The deployment checks: `docker-compose config` validates deploy/compose.yaml, iproute2 builds
-# the network namespaces of the multi-host test.
-APT_DEPLOY=(docker-compose iproute2)
+# the network namespaces of the multi-host test, openssl makes its certificates.
+APT_DEPLOY=(docker-compose iproute2 openssl)
 # Offline validation of the Kubernetes manifests against the API types (schemas in the wheel).
 PIP_DEPLOY=(kubernetes-validate==1.37.0)
 KUSTOMIZE_MODULE=sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
@@ -121,13 +129,14 @@ deploy_tools() {
 case "${1:-}" in
   "")
     apt_install "${APT_BUILD[@]}"
-    # The dashboard's build (web/) needs Node.js and npm; any recent Node already on the
-    # machine is used, Debian's otherwise.
-    command -v npm >/dev/null 2>&1 || apt_install nodejs npm
+    command -v npm >/dev/null 2>&1 || apt_install "${APT_WEB[@]}"
     python_venv
     ;;
   --apt-only)
     apt_install "${APT_BUILD[@]}"
+    ;;
+  --web)
+    command -v npm >/dev/null 2>&1 || apt_install "${APT_WEB[@]}"
     ;;
   --runtime)
     case "${2:-}" in
@@ -146,15 +155,16 @@ case "${1:-}" in
   --print)
     case "${2:-}" in
       build) printf '%s\n' "${APT_BUILD[@]}" ;;
+      web) printf '%s\n' "${APT_WEB[@]}" ;;
       runtime-server) printf '%s\n' "${APT_RUNTIME_SERVER[@]}" ;;
       runtime-worker) printf '%s\n' "${APT_RUNTIME_WORKER[@]}" ;;
       deploy) printf '%s\n' "${APT_DEPLOY[@]}" ;;
       deploy-pip) printf '%s\n' "${PIP_DEPLOY[@]}" ;;
-      *) echo "usage: $0 --print build|runtime-server|runtime-worker|deploy|deploy-pip" >&2; exit 2 ;;
+      *) echo "usage: $0 --print build|web|runtime-server|runtime-worker|deploy|deploy-pip" >&2; exit 2 ;;
     esac
     ;;
   *)
-    sed -n '2,20p' "$0" >&2
+    sed -n '2,22p' "$0" >&2
     exit 2
     ;;
 esac

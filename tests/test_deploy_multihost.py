@@ -1,7 +1,8 @@
 """Multi-host: the compose topology without Docker (deploy/netns/farm.sh). PostgreSQL, the server
 and two workers each on their own host (network namespace) on one LAN of veth links, configured
-by environment variables only, render the Cornell box; then one worker's link is cut in the
-middle of a job, and the job still completes, with the same image.
+by environment variables only, render the Cornell box with the workers' traffic over TLS (the
+server's gRPC port refuses plaintext); then one worker's link is cut in the middle of a job, and
+the job still completes, with the same image.
 
 Everything runs inside namespaces this test creates, on a private /24 that exists only there;
 they are deleted at the end, also when the test fails."""
@@ -128,9 +129,40 @@ def standalone_rgb(worker_binary, tmp_path_factory) -> np.ndarray:
     return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
 
 
+def _grpc_health(address: str, ca_file: str | None) -> int:
+    """The gRPC health status of the server at address, over TLS checked against ca_file, or
+    in plaintext when ca_file is None (the error code's name if the call fails)."""
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    options = [("grpc.enable_http_proxy", 0)]
+    if ca_file is None:
+        channel = grpc.insecure_channel(address, options=options)
+    else:
+        credentials = grpc.ssl_channel_credentials(Path(ca_file).read_bytes())
+        channel = grpc.secure_channel(address, credentials, options=options)
+    with channel:
+        try:
+            return (
+                health_pb2_grpc.HealthStub(channel)
+                .Check(health_pb2.HealthCheckRequest(), timeout=10)
+                .status
+            )
+        except grpc.RpcError as e:
+            return e.code().name
+
+
 def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalone_rgb, tmp_path):
+    from grpc_health.v1 import health_pb2
+
     state_dir, state = netns_farm
-    with Client(state["URL"], token=state["ADMIN_TOKEN"], timeout=30) as client:
+    # Worker traffic is TLS: the gRPC port answers with the farm's CA and never in plaintext.
+    assert state["URL"].startswith("https://")
+    assert _grpc_health(state["GRPC"], state["CA_FILE"]) == health_pb2.HealthCheckResponse.SERVING
+    assert _grpc_health(state["GRPC"], None) in ("UNAVAILABLE", "DEADLINE_EXCEEDED")
+    with Client(
+        state["URL"], token=state["ADMIN_TOKEN"], timeout=30, ca_file=state["CA_FILE"]
+    ) as client:
         assert client.ready()
         _wait(lambda: len(client.workers()) == 2, 30, "both workers to connect")
         workers = _workers(client)

@@ -11,7 +11,10 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import ssl
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import httpx
@@ -27,6 +30,7 @@ COMPOSE = DEPLOY / "compose.yaml"
 K8S = DEPLOY / "k8s"
 DOCKER = DEPLOY / "docker"
 ENTRYPOINT = DOCKER / "worker-entrypoint.sh"
+MAKE_CERTS = DOCKER / "make-certs.sh"
 DASHBOARD = DEPLOY / "grafana" / "dashboards" / "renderfarm.json"
 # The Kubernetes versions the manifests must be valid for: the oldest with gRPC probes GA, and
 # the newest whose schemas kubernetes-validate ships.
@@ -41,6 +45,16 @@ COMPOSE_ENV = {
 
 def _run(args, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run(args, capture_output=True, text=True, timeout=120, **kwargs)
+
+
+def _wait(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
+        time.sleep(poll_s)
 
 
 def _group(name: str) -> list[str]:
@@ -58,7 +72,7 @@ def _deployment_section(readme: str) -> str:
 # ------------------------------------------------------------------------ set-up script
 def test_install_script_groups_resolve_in_debian():
     assert _run(["bash", "-n", str(INSTALL)]).returncode == 0
-    groups = {g: _group(g) for g in ("build", "runtime-server", "runtime-worker", "deploy")}
+    groups = {g: _group(g) for g in ("build", "web", "runtime-server", "runtime-worker", "deploy")}
     assert "python3" in groups["runtime-server"] and "docker-compose" in groups["deploy"]
     require_tool(shutil.which("apt-cache") is not None, "apt-cache: package names not checked")
     everything = sorted({p for packages in groups.values() for p in packages})
@@ -120,8 +134,9 @@ def test_dockerfile_multi_stage_slim_non_root_labelled(name):
     assert len(stages) >= 2, "multi-stage: a build stage and a runtime stage"
     for stage in stages:
         assert stage[0][1].split()[0] == "debian:bookworm-slim"
-    build, final = stages[0], stages[-1]
-    assert build[0][1].split()[-1] == "build" and "AS" in build[0][1].upper()
+    build = next(s for s in stages if re.search(r"\sAS\s+build$", s[0][1], re.I))
+    final = stages[-1]
+    assert build is not final
     ops = dict(final)
     user = [rest for op, rest in final if op == "USER"]
     assert user and user[-1].split(":")[0] not in ("0", "root"), "the image runs as non-root"
@@ -157,6 +172,22 @@ def test_dockerfiles_install_through_the_project_scripts():
     assert "scripts/install-deps.sh --apt-only" in server
     assert re.search(r"scripts/install-deps\.sh\s+&&", server), "the default set-up (apt + .venv)"
     assert "make proto" in server and "install-deps.sh --server-venv /opt/renderfarm" in server
+    # The dashboard: a stage with Node from the set-up script runs the Makefile's `web` commands,
+    # and the build stage puts web/dist into the package (renderfarm/web: its package data).
+    web = next(s for s in _stages(DOCKER / "server.Dockerfile") if s[0][1].endswith(" AS web"))
+    web_runs = " ".join(r for op, r in web if op == "RUN")
+    assert "scripts/install-deps.sh --web" in web_runs
+    recipe = re.search(r"^web:.*\n((?:\t.*\n)+)", (ROOT / "Makefile").read_text(), re.M)
+    assert recipe, "the Makefile's web recipe"
+    npm = re.findall(r"npm (?:ci|run)[^;}&|]*", recipe.group(1))
+    assert len(npm) == 2, npm
+    for command in npm:
+        assert command.strip() in web_runs, command
+    assert "COPY --from=web /src/web/dist server/renderfarm/web" in " ".join(
+        f"{op} {r}" for s in _stages(DOCKER / "server.Dockerfile") for op, r in s
+    )
+    pyproject = (ROOT / "server" / "pyproject.toml").read_text()
+    assert re.search(r'^renderfarm = \[.*"web/\*\*/\*"', pyproject, re.M)
     worker = " ".join(
         r for s in _stages(DOCKER / "worker.Dockerfile") for op, r in s if op == "RUN"
     )
@@ -167,7 +198,7 @@ def test_dockerfiles_install_through_the_project_scripts():
     assert f"cmake -S worker -B build/worker {configure.group(1).strip()}" in worker
     # Each mode the Dockerfiles use is one the script knows (it rejects unknown ones).
     text = INSTALL.read_text()
-    for mode in ("--apt-only", "--runtime", "--server-venv"):
+    for mode in ("--apt-only", "--web", "--runtime", "--server-venv"):
         assert re.search(rf"^\s*{mode}\)", text, re.M), mode
 
 
@@ -198,6 +229,23 @@ def test_worker_entrypoint_maps_environment_to_flags_and_execs(tmp_path):
         "connect", "--server", "server:50051", "--threads", "6",
         "--token", "s3cret with spaces", "--id", "w-7", "--prefetch", "2",
     ]  # fmt: skip
+    tls = {
+        **env,
+        "RENDERFARM_WORKER_TLS": "1",
+        "RENDERFARM_WORKER_CA_FILE": "/tls dir/ca.crt",
+        "RENDERFARM_WORKER_CERT_FILE": "/tls dir/tls.crt",
+        "RENDERFARM_WORKER_KEY_FILE": "/tls dir/tls.key",
+        "RENDERFARM_WORKER_TLS_SERVER_NAME": "server",
+    }
+    out = _run([str(ENTRYPOINT)], env=tls).stdout
+    assert [line[4:] for line in out.splitlines() if line.startswith("arg=")][-9:] == [
+        "--tls", "--ca-file", "/tls dir/ca.crt", "--cert", "/tls dir/tls.crt",
+        "--key", "/tls dir/tls.key", "--tls-server-name", "server",
+    ]  # fmt: skip
+    off = _run([str(ENTRYPOINT)], env={**env, "RENDERFARM_WORKER_TLS": "0"}).stdout
+    assert "arg=--tls" not in off
+    bad = _run([str(ENTRYPOINT)], env={**env, "RENDERFARM_WORKER_TLS": "yes"})
+    assert bad.returncode == 64 and "RENDERFARM_WORKER_TLS" in bad.stderr
     minimal = {
         "PATH": env["PATH"],
         "RENDERFARM_WORKER_BINARY": str(fake),
@@ -227,17 +275,19 @@ def test_worker_entrypoint_runs_the_real_worker(worker_binary, tmp_path):
     assert done.returncode == 0, done.stderr
     assert out.stat().st_size > 0
     # Port 1 on loopback: nothing listens, the worker keeps reconnecting with backoff.
-    proc = subprocess.Popen(
-        [str(ENTRYPOINT)],
-        env={**env, "RENDERFARM_SERVER": "127.0.0.1:1", "RENDERFARM_WORKER_ID": "entrypoint"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    log = tmp_path / "worker.log"
+    with open(log, "wb") as out_file:
+        proc = subprocess.Popen(
+            [str(ENTRYPOINT)],
+            env={**env, "RENDERFARM_SERVER": "127.0.0.1:1", "RENDERFARM_WORKER_ID": "entrypoint"},
+            stdout=out_file,
+            stderr=subprocess.STDOUT,
+        )
     try:
-        import time
-
-        time.sleep(1.0)
-        assert proc.poll() is None, proc.stdout.read()
+        # It logs "connecting to" once its SIGTERM handler is in place.
+        _wait(lambda: proc.poll() is not None or "connecting to" in log.read_text(), 30,
+              "the worker to start connecting")  # fmt: skip
+        assert proc.poll() is None, log.read_text()
         with open(f"/proc/{proc.pid}/comm") as comm:
             assert comm.read().strip() == "renderfarm-work", "exec: the worker is the process"
         proc.terminate()
@@ -266,8 +316,11 @@ def compose_config() -> dict:
 
 def test_compose_file_passes_docker_compose_config(compose_config):
     services = compose_config["services"]
-    assert set(services) == {"postgres", "server", "worker", "prometheus", "grafana"}
+    assert set(services) == {"postgres", "certs", "server", "worker", "prometheus", "grafana"}
     for name, svc in services.items():
+        if name == "certs":  # one-shot: makes the certificates before the server starts, exits
+            assert svc.get("restart") == "no" and "healthcheck" not in svc
+            continue
         assert svc.get("restart") == "unless-stopped", name
         assert "healthcheck" in svc, f"{name} has no health check"
     assert "postgres-data" in compose_config["volumes"]
@@ -329,7 +382,217 @@ def test_compose_settings_are_environment_variables_documented_in_the_readme(com
         field = key.removeprefix("RENDERFARM_").lower()
         if field in ("database_url", "http_host", "grpc_host", "worker_token", "admin_token"):
             continue
+        if field.startswith("tls_"):  # TLS: on in the deployment, checked on its own below
+            continue
         assert float(value) == float(getattr(defaults, field)), key
+
+
+def _mounts(service: dict) -> dict[str, str]:
+    """Container path -> source (volume name or host path) of a service's volumes."""
+    return {v.split(":")[1]: v.split(":")[0] for v in service.get("volumes", [])}
+
+
+def _in_mount(mounts: dict[str, str], path: str) -> tuple[str, str]:
+    """(source, path inside it) of a container path under one of the mounts."""
+    for target, source in mounts.items():
+        if path.startswith(target.rstrip("/") + "/"):
+            return source, path[len(target.rstrip("/")) + 1 :]
+    pytest.fail(f"{path} is in none of the mounts {mounts}")
+
+
+def _openssl_verify(ca: Path, cert: Path, purpose: str, hostname: str | None = None) -> None:
+    args = ["openssl", "verify", "-CAfile", str(ca), "-purpose", purpose]
+    if hostname:
+        ip = re.fullmatch(r"[\d.]+|.*:.*", hostname)
+        args += ["-verify_ip" if ip else "-verify_hostname", hostname]
+    out = _run([*args, str(cert)])
+    assert out.returncode == 0 and ": OK" in out.stdout, out.stdout + out.stderr
+
+
+@pytest.fixture(scope="module")
+def compose_certs(compose_config, tmp_path_factory) -> dict:
+    """The `certs` service's command run here, each of its volumes a directory: the files the
+    server, workers and Prometheus of the compose cluster read, by volume and file name."""
+    if shutil.which("openssl") is None:
+        pytest.fail("openssl is missing: run scripts/install-deps.sh --deploy-tools")
+    certs = compose_config["services"]["certs"]
+    assert certs["entrypoint"] == ["renderfarm-make-certs"]
+    dockerfile = (DOCKER / "server.Dockerfile").read_text()
+    assert "COPY deploy/docker/make-certs.sh /usr/local/bin/renderfarm-make-certs" in dockerfile
+    base = tmp_path_factory.mktemp("compose-certs")
+    mounts = _mounts(certs)
+    dirs = {source: base / source.strip("/").replace("/", "_") for source in mounts.values()}
+    args = [str(dirs[mounts[a]]) if a in mounts else a for a in certs["command"]]
+    if os.geteuid() != 0 and args[:1] == ["--owner"]:
+        args = args[2:]  # chown needs root; the files are the same
+    made = _run([str(MAKE_CERTS), *args])
+    assert made.returncode == 0, made.stderr
+    return {"dirs": dirs, "args": args, "first": made.stdout}
+
+
+def test_compose_runs_worker_traffic_over_tls_by_default(compose_config, compose_certs):
+    services = compose_config["services"]
+    certs, server, worker = services["certs"], services["server"], services["worker"]
+    senv, wenv = server["environment"], worker["environment"]
+    # The certificates exist before the server starts, from the server's own image.
+    assert server["depends_on"]["certs"]["condition"] == "service_completed_successfully"
+    assert certs["image"] == server["image"] and certs["build"] == server["build"]
+    # The server serves REST and gRPC over TLS; mutual TLS is off until a client CA is set.
+    assert senv["RENDERFARM_TLS_CLIENT_CA_FILE"] == ""
+    assert "https://127.0.0.1:8080/readyz" in " ".join(server["healthcheck"]["test"])
+    smounts, wmounts = _mounts(server), _mounts(worker)
+    assert all(v.endswith(":ro") for v in server["volumes"] + worker["volumes"])
+    files = {
+        "server cert": _in_mount(smounts, senv["RENDERFARM_TLS_CERT_FILE"]),
+        "server key": _in_mount(smounts, senv["RENDERFARM_TLS_KEY_FILE"]),
+        "worker CA": _in_mount(wmounts, wenv["RENDERFARM_WORKER_CA_FILE"]),
+        "worker cert": _in_mount(wmounts, wenv["RENDERFARM_WORKER_CERT_FILE"]),
+        "worker key": _in_mount(wmounts, wenv["RENDERFARM_WORKER_KEY_FILE"]),
+        # What an operator sets RENDERFARM_TLS_CLIENT_CA_FILE to for mutual TLS (README).
+        "client CA": _in_mount(smounts, "/etc/renderfarm/tls/ca.crt"),
+    }
+    dirs = compose_certs["dirs"]
+    path = {k: dirs[source] / name for k, (source, name) in files.items()}
+    for what, file in path.items():
+        assert file.is_file(), f"the certs service made no {what} ({file})"
+    assert oct(path["server key"].stat().st_mode & 0o777) == "0o600"
+    assert oct(path["worker key"].stat().st_mode & 0o777) == "0o600"
+    # The workers connect with TLS to the host of RENDERFARM_SERVER, which the server's
+    # certificate names; it is signed by the CA they check it against.
+    assert wenv["RENDERFARM_WORKER_TLS"] == "1"
+    host = wenv["RENDERFARM_SERVER"].rsplit(":", 1)[0]
+    _openssl_verify(path["worker CA"], path["server cert"], "sslserver", host)
+    _openssl_verify(path["worker CA"], path["server cert"], "sslserver", "127.0.0.1")
+    _openssl_verify(path["client CA"], path["worker cert"], "sslclient")
+    # Prometheus scrapes https://server:8080 checking the certificate against a mounted CA.
+    prom = yaml.safe_load((DEPLOY / "prometheus" / "prometheus.yml").read_text())
+    job = next(j for j in prom["scrape_configs"] if j["job_name"] == "renderfarm-server")
+    assert job["scheme"] == "https"
+    ca_source, ca_name = _in_mount(_mounts(services["prometheus"]), job["tls_config"]["ca_file"])
+    target_host = job["static_configs"][0]["targets"][0].rsplit(":", 1)[0]
+    _openssl_verify(dirs[ca_source] / ca_name, path["server cert"], "sslserver", target_host)
+    # Once made, never again: a second run keeps the files (and an operator's own).
+    before = {k: p.read_bytes() for k, p in path.items()}
+    again = _run([str(MAKE_CERTS), *compose_certs["args"]])
+    assert again.returncode == 0 and "nothing to do" in again.stdout
+    assert {k: p.read_bytes() for k, p in path.items()} == before
+
+
+def test_make_certs_refuses_an_incomplete_set(tmp_path):
+    server, worker = tmp_path / "server", tmp_path / "worker"
+    assert _run([str(MAKE_CERTS), str(server), str(worker), "a.example,10.0.0.9"]).returncode == 0
+    text = _run(["openssl", "x509", "-noout", "-ext", "subjectAltName", "-in",
+                 str(server / "tls.crt")]).stdout  # fmt: skip
+    assert "DNS:a.example" in text and "IP Address:10.0.0.9" in text
+    (worker / "ca.crt").unlink()
+    out = _run([str(MAKE_CERTS), str(server), str(worker), "a.example"])
+    assert out.returncode == 1 and str(worker / "ca.crt") in out.stderr
+    out = _run([str(MAKE_CERTS), str(tmp_path / "s2"), str(tmp_path / "w2")])
+    assert out.returncode == 1 and "usage" in out.stderr
+
+
+def test_compose_certificates_carry_real_worker_traffic(compose_config, compose_certs, tmp_path):
+    """The server of this checkout with the compose server's TLS files, and the real worker
+    through the entrypoint with the compose worker's TLS environment (the certificate checked
+    for the name `server`, as in compose): the worker joins over TLS; plaintext is refused."""
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    from renderfarm.localfarm import find_worker_binary, free_port
+
+    services = compose_config["services"]
+    dirs = compose_certs["dirs"]
+
+    def host_path(service: dict, path: str) -> str:
+        source, name = _in_mount(_mounts(service), path)
+        return str(dirs[source] / name)
+
+    senv, wenv = services["server"]["environment"], services["worker"]["environment"]
+    http_port, grpc_port = free_port(), free_port()
+    server_env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("RENDERFARM_")},
+        "RENDERFARM_TLS_CERT_FILE": host_path(services["server"], senv["RENDERFARM_TLS_CERT_FILE"]),
+        "RENDERFARM_TLS_KEY_FILE": host_path(services["server"], senv["RENDERFARM_TLS_KEY_FILE"]),
+        "RENDERFARM_DATA_DIR": str(tmp_path / "server"),
+        "RENDERFARM_HTTP_PORT": str(http_port),
+        "RENDERFARM_GRPC_PORT": str(grpc_port),
+    }
+    worker_env = {
+        "PATH": os.environ["PATH"],
+        "RENDERFARM_WORKER_BINARY": find_worker_binary(),
+        "RENDERFARM_SERVER": f"127.0.0.1:{grpc_port}",
+        "RENDERFARM_WORKER_ID": "compose-tls",
+        "RENDERFARM_WORKER_THREADS": "1",
+        "RENDERFARM_WORKER_TLS": wenv["RENDERFARM_WORKER_TLS"],
+        "RENDERFARM_WORKER_TLS_SERVER_NAME": wenv["RENDERFARM_SERVER"].rsplit(":", 1)[0],
+        **{
+            k: host_path(services["worker"], wenv[k])
+            for k in ("RENDERFARM_WORKER_CA_FILE", "RENDERFARM_WORKER_CERT_FILE",
+                      "RENDERFARM_WORKER_KEY_FILE")
+        },
+    }  # fmt: skip
+    ca = ssl.create_default_context(cafile=worker_env["RENDERFARM_WORKER_CA_FILE"])
+    logs = {name: open(tmp_path / f"{name}.log", "wb") for name in ("server", "worker")}  # noqa: SIM115
+    procs = [
+        subprocess.Popen([sys.executable, "-m", "renderfarm", "server"], env=server_env,
+                         stdout=logs["server"], stderr=subprocess.STDOUT),
+    ]  # fmt: skip
+    try:
+        url = f"https://127.0.0.1:{http_port}"
+
+        def ready() -> bool:
+            assert procs[0].poll() is None, (tmp_path / "server.log").read_text()
+            try:
+                return httpx.get(f"{url}/readyz", verify=ca, timeout=2).status_code == 200
+            except httpx.TransportError:
+                return False
+
+        _wait(ready, 120, "the TLS server to be ready")
+        # The compose server's health check (here on this server's port) passes over https, and
+        # the server survives it: the checking process exits as soon as it has read the answer,
+        # so the server's last TLS write meets a closed socket (with SIGPIPE not ignored, that
+        # killed the server).
+        check = services["server"]["healthcheck"]["test"]
+        assert check[:2] == ["CMD", "python3"]
+        check = [c.replace("127.0.0.1:8080", f"127.0.0.1:{http_port}") for c in check[2:]]
+        for _ in range(20):
+            done = _run([sys.executable, *check])
+            assert done.returncode == 0, done.stderr
+        assert httpx.get(f"{url}/readyz", verify=ca, timeout=5).status_code == 200
+        assert procs[0].poll() is None, (tmp_path / "server.log").read_text()
+        procs.append(
+            subprocess.Popen([str(ENTRYPOINT)], env=worker_env, stdout=logs["worker"],
+                             stderr=subprocess.STDOUT)
+        )  # fmt: skip
+
+        def joined() -> bool:
+            assert procs[0].poll() is None, (tmp_path / "server.log").read_text()
+            assert procs[1].poll() is None, (tmp_path / "worker.log").read_text()
+            workers = httpx.get(f"{url}/api/v1/workers", verify=ca, timeout=5).json()
+            return any(w["id"] == "compose-tls" for w in workers)
+
+        _wait(joined, 60, "the worker to join over TLS")
+        assert httpx.get(f"{url}/readyz", verify=ca, timeout=5).status_code == 200
+        assert procs[0].poll() is None, (tmp_path / "server.log").read_text()
+        # The gRPC port speaks TLS only: a plaintext health check gets no answer.
+        with grpc.insecure_channel(f"127.0.0.1:{grpc_port}") as channel:
+            with pytest.raises(grpc.RpcError) as refused:
+                health_pb2_grpc.HealthStub(channel).Check(
+                    health_pb2.HealthCheckRequest(), timeout=5
+                )
+            assert refused.value.code() in (
+                grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED
+            )  # fmt: skip
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for log in logs.values():
+            log.close()
 
 
 # ---------------------------------------------------------------- Prometheus and Grafana
@@ -453,6 +716,33 @@ def _check_custom_resource(doc: dict, docs: list[dict]) -> None:
         assert spec["primaryUpdateStrategy"] in ("unsupervised", "supervised")
         assert set(spec["bootstrap"]) == {"initdb"}
         assert re.fullmatch(r"\d+(Mi|Gi|Ti)", spec["storage"]["size"])
+    elif doc["apiVersion"] == "cert-manager.io/v1" and doc["kind"] == "Issuer":
+        assert len(spec) == 1 and set(spec) <= {"selfSigned", "ca"}, spec
+        if "ca" in spec:
+            assert set(spec["ca"]) == {"secretName"}
+            assert any(
+                d["kind"] == "Certificate" and d["spec"]["secretName"] == spec["ca"]["secretName"]
+                and d["spec"].get("isCA") for d in docs
+            ), "the CA Issuer's secret is made by a CA Certificate"  # fmt: skip
+    elif doc["apiVersion"] == "cert-manager.io/v1" and doc["kind"] == "Certificate":
+        allowed = {
+            "secretName", "isCA", "commonName", "dnsNames", "ipAddresses", "duration",
+            "renewBefore", "usages", "privateKey", "issuerRef",
+        }  # fmt: skip
+        assert set(spec) <= allowed, set(spec) - allowed
+        assert isinstance(spec["secretName"], str) and spec["secretName"]
+        for key in ("duration", "renewBefore"):
+            assert re.fullmatch(r"\d+h", spec[key]), key
+        assert int(spec["renewBefore"][:-1]) < int(spec["duration"][:-1])
+        key_usages = {"digital signature", "key encipherment", "cert sign"}
+        assert set(spec.get("usages", [])) <= key_usages | {"server auth", "client auth"}
+        assert set(spec["privateKey"]) <= {"algorithm", "size", "rotationPolicy", "encoding"}
+        assert spec["privateKey"]["algorithm"] in ("RSA", "ECDSA", "Ed25519")
+        assert spec["privateKey"].get("rotationPolicy", "Always") in ("Always", "Never")
+        ref = spec["issuerRef"]
+        assert ref["group"] == "cert-manager.io" and ref["kind"] == "Issuer"
+        assert any(d["kind"] == "Issuer" and d["metadata"]["name"] == ref["name"] for d in docs)
+        assert all(isinstance(n, str) for n in spec.get("dnsNames", []))
     else:
         pytest.fail(f"no check for {doc['apiVersion']} {doc['kind']}")
 
@@ -470,6 +760,9 @@ def _env_refs(pod_spec: dict):
                 yield "ConfigMap", e["configMapRef"]["name"], None
             if "secretRef" in e:
                 yield "Secret", e["secretRef"]["name"], None
+    for v in pod_spec.get("volumes", []):
+        if "secret" in v:
+            yield "Secret", v["secret"]["secretName"], None
 
 
 @pytest.mark.parametrize("overlay", ["external-db", "cloudnative-pg"])
@@ -502,6 +795,8 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     by = {(d["kind"], d["metadata"]["name"]): d for d in docs}
     objects = {(d["kind"], d["metadata"]["name"]) for d in docs}
     generated = {("Secret", "renderfarm-db-app")} if overlay == "cloudnative-pg" else set()
+    # cert-manager makes the Secrets its Certificates name.
+    generated |= {("Secret", d["spec"]["secretName"]) for d in docs if d["kind"] == "Certificate"}
     server = by[("Deployment", "renderfarm-server")]["spec"]
     worker = by[("Deployment", "renderfarm-worker")]["spec"]
     # Every Secret and ConfigMap referenced exists in the build (or is the operator's).
@@ -511,7 +806,11 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
             if (kind, name) in by and key is not None:
                 data = by[(kind, name)].get("data", {})
                 assert key in data, f"{kind} {name} has no key {key}"
-    secrets = next(d for d in docs if d["kind"] == "Secret")
+    secrets = next(
+        d
+        for d in docs
+        if d["kind"] == "Secret" and d["metadata"]["name"].startswith("renderfarm-secrets")
+    )
     decoded = {k: base64.b64decode(v).decode() for k, v in secrets["data"].items()}
     assert decoded["RENDERFARM_WORKER_TOKEN"] == "tok"
     server_env = {e["name"]: e for e in server["template"]["spec"]["containers"][0]["env"]}
@@ -526,9 +825,14 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     assert server["replicas"] == 1 and server["strategy"]["type"] == "Recreate"
     c = server["template"]["spec"]["containers"][0]
     ports = {p["name"]: p["containerPort"] for p in c["ports"]}
-    assert c["livenessProbe"]["grpc"]["port"] == ports["grpc"]
+    # Probes over HTTPS (the server serves TLS only; the kubelet's gRPC probes cannot).
+    assert c["livenessProbe"]["httpGet"]["path"] == "/healthz"
     assert c["readinessProbe"]["httpGet"]["path"] == "/readyz"
     assert c["startupProbe"]["httpGet"]["path"] == "/healthz"
+    for probe in ("livenessProbe", "readinessProbe", "startupProbe"):
+        assert c[probe]["httpGet"]["scheme"] == "HTTPS" and c[probe]["httpGet"]["port"] == "http"
+    annotations = server["template"]["metadata"]["annotations"]
+    assert annotations["prometheus.io/scheme"] == "https"
     config = next(d for d in docs if d["kind"] == "ConfigMap")["data"]
     assert int(config["RENDERFARM_HTTP_PORT"]) == ports["http"]
     assert int(config["RENDERFARM_GRPC_PORT"]) == ports["grpc"]
@@ -553,6 +857,86 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     wlabels = worker["template"]["metadata"]["labels"]
     assert all(wlabels.get(k) == v for k, v in pdb["selector"]["matchLabels"].items())
     assert "renderfarm_queue_depth" in _scaledobject_queries()[0]
+    _check_kubernetes_tls(docs, config)
+
+
+def _secret_file(pod_spec: dict, container: dict, path: str) -> tuple[str, str]:
+    """(Secret name, key) of the file `path` in a container, from a secret volume mount."""
+    volumes = {v["name"]: v for v in pod_spec["volumes"]}
+    for mount in container["volumeMounts"]:
+        prefix = mount["mountPath"].rstrip("/") + "/"
+        if path.startswith(prefix) and "secret" in volumes[mount["name"]]:
+            assert mount.get("readOnly") is True, mount
+            return volumes[mount["name"]]["secret"]["secretName"], path[len(prefix) :]
+    pytest.fail(f"{path} is not in a mounted Secret")
+
+
+def _check_kubernetes_tls(docs: list[dict], config: dict) -> None:
+    """TLS is on: the server serves with a cert-manager certificate for the name the workers
+    connect to; the workers use TLS, check it against the CA that signed it, and carry a client
+    certificate of the same CA. The Secrets cert-manager writes hold tls.crt, tls.key, ca.crt."""
+    by = {(d["kind"], d["metadata"]["name"]): d for d in docs}
+    certificates = {d["spec"]["secretName"]: d for d in docs if d["kind"] == "Certificate"}
+    cert_manager_keys = {"tls.crt", "tls.key", "ca.crt"}
+    server_pod = by[("Deployment", "renderfarm-server")]["spec"]["template"]["spec"]
+    worker_pod = by[("Deployment", "renderfarm-worker")]["spec"]["template"]["spec"]
+    sc, wc = server_pod["containers"][0], worker_pod["containers"][0]
+    cert_secret, cert_key = _secret_file(server_pod, sc, config["RENDERFARM_TLS_CERT_FILE"])
+    key_secret, key_key = _secret_file(server_pod, sc, config["RENDERFARM_TLS_KEY_FILE"])
+    assert cert_secret == key_secret and (cert_key, key_key) == ("tls.crt", "tls.key")
+    server_cert = certificates[cert_secret]["spec"]
+    assert "server auth" in server_cert["usages"]
+    wenv = {e["name"]: e.get("value") for e in wc["env"]}
+    assert wenv["RENDERFARM_WORKER_TLS"] == "1"
+    host = wenv["RENDERFARM_SERVER"].rsplit(":", 1)[0]
+    assert host in server_cert["dnsNames"], "the workers' server name is not in the certificate"
+    assert any(
+        d["kind"] == "Service" and d["metadata"]["name"] == host for d in docs
+    ), "the workers connect to the server's Service"  # fmt: skip
+    ca_secret, ca_key = _secret_file(worker_pod, wc, wenv["RENDERFARM_WORKER_CA_FILE"])
+    wcert_secret, wcert_key = _secret_file(worker_pod, wc, wenv["RENDERFARM_WORKER_CERT_FILE"])
+    wkey_secret, wkey_key = _secret_file(worker_pod, wc, wenv["RENDERFARM_WORKER_KEY_FILE"])
+    assert ca_secret == wcert_secret == wkey_secret
+    assert {ca_key, wcert_key, wkey_key} == cert_manager_keys
+    worker_cert = certificates[ca_secret]["spec"]
+    assert "client auth" in worker_cert["usages"]
+    # One CA signs both: the worker's ca.crt is the CA of the server's certificate.
+    assert worker_cert["issuerRef"] == server_cert["issuerRef"]
+    issuer = by[("Issuer", server_cert["issuerRef"]["name"])]["spec"]
+    assert certificates[issuer["ca"]["secretName"]]["spec"]["isCA"] is True
+    # The key files are readable by the containers' group only (fsGroup 10001).
+    for pod in (server_pod, worker_pod):
+        assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"]
+        for v in pod["volumes"]:
+            if "secret" in v and v["secret"]["secretName"] in certificates:
+                assert v["secret"]["defaultMode"] == 0o440
+    # Mutual TLS is the component's: off by default.
+    assert "RENDERFARM_TLS_CLIENT_CA_FILE" not in {e["name"] for e in sc.get("env", [])}
+    assert "RENDERFARM_TLS_CLIENT_CA_FILE" not in config
+
+
+def test_kubernetes_mutual_tls_component(k8s_tree):
+    """With components/mutual-tls the server requires client certificates signed by the CA of
+    its own Secret, the one that signed the workers' certificates."""
+    import kubernetes_validate as kv
+
+    overlay = k8s_tree / "overlays" / "mutual-tls-check"
+    overlay.mkdir()
+    (overlay / "kustomization.yaml").write_text(
+        "apiVersion: kustomize.config.k8s.io/v1beta1\nkind: Kustomization\n"
+        "resources:\n  - ../external-db\ncomponents:\n  - ../../components/mutual-tls\n"
+    )
+    docs = _build(k8s_tree, "mutual-tls-check")
+    server = next(d for d in docs if d["metadata"]["name"] == "renderfarm-server"
+                  and d["kind"] == "Deployment")  # fmt: skip
+    kv.validate(server, K8S_OLDEST, strict=True)
+    pod = server["spec"]["template"]["spec"]
+    env = {e["name"]: e for e in pod["containers"][0]["env"]}
+    client_ca = env["RENDERFARM_TLS_CLIENT_CA_FILE"]["value"]
+    secret, key = _secret_file(pod, pod["containers"][0], client_ca)
+    assert key == "ca.crt" and secret == "renderfarm-server-tls"
+    # The rest of the server's environment is still there (a merge, not a replacement).
+    assert {"RENDERFARM_DATABASE_URL", "RENDERFARM_WORKER_TOKEN"} <= set(env)
 
 
 def test_kubernetes_validation_rejects_invalid_manifests(k8s_tree, tmp_path):
@@ -590,6 +974,18 @@ def test_readme_documents_each_deployment_step():
         "make test-deploy",
     ):
         assert command in section, command
+    # TLS: how it is on by default, how to bring your own certificates, how to turn on mutual TLS.
+    tls = section[section.index("\n### TLS of the deployments\n") :]
+    for needed in (
+        "RENDERFARM_TLS_CLIENT_CA_FILE=/etc/renderfarm/tls/ca.crt",
+        "../../components/mutual-tls",
+        "NETFARM_MUTUAL_TLS=1",
+        "RENDERFARM_TLS_SERVER_DIR",
+        "RENDERFARM_TLS_WORKER_DIR",
+        "remove `../../components/cert-manager`",
+        "RENDERFARM_WORKER_TLS_SERVER_NAME",
+    ):
+        assert needed in tls, needed
     # Commands shown in the README's examples name files that exist.
     for path in re.findall(r"deploy/[\w./-]+", section):
         path = path.rstrip(".")

@@ -3,8 +3,20 @@
 #   docker build -f deploy/docker/server.Dockerfile -t renderfarm/server:0.1.0 .
 # Configured only by RENDERFARM_* environment variables (README, "Server settings").
 
+# ---- web: the dashboard, built with the commands of the Makefile's `web` target (npm ci from
+# web/package-lock.json, then npm run build: type check and bundle into web/dist).
+FROM debian:bookworm-slim AS web
+WORKDIR /src
+COPY scripts/install-deps.sh scripts/install-deps.sh
+RUN scripts/install-deps.sh --web
+COPY web web
+RUN cd web \
+ && npm ci --no-audit --no-fund --loglevel=error \
+ && npm run --silent build
+
 # ---- build: the same set-up as `make demo`, `make test` and CI (scripts/install-deps.sh,
-# `make proto`), then the server package alone into /opt/renderfarm.
+# `make proto`), then the server package alone into /opt/renderfarm. The dashboard goes into the
+# package as its data (renderfarm/web), where the installed server looks for it.
 FROM debian:bookworm-slim AS build
 WORKDIR /src
 COPY scripts/install-deps.sh scripts/install-deps.sh
@@ -12,6 +24,7 @@ RUN scripts/install-deps.sh --apt-only
 COPY Makefile ./
 COPY proto proto
 COPY server server
+COPY --from=web /src/web/dist server/renderfarm/web
 RUN scripts/install-deps.sh \
  && make proto \
  && scripts/install-deps.sh --server-venv /opt/renderfarm \
@@ -32,6 +45,8 @@ RUN /usr/local/share/renderfarm/scripts/install-deps.sh --runtime server \
  && useradd --system --uid 10001 --user-group --home-dir /var/lib/renderfarm --create-home \
       --shell /usr/sbin/nologin renderfarm
 COPY --from=build /opt/renderfarm /opt/renderfarm
+# Makes a private CA and the farm's certificates when there are none (compose's `certs` service).
+COPY deploy/docker/make-certs.sh /usr/local/bin/renderfarm-make-certs
 ENV PATH=/opt/renderfarm/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
@@ -41,6 +56,8 @@ ENV PATH=/opt/renderfarm/bin:$PATH \
 USER 10001:10001
 WORKDIR /var/lib/renderfarm
 EXPOSE 8080 50051
+# https when the server has a certificate. Readiness of the process on loopback: the certificate
+# is the clients' concern (its names need not include 127.0.0.1), so it is not checked here.
 HEALTHCHECK --interval=10s --timeout=3s --start-period=30s --retries=3 \
-  CMD ["python3", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/readyz' % os.environ.get('RENDERFARM_HTTP_PORT', '8080'), timeout=2)"]
+  CMD ["python3", "-c", "import os, ssl, urllib.request; tls = bool(os.environ.get('RENDERFARM_TLS_CERT_FILE')); urllib.request.urlopen('%s://127.0.0.1:%s/readyz' % ('https' if tls else 'http', os.environ.get('RENDERFARM_HTTP_PORT', '8080')), timeout=2, context=ssl._create_unverified_context() if tls else None)"]
 ENTRYPOINT ["renderfarm", "server"]

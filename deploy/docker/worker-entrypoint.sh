@@ -10,6 +10,12 @@
 #   RENDERFARM_WORKER_TOKEN      the server's RENDERFARM_WORKER_TOKEN, if set   --token
 #   RENDERFARM_WORKER_ID         worker id (default: the host name)             --id
 #   RENDERFARM_WORKER_CACHE_DIR  scene cache directory                          --cache-dir
+#   RENDERFARM_WORKER_TLS        1: TLS, checked against the system's CAs       --tls
+#   RENDERFARM_WORKER_CA_FILE    TLS, checked against this CA bundle instead    --ca-file
+#   RENDERFARM_WORKER_CERT_FILE  client certificate (mutual TLS), with the key  --cert
+#   RENDERFARM_WORKER_KEY_FILE   its private key                                --key
+#   RENDERFARM_WORKER_TLS_SERVER_NAME  the name the server's certificate must have
+#                                (default: the host of RENDERFARM_SERVER)        --tls-server-name
 #   RENDERFARM_WORKER_BINARY     the worker binary (default: renderfarm-worker on PATH)
 #
 # Arguments are appended to the connect flags; a first argument that is not a flag runs the
@@ -27,6 +33,14 @@ if [ -z "${RENDERFARM_SERVER:-}" ]; then
   echo "worker-entrypoint: RENDERFARM_SERVER (host:port of the server's gRPC API) is not set" >&2
   exit 64
 fi
+case "${RENDERFARM_WORKER_TLS:-}" in
+  "" | 0) tls="" ;;
+  1) tls=1 ;;
+  *)
+    echo "worker-entrypoint: RENDERFARM_WORKER_TLS must be 1 or 0, not '$RENDERFARM_WORKER_TLS'" >&2
+    exit 64
+    ;;
+esac
 
 # Build the argument list back to front so that the caller's own arguments come last.
 set -- connect --server "$RENDERFARM_SERVER" \
@@ -35,5 +49,10 @@ set -- connect --server "$RENDERFARM_SERVER" \
   ${RENDERFARM_WORKER_TOKEN:+--token "$RENDERFARM_WORKER_TOKEN"} \
   ${RENDERFARM_WORKER_ID:+--id "$RENDERFARM_WORKER_ID"} \
   ${RENDERFARM_WORKER_CACHE_DIR:+--cache-dir "$RENDERFARM_WORKER_CACHE_DIR"} \
+  ${tls:+--tls} \
+  ${RENDERFARM_WORKER_CA_FILE:+--ca-file "$RENDERFARM_WORKER_CA_FILE"} \
+  ${RENDERFARM_WORKER_CERT_FILE:+--cert "$RENDERFARM_WORKER_CERT_FILE"} \
+  ${RENDERFARM_WORKER_KEY_FILE:+--key "$RENDERFARM_WORKER_KEY_FILE"} \
+  ${RENDERFARM_WORKER_TLS_SERVER_NAME:+--tls-server-name "$RENDERFARM_WORKER_TLS_SERVER_NAME"} \
   "$@"
 exec "$bin" "$@"

@@ -2,7 +2,9 @@
 # The renderfarm worker (C++, Embree). Build from the repository root:
 #   docker build -f deploy/docker/worker.Dockerfile -t renderfarm/worker:0.1.0 .
 # Configured by RENDERFARM_SERVER, RENDERFARM_WORKER_THREADS, RENDERFARM_WORKER_TOKEN,
-# RENDERFARM_WORKER_ID (worker-entrypoint.sh maps them to flags).
+# RENDERFARM_WORKER_ID and the TLS settings RENDERFARM_WORKER_TLS, RENDERFARM_WORKER_CA_FILE,
+# RENDERFARM_WORKER_CERT_FILE, RENDERFARM_WORKER_KEY_FILE, RENDERFARM_WORKER_TLS_SERVER_NAME
+# (worker-entrypoint.sh maps them to flags).
 
 # ---- build: the apt packages the project builds with (scripts/install-deps.sh), then the
 # worker exactly as `make worker` builds it.

@@ -2,7 +2,9 @@
 # The process topology of deploy/compose.yaml without Docker: PostgreSQL, the server and N
 # workers, each on its own "host" (a network namespace), on one LAN (a bridge in a namespace of
 # its own), configured by environment variables only. This machine is on the LAN too (the
-# operator's host), so the server's REST API is reachable from here. Needs root, iproute2,
+# operator's host), so the server's REST API is reachable from here. Worker traffic (and REST)
+# is TLS: `up` makes a private CA and the server's and workers' certificates with
+# deploy/docker/make-certs.sh, like compose's `certs` service. Needs root, iproute2, openssl,
 # `make build` (the worker) and .venv (the server and the PostgreSQL binaries of its embedded
 # database package). Used by tests/test_deploy_multihost.py.
 #
@@ -16,10 +18,13 @@
 #   NETFARM_WORKERS (2), NETFARM_WORKER_THREADS (1), NETFARM_SUBNET (10.213.<pid % 250>: the
 #   first three octets of the LAN, a /24 used only inside these namespaces), NETFARM_OWNER_PID
 #   (the process the farm belongs to, for `sweep`; default: the caller), NETFARM_PG_USER
-#   (renderfarm-pg: the unprivileged user PostgreSQL runs as, created if missing), and every
+#   (renderfarm-pg: the unprivileged user PostgreSQL runs as, created if missing),
+#   NETFARM_MUTUAL_TLS (0; 1: the server requires the workers' client certificates), and every
 #   RENDERFARM_* server setting (README, "Server settings"), passed to the server as it is.
 #
 # Hosts and addresses: operator .1 (this machine), db .2, server .3, worker<i> .(10+i).
+# Certificates: STATE_DIR/server/tls (the server's tls.crt, tls.key, ca.crt) and STATE_DIR/tls
+# (the workers' ca.crt, tls.crt, tls.key; ca.crt is the CA for clients on the operator's host).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 PG_PORT=5432
@@ -136,6 +141,9 @@ cmd_up() {
     subnet=10.213.$octet
   fi
   local pg_user=${NETFARM_PG_USER:-renderfarm-pg}
+  local mutual_tls=${NETFARM_MUTUAL_TLS:-0}
+  case "$mutual_tls" in 0 | 1) ;; *) die "NETFARM_MUTUAL_TLS must be 0 or 1, not '$mutual_tls'" ;; esac
+  command -v openssl >/dev/null 2>&1 || die "no openssl (scripts/install-deps.sh --deploy-tools)"
   local worker_bin=${RENDERFARM_WORKER_BINARY:-$ROOT/build/worker/renderfarm-worker}
   [ -x "$worker_bin" ] || die "no worker binary at $worker_bin: run make build"
   [ -x "$ROOT/.venv/bin/renderfarm" ] || die "no .venv/bin/renderfarm: run make build"
@@ -206,16 +214,26 @@ PG_EOF
   local admin_token=${RENDERFARM_ADMIN_TOKEN:-$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')}
   local worker_token=${RENDERFARM_WORKER_TOKEN:-$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')}
 
-  # Server host: `renderfarm server` configured by the environment alone.
+  # TLS: a private CA, the server's certificate for its LAN address, the workers' client one.
   mkdir -p "$STATE/server"
+  "$ROOT/deploy/docker/make-certs.sh" "$STATE/server/tls" "$STATE/tls" "$subnet.3" \
+    > "$STATE/certs.log" 2>&1 || { cat "$STATE/certs.log" >&2; die "could not make the certificates"; }
+  local client_ca=""
+  [ "$mutual_tls" = 0 ] || client_ca=$STATE/server/tls/ca.crt
+
+  # Server host: `renderfarm server` configured by the environment alone.
   ip netns exec "$(ns server)" env \
     RENDERFARM_ADMIN_TOKEN="$admin_token" RENDERFARM_WORKER_TOKEN="$worker_token" \
     RENDERFARM_DATABASE_URL="$database_url" \
     RENDERFARM_DATA_DIR="$STATE/server" \
     RENDERFARM_HTTP_HOST=0.0.0.0 RENDERFARM_HTTP_PORT=$HTTP_PORT \
     RENDERFARM_GRPC_HOST=0.0.0.0 RENDERFARM_GRPC_PORT=$GRPC_PORT \
+    RENDERFARM_TLS_CERT_FILE="$STATE/server/tls/tls.crt" \
+    RENDERFARM_TLS_KEY_FILE="$STATE/server/tls/tls.key" \
+    RENDERFARM_TLS_CLIENT_CA_FILE="$client_ca" \
     "$ROOT/.venv/bin/renderfarm" server > "$STATE/server/server.log" 2>&1 &
-  wait_for 120 "the server" curl -sf --noproxy "*" "http://$subnet.3:$HTTP_PORT/readyz"
+  wait_for 120 "the server" curl -sf --noproxy "*" --cacert "$STATE/tls/ca.crt" \
+    "https://$subnet.3:$HTTP_PORT/readyz"
 
   # Worker hosts: the worker image's entrypoint, configured by the environment alone.
   for i in $(seq 1 "$workers"); do
@@ -227,16 +245,22 @@ PG_EOF
       RENDERFARM_WORKER_THREADS="$threads" \
       RENDERFARM_WORKER_CACHE_DIR="$STATE/worker$i/scenes" \
       RENDERFARM_WORKER_BINARY="$worker_bin" \
+      RENDERFARM_WORKER_TLS=1 \
+      RENDERFARM_WORKER_CA_FILE="$STATE/tls/ca.crt" \
+      RENDERFARM_WORKER_CERT_FILE="$STATE/tls/tls.crt" \
+      RENDERFARM_WORKER_KEY_FILE="$STATE/tls/tls.key" \
       "$ROOT/deploy/docker/worker-entrypoint.sh" > "$STATE/worker$i/worker.log" 2>&1 &
   done
   UP_DONE=1
   {
-    echo "URL=http://$subnet.3:$HTTP_PORT"
+    echo "URL=https://$subnet.3:$HTTP_PORT"
     echo "GRPC=$subnet.3:$GRPC_PORT"
+    echo "CA_FILE=$STATE/tls/ca.crt"
+    echo "MUTUAL_TLS=$mutual_tls"
     echo "ADMIN_TOKEN=$admin_token"
   } >> "$STATE/netfarm.env"
-  echo "netns farm $PREFIX up: REST http://$subnet.3:$HTTP_PORT  gRPC $subnet.3:$GRPC_PORT" \
-    " database $subnet.2:$PG_PORT  workers $workers  state $STATE"
+  echo "netns farm $PREFIX up: REST https://$subnet.3:$HTTP_PORT  gRPC $subnet.3:$GRPC_PORT (TLS)" \
+    " database $subnet.2:$PG_PORT  workers $workers  CA $STATE/tls/ca.crt  state $STATE"
 }
 
 case "${1:-}" in
@@ -245,5 +269,5 @@ case "${1:-}" in
   cut) [ -n "${3:-}" ] || die "usage: farm.sh cut STATE_DIR HOST"; cmd_cut "$2" "$3" ;;
   restore) [ -n "${3:-}" ] || die "usage: farm.sh restore STATE_DIR HOST"; cmd_restore "$2" "$3" ;;
   sweep) cmd_sweep ;;
-  *) sed -n '2,25p' "$0" >&2; exit 2 ;;
+  *) sed -n '2,27p' "$0" >&2; exit 2 ;;
 esac

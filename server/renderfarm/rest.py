@@ -20,6 +20,7 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel, Field, create_model
 from sse_starlette import EventSourceResponse, ServerSentEvent
@@ -34,9 +35,15 @@ from .scenes import SceneError
 from .service import Conflict, FarmService, NotFound, TooLarge
 from .webui import index_html
 
-# The dashboard built by `make web` (web/dist in this checkout); webui.py's page stands in for it
-# when it has not been built.
-WEB_DIST = Path(__file__).resolve().parents[2] / "web" / "dist"
+# The dashboard built by `make web`: package data renderfarm/web where an installed package
+# carries it (the server image copies web/dist there before installing), else web/dist of this
+# checkout; webui.py's page stands in for it when neither has been built.
+_PACKAGED_WEB = Path(__file__).resolve().parent / "web"
+WEB_DIST = (
+    _PACKAGED_WEB
+    if (_PACKAGED_WEB / "index.html").is_file()
+    else Path(__file__).resolve().parents[2] / "web" / "dist"
+)
 
 
 # ------------------------------------------------------------------------------ response models
@@ -205,7 +212,10 @@ _SUBMIT_BODY = {
 
 def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None = None) -> FastAPI:
     auth = auth or Authenticator.for_settings(farm.store, farm.settings)
-    app = FastAPI(
+    # /docs (Swagger UI) and /redoc load their scripts and styles from the server itself
+    # (/static-offline-docs, files shipped in the fastapi-offline wheel), not from a CDN, so that
+    # they work on a network without Internet access.
+    app = FastAPIOffline(
         title="renderfarm",
         version="1",
         description=(
