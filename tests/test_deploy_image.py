@@ -29,7 +29,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from renderfarm.localfarm import free_port
+from renderfarm.localfarm import find_worker_binary, free_port
 
 from .conftest import ROOT
 
@@ -171,6 +171,35 @@ def _reproduce_build_step(step: str, workdir: Path, root: Path) -> None:
     pytest.fail(f"the build stage's step {step!r} has no reproduction here: add one")
 
 
+MAKEFILE_WORKER_CONFIGURE = "cmake -S worker -B $(BUILD) -G Ninja -DCMAKE_BUILD_TYPE=Release"
+
+
+def _reproduce_worker_step(step: str, workdir: Path) -> None:
+    """One step of the worker stage: the checkout's binary, which `make worker` configured
+    with the same CMake command, stands in for the build."""
+    binary = workdir / "build" / "worker" / "renderfarm-worker"
+    if step == "scripts/install-deps.sh --apt-only":
+        return
+    if step.startswith("cmake -S "):
+        # The image configures the worker exactly as the Makefile does.
+        assert step.split(" \\")[0].strip() == MAKEFILE_WORKER_CONFIGURE.replace(
+            "$(BUILD)", "build/worker"
+        ), step
+        assert MAKEFILE_WORKER_CONFIGURE in (ROOT / "Makefile").read_text()
+        return
+    if step.startswith("cmake --build "):
+        binary.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(find_worker_binary(), binary)
+        return
+    if step.startswith("strip "):
+        _run(["strip", "-o", str(binary), str(binary)], cwd=workdir)
+        return
+    if step == "build/worker/renderfarm-worker --version":
+        _run([str(binary), "--version"], cwd=workdir)
+        return
+    pytest.fail(f"the worker stage's step {step!r} has no reproduction here: add one")
+
+
 def _build_stage(name: str, instructions, roots: dict[str, Path], base: Path, rules) -> None:
     root = roots[name] = base / name
     workdir = root
@@ -195,6 +224,9 @@ def _build_stage(name: str, instructions, roots: dict[str, Path], base: Path, ru
         elif op == "RUN" and name == "web":
             # Run as it is: the same commands as the Makefile's `web` target.
             _run(["sh", "-c", rest], cwd=workdir, timeout=600)
+        elif op == "RUN" and name == "worker":
+            for step in (s.strip() for s in rest.split("&&")):
+                _reproduce_worker_step(step, workdir)
         elif op == "RUN" and name == "build":
             for step in (s.strip() for s in rest.split("&&")):
                 _reproduce_build_step(step, workdir, root)
@@ -205,30 +237,41 @@ def image(tmp_path_factory) -> dict:
     """The web and build stages reproduced; what the final stage runs, and how."""
     stages = _stages(DOCKERFILE)
     names = [name for name, _ in stages]
-    assert names[:2] == ["web", "build"], names
+    assert names[:3] == ["web", "worker", "build"], names
     base = tmp_path_factory.mktemp("image")
     rules = _ignore_rules()
     roots: dict[str, Path] = {}
     for name, instructions in stages[:-1]:
         _build_stage(name, instructions, roots, base, rules)
     final = stages[-1][1]
-    copies = [rest for op, rest in final if op == "COPY" and rest.startswith("--from=build")]
-    assert copies == ["--from=build /opt/renderfarm /opt/renderfarm"], copies
+    copies = [rest for op, rest in final if op == "COPY" and rest.startswith("--from=")]
+    assert copies == [
+        "--from=build /opt/renderfarm /opt/renderfarm",
+        "--from=worker /src/build/worker/renderfarm-worker /usr/local/bin/renderfarm-worker",
+    ], copies
+    # The final stage's /usr/local/bin, on the image's PATH: the worker binary the server's
+    # scene check finds there.
+    usr_local_bin = base / "final" / "usr" / "local" / "bin"
+    usr_local_bin.mkdir(parents=True)
+    shutil.copy2(roots["worker"] / "src" / "build" / "worker" / "renderfarm-worker", usr_local_bin)
     entrypoint = json.loads(next(rest for op, rest in final if op == "ENTRYPOINT"))
     venv = roots["build"] / "opt" / "renderfarm"
     healthcheck = next(rest for op, rest in final if op == "HEALTHCHECK")
     return {
         "venv": venv,
+        "usr_local_bin": usr_local_bin,
         "dist": roots["web"] / "src" / "web" / "dist",
         "command": [str(venv / "bin" / entrypoint[0]), *entrypoint[1:]],
         "healthcheck": json.loads(healthcheck[healthcheck.index("CMD ") + 4 :]),
     }
 
 
-def _clean_env(venv: Path, **extra: str) -> dict[str, str]:
-    """The image's environment: its PATH first, nothing of this checkout (no PYTHONPATH)."""
+def _clean_env(venv: Path, usr_local_bin: Path | None = None, **extra: str) -> dict[str, str]:
+    """The image's environment: its PATH first, nothing of this checkout (no PYTHONPATH, no
+    RENDERFARM_WORKER_BINARY)."""
     keep = {k: v for k, v in os.environ.items() if k in ("HOME", "LANG", "TMPDIR")}
-    path = f"{venv / 'bin'}:{os.environ.get('PATH', '/usr/bin:/bin')}"
+    image_path = f"{venv / 'bin'}:{usr_local_bin}:" if usr_local_bin else f"{venv / 'bin'}:"
+    path = image_path + "/usr/sbin:/usr/bin:/sbin:/bin"
     return {**keep, "PATH": path, **extra}
 
 
@@ -249,6 +292,7 @@ def image_server(image, tmp_path_factory):
     http_port, grpc_port = free_port(), free_port()
     env = _clean_env(
         image["venv"],
+        image["usr_local_bin"],
         RENDERFARM_DATA_DIR=str(data),
         RENDERFARM_HTTP_HOST="127.0.0.1",
         RENDERFARM_HTTP_PORT=str(http_port),
@@ -357,3 +401,21 @@ def test_image_api_docs_use_only_assets_the_server_serves(image_server, page):
     # The scripts are the real Swagger UI / ReDoc bundles, not an error page.
     bundle = httpx.get(f"{url}{scripts[0]}", timeout=30).text
     assert ("SwaggerUIBundle" if page == "/docs" else "Redoc") in bundle
+
+
+def test_image_checks_uploads_with_the_workers_loader(image_server):
+    """The image's server finds renderfarm-worker on its PATH and runs its loader on an upload:
+    the Cornell box is accepted, a node with two parents refused naming it."""
+    from renderfarm.scenes import pack_gltf
+
+    from .test_scene_acceptance import hostile
+
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    url = f"{image_server['url']}/api/v1/jobs"
+    settings = {"settings": '{"width": 16, "height": 16, "max_spp": 4}'}
+    good = pack_gltf(ROOT / "examples" / "cornell-box.gltf")
+    for data, status in ((good, 201), (hostile("shared-children"), 400)):
+        r = httpx.post(url, headers=headers, data=settings, timeout=60,
+                       files={"scene": ("scene.glb", data, "model/gltf-binary")})  # fmt: skip
+        assert r.status_code == status, r.text
+    assert r.json()["field"] == "scene.nodes[5].children[1]", r.text

@@ -23,6 +23,7 @@ from renderfarm.client import Client
 from renderfarm.images import read_exr
 
 from .conftest import CORNELL, ROOT
+from .tools import require_tool
 
 FARM = ROOT / "deploy" / "netns" / "farm.sh"
 SETTINGS = {
@@ -38,10 +39,13 @@ SETTINGS = {
 }
 TOTAL_SAMPLES = 128 * 128 * 128
 
-pytestmark = pytest.mark.skipif(
-    os.geteuid() != 0 or shutil.which("ip") is None,
-    reason="network namespaces need root and iproute2 (scripts/install-deps.sh --deploy-tools)",
-)
+
+@pytest.fixture(scope="module", autouse=True)
+def _root_and_iproute2():
+    require_tool(
+        os.geteuid() == 0 and shutil.which("ip") is not None,
+        "network namespaces need root and iproute2 (scripts/install-deps.sh --deploy-tools)",
+    )
 
 
 def _farm(*args: str, env: dict[str, str] | None = None, timeout: float = 180) -> str:
@@ -205,7 +209,11 @@ def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalon
         assert job["progress"]["samples_merged"] == TOTAL_SAMPLES
         after = _workers(client)
         if "worker1" in after:  # still listed until the server notices the dead stream
-            assert after["worker1"]["tasks_done"] == busy["tasks_done"], "worker1 was cut off"
+            # Results already on their way when the link went down (in the server's socket
+            # buffers) may still be counted, at most one per task it held; a link still up
+            # would have let worker1 render many more of the job's tasks.
+            late = after["worker1"]["tasks_done"] - busy["tasks_done"]
+            assert late <= busy["tasks_in_flight"], f"worker1 was not cut off ({late} more tasks)"
         assert after["worker2"]["tasks_done"] > done["worker2"]["tasks_done"]
         cut_rgb = _rgb_of(client.image(job["id"], "exr"), tmp_path, "cut.exr")
 

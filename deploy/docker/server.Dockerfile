@@ -14,6 +14,20 @@ RUN cd web \
  && npm ci --no-audit --no-fund --loglevel=error \
  && npm run --silent build
 
+# ---- worker: the renderfarm-worker binary, built as worker.Dockerfile builds it. The server
+# runs its loader on every uploaded scene (`renderfarm-worker inspect`), so that it accepts
+# only what the workers can load.
+FROM debian:bookworm-slim AS worker
+WORKDIR /src
+COPY scripts/install-deps.sh scripts/install-deps.sh
+RUN scripts/install-deps.sh --apt-only
+COPY proto proto
+COPY worker worker
+RUN cmake -S worker -B build/worker -G Ninja -DCMAKE_BUILD_TYPE=Release \
+ && cmake --build build/worker -j "$(nproc)" --target renderfarm-worker \
+ && strip build/worker/renderfarm-worker \
+ && build/worker/renderfarm-worker --version
+
 # ---- build: the same set-up as `make demo`, `make test` and CI (scripts/install-deps.sh,
 # `make proto`), then the server package alone into /opt/renderfarm. The dashboard goes into the
 # package as its data (renderfarm/web), where the installed server looks for it.
@@ -31,7 +45,8 @@ RUN scripts/install-deps.sh \
  && find /opt/renderfarm -name '__pycache__' -prune -exec rm -rf {} + \
  && rm -rf /opt/renderfarm/lib/python3*/site-packages/pip
 
-# ---- runtime: Python and the virtual environment, nothing to build with.
+# ---- runtime: Python, the virtual environment and the worker binary (with the shared
+# libraries of both), nothing to build with.
 FROM debian:bookworm-slim
 ARG VERSION=0.1.0
 LABEL org.opencontainers.image.title="renderfarm-server" \
@@ -45,6 +60,7 @@ RUN /usr/local/share/renderfarm/scripts/install-deps.sh --runtime server \
  && useradd --system --uid 10001 --user-group --home-dir /var/lib/renderfarm --create-home \
       --shell /usr/sbin/nologin renderfarm
 COPY --from=build /opt/renderfarm /opt/renderfarm
+COPY --from=worker /src/build/worker/renderfarm-worker /usr/local/bin/renderfarm-worker
 # Makes a private CA and the farm's certificates when there are none (compose's `certs` service).
 COPY deploy/docker/make-certs.sh /usr/local/bin/renderfarm-make-certs
 ENV PATH=/opt/renderfarm/bin:$PATH \
