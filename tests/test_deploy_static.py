@@ -148,9 +148,7 @@ def test_dockerfile_multi_stage_slim_non_root_labelled(name):
     runs = " ".join(rest for op, rest in final if op == "RUN")
     assert f"install-deps.sh --runtime {name}" in runs and "rm -rf /var/lib/apt/lists" in runs
     # No source from the build context: only what earlier stages built.
-    assert not any(
-        op == "COPY" and "--from=" not in rest and "/src" in rest for op, rest in final
-    )
+    assert not any(op == "COPY" and "--from=" not in rest and "/src" in rest for op, rest in final)
     assert not re.search(r"apt-get install|build-essential|-dev\b", runs)
     # Every COPY source of the build context exists and passes the image's .dockerignore.
     ignore = (DOCKER / f"{name}.Dockerfile.dockerignore").read_text().split()
