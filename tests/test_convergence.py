@@ -1,4 +1,4 @@
-"""Convergence on real renders (DESIGN.md section 5): adaptive stopping, calibrated errors,
+"""Convergence on real renders (docs/architecture.md, "Statistics"): adaptive stopping, calibrated errors,
 and an image that does not depend on how many workers rendered it.
 
 The reference is the Cornell box at 96x96 with 4096 samples per pixel, rendered by the same

@@ -85,8 +85,9 @@ def test_image_looks_like_a_cornell_box(cornell_job):
 
 
 def test_farm_image_equals_standalone_render(cornell_job, worker_binary, tmp_path):
-    """DESIGN.md section 4: the image is a pure function of scene, settings and seed, so the
-    farm (2 workers, tiles and batches in any order) equals one standalone render."""
+    """The image is a pure function of scene, settings and seed (docs/architecture.md,
+    "Determinism"), so the farm (2 workers, tiles and batches in any order) equals one
+    standalone render."""
     _, farm_exr = cornell_job
     alone = tmp_path / "alone.exr"
     subprocess.run(

@@ -3,7 +3,7 @@
 A job's image is cut into square tiles (the last row/column may be smaller). Each tile renders
 its samples in batches whose sizes follow one fixed schedule, so batch b of every pixel always
 covers the same global sample indices [start_b, start_b + S_b): the image does not depend on
-which worker rendered which batch (DESIGN.md section 4).
+which worker rendered which batch (docs/architecture.md, "Determinism").
 
 The schedule is 1, 1, 2, 4, 8, 16, 32, 64, 64, 64, ... clipped at max_spp. Starting small gives
 a full-frame preview quickly and two batches (a between-batch variance) almost at once; every
