@@ -1,5 +1,5 @@
-"""Convergence on real renders (docs/architecture.md, "Statistics"): adaptive stopping, calibrated errors,
-and an image that does not depend on how many workers rendered it.
+"""Convergence on real renders (docs/architecture.md, "Statistics"): adaptive stopping,
+calibrated errors, and an image that does not depend on how many workers rendered it.
 
 The reference is the Cornell box at 96x96 with 4096 samples per pixel, rendered by the same
 farm; its own reported variance is accounted for in every comparison (subtracted from measured
