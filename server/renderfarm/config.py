@@ -38,6 +38,15 @@ class Settings(BaseSettings):
     drain_timeout_s: float = Field(
         30.0, ge=0, description="on SIGTERM, how long to wait for tasks in flight to come back"
     )
+    db_pool_size: int = Field(
+        20, gt=0, description="connections to PostgreSQL for API requests (3 more of its own)"
+    )
+    db_queue: int = Field(
+        1000, gt=0, description="API requests that may wait for a connection; more get 429"
+    )
+    db_wait_s: float = Field(
+        30.0, gt=0, description="longest wait of a request for a database connection (then 503)"
+    )
     max_upload_bytes: int = Field(256 * 2**20, gt=0, description="largest scene upload")
     max_width: int = Field(16384, gt=0, description="largest image width a job may ask for")
     max_height: int = Field(16384, gt=0, description="largest image height a job may ask for")

@@ -3,8 +3,10 @@
 Handlers parse, call FarmService and map its errors to status codes:
 SettingsError/SceneError -> INVALID_ARGUMENT, TooLarge -> RESOURCE_EXHAUSTED,
 NotFound -> NOT_FOUND, Conflict -> FAILED_PRECONDITION, AuthError/Unauthenticated ->
-UNAUTHENTICATED, Forbidden -> PERMISSION_DENIED. The details read "FIELD: message" and the
-trailing metadata `renderfarm-field` names the field, like the REST body's "field".
+UNAUTHENTICATED, Forbidden -> PERMISSION_DENIED, DatabaseUnavailable -> UNAVAILABLE (with the
+trailing metadata `retry-after`, seconds, like REST's 503 and 429). The details read
+"FIELD: message" and the trailing metadata `renderfarm-field` names the field, like the REST
+body's "field".
 
 Clients authenticate with the metadata `authorization: Bearer TOKEN` (JobService,
 SceneService.GetScene); workers with Hello.token. SceneService.FetchScene is open to anyone who
@@ -38,6 +40,7 @@ from .service import (
     decode_result,
 )
 from .states import JobState
+from .store import DatabaseUnavailable
 from .tiling import carries_aovs
 from .v1 import (
     jobs_pb2,
@@ -112,15 +115,23 @@ def _status(e: Exception) -> tuple[grpc.StatusCode, str, str] | None:
         return grpc.StatusCode.UNAUTHENTICATED, e.message, "authorization"
     if isinstance(e, Forbidden):
         return grpc.StatusCode.PERMISSION_DENIED, e.message, "job_id"
+    if isinstance(e, DatabaseUnavailable):
+        return grpc.StatusCode.UNAVAILABLE, f"database: {e.message}", "database"
     return None
 
 
-_API_ERRORS = (SettingsError, SceneError, TooLarge, NotFound, Conflict, AuthError, Forbidden)
+_API_ERRORS = (
+    SettingsError, SceneError, TooLarge, NotFound, Conflict, AuthError, Forbidden,
+    DatabaseUnavailable,
+)  # fmt: skip
 
 
 async def _abort(context, e: Exception) -> None:
     code, details, field = _status(e)
-    await context.abort(code, details, trailing_metadata=(("renderfarm-field", field),))
+    metadata = [("renderfarm-field", field)]
+    if isinstance(e, DatabaseUnavailable):
+        metadata.append(("retry-after", str(e.retry_after_s)))
+    await context.abort(code, details, trailing_metadata=tuple(metadata))
 
 
 def _maps_errors(method):
@@ -264,6 +275,8 @@ class SceneServicer(scenes_pb2_grpc.SceneServiceServicer):
                 yield chunk
         except NotFound as e:
             await context.abort(grpc.StatusCode.NOT_FOUND, e.message)
+        except DatabaseUnavailable as e:
+            await _abort(context, e)
 
     @_maps_errors
     async def GetScene(self, request, context):  # noqa: N802

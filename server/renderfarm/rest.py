@@ -4,7 +4,8 @@ Every response is declared (pydantic models below), so the OpenAPI document desc
 what the server sends; tests/test_openapi_fuzz.py holds the server to it. Errors are JSON
 {"detail": message, "field": name-of-the-offending-field}: 400 bad input, 401 no or bad token,
 403 another owner's job, 404 unknown job or scene, 409 state conflict, 413 upload too large,
-503 not ready; FastAPI's and Starlette's own answers (unknown route, wrong method, a body they
+429 too many requests waiting for the database, 503 database unreachable (both with
+Retry-After); FastAPI's and Starlette's own answers (unknown route, wrong method, a body they
 cannot parse) and unexpected failures (500) are given the same shape.
 """
 
@@ -33,6 +34,7 @@ from .jobspec import SETTINGS, SettingsError
 from .metrics import Metrics
 from .scenes import SceneError
 from .service import Conflict, FarmService, NotFound, TooLarge
+from .store import DatabaseUnavailable
 from .webui import index_html
 
 # The dashboard built by `make web`: package data renderfarm/web where an installed package
@@ -159,8 +161,11 @@ def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
         404: "no such job or scene",
         409: "the job's state does not allow this",
         413: "upload too large",
+        429: "too many requests wait for the database; retry after Retry-After seconds",
+        503: "the database is unreachable or busy; retry after Retry-After seconds",
     }
-    return {c: {"model": ErrorBody, "description": described[c]} for c in (400, 401, *codes)}
+    codes = (400, 401, *codes, 429, 503)
+    return {c: {"model": ErrorBody, "description": described[c]} for c in codes}
 
 
 def _error(status: int, field: str, message: str, headers: dict | None = None) -> JSONResponse:
@@ -261,6 +266,10 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     @app.exception_handler(NotFound)
     async def _not_found(_: Request, e: NotFound):
         return _error(404, "", e.message)
+
+    @app.exception_handler(DatabaseUnavailable)
+    async def _unavailable(_: Request, e: DatabaseUnavailable):
+        return _error(e.status, "database", e.message, {"Retry-After": str(e.retry_after_s)})
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, e: RequestValidationError):

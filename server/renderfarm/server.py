@@ -68,9 +68,14 @@ async def serve(
     if not url:
         embedded = EmbeddedPostgres(settings.data_dir)
         url = await asyncio.to_thread(embedded.start)
-    store = Store(url)
+    store = Store(
+        url, max_size=settings.db_pool_size, queue=settings.db_queue, wait_s=settings.db_wait_s
+    )
+    supervisor = None
     try:
         await store.open()
+        if embedded is not None:  # restarts the postmaster when it dies
+            supervisor = asyncio.create_task(embedded.supervise(on_restart=store.reconnect))
         tls = settings.tls()
         await ensure_configured_token(store, settings.admin_token)
         refusal = check_exposure(
@@ -143,6 +148,10 @@ async def serve(
         with contextlib.suppress(Exception):
             await asyncio.wait_for(http_task, timeout=5)
     finally:
+        if supervisor is not None:
+            supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await supervisor
         await store.close()
         if embedded is not None:
             await asyncio.to_thread(embedded.stop)

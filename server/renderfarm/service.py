@@ -8,7 +8,9 @@ here, and map the errors below to status codes.
 Durability: a submission is acknowledged only after its scene and job rows are committed. Merged
 tiles are checkpointed every `checkpoint_interval_s` by a background task (only tiles that
 changed), and immediately when a job finishes. On start, unfinished jobs resume from their
-checkpoints.
+checkpoints. A finished job is reported finished only once its final state is stored (until
+then a restart would resume it); a server stopped while the database is unreachable keeps what
+it could not write in its spool (spool.py) and writes it at its next start.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 import psycopg
 from psycopg_pool import PoolTimeout
 
-from . import images
+from . import images, spool
 from .auth import Caller, Forbidden
 from .config import Settings
 from .jobspec import JobSettings, SettingsError, parse_settings
@@ -39,12 +41,13 @@ from .scene_check import SceneChecker
 from .scenes import SceneError, inspect_environment, inspect_scene
 from .scheduler import BatchResult, JobRun, Lease, Scheduler
 from .states import JobState, StopReason
-from .store import JobRow, Store, TileRow
+from .store import DatabaseUnavailable, JobRow, Store, TileRow
 from .tiling import Rect, tile_grid
 
 log = logging.getLogger(__name__)
 
 SCENE_CHUNK_BYTES = 1 << 20
+STORED_WAIT_S = 5.0  # how long a cancel waits for its final state to be stored
 
 
 class NotFound(LookupError):
@@ -171,6 +174,7 @@ class FarmService:
 
     # ------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
+        await spool.replay(self.store, self.settings.data_dir)
         await self.store.mark_all_workers_disconnected()
         await self._resume_unfinished()
         self._tasks.append(asyncio.create_task(self._background(), name="farm-background"))
@@ -184,10 +188,7 @@ class FarmService:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         if not await self.flush(force=True):
-            log.error(
-                "could not write the last checkpoint; up to the checkpoint interval of merged "
-                "work will be rendered again after a restart"
-            )
+            self._spool_unsaved()
         for session in list(self.sessions.values()):
             session.outbox.put_nowait(None)
 
@@ -263,6 +264,7 @@ class FarmService:
                     await self.store.add_events([(job_id, "convergence", {"points": points})])
                     self._pending_finishes.pop(0)
                     self._forget_later(job_id)
+                    await self._announce_stored(job_id)
             if force or now - self._last_checkpoint >= self.settings.checkpoint_interval_s:
                 await self.checkpoint(force=force)
         except (psycopg.Error, PoolTimeout, OSError) as e:
@@ -409,6 +411,7 @@ class FarmService:
             return view  # already finished: cancelling is a no-op
         self.scheduler.cancel_job(job_id)
         await self._after_change()
+        await self._until_stored(job_id)
         return await self.get(job_id, caller)
 
     async def delete(self, job_id: str, caller: Caller) -> None:
@@ -416,8 +419,9 @@ class FarmService:
         A job still queued or running must be cancelled first."""
         await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
-        if job is not None and not job.state.finished:
-            raise Conflict(f"job {job_id} is {job.state.value}; cancel it before deleting it")
+        if job is not None and not self._reported_state(job).finished:
+            state = self._reported_state(job).value
+            raise Conflict(f"job {job_id} is {state}; cancel it before deleting it")
         if not await self.store.delete_job(job_id):
             raise NotFound(f"no job with id {job_id!r}")
         self.scheduler.forget_job(job_id)
@@ -458,10 +462,11 @@ class FarmService:
 
     def _live_view(self, job: JobRun) -> JobView:
         p = self.scheduler.progress(job)
+        state = self._reported_state(job)
         return JobView(
             id=job.job_id,
             name=self.names.get(job.job_id, ""),
-            state=job.state,
+            state=state,
             settings=job.settings,
             scene_sha256=job.scene_sha256,
             progress=ProgressView(
@@ -474,9 +479,9 @@ class FarmService:
                 samples_merged=p.samples_merged,
                 elapsed_s=p.elapsed_s,
             ),
-            error=job.error_message if job.state == JobState.FAILED else "",
+            error=job.error_message if state == JobState.FAILED else "",
             created_unix_s=self.created.get(job.job_id, job.created),
-            finished_unix_s=job.finished,
+            finished_unix_s=job.finished if state.finished else None,
             owner=self.owners.get(job.job_id, ""),
         )
 
@@ -719,20 +724,81 @@ class FarmService:
                 t.dirty = True
                 t.aovs_dirty |= aovs
             raise
+        await self.store.update_job(job_id, **self._job_fields(job))
+
+    def _job_fields(self, job: JobRun) -> dict[str, Any]:
+        """The job row's columns that change (Store.update_job's arguments)."""
         p = self.scheduler.progress(job)
-        await self.store.update_job(
-            job_id,
-            state=job.state.value,
-            error=job.error_message if job.state == JobState.FAILED else "",
-            started=job.started,
-            finished=job.finished,
-            elapsed_s=p.elapsed_s,
-            samples_merged=p.samples_merged,
-            mean_spp=p.mean_spp,
-            error_estimate=_finite_or_none(p.error),
-            tiles_done=p.tiles_done,
-            tiles_previewed=p.tiles_previewed,
-        )
+        return {
+            "state": job.state.value,
+            "error": job.error_message if job.state == JobState.FAILED else "",
+            "started": job.started,
+            "finished": job.finished,
+            "elapsed_s": p.elapsed_s,
+            "samples_merged": p.samples_merged,
+            "mean_spp": p.mean_spp,
+            "error_estimate": _finite_or_none(p.error),
+            "tiles_done": p.tiles_done,
+            "tiles_previewed": p.tiles_previewed,
+        }
+
+    # ---------------------------------------------------------------------- durability
+    def _reported_state(self, job: JobRun) -> JobState:
+        """The state the APIs show: a finished job whose final state is not stored yet is
+        shown as it was before (a restart would resume it from the database)."""
+        if job.state.finished and job.job_id in self._pending_finishes:
+            return JobState.RUNNING if job.started is not None else JobState.QUEUED
+        return job.state
+
+    async def _announce_stored(self, job_id: str) -> None:
+        """A job's final state was stored: watchers and waiting cancels see it now."""
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None:
+            job.version += 1
+        async with self._changed:
+            self._changed.notify_all()
+
+    async def _until_stored(self, job_id: str) -> None:
+        """Wait for the background writer to store a finished job's final state; while the
+        database does not take it the caller is told to retry (DatabaseUnavailable)."""
+        async with self._changed:
+            try:
+                await asyncio.wait_for(
+                    self._changed.wait_for(lambda: job_id not in self._pending_finishes),
+                    timeout=STORED_WAIT_S,
+                )
+            except TimeoutError:
+                raise DatabaseUnavailable(
+                    f"database unavailable: job {job_id} is stopped, but its final state is "
+                    "not stored yet"
+                ) from None
+
+    def _spool_unsaved(self) -> None:
+        """The final flush failed: keep whatever is not stored in the spool, replayed at the
+        next start (spool.py). Synchronous, so no merge lands between snapshot and file."""
+        events = list(self._pending_events)
+        for job_id in self._pending_finishes:  # what flush() writes after a finished job
+            events.append((job_id, "convergence", {"points": self.history.get(job_id, [])}))
+        jobs = []
+        for job in self.scheduler.jobs.values():
+            if job.state.finished and job.job_id not in self._pending_finishes:
+                continue  # stored already
+            tiles = [_tile_row(*_tile_snapshot(t, t.aovs_dirty)) for t in job.tiles if t.dirty]
+            jobs.append(spool.UnsavedJob(job.job_id, self._job_fields(job), tiles))
+        try:
+            path = spool.write(spool.spool_dir(self.settings.data_dir), events, jobs)
+        except OSError as e:
+            log.error(
+                "could not write the last checkpoint, nor the spool (%s); up to the checkpoint "
+                "interval of merged work will be rendered again after a restart",
+                e,
+            )
+            return
+        log.warning(
+            "the database is unreachable: kept the unsaved state of %d job%s in %s; it is "
+            "written to the database at the next start",
+            len(jobs), "" if len(jobs) == 1 else "s", path,
+        )  # fmt: skip
 
     HISTORY_POINTS = 2000
 

@@ -19,13 +19,41 @@ from typing import Any
 
 import psycopg
 from psycopg.rows import dict_row
-from psycopg_pool import AsyncConnectionPool, PoolTimeout
+from psycopg_pool import AsyncConnectionPool, TooManyRequests
 
 _MIGRATION_LOCK = 0x52464D31  # advisory lock key for migrations ("RFM1")
+
+# Seconds a client is told to wait (Retry-After) when the database is away (a restarted
+# embedded PostgreSQL answers again within about this), and when the queue is full.
+RETRY_AFTER_S = 2
+BUSY_RETRY_AFTER_S = 1
+# While the last connection attempt failed, a request waits this long for a connection at
+# most: enough for a database that has just come back, without holding clients for the whole
+# wait of a busy one.
+UNREACHABLE_WAIT_S = 1.0
 
 
 class SchemaTooNew(RuntimeError):
     pass
+
+
+class DatabaseUnavailable(psycopg.OperationalError):
+    """The database cannot serve a request now: unreachable, or no connection free within the
+    wait. The APIs answer 503 / UNAVAILABLE with Retry-After (an OperationalError, so callers
+    that tolerate database failures, such as the background writer, treat it as one)."""
+
+    status = 503
+
+    def __init__(self, message: str, retry_after_s: int = RETRY_AFTER_S):
+        super().__init__(message)
+        self.message = message
+        self.retry_after_s = retry_after_s
+
+
+class DatabaseBusy(DatabaseUnavailable):
+    """More API requests wait for a database connection than the queue holds (REST 429)."""
+
+    status = 429
 
 
 def migrations() -> list[tuple[int, str, str]]:
@@ -100,45 +128,101 @@ _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
 
 class Store:
-    def __init__(self, url: str, min_size: int = 1, max_size: int = 8):
+    """Two connection pools: `pool` for API requests (at most max_size connections, `queue`
+    requests waiting for one, each at most `wait_s`), and `internal`, a few connections of the
+    server's own (checkpoints, events, finished jobs, the worker table, scene downloads by
+    workers, readiness), so that a flood of requests never holds up the writes that finish
+    jobs."""
+
+    def __init__(
+        self,
+        url: str,
+        min_size: int = 1,
+        max_size: int = 8,
+        queue: int = 0,
+        wait_s: float = 5.0,
+        internal_size: int = 3,
+    ):
         self.url = url
+        self.wait_s = wait_s
+        # True from a failed connection attempt until the next one succeeds.
+        self.unreachable = False
         # check: a connection is tested before it is handed out, so connections broken by a
-        # database restart are replaced instead of failing a request; timeout: a caller waits
-        # at most this long for a connection while the database is away.
+        # database restart are replaced instead of failing a request. reconnect_timeout=0:
+        # a failed connection attempt is given up at once (reconnect_failed), and the next
+        # request that finds no connection makes the pool try again, so it reconnects as soon
+        # as the database answers rather than after a growing backoff.
+        common: dict[str, Any] = {
+            "open": False,
+            "kwargs": {"autocommit": True},
+            "check": AsyncConnectionPool.check_connection,
+            "reconnect_timeout": 0,
+            "configure": self._connected,
+            "reconnect_failed": self._connect_failed,
+        }
         self.pool = AsyncConnectionPool(
             url,
-            min_size=min_size,
+            min_size=min(min_size, max_size),
             max_size=max_size,
-            open=False,
-            kwargs={"autocommit": True},
-            check=AsyncConnectionPool.check_connection,
-            timeout=5.0,
-            reconnect_timeout=0,  # keep trying for as long as the server runs
+            max_waiting=queue,
+            timeout=wait_s,
+            name="api",
+            **common,
+        )
+        self.internal = AsyncConnectionPool(
+            url, min_size=1, max_size=internal_size, timeout=5.0, name="internal", **common
         )
         # Failed database operations since start (renderfarm_database_errors_total).
         self.errors = 0
 
+    async def _connected(self, conn: Any) -> None:
+        self.unreachable = False
+
+    def _connect_failed(self, pool: Any) -> None:
+        self.unreachable = True
+
     @contextlib.asynccontextmanager
-    async def _connection(self, timeout: float | None = None) -> AsyncIterator[Any]:
-        """A pooled connection; every database failure inside is counted, then re-raised."""
+    async def _connection(
+        self, timeout: float | None = None, internal: bool = False
+    ) -> AsyncIterator[Any]:
+        """A pooled connection. Every database failure inside is counted; a full queue is
+        raised as DatabaseBusy, a database out of reach (or no connection within the wait) as
+        DatabaseUnavailable, anything else as it is."""
+        if self.unreachable:
+            timeout = min(timeout or self.wait_s, UNREACHABLE_WAIT_S)
         try:
-            async with self.pool.connection(timeout=timeout) as conn:
+            async with (self.internal if internal else self.pool).connection(timeout) as conn:
                 yield conn
-        except (psycopg.Error, PoolTimeout, OSError):
+        except TooManyRequests as e:
+            self.errors += 1
+            raise DatabaseBusy(f"database busy: {e}", BUSY_RETRY_AFTER_S) from e
+        except (psycopg.OperationalError, psycopg.InterfaceError, OSError) as e:
+            self.errors += 1
+            raise DatabaseUnavailable(f"database unavailable: {e}") from e
+        except psycopg.Error:
             self.errors += 1
             raise
 
     async def open(self) -> None:
+        await self.internal.open(wait=True, timeout=30)
         await self.pool.open(wait=True, timeout=30)
         await self.migrate()
 
     async def close(self) -> None:
         await self.pool.close()
+        await self.internal.close()
+
+    async def reconnect(self) -> None:
+        """Replace the connections a database restart broke now rather than on their next
+        use (called when the embedded PostgreSQL was restarted)."""
+        self.unreachable = False
+        await self.internal.check()
+        await self.pool.check()
 
     async def migrate(self) -> int:
         """Apply pending migrations; return the schema version."""
         known = migrations()
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             await conn.execute("SELECT pg_advisory_lock(%s)", (_MIGRATION_LOCK,))
             try:
                 await conn.execute(
@@ -165,7 +249,7 @@ class Store:
                 await conn.execute("SELECT pg_advisory_unlock(%s)", (_MIGRATION_LOCK,))
 
     async def ping(self) -> None:
-        async with self._connection(timeout=5) as conn:
+        async with self._connection(timeout=5, internal=True) as conn:
             await conn.execute("SELECT 1")
 
     # ----------------------------------------------------------------------------- scenes
@@ -187,7 +271,7 @@ class Store:
             return await cur.fetchone()
 
     async def read_scene(self, sha256: str, offset: int, length: int) -> bytes:
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             cur = await conn.execute(
                 "SELECT substring(data FROM %s FOR %s) FROM scenes WHERE sha256 = %s",
                 (offset + 1, length, sha256),
@@ -205,17 +289,20 @@ class Store:
         tiles: int,
         owner: str = "",
     ) -> JobRow:
+        # One statement: the job and its first event are committed together, in one round
+        # trip (a burst of submissions holds each pooled connection as briefly as it can).
         async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
-                "INSERT INTO jobs (id, name, state, settings, scene_sha256, tiles_total, owner)"
-                f" VALUES (%s, %s, 'queued', %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}",
-                (job_id, name, json.dumps(settings), scene_sha256, tiles, owner),
-            )
-            await conn.execute(
-                "INSERT INTO events (job_id, kind, data) VALUES (%s, 'job_submitted', %s)",
-                (job_id, json.dumps({"name": name})),
-            )
+                "WITH job AS (INSERT INTO jobs"
+                " (id, name, state, settings, scene_sha256, tiles_total, owner)"
+                f" VALUES (%s, %s, 'queued', %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
+                " submitted AS (INSERT INTO events (job_id, kind, data)"
+                " SELECT id, 'job_submitted', %s FROM job)"
+                " SELECT * FROM job",
+                (job_id, name, json.dumps(settings), scene_sha256, tiles, owner,
+                 json.dumps({"name": name})),
+            )  # fmt: skip
             return JobRow(**await cur.fetchone())
 
     async def update_job(
@@ -233,7 +320,7 @@ class Store:
         tiles_done: int,
         tiles_previewed: int,
     ) -> None:
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             await conn.execute(
                 "UPDATE jobs SET state = %s, error = %s,"
                 " started_at = coalesce(started_at, %s), finished_at = %s, elapsed_s = %s,"
@@ -312,7 +399,7 @@ class Store:
                 return True
 
     async def unfinished_jobs(self) -> list[JobRow]:
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 f"SELECT {_JOB_COLUMNS} FROM jobs WHERE state IN ('queued', 'running')"
@@ -325,7 +412,7 @@ class Store:
         if not rows:
             return
         # One transaction: one commit (one WAL flush) per checkpoint, not one per tile.
-        async with self._connection() as conn, conn.transaction():
+        async with self._connection(internal=True) as conn, conn.transaction():
             async with conn.cursor() as cur:
                 await cur.executemany(
                     "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
@@ -385,13 +472,33 @@ class Store:
     async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
         if not events:
             return
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             async with conn.cursor() as cur:
                 # Events of a job deleted meanwhile are dropped rather than failing the batch.
                 await cur.executemany(
                     "INSERT INTO events (job_id, kind, data) SELECT %s, %s, %s"
                     " WHERE EXISTS (SELECT 1 FROM jobs WHERE id = %s)",
                     [(j, k, json.dumps(_clean(d), default=str), j) for j, k, d in events],
+                )
+
+    async def add_events_once(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
+        """add_events, leaving out every event already stored with the same job, kind and
+        data: replaying a spool a second time (after a crash between its writes and its
+        removal) adds nothing."""
+        if not events:
+            return
+        async with self._connection(internal=True) as conn:
+            async with conn.cursor() as cur:
+                await cur.executemany(
+                    "INSERT INTO events (job_id, kind, data) SELECT %s, %s, %s::jsonb"
+                    " WHERE EXISTS (SELECT 1 FROM jobs WHERE id = %s) AND NOT EXISTS"
+                    " (SELECT 1 FROM events WHERE job_id = %s AND kind = %s"
+                    " AND data = %s::jsonb)",
+                    [
+                        (j, k, text, j, j, k, text)
+                        for j, k, d in events
+                        for text in [json.dumps(_clean(d), default=str)]
+                    ],
                 )
 
     async def list_events(self, job_id: str, limit: int = 1000) -> list[dict[str, Any]]:
@@ -405,7 +512,7 @@ class Store:
 
     # ---------------------------------------------------------------------------- workers
     async def worker_connected(self, worker_id: str, hostname: str, cores: int, version: str):
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             await conn.execute(
                 "INSERT INTO workers (id, hostname, cores, version, connected_at, last_seen,"
                 " connected) VALUES (%s, %s, %s, %s, now(), now(), true)"
@@ -416,14 +523,14 @@ class Store:
             )
 
     async def worker_disconnected(self, worker_id: str) -> None:
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             await conn.execute(
                 "UPDATE workers SET connected = false, last_seen = now() WHERE id = %s",
                 (worker_id,),
             )
 
     async def mark_all_workers_disconnected(self) -> None:
-        async with self._connection() as conn:
+        async with self._connection(internal=True) as conn:
             await conn.execute("UPDATE workers SET connected = false WHERE connected")
 
     # ------------------------------------------------------------------------- api tokens
@@ -510,4 +617,14 @@ def _clean(value: Any) -> Any:
     return value
 
 
-__all__ = ["JobRow", "SchemaTooNew", "Store", "TileRow", "TokenRow", "migrations", "psycopg"]
+__all__ = [
+    "DatabaseBusy",
+    "DatabaseUnavailable",
+    "JobRow",
+    "SchemaTooNew",
+    "Store",
+    "TileRow",
+    "TokenRow",
+    "migrations",
+    "psycopg",
+]
