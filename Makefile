@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 BUILD := build/worker
 JOBS ?= 2
 
-.PHONY: all deps build proto worker web test test-cpp test-py test-deploy lint demo stop bench clean
+.PHONY: all deps build proto worker web test test-cpp test-py test-web test-deploy lint demo stop bench clean
 
 all: build
 
@@ -39,7 +39,12 @@ test-cpp: worker
 test-py: build
 	$(PY) -m pytest -q server/tests tests --ignore-glob='tests/test_deploy*'
 
-test: lint test-cpp test-py test-deploy
+# The dashboard's unit tests (web/test/*.test.ts): type checked, bundled by esbuild into
+# web/dist-test and run by Node's test runner.
+test-web: web
+	@cd web && npm run --silent test
+
+test: lint test-web test-cpp test-py test-deploy
 
 # ---- deploy: compose, Kubernetes and image checks (offline), and the multi-host test over
 # network namespaces (root). Tools from scripts/install-deps.sh --deploy-tools.

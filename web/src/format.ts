@@ -3,10 +3,12 @@
 export function duration(seconds: number | null | undefined): string {
   if (seconds === null || seconds === undefined || !Number.isFinite(seconds)) return "-";
   const s = Math.max(0, seconds);
-  if (s < 10) return `${s.toFixed(1)} s`;
-  if (s < 60) return `${Math.round(s)} s`;
-  const m = Math.floor(s / 60);
-  if (m < 60) return `${m} min ${String(Math.round(s % 60)).padStart(2, "0")} s`;
+  // Units are chosen after rounding, so 59.6 s is "1 min 00 s", not "60 s" (nor "0 min 60 s").
+  if (Math.round(s * 10) < 100) return `${s.toFixed(1)} s`;
+  const whole = Math.round(s);
+  if (whole < 60) return `${whole} s`;
+  const m = Math.floor(whole / 60);
+  if (m < 60) return `${m} min ${String(whole % 60).padStart(2, "0")} s`;
   const hrs = Math.floor(m / 60);
   if (hrs < 48) return `${hrs} h ${String(m % 60).padStart(2, "0")} min`;
   return `${Math.floor(hrs / 24)} d ${hrs % 24} h`;
@@ -37,6 +39,11 @@ export function si(value: number | null | undefined, digits = 3): string {
   }
   const sign = value < 0 ? "-" : "";
   let text = v === 0 ? "0" : v.toPrecision(digits);
+  // Rounding can reach the next prefix: 999 999 is "1 M", not "1.00e+3 k".
+  if (Number(text) >= 1000 && i < units.length - 1) {
+    i++;
+    text = "1";
+  }
   if (text.includes(".") && !text.includes("e")) text = text.replace(/0+$/, "").replace(/\.$/, "");
   return `${sign}${text}${units[i] ? " " + units[i] : ""}`;
 }

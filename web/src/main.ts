@@ -5,6 +5,7 @@ import { mountJob } from "./pages/job";
 import { mountJobs } from "./pages/jobs";
 import { mountSubmit } from "./pages/submit";
 import { mountWorkers } from "./pages/workers";
+import { parseRoute, section } from "./router";
 import { initSession } from "./session";
 
 type Unmount = () => void;
@@ -14,22 +15,16 @@ let first = true;
 
 function route(): void {
   const main = document.getElementById("main")!;
-  const hash = location.hash.replace(/^#/, "") || "/jobs";
-  const [path, queryText = ""] = hash.split("?");
-  const query = new URLSearchParams(queryText);
-  const parts = path.split("/").filter(Boolean);
   unmount?.();
   unmount = null;
-  let section = parts[0] ?? "jobs";
-  if (section === "jobs" && parts[1]) unmount = mountJob(main, decodeURIComponent(parts[1]));
-  else if (section === "workers") unmount = mountWorkers(main);
-  else if (section === "submit") unmount = mountSubmit(main);
-  else {
-    section = "jobs";
-    unmount = mountJobs(main, query);
-  }
+  const current = parseRoute(location.hash);
+  if (current.page === "job") unmount = mountJob(main, current.jobId);
+  else if (current.page === "workers") unmount = mountWorkers(main);
+  else if (current.page === "submit") unmount = mountSubmit(main);
+  else unmount = mountJobs(main, current.query);
+  const nav = section(current);
   for (const a of document.querySelectorAll<HTMLAnchorElement>("[data-nav]")) {
-    if (a.dataset.nav === section) a.setAttribute("aria-current", "page");
+    if (a.dataset.nav === nav) a.setAttribute("aria-current", "page");
     else a.removeAttribute("aria-current");
   }
   // Keyboard and screen-reader users land on the new page's content, not on the old link.
