@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 BUILD := build/worker
 JOBS ?= 2
 
-.PHONY: all deps build proto worker web test test-cpp test-py test-web test-deploy lint demo stop bench clean
+.PHONY: all deps build proto worker web blender-addon blender-deps test test-cpp test-py test-web test-deploy lint demo stop bench clean
 
 all: build
 
@@ -29,14 +29,23 @@ web: deps
 
 build: proto worker web
 
+# The Blender add-on (integrations/blender) as the zip Blender installs from disk.
+BLENDER_ADDON_ZIP ?= build/renderfarm-blender.zip
+blender-addon:
+	@python3 integrations/blender/build.py $(BLENDER_ADDON_ZIP)
+
+# Blender's bpy module in .venv-blender, for the add-on's tests.
+blender-deps:
+	@scripts/install-deps.sh --blender
+
 lint: deps
-	$(VENV)/bin/ruff check server tests bench examples
-	$(VENV)/bin/ruff format --check server tests bench examples
+	$(VENV)/bin/ruff check server tests bench examples integrations
+	$(VENV)/bin/ruff format --check server tests bench examples integrations
 
 test-cpp: worker
 	ctest --test-dir $(BUILD) --output-on-failure -j $(JOBS)
 
-test-py: build
+test-py: build blender-deps
 	$(PY) -m pytest -q server/tests tests --ignore-glob='tests/test_deploy*'
 
 # The dashboard's unit tests (web/test/*.test.ts): type checked, bundled by esbuild into

@@ -18,8 +18,12 @@
 #   scripts/install-deps.sh --deploy-tools   what `make test-deploy` needs: docker-compose,
 #                                            iproute2 and openssl (apt), kustomize,
 #                                            kubernetes-validate (.venv)
+#   scripts/install-deps.sh --blender        Blender as a Python module (bpy, PyPI) in its own
+#                                            virtual environment .venv-blender, for the add-on's
+#                                            tests (tests/test_blender_addon.py; `make test`)
 #   scripts/install-deps.sh --print GROUP    print a package group (build, web, runtime-server,
-#                                            runtime-worker, deploy, deploy-pip) and exit
+#                                            runtime-worker, deploy, deploy-pip, blender-pip)
+#                                            and exit
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -32,6 +36,9 @@ APT_BUILD=(
   python3 python3-venv python3-pip python3-dev  # headers: the server's C merge loops
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
   prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
+  # The system libraries Blender's bpy module links (X11, input, session, OpenGL; it bundles
+  # the rest), for the Blender add-on's tests.
+  libx11-6 libxext6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libxcb1 libsm6 libice6 libgl1
 )
 # The dashboard's build (web/: npm ci, npm run build); any recent Node already on the machine is
 # used, Debian's otherwise.
@@ -55,6 +62,10 @@ APT_DEPLOY=(docker-compose iproute2 openssl)
 # Offline validation of the Kubernetes manifests against the API types (schemas in the wheel).
 PIP_DEPLOY=(kubernetes-validate==1.37.0)
 KUSTOMIZE_MODULE=sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
+# Blender 5.0's Python as a module, for the add-on's tests (integrations/blender). It lives in
+# .venv-blender, apart from .venv: bpy 5.0.1 requires numpy < 2 and OpenImageIO 3.2 (the
+# server's) numpy >= 2. The wheel is ~375 MB (about 1 GB installed). Python 3.11, as Blender 5.0.
+PIP_BLENDER=(bpy==5.0.1)
 
 SUDO=""
 [ "$(id -u)" -eq 0 ] || SUDO="sudo"
@@ -128,6 +139,19 @@ deploy_tools() {
   fi
 }
 
+blender_venv() {
+  apt_install "${APT_BUILD[@]}"
+  local stamp
+  stamp=.venv-blender/.installed-$(printf '%s\n' "${PIP_BLENDER[@]}" | sha256sum | cut -c1-16)
+  if [ ! -f "$stamp" ]; then
+    echo "installing ${PIP_BLENDER[*]} into .venv-blender"
+    [ -x .venv-blender/bin/python ] || "${PYTHON:-python3}" -m venv .venv-blender
+    .venv-blender/bin/pip install -q "${PIP_BLENDER[@]}"
+    rm -f .venv-blender/.installed-*
+    touch "$stamp"
+  fi
+}
+
 case "${1:-}" in
   "")
     apt_install "${APT_BUILD[@]}"
@@ -154,6 +178,9 @@ case "${1:-}" in
   --deploy-tools)
     deploy_tools
     ;;
+  --blender)
+    blender_venv
+    ;;
   --print)
     case "${2:-}" in
       build) printf '%s\n' "${APT_BUILD[@]}" ;;
@@ -162,11 +189,12 @@ case "${1:-}" in
       runtime-worker) printf '%s\n' "${APT_RUNTIME_WORKER[@]}" ;;
       deploy) printf '%s\n' "${APT_DEPLOY[@]}" ;;
       deploy-pip) printf '%s\n' "${PIP_DEPLOY[@]}" ;;
-      *) echo "usage: $0 --print build|web|runtime-server|runtime-worker|deploy|deploy-pip" >&2; exit 2 ;;
+      blender-pip) printf '%s\n' "${PIP_BLENDER[@]}" ;;
+      *) echo "usage: $0 --print build|web|runtime-server|runtime-worker|deploy|deploy-pip|blender-pip" >&2; exit 2 ;;
     esac
     ;;
   *)
-    sed -n '2,22p' "$0" >&2
+    sed -n '2,26p' "$0" >&2
     exit 2
     ;;
 esac

@@ -1,0 +1,86 @@
+"""Job settings as the farm describes them (GET /api/v1/settings), without bpy.
+
+The farm is the only authority on which settings exist, their types and defaults: the add-on
+stores the list it fetched (per scene) and builds its fields from it, so a setting added to the
+farm appears in Blender without a new add-on.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from typing import Any
+
+KINDS = ("int", "float", "str")
+# A string setting whose help ends in "a, b, c" offers those choices (the dashboard reads the
+# help the same way: "sample generator: sobol, halton, stratified, independent").
+_CHOICES = re.compile(r":\s*([a-z0-9_]+(?:,\s*[a-z0-9_]+)+)\s*$", re.IGNORECASE)
+# Set from the Blender scene rather than by hand (see scene_overrides).
+RESOLUTION = ("width", "height")
+
+
+def choices(doc: dict[str, Any]) -> list[str]:
+    """The choices a string setting lists at the end of its help; [] for free text."""
+    if doc.get("type") != "str":
+        return []
+    m = _CHOICES.search(str(doc.get("help", "")))
+    return [c.strip() for c in m.group(1).split(",")] if m else []
+
+
+def check_docs(docs: Any) -> list[dict[str, Any]]:
+    """The settings list as the farm sent it, checked: a ValueError says what is malformed."""
+    if not isinstance(docs, list):
+        raise ValueError("the farm's settings are not a list")
+    out = []
+    for i, d in enumerate(docs):
+        if not isinstance(d, dict) or not isinstance(d.get("name"), str) or not d["name"]:
+            raise ValueError(f"setting {i} of the farm has no name")
+        if d.get("type") not in KINDS:
+            raise ValueError(f"setting {d['name']} has an unknown type {d.get('type')!r}")
+        default = d.get("default")
+        if d["type"] == "str" and not isinstance(default, str):
+            raise ValueError(f"setting {d['name']}: default {default!r} is not text")
+        if d["type"] in ("int", "float") and (
+            isinstance(default, bool) or not isinstance(default, (int, float))
+        ):
+            raise ValueError(f"setting {d['name']}: default {default!r} is not a number")
+        out.append(
+            {
+                "name": d["name"],
+                "type": d["type"],
+                "default": default,
+                "help": str(d.get("help", "")),
+            }
+        )
+    return out
+
+
+def _single(x: float) -> float:
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def changed(values: dict[str, Any], docs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The settings that differ from the farm's defaults (the farm fills in the others, so a
+    default it changes later applies to new jobs)."""
+    out = {}
+    for d in docs:
+        name = d["name"]
+        if name not in values:
+            continue
+        value, default = values[name], d["default"]
+        if d["type"] == "float":
+            # Blender keeps floats in single precision (0.02 reads back as 0.0199999996):
+            # equal in single precision is unchanged, and a changed value is sent with the
+            # 7 significant digits single precision holds (0.05, not 0.0500000007).
+            if _single(float(value)) != _single(float(default)):
+                out[name] = float(f"{float(value):.7g}")
+        elif value != default:
+            out[name] = value
+    return out
+
+
+def scene_overrides(docs: list[dict[str, Any]], width: int, height: int) -> dict[str, int]:
+    """width and height from the scene's output resolution, when the farm has those settings:
+    the exported camera's field of view follows the scene's aspect ratio."""
+    names = {d["name"] for d in docs}
+    return {k: v for k, v in (("width", width), ("height", height)) if k in names}

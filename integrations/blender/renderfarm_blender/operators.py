@@ -1,0 +1,255 @@
+"""The panel's buttons: refresh the settings, check the scene, submit, cancel, fetch."""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+
+import bpy
+from bpy.props import StringProperty
+
+from . import export, props, scan, watch
+from .client import FarmClient, FarmError
+
+
+def _client(context) -> FarmClient:
+    token, ca_file, timeout_s = props.farm_credentials(context)
+    return FarmClient(props.farm_url(context.scene, context), token, ca_file, timeout_s)
+
+
+def refresh_settings(context) -> None:
+    """Fetch the farm's settings into the scene (raises FarmError or ValueError)."""
+    client = _client(context)
+    context.scene.renderfarm.load_docs(client.settings(), client.url)
+
+
+def check_scene(scene) -> list[scan.Issue]:
+    issues = scan.scan(scene)
+    rf = scene.renderfarm
+    rf.issues.clear()
+    for issue in issues:
+        item = rf.issues.add()
+        item.kind, item.owner, item.message = issue.kind, issue.owner, issue.message
+    rf.issues_checked = True
+    return issues
+
+
+class RENDERFARM_OT_refresh_settings(bpy.types.Operator):
+    bl_idname = "renderfarm.refresh_settings"
+    bl_label = "Refresh settings"
+    bl_description = "Fetch the job settings the farm offers, with their defaults"
+
+    def execute(self, context):
+        rf = context.scene.renderfarm
+        try:
+            refresh_settings(context)
+        except (FarmError, ValueError) as e:
+            rf.status = e.report() if isinstance(e, FarmError) else str(e)
+            self.report({"ERROR"}, f"Render farm: {rf.status}")
+            return {"CANCELLED"}
+        rf.status = f"{len(rf.settings)} settings from {rf.settings_url}"
+        self.report({"INFO"}, f"Render farm: {rf.status}")
+        return {"FINISHED"}
+
+
+class RENDERFARM_OT_reset_settings(bpy.types.Operator):
+    bl_idname = "renderfarm.reset_settings"
+    bl_label = "Reset to farm defaults"
+    bl_description = "Set every job setting back to the farm's default"
+
+    @classmethod
+    def poll(cls, context):
+        return len(context.scene.renderfarm.settings) > 0
+
+    def execute(self, context):
+        context.scene.renderfarm.reset_settings()
+        return {"FINISHED"}
+
+
+class RENDERFARM_OT_setting_help(bpy.types.Operator):
+    bl_idname = "renderfarm.setting_help"
+    bl_label = "Setting help"
+    bl_options = {"INTERNAL"}
+
+    setting: StringProperty()
+
+    @classmethod
+    def description(cls, context, properties):
+        item = context.scene.renderfarm.settings.get(properties.setting)
+        if item is None:
+            return properties.setting
+        return f"{item.name} ({item.kind}, default {item.default_json}): {item.help}"
+
+    def execute(self, context):
+        item = context.scene.renderfarm.settings.get(self.setting)
+        if item is not None:
+            self.report(
+                {"INFO"}, f"{item.name} ({item.kind}, default {item.default_json}): {item.help}"
+            )
+        return {"FINISHED"}
+
+
+class RENDERFARM_OT_check_scene(bpy.types.Operator):
+    bl_idname = "renderfarm.check_scene"
+    bl_label = "Check scene"
+    bl_description = "List what the glTF export drops and what the farm does not render"
+
+    def execute(self, context):
+        issues = check_scene(context.scene)
+        if issues:
+            self.report(
+                {"WARNING"}, f"Render farm: {len(issues)} thing(s) will not render as in Blender"
+            )
+        else:
+            self.report({"INFO"}, "Render farm: everything in the scene is exported")
+        return {"FINISHED"}
+
+
+def _default_job_name(scene, frame: int) -> str:
+    blend = os.path.splitext(os.path.basename(bpy.data.filepath))[0] or "untitled"
+    return f"{blend} {scene.name} frame {frame}"
+
+
+class RENDERFARM_OT_submit(bpy.types.Operator):
+    bl_idname = "renderfarm.submit"
+    bl_label = "Submit to farm"
+    bl_description = (
+        "Export the scene at the current frame with Blender's glTF exporter and submit it "
+        "to the farm as a job"
+    )
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    def execute(self, context):
+        scene = context.scene
+        rf = scene.renderfarm
+        if scene.camera is None:
+            rf.status = f"scene '{scene.name}' has no active camera"
+            self.report({"ERROR"}, f"Render farm: {rf.status}")
+            return {"CANCELLED"}
+        try:
+            client = _client(context)
+            if not rf.settings_json or rf.settings_url != client.url:
+                rf.load_docs(client.settings(), client.url)  # first use on this farm
+        except (FarmError, ValueError) as e:
+            rf.status = e.report() if isinstance(e, FarmError) else str(e)
+            self.report({"ERROR"}, f"Render farm: {rf.status}")
+            return {"CANCELLED"}
+        issues = check_scene(scene)
+        for issue in issues:
+            self.report({"WARNING"}, f"Not rendered by the farm: {issue.text()}")
+        settings = rf.job_settings(scene)
+        submitted = []
+        for frame in export.frames_to_submit(scene):
+            try:
+                glb = export.export_frame(scene, frame)
+                name = rf.job_name.strip() or _default_job_name(scene, frame)
+                job = client.submit(glb, f"{bpy.path.clean_name(scene.name)}.glb", settings, name)
+            except (export.ExportError, FarmError) as e:
+                rf.status = e.report() if isinstance(e, FarmError) else str(e)
+                self.report({"ERROR"}, f"Render farm: {rf.status}")
+                return {"CANCELLED"} if not submitted else {"FINISHED"}
+            entry = rf.jobs.add()
+            entry.name = str(job.get("name") or name)
+            entry.job_id = str(job["id"])
+            entry.farm_url = client.url
+            entry.frame = frame
+            watch.apply_job(entry, job)
+            rf.active_job = len(rf.jobs) - 1
+            watch.watch(client, entry.job_id)
+            submitted.append(entry.job_id)
+        rf.status = f"submitted job {submitted[-1]} (frame {scene.frame_current})"
+        if issues:
+            rf.status += f"; {len(issues)} thing(s) will not render as in Blender"
+        self.report({"INFO"}, f"Render farm: {rf.status}")
+        return {"FINISHED"}
+
+
+def _job_client(context, entry) -> FarmClient:
+    token, ca_file, timeout_s = props.farm_credentials(context)
+    return FarmClient(entry.farm_url, token, ca_file, timeout_s)
+
+
+class RENDERFARM_OT_cancel(bpy.types.Operator):
+    bl_idname = "renderfarm.cancel"
+    bl_label = "Cancel job"
+    bl_description = "Cancel the job on the farm"
+
+    @classmethod
+    def poll(cls, context):
+        entry = context.scene.renderfarm.current_job()
+        return entry is not None and entry.state in ("queued", "running")
+
+    def execute(self, context):
+        entry = context.scene.renderfarm.current_job()
+        try:
+            watch.apply_job(entry, _job_client(context, entry).cancel(entry.job_id))
+        except FarmError as e:
+            self.report({"ERROR"}, f"Render farm: {e.report()}")
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+def result_path(entry) -> str:
+    """Where a job's EXR is written: `renderfarm/` next to the saved .blend, else the
+    temporary directory."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", entry.name).strip("._") or "job"
+    filename = f"{safe}-{entry.job_id[:8]}.exr"
+    if bpy.data.filepath:
+        directory = os.path.join(os.path.dirname(bpy.data.filepath), "renderfarm")
+    else:
+        directory = os.path.join(tempfile.gettempdir(), "renderfarm")
+    return os.path.join(directory, filename)
+
+
+class RENDERFARM_OT_fetch(bpy.types.Operator):
+    bl_idname = "renderfarm.fetch"
+    bl_label = "Fetch result"
+    bl_description = (
+        "Download the job's multi-layer EXR (colour, albedo, normal, variance, spp, error) "
+        "and open it as an image named after the job"
+    )
+
+    @classmethod
+    def poll(cls, context):
+        entry = context.scene.renderfarm.current_job()
+        return entry is not None and entry.state not in ("queued", "unknown")
+
+    def execute(self, context):
+        entry = context.scene.renderfarm.current_job()
+        path = result_path(entry)
+        try:
+            data = _job_client(context, entry).image_exr(entry.job_id)
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            with open(path, "wb") as f:
+                f.write(data)
+        except FarmError as e:
+            self.report({"ERROR"}, f"Render farm: {e.report()}")
+            return {"CANCELLED"}
+        except OSError as e:
+            self.report({"ERROR"}, f"Render farm: cannot write {path}: {e}")
+            return {"CANCELLED"}
+        image = bpy.data.images.get(entry.image_name) if entry.image_name else None
+        if image is not None and bpy.path.abspath(image.filepath) == path:
+            image.reload()
+        else:
+            image = bpy.data.images.load(path, check_existing=False)
+            image.name = entry.name
+        entry.image_name, entry.image_path = image.name, path
+        partial = "" if entry.state == "completed" else f" (job {entry.state}: partial image)"
+        self.report({"INFO"}, f"Render farm: image '{image.name}' from {path}{partial}")
+        return {"FINISHED"}
+
+
+CLASSES = (
+    RENDERFARM_OT_refresh_settings,
+    RENDERFARM_OT_reset_settings,
+    RENDERFARM_OT_setting_help,
+    RENDERFARM_OT_check_scene,
+    RENDERFARM_OT_submit,
+    RENDERFARM_OT_cancel,
+    RENDERFARM_OT_fetch,
+)

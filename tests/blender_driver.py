@@ -1,0 +1,378 @@
+"""Runs inside Blender's Python (the bpy module of .venv-blender), started by
+tests/test_blender_addon.py: installs the add-on from its zip as an artist would, builds a scene,
+presses the add-on's buttons (operators) and prints what it saw as one JSON line `RESULT {...}`.
+The test, in the project's own Python, checks that against the farm.
+
+    python tests/blender_driver.py SCENARIO CONFIG.json
+
+SCENARIO: `render` (settings, submit, follow, fetch, the Combined pass written as a plain EXR
+by the compositor, the .blend saved) or `scan` (a scene of things the farm does not render:
+checked, submitted anyway, and exported with two cameras).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import os
+import sys
+import time
+
+# Blender's user resources (preferences, installed extensions) in the test's directory, never
+# the user's own; read when bpy is imported, so set first.
+CONFIG = json.loads(open(sys.argv[2]).read())
+os.environ["BLENDER_USER_RESOURCES"] = CONFIG["user_resources"]
+
+import bpy  # noqa: E402
+from mathutils import Vector  # noqa: E402
+
+ADDON = "bl_ext.user_default.renderfarm"
+
+
+def install_addon() -> None:
+    result = bpy.ops.extensions.package_install_files(
+        filepath=CONFIG["zip"], repo="user_default", enable_on_install=True
+    )
+    assert result == {"FINISHED"}, result
+    assert ADDON in bpy.context.preferences.addons, list(bpy.context.preferences.addons.keys())
+
+
+def module(name: str):
+    return importlib.import_module(f"{ADDON}.{name}")
+
+
+def empty_scene():
+    """The start-up scene emptied (its cube, light and camera removed, no world)."""
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    scene = bpy.context.scene
+    scene.world = None
+    return scene
+
+
+def principled(name: str, color=(0.8, 0.8, 0.8), emission=0.0):
+    mat = bpy.data.materials.new(name)
+    nodes = mat.node_tree.nodes
+    bsdf = nodes.get("Principled BSDF")
+    if bsdf is None:  # an empty material tree: make the default pair
+        nodes.clear()
+        bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+        out = nodes.new("ShaderNodeOutputMaterial")
+        mat.node_tree.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+    if emission:
+        bsdf.inputs["Emission Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        bsdf.inputs["Emission Strength"].default_value = emission
+    return mat
+
+
+def mesh_object(scene, name: str, kind: str, size: float, location, material):
+    if kind == "plane":
+        bpy.ops.mesh.primitive_plane_add(size=size, location=location)
+    else:
+        bpy.ops.mesh.primitive_cube_add(size=size, location=location)
+    obj = bpy.context.active_object
+    obj.name = name
+    obj.data.materials.append(material)
+    return obj
+
+
+def look_at(obj, target) -> None:
+    direction = Vector(target) - obj.location
+    obj.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
+
+
+def camera(scene, name: str, location, target):
+    cam = bpy.data.objects.new(name, bpy.data.cameras.new(name))
+    scene.collection.objects.link(cam)
+    cam.location = location
+    look_at(cam, target)
+    return cam
+
+
+def basic_scene(width: int, height: int):
+    """A plane, a red cube, an emissive panel, a point light, a camera."""
+    scene = empty_scene()
+    mesh_object(scene, "Ground", "plane", 6.0, (0, 0, 0), principled("Grey"))
+    mesh_object(scene, "Box", "cube", 1.0, (0, 0, 0.5), principled("Red", (0.8, 0.05, 0.05)))
+    panel = mesh_object(scene, "Panel", "plane", 1.5, (0, 0, 2.8), principled("Glow", emission=4.0))
+    panel.rotation_euler = (math.pi, 0, 0)  # facing down
+    light = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    light.data.energy = 300.0
+    light.data.shadow_soft_size = 0.0
+    light.location = (2.0, -2.0, 3.0)
+    scene.collection.objects.link(light)
+    scene.camera = camera(scene, "Camera", (4.0, -4.0, 3.0), (0, 0, 0.5))
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    return scene
+
+
+def run_op(op, **kwargs) -> dict:
+    """An operator's outcome; an ERROR report raises in Blender without a window."""
+    try:
+        return {"result": sorted(op(**kwargs)), "error": ""}
+    except RuntimeError as e:
+        return {"result": ["CANCELLED"], "error": str(e)}
+
+
+def set_setting(rf, name: str, value) -> None:
+    item = rf.settings[name]
+    if item.kind == "str" and json.loads(item.choices_json):
+        item.choice = value
+    else:
+        item.set_value(value)
+
+
+def combined_pass_to_exr(image, width: int, height: int, path: str) -> None:
+    """The Combined pass of a multi-layer image, through the compositor into a plain 32-bit
+    EXR: Blender's Python has no other way to read a multi-layer image's pixels."""
+    scene = bpy.context.scene
+    tree = bpy.data.node_groups.new("Read pass", "CompositorNodeTree")
+    scene.compositing_node_group = tree
+    node = tree.nodes.new("CompositorNodeImage")
+    node.image = image
+    tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    out = tree.nodes.new("NodeGroupOutput")
+    tree.links.new(node.outputs["Combined"], out.inputs[0])
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.render.filepath = path
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    settings.color_mode = "RGB"
+    bpy.ops.render.render(write_still=True)
+
+
+class CheckedLayout:
+    """Stands in for bpy.types.UILayout when drawing the panel without a window: checks that
+    every property drawn exists on its data, every operator is registered and every icon is
+    one of Blender's, and records the text shown."""
+
+    ICONS = set(bpy.types.UILayout.bl_rna.functions["prop"].parameters["icon"].enum_items.keys())
+
+    def __init__(self, shown: list):
+        self.shown = shown
+
+    def _icon(self, kwargs) -> None:
+        icon = kwargs.get("icon")
+        assert icon is None or icon in self.ICONS, f"unknown icon {icon}"
+
+    def __getattr__(self, name):  # attributes such as enabled, scale_y, use_property_split
+        raise AttributeError(name)
+
+    def __setattr__(self, name, value):
+        object.__setattr__(self, name, value)
+
+    def row(self, **_):
+        return CheckedLayout(self.shown)
+
+    column = box = row
+
+    def label(self, text="", **kwargs):
+        self._icon(kwargs)
+        self.shown.append(text)
+
+    def prop(self, data, name, **kwargs):
+        self._icon(kwargs)
+        assert name in data.bl_rna.properties, f"{data} has no property {name}"
+        self.shown.append(kwargs.get("text") or data.bl_rna.properties[name].name)
+
+    def operator(self, idname, **kwargs):
+        self._icon(kwargs)
+        category, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, category), op), f"no operator {idname}"
+        getattr(bpy.ops, category).__getattr__(op).get_rna_type()
+        self.shown.append(kwargs.get("text", idname))
+        return type("OpProps", (), {})()
+
+    def progress(self, factor=0.0, type="BAR", text=""):
+        assert 0.0 <= factor <= 1.0 and type in ("BAR", "RING")
+        self.shown.append(text)
+
+
+def draw_panel() -> list:
+    panel = module("panel")
+    shown: list = []
+    fake = type("FakePanel", (), {})()
+    fake.layout = CheckedLayout(shown)
+    panel.RENDER_PT_renderfarm.draw(fake, bpy.context)
+    panel.draw_status_bar(fake, bpy.context)
+    return shown
+
+
+def scenario_render() -> dict:
+    out: dict = {}
+    scene = basic_scene(CONFIG["width"], CONFIG["height"])
+    prefs = bpy.context.preferences.addons[ADDON].preferences
+    prefs.url = CONFIG["url"]
+    rf = scene.renderfarm
+
+    prefs.token = "not-the-token"
+    out["wrong_token"] = run_op(bpy.ops.renderfarm.refresh_settings)
+    prefs.token = CONFIG["token"]
+    out["refresh"] = run_op(bpy.ops.renderfarm.refresh_settings)
+    out["settings"] = [
+        {
+            "name": s.name,
+            "type": s.kind,
+            "default": s.default(),
+            "help": s.help,
+            "choices": json.loads(s.choices_json),
+            "value": s.value(),
+        }
+        for s in rf.settings
+    ]
+    out["check"] = run_op(bpy.ops.renderfarm.check_scene)
+    out["issues"] = [f"{i.owner}: {i.message}" for i in rf.issues]
+    out["panel_before"] = draw_panel()
+
+    set_setting(rf, "max_spp", -1)
+    out["refused"] = run_op(bpy.ops.renderfarm.submit)
+    out["jobs_after_refusal"] = len(rf.jobs)
+
+    for name, value in CONFIG["settings"].items():
+        set_setting(rf, name, value)
+    rf.job_name = CONFIG["job_name"]
+    out["submit"] = run_op(bpy.ops.renderfarm.submit)
+    entry = rf.current_job()
+    out["job_id"] = entry.job_id
+    out["first_state"] = entry.state
+
+    # Blender without a window runs no timers: call the add-on's timer function until the job
+    # has finished, as Blender would every quarter of a second.
+    watch = module("watch")
+    deadline = time.monotonic() + CONFIG["timeout_s"]
+    seen_states = [entry.state]
+    while entry.state not in ("completed", "failed", "cancelled"):
+        assert time.monotonic() < deadline, f"job still {entry.state} after {CONFIG['timeout_s']} s"
+        watch.apply_updates()
+        entry = rf.current_job()
+        if entry.state != seen_states[-1]:
+            seen_states.append(entry.state)
+        if entry.state == "running" and "panel_running" not in out:
+            out["panel_running"] = draw_panel()
+        time.sleep(0.05)
+    out["states"] = seen_states
+    out["progress"] = {
+        "tiles_done": entry.tiles_done,
+        "tiles_total": entry.tiles_total,
+        "mean_spp": entry.mean_spp,
+        "summary": entry.summary(),
+    }
+    assert watch.wait_all(10), "a watcher still runs after its job finished"
+
+    out["fetch"] = run_op(bpy.ops.renderfarm.fetch)
+    image = bpy.data.images[entry.image_name]
+    out["image"] = {
+        "name": image.name,
+        "path": bpy.path.abspath(image.filepath),
+        "job_name": entry.name,
+    }
+    combined_pass_to_exr(image, CONFIG["width"], CONFIG["height"], CONFIG["combined_exr"])
+    out["image"]["type"] = image.type  # known once Blender has read the file
+    out["panel_after"] = draw_panel()
+
+    # Uncompressed, so the test can search the bytes for the token.
+    bpy.ops.wm.save_as_mainfile(filepath=CONFIG["blend"], compress=False)
+    out["token_in_prefs"] = prefs.token == CONFIG["token"]
+    return out
+
+
+def scenario_scan() -> dict:
+    out: dict = {}
+    scene = basic_scene(16, 16)
+    prefs = bpy.context.preferences.addons[ADDON].preferences
+    prefs.url, prefs.token = CONFIG["url"], CONFIG["token"]
+
+    # A material whose surface is Cycles' hair shader, one with a procedural texture inside a
+    # node group, one with a volume shader and a coat.
+    hair = bpy.data.materials.new("Fur")
+    nodes, links = hair.node_tree.nodes, hair.node_tree.links
+    nodes.clear()
+    bsdf = nodes.new("ShaderNodeBsdfHair")
+    bsdf.name = "Hair BSDF"
+    out_node = nodes.new("ShaderNodeOutputMaterial")
+    links.new(bsdf.outputs[0], out_node.inputs["Surface"])
+    mesh_object(scene, "Furry", "cube", 0.5, (1.5, 0, 0.25), hair)
+
+    group = bpy.data.node_groups.new("Marble", "ShaderNodeTree")
+    group.interface.new_socket("Color", in_out="OUTPUT", socket_type="NodeSocketColor")
+    noise = group.nodes.new("ShaderNodeTexNoise")
+    noise.name = "Noise Texture"
+    gout = group.nodes.new("NodeGroupOutput")
+    group.links.new(noise.outputs["Color"], gout.inputs[0])
+    marble = principled("Marbled")
+    gnode = marble.node_tree.nodes.new("ShaderNodeGroup")
+    gnode.node_tree = group
+    marble.node_tree.links.new(
+        gnode.outputs[0], marble.node_tree.nodes["Principled BSDF"].inputs["Base Color"]
+    )
+    marble.node_tree.nodes["Principled BSDF"].inputs["Coat Weight"].default_value = 0.5
+    unused = marble.node_tree.nodes.new("ShaderNodeTexVoronoi")  # linked to nothing: harmless
+    unused.name = "Unused Voronoi"
+    mesh_object(scene, "Statue", "cube", 0.5, (-1.5, 0, 0.25), marble)
+
+    fog = principled("Fog")
+    vol = fog.node_tree.nodes.new("ShaderNodeVolumePrincipled")
+    vol.name = "Fog Volume"
+    out_fog = fog.node_tree.get_output_node("ALL")
+    fog.node_tree.links.new(vol.outputs[0], out_fog.inputs["Volume"])
+    mesh_object(scene, "FogBox", "cube", 0.5, (0, 1.5, 0.25), fog)
+
+    smoke = bpy.data.objects.new("Smoke", bpy.data.volumes.new("Smoke"))
+    scene.collection.objects.link(smoke)
+    area = bpy.data.objects.new("Softbox", bpy.data.lights.new("Softbox", "AREA"))
+    scene.collection.objects.link(area)
+    grass = bpy.data.objects["Ground"]
+    grass.modifiers.new("Grass", "PARTICLE_SYSTEM")
+    grass.particle_systems[0].settings.type = "HAIR"
+    hidden = bpy.data.objects.new("HiddenVolume", bpy.data.volumes.new("HiddenVolume"))
+    hidden.hide_render = True  # not rendered by Blender either: not listed
+    scene.collection.objects.link(hidden)
+
+    # The active camera is made after another one, which the exporter writes first; the
+    # other one is orthographic, which is not listed since it is not the active camera.
+    scene.camera = camera(scene, "SideCam", (-4.0, 0.0, 1.0), (0, 0, 0.5))
+    bpy.data.objects["Camera"].data.type = "ORTHO"
+
+    out["check"] = run_op(bpy.ops.renderfarm.check_scene)
+    out["issues"] = [
+        {"kind": i.kind, "owner": i.owner, "message": i.message} for i in scene.renderfarm.issues
+    ]
+    export = module("export")
+    glb = export.export_frame(scene, scene.frame_current)
+    length = int.from_bytes(glb[12:16], "little")
+    doc = json.loads(glb[20 : 20 + length])
+    out["camera_nodes"] = [n["name"] for n in doc.get("nodes", []) if "camera" in n]
+    out["exported_nodes"] = sorted(n.get("name", "") for n in doc.get("nodes", []))
+    out["mesh_nodes"] = sorted(n.get("name", "") for n in doc.get("nodes", []) if "mesh" in n)
+
+    rf = scene.renderfarm
+    rf.load_docs(json.loads(CONFIG["settings_docs"]), CONFIG["url"])
+    for name, value in CONFIG["settings"].items():
+        set_setting(rf, name, value)
+    out["submit"] = run_op(bpy.ops.renderfarm.submit)
+    out["job_id"] = rf.current_job().job_id if rf.current_job() else ""
+    out["issues_after_submit"] = len(rf.issues)
+
+    # Opened again, the .blend's unfinished job is followed again; then it is cancelled.
+    watch = module("watch")
+    watch.stop_all()
+    entry = rf.current_job()
+    entry.state = "running"  # as if saved while the job ran
+    bpy.ops.wm.save_as_mainfile(filepath=CONFIG["blend"])
+    bpy.ops.wm.open_mainfile(filepath=CONFIG["blend"])
+    out["followed_after_open"] = watch.following()
+    out["cancel"] = run_op(bpy.ops.renderfarm.cancel)
+    out["state_after_cancel"] = bpy.context.scene.renderfarm.current_job().state
+    watch.stop_all()
+    return out
+
+
+if __name__ == "__main__":
+    install_addon()
+    result = {"render": scenario_render, "scan": scenario_scan}[sys.argv[1]]()
+    print("RESULT " + json.dumps(result), flush=True)

@@ -1,0 +1,272 @@
+"""The Blender add-on (integrations/blender) in Blender itself: the bpy module of Blender 5.0.1,
+installed by `scripts/install-deps.sh --blender` into .venv-blender (its own environment:
+bpy needs numpy < 2, the server numpy >= 2). tests/blender_driver.py runs there, installs the
+add-on from the zip the build makes and presses its buttons; this side runs the farm (with an
+API token, so auth is on) and checks what the add-on did against the farm's own answers,
+fetched with renderfarm.client."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from renderfarm.client import Client
+from renderfarm.images import read_exr
+from renderfarm.localfarm import LocalFarm
+
+from .tools import require_tool
+from .waiting import wait_until
+
+ROOT = Path(__file__).resolve().parents[1]
+DRIVER = Path(__file__).with_name("blender_driver.py")
+TOKEN = "rf_blender-addon-test-secret-5f0c2b"
+WIDTH, HEIGHT = 40, 30  # the scene's resolution: not square, to see the aspect ratio kept
+SETTINGS = {
+    "max_spp": 4,
+    "min_spp": 1,
+    "tile_size": 16,
+    "noise_threshold": 0.0,
+    "sampler": "independent",
+    "seed": 3,
+}
+
+
+def blender_python() -> str:
+    explicit = os.environ.get("RENDERFARM_BLENDER_PYTHON")
+    path = Path(explicit) if explicit else ROOT / ".venv-blender" / "bin" / "python"
+    require_tool(path.exists(), f"Blender's bpy module: {path} (scripts/install-deps.sh --blender)")
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def addon_zip(tmp_path_factory) -> Path:
+    """The zip `make blender-addon` writes, built by the same script."""
+    out = tmp_path_factory.mktemp("addon") / "renderfarm-blender.zip"
+    subprocess.run(
+        [sys.executable, str(ROOT / "integrations" / "blender" / "build.py"), str(out)],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
+    return out
+
+
+@pytest.fixture(scope="module")
+def token_farm(tmp_path_factory, worker_binary):
+    """A farm with an API token (auth on) and 2 workers."""
+    data = tmp_path_factory.mktemp("blender-farm")
+    with LocalFarm(
+        workers=2, data_dir=data, threads=1, env={"RENDERFARM_ADMIN_TOKEN": TOKEN}
+    ) as farm:
+        with Client(farm.url, token=TOKEN, timeout=30) as c:
+            wait_until(lambda: len(c.workers()) == 2, timeout_s=30, what="2 workers connected")
+        yield farm
+
+
+def run_driver(scenario: str, config: dict, tmp_path: Path) -> dict:
+    config = {"user_resources": str(tmp_path / "blender-user"), **config}
+    path = tmp_path / f"{scenario}.json"
+    path.write_text(json.dumps(config))
+    proc = subprocess.run(
+        [blender_python(), str(DRIVER), scenario, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, (
+        f"driver {scenario} exited {proc.returncode}\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    )
+    return json.loads(lines[-1][len("RESULT ") :])
+
+
+def test_addon_zip_is_a_valid_extension(addon_zip):
+    """Blender's own extension tool accepts the zip's manifest."""
+    python = blender_python()
+    tool = (
+        subprocess.run(
+            [
+                python,
+                "-c",
+                "import os, bpy, bl_pkg; "
+                "print(os.path.join(os.path.dirname(bl_pkg.__file__), 'cli', 'blender_ext.py'))",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=True,
+        )
+        .stdout.strip()
+        .splitlines()[-1]
+    )
+    proc = subprocess.run(
+        [python, tool, "validate", str(addon_zip)], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_submit_follow_fetch(token_farm, addon_zip, tmp_path):
+    combined = tmp_path / "combined.exr"
+    blend = tmp_path / "scene.blend"
+    result = run_driver(
+        "render",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "token": TOKEN,
+            "width": WIDTH,
+            "height": HEIGHT,
+            "settings": SETTINGS,
+            "job_name": "blender box",
+            "timeout_s": 300,
+            "combined_exr": str(combined),
+            "blend": str(blend),
+        },
+        tmp_path,
+    )
+
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        # A wrong token is reported with the farm's 401 and where to set the token.
+        assert result["wrong_token"]["result"] == ["CANCELLED"]
+        assert "HTTP 401" in result["wrong_token"]["error"]
+        assert "API token" in result["wrong_token"]["error"]
+
+        # The settings fields are the farm's list: every setting, type, default and help.
+        docs = client.http.get("/api/v1/settings").json()
+        assert result["refresh"]["result"] == ["FINISHED"]
+        assert [
+            {k: s[k] for k in ("name", "type", "default", "help")} for s in result["settings"]
+        ] == docs
+        for s in result["settings"]:  # Blender holds floats in single precision
+            expected = (
+                pytest.approx(s["default"], rel=1e-6) if s["type"] == "float" else s["default"]
+            )
+            assert s["value"] == expected, s
+        by_name = {s["name"]: s for s in result["settings"]}
+        assert by_name["sampler"]["choices"] == ["sobol", "halton", "stratified", "independent"]
+        assert by_name["width"]["choices"] == [] and by_name["environment"]["choices"] == []
+
+        # The plain scene (Principled BSDF, emission, point light, camera) loses nothing.
+        assert result["check"]["result"] == ["FINISHED"]
+        assert result["issues"] == []
+
+        # The panel: the farm, every setting, the scene check, the frame, the job's progress.
+        before = result["panel_before"]
+        assert "Farm URL" in before and "API token" in before
+        for label in ("Max spp", "Noise threshold", "Sampler", "Width", "Scene resolution"):
+            assert label in before, label
+        assert any("everything" in t or "Nothing" in t for t in before), before
+        assert any("current frame only (frame 1)" in t for t in before), before
+        if "panel_running" in result:  # unless the job finished between two polls
+            assert any(t.startswith("running, tiles") for t in result["panel_running"])
+        assert any(t.startswith("completed, tiles") for t in result["panel_after"])
+        assert any(t == "Image 'blender box'" for t in result["panel_after"])
+
+        # A setting the farm refuses: its message and field reach the artist; no job.
+        assert result["refused"]["result"] == ["CANCELLED"]
+        assert "HTTP 400" in result["refused"]["error"]
+        assert "[settings.max_spp]" in result["refused"]["error"]
+        assert result["jobs_after_refusal"] == 0
+
+        # The job on the farm: the settings set in Blender, the scene's resolution.
+        assert result["submit"]["result"] == ["FINISHED"], result["submit"]
+        job = client.get(result["job_id"])
+        assert job["state"] == "completed", job["error"]
+        assert job["name"] == "blender box"
+        assert job["owner"] == "admin"
+        for name, value in {**SETTINGS, "width": WIDTH, "height": HEIGHT}.items():
+            assert job["settings"][name] == value, name
+        assert result["first_state"] in ("queued", "running")
+        assert result["states"][-1] == "completed"
+        tiles = job["progress"]["tiles_total"]
+        assert result["progress"]["tiles_done"] == result["progress"]["tiles_total"] == tiles
+        assert result["progress"]["mean_spp"] == job["progress"]["mean_spp"] == 4
+
+        # The fetched image: named after the job, the farm's EXR next to nothing but a temp
+        # dir (the .blend was not saved yet), and its colour is the farm's, value for value.
+        assert result["fetch"]["result"] == ["FINISHED"]
+        image = result["image"]
+        assert image["name"] == "blender box" and image["job_name"] == "blender box"
+        assert image["type"] == "MULTILAYER"
+        assert Path(image["path"]).name == f"blender_box-{job['id'][:8]}.exr"
+        farm_exr = tmp_path / "farm.exr"
+        farm_exr.write_bytes(client.image(job["id"], "exr"))
+    farm = read_exr(str(farm_exr))
+    fetched_file = read_exr(image["path"])
+    seen = read_exr(str(combined))
+    for c in "RGB":
+        assert farm[c].shape == (HEIGHT, WIDTH)
+        np.testing.assert_array_equal(fetched_file[c], farm[c])
+        np.testing.assert_array_equal(seen[c], farm[c])
+    rgb = np.stack([farm[c] for c in "RGB"], axis=-1)
+    assert rgb.max() > 0.05, "the farm rendered a black image"
+
+    # The token is in the preferences, never in the saved .blend.
+    assert result["token_in_prefs"] is True
+    data = blend.read_bytes()
+    assert data[:7] == b"BLENDER" and len(data) > 10000
+    assert TOKEN.encode() not in data
+    assert b"renderfarm" in data  # the scene's add-on data is saved: the search was not vacuous
+
+
+def test_unsupported_features_listed_and_submission_allowed(token_farm, addon_zip, tmp_path):
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        docs = client.http.get("/api/v1/settings").json()
+    result = run_driver(
+        "scan",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "token": TOKEN,
+            "settings": {"max_spp": 1, "min_spp": 1, "noise_threshold": 0.0},
+            "settings_docs": json.dumps(docs),
+            "blend": str(tmp_path / "scan.blend"),
+        },
+        tmp_path,
+    )
+    issues = [(i["owner"], i["message"]) for i in result["issues"]]
+
+    def listed(owner: str, *words: str) -> bool:
+        return any(o == owner and all(w in m for w in words) for o, m in issues)
+
+    assert listed("Material 'Fur'", "'Hair BSDF'"), issues
+    assert listed("Material 'Marbled'", "group 'Marble'", "'Noise Texture'"), issues
+    assert listed("Material 'Marbled'", "Coat Weight"), issues
+    assert listed("Material 'Fog'", "'Fog Volume'", "volume"), issues
+    assert listed("Object 'Smoke'", "Volume objects"), issues
+    assert listed("Object 'Ground'", "particle system", "hair"), issues
+    assert listed("Light 'Softbox'", "area lights"), issues
+    kinds = {i["owner"]: i["kind"] for i in result["issues"]}
+    assert kinds["Object 'Smoke'"] == "volume" and kinds["Material 'Fur'"] == "hair"
+    # Not listed: a node linked to nothing, what Blender does not render, the inactive camera,
+    # and the materials the export carries.
+    assert not any("Unused Voronoi" in m for _, m in issues)
+    assert not any("HiddenVolume" in o or "Camera" in o for o, _ in issues)
+    assert not any(o in ("Material 'Grey'", "Material 'Red'", "Material 'Glow'") for o, _ in issues)
+
+    # Submission is still allowed, and the list stays shown.
+    assert result["submit"]["result"] == ["FINISHED"], result["submit"]
+    assert result["job_id"]
+    assert result["issues_after_submit"] == len(issues)
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        job = client.get(result["job_id"])
+    assert job["name"] == "untitled Scene frame 1"
+    # Reopened, the .blend's job is followed again; Cancel is the farm's answer (a job that
+    # finished first stays as it was).
+    assert result["followed_after_open"] == [result["job_id"]]
+    assert result["cancel"]["result"] == ["FINISHED"], result["cancel"]
+    assert result["state_after_cancel"] in ("cancelled", "completed")
+    assert job["state"] == result["state_after_cancel"]
+
+    # The exported .glb keeps a camera only on the active camera's node (the farm renders
+    # through the first one, and the exporter wrote the other first), though both cameras'
+    # nodes were written.
+    assert result["camera_nodes"] == ["SideCam"]
+    assert {"Camera", "SideCam", "Box", "Ground", "Lamp"} <= set(result["exported_nodes"])
+    assert "Box" in result["mesh_nodes"] and "Smoke" not in result["mesh_nodes"]
