@@ -86,8 +86,9 @@ def test_a_job_larger_than_the_tile_cache_renders_from_its_spill_file(
 
     # The same image through gRPC, and a preview at most 64 pixels on a side.
     exr_request = jobs_pb2.GetImageRequest(job_id=job["id"], format=jobs_pb2.IMAGE_FORMAT_EXR)
-    rpc = apis.rpc("GetImage", exr_request)
-    assert rpc.data == farm_exr.read_bytes()
+    rpc_exr = tmp_path / "rpc.exr"
+    rpc_exr.write_bytes(apis.rpc("GetImage", exr_request).data)
+    assert all(read_exr(str(rpc_exr))[c].tobytes() == got[c].tobytes() for c in got)
     for answer in (
         apis.rest("GET", f"/api/v1/jobs/{job['id']}/image.png", params={"max_size": 64}),
         apis.rpc("GetImage", jobs_pb2.GetImageRequest(job_id=job["id"], max_size=64)).data,
@@ -97,6 +98,21 @@ def test_a_job_larger_than_the_tile_cache_renders_from_its_spill_file(
         assert (width, height) == (50, 30)  # 200 x 120 by a factor of 4
     bad = apis.rest("GET", f"/api/v1/jobs/{job['id']}/image.png", params={"max_size": -1})
     assert isinstance(bad, Error) and (bad.kind, bad.field) == ("invalid", "max_size"), bad
+
+    # An uncompressed EXR (faster to write) holds the same channels.
+    plain = tmp_path / "plain.exr"
+    plain.write_bytes(
+        apis.rest("GET", f"/api/v1/jobs/{job['id']}/image.exr", params={"compression": "none"})
+    )
+    assert plain.stat().st_size > farm_exr.stat().st_size
+    unpacked = read_exr(str(plain))
+    assert all(unpacked[c].tobytes() == got[c].tobytes() for c in got)
+    for bad in (
+        apis.rest("GET", f"/api/v1/jobs/{job['id']}/image.exr", params={"compression": "lzma"}),
+        apis.rpc("GetImage", jobs_pb2.GetImageRequest(
+            job_id=job["id"], format=jobs_pb2.IMAGE_FORMAT_EXR, compression="lzma")),
+    ):  # fmt: skip
+        assert isinstance(bad, Error) and (bad.kind, bad.field) == ("invalid", "compression")
 
     # Deleting the job removes its file at once.
     assert apis.rest("DELETE", f"/api/v1/jobs/{job['id']}") is None

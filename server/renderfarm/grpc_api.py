@@ -211,6 +211,7 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             data = await self.farm.image(
                 apicommon.job_id(request.job_id), fmt, request.layer or "rgb", who,
                 max_size=request.max_size, max_bytes=MAX_MESSAGE_BYTES - (1 << 20),
+                compression=request.compression or "zip",
             )  # fmt: skip
         except images.Cancelled:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "the server is stopping")

@@ -35,6 +35,8 @@ EXR_CHANNELS = (
     "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z",
 )  # fmt: skip
 LAYERS = ("rgb", "variance", "spp", "error", "albedo", "normal")
+# zip: what every EXR reader reads; none: 4 to 5 times faster to write, 2.5 times larger.
+EXR_COMPRESSIONS = ("zip", "none")
 GREY_LAYERS = ("variance", "spp", "error")  # normalised to the image's maximum
 
 # A band of tiles and what each one holds: None for a tile with no merged samples.
@@ -229,6 +231,7 @@ class ImageWriter:
         max_size: int = 0,
         top: float = 1.0,
         cancelled: threading.Event | None = None,
+        compression: str = "zip",
     ):
         import OpenImageIO as oiio  # heavy import, only where images are written
 
@@ -238,7 +241,7 @@ class ImageWriter:
         if fmt == "exr":
             spec = oiio.ImageSpec(width, height, len(EXR_CHANNELS), oiio.FLOAT)
             spec.channelnames = EXR_CHANNELS
-            spec.attribute("compression", "zip")
+            spec.attribute("compression", compression)
         else:
             f = downscale_factor(width, height, max_size)
             self.scale = _Downscaler(width, f) if f > 1 else None

@@ -553,6 +553,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             description="PNG only: downscale (box filter) until neither side exceeds this; "
             "0 = full resolution",
         ),
+        compression: str = Query("zip", description="EXR only: zip, or none (faster, larger)"),
         who: Caller = Auth,
     ) -> Response:
         if layer not in LAYERS:
@@ -561,7 +562,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             )
         try:
             file = await farm.image_file(
-                apicommon.job_id(job_id), fmt, layer, who, max_size=max_size
+                apicommon.job_id(job_id), fmt, layer, who, max_size, compression
             )
         except Cancelled:
             return _error(503, "", "the server is stopping")

@@ -1,4 +1,5 @@
-"""The scheduler: tiles, batches, leases, in-order merging and stop decisions. No I/O.
+"""The scheduler: tiles, batches, leases, in-order merging and stop decisions. No I/O but the
+spill files of the tile cache it may be given (spill.py), which keeps large jobs' tiles.
 
 One Scheduler holds every unfinished job in memory. Callers (the gRPC worker stream, the REST
 API) tell it what happened (a worker connected, a result arrived, time passed) and read back

@@ -533,6 +533,7 @@ class FarmService:
         layer: str = "rgb",
         caller: Caller = LOCAL_USER,
         max_size: int = 0,
+        compression: str = "zip",
     ) -> BinaryIO:
         """The image written to a scratch file, returned open for reading (the file is
         already unlinked: closing it frees the space). Written one row of tiles at a time
@@ -545,6 +546,12 @@ class FarmService:
             )
         if not 0 <= max_size <= MAX_IMAGE_SIZE:
             raise SettingsError("max_size", f"max_size must be in 0..{MAX_IMAGE_SIZE}")
+        if compression not in images.EXR_COMPRESSIONS:
+            raise SettingsError(
+                "compression",
+                f"unknown compression {compression[:40]!r}; one of "
+                f"{', '.join(images.EXR_COMPRESSIONS)}",
+            )
         await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
         if job is not None:
@@ -587,7 +594,7 @@ class FarmService:
         try:
             writer = await asyncio.to_thread(
                 images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
-                top, self._stopping,
+                top, self._stopping, compression,
             )  # fmt: skip
             for r in range(rows):
                 tiles = await band(r)
@@ -612,9 +619,10 @@ class FarmService:
         caller: Caller = LOCAL_USER,
         max_size: int = 0,
         max_bytes: int | None = None,
+        compression: str = "zip",
     ) -> bytes:
         """The image as bytes (for gRPC's one message); TooLarge past max_bytes."""
-        with await self.image_file(job_id, fmt, layer, caller, max_size) as f:
+        with await self.image_file(job_id, fmt, layer, caller, max_size, compression) as f:
             size = os.fstat(f.fileno()).st_size
             if max_bytes is not None and size > max_bytes:
                 raise TooLarge(

@@ -21,7 +21,6 @@ that readers in other threads read and release their slots (under the file's loc
 from __future__ import annotations
 
 import ctypes
-import logging
 import math
 import os
 import shutil
@@ -32,8 +31,6 @@ from pathlib import Path
 import numpy as np
 
 from .merge import TileAccumulator
-
-log = logging.getLogger(__name__)
 
 _STATS = TileAccumulator._ARRAYS
 _AOVS = TileAccumulator._AOV_ARRAYS
@@ -294,10 +291,6 @@ class TileCache:
         self.evictions += 1
 
     # ------------------------------------------------------------------------- jobs
-    def spilled(self, job_id: str) -> bool:
-        """Whether some tile of the job has been written to its file."""
-        return job_id in self._files
-
     def evict_job(self, job_id: str, limit_bytes: int) -> bool:
         """If the job has spilled, send up to limit_bytes of its resident tiles to its file
         (a finished job's RAM goes back at once; its images read the file). True while more

@@ -173,7 +173,7 @@ def test_downscaled_previews_average_blocks_of_linear_values(tmp_path, layer, ma
     [("exr", "rgb"), ("png", "rgb"), ("png", "error"), ("png", "normal"), ("png", "spp")],
 )
 def test_images_of_spilled_tiles_are_the_same_files(tmp_path, fmt, layer):
-    """Tiles read from a spill file give the image they give from RAM, byte for byte."""
+    """Tiles read from a spill file give the image they give from RAM, bit for bit."""
     tiles = accumulators(3)
     write(tmp_path / f"ram.{fmt}", fmt, tiles, layer, as_views=True)
     cache = TileCache(tmp_path / "scratch", budget_bytes=1)
@@ -181,4 +181,8 @@ def test_images_of_spilled_tiles_are_the_same_files(tmp_path, fmt, layer):
         cache.register("j", acc, TILE)
     assert sum(not acc.resident for _, acc in tiles) >= len(tiles) - 1
     write(tmp_path / f"spilled.{fmt}", fmt, tiles, layer, as_views=True)
-    assert (tmp_path / f"ram.{fmt}").read_bytes() == (tmp_path / f"spilled.{fmt}").read_bytes()
+    if fmt == "exr":  # its header has the time it was written (capDate): compare channels
+        ram, spilled = (read_exr(str(tmp_path / f"{n}.exr")) for n in ("ram", "spilled"))
+        assert all(ram[c].tobytes() == spilled[c].tobytes() for c in EXR_CHANNELS)
+    else:
+        assert (tmp_path / "ram.png").read_bytes() == (tmp_path / "spilled.png").read_bytes()
