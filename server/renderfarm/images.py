@@ -215,6 +215,25 @@ class _Downscaler:
         return np.concatenate(out) if len(out) > 1 else out[0]
 
 
+SLICE_ROWS = 64  # rows an ImageWriter computes and hands to OpenImageIO at a time
+
+
+def _rows_of(tiles: Band, y0: int, y1: int) -> Band:
+    """Rows y0..y1 of a band's tiles: accumulators over views of their arrays (no copies)."""
+    names = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
+    part: Band = []
+    for rect, acc in tiles:
+        rows = Rect(rect.x0, rect.y0 + y0, rect.width, y1 - y0)
+        if acc is not None:
+            present = tuple(n for n in names if getattr(acc, n) is not None)
+            arrays = tuple(getattr(acc, n)[y0:y1] for n in present)
+            acc = TileAccumulator.from_snapshot(
+                rect.width, y1 - y0, present, arrays, acc.samples, acc.batches, acc.iid
+            )
+        part.append((rows, acc))
+    return part
+
+
 class ImageWriter:
     """Writes a job's EXR or a PNG layer to `path` from bands of tiles given top to bottom.
 
@@ -263,11 +282,16 @@ class ImageWriter:
     def write_band(self, band_height: int, tiles: Band, final: bool = False) -> None:
         """The next band_height rows of the image (final: the last band)."""
         with self._lock:
-            self._write_band(band_height, tiles, final)
+            if self.cancelled is not None and self.cancelled.is_set():
+                raise Cancelled("the server is stopping")
+            # At most SLICE_ROWS rows at a time: the channels of a band of 512-pixel tiles
+            # would be 200 MB on an 8192-pixel-wide EXR.
+            for y0 in range(0, band_height, SLICE_ROWS):
+                y1 = min(band_height, y0 + SLICE_ROWS)
+                part = tiles if y1 - y0 == band_height else _rows_of(tiles, y0, y1)
+                self._write_rows(y1 - y0, part, final and y1 == band_height)
 
-    def _write_band(self, band_height: int, tiles: Band, final: bool) -> None:
-        if self.cancelled is not None and self.cancelled.is_set():
-            raise Cancelled("the server is stopping")
+    def _write_rows(self, band_height: int, tiles: Band, final: bool) -> None:
         if self.fmt == "exr":
             pixels = _exr_band(self.width, band_height, tiles)
         else:

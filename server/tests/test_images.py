@@ -7,12 +7,20 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from renderfarm import images
 from renderfarm.images import EXR_CHANNELS, ImageWriter, TileView, arrays_needed, read_exr
 from renderfarm.merge import TileAccumulator
 from renderfarm.spill import TileCache
 from renderfarm.tiling import tile_grid
 
 W, H, TILE = 70, 45, 16  # edge tiles narrower and shorter than the others
+
+
+@pytest.fixture(autouse=True, params=[64, 5], ids=["whole-bands", "5-row-slices"])
+def slice_rows(request, monkeypatch):
+    """Bands written whole, and in slices of 5 rows (as 512-pixel tiles are, in 64)."""
+    monkeypatch.setattr(images, "SLICE_ROWS", request.param)
+    return request.param
 
 
 def accumulators(seed: int = 0) -> list[tuple]:
