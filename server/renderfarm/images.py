@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _kernels
 from .merge import TileAccumulator
 from .tiling import Rect
 
@@ -85,8 +86,10 @@ class TileView:
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB transfer function of linear values clamped to [0, 1]."""
-    x = np.clip(np.nan_to_num(linear, nan=0.0, posinf=1.0), 0.0, 1.0)
+    """IEC 61966-2-1 sRGB transfer function of linear values clamped to [0, 1] (NaN to 0)."""
+    # fmax and fmin take the number over a NaN: NaN goes to 0 and infinities to 0 or 1, as
+    # nan_to_num and clip would, in two passes instead of six.
+    x = np.fmin(np.fmax(linear, 0.0), 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
@@ -160,6 +163,30 @@ def _display_band(layer: str, width: int, height: int, tiles: Band, top: float) 
     return out
 
 
+def _block_means(values: np.ndarray, f: int, divisor: float = 1.0) -> np.ndarray:
+    """Means of the f x f blocks of (h, w, c) values over divisor (partial blocks at the right
+    and bottom edges), in one pass (_kernels.c)."""
+    h, w, c = values.shape
+    out = np.empty((-(-h // f), -(-w // f), c))
+    _kernels.block_means(np.ascontiguousarray(values, np.float64), h, w, c, f, divisor, out)
+    return out
+
+
+def _display_blocks(
+    layer: str, width: int, height: int, tiles: Band, top: float, f: int
+) -> np.ndarray:
+    """A band of the PNG layer downscaled by f, tile by tile: f divides every tile's offset and
+    the band's height (but at the bottom), so no block spans two tiles."""
+    out = np.empty((-(-height // f), -(-width // f), 3))
+    for rect, acc in tiles:
+        xs = slice(rect.x0 // f, -(-(rect.x0 + rect.width) // f))
+        if layer == "rgb" and acc is not None:  # the mean of the block's sums, over n
+            out[:, xs] = _block_means(acc.rgb_sum, f, acc.samples)
+        else:
+            out[:, xs] = _block_means(_display_tile(layer, acc, top, rect.height, rect.width), f)
+    return out
+
+
 def downscale_factor(width: int, height: int, max_size: int) -> int:
     """The smallest integer f with ceil(width / f) and ceil(height / f) <= max_size (1 when
     max_size is 0: full resolution)."""
@@ -195,6 +222,17 @@ class _Downscaler:
         if self.whole < self.width:
             out = np.concatenate([out, summed[:, self.whole :].sum(axis=1, keepdims=True)], 1)
         return out / (self.counts * height)
+
+    def aligned(self, band_height: int, tiles: Band, final: bool) -> bool:
+        """Whether the band can be reduced tile by tile (_display_blocks): no rows carried
+        over, and the factor divides its height (but for the last band) and its tiles'
+        offsets, as it does a power-of-two tile size for power-of-two factors."""
+        f = self.factor
+        return (
+            self.pending is None
+            and (band_height % f == 0 or final)
+            and all(rect.x0 % f == 0 for rect, _ in tiles)
+        )
 
     def add(self, rows: np.ndarray, final: bool = False) -> np.ndarray:
         """The output rows complete with these input rows (all that is left when final)."""
@@ -294,10 +332,15 @@ class ImageWriter:
     def _write_rows(self, band_height: int, tiles: Band, final: bool) -> None:
         if self.fmt == "exr":
             pixels = _exr_band(self.width, band_height, tiles)
+        elif self.scale is not None and self.scale.aligned(band_height, tiles, final):
+            linear = _display_blocks(
+                self.layer, self.width, band_height, tiles, self.top, self.scale.factor
+            )
         else:
             linear = _display_band(self.layer, self.width, band_height, tiles, self.top)
             if self.scale is not None:
                 linear = self.scale.add(linear, final)
+        if self.fmt == "png":
             if self.layer in GREY_LAYERS:
                 pixels = np.round(np.clip(linear, 0, 1) * 255).astype(np.uint8)
             else:
