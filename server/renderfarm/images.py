@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _kernels
-from .merge import TileAccumulator
+from .merge import DARK_FLOOR, TileAccumulator
 from .tiling import Rect
 
 EXR_CHANNELS = (
@@ -95,19 +95,22 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
 
 def _exr_band(width: int, height: int, tiles: Band) -> np.ndarray:
     """The EXR channels of a band, float32 (height, width, 12)."""
-    out = np.zeros((height, width, len(EXR_CHANNELS)), np.float32)
-    out[..., 3] = np.inf  # variance and error are unknown where nothing is merged
-    out[..., 5] = np.inf
+    out = np.empty((height, width, len(EXR_CHANNELS)), np.float32)
     for rect, acc in tiles:
-        if acc is None:
+        if acc is None:  # nothing merged: zeros, and variance and error unknown
+            t = out[:, rect.x0 : rect.x0 + rect.width]
+            t[...] = 0.0
+            t[..., 3] = t[..., 5] = np.inf
             continue
-        t = out[:, rect.x0 : rect.x0 + rect.width]
-        t[..., 0:3] = acc.rgb_sum / acc.samples
-        t[..., 3] = acc.variance_of_mean()
-        t[..., 4] = acc.samples
-        t[..., 5] = acc.relative_error()
-        t[..., 6:9] = acc.mean_albedo()
-        t[..., 9:12] = acc.mean_normal()
+        # One pass in C (_kernels.c) of what rgb_sum / samples, variance_of_mean(),
+        # relative_error(), mean_albedo() and mean_normal() compute.
+        terms = acc._variance_terms()
+        m2, k = terms if terms is not None else ((None,), 0.0)
+        _kernels.exr_tile(
+            acc.rgb_sum, acc.lum_mean, m2[0], m2[1] if len(m2) > 1 else None, acc.albedo_sum,
+            acc.normal_sum, rect.height, rect.width, acc.samples, max(1, acc.aov_samples), k,
+            DARK_FLOOR, out, width, rect.x0,
+        )  # fmt: skip
     return out
 
 
