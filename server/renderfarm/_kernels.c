@@ -1,5 +1,5 @@
-/* Fused per-pixel loops of the progressive merge (merge.py): one pass over a tile's arrays
- * instead of a dozen numpy passes. merge.py's docstring states the statistics; the tests in
+/* Fused per-pixel loops of the progressive merge (merge.py), and of downscaled previews
+ * (images.py): one pass over a tile's arrays instead of a dozen numpy passes. merge.py's docstring states the statistics; the tests in
  * server/tests/test_merge.py check these loops against numpy (relative_error(), and the
  * statistics of all samples computed at once).
  *
@@ -172,9 +172,168 @@ static PyObject *squared_relative_error(PyObject *self, PyObject *args) {
     return PyFloat_FromDouble(total);
 }
 
+PyDoc_STRVAR(block_means_doc,
+             "block_means(values, height, width, channels, factor, divisor, out)\n"
+             "--\n\n"
+             "Means of the factor x factor blocks of float64 values (height, width, channels),\n"
+             "divided by divisor, into out (ceil(height / factor), ceil(width / factor),\n"
+             "channels); blocks at the right and bottom edges may be partial. For downscaled\n"
+             "previews (images.py): one pass instead of a dozen numpy passes per tile.");
+
+static PyObject *block_means(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *values_obj, *out_obj;
+    Py_ssize_t h, w, c, f;
+    double divisor;
+    if (!PyArg_ParseTuple(args, "OnnnndO", &values_obj, &h, &w, &c, &f, &divisor, &out_obj)) {
+        return NULL;
+    }
+    if (h <= 0 || w <= 0 || c <= 0 || f <= 0 || !(divisor > 0)) {
+        PyErr_SetString(PyExc_ValueError, "block_means: positive sizes and divisor required");
+        return NULL;
+    }
+    Buffer b[2];
+    memset(b, 0, sizeof b);
+    if (get_buffer(values_obj, &b[0], 0, "values") != 0 ||
+        get_buffer(out_obj, &b[1], 1, "out") != 0) {
+        release(b, 2);
+        return NULL;
+    }
+    const Py_ssize_t oh = (h + f - 1) / f, ow = (w + f - 1) / f;
+    if (b[0].view.len != 8 * h * w * c || b[1].view.len != 8 * oh * ow * c) {
+        PyErr_SetString(PyExc_ValueError, "block_means: array sizes do not match the shape");
+        release(b, 2);
+        return NULL;
+    }
+    const double *in = b[0].view.buf;
+    double *out = b[1].view.buf;
+    memset(out, 0, (size_t)b[1].view.len);
+    for (Py_ssize_t y = 0; y < h; ++y) {
+        double *row = out + (y / f) * ow * c;
+        const double *src = in + y * w * c;
+        for (Py_ssize_t bx = 0; bx < ow; ++bx) {
+            const Py_ssize_t x1 = (bx + 1) * f <= w ? (bx + 1) * f : w;
+            double *dst = row + bx * c;
+            if (c == 3) {  /* RGB: the sums in registers */
+                double r = 0.0, g = 0.0, bl = 0.0;
+                for (Py_ssize_t x = bx * f; x < x1; ++x) {
+                    r += src[3 * x];
+                    g += src[3 * x + 1];
+                    bl += src[3 * x + 2];
+                }
+                dst[0] += r;
+                dst[1] += g;
+                dst[2] += bl;
+                continue;
+            }
+            for (Py_ssize_t x = bx * f; x < x1; ++x) {
+                for (Py_ssize_t k = 0; k < c; ++k) dst[k] += src[x * c + k];
+            }
+        }
+    }
+    for (Py_ssize_t by = 0; by < oh; ++by) {
+        const Py_ssize_t rows = (by + 1) * f <= h ? f : h - by * f;
+        for (Py_ssize_t bx = 0; bx < ow; ++bx) {
+            const Py_ssize_t cols = (bx + 1) * f <= w ? f : w - bx * f;
+            const double scale = 1.0 / ((double)(rows * cols) * divisor);
+            double *dst = out + (by * ow + bx) * c;
+            for (Py_ssize_t k = 0; k < c; ++k) dst[k] *= scale;
+        }
+    }
+    release(b, 2);
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(exr_tile_doc,
+             "exr_tile(rgb_sum, lum_mean, m2, m2_extra, albedo_sum, normal_sum, height, width,\n"
+             "         samples, aov_samples, k, floor, out, out_width, x0)\n"
+             "--\n\n"
+             "A tile's 12 EXR channels (images.EXR_CHANNELS) as float32 into a band `out` of\n"
+             "out_width pixels a row, from column x0: the mean RGB, the variance of the mean\n"
+             "luminance (m2 + m2_extra) * k (m2_extra may be None; m2 None: unknown, inf), the\n"
+             "spp, the relative error sqrt(v) / max(mean - sqrt(v), floor), and the albedo and\n"
+             "normal means (float32 sums over aov_samples, divided in float32). The same\n"
+             "arithmetic as merge.py's numpy, rounded once to float32.");
+
+static PyObject *exr_tile(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *objs[7];
+    Py_ssize_t h, w, samples, aov_samples, out_width, x0;
+    double k, floor_value;
+    if (!PyArg_ParseTuple(args, "OOOOOOnnnnddOnn", &objs[0], &objs[1], &objs[2], &objs[3],
+                          &objs[4], &objs[5], &h, &w, &samples, &aov_samples, &k, &floor_value,
+                          &objs[6], &out_width, &x0)) {
+        return NULL;
+    }
+    static const char *names[7] = {"rgb_sum",    "lum_mean",   "m2",  "m2_extra",
+                                   "albedo_sum", "normal_sum", "out"};
+    if (h <= 0 || w <= 0 || samples <= 0 || aov_samples <= 0 || x0 < 0 || x0 + w > out_width) {
+        PyErr_SetString(PyExc_ValueError, "exr_tile: sizes out of range");
+        return NULL;
+    }
+    Buffer b[7];
+    memset(b, 0, sizeof b);
+    for (int i = 0; i < 7; ++i) {
+        if ((i == 2 || i == 3) && objs[i] == Py_None) continue;
+        if (get_buffer(objs[i], &b[i], i == 6, names[i]) != 0) {
+            release(b, 7);
+            return NULL;
+        }
+    }
+    const Py_ssize_t pixels = h * w;
+    const Py_ssize_t expected[7] = {24, 8, 8, 8, 12, 12, 0};
+    for (int i = 0; i < 6; ++i) {
+        if (b[i].held && b[i].view.len != expected[i] * pixels) {
+            PyErr_Format(PyExc_ValueError, "exr_tile: %s has %zd bytes, expected %zd", names[i],
+                         b[i].view.len, expected[i] * pixels);
+            release(b, 7);
+            return NULL;
+        }
+    }
+    if (b[6].view.len != 48 * out_width * h) {
+        PyErr_SetString(PyExc_ValueError, "exr_tile: out is not height x out_width x 12 floats");
+        release(b, 7);
+        return NULL;
+    }
+    const double *rgb = b[0].view.buf, *mean = b[1].view.buf;
+    const double *m2 = b[2].held ? b[2].view.buf : NULL, *extra = b[3].held ? b[3].view.buf : NULL;
+    const float *albedo = b[4].view.buf, *normal = b[5].view.buf;
+    float *out = b[6].view.buf;
+    const double n = (double)samples;
+    const float aov_n = (float)aov_samples;
+    for (Py_ssize_t y = 0; y < h; ++y) {
+        for (Py_ssize_t x = 0; x < w; ++x) {
+            const Py_ssize_t p = y * w + x;
+            float *o = out + (y * out_width + x0 + x) * 12;
+            o[0] = (float)(rgb[3 * p] / n);
+            o[1] = (float)(rgb[3 * p + 1] / n);
+            o[2] = (float)(rgb[3 * p + 2] / n);
+            if (m2) {
+                const double v = (extra ? m2[p] + extra[p] : m2[p]) * k;
+                const double s = sqrt(v);
+                const double bound = mean[p] - s;
+                o[3] = (float)v;
+                o[5] = (float)(s / (bound > floor_value ? bound : floor_value));
+            } else {
+                o[3] = (float)INFINITY;
+                o[5] = (float)INFINITY;
+            }
+            o[4] = (float)n;
+            for (int c = 0; c < 3; ++c) {
+                o[6 + c] = albedo[3 * p + c] / aov_n;
+                o[9 + c] = normal[3 * p + c] / aov_n;
+            }
+        }
+    }
+    release(b, 7);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"merge", merge, METH_VARARGS, merge_doc},
     {"squared_relative_error", squared_relative_error, METH_VARARGS, squared_relative_error_doc},
+    {"block_means", block_means, METH_VARARGS, block_means_doc},
+    {"exr_tile", exr_tile, METH_VARARGS, exr_tile_doc},
     {NULL, NULL, 0, NULL},
 };
 

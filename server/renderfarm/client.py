@@ -189,8 +189,18 @@ class Client:
     def workers(self) -> list[dict[str, Any]]:
         return self._check(self.http.get("/api/v1/workers")).json()
 
-    def image(self, job_id: str, fmt: str = "png", layer: str = "rgb") -> bytes:
-        response = self.http.get(f"/api/v1/jobs/{job_id}/image.{fmt}", params={"layer": layer})
+    def image(
+        self,
+        job_id: str,
+        fmt: str = "png",
+        layer: str = "rgb",
+        max_size: int = 0,
+        compression: str = "zip",
+    ) -> bytes:
+        """An image of the job: a PNG layer (max_size > 0: downscaled to fit) or the EXR
+        (compression zip or none)."""
+        params = {"layer": layer, "max_size": max_size, "compression": compression}
+        response = self.http.get(f"/api/v1/jobs/{job_id}/image.{fmt}", params=params)
         return self._check(response).content
 
     def ready(self) -> bool:

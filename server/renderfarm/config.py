@@ -9,7 +9,30 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .jobspec import Limits
-from .scene_check import SceneLimits, machine_memory_bytes
+from .scene_check import SceneLimits
+
+
+def machine_memory_bytes() -> int:
+    """The memory this process may use: the machine's, or less under a cgroup limit (a
+    container's memory limit, v2 memory.max or v1 memory.limit_in_bytes); 0 if unknown."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError):
+        total = 0
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            limit = int(Path(path).read_text().strip())  # "max" (no limit) is not a number
+        except (OSError, ValueError):
+            continue
+        if 0 < limit and (total == 0 or limit < total):
+            total = limit
+    return total
+
+
+def default_max_job_memory_mb() -> int:
+    """Half of the machine's (or the container's) memory, in MB (4096 when unknown)."""
+    total = machine_memory_bytes()
+    return max(1, total // 2 // 2**20) if total else 4096
 
 
 def default_data_dir() -> Path:
@@ -52,6 +75,18 @@ class Settings(BaseSettings):
     max_height: int = Field(16384, gt=0, description="largest image height a job may ask for")
     max_pixels: int = Field(64 * 2**20, gt=0, description="largest width x height")
     max_spp: int = Field(1 << 20, gt=0, description="largest max_spp a job may ask for")
+    max_job_memory_mb: int = Field(
+        default_factory=default_max_job_memory_mb,
+        gt=0,
+        description="largest estimated accumulator memory of one job, in MB (default: half "
+        "of the machine's or the container's memory)",
+    )
+    tile_cache_mb: int = Field(
+        512,
+        gt=0,
+        description="RAM for merged tile statistics over all jobs, in MB; tiles beyond it "
+        "wait in files in data_dir/scratch",
+    )
     max_task_failures: int = Field(
         3, gt=0, description="failed tasks after which a worker is kept off a job"
     )
@@ -130,4 +165,5 @@ class Settings(BaseSettings):
             max_height=self.max_height,
             max_pixels=self.max_pixels,
             max_spp=self.max_spp,
+            max_job_memory_bytes=self.max_job_memory_mb * 2**20,
         )

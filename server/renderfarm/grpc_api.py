@@ -25,7 +25,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from . import apicommon
+from . import apicommon, images
 from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
 from .jobspec import SETTING_NAMES, SettingsError
 from .scenes import SceneError
@@ -218,9 +218,14 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
     async def GetImage(self, request, context):  # noqa: N802
         who = await _caller(self.auth, context)
         fmt = _image_format(request.format)
-        data = await self.farm.image(
-            apicommon.job_id(request.job_id), fmt, request.layer or "rgb", who
-        )
+        try:
+            data = await self.farm.image(
+                apicommon.job_id(request.job_id), fmt, request.layer or "rgb", who,
+                max_size=request.max_size, max_bytes=MAX_MESSAGE_BYTES - (1 << 20),
+                compression=request.compression or "zip",
+            )  # fmt: skip
+        except images.Cancelled:
+            await context.abort(grpc.StatusCode.UNAVAILABLE, "the server is stopping")
         return jobs_pb2.GetImageResponse(
             data=data,
             format=jobs_pb2.IMAGE_FORMAT_EXR if fmt == "exr" else jobs_pb2.IMAGE_FORMAT_PNG,

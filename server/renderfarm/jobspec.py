@@ -33,6 +33,22 @@ class Limits:
     max_pixels: int = 64 * 2**20
     max_spp: int = 1 << 20
     max_time_limit_s: float = 7 * 24 * 3600.0
+    max_job_memory_bytes: int = 1 << 62  # estimated accumulator memory (job_memory_bytes)
+
+
+# What a job's tile accumulators take (merge.TileAccumulator): float64 RGB sum, mean luminance
+# and two M2 sums, float32 albedo and normal sums (72 bytes a pixel), and the bookkeeping of
+# each tile (its accumulator objects, scheduling state and dispatch entries: under 4 KB,
+# measured with tracemalloc in server/tests/test_jobspec.py).
+ACCUMULATOR_BYTES_PER_PIXEL = 72
+TILE_OVERHEAD_BYTES = 4096
+
+
+def job_memory_bytes(width: int, height: int, tile_size: int) -> int:
+    """Estimated memory of a job's accumulators, whether in RAM or spilled to the scratch
+    directory (spill.py), from its size and tile size."""
+    tiles = math.ceil(width / tile_size) * math.ceil(height / tile_size)
+    return ACCUMULATOR_BYTES_PER_PIXEL * width * height + TILE_OVERHEAD_BYTES * tiles
 
 
 @dataclass(frozen=True)
@@ -193,6 +209,15 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
         f"width x height must be at most {limits.max_pixels} pixels",
     )
     _require(8 <= s.tile_size <= 512, "tile_size", "must be in 8..512")
+    need = job_memory_bytes(s.width, s.height, s.tile_size)
+    _require(
+        need <= limits.max_job_memory_bytes,
+        "width",
+        f"x settings.height = {s.width} x {s.height} needs about {need / 2**20:.0f} MB of "
+        f"accumulators ({ACCUMULATOR_BYTES_PER_PIXEL} bytes a pixel and "
+        f"{TILE_OVERHEAD_BYTES} a tile), more than the server's limit of "
+        f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB)",
+    )
     _require(s.sampler in SAMPLERS, "sampler", f"must be one of {', '.join(SAMPLERS)}")
     _require(s.integrator in INTEGRATORS, "integrator", f"must be one of {', '.join(INTEGRATORS)}")
     _require(1 <= s.max_depth <= 1024, "max_depth", "must be in 1..1024")

@@ -73,13 +73,33 @@ class TileAccumulator:
         "batches",
         "nonfinite",
         "iid",
+        "spill",
     )
 
-    def __init__(self, width: int, height: int, iid: bool = False):
+    # Bytes of the per-pixel arrays: float64 RGB sum (24), mean luminance and the two M2 (24);
+    # float32 albedo and normal sums (24).
+    BYTES_PER_PIXEL = 72
+
+    def __init__(self, width: int, height: int, iid: bool = False, arrays: bool = True):
+        """arrays=False leaves the per-pixel arrays None (a tile cache fills them on demand)."""
         # iid: the samples are independent (the `independent` sampler); see variance_of_mean.
         self.iid = iid
         self.width = width
         self.height = height
+        # Where the arrays are kept while they are out of RAM (spill.TileCache); None when
+        # the accumulator lives in RAM only.
+        self.spill = None
+        if arrays:
+            self.zero_arrays()
+        else:
+            self.drop_arrays()
+        self.samples = 0
+        self.batches = 0
+        self.nonfinite = 0
+
+    def zero_arrays(self) -> None:
+        """Fresh zero arrays: the statistics of no samples."""
+        height, width = self.height, self.width
         self.rgb_sum = np.zeros((height, width, 3))
         self.lum_mean = np.zeros((height, width))
         self.m2_within = np.zeros((height, width))
@@ -87,9 +107,21 @@ class TileAccumulator:
         # Sums over at most AOV_SAMPLES samples: float32 holds them to its rounding.
         self.albedo_sum = np.zeros((height, width, 3), np.float32)
         self.normal_sum = np.zeros((height, width, 3), np.float32)
-        self.samples = 0
-        self.batches = 0
-        self.nonfinite = 0
+
+    def drop_arrays(self) -> None:
+        """Let go of the per-pixel arrays (evicted; spill.TileCache restores them)."""
+        for name in self._ARRAYS + self._AOV_ARRAYS:
+            setattr(self, name, None)
+
+    @property
+    def resident(self) -> bool:
+        """Whether the per-pixel arrays are in RAM."""
+        return self.rgb_sum is not None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the per-pixel arrays."""
+        return self.BYTES_PER_PIXEL * self.width * self.height
 
     def merge_batch(
         self,
@@ -200,18 +232,29 @@ class TileAccumulator:
     _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")
     _AOV_ARRAYS = ("albedo_sum", "normal_sum")
 
-    def snapshot(self) -> tuple:
-        """An immutable view of the statistics (cheap: arrays are replaced, never mutated)."""
-        return tuple(getattr(self, a) for a in self._ARRAYS)
+    def snapshot(self, names: tuple | None = None) -> tuple:
+        """An immutable view of the statistics (cheap: arrays are replaced, never mutated), or
+        of the arrays named. Of an evicted accumulator: a reference to its copy out of RAM
+        (spill.SpillRef), read by snapshot_arrays()."""
+        names = self._ARRAYS if names is None else names
+        if not self.resident:
+            return self.spill.reference(names)
+        return tuple(getattr(self, a) for a in names)
 
     def aov_snapshot(self) -> tuple:
         """The same for the albedo and normal sums."""
-        return tuple(getattr(self, a) for a in self._AOV_ARRAYS)
+        return self.snapshot(self._AOV_ARRAYS)
 
     @staticmethod
-    def snapshot_bytes(snapshot: tuple, dtype: str = "<f8") -> bytearray:
+    def snapshot_arrays(snapshot) -> tuple:
+        """The arrays of a snapshot() or aov_snapshot(); safe to call from another thread."""
+        return snapshot if isinstance(snapshot, tuple) else snapshot.read()
+
+    @staticmethod
+    def snapshot_bytes(snapshot, dtype: str = "<f8") -> bytearray:
         """Serialise a snapshot() (float64) or aov_snapshot() (dtype "<f4") with one copy;
         safe to call from another thread."""
+        snapshot = TileAccumulator.snapshot_arrays(snapshot)
         itemsize = np.dtype(dtype).itemsize
         out = bytearray(itemsize * sum(a.size for a in snapshot))
         view = np.frombuffer(out, dtype=dtype)
@@ -262,4 +305,23 @@ class TileAccumulator:
             if aovs is not None:
                 acc._load(cls._AOV_ARRAYS, aovs, "aovs", "<f4")
         acc.samples, acc.batches, acc.nonfinite = samples, batches, nonfinite
+        return acc
+
+    @classmethod
+    def from_snapshot(
+        cls,
+        width: int,
+        height: int,
+        names: tuple,
+        snapshot,
+        samples: int,
+        batches: int,
+        iid: bool = False,
+    ) -> TileAccumulator:
+        """A read-only accumulator over the arrays of a snapshot(names) (no copy of arrays in
+        RAM; the others None), for images written in another thread."""
+        acc = cls(width, height, iid, arrays=False)
+        for name, a in zip(names, cls.snapshot_arrays(snapshot), strict=True):
+            setattr(acc, name, a)
+        acc.samples, acc.batches = samples, batches
         return acc

@@ -53,6 +53,17 @@ class _FarmCollector:
             rays.add_metric([s.worker_id], s.rays_per_s)
         yield samples
         yield rays
+        cache = sched.cache
+        yield GaugeMetricFamily(
+            "renderfarm_tile_memory_bytes",
+            "Tile accumulators held in RAM (at most RENDERFARM_TILE_CACHE_MB)",
+            value=cache.resident_bytes if cache is not None else 0,
+        )
+        yield GaugeMetricFamily(
+            "renderfarm_tile_spill_bytes",
+            "Tile accumulator files in the scratch directory",
+            value=cache.spill_bytes if cache is not None else 0,
+        )
         yield CounterMetricFamily(
             "renderfarm_database_errors",
             "Database operations that failed (connection lost, timeout, SQL error)",

@@ -13,13 +13,20 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import Depends, FastAPI, Request
+from fastapi import Depends, FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
+from fastapi.responses import (
+    FileResponse,
+    HTMLResponse,
+    JSONResponse,
+    Response,
+    StreamingResponse,
+)
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
@@ -29,7 +36,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import apicommon
 from .auth import SESSION_COOKIE, Authenticator, AuthError, Caller, Forbidden, request_token
-from .images import LAYERS
+from .images import LAYERS, Cancelled
 from .jobspec import SETTINGS, SettingsError
 from .metrics import Metrics
 from .scenes import SceneError
@@ -590,15 +597,38 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         },
     )
     async def image(
-        job_id: str, fmt: Literal["png", "exr"], layer: str = "rgb", who: Caller = Auth
+        job_id: str,
+        fmt: Literal["png", "exr"],
+        layer: str = "rgb",
+        max_size: int = Query(
+            0,
+            description="PNG only: downscale (box filter) until neither side exceeds this; "
+            "0 = full resolution",
+        ),
+        compression: str = Query("zip", description="EXR only: zip, or none (faster, larger)"),
+        who: Caller = Auth,
     ) -> Response:
         if layer not in LAYERS:
             raise SettingsError(
                 "layer", f"unknown layer {layer[:40]!r}; one of {', '.join(LAYERS)}"
             )
-        data = await farm.image(apicommon.job_id(job_id), fmt, layer, who)
+        try:
+            file = await farm.image_file(
+                apicommon.job_id(job_id), fmt, layer, who, max_size, compression
+            )
+        except Cancelled:
+            return _error(503, "", "the server is stopping")
+        size = os.fstat(file.fileno()).st_size
+
+        async def chunks():
+            # Streamed from the (unlinked) scratch file: a large EXR is never held in RAM.
+            with file:
+                while chunk := await asyncio.to_thread(file.read, 1 << 20):
+                    yield chunk
+
         media = apicommon.IMAGE_MEDIA_TYPES[fmt]
-        return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
+        headers = {"Cache-Control": "no-store", "Content-Length": str(size)}
+        return StreamingResponse(chunks(), media_type=media, headers=headers)
 
     @app.get(
         "/api/v1/workers",

@@ -39,17 +39,6 @@ log = logging.getLogger(__name__)
 BASE_ADDRESS_SPACE = 1 << 30
 
 
-def machine_memory_bytes() -> int:
-    """The memory of this machine, or less under a cgroup limit (a container's)."""
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        with contextlib.suppress(OSError, ValueError):
-            limit = int(Path(path).read_text().strip())
-            if 0 < limit < total:
-                total = limit
-    return total
-
-
 @dataclass(frozen=True)
 class SceneLimits:
     """What a scene may cost a worker (server settings RENDERFARM_MAX_SCENE_*)."""

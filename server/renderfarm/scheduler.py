@@ -1,4 +1,5 @@
-"""The scheduler: tiles, batches, leases, in-order merging and stop decisions. No I/O.
+"""The scheduler: tiles, batches, leases, in-order merging and stop decisions. No I/O but the
+spill files of the tile cache it may be given (spill.py), which keeps large jobs' tiles.
 
 One Scheduler holds every unfinished job in memory. Callers (the gRPC worker stream, the REST
 API) tell it what happened (a worker connected, a result arrived, time passed) and read back
@@ -28,6 +29,7 @@ import numpy as np
 
 from .jobspec import JobSettings
 from .merge import TileAccumulator
+from .spill import TileCache
 from .states import JobState, StopReason
 from .tiling import (
     PLANNED_FROM,
@@ -180,8 +182,11 @@ class Scheduler:
         clock: Callable[[], float] = time.monotonic,
         lease_s: float = 30.0,
         max_task_failures: int = 3,
+        cache: TileCache | None = None,
     ):
+        """cache: where tile accumulators live beyond a RAM budget (None: all in RAM)."""
         self.clock = clock
+        self.cache = cache
         self.lease_s = lease_s
         self.max_task_failures = max_task_failures
         self.jobs: dict[str, JobRun] = {}
@@ -206,8 +211,9 @@ class Scheduler:
         `plans` their planned batch sizes as planned_batches() gave them at that checkpoint."""
         now = self.clock()
         iid = settings.sampler == "independent"
+        cached = self.cache is not None  # then arrays are made when a tile is first used
         tiles = [
-            TileState(i, r, TileAccumulator(r.width, r.height, iid))
+            TileState(i, r, TileAccumulator(r.width, r.height, iid, arrays=not cached))
             for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
         ]
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state)
@@ -216,9 +222,11 @@ class Scheduler:
         for index, acc in (checkpoint or {}).items():
             tile = tiles[index]
             tile.acc = acc
+            self._register(job, tile)
             tile.next_batch = acc.batches
             job.samples_merged += acc.samples * tile.rect.pixels
             if acc.batches:
+                self._use(tile)
                 tile.error = acc.tile_error()
                 self._decide_stop(job, tile)
             first = max(tile.merged, PLANNED_FROM)
@@ -230,6 +238,7 @@ class Scheduler:
             self._plan_ahead(job, tile)
         self.jobs[job_id] = job
         for tile in tiles:
+            self._register(job, tile)
             self._touch(job, tile)
         self._maybe_finish(job)
         return job
@@ -251,6 +260,17 @@ class Scheduler:
         job = self.jobs.get(job_id)
         if job is not None and job.state.finished:
             del self.jobs[job_id]
+            if self.cache is not None:
+                self.cache.forget_job(job_id)
+
+    def _register(self, job: JobRun, tile: TileState) -> None:
+        if self.cache is not None:
+            self.cache.register(job.job_id, tile.acc, job.settings.tile_size)
+
+    def _use(self, tile: TileState) -> None:
+        """Bring a tile's arrays into RAM before they are read or merged."""
+        if self.cache is not None:
+            self.cache.use(tile.acc)
 
     def progress(self, job: JobRun) -> Progress:
         now = self.clock()
@@ -561,6 +581,7 @@ class Scheduler:
         tile.pending[b] = result
         outcome = "pending"
         while tile.merged in tile.pending and not tile.stopped:
+            self._use(tile)
             r = tile.pending.pop(tile.merged)
             tile.aovs_dirty |= carries_aovs(r.sample_start)
             tile.acc.merge_batch(

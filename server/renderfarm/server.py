@@ -8,6 +8,7 @@ import ctypes
 import logging
 import signal
 import socket
+import time
 from collections.abc import Awaitable, Callable
 
 import uvicorn
@@ -22,6 +23,8 @@ from .service import FarmService
 from .store import Store
 
 log = logging.getLogger(__name__)
+
+CLOSE_S = 3.0  # of the drain timeout, kept for stopping the APIs and the embedded database
 
 # glibc's malloc returns freed memory above 128 KiB to the kernel at once and serves blocks
 # from 128 KiB up with fresh mmaps (or from 32 MiB once its threshold has drifted), so every
@@ -136,17 +139,22 @@ async def serve(
         if on_ready is not None:
             await on_ready(http_port, grpc_port)
         await stop.wait()
+        # The whole shutdown fits in the drain timeout (a container's grace period is set to
+        # it): waiting for tasks in flight leaves the last checkpoint the time it is expected
+        # to take, and the servers and the database CLOSE_S at the end.
+        deadline = time.monotonic() + settings.drain_timeout_s
         log.info(
             "draining: no new tasks; waiting up to %g s for tasks in flight",
             settings.drain_timeout_s,
         )
-        await farm.drain(settings.drain_timeout_s)
+        await farm.drain(max(0.0, settings.drain_timeout_s - CLOSE_S))
         log.info("shutting down")
-        await farm.stop()
+        await farm.stop(timeout_s=deadline - CLOSE_S - time.monotonic())
         http.should_exit = True
-        await grpc_server.stop(grace=2)
+        left = max(0.5, deadline - time.monotonic())
+        await grpc_server.stop(grace=min(1.0, left / 3))
         with contextlib.suppress(Exception):
-            await asyncio.wait_for(http_task, timeout=5)
+            await asyncio.wait_for(http_task, timeout=min(5.0, left / 3))
     finally:
         if supervisor is not None:
             supervisor.cancel()

@@ -20,13 +20,16 @@ import contextlib
 import dataclasses
 import logging
 import math
+import os
 import secrets
+import tempfile
+import threading
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import psycopg
@@ -40,6 +43,7 @@ from .merge import TileAccumulator
 from .scene_check import SceneChecker
 from .scenes import SceneError, inspect_environment, inspect_scene
 from .scheduler import BatchResult, JobRun, Lease, Scheduler
+from .spill import TileCache
 from .states import JobState, StopReason
 from .store import DatabaseUnavailable, JobRow, Store, TileRow
 from .tiling import Rect, tile_grid
@@ -48,6 +52,7 @@ log = logging.getLogger(__name__)
 
 SCENE_CHUNK_BYTES = 1 << 20
 STORED_WAIT_S = 5.0  # how long a cancel waits for its final state to be stored
+MAX_IMAGE_SIZE = 1 << 16  # largest max_size of a PNG preview
 
 
 class NotFound(LookupError):
@@ -140,9 +145,17 @@ class FarmService:
     def __init__(self, settings: Settings, store: Store):
         self.settings = settings
         self.store = store
+        # Tiles past the RAM budget wait in DATA_DIR/scratch (spill.py), as do images being
+        # written.
+        cache = TileCache(settings.data_dir / "scratch", settings.tile_cache_mb * 2**20)
         self.scheduler = Scheduler(
-            clock=time.time, lease_s=settings.lease_s, max_task_failures=settings.max_task_failures
+            clock=time.time,
+            lease_s=settings.lease_s,
+            max_task_failures=settings.max_task_failures,
+            cache=cache,
         )
+        self._stopping = threading.Event()  # images being written give up when set
+        self._checkpoint_rate = _Rate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
         self.names: dict[str, str] = {}  # job id -> name for live jobs
         self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
@@ -175,31 +188,51 @@ class FarmService:
     # ------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
         await spool.replay(self.store, self.settings.data_dir)
+        self.scheduler.cache.clear_directory()
         await self.store.mark_all_workers_disconnected()
         await self._resume_unfinished()
         self._tasks.append(asyncio.create_task(self._background(), name="farm-background"))
         self.ready = True
 
-    async def stop(self) -> None:
+    async def stop(self, timeout_s: float | None = None) -> None:
+        """Write the last checkpoint (within timeout_s, at least 1 s, when given: what is not
+        written by then is rendered again after a restart) and let go of everything."""
         self.ready = False
+        self._stopping.set()
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        if not await self.flush(force=True):
+        try:
+            timeout = None if timeout_s is None else max(1.0, timeout_s)
+            written = await asyncio.wait_for(self.flush(force=True), timeout)
+        except TimeoutError:
+            written = False
+        if not written:
+            # Whatever is not stored goes to the spool, replayed at the next start; the
+            # spilled tiles are read from the cache's files, which close() then removes.
             self._spool_unsaved()
+        self.scheduler.cache.close()
         for session in list(self.sessions.values()):
             session.outbox.put_nowait(None)
 
     async def _resume_unfinished(self) -> None:
         for row in await self.store.unfinished_jobs():
             settings = JobSettings(**row.settings)
-            tile_rows = await self.store.load_tiles(row.id)
-            checkpoint = {
-                index: acc for index, (_, acc) in _restore_tiles(settings, tile_rows).items()
-            }
-            plans = {t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan}
+            # A chunk of tiles at a time, each put under the tile cache at once: a large job
+            # comes back within the cache's RAM (the rest goes to its spill file).
+            checkpoint, plans, old_aovs = {}, {}, []
+            tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+            tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
+            step = max(1, CHECKPOINT_CHUNK_BYTES // tile_bytes)
+            for first in range(0, tiles, step):
+                tile_rows = await self.store.load_tiles(row.id, first=first, count=step)
+                for index, (_, acc) in _restore_tiles(settings, tile_rows).items():
+                    self.scheduler.cache.register(row.id, acc, settings.tile_size)
+                    checkpoint[index] = acc
+                plans.update({t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan})
+                old_aovs += [t.tile_index for t in tile_rows if t.aovs is None and t.samples > 0]
             self.scheduler.add_job(
                 row.id,
                 settings,
@@ -210,12 +243,11 @@ class FarmService:
                 elapsed_s=row.elapsed_s,
             )
             self.scheduler.take_events()  # the stops were recorded before the restart
-            for t in tile_rows:
-                if t.aovs is None and t.samples > 0:
-                    # A checkpoint from before the AOVs were stored apart: the next one writes
-                    # them in their own column (later ones leave that column alone).
-                    tile = self.scheduler.jobs[row.id].tiles[t.tile_index]
-                    tile.dirty = tile.aovs_dirty = True
+            for index in old_aovs:
+                # A checkpoint from before the AOVs were stored apart: the next one writes
+                # them in their own column (later ones leave that column alone).
+                tile = self.scheduler.jobs[row.id].tiles[index]
+                tile.dirty = tile.aovs_dirty = True
             self.names[row.id] = row.name
             self.created[row.id] = row.created_at.timestamp()
             self.owners[row.id] = row.owner
@@ -282,13 +314,20 @@ class FarmService:
         return True
 
     async def drain(self, timeout_s: float) -> None:
-        """Stop leasing and wait (at most timeout_s) for the tasks in flight to come back."""
+        """Stop leasing and wait for the tasks in flight to come back, while the last
+        checkpoint would still be written within timeout_s (by the measured checkpoint rate)."""
         self.draining = True
         deadline = time.monotonic() + timeout_s
-        while self.scheduler.leases and time.monotonic() < deadline:
+        while self.scheduler.leases and time.monotonic() + self._final_checkpoint_s() < deadline:
             await asyncio.sleep(0.1)
         if self.scheduler.leases:
             log.warning("drain timed out with %d tasks in flight", len(self.scheduler.leases))
+
+    def _final_checkpoint_s(self) -> float:
+        """Estimated seconds the last checkpoint needs for the tiles merged since the last
+        one, from the measured rate (plus a margin for the job rows and the commit)."""
+        dirty = [t for job in self.scheduler.jobs.values() for t in job.tiles if t.dirty]
+        return 0.5 + _dirty_bytes(dirty) / self._checkpoint_rate.value
 
     # ---------------------------------------------------------------------------- jobs
     async def submit(
@@ -509,31 +548,112 @@ class FarmService:
         )
 
     # -------------------------------------------------------------------------- images
-    async def frame(self, job_id: str) -> images.Frame:
-        job = self.scheduler.jobs.get(job_id)
-        if job is not None:
-            tiles = [(t.rect, t.acc) for t in job.tiles]
-            return images.assemble(job.settings.width, job.settings.height, tiles)
-        row = await self.store.get_job(job_id)
-        if row is None:
-            raise NotFound(f"no job with id {job_id!r}")
-        settings = JobSettings(**row.settings)
-        tiles = list(_restore_tiles(settings, await self.store.load_tiles(job_id)).values())
-        return images.assemble(settings.width, settings.height, tiles)
-
-    async def image(self, job_id: str, fmt: str, layer: str, caller: Caller) -> bytes:
+    async def image_file(
+        self,
+        job_id: str,
+        fmt: str,
+        layer: str,
+        caller: Caller,
+        max_size: int = 0,
+        compression: str = "zip",
+    ) -> BinaryIO:
+        """The image written to a scratch file, returned open for reading (the file is
+        already unlinked: closing it frees the space). Written one row of tiles at a time
+        (images.ImageWriter), from memory while the job is held, else from the database."""
+        _check_caller(caller)
         if fmt not in ("png", "exr"):
             raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
         if layer not in images.LAYERS:
             raise SettingsError(
                 "layer", f"unknown layer {layer!r}; one of {', '.join(images.LAYERS)}"
             )
+        if not 0 <= max_size <= MAX_IMAGE_SIZE:
+            raise SettingsError("max_size", f"max_size must be in 0..{MAX_IMAGE_SIZE}")
+        if compression not in images.EXR_COMPRESSIONS:
+            raise SettingsError(
+                "compression",
+                f"unknown compression {compression[:40]!r}; one of "
+                f"{', '.join(images.EXR_COMPRESSIONS)}",
+            )
         await self.get(job_id, caller)  # raises NotFound / Forbidden
-        frame = await self.frame(job_id)
-        loop = asyncio.get_running_loop()
-        if fmt == "exr":
-            return await loop.run_in_executor(None, images.to_exr_bytes, frame)
-        return await loop.run_in_executor(None, images.layer_png_bytes, frame, layer)
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None:
+            settings = job.settings
+        else:
+            row = await self.store.get_job(job_id)
+            if row is None:
+                raise NotFound(f"no job with id {job_id!r}")
+            settings = JobSettings(**row.settings)
+        rects = tile_grid(settings.width, settings.height, settings.tile_size)
+        cols = math.ceil(settings.width / settings.tile_size)
+        rows = len(rects) // cols
+        names = images.arrays_needed(fmt, layer)
+
+        async def band(r: int) -> images.Band:
+            """Row r of tiles with their arrays (read in a thread: from RAM, a spill file or
+            the database)."""
+            live = self.scheduler.jobs.get(job_id)
+            if live is not None:  # snapshots on the loop (cheap), arrays read in the thread
+                views = [(t.rect, images.TileView.of(t.rect, t.acc, names)) for t in
+                         live.tiles[r * cols : (r + 1) * cols]]  # fmt: skip
+                return await asyncio.to_thread(
+                    lambda: [(rect, v and v.accumulator()) for rect, v in views]
+                )
+            stored = await self.store.load_tiles(job_id, first=r * cols, count=cols)
+            if not stored and await self.store.get_job(job_id) is None:
+                raise NotFound(f"no job with id {job_id!r}")  # deleted meanwhile
+            return await asyncio.to_thread(_band_from_rows, settings, rects, r * cols, cols, stored)
+
+        top = 1.0
+        if fmt == "png" and layer in images.GREY_LAYERS:  # normalised: a pass for the maximum
+            top = -math.inf
+            for r in range(rows):
+                top = max(top, await asyncio.to_thread(images.layer_maximum, layer, await band(r)))
+        scratch = self.scheduler.cache.directory
+        scratch.mkdir(parents=True, exist_ok=True)
+        fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
+        os.close(fd)
+        writer = None
+        try:
+            writer = await asyncio.to_thread(
+                images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
+                top, self._stopping, compression,
+            )  # fmt: skip
+            for r in range(rows):
+                tiles = await band(r)
+                await asyncio.to_thread(
+                    writer.write_band, rects[r * cols].height, tiles, r == rows - 1
+                )
+            await asyncio.to_thread(writer.close)
+            f = open(path, "rb")  # noqa: SIM115 (the caller closes it)
+        except BaseException:
+            # The writer may still be in its thread (this task was cancelled while it wrote a
+            # band): close and remove it there, after that band, without waiting here.
+            asyncio.get_running_loop().run_in_executor(None, _discard_image, writer, path)
+            raise
+        os.unlink(path)
+        return f
+
+    async def image(
+        self,
+        job_id: str,
+        fmt: str,
+        layer: str,
+        caller: Caller,
+        max_size: int = 0,
+        max_bytes: int | None = None,
+        compression: str = "zip",
+    ) -> bytes:
+        """The image as bytes (for gRPC's one message); TooLarge past max_bytes."""
+        with await self.image_file(job_id, fmt, layer, caller, max_size, compression) as f:
+            size = os.fstat(f.fileno()).st_size
+            if max_bytes is not None and size > max_bytes:
+                raise TooLarge(
+                    "format",
+                    f"the {fmt} image is {size} bytes, more than one message may hold "
+                    f"({max_bytes}); GET /api/v1/jobs/{job_id}/image.{fmt} streams it",
+                )
+            return await asyncio.to_thread(f.read)
 
     # -------------------------------------------------------------------------- scenes
     async def scene_info(self, sha256: str) -> dict[str, Any]:
@@ -674,9 +794,13 @@ class FarmService:
             self._changed.notify_all()
 
     def _forget_later(self, job_id: str) -> None:
-        """Keep a finished job in memory for a minute (fast image requests), then drop it."""
+        """Keep a finished job in memory for a minute (fast image requests), then drop it.
+        A job that outgrew the tile cache gives its RAM back now (its checkpoint is written):
+        its tiles go to its spill file, which its images read until it is dropped."""
 
         async def forget() -> None:
+            while self.scheduler.cache.evict_job(job_id, CHECKPOINT_CHUNK_BYTES):
+                await asyncio.sleep(0)  # a chunk at a time: merges of other jobs go on
             await asyncio.sleep(60)
             self.scheduler.forget_job(job_id)
             self.history.pop(job_id, None)
@@ -707,23 +831,28 @@ class FarmService:
             return
         # Snapshots are taken here, on the loop (cheap: accumulators are copy-on-write); the
         # bytes are made in a worker thread so merging is not stalled by large checkpoints.
-        snapshots, taken = [], []  # taken: (tile, whether its AOVs were snapshotted too)
-        if tiles:
-            for t in job.tiles:
+        # A chunk at a time (one transaction each): a snapshot keeps alive the arrays that
+        # merges replace meanwhile, and its bytes are a copy, so a large job's checkpoint
+        # holds at most a chunk of them.
+        for chunk in _chunks([t for t in job.tiles if t.dirty] if tiles else []):
+            snapshots, taken = [], []  # taken: (tile, whether its AOVs were snapshotted too)
+            for t in chunk:
                 if t.dirty:
                     snapshots.append(_tile_snapshot(t, t.aovs_dirty))
                     taken.append((t, t.aovs_dirty))
                     t.dirty = t.aovs_dirty = False
-        try:
-            rows = await asyncio.to_thread(lambda: [_tile_row(*snap) for snap in snapshots])
-            await self.store.save_tiles(job_id, rows)
-        except BaseException:
-            # Not written (a database error, or the task cancelled mid-checkpoint by stop(),
-            # whose final checkpoint must then write these tiles): write them again.
-            for t, aovs in taken:
-                t.dirty = True
-                t.aovs_dirty |= aovs
-            raise
+            started = time.monotonic()
+            try:
+                rows = await asyncio.to_thread(lambda s=snapshots: [_tile_row(*x) for x in s])
+                await self.store.save_tiles(job_id, rows)
+            except BaseException:
+                # Not written (a database error, or the task cancelled mid-checkpoint by
+                # stop(), whose final checkpoint must then write these tiles): write them again.
+                for t, aovs in taken:
+                    t.dirty = True
+                    t.aovs_dirty |= aovs
+                raise
+            self._checkpoint_rate.add(_dirty_bytes(chunk, taken), time.monotonic() - started)
         await self.store.update_job(job_id, **self._job_fields(job))
 
     def _job_fields(self, job: JobRun) -> dict[str, Any]:
@@ -894,6 +1023,70 @@ def _restore_tiles(
         )
         restored[t.tile_index] = (rect, acc)
     return restored
+
+
+CHECKPOINT_CHUNK_BYTES = 32 * 2**20
+
+
+def _chunks(tiles: list) -> list[list]:
+    """Tiles in runs of about CHECKPOINT_CHUNK_BYTES of accumulators (at least one each)."""
+    chunks, chunk, size = [], [], 0
+    for t in tiles:
+        if chunk and size + t.acc.nbytes > CHECKPOINT_CHUNK_BYTES:
+            chunks.append(chunk)
+            chunk, size = [], 0
+        chunk.append(t)
+        size += t.acc.nbytes
+    return chunks + [chunk] if chunk else chunks
+
+
+def _dirty_bytes(tiles, taken=None) -> int:
+    """Bytes a checkpoint writes for these tiles (statistics, and AOVs where they changed)."""
+    aovs = [a for _, a in taken] if taken is not None else [t.aovs_dirty for t in tiles]
+    per_pixel = TileAccumulator.BYTES_PER_PIXEL
+    return sum(
+        t.rect.pixels * (per_pixel if with_aovs else per_pixel * 2 // 3)
+        for t, with_aovs in zip(tiles, aovs, strict=True)
+    )
+
+
+class _Rate:
+    """Checkpoint bytes per second: a running mean over recent writes, for the drain's
+    estimate of how long the last checkpoint will take."""
+
+    def __init__(self, initial: float):
+        self.value = initial
+
+    def add(self, nbytes: int, seconds: float) -> None:
+        if nbytes > 1 << 20 and seconds > 0:  # small writes measure latency, not throughput
+            self.value = 0.7 * self.value + 0.3 * nbytes / seconds
+
+
+def _band_from_rows(
+    settings: JobSettings, rects: list[Rect], first: int, count: int, rows: list[TileRow]
+) -> images.Band:
+    """A row of tiles from their checkpoints (a tile without one has no samples)."""
+    by_index = {t.tile_index: t for t in rows}
+    iid = settings.sampler == "independent"
+    band: images.Band = []
+    for index in range(first, first + count):
+        rect, t = rects[index], by_index.get(index)
+        acc = None
+        if t is not None and t.samples > 0:
+            acc = TileAccumulator.from_bytes(
+                rect.width, rect.height, t.accumulators, t.samples, t.batches, t.nonfinite,
+                iid=iid, aovs=t.aovs,
+            )  # fmt: skip
+        band.append((rect, acc))
+    return band
+
+
+def _discard_image(writer: images.ImageWriter | None, path: str) -> None:
+    if writer is not None:
+        with contextlib.suppress(Exception):
+            writer.abandon()
+    with contextlib.suppress(OSError):
+        os.unlink(path)
 
 
 def _tile_snapshot(t, with_aovs: bool) -> tuple:

@@ -448,14 +448,20 @@ class Store:
                     ],
                 )
 
-    async def load_tiles(self, job_id: str) -> list[TileRow]:
+    async def load_tiles(
+        self, job_id: str, first: int = 0, count: int | None = None
+    ) -> list[TileRow]:
+        """The job's checkpointed tiles with index first .. first + count - 1 (all when count
+        is None), in index order."""
+        last = 2**31 - 1 if count is None else first + count - 1
         async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT tile_index, samples, batches, nonfinite, error, accumulators,"
                 " stop_batch, stop_spp, stop_error, stop_reason, aovs, batch_plan"
-                " FROM tiles WHERE job_id = %s ORDER BY tile_index",
-                (job_id,),
+                " FROM tiles WHERE job_id = %s AND tile_index BETWEEN %s AND %s"
+                " ORDER BY tile_index",
+                (job_id, first, last),
             )
             return [
                 TileRow(

@@ -60,3 +60,62 @@ def test_limits_are_settings():
         parse_settings({"max_spp": 65}, limits)
     with pytest.raises(SettingsError, match="pixels"):
         parse_settings({"width": 5000, "height": 5000}, Limits(max_pixels=10**6))
+
+
+def test_jobs_whose_accumulators_outgrow_the_memory_limit_are_refused_naming_width():
+    # 1024 x 1024 with 64-pixel tiles: 72 bytes a pixel and 4 KB for each of the 256 tiles.
+    need = 72 * 1024 * 1024 + 4096 * 256
+    settings = {"width": 1024, "height": 1024, "tile_size": 64}
+    assert parse_settings(settings, Limits(max_job_memory_bytes=need)).width == 1024
+    with pytest.raises(SettingsError) as e:
+        parse_settings(settings, Limits(max_job_memory_bytes=need - 1))
+    assert e.value.field == "settings.width"
+    assert "1024 x 1024" in e.value.message and "RENDERFARM_MAX_JOB_MEMORY_MB" in e.value.message
+    # Smaller tiles cost more bookkeeping: the same image at 8-pixel tiles (16384 of them).
+    with pytest.raises(SettingsError):
+        parse_settings({**settings, "tile_size": 8}, Limits(max_job_memory_bytes=need))
+
+
+def test_the_estimate_covers_what_a_job_really_holds():
+    """72 bytes a pixel are the accumulator's arrays; 4 KB a tile bound the rest, measured
+    with tracemalloc on a job whose tiles all merge batches and stop (no timing involved)."""
+    import gc
+    import tracemalloc
+
+    import numpy as np
+
+    from renderfarm.jobspec import ACCUMULATOR_BYTES_PER_PIXEL, TILE_OVERHEAD_BYTES
+    from renderfarm.merge import TileAccumulator
+    from renderfarm.scheduler import BatchResult, Scheduler
+
+    acc = TileAccumulator(5, 3)
+    arrays = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
+    assert sum(getattr(acc, a).nbytes for a in arrays) == ACCUMULATOR_BYTES_PER_PIXEL * 15
+
+    settings = JobSettings(width=256, height=128, tile_size=8, max_spp=4, min_spp=4)
+    sched = Scheduler(clock=lambda: 0.0)
+    sched.add_worker("w", 64)
+    ones = {n: np.ones(64 * n) for n in (1, 3)}
+    gc.collect()
+    tracemalloc.start()
+    try:
+        sched.add_job("j", settings, "scene")
+        job = sched.jobs["j"]
+        peak = 0
+        for _ in range(len(job.tiles) * 4):
+            for lease in sched.assign("w"):
+                result = BatchResult(
+                    "j", lease.tile_index, lease.batch_index, lease.sample_start,
+                    lease.sample_count, lease.rect, ones[3], ones[1],
+                )  # fmt: skip
+                sched.complete(lease.task_id, result)
+            sched.take_events()  # as the server does after every change
+            peak = max(peak, tracemalloc.get_traced_memory()[0])
+            if job.state.finished:
+                break
+    finally:
+        tracemalloc.stop()
+    assert job.state.finished
+    pixels = settings.width * settings.height
+    per_tile = (peak - ACCUMULATOR_BYTES_PER_PIXEL * pixels) / len(job.tiles)
+    assert 0 < per_tile <= TILE_OVERHEAD_BYTES, per_tile

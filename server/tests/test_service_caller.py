@@ -42,6 +42,7 @@ CALLS = {
     "watch": ((JOB,), {}),
     "events": ((JOB,), {}),
     "image": ((JOB, "png", "rgb"), {}),
+    "image_file": ((JOB, "png", "rgb"), {}),
     "convergence": ((JOB,), {}),
 }
 

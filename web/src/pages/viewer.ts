@@ -14,6 +14,9 @@ interface Layer {
   legend?: string;
 }
 
+// Longest side of the preview images (`max_size` of image.png): beyond a 4K screen's width.
+const PREVIEW_MAX_SIZE = 2048;
+
 export const LAYERS: Layer[] = [
   { id: "rgb", label: "Image" },
   { id: "error", label: "Relative error", colourMap: "inferno", legend: "per-pixel relative error" },
@@ -175,7 +178,9 @@ export class Viewer {
     const version = this.version;
     const key = `${layer}:${version}`;
     if (key === this.loadedKey) return;
-    const response = await fetch(`${imageUrl(this.jobId, "png", layer)}&v=${version}`);
+    // A preview no larger than the screen shows: a large render's full-resolution PNG takes
+    // the server seconds to encode (the Download buttons still fetch it).
+    const response = await fetch(`${imageUrl(this.jobId, "png", layer)}&max_size=${PREVIEW_MAX_SIZE}&v=${version}`);
     if (!response.ok) return; // e.g. no samples merged yet; the next update tries again
     const bitmap = await createImageBitmap(await response.blob());
     const work = document.createElement("canvas");
