@@ -1,4 +1,6 @@
-"""Progressive merge of batch results and the per-pixel error estimate (DESIGN.md section 5).
+"""Progressive merge of batch results and the per-pixel error estimate.
+
+The statistics are explained in docs/architecture.md, "Statistics".
 
 Per pixel a tile keeps, in float64:
   rgb_sum        sum of every merged sample's RGB

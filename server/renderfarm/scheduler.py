@@ -6,7 +6,7 @@ API) tell it what happened (a worker connected, a result arrived, time passed) a
 what to do: tasks to send, tasks to cancel, events to store. Time comes from an injected clock so
 tests can drive it.
 
-Determinism (DESIGN.md section 4): a result is identified by (job, tile, batch), not by the lease
+Determinism (docs/architecture.md): a result is identified by (job, tile, batch), not by the lease
 that produced it. Batches of a tile are merged strictly in batch order (early arrivals wait in
 `pending`), and the stop decision after batch k only looks at batches 0..k. Hence the merged
 image is the same whichever worker rendered what, in any order; duplicates and batches past a
