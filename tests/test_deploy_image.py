@@ -23,7 +23,6 @@ import shutil
 import subprocess
 import sys
 import sysconfig
-import time
 from pathlib import Path
 
 import httpx
@@ -32,6 +31,7 @@ import pytest
 from renderfarm.localfarm import find_worker_binary, free_port
 
 from .conftest import ROOT
+from .waiting import wait_until
 
 DOCKERFILE = ROOT / "deploy" / "docker" / "server.Dockerfile"
 IGNORE = ROOT / "deploy" / "docker" / "server.Dockerfile.dockerignore"
@@ -275,16 +275,6 @@ def _clean_env(venv: Path, usr_local_bin: Path | None = None, **extra: str) -> d
     return {**keep, "PATH": path, **extra}
 
 
-def _wait(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = predicate()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
-        time.sleep(poll_s)
-
-
 @pytest.fixture(scope="module")
 def image_server(image, tmp_path_factory):
     """The image's entrypoint from the reproduced environment, on loopback, with a token."""
@@ -312,7 +302,7 @@ def image_server(image, tmp_path_factory):
             return False
 
     try:
-        _wait(ready, 120, "the image's server to be ready")
+        wait_until(ready, 120, "the image's server to be ready")
         yield {"url": url, "env": env}
     finally:
         proc.terminate()

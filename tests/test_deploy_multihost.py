@@ -24,6 +24,7 @@ from renderfarm.images import read_exr
 
 from .conftest import CORNELL, ROOT
 from .tools import require_tool
+from .waiting import wait_until
 
 FARM = ROOT / "deploy" / "netns" / "farm.sh"
 SETTINGS = {
@@ -74,16 +75,6 @@ def _rgb_of(exr: bytes, tmp: Path, name: str) -> np.ndarray:
 
 def _workers(client: Client) -> dict[str, dict]:
     return {w["id"]: w for w in client.workers()}
-
-
-def _wait(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = predicate()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
-        time.sleep(poll_s)
 
 
 @pytest.fixture()
@@ -168,7 +159,7 @@ def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalon
         state["URL"], token=state["ADMIN_TOKEN"], timeout=30, ca_file=state["CA_FILE"]
     ) as client:
         assert client.ready()
-        _wait(lambda: len(client.workers()) == 2, 30, "both workers to connect")
+        wait_until(lambda: len(client.workers()) == 2, 30, "both workers to connect")
         workers = _workers(client)
         assert set(workers) == {"worker1", "worker2"}
 
@@ -191,7 +182,7 @@ def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalon
             w = _workers(client).get("worker1")
             return w if w and w["tasks_done"] > before and w["tasks_in_flight"] > 0 else None
 
-        _wait(worker1_busy, 60, "worker1 to render part of the second job", poll_s=0.05)
+        wait_until(worker1_busy, 60, "worker1 to render part of the second job", poll_s=0.05)
         _farm("cut", str(state_dir), "worker1")
         cut_at = time.monotonic()
         # Counted after the cut: tasks worker1 finished while the cut was being made count as

@@ -14,7 +14,6 @@ import shutil
 import ssl
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -23,6 +22,7 @@ import yaml
 
 from .conftest import ROOT
 from .tools import require_tool
+from .waiting import wait_until
 
 DEPLOY = ROOT / "deploy"
 INSTALL = ROOT / "scripts" / "install-deps.sh"
@@ -45,16 +45,6 @@ COMPOSE_ENV = {
 
 def _run(args, **kwargs) -> subprocess.CompletedProcess:
     return subprocess.run(args, capture_output=True, text=True, timeout=120, **kwargs)
-
-
-def _wait(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = predicate()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f"timed out after {timeout_s} s waiting for {what}"
-        time.sleep(poll_s)
 
 
 def _group(name: str) -> list[str]:
@@ -284,7 +274,7 @@ def test_worker_entrypoint_runs_the_real_worker(worker_binary, tmp_path):
         )
     try:
         # It logs "connecting to" once its SIGTERM handler is in place.
-        _wait(lambda: proc.poll() is not None or "connecting to" in log.read_text(), 30,
+        wait_until(lambda: proc.poll() is not None or "connecting to" in log.read_text(), 30,
               "the worker to start connecting")  # fmt: skip
         assert proc.poll() is None, log.read_text()
         with open(f"/proc/{proc.pid}/comm") as comm:
@@ -546,7 +536,7 @@ def test_compose_certificates_carry_real_worker_traffic(compose_config, compose_
             except httpx.TransportError:
                 return False
 
-        _wait(ready, 120, "the TLS server to be ready")
+        wait_until(ready, 120, "the TLS server to be ready")
         # The compose server's health check (here on this server's port) passes over https, and
         # the server survives it: the checking process exits as soon as it has read the answer,
         # so the server's last TLS write meets a closed socket (with SIGPIPE not ignored, that
@@ -570,7 +560,7 @@ def test_compose_certificates_carry_real_worker_traffic(compose_config, compose_
             workers = httpx.get(f"{url}/api/v1/workers", verify=ca, timeout=5).json()
             return any(w["id"] == "compose-tls" for w in workers)
 
-        _wait(joined, 60, "the worker to join over TLS")
+        wait_until(joined, 60, "the worker to join over TLS")
         assert httpx.get(f"{url}/readyz", verify=ca, timeout=5).status_code == 200
         assert procs[0].poll() is None, (tmp_path / "server.log").read_text()
         # The gRPC port speaks TLS only: a plaintext health check gets no answer.

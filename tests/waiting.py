@@ -9,9 +9,7 @@ from typing import TypeVar
 T = TypeVar("T")
 
 
-def wait_until(
-    condition: Callable[[], T], *, timeout_s: float, what: str, poll_s: float = 0.05
-) -> T:
+def wait_until(condition: Callable[[], T], timeout_s: float, what: str, poll_s: float = 0.05) -> T:
     """condition()'s first truthy value; AssertionError naming `what` after timeout_s."""
     deadline = time.monotonic() + timeout_s
     while True:
