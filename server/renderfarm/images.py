@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -279,7 +280,8 @@ class ImageWriter:
     """Writes a job's EXR or a PNG layer to `path` from bands of tiles given top to bottom.
 
     For a grey PNG layer, `top` is the layer's maximum over the whole image (layer_maximum of
-    every band): the layer is normalised to it."""
+    every band): the layer is normalised to it. An EXR's DateTime is `date_time` (Unix
+    seconds, UTC; the epoch when None), never the time of writing."""
 
     def __init__(
         self,
@@ -292,6 +294,7 @@ class ImageWriter:
         top: float = 1.0,
         cancelled: threading.Event | None = None,
         compression: str = "zip",
+        date_time: float | None = None,
     ):
         import OpenImageIO as oiio  # heavy import, only where images are written
 
@@ -302,6 +305,10 @@ class ImageWriter:
             spec = oiio.ImageSpec(width, height, len(EXR_CHANNELS), oiio.FLOAT)
             spec.channelnames = EXR_CHANNELS
             spec.attribute("compression", compression)
+            # OpenImageIO stamps an EXR with the time of writing unless told a time: the
+            # caller's (the job's) keeps an image's bytes a function of the job alone.
+            stamp = time.gmtime(0 if date_time is None else date_time)
+            spec.attribute("DateTime", time.strftime("%Y:%m:%d %H:%M:%S", stamp))
         else:
             f = downscale_factor(width, height, max_size)
             self.scale = _Downscaler(width, f) if f > 1 else None

@@ -577,13 +577,12 @@ class FarmService:
             )
         await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
-        if job is not None:
-            settings = job.settings
-        else:
-            row = await self.store.get_job(job_id)
-            if row is None:
-                raise NotFound(f"no job with id {job_id!r}")
-            settings = JobSettings(**row.settings)
+        row = await self.store.get_job(job_id)
+        if row is None:
+            raise NotFound(f"no job with id {job_id!r}")
+        settings = job.settings if job is not None else JobSettings(**row.settings)
+        # The EXR's DateTime: when the job finished (when it was submitted while it runs).
+        stamp = (row.finished_at or row.created_at).timestamp()
         rects = tile_grid(settings.width, settings.height, settings.tile_size)
         cols = math.ceil(settings.width / settings.tile_size)
         rows = len(rects) // cols
@@ -617,7 +616,7 @@ class FarmService:
         try:
             writer = await asyncio.to_thread(
                 images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
-                top, self._stopping, compression,
+                top, self._stopping, compression, stamp,
             )  # fmt: skip
             for r in range(rows):
                 tiles = await band(r)

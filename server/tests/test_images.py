@@ -194,3 +194,23 @@ def test_images_of_spilled_tiles_are_the_same_files(tmp_path, fmt, layer):
         assert all(ram[c].tobytes() == spilled[c].tobytes() for c in EXR_CHANNELS)
     else:
         assert (tmp_path / "ram.png").read_bytes() == (tmp_path / "spilled.png").read_bytes()
+
+
+def test_exr_is_stamped_with_the_given_time_not_the_time_of_writing(tmp_path):
+    """OpenImageIO writes the clock's time into an EXR's DateTime unless given one; the job's
+    time makes the file a function of the job alone (the same bytes fetched a second later)."""
+    tiles = accumulators()
+    cols = -(-W // TILE)
+    for name, stamp, expected in (("a", 0.0, "1970:01:01 00:00:00"),
+                                  ("b", 1_800_000_000.0, "2027:01:15 08:00:00")):  # fmt: skip
+        writer = ImageWriter(str(tmp_path / f"{name}.exr"), "exr", W, H, date_time=stamp)
+        bands = [tiles[i : i + cols] for i in range(0, len(tiles), cols)]
+        for i, band in enumerate(bands):
+            band = [(r, a if a.samples else None) for r, a in band]
+            writer.write_band(band[0][0].height, band, i == len(bands) - 1)
+        writer.close()
+        inp = oiio.ImageInput.open(str(tmp_path / f"{name}.exr"))
+        try:
+            assert inp.spec().getattribute("DateTime") == expected
+        finally:
+            inp.close()
