@@ -35,7 +35,8 @@ bool keep_encoded_image(tinygltf::Image* image, const int, std::string*, std::st
 const std::set<std::string>& supported_extensions() {
   static const std::set<std::string> s = {
       "KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_ior",
-      "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual"};
+      "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual",
+      "KHR_mesh_quantization"};
   return s;
 }
 
@@ -73,6 +74,10 @@ class Loader {
           std::find(model_.extensionsRequired.begin(), model_.extensionsRequired.end(), ext) ==
               model_.extensionsRequired.end())
         warn("extension '" + ext + "' is not supported; ignoring it");
+    for (const std::vector<std::string>* list :
+         {&model_.extensionsUsed, &model_.extensionsRequired})
+      if (std::find(list->begin(), list->end(), "KHR_mesh_quantization") != list->end())
+        quantization_ = true;
     load_textures(&desc);
     load_materials(&desc);
     load_lights();
@@ -160,11 +165,13 @@ class Loader {
       if (t.Has("texCoord") && t.Get("texCoord").IsNumber())
         ref.texcoord = uint32_t(std::max(0, t.Get("texCoord").GetNumberAsInt()));
     }
-    if (ref.texcoord > 1) {
-      warn(where + ": TEXCOORD_" + std::to_string(ref.texcoord) +
-           " is not supported (only 0 and 1); texture ignored");
-      ref.texture = -1;
-    }
+    // The TriangleMesh::uv array of the set: sets 0 and 1 are arrays 0 and 1, the others get
+    // arrays from 2 up in the order materials first read them (so that a set numbered in the
+    // millions costs one array, not millions).
+    if (ref.texcoord >= 2)
+      ref.texcoord =
+          uv_array_of_set_.try_emplace(ref.texcoord, uint32_t(2 + uv_array_of_set_.size()))
+              .first->second;
     return ref;
   }
 
@@ -212,17 +219,51 @@ class Loader {
     }
   }
 
-  // The accessors of a primitive's vertex attributes (POSITION, NORMAL, TEXCOORD_0,
-  // TEXCOORD_1; -1 where absent). Primitives of one mesh with the same key share their
-  // vertices (exporters often give every material's primitive the whole vertex buffer).
-  using VertexKey = std::array<int, 4>;
-  static VertexKey vertex_key(const tinygltf::Primitive& prim) {
-    VertexKey key{-1, -1, -1, -1};
-    const char* names[4] = {"POSITION", "NORMAL", "TEXCOORD_0", "TEXCOORD_1"};
-    for (size_t i = 0; i < 4; ++i) {
-      const auto it = prim.attributes.find(names[i]);
-      if (it != prim.attributes.end()) key[i] = it->second;
+  // The vertex attributes the renderer reads: POSITION, NORMAL, COLOR_0, TEXCOORD_0 and _1,
+  // and the other TEXCOORD_<n> that a material reads.
+  bool reads_attribute(const std::string& name) const {
+    if (name == "POSITION" || name == "NORMAL" || name == "COLOR_0") return true;
+    uint32_t array = 0;
+    return uv_array(name, &array);
+  }
+  // For a TEXCOORD_<n> attribute the renderer reads: the TriangleMesh::uv array it goes to.
+  bool uv_array(const std::string& name, uint32_t* array) const {
+    uint32_t set = 0;
+    if (!texcoord_set(name, &set)) return false;
+    if (set < 2) {
+      *array = set;
+      return true;
     }
+    const auto it = uv_array_of_set_.find(set);
+    if (it == uv_array_of_set_.end()) return false;
+    *array = it->second;
+    return true;
+  }
+  // n of an attribute named TEXCOORD_<n>.
+  static bool texcoord_set(const std::string& name, uint32_t* set) {
+    static const std::string prefix = "TEXCOORD_";
+    if (name.compare(0, prefix.size(), prefix) != 0 || name.size() == prefix.size() ||
+        name.size() > prefix.size() + 9)
+      return false;
+    uint32_t n = 0;
+    for (size_t i = prefix.size(); i < name.size(); ++i) {
+      if (!std::isdigit(static_cast<unsigned char>(name[i]))) return false;
+      n = 10 * n + uint32_t(name[i] - '0');
+    }
+    // glTF attribute names have no leading zeros ("TEXCOORD_01" is not set 1).
+    if (name.size() > prefix.size() + 1 && name[prefix.size()] == '0') return false;
+    *set = n;
+    return true;
+  }
+
+  // The accessors of the attributes a primitive has that the renderer reads. Primitives of one
+  // mesh with the same key share their vertices (exporters often give every material's
+  // primitive the whole vertex buffer).
+  using VertexKey = std::map<std::string, int>;
+  VertexKey vertex_key(const tinygltf::Primitive& prim) const {
+    VertexKey key;
+    for (const auto& [name, accessor] : prim.attributes)
+      if (reads_attribute(name)) key.emplace(name, accessor);
     return key;
   }
 
@@ -231,13 +272,14 @@ class Loader {
   // invalid count as empty here; add_mesh reports them.
   struct Counts {
     size_t vertices = 0, triangles = 0;
-    bool normals = false, uv[2] = {false, false};
+    bool normals = false, colors = false;
+    std::set<uint32_t> uv;  // TriangleMesh::uv arrays
     void operator+=(const Counts& o) {
       vertices += o.vertices;
       triangles += o.triangles;
       normals = normals || o.normals;
-      uv[0] = uv[0] || o.uv[0];
-      uv[1] = uv[1] || o.uv[1];
+      colors = colors || o.colors;
+      uv.insert(o.uv.begin(), o.uv.end());
     }
   };
   size_t accessor_count(int index) const {
@@ -247,28 +289,68 @@ class Loader {
                : 0;
   }
 
-  // Why an accessor's data is not all in its buffer ("" if it is). check_accessor reports it.
-  std::string accessor_problem(const tinygltf::Accessor& acc) const {
-    if (acc.sparse.isSparse) return "sparse accessors are not supported";
-    if (acc.bufferView < 0 || acc.bufferView >= int(model_.bufferViews.size()))
-      return "missing or invalid 'bufferView'";
-    const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+  // Whether bytes [offset, offset + count - 1 strides + elem) lie in a buffer view of length
+  // `length`, without overflow.
+  static bool fits(size_t length, size_t offset, size_t count, size_t elem, size_t stride) {
+    if (count == 0) return offset <= length;
+    return offset <= length && elem <= length - offset &&
+           (count - 1) <= (length - offset - elem) / stride;
+  }
+  // "" if buffer view `index` exists and lies in its buffer, otherwise why not.
+  std::string view_problem(int index) const {
+    if (index < 0 || index >= int(model_.bufferViews.size()))
+      return "refers to missing buffer view " + std::to_string(index);
+    const tinygltf::BufferView& bv = model_.bufferViews[size_t(index)];
     if (bv.buffer < 0 || bv.buffer >= int(model_.buffers.size()))
       return "buffer view refers to a missing buffer";
     const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
+    if (bv.byteOffset > buf.data.size() || bv.byteLength > buf.data.size() - bv.byteOffset)
+      return "buffer view exceeds its buffer";
+    return {};
+  }
+
+  // Why an accessor's data is not all in its buffers ("" if it is): its own buffer view (none:
+  // zeros, glTF 2.0 3.6.2.3) and a sparse accessor's indices and values. check_accessor
+  // reports it.
+  std::string accessor_problem(const tinygltf::Accessor& acc) const {
     const int ncomp = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
     const int csize = tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType));
     if (ncomp <= 0 || csize <= 0) return "unsupported 'type' or 'componentType'";
     const size_t elem = size_t(ncomp) * size_t(csize);
-    const size_t stride = bv.byteStride ? bv.byteStride : elem;
-    if (stride < elem) return "'byteStride' smaller than the element";
-    if (bv.byteOffset > buf.data.size() || bv.byteLength > buf.data.size() - bv.byteOffset)
-      return "buffer view exceeds its buffer";
-    if (acc.count > 0) {
-      // In bytes, without overflow: count - 1 strides and one element after byteOffset.
-      if (acc.byteOffset > bv.byteLength || elem > bv.byteLength - acc.byteOffset ||
-          (acc.count - 1) > (bv.byteLength - acc.byteOffset - elem) / stride)
+    if (acc.bufferView >= 0 || !acc.sparse.isSparse) {
+      if (acc.bufferView < 0 || acc.bufferView >= int(model_.bufferViews.size()))
+        return "missing or invalid 'bufferView'";
+      const std::string view = view_problem(acc.bufferView);
+      if (!view.empty()) return view;
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+      const size_t stride = bv.byteStride ? bv.byteStride : elem;
+      if (stride < elem) return "'byteStride' smaller than the element";
+      if (!fits(bv.byteLength, acc.byteOffset, acc.count, elem, stride))
         return "data exceeds its buffer view";
+    }
+    if (!acc.sparse.isSparse) return {};
+    const auto& sp = acc.sparse;
+    if (sp.count < 1 || size_t(sp.count) > acc.count)
+      return "sparse.count " + std::to_string(sp.count) + " is not in [1, count = " +
+             std::to_string(acc.count) + "]";
+    const int isize = tinygltf::GetComponentSizeInBytes(uint32_t(sp.indices.componentType));
+    if (sp.indices.componentType != TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE &&
+        sp.indices.componentType != TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT &&
+        sp.indices.componentType != TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT)
+      return "sparse.indices.componentType must be 5121, 5123 or 5125";
+    const struct {
+      const char* name;
+      int view, offset;
+      size_t elem;
+    } parts[2] = {{"sparse.indices", sp.indices.bufferView, sp.indices.byteOffset, size_t(isize)},
+                  {"sparse.values", sp.values.bufferView, sp.values.byteOffset, elem}};
+    for (const auto& part : parts) {
+      const std::string view = view_problem(part.view);
+      if (!view.empty()) return std::string(part.name) + ": " + view;
+      if (part.offset < 0) return std::string(part.name) + ".byteOffset is negative";
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(part.view)];
+      if (!fits(bv.byteLength, size_t(part.offset), size_t(sp.count), part.elem, part.elem))
+        return std::string(part.name) + ": data exceeds its buffer view";
     }
     return {};
   }
@@ -276,15 +358,19 @@ class Loader {
     Counts c;
     std::set<VertexKey> seen;
     for (const tinygltf::Primitive& prim : model_.meshes[mesh_index].primitives) {
-      if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) continue;
+      if (!is_triangles(prim.mode)) continue;
       const auto pos = prim.attributes.find("POSITION");
       if (pos == prim.attributes.end()) continue;
       const size_t nv = accessor_count(pos->second);
       if (seen.insert(vertex_key(prim)).second) c.vertices += nv;
-      c.triangles += (prim.indices >= 0 ? accessor_count(prim.indices) : nv) / 3;
-      c.normals = c.normals || prim.attributes.count("NORMAL");
-      c.uv[0] = c.uv[0] || prim.attributes.count("TEXCOORD_0");
-      c.uv[1] = c.uv[1] || prim.attributes.count("TEXCOORD_1");
+      c.triangles +=
+          triangle_count(prim.mode, prim.indices >= 0 ? accessor_count(prim.indices) : nv);
+      for (const auto& attribute : prim.attributes) {
+        uint32_t array = 0;
+        if (attribute.first == "NORMAL") c.normals = true;
+        if (attribute.first == "COLOR_0") c.colors = true;
+        if (uv_array(attribute.first, &array)) c.uv.insert(array);
+      }
     }
     return c;
   }
@@ -311,8 +397,11 @@ class Loader {
     // One vertex more: Embree reads the last vertex with a 16-byte load.
     mesh->positions.reserve(c.vertices + 1);
     if (c.normals) mesh->normals.reserve(c.vertices);
-    for (int set = 0; set < 2; ++set)
-      if (c.uv[set]) mesh->uv[set].reserve(c.vertices);
+    if (c.colors) mesh->colors.reserve(c.vertices);
+    for (uint32_t set : c.uv) {
+      if (mesh->uv.size() <= set) mesh->uv.resize(set + 1);
+      mesh->uv[set].reserve(c.vertices);
+    }
     mesh->indices.reserve(3 * c.triangles);
     mesh->material.reserve(c.triangles);
     mesh->flags.reserve(c.triangles);
@@ -418,8 +507,8 @@ class Loader {
     for (size_t m = 0; m < model_.meshes.size(); ++m) {
       if (!uses[m]) continue;
       const Counts c = mesh_counts(m);
-      const double per_vertex = 12.0 + (c.normals ? 12.0 : 0.0) + (c.uv[0] ? 8.0 : 0.0) +
-                                (c.uv[1] ? 8.0 : 0.0);
+      const double per_vertex = 12.0 + (c.normals ? 12.0 : 0.0) + (c.colors ? 16.0 : 0.0) +
+                                8.0 * double(c.uv.size());
       bytes += double(c.vertices) * per_vertex +
                double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes);
     }
@@ -522,17 +611,28 @@ class Loader {
                      "computes occlusion)");
         warned_occlusion_ = true;
       }
-      if (gm.alphaMode != "OPAQUE" && !gm.alphaMode.empty() && !warned_alpha_) {
-        warn(where + " (and possibly others): alphaMode '" + gm.alphaMode +
-             "' is not supported; rendering opaque");
-        warned_alpha_ = true;
+      const std::string at = "materials[" + std::to_string(i) + "]";
+      if (gm.alphaMode == "MASK") {
+        m.alpha_mode = AlphaMode::Mask;
+      } else if (gm.alphaMode == "BLEND") {
+        m.alpha_mode = AlphaMode::Blend;
+      } else if (gm.alphaMode != "OPAQUE" && !gm.alphaMode.empty()) {
+        fail(at + ".alphaMode" + named(gm.name) + ": '" + gm.alphaMode +
+             "' is not OPAQUE, MASK or BLEND");
       }
+      m.alpha_cutoff = float(gm.alphaCutoff);
+      if (!(gm.alphaCutoff >= 0.0))
+        fail(at + ".alphaCutoff" + named(gm.name) + ": " + std::to_string(gm.alphaCutoff) +
+             " is negative");
       const auto& base = gm.pbrMetallicRoughness.baseColorFactor;
       if (base.size() >= 3)
         m.albedo = Vec3(float(base[0]), float(base[1]), float(base[2]));
+      if (base.size() >= 4) m.alpha = float(base[3]);
       for (int k = 0; k < 3; ++k)
         if (!(m.albedo[k] >= 0.f && m.albedo[k] <= 1.f))
           fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
+      if (!(m.alpha >= 0.f && m.alpha <= 1.f))
+        fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
       float strength = 1.f;
       auto ext = gm.extensions.find("KHR_materials_emissive_strength");
       if (ext != gm.extensions.end() && ext->second.Has("emissiveStrength")) {
@@ -621,6 +721,7 @@ class Loader {
     if (node.mesh >= 0) {
       if (node.mesh >= int(model_.meshes.size()))
         fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
+      warn_unsupported_mesh_features(node, where);
       if (mesh_uses_[size_t(node.mesh)] > 1) {
         // Shared mesh: built once in its own space, placed by an instance.
         int& slot = mesh_slot_[size_t(node.mesh)];
@@ -640,17 +741,72 @@ class Loader {
     for (int child : node.children) visit(child, world, desc, depth + 1);
   }
 
+  // Skins and morph targets, which a still of the scene's rest pose would need, are not
+  // implemented: said once per scene.
+  void warn_unsupported_mesh_features(const tinygltf::Node& node, const std::string& where) {
+    const tinygltf::Mesh& mesh = model_.meshes[size_t(node.mesh)];
+    if (node.skin >= 0 && !warned_skin_) {
+      warn(where + " (and possibly others): skins are not supported; the mesh is rendered "
+                   "unskinned, placed by the node");
+      warned_skin_ = true;
+    }
+    const std::vector<double>& weights = node.weights.empty() ? mesh.weights : node.weights;
+    bool morphed = false;
+    for (const tinygltf::Primitive& prim : mesh.primitives)
+      morphed = morphed || !prim.targets.empty();
+    if (morphed && !warned_morph_ &&
+        std::any_of(weights.begin(), weights.end(), [](double w) { return w != 0.0; })) {
+      warn(where + " (and possibly others): morph targets are not supported; the mesh's base "
+                   "geometry is rendered, without its weights");
+      warned_morph_ = true;
+    }
+  }
+
+  // The first camera the walk from the roots meets, of either type (glTF 2.0, 3.10).
   void take_camera(const tinygltf::Node& node, const Mat4& world, const std::string& where,
                    SceneDescription* desc) {
     if (node.camera >= int(model_.cameras.size()))
       fail(where + ": 'camera' refers to missing camera " + std::to_string(node.camera));
     const tinygltf::Camera& gc = model_.cameras[size_t(node.camera)];
-    if (gc.type != "perspective") return;  // only the first *perspective* camera counts
+    const std::string at = "cameras[" + std::to_string(node.camera) + "]";
+    const std::string of = " (camera of " + where + ")";
     Camera cam;
-    cam.yfov = float(gc.perspective.yfov);
-    if (!(cam.yfov > 0.f && cam.yfov < kPi))
-      fail("cameras[" + std::to_string(node.camera) + "].perspective.yfov: " +
-           std::to_string(gc.perspective.yfov) + " is outside (0, pi) (camera of " + where + ")");
+    double znear = 0.0, zfar = 0.0;
+    if (gc.type == "perspective") {
+      cam.yfov = float(gc.perspective.yfov);
+      if (!(cam.yfov > 0.f && cam.yfov < kPi))
+        fail(at + ".perspective.yfov: " + std::to_string(gc.perspective.yfov) +
+             " is outside (0, pi)" + of);
+      znear = gc.perspective.znear;
+      zfar = gc.perspective.zfar;  // 0: absent, an infinite projection
+      if (!(znear >= 0.0 && std::isfinite(znear)))
+        fail(at + ".perspective.znear: " + std::to_string(znear) + " is not >= 0" + of);
+      if (zfar != 0.0 && !(zfar > znear))
+        fail(at + ".perspective.zfar: " + std::to_string(zfar) + " is not greater than znear" +
+             of);
+    } else if (gc.type == "orthographic") {
+      const tinygltf::OrthographicCamera& o = gc.orthographic;
+      cam.orthographic = true;
+      cam.xmag = float(o.xmag);
+      cam.ymag = float(o.ymag);
+      if (!(cam.xmag != 0.f && std::isfinite(cam.xmag)))
+        fail(at + ".orthographic.xmag: " + std::to_string(o.xmag) + " must be finite and not 0" +
+             of);
+      if (!(cam.ymag != 0.f && std::isfinite(cam.ymag)))
+        fail(at + ".orthographic.ymag: " + std::to_string(o.ymag) + " must be finite and not 0" +
+             of);
+      znear = o.znear;
+      zfar = o.zfar;
+      if (!(znear >= 0.0 && std::isfinite(znear)))
+        fail(at + ".orthographic.znear: " + std::to_string(znear) + " is not >= 0" + of);
+      if (!(zfar > znear && std::isfinite(zfar)))
+        fail(at + ".orthographic.zfar: " + std::to_string(zfar) +
+             " is not finite and greater than znear" + of);
+    } else {
+      fail(at + ".type: '" + gc.type + "' is not perspective or orthographic" + of);
+    }
+    cam.znear = float(znear);
+    if (zfar != 0.0) cam.zfar = float(zfar);
     cam.position = world.transform_point({0.f, 0.f, 0.f});
     const Vec3 fwd = world.transform_vector({0.f, 0.f, -1.f});
     const Vec3 up = world.transform_vector({0.f, 1.f, 0.f});
@@ -663,15 +819,17 @@ class Loader {
     desc->camera = cam;
   }
 
-  // Reads element i (component c) of an accessor as a double; range-checked by the caller's
-  // prior call to check_accessor.
+  // Element i, component c of an accessor's data (range-checked by check_accessor, which made
+  // the view).
   struct View {
     const unsigned char* base = nullptr;
     size_t stride = 0;
     int component_type = 0;
+    int components = 0;
     size_t count = 0;
     bool normalized = false;
-    double get(size_t i, int c) const {
+    // The stored number.
+    double raw(size_t i, int c) const {
       const unsigned char* p = base + i * stride;
       switch (component_type) {
         case TINYGLTF_COMPONENT_TYPE_FLOAT: {
@@ -689,60 +847,214 @@ class Loader {
           std::memcpy(&u, p + 2 * c, 2);
           return u;
         }
+        case TINYGLTF_COMPONENT_TYPE_SHORT: {
+          int16_t v;
+          std::memcpy(&v, p + 2 * c, 2);
+          return v;
+        }
         case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
           return p[c];
+        case TINYGLTF_COMPONENT_TYPE_BYTE:
+          return double(int8_t(p[c]));
         default:
           return 0.0;
       }
     }
+    // The attribute value: a normalized integer as glTF 2.0 (3.11) maps it to [0, 1] or
+    // [-1, 1] (c / 255, c / 65535, max(c / 127, -1), max(c / 32767, -1)), any other number as
+    // it is (quantized data that a node transform or KHR_texture_transform dequantizes).
+    float get(size_t i, int c) const {
+      const double v = raw(i, c);
+      if (!normalized) return float(v);
+      switch (component_type) {
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+          return float(v / 255.0);
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT:
+          return float(v / 65535.0);
+        case TINYGLTF_COMPONENT_TYPE_BYTE:
+          return float(std::max(v / 127.0, -1.0));
+        case TINYGLTF_COMPONENT_TYPE_SHORT:
+          return float(std::max(v / 32767.0, -1.0));
+        default:
+          return float(v);
+      }
+    }
   };
 
-  View check_accessor(int index, int want_type, const std::set<int>& component_types,
-                      const std::string& where) const {
+  enum class Attribute { Position, Normal, Texcoord, Color, Indices };
+  static const char* component_name(int type) {
+    switch (type) {
+      case TINYGLTF_COMPONENT_TYPE_BYTE: return "byte";
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE: return "unsigned byte";
+      case TINYGLTF_COMPONENT_TYPE_SHORT: return "short";
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT: return "unsigned short";
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT: return "unsigned int";
+      case TINYGLTF_COMPONENT_TYPE_FLOAT: return "float";
+      default: return "unknown";
+    }
+  }
+  // "" if the accessor's type, componentType and normalized suit the attribute (glTF 2.0,
+  // 3.7.2.1, and KHR_mesh_quantization's table when the scene uses the extension), otherwise
+  // why not.
+  std::string format_problem(Attribute kind, const tinygltf::Accessor& acc) const {
+    const int ct = acc.componentType;
+    const bool norm = acc.normalized;
+    const bool small_int = ct == TINYGLTF_COMPONENT_TYPE_BYTE ||
+                           ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                           ct == TINYGLTF_COMPONENT_TYPE_SHORT ||
+                           ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT;
+    const bool unsigned_norm =
+        norm && (ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                 ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT);
+    bool type_ok = false, ok = false;
+    const char* allowed = "";
+    switch (kind) {
+      case Attribute::Position:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT || (quantization_ && small_int);
+        allowed = "float (8- and 16-bit integers with KHR_mesh_quantization)";
+        break;
+      case Attribute::Normal:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT ||
+             (quantization_ && norm &&
+              (ct == TINYGLTF_COMPONENT_TYPE_BYTE || ct == TINYGLTF_COMPONENT_TYPE_SHORT));
+        allowed = "float (normalized byte and short with KHR_mesh_quantization)";
+        break;
+      case Attribute::Texcoord:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC2;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT || unsigned_norm || (quantization_ && small_int);
+        allowed = "float, normalized unsigned byte or short (any 8- and 16-bit integers with "
+                  "KHR_mesh_quantization)";
+        break;
+      case Attribute::Color:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3 || acc.type == TINYGLTF_TYPE_VEC4;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT || unsigned_norm;
+        allowed = "float, normalized unsigned byte or short";
+        break;
+      case Attribute::Indices:
+        type_ok = acc.type == TINYGLTF_TYPE_SCALAR;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+             ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ||
+             ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT;
+        allowed = "unsigned byte, short or int";
+        break;
+    }
+    if (!type_ok) return "unexpected accessor 'type'";
+    if (ok) return {};
+    return std::string("componentType ") + std::to_string(ct) + " (" + component_name(ct) +
+           (small_int ? (norm ? ", normalized" : ", not normalized") : "") +
+           ") is not allowed here: it must be " + allowed;
+  }
+
+  View check_accessor(int index, Attribute kind, const std::string& where) {
     if (index < 0 || index >= int(model_.accessors.size()))
       fail(where + " refers to missing accessor " + std::to_string(index));
     const tinygltf::Accessor& acc = model_.accessors[size_t(index)];
     const std::string aw = "accessors[" + std::to_string(index) + "] (" + where + ")";
-    if (acc.type != want_type) fail(aw + ": unexpected accessor 'type'");
-    if (!component_types.count(acc.componentType))
-      fail(aw + ": unsupported 'componentType' " + std::to_string(acc.componentType));
+    const std::string format = format_problem(kind, acc);
+    if (!format.empty()) fail(aw + ": " + format);
     const std::string problem = accessor_problem(acc);
     if (!problem.empty()) fail(aw + ": " + problem);
-    const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
-    const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
     const size_t elem = size_t(tinygltf::GetNumComponentsInType(uint32_t(acc.type))) *
                         size_t(tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType)));
     View v;
     v.component_type = acc.componentType;
+    v.components = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
     v.count = acc.count;
-    v.stride = bv.byteStride ? bv.byteStride : elem;
     v.normalized = acc.normalized;
-    v.base = buf.data.data() + bv.byteOffset + acc.byteOffset;
+    if (acc.sparse.isSparse) {
+      auto [it, fresh] = sparse_data_.try_emplace(index);
+      if (fresh) it->second = materialize_sparse(index, elem, where);
+      v.base = it->second.data();
+      v.stride = elem;
+    } else {
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+      const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
+      v.stride = bv.byteStride ? bv.byteStride : elem;
+      v.base = buf.data.data() + bv.byteOffset + acc.byteOffset;
+    }
     return v;
   }
+
+  // A sparse accessor's elements (glTF 2.0, 3.6.2.3): those of its buffer view, or zeros
+  // without one, with the elements its sparse indices name replaced by its sparse values;
+  // packed (stride = elem). accessor_problem has checked that every byte read is there.
+  std::vector<unsigned char> materialize_sparse(int index, size_t elem,
+                                                const std::string& where) const {
+    const tinygltf::Accessor& acc = model_.accessors[size_t(index)];
+    std::vector<unsigned char> data(acc.count * elem, 0);
+    if (acc.bufferView >= 0) {
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+      const unsigned char* base =
+          model_.buffers[size_t(bv.buffer)].data.data() + bv.byteOffset + acc.byteOffset;
+      const size_t stride = bv.byteStride ? bv.byteStride : elem;
+      for (size_t i = 0; i < acc.count; ++i) std::memcpy(&data[i * elem], base + i * stride, elem);
+    }
+    auto start = [&](int view, int offset) {
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(view)];
+      return model_.buffers[size_t(bv.buffer)].data.data() + bv.byteOffset + size_t(offset);
+    };
+    View indices;
+    indices.base = start(acc.sparse.indices.bufferView, acc.sparse.indices.byteOffset);
+    indices.component_type = acc.sparse.indices.componentType;
+    indices.stride = size_t(tinygltf::GetComponentSizeInBytes(uint32_t(indices.component_type)));
+    const unsigned char* values = start(acc.sparse.values.bufferView, acc.sparse.values.byteOffset);
+    double previous = -1.0;
+    for (size_t k = 0; k < size_t(acc.sparse.count); ++k) {
+      const double i = indices.raw(k, 0);
+      if (!(i > previous) || !(i < double(acc.count)))
+        fail("accessors[" + std::to_string(index) + "].sparse.indices (" + where + "): index " +
+             std::to_string(k) + " is " + std::to_string(uint64_t(i)) +
+             (i < double(acc.count) ? ", not above the one before it (sparse indices strictly "
+                                      "increase)"
+                                    : ", out of range (count " + std::to_string(acc.count) + ")"));
+      std::memcpy(&data[size_t(i) * elem], values + k * elem, elem);
+      previous = i;
+    }
+    return data;
+  }
+
+  // A primitive's vertex attributes that the renderer reads, checked.
+  struct VertexAttributes {
+    View position;
+    std::optional<View> normal, color;
+    std::vector<std::pair<uint32_t, View>> uv;  // (TriangleMesh::uv array, view), ascending
+  };
 
   // Appends a primitive's vertices to *out, transformed by world: *first is the index of the
   // first, bad_normal[i] tells the vertices whose normal does not survive the transform (zero
   // or non-finite), which take the normals of the triangles that use them away.
-  void append_vertices(const View& pos, const View* nrm, const View uvs[2], const bool has_uv[2],
-                       const Mat4& world, TriangleMesh* out, uint32_t* first,
-                       std::vector<bool>* bad_normal, const std::string& where) {
+  void append_vertices(const VertexAttributes& a, const Mat4& world, TriangleMesh* out,
+                       uint32_t* first, std::vector<bool>* bad_normal, const std::string& where) {
+    const View& pos = a.position;
+    const View* nrm = a.normal ? &*a.normal : nullptr;
+    const View* col = a.color ? &*a.color : nullptr;
     *first = uint32_t(out->positions.size());
     if (size_t(*first) + pos.count > size_t(UINT32_MAX))
       fail(where + ": more than 2^32 vertices in one mesh");
-    // Attribute arrays are written for every vertex once any primitive has them (zeros
-    // where a primitive has not).
+    // Attribute arrays are written for every vertex once any primitive has them (zeros, or
+    // white for colours, where a primitive has not).
     const bool write_normals = out->use_normals(nrm != nullptr);
-    const bool write_uv[2] = {out->use_uv(0, has_uv[0]), out->use_uv(1, has_uv[1])};
+    const bool write_colors = out->use_colors(col != nullptr);
+    std::vector<const View*> uv_of;  // per set: this primitive's view, or null
+    for (const auto& [set, view] : a.uv) {
+      out->use_uv(set, true);
+      if (uv_of.size() <= set) uv_of.resize(set + 1, nullptr);
+      uv_of[set] = &view;
+    }
+    uv_of.resize(out->uv.size(), nullptr);
+    std::vector<uint32_t> write_uv;  // the sets to write
+    for (uint32_t set = 0; set < out->uv.size(); ++set)
+      if (uv_of[set] || !out->uv[set].empty()) write_uv.push_back(set);
     if (nrm) bad_normal->assign(pos.count, false);
     for (size_t vi = 0; vi < pos.count; ++vi) {
-      out->positions.push_back(world.transform_point(
-          {float(pos.get(vi, 0)), float(pos.get(vi, 1)), float(pos.get(vi, 2))}));
+      out->positions.push_back(
+          world.transform_point({pos.get(vi, 0), pos.get(vi, 1), pos.get(vi, 2)}));
       if (write_normals) {
         Vec3 n;
         if (nrm) {
-          n = world.transform_normal(
-              {float(nrm->get(vi, 0)), float(nrm->get(vi, 1)), float(nrm->get(vi, 2))});
+          n = world.transform_normal({nrm->get(vi, 0), nrm->get(vi, 1), nrm->get(vi, 2)});
           const float len = length(n);
           if (len > 0.f && std::isfinite(len)) {
             n = n / len;
@@ -753,10 +1065,37 @@ class Loader {
         }
         out->normals.push_back(n);
       }
-      for (int set = 0; set < 2; ++set)
-        if (write_uv[set])
-          out->uv[set].push_back(has_uv[set] ? uv_at(uvs[set], vi) : Point2{0.f, 0.f});
+      for (uint32_t set : write_uv)
+        out->uv[set].push_back(uv_of[set] ? Point2{uv_of[set]->get(vi, 0), uv_of[set]->get(vi, 1)}
+                                          : Point2{0.f, 0.f});
+      if (write_colors)
+        out->colors.push_back(col ? Rgba{col->get(vi, 0), col->get(vi, 1), col->get(vi, 2),
+                                         col->components == 4 ? col->get(vi, 3) : 1.f}
+                                  : Rgba{});
     }
+  }
+
+  // glTF primitive modes that are surfaces: TRIANGLES (the default), TRIANGLE_STRIP and
+  // TRIANGLE_FAN.
+  static bool is_triangles(int mode) {
+    return mode == -1 || mode == TINYGLTF_MODE_TRIANGLES ||
+           mode == TINYGLTF_MODE_TRIANGLE_STRIP || mode == TINYGLTF_MODE_TRIANGLE_FAN;
+  }
+  static size_t triangle_count(int mode, size_t indices) {
+    if (mode == TINYGLTF_MODE_TRIANGLE_STRIP || mode == TINYGLTF_MODE_TRIANGLE_FAN)
+      return indices >= 3 ? indices - 2 : 0;
+    return indices / 3;
+  }
+  // Vertex k (0, 1, 2) of triangle t of a primitive of that mode with these indices (glTF
+  // 2.0, 3.7.2.1, "Topology types"): strips alternate their winding so that every triangle
+  // keeps the first one's orientation; fans turn around their first vertex.
+  static uint32_t corner(int mode, const std::vector<uint32_t>& indices, size_t t, int k) {
+    if (mode == TINYGLTF_MODE_TRIANGLE_STRIP) {
+      const size_t odd = t % 2;
+      return indices[t + (k == 0 ? 0 : k == 1 ? 1 + odd : 2 - odd)];
+    }
+    if (mode == TINYGLTF_MODE_TRIANGLE_FAN) return indices[k == 2 ? 0 : t + size_t(k) + 1];
+    return indices[3 * t + size_t(k)];
   }
 
   void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out) {
@@ -773,38 +1112,42 @@ class Loader {
       const tinygltf::Primitive& prim = mesh.primitives[pi];
       const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
                                 std::to_string(pi) + "]" + named(mesh.name);
-      if (prim.mode != TINYGLTF_MODE_TRIANGLES && prim.mode != -1) {
+      if (!is_triangles(prim.mode)) {
         warn(where + ": mode " + std::to_string(prim.mode) +
-             " is not TRIANGLES (4); primitive skipped");
+             " is points or lines, not triangles (4, 5 or 6); primitive skipped");
         continue;
       }
       const auto pos_it = prim.attributes.find("POSITION");
       if (pos_it == prim.attributes.end()) fail(where + ": missing required attribute POSITION");
-      const View pos = check_accessor(pos_it->second, TINYGLTF_TYPE_VEC3,
-                                      {TINYGLTF_COMPONENT_TYPE_FLOAT}, where + " POSITION");
-      View nrm;
-      bool has_normals = false;
-      const auto nrm_it = prim.attributes.find("NORMAL");
-      if (nrm_it != prim.attributes.end()) {
-        nrm = check_accessor(nrm_it->second, TINYGLTF_TYPE_VEC3,
-                             {TINYGLTF_COMPONENT_TYPE_FLOAT}, where + " NORMAL");
-        if (nrm.count != pos.count) fail(where + ": NORMAL and POSITION counts differ");
-        has_normals = true;
+      VertexAttributes attrs;
+      attrs.position = check_accessor(pos_it->second, Attribute::Position, where + " POSITION");
+      const View& pos = attrs.position;
+      for (const auto& [name, accessor] : prim.attributes) {
+        if (name == "POSITION" || !reads_attribute(name)) continue;
+        uint32_t array = 0;
+        const bool texcoord = uv_array(name, &array);
+        const Attribute kind = name == "NORMAL"    ? Attribute::Normal
+                               : name == "COLOR_0" ? Attribute::Color
+                                                   : Attribute::Texcoord;
+        const View view = check_accessor(accessor, kind, where + " " + name);
+        if (view.count != pos.count) fail(where + ": " + name + " and POSITION counts differ");
+        if (kind == Attribute::Normal) attrs.normal = view;
+        if (kind == Attribute::Color) attrs.color = view;
+        if (texcoord) attrs.uv.push_back({array, view});
       }
-      View uvs[2];
+      std::sort(attrs.uv.begin(), attrs.uv.end(),
+                [](const auto& a, const auto& b) { return a.first < b.first; });
+      const bool has_normals = attrs.normal.has_value();
+      if (prim.attributes.count("TANGENT") && !warned_tangent_ && prim.material >= 0 &&
+          prim.material < int(model_.materials.size()) &&
+          model_.materials[size_t(prim.material)].normalTexture.index >= 0) {
+        warn(where + " (and possibly others): TANGENT is not used; normal maps take their "
+                     "tangents from the texture coordinates");
+        warned_tangent_ = true;
+      }
       bool has_uv[2] = {false, false};
-      for (int set = 0; set < 2; ++set) {
-        const auto uv_it = prim.attributes.find("TEXCOORD_" + std::to_string(set));
-        if (uv_it == prim.attributes.end()) continue;
-        uvs[set] = check_accessor(uv_it->second, TINYGLTF_TYPE_VEC2,
-                                  {TINYGLTF_COMPONENT_TYPE_FLOAT,
-                                   TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE,
-                                   TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT},
-                                  where + " TEXCOORD_" + std::to_string(set));
-        if (uvs[set].count != pos.count)
-          fail(where + ": TEXCOORD_" + std::to_string(set) + " and POSITION counts differ");
-        has_uv[set] = true;
-      }
+      for (const auto& uv : attrs.uv)
+        if (uv.first < 2) has_uv[uv.first] = true;
       uint32_t material = default_material_;
       if (prim.material >= 0) {
         if (prim.material >= int(model_.materials.size()))
@@ -814,14 +1157,10 @@ class Loader {
       }
       std::vector<uint32_t> indices;
       if (prim.indices >= 0) {
-        const View idx = check_accessor(
-            prim.indices, TINYGLTF_TYPE_SCALAR,
-            {TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE, TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT,
-             TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT},
-            where + " indices");
+        const View idx = check_accessor(prim.indices, Attribute::Indices, where + " indices");
         indices.resize(idx.count);
         for (size_t i = 0; i < idx.count; ++i) {
-          const double v = idx.get(i, 0);
+          const double v = idx.raw(i, 0);
           if (v >= double(pos.count))
             fail(where + ": index " + std::to_string(uint64_t(v)) + " out of range (" +
                  std::to_string(pos.count) + " vertices)");
@@ -831,24 +1170,26 @@ class Loader {
         indices.resize(pos.count);
         for (size_t i = 0; i < pos.count; ++i) indices[i] = uint32_t(i);
       }
-      if (indices.size() % 3 != 0)
+      if (prim.mode != TINYGLTF_MODE_TRIANGLE_STRIP && prim.mode != TINYGLTF_MODE_TRIANGLE_FAN &&
+          indices.size() % 3 != 0)
         warn(where + ": index count is not a multiple of 3; trailing indices ignored");
       // The primitive's vertices, each transformed once, appended after the mesh's others
       // (or those of an earlier primitive with the same attribute accessors).
       const auto [entry, fresh] = appended.try_emplace(vertex_key(prim));
-      if (fresh) append_vertices(pos, has_normals ? &nrm : nullptr, uvs, has_uv, world, out,
-                                 &entry->second.first, &entry->second.bad_normal, where);
+      if (fresh)
+        append_vertices(attrs, world, out, &entry->second.first, &entry->second.bad_normal, where);
       const uint32_t first = entry->second.first;
       const std::vector<bool>& bad_normal = entry->second.bad_normal;
       const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
                                          (has_uv[1] ? TriangleMesh::kHasUv1 : 0));
-      for (size_t t = 0; t + 2 < indices.size(); t += 3) {
+      const size_t triangles = triangle_count(prim.mode, indices.size());
+      for (size_t t = 0; t < triangles; ++t) {
         bool normals_ok = has_normals;
         for (int k = 0; k < 3; ++k) {
           // A mirroring transform flips the winding (glTF spec, "Transformations"): swap two
           // vertices so that counter-clockwise stays the front face in world space.
           const int src = mirror ? (k == 0 ? 0 : 3 - k) : k;
-          const uint32_t vi = indices[t + size_t(src)];
+          const uint32_t vi = corner(prim.mode, indices, t, src);
           if (has_normals && bad_normal[vi]) normals_ok = false;
           out->indices.push_back(first + vi);
         }
@@ -859,20 +1200,19 @@ class Loader {
     }
   }
 
-  // Texture coordinates; normalized integer components map to [0, 1] (glTF 3.7.2.1).
-  static Point2 uv_at(const View& v, size_t i) {
-    double scale = 1.0;
-    if (v.component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE) scale = 1.0 / 255.0;
-    if (v.component_type == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT) scale = 1.0 / 65535.0;
-    return {float(v.get(i, 0) * scale), float(v.get(i, 1) * scale)};
-  }
-
   std::vector<std::optional<PunctualLight>> lights_;
   std::vector<int> mesh_uses_;
   std::vector<int> mesh_slot_;
   std::set<std::string> warned_material_ext_;
   std::set<size_t> warned_rough_glass_;
-  bool warned_occlusion_ = false, warned_alpha_ = false;
+  bool warned_occlusion_ = false, warned_skin_ = false, warned_morph_ = false;
+  bool warned_tangent_ = false;
+  bool quantization_ = false;         // KHR_mesh_quantization's attribute types are allowed
+  // The TriangleMesh::uv array of each TEXCOORD set above 1 that a material reads.
+  std::map<uint32_t, uint32_t> uv_array_of_set_;
+  // Sparse accessors, materialized: each one's elements with its sparse values applied,
+  // packed in its componentType.
+  std::map<int, std::vector<unsigned char>> sparse_data_;
   const tinygltf::Model& model_;
   std::string source_;
   std::vector<std::string>* warnings_;

@@ -87,8 +87,10 @@ struct ShadingPoint {
   Vec3 below() const { return p - ng * eps; }
 };
 
-Point2 texcoord(const Hit& hit, const TextureRef& ref) {
-  return ref.apply(hit.uv[std::min<uint32_t>(1u, ref.texcoord)]);
+// The texture coordinates of a texture slot at the hit: TEXCOORD_0 and _1 come with the hit,
+// other sets are interpolated when asked for.
+Point2 texcoord(const Scene& scene, const Hit& hit, const TextureRef& ref) {
+  return ref.apply(ref.texcoord < 2 ? hit.uv[ref.texcoord] : scene.texcoord(hit, ref.texcoord));
 }
 
 ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
@@ -100,11 +102,14 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   float metallic = mat.metallic, roughness = mat.roughness;
   float c[4];
   if (mat.base_color_tex.valid() &&
-      tex.lookup(mat.base_color_tex.texture, texcoord(hit, mat.base_color_tex), 3, c))
+      tex.lookup(mat.base_color_tex.texture, texcoord(scene, hit, mat.base_color_tex), 3, c))
     bp.base = bp.base * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
+  // glTF 2.0, 3.9.2: COLOR_0 multiplies the base colour.
+  Vec3 vertex_rgb;
+  if (scene.vertex_color(hit, &vertex_rgb)) bp.base = bp.base * vertex_rgb;
   if (mat.metallic_roughness_tex.valid() &&
-      tex.lookup(mat.metallic_roughness_tex.texture, texcoord(hit, mat.metallic_roughness_tex),
-                 3, c)) {
+      tex.lookup(mat.metallic_roughness_tex.texture,
+                 texcoord(scene, hit, mat.metallic_roughness_tex), 3, c)) {
     // glTF: roughness in G, metallic in B, both linear.
     roughness *= c[1];
     metallic *= c[2];
@@ -119,7 +124,7 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
 
   Vec3 ns = hit.ns;
   if (mat.normal_tex.valid() && length(hit.dpdu) > 0.f &&
-      tex.lookup(mat.normal_tex.texture, texcoord(hit, mat.normal_tex), 3, c)) {
+      tex.lookup(mat.normal_tex.texture, texcoord(scene, hit, mat.normal_tex), 3, c)) {
     // Tangent-space normal map (glTF 3.9.3): n = normalize((2c - 1) * (scale, scale, 1)) in
     // the frame (T, B, N) with T the uv tangent made orthogonal to N.
     const Vec3 tn((2.f * c[0] - 1.f) * mat.normal_scale, (2.f * c[1] - 1.f) * mat.normal_scale,
@@ -339,7 +344,7 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
   set3(lb->ng, sp.ng);
   lb->eps[lane] = ray_epsilon(ls.p);
   lb->k[lane] = p_scene * ls.pdf_area;
-  set3(lb->radiance, scene.emission(ls.slot, ls.prim, ls.b1, ls.b2));
+  set3(lb->radiance, scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2));
   lb->area |= bit;
   lb->waiting |= bit;
   return LightSampleKind::Waiting;
@@ -350,6 +355,7 @@ struct PathState {
   SampleStream s{nullptr, 0};
   SampleResult result;  // radiance accumulates here
   Vec3 o, d;            // the ray of the next bounce
+  float tmin = 0.f, tmax = kInfinity;  // the camera ray's range (its clipping planes)
   Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
   float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
   bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
@@ -510,6 +516,8 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
   BsdfEvalBatch batch;
   LightBatch lights;
   DiskBatch disks;
+  // A lane's rays carry its sample index (for the transparency test).
+  for (int i = 0; i < kPacketSize; ++i) rays.id[i] = shadow.id[i] = paths[i].s.index;
   // Lanes are visited through bit masks of the live ones: whether a path is still alive is
   // data the branch predictor cannot learn, and a branch per lane per loop mispredicts often.
   for (uint32_t bounce = 0;; ++bounce) {
@@ -550,10 +558,24 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       rays.set(i, p.o, p.d, kInfinity);
       ++p.result.rays;
     }
+    // The camera rays see what lies between the camera's clipping planes; later rays the
+    // whole of (0, infinity).
+    if (bounce == 0)
+      for (int i = 0; i < kPacketSize; ++i) {
+        rays.tnear[i] = paths[i].tmin;
+        rays.tfar[i] = paths[i].tmax;
+      }
     disks.compute(values[dim::kBsdfU], values[dim::kBsdfV], live);
+    // The lanes are samples of one pixel: one transparency key per query for all of them.
+    const PixelSampler& pixel = *paths[__builtin_ctz(live)].s.sampler;
+    const uint64_t path_query =
+        scene.has_transparency()
+            ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Path)
+            : 0;
     // The camera rays of a pixel's samples are alike: Embree's coherent traversal (about 3%
     // more samples/s on the Cornell box). Later bounces scatter, where it would be far slower.
-    scene.intersect(rays, hits, found, bounce == 0);
+    scene.intersect(rays, hits, found, bounce == 0, path_query);
+    if (bounce == 0) std::fill(rays.tnear, rays.tnear + kPacketSize, 0.f);
     batch.clear();
     lights.clear();
     for (uint32_t m = live; m; m &= m - 1) {
@@ -578,7 +600,10 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     uint32_t shadowed = 0;
     for (int i = 0; i < kPacketSize; ++i) shadowed |= uint32_t(shadow.active[i]) << i;
     if (!shadowed) continue;
-    scene.occluded(shadow, blocked);
+    scene.occluded(shadow, blocked,
+                   scene.has_transparency()
+                       ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Shadow)
+                       : 0);
     for (; shadowed; shadowed &= shadowed - 1) {
       PathState& p = paths[__builtin_ctz(shadowed)];
       if (!blocked[__builtin_ctz(shadowed)]) p.result.radiance += p.nee;
@@ -586,11 +611,15 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
   }
 }
 
-SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d) {
+SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float tmin,
+                      float tmax) {
   SampleResult result;
   Hit hit;
   ++result.rays;
-  if (!scene.intersect(o, d, kInfinity, &hit)) return result;  // background = 0
+  const uint64_t seed = s.sampler->seed(), pixel = s.sampler->pixel();
+  if (!scene.intersect(o, d, tmax, &hit, ray_query(seed, pixel, 0, RayKind::Path), s.index,
+                       tmin))
+    return result;  // background = 0
   const ShadingPoint sp = make_shading_point(scene, hit, -d);
   result.albedo = sp.albedo;
   result.normal = sp.ns;
@@ -600,7 +629,10 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d)
   if (dot(wi, sp.ng) <= 0.f) return result;  // below the surface: blocked by it
   const float radius = 0.1f * scene.diagonal();
   ++result.rays;
-  const float v = scene.occluded(sp.above(), wi, radius) ? 0.f : 1.f;
+  const float v =
+      scene.occluded(sp.above(), wi, radius, ray_query(seed, pixel, 0, RayKind::Shadow), s.index)
+          ? 0.f
+          : 1.f;
   result.radiance = Vec3(v, v, v);
   return result;
 }
@@ -627,8 +659,9 @@ PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSe
   const float px = float(x) + jitter.x;
   const float py = float(y) + jitter.y;
   const Camera& cam = scene.camera();
-  p.o = cam.position;
-  p.d = ctx.raster.direction(px, py);
+  p.o = ctx.raster.origin(px, py);
+  float per_axial;
+  p.d = ctx.raster.direction(px, py, &per_axial);
   if (settings.aperture_radius > 0.f) {
     // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
     // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
@@ -639,7 +672,11 @@ PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSe
     const Vec3 p_focus = p.o + p.d * (settings.focus_distance / dot(p.d, cam.forward));
     p.o = p.o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
     p.d = normalize(p_focus - p.o);
+    per_axial = 1.f / dot(p.d, cam.forward);
   }
+  // The clipping planes are distances along the viewing axis.
+  p.tmin = cam.znear * per_axial;
+  p.tmax = cam.zfar * per_axial;
   p.alive = true;
   return p;
 }
@@ -656,7 +693,7 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
   if (settings.integrator == IntegratorType::AmbientOcclusion) {
     for (uint32_t k = 0; k < n; ++k) {
       const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
-      out[k] = trace_ao(scene, p.s, p.o, p.d);
+      out[k] = trace_ao(scene, p.s, p.o, p.d, p.tmin, p.tmax);
     }
     return;
   }
@@ -747,7 +784,7 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
   const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
   if (!(tmax > 0.f)) return false;
   const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
-  const Vec3 Le = scene.emission(ls.slot, ls.prim, ls.b1, ls.b2);
+  const Vec3 Le = scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2);
   out->wi = wi;
   out->tmax = tmax;
   out->contribution = f * Le * (w / pdf_light);
@@ -762,7 +799,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
   const TraceContext ctx(scene, settings);
   PathState p = start_path(ctx, scene, settings, sampler, x, y, index);
   if (settings.integrator == IntegratorType::AmbientOcclusion)
-    return trace_ao(scene, p.s, p.o, p.d);
+    return trace_ao(scene, p.s, p.o, p.d, p.tmin, p.tmax);
   const LightContext& lc = ctx.lights;
   const uint32_t max_depth = path_max_depth(settings);
   SampleResult& result = p.result;
@@ -772,11 +809,14 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
   RayPacket ray, shadow;
   Hit hits[kPacketSize];
   bool found[kPacketSize], blocked[kPacketSize];
+  const uint64_t seed = sampler.seed(), pixel = sampler.pixel();
   for (uint32_t bounce = 0;; ++bounce) {
     const BounceSamples u(p.s, bounce);
-    ray.set(0, p.o, p.d, kInfinity);
+    ray.set(0, p.o, p.d, bounce == 0 ? p.tmax : kInfinity);
+    ray.tnear[0] = bounce == 0 ? p.tmin : 0.f;
+    ray.id[0] = shadow.id[0] = index;
     ++result.rays;
-    scene.intersect(ray, hits, found);
+    scene.intersect(ray, hits, found, false, ray_query(seed, pixel, bounce, RayKind::Path));
     const Vec3 wo = -p.d;
     if (!found[0]) {
       if (lc.env) {
@@ -819,7 +859,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       const Vec3 nee = p.beta * light.contribution;
       shadow.set(0, light.origin, light.wi, light.tmax);
       ++result.rays;
-      scene.occluded(shadow, blocked);
+      scene.occluded(shadow, blocked, ray_query(seed, pixel, bounce, RayKind::Shadow));
       if (!blocked[0]) result.radiance += nee;
     }
     BsdfSample bs;

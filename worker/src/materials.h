@@ -21,7 +21,10 @@ namespace rf {
 // KHR_texture_transform (uv' = offset + Rotation(rotation) * (scale * uv), as in the spec).
 struct TextureRef {
   int texture = -1;       // index into the scene's textures; -1 = no texture
-  uint32_t texcoord = 0;  // TEXCOORD_<n>, n in {0, 1}
+  // The TEXCOORD set (KHR_texture_transform's texCoord if it has one), as the index of its
+  // array in TriangleMesh::uv: sets 0 and 1 are arrays 0 and 1; the glTF loader gives the
+  // other sets materials read arrays from 2 up.
+  uint32_t texcoord = 0;
   float offset[2] = {0.f, 0.f};
   float rotation = 0.f;  // radians, counter-clockwise in uv space
   float scale[2] = {1.f, 1.f};
@@ -34,6 +37,9 @@ struct TextureRef {
     return {offset[0] + c * su + s * sv, offset[1] - s * su + c * sv};
   }
 };
+
+// glTF alphaMode (3.9.4): opaque, cut out below alphaCutoff, or blended (see Scene).
+enum class AlphaMode : uint8_t { Opaque, Mask, Blend };
 
 // Constant defaults are a pure white Lambertian (no specular layer): what the tests build
 // by hand. The glTF loader sets the glTF defaults (metallic = roughness = specular = 1).
@@ -48,7 +54,11 @@ struct Material {
   float transmission = 0.f;      // KHR_materials_transmissionFactor
   float normal_scale = 1.f;      // normalTexture.scale
   TextureRef base_color_tex{}, metallic_roughness_tex{}, normal_tex{}, emissive_tex{};
+  AlphaMode alpha_mode = AlphaMode::Opaque;
+  float alpha = 1.f;         // baseColorFactor alpha
+  float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)
   bool is_emissive() const { return !is_zero(emission); }
+  bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }
   // True if shading reads texture coordinates at the hit point (the emissive texture is read
   // by Scene::emission, which interpolates its own).
   bool reads_uv() const {

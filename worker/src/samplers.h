@@ -145,6 +145,7 @@ class PixelSampler {
         pixel_(pixel),
         key_(sampler.type() == SamplerType::Sobol ? sampler.sobol_pixel_key(pixel) : 0) {}
   uint64_t pixel() const { return pixel_; }
+  uint64_t seed() const { return sampler_->seed(); }
   float value(uint32_t sample_index, uint32_t dimension) const;
   // The pair (value(i, d), value(i, d + 1)) for an even d. For sobol the two share the pair's
   // shuffled index, which is then computed once.

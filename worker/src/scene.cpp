@@ -10,28 +10,81 @@
 #include <cstring>
 #include <limits>
 
+#include "samplers.h"
+
 namespace rf {
 
 Camera::Raster Camera::raster(uint32_t width, uint32_t height) const {
-  // sx = (2 px / width - 1) aspect tan_half, sy = (1 - 2 py / height) tan_half.
-  const float tan_half = std::tan(0.5f * yfov);
-  const float aspect = float(width) / float(height);
+  // sx = (2 px / width - 1) half_width, sy = (1 - 2 py / height) half_height.
+  float half_width, half_height;
+  if (orthographic) {
+    half_width = xmag;
+    half_height = ymag;
+  } else {
+    half_height = std::tan(0.5f * yfov);
+    half_width = float(width) / float(height) * half_height;
+  }
   Raster r;
   r.right = right;
   r.up = up;
   r.forward = forward;
-  r.kx = 2.f * aspect * tan_half / float(width);
-  r.bx = -aspect * tan_half;
-  r.ky = -2.f * tan_half / float(height);
-  r.by = tan_half;
+  r.position = position;
+  r.orthographic = orthographic;
+  r.kx = 2.f * half_width / float(width);
+  r.bx = -half_width;
+  r.ky = -2.f * half_height / float(height);
+  r.by = half_height;
   return r;
 }
+
+uint64_t ray_query(uint64_t seed, uint64_t pixel, uint32_t bounce, RayKind kind) {
+  return hash4(seed, pixel, bounce, uint64_t(kind));
+}
+
+namespace {
+
+// What a query passes to the transparency filters: Embree hands a filter the context its
+// query was given, so the key rides behind Embree's own fields. Every query of a Scene uses
+// one.
+struct QueryContext {
+  RTCIntersectContext rtc;
+  uint64_t query;
+  explicit QueryContext(uint64_t q) : query(q) { rtcInitIntersectContext(&rtc); }
+};
+
+}  // namespace
+
+// The user data of a geometry of non-opaque triangles (triangles first, first + 1, ... of
+// mesh) and its intersection and occlusion filter: Embree calls it for every candidate hit on
+// the geometry, in no particular order, and it rejects those the ray passes. The decision is a
+// function of the ray's key and the hit alone, so the closest hit it lets through is the same
+// whatever the order.
+struct TransparencyFilter {
+  const Scene* scene;
+  const TriangleMesh* mesh;
+  uint32_t first;
+  static void filter(const RTCFilterFunctionNArguments* args) {
+    const auto* self = static_cast<const TransparencyFilter*>(args->geometryUserPtr);
+    const uint64_t query = reinterpret_cast<const QueryContext*>(args->context)->query;
+    const unsigned n = args->N;
+    for (unsigned i = 0; i < n; ++i) {
+      if (args->valid[i] != -1) continue;
+      const uint32_t prim = RTCHitN_primID(args->hit, n, i) + self->first;
+      if (!self->scene->stops(*self->mesh, prim, RTCHitN_u(args->hit, n, i),
+                              RTCHitN_v(args->hit, n, i), query, RTCRayN_id(args->ray, n, i),
+                              RTCHitN_instID(args->hit, n, i, 0)))
+        args->valid[i] = 0;
+    }
+  }
+};
 
 struct Scene::Embree {
   RTCDevice device = nullptr;
   RTCScene scene = nullptr;
   std::vector<RTCScene> mesh_scenes;
   std::vector<uint32_t> slot_of_geom;  // top-level geometry ID -> slot
+  unsigned world_transparent_geom = RTC_INVALID_GEOMETRY_ID;  // its non-opaque triangles
+  std::vector<std::unique_ptr<TransparencyFilter>> filters;  // the filters' user data
   std::atomic<int64_t> bytes{0};       // what the device has allocated (memory monitor)
   ~Embree() {
     if (scene) rtcReleaseScene(scene);
@@ -80,10 +133,13 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
                      "byte per triangle, three indices)");
   if (!mesh->normals.empty() && mesh->normals.size() != nv)
     throw SceneError(where + ": triangle mesh has normals for some vertices only");
-  for (int set = 0; set < 2; ++set)
+  if (mesh->uv.size() < 2) mesh->uv.resize(2);
+  for (size_t set = 0; set < mesh->uv.size(); ++set)
     if (!mesh->uv[set].empty() && mesh->uv[set].size() != nv)
       throw SceneError(where + ": triangle mesh has TEXCOORD_" + std::to_string(set) +
                        " for some vertices only");
+  if (!mesh->colors.empty() && mesh->colors.size() != nv)
+    throw SceneError(where + ": triangle mesh has COLOR_0 for some vertices only");
   size_t kept = 0;
   mesh->face_normals.assign(n, Vec3());
   for (size_t i = 0; i < n; ++i) {
@@ -118,8 +174,8 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
   // last vertex with a 16-byte load, so the float after it must be readable.
   fit(&mesh->positions, 1);
   fit(&mesh->normals, 0);
-  fit(&mesh->uv[0], 0);
-  fit(&mesh->uv[1], 0);
+  for (std::vector<Point2>& set : mesh->uv) fit(&set, 0);
+  fit(&mesh->colors, 0);
   fit(&mesh->indices, 0);
   fit(&mesh->material, 0);
   fit(&mesh->flags, 0);
@@ -127,15 +183,46 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
   return n - kept;
 }
 
-// An Embree triangle geometry that reads the mesh's positions and indices in place (clean_mesh
-// left the room after the last vertex that Embree's 16-byte loads need).
-RTCGeometry triangle_geometry(RTCDevice device, const TriangleMesh& mesh) {
+// Moves the mesh's triangles with non-opaque materials after the opaque ones, each group in
+// its order, and returns the number of opaque ones.
+uint32_t partition_transparent(TriangleMesh* mesh, const std::vector<Material>& materials) {
+  const size_t n = mesh->size();
+  std::vector<uint32_t> order;
+  order.reserve(n);
+  for (int pass = 0; pass < 2; ++pass)
+    for (size_t i = 0; i < n; ++i)
+      if (materials[mesh->material[i]].is_opaque() == (pass == 0)) order.push_back(uint32_t(i));
+  size_t opaque = 0;
+  while (opaque < n && materials[mesh->material[order[opaque]]].is_opaque()) ++opaque;
+  if (opaque == n || opaque == 0) return uint32_t(opaque);  // nothing moves
+  std::vector<uint32_t> indices(3 * n), material(n);
+  std::vector<uint8_t> flags(n);
+  std::vector<Vec3> face_normals(n);
+  for (size_t k = 0; k < n; ++k) {
+    const uint32_t i = order[k];
+    for (size_t c = 0; c < 3; ++c) indices[3 * k + c] = mesh->indices[3 * size_t(i) + c];
+    material[k] = mesh->material[i];
+    flags[k] = mesh->flags[i];
+    face_normals[k] = mesh->face_normals[i];
+  }
+  mesh->indices.swap(indices);
+  mesh->material.swap(material);
+  mesh->flags.swap(flags);
+  mesh->face_normals.swap(face_normals);
+  return uint32_t(opaque);
+}
+
+// An Embree triangle geometry of triangles [first, first + count) of the mesh that reads its
+// positions and indices in place (clean_mesh left the room after the last vertex that Embree's
+// 16-byte loads need).
+RTCGeometry triangle_geometry(RTCDevice device, const TriangleMesh& mesh, size_t first,
+                              size_t count) {
   RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
   rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                              mesh.positions.data(), 0, sizeof(Vec3), mesh.positions.size());
   rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
-                             mesh.indices.data(), 0, 3 * sizeof(uint32_t), mesh.size());
-  rtcCommitGeometry(geom);
+                             mesh.indices.data(), 3 * sizeof(uint32_t) * first,
+                             3 * sizeof(uint32_t), count);
   return geom;
 }
 
@@ -183,6 +270,16 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
   if (dropped && warnings)
     warnings->push_back(desc_.source + ": skipped " + std::to_string(dropped) +
                         " degenerate triangle(s)");
+  // Per mesh (the world, then desc_.meshes): the number of opaque triangles, which come first.
+  std::vector<uint32_t> first_transparent;
+  first_transparent.push_back(partition_transparent(&desc_.world, desc_.materials));
+  for (Mesh& mesh : desc_.meshes)
+    first_transparent.push_back(partition_transparent(&mesh.geometry, desc_.materials));
+  has_transparency_ = first_transparent[0] < desc_.world.size();
+  has_vertex_colors_ = !desc_.world.colors.empty();
+  for (const Mesh& mesh : desc_.meshes) has_vertex_colors_ |= !mesh.geometry.colors.empty();
+  for (size_t m = 0; m < desc_.meshes.size(); ++m)
+    has_transparency_ |= first_transparent[1 + m] < desc_.meshes[m].geometry.size();
   for (const Instance& inst : desc_.instances)
     if (inst.mesh >= desc_.meshes.size())
       throw SceneError(desc_.source + ": instance refers to missing mesh " +
@@ -290,7 +387,7 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
     camera_.position = center + Vec3(0.f, 0.f, distance);
     if (warnings)
       warnings->push_back(desc_.source +
-                          ": no perspective camera in the scene; framing its bounds from +Z");
+                          ": no camera in the scene; framing its bounds from +Z");
   }
 
   embree_->device = rtcNewDevice(nullptr);
@@ -303,30 +400,63 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       bvh == BvhLayout::Compact ? RTC_SCENE_FLAG_COMPACT : RTC_SCENE_FLAG_NONE;
   embree_->scene = rtcNewScene(embree_->device);
   rtcSetSceneFlags(embree_->scene, scene_flags);
+  if (has_transparency_ &&
+      !rtcGetDeviceProperty(embree_->device, RTC_DEVICE_PROPERTY_FILTER_FUNCTION_SUPPORTED))
+    throw SceneError(desc_.source + ": materials with alphaMode MASK or BLEND need Embree's "
+                     "filter functions, which this Embree library was built without");
+  // A mesh's opaque triangles (the first `opaque`) are one Embree geometry and its others
+  // another, with the filter functions that test their coverage: rays on opaque geometry run
+  // no filter. Returns the geometry IDs in target (RTC_INVALID_GEOMETRY_ID for an empty part).
+  auto attach = [&](RTCScene target, const TriangleMesh& mesh, uint32_t opaque) {
+    std::pair<unsigned, unsigned> ids{RTC_INVALID_GEOMETRY_ID, RTC_INVALID_GEOMETRY_ID};
+    if (opaque > 0) {
+      RTCGeometry geom = triangle_geometry(embree_->device, mesh, 0, opaque);
+      rtcCommitGeometry(geom);
+      ids.first = rtcAttachGeometry(target, geom);
+      rtcReleaseGeometry(geom);  // the scene holds the reference now
+    }
+    if (opaque < mesh.size()) {
+      RTCGeometry geom =
+          triangle_geometry(embree_->device, mesh, opaque, mesh.size() - opaque);
+      embree_->filters.push_back(
+          std::make_unique<TransparencyFilter>(TransparencyFilter{this, &mesh, opaque}));
+      rtcSetGeometryUserData(geom, embree_->filters.back().get());
+      rtcSetGeometryIntersectFilterFunction(geom, TransparencyFilter::filter);
+      rtcSetGeometryOccludedFilterFunction(geom, TransparencyFilter::filter);
+      rtcCommitGeometry(geom);
+      ids.second = rtcAttachGeometry(target, geom);
+      rtcReleaseGeometry(geom);
+    }
+    return ids;
+  };
   if (!desc_.world.empty()) {
-    RTCGeometry geom = triangle_geometry(embree_->device, desc_.world);
-    const unsigned id = rtcAttachGeometry(embree_->scene, geom);
-    rtcReleaseGeometry(geom);  // the scene holds the reference now
-    if (embree_->slot_of_geom.size() <= id) embree_->slot_of_geom.resize(id + 1);
-    embree_->slot_of_geom[id] = kWorldSlot;
+    const auto ids = attach(embree_->scene, desc_.world, first_transparent[0]);
+    for (unsigned id : {ids.first, ids.second}) {
+      if (id == RTC_INVALID_GEOMETRY_ID) continue;
+      if (embree_->slot_of_geom.size() <= id) embree_->slot_of_geom.resize(id + 1);
+      embree_->slot_of_geom[id] = kWorldSlot;
+    }
+    embree_->world_transparent_geom = ids.second;
   }
-  // One Embree scene per shared mesh, built once, placed by instance geometries.
-  for (const Mesh& mesh : desc_.meshes) {
+  // One Embree scene per shared mesh, built once, placed by instance geometries. In it, the
+  // opaque triangles are geometry 0 if there are any and the others the next geometry.
+  for (size_t m = 0; m < desc_.meshes.size(); ++m) {
     RTCScene ms = nullptr;
-    if (!mesh.geometry.empty()) {
+    if (!desc_.meshes[m].geometry.empty()) {
       ms = rtcNewScene(embree_->device);
       rtcSetSceneFlags(ms, scene_flags);
-      RTCGeometry geom = triangle_geometry(embree_->device, mesh.geometry);
-      rtcAttachGeometry(ms, geom);
-      rtcReleaseGeometry(geom);
+      attach(ms, desc_.meshes[m].geometry, first_transparent[1 + m]);
       rtcSetSceneBuildQuality(ms, RTC_BUILD_QUALITY_HIGH);
       rtcCommitScene(ms);
     }
     embree_->mesh_scenes.push_back(ms);
   }
   slot_mesh_.push_back(&desc_.world);
-  for (const Instance& inst : desc_.instances)
+  slot_first_transparent_.push_back(first_transparent[0]);
+  for (const Instance& inst : desc_.instances) {
     slot_mesh_.push_back(&desc_.meshes[inst.mesh].geometry);
+    slot_first_transparent_.push_back(first_transparent[1 + inst.mesh]);
+  }
   instance_xf_.reserve(desc_.instances.size());
   for (const Instance& inst : desc_.instances)
     instance_xf_.push_back(Affine3f::from(inst.to_world));
@@ -362,31 +492,32 @@ namespace {
 
 thread_local RayLog* tl_ray_log = nullptr;
 
-inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmax) {
+inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmin, float tmax, uint32_t id) {
   ray->org_x = o.x;
   ray->org_y = o.y;
   ray->org_z = o.z;
   ray->dir_x = d.x;
   ray->dir_y = d.y;
   ray->dir_z = d.z;
-  ray->tnear = 0.f;
+  ray->tnear = tmin;
   ray->tfar = tmax;
   ray->time = 0.f;
   ray->mask = 0xffffffffu;
-  ray->id = 0;
+  ray->id = id;
   ray->flags = 0;
 }
 
-// Closest hit along o + t d, t in [0, tmax]; hit.geomID is RTC_INVALID_GEOMETRY_ID on a miss.
-inline RTCRayHit trace_closest(RTCScene scene, Vec3 o, Vec3 d, float tmax) {
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
+// Closest hit along o + t d, t in [tmin, tmax]; hit.geomID is RTC_INVALID_GEOMETRY_ID on a
+// miss.
+inline RTCRayHit trace_closest(RTCScene scene, Vec3 o, Vec3 d, float tmin, float tmax,
+                               uint64_t query, uint32_t sample) {
+  QueryContext context(query);
   RTCRayHit rh;
-  init_ray(&rh.ray, o, d, tmax);
+  init_ray(&rh.ray, o, d, tmin, tmax, sample);
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-  rtcIntersect1(scene, &context, &rh);
+  rtcIntersect1(scene, &context.rtc, &rh);
   return rh;
 }
 
@@ -395,15 +526,16 @@ inline RTCRayHit trace_closest(RTCScene scene, Vec3 o, Vec3 d, float tmax) {
 void set_thread_ray_log(RayLog* log) { tl_ray_log = log; }
 
 bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
-  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmax);
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, 0.f, tmax, 0, 0);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
   *t = rh.ray.tfar;
   return true;
 }
 
-bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const {
+bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit, uint64_t query, uint32_t sample,
+                      float tmin) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, false});
-  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmax);
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmin, tmax, query, sample);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
   complete_hit(rh.hit.geomID, rh.hit.instID[0], rh.hit.primID, rh.hit.u, rh.hit.v, rh.ray.tfar,
                hit);
@@ -471,7 +603,7 @@ void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCR
 
 template <int N, typename RayHitN>
 void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found,
-                            bool coherent) const {
+                            bool coherent, uint64_t query) const {
   alignas(64) int valid[N];
   alignas(64) RayHitN rh;
   fill_packet<N>(&rh.ray, valid, rays, first, false);
@@ -480,11 +612,10 @@ void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* f
     rh.hit.primID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
   }
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
-  context.flags =
+  QueryContext context(query);
+  context.rtc.flags =
       coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
-  rtc_intersect(valid, embree_->scene, &context, &rh);
+  rtc_intersect(valid, embree_->scene, &context.rtc, &rh);
   // Which lanes hit, without a branch per lane (whether a lane is active and hits something
   // is data the branch predictor cannot learn); then the hits one after another.
   uint32_t hit_lanes = 0;
@@ -501,46 +632,52 @@ void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* f
 }
 
 template <int N, typename RayN>
-void Scene::occluded_lanes(const RayPacket& rays, int first, bool* blocked) const {
+void Scene::occluded_lanes(const RayPacket& rays, int first, bool* blocked,
+                           uint64_t query) const {
   alignas(64) int valid[N];
   alignas(64) RayN ray;
   fill_packet<N>(&ray, valid, rays, first, true);
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
-  rtc_occluded(valid, embree_->scene, &context, &ray);
+  QueryContext context(query);
+  rtc_occluded(valid, embree_->scene, &context.rtc, &ray);
   // Embree sets tfar to -inf in the lanes where it finds an occluder. Written for every lane
   // (inactive lanes' values mean nothing): cheaper than a branch per lane.
   for (int i = 0; i < N; ++i) blocked[first + i] = ray.tfar[i] < 0.f;
 }
 
-void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent) const {
+void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent,
+                      uint64_t query) const {
   if (packet_query_width_ == kPacketSize) {
-    intersect_lanes<kPacketSize, RTCRayHit16>(rays, 0, hits, found, coherent);
+    intersect_lanes<kPacketSize, RTCRayHit16>(rays, 0, hits, found, coherent, query);
     return;
   }
   for (int first = 0; first < kPacketSize; first += kPacketSize / 2) {
     if (any_active(rays, first, kPacketSize / 2))
-      intersect_lanes<kPacketSize / 2, RTCRayHit8>(rays, first, hits, found, coherent);
+      intersect_lanes<kPacketSize / 2, RTCRayHit8>(rays, first, hits, found, coherent, query);
     else
       std::fill(found + first, found + first + kPacketSize / 2, false);
   }
 }
 
-void Scene::occluded(const RayPacket& rays, bool* blocked) const {
+void Scene::occluded(const RayPacket& rays, bool* blocked, uint64_t query) const {
   if (packet_query_width_ == kPacketSize) {
-    occluded_lanes<kPacketSize, RTCRay16>(rays, 0, blocked);
+    occluded_lanes<kPacketSize, RTCRay16>(rays, 0, blocked, query);
     return;
   }
   for (int first = 0; first < kPacketSize; first += kPacketSize / 2)
     if (any_active(rays, first, kPacketSize / 2))
-      occluded_lanes<kPacketSize / 2, RTCRay8>(rays, first, blocked);
+      occluded_lanes<kPacketSize / 2, RTCRay8>(rays, first, blocked, query);
 }
 
 void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                          Hit* hit) const {
   // A hit inside an instance names the instance as the top-level geometry.
-  const unsigned top = inst != RTC_INVALID_GEOMETRY_ID ? inst : geom;
+  const bool in_instance = inst != RTC_INVALID_GEOMETRY_ID;
+  const unsigned top = in_instance ? inst : geom;
   const uint32_t slot = top < embree_->slot_of_geom.size() ? embree_->slot_of_geom[top] : 0;
+  // Non-opaque triangles are a geometry of their own, after the opaque ones: geometry 1 of an
+  // instanced mesh (or 0 if it has only those, where the offset is 0), or the world's.
+  if (in_instance ? geom != 0 : geom == embree_->world_transparent_geom)
+    prim += slot_first_transparent_[slot];
   const TriangleMesh& mesh = *slot_mesh_[slot];
   const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
   const uint8_t flags = mesh.flags[prim];
@@ -564,7 +701,7 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   }
   // Tangent for normal mapping, from the uv parameterization of the normal map's set.
   const Material& mat = desc_.materials[hit->material];
-  const uint32_t set = std::min<uint32_t>(1u, mat.normal_tex.texcoord);
+  const uint32_t set = mat.normal_tex.texcoord;
   Vec3 dpdu(0.f, 0.f, 0.f);
   float sign = 1.f;
   const bool reads_uv = mat.reads_uv();
@@ -577,7 +714,7 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
     hit->uv[k] = Point2{t0.x * b0 + t1.x * hit->b1 + t2.x * hit->b2,
                         t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
   }
-  if (mat.normal_tex.valid() && (flags & (TriangleMesh::kHasUv0 << set))) {
+  if (mat.normal_tex.valid() && has_uv(mesh, prim, set)) {
     // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
     const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
     const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
@@ -610,13 +747,12 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   hit->tangent_sign = sign;
 }
 
-bool Scene::occluded(Vec3 o, Vec3 d, float tmax) const {
+bool Scene::occluded(Vec3 o, Vec3 d, float tmax, uint64_t query, uint32_t sample) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, true});
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
+  QueryContext context(query);
   RTCRay ray;
-  init_ray(&ray, o, d, tmax);
-  rtcOccluded1(embree_->scene, &context, &ray);
+  init_ray(&ray, o, d, 0.f, tmax, sample);
+  rtcOccluded1(embree_->scene, &context.rtc, &ray);
   // Embree sets tfar to -inf when an occluder is found.
   return ray.tfar < 0.f;
 }
@@ -625,24 +761,87 @@ Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
   const TriangleMesh& mesh = *slot_mesh_[slot];
   const Material& m = desc_.materials[mesh.material[prim]];
   Vec3 e = m.emission;
-  if (m.emissive_tex.valid()) {
-    const uint32_t set = std::min<uint32_t>(1u, m.emissive_tex.texcoord);
-    if (mesh.flags[prim] & (TriangleMesh::kHasUv0 << set)) {
-      const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
-      const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
-      const float b0 = 1.f - b1 - b2;
-      const Point2 uv{t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
-      float c[3];
-      if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
-        e = e * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
-    }
+  if (m.emissive_tex.valid() && has_uv(mesh, prim, m.emissive_tex.texcoord)) {
+    const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.emissive_tex.texcoord);
+    float c[3];
+    if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
+      e = e * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
   }
   return e;
 }
 
+float Scene::coverage(uint32_t slot, uint32_t prim, float b1, float b2) const {
+  return coverage(*slot_mesh_[slot], prim, b1, b2);
+}
+
+float Scene::coverage(const TriangleMesh& mesh, uint32_t prim, float b1, float b2) const {
+  const Material& m = desc_.materials[mesh.material[prim]];
+  if (m.is_opaque()) return 1.f;
+  // glTF 2.0, 3.9.2: alpha is baseColorFactor.a x baseColorTexture.a x COLOR_0.a (the
+  // texture's alpha is linear, not sRGB-encoded).
+  float alpha = m.alpha;
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  const float b0 = 1.f - b1 - b2;
+  if (!mesh.colors.empty())
+    alpha *= mesh.colors[vi[0]].a * b0 + mesh.colors[vi[1]].a * b1 + mesh.colors[vi[2]].a * b2;
+  if (m.base_color_tex.valid()) {
+    float c[4];
+    const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.base_color_tex.texcoord);
+    if (textures_.lookup(m.base_color_tex.texture, m.base_color_tex.apply(uv), 4, c))
+      alpha *= c[3];
+  }
+  if (m.alpha_mode == AlphaMode::Mask) return alpha >= m.alpha_cutoff ? 1.f : 0.f;
+  return std::min(1.f, std::max(0.f, alpha));
+}
+
+bool Scene::stops(const TriangleMesh& mesh, uint32_t prim, float b1, float b2, uint64_t query,
+                  uint32_t sample, uint32_t instance) const {
+  const float alpha = coverage(mesh, prim, b1, b2);
+  if (alpha >= 1.f) return true;
+  if (alpha <= 0.f) return false;
+  // A uniform number in [0, 1) per (ray, surface): independent between the surfaces a ray
+  // meets (two overlapping layers of alpha 1/2 pass a quarter of the rays), between the rays of
+  // a path, and between samples.
+  const uint64_t h = hash4(query, sample, instance, prim);
+  return fraction_to_float(uint32_t(h >> 32)) < alpha;
+}
+
+bool Scene::has_uv(const TriangleMesh& mesh, uint32_t prim, uint32_t set) {
+  if (set < 2) return (mesh.flags[prim] & (TriangleMesh::kHasUv0 << set)) != 0;
+  return set < mesh.uv.size() && !mesh.uv[set].empty();
+}
+
+Point2 Scene::interpolate_uv(const TriangleMesh& mesh, uint32_t prim, float b1, float b2,
+                             uint32_t set) {
+  if (!has_uv(mesh, prim, set)) return Point2{0.f, 0.f};
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  const std::vector<Point2>& uv = mesh.uv[set];
+  const Point2 t0 = uv[vi[0]], t1 = uv[vi[1]], t2 = uv[vi[2]];
+  const float b0 = 1.f - b1 - b2;
+  return {t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
+}
+
+Point2 Scene::texcoord(const Hit& hit, uint32_t set) const {
+  return interpolate_uv(*slot_mesh_[hit.slot], hit.prim, hit.b1, hit.b2, set);
+}
+
+bool Scene::vertex_color(const Hit& hit, Vec3* rgb) const {
+  if (!has_vertex_colors_) return false;
+  const TriangleMesh& mesh = *slot_mesh_[hit.slot];
+  if (mesh.colors.empty()) return false;
+  const uint32_t* vi = &mesh.indices[3 * size_t(hit.prim)];
+  const float b1 = hit.b1, b2 = hit.b2, b0 = 1.f - b1 - b2;
+  const Rgba c0 = mesh.colors[vi[0]], c1 = mesh.colors[vi[1]], c2 = mesh.colors[vi[2]];
+  *rgb = Vec3(c0.r * b0 + c1.r * b1 + c2.r * b2, c0.g * b0 + c1.g * b1 + c2.g * b2,
+              c0.b * b0 + c1.b * b1 + c2.b * b2);
+  return true;
+}
+
 size_t TriangleMesh::memory_bytes() const {
-  return positions.capacity() * sizeof(Vec3) + normals.capacity() * sizeof(Vec3) +
-         (uv[0].capacity() + uv[1].capacity()) * sizeof(Point2) +
+  size_t uv_bytes = 0;
+  for (const std::vector<Point2>& set : uv) uv_bytes += set.capacity() * sizeof(Point2);
+  return positions.capacity() * sizeof(Vec3) + normals.capacity() * sizeof(Vec3) + uv_bytes +
+         colors.capacity() * sizeof(Rgba) +
          (indices.capacity() + material.capacity()) * sizeof(uint32_t) + flags.capacity() +
          face_normals.capacity() * sizeof(Vec3);
 }
@@ -676,6 +875,10 @@ void TriangleMesh::add(const Triangle& t) {
     if (write_normals) normals.push_back(t.has_normals ? t.n[k] : Vec3());
     for (int set = 0; set < 2; ++set)
       if (write_uv[set]) uv[set].push_back(t.has_uv[set] ? t.uv[set][k] : Point2{0.f, 0.f});
+    // Arrays a Triangle has no value for stay as long as positions.
+    for (size_t set = 2; set < uv.size(); ++set)
+      if (!uv[set].empty()) uv[set].push_back(Point2{0.f, 0.f});
+    if (!colors.empty()) colors.push_back(Rgba{});
     indices.push_back(first + uint32_t(k));
   }
   material.push_back(t.material);

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <stdexcept>
@@ -74,12 +75,19 @@ struct SceneStats {
   std::vector<std::string> extensions_used;
 };
 
-// Pinhole camera. forward is the viewing direction (glTF camera local -Z), up its +Y,
-// right its +X, all unit length and world space. yfov in radians, in (0, pi).
+// The glTF camera: perspective (a pinhole) or orthographic. forward is the viewing direction
+// (glTF camera local -Z), up its +Y, right its +X, all unit length and world space. yfov in
+// radians, in (0, pi). An orthographic camera sees the box of half width xmag and half height
+// ymag around its axis (glTF's projection: the image spans [-xmag, xmag] x [-ymag, ymag]
+// whatever its aspect). Camera rays see surfaces between the clipping planes znear and zfar,
+// distances along forward (0 and infinity: no clipping).
 struct Camera {
   Vec3 position;
   Vec3 right{1.f, 0.f, 0.f}, up{0.f, 1.f, 0.f}, forward{0.f, 0.f, -1.f};
   float yfov = 0.8f;
+  bool orthographic = false;
+  float xmag = 1.f, ymag = 1.f;
+  float znear = 0.f, zfar = std::numeric_limits<float>::infinity();
   // Unit direction through image position (px, py) in pixels (x right, y down, continuous:
   // pixel (x, y) covers [x, x+1) x [y, y+1)) for an image of width x height pixels.
   // The renderer computes raster(width, height) once per render and asks it per sample.
@@ -87,14 +95,33 @@ struct Camera {
     return raster(width, height).direction(px, py);
   }
 
-  // Directions for one image size: the image plane at distance 1 spans x in
-  // [-aspect tan(yfov/2), aspect tan(yfov/2)] and y in [-tan(yfov/2), tan(yfov/2)] (y up), and
-  // pixel position (px, py) maps to (px kx + bx, py ky + by) on it.
+  // Rays for one image size: the image plane (at distance 1 for a perspective camera, through
+  // the position for an orthographic one) spans x in [-sx, sx] and y in [-sy, sy] (y up), with
+  // (sx, sy) = (aspect tan(yfov/2), tan(yfov/2)) or (xmag, ymag), and pixel position (px, py)
+  // maps to (px kx + bx, py ky + by) on it.
   struct Raster {
-    Vec3 right, up, forward;
+    Vec3 right, up, forward, position;
     float kx = 0.f, bx = 0.f, ky = 0.f, by = 0.f;
+    bool orthographic = false;
     Vec3 direction(float px, float py) const {
-      return normalize(forward + right * (px * kx + bx) + up * (py * ky + by));
+      float axial;
+      return direction(px, py, &axial);
+    }
+    // The same, and in *per_axial the distance along it per unit distance along forward
+    // (1 / dot(direction, forward)), which turns the clipping planes into ray distances.
+    Vec3 direction(float px, float py, float* per_axial) const {
+      if (orthographic) {
+        *per_axial = 1.f;
+        return forward;
+      }
+      // forward + ... has length 1 / dot(direction, forward): its part along forward is 1.
+      const Vec3 v = forward + right * (px * kx + bx) + up * (py * ky + by);
+      *per_axial = length(v);
+      return v * (1.f / *per_axial);
+    }
+    Vec3 origin(float px, float py) const {
+      if (!orthographic) return position;
+      return position + right * (px * kx + bx) + up * (py * ky + by);
     }
   };
   Raster raster(uint32_t width, uint32_t height) const;
@@ -116,17 +143,27 @@ struct Triangle {
   float area = 0.f;
 };
 
+// A vertex colour (glTF COLOR_0, linear RGBA; VEC3 colours have alpha 1).
+struct Rgba {
+  float r = 1.f, g = 1.f, b = 1.f, a = 1.f;
+};
+
 // Indexed triangles in glTF's own layout: each vertex is stored once and shared by the
 // triangles that use it, and Embree reads the positions and indices in place (shared
 // buffers, not copies). About 45 bytes per triangle for a typical closed mesh with normals
 // and one uv set, against 144 for a Triangle. Each per-vertex attribute array is either
-// empty or as long as positions; a triangle's flags say which of them it has (a mesh merges
-// primitives with and without normals or texture coordinates).
+// empty or as long as positions; a triangle's flags say which of normals, TEXCOORD_0 and
+// TEXCOORD_1 it has (a mesh merges primitives with and without them). Vertices of a primitive
+// without a texture coordinate set above 1 that another primitive has read (0, 0) there, and
+// vertices without COLOR_0 in a mesh that has it read white.
 struct TriangleMesh {
   enum : uint8_t { kHasNormals = 1, kHasUv0 = 2, kHasUv1 = 4 };
   std::vector<Vec3> positions;
   std::vector<Vec3> normals;       // unit vertex normals
-  std::vector<Point2> uv[2];       // TEXCOORD_0 and TEXCOORD_1
+  // Texture coordinates: TEXCOORD_0 and TEXCOORD_1 (always the two first entries, either may
+  // be empty), then the other sets materials read (TextureRef::texcoord numbers them).
+  std::vector<std::vector<Point2>> uv = std::vector<std::vector<Point2>>(2);
+  std::vector<Rgba> colors;        // COLOR_0
   std::vector<uint32_t> indices;   // 3 per triangle, counter-clockwise = front face
   std::vector<uint32_t> material;  // per triangle: index into the scene's materials
   std::vector<uint8_t> flags;      // per triangle: kHas* bits
@@ -153,9 +190,18 @@ struct TriangleMesh {
     return needed || !normals.empty();
   }
   // The same for TEXCOORD_<set>.
-  bool use_uv(int set, bool needed) {
+  bool use_uv(size_t set, bool needed) {
+    if (set >= uv.size()) {
+      if (!needed) return false;
+      uv.resize(set + 1);
+    }
     if (needed) uv[set].resize(positions.size());
     return needed || !uv[set].empty();
+  }
+  // The same for COLOR_0 (earlier vertices get white).
+  bool use_colors(bool needed) {
+    if (needed) colors.resize(positions.size(), Rgba{});
+    return needed || !colors.empty();
   }
 };
 
@@ -208,6 +254,8 @@ struct RayPacket {
   float time[kPacketSize] = {}, tfar[kPacketSize] = {};
   uint32_t mask[kPacketSize] = {~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u,
                                 ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u, ~0u};
+  // id: the lane's sample index, which the stochastic transparency of BLEND surfaces hashes
+  // (see ray_query).
   uint32_t id[kPacketSize] = {}, flags[kPacketSize] = {};
   bool active[kPacketSize] = {};
   // Lane i becomes active with the ray o + t d, t in (0, tmax).
@@ -237,12 +285,25 @@ struct Hit {
   Vec3 ng;             // unit geometric normal (front side, see Triangle::ng)
   Vec3 ns;             // unit shading normal (interpolated, or ng without vertex normals)
   uint32_t material = 0;
-  Point2 uv[2];        // interpolated texture coordinates (0 where the mesh has none, or
-                       // where the material reads no texture but the emissive one)
+  Point2 uv[2];        // interpolated TEXCOORD_0 and TEXCOORD_1 (0 where the mesh has none,
+                       // or where the material reads no texture but the emissive one; other
+                       // sets: Scene::texcoord)
   Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<normal_tex.texcoord> for
                        // normal mapping (0 if undefined)
   float tangent_sign = 1.f;  // handedness of (dpdu, dpdv, ng)
 };
+
+// Materials with alphaMode MASK or BLEND (glTF 2.0, 3.9.4) let rays through where their
+// coverage says so: MASK where alpha = baseColorFactor.a x baseColorTexture.a x COLOR_0.a is
+// below alphaCutoff, BLEND with probability 1 - alpha (stochastic transparency: an unbiased
+// estimate of the "over" operator). Which BLEND surfaces a ray passes is a pure function of the
+// ray's query key, its sample index (RayPacket::id) and the surface (instance and triangle):
+// a surface stops the ray iff hash(query, sample, instance, triangle) < alpha, so that a
+// packet lane and the same ray alone, and every traversal order, find the same surfaces.
+// Queries in a render use ray_query(seed, pixel, bounce, kind); tests and the benchmark may
+// use any key (0 by default).
+enum class RayKind : uint32_t { Path = 0, Shadow = 1 };
+uint64_t ray_query(uint64_t seed, uint64_t pixel, uint32_t bounce, RayKind kind);
 
 class Scene {
  public:
@@ -254,12 +315,14 @@ class Scene {
   Scene(const Scene&) = delete;
   Scene& operator=(const Scene&) = delete;
 
-  // Closest hit along o + t d for t in (0, tmax); d need not be unit (t is then in units of d).
-  bool intersect(Vec3 o, Vec3 d, float tmax, Hit* hit) const;
+  // Closest hit along o + t d for t in (tmin, tmax); d need not be unit (t is then in units of
+  // d). query and sample: the ray's transparency key (see ray_query).
+  bool intersect(Vec3 o, Vec3 d, float tmax, Hit* hit, uint64_t query = 0, uint32_t sample = 0,
+                 float tmin = 0.f) const;
   // Closest hit distance only (no hit record); the benchmark's raw Embree rate uses it.
   bool intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const;
   // True if anything blocks o + t d for t in (0, tmax).
-  bool occluded(Vec3 o, Vec3 d, float tmax) const;
+  bool occluded(Vec3 o, Vec3 d, float tmax, uint64_t query = 0, uint32_t sample = 0) const;
   // intersect / occluded for the active lanes of a packet. found[i] is written for every lane
   // (false for inactive ones), hits[i] for the lanes found; blocked[i] is meaningful for
   // active lanes only.
@@ -268,8 +331,14 @@ class Scene {
   // COHERENT), faster for them and far slower for scattered rays; the hits are the same. The
   // occlusion query has no coherent mode: Embree 3.13's coherent occlusion traversal never
   // returned for one of Scene/PacketQueries' scattered rays when we tried it.
-  void intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent = false) const;
-  void occluded(const RayPacket& rays, bool* blocked) const;
+  // query: the packet's transparency key (its lanes' sample indices are their ids).
+  void intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent = false,
+                 uint64_t query = 0) const;
+  void occluded(const RayPacket& rays, bool* blocked, uint64_t query = 0) const;
+  // True if some material of the scene's triangles is not opaque (MASK or BLEND): only then do
+  // ray queries run the transparency test, and only on those materials' triangles, which are
+  // Embree geometries of their own.
+  bool has_transparency() const { return has_transparency_; }
   // How the packet queries reach Embree: 16 when one native 16-wide query serves a packet
   // (the default where Embree reports native 16-wide support), 8 for two 8-wide queries. The
   // results are the same either way; tests set both.
@@ -291,6 +360,21 @@ class Scene {
   // Emitted radiance of the front face of triangle prim of slot at barycentrics (b1, b2),
   // including the emissive texture.
   Vec3 emission(uint32_t slot, uint32_t prim, float b1, float b2) const;
+  // The same times the point's coverage (1 for opaque materials; MASK: 0 or 1 by the cutoff;
+  // BLEND: alpha): what light sampling sees of an emitter, which a ray would find with
+  // probability coverage (and then see its full emission).
+  Vec3 covered_emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
+    if (!has_transparency_) return emission(slot, prim, b1, b2);
+    return emission(slot, prim, b1, b2) * coverage(slot, prim, b1, b2);
+  }
+  // Coverage of the point, as above.
+  float coverage(uint32_t slot, uint32_t prim, float b1, float b2) const;
+  // Texture coordinates set (TextureRef::texcoord) interpolated at the hit ((0, 0) where the
+  // mesh has none).
+  Point2 texcoord(const Hit& hit, uint32_t set) const;
+  // COLOR_0 interpolated at the hit into *rgb (linear); false (and *rgb untouched) where the
+  // mesh has no vertex colours.
+  bool vertex_color(const Hit& hit, Vec3* rgb) const;
   size_t instance_count() const { return desc_.instances.size(); }
   size_t mesh_count() const { return desc_.meshes.size(); }
   // Triangles in the world after instancing (world triangles + sum over instances).
@@ -315,14 +399,30 @@ class Scene {
   TextureSet textures_;
   std::vector<Affine3f> instance_xf_;  // desc_.instances[k].to_world, for hits in slot k + 1
   std::vector<const TriangleMesh*> slot_mesh_;  // per slot: &desc_.world, then the meshes
+  // Per slot: the number of its mesh's opaque triangles. The Scene puts them first; the others
+  // are an Embree geometry of their own, whose triangle i is the mesh's triangle (this + i).
+  std::vector<uint32_t> slot_first_transparent_;
+  bool has_transparency_ = false;
+  bool has_vertex_colors_ = false;  // some mesh has COLOR_0
+  // Coverage of triangle prim of mesh at (b1, b2), and whether the ray of (query, sample) stops
+  // there (the transparency test of the Embree filter functions).
+  float coverage(const TriangleMesh& mesh, uint32_t prim, float b1, float b2) const;
+  bool stops(const TriangleMesh& mesh, uint32_t prim, float b1, float b2, uint64_t query,
+             uint32_t sample, uint32_t instance) const;
+  friend struct TransparencyFilter;
+  // Whether triangle prim of mesh has texture coordinates set (TextureRef::texcoord), and the
+  // set interpolated at (b1, b2) ((0, 0) if not).
+  static bool has_uv(const TriangleMesh& mesh, uint32_t prim, uint32_t set);
+  static Point2 interpolate_uv(const TriangleMesh& mesh, uint32_t prim, float b1, float b2,
+                               uint32_t set);
   // The hit record of Embree's closest hit (geometry geom, inside instance inst or none,
   // triangle prim, barycentrics (u, v), distance t).
   // One Embree packet query of width N over lanes [first, first + N) of a packet.
   template <int N, typename RayHitN>
   void intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found,
-                       bool coherent) const;
+                       bool coherent, uint64_t query) const;
   template <int N, typename RayN>
-  void occluded_lanes(const RayPacket& rays, int first, bool* blocked) const;
+  void occluded_lanes(const RayPacket& rays, int first, bool* blocked, uint64_t query) const;
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                     Hit* hit) const;
   struct Embree;

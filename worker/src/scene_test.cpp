@@ -448,7 +448,7 @@ TEST(Scene, NoCameraFramesBoundsFromPlusZ) {
   std::vector<std::string> warnings;
   Scene scene(std::move(desc), &warnings);
   EXPECT_EQ(scene.world().size(), 2u);
-  EXPECT_TRUE(any_contains(warnings, "no perspective camera"));
+  EXPECT_TRUE(any_contains(warnings, "no camera"));
   EXPECT_TRUE(any_contains(warnings, "degenerate"));
   EXPECT_GT(scene.camera().position.z, 1.f);
   EXPECT_NEAR(scene.camera().forward.z, -1.f, 1e-6f);

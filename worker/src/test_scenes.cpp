@@ -179,6 +179,10 @@ std::string quad_gltf_buffers_json() {
          base64(buf) + R"("}])";
 }
 
+std::string data_uri(const std::string& mime_type, const std::vector<unsigned char>& bytes) {
+  return "data:" + mime_type + ";base64," + base64(bytes);
+}
+
 std::string png_data_uri(int width, int height, int channels,
                          const std::vector<unsigned char>& pixels) {
   static int counter = 0;
@@ -189,6 +193,9 @@ std::string png_data_uri(int width, int height, int channels,
   auto out = OIIO::ImageOutput::create(path);
   if (!out) throw std::runtime_error("cannot create PNG writer");
   OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
+  // The pixels as given: colours not premultiplied by alpha (OpenImageIO would otherwise
+  // divide them by it on writing).
+  spec.attribute("oiio:UnassociatedAlpha", 1);
   if (!out->open(path, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels.data()) ||
       !out->close())
     throw std::runtime_error("cannot write " + path);

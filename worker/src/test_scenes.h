@@ -29,8 +29,11 @@ std::string small_gltf_json();
 // indices.
 std::string quad_gltf_buffers_json();
 
-// A PNG of width x height 8-bit pixels (channels per pixel, row-major from the top) as a
-// data: URI.
+// bytes as a base64 data: URI of the given MIME type.
+std::string data_uri(const std::string& mime_type, const std::vector<unsigned char>& bytes);
+
+// A PNG of width x height 8-bit pixels (channels per pixel, row-major from the top; colours
+// not premultiplied by alpha) as a data: URI.
 std::string png_data_uri(int width, int height, int channels,
                          const std::vector<unsigned char>& pixels);
 

@@ -20,6 +20,10 @@ OIIO::TextureSystem* texture_system() {
   static OIIO::TextureSystem* ts = [] {
     OIIO::TextureSystem* t = OIIO::TextureSystem::create(true);
     t->attribute("automip", 1);          // MIP-map plain PNG/JPEG on demand
+    // glTF colours are not premultiplied by their alpha (a PNG's never are): keep them as they
+    // are rather than let the readers associate alpha (which would darken every texel of
+    // alpha below 1, also on opaque materials, whose alpha glTF ignores).
+    t->attribute("unassociatedalpha", 1);
     t->attribute("max_memory_MB", 1024.f);
     return t;
   }();
@@ -151,15 +155,18 @@ bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
   opt.interpmode = OIIO::TextureOpt::InterpBilinear;
   opt.mipmode = OIIO::TextureOpt::MipModeNoMIP;  // no ray differentials: finest level
   float result[4] = {1.f, 1.f, 1.f, 1.f};
-  const int want = std::min(4, std::max(1, std::min(n, e.channels)));
+  // Gray images (one channel, or gray and alpha) give their gray to red, green and blue; the
+  // alpha of a gray-and-alpha image is its second channel.
+  const bool gray = e.channels <= 2;
+  const int want = gray ? (n >= 4 && e.channels == 2 ? 2 : 1)
+                        : std::min(4, std::max(1, std::min(n, e.channels)));
   OIIO::TextureSystem* ts = texture_system();
   if (!ts->texture(e.handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f, 0.f, 0.f,
                    want, result))
     return false;
   for (int c = 0; c < n; ++c) {
-    if (c < want) out[c] = result[c];
-    else if (c == 3) out[c] = 1.f;
-    else out[c] = result[want - 1];  // gray images: replicate
+    if (c == 3) out[c] = gray ? (want == 2 ? result[1] : 1.f) : (want > 3 ? result[3] : 1.f);
+    else out[c] = gray ? result[0] : result[std::min(c, want - 1)];
   }
   return true;
 }

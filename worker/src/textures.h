@@ -34,8 +34,9 @@ class TextureSet {
   uint64_t pixels(int texture) const;
 
   // Bilinear lookup at uv (glTF convention: (0, 0) is the top-left corner of the image) of
-  // channels [0, n) into out; channels the image lacks read as 1 (alpha) or repeat the last
-  // one. Returns false (and leaves out unchanged) if the lookup fails.
+  // channels [0, n) (RGBA) into out; alpha reads 1 in images without it, and gray images
+  // (gray, or gray and alpha) give their gray to red, green and blue. Returns false (and
+  // leaves out unchanged) if the lookup fails.
   bool lookup(int texture, Point2 uv, int n, float* out) const;
 
  private:

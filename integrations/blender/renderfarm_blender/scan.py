@@ -202,9 +202,6 @@ class _MaterialScan:
         for name, why in _PRINCIPLED_DROPPED:
             if _socket_in_use(node.inputs.get(name)):
                 self.add("material", f"{where}{name}: {why}")
-        alpha = node.inputs.get("Alpha")
-        if alpha is not None and (alpha.is_linked or alpha.default_value < 1.0):
-            self.add("material", f"{where}Alpha: the farm renders every surface opaque")
         transmission = node.inputs.get("Transmission Weight")
         if transmission is not None and transmission.is_linked:
             self.add(
@@ -321,12 +318,12 @@ def scan(scene) -> list[Issue]:
     camera = scene.camera
     if camera is not None and camera.type == "CAMERA":
         cam = camera.data
-        if cam.type != "PERSP":
+        if cam.type == "PANO":  # the exporter writes perspective and orthographic cameras
             issues.append(
                 Issue(
                     "camera",
                     f"Camera '{camera.name}'",
-                    f"{cam.type.lower()} cameras are not rendered by the farm (perspective only)",
+                    "panoramic cameras are not exported (perspective and orthographic only)",
                 )
             )
         if cam.shift_x or cam.shift_y:
