@@ -33,6 +33,8 @@ APT_BUILD=(
   libembree-dev libopenimageio-dev openimageio-tools
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
   libtinygltf-dev nlohmann-json3-dev libssl-dev libgtest-dev libbenchmark-dev libpq-dev
+  libdraco-dev libmeshoptimizer-dev  # the decoders of compressed meshes (Draco, meshopt)
+  gltfpack  # writes EXT_meshopt_compression scenes for the loader's tests
   python3 python3-venv python3-pip python3-dev  # headers: the server's C merge loops
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
   prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
@@ -47,7 +49,7 @@ APT_WEB=(nodejs npm)
 # by the Debian package that ships each; apt brings their own dependencies.
 APT_RUNTIME_WORKER=(
   libgrpc++1.51 libgrpc29 libabsl20220623 libprotobuf32 libembree3-3 libopenimageio2.4
-  libtinygltf2d libssl3 libstdc++6
+  libtinygltf2d libssl3 libstdc++6 libdraco7 libmeshoptimizer2d
   ca-certificates  # the system's CAs, which `connect --tls` checks the server against
 )
 # The server runs from a virtual environment whose wheels bundle their native libraries

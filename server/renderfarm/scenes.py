@@ -364,6 +364,13 @@ def _external_uri_error(kind: str, index: int, uri: str, field: str) -> SceneErr
     )
 
 
+def _is_meshopt_target(buffer: dict[str, Any]) -> bool:
+    """A buffer without data that EXT_meshopt_compression decodes into (its `fallback`)."""
+    ext = buffer.get("extensions")
+    meshopt = ext.get("EXT_meshopt_compression") if isinstance(ext, dict) else None
+    return "uri" not in buffer and isinstance(meshopt, dict) and meshopt.get("fallback") is True
+
+
 def _check_buffers(document: dict[str, Any], fmt: str, bin_chunk: bytes | None) -> list[int]:
     """Return each buffer's byteLength after checking its data is there."""
     lengths = []
@@ -372,7 +379,12 @@ def _check_buffers(document: dict[str, Any], fmt: str, bin_chunk: bytes | None) 
         buffer = _object(buffer, field)
         byte_length = _int(buffer, "byteLength", field, minimum=1)
         uri = buffer.get("uri")
-        if uri is None:
+        if _is_meshopt_target(buffer):
+            # Filled by decoding the views that name it; the worker's loader checks its size
+            # against the scene memory limit before allocating it.
+            available = byte_length
+            source = "meshopt decoding"
+        elif uri is None:
             if fmt != "glb" or i != 0:
                 raise SceneError(
                     f"buffer {i} has no uri; only buffer 0 of a .glb may omit it "
@@ -544,12 +556,20 @@ def _pack_document(raw: bytes, name: str, read, max_bytes: int) -> bytes:
             )
         return offset
 
-    buffer_offsets = []
+    # Where each buffer goes: (0, its offset in the BIN chunk), or, for a buffer without data
+    # that meshopt decodes into, (its index among the GLB's buffers, 0): it stays a buffer of
+    # its own after the BIN chunk's buffer 0.
+    placed: list[tuple[int, int]] = []
+    targets = []
     for i, buffer in enumerate(_list(document, "buffers")):
         field = f"scene.buffers[{i}]"
         buffer = _object(buffer, field)
         byte_length = _int(buffer, "byteLength", field, minimum=1)
         uri = buffer.get("uri")
+        if _is_meshopt_target(buffer):
+            targets.append(buffer)
+            placed.append((len(targets), 0))
+            continue
         if not isinstance(uri, str):
             raise SceneError(
                 f"buffer {i} has no uri; in a .gltf every buffer must name its data",
@@ -562,16 +582,23 @@ def _pack_document(raw: bytes, name: str, read, max_bytes: int) -> bytes:
                 f"({len(data)} bytes in {_shown(uri)})",
                 f"{field}.byteLength",
             )
-        buffer_offsets.append(append(data[:byte_length]))
+        placed.append((0, append(data[:byte_length])))
 
     views = _list(document, "bufferViews")
     for i, view in enumerate(views):
         field = f"scene.bufferViews[{i}]"
         view = _object(view, field)
-        buffer = _index(view, "buffer", field, len(buffer_offsets), "buffer")
+        buffer = _index(view, "buffer", field, len(placed), "buffer")
         offset = _int(view, "byteOffset", field, default=0)
-        view["buffer"] = 0
-        view["byteOffset"] = buffer_offsets[buffer] + offset
+        view["buffer"], start = placed[buffer]
+        view["byteOffset"] = start + offset
+        ext = view.get("extensions")
+        meshopt = ext.get("EXT_meshopt_compression") if isinstance(ext, dict) else None
+        if isinstance(meshopt, dict):  # its compressed bytes, in a buffer moved like the others
+            where = f"{field}.extensions.EXT_meshopt_compression"
+            source = _index(meshopt, "buffer", where, len(placed), "buffer")
+            meshopt["buffer"], start = placed[source]
+            meshopt["byteOffset"] = start + _int(meshopt, "byteOffset", where, default=0)
 
     for i, image in enumerate(_list(document, "images")):
         field = f"scene.images[{i}]"
@@ -600,8 +627,12 @@ def _pack_document(raw: bytes, name: str, read, max_bytes: int) -> bytes:
         document["bufferViews"] = views
     while len(blob) % 4:
         blob.append(0)
-    if blob:
-        document["buffers"] = [{"byteLength": len(blob)}]
+    if blob or targets:
+        # Buffer 0 is the BIN chunk; a scene whose only data is decoded still has one (of
+        # four zero bytes), so that its decoded buffers keep their indices.
+        document["buffers"] = [{"byteLength": max(len(blob), 4)}, *targets]
+        while len(blob) < 4:
+            blob.append(0)
     else:
         document.pop("buffers", None)
 

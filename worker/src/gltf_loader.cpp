@@ -17,6 +17,7 @@
 #include <map>
 #include <set>
 
+#include "gltf_compression.h"
 #include "scene.h"
 
 namespace rf {
@@ -36,7 +37,7 @@ const std::set<std::string>& supported_extensions() {
   static const std::set<std::string> s = {
       "KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_ior",
       "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual",
-      "KHR_mesh_quantization"};
+      "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression"};
   return s;
 }
 
@@ -1220,11 +1221,13 @@ class Loader {
   uint32_t default_material_ = 0;
 };
 
-SceneDescription finish(bool ok, const tinygltf::Model& model, const std::string& err,
+SceneDescription finish(bool ok, tinygltf::Model& model, const std::string& err,
                         const std::string& warn, const std::string& source,
-                        std::vector<std::string>* warnings, const LoadOptions& options) {
+                        std::vector<std::string>* warnings, const LoadOptions& options,
+                        const std::map<int, size_t>& fallbacks) {
   if (!warn.empty() && warnings) warnings->push_back(source + ": " + warn);
   if (!ok) throw SceneError(source + ": cannot parse glTF: " + (err.empty() ? "unknown" : err));
+  decode_compressed_geometry(&model, fallbacks, options.limits, source);
   return Loader(model, source, warnings, options).run();
 }
 
@@ -1255,9 +1258,15 @@ SceneDescription load_gltf(const std::string& path, std::vector<std::string>* wa
   // Read here rather than by tinygltf, whose file callbacks may refuse every file.
   std::ifstream in(path, std::ios::binary);
   if (!in) throw SceneError(source + ": cannot open file");
-  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   if (in.bad()) throw SceneError(source + ": cannot read file");
   const bool binary = bytes.size() >= 4 && std::memcmp(bytes.data(), "glTF", 4) == 0;
+  std::map<int, size_t> fallbacks;  // meshopt buffers that only exist to be decoded into
+  // (compressed files are rewritten where tinygltf would refuse them: gltf_compression.h)
+  if (binary)
+    prepare_compressed_glb(&bytes, &fallbacks);
+  else
+    prepare_compressed_json(&bytes, &fallbacks);
   tinygltf::TinyGLTF gltf;
   configure(&gltf, options);
   tinygltf::Model model;
@@ -1269,7 +1278,7 @@ SceneDescription load_gltf(const std::string& path, std::vector<std::string>* wa
                                          unsigned(bytes.size()), base_dir)
              : gltf.LoadASCIIFromString(&model, &err, &warn, bytes.data(), unsigned(bytes.size()),
                                         base_dir);
-  return finish(ok, model, err, warn, source, warnings, options);
+  return finish(ok, model, err, warn, source, warnings, options, fallbacks);
 }
 
 SceneDescription load_gltf_from_string(const std::string& json, const std::string& base_dir,
@@ -1280,9 +1289,12 @@ SceneDescription load_gltf_from_string(const std::string& json, const std::strin
   configure(&gltf, options);
   tinygltf::Model model;
   std::string err, warn;
-  const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, json.c_str(),
-                                           unsigned(json.size()), base_dir);
-  return finish(ok, model, err, warn, name, warnings, options);
+  std::string text = json;
+  std::map<int, size_t> fallbacks;
+  prepare_compressed_json(&text, &fallbacks);
+  const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, text.c_str(),
+                                           unsigned(text.size()), base_dir);
+  return finish(ok, model, err, warn, name, warnings, options, fallbacks);
 }
 
 }  // namespace rf
