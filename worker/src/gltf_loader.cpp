@@ -11,6 +11,7 @@
 #include <cstring>
 #include <filesystem>
 #include <iterator>
+#include <limits>
 #include <optional>
 #include <fstream>
 #include <functional>
@@ -37,7 +38,8 @@ const std::set<std::string>& supported_extensions() {
   static const std::set<std::string> s = {
       "KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_ior",
       "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual",
-      "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression"};
+      "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression",
+      "KHR_materials_volume"};
   return s;
 }
 
@@ -140,6 +142,38 @@ class Loader {
       }
       desc->textures.push_back(std::move(src));
     }
+  }
+
+  // KHR_materials_volume: the medium inside the mesh. Its thickness (factor and texture) is
+  // for renderers that cannot measure the path inside; a path tracer has the real length, so
+  // only thicknessFactor > 0 (not thin-walled) is read from it.
+  void load_volume(const tinygltf::Value& ext, const std::string& where, const std::string& name,
+                   Material* m) const {
+    const float thickness = number_or(ext, "thicknessFactor", 0.f);
+    if (!(thickness >= 0.f)) fail(where + ".thicknessFactor" + name + ": must be >= 0");
+    float distance = std::numeric_limits<float>::infinity();
+    if (ext.Has("attenuationDistance")) {
+      distance = number_or(ext, "attenuationDistance", -1.f);
+      if (!(distance > 0.f))
+        fail(where + ".attenuationDistance" + name + ": must be a number > 0");
+    }
+    Vec3 color{1.f, 1.f, 1.f};
+    if (ext.Has("attenuationColor")) {
+      const tinygltf::Value& c = ext.Get("attenuationColor");
+      if (!c.IsArray() || c.ArrayLen() != 3)
+        fail(where + ".attenuationColor" + name + ": must be an array of 3 numbers");
+      for (int k = 0; k < 3; ++k) {
+        const tinygltf::Value& v = c.Get(k);
+        color[k] = v.IsNumber() ? float(v.GetNumberAsDouble()) : -1.f;
+        if (!(color[k] >= 0.f && color[k] <= 1.f))
+          fail(where + ".attenuationColor" + name + ": must be 3 numbers in [0, 1]");
+      }
+    }
+    if (thickness == 0.f || std::isinf(distance)) return;  // thin-walled, or clear
+    for (int k = 0; k < 3; ++k)
+      // A colour of 0 absorbs everything: a coefficient large enough that any length inside
+      // gives 0 (exp underflows), without an infinity that 0 lengths would turn into NaN.
+      m->absorption[k] = color[k] > 0.f ? -std::log(color[k]) / distance : 1e30f;
   }
 
   // A material's texture slot, with KHR_texture_transform.
@@ -588,6 +622,11 @@ class Loader {
              " outside [1, 10) is not supported; using 1.5");
         m.ior = 1.5f;
       }
+      auto vol = gm.extensions.find("KHR_materials_volume");
+      if (vol != gm.extensions.end())
+        load_volume(vol->second,
+                    "materials[" + std::to_string(i) + "].extensions.KHR_materials_volume",
+                    named(gm.name), &m);
       auto sp = gm.extensions.find("KHR_materials_specular");
       if (sp != gm.extensions.end()) {
         m.specular = std::min(1.f, std::max(0.f, number_or(sp->second, "specularFactor", 1.f)));

@@ -372,7 +372,26 @@ struct PathState {
   BsdfSample bs;
   Vec3 next_o, next_d;     // the next ray if the path goes on (next_d from the batch if pending)
   Vec3 ng;                 // the vertex's geometric normal on the side of wo
+  // KHR_materials_volume: the absorption coefficient of the medium the ray travels in (0:
+  // none), and the one the next ray will (a transmission into or out of a volume changes it).
+  Vec3 medium, next_medium;
 };
+
+// exp(-sigma t) per channel: what a medium of absorption sigma lets through over a length t
+// (t may be infinite: a ray that leaves through an open mesh is absorbed entirely).
+inline Vec3 transmittance(Vec3 sigma, float t) {
+  Vec3 out{1.f, 1.f, 1.f};
+  for (int k = 0; k < 3; ++k)
+    if (sigma[k] > 0.f) out[k] = std::exp(-sigma[k] * t);
+  return out;
+}
+
+// The medium after a transmission at a vertex of material m seen from the front (entering the
+// mesh) or not (leaving it); media are not nested: leaving a volume returns to none.
+inline Vec3 medium_after(const Material& m, bool front, Vec3 medium) {
+  if (!m.has_volume()) return medium;
+  return front ? m.absorption : Vec3{0.f, 0.f, 0.f};
+}
 
 // Directions on the wrong side of the geometric surface (possible with shading normals)
 // would leak light through it: the path ends there.
@@ -395,15 +414,19 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   p.alive = false;
   p.light_kind = LightSampleKind::None;
   p.bsdf_slot = -2;
+  p.next_medium = p.medium;
+  const bool in_medium = !is_zero(p.medium);
   if (!hit) {
     if (lc.env) {
       const Vec3 L = lc.env->eval(d);
       const float w =
           p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
-      result.radiance += p.beta * L * w;
+      result.radiance +=
+          (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w;
     }
     return;
   }
+  if (in_medium) p.beta *= transmittance(p.medium, hit->t);
   const Vec3 wo = -d;
   const ShadingPoint sp = make_shading_point(scene, *hit, wo);
   if (bounce == 0) {
@@ -460,6 +483,9 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   p.next_o = bs.transmitted ? sp.below() : sp.above();
   p.next_d = wi;
   p.bsdf_slot = -1;
+  // Only the glass lobe transmits: the one place the medium changes.
+  if (bs.transmitted)
+    p.next_medium = medium_after(scene.materials()[hit->material], sp.params.front, p.medium);
 }
 
 // The second half, in two parts for the lanes that need them. The light sample's shadow ray
@@ -468,6 +494,8 @@ void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shado
   if (p.light_kind == LightSampleKind::Delta) {
     shadow->set(lane, p.light.origin, p.light.wi, p.light.tmax);
     p.nee = p.beta * p.light.contribution;
+    // The shadow ray leaves on the side of wo: in the medium the path arrived through.
+    if (!is_zero(p.medium)) p.nee *= transmittance(p.medium, p.light.tmax);
     ++p.result.rays;
     return;
   }
@@ -476,6 +504,7 @@ void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shado
               Vec3(lb.wi[0][lane], lb.wi[1][lane], lb.wi[2][lane]), lb.tmax[lane]);
   p.nee = p.beta * Vec3(lb.contribution[0][lane], lb.contribution[1][lane],
                         lb.contribution[2][lane]);
+  if (!is_zero(p.medium)) p.nee *= transmittance(p.medium, lb.tmax[lane]);
   ++p.result.rays;
 }
 
@@ -496,6 +525,7 @@ void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
   p.prev_delta = bs.delta;
   p.o = p.next_o;
   p.d = p.next_d;
+  p.medium = p.next_medium;
   p.alive = true;
 }
 
@@ -822,11 +852,14 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       if (lc.env) {
         const float w =
             p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(p.d));
-        result.radiance += p.beta * lc.env->eval(p.d) * w;
+        const Vec3 beta =
+            is_zero(p.medium) ? p.beta : p.beta * transmittance(p.medium, kInfinity);
+        result.radiance += beta * lc.env->eval(p.d) * w;
       }
       return result;
     }
     const Hit& hit = hits[0];
+    if (!is_zero(p.medium)) p.beta *= transmittance(p.medium, hit.t);
     const ShadingPoint sp = make_shading_point(scene, hit, wo);
     if (bounce == 0) {
       result.albedo = sp.albedo;
@@ -856,7 +889,8 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     LightRay light;
     if (lc.any && bsdf_has_smooth_part(sp.params) &&
         reference_light_sample(scene, lc, sp, lobes, frame, wo_local, u, &light)) {
-      const Vec3 nee = p.beta * light.contribution;
+      Vec3 nee = p.beta * light.contribution;
+      if (!is_zero(p.medium)) nee *= transmittance(p.medium, light.tmax);
       shadow.set(0, light.origin, light.wi, light.tmax);
       ++result.rays;
       scene.occluded(shadow, blocked, ray_query(seed, pixel, bounce, RayKind::Shadow));
@@ -874,6 +908,8 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     p.prev_delta = bs.delta;
     p.o = bs.transmitted ? sp.below() : sp.above();
     p.d = wi;
+    if (bs.transmitted)
+      p.medium = medium_after(scene.materials()[hit.material], sp.params.front, p.medium);
   }
 }
 

@@ -57,6 +57,12 @@ struct Material {
   AlphaMode alpha_mode = AlphaMode::Opaque;
   float alpha = 1.f;         // baseColorFactor alpha
   float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)
+  // KHR_materials_volume: the absorption coefficient per world unit of the medium inside the
+  // mesh, -ln(attenuationColor) / attenuationDistance per channel (0: none; a thin-walled
+  // material, thicknessFactor 0, has none). Light crossing a length d inside is multiplied by
+  // exp(-absorption d) (Beer-Lambert).
+  Vec3 absorption{0.f, 0.f, 0.f};
+  bool has_volume() const { return !is_zero(absorption); }
   bool is_emissive() const { return !is_zero(emission); }
   bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }
   // True if shading reads texture coordinates at the hit point (the emissive texture is read
