@@ -175,3 +175,16 @@ def test_cli_get_downloads_the_image_or_one_layer(farm, jobs, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "all.exr", "d.exr", "error.exr", "spp.png"
     ]  # fmt: skip
+
+
+def test_settings_list_has_denoise_as_a_bool(client):
+    docs = client.http.get("/api/v1/settings").json()
+    denoise = next(d for d in docs if d["name"] == "denoise")
+    assert denoise["type"] == "bool" and denoise["default"] is False
+    refused = client.http.post(
+        "/api/v1/jobs",
+        files={"scene": ("box.gltf", b"{}")},
+        data={"settings": json.dumps({"denoise": "yes"})},
+    )
+    assert refused.status_code == 400
+    assert refused.json()["field"] == "settings.denoise"

@@ -10,7 +10,8 @@ EXR channels (32-bit float):
   denoised.R/G/B          with settings.denoise only: Open Image Denoise of R, G, B with the
                           albedo and normal as guides (denoise_frame)
 PNG: one layer, clamped to [0, 1], 8 bits; rgb, albedo, normal and denoised sRGB-encoded, the
-variance (as a standard error), spp and error layers grey, normalised to their maximum. A PNG may be
+variance (as a standard error), spp and error layers grey, normalised to their maximum (recorded in
+the PNG's tEXt chunk renderfarm:scale_max, beside renderfarm:scale_min 0). A PNG may be
 downscaled (max_size): each output pixel is the mean of a square of f x f pixels (f the smallest
 integer that brings both sides within max_size) in linear values, encoded after.
 
@@ -400,6 +401,12 @@ class ImageWriter:
             # defaults (level 6, adaptive filters) for a file 5-20% larger.
             spec.attribute("png:compressionLevel", 1)
             spec.attribute("png:filter", 32)
+            if layer in GREY_LAYERS:
+                # The scale of the grey (tEXt chunks): black is 0 and white self.top, so a
+                # viewer can label its colour bar with values (the dashboard does).
+                spec.attribute("renderfarm:layer", layer)
+                spec.attribute("renderfarm:scale_min", "0")
+                spec.attribute("renderfarm:scale_max", repr(self.top))
         self.spec = spec
         self.rows_written = 0  # output scanlines so far
         # The whole denoised frame (DenoiseFrame.denoise): the EXR's denoised.R/G/B, or the

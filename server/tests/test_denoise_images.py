@@ -169,3 +169,22 @@ def test_denoise_is_refused_past_the_job_memory_limit():
     parse_settings(
         {"width": 2048, "height": 2048, "denoise": True}, Limits(max_job_memory_bytes=need)
     )
+
+
+@pytest.mark.parametrize("layer", ["spp", "rgb"])
+def test_grey_png_records_its_scale(tmp_path, layer):
+    """A grey layer's PNG says what white is (the dashboard labels its colour bar with it)."""
+    tiles = accumulators()
+    top = images.layer_maximum(layer, [t for band in bands(tiles) for t in band])
+    writer = ImageWriter(str(tmp_path / "a.png"), "png", W, H, layer, top=top)
+    parts = bands(tiles)
+    for i, band in enumerate(parts):
+        writer.write_band(band[0][0].height, band, i == len(parts) - 1)
+    writer.close()
+    spec = oiio.ImageInput.open(str(tmp_path / "a.png")).spec()
+    if layer == "rgb":  # not a grey layer: no scale
+        assert spec.getattribute("renderfarm:scale_max") is None
+        return
+    assert spec.getattribute("renderfarm:layer") == "spp"
+    assert spec.getattribute("renderfarm:scale_min") == "0"
+    assert float(spec.getattribute("renderfarm:scale_max")) == 8.0  # two batches of 4
