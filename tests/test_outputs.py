@@ -188,3 +188,22 @@ def test_settings_list_has_denoise_as_a_bool(client):
     )
     assert refused.status_code == 400
     assert refused.json()["field"] == "settings.denoise"
+
+
+def test_denoised_images_asked_at_once_are_written_in_turn(farm, jobs):
+    """Three denoised previews and an EXR at once: each is answered (one after the other, see
+    FarmService._denoise_turn), the previews the same bytes."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    noisy = jobs[0]
+
+    def fetch(fmt: str) -> bytes:
+        with Client(farm.url, timeout=120) as c:
+            return c.image(noisy["id"], fmt, layer="denoised" if fmt == "png" else "rgb")
+
+    with ThreadPoolExecutor(4) as pool:
+        answers = list(pool.map(fetch, ["png", "png", "exr", "png"]))
+    pngs = [answers[0], answers[1], answers[3]]
+    assert all(a[:8] == b"\x89PNG\r\n\x1a\n" for a in pngs)
+    assert pngs[0] == pngs[1] == pngs[2]
+    assert answers[2] == jobs[2].read_bytes()

@@ -304,9 +304,11 @@ def denoise_frame(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> 
 
     from .jobspec import DENOISE_SCRATCH_MB
 
-    # Non-finite values would spread through the network: an unsampled or broken pixel is
-    # black for the denoiser (the unbiased layers keep what they are).
-    color = np.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0)
+    # Non-finite values would spread through the network: a broken pixel is black for the
+    # denoiser (the unbiased layers keep what they are). A copy only when there is one.
+    if not np.isfinite(color).all():
+        color = np.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0)
+    color = np.ascontiguousarray(color, np.float32)
     output = np.empty_like(color)
     with _DENOISE_LOCK, pyoidn.Device() as device:
         device.commit()
@@ -330,7 +332,8 @@ def denoise_frame(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> 
 
 
 # One frame denoised at a time: OIDN uses every core already, and two at once would double
-# the memory the submission check allowed for.
+# the memory the submission check allowed for (the service also writes one such image at a
+# time).
 _DENOISE_LOCK = threading.Lock()
 
 

@@ -52,10 +52,11 @@ def job_memory_bytes(width: int, height: int, tile_size: int) -> int:
 
 
 # What denoising a frame takes (images.denoise_frame): float32 colour, albedo, normal and output
-# of the whole frame (48 bytes a pixel) and Open Image Denoise's own scratch memory, held under
-# DENOISE_SCRATCH_MB by its maxMemoryMB parameter (it then denoises in overlapping tiles). Peak
-# resident memory measured on 1024x1024 to 4096x4096 frames (see README "Outputs"): under
-# 60 bytes a pixel beside the scratch.
+# of the whole frame (48 bytes a pixel; 60 leaves room for a copy of non-finite colour and the
+# bands' temporaries) and Open Image Denoise's own scratch memory, held under
+# DENOISE_SCRATCH_MB by its maxMemoryMB parameter (beyond it, it denoises in overlapping
+# tiles). Peak resident memory over the loaded library, measured: 498 MB for 1024x1024 and
+# 612 MB for 2048x2048 (about 450 MB of scratch and the 48 bytes a pixel).
 DENOISE_BYTES_PER_PIXEL = 60
 DENOISE_SCRATCH_MB = 512
 

@@ -157,6 +157,9 @@ class FarmService:
             cache=cache,
         )
         self._stopping = threading.Event()  # images being written give up when set
+        # One image with a denoised layer at a time, from gathering its frame to its last row:
+        # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
+        self._denoise_turn = asyncio.Lock()
         self._checkpoint_rate = _Rate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
         self.names: dict[str, str] = {}  # job id -> name for live jobs
@@ -558,6 +561,7 @@ class FarmService:
         caller: Caller,
         max_size: int = 0,
         compression: str = "zip",
+        _denoise_turn_held: bool = False,
     ) -> BinaryIO:
         """The image written to a scratch file, returned open for reading (the file is
         already unlinked: closing it frees the space). Written one row of tiles at a time
@@ -588,6 +592,11 @@ class FarmService:
                 "layer",
                 f"job {job_id} was submitted without settings.denoise: it has no denoised layer",
             )
+        if settings.denoise and (fmt == "exr" or layer == "denoised") and not _denoise_turn_held:
+            async with self._denoise_turn:
+                return await self.image_file(
+                    job_id, fmt, layer, caller, max_size, compression, _denoise_turn_held=True
+                )
         # The EXR's DateTime: when the job finished (when it was submitted while it runs).
         stamp = (row.finished_at or row.created_at).timestamp()
         rects = tile_grid(settings.width, settings.height, settings.tile_size)
