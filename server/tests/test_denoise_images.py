@@ -188,3 +188,14 @@ def test_grey_png_records_its_scale(tmp_path, layer):
     assert spec.getattribute("renderfarm:layer") == "spp"
     assert spec.getattribute("renderfarm:scale_min") == "0"
     assert float(spec.getattribute("renderfarm:scale_max")) == 8.0  # two batches of 4
+
+
+def test_cli_denoise_flag_is_on_off_or_the_servers_default():
+    from renderfarm.cli import _job_settings, build_parser
+
+    parse = build_parser().parse_args
+    assert _job_settings(parse(["submit", "s.glb", "--denoise"])) == {"denoise": True}
+    assert _job_settings(parse(["submit", "s.glb", "--no-denoise"])) == {"denoise": False}
+    assert "denoise" not in _job_settings(parse(["render", "s.glb", "-o", "o.exr"]))
+    args = parse(["get", "abc", "-o", "out.exr", "--layer", "error"])
+    assert (args.output, args.layer) == ("out.exr", "error")

@@ -84,3 +84,21 @@ def test_a_job_without_denoise_offers_no_denoised_layer(page: Page, client):
     expect(page.get_by_role("radio", name="Image")).to_be_visible()
     expect(page.get_by_role("radio", name="Denoised")).to_have_count(0)
     expect(page.locator('[data-field="shortfall"]')).to_be_hidden()  # no target: no notice
+
+
+def test_denoise_is_a_checkbox_of_the_submit_form(page: Page, scene_glb):
+    page.goto("/#/submit")
+    box = page.locator("#setting-denoise")
+    expect(box).to_have_attribute("type", "checkbox")
+    expect(box).not_to_be_checked()
+    page.locator("#scene-file").set_input_files(str(scene_glb))
+    for name, value in {"width": 32, "height": 32, "tile_size": 16, "max_spp": 4}.items():
+        page.fill(f"#setting-{name}", str(value))
+    box.check()
+    is_submit = lambda r: r.url.endswith("/api/v1/jobs") and r.request.method == "POST"  # noqa: E731
+    with page.expect_response(is_submit) as posted:
+        page.click("button[type=submit]")
+    assert posted.value.status == 201
+    assert posted.value.json()["settings"]["denoise"] is True
+    page.wait_for_url(f"**/#/jobs/{posted.value.json()['id']}")
+    expect(page.get_by_role("radio", name="Denoised")).to_be_visible()
