@@ -97,6 +97,17 @@ def test_denoised_preview_over_rest_and_grpc(farm, jobs):
         assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
         got = stub.GetJob(jobs_pb2.GetJobRequest(job_id=noisy["id"]))
         assert got.job.settings.denoise is True
+        # Submitted through gRPC, the setting is kept (and refused past the memory limit).
+        small = jobs_pb2.RenderSettings(width=16, height=16, tile_size=16, max_spp=1, denoise=True)
+        made = stub.SubmitJob(
+            jobs_pb2.SubmitJobRequest(scene_sha256=noisy["scene_sha256"], settings=small)
+        )
+        assert made.job.settings.denoise is True
+        plain = jobs_pb2.RenderSettings(width=16, height=16, tile_size=16, max_spp=1)
+        made = stub.SubmitJob(
+            jobs_pb2.SubmitJobRequest(scene_sha256=noisy["scene_sha256"], settings=plain)
+        )
+        assert made.job.settings.denoise is False
 
 
 def test_exr_header_is_the_jobs_record(farm, jobs):

@@ -199,3 +199,32 @@ def test_cli_denoise_flag_is_on_off_or_the_servers_default():
     assert "denoise" not in _job_settings(parse(["render", "s.glb", "-o", "o.exr"]))
     args = parse(["get", "abc", "-o", "out.exr", "--layer", "error"])
     assert (args.output, args.layer) == ("out.exr", "error")
+
+
+def test_denoise_frame_of_spilled_tiles_is_that_of_tiles_in_ram(tmp_path):
+    """The frame gathered from tile views (as the server hands them over), some of them read
+    back from a spill file, is the one gathered from the accumulators in RAM."""
+    from renderfarm.images import TileView, arrays_needed
+    from renderfarm.spill import TileCache
+
+    tiles = accumulators()
+    names = arrays_needed("png", "denoised")
+
+    def gathered() -> DenoiseFrame:
+        frame = DenoiseFrame(W, H)
+        for band in bands(tiles):
+            views = [(r, a and TileView.of(r, a, names)) for r, a in band]
+            frame.add_band(band[0][0].height, [(r, v and v.accumulator()) for r, v in views])
+        return frame
+
+    in_ram = gathered()
+    color, albedo, normal = inputs(tiles)
+    assert np.allclose(in_ram.color, color) and np.allclose(in_ram.albedo, albedo)
+    assert np.allclose(in_ram.normal, normal)
+    cache = TileCache(tmp_path / "scratch", budget_bytes=1)
+    for _, acc in tiles:
+        cache.register("j", acc, TILE)
+    assert sum(not acc.resident for _, acc in tiles) >= len(tiles) - 1
+    spilled = gathered()
+    for part in ("color", "albedo", "normal"):
+        assert getattr(spilled, part).tobytes() == getattr(in_ram, part).tobytes(), part
