@@ -292,8 +292,11 @@ class DenoiseFrame:
         self.y += band_height
 
     def denoise(self) -> np.ndarray:
-        """The denoised RGB, float32 (height, width, 3). The inputs are freed."""
-        return denoise_frame(self.color, self.albedo, self.normal)
+        """The denoised RGB, float32 (height, width, 3). The frame lets go of its inputs: they
+        are freed once denoised."""
+        inputs = self.color, self.albedo, self.normal
+        self.color = self.albedo = self.normal = None
+        return denoise_frame(*inputs)
 
 
 def denoise_frame(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:

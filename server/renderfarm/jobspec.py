@@ -108,7 +108,7 @@ SETTINGS: tuple[Setting, ...] = (
         "denoise",
         bool,
         False,
-        "add a `denoised` layer (Intel Open Image Denoise) beside the unbiased image",
+        "add a denoised layer (Intel Open Image Denoise) beside the unbiased image",
     ),
 )
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
