@@ -123,6 +123,14 @@ def _add_job_settings(parser: argparse.ArgumentParser) -> None:
     """Every job setting as a flag named like the API field with dashes (--noise-threshold)."""
     group = parser.add_argument_group("job settings (server defaults when omitted)")
     for s in SETTINGS:
+        if s.kind is bool:  # --denoise / --no-denoise
+            group.add_argument(
+                "--" + s.name.replace("_", "-"),
+                action=argparse.BooleanOptionalAction,
+                default=None,
+                help=f"{s.help} (default {'on' if s.default else 'off'})",
+            )
+            continue
         group.add_argument(
             "--" + s.name.replace("_", "-"),
             type=s.kind,
@@ -371,8 +379,79 @@ def cmd_ls(args: argparse.Namespace) -> int:
     return 0
 
 
+# The EXR channels of each layer (images.py), for `get -o out.exr --layer NAME`.
+EXR_LAYER_CHANNELS = {
+    "rgb": ("R", "G", "B"),
+    "variance": ("variance.Y",),
+    "spp": ("spp",),
+    "error": ("error",),
+    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+    "normal": ("normal.X", "normal.Y", "normal.Z"),
+    "denoised": ("denoised.R", "denoised.G", "denoised.B"),
+}
+
+
+def _image_format(output: str) -> str:
+    fmt = Path(output).suffix.lower().lstrip(".")
+    if fmt not in ("exr", "png"):
+        raise CliError(
+            f"-o {output}: the format comes from the extension, .exr or .png", EXIT_USAGE
+        )
+    return fmt
+
+
+def _save_image(client, job_id: str, output: str, layer: str | None) -> None:
+    """The job's image into `output`: a PNG of one layer (rgb by default), the whole EXR, or
+    an EXR of one layer's channels (taken from the whole EXR, header attributes kept)."""
+    fmt = _image_format(output)
+    if layer is not None and layer not in EXR_LAYER_CHANNELS:
+        raise CliError(
+            f"--layer {layer}: unknown layer; one of {', '.join(EXR_LAYER_CHANNELS)}", EXIT_USAGE
+        )
+    out = Path(output)
+    if not out.parent.is_dir():
+        raise CliError(f"-o {output}: no such directory {out.parent}", EXIT_USAGE)
+    if fmt == "png" or layer is None:
+        partial = out.with_name(f".{out.name}.part")
+        try:
+            client.save_image(job_id, partial, fmt, layer or "rgb")
+            partial.replace(out)  # a failed download leaves no half file under the name
+        finally:
+            partial.unlink(missing_ok=True)
+        return
+    import tempfile
+
+    import OpenImageIO as oiio
+
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=".renderfarm-") as scratch:
+        whole = Path(scratch) / "whole.exr"
+        client.save_image(job_id, whole, "exr")
+        source = oiio.ImageBuf(str(whole))
+        wanted = EXR_LAYER_CHANNELS[layer]
+        present = source.spec().channelnames
+        if not all(c in present for c in wanted):
+            raise CliError(
+                f"job {job_id} has no {layer} layer"
+                + (" (it was submitted without --denoise)" if layer == "denoised" else "")
+            )
+        part = oiio.ImageBufAlgo.channels(source, tuple(wanted))
+        target = Path(scratch) / "layer.exr"
+        if part.has_error or not part.write(str(target)):
+            raise CliError(f"cannot write {output}: {part.geterror() or oiio.geterror()}")
+        target.replace(out)
+
+
 def cmd_get(args: argparse.Namespace) -> int:
     with _client(args) as client:
+        if args.output is not None:
+            _save_image(client, args.job_id, args.output, args.layer)
+            if not args.json:
+                print(Path(args.output).resolve())
+            else:
+                _print_json({"id": args.job_id, "output": str(Path(args.output).resolve())})
+            return 0
+        if args.layer is not None:
+            raise CliError("--layer needs -o FILE (the image to write)", EXIT_USAGE)
         job = client.get(args.job_id)
         if args.json:
             _print_json(job)
@@ -528,6 +607,15 @@ def build_parser() -> argparse.ArgumentParser:
         q = sub.add_parser(name, help=help_text)
         if name in ("get", "cancel", "watch"):
             q.add_argument("job_id")
+        if name == "get":
+            q.add_argument(
+                "-o", "--output", default=None,
+                help="download the job's image into this .exr (every layer) or .png file",
+            )  # fmt: skip
+            q.add_argument(
+                "--layer", default=None,
+                help="with -o: only this layer (" + ", ".join(EXR_LAYER_CHANNELS) + ")",
+            )  # fmt: skip
         if name == "rm":
             q.add_argument("job_ids", nargs="+", metavar="job_id")
         if name == "ls":

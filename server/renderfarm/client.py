@@ -203,6 +203,19 @@ class Client:
         response = self.http.get(f"/api/v1/jobs/{job_id}/image.{fmt}", params=params)
         return self._check(response).content
 
+    def save_image(
+        self, job_id: str, path: str | os.PathLike, fmt: str = "png", layer: str = "rgb"
+    ) -> None:
+        """An image of the job (as image()) streamed into a file, never whole in memory."""
+        params = {"layer": layer} if fmt == "png" else {}
+        with self.http.stream("GET", f"/api/v1/jobs/{job_id}/image.{fmt}", params=params) as r:
+            if r.status_code >= 400:
+                r.read()
+                self._check(r)
+            with open(path, "wb") as f:
+                for chunk in r.iter_bytes(1 << 20):
+                    f.write(chunk)
+
     def ready(self) -> bool:
         try:
             return self.http.get("/readyz", timeout=2).status_code == 200

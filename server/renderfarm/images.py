@@ -7,8 +7,11 @@ EXR channels (32-bit float):
   error                   relative error: sqrt(variance.Y) / max(Y, DARK_FLOOR)
   albedo.R/G/B            mean first-hit albedo
   normal.X/Y/Z            mean first-hit shading normal (world space)
-PNG: one layer, clamped to [0, 1], 8 bits; rgb, albedo and normal sRGB-encoded, the variance
-(as a standard error), spp and error layers grey, normalised to their maximum. A PNG may be
+  denoised.R/G/B          with settings.denoise only: Open Image Denoise of R, G, B with the
+                          albedo and normal as guides (denoise_frame)
+PNG: one layer, clamped to [0, 1], 8 bits; rgb, albedo, normal and denoised sRGB-encoded, the
+variance (as a standard error), spp and error layers grey, normalised to their maximum (recorded in
+the PNG's tEXt chunk renderfarm:scale_max, beside renderfarm:scale_min 0). A PNG may be
 downscaled (max_size): each output pixel is the mean of a square of f x f pixels (f the smallest
 integer that brings both sides within max_size) in linear values, encoded after.
 
@@ -17,6 +20,11 @@ scanlines, or fewer at the bottom), computes its channels and hands them to Open
 scanline writer, which compresses and writes them to the file as they come. An 8192x8192 EXR
 thus needs about 40 MB beside the tiles instead of several GB. The values are the ones a full
 frame would have (the same float64 arithmetic per pixel, rounded once).
+
+The denoised layer is the exception: Open Image Denoise needs its inputs for the whole frame,
+so a DenoiseFrame gathers the colour, albedo and normal (float32) band by band and denoises them
+at once, and the writer then takes its rows from that frame. What it costs
+(jobspec.denoise_memory_bytes) is checked against the job memory limit at submission.
 """
 
 from __future__ import annotations
@@ -36,7 +44,9 @@ EXR_CHANNELS = (
     "R", "G", "B", "variance.Y", "spp", "error",
     "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z",
 )  # fmt: skip
-LAYERS = ("rgb", "variance", "spp", "error", "albedo", "normal")
+LAYERS = ("rgb", "variance", "spp", "error", "albedo", "normal", "denoised")
+# The EXR of a job with settings.denoise: its channels, then the denoised RGB.
+DENOISED_CHANNELS = ("denoised.R", "denoised.G", "denoised.B")
 # zip: what every EXR reader reads; none: 4 to 5 times faster to write, 2.5 times larger.
 EXR_COMPRESSIONS = ("zip", "none")
 GREY_LAYERS = ("variance", "spp", "error")  # normalised to the image's maximum
@@ -58,6 +68,7 @@ def arrays_needed(fmt: str, layer: str) -> tuple[str, ...]:
         "albedo": ("albedo_sum",),
         "normal": ("normal_sum",),
         "spp": (),
+        "denoised": ("rgb_sum", "albedo_sum", "normal_sum"),
     }.get(layer, ("lum_mean", "m2_within", "m2_between"))
 
 
@@ -257,6 +268,78 @@ class _Downscaler:
         return np.concatenate(out) if len(out) > 1 else out[0]
 
 
+class DenoiseFrame:
+    """The colour, albedo and normal of a whole frame (float32 (height, width, 3) each),
+    filled band by band (add_band), then denoised (denoise)."""
+
+    def __init__(self, width: int, height: int):
+        self.width, self.height = width, height
+        self.color = np.zeros((height, width, 3), np.float32)
+        self.albedo = np.zeros((height, width, 3), np.float32)
+        self.normal = np.zeros((height, width, 3), np.float32)
+        self.y = 0
+
+    def add_band(self, band_height: int, tiles: Band) -> None:
+        ys = slice(self.y, self.y + band_height)
+        for rect, acc in tiles:  # an unsampled tile stays zero (black, no guides)
+            if acc is None:
+                continue
+            xs = slice(rect.x0, rect.x0 + rect.width)
+            self.color[ys, xs] = acc.rgb_sum / acc.samples
+            if acc.albedo_sum is not None:
+                self.albedo[ys, xs] = acc.mean_albedo()
+                self.normal[ys, xs] = acc.mean_normal()
+        self.y += band_height
+
+    def denoise(self) -> np.ndarray:
+        """The denoised RGB, float32 (height, width, 3). The frame lets go of its inputs: they
+        are freed once denoised."""
+        inputs = self.color, self.albedo, self.normal
+        self.color = self.albedo = self.normal = None
+        return denoise_frame(*inputs)
+
+
+def denoise_frame(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Open Image Denoise's "RT" filter (HDR colour, albedo and normal guides, high quality)
+    on whole float32 (h, w, 3) frames. Its scratch memory is held under
+    jobspec.DENOISE_SCRATCH_MB (maxMemoryMB: beyond it, OIDN denoises in overlapping tiles)."""
+    import pyoidn  # heavy import (loads the OIDN library), only where a frame is denoised
+
+    from .jobspec import DENOISE_SCRATCH_MB
+
+    # Non-finite values would spread through the network: a broken pixel is black for the
+    # denoiser (the unbiased layers keep what they are). A copy only when there is one.
+    if not np.isfinite(color).all():
+        color = np.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0)
+    color = np.ascontiguousarray(color, np.float32)
+    output = np.empty_like(color)
+    with _DENOISE_LOCK, pyoidn.Device() as device:
+        device.commit()
+        with pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT) as flt:
+            for name, image in (
+                (pyoidn.OIDN_IMAGE_COLOR, color),
+                (pyoidn.OIDN_IMAGE_ALBEDO, np.ascontiguousarray(albedo, np.float32)),
+                (pyoidn.OIDN_IMAGE_NORMAL, np.ascontiguousarray(normal, np.float32)),
+                (pyoidn.OIDN_IMAGE_OUTPUT, output),
+            ):
+                flt.set_image(name, image, pyoidn.OIDN_FORMAT_FLOAT3)
+            flt.set_bool("hdr", True)
+            flt.set_int("maxMemoryMB", DENOISE_SCRATCH_MB)
+            flt.set_quality(pyoidn.OIDN_QUALITY_HIGH)
+            flt.commit()
+            flt.execute()
+        error = device.get_error()
+    if error is not None:
+        raise RuntimeError(f"Open Image Denoise failed: {error}")
+    return output
+
+
+# One frame denoised at a time: OIDN uses every core already, and two at once would double
+# the memory the submission check allowed for (the service also writes one such image at a
+# time).
+_DENOISE_LOCK = threading.Lock()
+
+
 SLICE_ROWS = 64  # rows an ImageWriter computes and hands to OpenImageIO at a time
 
 
@@ -295,6 +378,8 @@ class ImageWriter:
         cancelled: threading.Event | None = None,
         compression: str = "zip",
         date_time: float | None = None,
+        denoised: np.ndarray | None = None,
+        attributes: dict[str, str | int | float] | None = None,
     ):
         import OpenImageIO as oiio  # heavy import, only where images are written
 
@@ -302,8 +387,12 @@ class ImageWriter:
         self.top = top if math.isfinite(top) and top > 0 else 1.0
         self.cancelled = cancelled
         if fmt == "exr":
-            spec = oiio.ImageSpec(width, height, len(EXR_CHANNELS), oiio.FLOAT)
-            spec.channelnames = EXR_CHANNELS
+            channels = EXR_CHANNELS + (DENOISED_CHANNELS if denoised is not None else ())
+            spec = oiio.ImageSpec(width, height, len(channels), oiio.FLOAT)
+            spec.channelnames = channels
+            # The job's record (renderfarm:settings, ...): string, int or float attributes.
+            for name, value in (attributes or {}).items():
+                spec.attribute(name, value)
             spec.attribute("compression", compression)
             # OpenImageIO stamps an EXR with the time of writing unless told a time: the
             # caller's (the job's) keeps an image's bytes a function of the job alone.
@@ -318,8 +407,20 @@ class ImageWriter:
             # defaults (level 6, adaptive filters) for a file 5-20% larger.
             spec.attribute("png:compressionLevel", 1)
             spec.attribute("png:filter", 32)
+            if layer in GREY_LAYERS:
+                # The scale of the grey (tEXt chunks): black is 0 and white self.top, so a
+                # viewer can label its colour bar with values (the dashboard does).
+                spec.attribute("renderfarm:layer", layer)
+                spec.attribute("renderfarm:scale_min", "0")
+                spec.attribute("renderfarm:scale_max", repr(self.top))
         self.spec = spec
         self.rows_written = 0  # output scanlines so far
+        # The whole denoised frame (DenoiseFrame.denoise): the EXR's denoised.R/G/B, or the
+        # PNG's denoised layer; its rows are taken as the bands' rows come.
+        self.denoised = denoised
+        if layer == "denoised" and fmt == "png" and denoised is None:
+            raise ValueError("the denoised layer needs the denoised frame")
+        self.rows_in = 0  # input scanlines so far
         # One thread at a time: abandon() may come from another thread while a band is
         # being written (the request was cancelled), and waits for it.
         self._lock = threading.Lock()
@@ -340,8 +441,16 @@ class ImageWriter:
                 self._write_rows(y1 - y0, part, final and y1 == band_height)
 
     def _write_rows(self, band_height: int, tiles: Band, final: bool) -> None:
+        y_in = self.rows_in
+        self.rows_in += band_height
         if self.fmt == "exr":
             pixels = _exr_band(self.width, band_height, tiles)
+            if self.denoised is not None:
+                pixels = np.concatenate([pixels, self.denoised[y_in : y_in + band_height]], 2)
+        elif self.layer == "denoised":
+            linear = self.denoised[y_in : y_in + band_height].astype(np.float64)
+            if self.scale is not None:
+                linear = self.scale.add(linear, final)
         elif self.scale is not None and self.scale.aligned(band_height, tiles, final):
             linear = _display_blocks(
                 self.layer, self.width, band_height, tiles, self.top, self.scale.factor

@@ -146,8 +146,8 @@ class SceneInfo(BaseModel):
 
 class SettingDoc(BaseModel):
     name: str
-    type: Literal["int", "float", "str"]
-    default: int | float | str
+    type: Literal["int", "float", "str", "bool"]
+    default: bool | int | float | str  # bool first: false stays false, not 0
     help: str
 
 

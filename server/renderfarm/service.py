@@ -18,6 +18,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import importlib.metadata
+import json
 import logging
 import math
 import os
@@ -155,6 +157,9 @@ class FarmService:
             cache=cache,
         )
         self._stopping = threading.Event()  # images being written give up when set
+        # One image with a denoised layer at a time, from gathering its frame to its last row:
+        # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
+        self._denoise_turn = asyncio.Lock()
         self._checkpoint_rate = _Rate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
         self.names: dict[str, str] = {}  # job id -> name for live jobs
@@ -556,6 +561,7 @@ class FarmService:
         caller: Caller,
         max_size: int = 0,
         compression: str = "zip",
+        _denoise_turn_held: bool = False,
     ) -> BinaryIO:
         """The image written to a scratch file, returned open for reading (the file is
         already unlinked: closing it frees the space). Written one row of tiles at a time
@@ -575,12 +581,22 @@ class FarmService:
                 f"unknown compression {compression[:40]!r}; one of "
                 f"{', '.join(images.EXR_COMPRESSIONS)}",
             )
-        await self.get(job_id, caller)  # raises NotFound / Forbidden
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
         row = await self.store.get_job(job_id)
         if row is None:
             raise NotFound(f"no job with id {job_id!r}")
         settings = job.settings if job is not None else JobSettings(**row.settings)
+        if layer == "denoised" and fmt == "png" and not settings.denoise:
+            raise SettingsError(
+                "layer",
+                f"job {job_id} was submitted without settings.denoise: it has no denoised layer",
+            )
+        if settings.denoise and (fmt == "exr" or layer == "denoised") and not _denoise_turn_held:
+            async with self._denoise_turn:
+                return await self.image_file(
+                    job_id, fmt, layer, caller, max_size, compression, _denoise_turn_held=True
+                )
         # The EXR's DateTime: when the job finished (when it was submitted while it runs).
         stamp = (row.finished_at or row.created_at).timestamp()
         rects = tile_grid(settings.width, settings.height, settings.tile_size)
@@ -608,6 +624,15 @@ class FarmService:
             top = -math.inf
             for r in range(rows):
                 top = max(top, await asyncio.to_thread(images.layer_maximum, layer, await band(r)))
+        denoised = None
+        if settings.denoise and (fmt == "exr" or layer == "denoised"):
+            # A first pass gathers the frame Open Image Denoise needs whole (images.py).
+            frame = images.DenoiseFrame(settings.width, settings.height)
+            for r in range(rows):
+                await asyncio.to_thread(frame.add_band, rects[r * cols].height, await band(r))
+            denoised = await asyncio.to_thread(frame.denoise)
+            del frame
+        attributes = exr_attributes(view) if fmt == "exr" else None
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
@@ -616,7 +641,7 @@ class FarmService:
         try:
             writer = await asyncio.to_thread(
                 images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
-                top, self._stopping, compression, stamp,
+                top, self._stopping, compression, stamp, denoised, attributes,
             )  # fmt: skip
             for r in range(rows):
                 tiles = await band(r)
@@ -1059,6 +1084,30 @@ class _Rate:
     def add(self, nbytes: int, seconds: float) -> None:
         if nbytes > 1 << 20 and seconds > 0:  # small writes measure latency, not throughput
             self.value = 0.7 * self.value + 0.3 * nbytes / seconds
+
+
+def renderer_version() -> str:
+    """The renderfarm release that rendered a job (the server's package; workers are built
+    from the same release and report it in their hello)."""
+    try:
+        return importlib.metadata.version("renderfarm")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def exr_attributes(view: JobView) -> dict[str, str | float]:
+    """The job's record in its EXR header (README "Outputs"): its settings as JSON, scene,
+    renderer version, mean spp and estimated error (absent while unknown). No wall-clock
+    time: the EXR stays a function of the job."""
+    attributes: dict[str, str | float] = {
+        "renderfarm:settings": json.dumps(view.settings.to_dict(), sort_keys=True),
+        "renderfarm:scene_sha256": view.scene_sha256,
+        "renderfarm:version": renderer_version(),
+        "renderfarm:mean_spp": float(view.progress.mean_spp),
+    }
+    if view.progress.error is not None:
+        attributes["renderfarm:error"] = float(view.progress.error)
+    return attributes
 
 
 def _band_from_rows(

@@ -15,6 +15,7 @@ def test_every_job_setting_is_documented_with_its_default():
         assert row, f"job setting {s.name} missing from the README"
         default = "0" if s.default == 0.0 and s.kind is float else str(s.default)
         default = '""' if s.default == "" else default
+        default = str(s.default).lower() if s.kind is bool else default
         assert f"`{default}`" in row, f"README default of {s.name} is not {default}"
 
 

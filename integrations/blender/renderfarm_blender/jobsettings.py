@@ -11,7 +11,7 @@ import re
 import struct
 from typing import Any
 
-KINDS = ("int", "float", "str")
+KINDS = ("int", "float", "str", "bool")
 # A string setting whose help ends in "a, b, c" offers those choices (the dashboard reads the
 # help the same way: "sample generator: sobol, halton, stratified, independent").
 _CHOICES = re.compile(r":\s*([a-z0-9_]+(?:,\s*[a-z0-9_]+)+)\s*$", re.IGNORECASE)
@@ -40,6 +40,8 @@ def check_docs(docs: Any) -> list[dict[str, Any]]:
         default = d.get("default")
         if d["type"] == "str" and not isinstance(default, str):
             raise ValueError(f"setting {d['name']}: default {default!r} is not text")
+        if d["type"] == "bool" and not isinstance(default, bool):
+            raise ValueError(f"setting {d['name']}: default {default!r} is not true or false")
         if d["type"] in ("int", "float") and (
             isinstance(default, bool) or not isinstance(default, (int, float))
         ):

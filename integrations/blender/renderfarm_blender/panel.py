@@ -25,6 +25,8 @@ def _draw_setting(layout, item, enabled: bool) -> None:
         row.prop(item, "int_value", text=label)
     elif item.kind == "float":
         row.prop(item, "float_value", text=label)
+    elif item.kind == "bool":
+        row.prop(item, "bool_value", text=label)
     elif item.choices_json not in ("", "[]"):
         row.prop(item, "choice", text=label)
     else:

@@ -110,13 +110,14 @@ class RenderfarmSetting(bpy.types.PropertyGroup):
     """One job setting, as the farm described it; its value in the field of its type."""
 
     # `name` (the setting's name) comes from PropertyGroup.
-    kind: StringProperty(description="int, float or str, as the farm says")
+    kind: StringProperty(description="int, float, str or bool, as the farm says")
     help: StringProperty()
     default_json: StringProperty(description="the farm's default, as JSON")
     choices_json: StringProperty(description="the choices of a str setting, as JSON; [] for text")
     int_value: IntProperty(name="Value")
     float_value: FloatProperty(name="Value", precision=4, step=1)
     str_value: StringProperty(name="Value")
+    bool_value: BoolProperty(name="Value")
     choice: EnumProperty(name="Value", items=_choice_items, get=_get_choice, set=_set_choice)
 
     def value(self):
@@ -124,6 +125,8 @@ class RenderfarmSetting(bpy.types.PropertyGroup):
             return self.int_value
         if self.kind == "float":
             return self.float_value
+        if self.kind == "bool":
+            return self.bool_value
         return self.str_value
 
     def set_value(self, value) -> None:
@@ -131,6 +134,8 @@ class RenderfarmSetting(bpy.types.PropertyGroup):
             self.int_value = int(value)
         elif self.kind == "float":
             self.float_value = float(value)
+        elif self.kind == "bool":
+            self.bool_value = bool(value)
         else:
             self.str_value = str(value)
 

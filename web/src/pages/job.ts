@@ -18,6 +18,7 @@ import {
 import { type ErrorPoint, convergencePlot } from "../chart";
 import { h, replace, setText } from "../dom";
 import { dateTime, duration, label, percent, si, spp } from "../format";
+import { noiseTargetShortfall } from "../outputs";
 import { Throttled } from "../throttle";
 import { TileProgress, card, errorVsTarget, setConnection, stat, stateBadge, updateBadge } from "../ui";
 import { Viewer } from "./viewer";
@@ -80,10 +81,15 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       { class: "actions" },
       h("a", { class: "button secondary", href: imageUrl(jobId, "png"), download: `${safeName}.png` }, "Download PNG"),
       h("a", { class: "button secondary", href: imageUrl(jobId, "exr"), download: `${safeName}.exr` }, "Download EXR"),
+      st.denoise === true
+        ? h("a", { class: "button secondary", href: imageUrl(jobId, "png", "denoised"), download: `${safeName}-denoised.png` }, "Download denoised PNG")
+        : null,
       cancelButton,
       confirmBox,
     );
     const failure = h("div", { class: "alert", role: "alert", hidden: true });
+    // A completed job whose tiles stopped at max_spp or the time limit, not on noise.
+    const shortfall = h("div", { class: "alert warn", role: "status", hidden: true, "data-field": "shortfall" });
 
     // Live figures.
     const bar = new TileProgress("Tiles converged");
@@ -103,7 +109,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       stat("Samples merged", merged, "samples"),
     );
 
-    const viewer = new Viewer(jobId, st.width, st.height, st.tile_size);
+    const viewer = new Viewer(jobId, st.width, st.height, st.tile_size, st.denoise === true);
     cleanups.push(() => viewer.stop());
 
     // Convergence plot: from the server's history when it has the endpoint, else from the stream.
@@ -191,6 +197,9 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
         ),
       );
       viewer.setConverged(stops.map((r) => r.tile));
+      const short = noiseTargetShortfall(d, d.stops);
+      shortfall.hidden = short === null;
+      setText(shortfall, short ?? "");
     };
     let finishLogged = false;
     const renderEvents = (events: JobEvent[]) => {
@@ -295,6 +304,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
         actions,
       ),
       failure,
+      shortfall,
       stats,
       h(
         "div",

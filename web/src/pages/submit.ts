@@ -145,7 +145,10 @@ export function mountSubmit(root: HTMLElement): () => void {
           const options = choices(doc);
           let input: HTMLInputElement | HTMLSelectElement;
           const describedBy = `${id}-help ${id}-error`;
-          if (options) {
+          if (doc.type === "bool") {
+            // A true/false setting (denoise): a checkbox, sent only when changed.
+            input = h("input", { id, name: doc.name, type: "checkbox", checked: doc.default === true, "aria-describedby": describedBy });
+          } else if (options) {
             input = h("select", { id, name: doc.name, "aria-describedby": describedBy }, options.map((o) => h("option", { value: o }, o)));
             input.value = String(doc.default);
           } else {
@@ -180,6 +183,11 @@ export function mountSubmit(root: HTMLElement): () => void {
   const values = (): Record<string, unknown> => {
     const out: Record<string, unknown> = {};
     for (const [name, f] of fields) {
+      if (f.doc.type === "bool") {
+        const checked = (f.input as HTMLInputElement).checked;
+        if (checked !== (f.doc.default === true)) out[name] = checked;
+        continue;
+      }
       const text = f.input.value.trim();
       if (text === String(f.doc.default ?? "")) continue; // unchanged: the server's default applies
       if (f.doc.type === "int" && /^[-+]?\d+$/.test(text)) out[name] = parseInt(text, 10);
@@ -206,7 +214,10 @@ export function mountSubmit(root: HTMLElement): () => void {
   );
 
   resetButton.addEventListener("click", () => {
-    for (const f of fields.values()) f.input.value = String(f.doc.default ?? "");
+    for (const f of fields.values()) {
+      if (f.doc.type === "bool") (f.input as HTMLInputElement).checked = f.doc.default === true;
+      else f.input.value = String(f.doc.default ?? "");
+    }
     clearAll();
   });
 

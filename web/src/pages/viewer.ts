@@ -5,6 +5,7 @@
 import { imageUrl } from "../api";
 import { applyColourMap, applyExposure, type ColourMap, cssGradient } from "../colormap";
 import { h, s, setText } from "../dom";
+import { layerScale, pngText, type Scale, scaleValue } from "../outputs";
 import { Throttled } from "../throttle";
 
 interface Layer {
@@ -24,7 +25,12 @@ export const LAYERS: Layer[] = [
   { id: "variance", label: "Std. error", colourMap: "inferno", legend: "standard error of the mean" },
   { id: "albedo", label: "Albedo" },
   { id: "normal", label: "Normal" },
+  // Jobs with settings.denoise only (the server refuses the layer of the others).
+  { id: "denoised", label: "Denoised" },
 ];
+
+/** Layers shown with exposure: the radiance ones. */
+const RADIANCE = new Set(["rgb", "denoised"]);
 
 export class Viewer {
   readonly el: HTMLElement;
@@ -51,6 +57,7 @@ export class Viewer {
     width: number,
     height: number,
     tileSize: number,
+    denoise = false,
   ) {
     this.tiles = { width, height, size: tileSize };
     this.canvas = h("canvas", { width, height, class: "preview", "aria-label": "Preview of the render", role: "img" });
@@ -64,7 +71,7 @@ export class Viewer {
     this.stage.style.aspectRatio = `${width} / ${height}`;
     this.stage.style.maxWidth = `calc(68vh * ${width / height})`;
 
-    const radios = LAYERS.map((l) =>
+    const radios = LAYERS.filter((l) => l.id !== "denoised" || denoise).map((l) =>
       h(
         "label",
         { class: "seg-option" },
@@ -155,16 +162,30 @@ export class Viewer {
     this.layer = id;
     this.el.dataset.layer = id;
     const layer = LAYERS.find((l) => l.id === id)!;
-    this.exposureBox.hidden = id !== "rgb";
+    this.exposureBox.hidden = !RADIANCE.has(id);
     this.legend.hidden = !layer.colourMap;
-    if (layer.colourMap) {
-      this.legend.replaceChildren(
-        h("span", {}, "0"),
-        h("span", { class: "legend-gradient", style: `background: ${cssGradient(layer.colourMap)}` }),
-        h("span", {}, `max · ${layer.legend}`),
-      );
-    }
+    this.drawLegend(null);
     void this.loader.flush();
+  }
+
+  /** The colour bar of a heat map with the values of its ends: the scale the server recorded
+   *  in the PNG (black 0, white the layer's maximum), "max" until one is loaded. */
+  private drawLegend(scale: Scale | null): void {
+    const layer = LAYERS.find((l) => l.id === this.layer)!;
+    if (!layer.colourMap) return;
+    const low = scale ? scaleValue(layer.id, scale.min) : "0";
+    const high = scale ? scaleValue(layer.id, scale.max) : "max";
+    this.legend.dataset.max = scale ? String(scale.max) : "";
+    this.legend.replaceChildren(
+      h("span", { class: "legend-min mono" }, low),
+      h("span", {
+        class: "legend-gradient",
+        style: `background: ${cssGradient(layer.colourMap)}`,
+        title: "unknown values (no samples yet) show as the top of the scale",
+      }),
+      h("span", { class: "legend-max mono" }, high),
+      h("span", {}, `· ${layer.legend}`),
+    );
   }
 
   private exposureChanged(): void {
@@ -182,7 +203,10 @@ export class Viewer {
     // the server seconds to encode (the Download buttons still fetch it).
     const response = await fetch(`${imageUrl(this.jobId, "png", layer)}&max_size=${PREVIEW_MAX_SIZE}&v=${version}`);
     if (!response.ok) return; // e.g. no samples merged yet; the next update tries again
-    const bitmap = await createImageBitmap(await response.blob());
+    const blob = await response.blob();
+    // The scale is in the PNG's tEXt chunks, ahead of the image data.
+    const scale = layerScale(pngText(new Uint8Array(await blob.slice(0, 1 << 16).arrayBuffer())));
+    const bitmap = await createImageBitmap(blob);
     const work = document.createElement("canvas");
     work.width = bitmap.width;
     work.height = bitmap.height;
@@ -192,6 +216,7 @@ export class Viewer {
     this.raw = ctx.getImageData(0, 0, work.width, work.height);
     this.rawLayer = layer;
     this.loadedKey = key;
+    if (layer === this.layer) this.drawLegend(scale);
     this.paint();
     this.el.dataset.loaded = key; // lets tests wait for a given layer and version
     setText(this.caption, `${work.width}×${work.height} · ${LAYERS.find((l) => l.id === layer)!.label.toLowerCase()} at ${version.toLocaleString("en")} samples merged`);
@@ -202,7 +227,7 @@ export class Viewer {
     const layer = LAYERS.find((l) => l.id === this.rawLayer)!;
     let img = this.raw;
     if (layer.colourMap) img = applyColourMap(img, layer.colourMap);
-    else if (layer.id === "rgb" && Number(this.exposure.value) !== 0) img = applyExposure(img, Number(this.exposure.value));
+    else if (RADIANCE.has(layer.id) && Number(this.exposure.value) !== 0) img = applyExposure(img, Number(this.exposure.value));
     if (this.canvas.width !== img.width || this.canvas.height !== img.height) {
       this.canvas.width = img.width;
       this.canvas.height = img.height;
