@@ -860,8 +860,8 @@ TEST(AlphaMode, GrayAndAlphaImagesGiveTheirSecondChannelAsAlpha) {
   // sRGB 188 is linear ((188 / 255 + 0.055) / 1.055)^2.4 in every channel.
   const double gray = std::pow((188.0 / 255.0 + 0.055) / 1.055, 2.4);
   float c[4];
-  ASSERT_TRUE(scene.textures().lookup(0, {0.5f, 0.5f}, 4, c));
-  for (int k = 0; k < 3; ++k) EXPECT_NEAR(srgb_to_linear(c[k]), gray, 1e-6) << k;
+  ASSERT_TRUE(scene.textures().lookup(0, {0.5f, 0.5f}, 4, c));  // the base colour: linear
+  for (int k = 0; k < 3; ++k) EXPECT_NEAR(c[k], gray, 1e-6) << k;
   EXPECT_NEAR(c[3], 102.0 / 255.0, 1e-6);
 }
 
@@ -975,6 +975,61 @@ TEST(MaterialsVolume, InvalidParametersAreRefusedNamingTheField) {
             at + ".attenuationColor");
   EXPECT_EQ(refusal(slab_scene(R"({"thicknessFactor": 1, "attenuationColor": [0.5]})")),
             at + ".attenuationColor");
+}
+
+// ---- Textures: a pixel converges to the integral of the (linear) texture over it.
+
+// The first-hit albedo of an 8 x 8 image of the unit quad seen through an orthographic camera
+// that frames it exactly, its base colour a 16 x 16 grey texture (sRGB-encoded bytes, as glTF
+// base colour textures are): every pixel covers 2 x 2 texels.
+std::vector<double> albedo_image(const std::vector<unsigned char>& texels, uint32_t spp) {
+  const std::string json = R"({"asset": {"version": "2.0"}, "scene": 0,
+  "scenes": [{"nodes": [0, 1]}],
+  "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 0, 2]}],
+  "cameras": [{"type": "orthographic",
+               "orthographic": {"xmag": 1, "ymag": 1, "znear": 0.1, "zfar": 10}}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+                              "indices": 3, "material": 0}]}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
+                 "metallicFactor": 0}}],
+  "textures": [{"source": 0}],
+  "images": [{"uri": ")" + testing::png_data_uri(16, 16, 1, texels) + R"("}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  const Scene scene(load_gltf_from_string(json, "", "texels.gltf", nullptr));
+  RenderSettings settings;
+  settings.width = settings.height = 8;
+  settings.integrator = IntegratorType::AmbientOcclusion;
+  TileBuffer tile;
+  EXPECT_TRUE(render_rect(scene, settings, {0, 0, 8, 8}, 0, spp, &tile));
+  std::vector<double> out(64);
+  for (size_t i = 0; i < 64; ++i) out[i] = double(tile.albedo_sum[3 * i]) / spp;
+  return out;
+}
+
+// A black and white checker of single texels: each pixel holds two of each, so it converges
+// to their mean in linear light, 0.5 (bilinear filtering moves 1/8 of a texel's weight across
+// each pixel edge, in both directions alike). Decoding sRGB after filtering would give the
+// decoded mean of the encoded values, srgb_to_linear(0.5) = 0.21.
+TEST(Textures, ACheckerOfTexelsConvergesToItsLinearMean) {
+  std::vector<unsigned char> checker(256);
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 16; ++x) checker[size_t(y * 16 + x)] = (x + y) % 2 ? 255 : 0;
+  for (double v : albedo_image(checker, 256)) EXPECT_NEAR(v, 0.5, 0.01);
+}
+
+// A white line one texel wide (column 5) on black: pixel column 2 covers texel columns 4 and
+// 5. Bilinear reconstruction (the texture function the glTF LINEAR filter defines) spreads
+// the texel as a tent of two texels; 7/8 of it lies in pixel column 2 and 1/8 in column 3, so
+// the pixels converge to 7/16 and 1/16 (and 0 elsewhere): no wider blur than that.
+TEST(Textures, AOneTexelLineConvergesToItsReconstructionsIntegral) {
+  std::vector<unsigned char> line(256, 0);
+  for (int y = 0; y < 16; ++y) line[size_t(y * 16 + 5)] = 255;
+  const std::vector<double> image = albedo_image(line, 256);
+  for (int y = 0; y < 8; ++y)
+    for (int x = 0; x < 8; ++x) {
+      const double expected = x == 2 ? 7.0 / 16.0 : x == 3 ? 1.0 / 16.0 : 0.0;
+      EXPECT_NEAR(image[size_t(y * 8 + x)], expected, 0.01) << x << "," << y;
+    }
 }
 
 }  // namespace

@@ -103,7 +103,7 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   float c[4];
   if (mat.base_color_tex.valid() &&
       tex.lookup(mat.base_color_tex.texture, texcoord(scene, hit, mat.base_color_tex), 3, c))
-    bp.base = bp.base * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
+    bp.base = bp.base * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
   // glTF 2.0, 3.9.2: COLOR_0 multiplies the base colour.
   Vec3 vertex_rgb;
   if (scene.vertex_color(hit, &vertex_rgb)) bp.base = bp.base * vertex_rgb;

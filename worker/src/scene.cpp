@@ -313,35 +313,53 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
 
   // Textures: an image OpenImageIO cannot read is dropped with a warning naming it; the
-  // material then uses its constant factor.
-  std::vector<int> texture_index(desc_.textures.size(), -1);
-  for (size_t i = 0; i < desc_.textures.size(); ++i) {
+  // material then uses its constant factor. Each image is registered once for every way its
+  // materials read it: base colour and emissive textures as sRGB colours, decoded before
+  // filtering (TextureSet::add_encoded), the others as linear data.
+  const size_t n = desc_.textures.size();
+  std::vector<char> needed[2] = {std::vector<char>(n, 0), std::vector<char>(n, 0)};  // [srgb]
+  auto is_srgb = [](const Material& m, const TextureRef* ref) {
+    return ref == &m.base_color_tex || ref == &m.emissive_tex;
+  };
+  for (Material& m : desc_.materials)
+    for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
+                            &m.emissive_tex})
+      if (ref->texture >= 0 && size_t(ref->texture) < n) needed[is_srgb(m, ref)][ref->texture] = 1;
+  std::vector<int> texture_index[2] = {std::vector<int>(n, -1), std::vector<int>(n, -1)};
+  for (size_t i = 0; i < n; ++i) {
     const TextureSource& t = desc_.textures[i];
-    std::string err;
-    texture_index[i] = t.bytes.empty()
-                           ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err)
-                           : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err);
-    if (texture_index[i] < 0) {
-      if (warnings) warnings->push_back(desc_.source + ": " + t.name + " ignored: " + err);
-      continue;
+    bool counted = false;
+    for (int srgb = 0; srgb < 2; ++srgb) {
+      if (!needed[srgb][i]) continue;
+      std::string err;
+      const int index =
+          t.bytes.empty()
+              ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err, srgb)
+              : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err, srgb);
+      texture_index[srgb][i] = index;
+      if (index < 0) {
+        if (warnings) warnings->push_back(desc_.source + ": " + t.name + " ignored: " + err);
+        break;
+      }
+      if (counted) continue;  // one image, however many ways it is read
+      counted = true;
+      // Only the image's header has been read so far (OpenImageIO decodes tiles on demand,
+      // into a cache of bounded size), so a huge image is refused before it costs anything.
+      desc_.stats.texture_pixels += textures_.pixels(index);
+      if (desc_.stats.texture_pixels > desc_.limits.max_texture_pixels)
+        throw SceneError(desc_.source + ": textures[" + std::to_string(i) + "]: the textures' " +
+                             "images hold " + std::to_string(desc_.stats.texture_pixels) +
+                             " pixels so far, over the limit of " +
+                             std::to_string(desc_.limits.max_texture_pixels),
+                         "textures[" + std::to_string(i) + "]");
     }
-    // Only the image's header has been read so far (OpenImageIO decodes tiles on demand,
-    // into a cache of bounded size), so a huge image is refused before it costs anything.
-    desc_.stats.texture_pixels += textures_.pixels(texture_index[i]);
-    if (desc_.stats.texture_pixels > desc_.limits.max_texture_pixels)
-      throw SceneError(desc_.source + ": textures[" + std::to_string(i) + "]: the textures' " +
-                           "images hold " + std::to_string(desc_.stats.texture_pixels) +
-                           " pixels so far, over the limit of " +
-                           std::to_string(desc_.limits.max_texture_pixels),
-                       "textures[" + std::to_string(i) + "]");
   }
   for (Material& m : desc_.materials)
     for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
                             &m.emissive_tex})
       if (ref->texture >= 0)
-        ref->texture = size_t(ref->texture) < texture_index.size()
-                           ? texture_index[size_t(ref->texture)]
-                           : -1;
+        ref->texture = size_t(ref->texture) < n ? texture_index[is_srgb(m, ref)][ref->texture]
+                                                : -1;
   desc_.textures.clear();
   desc_.textures.shrink_to_fit();
 
@@ -765,7 +783,7 @@ Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
     const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.emissive_tex.texcoord);
     float c[3];
     if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
-      e = e * Vec3(srgb_to_linear(c[0]), srgb_to_linear(c[1]), srgb_to_linear(c[2]));
+      e = e * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
   }
   return e;
 }

@@ -24,17 +24,25 @@ class TextureSet {
 
   // Registers an image given by its encoded bytes (PNG, JPEG, EXR, HDR, ...). Returns the
   // texture index, or -1 with *error set if OpenImageIO cannot read it.
+  //
+  // srgb: the image's colour channels are sRGB-encoded (glTF base colour and emissive
+  // textures, 3.9.2) and lookups return them linear. They are decoded texel by texel before
+  // any filtering - a bilinear blend of encoded values decoded afterwards is darker than the
+  // blend of the colours (a black and white checker would average 0.21, not 0.5) - into a
+  // float copy of the image made at the first lookup (so that checking a scene, which
+  // never looks up a texel, costs nothing), next to the encoded image in the cache directory.
+  // Alpha is never encoded.
   int add_encoded(const std::vector<unsigned char>& bytes, const std::string& mime_type,
-                  TextureWrap wrap_s, TextureWrap wrap_t, std::string* error);
+                  TextureWrap wrap_s, TextureWrap wrap_t, std::string* error, bool srgb = false);
   // Registers an image file. Returns -1 with *error set if it cannot be read.
   int add_file(const std::string& path, TextureWrap wrap_s, TextureWrap wrap_t,
-               std::string* error);
+               std::string* error, bool srgb = false);
   size_t size() const { return entries_.size(); }
   // Width x height of texture i's image (its finest level).
   uint64_t pixels(int texture) const;
 
   // Bilinear lookup at uv (glTF convention: (0, 0) is the top-left corner of the image) of
-  // channels [0, n) (RGBA) into out; alpha reads 1 in images without it, and gray images
+  // channels [0, n) (RGBA) into out, linear for an sRGB texture; alpha reads 1 in images without it, and gray images
   // (gray, or gray and alpha) give their gray to red, green and blue. Returns false (and
   // leaves out unchanged) if the lookup fails.
   bool lookup(int texture, Point2 uv, int n, float* out) const;
