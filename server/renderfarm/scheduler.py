@@ -820,8 +820,8 @@ class Scheduler:
         check_transition(job.state, state)
         if job.state == JobState.QUEUED and state == JobState.COMPLETED:
             job.started = self.clock() - job.elapsed_before
-        if job.state == JobState.PAUSED and job.paused_at is not None:
-            job.started += self.clock() - job.paused_at
+        if job.state == JobState.PAUSED and job.paused_at is not None and job.started is not None:
+            job.started += self.clock() - job.paused_at  # time paused is not elapsed time
         old = job.state
         job.state = state
         job.finished = self.clock()

@@ -633,6 +633,16 @@ class FarmService:
                     f"{' and '.join(CONTINUE_SETTINGS)} can (a new job renders anything else)",
                 )
             raw[name] = value
+        # Each alone first (type, range), so that a lower max_spp is named as such rather
+        # than as the min_spp it would fall under.
+        parse_settings({k: raw[k] for k in raw if k != "max_spp"}, self.settings.limits())
+        if "max_spp" in raw:
+            alone = parse_settings({"max_spp": raw["max_spp"]}, self.settings.limits())
+            if alone.max_spp < old.max_spp:
+                raise SettingsError(
+                    "settings.max_spp",
+                    f"settings.max_spp must be at least the job's {old.max_spp}",
+                )
         new = parse_settings({**old.to_dict(), **raw}, self.settings.limits())
         if new.max_spp < old.max_spp:
             raise SettingsError(

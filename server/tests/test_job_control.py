@@ -172,3 +172,16 @@ def test_a_continue_with_a_higher_max_spp_keeps_tiles_with_a_noise_threshold():
     assert converged, "the easy half should converge below 128 spp"
     for t in converged:
         assert continue_plan(old, new, t.merged, dict(t.basis)) is not None
+
+
+def test_a_job_paused_before_it_started_can_be_cancelled_or_resumed_to_queued():
+    sched = Scheduler(clock=FakeClock())
+    for job_id in ("a", "b"):
+        sched.add_job(job_id, JobSettings(width=16, height=16, tile_size=8), "scene")
+        sched.pause_job(job_id)
+    sched.cancel_job("a")
+    assert sched.jobs["a"].state == JobState.CANCELLED
+    sched.resume_job("b")
+    assert sched.jobs["b"].state == JobState.QUEUED
+    sched.add_worker("w", 1)
+    assert [lease.job_id for lease in sched.assign("w")] == ["b"]
