@@ -162,7 +162,10 @@ def test_the_cli_controls_jobs(farm, client):
                               env=env)  # fmt: skip
 
     tiny = ["--width", "32", "--height", "32", "--tile-size", "16", "--spp", "4"]
-    first = json.loads(run("submit", str(CORNELL), "--json", *tiny).stdout)
+    # 4M samples: seconds of work for two one-thread workers, so it is paused unfinished.
+    slow = ["--width", "32", "--height", "32", "--tile-size", "16", "--spp", "4096",
+            "--noise-threshold", "0"]  # fmt: skip
+    first = json.loads(run("submit", str(CORNELL), "--json", *slow).stdout)
     paused = run("pause", first["id"])
     assert paused.returncode == 0 and paused.stdout.split() == [first["id"], "paused"]
     after = run("submit", str(CORNELL), "--json", "--after", first["id"], *tiny)
@@ -173,10 +176,10 @@ def test_the_cli_controls_jobs(farm, client):
     assert (renamed["settings"]["priority"], renamed["name"]) == (9, "cli")
     assert run("resume", first["id"]).stdout.split()[1] in ("queued", "running", "completed")
     assert run("watch", first["id"], "--json").returncode == 0
-    more = run("continue", first["id"], "--max-spp", "8")
+    more = run("continue", first["id"], "--max-spp", "4160")
     assert more.returncode == 0, more.stderr
     done = client.wait(first["id"], poll_s=0.1, timeout_s=120)
-    assert done["progress"]["mean_spp"] == 8
+    assert done["progress"]["mean_spp"] == 4160
     client.wait(json.loads(after.stdout)["id"], poll_s=0.1, timeout_s=120)
     refused = run("continue", first["id"], "--max-spp", "2")
     assert refused.returncode == 1 and "settings.max_spp" in refused.stderr
