@@ -194,7 +194,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     const settingsList = h(
       "dl",
       { class: "settings-list" },
-      Object.entries(st).map(([k, v]) => [h("dt", { title: k }, label(k)), h("dd", { class: "mono" }, v === "" ? "-" : String(v))]),
+      Object.entries(st).map(([k, v]) => [h("dt", { title: k }, label(k)), h("dd", { class: "mono", "data-setting": k }, v === "" ? "-" : String(v))]),
       h("dt", {}, "Scene"),
       h("dd", { class: "mono", title: initial.scene_sha256 }, initial.scene_sha256.slice(0, 16) + "…"),
       h("dt", {}, "Created"),
@@ -290,6 +290,11 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       retryButton.hidden = j.state !== "failed";
       continueForm.hidden = j.state !== "completed";
       setText(title, j.name || "(unnamed)");
+      // Priority, max_spp and noise_threshold change with an update or a continue.
+      for (const [k, v] of Object.entries(j.settings)) {
+        const cell = settingsList.querySelector<HTMLElement>(`[data-setting="${k}"]`);
+        if (cell) setText(cell, v === "" ? "-" : String(v));
+      }
       failure.hidden = !j.error;
       setText(failure, j.error ? `This job failed: ${j.error}` : "");
       addPoint(p.elapsed_s, p.error);
