@@ -166,6 +166,7 @@ class FarmService:
         # its earlier run leaves the new one alone.
         self._generation: dict[str, int] = {}
         self._waiting_dirty = True  # waiting jobs' dependencies to be checked again
+        self._reactivating: set[str] = set()  # retries and continues under way
         self._changed = asyncio.Condition()
         self._tasks: list[asyncio.Task] = []
         self._last_checkpoint = time.time()
@@ -674,6 +675,17 @@ class FarmService:
         self, job_id: str, settings: JobSettings, state: JobState, kind: str, data: dict
     ) -> None:
         """Bring a finished job back from its stored checkpoint, under `settings`."""
+        if job_id in self._reactivating:
+            raise Conflict(f"job {job_id} is being retried or continued already")
+        self._reactivating.add(job_id)
+        try:
+            await self._bring_back(job_id, settings, state, kind, data)
+        finally:
+            self._reactivating.discard(job_id)
+
+    async def _bring_back(
+        self, job_id: str, settings: JobSettings, state: JobState, kind: str, data: dict
+    ) -> None:
         row = await self.store.get_job(job_id)
         if row is None:
             raise NotFound(f"no job with id {job_id!r}")
@@ -688,12 +700,12 @@ class FarmService:
         checkpoint, plans, bases, again = {}, {}, {}, []
         for index, (_, acc) in _restore_tiles(settings, tile_rows).items():
             t = by_index[index]
-            basis = {int(e[0]): tuple(e[1:]) for e in t.plan_basis or []}
-            if settings == old:
+            if settings == old:  # a retry: the tiles as they were
                 checkpoint[index] = acc
                 plans[index] = t.batch_plan or []
                 bases[index] = t.plan_basis or []
                 continue
+            basis = {int(e[0]): tuple(e[1:]) for e in t.plan_basis or []}
             kept = continue_plan(old, settings, acc.batches, basis)
             if kept is None:
                 again.append(index)
@@ -701,34 +713,43 @@ class FarmService:
             checkpoint[index] = acc
             plans[index] = kept[0]
             bases[index] = [[b, *kept[1][b]] for b in sorted(kept[1])]
-        if self.scheduler.jobs.get(job_id) is not None:
-            self.scheduler.forget_job(job_id)
-        if job_id in self.scheduler.jobs:  # not finished in memory: raced with another call
-            raise self._refused(job_id, self.scheduler.jobs[job_id].state, "brought back")
-        await self.store.delete_tiles(job_id, again)
-        for index in again:
-            checkpoint.pop(index, None)
+        live = self.scheduler.jobs.get(job_id)
+        if live is not None and not (live.state.finished and job_id not in self._pending_finishes):
+            raise self._refused(job_id, self._reported_state(live), "brought back")
+        self.scheduler.forget_job(job_id)  # its finished run, if still in memory
         if again:
             data = {**data, "tiles_rendered_again": len(again)}
-        self.scheduler.add_job(
+        job = self.scheduler.add_job(
             job_id, settings, row.scene_sha256, checkpoint=checkpoint, plans=plans, bases=bases,
             state=state, elapsed_s=row.elapsed_s, after=tuple(row.after_jobs),
             transition=(old_state, kind, data),
         )  # fmt: skip
-        job = self.scheduler.jobs[job_id]
-        for tile in job.tiles:  # written again: the next checkpoint has them as they are now
-            tile.dirty = tile.merged > 0
-            tile.aovs_dirty = False
+        kept_tiles = [
+            (t.index, None if t.stopped else Scheduler.planned_batches(t) or None,
+             Scheduler.plan_basis(t) or None, t.stop)
+            for t in job.tiles
+            if t.merged
+        ]  # fmt: skip
+        try:
+            await self.store.reactivate_job(
+                job_id, settings=settings.to_dict(), state=state.value, elapsed_s=row.elapsed_s,
+                render_again=again, tiles=kept_tiles,
+            )  # fmt: skip
+        except BaseException:
+            # Not stored: the job stays as the database has it (finished, as it was).
+            self.scheduler.jobs.pop(job_id, None)
+            self.scheduler.cache.forget_job(job_id)
+            self.scheduler.events = [e for e in self.scheduler.events if e.job_id != job_id]
+            raise
+        for tile in job.tiles:  # stored just now; the accumulators are those of the checkpoint
+            tile.dirty = tile.aovs_dirty = False
         self._generation[job_id] = self._generation.get(job_id, 0) + 1
         self.names[job_id] = row.name
         self.created[job_id] = row.created_at.timestamp()
         self.owners[job_id] = row.owner
         self.history.pop(job_id, None)
-        if settings != old:
-            await self.store.update_job_spec(job_id, row.name, settings.to_dict())
         self._waiting_dirty = True
         await self._after_change()
-        await self._store_state(job_id)
 
     async def watch(self, job_id: str, caller: Caller) -> AsyncIterator[JobView]:
         """The job now, then after every visible change, until it is finished."""

@@ -358,14 +358,49 @@ class Store:
                 (name, json.dumps(settings), job_id),
             )
 
-    async def delete_tiles(self, job_id: str, indices: list[int]) -> None:
-        """Drop checkpoints of tiles that render again from their first sample (a continue
-        whose new settings would have rendered their batches otherwise)."""
-        if not indices:
-            return
-        async with self._connection() as conn:
+    async def reactivate_job(
+        self,
+        job_id: str,
+        *,
+        settings: dict[str, Any],
+        state: str,
+        elapsed_s: float,
+        render_again: list[int],
+        tiles: list[tuple[int, list[int] | None, list[list] | None, Any]],
+    ) -> None:
+        """A finished job brought back (retry, continue), in one transaction: its new settings
+        and state, the checkpoints of the tiles that render again from their first sample
+        dropped, and each kept tile's plan, plan basis and stop record (index, batch_plan,
+        plan_basis, scheduler.StopRecord or None) as the new settings have them. A crash then
+        finds the job either as it was or as it is now, never half way."""
+        async with self._connection() as conn, conn.transaction():
             await conn.execute(
-                "DELETE FROM tiles WHERE job_id = %s AND tile_index = ANY(%s)", (job_id, indices)
+                "DELETE FROM tiles WHERE job_id = %s AND tile_index = ANY(%s)",
+                (job_id, render_again),
+            )
+            async with conn.cursor() as cur:
+                await cur.executemany(
+                    "UPDATE tiles SET batch_plan = %s, plan_basis = %s, stop_batch = %s,"
+                    " stop_spp = %s, stop_error = %s, stop_reason = %s"
+                    " WHERE job_id = %s AND tile_index = %s",
+                    [
+                        (
+                            plan,
+                            None if basis is None else Jsonb(basis),
+                            stop.batch_index if stop else None,
+                            stop.spp if stop else None,
+                            _finite(stop.error) if stop else None,
+                            stop.reason.value if stop else None,
+                            job_id,
+                            index,
+                        )
+                        for index, plan, basis, stop in tiles
+                    ],
+                )
+            await conn.execute(
+                "UPDATE jobs SET settings = %s, state = %s, error = '', finished_at = NULL,"
+                " elapsed_s = %s WHERE id = %s",
+                (json.dumps(settings), state, elapsed_s, job_id),
             )
 
     async def waiting_for(self, job_id: str) -> list[str]:
