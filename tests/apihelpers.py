@@ -58,6 +58,7 @@ def job_from_proto(job: jobs_pb2.Job) -> dict[str, Any]:
         "created_unix_s": job.created_unix_s,
         "finished_unix_s": job.finished_unix_s or None,
         "owner": job.owner,
+        "after": list(job.after),
     }
 
 

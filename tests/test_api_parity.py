@@ -218,3 +218,69 @@ def test_invalid_lookups_are_refused_alike(apis, twin_jobs):
     for rest, rpc, kind, field in pairs:
         assert isinstance(rest, Error) and isinstance(rpc, Error), (rest, rpc)
         assert (rest.kind, rest.field) == (rpc.kind, rpc.field) == (kind, field), (rest, rpc)
+
+
+def test_job_control_is_refused_alike(apis, twin_jobs):
+    done = twin_jobs[0]["id"]  # completed
+    sha = twin_jobs[0]["scene_sha256"]
+    rs = jobs_pb2.RenderSettings
+    pairs = [
+        (apis.rest("POST", f"/api/v1/jobs/{done}/pause"),
+         apis.rpc("PauseJob", jobs_pb2.PauseJobRequest(job_id=done)), "conflict", ""),
+        (apis.rest("POST", f"/api/v1/jobs/{done}/resume"),
+         apis.rpc("ResumeJob", jobs_pb2.ResumeJobRequest(job_id=done)), "conflict", ""),
+        (apis.rest("POST", f"/api/v1/jobs/{done}/retry"),
+         apis.rpc("RetryJob", jobs_pb2.RetryJobRequest(job_id=done)), "conflict", ""),
+        (apis.rest("POST", "/api/v1/jobs/ffffffffffff/pause"),
+         apis.rpc("PauseJob", jobs_pb2.PauseJobRequest(job_id="ffffffffffff")), "not_found", ""),
+        (apis.rest("PATCH", f"/api/v1/jobs/{done}", json={"priority": 5000}),
+         apis.rpc("UpdateJob", jobs_pb2.UpdateJobRequest(job_id=done, priority=5000)),
+         "invalid", "priority"),
+        (apis.rest("PATCH", f"/api/v1/jobs/{done}", json={"name": "a\x01b"}),
+         apis.rpc("UpdateJob", jobs_pb2.UpdateJobRequest(job_id=done, name="a\x01b")),
+         "invalid", "name"),
+        (apis.rest("POST", f"/api/v1/jobs/{done}/continue", json={"settings": {"width": 8}}),
+         apis.rpc("ContinueJob", jobs_pb2.ContinueJobRequest(job_id=done, settings=rs(width=8))),
+         "invalid", "settings.width"),
+        (apis.rest("POST", f"/api/v1/jobs/{done}/continue", json={"settings": {"max_spp": 2}}),
+         apis.rpc("ContinueJob", jobs_pb2.ContinueJobRequest(job_id=done, settings=rs(max_spp=2))),
+         "invalid", "settings.max_spp"),
+        (apis.rest("POST", f"/api/v1/jobs/{done}/continue",
+                   json={"settings": {"noise_threshold": 0.5}}),
+         apis.rpc("ContinueJob", jobs_pb2.ContinueJobRequest(
+             job_id=done, settings=rs(noise_threshold=0.5))), "invalid",
+         "settings.noise_threshold"),
+        (apis.rest("POST", "/api/v1/jobs", json={"scene_sha256": sha, "after": ["0" * 12]}),
+         apis.rpc("SubmitJob", jobs_pb2.SubmitJobRequest(scene_sha256=sha, after=["0" * 12])),
+         "invalid", "after"),
+        (apis.rest("POST", "/api/v1/jobs", json={"scene_sha256": sha, "after": ["not an id!"]}),
+         apis.rpc("SubmitJob", jobs_pb2.SubmitJobRequest(scene_sha256=sha, after=["not an id!"])),
+         "invalid", "after"),
+    ]  # fmt: skip
+    for rest, rpc, kind, field in pairs:
+        assert isinstance(rest, Error) and isinstance(rpc, Error), (rest, rpc)
+        assert (rest.kind, rest.field) == (rpc.kind, rpc.field) == (kind, field), (rest, rpc)
+
+
+def test_update_and_continue_through_both_alike(apis, twin_jobs):
+    """Last in this module: it renames and continues the twin jobs."""
+    via_rest, via_grpc = twin_jobs
+    a = apis.rest("PATCH", f"/api/v1/jobs/{via_rest['id']}", json={"priority": 3, "name": "r"})
+    b = job_from_proto(apis.rpc("UpdateJob", jobs_pb2.UpdateJobRequest(
+        job_id=via_grpc["id"], priority=3, name="r")).job)  # fmt: skip
+    assert (a["settings"]["priority"], a["name"]) == (b["settings"]["priority"], b["name"]) == (
+        3, "r")  # fmt: skip
+    settings = {"max_spp": 12}
+    a = apis.rest("POST", f"/api/v1/jobs/{via_rest['id']}/continue", json={"settings": settings})
+    b = job_from_proto(apis.rpc("ContinueJob", jobs_pb2.ContinueJobRequest(
+        job_id=via_grpc["id"], settings=jobs_pb2.RenderSettings(**settings))).job)  # fmt: skip
+    assert a["settings"]["max_spp"] == b["settings"]["max_spp"] == 12
+    a = apis.client.wait(a["id"], poll_s=0.2, timeout_s=300)
+    b = apis.client.wait(b["id"], poll_s=0.2, timeout_s=300)
+    assert a["state"] == b["state"] == "completed"
+    assert a["progress"]["samples_merged"] == b["progress"]["samples_merged"]
+    assert apis.client.image(a["id"], "exr") != b""
+    png = [apis.rest("GET", f"/api/v1/jobs/{j['id']}/image.png") for j in (a, b)]
+    assert png[0] == png[1]
+    kinds = [e["kind"] for e in apis.client.events(a["id"])]
+    assert "job_updated" in kinds and "job_continued" in kinds

@@ -91,6 +91,11 @@ def test_jobs_belong_to_their_token_and_others_cannot_touch_them(secured):
         bob.rest("GET", f"/api/v1/jobs/{jid}/events"),
         bob.rest("GET", f"/api/v1/jobs/{jid}/convergence"),
         bob.rest("GET", f"/api/v1/jobs/{jid}/watch"),
+        bob.rest("POST", f"/api/v1/jobs/{jid}/pause"),
+        bob.rest("POST", f"/api/v1/jobs/{jid}/resume"),
+        bob.rest("POST", f"/api/v1/jobs/{jid}/retry"),
+        bob.rest("POST", f"/api/v1/jobs/{jid}/continue", json={"settings": {"max_spp": 64}}),
+        bob.rest("PATCH", f"/api/v1/jobs/{jid}", json={"priority": 5}),
     ]
     refused_rpc = [
         bob.rpc("GetJob", jobs_pb2.GetJobRequest(job_id=jid)),
@@ -98,6 +103,11 @@ def test_jobs_belong_to_their_token_and_others_cannot_touch_them(secured):
         bob.rpc("DeleteJob", jobs_pb2.DeleteJobRequest(job_id=jid)),
         bob.rpc("GetImage", jobs_pb2.GetImageRequest(job_id=jid)),
         bob.watch_rpc(jid),
+        bob.rpc("PauseJob", jobs_pb2.PauseJobRequest(job_id=jid)),
+        bob.rpc("ResumeJob", jobs_pb2.ResumeJobRequest(job_id=jid)),
+        bob.rpc("RetryJob", jobs_pb2.RetryJobRequest(job_id=jid)),
+        bob.rpc("UpdateJob", jobs_pb2.UpdateJobRequest(job_id=jid, priority=5)),
+        bob.rpc("ContinueJob", jobs_pb2.ContinueJobRequest(job_id=jid)),
     ]
     for answer in refused_rest + refused_rpc:
         assert isinstance(answer, Error) and answer.kind == "forbidden", answer
@@ -107,6 +117,12 @@ def test_jobs_belong_to_their_token_and_others_cannot_touch_them(secured):
     # An admin sees and may cancel every owner's jobs; the job still belongs to alice.
     assert jid in {j["id"] for j in root.rest("GET", "/api/v1/jobs")["jobs"]}
     assert root.rest("GET", f"/api/v1/jobs/{jid}")["owner"] == "alice"
+    # Bob's job control changed nothing; alice's own and an admin's do.
+    assert root.rest("GET", f"/api/v1/jobs/{jid}")["settings"]["priority"] == 0
+    assert alice.rest("POST", f"/api/v1/jobs/{jid}/pause")["state"] == "paused"
+    assert (
+        root.rest("PATCH", f"/api/v1/jobs/{jid}", json={"priority": 7})["settings"]["priority"] == 7
+    )
     assert root.rest("POST", f"/api/v1/jobs/{jid}/cancel")["state"] == "cancelled"
     assert alice.rest("DELETE", f"/api/v1/jobs/{jid}") is None
     assert bob.rest("GET", "/api/v1/whoami") == {"owner": "bob", "admin": False}

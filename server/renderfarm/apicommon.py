@@ -67,6 +67,36 @@ def job_id(value: str) -> str:
     return value
 
 
+MAX_AFTER = 100
+
+
+def after_ids(value: Any) -> list[str]:
+    """The `after` field of a submission: job ids, as a list (JSON, gRPC) or a text of ids
+    separated by commas or spaces (a form field). Whether the jobs exist is the service's
+    question; it names `after` too."""
+    if value is None or value == "":
+        return []
+    if isinstance(value, str):
+        value = value.replace(",", " ").split()
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise SettingsError("after", "after must be a list of job ids")
+    if len(value) > MAX_AFTER:
+        raise SettingsError("after", f"after names more than {MAX_AFTER} jobs")
+    for v in value:
+        if not is_job_id(v):
+            raise SettingsError("after", f"after: no job with id {v[:80]!r}")
+    return list(value)
+
+
+def job_name(value: Any) -> str | None:
+    """A new job name (an update): None leaves it as it is."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise SettingsError("name", "name must be text")
+    return check_text("name", value, 10 * MAX_NAME)
+
+
 def scene_sha256(value: str) -> str:
     return check_sha256("sha256", value)
 

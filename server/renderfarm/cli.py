@@ -1,6 +1,7 @@
-"""The `renderfarm` command: server, up, render, submit, ls, get, watch, cancel, rm, workers,
-token. Client commands talk to $RENDERFARM_URL (or --url) with $RENDERFARM_TOKEN (or --token)
-through renderfarm.client; `token` works on the database with the server's settings.
+"""The `renderfarm` command: server, up, render, submit, ls, get, watch, cancel, pause, resume,
+retry, update, continue, rm, workers, token. Client commands talk to $RENDERFARM_URL (or --url)
+with $RENDERFARM_TOKEN (or --token) through renderfarm.client; `token` works on the database
+with the server's settings.
 
 Every error ends the command with one line `renderfarm: MESSAGE` on stderr, never a traceback
 (`--log-level debug` logs it): exit 1 when the server refused or something failed, 2 for a usage
@@ -66,7 +67,9 @@ def _submit(client, args: argparse.Namespace) -> dict[str, Any]:
     from .scenes import SceneError
 
     try:
-        return client.submit(args.scene, settings=_job_settings(args), name=args.name or "")
+        return client.submit(
+            args.scene, settings=_job_settings(args), name=args.name or "", after=args.after
+        )
     except SceneError as e:  # packing a .gltf found what the server would refuse
         name = Path(args.scene).name
         message = e.message if name in e.message else f"{args.scene}: {e.message}"
@@ -145,6 +148,16 @@ def _job_settings(args: argparse.Namespace) -> dict[str, Any]:
     if args.spp is not None:
         chosen["spp"] = args.spp
     return chosen
+
+
+def _add_after(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--after",
+        action="append",
+        default=[],
+        metavar="ID",
+        help="wait until job ID has completed (repeat for several); fails if it fails",
+    )
 
 
 def _add_server_flags(parser: argparse.ArgumentParser) -> None:
@@ -473,6 +486,46 @@ def cmd_cancel(args: argparse.Namespace) -> int:
     return 0
 
 
+def _control(args: argparse.Namespace, act) -> int:
+    """A job-control command: do it, print the job's id and new state (or the job as JSON)."""
+    with _client(args) as client:
+        job = act(client)
+        if args.json:
+            _print_json(job)
+        else:
+            print(f"{job['id']} {job['state']}")
+    return 0
+
+
+def cmd_pause(args: argparse.Namespace) -> int:
+    return _control(args, lambda c: c.pause(args.job_id))
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    return _control(args, lambda c: c.resume(args.job_id))
+
+
+def cmd_retry(args: argparse.Namespace) -> int:
+    return _control(args, lambda c: c.retry(args.job_id))
+
+
+def cmd_update(args: argparse.Namespace) -> int:
+    if args.priority is None and args.name is None:
+        raise CliError("update needs --priority or --name", EXIT_USAGE)
+    return _control(args, lambda c: c.update(args.job_id, priority=args.priority, name=args.name))
+
+
+def cmd_continue(args: argparse.Namespace) -> int:
+    if args.max_spp is None and args.noise_threshold is None:
+        raise CliError("continue needs --max-spp or --noise-threshold", EXIT_USAGE)
+    return _control(
+        args,
+        lambda c: c.continue_job(
+            args.job_id, max_spp=args.max_spp, noise_threshold=args.noise_threshold
+        ),
+    )
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
     with _client(args) as client:
         _watch(client, args.job_id, quiet=False, as_json=args.json)
@@ -586,6 +639,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default=None, help="job name")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--json", action="store_true", help="print the finished job as JSON")
+    _add_after(p)
     _add_job_settings(p)
     p.set_defaults(func=cmd_render)
 
@@ -594,6 +648,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default=None)
     p.add_argument("--wait", action="store_true", help="show progress until the job finishes")
     p.add_argument("--quiet", action="store_true")
+    _add_after(p)
     _add_job_settings(p)
 
     for name, func, help_text in (
@@ -601,11 +656,16 @@ def build_parser() -> argparse.ArgumentParser:
         ("get", cmd_get, "show a job"),
         ("watch", cmd_watch, "follow a job with a progress bar until it finishes"),
         ("cancel", cmd_cancel, "cancel a job"),
+        ("pause", cmd_pause, "pause a queued or running job (it keeps what it merged)"),
+        ("resume", cmd_resume, "resume a paused job where it was"),
+        ("retry", cmd_retry, "queue a failed job again, keeping what it merged"),
+        ("update", cmd_update, "change a job's priority or name"),
+        ("continue", cmd_continue, "carry a completed job on to more samples or less noise"),
         ("rm", cmd_rm, "delete finished jobs with their stored data"),
         ("workers", cmd_workers, "list connected workers"),
     ):
         q = sub.add_parser(name, help=help_text)
-        if name in ("get", "cancel", "watch"):
+        if name in ("get", "cancel", "watch", "pause", "resume", "retry", "update", "continue"):
             q.add_argument("job_id")
         if name == "get":
             q.add_argument(
@@ -616,6 +676,14 @@ def build_parser() -> argparse.ArgumentParser:
                 "--layer", default=None,
                 help="with -o: only this layer (" + ", ".join(EXR_LAYER_CHANNELS) + ")",
             )  # fmt: skip
+        if name == "update":
+            q.add_argument("--priority", type=int, default=None, help="-1000..1000, higher first")
+            q.add_argument("--name", default=None, help="new job name")
+        if name == "continue":
+            q.add_argument("--max-spp", type=int, default=None, help="at least the job's max_spp")
+            q.add_argument(
+                "--noise-threshold", type=float, default=None, help="at most the job's threshold"
+            )
         if name == "rm":
             q.add_argument("job_ids", nargs="+", metavar="job_id")
         if name == "ls":
@@ -623,7 +691,10 @@ def build_parser() -> argparse.ArgumentParser:
             q.add_argument("--limit", type=int, default=50)
         q.set_defaults(func=func)
     p.set_defaults(func=cmd_submit)
-    client_commands = ("submit", "ls", "get", "watch", "cancel", "rm", "workers")
+    client_commands = (
+        "submit", "ls", "get", "watch", "cancel", "pause", "resume", "retry", "update",
+        "continue", "rm", "workers",
+    )  # fmt: skip
     for action in sub.choices.values():
         if action.prog.split()[-1] in client_commands:
             action.add_argument("--url", default=None, help="server URL (default $RENDERFARM_URL)")

@@ -104,9 +104,12 @@ class Client:
         scene_sha256: str | None = None,
         settings: dict[str, Any] | None = None,
         name: str = "",
+        after: list[str] | None = None,
     ) -> dict[str, Any]:
         """Submit a scene file (.glb, or .gltf packed with its files into a .glb) or a stored
-        scene's hash. Returns the job."""
+        scene's hash. `after`: ids of jobs it waits for (state waiting until all completed).
+        Returns the job."""
+        after = list(after or [])
         settings = dict(settings or {})
         env = settings.get("environment")
         env_file = None
@@ -122,6 +125,8 @@ class Client:
                 data = path.read_bytes() if path.suffix.lower() == ".glb" else pack_gltf(path)
                 upload_name = path.stem + ".glb"
             fields = {"settings": json.dumps(settings), "name": name or path.stem}
+            if after:
+                fields["after"] = ",".join(after)
             files = {"scene": (upload_name, data, "model/gltf-binary")}
             if env_file:
                 files["environment"] = env_file
@@ -130,8 +135,12 @@ class Client:
             files = {"environment": env_file}
             fields = {"scene_sha256": scene_sha256 or "", "settings": json.dumps(settings)}
             fields["name"] = name
+            if after:
+                fields["after"] = ",".join(after)
             return self._check(self.http.post("/api/v1/jobs", data=fields, files=files)).json()
         body = {"scene_sha256": scene_sha256, "settings": settings, "name": name}
+        if after:
+            body["after"] = after
         return self._check(self.http.post("/api/v1/jobs", json=body)).json()
 
     def get(self, job_id: str) -> dict[str, Any]:
@@ -147,6 +156,44 @@ class Client:
 
     def cancel(self, job_id: str) -> dict[str, Any]:
         return self._check(self.http.post(f"/api/v1/jobs/{job_id}/cancel")).json()
+
+    def pause(self, job_id: str) -> dict[str, Any]:
+        """Stop leasing the job's tasks (queued or running); merged batches are kept."""
+        return self._check(self.http.post(f"/api/v1/jobs/{job_id}/pause")).json()
+
+    def resume(self, job_id: str) -> dict[str, Any]:
+        return self._check(self.http.post(f"/api/v1/jobs/{job_id}/resume")).json()
+
+    def retry(self, job_id: str) -> dict[str, Any]:
+        """Queue a failed job again, with what it had merged."""
+        return self._check(self.http.post(f"/api/v1/jobs/{job_id}/retry")).json()
+
+    def update(
+        self, job_id: str, *, priority: int | None = None, name: str | None = None
+    ) -> dict[str, Any]:
+        """Change the priority and/or the name (None: unchanged)."""
+        body: dict[str, Any] = {}
+        if priority is not None:
+            body["priority"] = priority
+        if name is not None:
+            body["name"] = name
+        return self._check(self.http.patch(f"/api/v1/jobs/{job_id}", json=body)).json()
+
+    def continue_job(
+        self,
+        job_id: str,
+        *,
+        max_spp: int | None = None,
+        noise_threshold: float | None = None,
+    ) -> dict[str, Any]:
+        """Carry a completed job on to a higher max_spp and/or a lower noise_threshold."""
+        settings: dict[str, Any] = {}
+        if max_spp is not None:
+            settings["max_spp"] = max_spp
+        if noise_threshold is not None:
+            settings["noise_threshold"] = noise_threshold
+        body = {"settings": settings}
+        return self._check(self.http.post(f"/api/v1/jobs/{job_id}/continue", json=body)).json()
 
     def delete(self, job_id: str) -> None:
         self._check(self.http.delete(f"/api/v1/jobs/{job_id}"))

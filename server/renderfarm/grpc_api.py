@@ -88,6 +88,7 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         created_unix_s=view.created_unix_s,
         finished_unix_s=view.finished_unix_s or 0.0,
         owner=view.owner,
+        after=list(view.after),
     )
 
 
@@ -173,7 +174,10 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             max_upload_bytes=self.farm.settings.max_upload_bytes,
         )
         view = await self.farm.submit(
-            **checked.kwargs(), raw_settings=settings_from_proto(request.settings), caller=who
+            **checked.kwargs(),
+            raw_settings=settings_from_proto(request.settings),
+            after=apicommon.after_ids(list(request.after)),
+            caller=who,
         )
         if self.farm.metrics is not None:
             self.farm.metrics.jobs_submitted.inc()
@@ -207,6 +211,42 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
         who = await _caller(self.auth, context)
         view = await self.farm.cancel(apicommon.job_id(request.job_id), who)
         return jobs_pb2.CancelJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def PauseJob(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        view = await self.farm.pause(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.PauseJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def ResumeJob(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        view = await self.farm.resume(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.ResumeJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def RetryJob(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        view = await self.farm.retry(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.RetryJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def UpdateJob(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        view = await self.farm.update(
+            apicommon.job_id(request.job_id),
+            who,
+            priority=request.priority if request.HasField("priority") else None,
+            name=apicommon.job_name(request.name) if request.HasField("name") else None,
+        )
+        return jobs_pb2.UpdateJobResponse(job=job_to_proto(view))
+
+    @_maps_errors
+    async def ContinueJob(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        raw = settings_from_proto(request.settings)
+        view = await self.farm.continue_(apicommon.job_id(request.job_id), who, raw)
+        return jobs_pb2.ContinueJobResponse(job=job_to_proto(view))
 
     @_maps_errors
     async def DeleteJob(self, request, context):  # noqa: N802

@@ -83,7 +83,7 @@ class Progress(BaseModel):
 class Job(BaseModel):
     id: str
     name: str
-    state: Literal["queued", "running", "completed", "failed", "cancelled"]
+    state: Literal["queued", "running", "completed", "failed", "cancelled", "paused", "waiting"]
     settings: JobSettingsModel  # type: ignore[valid-type]
     scene_sha256: str
     progress: Progress
@@ -91,6 +91,7 @@ class Job(BaseModel):
     created_unix_s: float
     finished_unix_s: float | None
     owner: str = Field(description="name of the API token that submitted it; empty without auth")
+    after: list[str] = Field(description="ids of the jobs it waits for (state waiting)")
 
 
 class StopRecord(BaseModel):
@@ -202,6 +203,10 @@ _SUBMIT_BODY = {
                         "format": "binary",
                         "description": "equirectangular .hdr/.exr environment map",
                     },
+                    "after": {
+                        "type": "string",
+                        "description": "ids of jobs to wait for, separated by commas or spaces",
+                    },
                 },
                 "additionalProperties": False,
             }
@@ -213,11 +218,55 @@ _SUBMIT_BODY = {
                     "scene_sha256": {"type": "string"},
                     "settings": {"type": "object"},
                     "name": {"type": "string"},
+                    "after": {
+                        "type": "array",
+                        "items": {"type": "string"},
+                        "description": "ids of jobs to wait for: the job is waiting until all "
+                        "have completed, and fails if one fails or is cancelled",
+                    },
                 },
                 "required": ["scene_sha256"],
                 "additionalProperties": False,
             }
         },
+    },
+}
+
+_UPDATE_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "priority": {"type": "integer", "description": "-1000..1000, higher first"},
+                    "name": {"type": "string"},
+                },
+                "additionalProperties": False,
+            }
+        }
+    },
+}
+
+_CONTINUE_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "settings": {
+                        "type": "object",
+                        "properties": {
+                            "max_spp": {"type": "integer"},
+                            "noise_threshold": {"type": "number"},
+                        },
+                        "additionalProperties": False,
+                    }
+                },
+                "additionalProperties": False,
+            }
+        }
     },
 }
 
@@ -430,6 +479,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 "name",
                 "scene_sha256",
                 "environment",
+                "after",
             }
             if unknown:
                 raise SettingsError(
@@ -439,6 +489,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             raw_settings = _json_field(form.get("settings"), "settings")
             name = _text_field(form.get("name"), "name")
             sha = _text_field(form.get("scene_sha256"), "scene_sha256") or None
+            after = apicommon.after_ids(_text_field(form.get("after"), "after"))
             env_upload = form.get("environment")
             if env_upload is not None and not isinstance(env_upload, str):
                 environment_data = await env_upload.read()
@@ -459,7 +510,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 ) from None
             if not isinstance(body, dict):
                 raise SettingsError("body", "request body must be a JSON object")
-            unknown = set(body) - {"scene_sha256", "settings", "name"}
+            unknown = set(body) - {"scene_sha256", "settings", "name", "after"}
             if unknown:
                 raise SettingsError(
                     sorted(unknown)[0][:100], f"unknown field {sorted(unknown)[0][:100]!r}"
@@ -469,6 +520,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 raise SettingsError("settings", "settings must be a JSON object")
             name = _text_field(body.get("name"), "name")
             sha = _text_field(body.get("scene_sha256"), "scene_sha256") or None
+            after = apicommon.after_ids(body.get("after"))
         else:
             raise SettingsError(
                 "content-type", "send multipart/form-data (with a scene file) or application/json"
@@ -482,7 +534,9 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             environment_filename=environment_filename,
             max_upload_bytes=limit,
         )
-        view = await farm.submit(**checked.kwargs(), raw_settings=raw_settings, caller=who)
+        view = await farm.submit(
+            **checked.kwargs(), raw_settings=raw_settings, after=after, caller=who
+        )
         metrics.jobs_submitted.inc()
         return JSONResponse(view.to_json(), status_code=201)
 
@@ -528,6 +582,70 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     )
     async def cancel_job(job_id: str, who: Caller = Auth) -> dict:
         return (await farm.cancel(apicommon.job_id(job_id), who)).to_json()
+
+    @app.post(
+        "/api/v1/jobs/{job_id}/pause",
+        summary="Pause a queued or running job: it leases no tasks until resumed",
+        response_model=Job,
+        responses=_errors(403, 404, 409),
+    )
+    async def pause_job(job_id: str, who: Caller = Auth) -> dict:
+        return (await farm.pause(apicommon.job_id(job_id), who)).to_json()
+
+    @app.post(
+        "/api/v1/jobs/{job_id}/resume",
+        summary="Resume a paused job where it was",
+        response_model=Job,
+        responses=_errors(403, 404, 409),
+    )
+    async def resume_job(job_id: str, who: Caller = Auth) -> dict:
+        return (await farm.resume(apicommon.job_id(job_id), who)).to_json()
+
+    @app.post(
+        "/api/v1/jobs/{job_id}/retry",
+        summary="Queue a failed job again, keeping every batch it merged",
+        response_model=Job,
+        responses=_errors(403, 404, 409),
+    )
+    async def retry_job(job_id: str, who: Caller = Auth) -> dict:
+        return (await farm.retry(apicommon.job_id(job_id), who)).to_json()
+
+    @app.post(
+        "/api/v1/jobs/{job_id}/continue",
+        summary="Carry a completed job on to a higher max_spp or a lower noise_threshold",
+        description=(
+            'application/json {"settings": {"max_spp": N, "noise_threshold": X}} (either or '
+            "both). The result equals, bit for bit, a job submitted with these settings from "
+            "the start; any other setting is refused (400 naming it)."
+        ),
+        response_model=Job,
+        responses=_errors(403, 404, 409),
+        openapi_extra={"requestBody": _CONTINUE_BODY},
+    )
+    async def continue_job(job_id: str, request: Request, who: Caller = Auth) -> dict:
+        body = await _json_body(request, {"settings"})
+        raw = body.get("settings")
+        if raw is not None and not isinstance(raw, dict):
+            raise SettingsError("settings", "settings must be a JSON object")
+        return (await farm.continue_(apicommon.job_id(job_id), who, raw)).to_json()
+
+    @app.patch(
+        "/api/v1/jobs/{job_id}",
+        summary="Change a job's priority or name",
+        description='application/json {"priority": N, "name": "..."} (either or both).',
+        response_model=Job,
+        responses=_errors(403, 404),
+        openapi_extra={"requestBody": _UPDATE_BODY},
+    )
+    async def update_job(job_id: str, request: Request, who: Caller = Auth) -> dict:
+        body = await _json_body(request, {"priority", "name"})
+        view = await farm.update(
+            apicommon.job_id(job_id),
+            who,
+            priority=body.get("priority"),
+            name=apicommon.job_name(body.get("name")),
+        )
+        return view.to_json()
 
     @app.delete(
         "/api/v1/jobs/{job_id}",
@@ -663,6 +781,25 @@ class _DashboardAssets(StaticFiles):
         if not Path(str(self.directory)).is_dir():
             raise StarletteHTTPException(404, "the dashboard is not built (make web)")
         await super().check_config()
+
+
+async def _json_body(request: Request, known: set[str]) -> dict[str, Any]:
+    """A JSON object body with only the `known` fields (an empty body is an empty object)."""
+    raw = await request.body()
+    if not raw.strip():
+        return {}
+    try:
+        body = json.loads(raw)
+    except ValueError:
+        raise SettingsError("body", "request body is not valid JSON") from None
+    except RecursionError:
+        raise SettingsError("body", "request body is not valid JSON: nested too deeply") from None
+    if not isinstance(body, dict):
+        raise SettingsError("body", "request body must be a JSON object")
+    unknown = sorted(set(body) - known)
+    if unknown:
+        raise SettingsError(unknown[0][:100], f"unknown field {unknown[0][:100]!r}")
+    return body
 
 
 def _text_field(value: Any, field: str) -> str:

@@ -30,7 +30,7 @@ import numpy as np
 from .jobspec import JobSettings
 from .merge import TileAccumulator
 from .spill import TileCache
-from .states import JobState, StopReason
+from .states import JobState, StopReason, check_transition
 from .tiling import (
     PLANNED_FROM,
     Rect,
@@ -51,6 +51,60 @@ SPECULATION_DEPTH = 3
 # in cost), not an average since the start that includes scene loading and queueing.
 ETA_WINDOW_S = 30.0
 ETA_MAX_POINTS = 4096  # merge records kept per job; a very busy job's window is just shorter
+
+
+# The settings a continue may change; anything else would change batches already merged.
+CONTINUE_SETTINGS = ("max_spp", "noise_threshold")
+
+
+def _old_size(s: JobSettings, batch: int, basis: dict[int, tuple]) -> int | None:
+    """Samples per pixel batch `batch` rendered under settings s (None: not known)."""
+    if batch < PLANNED_FROM or s.noise_threshold <= 0:
+        return batch_range(batch, s.max_spp)[1]
+    entry = basis.get(batch)
+    return None if entry is None else entry[0]
+
+
+def _new_size(s: JobSettings, batch: int, basis: dict[int, tuple]) -> int | None:
+    """Samples per pixel a job with settings s would plan for `batch`, from the tile state
+    recorded when it was planned (the same state, when every earlier batch agrees)."""
+    if batch < PLANNED_FROM or s.noise_threshold <= 0:
+        return batch_range(batch, s.max_spp)[1]
+    entry = basis.get(batch)
+    if entry is None:
+        return None
+    _, samples, error, before = entry
+    error = math.inf if error is None else error
+    return plan_batch(samples, error, s.noise_threshold, s.min_spp, s.max_spp, before)
+
+
+def continue_plan(
+    old: JobSettings, new: JobSettings, merged: int, basis: dict[int, tuple]
+) -> tuple[list[int], dict[int, tuple]] | None:
+    """Whether a tile that merged `merged` batches under `old` can carry on under `new` and
+    end exactly as a job submitted with `new` from the start (docs/architecture.md,
+    "Continue"): every merged batch must have the size `new` would have given it, which
+    tiling's schedule and plan_batch decide from the tile's state when each was planned
+    (recorded in `basis`). The stop rule needs no replay: with max_spp no lower and the noise
+    threshold no higher, `new` stops a tile no earlier than `old` did.
+
+    Returns (planned sizes from batch max(merged, PLANNED_FROM) on, the basis to keep), or
+    None: the tile renders again from its first sample."""
+    for batch in range(merged):
+        size = _old_size(old, batch, basis)
+        if size is None or size != _new_size(new, batch, basis):
+            return None
+    kept = {b: v for b, v in basis.items() if b < merged}
+    plans: list[int] = []
+    if new.noise_threshold > 0 and merged >= PLANNED_FROM:
+        # Batch `merged` was planned from the state after batch merged - 2, which is gone;
+        # its recorded basis gives the plan `new` would have made from it.
+        count = _new_size(new, merged, basis)
+        if count is None:
+            return None
+        kept[merged] = (count, *basis[merged][1:])
+        plans = [count]
+    return plans, kept
 
 
 @dataclass(frozen=True)
@@ -118,6 +172,10 @@ class TileState:
     stamp: int = 0  # bumped on every change; heap entries with an older stamp are stale
     # Samples per pixel of planned batches (index >= PLANNED_FROM), by batch index.
     plan: dict[int, int] = field(default_factory=dict)
+    # What each planned batch was planned from, by batch index: (count, merged samples per
+    # pixel, relative error or None when not finite, samples per pixel before the batch). A
+    # continue replays the plans under its new settings (continue_plan).
+    basis: dict[int, tuple[int, int, float | None, int]] = field(default_factory=dict)
 
     @property
     def merged(self) -> int:
@@ -151,6 +209,9 @@ class JobRun:
     cost_count: int = 0
     # (clock, samples_merged after it) of each merged batch in the ETA window (see _eta).
     merges: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=ETA_MAX_POINTS))
+    after: tuple[str, ...] = ()  # ids of the jobs it waits for (state WAITING until completed)
+    paused_at: float | None = None  # clock when paused: the pause does not count as elapsed
+    elapsed_before: float = 0.0  # elapsed seconds of earlier runs (restored, retried, continued)
 
     @property
     def pixels(self) -> int:
@@ -206,22 +267,40 @@ class Scheduler:
         state: JobState = JobState.QUEUED,
         elapsed_s: float = 0.0,
         plans: dict[int, list[int]] | None = None,
+        bases: dict[int, list[list]] | None = None,
+        after: tuple[str, ...] = (),
+        transition: tuple[JobState, str, dict] | None = None,
     ) -> JobRun:
         """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery),
-        `plans` their planned batch sizes as planned_batches() gave them at that checkpoint."""
+        `plans` their planned batch sizes as planned_batches() gave them at that checkpoint,
+        `bases` what their planned batches were planned from (plan_basis()).
+
+        transition: (state it was in, event kind, event data) when a finished job comes back
+        (retry, continue): checked against the state machine and recorded as that event; the
+        tile stops found again while restoring are not recorded twice."""
+        if transition is not None:
+            check_transition(transition[0], state)
         now = self.clock()
+        events_before = len(self.events)
         iid = settings.sampler == "independent"
         cached = self.cache is not None  # then arrays are made when a tile is first used
         tiles = [
             TileState(i, r, TileAccumulator(r.width, r.height, iid, arrays=not cached))
             for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
         ]
-        job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state)
-        if state == JobState.RUNNING:
+        job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state, after=after)
+        job.elapsed_before = elapsed_s
+        if state in (JobState.RUNNING, JobState.PAUSED):
             job.started = now - elapsed_s
+        if state == JobState.PAUSED:
+            job.paused_at = now
         for index, acc in (checkpoint or {}).items():
             tile = tiles[index]
             tile.acc = acc
+            tile.basis = {
+                int(b): (int(c), int(n), None if e is None else float(e), int(before))
+                for b, c, n, e, before in (bases or {}).get(index) or []
+            }
             self._register(job, tile)
             tile.next_batch = acc.batches
             job.samples_merged += acc.samples * tile.rect.pixels
@@ -233,13 +312,18 @@ class Scheduler:
             tile.plan = {first + i: count for i, count in enumerate((plans or {}).get(index, []))}
             if not tile.stopped and tile.merged not in tile.plan:
                 # No saved plan (a checkpoint from before planned batches): plan the next
-                # batch from the state at hand.
-                self._plan(job, tile, tile.merged, tile.acc.samples)
+                # batch from the state at hand (not the basis a fresh job would have had, so it
+                # is not recorded: a continue renders this tile again).
+                self._plan(job, tile, tile.merged, tile.acc.samples, record=False)
             self._plan_ahead(job, tile)
         self.jobs[job_id] = job
         for tile in tiles:
             self._register(job, tile)
             self._touch(job, tile)
+        if transition is not None:
+            old, kind, data = transition
+            del self.events[events_before:]  # the tile stops were recorded when they happened
+            self.events.append(Event(kind, job_id, {"from": old.value, "to": state.value, **data}))
         self._maybe_finish(job)
         return job
 
@@ -248,6 +332,58 @@ class Scheduler:
         if not job.state.finished:
             self._finish(job, JobState.CANCELLED)
         return job
+
+    # ------------------------------------------------------------------- job control
+    def _transition(self, job: JobRun, state: JobState, kind: str, data: dict) -> None:
+        """The one place where a live job changes state: checked against the state machine
+        (states.TRANSITIONS; TransitionError when refused) and recorded as an event."""
+        check_transition(job.state, state)
+        old = job.state
+        job.state = state
+        job.version += 1
+        self.events.append(Event(kind, job.job_id, {"from": old.value, "to": state.value, **data}))
+
+    def pause_job(self, job_id: str) -> JobRun:
+        """Stop leasing the job's tasks. The tasks workers hold are returned (cancelled and
+        leased again on resume), so the farm turns to other jobs at once; a result of one that
+        still arrives is merged, as any result is (it is the same batch whoever renders it)."""
+        job = self.jobs[job_id]
+        self._transition(job, JobState.PAUSED, "job_paused", {})
+        job.paused_at = self.clock()
+        for tile in job.tiles:
+            for task_id in list(tile.in_flight.values()):
+                lease = self.leases.get(task_id)
+                if lease is not None:
+                    self._release(lease, requeue=True)
+                    self.cancellations.setdefault(lease.worker_id, []).append(task_id)
+        return job
+
+    def resume_job(self, job_id: str) -> JobRun:
+        """Lease the job's tasks again, from where it paused (running if it had started)."""
+        job = self.jobs[job_id]
+        state = JobState.QUEUED if job.started is None else JobState.RUNNING
+        self._transition(job, state, "job_resumed", {})
+        if job.paused_at is not None and job.started is not None:
+            job.started += self.clock() - job.paused_at  # time paused is not elapsed time
+        job.paused_at = None
+        for tile in job.tiles:
+            self._touch(job, tile)
+        return job
+
+    def release_job(self, job_id: str) -> JobRun:
+        """Every job a waiting job waits for has completed: queue it."""
+        job = self.jobs[job_id]
+        self._transition(job, JobState.QUEUED, "job_released", {"after": list(job.after)})
+        return job
+
+    def update_job(self, job_id: str, settings: JobSettings, name: str) -> None:
+        """New priority (in settings) or name of a live job: an event, and a visible change."""
+        job = self.jobs[job_id]
+        job.settings = settings
+        job.version += 1
+        self.events.append(
+            Event("job_updated", job_id, {"priority": settings.priority, "name": name})
+        )
 
     def fail_job(self, job_id: str, message: str) -> None:
         job = self.jobs[job_id]
@@ -274,11 +410,15 @@ class Scheduler:
 
     def progress(self, job: JobRun) -> Progress:
         now = self.clock()
+        paused = job.paused_at if job.state == JobState.PAUSED else None
         done = job.tiles_stopped
         mean_spp = sum(t.acc.samples * t.rect.pixels for t in job.tiles) / job.pixels
         errors = [t.error for t in job.tiles if t.merged]
         error = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf
-        elapsed = 0.0 if job.started is None else (job.finished or now) - job.started
+        if job.started is None:
+            elapsed = job.elapsed_before
+        else:
+            elapsed = (paused or job.finished or now) - job.started
         return Progress(
             tiles_total=len(job.tiles),
             tiles_done=done,
@@ -373,7 +513,8 @@ class Scheduler:
         now = self.clock()
         for job in list(self.jobs.values()):
             limit = job.settings.time_limit_s
-            if job.started is not None and not job.state.finished and limit > 0:
+            live = job.state in (JobState.QUEUED, JobState.RUNNING)  # a pause stops the clock
+            if job.started is not None and live and limit > 0:
                 if now - job.started >= limit:
                     for tile in job.tiles:
                         if not tile.stopped:
@@ -400,7 +541,8 @@ class Scheduler:
         live = [
             j
             for j in self.jobs.values()
-            if not j.state.finished and worker_id not in j.excluded_workers
+            if j.state in (JobState.QUEUED, JobState.RUNNING)  # not paused, waiting, finished
+            and worker_id not in j.excluded_workers
         ]
         return sorted(live, key=lambda j: (-j.settings.priority, j.leased, j.created))
 
@@ -453,12 +595,18 @@ class Scheduler:
         count = tile.plan.get(batch)
         return None if count is None else (batch_start(batch), count)
 
-    def _plan(self, job: JobRun, tile: TileState, batch: int, before: int) -> None:
+    def _plan(
+        self, job: JobRun, tile: TileState, batch: int, before: int, record: bool = True
+    ) -> None:
         s = job.settings
         if batch >= PLANNED_FROM and s.noise_threshold > 0 and batch not in tile.plan:
-            tile.plan[batch] = plan_batch(
+            count = plan_batch(
                 tile.acc.samples, tile.error, s.noise_threshold, s.min_spp, s.max_spp, before
             )
+            tile.plan[batch] = count
+            if record:
+                error = tile.error if math.isfinite(tile.error) else None
+                tile.basis[batch] = (count, tile.acc.samples, error, before)
 
     def _plan_ahead(self, job: JobRun, tile: TileState) -> None:
         """Plan batch merged + 1 from the merged state (called after each in-order merge)."""
@@ -477,6 +625,12 @@ class Scheduler:
         while first + len(counts) in tile.plan:
             counts.append(tile.plan[first + len(counts)])
         return counts
+
+    @staticmethod
+    def plan_basis(tile: TileState) -> list[list]:
+        """[batch, count, samples, error or None, before] of every recorded planned batch, in
+        batch order: what a checkpoint saves for continue_plan."""
+        return [[b, *tile.basis[b]] for b in sorted(tile.basis)]
 
     def _touch(self, job: JobRun, tile: TileState) -> None:
         """Re-file a tile after any change to it (O(log n); old entries go stale)."""
@@ -509,10 +663,8 @@ class Scheduler:
         job.leased += 1
         self._touch(job, tile)
         if job.state == JobState.QUEUED:
-            job.state = JobState.RUNNING
-            job.started = self.clock()
-            job.version += 1
-            self.events.append(Event("job_started", job.job_id, {}))
+            self._transition(job, JobState.RUNNING, "job_started", {})
+            job.started = self.clock() - job.elapsed_before
         return lease
 
     def _release(self, lease: Lease, requeue: bool) -> None:
@@ -665,8 +817,12 @@ class Scheduler:
             self._finish(job, JobState.COMPLETED)
 
     def _finish(self, job: JobRun, state: JobState) -> None:
+        check_transition(job.state, state)
         if job.state == JobState.QUEUED and state == JobState.COMPLETED:
-            job.started = self.clock()
+            job.started = self.clock() - job.elapsed_before
+        if job.state == JobState.PAUSED and job.paused_at is not None and job.started is not None:
+            job.started += self.clock() - job.paused_at  # time paused is not elapsed time
+        old = job.state
         job.state = state
         job.finished = self.clock()
         job.version += 1
@@ -682,7 +838,11 @@ class Scheduler:
             tile.in_flight.clear()
         job.heap.clear()  # a finished job leases nothing more
         self.events.append(
-            Event("job_finished", job.job_id, {"state": state.value, "error": job.error_message})
+            Event(
+                "job_finished",
+                job.job_id,
+                {"state": state.value, "error": job.error_message, "from": old.value},
+            )
         )
 
     # ------------------------------------------------------------------------- failures

@@ -75,6 +75,7 @@ async def serve(
         url, max_size=settings.db_pool_size, queue=settings.db_queue, wait_s=settings.db_wait_s
     )
     supervisor = None
+    grpc_server = None
     try:
         await store.open()
         if embedded is not None:  # restarts the postmaster when it dies
@@ -153,9 +154,14 @@ async def serve(
         http.should_exit = True
         left = max(0.5, deadline - time.monotonic())
         await grpc_server.stop(grace=min(1.0, left / 3))
+        grpc_server = None
         with contextlib.suppress(Exception):
             await asyncio.wait_for(http_task, timeout=min(5.0, left / 3))
     finally:
+        if grpc_server is not None:
+            # Failed after it started (the HTTP port taken): stopped here, on the loop, rather
+            # than by the garbage collector after the loop has closed (a traceback on stderr).
+            await grpc_server.stop(None)
         if supervisor is not None:
             supervisor.cancel()
             with contextlib.suppress(asyncio.CancelledError):

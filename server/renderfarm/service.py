@@ -40,13 +40,13 @@ from psycopg_pool import PoolTimeout
 from . import images, spool
 from .auth import Caller, Forbidden
 from .config import Settings
-from .jobspec import JobSettings, SettingsError, parse_settings
+from .jobspec import ALIASES, JobSettings, SettingsError, parse_settings
 from .merge import TileAccumulator
 from .scene_check import SceneChecker
 from .scenes import SceneError, inspect_environment, inspect_scene
-from .scheduler import BatchResult, JobRun, Lease, Scheduler
+from .scheduler import CONTINUE_SETTINGS, BatchResult, JobRun, Lease, Scheduler, continue_plan
 from .spill import TileCache
-from .states import JobState, StopReason
+from .states import JobState, StopReason, TransitionError, check_transition
 from .store import DatabaseUnavailable, JobRow, Store, TileRow
 from .tiling import Rect, tile_grid
 
@@ -108,6 +108,7 @@ class JobView:
     created_unix_s: float
     finished_unix_s: float | None
     owner: str = ""
+    after: tuple[str, ...] = ()  # ids of the jobs it waits for
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -121,6 +122,7 @@ class JobView:
             "created_unix_s": self.created_unix_s,
             "finished_unix_s": self.finished_unix_s,
             "owner": self.owner,
+            "after": list(self.after),
         }
 
 
@@ -165,6 +167,11 @@ class FarmService:
         self.names: dict[str, str] = {}  # job id -> name for live jobs
         self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
         self.owners: dict[str, str] = {}  # job id -> owner (token name) for live jobs
+        # Bumped each time a finished job comes back (retry, continue): a delayed forget of
+        # its earlier run leaves the new one alone.
+        self._generation: dict[str, int] = {}
+        self._waiting_dirty = True  # waiting jobs' dependencies to be checked again
+        self._reactivating: set[str] = set()  # retries and continues under way
         self._changed = asyncio.Condition()
         self._tasks: list[asyncio.Task] = []
         self._last_checkpoint = time.time()
@@ -227,7 +234,7 @@ class FarmService:
             settings = JobSettings(**row.settings)
             # A chunk of tiles at a time, each put under the tile cache at once: a large job
             # comes back within the cache's RAM (the rest goes to its spill file).
-            checkpoint, plans, old_aovs = {}, {}, []
+            checkpoint, plans, bases, old_aovs = {}, {}, {}, []
             tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
             tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
             step = max(1, CHECKPOINT_CHUNK_BYTES // tile_bytes)
@@ -237,6 +244,7 @@ class FarmService:
                     self.scheduler.cache.register(row.id, acc, settings.tile_size)
                     checkpoint[index] = acc
                 plans.update({t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan})
+                bases.update({t.tile_index: t.plan_basis for t in tile_rows if t.plan_basis})
                 old_aovs += [t.tile_index for t in tile_rows if t.aovs is None and t.samples > 0]
             self.scheduler.add_job(
                 row.id,
@@ -244,8 +252,10 @@ class FarmService:
                 row.scene_sha256,
                 checkpoint=checkpoint,
                 plans=plans,
+                bases=bases,
                 state=JobState(row.state),
                 elapsed_s=row.elapsed_s,
+                after=tuple(row.after_jobs),
             )
             self.scheduler.take_events()  # the stops were recorded before the restart
             for index in old_aovs:
@@ -268,6 +278,8 @@ class FarmService:
                 self._sample_history()
                 await self._after_change()
                 await self.flush()
+                if self._waiting_dirty:
+                    await self._check_waiting()
             except asyncio.CancelledError:
                 raise
             except Exception:  # keep serving; the next round retries
@@ -302,6 +314,7 @@ class FarmService:
                     self._pending_finishes.pop(0)
                     self._forget_later(job_id)
                     await self._announce_stored(job_id)
+                    self._waiting_dirty = True  # a job waiting for this one may go now
             if force or now - self._last_checkpoint >= self.settings.checkpoint_interval_s:
                 await self.checkpoint(force=force)
         except (psycopg.Error, PoolTimeout, OSError) as e:
@@ -345,10 +358,13 @@ class FarmService:
         raw_settings: dict[str, Any] | None,
         environment_data: bytes | None = None,
         environment_filename: str = "",
+        after: list[str] | None = None,
         caller: Caller,
     ) -> JobView:
         _check_caller(caller)
         settings = parse_settings(raw_settings, self.settings.limits())
+        after = list(dict.fromkeys(after or []))  # in order, once each
+        ready = await self._dependencies_ready(after, caller)
         settings = await self._environment(settings, environment_data, environment_filename)
         if scene_data is not None and scene_sha256:
             raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
@@ -378,16 +394,74 @@ class FarmService:
         job_id = secrets.token_hex(6)
         name = (name or filename or "job").strip()[:200]
         tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+        state = JobState.QUEUED if ready else JobState.WAITING
         row = await self.store.insert_job(
-            job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner
-        )
+            job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner, after=after,
+            state=state.value,
+        )  # fmt: skip
         # Stored and committed: only now does the job exist for the scheduler and the caller.
         self.owners[job_id] = caller.owner
         self.names[job_id] = name
         self.created[job_id] = row.created_at.timestamp()
-        self.scheduler.add_job(job_id, settings, sha)
+        self.scheduler.add_job(job_id, settings, sha, state=state, after=tuple(after))
+        self._waiting_dirty = True  # a dependency may have completed since it was looked at
         await self._after_change()
         return await self.get(job_id, caller)
+
+    async def _dependencies_ready(self, after: list[str], caller: Caller) -> bool:
+        """Check the jobs a submission names in `after`: each must exist and be the caller's
+        to see (else 400 naming `after`, like an unknown id: another owner's jobs are not
+        revealed), and must still be able to complete. True when all have completed."""
+        ready = True
+        for dep in after:
+            try:
+                view = await self.get(dep, caller)
+            except (NotFound, Forbidden):
+                raise SettingsError("after", f"after: no job with id {dep[:80]!r}") from None
+            if view.state in (JobState.FAILED, JobState.CANCELLED):
+                raise SettingsError(
+                    "after", f"after: job {dep} is {view.state.value}; it will never complete"
+                )
+            ready &= view.state == JobState.COMPLETED
+        return ready
+
+    async def _dependency_state(self, dep: str) -> JobState | None:
+        """A dependency's state as the APIs report it; None when it was deleted."""
+        live = self.scheduler.jobs.get(dep)
+        if live is not None:
+            return self._reported_state(live)
+        row = await self.store.get_job(dep)
+        return None if row is None else JobState(row.state)
+
+    async def _check_waiting(self) -> None:
+        """Queue each waiting job whose dependencies have all completed; fail each one with a
+        dependency that failed, was cancelled or was deleted (the reason names it)."""
+        self._waiting_dirty = False
+        for job in [j for j in self.scheduler.jobs.values() if j.state == JobState.WAITING]:
+            problem, ready = "", True
+            for dep in job.after:
+                state = await self._dependency_state(dep)
+                if state is None:
+                    problem = f"dependency {dep} was deleted"
+                elif state in (JobState.FAILED, JobState.CANCELLED):
+                    what = "failed" if state == JobState.FAILED else "was cancelled"
+                    problem = f"dependency {dep} {what}"
+                ready &= state == JobState.COMPLETED
+                if problem:
+                    break
+            if job.state != JobState.WAITING:  # changed while the database answered
+                continue
+            if problem:
+                self.scheduler.fail_job(job.job_id, problem)
+            elif ready:
+                self.scheduler.release_job(job.job_id)
+                await self._store_state(job.job_id)
+        await self._after_change()
+
+    async def _store_state(self, job_id: str) -> None:
+        """Write a live job's row now (its state after a job-control change), so that a
+        restart finds it as it is; the tiles follow with the next checkpoint."""
+        await self._persist_job(job_id, tiles=False)
 
     async def _environment(
         self, settings: JobSettings, data: bytes | None, filename: str
@@ -471,6 +545,216 @@ class FarmService:
         self.scheduler.forget_job(job_id)
         for table in (self.history, self.names, self.created, self.owners):
             table.pop(job_id, None)
+        self._waiting_dirty = True  # a job waiting for it fails
+
+    # ----------------------------------------------------------------------- job control
+    # Each checks the caller's right to the job as cancel does, changes the state through the
+    # scheduler's state machine (a refused change is 409 Conflict), writes the job's row at
+    # once (a restart finds it as it is) and answers the job after the change.
+    def _refused(self, job_id: str, state: JobState, action: str) -> Conflict:
+        return Conflict(f"job {job_id} is {state.value}; it cannot be {action}")
+
+    async def _live(self, job_id: str, caller: Caller, action: str) -> JobRun:
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
+        job = self.scheduler.jobs.get(job_id)
+        if job is None or self._reported_state(job) != job.state or job.state.finished:
+            raise self._refused(job_id, view.state, action)
+        return job
+
+    async def pause(self, job_id: str, caller: Caller) -> JobView:
+        job = await self._live(job_id, caller, "paused")
+        try:
+            self.scheduler.pause_job(job_id)
+        except TransitionError:
+            raise self._refused(job_id, job.state, "paused") from None
+        await self._after_change()
+        await self._store_state(job_id)
+        return await self.get(job_id, caller)
+
+    async def resume(self, job_id: str, caller: Caller) -> JobView:
+        job = await self._live(job_id, caller, "resumed")
+        if job.state != JobState.PAUSED:
+            raise self._refused(job_id, job.state, "resumed")
+        self.scheduler.resume_job(job_id)
+        await self._after_change()
+        await self._store_state(job_id)
+        return await self.get(job_id, caller)
+
+    async def update(
+        self, job_id: str, caller: Caller, priority: Any = None, name: str | None = None
+    ) -> JobView:
+        """A new priority or name, in any state (validated as at submission)."""
+        view = await self.get(job_id, caller)
+        settings = view.settings
+        if priority is not None:
+            try:  # the priority alone: limits changed since the submission do not matter
+                checked = parse_settings({"priority": priority}, self.settings.limits())
+            except SettingsError as e:
+                message = e.message.replace("settings.priority", "priority")
+                raise SettingsError("priority", message) from None
+            settings = dataclasses.replace(settings, priority=checked.priority)
+        new_name = view.name if name is None else (name.strip()[:200] or view.name)
+        await self.store.update_job_spec(job_id, new_name, settings.to_dict())
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None:
+            self.names[job_id] = new_name
+            self.scheduler.update_job(job_id, settings, new_name)
+        else:
+            data = {"priority": settings.priority, "name": new_name}
+            self._pending_events.append((job_id, "job_updated", data))
+        await self._after_change()
+        return await self.get(job_id, caller)
+
+    async def retry(self, job_id: str, caller: Caller) -> JobView:
+        """A failed job is queued again with every batch it merged: results are identified
+        by (job, tile, batch) and merged in order, so what was merged is what a run without
+        the failure would have merged. The workers it had excluded may try it again."""
+        view = await self.get(job_id, caller)
+        if view.state != JobState.FAILED:
+            raise self._refused(job_id, view.state, "retried")
+        after = view.after
+        ready = True
+        for dep in after:
+            ready &= await self._dependency_state(dep) == JobState.COMPLETED
+        state = JobState.QUEUED if ready else JobState.WAITING
+        await self._reactivate(job_id, view.settings, state, "job_retried", {})
+        return await self.get(job_id, caller)
+
+    async def continue_(
+        self, job_id: str, caller: Caller, raw_settings: dict[str, Any] | None
+    ) -> JobView:
+        """Carry a completed job on to a higher max_spp or a lower noise_threshold. The result
+        equals, bit for bit, a job submitted with the new settings from the start: tiles whose
+        merged batches those settings would have planned alike carry on; any other tile
+        renders again from its first sample (scheduler.continue_plan)."""
+        view = await self.get(job_id, caller)
+        old = view.settings
+        raw = {}
+        for key, value in (raw_settings or {}).items():
+            name = ALIASES.get(key, key)
+            if name not in CONTINUE_SETTINGS:
+                raise SettingsError(
+                    f"settings.{key}",
+                    f"settings.{key} cannot change in a continue: only "
+                    f"{' and '.join(CONTINUE_SETTINGS)} can (a new job renders anything else)",
+                )
+            raw[name] = value
+        # Each alone first (type, range), so that a lower max_spp is named as such rather
+        # than as the min_spp it would fall under.
+        parse_settings({k: raw[k] for k in raw if k != "max_spp"}, self.settings.limits())
+        if "max_spp" in raw:
+            alone = parse_settings({"max_spp": raw["max_spp"]}, self.settings.limits())
+            if alone.max_spp < old.max_spp:
+                raise SettingsError(
+                    "settings.max_spp",
+                    f"settings.max_spp must be at least the job's {old.max_spp}",
+                )
+        new = parse_settings({**old.to_dict(), **raw}, self.settings.limits())
+        if new.max_spp < old.max_spp:
+            raise SettingsError(
+                "settings.max_spp", f"settings.max_spp must be at least the job's {old.max_spp}"
+            )
+        if new.noise_threshold > old.noise_threshold:
+            raise SettingsError(
+                "settings.noise_threshold",
+                f"settings.noise_threshold must be at most the job's {old.noise_threshold:g}",
+            )
+        if new == old:
+            raise SettingsError(
+                "settings",
+                "a continue needs a higher settings.max_spp or a lower settings.noise_threshold",
+            )
+        if old.time_limit_s > 0:
+            # A time limit stops tiles by the clock: no fresh job is certain to match them.
+            raise SettingsError(
+                "settings.time_limit_s",
+                "a job with a time limit cannot be continued (its image depends on the clock)",
+            )
+        if view.state != JobState.COMPLETED:
+            raise self._refused(job_id, view.state, "continued")
+        changed = {k: getattr(new, k) for k in CONTINUE_SETTINGS}
+        await self._reactivate(job_id, new, JobState.QUEUED, "job_continued", {"settings": changed})
+        return await self.get(job_id, caller)
+
+    async def _reactivate(
+        self, job_id: str, settings: JobSettings, state: JobState, kind: str, data: dict
+    ) -> None:
+        """Bring a finished job back from its stored checkpoint, under `settings`."""
+        if job_id in self._reactivating:
+            raise Conflict(f"job {job_id} is being retried or continued already")
+        self._reactivating.add(job_id)
+        try:
+            await self._bring_back(job_id, settings, state, kind, data)
+        finally:
+            self._reactivating.discard(job_id)
+
+    async def _bring_back(
+        self, job_id: str, settings: JobSettings, state: JobState, kind: str, data: dict
+    ) -> None:
+        row = await self.store.get_job(job_id)
+        if row is None:
+            raise NotFound(f"no job with id {job_id!r}")
+        old_state = JobState(row.state)
+        try:
+            check_transition(old_state, state)
+        except TransitionError:
+            raise self._refused(job_id, old_state, "brought back") from None
+        old = JobSettings(**row.settings)
+        tile_rows = await self.store.load_tiles(job_id)
+        by_index = {r.tile_index: r for r in tile_rows}
+        checkpoint, plans, bases, again = {}, {}, {}, []
+        for index, (_, acc) in _restore_tiles(settings, tile_rows).items():
+            t = by_index[index]
+            if settings == old:  # a retry: the tiles as they were
+                checkpoint[index] = acc
+                plans[index] = t.batch_plan or []
+                bases[index] = t.plan_basis or []
+                continue
+            basis = {int(e[0]): tuple(e[1:]) for e in t.plan_basis or []}
+            kept = continue_plan(old, settings, acc.batches, basis)
+            if kept is None:
+                again.append(index)
+                continue
+            checkpoint[index] = acc
+            plans[index] = kept[0]
+            bases[index] = [[b, *kept[1][b]] for b in sorted(kept[1])]
+        live = self.scheduler.jobs.get(job_id)
+        if live is not None and not (live.state.finished and job_id not in self._pending_finishes):
+            raise self._refused(job_id, self._reported_state(live), "brought back")
+        self.scheduler.forget_job(job_id)  # its finished run, if still in memory
+        if again:
+            data = {**data, "tiles_rendered_again": len(again)}
+        job = self.scheduler.add_job(
+            job_id, settings, row.scene_sha256, checkpoint=checkpoint, plans=plans, bases=bases,
+            state=state, elapsed_s=row.elapsed_s, after=tuple(row.after_jobs),
+            transition=(old_state, kind, data),
+        )  # fmt: skip
+        kept_tiles = [
+            (t.index, None if t.stopped else Scheduler.planned_batches(t) or None,
+             Scheduler.plan_basis(t) or None, t.stop)
+            for t in job.tiles
+            if t.merged
+        ]  # fmt: skip
+        try:
+            await self.store.reactivate_job(
+                job_id, settings=settings.to_dict(), state=state.value, elapsed_s=row.elapsed_s,
+                render_again=again, tiles=kept_tiles,
+            )  # fmt: skip
+        except BaseException:
+            # Not stored: the job stays as the database has it (finished, as it was).
+            self.scheduler.jobs.pop(job_id, None)
+            self.scheduler.cache.forget_job(job_id)
+            self.scheduler.events = [e for e in self.scheduler.events if e.job_id != job_id]
+            raise
+        for tile in job.tiles:  # stored just now; the accumulators are those of the checkpoint
+            tile.dirty = tile.aovs_dirty = False
+        self._generation[job_id] = self._generation.get(job_id, 0) + 1
+        self.names[job_id] = row.name
+        self.created[job_id] = row.created_at.timestamp()
+        self.owners[job_id] = row.owner
+        self.history.pop(job_id, None)
+        self._waiting_dirty = True
+        await self._after_change()
 
     async def watch(self, job_id: str, caller: Caller) -> AsyncIterator[JobView]:
         """The job now, then after every visible change, until it is finished."""
@@ -527,6 +811,7 @@ class FarmService:
             created_unix_s=self.created.get(job.job_id, job.created),
             finished_unix_s=job.finished if state.finished else None,
             owner=self.owners.get(job.job_id, ""),
+            after=job.after,
         )
 
     def _row_view(self, row: JobRow) -> JobView:
@@ -550,6 +835,7 @@ class FarmService:
             created_unix_s=row.created_at.timestamp(),
             finished_unix_s=row.finished_at.timestamp() if row.finished_at else None,
             owner=row.owner,
+            after=tuple(row.after_jobs),
         )
 
     # -------------------------------------------------------------------------- images
@@ -822,10 +1108,14 @@ class FarmService:
         A job that outgrew the tile cache gives its RAM back now (its checkpoint is written):
         its tiles go to its spill file, which its images read until it is dropped."""
 
+        generation = self._generation.get(job_id, 0)
+
         async def forget() -> None:
             while self.scheduler.cache.evict_job(job_id, CHECKPOINT_CHUNK_BYTES):
                 await asyncio.sleep(0)  # a chunk at a time: merges of other jobs go on
             await asyncio.sleep(60)
+            if self._generation.get(job_id, 0) != generation:
+                return  # retried or continued since: that run is forgotten when it finishes
             self.scheduler.forget_job(job_id)
             self.history.pop(job_id, None)
             self.names.pop(job_id, None)
@@ -1141,13 +1431,16 @@ def _tile_snapshot(t, with_aovs: bool) -> tuple:
     acc = t.acc
     aovs = acc.aov_snapshot() if with_aovs else None
     plan = None if t.stopped else Scheduler.planned_batches(t) or None
+    basis = Scheduler.plan_basis(t) or None
     return (
         t.index, acc.samples, acc.batches, acc.nonfinite, t.error, acc.snapshot(), aovs, t.stop,
-        plan,
+        plan, basis,
     )  # fmt: skip
 
 
-def _tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop, plan) -> TileRow:
+def _tile_row(
+    index, samples, batches, nonfinite, error, arrays, aovs, stop, plan, basis
+) -> TileRow:
     return TileRow(
         tile_index=index,
         samples=samples,
@@ -1161,6 +1454,7 @@ def _tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop, pla
         stop_reason=stop.reason.value if stop else None,
         aovs=None if aovs is None else TileAccumulator.snapshot_bytes(aovs, "<f4"),
         batch_plan=plan,
+        plan_basis=basis,
     )
 
 

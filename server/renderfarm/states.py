@@ -1,8 +1,15 @@
-"""Job states, mirrored from renderfarm.v1.JobState (jobs.proto).
+"""Job states, mirrored from renderfarm.v1.JobState (jobs.proto), and the one table of the
+transitions between them (TRANSITIONS). Every change of a job's state goes through
+check_transition, called by Scheduler._transition (which also records it as a job event).
 
+waiting > queued                      the jobs named in `after` have all completed
 queued > running > completed
-queued | running > cancelled
-queued | running > failed
+queued > completed                    restored from a checkpoint whose tiles had all stopped
+queued | running > paused > queued | running (resume: back to where it was)
+paused > completed                    a result that was in flight when it paused was the last
+waiting | queued | running | paused > cancelled | failed
+failed > queued | waiting             retry (waiting again when `after` is not all completed)
+completed > queued                    continue with more samples or a lower noise threshold
 """
 
 from __future__ import annotations
@@ -16,6 +23,8 @@ class JobState(StrEnum):
     COMPLETED = "completed"
     FAILED = "failed"
     CANCELLED = "cancelled"
+    PAUSED = "paused"
+    WAITING = "waiting"
 
     @property
     def finished(self) -> bool:
@@ -27,12 +36,47 @@ class JobState(StrEnum):
 
 
 TRANSITIONS: dict[JobState, frozenset[JobState]] = {
-    JobState.QUEUED: frozenset({JobState.RUNNING, JobState.CANCELLED, JobState.FAILED}),
-    JobState.RUNNING: frozenset({JobState.COMPLETED, JobState.CANCELLED, JobState.FAILED}),
-    JobState.COMPLETED: frozenset(),
-    JobState.FAILED: frozenset(),
+    JobState.WAITING: frozenset({JobState.QUEUED, JobState.CANCELLED, JobState.FAILED}),
+    JobState.QUEUED: frozenset(
+        {
+            JobState.RUNNING,
+            JobState.COMPLETED,
+            JobState.PAUSED,
+            JobState.CANCELLED,
+            JobState.FAILED,
+        }
+    ),
+    JobState.RUNNING: frozenset(
+        {JobState.COMPLETED, JobState.PAUSED, JobState.CANCELLED, JobState.FAILED}
+    ),
+    JobState.PAUSED: frozenset(
+        {
+            JobState.QUEUED,
+            JobState.RUNNING,
+            JobState.COMPLETED,
+            JobState.CANCELLED,
+            JobState.FAILED,
+        }
+    ),
+    JobState.COMPLETED: frozenset({JobState.QUEUED}),
+    JobState.FAILED: frozenset({JobState.QUEUED, JobState.WAITING}),
     JobState.CANCELLED: frozenset(),
 }
+
+
+class TransitionError(ValueError):
+    """A state change TRANSITIONS does not allow (the APIs answer 409 Conflict)."""
+
+    def __init__(self, old: JobState, new: JobState):
+        super().__init__(f"a {old.value} job cannot become {new.value}")
+        self.old = old
+        self.new = new
+
+
+def check_transition(old: JobState, new: JobState) -> None:
+    """Raise TransitionError unless a job in state `old` may go to state `new`."""
+    if new not in TRANSITIONS[old]:
+        raise TransitionError(old, new)
 
 
 class StopReason(StrEnum):

@@ -13,12 +13,14 @@ import math
 import re
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from datetime import UTC, datetime
 from importlib import resources
 from typing import Any
 
 import psycopg
 from psycopg.rows import dict_row
+from psycopg.types.json import Jsonb
 from psycopg_pool import AsyncConnectionPool, TooManyRequests
 
 _MIGRATION_LOCK = 0x52464D31  # advisory lock key for migrations ("RFM1")
@@ -89,6 +91,7 @@ class JobRow:
     tiles_done: int
     owner: str = ""
     tiles_previewed: int = 0
+    after_jobs: list[str] = dataclass_field(default_factory=list)  # ids of the jobs it waits for
 
 
 @dataclass(frozen=True)
@@ -117,12 +120,15 @@ class TileRow:
     aovs: bytes | bytearray | None = None
     # Planned batch sizes (Scheduler.planned_batches); None: nothing planned.
     batch_plan: list[int] | None = None
+    # [count, samples, error or None, before] of each planned batch from PLANNED_FROM on
+    # (Scheduler.plan_basis); None: none recorded.
+    plan_basis: list[list] | None = None
 
 
 _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
     "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner, "
-    "tiles_previewed"
+    "tiles_previewed, after_jobs"
 )
 _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
@@ -288,6 +294,8 @@ class Store:
         scene_sha256: str,
         tiles: int,
         owner: str = "",
+        after: list[str] | None = None,
+        state: str = "queued",
     ) -> JobRow:
         # One statement: the job and its first event are committed together, in one round
         # trip (a burst of submissions holds each pooled connection as briefly as it can).
@@ -295,13 +303,14 @@ class Store:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "WITH job AS (INSERT INTO jobs"
-                " (id, name, state, settings, scene_sha256, tiles_total, owner)"
-                f" VALUES (%s, %s, 'queued', %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
+                " (id, name, state, settings, scene_sha256, tiles_total, owner, after_jobs)"
+                f" VALUES (%s, %s, %s, %s, %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
                 " submitted AS (INSERT INTO events (job_id, kind, data)"
                 " SELECT id, 'job_submitted', %s FROM job)"
                 " SELECT * FROM job",
-                (job_id, name, json.dumps(settings), scene_sha256, tiles, owner,
-                 json.dumps({"name": name})),
+                (job_id, name, state, json.dumps(settings), scene_sha256, tiles, owner,
+                 list(after or []),
+                 json.dumps({"name": name, "state": state, "after": list(after or [])})),
             )  # fmt: skip
             return JobRow(**await cur.fetchone())
 
@@ -340,6 +349,69 @@ class Store:
                     job_id,
                 ),
             )
+
+    async def update_job_spec(self, job_id: str, name: str, settings: dict[str, Any]) -> None:
+        """A job's name and settings after an update or a continue (job control)."""
+        async with self._connection() as conn:
+            await conn.execute(
+                "UPDATE jobs SET name = %s, settings = %s WHERE id = %s",
+                (name, json.dumps(settings), job_id),
+            )
+
+    async def reactivate_job(
+        self,
+        job_id: str,
+        *,
+        settings: dict[str, Any],
+        state: str,
+        elapsed_s: float,
+        render_again: list[int],
+        tiles: list[tuple[int, list[int] | None, list[list] | None, Any]],
+    ) -> None:
+        """A finished job brought back (retry, continue), in one transaction: its new settings
+        and state, the checkpoints of the tiles that render again from their first sample
+        dropped, and each kept tile's plan, plan basis and stop record (index, batch_plan,
+        plan_basis, scheduler.StopRecord or None) as the new settings have them. A crash then
+        finds the job either as it was or as it is now, never half way."""
+        async with self._connection() as conn, conn.transaction():
+            await conn.execute(
+                "DELETE FROM tiles WHERE job_id = %s AND tile_index = ANY(%s)",
+                (job_id, render_again),
+            )
+            async with conn.cursor() as cur:
+                await cur.executemany(
+                    "UPDATE tiles SET batch_plan = %s, plan_basis = %s, stop_batch = %s,"
+                    " stop_spp = %s, stop_error = %s, stop_reason = %s"
+                    " WHERE job_id = %s AND tile_index = %s",
+                    [
+                        (
+                            plan,
+                            None if basis is None else Jsonb(basis),
+                            stop.batch_index if stop else None,
+                            stop.spp if stop else None,
+                            _finite(stop.error) if stop else None,
+                            stop.reason.value if stop else None,
+                            job_id,
+                            index,
+                        )
+                        for index, plan, basis, stop in tiles
+                    ],
+                )
+            await conn.execute(
+                "UPDATE jobs SET settings = %s, state = %s, error = '', finished_at = NULL,"
+                " elapsed_s = %s WHERE id = %s",
+                (json.dumps(settings), state, elapsed_s, job_id),
+            )
+
+    async def waiting_for(self, job_id: str) -> list[str]:
+        """Ids of the unfinished jobs that wait for this one (`after`)."""
+        async with self._connection() as conn:
+            cur = await conn.execute(
+                "SELECT id FROM jobs WHERE %s = ANY(after_jobs)"
+                " AND state IN ('waiting', 'queued', 'running', 'paused')",
+                (job_id,),
+            )
+            return [r[0] for r in await cur.fetchall()]
 
     async def get_job(self, job_id: str) -> JobRow | None:
         async with self._connection() as conn:
@@ -402,7 +474,8 @@ class Store:
         async with self._connection(internal=True) as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
-                f"SELECT {_JOB_COLUMNS} FROM jobs WHERE state IN ('queued', 'running')"
+                f"SELECT {_JOB_COLUMNS} FROM jobs"
+                " WHERE state IN ('queued', 'running', 'paused', 'waiting')"
                 " ORDER BY created_at"
             )
             return [JobRow(**r) for r in await cur.fetchall()]
@@ -417,15 +490,16 @@ class Store:
                 await cur.executemany(
                     "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
                     " accumulators, stop_batch, stop_spp, stop_error, stop_reason, aovs,"
-                    " batch_plan)"
-                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
+                    " batch_plan, plan_basis)"
+                    " VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
                     " ON CONFLICT (job_id, tile_index) DO UPDATE SET samples = excluded.samples,"
                     " batches = excluded.batches, nonfinite = excluded.nonfinite,"
                     " error = excluded.error, accumulators = excluded.accumulators,"
                     " stop_batch = excluded.stop_batch, stop_spp = excluded.stop_spp,"
                     " stop_error = excluded.stop_error, stop_reason = excluded.stop_reason,"
                     " aovs = COALESCE(excluded.aovs, tiles.aovs),"
-                    " batch_plan = excluded.batch_plan, updated_at = now()"
+                    " batch_plan = excluded.batch_plan, plan_basis = excluded.plan_basis,"
+                    " updated_at = now()"
                     # Never move a tile backwards (a slow writer racing a newer checkpoint).
                     " WHERE tiles.batches <= excluded.batches",
                     [
@@ -443,6 +517,7 @@ class Store:
                             r.stop_reason,
                             r.aovs,
                             r.batch_plan,
+                            None if r.plan_basis is None else Jsonb(r.plan_basis),
                         )
                         for r in rows
                     ],
@@ -458,7 +533,7 @@ class Store:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "SELECT tile_index, samples, batches, nonfinite, error, accumulators,"
-                " stop_batch, stop_spp, stop_error, stop_reason, aovs, batch_plan"
+                " stop_batch, stop_spp, stop_error, stop_reason, aovs, batch_plan, plan_basis"
                 " FROM tiles WHERE job_id = %s AND tile_index BETWEEN %s AND %s"
                 " ORDER BY tile_index",
                 (job_id, first, last),

@@ -44,6 +44,11 @@ CALLS = {
     "image": ((JOB, "png", "rgb"), {}),
     "image_file": ((JOB, "png", "rgb"), {}),
     "convergence": ((JOB,), {}),
+    "pause": ((JOB,), {}),
+    "resume": ((JOB,), {}),
+    "retry": ((JOB,), {}),
+    "update": ((JOB,), {"priority": 5}),
+    "continue_": ((JOB,), {"raw_settings": {"max_spp": 2048}}),
 }
 
 

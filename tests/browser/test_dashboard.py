@@ -255,3 +255,48 @@ def test_a_narrow_window_keeps_every_page_usable(page: Page, client):
         width = page.evaluate("() => document.documentElement.scrollWidth")
         assert width <= 420, f"{name} page overflows horizontally ({width} px)"
         screenshot(page, f"narrow-{name}")
+
+
+def test_job_control_pause_resume_edit_and_continue(page: Page, problems, client, scene_glb):
+    job = client.submit(scene_glb, name="browser-control", settings=LONG)
+    page.goto(f"/#/jobs/{job['id']}")
+    expect(page.locator(".badge").first).to_have_text("running", timeout=30_000)
+    expect(page.get_by_role("button", name="Resume")).to_be_hidden()
+    page.get_by_role("button", name="Pause").click()
+    expect(page.locator(".badge").first).to_have_text("paused")
+    expect(page.get_by_role("button", name="Pause")).to_be_hidden()
+    assert client.get(job["id"])["state"] == "paused"
+    screenshot(page, "job-paused")
+    page.get_by_role("button", name="Resume").click()
+    expect(page.locator(".badge").first).to_have_text("running")
+    page.fill("#edit-priority", "7")
+    page.fill("#edit-name", "browser-renamed")
+    page.get_by_role("button", name="Save").click()
+    expect(page.locator("h1")).to_have_text("browser-renamed")
+    got = client.get(job["id"])
+    assert (got["settings"]["priority"], got["name"]) == (7, "browser-renamed")
+    page.get_by_role("button", name="Cancel job").click()
+    page.get_by_role("button", name="Yes, cancel").click()
+    expect(page.locator(".badge").first).to_have_text("cancelled")
+
+    # A completed job is carried on to more samples; a refusal names its field.
+    small = {"width": 64, "height": 64, "tile_size": 32, "noise_threshold": 0, "max_spp": 16}
+    done = client.submit(scene_glb, name="browser-continue", settings=small)
+    assert wait_finished(client, done["id"])["state"] == "completed"
+    page.goto(f"/#/jobs/{done['id']}")
+    expect(page.locator(".badge").first).to_have_text("completed")
+    expect(page.locator("#continue-max-spp")).to_have_value("32")
+    problems.expect("POST", r"/continue$", 400)
+    page.fill("#continue-noise-threshold", "0.5")
+    page.get_by_role("button", name="Continue").click()
+    message = page.locator(".control-message")
+    expect(message).to_contain_text("settings.noise_threshold")
+    expect(message).to_have_attribute("data-field", "settings.noise_threshold")
+    page.fill("#continue-noise-threshold", "0")
+    page.get_by_role("button", name="Continue").click()
+    expect(page.locator('[data-stat="spp"]')).to_contain_text("/ 32", timeout=30_000)
+    expect(page.locator(".badge").first).to_have_text("completed", timeout=60_000)
+    assert client.get(done["id"])["progress"]["mean_spp"] == 32
+    expect(page.locator('.settings-list [data-setting="max_spp"]')).to_have_text("32")
+    expect(page.locator(".event-log")).to_contain_text("job continued")
+    screenshot(page, "job-continued")

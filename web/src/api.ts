@@ -1,8 +1,8 @@
 // The server's REST API (/api/v1) as typed functions. Errors carry the server's message and the
 // offending field ({"detail", "field"}), so forms can show them beside the field.
 
-export type JobState = "queued" | "running" | "completed" | "failed" | "cancelled";
-export const JOB_STATES: JobState[] = ["queued", "running", "completed", "failed", "cancelled"];
+export type JobState = "waiting" | "queued" | "running" | "paused" | "completed" | "failed" | "cancelled";
+export const JOB_STATES: JobState[] = ["waiting", "queued", "running", "paused", "completed", "failed", "cancelled"];
 
 export interface Progress {
   tiles_total: number;
@@ -37,6 +37,7 @@ export interface Job {
   error: string;
   created_unix_s: number;
   finished_unix_s: number | null;
+  after?: string[]; // ids of the jobs it waits for
 }
 
 export interface StopRecord {
@@ -159,6 +160,23 @@ export const jobEvents = (id: string) =>
   request<JobEvent[]>(`${BASE}/jobs/${encodeURIComponent(id)}/events`);
 export const cancelJob = (id: string) =>
   request<Job>(`${BASE}/jobs/${encodeURIComponent(id)}/cancel`, { method: "POST" });
+const jobPost = (id: string, action: string, body?: unknown) =>
+  request<Job>(`${BASE}/jobs/${encodeURIComponent(id)}/${action}`, {
+    method: "POST",
+    ...(body === undefined ? {} : { headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) }),
+  });
+export const pauseJob = (id: string) => jobPost(id, "pause");
+export const resumeJob = (id: string) => jobPost(id, "resume");
+export const retryJob = (id: string) => jobPost(id, "retry");
+/** Carries a completed job on: a higher max_spp and/or a lower noise_threshold. */
+export const continueJob = (id: string, settings: { max_spp?: number; noise_threshold?: number }) =>
+  jobPost(id, "continue", { settings });
+export const updateJob = (id: string, change: { priority?: number; name?: string }) =>
+  request<Job>(`${BASE}/jobs/${encodeURIComponent(id)}`, {
+    method: "PATCH",
+    headers: { "Content-Type": "application/json" },
+    body: JSON.stringify(change),
+  });
 export const workers = () => request<Worker[]>(`${BASE}/workers`);
 export const convergence = (id: string) =>
   request<ConvergencePoint[]>(`${BASE}/jobs/${encodeURIComponent(id)}/convergence`);

@@ -1,5 +1,6 @@
 // Job page: the image refining live over Server-Sent Events, the error-against-time plot,
-// settings, tile stop records, the event log, cancel and downloads.
+// settings, tile stop records, the event log, cancel, job control (pause, resume, retry,
+// continue, priority and name) and downloads.
 
 import {
   ApiError,
@@ -8,11 +9,16 @@ import {
   type JobDetail,
   type JobEvent,
   cancelJob,
+  continueJob,
   convergence,
   getJob,
   imageUrl,
   jobEvents,
+  pauseJob,
+  resumeJob,
+  retryJob,
   serverHas,
+  updateJob,
   watchUrl,
 } from "../api";
 import { type ErrorPoint, convergencePlot } from "../chart";
@@ -75,6 +81,44 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       h("button", { type: "button", class: "button danger", "data-action": "confirm-cancel" }, "Yes, cancel"),
       h("button", { type: "button", class: "button secondary", "data-action": "keep" }, "Keep rendering"),
     );
+    // Job control: each button shows in the states where the server allows it.
+    const controlButton = (action: string, text: string) =>
+      h("button", { type: "button", class: "button secondary", "data-action": action }, text);
+    const pauseButton = controlButton("pause", "Pause");
+    const resumeButton = controlButton("resume", "Resume");
+    const retryButton = controlButton("retry", "Retry");
+    const controlMessage = h("p", { class: "control-message small", role: "status", "data-field": "" });
+    const numberInput = (id: string, step: string) => h("input", { id, type: "number", step, min: "0", class: "input" }) as HTMLInputElement;
+    const maxSppInput = numberInput("continue-max-spp", "1");
+    const thresholdInput = numberInput("continue-noise-threshold", "any");
+    const continueForm = h(
+      "form",
+      { class: "control-form", "data-form": "continue", "aria-label": "Continue with more samples" },
+      h("label", { for: "continue-max-spp" }, "Max spp"),
+      maxSppInput,
+      h("label", { for: "continue-noise-threshold" }, "Noise threshold"),
+      thresholdInput,
+      h("button", { type: "submit", class: "button", "data-action": "continue" }, "Continue"),
+    ) as HTMLFormElement;
+    const priorityInput = h("input", { id: "edit-priority", type: "number", step: "1", min: "-1000", max: "1000", class: "input" }) as HTMLInputElement;
+    const nameInput = h("input", { id: "edit-name", type: "text", maxlength: "200", class: "input" }) as HTMLInputElement;
+    const editForm = h(
+      "form",
+      { class: "control-form", "data-form": "edit", "aria-label": "Priority and name" },
+      h("label", { for: "edit-priority" }, "Priority"),
+      priorityInput,
+      h("label", { for: "edit-name" }, "Name"),
+      nameInput,
+      h("button", { type: "submit", class: "button secondary", "data-action": "save" }, "Save"),
+    ) as HTMLFormElement;
+    const title = h("h1", {}, initial.name || "(unnamed)");
+    const fillForms = (j: Job) => {
+      maxSppInput.value = String(j.settings.max_spp * 2);
+      thresholdInput.value = String(j.settings.noise_threshold);
+      priorityInput.value = String(j.settings.priority);
+      nameInput.value = j.name;
+    };
+
     const safeName = (job.name || job.id).replace(/[^\w.-]+/g, "_");
     const actions = h(
       "div",
@@ -84,6 +128,9 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       st.denoise === true
         ? h("a", { class: "button secondary", href: imageUrl(jobId, "png", "denoised"), download: `${safeName}-denoised.png` }, "Download denoised PNG")
         : null,
+      pauseButton,
+      resumeButton,
+      retryButton,
       cancelButton,
       confirmBox,
     );
@@ -153,7 +200,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     const settingsList = h(
       "dl",
       { class: "settings-list" },
-      Object.entries(st).map(([k, v]) => [h("dt", { title: k }, label(k)), h("dd", { class: "mono" }, v === "" ? "-" : String(v))]),
+      Object.entries(st).map(([k, v]) => [h("dt", { title: k }, label(k)), h("dd", { class: "mono", "data-setting": k }, v === "" ? "-" : String(v))]),
       h("dt", {}, "Scene"),
       h("dd", { class: "mono", title: initial.scene_sha256 }, initial.scene_sha256.slice(0, 16) + "…"),
       h("dt", {}, "Created"),
@@ -247,6 +294,16 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       const finished = FINISHED.has(j.state);
       cancelButton.hidden = finished || !confirmBox.hidden;
       if (finished) confirmBox.hidden = true;
+      pauseButton.hidden = !(j.state === "queued" || j.state === "running");
+      resumeButton.hidden = j.state !== "paused";
+      retryButton.hidden = j.state !== "failed";
+      continueForm.hidden = j.state !== "completed";
+      setText(title, j.name || "(unnamed)");
+      // Priority, max_spp and noise_threshold change with an update or a continue.
+      for (const [k, v] of Object.entries(j.settings)) {
+        const cell = settingsList.querySelector<HTMLElement>(`[data-setting="${k}"]`);
+        if (cell) setText(cell, v === "" ? "-" : String(v));
+      }
       failure.hidden = !j.error;
       setText(failure, j.error ? `This job failed: ${j.error}` : "");
       addPoint(p.elapsed_s, p.error);
@@ -257,7 +314,47 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
         details.request();
       }
       if (finished && !wasFinished) void onFinished();
+      if (!finished && wasFinished) openStream(); // retried or continued: live again
     };
+
+    // Runs a job-control request; a refusal is shown with the field the server named.
+    const control = async (button: HTMLButtonElement, act: () => Promise<Job>, done: string) => {
+      button.disabled = true;
+      try {
+        const j = await act();
+        show(j);
+        fillForms(j);
+        controlMessage.classList.remove("error");
+        controlMessage.dataset.field = "";
+        setText(controlMessage, `${done}: the job is ${j.state}.`);
+        details.request();
+      } catch (e) {
+        controlMessage.classList.add("error");
+        controlMessage.dataset.field = e instanceof ApiError ? e.field : "";
+        const field = e instanceof ApiError && e.field ? ` (${e.field})` : "";
+        setText(controlMessage, `${(e as Error).message}${field}`);
+      } finally {
+        button.disabled = false;
+      }
+    };
+    pauseButton.addEventListener("click", () => void control(pauseButton, () => pauseJob(jobId), "Paused"));
+    resumeButton.addEventListener("click", () => void control(resumeButton, () => resumeJob(jobId), "Resumed"));
+    retryButton.addEventListener("click", () => void control(retryButton, () => retryJob(jobId), "Retried"));
+    continueForm.addEventListener("submit", (ev) => {
+      ev.preventDefault();
+      const change: { max_spp?: number; noise_threshold?: number } = {};
+      if (maxSppInput.value !== "") change.max_spp = Number(maxSppInput.value);
+      if (thresholdInput.value !== "") change.noise_threshold = Number(thresholdInput.value);
+      const button = continueForm.querySelector<HTMLButtonElement>("button")!;
+      void control(button, () => continueJob(jobId, change), "Continued");
+    });
+    editForm.addEventListener("submit", (ev) => {
+      ev.preventDefault();
+      const change: { priority?: number; name?: string } = { name: nameInput.value };
+      if (priorityInput.value !== "") change.priority = Number(priorityInput.value);
+      const button = editForm.querySelector<HTMLButtonElement>("button")!;
+      void control(button, () => updateJob(jobId, change), "Saved");
+    });
 
     const onFinished = async () => {
       source?.close();
@@ -300,7 +397,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       h(
         "div",
         { class: "page-head" },
-        h("div", { class: "title-group" }, h("h1", {}, initial.name || "(unnamed)"), badge),
+        h("div", { class: "title-group" }, title, badge),
         actions,
       ),
       failure,
@@ -314,6 +411,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
           "div",
           { class: "job-side" },
           card("Error against time", plotBox, plotNote),
+          card("Job control", continueForm, editForm, controlMessage),
           card("Settings", settingsList),
         ),
       ),
@@ -325,7 +423,21 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       ),
     );
 
+    function openStream() {
+      source?.close();
+      source = new EventSource(watchUrl(jobId));
+      source.addEventListener("job", (ev) => {
+        setConnection(true);
+        if (!disposed) show(JSON.parse((ev as MessageEvent).data) as Job);
+      });
+      source.onerror = () => {
+        // The stream ends after the final state (handled in show); otherwise EventSource retries.
+        if (source && source.readyState !== EventSource.OPEN) setConnection(false, "Live updates interrupted, reconnecting…");
+      };
+    }
+
     show(initial);
+    fillForms(initial);
     renderStops(initial);
     details.request();
     if (FINISHED.has(initial.state)) {
@@ -334,15 +446,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     }
     void loadHistory().then(() => drawPlot());
     drawPlot();
-    source = new EventSource(watchUrl(jobId));
-    source.addEventListener("job", (ev) => {
-      setConnection(true);
-      if (!disposed) show(JSON.parse((ev as MessageEvent).data) as Job);
-    });
-    source.onerror = () => {
-      // The stream ends after the final state (handled in show); otherwise EventSource retries.
-      if (source && source.readyState !== EventSource.OPEN) setConnection(false, "Live updates interrupted, reconnecting…");
-    };
+    openStream();
   };
 
   void start();

@@ -42,6 +42,8 @@ function makeRow(job: Job): Row {
   );
   const update = (j: Job) => {
     updateBadge(badge, j.state);
+    // A waiting job names the jobs it waits for (submitted with `after`).
+    badge.title = j.state === "waiting" && j.after?.length ? `waits for ${j.after.join(", ")}` : "";
     bar.update(j.progress, j.state);
     // `owner` arrives with auth tokens; until then the column shows "-".
     setText(owner, j.owner || "-");
