@@ -4,6 +4,8 @@ with every tile, images from spilled tiles, a last checkpoint that gives up at i
 from __future__ import annotations
 
 import asyncio
+from datetime import UTC, datetime
+from types import SimpleNamespace
 
 import numpy as np
 from test_scheduler import render
@@ -36,6 +38,9 @@ class RecordingStore:
 
     async def add_events(self, events):
         pass
+
+    async def get_job(self, job_id):  # what an image reads of the job's row: its times
+        return SimpleNamespace(created_at=datetime(2026, 1, 2, tzinfo=UTC), finished_at=None)
 
 
 def farm(tmp_path, cache_mb: int, store=None) -> FarmService:
@@ -81,7 +86,7 @@ def test_a_large_checkpoint_is_written_in_chunks_holding_every_tile(tmp_path, mo
 def test_images_of_a_spilled_job_are_those_of_one_in_ram(tmp_path):
     files = {}
     for name, cache_mb in (("ram", 64), ("spilled", 1)):
-        service = farm(tmp_path / name, cache_mb)
+        service = farm(tmp_path / name, cache_mb, RecordingStore())
         merge_batches(service, 3)
         for fmt, layer, size in (("exr", "rgb", 0), ("png", "rgb", 0), ("png", "error", 100)):
 
