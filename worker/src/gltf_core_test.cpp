@@ -982,7 +982,8 @@ TEST(MaterialsVolume, InvalidParametersAreRefusedNamingTheField) {
 // The first-hit albedo of an 8 x 8 image of the unit quad seen through an orthographic camera
 // that frames it exactly, its base colour a 16 x 16 grey texture (sRGB-encoded bytes, as glTF
 // base colour textures are): every pixel covers 2 x 2 texels.
-std::vector<double> albedo_image(const std::vector<unsigned char>& texels, uint32_t spp) {
+std::vector<double> albedo_image(const std::vector<unsigned char>& texels, uint32_t spp,
+                                 const std::string& sampler = "{}") {
   const std::string json = R"({"asset": {"version": "2.0"}, "scene": 0,
   "scenes": [{"nodes": [0, 1]}],
   "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 0, 2]}],
@@ -992,7 +993,7 @@ std::vector<double> albedo_image(const std::vector<unsigned char>& texels, uint3
                               "indices": 3, "material": 0}]}],
   "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
                  "metallicFactor": 0}}],
-  "textures": [{"source": 0}],
+  "textures": [{"source": 0, "sampler": 0}], "samplers": [)" + sampler + R"(],
   "images": [{"uri": ")" + testing::png_data_uri(16, 16, 1, texels) + R"("}],
   )" + testing::quad_gltf_buffers_json() + "}";
   const Scene scene(load_gltf_from_string(json, "", "texels.gltf", nullptr));
@@ -1030,6 +1031,12 @@ TEST(Textures, AOneTexelLineConvergesToItsReconstructionsIntegral) {
       const double expected = x == 2 ? 7.0 / 16.0 : x == 3 ? 1.0 / 16.0 : 0.0;
       EXPECT_NEAR(image[size_t(y * 8 + x)], expected, 0.01) << x << "," << y;
     }
+  // A sampler with magFilter NEAREST (9728) makes the texture the texels themselves: the line
+  // is half of pixel column 2 and nothing of the others.
+  const std::vector<double> nearest = albedo_image(line, 256, R"({"magFilter": 9728})");
+  for (int y = 0; y < 8; ++y)
+    for (int x = 0; x < 8; ++x)
+      EXPECT_NEAR(nearest[size_t(y * 8 + x)], x == 2 ? 0.5 : 0.0, 0.01) << x << "," << y;
 }
 
 }  // namespace

@@ -127,6 +127,11 @@ class Loader {
       if (gt.sampler >= 0 && gt.sampler < int(model_.samplers.size())) {
         src.wrap_s = wrap(model_.samplers[size_t(gt.sampler)].wrapS);
         src.wrap_t = wrap(model_.samplers[size_t(gt.sampler)].wrapT);
+        // glTF 3.8.4: magFilter NEAREST or LINEAR (bilinear, also when undefined). The
+        // minification filter is the pixel integral itself: samples spread over the pixel
+        // average the texels it covers, which a MIP level would blur beyond it.
+        src.nearest =
+            model_.samplers[size_t(gt.sampler)].magFilter == TINYGLTF_TEXTURE_FILTER_NEAREST;
       }
       if (gt.source < 0 || gt.source >= int(model_.images.size())) {
         warn(src.name + ": missing image; texture ignored");

@@ -334,8 +334,9 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       std::string err;
       const int index =
           t.bytes.empty()
-              ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err, srgb)
-              : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err, srgb);
+              ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err, srgb, t.nearest)
+              : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err, srgb,
+                                      t.nearest);
       texture_index[srgb][i] = index;
       if (index < 0) {
         if (warnings) warnings->push_back(desc_.source + ": " + t.name + " ignored: " + err);

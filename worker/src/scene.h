@@ -222,6 +222,7 @@ struct TextureSource {
   std::string mime_type;
   std::string path;  // used if bytes is empty
   TextureWrap wrap_s = TextureWrap::Repeat, wrap_t = TextureWrap::Repeat;
+  bool nearest = false;  // the sampler's magFilter is NEAREST: the closest texel, unfiltered
 };
 
 // Everything needed to build a Scene; filled by the glTF loader or directly by tests.

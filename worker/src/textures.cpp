@@ -113,6 +113,7 @@ struct TextureSet::Entry {
   // sRGB textures: the linear copy's path, made at the first lookup (std::call_once), whose
   // handle then replaces the encoded image's. If it cannot be made, lookups decode after
   // filtering (decode_after), as a last resort that keeps the render going.
+  bool nearest = false;  // InterpClosest instead of InterpBilinear
   bool srgb = false;
   std::string linear_path;
   mutable std::once_flag linear_once;
@@ -124,13 +125,13 @@ TextureSet::TextureSet() = default;
 TextureSet::~TextureSet() = default;
 
 int TextureSet::add_file(const std::string& path, TextureWrap wrap_s, TextureWrap wrap_t,
-                         std::string* error, bool srgb) {
+                         std::string* error, bool srgb, bool nearest) {
   if (srgb) {  // by its bytes: the linear copy is named by their hash
     std::ifstream in(path, std::ios::binary);
     const std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)),
                                            std::istreambuf_iterator<char>());
     if (!in.bad() && !bytes.empty())
-      return add_encoded(bytes, "", wrap_s, wrap_t, error, true);
+      return add_encoded(bytes, "", wrap_s, wrap_t, error, true, nearest);
   }
   OIIO::TextureSystem* ts = texture_system();
   auto e = std::make_unique<Entry>();
@@ -155,13 +156,14 @@ int TextureSet::add_file(const std::string& path, TextureWrap wrap_s, TextureWra
   e->channels = channels;
   e->wrap_s = wrap_s;
   e->wrap_t = wrap_t;
+  e->nearest = nearest;
   entries_.push_back(std::move(e));
   return int(entries_.size() - 1);
 }
 
 int TextureSet::add_encoded(const std::vector<unsigned char>& bytes, const std::string& mime,
                             TextureWrap wrap_s, TextureWrap wrap_t, std::string* error,
-                            bool srgb) {
+                            bool srgb, bool nearest) {
   if (bytes.empty()) {
     if (error) *error = "image has no data";
     return -1;
@@ -199,7 +201,7 @@ int TextureSet::add_encoded(const std::vector<unsigned char>& bytes, const std::
       return -1;
     }
   }
-  const int index = add_file(path.string(), wrap_s, wrap_t, error);
+  const int index = add_file(path.string(), wrap_s, wrap_t, error, false, nearest);
   if (index >= 0 && srgb) {
     Entry& e = *entries_[size_t(index)];
     e.srgb = true;
@@ -225,7 +227,7 @@ bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
   OIIO::TextureOpt opt;
   opt.swrap = to_oiio(e.wrap_s);
   opt.twrap = to_oiio(e.wrap_t);
-  opt.interpmode = OIIO::TextureOpt::InterpBilinear;
+  opt.interpmode = e.nearest ? OIIO::TextureOpt::InterpClosest : OIIO::TextureOpt::InterpBilinear;
   opt.mipmode = OIIO::TextureOpt::MipModeNoMIP;  // no ray differentials: finest level
   float result[4] = {1.f, 1.f, 1.f, 1.f};
   // Gray images (one channel, or gray and alpha) give their gray to red, green and blue; the

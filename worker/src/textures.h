@@ -33,10 +33,13 @@ class TextureSet {
   // never looks up a texel, costs nothing), next to the encoded image in the cache directory.
   // Alpha is never encoded.
   int add_encoded(const std::vector<unsigned char>& bytes, const std::string& mime_type,
-                  TextureWrap wrap_s, TextureWrap wrap_t, std::string* error, bool srgb = false);
+                  TextureWrap wrap_s, TextureWrap wrap_t, std::string* error, bool srgb = false,
+                  bool nearest = false);
   // Registers an image file. Returns -1 with *error set if it cannot be read.
+  // nearest: lookups take the closest texel instead of the bilinear blend (a glTF sampler's
+  // magFilter NEAREST).
   int add_file(const std::string& path, TextureWrap wrap_s, TextureWrap wrap_t,
-               std::string* error, bool srgb = false);
+               std::string* error, bool srgb = false, bool nearest = false);
   size_t size() const { return entries_.size(); }
   // Width x height of texture i's image (its finest level).
   uint64_t pixels(int texture) const;
