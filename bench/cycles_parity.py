@@ -81,10 +81,10 @@ def run_blender(script: Path, args: list[str], out: Path, what: str) -> dict:
     sys.exit(f"{what} failed (exit {proc.returncode}):\n{tail}")
 
 
-def generate_scenes(names: list[str], out: Path) -> dict[str, Path]:
-    written = run_blender(SUPPORT / "parity_scenes.py", [str(out / "scenes"), *names], out,
-                          "Blender exporting the parity scenes")  # fmt: skip
-    return {name: Path(path) for name, path in written.items()}
+def generate_scenes(names: list[str], out: Path) -> dict[str, dict]:
+    """{name: {"scene": glb path, "environment": map path or None}} of the parity scenes."""
+    return run_blender(SUPPORT / "parity_scenes.py", [str(out / "scenes"), *names], out,
+                       "Blender exporting the parity scenes")  # fmt: skip
 
 
 def rgb(path: Path) -> np.ndarray:
@@ -92,7 +92,7 @@ def rgb(path: Path) -> np.ndarray:
     return np.stack([ch[c] for c in CHANNELS], axis=-1).astype(np.float64)
 
 
-def render_cycles(scene: Path, name: str, args, out: Path) -> dict:
+def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> dict:
     """K renders at --spp, then the reference; their images and seconds."""
     scratch = out / "renders" / name
     scratch.mkdir(parents=True, exist_ok=True)
@@ -102,7 +102,7 @@ def render_cycles(scene: Path, name: str, args, out: Path) -> dict:
     ref = {"spp": args.reference_spp, "seed": 1000, "path": str(scratch / "cycles-reference.exr")}
     config = {"scene": str(scene), "width": args.width, "height": args.height,
               "max_depth": args.max_depth, "threads": args.threads,
-              "renders": [*renders, ref]}  # fmt: skip
+              "renders": [*renders, ref], "environment": env}  # fmt: skip
     config_path = scratch / "cycles.json"
     config_path.write_text(json.dumps(config))
     result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
@@ -118,7 +118,9 @@ def render_cycles(scene: Path, name: str, args, out: Path) -> dict:
 WORKER_RATE = re.compile(r"in ([0-9.]+) s: ([0-9.]+) samples/s")
 
 
-def render_worker(scene: Path, name: str, spp: int, args, out: Path, tag: str) -> dict:
+def render_worker(
+    scene: Path, env: dict | None, name: str, spp: int, args, out: Path, tag: str
+) -> dict:
     """K renders at spp with the standalone worker; their images and wall-clock seconds (the
     process: scene load, BVH build, sampling, writing the EXR)."""
     scratch = out / "renders" / name
@@ -130,6 +132,10 @@ def render_worker(scene: Path, name: str, spp: int, args, out: Path, tag: str) -
                "--width", str(args.width), "--height", str(args.height),
                "--threads", str(args.threads), "--seed", str(k + 1),
                "--max-depth", str(args.max_depth)]  # fmt: skip
+        if env:
+            cmd += ["--environment", env["path"], "--environment-intensity",
+                    repr(env["intensity"]), "--environment-rotation-deg",
+                    repr(env["rotation_deg"])]  # fmt: skip
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         seconds.append(time.perf_counter() - start)
@@ -273,18 +279,19 @@ def equal_time_spp(spp: int, cycles_s: float, wrk: dict) -> int:
     return max(1, round(spp * max(cycles_s - fixed, 0.0) / max(sampling, 1e-9)))
 
 
-def run_scene(name: str, scene: Path, args, rects, out: Path) -> dict:
+def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) -> dict:
     print(f"{name}: Cycles ({args.renders} x {args.spp} spp + reference "
           f"{args.reference_spp} spp)", flush=True)  # fmt: skip
-    cyc = render_cycles(scene, name, args, out)
+    cyc = render_cycles(scene, env, name, args, out)
     print(f"{name}: worker ({args.renders} x {args.spp} spp)", flush=True)
-    wrk = render_worker(scene, name, args.spp, args, out, "equal-spp")
+    wrk = render_worker(scene, env, name, args.spp, args, out, "equal-spp")
     spp_t = equal_time_spp(args.spp, float(np.mean(cyc["seconds"])), wrk)
     print(f"{name}: worker at equal time ({args.renders} x {spp_t} spp)", flush=True)
-    wrk_t = render_worker(scene, name, spp_t, args, out, "equal-time")
+    wrk_t = render_worker(scene, env, name, spp_t, args, out, "equal-time")
     figures = {
         "scene": name,
         "file": str(scene),
+        "environment": env,
         "description": SCENES.get(name, ""),
         "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
                                                    "renders", "threads", "max_depth", "grid")},
@@ -366,10 +373,20 @@ def main() -> list[dict]:
         default=[],
         help="a further region X0,Y0,X1,Y1 (pixels, rows from the top)",
     )
-    args = parser.parse_args()  # fmt: skip
+    parser.add_argument(
+        "--environment",
+        type=Path,
+        help="an equirectangular .hdr/.exr lighting both renders (as the farm's "
+        "environment setting); a parity scene may bring its own",
+    )
+    parser.add_argument("--environment-intensity", type=float, default=1.0)
+    parser.add_argument("--environment-rotation-deg", type=float, default=0.0)
+    args = parser.parse_args()
     for key in ("width", "height", "spp", "reference_spp", "threads", "max_depth", "grid"):
         if getattr(args, key) < 1:
             parser.error(f"--{key.replace('_', '-')} must be >= 1")
+    if not args.environment_intensity > 0:
+        parser.error("--environment-intensity must be > 0")
     if args.renders < 2:
         parser.error("--renders must be >= 2 (the noise is estimated across renders)")
     for x0, y0, x1, y1 in args.region:
@@ -382,6 +399,8 @@ def main() -> list[dict]:
     args.suite = args.suite or not args.scene
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
+    if args.environment is not None and not args.environment.is_file():
+        parser.error(f"--environment {args.environment}: no such file")
     if args.suite or args.scene in SCENES:
         names = list(SCENES) if args.suite else [args.scene]
         scenes = generate_scenes(names, out)
@@ -390,8 +409,17 @@ def main() -> list[dict]:
         if not path.is_file():
             parser.error(f"scene {args.scene!r}: neither a file nor a parity scene "
                          f"({', '.join(SCENES)})")  # fmt: skip
-        scenes = {path.stem: path.resolve()}
-    all_figures = [run_scene(name, path, args, args.region, out) for name, path in scenes.items()]
+        scenes = {path.stem: {"scene": str(path.resolve()), "environment": None}}
+    all_figures = []
+    for name, files in scenes.items():
+        # A parity scene's own map, else --environment; either with --environment-intensity
+        # and --environment-rotation-deg.
+        env_map = files["environment"] or (args.environment and str(args.environment.resolve()))
+        env = None
+        if env_map:
+            env = {"path": env_map, "intensity": args.environment_intensity,
+                   "rotation_deg": args.environment_rotation_deg}  # fmt: skip
+        all_figures.append(run_scene(name, Path(files["scene"]), env, args, args.region, out))
     print_table(all_figures)
     if len(all_figures) > 1:
         (out / "parity.json").write_text(json.dumps(all_figures, indent=2) + "\n")

@@ -4,7 +4,8 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
     .venv-blender/bin/python bench/support/cycles_render.py CONFIG.json
 
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
-"renders": [{"spp", "seed", "path"}, ...]}. The scene is imported once with Blender's own glTF
+"renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
+"rotation_deg"}}. The scene is imported once with Blender's own glTF
 importer (lights in the COMPAT units the exporter of the parity scenes and the Blender add-on
 use), then rendered once per entry of "renders" into a 32-bit float linear EXR (R, G, B: the
 Combined pass of the render result, no view transform, no compositor). Prints
@@ -16,6 +17,7 @@ import).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 
@@ -84,8 +86,10 @@ def match_settings(scene: bpy.types.Scene) -> None:
     scene.view_settings.look = "None"
     scene.view_settings.exposure = 0.0
     scene.view_settings.gamma = 1.0
-    # Black world: the farm renders black where rays escape (no environment map).
+    # Black world, as the farm renders where rays escape without an environment map.
     scene.world = None
+    if CONFIG.get("environment"):
+        scene.world = environment_world(CONFIG["environment"])
     for obj in scene.objects:
         # Shadow-terminator fixes move shadow rays off the surface or bend the shading
         # normal's cosine; the farm does neither.
@@ -96,6 +100,35 @@ def match_settings(scene: bpy.types.Scene) -> None:
     settings.color_depth = "32"
     settings.color_mode = "RGB"
     settings.exr_codec = "ZIP"
+
+
+def environment_world(env: dict) -> bpy.types.World:
+    """The farm's environment map as Cycles' world: the same texels (closest, as the farm
+    looks them up) at the same directions, radiance times the intensity.
+
+    The farm's map (glTF, +Y up) puts column u = 0.5 along -Z (Blender's +Y) and turns the map
+    by rotation_deg about +Y (Blender's +Z); Blender's equirectangular lookup puts u = 0.5
+    along +X. Both grow u the same way round, so rotating the lookup direction by
+    -(90 degrees + rotation_deg) about Z makes Blender read the texel the farm reads."""
+    world = bpy.data.worlds.new("Environment")
+    tree = world.node_tree
+    tree.nodes.clear()
+    coords = tree.nodes.new("ShaderNodeTexCoord")
+    mapping = tree.nodes.new("ShaderNodeMapping")
+    mapping.vector_type = "POINT"
+    mapping.inputs["Rotation"].default_value = (0.0, 0.0, -math.radians(90.0 + env["rotation_deg"]))
+    tex = tree.nodes.new("ShaderNodeTexEnvironment")
+    tex.image = bpy.data.images.load(env["path"])
+    tex.interpolation = "Closest"
+    tex.projection = "EQUIRECTANGULAR"
+    background = tree.nodes.new("ShaderNodeBackground")
+    background.inputs["Strength"].default_value = env["intensity"]
+    out = tree.nodes.new("ShaderNodeOutputWorld")
+    tree.links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
+    tree.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+    tree.links.new(tex.outputs["Color"], background.inputs["Color"])
+    tree.links.new(background.outputs["Background"], out.inputs["Surface"])
+    return world
 
 
 def main() -> dict:

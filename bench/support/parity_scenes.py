@@ -7,12 +7,15 @@ bench/cycles_parity.py:
 
     .venv-blender/bin/python bench/support/parity_scenes.py OUT_DIR NAME [NAME ...]
 
-writes OUT_DIR/NAME.glb for each scene and prints `RESULT {"NAME": "OUT_DIR/NAME.glb", ...}`.
+writes OUT_DIR/NAME.glb for each scene (and OUT_DIR/NAME-environment.hdr for a scene lit by an
+environment map, which glTF cannot hold) and prints
+`RESULT {"NAME": {"scene": "OUT_DIR/NAME.glb", "environment": null or its path}, ...}`.
 Imported without bpy (by bench/cycles_parity.py), it only lists the scenes: SCENES maps each
 name to a one-line description.
 
-Every scene is lit by an emissive quad (the farm renders Blender's area lights not at all, see
-README "Not rendered by the farm") and some by a point light of radius 0; the world is black.
+Every scene but `environment` is lit by an emissive quad (the farm renders Blender's area
+lights not at all, see README "Not rendered by the farm") and some by a point light of radius 0;
+the world is black.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ SCENES = {
     "sheen": "a dark blue sphere with sheen (KHR_materials_sheen)",
     "normal_floor": "a floor with a normal map and a roughness texture of thin lines",
     "two_sided_emitter": "a floor lit only by the back face of a double-sided emissive quad",
+    "environment": "a diffuse and a glossy sphere lit only by an environment map with a sun",
+    "combined": "all of the above in one scene, under the environment map and two lights",
 }
 
 
@@ -178,6 +183,143 @@ def checker(n=256, squares=8, a=(0.85, 0.85, 0.85), b=(0.1, 0.1, 0.1)) -> np.nda
     return np.concatenate([rgb, np.ones((n, n, 1))], axis=-1)
 
 
+# --- the features' materials and objects --------------------------------------------------
+
+
+def glass_material(volume: bool):
+    glass = principled("Glass", (1.0, 1.0, 1.0), 0.0, **{"Transmission Weight": 1.0, "IOR": 1.5})
+    if volume:
+        from io_scene_gltf2.blender.com.material_helpers import (
+            create_settings_group,
+            get_gltf_node_name,
+        )
+
+        # KHR_materials_volume as the exporter reads it: a Volume Absorption node on the
+        # output's Volume socket (attenuation colour, distance = 1 / density) and the
+        # thickness on a "glTF Material Output" group node (0 would mean thin-walled).
+        tree = glass.node_tree
+        absorb = tree.nodes.new("ShaderNodeVolumeAbsorption")
+        absorb.inputs["Color"].default_value = (0.2, 0.6, 0.9, 1.0)
+        absorb.inputs["Density"].default_value = 1.5
+        tree.links.new(absorb.outputs[0], tree.get_output_node("ALL").inputs["Volume"])
+        group = bpy.data.node_groups.get(get_gltf_node_name()) or create_settings_group(
+            get_gltf_node_name()
+        )
+        node = tree.nodes.new("ShaderNodeGroup")
+        node.node_tree = group
+        node.inputs["Thickness"].default_value = 1.2
+    return glass
+
+
+def checker_material():
+    mat = principled("Checker", roughness=0.7)
+    texture(mat, image("Checker", checker()), "Base Color")
+    return mat
+
+
+def leaf(n=256) -> np.ndarray:
+    """A green leaf (an ellipse with a stem and a midrib) on transparent black."""
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n * 2.0 - 1.0
+    blade = (x / 0.55) ** 2 + ((y + 0.1) / 0.85) ** 2 < 1.0
+    stem = (np.abs(x) < 0.03) & (y > 0.6)
+    alpha = (blade | stem).astype(float)
+    midrib = np.abs(x) < 0.02
+    rgb = np.where(midrib[..., None], [0.5, 0.7, 0.2], [0.1, 0.45, 0.08])
+    return np.concatenate([rgb, alpha[..., None]], axis=-1)
+
+
+def leaf_card(location, size=1.8, turn=0.3):
+    mat = principled("Leaf", roughness=0.6)
+    tree = mat.node_tree
+    tex = texture(mat, image("Leaf", leaf()), "Base Color")
+    # Alpha -> Math Round -> Alpha: what the exporter writes as alphaMode MASK, cutoff 0.5.
+    rnd = tree.nodes.new("ShaderNodeMath")
+    rnd.operation = "ROUND"
+    tree.links.new(tex.outputs["Alpha"], rnd.inputs[0])
+    tree.links.new(rnd.outputs[0], bsdf_of(mat).inputs["Alpha"])
+    card = add("plane", "LeafCard", mat, location, size=size)
+    card.rotation_euler = (math.pi / 2, 0, turn)  # standing up, facing the camera
+    return card
+
+
+def painted_icosphere(location, radius=0.9):
+    mat = principled("Painted", roughness=0.5)
+    attr_node = mat.node_tree.nodes.new("ShaderNodeVertexColor")
+    attr_node.layer_name = "Col"
+    mat.node_tree.links.new(attr_node.outputs["Color"], bsdf_of(mat).inputs["Base Color"])
+    obj = add("ico", "Painted", mat, location, subdivisions=3, radius=radius)
+    mesh = obj.data
+    color = mesh.color_attributes.new("Col", "FLOAT_COLOR", "POINT")
+    co = np.empty(len(mesh.vertices) * 3)
+    mesh.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3) / radius
+    rgba = np.concatenate([0.5 + 0.45 * co, np.ones((len(co), 1))], axis=-1)
+    color.data.foreach_set("color", rgba.astype(np.float32).ravel())
+    mesh.color_attributes.active_color = color
+    return obj
+
+
+def screen(location, size=2.0):
+    """A standing panel with an emissive texture of stripes, its front towards -Y."""
+    n = 128
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n
+    stripes = np.stack([(x * 4 % 1 < 0.5), (y * 3 % 1 < 0.5), ((x + y) * 2 % 1 < 0.3)], -1)
+    rgba = np.concatenate([0.05 + 0.95 * stripes, np.ones((n, n, 1))], axis=-1)
+    mat = principled("Screen", (0.0, 0.0, 0.0), 0.8)
+    texture(mat, image("Screen", rgba), "Emission Color")
+    bsdf_of(mat).inputs["Emission Strength"].default_value = 4.0
+    panel = add("plane", "Screen", mat, location, size=size)
+    panel.rotation_euler = (math.pi / 2, 0, 0)
+    return panel
+
+
+def decal(location, size=2.5):
+    n = 128
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n * 2.0 - 1.0
+    alpha = np.clip((0.9 - np.hypot(x, y)) / 0.4, 0.0, 1.0)
+    rgb = np.where((np.abs(x) < 0.15)[..., None], [0.9, 0.8, 0.1], [0.8, 0.05, 0.05])
+    mat = principled("Decal", roughness=0.5)
+    texture(mat, image("Decal", np.concatenate([rgb, alpha[..., None]], -1)), "Base Color",
+            "Alpha")  # fmt: skip
+    return add("plane", "Decal", mat, location, size=size)
+
+
+def coat_material():
+    return principled("Coated", (0.7, 0.05, 0.05), 0.5,
+                      **{"Coat Weight": 1.0, "Coat Roughness": 0.03})  # fmt: skip
+
+
+def sheen_material():
+    return principled("Velvet", (0.05, 0.08, 0.3), 0.6,
+                      **{"Sheen Weight": 1.0, "Sheen Roughness": 0.4})  # fmt: skip
+
+
+def grooved_material():
+    """A normal map of grooves along v and a roughness texture: 0.6 with thin smooth lines."""
+    n = 256
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n
+    # A tangent-space normal tilting in x (16 periods of a cosine), encoded in [0, 1].
+    nx = 0.5 * np.cos(2.0 * np.pi * 16.0 * x)
+    nrm = np.stack([nx, np.zeros_like(nx), np.ones_like(nx)], -1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    normal = np.concatenate([nrm * 0.5 + 0.5, np.ones((n, n, 1))], -1)
+    # Lines (roughness 0.05) two pixels wide across the grooves, every 32 pixels.
+    rough = np.where((y * n % 32) < 2, 0.05, 0.6)
+    rough_img = np.concatenate([np.repeat(rough[..., None], 3, -1), np.ones((n, n, 1))], -1)
+    mat = principled("Grooved", (0.6, 0.6, 0.65), 0.6)
+    tree = mat.node_tree
+    tex = texture(mat, image("GroovesNormal", normal, non_color=True), None)
+    nmap = tree.nodes.new("ShaderNodeNormalMap")
+    tree.links.new(tex.outputs["Color"], nmap.inputs["Color"])
+    tree.links.new(nmap.outputs["Normal"], bsdf_of(mat).inputs["Normal"])
+    rtex = texture(mat, image("Lines", rough_img, non_color=True), None)
+    # Roughness from the green channel, as glTF's metallicRoughnessTexture holds it.
+    sep = tree.nodes.new("ShaderNodeSeparateColor")
+    tree.links.new(rtex.outputs["Color"], sep.inputs["Color"])
+    tree.links.new(sep.outputs["Green"], bsdf_of(mat).inputs["Roughness"])
+    return mat
+
+
 # --- the scenes -----------------------------------------------------------------------------
 
 
@@ -203,29 +345,8 @@ def metal():
 
 
 def _glass(volume: bool):
-    floor_mat = principled("Checker", roughness=0.7)
-    texture(floor_mat, image("Checker", checker()), "Base Color")
-    floor(floor_mat)
-    glass = principled("Glass", (1.0, 1.0, 1.0), 0.0, **{"Transmission Weight": 1.0, "IOR": 1.5})
-    if volume:
-        from io_scene_gltf2.blender.com.material_helpers import (
-            create_settings_group,
-            get_gltf_node_name,
-        )
-
-        # KHR_materials_volume as the exporter reads it: a Volume Absorption node on the
-        # output's Volume socket (attenuation colour, distance = 1 / density) and the
-        # thickness on a "glTF Material Output" group node (0 would mean thin-walled).
-        tree = glass.node_tree
-        absorb = tree.nodes.new("ShaderNodeVolumeAbsorption")
-        absorb.inputs["Color"].default_value = (0.2, 0.6, 0.9, 1.0)
-        absorb.inputs["Density"].default_value = 1.5
-        tree.links.new(absorb.outputs[0], tree.get_output_node("ALL").inputs["Volume"])
-        group = create_settings_group(get_gltf_node_name())
-        node = tree.nodes.new("ShaderNodeGroup")
-        node.node_tree = group
-        node.inputs["Thickness"].default_value = 1.2
-    sphere("GlassBall", glass, (0.0, 0.0, 0.7), radius=0.7)
+    floor(checker_material())
+    sphere("GlassBall", glass_material(volume), (0.0, 0.0, 0.7), radius=0.7)
     quad_light((0.5, 0.5, 3.0))
     point_light((-2.5, 1.5, 3.5), 300.0)
     camera()
@@ -239,29 +360,9 @@ def glass_volume():
     _glass(True)
 
 
-def leaf(n=256) -> np.ndarray:
-    """A green leaf (an ellipse with a stem and a midrib) on transparent black."""
-    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n * 2.0 - 1.0
-    blade = (x / 0.55) ** 2 + ((y + 0.1) / 0.85) ** 2 < 1.0
-    stem = (np.abs(x) < 0.03) & (y > 0.6)
-    alpha = (blade | stem).astype(float)
-    midrib = np.abs(x) < 0.02
-    rgb = np.where(midrib[..., None], [0.5, 0.7, 0.2], [0.1, 0.45, 0.08])
-    return np.concatenate([rgb, alpha[..., None]], axis=-1)
-
-
 def alpha_mask():
     floor()
-    mat = principled("Leaf", roughness=0.6)
-    tree = mat.node_tree
-    tex = texture(mat, image("Leaf", leaf()), "Base Color")
-    # Alpha -> Math Round -> Alpha: what the exporter writes as alphaMode MASK, cutoff 0.5.
-    rnd = tree.nodes.new("ShaderNodeMath")
-    rnd.operation = "ROUND"
-    tree.links.new(tex.outputs["Alpha"], rnd.inputs[0])
-    tree.links.new(rnd.outputs[0], bsdf_of(mat).inputs["Alpha"])
-    card = add("plane", "LeafCard", mat, (0.0, 0.0, 1.1), size=1.8)
-    card.rotation_euler = (math.pi / 2, 0, 0.3)  # standing up, facing the camera
+    leaf_card((0.0, 0.0, 1.1))
     quad_light((0.0, 2.0, 3.5), size=1.5, strength=4.0)
     point_light((0.5, -3.0, 2.5), 500.0)  # in front: the card's shadow falls behind it
     camera((1.5, -6.0, 2.0), (0.0, 0.5, 0.8))
@@ -269,19 +370,7 @@ def alpha_mask():
 
 def vertex_colors():
     floor()
-    mat = principled("Painted", roughness=0.5)
-    attr_node = mat.node_tree.nodes.new("ShaderNodeVertexColor")
-    attr_node.layer_name = "Col"
-    mat.node_tree.links.new(attr_node.outputs["Color"], bsdf_of(mat).inputs["Base Color"])
-    obj = add("ico", "Painted", mat, (0.0, 0.0, 0.9), smooth=False, subdivisions=3, radius=0.9)
-    mesh = obj.data
-    color = mesh.color_attributes.new("Col", "FLOAT_COLOR", "POINT")
-    co = np.empty(len(mesh.vertices) * 3)
-    mesh.vertices.foreach_get("co", co)
-    co = co.reshape(-1, 3) / 0.9
-    rgba = np.concatenate([0.5 + 0.45 * co, np.ones((len(co), 1))], axis=-1)
-    color.data.foreach_set("color", rgba.astype(np.float32).ravel())
-    mesh.color_attributes.active_color = color
+    painted_icosphere((0.0, 0.0, 0.9))
     quad_light()
     point_light((-3.0, -2.0, 3.0), 300.0)
     camera()
@@ -290,30 +379,14 @@ def vertex_colors():
 def emissive_texture():
     floor()
     add("cube", "Box", principled("White", (0.8, 0.8, 0.8), 0.6), (1.2, -0.3, 0.4), size=0.8)
-    n = 128
-    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n
-    stripes = np.stack([(x * 4 % 1 < 0.5), (y * 3 % 1 < 0.5), ((x + y) * 2 % 1 < 0.3)], -1)
-    rgba = np.concatenate([0.05 + 0.95 * stripes, np.ones((n, n, 1))], axis=-1)
-    mat = principled("Screen", (0.0, 0.0, 0.0), 0.8)
-    texture(mat, image("Screen", rgba), "Emission Color")
-    bsdf_of(mat).inputs["Emission Strength"].default_value = 4.0
-    panel = add("plane", "Screen", mat, (-0.3, 1.0, 1.0), size=2.0)
-    panel.rotation_euler = (math.pi / 2, 0, 0)  # standing, its front towards -Y (the camera)
+    screen((-0.3, 1.0, 1.0))
     quad_light((0.0, 0.0, 4.0), size=1.0, strength=1.5)
     camera()
 
 
 def blended_decal():
     floor()
-    n = 128
-    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n * 2.0 - 1.0
-    r = np.hypot(x, y)
-    alpha = np.clip((0.9 - r) / 0.4, 0.0, 1.0)
-    rgb = np.where((np.abs(x) < 0.15)[..., None], [0.9, 0.8, 0.1], [0.8, 0.05, 0.05])
-    mat = principled("Decal", roughness=0.5)
-    texture(mat, image("Decal", np.concatenate([rgb, alpha[..., None]], -1)), "Base Color",
-            "Alpha")  # fmt: skip
-    add("plane", "Decal", mat, (0.0, 0.0, 0.01), size=2.5)
+    decal((0.0, 0.0, 0.01))
     add("cube", "Box", principled("Grey", (0.6, 0.6, 0.6), 0.5), (1.8, 1.0, 0.5), size=1.0)
     quad_light()
     point_light((2.0, -3.0, 3.0), 300.0)
@@ -322,9 +395,7 @@ def blended_decal():
 
 def clearcoat():
     floor()
-    mat = principled("Coated", (0.7, 0.05, 0.05), 0.5,
-                     **{"Coat Weight": 1.0, "Coat Roughness": 0.03})  # fmt: skip
-    sphere("Coated", mat, (0.0, 0.0, 0.8), radius=0.8)
+    sphere("Coated", coat_material(), (0.0, 0.0, 0.8), radius=0.8)
     quad_light()
     point_light((3.0, -2.0, 4.0), 400.0)
     camera()
@@ -332,39 +403,14 @@ def clearcoat():
 
 def sheen():
     floor()
-    mat = principled("Velvet", (0.05, 0.08, 0.3), 0.6,
-                     **{"Sheen Weight": 1.0, "Sheen Roughness": 0.4})  # fmt: skip
-    sphere("Velvet", mat, (0.0, 0.0, 0.8), radius=0.8)
+    sphere("Velvet", sheen_material(), (0.0, 0.0, 0.8), radius=0.8)
     quad_light()
     point_light((-3.0, 3.0, 2.0), 600.0)  # behind: sheen shows at grazing angles
     camera()
 
 
 def normal_floor():
-    n = 256
-    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n
-    # Grooves along y: a tangent-space normal tilting in x (sin of 16 periods), encoded in [0, 1].
-    phase = 2.0 * np.pi * 16.0 * x
-    nx = 0.5 * np.cos(phase)
-    nrm = np.stack([nx, np.zeros_like(nx), np.ones_like(nx)], -1)
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    normal = np.concatenate([nrm * 0.5 + 0.5, np.ones((n, n, 1))], -1)
-    # Roughness: 0.6 with thin smooth lines (0.05) across the grooves, two pixels wide.
-    lines = (y * n % 32) < 2
-    rough = np.where(lines, 0.05, 0.6)
-    rough_img = np.concatenate([np.repeat(rough[..., None], 3, -1), np.ones((n, n, 1))], -1)
-    mat = principled("Grooved", (0.6, 0.6, 0.65), 0.6, metallic=0.0)
-    tree = mat.node_tree
-    tex = texture(mat, image("GroovesNormal", normal, non_color=True), None)
-    nmap = tree.nodes.new("ShaderNodeNormalMap")
-    tree.links.new(tex.outputs["Color"], nmap.inputs["Color"])
-    tree.links.new(nmap.outputs["Normal"], bsdf_of(mat).inputs["Normal"])
-    rtex = texture(mat, image("Lines", rough_img, non_color=True), None)
-    # Roughness from the green channel, as glTF's metallicRoughnessTexture holds it.
-    sep = tree.nodes.new("ShaderNodeSeparateColor")
-    tree.links.new(rtex.outputs["Color"], sep.inputs["Color"])
-    tree.links.new(sep.outputs["Green"], bsdf_of(mat).inputs["Roughness"])
-    floor(mat, size=6.0)
+    floor(grooved_material(), size=6.0)
     # A low light across the floor, its front towards -Y and a little down: the grooves and
     # lines show in its glancing reflection.
     quad_light((0.0, 4.0, 0.8), size=2.0, strength=8.0, rotation=(math.pi / 2 + 0.3, 0, 0))
@@ -381,11 +427,80 @@ def two_sided_emitter():
     camera()
 
 
-def build(name: str, path: str) -> None:
+def sky_map(width=512, height=256) -> np.ndarray:
+    """An equirectangular sky in the farm's convention (README, `environment`: column u = 0.5
+    looks along glTF -Z, u grows towards +X, row 0 is straight up): a blue gradient, a dark
+    ground and a small bright sun off to one side, so that a turned or mirrored map shows."""
+    v, u = (np.mgrid[0:height, 0:width] + 0.5) / np.array([height, width])[:, None, None]
+    theta, phi = v * np.pi, (u - 0.5) * 2.0 * np.pi
+    d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
+    up = np.clip(d[..., 1], 0.0, 1.0)[..., None]
+    sky = np.where(d[..., 1:2] > 0.0, (1.0 - up) * [0.9, 0.9, 1.0] + up * [0.2, 0.35, 0.8],
+                   [0.12, 0.1, 0.08])  # fmt: skip
+    sun = np.array([0.6, 0.55, -0.58])  # glTF axes: high, ahead of the camera, to its right
+    sun /= np.linalg.norm(sun)
+    disc = (d @ sun) > math.cos(math.radians(4.0))
+    return np.where(disc[..., None], [400.0, 360.0, 300.0], sky)
+
+
+def environment():
+    floor(size=30.0)
+    sphere("Matte", principled("Matte", (0.7, 0.7, 0.7), 0.9), (-0.8, 0.0, 0.6))
+    sphere("Glossy", principled("Glossy", (0.9, 0.9, 0.9), 0.15, metallic=1.0), (0.8, 0.0, 0.6))
+    camera((0.0, -6.0, 1.6), (0.0, 0.0, 0.8))
+    return sky_map()
+
+
+def combined():
+    """Every feature at once: the grooved floor, three rough spheres, gold, glass with and
+    without volume, the leaf card, the painted icosphere, the screen, the decal, coat, sheen,
+    under the sky map, a quad light and a point light."""
+    floor(grooved_material(), size=14.0)
+    for i, roughness in enumerate((0.1, 0.4, 0.8)):
+        mat = principled(f"Rough{roughness}", (0.8, 0.3, 0.08), roughness)
+        sphere(f"Rough{i}", mat, (-3.0 + 0.9 * i, -1.0, 0.4), radius=0.4)
+    gold = principled("Gold", (0.95, 0.7, 0.35), 0.25, metallic=1.0)
+    add("cube", "GoldBox", gold, (-0.1, -1.0, 0.4), size=0.8)
+    sphere("Glass", glass_material(False), (0.9, -1.0, 0.4), radius=0.4)
+    sphere("GlassVolume", glass_material(True), (1.9, -1.0, 0.4), radius=0.4)
+    sphere("Coated", coat_material(), (2.9, -1.0, 0.4), radius=0.4)
+    sphere("Velvet", sheen_material(), (-2.4, 0.6, 0.5), radius=0.5)
+    painted_icosphere((-0.9, 0.6, 0.6), radius=0.6)
+    leaf_card((0.6, 0.8, 0.8), size=1.4, turn=0.2)
+    decal((2.0, 0.5, 0.01), size=1.6)
+    screen((0.0, 2.5, 1.0), size=2.0)
+    quad_light((0.0, -0.5, 4.0), size=2.0, strength=4.0)
+    point_light((3.0, -3.0, 3.5), 400.0)
+    camera((0.0, -7.5, 3.2), (0.0, 0.0, 0.5))
+    return sky_map()
+
+
+def save_hdr(rgb: np.ndarray, path: str) -> None:
+    """A Radiance .hdr (flat RGBE scanlines, row 0 of rgb at the top), written here rather than
+    through bpy: Blender saves a float image display-encoded, not as linear radiance."""
+    h, w, _ = rgb.shape
+    top = rgb.max(axis=-1)
+    mantissa, exponent = np.frexp(top)
+    scale = np.where(top > 1e-32, mantissa * 256.0 / np.maximum(top, 1e-32), 0.0)
+    rgbe = np.zeros((h, w, 4), dtype=np.uint8)
+    rgbe[..., :3] = np.clip(rgb * scale[..., None], 0, 255).astype(np.uint8)
+    rgbe[..., 3] = np.where(top > 1e-32, exponent + 128, 0)
+    with open(path, "wb") as f:
+        f.write(f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n".encode())
+        f.write(rgbe.tobytes())
+
+
+def build(name: str, path: str) -> dict:
+    """Export scene name to path; {"scene": path, "environment": its map's path or None}."""
     empty_scene()
-    globals()[name]()
+    env = globals()[name]()
     result = bpy.ops.export_scene.gltf(filepath=path, **EXPORT_OPTIONS)
     assert result == {"FINISHED"}, result
+    written = {"scene": path, "environment": None}
+    if env is not None:
+        written["environment"] = os.path.splitext(path)[0] + "-environment.hdr"
+        save_hdr(env, written["environment"])
+    return written
 
 
 if __name__ == "__main__":
@@ -396,7 +511,5 @@ if __name__ == "__main__":
     os.makedirs(out_dir, exist_ok=True)
     written = {}
     for name in names:
-        path = os.path.join(out_dir, f"{name}.glb")
-        build(name, path)
-        written[name] = path
+        written[name] = build(name, os.path.join(out_dir, f"{name}.glb"))
     print("RESULT " + json.dumps(written), flush=True)
