@@ -471,7 +471,7 @@ def combined():
     screen((0.0, 2.5, 1.0), size=2.0)
     quad_light((0.0, -0.5, 4.0), size=2.0, strength=4.0)
     point_light((3.0, -3.0, 3.5), 400.0)
-    camera((0.0, -7.5, 3.2), (0.0, 0.0, 0.5))
+    camera((0.0, -7.5, 3.2), (0.0, 0.0, 0.5), lens=35.0)
     return sky_map()
 
 
