@@ -1,0 +1,433 @@
+"""Cycles parity: the farm's worker against Blender's Cycles on the same glTF scene.
+
+For one scene (a glTF/GLB file, or a parity scene of bench/support/parity_scenes.py by name) or
+the whole suite (--suite):
+1. Cycles (bpy in .venv-blender) imports the scene with Blender's glTF importer and renders it
+   with settings matched to the farm's path tracer (bench/support/cycles_render.py: CPU, 1-pixel
+   box filter, max_depth - 1 bounces of every kind, no clamping, no glossy filter, light
+   threshold 0, no shadow-terminator offsets, caustics on, black world, no adaptive sampling,
+   no denoising): --renders independent renders at --spp (seeds 1..K) and one reference at
+   --reference-spp.
+2. The standalone worker (build/worker/renderfarm-worker render) renders it --renders times at
+   --spp (seeds 1..K), then --renders times at the spp that takes as long as Cycles' render
+   (equal time).
+3. Per region (the image, a --grid x --grid grid of blocks, any --region rectangles) and per
+   channel (R, G, B): the mean ratio worker / Cycles with its standard error, the MSE of one
+   render of each side against the reference, and the efficiency 1 / (MSE x seconds) of the
+   worker over Cycles' at equal spp and at equal time (docs/parity.md has the statistics).
+Writes OUT/NAME.json (every figure), OUT/NAME.png (worker | Cycles | ratio heat map) and, for
+more than one scene, OUT/parity.json (the suite also bench/results/cycles_parity.json); prints a
+table. Without a scene it runs the suite.
+
+    .venv/bin/python bench/cycles_parity.py rough_dielectric [--spp 64] [--reference-spp 4096]
+    .venv/bin/python bench/cycles_parity.py --suite --out out/parity
+    .venv/bin/python bench/cycles_parity.py my-scene.glb --region 10,10,40,30
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from support.parity_scenes import SCENES
+from support.results import write_results
+
+from renderfarm.images import read_exr, srgb_encode
+
+ROOT = Path(__file__).resolve().parents[1]
+SUPPORT = Path(__file__).resolve().parent / "support"
+CHANNELS = ("R", "G", "B")
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+# The heat map spans ratios 1/2 (blue) to 2 (red); pixels darker than this on both sides
+# (relative to the image's mean) carry no ratio and are drawn black.
+HEAT_STOPS = 1.0
+HEAT_DARK = 1e-3
+
+
+def blender_python() -> Path:
+    explicit = os.environ.get("RENDERFARM_BLENDER_PYTHON")
+    path = Path(explicit) if explicit else ROOT / ".venv-blender" / "bin" / "python"
+    if not path.exists():
+        sys.exit(f"no Blender Python at {path} (scripts/install-deps.sh --blender, or set "
+                 "RENDERFARM_BLENDER_PYTHON)")  # fmt: skip
+    return path
+
+
+def worker_binary() -> Path:
+    explicit = os.environ.get("RENDERFARM_WORKER_BINARY")
+    path = Path(explicit) if explicit else ROOT / "build" / "worker" / "renderfarm-worker"
+    if not path.exists():
+        sys.exit(f"no worker binary at {path} (make worker, or set RENDERFARM_WORKER_BINARY)")
+    return path
+
+
+def run_blender(script: Path, args: list[str], out: Path, what: str) -> dict:
+    """Run a script in Blender's Python; the JSON of its `RESULT {...}` line."""
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(out / "blender-user")}
+    proc = subprocess.run([str(blender_python()), str(script), *args], env=env,
+                          capture_output=True, text=True)  # fmt: skip
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[len("RESULT ") :])
+    tail = "\n".join((proc.stdout + proc.stderr).splitlines()[-30:])
+    sys.exit(f"{what} failed (exit {proc.returncode}):\n{tail}")
+
+
+def generate_scenes(names: list[str], out: Path) -> dict[str, dict]:
+    """{name: {"scene": glb path, "environment": map path or None}} of the parity scenes."""
+    return run_blender(SUPPORT / "parity_scenes.py", [str(out / "scenes"), *names], out,
+                       "Blender exporting the parity scenes")  # fmt: skip
+
+
+def rgb(path: Path) -> np.ndarray:
+    ch = read_exr(str(path))
+    return np.stack([ch[c] for c in CHANNELS], axis=-1).astype(np.float64)
+
+
+def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> dict:
+    """K renders at --spp, then the reference; their images and seconds."""
+    scratch = out / "renders" / name
+    scratch.mkdir(parents=True, exist_ok=True)
+    renders = [{"spp": args.spp, "seed": k + 1, "path": str(scratch / f"cycles-{k + 1}.exr")}
+               for k in range(args.renders)]  # fmt: skip
+    # The reference's seed is none of the K renders', so its noise is independent of theirs.
+    ref = {"spp": args.reference_spp, "seed": 1000, "path": str(scratch / "cycles-reference.exr")}
+    config = {"scene": str(scene), "width": args.width, "height": args.height,
+              "max_depth": args.max_depth, "threads": args.threads,
+              "renders": [*renders, ref], "environment": env}  # fmt: skip
+    config_path = scratch / "cycles.json"
+    config_path.write_text(json.dumps(config))
+    result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
+                         f"Cycles rendering {scene}")  # fmt: skip
+    return {
+        "images": [rgb(Path(r["path"])) for r in renders],
+        "seconds": result["seconds"][:-1],
+        "reference": rgb(Path(ref["path"])),
+        "reference_seconds": result["seconds"][-1],
+    }
+
+
+WORKER_RATE = re.compile(r"in ([0-9.]+) s: ([0-9.]+) samples/s")
+
+
+def render_worker(
+    scene: Path, env: dict | None, name: str, spp: int, args, out: Path, tag: str
+) -> dict:
+    """K renders at spp with the standalone worker; their images and wall-clock seconds (the
+    process: scene load, BVH build, sampling, writing the EXR)."""
+    scratch = out / "renders" / name
+    scratch.mkdir(parents=True, exist_ok=True)
+    images, seconds, sampling, rates = [], [], [], []
+    for k in range(args.renders):
+        path = scratch / f"worker-{tag}-{k + 1}.exr"
+        cmd = [str(worker_binary()), "render", str(scene), "-o", str(path), "--spp", str(spp),
+               "--width", str(args.width), "--height", str(args.height),
+               "--threads", str(args.threads), "--seed", str(k + 1),
+               "--max-depth", str(args.max_depth)]  # fmt: skip
+        if env:
+            cmd += ["--environment", env["path"], "--environment-intensity",
+                    repr(env["intensity"]), "--environment-rotation-deg",
+                    repr(env["rotation_deg"])]  # fmt: skip
+        start = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        seconds.append(time.perf_counter() - start)
+        if proc.returncode != 0:
+            sys.exit(f"the worker failed on {scene} (exit {proc.returncode}):\n{proc.stderr}")
+        match = WORKER_RATE.search(proc.stdout + proc.stderr)
+        if match:
+            sampling.append(float(match.group(1)))
+            rates.append(float(match.group(2)))
+        images.append(rgb(path))
+    return {"images": images, "seconds": seconds, "sampling_seconds": sampling,
+            "samples_per_s": rates, "spp": spp}  # fmt: skip
+
+
+def regions(width: int, height: int, grid: int, rects: list[tuple[int, int, int, int]]):
+    """(name, (x0, y0, x1, y1)) of the whole image, the grid's blocks and the given rectangles;
+    pixel rows from the top, x1 and y1 exclusive."""
+    out = [("image", (0, 0, width, height))]
+    if grid > 1:
+        xs = np.linspace(0, width, grid + 1).round().astype(int)
+        ys = np.linspace(0, height, grid + 1).round().astype(int)
+        for r in range(grid):
+            for c in range(grid):
+                out.append((f"r{r}c{c}", (int(xs[c]), int(ys[r]), int(xs[c + 1]), int(ys[r + 1]))))
+    for i, rect in enumerate(rects):
+        out.append((f"rect{i}", rect))
+    return out
+
+
+def region_mean_and_se(images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per channel: the mean of the region over the K renders, and its standard error from the
+    per-pixel variance across the renders (pixels independent: sum of variances / n^2)."""
+    stack = np.stack(images)  # K x h x w x 3
+    k = stack.shape[0]
+    n = stack.shape[1] * stack.shape[2]
+    mean = stack.mean(axis=(0, 1, 2))
+    var_one = stack.var(axis=0, ddof=1)  # the variance of one render's pixel
+    se = np.sqrt(var_one.sum(axis=(0, 1)) / k) / n
+    return mean, se
+
+
+def mse(images: list[np.ndarray], reference: np.ndarray) -> np.ndarray:
+    """Per channel: the mean squared error of one render against the reference (averaged over
+    the K renders and the region's pixels)."""
+    return np.mean([((im - reference) ** 2).mean(axis=(0, 1)) for im in images], axis=0)
+
+
+def number(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
+    t_c = float(np.mean(cyc["seconds"]))
+    t_w = float(np.mean(wrk["seconds"]))
+    t_wt = float(np.mean(wrk_t["seconds"]))
+    rows = []
+    # The reference's own noise adds to both sides' MSE: estimated from Cycles' K renders,
+    # scaled by spp / reference_spp.
+    ref_var = np.stack(cyc["images"]).var(axis=0, ddof=1) * args.spp / args.reference_spp
+    for name, (x0, y0, x1, y1) in regions(args.width, args.height, args.grid, rects):
+
+        def crop(ims, x0=x0, y0=y0, x1=x1, y1=y1):
+            return [im[y0:y1, x0:x1] for im in ims]
+
+        w_mean, w_se = region_mean_and_se(crop(wrk["images"]))
+        c_mean, c_se = region_mean_and_se(crop(cyc["images"]))
+        ref = cyc["reference"][y0:y1, x0:x1]
+        mse_w = mse(crop(wrk["images"]), ref)
+        mse_c = mse(crop(cyc["images"]), ref)
+        mse_wt = mse(crop(wrk_t["images"]), ref)
+        noise_ref = ref_var[y0:y1, x0:x1].mean(axis=(0, 1))
+        for i, ch in enumerate(CHANNELS):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = w_mean[i] / c_mean[i]
+                # (P/C) sqrt((SE_P/P)^2 + (SE_C/C)^2), written to stay defined at P = 0.
+                se = math.hypot(w_se[i] / c_mean[i], w_mean[i] * c_se[i] / c_mean[i] ** 2)
+                eff_w, eff_c = 1.0 / (mse_w[i] * t_w), 1.0 / (mse_c[i] * t_c)
+                eff_wt = 1.0 / (mse_wt[i] * t_wt)
+                rows.append({
+                    "region": name, "rect": [x0, y0, x1, y1], "channel": ch,
+                    "worker_mean": number(w_mean[i]), "worker_se": number(w_se[i]),
+                    "cycles_mean": number(c_mean[i]), "cycles_se": number(c_se[i]),
+                    "ratio": number(ratio), "ratio_se": number(se),
+                    "reference_mean": number(ref[..., i].mean()),
+                    "worker_mse": number(mse_w[i]), "cycles_mse": number(mse_c[i]),
+                    "worker_mse_equal_time": number(mse_wt[i]),
+                    "reference_noise_variance": number(noise_ref[i]),
+                    "worker_efficiency": number(eff_w), "cycles_efficiency": number(eff_c),
+                    "worker_efficiency_equal_time": number(eff_wt),
+                    "efficiency_ratio_equal_spp": number(eff_w / eff_c),
+                    "efficiency_ratio_equal_time": number(eff_wt / eff_c),
+                })  # fmt: skip
+    return {
+        "cycles_seconds": cyc["seconds"],
+        "cycles_reference_seconds": cyc["reference_seconds"],
+        "worker_seconds": wrk["seconds"],
+        "worker_sampling_seconds": wrk["sampling_seconds"],
+        "worker_samples_per_s": wrk["samples_per_s"],
+        "equal_time_worker_spp": wrk_t["spp"],
+        "equal_time_worker_seconds": wrk_t["seconds"],
+        "rows": rows,
+    }
+
+
+def heat(ratio_image: np.ndarray) -> np.ndarray:
+    """log2 ratio in [-HEAT_STOPS, HEAT_STOPS] as blue (worker darker), white (equal), red
+    (worker brighter); NaN (both dark) black."""
+    t = np.clip(np.nan_to_num(ratio_image, nan=0.0) / HEAT_STOPS, -1.0, 1.0)
+    up, down = np.clip(t, 0, 1), np.clip(-t, 0, 1)
+    out = np.stack([1.0 - down, 1.0 - up - down, 1.0 - up], axis=-1)
+    out[np.isnan(ratio_image)] = 0.0
+    return out
+
+
+def write_png(path: Path, worker: np.ndarray, cycles: np.ndarray) -> None:
+    import OpenImageIO as oiio
+
+    yw, yc = worker @ LUMA, cycles @ LUMA
+    dark = HEAT_DARK * max(float(yc.mean()), 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_ratio = np.log2(np.maximum(yw, 1e-12) / np.maximum(yc, 1e-12))
+    log_ratio[(yw < dark) & (yc < dark)] = np.nan
+    gap = np.ones((worker.shape[0], 2, 3))
+    panel = np.concatenate(
+        [srgb_encode(worker), gap, srgb_encode(cycles), gap, heat(log_ratio)], axis=1
+    )
+    pixels = (np.clip(panel, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 3, oiio.UINT8))
+    out.write_image(pixels)
+    out.close()
+
+
+def equal_time_spp(spp: int, cycles_s: float, wrk: dict) -> int:
+    """The spp at which one worker render takes as long as one Cycles render at spp: the
+    worker's seconds split into a fixed cost (process start, scene load, BVH build: its wall
+    time less the sampling time it prints) and a cost per sample."""
+    wall = float(np.mean(wrk["seconds"]))
+    sampling = float(np.mean(wrk["sampling_seconds"])) if wrk["sampling_seconds"] else wall
+    fixed = max(0.0, wall - sampling)
+    return max(1, round(spp * max(cycles_s - fixed, 0.0) / max(sampling, 1e-9)))
+
+
+def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) -> dict:
+    print(f"{name}: Cycles ({args.renders} x {args.spp} spp + reference "
+          f"{args.reference_spp} spp)", flush=True)  # fmt: skip
+    cyc = render_cycles(scene, env, name, args, out)
+    print(f"{name}: worker ({args.renders} x {args.spp} spp)", flush=True)
+    wrk = render_worker(scene, env, name, args.spp, args, out, "equal-spp")
+    spp_t = equal_time_spp(args.spp, float(np.mean(cyc["seconds"])), wrk)
+    print(f"{name}: worker at equal time ({args.renders} x {spp_t} spp)", flush=True)
+    wrk_t = render_worker(scene, env, name, spp_t, args, out, "equal-time")
+    figures = {
+        "scene": name,
+        "file": str(scene),
+        "environment": env,
+        "description": SCENES.get(name, ""),
+        "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
+                                                   "renders", "threads", "max_depth", "grid")},
+        **analyse(cyc, wrk, wrk_t, args, rects),
+    }  # fmt: skip
+    (out / f"{name}.json").write_text(json.dumps(figures, indent=2) + "\n")
+    write_png(out / f"{name}.png", np.mean(wrk["images"], axis=0), np.mean(cyc["images"], axis=0))
+    return figures
+
+
+def fmt(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def print_table(all_figures: list[dict]) -> None:
+    head = (f"{'scene':18} {'region':7} {'ch':2} {'ratio':>7} {'+-SE':>7} {'MSE worker':>11} "
+            f"{'MSE Cycles':>11} {'eff spp':>8} {'eff time':>8}")  # fmt: skip
+    print(head)
+    print("-" * len(head))
+    for figures in all_figures:
+        for r in figures["rows"]:
+            print(f"{figures['scene']:18} {r['region']:7} {r['channel']:2} "
+                  f"{fmt(r['ratio'], '7.4f')} {fmt(r['ratio_se'], '7.4f')} "
+                  f"{fmt(r['worker_mse'], '11.4g')} {fmt(r['cycles_mse'], '11.4g')} "
+                  f"{fmt(r['efficiency_ratio_equal_spp'], '8.3g')} "
+                  f"{fmt(r['efficiency_ratio_equal_time'], '8.3g')}")  # fmt: skip
+    for figures in all_figures:
+        print(f"{figures['scene']}: Cycles {np.mean(figures['cycles_seconds']):.3f} s/render, "
+              f"worker {np.mean(figures['worker_seconds']):.3f} s/render at equal spp, "
+              f"{figures['equal_time_worker_spp']} spp at equal time")  # fmt: skip
+
+
+def rectangle(text: str) -> tuple[int, int, int, int]:
+    try:
+        x0, y0, x1, y1 = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--region {text!r}: expected X0,Y0,X1,Y1") from None
+    if not (0 <= x0 < x1 and 0 <= y0 < y1):
+        raise argparse.ArgumentTypeError(f"--region {text!r}: need 0 <= X0 < X1, 0 <= Y0 < Y1")
+    return x0, y0, x1, y1
+
+
+def main() -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "scene", nargs="?", help=f"a .gltf/.glb file or a parity scene: {', '.join(SCENES)}"
+    )
+    parser.add_argument(
+        "--suite", action="store_true", help="every parity scene (the default without a scene)"
+    )
+    parser.add_argument("--out", type=Path, default=ROOT / "out" / "parity")
+    parser.add_argument("--width", type=int, default=128)
+    parser.add_argument("--height", type=int, default=128)
+    parser.add_argument("--spp", type=int, default=64, help="spp of the compared renders")
+    parser.add_argument(
+        "--reference-spp",
+        type=int,
+        default=4096,
+        help="spp of the Cycles reference the MSEs are measured against",
+    )
+    parser.add_argument(
+        "--renders",
+        type=int,
+        default=4,
+        help="independent renders per side (seeds 1..K): the noise estimate",
+    )
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    parser.add_argument(
+        "--max-depth",
+        type=int,
+        default=8,
+        help="the farm's max_depth; Cycles gets max_depth - 1 bounces",
+    )
+    parser.add_argument("--grid", type=int, default=4, help="regions: a grid of N x N blocks")
+    parser.add_argument(
+        "--region",
+        type=rectangle,
+        action="append",
+        default=[],
+        help="a further region X0,Y0,X1,Y1 (pixels, rows from the top)",
+    )
+    parser.add_argument(
+        "--environment",
+        type=Path,
+        help="an equirectangular .hdr/.exr lighting both renders (as the farm's "
+        "environment setting); a parity scene may bring its own",
+    )
+    parser.add_argument("--environment-intensity", type=float, default=1.0)
+    parser.add_argument("--environment-rotation-deg", type=float, default=0.0)
+    args = parser.parse_args()
+    for key in ("width", "height", "spp", "reference_spp", "threads", "max_depth", "grid"):
+        if getattr(args, key) < 1:
+            parser.error(f"--{key.replace('_', '-')} must be >= 1")
+    if not args.environment_intensity > 0:
+        parser.error("--environment-intensity must be > 0")
+    if args.renders < 2:
+        parser.error("--renders must be >= 2 (the noise is estimated across renders)")
+    for x0, y0, x1, y1 in args.region:
+        if x1 > args.width or y1 > args.height:
+            parser.error(f"--region {x0},{y0},{x1},{y1} is outside the "
+                         f"{args.width}x{args.height} image")  # fmt: skip
+    if args.suite and args.scene:
+        parser.error("give a scene or --suite, not both")
+    # Without a scene (as `make bench` runs it): the suite.
+    args.suite = args.suite or not args.scene
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    if args.environment is not None and not args.environment.is_file():
+        parser.error(f"--environment {args.environment}: no such file")
+    if args.suite or args.scene in SCENES:
+        names = list(SCENES) if args.suite else [args.scene]
+        scenes = generate_scenes(names, out)
+    else:
+        path = Path(args.scene)
+        if not path.is_file():
+            parser.error(f"scene {args.scene!r}: neither a file nor a parity scene "
+                         f"({', '.join(SCENES)})")  # fmt: skip
+        scenes = {path.stem: {"scene": str(path.resolve()), "environment": None}}
+    all_figures = []
+    for name, files in scenes.items():
+        # A parity scene's own map, else --environment; either with --environment-intensity
+        # and --environment-rotation-deg.
+        env_map = files["environment"] or (args.environment and str(args.environment.resolve()))
+        env = None
+        if env_map:
+            env = {"path": env_map, "intensity": args.environment_intensity,
+                   "rotation_deg": args.environment_rotation_deg}  # fmt: skip
+        all_figures.append(run_scene(name, Path(files["scene"]), env, args, args.region, out))
+    print_table(all_figures)
+    if len(all_figures) > 1:
+        (out / "parity.json").write_text(json.dumps(all_figures, indent=2) + "\n")
+    if args.suite:
+        write_results("cycles_parity", {f["scene"]: f for f in all_figures})
+    print(f"wrote {out}")
+    return all_figures
+
+
+if __name__ == "__main__":
+    main()
