@@ -1039,5 +1039,87 @@ TEST(Textures, AOneTexelLineConvergesToItsReconstructionsIntegral) {
       EXPECT_NEAR(nearest[size_t(y * 8 + x)], x == 2 ? 0.5 : 0.0, 0.01) << x << "," << y;
 }
 
+// ---- doubleSided emitters (glTF 3.9.5: the back face is lit, and so emits, as the front).
+
+// A white diffuse floor (z = 0, [-1, 1]^2, seen from above by an orthographic camera) under an
+// emissive quad at z = 0.5 whose front face looks up, away from the floor: only a double-sided
+// one lights the floor. The same quad wound the other way (its front face down) is the
+// reference: the floor must be as bright, through light sampling and BSDF sampling alike.
+std::string emitter_scene(bool front_down, bool double_sided) {
+  GltfBuffer b;
+  const std::vector<float> floor = {-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0};
+  const std::vector<float> lamp = {-0.3f, -0.3f, 0.5f, 0.3f, -0.3f, 0.5f,
+                                   0.3f,  0.3f,  0.5f, -0.3f, 0.3f, 0.5f};
+  const std::vector<uint16_t> up = {0, 1, 2, 0, 2, 3}, down = {0, 2, 1, 0, 3, 2};
+  const int floor_view = b.add(floor), lamp_view = b.add(lamp);
+  const int up_view = b.add(up), lamp_index = b.add(front_down ? down : up);
+  return R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1, 2]}],
+  "nodes": [{"mesh": 0}, {"mesh": 1},
+            {"camera": 0, "translation": [0, 0, 3]}],
+  "cameras": [{"type": "orthographic",
+               "orthographic": {"xmag": 1, "ymag": 1, "znear": 0.1, "zfar": 10}}],
+  "materials": [
+    {"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0},
+     "extensions": {"KHR_materials_specular": {"specularFactor": 0}}},
+    {"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0},
+     "emissiveFactor": [1, 1, 1], "doubleSided": )" +
+         std::string(double_sided ? "true" : "false") + R"(,
+     "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 3},
+                    "KHR_materials_specular": {"specularFactor": 0}}}],
+  "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_specular"],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 2, "material": 0}]},
+             {"primitives": [{"attributes": {"POSITION": 1}, "indices": 3, "material": 1}]}],
+  "accessors": [
+    {"bufferView": )" + std::to_string(floor_view) +
+         R"(, "componentType": 5126, "count": 4, "type": "VEC3"},
+    {"bufferView": )" + std::to_string(lamp_view) +
+         R"(, "componentType": 5126, "count": 4, "type": "VEC3"},
+    {"bufferView": )" + std::to_string(up_view) +
+         R"(, "componentType": 5123, "count": 6, "type": "SCALAR"},
+    {"bufferView": )" + std::to_string(lamp_index) +
+         R"(, "componentType": 5123, "count": 6, "type": "SCALAR"}],
+  )" + b.json() + "}";
+}
+
+double floor_mean(const std::string& json, IntegratorType integrator) {
+  const Scene scene(load_gltf_from_string(json, "", "emitter.gltf", nullptr));
+  RenderSettings settings;
+  settings.width = settings.height = 8;
+  settings.integrator = integrator;
+  TileBuffer tile;
+  EXPECT_TRUE(render_rect(scene, settings, {0, 0, 8, 8}, 0, 256, &tile));
+  double sum = 0.0;
+  for (int y = 0; y < 8; ++y)
+    for (int x = 0; x < 8; ++x) {
+      // Pixels not under the lamp (whose black back or front hides the floor there).
+      if (x >= 2 && x < 6 && y >= 2 && y < 6) continue;
+      sum += tile.rgb_sum[3 * size_t(y * 8 + x)];
+    }
+  return sum / (48.0 * 256.0);
+}
+
+TEST(DoubleSided, TheBackFaceOfADoubleSidedEmitterEmitsLikeItsFront) {
+  for (IntegratorType integrator : {IntegratorType::Direct, IntegratorType::Path}) {
+    const double reference = floor_mean(emitter_scene(true, false), integrator);
+    EXPECT_GT(reference, 0.05);
+    EXPECT_NEAR(floor_mean(emitter_scene(false, true), integrator), reference,
+                0.02 * reference);
+    // Single-sided and facing away: the floor gets nothing from it.
+    EXPECT_EQ(floor_mean(emitter_scene(false, false), integrator), 0.0);
+  }
+  // Seen from behind by the camera, the double-sided lamp shows its radiance (3), the
+  // single-sided one is black.
+  auto centre = [](const std::string& json) {
+    const Scene scene(load_gltf_from_string(json, "", "emitter.gltf", nullptr));
+    RenderSettings settings;
+    settings.width = settings.height = 8;
+    TileBuffer tile;
+    EXPECT_TRUE(render_rect(scene, settings, {3, 3, 1, 1}, 0, 4, &tile));
+    return tile.rgb_sum[0] / 4.0;
+  };
+  EXPECT_NEAR(centre(emitter_scene(true, true)), 3.0, 1e-5);
+  EXPECT_EQ(centre(emitter_scene(true, false)), 0.0);
+}
+
 }  // namespace
 }  // namespace rf

@@ -665,6 +665,7 @@ class Loader {
         fail(at + ".alphaMode" + named(gm.name) + ": '" + gm.alphaMode +
              "' is not OPAQUE, MASK or BLEND");
       }
+      m.double_sided = gm.doubleSided;
       m.alpha_cutoff = float(gm.alphaCutoff);
       if (!(gm.alphaCutoff >= 0.0))
         fail(at + ".alphaCutoff" + named(gm.name) + ": " + std::to_string(gm.alphaCutoff) +

@@ -150,6 +150,21 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   return sp;
 }
 
+// The normal of an area light's sample point on the side facing `origin`: its front normal, or
+// the back face's for a double-sided emitter seen from behind (both faces emit).
+inline Vec3 facing_light_normal(const Scene& scene, const LightSample& ls, Vec3 origin) {
+  if (dot(ls.n, origin - ls.p) >= 0.f || !scene.material(ls.slot, ls.prim).double_sided)
+    return ls.n;
+  return -ls.n;
+}
+
+// The cosine between a hit's geometric normal and wo on the emitting side (<= 0: the hit
+// face does not emit towards wo).
+inline float emitting_cosine(const Material& m, Vec3 ng, Vec3 wo) {
+  const float c = dot(ng, wo);
+  return m.double_sided ? std::abs(c) : c;
+}
+
 // A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
 // origin + t wi for t in (0, tmax). In the packet tracer only delta lights' samples are held
 // so (the others wait in a LightBatch); the scalar reference holds every light's.
@@ -340,7 +355,7 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
   // An emissive triangle: the rest is LightBatch::finish_geometry's.
   set3(lb->o, origin);
   set3(lb->lp, ls.p);
-  set3(lb->ln, ls.n);
+  set3(lb->ln, facing_light_normal(scene, ls, origin));
   set3(lb->ng, sp.ng);
   lb->eps[lane] = ray_epsilon(ls.p);
   lb->k[lane] = p_scene * ls.pdf_area;
@@ -393,6 +408,7 @@ inline Vec3 medium_after(const Material& m, bool front, Vec3 medium) {
   return front ? m.absorption : Vec3{0.f, 0.f, 0.f};
 }
 
+
 // Directions on the wrong side of the geometric surface (possible with shading normals)
 // would leak light through it: the path ends there.
 inline bool wrong_side(Vec3 wi, Vec3 ng, bool transmitted) {
@@ -434,9 +450,10 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     result.normal = sp.ns;
     result.depth = hit->t;
   }
-  // Emission, one-sided: only the front (counter-clockwise) face emits.
-  const float cos_emit = dot(hit->ng, wo);
-  if (cos_emit > 0.f && scene.materials()[hit->material].is_emissive()) {
+  // Emission: the front (counter-clockwise) face emits, and the back of a double-sided one.
+  const Material& hit_material = scene.materials()[hit->material];
+  const float cos_emit = emitting_cosine(hit_material, hit->ng, wo);
+  if (cos_emit > 0.f && hit_material.is_emissive()) {
     const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2);
     if (p.prev_delta) {
       result.radiance += p.beta * Le;
@@ -805,7 +822,7 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
   const float dist = std::sqrt(dist2);
   if (!(dist > 0.f)) return false;
   const Vec3 wi = to_light / dist;
-  const float cos_light = dot(ls.n, -wi);
+  const float cos_light = dot(facing_light_normal(scene, ls, origin), -wi);
   if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return false;
   float bsdf_pdf_wi = 0.f;
   const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
@@ -866,8 +883,9 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       result.normal = sp.ns;
       result.depth = hit.t;
     }
-    const float cos_emit = dot(hit.ng, wo);
-    if (cos_emit > 0.f && scene.materials()[hit.material].is_emissive()) {
+    const Material& hit_material = scene.materials()[hit.material];
+    const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
+    if (cos_emit > 0.f && hit_material.is_emissive()) {
       const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2);
       if (p.prev_delta) {
         result.radiance += p.beta * Le;

@@ -305,6 +305,8 @@ std::unique_ptr<Scene> varied_cornell_box() {
   desc.materials[2].transmission = 1.f;
   desc.materials[2].roughness = 0.f;
   desc.materials[2].absorption = Vec3(0.9f, 2.f, 0.3f);  // KHR_materials_volume
+  for (Material& m : desc.materials)  // the light's back face, towards the ceiling, emits too
+    if (m.is_emissive()) m.double_sided = true;
   PunctualLight point;
   point.position = Vec3(0.2f, 0.4f, 0.2f);
   point.intensity = Vec3(0.3f, 0.27f, 0.24f);

@@ -62,6 +62,9 @@ struct Material {
   // material, thicknessFactor 0, has none). Light crossing a length d inside is multiplied by
   // exp(-absorption d) (Beer-Lambert).
   Vec3 absorption{0.f, 0.f, 0.f};
+  // glTF doubleSided: the back face is lit as the front with the normal reversed (3.9.5), and
+  // so an emissive back face emits like the front; otherwise only the front face emits.
+  bool double_sided = false;
   bool has_volume() const { return !is_zero(absorption); }
   bool is_emissive() const { return !is_zero(emission); }
   bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }

@@ -776,6 +776,10 @@ bool Scene::occluded(Vec3 o, Vec3 d, float tmax, uint64_t query, uint32_t sample
   return ray.tfar < 0.f;
 }
 
+const Material& Scene::material(uint32_t slot, uint32_t prim) const {
+  return desc_.materials[slot_mesh_[slot]->material[prim]];
+}
+
 Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
   const TriangleMesh& mesh = *slot_mesh_[slot];
   const Material& m = desc_.materials[mesh.material[prim]];

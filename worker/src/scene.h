@@ -353,6 +353,8 @@ class Scene {
   const Material& material(uint32_t prim) const {
     return desc_.materials[desc_.world.material[prim]];
   }
+  // The material of triangle prim of slot's mesh.
+  const Material& material(uint32_t slot, uint32_t prim) const;
   const std::vector<Material>& materials() const { return desc_.materials; }
   const TextureSet& textures() const { return textures_; }
   // The triangles of a geometry slot (the world, or instance slot - 1's mesh), in that slot's
