@@ -88,7 +88,7 @@ def test_submit_through_the_form_and_watch_the_image_converge(page: Page, scene_
     page.get_by_role("checkbox", name="Tile grid").check()
     screenshot(page, "job-error-heatmap")
 
-    expect(page.locator(".badge").first).to_have_text("completed", timeout=90_000)
+    expect(page.locator(".badge").first).to_have_text("completed", timeout=300_000)
     seen.add(progress_now(page))
     assert max(seen) == total and len(seen) >= 2, f"progress values seen: {sorted(seen)}"
     # Converged tiles are marked on the grid, one stop record per tile, the log tells the story.
@@ -181,7 +181,8 @@ def test_jobs_list_updates_live_and_filters_by_state(page: Page, client, scene_g
     expect(row.locator("td").nth(8)).to_have_text("3")  # priority
     expect(row.locator(".badge")).to_have_text("running", timeout=30_000)
     screenshot(page, "jobs-running")
-    expect(row.locator(".badge")).to_have_text("completed", timeout=90_000)
+    # 2048 spp on two 1-thread workers: seconds on an idle machine, minutes on a busy one.
+    expect(row.locator(".badge")).to_have_text("completed", timeout=300_000)
     expect(row.locator('[role="progressbar"]')).to_have_attribute("aria-valuenow", "16")
     page.set_viewport_size(LARGE)
     screenshot(page, "jobs-large")

@@ -325,6 +325,10 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
     for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
                             &m.emissive_tex})
       if (ref->texture >= 0 && size_t(ref->texture) < n) needed[is_srgb(m, ref)][ref->texture] = 1;
+  // A texture no material reads is still registered (header only), so that its pixels count
+  // against the limit like any image the scene carries.
+  for (size_t i = 0; i < n; ++i)
+    if (!needed[0][i] && !needed[1][i]) needed[0][i] = 1;
   std::vector<int> texture_index[2] = {std::vector<int>(n, -1), std::vector<int>(n, -1)};
   for (size_t i = 0; i < n; ++i) {
     const TextureSource& t = desc_.textures[i];
