@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 
@@ -235,6 +236,22 @@ class Client:
 
     def workers(self) -> list[dict[str, Any]]:
         return self._check(self.http.get("/api/v1/workers")).json()
+
+    def drain_worker(self, worker_id: str) -> dict[str, Any]:
+        """Admin: the worker finishes the tasks it holds and takes no more."""
+        return self._worker_action(worker_id, "drain")
+
+    def disable_worker(self, worker_id: str) -> dict[str, Any]:
+        """Admin: the worker hands its tasks back at once and takes no more."""
+        return self._worker_action(worker_id, "disable")
+
+    def enable_worker(self, worker_id: str) -> dict[str, Any]:
+        """Admin: a drained or disabled worker takes tasks again."""
+        return self._worker_action(worker_id, "enable")
+
+    def _worker_action(self, worker_id: str, action: str) -> dict[str, Any]:
+        path = f"/api/v1/workers/{quote(worker_id, safe='')}/{action}"
+        return self._check(self.http.post(path)).json()
 
     def image(
         self,

@@ -279,6 +279,19 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             workers=[jobs_pb2.WorkerStatus(**w) for w in self.farm.workers()]
         )
 
+    @_maps_errors
+    async def SetWorkerMode(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        modes = {
+            jobs_pb2.WORKER_MODE_ACTIVE: "active",
+            jobs_pb2.WORKER_MODE_DRAINING: "draining",
+            jobs_pb2.WORKER_MODE_DISABLED: "disabled",
+        }
+        if request.mode not in modes:
+            raise SettingsError("mode", "mode must be ACTIVE, DRAINING or DISABLED")
+        worker = await self.farm.set_worker_mode(request.worker_id, modes[request.mode], who)
+        return jobs_pb2.SetWorkerModeResponse(worker=jobs_pb2.WorkerStatus(**worker))
+
     async def WatchJob(self, request, context):  # noqa: N802
         try:
             who = await _caller(self.auth, context)

@@ -136,6 +136,9 @@ class WorkerInfo(BaseModel):
     samples_per_s: float
     rays_per_s: float
     busy_threads: int
+    tasks_failed: int
+    recent_errors: list[str]
+    state: Literal["active", "draining", "drained", "disabled"]
 
 
 class SceneInfo(BaseModel):
@@ -756,6 +759,26 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     )
     async def workers(_: Caller = Auth) -> list[dict]:
         return farm.workers()
+
+    for action, mode, summary in (
+        ("drain", "draining", "Drain a worker (admin): it finishes its tasks and takes no more"),
+        ("disable", "disabled", "Disable a worker (admin): its tasks are handed back at once"),
+        ("enable", "active", "Enable a drained or disabled worker again (admin)"),
+    ):
+
+        def control(mode: str = mode):
+            async def set_mode(worker_id: str, who: Caller = Auth) -> dict:
+                return await farm.set_worker_mode(worker_id, mode, who)
+
+            return set_mode
+
+        app.post(
+            f"/api/v1/workers/{{worker_id}}/{action}",
+            summary=summary,
+            response_model=WorkerInfo,
+            responses=_errors(403, 404),
+            name=f"{action}_worker",
+        )(control())
 
     @app.get(
         "/api/v1/scenes/{sha256}",

@@ -225,6 +225,22 @@ class WorkerSlot:
     leases: dict[str, Lease] = field(default_factory=dict)
 
 
+# Operator modes of a worker (docs/operators.md): an active worker takes tasks; a draining one
+# finishes the tasks it holds and takes no more; a disabled one has handed its tasks back.
+WORKER_MODES = ("active", "draining", "disabled")
+RECENT_ERRORS = 5  # error messages kept per worker
+
+
+@dataclass
+class WorkerRecord:
+    """What the scheduler remembers of a worker id for the server's life, across reconnects
+    (workers reconnect with the same id): the operator's mode and its task failures."""
+
+    mode: str = "active"
+    tasks_failed: int = 0
+    errors: deque[str] = field(default_factory=lambda: deque(maxlen=RECENT_ERRORS))
+
+
 @dataclass(frozen=True)
 class Progress:
     tiles_total: int
@@ -255,6 +271,7 @@ class Scheduler:
         self.leases: dict[str, Lease] = {}
         self.events: list[Event] = []
         self.cancellations: dict[str, list[str]] = {}  # worker -> task ids to cancel
+        self.records: dict[str, WorkerRecord] = {}  # worker id -> mode and counts (kept)
         self._task_ids = itertools.count(1)
 
     # ----------------------------------------------------------------------------- jobs
@@ -476,6 +493,33 @@ class Scheduler:
         if worker_id in self.workers:
             self.remove_worker(worker_id)
         self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit))
+        self.records.setdefault(worker_id, WorkerRecord())
+
+    def record(self, worker_id: str) -> WorkerRecord:
+        return self.records.setdefault(worker_id, WorkerRecord())
+
+    def worker_state(self, worker_id: str) -> str:
+        """active, draining, drained (draining with no task left) or disabled."""
+        mode = self.record(worker_id).mode
+        slot = self.workers.get(worker_id)
+        if mode == "draining" and (slot is None or not slot.leases):
+            return "drained"
+        return mode
+
+    def set_worker_mode(self, worker_id: str, mode: str) -> list[Lease]:
+        """Drain, disable or enable a worker. Disabling hands its tasks back at once (they are
+        re-queued for other workers and cancelled on it); returns the leases handed back."""
+        if mode not in WORKER_MODES:
+            raise ValueError(f"unknown worker mode {mode!r}")
+        self.record(worker_id).mode = mode
+        slot = self.workers.get(worker_id)
+        if mode != "disabled" or slot is None:
+            return []
+        back = list(slot.leases.values())
+        for lease in back:
+            self._release(lease, requeue=True)
+            self.cancellations.setdefault(worker_id, []).append(lease.task_id)
+        return back
 
     def remove_worker(self, worker_id: str) -> list[Lease]:
         """A worker left (stream closed): hand its leases back to their tiles."""
@@ -526,8 +570,8 @@ class Scheduler:
     def assign(self, worker_id: str) -> list[Lease]:
         """Lease tasks to the worker up to its credit; returns the new leases."""
         slot = self.workers.get(worker_id)
-        if slot is None:
-            return []
+        if slot is None or self.record(worker_id).mode != "active":
+            return []  # a draining or disabled worker takes no new task
         new: list[Lease] = []
         while len(slot.leases) < slot.credit:
             lease = self._next_task(slot)
@@ -854,6 +898,9 @@ class Scheduler:
         if lease is None:
             return
         self._release(lease, requeue=True)
+        record = self.record(lease.worker_id)
+        record.tasks_failed += 1
+        record.errors.append(error[:500])
         job = self.jobs.get(lease.job_id)
         if job is None or job.state.finished:
             return

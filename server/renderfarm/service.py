@@ -1074,12 +1074,28 @@ class FarmService:
                 if s.worker_id in self.scheduler.workers
                 else 0,
                 "tasks_done": s.tasks_done,
+                "tasks_failed": self.scheduler.record(s.worker_id).tasks_failed,
+                "recent_errors": list(self.scheduler.record(s.worker_id).errors),
+                "state": self.scheduler.worker_state(s.worker_id),
                 "samples_per_s": s.samples_per_s,
                 "rays_per_s": s.rays_per_s,
                 "busy_threads": s.busy_threads,
             }
             for s in self.sessions.values()
         ]
+
+    async def set_worker_mode(self, worker_id: str, mode: str, caller: Caller) -> dict[str, Any]:
+        """Operator control (docs/operators.md): drain, disable or enable a connected worker.
+        Admins only: one user's call would change what every user's jobs render on. The mode
+        is kept for the id across reconnects while the server runs (in memory, not stored)."""
+        if not caller.admin:
+            raise Forbidden("only an admin token may drain, disable or enable workers")
+        if worker_id not in self.sessions:
+            raise NotFound(f"no connected worker with id {worker_id!r}")
+        back = self.scheduler.set_worker_mode(worker_id, mode)
+        log.info("worker %s set %s (%d tasks handed back)", worker_id, mode, len(back))
+        await self._after_change()
+        return next(w for w in self.workers() if w["id"] == worker_id)
 
     # -------------------------------------------------------------------- after changes
     async def _after_change(self) -> None:
