@@ -68,7 +68,11 @@ def _submit(client, args: argparse.Namespace) -> dict[str, Any]:
 
     try:
         return client.submit(
-            args.scene, settings=_job_settings(args), name=args.name or "", after=args.after
+            args.scene,
+            settings=_job_settings(args),
+            name=args.name or "",
+            after=args.after,
+            require_tags=args.require_tag,
         )
     except SceneError as e:  # packing a .gltf found what the server would refuse
         name = Path(args.scene).name
@@ -157,6 +161,13 @@ def _add_after(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="ID",
         help="wait until job ID has completed (repeat for several); fails if it fails",
+    )
+    parser.add_argument(
+        "--require-tag",
+        action="append",
+        default=[],
+        metavar="TAG",
+        help="render only on workers started with --tag TAG (repeat for several)",
     )
 
 

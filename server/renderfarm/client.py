@@ -106,11 +106,14 @@ class Client:
         settings: dict[str, Any] | None = None,
         name: str = "",
         after: list[str] | None = None,
+        require_tags: list[str] | None = None,
     ) -> dict[str, Any]:
         """Submit a scene file (.glb, or .gltf packed with its files into a .glb) or a stored
         scene's hash. `after`: ids of jobs it waits for (state waiting until all completed).
+        `require_tags`: only workers announcing all these tags (--tag) render it.
         Returns the job."""
         after = list(after or [])
+        tags = list(require_tags or [])
         settings = dict(settings or {})
         env = settings.get("environment")
         env_file = None
@@ -128,6 +131,8 @@ class Client:
             fields = {"settings": json.dumps(settings), "name": name or path.stem}
             if after:
                 fields["after"] = ",".join(after)
+            if tags:
+                fields["require_tags"] = ",".join(tags)
             files = {"scene": (upload_name, data, "model/gltf-binary")}
             if env_file:
                 files["environment"] = env_file
@@ -138,10 +143,14 @@ class Client:
             fields["name"] = name
             if after:
                 fields["after"] = ",".join(after)
+            if tags:
+                fields["require_tags"] = ",".join(tags)
             return self._check(self.http.post("/api/v1/jobs", data=fields, files=files)).json()
         body = {"scene_sha256": scene_sha256, "settings": settings, "name": name}
         if after:
             body["after"] = after
+        if tags:
+            body["require_tags"] = tags
         return self._check(self.http.post("/api/v1/jobs", json=body)).json()
 
     def get(self, job_id: str) -> dict[str, Any]:

@@ -212,6 +212,7 @@ class JobRun:
     after: tuple[str, ...] = ()  # ids of the jobs it waits for (state WAITING until completed)
     paused_at: float | None = None  # clock when paused: the pause does not count as elapsed
     elapsed_before: float = 0.0  # elapsed seconds of earlier runs (restored, retried, continued)
+    require_tags: frozenset[str] = frozenset()  # only workers with all of these take its tasks
 
     @property
     def pixels(self) -> int:
@@ -223,6 +224,7 @@ class WorkerSlot:
     worker_id: str
     credit: int
     leases: dict[str, Lease] = field(default_factory=dict)
+    tags: frozenset[str] = frozenset()  # announced in its Hello (--tag)
 
 
 # Operator modes of a worker (docs/operators.md): an active worker takes tasks; a draining one
@@ -287,6 +289,7 @@ class Scheduler:
         bases: dict[int, list[list]] | None = None,
         after: tuple[str, ...] = (),
         transition: tuple[JobState, str, dict] | None = None,
+        require_tags: tuple[str, ...] = (),
     ) -> JobRun:
         """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery),
         `plans` their planned batch sizes as planned_batches() gave them at that checkpoint,
@@ -307,6 +310,7 @@ class Scheduler:
         ]
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state, after=after)
         job.elapsed_before = elapsed_s
+        job.require_tags = frozenset(require_tags)
         if state in (JobState.RUNNING, JobState.PAUSED):
             job.started = now - elapsed_s
         if state == JobState.PAUSED:
@@ -489,10 +493,10 @@ class Scheduler:
         return eta
 
     # -------------------------------------------------------------------------- workers
-    def add_worker(self, worker_id: str, credit: int) -> None:
+    def add_worker(self, worker_id: str, credit: int, tags: tuple[str, ...] = ()) -> None:
         if worker_id in self.workers:
             self.remove_worker(worker_id)
-        self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit))
+        self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit), tags=frozenset(tags))
         self.records.setdefault(worker_id, WorkerRecord())
 
     def record(self, worker_id: str) -> WorkerRecord:
@@ -581,12 +585,16 @@ class Scheduler:
         return new
 
     def _job_order(self, worker_id: str) -> list[JobRun]:
-        """Priority first, then fair share (fewest leases out), then submission order."""
+        """Priority first, then fair share (fewest leases out), then submission order; only
+        the jobs whose required tags the worker has."""
+        slot = self.workers.get(worker_id)
+        tags = slot.tags if slot is not None else frozenset()
         live = [
             j
             for j in self.jobs.values()
             if j.state in (JobState.QUEUED, JobState.RUNNING)  # not paused, waiting, finished
             and worker_id not in j.excluded_workers
+            and j.require_tags <= tags
         ]
         return sorted(live, key=lambda j: (-j.settings.priority, j.leased, j.created))
 

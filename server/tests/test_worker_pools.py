@@ -1,9 +1,10 @@
 """Operator control of workers in the scheduler: drain, disable, enable, and what a worker id
 keeps across reconnects (a fake worker set; no processes)."""
 
+import pytest
 from test_scheduler import FakeClock, render
 
-from renderfarm.jobspec import JobSettings
+from renderfarm.jobspec import JobSettings, SettingsError, check_tags
 from renderfarm.scheduler import Scheduler
 from renderfarm.states import JobState
 
@@ -76,3 +77,26 @@ def test_failures_are_counted_per_worker_with_the_last_errors():
     assert record.tasks_failed == 7
     assert list(record.errors) == [f"error {i}" for i in range(2, 7)]
     assert sched.record("b").tasks_failed == 0
+
+
+def test_a_jobs_tasks_go_only_to_workers_with_all_its_tags():
+    sched = Scheduler(clock=FakeClock())
+    sched.add_job("j", ONE_BATCH, "scene", require_tags=("big-mem", "gpu-less"))
+    sched.add_worker("plain", 4)
+    sched.add_worker("half", 4, tags=("big-mem",))
+    assert sched.assign("plain") == []
+    assert sched.assign("half") == []
+    assert sched.jobs["j"].state == JobState.QUEUED  # nobody can take it: it stays queued
+    sched.add_worker("both", 4, tags=("big-mem", "gpu-less", "extra"))
+    assert len(sched.assign("both")) == 4
+    # An untagged job goes anywhere.
+    sched.add_job("k", ONE_BATCH, "scene")
+    assert {x.job_id for x in sched.assign("plain")} == {"k"}
+
+
+def test_tags_are_checked_and_name_the_field():
+    assert check_tags("require_tags", "gpu-less, big-mem big-mem") == ["big-mem", "gpu-less"]
+    for bad in (["Big"], ["-x"], ["a" * 65], [3], "a b!"):
+        with pytest.raises(SettingsError) as e:
+            check_tags("require_tags", bad)
+        assert e.value.field == "require_tags"
