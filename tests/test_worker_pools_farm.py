@@ -151,3 +151,66 @@ def test_cli_drains_disables_and_enables(farm, admin):
         env={**env, "RENDERFARM_TOKEN": farm.tokens["alice"]},
     )  # fmt: skip
     assert refused.returncode != 0 and "admin" in refused.stderr
+
+
+def test_grpc_set_worker_mode_is_for_admins(farm, admin):
+    import grpc
+
+    from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
+
+    worker_id = admin.workers()[0]["id"]
+    with grpc.insecure_channel(farm.grpc_address) as channel:
+        stub = jobs_pb2_grpc.JobServiceStub(channel)
+        request = jobs_pb2.SetWorkerModeRequest(
+            worker_id=worker_id, mode=jobs_pb2.WORKER_MODE_DRAINING
+        )
+        with pytest.raises(grpc.RpcError) as e:
+            stub.SetWorkerMode(
+                request, metadata=[("authorization", f"Bearer {farm.tokens['alice']}")], timeout=30
+            )
+        assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
+        root = [("authorization", f"Bearer {farm.tokens['root']}")]
+        answer = stub.SetWorkerMode(request, metadata=root, timeout=30)
+        assert answer.worker.id == worker_id and answer.worker.state in ("draining", "drained")
+        listed = stub.ListWorkers(jobs_pb2.ListWorkersRequest(), metadata=root, timeout=30)
+        assert {w.id: w.state for w in listed.workers}[worker_id] == answer.worker.state
+        enable = jobs_pb2.SetWorkerModeRequest(
+            worker_id=worker_id, mode=jobs_pb2.WORKER_MODE_ACTIVE
+        )
+        assert stub.SetWorkerMode(enable, metadata=root, timeout=30).worker.state == "active"
+
+
+def test_bad_tags_are_refused_naming_the_field(admin, worker_binary):
+    for bad in (["Big-Mem"], ["gpu!less"], ["x" * 65], ["-lead"]):
+        with pytest.raises(ApiError) as e:
+            admin.submit(CORNELL, settings=JOB, require_tags=bad)
+        assert e.value.status == 400 and e.value.field == "require_tags", bad
+    done = subprocess.run(
+        [worker_binary, "connect", "--server", "127.0.0.1:1", "--tag", "Bad!"],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert done.returncode == 2 and "--tag 'Bad!'" in done.stderr
+
+
+def test_tags_route_a_job_to_the_workers_having_them(farm, admin):
+    """Last in the module: it adds a tagged worker to the farm."""
+    job = admin.submit(CORNELL, settings=JOB, name="tagged", require_tags=["gpu-less", "big-mem"])
+    assert job["require_tags"] == ["big-mem", "gpu-less"]
+    waiting = wait_until(
+        lambda: (j := admin.get(job["id"]))["error"] and j, 30, "the job to say why it waits"
+    )
+    assert waiting["state"] == "queued"
+    assert waiting["error"] == "waiting for a worker with the tags big-mem, gpu-less"
+    before = {w["id"]: w["tasks_done"] for w in admin.workers()}
+    farm.add_workers(1, tags=["big-mem", "gpu-less", "spare"])
+    tagged = wait_until(
+        lambda: next((w for w in admin.workers() if w["id"] not in before), None),
+        60,
+        "the tagged worker",
+    )
+    assert tagged["tags"] == ["big-mem", "gpu-less", "spare"]
+    done = admin.wait(job["id"], poll_s=0.1, timeout_s=300)
+    assert done["state"] == "completed" and done["error"] == ""
+    after = {w["id"]: w["tasks_done"] for w in admin.workers()}
+    assert {i: after[i] for i in before} == before  # the untagged workers rendered none of it
+    assert after[tagged["id"]] > 0
