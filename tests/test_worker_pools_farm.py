@@ -181,7 +181,7 @@ def test_grpc_set_worker_mode_is_for_admins(farm, admin):
 
 
 def test_bad_tags_are_refused_naming_the_field(admin, worker_binary):
-    for bad in (["Big-Mem"], ["gpu!less"], ["x" * 65], ["-lead"]):
+    for bad in (["Big-Mem"], ["gpu!less"], ["gpu less"], ["x" * 65], ["-lead"]):
         with pytest.raises(ApiError) as e:
             admin.submit(CORNELL, settings=JOB, require_tags=bad)
         assert e.value.status == 400 and e.value.field == "require_tags", bad

@@ -114,6 +114,9 @@ class Client:
         Returns the job."""
         after = list(after or [])
         tags = list(require_tags or [])
+        for tag in tags:  # a form field splits on these: refuse rather than send other tags
+            if not isinstance(tag, str) or "," in tag or any(c.isspace() for c in tag):
+                raise ApiError(400, f"require_tags: bad tag {tag!r}", "require_tags")
         settings = dict(settings or {})
         env = settings.get("environment")
         env_file = None
