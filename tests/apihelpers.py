@@ -59,6 +59,7 @@ def job_from_proto(job: jobs_pb2.Job) -> dict[str, Any]:
         "finished_unix_s": job.finished_unix_s or None,
         "owner": job.owner,
         "after": list(job.after),
+        "require_tags": list(job.require_tags),
     }
 
 

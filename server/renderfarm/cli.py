@@ -68,7 +68,11 @@ def _submit(client, args: argparse.Namespace) -> dict[str, Any]:
 
     try:
         return client.submit(
-            args.scene, settings=_job_settings(args), name=args.name or "", after=args.after
+            args.scene,
+            settings=_job_settings(args),
+            name=args.name or "",
+            after=args.after,
+            require_tags=args.require_tag,
         )
     except SceneError as e:  # packing a .gltf found what the server would refuse
         name = Path(args.scene).name
@@ -157,6 +161,13 @@ def _add_after(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="ID",
         help="wait until job ID has completed (repeat for several); fails if it fails",
+    )
+    parser.add_argument(
+        "--require-tag",
+        action="append",
+        default=[],
+        metavar="TAG",
+        help="render only on workers started with --tag TAG (repeat for several)",
     )
 
 
@@ -598,17 +609,34 @@ def _token_command(args: argparse.Namespace, settings) -> int:
 
 
 def cmd_workers(args: argparse.Namespace) -> int:
+    if args.action is not None:
+        if not args.worker_id:
+            print(f"error: renderfarm workers {args.action} needs a worker ID", file=sys.stderr)
+            return 2
+        with _client(args) as client:
+            w = getattr(client, f"{args.action}_worker")(args.worker_id)
+        if args.json:
+            _print_json(w)
+        else:
+            print(f"{w['id']} {w['state']}")
+        return 0
     with _client(args) as client:
         workers = client.workers()
         if args.json:
             _print_json(workers)
             return 0
-        print(f"{'ID':32}  {'CORES':>5}  {'TASKS':>5}  {'SAMPLES/S':>12}  {'MRAYS/S':>8}")
+        print(
+            f"{'ID':32}  {'STATE':8}  {'CORES':>5}  {'TASKS':>5}  {'DONE':>6}  {'FAILED':>6}  "
+            f"{'SAMPLES/S':>12}  {'MRAYS/S':>8}"
+        )
         for w in workers:
             print(
-                f"{w['id']:32}  {w['cores']:5}  {w['tasks_in_flight']:5}  "
+                f"{w['id']:32}  {w['state']:8}  {w['cores']:5}  {w['tasks_in_flight']:5}  "
+                f"{w['tasks_done']:6}  {w['tasks_failed']:6}  "
                 f"{w['samples_per_s']:12,.0f}  {w['rays_per_s'] / 1e6:8.2f}"
             )
+            for error in w["recent_errors"]:
+                print(f"    error: {error}")
     return 0
 
 
@@ -662,7 +690,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("update", cmd_update, "change a job's priority or name"),
         ("continue", cmd_continue, "carry a completed job on to more samples or less noise"),
         ("rm", cmd_rm, "delete finished jobs with their stored data"),
-        ("workers", cmd_workers, "list connected workers"),
+        ("workers", cmd_workers, "list connected workers, or drain, disable or enable one"),
     ):
         q = sub.add_parser(name, help=help_text)
         if name in ("get", "cancel", "watch", "pause", "resume", "retry", "update", "continue"):
@@ -686,6 +714,13 @@ def build_parser() -> argparse.ArgumentParser:
             )
         if name == "rm":
             q.add_argument("job_ids", nargs="+", metavar="job_id")
+        if name == "workers":
+            q.add_argument(
+                "action", nargs="?", choices=("drain", "disable", "enable"),
+                help="admin: drain (finish its tasks, take no more), disable (hand its tasks "
+                "back now) or enable a worker; none lists the workers",
+            )  # fmt: skip
+            q.add_argument("worker_id", nargs="?", default=None, help="the worker's ID")
         if name == "ls":
             q.add_argument("--state", default=None, help="only jobs in this state")
             q.add_argument("--limit", type=int, default=50)

@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 
@@ -105,11 +106,17 @@ class Client:
         settings: dict[str, Any] | None = None,
         name: str = "",
         after: list[str] | None = None,
+        require_tags: list[str] | None = None,
     ) -> dict[str, Any]:
         """Submit a scene file (.glb, or .gltf packed with its files into a .glb) or a stored
         scene's hash. `after`: ids of jobs it waits for (state waiting until all completed).
+        `require_tags`: only workers announcing all these tags (--tag) render it.
         Returns the job."""
         after = list(after or [])
+        tags = list(require_tags or [])
+        for tag in tags:  # a form field splits on these: refuse rather than send other tags
+            if not isinstance(tag, str) or "," in tag or any(c.isspace() for c in tag):
+                raise ApiError(400, f"require_tags: bad tag {tag!r}", "require_tags")
         settings = dict(settings or {})
         env = settings.get("environment")
         env_file = None
@@ -127,6 +134,8 @@ class Client:
             fields = {"settings": json.dumps(settings), "name": name or path.stem}
             if after:
                 fields["after"] = ",".join(after)
+            if tags:
+                fields["require_tags"] = ",".join(tags)
             files = {"scene": (upload_name, data, "model/gltf-binary")}
             if env_file:
                 files["environment"] = env_file
@@ -137,10 +146,14 @@ class Client:
             fields["name"] = name
             if after:
                 fields["after"] = ",".join(after)
+            if tags:
+                fields["require_tags"] = ",".join(tags)
             return self._check(self.http.post("/api/v1/jobs", data=fields, files=files)).json()
         body = {"scene_sha256": scene_sha256, "settings": settings, "name": name}
         if after:
             body["after"] = after
+        if tags:
+            body["require_tags"] = tags
         return self._check(self.http.post("/api/v1/jobs", json=body)).json()
 
     def get(self, job_id: str) -> dict[str, Any]:
@@ -235,6 +248,22 @@ class Client:
 
     def workers(self) -> list[dict[str, Any]]:
         return self._check(self.http.get("/api/v1/workers")).json()
+
+    def drain_worker(self, worker_id: str) -> dict[str, Any]:
+        """Admin: the worker finishes the tasks it holds and takes no more."""
+        return self._worker_action(worker_id, "drain")
+
+    def disable_worker(self, worker_id: str) -> dict[str, Any]:
+        """Admin: the worker hands its tasks back at once and takes no more."""
+        return self._worker_action(worker_id, "disable")
+
+    def enable_worker(self, worker_id: str) -> dict[str, Any]:
+        """Admin: a drained or disabled worker takes tasks again."""
+        return self._worker_action(worker_id, "enable")
+
+    def _worker_action(self, worker_id: str, action: str) -> dict[str, Any]:
+        path = f"/api/v1/workers/{quote(worker_id, safe='')}/{action}"
+        return self._check(self.http.post(path)).json()
 
     def image(
         self,

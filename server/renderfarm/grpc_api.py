@@ -27,7 +27,7 @@ from grpc_reflection.v1alpha import reflection
 
 from . import apicommon, images
 from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
-from .jobspec import SETTING_NAMES, SettingsError
+from .jobspec import SETTING_NAMES, SettingsError, check_tags
 from .scenes import SceneError
 from .service import (
     Conflict,
@@ -89,6 +89,7 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         finished_unix_s=view.finished_unix_s or 0.0,
         owner=view.owner,
         after=list(view.after),
+        require_tags=list(view.require_tags),
     )
 
 
@@ -178,6 +179,7 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             raw_settings=settings_from_proto(request.settings),
             after=apicommon.after_ids(list(request.after)),
             caller=who,
+            require_tags=check_tags("require_tags", list(request.require_tags)),
         )
         if self.farm.metrics is not None:
             self.farm.metrics.jobs_submitted.inc()
@@ -279,6 +281,19 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             workers=[jobs_pb2.WorkerStatus(**w) for w in self.farm.workers()]
         )
 
+    @_maps_errors
+    async def SetWorkerMode(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        modes = {
+            jobs_pb2.WORKER_MODE_ACTIVE: "active",
+            jobs_pb2.WORKER_MODE_DRAINING: "draining",
+            jobs_pb2.WORKER_MODE_DISABLED: "disabled",
+        }
+        if request.mode not in modes:
+            raise SettingsError("mode", "mode must be ACTIVE, DRAINING or DISABLED")
+        worker = await self.farm.set_worker_mode(request.worker_id, modes[request.mode], who)
+        return jobs_pb2.SetWorkerModeResponse(worker=jobs_pb2.WorkerStatus(**worker))
+
     async def WatchJob(self, request, context):  # noqa: N802
         try:
             who = await _caller(self.auth, context)
@@ -348,9 +363,12 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                 hello.max_in_flight,
                 hello.version,
                 hello.token,
+                check_tags("tags", list(hello.tags)),
             )
         except Unauthenticated as e:
             await context.abort(grpc.StatusCode.UNAUTHENTICATED, str(e))
+        except SettingsError as e:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, e.message)
         settings = self.farm.settings
         yield workers_pb2.ServerMessage(
             welcome=workers_pb2.Welcome(

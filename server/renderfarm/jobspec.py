@@ -24,6 +24,33 @@ class SettingsError(ValueError):
         self.message = message
 
 
+# Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
+# same rule in worker/src/main.cpp.
+TAG_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]{0,63}")
+MAX_TAGS = 32
+
+
+def check_tags(field: str, value: Any) -> list[str]:
+    """A list of tags (or a text of tags separated by commas or spaces, a form field), each
+    1..64 of a-z, 0-9, '.', '_', '-' starting with a letter or digit; sorted, once each."""
+    if value is None or value == "":
+        return []
+    if isinstance(value, str):
+        value = value.replace(",", " ").split()
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise SettingsError(field, f"{field} must be a list of tags")
+    if len(value) > MAX_TAGS:
+        raise SettingsError(field, f"{field} has more than {MAX_TAGS} tags")
+    for v in value:
+        if not TAG_PATTERN.fullmatch(v):
+            raise SettingsError(
+                field,
+                f"{field}: bad tag {v[:80]!r}: 1 to 64 of a-z, 0-9, '.', '_', '-', "
+                "starting with a letter or digit",
+            )
+    return sorted(set(value))
+
+
 @dataclass(frozen=True)
 class Limits:
     """Server-side limits on what a job may ask for (configurable, see config.Settings)."""

@@ -122,8 +122,10 @@ class LocalFarm:
         )
         return self
 
-    def add_workers(self, count: int, threads: int | None = None, extra_args=None) -> None:
-        """Start `count` more workers (numbered after the running ones), with more flags."""
+    def add_workers(self, count: int, threads: int | None = None, extra_args=None, tags=()) -> None:
+        """Start `count` more workers (numbered after the running ones), with more flags and
+        the worker tags `tags` (--tag each)."""
+        extra_args = [*(extra_args or []), *(a for t in tags for a in ("--tag", t))]
         log_dir = Path(self.data_dir) if self.data_dir else None
         self.worker_procs += spawn_workers(
             count,

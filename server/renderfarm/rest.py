@@ -37,7 +37,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from . import apicommon
 from .auth import SESSION_COOKIE, Authenticator, AuthError, Caller, Forbidden, request_token
 from .images import LAYERS, Cancelled
-from .jobspec import SETTINGS, SettingsError
+from .jobspec import SETTINGS, SettingsError, check_tags
 from .metrics import Metrics
 from .scenes import SceneError
 from .service import Conflict, FarmService, NotFound, TooLarge
@@ -92,6 +92,9 @@ class Job(BaseModel):
     finished_unix_s: float | None
     owner: str = Field(description="name of the API token that submitted it; empty without auth")
     after: list[str] = Field(description="ids of the jobs it waits for (state waiting)")
+    require_tags: list[str] = Field(
+        description="only workers announcing all these tags (--tag) render it"
+    )
 
 
 class StopRecord(BaseModel):
@@ -136,6 +139,10 @@ class WorkerInfo(BaseModel):
     samples_per_s: float
     rays_per_s: float
     busy_threads: int
+    tasks_failed: int
+    recent_errors: list[str]
+    tags: list[str]
+    state: Literal["active", "draining", "drained", "disabled"]
 
 
 class SceneInfo(BaseModel):
@@ -480,6 +487,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 "scene_sha256",
                 "environment",
                 "after",
+                "require_tags",
             }
             if unknown:
                 raise SettingsError(
@@ -490,6 +498,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             name = _text_field(form.get("name"), "name")
             sha = _text_field(form.get("scene_sha256"), "scene_sha256") or None
             after = apicommon.after_ids(_text_field(form.get("after"), "after"))
+            tags = check_tags("require_tags", _text_field(form.get("require_tags"), "require_tags"))
             env_upload = form.get("environment")
             if env_upload is not None and not isinstance(env_upload, str):
                 environment_data = await env_upload.read()
@@ -510,7 +519,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 ) from None
             if not isinstance(body, dict):
                 raise SettingsError("body", "request body must be a JSON object")
-            unknown = set(body) - {"scene_sha256", "settings", "name", "after"}
+            unknown = set(body) - {"scene_sha256", "settings", "name", "after", "require_tags"}
             if unknown:
                 raise SettingsError(
                     sorted(unknown)[0][:100], f"unknown field {sorted(unknown)[0][:100]!r}"
@@ -521,6 +530,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             name = _text_field(body.get("name"), "name")
             sha = _text_field(body.get("scene_sha256"), "scene_sha256") or None
             after = apicommon.after_ids(body.get("after"))
+            tags = check_tags("require_tags", body.get("require_tags"))
         else:
             raise SettingsError(
                 "content-type", "send multipart/form-data (with a scene file) or application/json"
@@ -535,7 +545,11 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             max_upload_bytes=limit,
         )
         view = await farm.submit(
-            **checked.kwargs(), raw_settings=raw_settings, after=after, caller=who
+            **checked.kwargs(),
+            raw_settings=raw_settings,
+            after=after,
+            caller=who,
+            require_tags=tags,
         )
         metrics.jobs_submitted.inc()
         return JSONResponse(view.to_json(), status_code=201)
@@ -756,6 +770,26 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     )
     async def workers(_: Caller = Auth) -> list[dict]:
         return farm.workers()
+
+    for action, mode, summary in (
+        ("drain", "draining", "Drain a worker (admin): it finishes its tasks and takes no more"),
+        ("disable", "disabled", "Disable a worker (admin): its tasks are handed back at once"),
+        ("enable", "active", "Enable a drained or disabled worker again (admin)"),
+    ):
+
+        def control(mode: str = mode):
+            async def set_mode(worker_id: str, who: Caller = Auth) -> dict:
+                return await farm.set_worker_mode(worker_id, mode, who)
+
+            return set_mode
+
+        app.post(
+            f"/api/v1/workers/{{worker_id}}/{action}",
+            summary=summary,
+            response_model=WorkerInfo,
+            responses=_errors(403, 404),
+            name=f"{action}_worker",
+        )(control())
 
     @app.get(
         "/api/v1/scenes/{sha256}",

@@ -212,6 +212,7 @@ class JobRun:
     after: tuple[str, ...] = ()  # ids of the jobs it waits for (state WAITING until completed)
     paused_at: float | None = None  # clock when paused: the pause does not count as elapsed
     elapsed_before: float = 0.0  # elapsed seconds of earlier runs (restored, retried, continued)
+    require_tags: frozenset[str] = frozenset()  # only workers with all of these take its tasks
 
     @property
     def pixels(self) -> int:
@@ -223,6 +224,23 @@ class WorkerSlot:
     worker_id: str
     credit: int
     leases: dict[str, Lease] = field(default_factory=dict)
+    tags: frozenset[str] = frozenset()  # announced in its Hello (--tag)
+
+
+# Operator modes of a worker (docs/operators.md): an active worker takes tasks; a draining one
+# finishes the tasks it holds and takes no more; a disabled one has handed its tasks back.
+WORKER_MODES = ("active", "draining", "disabled")
+RECENT_ERRORS = 5  # error messages kept per worker
+
+
+@dataclass
+class WorkerRecord:
+    """What the scheduler remembers of a worker id for the server's life, across reconnects
+    (workers reconnect with the same id): the operator's mode and its task failures."""
+
+    mode: str = "active"
+    tasks_failed: int = 0
+    errors: deque[str] = field(default_factory=lambda: deque(maxlen=RECENT_ERRORS))
 
 
 @dataclass(frozen=True)
@@ -255,6 +273,7 @@ class Scheduler:
         self.leases: dict[str, Lease] = {}
         self.events: list[Event] = []
         self.cancellations: dict[str, list[str]] = {}  # worker -> task ids to cancel
+        self.records: dict[str, WorkerRecord] = {}  # worker id -> mode and counts (kept)
         self._task_ids = itertools.count(1)
 
     # ----------------------------------------------------------------------------- jobs
@@ -270,6 +289,7 @@ class Scheduler:
         bases: dict[int, list[list]] | None = None,
         after: tuple[str, ...] = (),
         transition: tuple[JobState, str, dict] | None = None,
+        require_tags: tuple[str, ...] = (),
     ) -> JobRun:
         """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery),
         `plans` their planned batch sizes as planned_batches() gave them at that checkpoint,
@@ -290,6 +310,7 @@ class Scheduler:
         ]
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state, after=after)
         job.elapsed_before = elapsed_s
+        job.require_tags = frozenset(require_tags)
         if state in (JobState.RUNNING, JobState.PAUSED):
             job.started = now - elapsed_s
         if state == JobState.PAUSED:
@@ -472,10 +493,37 @@ class Scheduler:
         return eta
 
     # -------------------------------------------------------------------------- workers
-    def add_worker(self, worker_id: str, credit: int) -> None:
+    def add_worker(self, worker_id: str, credit: int, tags: tuple[str, ...] = ()) -> None:
         if worker_id in self.workers:
             self.remove_worker(worker_id)
-        self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit))
+        self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit), tags=frozenset(tags))
+        self.records.setdefault(worker_id, WorkerRecord())
+
+    def record(self, worker_id: str) -> WorkerRecord:
+        return self.records.setdefault(worker_id, WorkerRecord())
+
+    def worker_state(self, worker_id: str) -> str:
+        """active, draining, drained (draining with no task left) or disabled."""
+        mode = self.record(worker_id).mode
+        slot = self.workers.get(worker_id)
+        if mode == "draining" and (slot is None or not slot.leases):
+            return "drained"
+        return mode
+
+    def set_worker_mode(self, worker_id: str, mode: str) -> list[Lease]:
+        """Drain, disable or enable a worker. Disabling hands its tasks back at once (they are
+        re-queued for other workers and cancelled on it); returns the leases handed back."""
+        if mode not in WORKER_MODES:
+            raise ValueError(f"unknown worker mode {mode!r}")
+        self.record(worker_id).mode = mode
+        slot = self.workers.get(worker_id)
+        if mode != "disabled" or slot is None:
+            return []
+        back = list(slot.leases.values())
+        for lease in back:
+            self._release(lease, requeue=True)
+            self.cancellations.setdefault(worker_id, []).append(lease.task_id)
+        return back
 
     def remove_worker(self, worker_id: str) -> list[Lease]:
         """A worker left (stream closed): hand its leases back to their tiles."""
@@ -526,8 +574,8 @@ class Scheduler:
     def assign(self, worker_id: str) -> list[Lease]:
         """Lease tasks to the worker up to its credit; returns the new leases."""
         slot = self.workers.get(worker_id)
-        if slot is None:
-            return []
+        if slot is None or self.record(worker_id).mode != "active":
+            return []  # a draining or disabled worker takes no new task
         new: list[Lease] = []
         while len(slot.leases) < slot.credit:
             lease = self._next_task(slot)
@@ -537,12 +585,16 @@ class Scheduler:
         return new
 
     def _job_order(self, worker_id: str) -> list[JobRun]:
-        """Priority first, then fair share (fewest leases out), then submission order."""
+        """Priority first, then fair share (fewest leases out), then submission order; only
+        the jobs whose required tags the worker has."""
+        slot = self.workers.get(worker_id)
+        tags = slot.tags if slot is not None else frozenset()
         live = [
             j
             for j in self.jobs.values()
             if j.state in (JobState.QUEUED, JobState.RUNNING)  # not paused, waiting, finished
             and worker_id not in j.excluded_workers
+            and j.require_tags <= tags
         ]
         return sorted(live, key=lambda j: (-j.settings.priority, j.leased, j.created))
 
@@ -854,6 +906,9 @@ class Scheduler:
         if lease is None:
             return
         self._release(lease, requeue=True)
+        record = self.record(lease.worker_id)
+        record.tasks_failed += 1
+        record.errors.append(error[:500])
         job = self.jobs.get(lease.job_id)
         if job is None or job.state.finished:
             return

@@ -109,6 +109,7 @@ class JobView:
     finished_unix_s: float | None
     owner: str = ""
     after: tuple[str, ...] = ()  # ids of the jobs it waits for
+    require_tags: tuple[str, ...] = ()  # only workers with all these tags render it
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -123,6 +124,7 @@ class JobView:
             "finished_unix_s": self.finished_unix_s,
             "owner": self.owner,
             "after": list(self.after),
+            "require_tags": list(self.require_tags),
         }
 
 
@@ -138,6 +140,7 @@ class WorkerSession:
     samples_per_s: float = 0.0
     rays_per_s: float = 0.0
     busy_threads: int = 0
+    tags: tuple[str, ...] = ()  # announced in its Hello (--tag)
     tasks_done: int = 0
 
 
@@ -256,6 +259,7 @@ class FarmService:
                 state=JobState(row.state),
                 elapsed_s=row.elapsed_s,
                 after=tuple(row.after_jobs),
+                require_tags=tuple(row.require_tags),
             )
             self.scheduler.take_events()  # the stops were recorded before the restart
             for index in old_aovs:
@@ -360,8 +364,10 @@ class FarmService:
         environment_filename: str = "",
         after: list[str] | None = None,
         caller: Caller,
+        require_tags: list[str] | None = None,
     ) -> JobView:
         _check_caller(caller)
+        require_tags = sorted(set(require_tags or []))
         settings = parse_settings(raw_settings, self.settings.limits())
         after = list(dict.fromkeys(after or []))  # in order, once each
         ready = await self._dependencies_ready(after, caller)
@@ -397,13 +403,15 @@ class FarmService:
         state = JobState.QUEUED if ready else JobState.WAITING
         row = await self.store.insert_job(
             job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner, after=after,
-            state=state.value,
+            state=state.value, require_tags=require_tags,
         )  # fmt: skip
         # Stored and committed: only now does the job exist for the scheduler and the caller.
         self.owners[job_id] = caller.owner
         self.names[job_id] = name
         self.created[job_id] = row.created_at.timestamp()
-        self.scheduler.add_job(job_id, settings, sha, state=state, after=tuple(after))
+        self.scheduler.add_job(
+            job_id, settings, sha, state=state, after=tuple(after), require_tags=tuple(require_tags)
+        )
         self._waiting_dirty = True  # a dependency may have completed since it was looked at
         await self._after_change()
         return await self.get(job_id, caller)
@@ -727,7 +735,7 @@ class FarmService:
         job = self.scheduler.add_job(
             job_id, settings, row.scene_sha256, checkpoint=checkpoint, plans=plans, bases=bases,
             state=state, elapsed_s=row.elapsed_s, after=tuple(row.after_jobs),
-            transition=(old_state, kind, data),
+            transition=(old_state, kind, data), require_tags=tuple(row.require_tags),
         )  # fmt: skip
         kept_tiles = [
             (t.index, None if t.stopped else Scheduler.planned_batches(t) or None,
@@ -807,12 +815,21 @@ class FarmService:
                 samples_merged=p.samples_merged,
                 elapsed_s=p.elapsed_s,
             ),
-            error=job.error_message if state == JobState.FAILED else "",
+            error=job.error_message if state == JobState.FAILED else self._unplaced(job),
             created_unix_s=self.created.get(job.job_id, job.created),
             finished_unix_s=job.finished if state.finished else None,
             owner=self.owners.get(job.job_id, ""),
             after=job.after,
+            require_tags=tuple(sorted(job.require_tags)),
         )
+
+    def _unplaced(self, job: JobRun) -> str:
+        """Why a queued job with required tags waits: no connected worker has them all."""
+        if job.state != JobState.QUEUED or not job.require_tags:
+            return ""
+        if any(job.require_tags <= slot.tags for slot in self.scheduler.workers.values()):
+            return ""
+        return "waiting for a worker with the tags " + ", ".join(sorted(job.require_tags))
 
     def _row_view(self, row: JobRow) -> JobView:
         return JobView(
@@ -836,6 +853,7 @@ class FarmService:
             finished_unix_s=row.finished_at.timestamp() if row.finished_at else None,
             owner=row.owner,
             after=tuple(row.after_jobs),
+            require_tags=tuple(row.require_tags),
         )
 
     # -------------------------------------------------------------------------- images
@@ -991,6 +1009,7 @@ class FarmService:
         max_in_flight: int,
         version: str,
         token: str,
+        tags: list[str] | None = None,
     ) -> WorkerSession:
         if self.settings.worker_token and not secrets.compare_digest(
             token.encode(), self.settings.worker_token.encode()
@@ -1002,8 +1021,11 @@ class FarmService:
             old.outbox.put_nowait(None)
             self.scheduler.remove_worker(worker_id)
         session = WorkerSession(worker_id, hostname[:200], max(1, cores), version[:50])
+        session.tags = tuple(tags or ())
         self.sessions[worker_id] = session
-        self.scheduler.add_worker(worker_id, max(1, min(max_in_flight or cores + 2, 256)))
+        self.scheduler.add_worker(
+            worker_id, max(1, min(max_in_flight or cores + 2, 256)), tags=session.tags
+        )
         try:  # the worker table is informational: a database outage must not keep workers out
             await self.store.worker_connected(
                 worker_id, session.hostname, session.cores, session.version
@@ -1074,12 +1096,30 @@ class FarmService:
                 if s.worker_id in self.scheduler.workers
                 else 0,
                 "tasks_done": s.tasks_done,
+                "tasks_failed": self.scheduler.record(s.worker_id).tasks_failed,
+                "recent_errors": list(self.scheduler.record(s.worker_id).errors),
+                "state": self.scheduler.worker_state(s.worker_id),
+                "tags": list(s.tags),
                 "samples_per_s": s.samples_per_s,
                 "rays_per_s": s.rays_per_s,
                 "busy_threads": s.busy_threads,
             }
             for s in self.sessions.values()
         ]
+
+    async def set_worker_mode(self, worker_id: str, mode: str, caller: Caller) -> dict[str, Any]:
+        """Operator control (docs/operators.md): drain, disable or enable a connected worker.
+        Admins only: one user's call would change what every user's jobs render on. The mode
+        is kept for the id across reconnects while the server runs (in memory, not stored)."""
+        _check_caller(caller)
+        if not caller.admin:
+            raise Forbidden("only an admin token may drain, disable or enable workers")
+        if worker_id not in self.sessions:
+            raise NotFound(f"no connected worker with id {worker_id!r}")
+        back = self.scheduler.set_worker_mode(worker_id, mode)
+        log.info("worker %s set %s (%d tasks handed back)", worker_id, mode, len(back))
+        await self._after_change()
+        return next(w for w in self.workers() if w["id"] == worker_id)
 
     # -------------------------------------------------------------------- after changes
     async def _after_change(self) -> None:

@@ -92,6 +92,7 @@ class JobRow:
     owner: str = ""
     tiles_previewed: int = 0
     after_jobs: list[str] = dataclass_field(default_factory=list)  # ids of the jobs it waits for
+    require_tags: list[str] = dataclass_field(default_factory=list)  # worker tags it needs
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,7 @@ class TileRow:
 _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
     "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner, "
-    "tiles_previewed, after_jobs"
+    "tiles_previewed, after_jobs, require_tags"
 )
 _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
@@ -296,6 +297,7 @@ class Store:
         owner: str = "",
         after: list[str] | None = None,
         state: str = "queued",
+        require_tags: list[str] | None = None,
     ) -> JobRow:
         # One statement: the job and its first event are committed together, in one round
         # trip (a burst of submissions holds each pooled connection as briefly as it can).
@@ -303,13 +305,14 @@ class Store:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
                 "WITH job AS (INSERT INTO jobs"
-                " (id, name, state, settings, scene_sha256, tiles_total, owner, after_jobs)"
-                f" VALUES (%s, %s, %s, %s, %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
+                " (id, name, state, settings, scene_sha256, tiles_total, owner, after_jobs,"
+                " require_tags)"
+                f" VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
                 " submitted AS (INSERT INTO events (job_id, kind, data)"
                 " SELECT id, 'job_submitted', %s FROM job)"
                 " SELECT * FROM job",
                 (job_id, name, state, json.dumps(settings), scene_sha256, tiles, owner,
-                 list(after or []),
+                 list(after or []), list(require_tags or []),
                  json.dumps({"name": name, "state": state, "after": list(after or [])})),
             )  # fmt: skip
             return JobRow(**await cur.fetchone())

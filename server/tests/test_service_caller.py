@@ -49,6 +49,7 @@ CALLS = {
     "retry": ((JOB,), {}),
     "update": ((JOB,), {"priority": 5}),
     "continue_": ((JOB,), {"raw_settings": {"max_spp": 2048}}),
+    "set_worker_mode": (("some-worker", "draining"), {}),
 }
 
 

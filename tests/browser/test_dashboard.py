@@ -301,3 +301,21 @@ def test_job_control_pause_resume_edit_and_continue(page: Page, problems, client
     expect(page.locator('.settings-list [data-setting="max_spp"]')).to_have_text("32")
     expect(page.locator(".event-log")).to_contain_text("job continued")
     screenshot(page, "job-continued")
+
+
+def test_workers_page_drains_and_enables_a_worker(page: Page, client):
+    ids = sorted(w["id"] for w in client.workers())
+    assert ids, "the session farm has workers"
+    page.goto("/#/workers")
+    row = page.locator(f'tr[data-worker-id="{ids[0]}"]')
+    expect(row.locator('[data-field="mode"]')).to_have_text("active")
+    try:
+        row.locator('button[data-action="drain"]').click()
+        # Idle, so nothing to finish: drained at once.
+        expect(row.locator('[data-field="mode"]')).to_have_text("drained")
+        assert {w["id"]: w["state"] for w in client.workers()}[ids[0]] == "drained"
+        row.locator('button[data-action="enable"]').click()
+        expect(row.locator('[data-field="mode"]')).to_have_text("active")
+        assert {w["id"]: w["state"] for w in client.workers()}[ids[0]] == "active"
+    finally:
+        client.enable_worker(ids[0])

@@ -78,6 +78,11 @@ export interface Worker {
   samples_per_s: number;
   rays_per_s: number;
   busy_threads: number;
+  /** Operator control (docs/operators.md): drained = draining with no task left. */
+  state: "active" | "draining" | "drained" | "disabled";
+  tags: string[];
+  tasks_failed: number;
+  recent_errors: string[];
 }
 
 export interface ConvergencePoint {
@@ -178,6 +183,9 @@ export const updateJob = (id: string, change: { priority?: number; name?: string
     body: JSON.stringify(change),
   });
 export const workers = () => request<Worker[]>(`${BASE}/workers`);
+/** Admin tokens only: drain (finish, take no more), disable (hand tasks back now), enable. */
+export const controlWorker = (id: string, action: "drain" | "disable" | "enable") =>
+  request<Worker>(`${BASE}/workers/${encodeURIComponent(id)}/${action}`, { method: "POST" });
 export const convergence = (id: string) =>
   request<ConvergencePoint[]>(`${BASE}/jobs/${encodeURIComponent(id)}/convergence`);
 

@@ -147,6 +147,7 @@ bool Worker::run_session(const std::atomic<bool>& stop) {
     hello->add_cached_scenes(sha);
   hello->set_version(RENDERFARM_VERSION);
   hello->set_token(options_.token);
+  for (const std::string& tag : options_.tags) hello->add_tags(tag);
 
   // The supervisor runs from the start so that a stop request also interrupts the wait for
   // Welcome; it sends heartbeats once welcomed.

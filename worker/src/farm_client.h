@@ -6,6 +6,7 @@
 #include <atomic>
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "scene.h"
 
@@ -19,6 +20,7 @@ struct FarmOptions {
   std::string token;       // shared worker token ("" if the server needs none)
   std::string worker_id;   // Hello.worker_id
   std::string hostname;
+  std::vector<std::string> tags;  // Hello.tags: what jobs may require of this worker (--tag)
   size_t scenes_in_memory = 4;  // loaded-scene LRU capacity
   size_t scene_memory_budget = 0;  // bytes of loaded scenes kept (SceneCache), 0: no limit
   BvhLayout bvh = BvhLayout::Fast;  // how loaded scenes build their BVH

@@ -50,7 +50,7 @@ const char* kUsage =
     "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
     "      [--scene-memory-mb M] [--task-timeout-s S] [--max-scene-memory-mb M]\n"
     "      [--tls] [--ca-file CA.pem] [--cert CERT.pem --key KEY.pem]\n"
-    "      [--tls-server-name NAME]\n"
+    "      [--tls-server-name NAME] [--tag TAG]...\n"
     "  renderfarm-worker --help | --version\n";
 
 struct UsageError {
@@ -407,9 +407,27 @@ extern "C" void on_stop_signal(int) { g_stop.store(true); }
 int cmd_connect(const std::vector<std::string>& args) {
   std::vector<std::string> rest;
   bool tls = false;
-  for (const std::string& a : args) {
-    if (a == "--tls") tls = true;
-    else rest.push_back(a);
+  std::vector<std::string> tags;  // --tag is repeatable, so it is taken out before parse_flags
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    if (a == "--tls") {
+      tls = true;
+    } else if (a == "--tag") {
+      if (i + 1 >= args.size()) throw UsageError{"flag '--tag' needs a value"};
+      const std::string& tag = args[++i];
+      // The server's rule (jobspec.TAG_PATTERN): 1..64 of a-z, 0-9, '.', '_', '-', starting
+      // with a letter or digit.
+      bool ok = !tag.empty() && tag.size() <= 64 && std::isalnum((unsigned char)tag[0]);
+      for (char c : tag)
+        ok = ok && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' || c == '_' ||
+                    c == '-');
+      if (!ok)
+        throw UsageError{"--tag '" + tag +
+                         "': 1 to 64 of a-z, 0-9, '.', '_', '-', starting with a letter or digit"};
+      tags.push_back(tag);
+    } else {
+      rest.push_back(a);
+    }
   }
   auto flags = parse_flags(
       rest,
@@ -422,6 +440,7 @@ int cmd_connect(const std::vector<std::string>& args) {
     throw UsageError{"connect needs --server HOST:PORT"};
   rf::FarmOptions options;
   options.server = flags["--server"];
+  options.tags = tags;
   options.threads = default_threads();
   if (flags.count("--threads"))
     options.threads = uint32_t(parse_uint("--threads", flags["--threads"], 1, 4096));

@@ -1,7 +1,7 @@
 // Workers page: every connected worker with its load and throughput, and the farm's total
 // throughput over the last minutes (sampled every two seconds while the dashboard is open).
 
-import { type Worker, workers } from "../api";
+import { type Worker, controlWorker, workers } from "../api";
 import { type TimedValue, timeSeries } from "../chart";
 import { h, replace, setText } from "../dom";
 import { ago, duration, si } from "../format";
@@ -31,6 +31,8 @@ export function mountWorkers(root: HTMLElement): () => void {
   const samplesChart = h("div", { class: "plot-box" });
   const raysChart = h("div", { class: "plot-box" });
   const tbody = h("tbody");
+  // Why the last drain/disable/enable was refused (e.g. 403 for a non-admin token).
+  const controlError = h("p", { class: "control-message error", role: "alert", hidden: true });
   const empty = h("p", { class: "empty", hidden: true }, "No workers connected. Start one with ",
     h("code", {}, "renderfarm-worker connect --server HOST:PORT"), ".");
   replace(
@@ -61,8 +63,8 @@ export function mountWorkers(root: HTMLElement): () => void {
             h(
               "tr",
               {},
-              ["Worker", "State", "Cores", "Busy threads", "Tasks in flight", "Tasks done", "Samples / s", "Rays / s", "Last heartbeat", "Connected"].map(
-                (t, i) => h("th", { scope: "col", class: i >= 2 ? "num" : undefined }, t),
+              ["Worker", "State", "Mode", "Cores", "Busy threads", "Tasks in flight", "Tasks done", "Tasks failed", "Samples / s", "Rays / s", "Last heartbeat", "Connected", "Control"].map(
+                (t, i) => h("th", { scope: "col", class: i >= 3 && i < 12 ? "num" : undefined }, t),
               ),
             ),
           ),
@@ -70,6 +72,7 @@ export function mountWorkers(root: HTMLElement): () => void {
         ),
       ),
       empty,
+      controlError,
     ),
     h("div", { class: "chart-row" }, card("Farm samples per second", samplesChart), card("Farm rays per second", raysChart)),
   );
@@ -80,6 +83,30 @@ export function mountWorkers(root: HTMLElement): () => void {
     const window = span > 60 ? WINDOW_S : 60;
     samplesChart.replaceChildren(timeSeries(samplesHistory, window, "samples/s"));
     raysChart.replaceChildren(timeSeries(raysHistory, window, "rays/s"));
+  };
+
+  const control = async (button: HTMLButtonElement, id: string, action: "drain" | "disable" | "enable") => {
+    button.disabled = true;
+    try {
+      await controlWorker(id, action);
+      controlError.hidden = true;
+    } catch (e) {
+      controlError.textContent = `Cannot ${action} ${id}: ${(e as Error).message}`;
+      controlError.hidden = false;
+    }
+    await refresh();
+  };
+
+  const controls = (w: Worker) => {
+    const actions: ["drain" | "disable" | "enable", string][] =
+      w.state === "active" ? [["drain", "Drain"], ["disable", "Disable"]]
+        : w.state === "disabled" ? [["enable", "Enable"]]
+          : [["disable", "Disable"], ["enable", "Enable"]];
+    return actions.map(([action, text]) => {
+      const button = h("button", { type: "button", class: "button secondary small", "data-action": action }, text) as HTMLButtonElement;
+      button.addEventListener("click", () => void control(button, w.id, action));
+      return button;
+    });
   };
 
   const refresh = async () => {
@@ -112,16 +139,26 @@ export function mountWorkers(root: HTMLElement): () => void {
         return h(
           "tr",
           { "data-worker-id": w.id },
-          h("td", {}, h("div", { class: "mono" }, w.id), h("div", { class: "muted small" }, `${w.hostname} · v${w.version}`)),
+          h(
+            "td",
+            {},
+            h("div", { class: "mono" }, w.id),
+            h("div", { class: "muted small" }, `${w.hostname} · v${w.version}`),
+            w.tags.length ? h("div", { class: "muted small", "data-field": "tags" }, `tags: ${w.tags.join(", ")}`) : null,
+            ...w.recent_errors.map((e) => h("div", { class: "worker-error small", "data-field": "error" }, e)),
+          ),
           h("td", {}, h("span", { class: `badge worker-${state}` }, state)),
+          h("td", {}, h("span", { class: `badge mode-${w.state}`, "data-field": "mode" }, w.state)),
           h("td", { class: "num" }, w.cores),
           h("td", { class: "num" }, `${w.busy_threads} / ${w.cores}`),
           h("td", { class: "num" }, w.tasks_in_flight),
           h("td", { class: "num" }, w.tasks_done.toLocaleString("en")),
+          h("td", { class: "num" }, w.tasks_failed.toLocaleString("en")),
           h("td", { class: "num" }, si(w.samples_per_s)),
           h("td", { class: "num" }, si(w.rays_per_s)),
           h("td", { class: "num" }, ago(w.last_heartbeat_unix_s, now)),
           h("td", { class: "num" }, duration(now - w.connected_unix_s)),
+          h("td", {}, h("div", { class: "actions" }, ...controls(w))),
         );
       }),
     );
