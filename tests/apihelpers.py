@@ -4,6 +4,9 @@ normalised to one shape so they can be compared."""
 from __future__ import annotations
 
 import io
+import json
+import subprocess
+import sys
 import zipfile
 from typing import Any
 
@@ -17,6 +20,18 @@ from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc
 from .conftest import CORNELL
 
 TINY = {"width": 32, "height": 32, "tile_size": 16, "max_spp": 4, "seed": 3}
+
+
+def create_token(data_dir, name: str, admin: bool = False) -> dict:
+    """A new API token made with the CLI against a farm's data directory: the JSON it prints
+    (id, name, admin, token)."""
+    done = subprocess.run(
+        [sys.executable, "-m", "renderfarm", "token", "create", name, "--json",
+         "--data-dir", str(data_dir)] + (["--admin"] if admin else []),
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
 
 
 def cornell_glb() -> bytes:

@@ -19,20 +19,13 @@ import pytest
 from renderfarm.localfarm import LocalFarm, free_port
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, workers_pb2, workers_pb2_grpc
 
-from .apihelpers import TINY, Apis, Error, cornell_glb
+from .apihelpers import TINY, Apis, Error, cornell_glb, create_token
 
 CLI = [sys.executable, "-m", "renderfarm"]
 WORKER_TOKEN = "worker-secret-for-tests"
 
 
-def _token(data_dir, name: str, admin: bool = False) -> dict:
-    done = subprocess.run(
-        CLI + ["token", "create", name, "--json", "--data-dir", str(data_dir)]
-        + (["--admin"] if admin else []),
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    return json.loads(done.stdout)
+_token = create_token
 
 
 @pytest.fixture(scope="module")

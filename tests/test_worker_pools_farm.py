@@ -17,6 +17,7 @@ from renderfarm.client import ApiError, Client
 from renderfarm.images import read_exr
 from renderfarm.localfarm import LocalFarm
 
+from .apihelpers import create_token
 from .conftest import CORNELL
 from .waiting import wait_until
 
@@ -26,13 +27,7 @@ JOB = {"width": 96, "height": 96, "tile_size": 16, "seed": 11, "noise_threshold"
 
 
 def _token(data_dir: Path, name: str, admin: bool) -> str:
-    done = subprocess.run(
-        CLI + ["token", "create", name, "--json", "--data-dir", str(data_dir)]
-        + (["--admin"] if admin else []),
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    return json.loads(done.stdout)["token"]
+    return create_token(data_dir, name, admin)["token"]
 
 
 @pytest.fixture(scope="module")
