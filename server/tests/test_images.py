@@ -23,6 +23,14 @@ def slice_rows(request, monkeypatch):
     return request.param
 
 
+@pytest.fixture(autouse=True, params=[64 << 20, 1], ids=["one-chunk", "16-row-chunks"])
+def exr_chunk_bytes(request, monkeypatch):
+    """EXR rows handed to OpenImageIO all at once, and in chunks of 16 rows (the smallest: the
+    last chunk then ends inside a band and a band spans chunks)."""
+    monkeypatch.setattr(images, "EXR_CHUNK_BYTES", request.param)
+    return request.param
+
+
 def accumulators(seed: int = 0) -> list[tuple]:
     """(rect, accumulator) of every tile, a few of them never merged, some very dark, and
     fireflies above 1 (clamped in PNGs)."""
@@ -214,3 +222,21 @@ def test_exr_is_stamped_with_the_given_time_not_the_time_of_writing(tmp_path):
             assert inp.spec().getattribute("DateTime") == expected
         finally:
             inp.close()
+
+
+def test_exr_abandoned_midway_stops_its_writer_thread(tmp_path):
+    """A request cancelled after some bands: abandon() waits for the chunk being written and
+    stops the emitter thread; close() refuses an image that is missing rows."""
+    import threading
+
+    tiles = [(r, a if a.samples else None) for r, a in accumulators()]
+    cols = -(-W // TILE)
+    before = {t.name for t in threading.enumerate()}
+    writer = ImageWriter(str(tmp_path / "a.exr"), "exr", W, H)
+    writer.write_band(TILE, tiles[:cols])
+    writer.abandon()
+    assert not {t.name for t in threading.enumerate()} - before
+    writer = ImageWriter(str(tmp_path / "b.exr"), "exr", W, H)
+    writer.write_band(TILE, tiles[:cols])
+    with pytest.raises(RuntimeError, match="missing rows"):
+        writer.close()
