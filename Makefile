@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 BUILD := build/worker
 JOBS ?= 2
 
-.PHONY: all deps build proto worker web blender-addon blender-deps test test-cpp test-py test-web test-deploy lint demo stop bench clean
+.PHONY: all deps build proto worker web blender-addon blender-deps test test-cpp test-py test-web test-deploy lint demo stop bench clean settings-doc openapi
 
 all: build
 
@@ -37,6 +37,14 @@ blender-addon:
 # Blender's bpy module in .venv-blender, for the add-on's tests.
 blender-deps:
 	@scripts/install-deps.sh --blender
+
+# web/openapi.json (the dashboard's TypeScript types are generated from it; a test fails while stale).
+openapi: proto
+	$(VENV)/bin/python scripts/openapi_json.py
+
+# docs/settings.md's table, from server/renderfarm/jobspec.py SETTINGS (a test fails while stale).
+settings-doc: proto
+	$(VENV)/bin/python scripts/settings_doc.py
 
 lint: deps
 	$(VENV)/bin/ruff check server tests bench examples integrations

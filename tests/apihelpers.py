@@ -47,11 +47,30 @@ def escaping_zip() -> bytes:
     return buf.getvalue()
 
 
+def settings_message(settings: dict[str, Any]) -> jobs_pb2.RenderSettings:
+    """REST-style settings as a RenderSettings message, read off the proto's own descriptor:
+    an enumerated value by its name (sampler "halton" is SAMPLER_HALTON); a value the
+    enumeration lacks becomes a number it lacks (99), which the server must refuse."""
+    values: dict[str, Any] = {}
+    for name, value in settings.items():
+        field = jobs_pb2.RenderSettings.DESCRIPTOR.fields_by_name[
+            "environment_sha256" if name == "environment" else name
+        ]
+        if field.enum_type is not None:
+            known = field.enum_type.values_by_name.get(f"{name.upper()}_{str(value).upper()}")
+            value = known.number if known is not None else 99
+        values[field.name] = value
+    return jobs_pb2.RenderSettings(**values)
+
+
 def job_from_proto(job: jobs_pb2.Job) -> dict[str, Any]:
     settings = {}
     for field in job.settings.DESCRIPTOR.fields:
         name = "environment" if field.name == "environment_sha256" else field.name
-        settings[name] = getattr(job.settings, field.name)
+        value = getattr(job.settings, field.name)
+        if field.enum_type is not None:  # SAMPLER_HALTON -> "halton"
+            value = field.enum_type.values_by_number[value].name[len(name) + 1 :].lower()
+        settings[name] = value
     p = job.progress
     return {
         "id": job.id,
@@ -201,7 +220,7 @@ class Apis:
                 scene_data=data,
                 scene_filename=filename,
                 name=name,
-                settings=jobs_pb2.RenderSettings(**settings),
+                settings=settings_message(settings),
             ),
         )
         return answer if isinstance(answer, Error) else job_from_proto(answer.job)

@@ -9,7 +9,16 @@ import pytest
 
 from renderfarm.v1 import jobs_pb2
 
-from .apihelpers import TINY, Apis, Error, comparable, cornell_glb, escaping_zip, job_from_proto
+from .apihelpers import (
+    TINY,
+    Apis,
+    Error,
+    comparable,
+    cornell_glb,
+    escaping_zip,
+    job_from_proto,
+    settings_message,
+)
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +132,7 @@ def test_submit_by_stored_scene_hash_through_both(apis, twin_jobs):
     sha = twin_jobs[0]["scene_sha256"]
     rest = apis.rest("POST", "/api/v1/jobs", json={"scene_sha256": sha, "settings": TINY})
     rpc = apis.rpc("SubmitJob", jobs_pb2.SubmitJobRequest(
-        scene_sha256=sha, settings=jobs_pb2.RenderSettings(**TINY)))  # fmt: skip
+        scene_sha256=sha, settings=settings_message(TINY)))  # fmt: skip
     assert rest["scene_sha256"] == rpc.job.scene_sha256 == sha
     for job_id in (rest["id"], rpc.job.id):
         apis.client.wait(job_id, poll_s=0.2, timeout_s=300)
@@ -273,7 +282,7 @@ def test_update_and_continue_through_both_alike(apis, twin_jobs):
     settings = {"max_spp": 12}
     a = apis.rest("POST", f"/api/v1/jobs/{via_rest['id']}/continue", json={"settings": settings})
     b = job_from_proto(apis.rpc("ContinueJob", jobs_pb2.ContinueJobRequest(
-        job_id=via_grpc["id"], settings=jobs_pb2.RenderSettings(**settings))).job)  # fmt: skip
+        job_id=via_grpc["id"], settings=settings_message(settings))).job)  # fmt: skip
     assert a["settings"]["max_spp"] == b["settings"]["max_spp"] == 12
     a = apis.client.wait(a["id"], poll_s=0.2, timeout_s=300)
     b = apis.client.wait(b["id"], poll_s=0.2, timeout_s=300)

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from . import jobspec
 from .jobspec import SETTINGS
 
 log = logging.getLogger("renderfarm.cli")
@@ -126,6 +127,19 @@ def _error_message(e: BaseException, url: str | None) -> tuple[str, int]:
     return str(e) or type(e).__name__, EXIT_FAILED
 
 
+def cmd_settings(args: argparse.Namespace) -> int:
+    """The table of job settings (jobspec.SETTINGS), with this build's default limits."""
+    if args.markdown:
+        sys.stdout.write(jobspec.settings_markdown())
+    elif args.json:
+        print(json.dumps(jobspec.setting_docs(), indent=2))
+    else:
+        for doc in jobspec.setting_docs():
+            default = json.dumps(doc["default"])
+            print(f"{doc['name']:26s} {doc['type']:6s} {default:9s} {doc['help']}")
+    return 0
+
+
 def _add_job_settings(parser: argparse.ArgumentParser) -> None:
     """Every job setting as a flag named like the API field with dashes (--noise-threshold)."""
     group = parser.add_argument_group("job settings (server defaults when omitted)")
@@ -140,7 +154,7 @@ def _add_job_settings(parser: argparse.ArgumentParser) -> None:
             continue
         group.add_argument(
             "--" + s.name.replace("_", "-"),
-            type=s.kind,
+            type=str if s.choices else s.kind,  # the server names a bad choice (exit 1)
             default=None,
             help=f"{s.help} (default {s.default})",
         )
@@ -737,6 +751,11 @@ def build_parser() -> argparse.ArgumentParser:
                 "--token", default=None, help="API token (default $RENDERFARM_TOKEN)"
             )
             action.add_argument("--json", action="store_true", help="machine-readable output")
+
+    p = sub.add_parser("settings", help="the job settings: name, type, default, range, meaning")
+    p.add_argument("--markdown", action="store_true", help="as the table of docs/settings.md")
+    p.add_argument("--json", action="store_true", help="as GET /api/v1/settings answers")
+    p.set_defaults(func=cmd_settings)
 
     p = sub.add_parser(
         "token",

@@ -27,7 +27,7 @@ from grpc_reflection.v1alpha import reflection
 
 from . import apicommon, images
 from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
-from .jobspec import SETTING_NAMES, SettingsError, check_tags
+from .jobspec import SETTINGS, SettingsError, check_tags
 from .scenes import SceneError
 from .service import (
     Conflict,
@@ -56,13 +56,44 @@ log = logging.getLogger(__name__)
 MAX_MESSAGE_BYTES = 512 * 2**20
 
 
-# Job settings whose proto field has another name.
-_PROTO_NAMES = {"environment": "environment_sha256"}
+def _enum_prefix(setting) -> str:
+    """SAMPLER_ for settings.sampler: the proto enum's value names are PREFIX + VALUE.upper()."""
+    return setting.name.upper() + "_"
 
 
 def settings_to_proto(settings) -> jobs_pb2.RenderSettings:
-    values = {_PROTO_NAMES.get(k, k): v for k, v in settings.to_dict().items()}
+    """A job's settings (the table, jobspec.SETTINGS) as the message: enumerations as their
+    proto values, fields under their proto names."""
+    values = {}
+    for setting in SETTINGS:
+        value = getattr(settings, setting.name)
+        if setting.choices:
+            value = (
+                jobs_pb2.DESCRIPTOR.enum_types_by_name[setting.kind.__name__]
+                .values_by_name[_enum_prefix(setting) + value.upper()]
+                .number
+            )
+        values[setting.field] = value
     return jobs_pb2.RenderSettings(**values)
+
+
+def settings_from_proto(msg: jobs_pb2.RenderSettings) -> dict:
+    """The settings a request set (fields are proto3 `optional`: unset means the default, as
+    does an enumeration's UNSPECIFIED). A number the enumeration does not have is passed on as
+    text, for parse_settings to refuse naming the setting."""
+    values: dict = {}
+    for setting in SETTINGS:
+        if not msg.HasField(setting.field):
+            continue
+        value = getattr(msg, setting.field)
+        if setting.choices:
+            if value == 0:
+                continue
+            enum = jobs_pb2.DESCRIPTOR.enum_types_by_name[setting.kind.__name__]
+            known = enum.values_by_number.get(value)
+            value = known.name.removeprefix(_enum_prefix(setting)).lower() if known else str(value)
+        values[setting.name] = value
+    return values
 
 
 def job_to_proto(view: JobView) -> jobs_pb2.Job:
@@ -91,16 +122,6 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         after=list(view.after),
         require_tags=list(view.require_tags),
     )
-
-
-def settings_from_proto(msg: jobs_pb2.RenderSettings) -> dict:
-    """The settings a request set (fields are proto3 `optional`: unset means the default)."""
-    values = {}
-    for name in SETTING_NAMES:
-        field = _PROTO_NAMES.get(name, name)
-        if msg.HasField(field):
-            values[name] = getattr(msg, field)
-    return values
 
 
 def _status(e: Exception) -> tuple[grpc.StatusCode, str, str] | None:

@@ -37,7 +37,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from . import apicommon
 from .auth import SESSION_COOKIE, Authenticator, AuthError, Caller, Forbidden, request_token
 from .images import LAYERS, Cancelled
-from .jobspec import SETTINGS, SettingsError, check_tags
+from .jobspec import SETTINGS, SettingsError, check_tags, setting_docs
 from .metrics import Metrics
 from .scenes import SceneError
 from .service import Conflict, FarmService, NotFound, TooLarge
@@ -61,10 +61,20 @@ class ErrorBody(BaseModel):
     field: str = Field("", description="the offending field, e.g. settings.max_spp; may be empty")
 
 
-JobSettingsModel = create_model(
-    "JobSettings",
-    **{s.name: (s.kind, Field(s.default, description=s.help)) for s in SETTINGS},
-)
+def _setting_field(s) -> tuple[type, Any]:
+    """A job setting as a pydantic field: its type (an enumeration: its values, so the OpenAPI
+    document and the dashboard's generated types list them), default, help and fixed range (a
+    range set by the server's configuration is in /api/v1/settings)."""
+    bounds: dict[str, float] = {}
+    if s.minimum is not None:
+        bounds["gt" if s.exclusive_minimum else "ge"] = s.minimum
+    if s.maximum is not None and not s.limit:
+        bounds["le"] = s.maximum
+    kind = Literal[s.choices] if s.choices else s.kind
+    return kind, Field(s.default, description=s.help, **bounds)
+
+
+JobSettingsModel = create_model("JobSettings", **{s.name: _setting_field(s) for s in SETTINGS})
 
 
 class Progress(BaseModel):
@@ -157,6 +167,11 @@ class SettingDoc(BaseModel):
     type: Literal["int", "float", "str", "bool"]
     default: bool | int | float | str  # bool first: false stays false, not 0
     help: str
+    choices: list[str] = Field([], description="the values of an enumerated setting")
+    minimum: float | None = Field(None, description="lowest value (exclusive_minimum: above it)")
+    exclusive_minimum: bool = False
+    maximum: float | None = Field(None, description="highest value (this server's limit)")
+    unit: str = Field("", description="px, s, m, deg or empty")
 
 
 class WhoAmI(BaseModel):
@@ -396,10 +411,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         responses=_errors(),
     )
     async def settings_doc(_: Caller = Auth) -> list[dict[str, Any]]:
-        return [
-            {"name": s.name, "type": s.kind.__name__, "default": s.default, "help": s.help}
-            for s in SETTINGS
-        ]
+        return setting_docs(farm.settings.limits())
 
     @app.get(
         "/api/v1/whoami",

@@ -4,67 +4,19 @@
 export type JobState = "waiting" | "queued" | "running" | "paused" | "completed" | "failed" | "cancelled";
 export const JOB_STATES: JobState[] = ["waiting", "queued", "running", "paused", "completed", "failed", "cancelled"];
 
-export interface Progress {
-  tiles_total: number;
-  tiles_done: number;
-  tiles_previewed: number;
-  mean_spp: number;
-  error: number | null;
-  eta_s: number | null;
-  samples_merged: number;
-  elapsed_s: number;
-}
+// The API's types are generated from the server's OpenAPI document (web/openapi.json, written
+// by `make openapi` from the server's models) by openapi-typescript: `npm run api-types`.
+import type { components } from "./generated/openapi";
 
-export interface JobSettings {
-  width: number;
-  height: number;
-  tile_size: number;
-  noise_threshold: number;
-  min_spp: number;
-  max_spp: number;
-  priority: number;
-  [name: string]: unknown;
-}
-
-export interface Job {
-  id: string;
-  name: string;
-  owner?: string; // not served yet (auth tokens come later)
-  state: JobState;
-  settings: JobSettings;
-  scene_sha256: string;
-  progress: Progress;
-  error: string;
-  created_unix_s: number;
-  finished_unix_s: number | null;
-  after?: string[]; // ids of the jobs it waits for
-}
-
-export interface StopRecord {
-  tile: number;
-  batch: number;
-  spp: number;
-  error: number;
-  reason: string;
-}
-
-export interface JobDetail extends Job {
-  stops: StopRecord[];
-}
-
-export interface JobEvent {
-  id: number;
-  kind: string;
-  data: Record<string, unknown>;
-  at: number;
-}
-
-export interface SettingDoc {
-  name: string;
-  type: "int" | "float" | "str" | string;
-  default: unknown;
-  help: string;
-}
+type Schemas = components["schemas"];
+export type Progress = Schemas["Progress"];
+/** A job's settings (the server's one table, server/renderfarm/jobspec.py). */
+export type JobSettings = Schemas["JobSettings"];
+export type Job = Schemas["Job"] & { state: JobState };
+export type StopRecord = Schemas["StopRecord"];
+export type JobDetail = Schemas["JobDetail"] & { state: JobState };
+export type JobEvent = Schemas["JobEvent"];
+export type SettingDoc = Schemas["SettingDoc"];
 
 export interface Worker {
   id: string;

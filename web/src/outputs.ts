@@ -58,7 +58,7 @@ export interface Outcome {
 /** For a completed job whose tiles did not all stop on noise (stopped at max_spp or the time
  *  limit, StopReason in states.py), a sentence saying so; null otherwise, and for a job with no
  *  noise target (noise_threshold 0 renders max_spp everywhere by design). */
-export function noiseTargetShortfall(job: Outcome, stops: { reason: string }[]): string | null {
+export function noiseTargetShortfall(job: Outcome, stops: { reason: string | null }[]): string | null {
   const target = job.settings.noise_threshold;
   if (job.state !== "completed" || !(target > 0)) return null;
   const count = (reason: string) => stops.filter((s) => s.reason === reason).length;

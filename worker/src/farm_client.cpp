@@ -63,20 +63,36 @@ struct RunningTask {
 
 // Maps the protocol's settings onto the renderer's; zero/empty fields take the documented
 // defaults (the server normally fills them in).
+// The task's settings. The server sends every field set (server/renderfarm/jobspec.py holds
+// their defaults, in one place): an unset or unknown one fails the task rather than taking a
+// default of the worker's own.
 bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std::string* err) {
+  if (!in.has_width() || !in.has_height() || !in.has_max_depth() || !in.has_seed()) {
+    *err = "width, height, max_depth and seed must be set";
+    return false;
+  }
   out->width = in.width();
   out->height = in.height();
   out->seed = in.seed();
-  out->max_depth = in.max_depth() ? in.max_depth() : 8;
-  const std::string sampler = in.sampler().empty() ? "sobol" : in.sampler();
-  const std::string integrator = in.integrator().empty() ? "path" : in.integrator();
-  if (!parse_sampler_type(sampler, &out->sampler)) {
-    *err = "unknown sampler '" + sampler + "' (expected sobol, halton, stratified or independent)";
-    return false;
+  out->max_depth = in.max_depth();
+  switch (in.sampler()) {
+    case pb::SAMPLER_SOBOL: out->sampler = SamplerType::Sobol; break;
+    case pb::SAMPLER_HALTON: out->sampler = SamplerType::Halton; break;
+    case pb::SAMPLER_STRATIFIED: out->sampler = SamplerType::Stratified; break;
+    case pb::SAMPLER_INDEPENDENT: out->sampler = SamplerType::Independent; break;
+    default:
+      *err = "unknown sampler " + std::to_string(int(in.sampler())) +
+             " (expected sobol, halton, stratified or independent)";
+      return false;
   }
-  if (!parse_integrator_type(integrator, &out->integrator)) {
-    *err = "unknown integrator '" + integrator + "' (expected path, direct or ao)";
-    return false;
+  switch (in.integrator()) {
+    case pb::INTEGRATOR_PATH: out->integrator = IntegratorType::Path; break;
+    case pb::INTEGRATOR_DIRECT: out->integrator = IntegratorType::Direct; break;
+    case pb::INTEGRATOR_AO: out->integrator = IntegratorType::AmbientOcclusion; break;
+    default:
+      *err = "unknown integrator " + std::to_string(int(in.integrator())) +
+             " (expected path, direct or ao)";
+      return false;
   }
   out->aperture_radius = float(in.aperture_radius());
   out->focus_distance = float(in.focus_distance());

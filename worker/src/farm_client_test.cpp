@@ -119,7 +119,7 @@ class FakeSceneService final : public pb::SceneService::Service {
 std::vector<float> as_floats(const std::vector<double>& v) { return {v.begin(), v.end()}; }
 
 pb::Task make_task(const std::string& id, const std::string& sha, uint32_t spp,
-                   const std::string& sampler = "sobol") {
+                   pb::Sampler sampler = pb::SAMPLER_SOBOL) {
   pb::Task t;
   t.set_task_id(id);
   t.set_job_id("job-1");
@@ -136,7 +136,7 @@ pb::Task make_task(const std::string& id, const std::string& sha, uint32_t spp,
   s->set_width(16);
   s->set_height(12);
   s->set_sampler(sampler);
-  s->set_integrator("path");
+  s->set_integrator(pb::INTEGRATOR_PATH);
   s->set_max_depth(4);
   s->set_seed(77);
   return t;
@@ -200,7 +200,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   };
   assign(make_task("long", farm.scene_sha, 1u << 20));
   assign(make_task("good", farm.scene_sha, 8));
-  assign(make_task("bad", farm.scene_sha, 8, "bogus"));
+  assign(make_task("bad", farm.scene_sha, 8, pb::Sampler(99)));  // a number the enum lacks
   auto has = [&](const std::string& id, bool result) {
     for (const auto& m : farm.received)
       if ((result && m.has_result() && m.result().task_id() == id) ||
@@ -222,22 +222,22 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   cancel.mutable_cancel()->set_reason("test");
   ASSERT_TRUE(farm.send(cancel));
   // After the cancel, a later task still gets rendered.
-  assign(make_task("after", farm.scene_sha, 4, "independent"));
+  assign(make_task("after", farm.scene_sha, 4, pb::SAMPLER_INDEPENDENT));
   ASSERT_TRUE(farm.wait_for([&] { return has("after", true); }));
   // Two tasks with the environment map, a thin lens and the new samplers: the map is
   // fetched once (cached by hash as <sha>.hdr) and the results equal local renders.
-  auto env_task = [&](const std::string& id, const std::string& sampler) {
+  auto env_task = [&](const std::string& id, pb::Sampler sampler) {
     pb::Task t = make_task(id, farm.scene_sha, 4, sampler);
     t.mutable_settings()->set_environment_sha256(farm.env_sha);
     t.mutable_settings()->set_environment_intensity(2.0);
     t.mutable_settings()->set_environment_rotation_deg(30.0);
     t.mutable_settings()->set_aperture_radius(0.05);
     t.mutable_settings()->set_focus_distance(5.0);
-    t.mutable_settings()->set_integrator("direct");
+    t.mutable_settings()->set_integrator(pb::INTEGRATOR_DIRECT);
     return t;
   };
-  assign(env_task("env1", "halton"));
-  assign(env_task("env2", "stratified"));
+  assign(env_task("env1", pb::SAMPLER_HALTON));
+  assign(env_task("env2", pb::SAMPLER_STRATIFIED));
   ASSERT_TRUE(farm.wait_for([&] { return has("env1", true) && has("env2", true); }));
   // A task past the AOV samples: the result carries no albedo or normal sums.
   pb::Task late = make_task("late", farm.scene_sha, 4);
@@ -288,7 +288,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     if (m.has_failed()) {
       EXPECT_EQ(m.failed().task_id(), "bad");
       EXPECT_FALSE(m.failed().retryable());
-      EXPECT_NE(m.failed().error().find("bogus"), std::string::npos);
+      EXPECT_NE(m.failed().error().find("unknown sampler 99"), std::string::npos);
     }
     if (!m.has_result() || m.result().task_id() != "good") continue;
     // The result equals rendering the same rect and samples locally.

@@ -12,17 +12,21 @@ import struct
 from typing import Any
 
 KINDS = ("int", "float", "str", "bool")
-# A string setting whose help ends in "a, b, c" offers those choices (the dashboard reads the
-# help the same way: "sample generator: sobol, halton, stratified, independent").
+# A farm that does not serve `choices` lists them at the end of the help ("sample generator:
+# sobol, halton, stratified, independent").
 _CHOICES = re.compile(r":\s*([a-z0-9_]+(?:,\s*[a-z0-9_]+)+)\s*$", re.IGNORECASE)
 # Set from the Blender scene rather than by hand (see scene_overrides).
 RESOLUTION = ("width", "height")
 
 
 def choices(doc: dict[str, Any]) -> list[str]:
-    """The choices a string setting lists at the end of its help; [] for free text."""
+    """The values of an enumerated setting: the farm's `choices` (a farm before they were
+    served lists them at the end of the help); [] for free text."""
     if doc.get("type") != "str":
         return []
+    served = doc.get("choices")
+    if isinstance(served, list) and served and all(isinstance(c, str) for c in served):
+        return list(served)
     m = _CHOICES.search(str(doc.get("help", "")))
     return [c.strip() for c in m.group(1).split(",")] if m else []
 

@@ -239,7 +239,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
             h("td", { class: "num" }, r.batch),
             h("td", { class: "num" }, r.spp),
             h("td", { class: "num" }, percent(r.error)),
-            h("td", {}, h("span", { class: `reason reason-${r.reason}` }, r.reason.replace(/_/g, " "))),
+            h("td", {}, h("span", { class: `reason reason-${r.reason ?? "none"}` }, (r.reason ?? "").replace(/_/g, " "))),
           ),
         ),
       );

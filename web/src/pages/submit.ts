@@ -13,13 +13,10 @@ const GROUPS: [string, string[]][] = [
   ["Scheduling", ["priority"]],
 ];
 
-/** Choices listed at the end of a setting's help ("sample generator: sobol, independent"). */
+/** The values of an enumerated setting (GET /api/v1/settings lists them); null for others. */
 function choices(doc: SettingDoc): string[] | null {
-  if (doc.type !== "str") return null;
-  const m = /:\s*([a-z0-9_]+(?:,\s*[a-z0-9_]+)+)\s*$/i.exec(doc.help);
-  if (!m) return null;
-  const list = m[1].split(/,\s*/);
-  return list.includes(String(doc.default)) ? list : null;
+  const list = doc.choices ?? [];
+  return list.length ? list : null;
 }
 
 interface Field {
