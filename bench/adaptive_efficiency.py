@@ -76,7 +76,7 @@ def errors(ch: dict, ref: dict) -> dict[str, float]:
     """Relative MSE, RGB MSE, display MSE, and the 95th percentile and maximum of the tiles'
     RMS relative errors (32x32 tiles): adaptive stopping evens these out."""
     a, r = rgb(ch), rgb(ref)
-    # Luminance relative error, the quantity the noise threshold controls (README).
+    # Luminance relative error, the quantity the noise threshold controls (docs/architecture.md).
     rel = (((a - r) @ LUMA) / np.maximum(r @ LUMA, DARK_FLOOR)) ** 2
     size = rel.shape[0]
     tiles = rel.reshape(size // 32, 32, size // 32, 32).mean(axis=(1, 3))

@@ -53,10 +53,10 @@ def _group(name: str) -> list[str]:
     return out.stdout.split()
 
 
-def _deployment_section(readme: str) -> str:
-    start = readme.index("\n## Deployment\n")
-    end = readme.find("\n## ", start + 1)
-    return readme[start : end if end > 0 else None]
+def _deployment_section(operations: str) -> str:
+    start = operations.index("\n## Deployment\n")
+    end = operations.find("\n## ", start + 1)
+    return operations[start : end if end > 0 else None]
 
 
 # ------------------------------------------------------------------------ set-up script
@@ -352,15 +352,15 @@ def test_compose_refuses_missing_passwords_and_invalid_files(tmp_path):
     assert out.returncode != 0 and "restrat" in out.stderr
 
 
-def test_compose_settings_are_environment_variables_documented_in_the_readme(compose_config):
+def test_compose_settings_are_environment_variables_documented_in_the_docs(compose_config):
     text = COMPOSE.read_text()
     variables = set(re.findall(r"\$\{(\w+)", text))
     assert {"RENDERFARM_DB_PASSWORD", "RENDERFARM_WORKER_THREADS"} <= variables
-    readme = (ROOT / "README.md").read_text()
-    section = _deployment_section(readme)
+    operations = (ROOT / "docs" / "operations.md").read_text()
+    section = _deployment_section(operations)
     example = (DEPLOY / "env.example").read_text()
     for var in variables:
-        assert f"`{var}`" in section, f"{var} is not documented in README, Deployment"
+        assert f"`{var}`" in section, f"{var} is not documented in docs/operations.md, Deployment"
         assert var in example, f"{var} is not in deploy/env.example"
     # With everything at its default, the server gets exactly the server defaults.
     from renderfarm.config import Settings
@@ -437,7 +437,8 @@ def test_compose_runs_worker_traffic_over_tls_by_default(compose_config, compose
         "worker CA": _in_mount(wmounts, wenv["RENDERFARM_WORKER_CA_FILE"]),
         "worker cert": _in_mount(wmounts, wenv["RENDERFARM_WORKER_CERT_FILE"]),
         "worker key": _in_mount(wmounts, wenv["RENDERFARM_WORKER_KEY_FILE"]),
-        # What an operator sets RENDERFARM_TLS_CLIENT_CA_FILE to for mutual TLS (README).
+        # What an operator sets RENDERFARM_TLS_CLIENT_CA_FILE to for mutual TLS
+        # (docs/operations.md).
         "client CA": _in_mount(smounts, "/etc/renderfarm/tls/ca.crt"),
     }
     dirs = compose_certs["dirs"]
@@ -951,9 +952,9 @@ def test_kubernetes_overlay_without_secrets_does_not_build(tmp_path):
     assert out.returncode != 0 and "secrets.env" in out.stderr
 
 
-def test_readme_documents_each_deployment_step():
-    readme = (ROOT / "README.md").read_text()
-    section = _deployment_section(readme)
+def test_docs_document_each_deployment_step():
+    operations = (ROOT / "docs" / "operations.md").read_text()
+    section = _deployment_section(operations)
     for command in (
         "docker compose -f deploy/compose.yaml up",
         "--scale worker=",
@@ -975,7 +976,7 @@ def test_readme_documents_each_deployment_step():
         "RENDERFARM_WORKER_TLS_SERVER_NAME",
     ):
         assert needed in tls, needed
-    # Commands shown in the README's examples name files that exist.
+    # Commands shown in the examples of docs/operations.md name files that exist.
     for path in re.findall(r"deploy/[\w./-]+", section):
         path = path.rstrip(".")
         assert (ROOT / path).exists() or path.endswith(("secrets.env", "/.env")), path

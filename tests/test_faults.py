@@ -1,5 +1,5 @@
 """Fault injection: nothing a user submitted and nothing a worker finished is lost or counted
-twice when workers, the server or the database fail (README, "Reliability").
+twice when workers, the server or the database fail (docs/operations.md, "Reliability").
 
 Every test renders a fixed number of samples (noise_threshold 0), so the undisturbed image is
 known independently: the standalone `renderfarm-worker render` of the same settings and seed,

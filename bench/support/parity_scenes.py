@@ -14,8 +14,8 @@ Imported without bpy (by bench/cycles_parity.py), it only lists the scenes: SCEN
 name to a one-line description.
 
 Every scene but `environment` is lit by an emissive quad (the farm renders Blender's area
-lights not at all, see README "Not rendered by the farm") and some by a point light of radius 0;
-the world is black.
+lights not at all, see docs/blender.md, "Not rendered by the farm") and some by a point light
+of radius 0; the world is black.
 """
 
 from __future__ import annotations
@@ -428,8 +428,8 @@ def two_sided_emitter():
 
 
 def sky_map(width=512, height=256) -> np.ndarray:
-    """An equirectangular sky in the farm's convention (README, `environment`: column u = 0.5
-    looks along glTF -Z, u grows towards +X, row 0 is straight up): a blue gradient, a dark
+    """An equirectangular sky in the farm's convention (docs/settings.md, `environment`: column
+    u = 0.5 looks along glTF -Z, u grows towards +X, row 0 is straight up): a blue gradient, a dark
     ground and a small bright sun off to one side, so that a turned or mirrored map shows."""
     v, u = (np.mgrid[0:height, 0:width] + 0.5) / np.array([height, width])[:, None, None]
     theta, phi = v * np.pi, (u - 0.5) * 2.0 * np.pi

@@ -33,7 +33,7 @@ shift 2
 
 if [ -f "$server_dir/tls.crt" ]; then
   for f in "$server_dir/tls.key" "$worker_dir/ca.crt"; do
-    [ -f "$f" ] || die "$server_dir/tls.crt exists but $f does not: add it (see README, TLS)"
+    [ -f "$f" ] || die "$server_dir/tls.crt exists but $f does not: add it (see docs/operations.md, TLS of the deployments)"
   done
   echo "make-certs: certificates present in $server_dir and $worker_dir; nothing to do"
   exit 0

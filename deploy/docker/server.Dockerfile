@@ -1,7 +1,7 @@
 # syntax=docker/dockerfile:1
 # The renderfarm server (REST :8080, gRPC :50051). Build from the repository root:
 #   docker build -f deploy/docker/server.Dockerfile -t renderfarm/server:0.1.0 .
-# Configured only by RENDERFARM_* environment variables (README, "Server settings").
+# Configured only by RENDERFARM_* environment variables (docs/settings.md, "Server settings").
 
 # ---- web: the dashboard, built with the commands of the Makefile's `web` target (npm ci from
 # web/package-lock.json, then npm run build: type check and bundle into web/dist).

@@ -20,7 +20,7 @@
 #   (the process the farm belongs to, for `sweep`; default: the caller), NETFARM_PG_USER
 #   (renderfarm-pg: the unprivileged user PostgreSQL runs as, created if missing),
 #   NETFARM_MUTUAL_TLS (0; 1: the server requires the workers' client certificates), and every
-#   RENDERFARM_* server setting (README, "Server settings"), passed to the server as it is.
+#   RENDERFARM_* server setting (docs/settings.md, "Server settings"), passed to the server as it is.
 #
 # Hosts and addresses: operator .1 (this machine), db .2, server .3, worker<i> .(10+i).
 # Certificates: STATE_DIR/server/tls (the server's tls.crt, tls.key, ca.crt) and STATE_DIR/tls

@@ -41,7 +41,8 @@ def default_data_dir() -> Path:
 
 
 class Settings(BaseSettings):
-    """Every server setting, documented in the README (`renderfarm server --help` lists them)."""
+    """Every server setting, documented in docs/settings.md (`renderfarm server --help` lists
+    them)."""
 
     model_config = SettingsConfigDict(env_prefix="RENDERFARM_", extra="forbid")
 

@@ -1426,7 +1426,7 @@ def renderer_version() -> str:
 
 
 def exr_attributes(view: JobView) -> dict[str, str | float]:
-    """The job's record in its EXR header (README "Outputs"): its settings as JSON, scene,
+    """The job's record in its EXR header (docs/usage.md, "Outputs"): its settings as JSON, scene,
     renderer version, mean spp and estimated error (absent while unknown). No wall-clock
     time: the EXR stays a function of the job."""
     attributes: dict[str, str | float] = {

@@ -32,7 +32,7 @@ export interface Scale {
 }
 
 /** The values black and white stand for in a grey layer's PNG (renderfarm:scale_min/max, see
- *  README "Outputs"); null when the PNG has no scale or a malformed one. */
+ *  docs/usage.md, "Outputs"); null when the PNG has no scale or a malformed one. */
 export function layerScale(text: Record<string, string>): Scale | null {
   const min = Number(text["renderfarm:scale_min"]);
   const max = Number(text["renderfarm:scale_max"]);

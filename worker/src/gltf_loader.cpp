@@ -539,8 +539,8 @@ class Loader {
       for (int c : node.children) stack.push_back({c, depth + 1});
     }
     // Memory: each mesh once (a mesh used by several nodes is instanced, not copied), its
-    // arrays as TriangleMesh holds them, Embree's BVH (README: about 70 bytes per triangle,
-    // 45 for the compact layout), the instances, and the file's buffers, which the loader
+    // arrays as TriangleMesh holds them, Embree's BVH (docs/architecture.md: about 70 bytes a
+    // triangle, 45 for the compact layout), the instances, and the file's buffers, which the loader
     // holds until the scene is built.
     const double bvh_bytes = options_.bvh == BvhLayout::Compact ? 45.0 : 70.0;
     double bytes = 0.0;
