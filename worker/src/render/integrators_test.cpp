@@ -10,6 +10,7 @@
 
 #include "scene/environment.h"
 #include "math/estimators.h"
+#include "render/reference.h"
 #include "sampling/samplers.h"
 #include "testing/test_scenes.h"
 
