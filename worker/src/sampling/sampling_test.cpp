@@ -13,31 +13,8 @@
 namespace rf {
 namespace {
 
-using testing::chi2_critical;
-
-// Pearson statistic of observed vs expected counts; cells with expected < 5 are pooled.
-double chi2_statistic(const std::vector<double>& observed, const std::vector<double>& expected,
-                      int* dof) {
-  double stat = 0.0, pooled_obs = 0.0, pooled_exp = 0.0;
-  int cells = 0;
-  for (size_t i = 0; i < observed.size(); ++i) {
-    if (expected[i] < 5.0) {
-      pooled_obs += observed[i];
-      pooled_exp += expected[i];
-      continue;
-    }
-    stat += (observed[i] - expected[i]) * (observed[i] - expected[i]) / expected[i];
-    ++cells;
-  }
-  if (pooled_exp >= 5.0) {
-    stat += (pooled_obs - pooled_exp) * (pooled_obs - pooled_exp) / pooled_exp;
-    ++cells;
-  } else if (pooled_obs > 0.0 && pooled_exp == 0.0) {
-    stat = 1e30;  // samples where the pdf is zero
-  }
-  *dof = cells - 1;
-  return stat;
-}
+using testing::ChiSquareResult;
+using testing::ChiSquareTest;
 
 using DirSampler = std::function<Vec3(Point2)>;
 using DirPdf = std::function<float(Vec3)>;
@@ -55,37 +32,28 @@ double integrate_sphere(const DirPdf& pdf, int nz = 400, int nphi = 400) {
   return sum;
 }
 
-// Chi-square test of samples against pdf over a (z, phi) grid on the sphere.
-bool sphere_chi2_passes(const DirSampler& sample, const DirPdf& pdf) {
+// Chi-square test of samples against pdf over a (z, phi) grid on the sphere: the test's unit
+// square is x = (z + 1) / 2, y = phi / (2 pi), where d(omega) = dz dphi = 4 pi dx dy.
+ChiSquareResult sphere_chi2(const DirSampler& sample, const DirPdf& pdf) {
   const int nz = 10, nphi = 20, sub = 16, n = 200000;
-  std::vector<double> observed(nz * nphi, 0.0), expected(nz * nphi, 0.0);
+  ChiSquareTest chi2(nz, nphi);
   std::mt19937_64 rng(12345);
   std::uniform_real_distribution<float> uni(0.f, 1.f);
   for (int s = 0; s < n; ++s) {
     const Vec3 w = sample({uni(rng), uni(rng)});
     double phi = std::atan2(w.y, w.x);
     if (phi < 0) phi += 2 * M_PI;
-    const int iz = std::min(nz - 1, int((w.z + 1.0) * 0.5 * nz));
-    const int ip = std::min(nphi - 1, int(phi / (2 * M_PI) * nphi));
-    observed[size_t(iz * nphi + ip)] += 1.0;
+    chi2.add_sample((w.z + 1.0) * 0.5, phi / (2 * M_PI));
   }
-  for (int iz = 0; iz < nz; ++iz)
-    for (int ip = 0; ip < nphi; ++ip) {
-      double integral = 0.0;
-      const double dz = 2.0 / nz / sub, dphi = 2 * M_PI / nphi / sub;
-      for (int a = 0; a < sub; ++a)
-        for (int b = 0; b < sub; ++b) {
-          const double z = -1.0 + iz * 2.0 / nz + (a + 0.5) * dz;
-          const double phi = ip * 2 * M_PI / nphi + (b + 0.5) * dphi;
-          const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
-          integral += pdf(Vec3(float(r * std::cos(phi)), float(r * std::sin(phi)), float(z))) *
-                      dz * dphi;
-        }
-      expected[size_t(iz * nphi + ip)] = integral * n;
-    }
-  int dof = 0;
-  const double stat = chi2_statistic(observed, expected, &dof);
-  return dof > 0 && stat < chi2_critical(dof);
+  chi2.integrate(
+      [&](double x, double y) {
+        const double z = 2.0 * x - 1.0, phi = 2 * M_PI * y;
+        const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
+        return pdf(Vec3(float(r * std::cos(phi)), float(r * std::sin(phi)), float(z))) * 4 *
+               M_PI;
+      },
+      sub, n);
+  return chi2.run();
 }
 
 void expect_round_trip(const DirSampler& sample, const std::function<Point2(Vec3)>& invert) {
@@ -101,24 +69,27 @@ void expect_round_trip(const DirSampler& sample, const std::function<Point2(Vec3
 TEST(Warps, CosineHemisphere) {
   EXPECT_NEAR(integrate_sphere(cosine_hemisphere_pdf), 1.0, 2e-3);
   expect_round_trip(sample_cosine_hemisphere, invert_cosine_hemisphere);
-  EXPECT_TRUE(sphere_chi2_passes(sample_cosine_hemisphere, cosine_hemisphere_pdf));
+  const ChiSquareResult chi2 = sphere_chi2(sample_cosine_hemisphere, cosine_hemisphere_pdf);
+  EXPECT_TRUE(chi2.passed) << chi2.message;
 }
 
 TEST(Warps, UniformSphere) {
   EXPECT_NEAR(integrate_sphere(uniform_sphere_pdf), 1.0, 2e-3);
   expect_round_trip(sample_uniform_sphere, invert_uniform_sphere);
-  EXPECT_TRUE(sphere_chi2_passes(sample_uniform_sphere, uniform_sphere_pdf));
+  const ChiSquareResult chi2 = sphere_chi2(sample_uniform_sphere, uniform_sphere_pdf);
+  EXPECT_TRUE(chi2.passed) << chi2.message;
 }
 
 TEST(Warps, UniformHemisphere) {
   EXPECT_NEAR(integrate_sphere(uniform_hemisphere_pdf), 1.0, 2e-3);
   expect_round_trip(sample_uniform_hemisphere, invert_uniform_hemisphere);
-  EXPECT_TRUE(sphere_chi2_passes(sample_uniform_hemisphere, uniform_hemisphere_pdf));
+  const ChiSquareResult chi2 = sphere_chi2(sample_uniform_hemisphere, uniform_hemisphere_pdf);
+  EXPECT_TRUE(chi2.passed) << chi2.message;
 }
 
 TEST(Warps, ChiSquareRejectsAMismatchedPdf) {
   // The test must be able to fail: cosine-distributed samples are not uniform.
-  EXPECT_FALSE(sphere_chi2_passes(sample_cosine_hemisphere, uniform_hemisphere_pdf));
+  EXPECT_FALSE(sphere_chi2(sample_cosine_hemisphere, uniform_hemisphere_pdf).passed);
 }
 
 TEST(Warps, Triangle) {
@@ -138,29 +109,19 @@ TEST(Warps, Triangle) {
       EXPECT_NEAR(back.x, u.x, 1e-5f);
       EXPECT_NEAR(back.y, u.y, 1e-5f);
     }
-  // Chi-square over a grid of cells of the (b0, b1) square; expected mass = 2 x covered area.
+  // Chi-square over a grid of cells of the (b0, b1) square (twice the covered area's mass).
   const int cells = 16, sub = 32, samples = 200000;
-  std::vector<double> observed(cells * cells, 0.0), expected(cells * cells, 0.0);
+  ChiSquareTest chi2(cells, cells);
   std::mt19937_64 rng(7);
   std::uniform_real_distribution<float> uni(0.f, 1.f);
   for (int s = 0; s < samples; ++s) {
     const Point2 b = sample_triangle({uni(rng), uni(rng)});
-    const int ix = std::min(cells - 1, int(b.x * cells)), iy = std::min(cells - 1, int(b.y * cells));
-    observed[size_t(iy * cells + ix)] += 1.0;
+    chi2.add_sample(b.x, b.y);
   }
-  for (int iy = 0; iy < cells; ++iy)
-    for (int ix = 0; ix < cells; ++ix) {
-      double mass = 0.0;
-      for (int a = 0; a < sub; ++a)
-        for (int c = 0; c < sub; ++c) {
-          const float x = (ix + (a + 0.5f) / sub) / cells, y = (iy + (c + 0.5f) / sub) / cells;
-          mass += triangle_pdf({x, y}) / (double(cells) * cells * sub * sub);
-        }
-      expected[size_t(iy * cells + ix)] = mass * samples;
-    }
-  int dof = 0;
-  const double stat = chi2_statistic(observed, expected, &dof);
-  EXPECT_LT(stat, chi2_critical(dof));
+  chi2.integrate([](double x, double y) { return triangle_pdf({float(x), float(y)}); }, sub,
+                 samples);
+  const ChiSquareResult result = chi2.run();
+  EXPECT_TRUE(result.passed) << result.message;
 }
 
 // The warps' sine and cosine against double precision, to within 4 float ulps of 1 (2^-22):
@@ -247,30 +208,22 @@ TEST(Warps, ConcentricDiskPdfAndChiSquare) {
       integral += concentric_disk_pdf({-1.f + (i + 0.5f) * 2.f / g, -1.f + (j + 0.5f) * 2.f / g}) *
                   (4.0 / (double(g) * g));
   EXPECT_NEAR(integral, 1.0, 2e-3);
+  // Chi-square over the bounding square: x = (p.x + 1) / 2, y = (p.y + 1) / 2, dp = 4 dx dy.
   const int cells = 16, sub = 16, samples = 200000;
-  std::vector<double> observed(cells * cells, 0.0), expected(cells * cells, 0.0);
+  ChiSquareTest chi2(cells, cells);
   std::mt19937_64 rng(8);
   std::uniform_real_distribution<float> uni(0.f, 1.f);
   for (int s = 0; s < samples; ++s) {
     const Point2 p = sample_concentric_disk({uni(rng), uni(rng)});
-    const int ix = std::min(cells - 1, int((p.x + 1.f) * 0.5f * cells));
-    const int iy = std::min(cells - 1, int((p.y + 1.f) * 0.5f * cells));
-    observed[size_t(iy * cells + ix)] += 1.0;
+    chi2.add_sample((p.x + 1.f) * 0.5f, (p.y + 1.f) * 0.5f);
   }
-  for (int iy = 0; iy < cells; ++iy)
-    for (int ix = 0; ix < cells; ++ix) {
-      double mass = 0.0;
-      for (int a = 0; a < sub; ++a)
-        for (int b = 0; b < sub; ++b) {
-          const float x = -1.f + (ix + (a + 0.5f) / sub) * 2.f / cells;
-          const float y = -1.f + (iy + (b + 0.5f) / sub) * 2.f / cells;
-          mass += concentric_disk_pdf({x, y}) * 4.0 / (double(cells) * cells * sub * sub);
-        }
-      expected[size_t(iy * cells + ix)] = mass * samples;
-    }
-  int dof = 0;
-  const double stat = chi2_statistic(observed, expected, &dof);
-  EXPECT_LT(stat, chi2_critical(dof));
+  chi2.integrate(
+      [](double x, double y) {
+        return concentric_disk_pdf({float(2.0 * x - 1.0), float(2.0 * y - 1.0)}) * 4.0;
+      },
+      sub, samples);
+  const ChiSquareResult result = chi2.run();
+  EXPECT_TRUE(result.passed) << result.message;
 }
 
 TEST(Warps, PowerHeuristic) {
@@ -291,7 +244,8 @@ TEST(Warps, GgxVisibleNormals) {
                                    800, 400),
                   1.0, 5e-3);
       auto sample = [&](Point2 u) { return sample_ggx_vndf(wo, alpha, u); };
-      EXPECT_TRUE(sphere_chi2_passes(sample, pdf)) << alpha << " " << wo.z;
+      const ChiSquareResult chi2 = sphere_chi2(sample, pdf);
+      EXPECT_TRUE(chi2.passed) << chi2.message << ", alpha " << alpha << " wo.z " << wo.z;
       for (int i = 1; i < 20; ++i)
         for (int j = 1; j < 20; ++j) {
           const Point2 u{i / 20.f, j / 20.f};
@@ -319,12 +273,11 @@ TEST(Warps, PiecewiseConstant1D) {
   std::mt19937_64 rng(4);
   std::uniform_real_distribution<float> uni(0.f, 1.f);
   const int n = 100000;
-  std::vector<double> observed(5, 0.0), expected(5, 0.0);
-  for (int s = 0; s < n; ++s) observed[size_t(d.sample(uni(rng), nullptr, nullptr) * 5)] += 1;
-  for (int c = 0; c < 5; ++c) expected[size_t(c)] = d.pdf((c + 0.5f) / 5.f) / 5.0 * n;
-  int dof = 0;
-  const double stat = chi2_statistic(observed, expected, &dof);
-  EXPECT_LT(stat, chi2_critical(dof));
+  ChiSquareTest chi2(5);
+  for (int s = 0; s < n; ++s) chi2.add_sample(d.sample(uni(rng), nullptr, nullptr));
+  chi2.integrate([&](double x, double) { return d.pdf(float(x)); }, 1, n);
+  const ChiSquareResult result = chi2.run();
+  EXPECT_TRUE(result.passed) << result.message;
 }
 
 TEST(Warps, PiecewiseConstant2D) {
@@ -350,17 +303,14 @@ TEST(Warps, PiecewiseConstant2D) {
   std::mt19937_64 rng(5);
   std::uniform_real_distribution<float> uni(0.f, 1.f);
   const int n = 200000;
-  std::vector<double> observed(nu * nv, 0.0), expected(nu * nv, 0.0);
+  ChiSquareTest chi2(static_cast<int>(nu), static_cast<int>(nv));
   for (int s = 0; s < n; ++s) {
     const Point2 p = d.sample({uni(rng), uni(rng)}, nullptr);
-    observed[std::min(nv - 1, size_t(p.y * nv)) * nu + std::min(nu - 1, size_t(p.x * nu))] += 1;
+    chi2.add_sample(p.x, p.y);
   }
-  for (size_t v = 0; v < nv; ++v)
-    for (size_t u = 0; u < nu; ++u)
-      expected[v * nu + u] = d.pdf({(u + 0.5f) / nu, (v + 0.5f) / nv}) / double(nu * nv) * n;
-  int dof = 0;
-  const double stat = chi2_statistic(observed, expected, &dof);
-  EXPECT_LT(stat, chi2_critical(dof));
+  chi2.integrate([&](double x, double y) { return d.pdf({float(x), float(y)}); }, 1, n);
+  const ChiSquareResult result = chi2.run();
+  EXPECT_TRUE(result.passed) << result.message;
 }
 
 }  // namespace

@@ -13,7 +13,8 @@
 namespace rf {
 namespace {
 
-using testing::chi2_critical;
+using testing::ChiSquareResult;
+using testing::ChiSquareTest;
 
 Vec3 spherical(double z, double phi) {
   const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
@@ -80,7 +81,8 @@ TEST(Bsdf, SamplesFollowThePdfAndWeightsAreFCosOverPdf) {
   std::uniform_real_distribution<float> uni(0.f, 1.f);
   for (const BsdfParams& p : test_materials())
     for (Vec3 wo : kOutgoing) {
-      std::vector<double> observed(nz * nphi, 0.0), expected(nz * nphi, 0.0);
+      // The test's unit square: x = z, y = phi / (2 pi), d(omega) = dz dphi = 2 pi dx dy.
+      ChiSquareTest chi2(nz, nphi);
       for (int s = 0; s < n; ++s) {
         BsdfSample bs;
         if (!bsdf_sample(p, wo, {uni(rng), uni(rng)}, uni(rng), uni(rng), &bs) || bs.delta)
@@ -94,40 +96,16 @@ TEST(Bsdf, SamplesFollowThePdfAndWeightsAreFCosOverPdf) {
           ASSERT_NEAR(bs.weight[c], f[c] / bs.pdf, 1e-3f * (1.f + f[c] / bs.pdf));
         double phi = std::atan2(bs.wi.y, bs.wi.x);
         if (phi < 0) phi += 2 * M_PI;
-        const int iz = std::min(nz - 1, int(bs.wi.z * nz));
-        const int ip = std::min(nphi - 1, int(phi / (2 * M_PI) * nphi));
-        observed[size_t(iz * nphi + ip)] += 1.0;
+        chi2.add_sample(bs.wi.z, phi / (2 * M_PI));
       }
-      for (int iz = 0; iz < nz; ++iz)
-        for (int ip = 0; ip < nphi; ++ip) {
-          double mass = 0.0;
-          for (int a = 0; a < sub; ++a)
-            for (int b = 0; b < sub; ++b) {
-              const double z = (iz + (a + 0.5) / sub) / nz;
-              const double phi = (ip + (b + 0.5) / sub) * 2 * M_PI / nphi;
-              mass += bsdf_pdf(p, wo, spherical(z, phi)) * (1.0 / (nz * sub)) *
-                      (2 * M_PI / (nphi * sub));
-            }
-          expected[size_t(iz * nphi + ip)] = mass * n;
-        }
-      double stat = 0.0;
-      int cells = 0;
-      double pooled_o = 0, pooled_e = 0;
-      for (size_t i = 0; i < observed.size(); ++i) {
-        if (expected[i] < 5.0) {
-          pooled_o += observed[i];
-          pooled_e += expected[i];
-          continue;
-        }
-        stat += (observed[i] - expected[i]) * (observed[i] - expected[i]) / expected[i];
-        ++cells;
-      }
-      if (pooled_e >= 5.0) {
-        stat += (pooled_o - pooled_e) * (pooled_o - pooled_e) / pooled_e;
-        ++cells;
-      }
-      EXPECT_LT(stat, chi2_critical(cells - 1)) << "metallic " << p.metallic << " alpha "
-                                                << p.alpha << " wo.z " << wo.z;
+      chi2.integrate(
+          [&](double x, double y) {
+            return bsdf_pdf(p, wo, spherical(x, 2 * M_PI * y)) * 2 * M_PI;
+          },
+          sub, n);
+      const ChiSquareResult result = chi2.run();
+      EXPECT_TRUE(result.passed) << result.message << ", metallic " << p.metallic << " alpha "
+                                 << p.alpha << " wo.z " << wo.z;
     }
 }
 
