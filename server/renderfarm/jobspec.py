@@ -25,7 +25,7 @@ class SettingsError(ValueError):
 
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
-# same rule in worker/src/main.cpp.
+# same rule in worker/src/programs/main.cpp.
 TAG_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]{0,63}")
 MAX_TAGS = 32
 

@@ -1,7 +1,7 @@
 // Lights of a scene: emissive triangles (area lights) and KHR_lights_punctual lights. One is
 // chosen with probability proportional to its power by an alias table, then (area lights) a
 // point on it uniformly by area. The environment is a job setting, not part of the scene: the
-// integrator selects it against this set by power (see integrators.cpp).
+// integrator selects it against this set by power (see render/light_sampling.cpp).
 #pragma once
 
 #include <cstdint>
