@@ -1,6 +1,6 @@
 """Worker render throughput: the C++ path tracer against Embree's raw ray rate.
 
-Runs `renderfarm-worker bench` (worker/src/bench.cpp), which renders the Cornell box, a
+Runs `renderfarm-worker bench` (worker/src/bench/bench.cpp), which renders the Cornell box, a
 generated scene of at least 1M triangles and a generated scene of 144 Embree instances of one
 mesh (both built in memory, never written to disk) at 1 and 2 threads, records the path
 tracer's rays and replays them through bare rtcIntersect1 / rtcOccluded1 in the same process.

@@ -28,7 +28,7 @@ class SettingsError(ValueError):
 
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
-# same rule in worker/src/main.cpp.
+# same rule in worker/src/programs/main.cpp.
 TAG_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]{0,63}")
 MAX_TAGS = 32
 
@@ -97,7 +97,7 @@ def denoise_memory_bytes(width: int, height: int) -> int:
 
 
 class Sampler(StrEnum):
-    """Sample generators (the worker's samplers.h; proto renderfarm.v1.Sampler)."""
+    """Sample generators (the worker's sampling/samplers.h; proto renderfarm.v1.Sampler)."""
 
     SOBOL = "sobol"
     HALTON = "halton"
@@ -106,7 +106,7 @@ class Sampler(StrEnum):
 
 
 class Integrator(StrEnum):
-    """Light transport algorithms (the worker's integrators.h; proto renderfarm.v1.Integrator)."""
+    """Light transport algorithms (the worker's render/integrators.h; proto renderfarm.v1.Integrator)."""
 
     PATH = "path"
     DIRECT = "direct"

@@ -3,7 +3,7 @@ farm's renderer ignores of what it exports.
 
 The lists below follow the exporter of Blender 5.0 (io_scene_gltf2: the nodes its material
 export reads, the object and light types it writes) and the glTF features the farm's loader
-implements (worker/src/gltf_loader.cpp). Nothing is refused: the artist is told, and may still
+implements (worker/src/scene/gltf_loader.cpp). Nothing is refused: the artist is told, and may still
 submit.
 """
 

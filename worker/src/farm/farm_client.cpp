@@ -1,0 +1,560 @@
+#include "farm/farm_client.h"
+
+#include <grpcpp/grpcpp.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <cstdio>
+#include <deque>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <sstream>
+#include <thread>
+#include <vector>
+
+#include "render/integrators.h"
+#include "renderfarm/v1/scenes.grpc.pb.h"
+#include "renderfarm/v1/workers.grpc.pb.h"
+#include "farm/scene_cache.h"
+#include "util/sha256.h"
+
+namespace fs = std::filesystem;
+namespace pb = renderfarm::v1;
+
+namespace rf {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+std::mutex g_log_mutex;
+void log_line(const std::string& message) {
+  std::lock_guard<std::mutex> lock(g_log_mutex);
+  std::cerr << "renderfarm-worker: " << message << std::endl;
+}
+
+// A task failure: retryable unless the scene itself (or the request) cannot be rendered.
+struct TaskError {
+  std::string message;
+  bool retryable;
+};
+
+// A message that reaches the user (a task's error) names no file of this machine: every
+// occurrence of `path` becomes `name`.
+std::string without_path(std::string message, const std::string& path, const std::string& name) {
+  if (path.empty()) return message;
+  for (size_t at = message.find(path); at != std::string::npos; at = message.find(path, at))
+    message.replace(at, path.size(), name);
+  return message;
+}
+
+// A render in progress: its cancel flag (set by a Cancel from the server, the end of the
+// stream or the time budget), and whether the time budget set it.
+struct RunningTask {
+  std::shared_ptr<std::atomic<bool>> cancel = std::make_shared<std::atomic<bool>>(false);
+  std::shared_ptr<std::atomic<bool>> timed_out = std::make_shared<std::atomic<bool>>(false);
+  std::chrono::steady_clock::time_point started = std::chrono::steady_clock::now();
+};
+
+// Maps the protocol's settings onto the renderer's; zero/empty fields take the documented
+// defaults (the server normally fills them in).
+// The task's settings. The server sends every field set (server/renderfarm/jobspec.py holds
+// their defaults, in one place): an unset or unknown one fails the task rather than taking a
+// default of the worker's own.
+bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std::string* err) {
+  if (!in.has_width() || !in.has_height() || !in.has_max_depth() || !in.has_seed()) {
+    *err = "width, height, max_depth and seed must be set";
+    return false;
+  }
+  out->width = in.width();
+  out->height = in.height();
+  out->seed = in.seed();
+  out->max_depth = in.max_depth();
+  switch (in.sampler()) {
+    case pb::SAMPLER_SOBOL: out->sampler = SamplerType::Sobol; break;
+    case pb::SAMPLER_HALTON: out->sampler = SamplerType::Halton; break;
+    case pb::SAMPLER_STRATIFIED: out->sampler = SamplerType::Stratified; break;
+    case pb::SAMPLER_INDEPENDENT: out->sampler = SamplerType::Independent; break;
+    default:
+      *err = "unknown sampler " + std::to_string(int(in.sampler())) +
+             " (expected sobol, halton, stratified or independent)";
+      return false;
+  }
+  switch (in.integrator()) {
+    case pb::INTEGRATOR_PATH: out->integrator = IntegratorType::Path; break;
+    case pb::INTEGRATOR_DIRECT: out->integrator = IntegratorType::Direct; break;
+    case pb::INTEGRATOR_AO: out->integrator = IntegratorType::AmbientOcclusion; break;
+    default:
+      *err = "unknown integrator " + std::to_string(int(in.integrator())) +
+             " (expected path, direct or ao)";
+      return false;
+  }
+  out->aperture_radius = float(in.aperture_radius());
+  out->focus_distance = float(in.focus_distance());
+  return true;
+}
+
+class Worker {
+ public:
+  Worker(const FarmOptions& options, std::shared_ptr<grpc::Channel> channel)
+      : options_(options),
+        channel_(std::move(channel)),
+        worker_stub_(pb::WorkerService::NewStub(channel_)),
+        scene_stub_(pb::SceneService::NewStub(channel_)),
+        scenes_(options.scenes_in_memory, options.scene_memory_budget) {}
+
+  // One Connect stream from Hello to its end. Returns true if a Welcome was received.
+  bool run_session(const std::atomic<bool>& stop);
+
+ private:
+  // State of one stream. Guarded by mutex_ unless atomic.
+  struct Session {
+    grpc::ClientContext context;
+    std::unique_ptr<grpc::ClientReaderWriter<pb::WorkerMessage, pb::ServerMessage>> stream;
+    std::mutex write_mutex;
+    std::deque<pb::Task> queue;
+    std::map<std::string, RunningTask> running;  // by task id
+    bool closing = false;      // graceful stop: take no new tasks
+    bool over = false;         // stream ended: render threads and supervisor exit
+    bool reader_done = false;
+    bool welcomed = false;
+    uint32_t heartbeat_ms = 5000;
+    std::atomic<uint64_t> samples{0}, rays{0};
+  };
+
+  bool write(Session& s, const pb::WorkerMessage& message) {
+    std::lock_guard<std::mutex> lock(s.write_mutex);
+    return s.stream->Write(message);
+  }
+  void render_loop(Session& s);
+  void supervise(Session& s, const std::atomic<bool>& stop);
+  void run_task(Session& s, const pb::Task& task, const RunningTask& running);
+  std::shared_ptr<const Scene> scene_for(const std::string& sha256);
+  std::shared_ptr<const Environment> environment_for(const pb::RenderSettings& settings);
+  std::string fetch_scene(const std::string& sha256);
+
+  const FarmOptions& options_;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<pb::WorkerService::Stub> worker_stub_;
+  std::unique_ptr<pb::SceneService::Stub> scene_stub_;
+  SceneCache scenes_;
+  // Loaded environment maps by (sha256, intensity, rotation); a handful at most.
+  std::mutex env_mutex_;
+  std::map<std::string, std::shared_ptr<const Environment>> environments_;
+  std::mutex mutex_;
+  std::condition_variable cv_;
+};
+
+bool Worker::run_session(const std::atomic<bool>& stop) {
+  Session s;
+  s.stream = worker_stub_->Connect(&s.context);
+  pb::WorkerMessage hello_msg;
+  pb::Hello* hello = hello_msg.mutable_hello();
+  hello->set_worker_id(options_.worker_id);
+  hello->set_hostname(options_.hostname);
+  hello->set_cores(options_.threads);
+  hello->set_max_in_flight(options_.threads + options_.prefetch);
+  for (const std::string& sha : list_cached_scenes(options_.cache_dir))
+    hello->add_cached_scenes(sha);
+  hello->set_version(RENDERFARM_VERSION);
+  hello->set_token(options_.token);
+  for (const std::string& tag : options_.tags) hello->add_tags(tag);
+
+  // The supervisor runs from the start so that a stop request also interrupts the wait for
+  // Welcome; it sends heartbeats once welcomed.
+  std::thread supervisor([&] { supervise(s, stop); });
+  std::vector<std::thread> renderers;
+  bool welcomed = false;
+  if (write(s, hello_msg)) {
+    pb::ServerMessage msg;
+    if (s.stream->Read(&msg)) {
+      if (msg.has_welcome()) {
+        welcomed = true;
+        log_line("connected to " + options_.server + " as '" + msg.welcome().worker_id() +
+                 "' (heartbeat " + std::to_string(msg.welcome().heartbeat_interval_ms()) +
+                 " ms, lease " + std::to_string(msg.welcome().lease_ms()) + " ms)");
+        {
+          std::lock_guard<std::mutex> lock(mutex_);
+          s.welcomed = true;
+          if (msg.welcome().heartbeat_interval_ms())
+            s.heartbeat_ms = msg.welcome().heartbeat_interval_ms();
+        }
+        cv_.notify_all();
+        for (uint32_t i = 0; i < options_.threads; ++i)
+          renderers.emplace_back([&] { render_loop(s); });
+        while (s.stream->Read(&msg)) {
+          std::lock_guard<std::mutex> lock(mutex_);
+          if (msg.has_assign()) {
+            if (!s.closing) s.queue.push_back(msg.assign().task());
+          } else if (msg.has_cancel()) {
+            for (const std::string& id : msg.cancel().task_ids()) {
+              for (auto it = s.queue.begin(); it != s.queue.end();)
+                it = it->task_id() == id ? s.queue.erase(it) : it + 1;
+              auto r = s.running.find(id);
+              if (r != s.running.end()) r->second.cancel->store(true);
+            }
+          }
+          cv_.notify_all();
+        }
+      } else {
+        log_line("protocol error: the server's first message is not Welcome");
+        s.context.TryCancel();
+      }
+    }
+  }
+  {
+    // The stream has ended: queued tasks go back to the server with the lease, and renders
+    // in progress stop (their results could not be delivered any more).
+    std::lock_guard<std::mutex> lock(mutex_);
+    s.reader_done = true;
+    s.over = true;
+    s.queue.clear();
+    for (auto& r : s.running) r.second.cancel->store(true);
+  }
+  cv_.notify_all();
+  for (auto& t : renderers) t.join();
+  supervisor.join();
+  const grpc::Status status = s.stream->Finish();
+  if (!status.ok() && !stop)
+    log_line("stream to " + options_.server + " ended: " + status.error_message() + " (code " +
+             std::to_string(int(status.error_code())) + ")");
+  return welcomed;
+}
+
+void Worker::supervise(Session& s, const std::atomic<bool>& stop) {
+  auto last_beat = Clock::now();
+  uint64_t last_samples = 0, last_rays = 0;
+  std::unique_lock<std::mutex> lock(mutex_);
+  for (;;) {
+    cv_.wait_for(lock, std::chrono::milliseconds(50));
+    if (s.over) return;
+    if (stop && !s.closing) {
+      if (!s.welcomed) {
+        s.context.TryCancel();
+        return;
+      }
+      // Graceful stop: drop queued tasks (the server re-leases them when the stream closes),
+      // let the running ones finish and send their results, then close our side.
+      log_line("stopping: finishing " + std::to_string(s.running.size()) + " task(s)");
+      s.closing = true;
+      s.queue.clear();
+      cv_.notify_all();
+      while (!s.running.empty() && !s.over) cv_.wait(lock);
+      if (s.over) return;
+      lock.unlock();
+      {
+        std::lock_guard<std::mutex> wlock(s.write_mutex);
+        s.stream->WritesDone();
+      }
+      lock.lock();
+      // The server normally ends the stream when we end ours; don't wait forever.
+      if (!cv_.wait_for(lock, std::chrono::seconds(5), [&] { return s.reader_done; }))
+        s.context.TryCancel();
+      return;
+    }
+    if (!s.welcomed) continue;
+    const auto now = Clock::now();
+    // The time budget: a render past it stops now and fails (run_task reports it).
+    for (auto& r : s.running)
+      if (!r.second.cancel->load() &&
+          std::chrono::duration<double>(now - r.second.started).count() >
+              options_.task_timeout_s) {
+        r.second.timed_out->store(true);
+        r.second.cancel->store(true);
+      }
+    const double elapsed = std::chrono::duration<double>(now - last_beat).count();
+    if (elapsed * 1000.0 < double(s.heartbeat_ms)) continue;
+    pb::WorkerMessage msg;
+    pb::Heartbeat* hb = msg.mutable_heartbeat();
+    for (const auto& r : s.running) hb->add_task_ids(r.first);
+    for (const auto& t : s.queue) hb->add_task_ids(t.task_id());
+    const uint64_t samples = s.samples, rays = s.rays;
+    hb->set_samples_per_s(double(samples - last_samples) / elapsed);
+    hb->set_rays_per_s(double(rays - last_rays) / elapsed);
+    hb->set_busy_threads(uint32_t(s.running.size()));
+    last_samples = samples;
+    last_rays = rays;
+    last_beat = now;
+    lock.unlock();
+    if (!write(s, msg)) s.context.TryCancel();  // broken stream: let the reader see it
+    lock.lock();
+  }
+}
+
+void Worker::render_loop(Session& s) {
+  std::unique_lock<std::mutex> lock(mutex_);
+  for (;;) {
+    cv_.wait(lock, [&] { return s.over || s.closing || !s.queue.empty(); });
+    if (s.over || s.queue.empty()) return;  // closing with nothing queued: done
+    pb::Task task = std::move(s.queue.front());
+    s.queue.pop_front();
+    const RunningTask running = s.running[task.task_id()];  // shares the flags
+    lock.unlock();
+    run_task(s, task, running);
+    lock.lock();
+    s.running.erase(task.task_id());
+    cv_.notify_all();
+  }
+}
+
+void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& running) {
+  const auto t0 = Clock::now();
+  const std::atomic<bool>& cancel = *running.cancel;
+  auto fail = [&](const TaskError& e) {
+    log_line("task " + task.task_id() + " failed: " + e.message);
+    pb::WorkerMessage msg;
+    pb::TaskFailed* f = msg.mutable_failed();
+    f->set_task_id(task.task_id());
+    f->set_error(e.message);
+    f->set_retryable(e.retryable);
+    write(s, msg);
+  };
+  RenderSettings settings;
+  std::string err;
+  if (!settings_from_proto(task.settings(), &settings, &err)) return fail({"settings: " + err, false});
+  const PixelRect rect{task.rect().x0(), task.rect().y0(), task.rect().width(),
+                       task.rect().height()};
+  err = validate_render_request(settings, rect, task.sample_start(), task.sample_count());
+  if (!err.empty()) return fail({"task: " + err, false});
+  std::shared_ptr<const Scene> scene;
+  try {
+    scene = scene_for(task.scene_sha256());
+  } catch (const TaskError& e) {
+    return fail(e);
+  } catch (const SceneError& e) {
+    return fail({std::string("scene load: ") + e.what(), false});
+  } catch (const std::exception& e) {
+    return fail({std::string("scene: ") + e.what(), true});
+  }
+  try {
+    settings.environment = environment_for(task.settings());
+  } catch (const TaskError& e) {
+    return fail(e);
+  } catch (const std::exception& e) {
+    return fail({without_path(std::string("environment: ") + e.what(),
+                              find_cached_scene(options_.cache_dir, task.settings().environment_sha256()),
+                              "environment " + task.settings().environment_sha256().substr(0, 12)),
+                 false});
+  }
+  TileBuffer tile;
+  const bool rendered = !cancel && render_rect(*scene, settings, rect, task.sample_start(),
+                                               task.sample_count(), &tile, &cancel);
+  if (running.timed_out->load()) {
+    char budget[32];
+    std::snprintf(budget, sizeof budget, "%g", options_.task_timeout_s);
+    return fail({std::string("task: rendering one batch took longer than the worker's time "
+                             "budget of ") + budget + " s (--task-timeout-s); the scene is too " +
+                     "costly per sample for this farm",
+                 false});
+  }
+  if (!rendered || cancel) return;  // cancelled: send nothing
+  pb::WorkerMessage msg;
+  pb::TileResult* r = msg.mutable_result();
+  r->set_task_id(task.task_id());
+  r->set_job_id(task.job_id());
+  r->set_tile_index(task.tile_index());
+  r->set_batch_index(task.batch_index());
+  r->set_sample_start(task.sample_start());
+  r->set_sample_count(task.sample_count());
+  *r->mutable_rect() = task.rect();
+  // float32 on the wire: a batch sum (at most 64 samples, summed in double) rounded once.
+  r->set_rgb_sum(pack_f64_as_f32_le(tile.rgb_sum));
+  r->set_luminance_m2(pack_f64_as_f32_le(tile.luminance_m2));
+  if (!task.skip_aovs()) {
+    r->set_albedo_sum(pack_f32_le(tile.albedo_sum));
+    r->set_normal_sum(pack_f32_le(tile.normal_sum));
+  }
+  r->set_nonfinite_samples(tile.nonfinite_samples);
+  r->set_render_seconds(std::chrono::duration<double>(Clock::now() - t0).count());
+  r->set_rays(tile.rays);
+  s.samples += uint64_t(rect.pixel_count()) * task.sample_count();
+  s.rays += tile.rays;
+  write(s, msg);
+}
+
+std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
+  if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
+  return scenes_.get(sha256, [&]() -> std::shared_ptr<const Scene> {
+    std::string path = find_cached_scene(options_.cache_dir, sha256);
+    bool fetched = false;
+    if (path.empty()) {
+      path = fetch_scene(sha256);
+      fetched = true;
+    }
+    std::vector<std::string> warnings;
+    auto loaded = [&](std::unique_ptr<Scene> scene) -> std::shared_ptr<const Scene> {
+      for (const auto& w : warnings) log_line("warning: " + w);
+      log_line("scene " + sha256.substr(0, 12) + ": " +
+               std::to_string(scene->world_triangle_count()) + " triangles, " +
+               format_bytes(scene->memory_bytes()) + " in memory (" +
+               bvh_layout_name(options_.bvh) + " BVH)");
+      return scene;
+    };
+    // Farm scenes are uploads: self-contained, within the limits, and named by their hash in
+    // messages (which reach the user) rather than by this machine's cache path.
+    LoadOptions load;
+    load.display_name = "scene " + sha256.substr(0, 12);
+    load.allow_external_files = false;
+    load.limits = options_.limits;
+    load.bvh = options_.bvh;
+    try {
+      return loaded(load_scene(path, &warnings, load));
+    } catch (const SceneError&) {
+      // A cached file that no longer matches its name was damaged on disk: fetch it again.
+      if (fetched || sha256_file_hex(path) == sha256) throw;
+      log_line("cached scene " + path + " is corrupt; fetching it again");
+      fs::remove(path);
+      warnings.clear();
+      path = fetch_scene(sha256);
+      return loaded(load_scene(path, &warnings, load));
+    }
+  });
+}
+
+std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSettings& settings) {
+  const std::string& sha256 = settings.environment_sha256();
+  if (sha256.empty()) return nullptr;
+  if (!is_sha256_hex(sha256))
+    throw TaskError{"environment: invalid sha256 '" + sha256 + "'", false};
+  const float intensity =
+      settings.environment_intensity() != 0.0 ? float(settings.environment_intensity()) : 1.f;
+  const float rotation = float(settings.environment_rotation_deg());
+  if (!(intensity > 0.f) || !std::isfinite(intensity) || !std::isfinite(rotation))
+    throw TaskError{"environment: intensity must be > 0 and rotation finite", false};
+  const std::string key = sha256 + "/" + std::to_string(intensity) + "/" + std::to_string(rotation);
+  // One lock around lookup and load: environments change rarely, and loading one twice in
+  // parallel would only waste memory.
+  std::lock_guard<std::mutex> lock(env_mutex_);
+  auto it = environments_.find(key);
+  if (it != environments_.end()) return it->second;
+  std::string path = find_cached_scene(options_.cache_dir, sha256);
+  const bool cached = !path.empty();
+  if (!cached) path = fetch_scene(sha256);
+  std::shared_ptr<const Environment> env;
+  try {
+    env = Environment::load(path, intensity, rotation);
+  } catch (const std::runtime_error&) {
+    // A cached file that no longer matches its name was damaged on disk: fetch it again.
+    if (!cached || sha256_file_hex(path) == sha256) throw;
+    log_line("cached environment " + path + " is corrupt; fetching it again");
+    fs::remove(path);
+    path = fetch_scene(sha256);
+    env = Environment::load(path, intensity, rotation);
+  }
+  if (environments_.size() >= 4) environments_.erase(environments_.begin());
+  environments_[key] = env;
+  log_line("loaded environment " + sha256 + " (" + std::to_string(env->width()) + "x" +
+           std::to_string(env->height()) + ")");
+  return env;
+}
+
+std::string Worker::fetch_scene(const std::string& sha256) {
+  std::error_code ec;
+  fs::create_directories(options_.cache_dir, ec);
+  std::ostringstream tmp_name;
+  tmp_name << "." << sha256 << "." << ::getpid() << "." << std::this_thread::get_id() << ".tmp";
+  const fs::path tmp = fs::path(options_.cache_dir) / tmp_name.str();
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
+  pb::FetchSceneRequest request;
+  request.set_sha256(sha256);
+  auto reader = scene_stub_->FetchScene(&context, request);
+  std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+  if (!out) throw TaskError{"scene fetch: cannot write to the worker's scene cache", true};
+  Sha256 hash;
+  uint64_t offset = 0;
+  pb::SceneFormat format = pb::SCENE_FORMAT_UNSPECIFIED;
+  std::string filename;
+  std::string first_bytes;
+  pb::SceneChunk chunk;
+  bool ordered = true;
+  while (reader->Read(&chunk)) {
+    if (chunk.has_info()) {
+      format = chunk.info().format();
+      filename = chunk.info().filename();
+    }
+    if (chunk.offset() != offset) ordered = false;
+    const std::string& data = chunk.data();
+    if (first_bytes.size() < 4) first_bytes += data.substr(0, 4 - first_bytes.size());
+    out.write(data.data(), std::streamsize(data.size()));
+    hash.update(data.data(), data.size());
+    offset += data.size();
+  }
+  out.close();
+  const grpc::Status status = reader->Finish();
+  auto discard = [&](const std::string& why, bool retryable) {
+    fs::remove(tmp, ec);
+    throw TaskError{"scene fetch " + sha256 + ": " + why, retryable};
+  };
+  if (!status.ok())
+    discard(status.error_message() + " (code " + std::to_string(int(status.error_code())) + ")",
+            true);
+  if (!out) discard("cannot write to the worker's scene cache", true);
+  if (!ordered) discard("chunks arrived out of order", true);
+  const std::string got = hash.final_hex();
+  if (got != sha256) discard("SHA-256 mismatch (received " + got + ")", true);
+  std::string ext;
+  if (format == pb::SCENE_FORMAT_GLB) ext = ".glb";
+  else if (format == pb::SCENE_FORMAT_GLTF) ext = ".gltf";
+  else if (format == pb::SCENE_FORMAT_HDR) ext = ".hdr";
+  else if (format == pb::SCENE_FORMAT_EXR) ext = ".exr";
+  else if (first_bytes == "glTF") ext = ".glb";  // unspecified: sniff the magic
+  else if (first_bytes.compare(0, 2, "#?") == 0) ext = ".hdr";
+  else if (first_bytes == std::string("\x76\x2f\x31\x01", 4)) ext = ".exr";
+  else ext = ".gltf";
+  const fs::path final_path = fs::path(options_.cache_dir) / (sha256 + ext);
+  fs::rename(tmp, final_path, ec);  // atomic within one directory
+  if (ec) discard("cannot move into the cache: " + ec.message(), true);
+  log_line("fetched scene " + sha256 + " ('" + filename + "', " + std::to_string(offset) +
+           " bytes)");
+  return final_path.string();
+}
+
+}  // namespace
+
+int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(64 << 20);
+  std::shared_ptr<grpc::ChannelCredentials> credentials;
+  if (options.tls) {
+    grpc::SslCredentialsOptions ssl;
+    ssl.pem_root_certs = options.tls_ca_pem;  // "": gRPC's default roots (the system's)
+    ssl.pem_cert_chain = options.tls_cert_pem;
+    ssl.pem_private_key = options.tls_key_pem;
+    credentials = grpc::SslCredentials(ssl);
+    if (!options.tls_server_name.empty())
+      args.SetSslTargetNameOverride(options.tls_server_name);
+  } else {
+    credentials = grpc::InsecureChannelCredentials();
+  }
+  auto channel = grpc::CreateCustomChannel(options.server, credentials, args);
+  Worker worker(options, channel);
+  log_line(std::string("connecting to ") + options.server +
+           (options.tls ? " over TLS" + std::string(options.tls_cert_pem.empty() ? "" : " (client "
+                                                                                  "certificate)")
+                        : " without TLS"));
+  log_line("loaded scenes kept in memory: up to " + std::to_string(options.scenes_in_memory) +
+           " scenes" +
+           (options.scene_memory_budget
+                ? " or " + format_bytes(options.scene_memory_budget) + " (--scene-memory-mb)"
+                : std::string()) +
+           ", " + bvh_layout_name(options.bvh) + " BVH");
+  double backoff = options.backoff_initial_s;
+  while (!stop) {
+    if (worker.run_session(stop)) backoff = options.backoff_initial_s;
+    if (stop) break;
+    log_line("reconnecting to " + options.server + " in " + std::to_string(backoff) + " s");
+    const auto until = Clock::now() + std::chrono::duration<double>(backoff);
+    while (!stop && Clock::now() < until) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    backoff = std::min(options.backoff_max_s, 2.0 * backoff);
+  }
+  log_line("stopped");
+  return 0;
+}
+
+}  // namespace rf

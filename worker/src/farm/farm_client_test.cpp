@@ -1,0 +1,320 @@
+// End-to-end test of farm mode against an in-process fake server.
+#include "farm/farm_client.h"
+
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <thread>
+
+#include "render/integrators.h"
+#include "renderfarm/v1/scenes.grpc.pb.h"
+#include "renderfarm/v1/workers.grpc.pb.h"
+#include "util/sha256.h"
+#include "testing/test_scenes.h"
+// Last: OpenImageIO defines byte-swap macros that break protobuf headers included after it.
+#include <OpenImageIO/imageio.h>
+
+namespace pb = renderfarm::v1;
+namespace fs = std::filesystem;
+
+namespace rf {
+namespace {
+
+struct FakeFarm {
+  std::mutex mutex;
+  std::condition_variable cv;
+  std::vector<pb::WorkerMessage> received;
+  grpc::ServerReaderWriter<pb::ServerMessage, pb::WorkerMessage>* stream = nullptr;
+  bool stream_ended = false;
+  std::string scene_bytes, scene_sha;
+  int fetches = 0;
+  // Environment maps, stored and served like scenes.
+  std::string env_bytes, env_sha;
+  int env_fetches = 0;
+
+  template <typename Pred>
+  bool wait_for(Pred pred, int seconds = 60) {
+    std::unique_lock<std::mutex> lock(mutex);
+    return cv.wait_for(lock, std::chrono::seconds(seconds), [&] { return pred(); });
+  }
+  bool send(const pb::ServerMessage& m) {
+    std::lock_guard<std::mutex> lock(mutex);
+    return stream && stream->Write(m);
+  }
+};
+
+class FakeWorkerService final : public pb::WorkerService::Service {
+ public:
+  explicit FakeWorkerService(FakeFarm* farm) : farm_(farm) {}
+  grpc::Status Connect(grpc::ServerContext*,
+                       grpc::ServerReaderWriter<pb::ServerMessage, pb::WorkerMessage>* stream) override {
+    pb::WorkerMessage m;
+    if (!stream->Read(&m) || !m.has_hello())
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "expected Hello");
+    pb::ServerMessage welcome;
+    welcome.mutable_welcome()->set_worker_id("fake-1");
+    welcome.mutable_welcome()->set_heartbeat_interval_ms(100);
+    welcome.mutable_welcome()->set_lease_ms(10000);
+    stream->Write(welcome);
+    {
+      std::lock_guard<std::mutex> lock(farm_->mutex);
+      farm_->received.push_back(m);
+      farm_->stream = stream;
+    }
+    farm_->cv.notify_all();
+    while (stream->Read(&m)) {
+      std::lock_guard<std::mutex> lock(farm_->mutex);
+      farm_->received.push_back(m);
+      farm_->cv.notify_all();
+    }
+    std::lock_guard<std::mutex> lock(farm_->mutex);
+    farm_->stream = nullptr;
+    farm_->stream_ended = true;
+    farm_->cv.notify_all();
+    return grpc::Status::OK;
+  }
+
+ private:
+  FakeFarm* farm_;
+};
+
+class FakeSceneService final : public pb::SceneService::Service {
+ public:
+  explicit FakeSceneService(FakeFarm* farm) : farm_(farm) {}
+  grpc::Status FetchScene(grpc::ServerContext*, const pb::FetchSceneRequest* request,
+                          grpc::ServerWriter<pb::SceneChunk>* writer) override {
+    const bool env = !farm_->env_sha.empty() && request->sha256() == farm_->env_sha;
+    if (request->sha256() != farm_->scene_sha && !env)
+      return grpc::Status(grpc::StatusCode::NOT_FOUND, "unknown scene");
+    {
+      std::lock_guard<std::mutex> lock(farm_->mutex);
+      ++(env ? farm_->env_fetches : farm_->fetches);
+    }
+    const std::string& bytes = env ? farm_->env_bytes : farm_->scene_bytes;
+    const size_t chunk = 500;  // several chunks to exercise reassembly
+    for (size_t off = 0; off < bytes.size(); off += chunk) {
+      pb::SceneChunk c;
+      if (off == 0) {
+        c.mutable_info()->set_sha256(request->sha256());
+        c.mutable_info()->set_size_bytes(bytes.size());
+        c.mutable_info()->set_format(env ? pb::SCENE_FORMAT_HDR : pb::SCENE_FORMAT_GLTF);
+        c.mutable_info()->set_filename(env ? "sky.hdr" : "small.gltf");
+      }
+      c.set_offset(off);
+      c.set_data(bytes.substr(off, chunk));
+      writer->Write(c);
+    }
+    return grpc::Status::OK;
+  }
+
+ private:
+  FakeFarm* farm_;
+};
+
+std::vector<float> as_floats(const std::vector<double>& v) { return {v.begin(), v.end()}; }
+
+pb::Task make_task(const std::string& id, const std::string& sha, uint32_t spp,
+                   pb::Sampler sampler = pb::SAMPLER_SOBOL) {
+  pb::Task t;
+  t.set_task_id(id);
+  t.set_job_id("job-1");
+  t.set_scene_sha256(sha);
+  t.set_tile_index(1);
+  t.set_batch_index(2);
+  t.mutable_rect()->set_x0(8);
+  t.mutable_rect()->set_y0(0);
+  t.mutable_rect()->set_width(8);
+  t.mutable_rect()->set_height(6);
+  t.set_sample_start(8);
+  t.set_sample_count(spp);
+  pb::RenderSettings* s = t.mutable_settings();
+  s->set_width(16);
+  s->set_height(12);
+  s->set_sampler(sampler);
+  s->set_integrator(pb::INTEGRATOR_PATH);
+  s->set_max_depth(4);
+  s->set_seed(77);
+  return t;
+}
+
+TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::small_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  // A small HDR environment map (Radiance RGBE), written with OpenImageIO.
+  const std::string env_path = ::testing::TempDir() + "/farm_env_test.hdr";
+  {
+    auto out = OIIO::ImageOutput::create(env_path);
+    ASSERT_TRUE(out);
+    OIIO::ImageSpec spec(8, 4, 3, OIIO::TypeDesc::FLOAT);
+    std::vector<float> px(8 * 4 * 3);
+    for (size_t i = 0; i < px.size(); ++i) px[i] = 0.1f + 0.05f * float(i % 7);
+    ASSERT_TRUE(out->open(env_path, spec) && out->write_image(OIIO::TypeDesc::FLOAT, px.data()) &&
+                out->close());
+    std::ifstream in(env_path, std::ios::binary);
+    farm.env_bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    farm.env_sha = sha256_hex(farm.env_bytes);
+  }
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  ASSERT_GT(port, 0);
+
+  const fs::path cache = fs::path(::testing::TempDir()) / "rf-farm-test-cache";
+  fs::remove_all(cache);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 2;
+  options.prefetch = 1;
+  options.cache_dir = cache.string();
+  options.worker_id = "test-worker";
+  options.hostname = "test-host";
+  std::atomic<bool> stop{false};
+  int exit_code = -1;
+  std::thread client([&] { exit_code = run_farm_client(options, stop); });
+
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  {
+    std::lock_guard<std::mutex> lock(farm.mutex);
+    const pb::Hello& hello = farm.received.at(0).hello();
+    EXPECT_EQ(hello.worker_id(), "test-worker");
+    EXPECT_EQ(hello.cores(), 2u);
+    EXPECT_EQ(hello.max_in_flight(), 3u);
+  }
+  // A long task that we cancel, a good one, and one with an unknown sampler.
+  auto assign = [&](const pb::Task& t) {
+    pb::ServerMessage m;
+    *m.mutable_assign()->mutable_task() = t;
+    ASSERT_TRUE(farm.send(m));
+  };
+  assign(make_task("long", farm.scene_sha, 1u << 20));
+  assign(make_task("good", farm.scene_sha, 8));
+  assign(make_task("bad", farm.scene_sha, 8, pb::Sampler(99)));  // a number the enum lacks
+  auto has = [&](const std::string& id, bool result) {
+    for (const auto& m : farm.received)
+      if ((result && m.has_result() && m.result().task_id() == id) ||
+          (!result && m.has_failed() && m.failed().task_id() == id))
+        return true;
+    return false;
+  };
+  ASSERT_TRUE(farm.wait_for([&] { return has("good", true) && has("bad", false); }));
+  // The long task is in flight now (or queued): heartbeats list it; cancel it.
+  ASSERT_TRUE(farm.wait_for([&] {
+    for (const auto& m : farm.received)
+      if (m.has_heartbeat())
+        for (const auto& id : m.heartbeat().task_ids())
+          if (id == "long") return true;
+    return false;
+  }));
+  pb::ServerMessage cancel;
+  cancel.mutable_cancel()->add_task_ids("long");
+  cancel.mutable_cancel()->set_reason("test");
+  ASSERT_TRUE(farm.send(cancel));
+  // After the cancel, a later task still gets rendered.
+  assign(make_task("after", farm.scene_sha, 4, pb::SAMPLER_INDEPENDENT));
+  ASSERT_TRUE(farm.wait_for([&] { return has("after", true); }));
+  // Two tasks with the environment map, a thin lens and the new samplers: the map is
+  // fetched once (cached by hash as <sha>.hdr) and the results equal local renders.
+  auto env_task = [&](const std::string& id, pb::Sampler sampler) {
+    pb::Task t = make_task(id, farm.scene_sha, 4, sampler);
+    t.mutable_settings()->set_environment_sha256(farm.env_sha);
+    t.mutable_settings()->set_environment_intensity(2.0);
+    t.mutable_settings()->set_environment_rotation_deg(30.0);
+    t.mutable_settings()->set_aperture_radius(0.05);
+    t.mutable_settings()->set_focus_distance(5.0);
+    t.mutable_settings()->set_integrator(pb::INTEGRATOR_DIRECT);
+    return t;
+  };
+  assign(env_task("env1", pb::SAMPLER_HALTON));
+  assign(env_task("env2", pb::SAMPLER_STRATIFIED));
+  ASSERT_TRUE(farm.wait_for([&] { return has("env1", true) && has("env2", true); }));
+  // A task past the AOV samples: the result carries no albedo or normal sums.
+  pb::Task late = make_task("late", farm.scene_sha, 4);
+  late.set_skip_aovs(true);
+  assign(late);
+  ASSERT_TRUE(farm.wait_for([&] { return has("late", true); }));
+
+  stop = true;
+  client.join();
+  EXPECT_EQ(exit_code, 0);
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream_ended; }));
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  EXPECT_FALSE(has("long", true)) << "a cancelled task must send nothing";
+  for (const auto& m : farm.received)
+    if (m.has_result()) {
+      const bool skipped = m.result().task_id() == "late";
+      EXPECT_EQ(m.result().albedo_sum().empty(), skipped) << m.result().task_id();
+      EXPECT_EQ(m.result().normal_sum().empty(), skipped) << m.result().task_id();
+      EXPECT_FALSE(m.result().rgb_sum().empty());
+    }
+  EXPECT_EQ(farm.fetches, 1) << "the scene is fetched once and then cached";
+  EXPECT_TRUE(fs::exists(cache / (farm.scene_sha + ".gltf")));
+  EXPECT_EQ(farm.env_fetches, 1) << "the environment is fetched once and then cached";
+  EXPECT_TRUE(fs::exists(cache / (farm.env_sha + ".hdr")));
+  for (const auto& m : farm.received) {
+    if (!m.has_result() || m.result().task_id() != "env1") continue;
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr));
+    RenderSettings settings;
+    settings.width = 16;
+    settings.height = 12;
+    settings.seed = 77;
+    settings.max_depth = 4;
+    settings.sampler = SamplerType::Halton;
+    settings.integrator = IntegratorType::Direct;
+    settings.aperture_radius = 0.05f;
+    settings.focus_distance = 5.f;
+    settings.environment = Environment::load(env_path, 2.f, 30.f);
+    TileBuffer local;
+    ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 4, &local));
+    EXPECT_EQ(unpack_f32_le(m.result().rgb_sum()), as_floats(local.rgb_sum));
+    double total = 0.0;
+    for (double v : local.rgb_sum) total += v;
+    EXPECT_GT(total, 0.0);
+  }
+  for (const auto& m : farm.received) {
+    if (m.has_failed()) {
+      EXPECT_EQ(m.failed().task_id(), "bad");
+      EXPECT_FALSE(m.failed().retryable());
+      EXPECT_NE(m.failed().error().find("unknown sampler 99"), std::string::npos);
+    }
+    if (!m.has_result() || m.result().task_id() != "good") continue;
+    // The result equals rendering the same rect and samples locally.
+    const pb::TileResult& r = m.result();
+    EXPECT_EQ(r.job_id(), "job-1");
+    EXPECT_EQ(r.tile_index(), 1u);
+    EXPECT_EQ(r.batch_index(), 2u);
+    EXPECT_EQ(r.sample_start(), 8u);
+    EXPECT_EQ(r.sample_count(), 8u);
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr));
+    RenderSettings settings;
+    settings.width = 16;
+    settings.height = 12;
+    settings.seed = 77;
+    settings.max_depth = 4;
+    TileBuffer local;
+    ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 8, &local));
+    // float32 on the wire: the double batch sums rounded once.
+    EXPECT_EQ(unpack_f32_le(r.rgb_sum()), as_floats(local.rgb_sum));
+    EXPECT_EQ(unpack_f32_le(r.luminance_m2()), as_floats(local.luminance_m2));
+    EXPECT_EQ(unpack_f32_le(r.albedo_sum()), local.albedo_sum);
+    EXPECT_EQ(unpack_f32_le(r.normal_sum()), local.normal_sum);
+    EXPECT_EQ(r.rays(), local.rays);
+    EXPECT_GT(r.render_seconds(), 0.0);
+  }
+}
+
+}  // namespace
+}  // namespace rf

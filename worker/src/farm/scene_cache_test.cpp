@@ -1,0 +1,99 @@
+#include "farm/scene_cache.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <stdexcept>
+#include <thread>
+
+#include "testing/test_scenes.h"
+
+namespace rf {
+namespace {
+
+// A scene of 2 * rings * segments triangles (a sphere over a quad), to give caches scenes
+// of different sizes.
+std::shared_ptr<const Scene> sphere_scene(int rings) {
+  SceneDescription desc;
+  desc.source = "sphere " + std::to_string(rings);
+  desc.materials.push_back(Material{});
+  testing::add_sphere(&desc, {0.f, 0.f, 0.f}, 1.f, 0, rings, 2 * rings);
+  return std::make_shared<const Scene>(std::move(desc));
+}
+
+TEST(SceneCache, LoadsOnceAndEvictsTheLeastRecentlyUsedBeyondItsCapacity) {
+  SceneCache cache(2);
+  int loads = 0;
+  auto loader = [&] {
+    ++loads;
+    return sphere_scene(4);
+  };
+  const auto a = cache.get("a", loader);
+  EXPECT_EQ(cache.get("a", loader), a);
+  EXPECT_EQ(loads, 1);
+  cache.get("b", loader);
+  cache.get("a", loader);  // a is now more recent than b
+  cache.get("c", loader);  // evicts b
+  EXPECT_EQ(cache.size(), 2u);
+  EXPECT_EQ(loads, 3);
+  cache.get("a", loader);
+  EXPECT_EQ(loads, 3);
+  cache.get("b", loader);
+  EXPECT_EQ(loads, 4);
+}
+
+TEST(SceneCache, KeepsLoadedScenesWithinItsMemoryBudget) {
+  const size_t small = sphere_scene(8)->memory_bytes();
+  const size_t large = sphere_scene(64)->memory_bytes();
+  ASSERT_GT(large, 4 * small);
+  // Room for the large scene and one small one, not two small ones besides.
+  SceneCache cache(10, large + small + small / 2);
+  const auto s1 = cache.get("small1", [] { return sphere_scene(8); });
+  const auto s2 = cache.get("small2", [] { return sphere_scene(8); });
+  EXPECT_EQ(cache.memory_bytes(), s1->memory_bytes() + s2->memory_bytes());
+  const auto l = cache.get("large", [] { return sphere_scene(64); });
+  // small1 was the least recently used: it goes, small2 stays.
+  EXPECT_EQ(cache.size(), 2u);
+  EXPECT_EQ(cache.memory_bytes(), l->memory_bytes() + s2->memory_bytes());
+  int reloads = 0;
+  cache.get("small2", [&] {
+    ++reloads;
+    return sphere_scene(8);
+  });
+  EXPECT_EQ(reloads, 0);
+
+  // A scene larger than the whole budget is still kept (alone): every task would reload it.
+  SceneCache tight(10, small);
+  tight.get("small", [] { return sphere_scene(8); });
+  const auto big = tight.get("large", [] { return sphere_scene(64); });
+  EXPECT_EQ(tight.size(), 1u);
+  EXPECT_EQ(tight.memory_bytes(), big->memory_bytes());
+  EXPECT_EQ(tight.get("large", [] { return sphere_scene(8); }), big);
+}
+
+TEST(SceneCache, ConcurrentRequestsShareOneLoadAndFailuresAreRetried) {
+  SceneCache cache(4);
+  std::atomic<int> loads{0};
+  std::vector<std::thread> threads;
+  std::vector<std::shared_ptr<const Scene>> got(4);
+  for (int i = 0; i < 4; ++i)
+    threads.emplace_back([&, i] {
+      got[size_t(i)] = cache.get("s", [&] {
+        ++loads;
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+        return sphere_scene(4);
+      });
+    });
+  for (auto& t : threads) t.join();
+  EXPECT_EQ(loads.load(), 1);
+  for (const auto& s : got) EXPECT_EQ(s, got[0]);
+  EXPECT_THROW(cache.get("bad", []() -> std::shared_ptr<const Scene> {
+    throw std::runtime_error("broken file");
+  }),
+               std::runtime_error);
+  EXPECT_EQ(cache.size(), 1u);  // the failure is not cached
+  EXPECT_NE(cache.get("bad", [] { return sphere_scene(4); }), nullptr);
+}
+
+}  // namespace
+}  // namespace rf

@@ -1,0 +1,534 @@
+// renderfarm-worker: standalone `render` and farm `connect` commands.
+// Exit codes: 0 success, 1 runtime error (unreadable scene, write failure), 2 usage error.
+#include <unistd.h>
+
+#include <atomic>
+#include <cerrno>
+#include <cctype>
+#include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "bench/bench.h"
+#include "farm/farm_client.h"
+#include "render/film.h"
+#include "render/integrators.h"
+#include "render/render.h"
+#include "scene/scene.h"
+#include "farm/scene_cache.h"
+
+namespace {
+
+constexpr int kExitRuntime = 1;
+constexpr int kExitUsage = 2;
+
+const char* kUsage =
+    "usage:\n"
+    "  renderfarm-worker render SCENE.gltf|SCENE.glb -o OUT.exr --spp N [--width W]\n"
+    "      [--height H] [--threads T] [--seed S]\n"
+    "      [--sampler sobol|halton|stratified|independent] [--integrator path|direct|ao]\n"
+    "      [--max-depth D] [--aperture-radius R --focus-distance F]\n"
+    "      [--environment MAP.hdr|MAP.exr [--environment-intensity X]\n"
+    "       [--environment-rotation-deg D]] [--bvh fast|compact]\n"
+    "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
+    "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
+    "      [--scenes cornell,mesh,instanced]\n"
+    "  renderfarm-worker inspect SCENE.gltf|SCENE.glb [--json] [--name NAME]\n"
+    "      [--max-nodes N] [--max-depth D] [--max-triangles T] [--max-texture-pixels P]\n"
+    "      [--max-memory-mb M] [--bvh fast|compact]\n"
+    "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
+    "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
+    "      [--scene-memory-mb M] [--task-timeout-s S] [--max-scene-memory-mb M]\n"
+    "      [--tls] [--ca-file CA.pem] [--cert CERT.pem --key KEY.pem]\n"
+    "      [--tls-server-name NAME] [--tag TAG]...\n"
+    "  renderfarm-worker --help | --version\n";
+
+struct UsageError {
+  std::string message;
+};
+
+// Parses "--flag value" pairs against the allowed flags; a positional argument is allowed
+// only where `positional` is non-null.
+std::map<std::string, std::string> parse_flags(const std::vector<std::string>& args,
+                                               const std::vector<std::string>& allowed,
+                                               std::vector<std::string>* positional) {
+  std::map<std::string, std::string> out;
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    if (a.size() > 1 && a[0] == '-') {
+      bool known = false;
+      for (const auto& f : allowed) known = known || f == a;
+      if (!known) throw UsageError{"unknown flag '" + a + "'"};
+      if (i + 1 >= args.size()) throw UsageError{"flag '" + a + "' needs a value"};
+      out[a] = args[++i];
+    } else if (positional) {
+      positional->push_back(a);
+    } else {
+      throw UsageError{"unexpected argument '" + a + "'"};
+    }
+  }
+  return out;
+}
+
+uint64_t parse_uint(const std::string& flag, const std::string& value, uint64_t min,
+                    uint64_t max) {
+  if (value.empty() || value.find_first_not_of("0123456789") != std::string::npos)
+    throw UsageError{flag + " expects a non-negative integer, got '" + value + "'"};
+  errno = 0;
+  const unsigned long long v = std::strtoull(value.c_str(), nullptr, 10);
+  if (errno == ERANGE || v < min || v > max)
+    throw UsageError{flag + " must be in [" + std::to_string(min) + ", " + std::to_string(max) +
+                     "], got " + value};
+  return v;
+}
+
+double parse_double(const std::string& flag, const std::string& value) {
+  char* end = nullptr;
+  errno = 0;
+  const double v = std::strtod(value.c_str(), &end);
+  if (value.empty() || end != value.c_str() + value.size() || errno == ERANGE || !std::isfinite(v))
+    throw UsageError{flag + " expects a finite number, got '" + value + "'"};
+  return v;
+}
+
+uint32_t default_threads() {
+  const unsigned n = std::thread::hardware_concurrency();
+  return n ? n : 1;
+}
+
+// The output must be an .exr (10 channels: RGB and the AOVs) in an existing, writable
+// directory.
+void check_output_path(const std::string& path) {
+  const std::filesystem::path p(path);
+  std::string ext = p.extension().string();
+  for (char& c : ext) c = char(std::tolower(static_cast<unsigned char>(c)));
+  if (ext != ".exr")
+    throw UsageError{"-o must name an .exr file (RGB, albedo, normal and depth channels), got '" +
+                     path + "'"};
+  const std::filesystem::path dir = p.has_parent_path() ? p.parent_path() : ".";
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec))
+    throw UsageError{"-o " + path + ": directory " + dir.string() + " does not exist"};
+  if (::access(dir.c_str(), W_OK) != 0)
+    throw UsageError{"-o " + path + ": directory " + dir.string() + " is not writable"};
+}
+
+// --bvh fast|compact (default fast): the layout of the scenes' Embree BVH.
+rf::BvhLayout parse_bvh_flag(std::map<std::string, std::string>& flags) {
+  rf::BvhLayout bvh = rf::BvhLayout::Fast;
+  if (flags.count("--bvh") && !rf::parse_bvh_layout(flags["--bvh"], &bvh))
+    throw UsageError{"unknown --bvh '" + flags["--bvh"] + "' (expected fast or compact)"};
+  return bvh;
+}
+
+int cmd_render(const std::vector<std::string>& args) {
+  std::vector<std::string> positional;
+  auto flags = parse_flags(args,
+                           {"-o", "--spp", "--width", "--height", "--threads", "--seed",
+                            "--sampler", "--integrator", "--max-depth", "--aperture-radius",
+                            "--focus-distance", "--environment", "--environment-intensity",
+                            "--environment-rotation-deg", "--bvh"},
+                           &positional);
+  if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
+  if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
+  if (!flags.count("--spp")) throw UsageError{"render needs --spp N"};
+  rf::RenderSettings settings;
+  const uint32_t spp =
+      uint32_t(parse_uint("--spp", flags["--spp"], 1, rf::kMaxSamplesPerPixel));
+  if (flags.count("--width")) settings.width = uint32_t(parse_uint("--width", flags["--width"], 1, 65536));
+  if (flags.count("--height"))
+    settings.height = uint32_t(parse_uint("--height", flags["--height"], 1, 65536));
+  uint32_t threads = default_threads();
+  if (flags.count("--threads")) threads = uint32_t(parse_uint("--threads", flags["--threads"], 1, 4096));
+  if (flags.count("--seed")) settings.seed = parse_uint("--seed", flags["--seed"], 0, UINT64_MAX);
+  if (flags.count("--max-depth"))
+    settings.max_depth = uint32_t(parse_uint("--max-depth", flags["--max-depth"], 0, 1024));
+  if (flags.count("--sampler") && !rf::parse_sampler_type(flags["--sampler"], &settings.sampler))
+    throw UsageError{"unknown sampler '" + flags["--sampler"] +
+                     "' (expected sobol, halton, stratified or independent)"};
+  if (flags.count("--integrator") &&
+      !rf::parse_integrator_type(flags["--integrator"], &settings.integrator))
+    throw UsageError{"unknown integrator '" + flags["--integrator"] +
+                     "' (expected path, direct or ao)"};
+  if (flags.count("--aperture-radius"))
+    settings.aperture_radius = float(parse_double("--aperture-radius", flags["--aperture-radius"]));
+  if (flags.count("--focus-distance"))
+    settings.focus_distance = float(parse_double("--focus-distance", flags["--focus-distance"]));
+  float env_intensity = 1.f, env_rotation = 0.f;
+  if (flags.count("--environment-intensity")) {
+    env_intensity = float(parse_double("--environment-intensity", flags["--environment-intensity"]));
+    if (!(env_intensity > 0.f)) throw UsageError{"--environment-intensity must be > 0"};
+  }
+  if (flags.count("--environment-rotation-deg"))
+    env_rotation =
+        float(parse_double("--environment-rotation-deg", flags["--environment-rotation-deg"]));
+  if (!flags.count("--environment") &&
+      (flags.count("--environment-intensity") || flags.count("--environment-rotation-deg")))
+    throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
+  const rf::BvhLayout bvh = parse_bvh_flag(flags);
+  const std::string& scene_path = positional[0];
+  const std::string& out_path = flags["-o"];
+  // Checked before the render, not after it: a long render must not be lost to a typo.
+  check_output_path(out_path);
+  const std::string err = rf::validate_render_request(
+      settings, {0, 0, settings.width, settings.height}, 0, spp);
+  if (!err.empty()) throw UsageError{err};
+
+  std::vector<std::string> warnings;
+  std::unique_ptr<rf::Scene> scene;
+  try {
+    scene = rf::load_scene(scene_path, &warnings, bvh);
+  } catch (const std::exception& e) {
+    for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+    std::cerr << "error: " << e.what() << "\n";
+    return kExitRuntime;
+  }
+  for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+  if (flags.count("--environment")) {
+    try {
+      settings.environment =
+          rf::Environment::load(flags["--environment"], env_intensity, env_rotation);
+    } catch (const std::exception& e) {
+      std::cerr << "error: " << e.what() << "\n";
+      return kExitRuntime;
+    }
+  }
+  std::cerr << "rendering " << scene_path << ": " << scene->world_triangle_count() << " triangles ("
+            << rf::format_bytes(scene->memory_bytes()) << " in memory), "
+            << scene->lights().size() << " emissive, " << settings.width << "x"
+            << settings.height << ", " << spp << " spp, " << threads << " threads, "
+            << rf::sampler_type_name(settings.sampler) << "/"
+            << rf::integrator_type_name(settings.integrator) << "\n";
+  rf::RenderStats stats;
+  int last_percent = -1;
+  const rf::Image image =
+      rf::render_image(*scene, settings, spp, threads, &stats, [&](size_t done, size_t total) {
+        const int percent = int(100 * done / total);
+        if (percent != last_percent) {
+          last_percent = percent;
+          std::fprintf(stderr, "\rprogress: %3d%%", percent);
+          std::fflush(stderr);
+        }
+      });
+  std::fprintf(stderr, "\n");
+  try {
+    rf::write_exr(out_path, image);
+  } catch (const std::exception& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return kExitRuntime;
+  }
+  std::fprintf(stderr, "wrote %s in %.3f s: %.0f samples/s, %.2f Mrays/s", out_path.c_str(),
+               stats.seconds, double(stats.samples) / stats.seconds,
+               double(stats.rays) / stats.seconds * 1e-6);
+  if (stats.nonfinite_samples)
+    std::fprintf(stderr, " (%llu non-finite samples recorded as 0)",
+                 static_cast<unsigned long long>(stats.nonfinite_samples));
+  std::fprintf(stderr, "\n");
+  return 0;
+}
+
+// --max-* flags of inspect and connect onto the loader's limits.
+void parse_limit_flags(std::map<std::string, std::string>& flags, rf::SceneLimits* limits) {
+  if (flags.count("--max-nodes"))
+    limits->max_nodes = parse_uint("--max-nodes", flags["--max-nodes"], 1, UINT64_MAX);
+  if (flags.count("--max-depth"))
+    limits->max_depth = uint32_t(parse_uint("--max-depth", flags["--max-depth"], 1, 1u << 20));
+  if (flags.count("--max-triangles"))
+    limits->max_instanced_triangles =
+        parse_uint("--max-triangles", flags["--max-triangles"], 1, UINT64_MAX);
+  if (flags.count("--max-texture-pixels"))
+    limits->max_texture_pixels =
+        parse_uint("--max-texture-pixels", flags["--max-texture-pixels"], 0, UINT64_MAX);
+}
+
+// Loads a scene exactly as a farm worker does (self-contained, within the limits: the loader,
+// the textures' headers, the lights and the BVH) and describes it, or says why it is refused.
+// The server runs it on every uploaded scene, under CPU-time and memory limits of its own, so
+// that it accepts a scene only if the workers' loader does. Exit 0 if the scene loads, 1 if it
+// is refused (with --json: {"ok": false, "error": ..., "path": ...} on stdout either way).
+int cmd_inspect(const std::vector<std::string>& args) {
+  std::vector<std::string> positional;
+  std::vector<std::string> allowed = {"--name", "--max-nodes", "--max-depth", "--max-triangles",
+                                      "--max-texture-pixels", "--max-memory-mb", "--bvh"};
+  std::vector<std::string> rest;
+  bool json = false;
+  for (const std::string& a : args) {
+    if (a == "--json") json = true;
+    else rest.push_back(a);
+  }
+  auto flags = parse_flags(rest, allowed, &positional);
+  if (positional.size() != 1) throw UsageError{"inspect expects exactly one scene file"};
+  rf::LoadOptions options;
+  options.allow_external_files = false;
+  options.bvh = parse_bvh_flag(flags);
+  parse_limit_flags(flags, &options.limits);
+  if (flags.count("--max-memory-mb"))
+    options.limits.max_memory_bytes =
+        parse_uint("--max-memory-mb", flags["--max-memory-mb"], 1, UINT64_MAX / 1000000) *
+        1000000;
+  options.display_name = flags.count("--name")
+                             ? flags["--name"]
+                             : std::filesystem::path(positional[0]).filename().string();
+  std::vector<std::string> warnings;
+  nlohmann::json out;
+  std::unique_ptr<rf::Scene> scene;
+  try {
+    scene = rf::load_scene(positional[0], &warnings, options);
+  } catch (const rf::SceneError& e) {
+    out = {{"ok", false}, {"error", e.what()}, {"path", e.path()}, {"warnings", warnings}};
+  } catch (const std::bad_alloc&) {
+    out = {{"ok", false}, {"error", options.display_name + ": out of memory while loading"},
+           {"path", ""}, {"warnings", warnings}};
+  }
+  if (scene) {
+    const rf::SceneStats& st = scene->stats();
+    out = {{"ok", true},
+           {"triangles", scene->world_triangle_count()},
+           {"instanced_triangles", st.instanced_triangles},
+           {"nodes", st.nodes},
+           {"depth", st.depth},
+           {"meshes", scene->mesh_count()},
+           {"instances", scene->instance_count()},
+           {"materials", scene->materials().size()},
+           {"textures", scene->textures().size()},
+           {"texture_pixels", st.texture_pixels},
+           {"emissive_triangles", scene->lights().size()},
+           {"camera", scene->has_file_camera()},
+           {"memory_bytes", scene->memory_bytes()},
+           {"estimated_memory_bytes", st.estimated_bytes},
+           {"extensions_used", st.extensions_used},
+           {"warnings", warnings}};
+  }
+  if (json) {
+    std::cout << out.dump() << "\n";
+  } else if (scene) {
+    for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+    std::cout << options.display_name << ": " << scene->world_triangle_count() << " triangles ("
+              << out["instanced_triangles"] << " over every mesh use), " << out["nodes"]
+              << " nodes, depth " << out["depth"] << ", " << out["textures"] << " textures ("
+              << out["texture_pixels"] << " pixels), "
+              << rf::format_bytes(scene->memory_bytes()) << " in memory\n";
+  } else {
+    for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+    std::cerr << "error: " << out["error"].get<std::string>() << "\n";
+  }
+  return scene ? 0 : kExitRuntime;
+}
+
+// "a,b,,c" -> {"a", "b", "", "c"}: empty items are kept, for the caller to reject.
+std::vector<std::string> split_commas(const std::string& list) {
+  std::vector<std::string> items;
+  size_t pos = 0;
+  for (;;) {
+    const size_t comma = list.find(',', pos);
+    items.push_back(list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos));
+    if (comma == std::string::npos) return items;
+    pos = comma + 1;
+  }
+}
+
+int cmd_bench(const std::vector<std::string>& args) {
+  auto flags = parse_flags(args,
+                           {"--cornell", "--json", "--width", "--height", "--spp", "--triangles",
+                            "--threads", "--scenes"},
+                           nullptr);
+  rf::BenchOptions options;
+  options.cornell_path = flags.count("--cornell") ? flags["--cornell"] : "";
+  if (flags.count("--width")) options.width = uint32_t(parse_uint("--width", flags["--width"], 1, 8192));
+  if (flags.count("--height"))
+    options.height = uint32_t(parse_uint("--height", flags["--height"], 1, 8192));
+  if (flags.count("--spp")) options.spp = uint32_t(parse_uint("--spp", flags["--spp"], 1, 65536));
+  if (flags.count("--triangles"))
+    options.mesh_triangles =
+        uint32_t(parse_uint("--triangles", flags["--triangles"], 16, 100000000));
+  if (flags.count("--threads")) {
+    options.threads.clear();
+    for (const std::string& item : split_commas(flags["--threads"]))
+      options.threads.push_back(uint32_t(parse_uint("--threads", item, 1, 4096)));
+  }
+  if (flags.count("--scenes")) {
+    options.cornell = options.mesh = options.instanced = false;
+    for (const std::string& item : split_commas(flags["--scenes"])) {
+      if (item == "cornell") {
+        options.cornell = true;
+      } else if (item == "mesh") {
+        options.mesh = true;
+      } else if (item == "instanced") {
+        options.instanced = true;
+      } else {
+        throw UsageError{"--scenes takes a comma-separated list of cornell, mesh and "
+                         "instanced, not '" + item + "'"};
+      }
+    }
+  }
+  if (options.cornell && options.cornell_path.empty())
+    throw UsageError{"bench needs --cornell SCENE.gltf (or --scenes without cornell)"};
+  const std::string json = rf::run_bench(options);
+  if (flags.count("--json")) {
+    std::ofstream out(flags["--json"]);
+    out << json << "\n";
+    if (!out) {
+      std::cerr << "error: cannot write " << flags["--json"] << "\n";
+      return kExitRuntime;
+    }
+  } else {
+    std::cout << json << "\n";
+  }
+  return 0;
+}
+
+// The memory this process may use: the machine's, or less under a cgroup limit (a container's
+// memory limit, v2 memory.max or v1 memory.limit_in_bytes). 0 if unknown.
+size_t available_memory() {
+  const long pages = sysconf(_SC_PHYS_PAGES), page_size = sysconf(_SC_PAGESIZE);
+  size_t bytes = pages > 0 && page_size > 0 ? size_t(pages) * size_t(page_size) : 0;
+  for (const char* path :
+       {"/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"}) {
+    std::ifstream in(path);
+    unsigned long long limit = 0;
+    if (in >> limit && limit > 0 && (bytes == 0 || limit < bytes)) bytes = size_t(limit);
+  }
+  return bytes;
+}
+
+std::atomic<bool> g_stop{false};
+extern "C" void on_stop_signal(int) { g_stop.store(true); }
+
+int cmd_connect(const std::vector<std::string>& args) {
+  std::vector<std::string> rest;
+  bool tls = false;
+  std::vector<std::string> tags;  // --tag is repeatable, so it is taken out before parse_flags
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    if (a == "--tls") {
+      tls = true;
+    } else if (a == "--tag") {
+      if (i + 1 >= args.size()) throw UsageError{"flag '--tag' needs a value"};
+      const std::string& tag = args[++i];
+      // The server's rule (jobspec.TAG_PATTERN): 1..64 of a-z, 0-9, '.', '_', '-', starting
+      // with a letter or digit.
+      bool ok = !tag.empty() && tag.size() <= 64 && std::isalnum((unsigned char)tag[0]);
+      for (char c : tag)
+        ok = ok && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' || c == '_' ||
+                    c == '-');
+      if (!ok)
+        throw UsageError{"--tag '" + tag +
+                         "': 1 to 64 of a-z, 0-9, '.', '_', '-', starting with a letter or digit"};
+      tags.push_back(tag);
+    } else {
+      rest.push_back(a);
+    }
+  }
+  auto flags = parse_flags(
+      rest,
+      {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id", "--bvh",
+       "--scene-memory-mb", "--task-timeout-s", "--max-scene-memory-mb", "--ca-file", "--cert",
+       "--key", "--tls-server-name", "--max-nodes", "--max-depth", "--max-triangles",
+       "--max-texture-pixels"},
+      nullptr);
+  if (!flags.count("--server") || flags["--server"].empty())
+    throw UsageError{"connect needs --server HOST:PORT"};
+  rf::FarmOptions options;
+  options.server = flags["--server"];
+  options.tags = tags;
+  options.threads = default_threads();
+  if (flags.count("--threads"))
+    options.threads = uint32_t(parse_uint("--threads", flags["--threads"], 1, 4096));
+  if (flags.count("--prefetch"))
+    options.prefetch = uint32_t(parse_uint("--prefetch", flags["--prefetch"], 0, 4096));
+  options.cache_dir =
+      flags.count("--cache-dir") ? flags["--cache-dir"] : rf::default_scene_cache_dir();
+  if (flags.count("--token")) options.token = flags["--token"];
+  options.bvh = parse_bvh_flag(flags);
+  // Loaded scenes kept in memory between tasks: half the worker's memory unless told.
+  options.scene_memory_budget =
+      flags.count("--scene-memory-mb")
+          ? size_t(parse_uint("--scene-memory-mb", flags["--scene-memory-mb"], 1, 1u << 30)) *
+                1000000
+          : available_memory() / 2;
+  // A task that renders longer than this fails for good (a scene that costs this much per
+  // batch is broken or hostile); its render stops at once.
+  if (flags.count("--task-timeout-s"))
+    options.task_timeout_s = double(parse_uint("--task-timeout-s", flags["--task-timeout-s"], 1,
+                                               7 * 24 * 3600));
+  // A scene whose estimated memory exceeds this is refused for good before it is allocated:
+  // by default, the memory this worker has.
+  options.limits.max_memory_bytes =
+      flags.count("--max-scene-memory-mb")
+          ? parse_uint("--max-scene-memory-mb", flags["--max-scene-memory-mb"], 1,
+                       UINT64_MAX / 1000000) *
+                1000000
+          : available_memory();
+  parse_limit_flags(flags, &options.limits);
+  // TLS: --ca-file, --cert/--key and --tls-server-name imply --tls.
+  auto read_pem = [&](const char* flag) {
+    const std::string& path = flags[flag];
+    std::ifstream in(path, std::ios::binary);
+    if (!in) throw UsageError{std::string(flag) + " " + path + ": cannot read the file"};
+    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    if (text.find("-----BEGIN ") == std::string::npos)
+      throw UsageError{std::string(flag) + " " + path + ": not a PEM file"};
+    return text;
+  };
+  if (flags.count("--cert") != flags.count("--key"))
+    throw UsageError{"--cert and --key go together (the client certificate of mutual TLS)"};
+  options.tls = tls || flags.count("--ca-file") || flags.count("--cert") ||
+                flags.count("--tls-server-name");
+  if (flags.count("--ca-file")) options.tls_ca_pem = read_pem("--ca-file");
+  if (flags.count("--cert")) {
+    options.tls_cert_pem = read_pem("--cert");
+    options.tls_key_pem = read_pem("--key");
+  }
+  if (flags.count("--tls-server-name")) options.tls_server_name = flags["--tls-server-name"];
+  char host[256] = {0};
+  if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "unknown");
+  options.hostname = host;
+  options.worker_id = flags.count("--id") ? flags["--id"]
+                                          : options.hostname + "-" + std::to_string(getpid());
+  struct sigaction sa = {};
+  sa.sa_handler = on_stop_signal;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGINT, &sa, nullptr);
+  sigaction(SIGTERM, &sa, nullptr);
+  return rf::run_farm_client(options, g_stop);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string> args(argv + 1, argv + argc);
+  try {
+    if (args.empty()) throw UsageError{"missing command"};
+    const std::string cmd = args[0];
+    args.erase(args.begin());
+    if (cmd == "--help" || cmd == "-h" || cmd == "help") {
+      std::cout << kUsage;
+      return 0;
+    }
+    if (cmd == "--version") {
+      std::cout << "renderfarm-worker " << RENDERFARM_VERSION << "\n";
+      return 0;
+    }
+    if (cmd == "render") return cmd_render(args);
+    if (cmd == "connect") return cmd_connect(args);
+    if (cmd == "bench") return cmd_bench(args);
+    if (cmd == "inspect") return cmd_inspect(args);
+    throw UsageError{"unknown command '" + cmd + "'"};
+  } catch (const UsageError& e) {
+    std::cerr << "renderfarm-worker: " << e.message << " (see renderfarm-worker --help)\n";
+    return kExitUsage;
+  } catch (const std::exception& e) {
+    std::cerr << "renderfarm-worker: error: " << e.what() << "\n";
+    return kExitRuntime;
+  }
+}

@@ -1,0 +1,72 @@
+// Integrators: estimate the radiance arriving through one pixel sample. All randomness comes
+// from the Sampler with the fixed dimension layout in samplers.h, so a sample's value is a
+// pure function of (scene, settings, pixel, sample index).
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "scene/environment.h"
+#include "render/film.h"
+#include "sampling/samplers.h"
+#include "scene/scene.h"
+
+namespace rf {
+
+// path: unidirectional path tracing, NEE + MIS (power heuristic), Russian roulette after
+//       bounce 3, at most max_depth bounces.
+// direct: the same estimator stopped after one bounce (emission seen directly, plus light
+//       sampled and BSDF sampled direct illumination combined by MIS).
+// ao: ambient occlusion within 10% of the scene diagonal, cosine weighted.
+enum class IntegratorType { Path, Direct, AmbientOcclusion };
+
+// Parses "path" / "direct" / "ao"; false for anything else.
+bool parse_integrator_type(const std::string& name, IntegratorType* out);
+const char* integrator_type_name(IntegratorType t);
+
+struct RenderSettings {
+  uint32_t width = 512, height = 512;  // full image, defines pixel indices and aspect
+  uint64_t seed = 0;
+  SamplerType sampler = SamplerType::Sobol;
+  IntegratorType integrator = IntegratorType::Path;
+  uint32_t max_depth = 8;  // maximum number of bounces; 1 = direct lighting only
+  // Thin lens (pbrt's model): radius of the aperture disk in scene units, 0 = pinhole; points
+  // at focus_distance along the viewing axis are in focus (required > 0 if aperture > 0).
+  float aperture_radius = 0.f;
+  float focus_distance = 0.f;
+  // Environment light (intensity and rotation are applied by the Environment itself); null =
+  // black background.
+  std::shared_ptr<const Environment> environment;
+};
+
+struct SampleResult {
+  Vec3 radiance;  // may be non-finite; the caller records that as 0
+  Vec3 albedo;    // first-hit base color, 0 on a miss
+  Vec3 normal;    // first-hit shading normal (world space, unit), 0 on a miss
+  float depth = 0.f;  // distance from the camera (lens point) to the first hit, 0 on a miss
+  uint32_t rays = 0;
+};
+
+// One sample of pixel (x, y) with global sample index `index`.
+SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
+                          const Sampler& sampler, uint32_t x, uint32_t y, uint32_t index);
+// The same, with the sampler already bound to the pixel (render_rect's fast path).
+SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
+                          const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index);
+
+// Empty string if rendering samples [start, start + count) of rect is valid for settings,
+// otherwise a message naming the problem.
+std::string validate_render_request(const RenderSettings& settings, PixelRect rect,
+                                    uint64_t start, uint64_t count);
+
+// Renders samples [start, start + count) of every pixel of rect into *out (reset first).
+// Per pixel, samples are accumulated in sample-index order (radiance sums in double, Welford
+// M2 of luminance). Checks *cancel (if given) between rows and returns false as soon as it is
+// set; *out is then incomplete. The request must pass validate_render_request.
+bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
+                 uint64_t start, uint32_t count, TileBuffer* out,
+                 const std::atomic<bool>* cancel = nullptr);
+
+}  // namespace rf

@@ -1,0 +1,153 @@
+#include "render/light_sampling.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "math/simd.h"
+#include "sampling/sampling.h"
+
+namespace rf {
+
+LightContext light_context(const Scene& scene, const RenderSettings& settings) {
+  LightContext c;
+  c.env = settings.environment.get();
+  const double scene_power = scene.lights().empty() ? 0.0 : scene.lights().total_power();
+  double env_power = 0.0;
+  if (c.env) {
+    const double r = 0.5 * double(scene.diagonal());
+    env_power = double(kPi) * double(kPi) * r * r * double(c.env->mean_luminance());
+  }
+  if (scene_power + env_power > 0.0) {
+    c.any = true;
+    c.p_env = float(env_power / (scene_power + env_power));
+    if (scene_power == 0.0) c.p_env = 1.f;
+    if (env_power == 0.0) c.p_env = 0.f;
+  }
+  return c;
+}
+
+void LightBatch::finish_geometry(BsdfEvalBatch* batch) {
+  const F32x4 zero = splat4(0.f);
+  for (int i = 0; i < kLanes; i += 4) {
+    const uint32_t bits = (area >> i) & 0xfu;
+    if (!bits) continue;
+    const I32x4 mask = lane_mask4(bits);
+    F32x4 t[3];
+    for (int c = 0; c < 3; ++c) t[c] = load4(&lp[c][i]) - load4(&o[c][i]);
+    const F32x4 dist2 = dot4(t[0], t[1], t[2], t[0], t[1], t[2]);
+    const F32x4 dist = sqrt4(dist2);
+    const F32x4 inv = 1.f / dist;  // Vec3 / float multiplies by the reciprocal
+    const F32x4 wx = t[0] * inv, wy = t[1] * inv, wz = t[2] * inv;
+    const F32x4 cos_light =
+        dot4(load4(&ln[0][i]), load4(&ln[1][i]), load4(&ln[2][i]), -wx, -wy, -wz);
+    const F32x4 cos_vertex =
+        dot4(load4(&ng[0][i]), load4(&ng[1][i]), load4(&ng[2][i]), wx, wy, wz);
+    // Stop short of the light's own surface so it does not occlude itself.
+    const F32x4 t_max = dist * (1.f - 1e-4f) - load4(&eps[i]);
+    const I32x4 keep = (dist > zero) & ~(cos_light <= zero) & ~(cos_vertex <= zero) &
+                       (t_max > zero);
+    const F32x4 pdf = load4(&k[i]) * dist2 / cos_light;
+    store4(&wi[0][i], select4(mask, wx, load4(&wi[0][i])));
+    store4(&wi[1][i], select4(mask, wy, load4(&wi[1][i])));
+    store4(&wi[2][i], select4(mask, wz, load4(&wi[2][i])));
+    store4(&tmax[i], select4(mask, t_max, load4(&tmax[i])));
+    store4(&pdf_light[i], select4(mask, pdf, load4(&pdf_light[i])));
+    store4(&ok[i], mask ? keep : load4(&ok[i]));
+  }
+  batch->add_lights_world(area, wi);
+}
+
+void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
+  const F32x4 zero = splat4(0.f), one = splat4(1.f), inf = splat4(kInfinity);
+  for (int i = 0; i < kLanes; i += 4) {
+    const uint32_t bits = (waiting >> i) & 0xfu;
+    if (!bits) continue;
+    const I32x4 mask = lane_mask4(bits);
+    F32x4 f[3];
+    for (int c = 0; c < 3; ++c) f[c] = load4(batch.light_f(c) + i);
+    // power_heuristic(pdf_light, pdf_bsdf).
+    const F32x4 pdf = load4(&pdf_light[i]), pdf_bsdf = load4(batch.light_pdf() + i);
+    const F32x4 a = pdf * pdf, b = pdf_bsdf * pdf_bsdf;
+    const F32x4 w = select4(a == zero, zero, select4(a == inf, one, a / (a + b)));
+    const F32x4 factor = w / pdf;
+    for (int c = 0; c < 3; ++c)
+      store4(&contribution[c][i], f[c] * load4(&radiance[c][i]) * factor);
+    const I32x4 f_zero = (f[0] == zero) & (f[1] == zero) & (f[2] == zero);
+    store4(&ok[i], mask ? (load4(&ok[i]) & ~f_zero) : load4(&ok[i]));
+  }
+}
+
+LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
+                             const Frame& frame, Vec3 wo_local, const BounceSamples& s,
+                             BsdfEvalBatch* batch, LightBatch* lb, int lane, LightRay* out) {
+  float u_sel = s.get(dim::kLightSelect);
+  const Point2 u = s.get2(dim::kLightU);
+  const Vec3 origin = sp.above();
+  const uint32_t bit = uint32_t(1) << lane;
+  const auto set3 = [lane](float (*to)[LightBatch::kLanes], Vec3 v) {
+    to[0][lane] = v.x;
+    to[1][lane] = v.y;
+    to[2][lane] = v.z;
+  };
+  if (lc.env && u_sel < lc.p_env) {
+    float pdf = 0.f;
+    const Vec3 wi = lc.env->sample(u, &pdf);
+    pdf *= lc.p_env;
+    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return LightSampleKind::None;
+    set3(lb->o, origin);
+    set3(lb->wi, wi);
+    lb->tmax[lane] = kInfinity;
+    set3(lb->radiance, lc.env->eval(wi));
+    lb->pdf_light[lane] = pdf;
+    lb->ok[lane] = -1;
+    lb->waiting |= bit;
+    batch->add_light(lane, frame.to_local(wi));
+    return LightSampleKind::Waiting;
+  }
+  const LightSet& lights = scene.lights();
+  if (lights.empty()) return LightSampleKind::None;
+  // Reuse the selection variate: rescale the part above p_env to [0, 1).
+  const float p_scene = 1.f - lc.p_env;
+  u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
+  const LightSample ls = lights.sample(u_sel, u.x, u.y);
+  if (ls.punctual >= 0) {
+    const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
+    const float pdf = ls.pdf_area * p_scene;  // selection probability only: a delta light
+    Vec3 wi, Li;
+    float tmax;
+    if (light.type == PunctualType::Directional) {
+      wi = -light.direction;
+      Li = light.intensity;  // irradiance normal to the direction
+      tmax = kInfinity;
+    } else {
+      const Vec3 to = light.position - origin;
+      const float d2 = dot(to, to);
+      if (!(d2 > 0.f)) return LightSampleKind::None;
+      const float dist = std::sqrt(d2);
+      wi = to / dist;
+      Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
+      tmax = dist;
+    }
+    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return LightSampleKind::None;
+    const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
+    if (is_zero(f)) return LightSampleKind::None;
+    out->origin = origin;
+    out->wi = wi;
+    out->tmax = tmax;
+    out->contribution = f * Li * (1.f / pdf);
+    return LightSampleKind::Delta;
+  }
+  // An emissive triangle: the rest is LightBatch::finish_geometry's.
+  set3(lb->o, origin);
+  set3(lb->lp, ls.p);
+  set3(lb->ln, facing_light_normal(scene, ls, origin));
+  set3(lb->ng, sp.ng);
+  lb->eps[lane] = ray_epsilon(ls.p);
+  lb->k[lane] = p_scene * ls.pdf_area;
+  set3(lb->radiance, scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2));
+  lb->area |= bit;
+  lb->waiting |= bit;
+  return LightSampleKind::Waiting;
+}
+
+}  // namespace rf

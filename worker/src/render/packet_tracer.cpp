@@ -1,0 +1,366 @@
+#include "render/packet_tracer.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "math/simd.h"
+#include "sampling/sampling.h"
+
+namespace rf {
+
+namespace {
+
+// The BSDF samples' disk warps (bsdf_disks) of a packet's lanes, four lanes at a time: they
+// depend on the sample values alone, so they are computed for every live lane before the
+// vertices are shaded, both of them (a lane uses one, known only once its material is).
+struct DiskBatch {
+  static constexpr int kLanes = kPacketSize;
+  alignas(16) float cosine[3][kLanes] = {}, polar[2][kLanes] = {};
+
+  // Lanes `lanes` of the pairs (ux[i], uy[i]); the other lanes of a block of four are computed
+  // too (from whatever values they hold) and never read.
+  void compute(const float* ux, const float* uy, uint32_t lanes) {
+    for (int i = 0; i < kLanes; i += 4) {
+      if (!((lanes >> i) & 0xfu)) continue;
+      const F32x4 x = load4(ux + i), y = load4(uy + i);
+      F32x4 cx, cy, cz, px, py;
+      sample_cosine_hemisphere4(x, y, &cx, &cy, &cz);
+      sample_polar_disk4(x, y, &px, &py);
+      store4(&cosine[0][i], cx);
+      store4(&cosine[1][i], cy);
+      store4(&cosine[2][i], cz);
+      store4(&polar[0][i], px);
+      store4(&polar[1][i], py);
+    }
+  }
+  BsdfDisks get(int lane) const {
+    return {Vec3(cosine[0][lane], cosine[1][lane], cosine[2][lane]),
+            Point2{polar[0][lane], polar[1][lane]}};
+  }
+};
+
+// The first half of what a path does at the vertex its ray found (hit null: the ray escaped):
+// emission, Russian roulette, the light sample and the BSDF sample's direction. The BSDF values
+// both samples need are queued in *batch (one evaluation for a packet's lanes together);
+// shade_vertex_end_light and shade_vertex_end_bsdf finish the vertex once the batch has been
+// evaluated.
+void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
+                        const Hit* hit, uint32_t bounce, uint32_t max_depth,
+                        const DiskBatch& disks, BsdfEvalBatch* batch, LightBatch* lb,
+                        int lane) {
+  const Vec3 d = p.d;
+  SampleResult& result = p.result;
+  p.alive = false;
+  p.light_kind = LightSampleKind::None;
+  p.bsdf_slot = -2;
+  p.next_medium = p.medium;
+  const bool in_medium = !is_zero(p.medium);
+  if (!hit) {
+    if (lc.env) {
+      const Vec3 L = lc.env->eval(d);
+      const float w =
+          p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
+      result.radiance +=
+          (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w;
+    }
+    return;
+  }
+  if (in_medium) p.beta *= transmittance(p.medium, hit->t);
+  const Vec3 wo = -d;
+  const ShadingPoint sp = make_shading_point(scene, *hit, wo);
+  if (bounce == 0) {
+    result.albedo = sp.albedo;
+    result.normal = sp.ns;
+    result.depth = hit->t;
+  }
+  // Emission: the front (counter-clockwise) face emits, and the back of a double-sided one.
+  const Material& hit_material = scene.materials()[hit->material];
+  const float cos_emit = emitting_cosine(hit_material, hit->ng, wo);
+  if (cos_emit > 0.f && hit_material.is_emissive()) {
+    const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2);
+    if (p.prev_delta) {
+      result.radiance += p.beta * Le;
+    } else {
+      // The same point could have come from light sampling at the previous vertex: convert
+      // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
+      const float pdf_light = (1.f - lc.p_env) * scene.lights().pdf_area(hit->slot, hit->prim) *
+                              hit->t * hit->t / cos_emit;
+      result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
+    }
+  }
+  if (bounce >= max_depth) return;
+  const BounceSamples& u = p.u;
+  // Russian roulette after 3 bounces; dividing by the survival probability keeps the
+  // estimator unbiased.
+  if (bounce >= 3) {
+    const float q = std::min(0.95f, max_component(p.beta));
+    if (!(u.get(dim::kRoulette) < q)) return;
+    p.beta = p.beta / q;
+  }
+  const Frame frame(sp.ns);
+  const Vec3 wo_local = frame.to_local(wo);
+  const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
+  batch->set_vertex(lane, sp.params, lobes, wo_local, frame);
+  if (lc.any && bsdf_has_smooth_part(sp.params))
+    p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, batch, lb, lane, &p.light);
+
+  BsdfSample& bs = p.bs;
+  const BsdfSampleStep step =
+      bsdf_sample_direction(sp.params, lobes, wo_local, disks.get(lane), u.get(dim::kLobe),
+                            // Read only by the glass lobe: skipped (any value would do) without
+                            // one.
+                            lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
+  if (step == BsdfSampleStep::Failed) return;
+  p.ng = sp.ng;
+  if (step == BsdfSampleStep::NeedsEval) {
+    // The batch normalizes the direction and turns it into world space.
+    p.next_o = sp.above();
+    p.bsdf_slot = batch->add_sampled(lane, bs.wi);
+    return;
+  }
+  const Vec3 wi = normalize(frame.to_world(bs.wi));
+  if (wrong_side(wi, sp.ng, bs.transmitted)) return;
+  p.next_o = bs.transmitted ? sp.below() : sp.above();
+  p.next_d = wi;
+  p.bsdf_slot = -1;
+  // Only the glass lobe transmits: the one place the medium changes.
+  if (bs.transmitted)
+    p.next_medium = medium_after(scene.materials()[hit->material], sp.params.front, p.medium);
+}
+
+// The second half, in two parts for the lanes that need them. The light sample's shadow ray
+// goes into lane `lane` of *shadow (a light sample was taken)...
+void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shadow, int lane) {
+  if (p.light_kind == LightSampleKind::Delta) {
+    shadow->set(lane, p.light.origin, p.light.wi, p.light.tmax);
+    p.nee = p.beta * p.light.contribution;
+    // The shadow ray leaves on the side of wo: in the medium the path arrived through.
+    if (!is_zero(p.medium)) p.nee *= transmittance(p.medium, p.light.tmax);
+    ++p.result.rays;
+    return;
+  }
+  if (!lb.ok[lane]) return;
+  shadow->set(lane, Vec3(lb.o[0][lane], lb.o[1][lane], lb.o[2][lane]),
+              Vec3(lb.wi[0][lane], lb.wi[1][lane], lb.wi[2][lane]), lb.tmax[lane]);
+  p.nee = p.beta * Vec3(lb.contribution[0][lane], lb.contribution[1][lane],
+                        lb.contribution[2][lane]);
+  if (!is_zero(p.medium)) p.nee *= transmittance(p.medium, lb.tmax[lane]);
+  ++p.result.rays;
+}
+
+// ... then, if p.bsdf_slot != -2, the BSDF sample gives the next ray (p.alive) unless the path
+// ends here. It runs after the light part, whose throughput is the one before this vertex's
+// BSDF.
+void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
+  BsdfSample& bs = p.bs;
+  if (p.bsdf_slot >= 0) {
+    p.next_d = batch.world(p.bsdf_slot);
+    if (wrong_side(p.next_d, p.ng, false) ||
+        !bsdf_sample_finish(batch.f(p.bsdf_slot), batch.pdf(p.bsdf_slot), &bs))
+      return;
+  }
+  if (is_zero(bs.weight)) return;
+  p.beta *= bs.weight;
+  p.prev_bsdf_pdf = bs.pdf;
+  p.prev_delta = bs.delta;
+  p.o = p.next_o;
+  p.d = p.next_d;
+  p.medium = p.next_medium;
+  p.alive = true;
+}
+
+// Traces the live paths of paths[0, kPacketSize) together, bounce by bounce: the rays of a
+// bounce go to Embree as one packet query and their shadow rays as another, and the BSDF
+// evaluations of the bounce's vertices are computed together. Each path computes exactly what
+// it would alone (the same sample values, the same sums in the same order); the packets only
+// let Embree share traversal between similar rays (a pixel's camera rays, shadow rays towards
+// the same light) and let the shading of independent paths overlap.
+void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
+                 uint32_t max_depth) {
+  constexpr int kFewLanes = 3;
+  static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
+  static_assert(PixelSampler::kLanes16 == kPacketSize, "a sampler lane per packet lane");
+  RayPacket rays, shadow;
+  Hit hits[kPacketSize];
+  bool found[kPacketSize], blocked[kPacketSize];
+  BsdfEvalBatch batch;
+  LightBatch lights;
+  DiskBatch disks;
+  // A lane's rays carry its sample index (for the transparency test).
+  for (int i = 0; i < kPacketSize; ++i) rays.id[i] = shadow.id[i] = paths[i].s.index;
+  // Lanes are visited through bit masks of the live ones: whether a path is still alive is
+  // data the branch predictor cannot learn, and a branch per lane per loop mispredicts often.
+  for (uint32_t bounce = 0;; ++bounce) {
+    uint32_t live = 0;
+    for (int i = 0; i < kPacketSize; ++i) {
+      rays.active[i] = paths[i].alive;
+      shadow.active[i] = false;
+      live |= uint32_t(paths[i].alive) << i;
+    }
+    if (!live) return;
+    // This vertex's sample values, for every lane at once: the lanes are samples of one pixel
+    // (one PixelSampler) with different sample indices, which the sobol sampler scrambles
+    // side by side in SIMD lanes.
+    uint32_t index[kPacketSize];
+    for (int i = 0; i < kPacketSize; ++i) index[i] = paths[i].s.index;
+    // A packet with few live lanes (after Russian roulette, from bounce 4 on, most carry one
+    // or two) gets its values lane by lane: the 16-lane kernel costs the same for one lane as
+    // for sixteen, about four of value8's single-sample calls (the values are the same).
+    float values[8][PixelSampler::kLanes16];
+    const bool batched = __builtin_popcount(live) > kFewLanes &&
+                         paths[__builtin_ctz(live)].s.sampler->value8_lanes(
+                             index, dim::bounce(bounce, 0), values);
+    if (!batched) {  // the disk pairs are filled lane by lane below; dead lanes get zeros
+      std::fill(values[dim::kBsdfU], values[dim::kBsdfU] + kPacketSize, 0.f);
+      std::fill(values[dim::kBsdfV], values[dim::kBsdfV] + kPacketSize, 0.f);
+    }
+    for (uint32_t m = live; m; m &= m - 1) {
+      const int i = __builtin_ctz(m);
+      PathState& p = paths[i];
+      if (batched) {
+        p.u.assign(p.s, bounce, values, i);
+      } else {
+        p.u.reset(p.s, bounce);
+        const Point2 u = p.u.get2(dim::kBsdfU);
+        values[dim::kBsdfU][i] = u.x;
+        values[dim::kBsdfV][i] = u.y;
+      }
+      rays.set(i, p.o, p.d, kInfinity);
+      ++p.result.rays;
+    }
+    // The camera rays see what lies between the camera's clipping planes; later rays the
+    // whole of (0, infinity).
+    if (bounce == 0)
+      for (int i = 0; i < kPacketSize; ++i) {
+        rays.tnear[i] = paths[i].tmin;
+        rays.tfar[i] = paths[i].tmax;
+      }
+    disks.compute(values[dim::kBsdfU], values[dim::kBsdfV], live);
+    // The lanes are samples of one pixel: one transparency key per query for all of them.
+    const PixelSampler& pixel = *paths[__builtin_ctz(live)].s.sampler;
+    const uint64_t path_query =
+        scene.has_transparency()
+            ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Path)
+            : 0;
+    // The camera rays of a pixel's samples are alike: Embree's coherent traversal (about 3%
+    // more samples/s on the Cornell box). Later bounces scatter, where it would be far slower.
+    scene.intersect(rays, hits, found, bounce == 0, path_query);
+    if (bounce == 0) std::fill(rays.tnear, rays.tnear + kPacketSize, 0.f);
+    batch.clear();
+    lights.clear();
+    for (uint32_t m = live; m; m &= m - 1) {
+      const int i = __builtin_ctz(m);
+      shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
+                         disks, &batch, &lights, i);
+    }
+    lights.finish_geometry(&batch);
+    batch.evaluate();
+    lights.finish_contributions(batch);
+    uint32_t with_light = 0, going_on = 0;
+    for (int i = 0; i < kPacketSize; ++i) {
+      with_light |= uint32_t(paths[i].light_kind != LightSampleKind::None) << i;
+      going_on |= uint32_t(paths[i].bsdf_slot != -2) << i;
+    }
+    for (uint32_t m = with_light & live; m; m &= m - 1) {
+      const int i = __builtin_ctz(m);
+      shade_vertex_end_light(paths[i], lights, &shadow, i);
+    }
+    for (uint32_t m = going_on & live; m; m &= m - 1)
+      shade_vertex_end_bsdf(paths[__builtin_ctz(m)], batch);
+    uint32_t shadowed = 0;
+    for (int i = 0; i < kPacketSize; ++i) shadowed |= uint32_t(shadow.active[i]) << i;
+    if (!shadowed) continue;
+    scene.occluded(shadow, blocked,
+                   scene.has_transparency()
+                       ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Shadow)
+                       : 0);
+    for (; shadowed; shadowed &= shadowed - 1) {
+      PathState& p = paths[__builtin_ctz(shadowed)];
+      if (!blocked[__builtin_ctz(shadowed)]) p.result.radiance += p.nee;
+    }
+  }
+}
+
+}  // namespace
+
+// Sample `index` of pixel (x, y) up to its camera ray: a path ready for its first bounce.
+// camera_dims: the sample's values of dimensions kPixelX .. kLensV if already computed, or null.
+PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index,
+                     const float* camera_dims) {
+  PathState p;
+  p.s = SampleStream{&sampler, index};
+  // Box filter: the sample position is uniform inside the pixel.
+  const Point2 jitter = camera_dims ? Point2{camera_dims[dim::kPixelX], camera_dims[dim::kPixelY]}
+                                    : p.s.get2(dim::kPixelX);
+  const float px = float(x) + jitter.x;
+  const float py = float(y) + jitter.y;
+  const Camera& cam = scene.camera();
+  p.o = ctx.raster.origin(px, py);
+  float per_axial;
+  p.d = ctx.raster.direction(px, py, &per_axial);
+  if (settings.aperture_radius > 0.f) {
+    // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
+    // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
+    // point of the aperture disk and aims at p_focus.
+    const Point2 lens = sample_concentric_disk(
+        camera_dims ? Point2{camera_dims[dim::kLensU], camera_dims[dim::kLensV]}
+                    : p.s.get2(dim::kLensU));
+    const Vec3 p_focus = p.o + p.d * (settings.focus_distance / dot(p.d, cam.forward));
+    p.o = p.o + (cam.right * lens.x + cam.up * lens.y) * settings.aperture_radius;
+    p.d = normalize(p_focus - p.o);
+    per_axial = 1.f / dot(p.d, cam.forward);
+  }
+  // The clipping planes are distances along the viewing axis.
+  p.tmin = cam.znear * per_axial;
+  p.tmax = cam.zfar * per_axial;
+  p.alive = true;
+  return p;
+}
+
+uint32_t path_max_depth(const RenderSettings& settings) {
+  return settings.integrator == IntegratorType::Direct ? std::min<uint32_t>(settings.max_depth, 1u)
+                                                       : settings.max_depth;
+}
+
+// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
+void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                   const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
+                   uint32_t n, SampleResult* out) {
+  if (settings.integrator == IntegratorType::AmbientOcclusion) {
+    for (uint32_t k = 0; k < n; ++k) {
+      const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
+      out[k] = trace_ao(scene, p.s, p.o, p.d, p.tmin, p.tmax);
+    }
+    return;
+  }
+  // The camera dimensions of all lanes at once where the sampler can (sobol).
+  uint32_t index[kPacketSize];
+  for (uint32_t k = 0; k < uint32_t(kPacketSize); ++k) index[k] = first + k;
+  float values[8][PixelSampler::kLanes16];
+  const bool batched = sampler.value8_lanes(index, dim::kPixelX, values);
+  PathState paths[kPacketSize];
+  for (uint32_t k = 0; k < n; ++k) {
+    float camera_dims[4];
+    for (uint32_t d = 0; d < 4; ++d) camera_dims[d] = values[dim::kPixelX + d][k];
+    paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k,
+                          batched ? camera_dims : nullptr);
+  }
+  trace_paths(scene, ctx.lights, paths, path_max_depth(settings));
+  for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
+}
+
+SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
+                          const Sampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
+  const PixelSampler pixel_sampler(sampler, uint64_t(y) * settings.width + x);
+  return trace_sample(scene, settings, pixel_sampler, x, y, index);
+}
+
+SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
+                          const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index) {
+  SampleResult result;
+  trace_samples(TraceContext(scene, settings), scene, settings, sampler, x, y, index, 1, &result);
+  return result;
+}
+
+}  // namespace rf

@@ -1,0 +1,73 @@
+// The packet path tracer (internal to src/render): a pixel's samples traced sixteen at a time,
+// bounce by bounce, each path computing exactly what it would alone. What it shares with the
+// reference (src/render/reference.cpp) and the tile loop (tile_accumulator.cpp): the state of a
+// path between bounces, the per-render context, the camera ray of a sample.
+#pragma once
+
+#include <cstdint>
+
+#include "render/integrators.h"
+#include "render/light_sampling.h"
+#include "render/shading.h"
+#include "sampling/samplers.h"
+#include "scene/materials.h"
+#include "scene/scene.h"
+
+namespace rf {
+
+// One sample's path while it is traced in a packet: its state between bounces.
+struct PathState {
+  SampleStream s{nullptr, 0};
+  SampleResult result;  // radiance accumulates here
+  Vec3 o, d;            // the ray of the next bounce
+  float tmin = 0.f, tmax = kInfinity;  // the camera ray's range (its clipping planes)
+  Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
+  float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
+  bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
+                              // have produced this direction, so emission gets weight 1
+  bool alive = false;
+  BounceSamples u;  // this bounce's sample values
+  Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
+  // Between the halves of a vertex's shading (shade_vertex_begin, then shade_vertex_end_light
+  // and shade_vertex_end_bsdf):
+  LightSampleKind light_kind = LightSampleKind::None;
+  LightRay light;          // light_kind Delta
+  int bsdf_slot = -2;      // BsdfEvalBatch slot of the sampled direction's f and pdf; -1: the
+                           // sample (glass) is complete; -2: the path ends at this vertex
+  BsdfSample bs;
+  Vec3 next_o, next_d;     // the next ray if the path goes on (next_d from the batch if pending)
+  Vec3 ng;                 // the vertex's geometric normal on the side of wo
+  // KHR_materials_volume: the absorption coefficient of the medium the ray travels in (0:
+  // none), and the one the next ray will (a transmission into or out of a volume changes it).
+  Vec3 medium, next_medium;
+};
+
+// What every sample of a render shares: computed once per render_rect.
+struct TraceContext {
+  LightContext lights;
+  Camera::Raster raster;
+  TraceContext(const Scene& scene, const RenderSettings& settings)
+      : lights(light_context(scene, settings)),
+        raster(scene.camera().raster(settings.width, settings.height)) {}
+};
+
+// Sample `index` of pixel (x, y) up to its camera ray: a path ready for its first bounce.
+// camera_dims: the sample's values of dimensions kPixelX .. kLensV if already computed, or null.
+PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index,
+                     const float* camera_dims = nullptr);
+
+// The number of bounces of a path: max_depth, or at most 1 for the direct integrator.
+uint32_t path_max_depth(const RenderSettings& settings);
+
+// Ambient occlusion of one sample whose camera ray is o + t d, t in (tmin, tmax)
+// (src/render/ambient_occlusion.cpp).
+SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float tmin,
+                      float tmax);
+
+// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
+void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                   const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
+                   uint32_t n, SampleResult* out);
+
+}  // namespace rf

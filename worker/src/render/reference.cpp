@@ -1,0 +1,183 @@
+#include "render/reference.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "render/packet_tracer.h"
+
+namespace rf {
+
+namespace {
+
+// ---- The reference: one path at a time, with the scalar BSDF and light code.
+
+// sample_light with the BSDF evaluated on the spot: false if the sample contributes nothing
+// whatever the visibility, otherwise *out holds the shadow ray and the unoccluded
+// contribution.
+bool reference_light_sample(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
+                            const BsdfLobes& lobes, const Frame& frame, Vec3 wo_local,
+                            const BounceSamples& s, LightRay* out) {
+  float u_sel = s.get(dim::kLightSelect);
+  const Point2 u = s.get2(dim::kLightU);
+  const Vec3 origin = sp.above();
+  out->origin = origin;
+  if (lc.env && u_sel < lc.p_env) {
+    float pdf = 0.f;
+    const Vec3 wi = lc.env->sample(u, &pdf);
+    pdf *= lc.p_env;
+    if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return false;
+    float bsdf_pdf_wi = 0.f;
+    const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
+    if (is_zero(f)) return false;
+    const float w = power_heuristic(pdf, bsdf_pdf_wi);
+    out->wi = wi;
+    out->tmax = kInfinity;
+    out->contribution = f * lc.env->eval(wi) * (w / pdf);
+    return true;
+  }
+  const LightSet& lights = scene.lights();
+  if (lights.empty()) return false;
+  const float p_scene = 1.f - lc.p_env;
+  u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
+  const LightSample ls = lights.sample(u_sel, u.x, u.y);
+  if (ls.punctual >= 0) {
+    const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
+    const float pdf = ls.pdf_area * p_scene;
+    Vec3 wi, Li;
+    float tmax;
+    if (light.type == PunctualType::Directional) {
+      wi = -light.direction;
+      Li = light.intensity;
+      tmax = kInfinity;
+    } else {
+      const Vec3 to = light.position - origin;
+      const float d2 = dot(to, to);
+      if (!(d2 > 0.f)) return false;
+      const float dist = std::sqrt(d2);
+      wi = to / dist;
+      Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
+      tmax = dist;
+    }
+    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return false;
+    const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
+    if (is_zero(f)) return false;
+    out->wi = wi;
+    out->tmax = tmax;
+    out->contribution = f * Li * (1.f / pdf);
+    return true;
+  }
+  const Vec3 to_light = ls.p - origin;
+  const float dist2 = dot(to_light, to_light);
+  const float dist = std::sqrt(dist2);
+  if (!(dist > 0.f)) return false;
+  const Vec3 wi = to_light / dist;
+  const float cos_light = dot(facing_light_normal(scene, ls, origin), -wi);
+  if (cos_light <= 0.f || dot(sp.ng, wi) <= 0.f) return false;
+  float bsdf_pdf_wi = 0.f;
+  const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
+  if (is_zero(f)) return false;
+  const float pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
+  const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
+  if (!(tmax > 0.f)) return false;
+  const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
+  const Vec3 Le = scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2);
+  out->wi = wi;
+  out->tmax = tmax;
+  out->contribution = f * Le * (w / pdf_light);
+  return true;
+}
+
+}  // namespace
+
+SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& settings,
+                                    const PixelSampler& sampler, uint32_t x, uint32_t y,
+                                    uint32_t index) {
+  const TraceContext ctx(scene, settings);
+  PathState p = start_path(ctx, scene, settings, sampler, x, y, index);
+  if (settings.integrator == IntegratorType::AmbientOcclusion)
+    return trace_ao(scene, p.s, p.o, p.d, p.tmin, p.tmax);
+  const LightContext& lc = ctx.lights;
+  const uint32_t max_depth = path_max_depth(settings);
+  SampleResult& result = p.result;
+  // Rays go through the packet interface with one lane active: the same queries as the packet
+  // tracer's (a single-ray query may round the hit differently in the last bits; the coherent
+  // traversal of its camera rays finds the same hits, which Scene/PacketQueries checks).
+  RayPacket ray, shadow;
+  Hit hits[kPacketSize];
+  bool found[kPacketSize], blocked[kPacketSize];
+  const uint64_t seed = sampler.seed(), pixel = sampler.pixel();
+  for (uint32_t bounce = 0;; ++bounce) {
+    const BounceSamples u(p.s, bounce);
+    ray.set(0, p.o, p.d, bounce == 0 ? p.tmax : kInfinity);
+    ray.tnear[0] = bounce == 0 ? p.tmin : 0.f;
+    ray.id[0] = shadow.id[0] = index;
+    ++result.rays;
+    scene.intersect(ray, hits, found, false, ray_query(seed, pixel, bounce, RayKind::Path));
+    const Vec3 wo = -p.d;
+    if (!found[0]) {
+      if (lc.env) {
+        const float w =
+            p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(p.d));
+        const Vec3 beta =
+            is_zero(p.medium) ? p.beta : p.beta * transmittance(p.medium, kInfinity);
+        result.radiance += beta * lc.env->eval(p.d) * w;
+      }
+      return result;
+    }
+    const Hit& hit = hits[0];
+    if (!is_zero(p.medium)) p.beta *= transmittance(p.medium, hit.t);
+    const ShadingPoint sp = make_shading_point(scene, hit, wo);
+    if (bounce == 0) {
+      result.albedo = sp.albedo;
+      result.normal = sp.ns;
+      result.depth = hit.t;
+    }
+    const Material& hit_material = scene.materials()[hit.material];
+    const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
+    if (cos_emit > 0.f && hit_material.is_emissive()) {
+      const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2);
+      if (p.prev_delta) {
+        result.radiance += p.beta * Le;
+      } else {
+        const float pdf_light = (1.f - lc.p_env) * scene.lights().pdf_area(hit.slot, hit.prim) *
+                                hit.t * hit.t / cos_emit;
+        result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
+      }
+    }
+    if (bounce >= max_depth) return result;
+    if (bounce >= 3) {
+      const float q = std::min(0.95f, max_component(p.beta));
+      if (!(u.get(dim::kRoulette) < q)) return result;
+      p.beta = p.beta / q;
+    }
+    const Frame frame(sp.ns);
+    const Vec3 wo_local = frame.to_local(wo);
+    const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
+    LightRay light;
+    if (lc.any && bsdf_has_smooth_part(sp.params) &&
+        reference_light_sample(scene, lc, sp, lobes, frame, wo_local, u, &light)) {
+      Vec3 nee = p.beta * light.contribution;
+      if (!is_zero(p.medium)) nee *= transmittance(p.medium, light.tmax);
+      shadow.set(0, light.origin, light.wi, light.tmax);
+      ++result.rays;
+      scene.occluded(shadow, blocked, ray_query(seed, pixel, bounce, RayKind::Shadow));
+      if (!blocked[0]) result.radiance += nee;
+    }
+    BsdfSample bs;
+    if (!bsdf_sample(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),
+                     lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs))
+      return result;
+    const Vec3 wi = normalize(frame.to_world(bs.wi));
+    if (wrong_side(wi, sp.ng, bs.transmitted)) return result;
+    if (is_zero(bs.weight)) return result;
+    p.beta *= bs.weight;
+    p.prev_bsdf_pdf = bs.pdf;
+    p.prev_delta = bs.delta;
+    p.o = bs.transmitted ? sp.below() : sp.above();
+    p.d = wi;
+    if (bs.transmitted)
+      p.medium = medium_after(scene.materials()[hit.material], sp.params.front, p.medium);
+  }
+}
+
+}  // namespace rf

@@ -1,0 +1,62 @@
+// render_rect: a tile's samples traced pixel by pixel and accumulated into a TileBuffer.
+#include <algorithm>
+
+#include "math/estimators.h"
+#include "render/packet_tracer.h"
+
+namespace rf {
+
+bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
+                 uint64_t start, uint32_t count, TileBuffer* out,
+                 const std::atomic<bool>* cancel) {
+  out->reset(rect, start, count);
+  const Sampler sampler(settings.sampler, settings.seed);
+  const TraceContext ctx(scene, settings);
+  for (uint32_t ty = 0; ty < rect.height; ++ty) {
+    for (uint32_t tx = 0; tx < rect.width; ++tx) {
+      // Checked every pixel, so that a cancel (or the worker's time budget) stops even a
+      // render whose pixels are very costly within a second.
+      if (cancel && cancel->load(std::memory_order_relaxed)) return false;
+      const size_t i = size_t(ty) * rect.width + tx;
+      double sum[3] = {0.0, 0.0, 0.0};
+      RunningStats luminance_stats;
+      float albedo[3] = {0.f, 0.f, 0.f}, normal[3] = {0.f, 0.f, 0.f};
+      float depth = 0.f;
+      const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
+                                                    (rect.x0 + tx));
+      SampleResult results[kPacketSize];
+      for (uint32_t k = 0; k < count; ++k) {
+        // The pixel's samples go through the path tracer kPacketSize at a time.
+        const uint32_t lane = k % kPacketSize;
+        if (lane == 0)
+          trace_samples(ctx, scene, settings, pixel_sampler, rect.x0 + tx, rect.y0 + ty,
+                        uint32_t(start + k), std::min<uint32_t>(kPacketSize, count - k), results);
+        const SampleResult& r = results[lane];
+        out->rays += r.rays;
+        Vec3 L = r.radiance;
+        if (!is_finite(L)) {
+          L = Vec3(0.f, 0.f, 0.f);  // counted, recorded as zero radiance
+          ++out->nonfinite_samples;
+        }
+        for (int c = 0; c < 3; ++c) {
+          sum[c] += double(L[c]);
+          albedo[c] += r.albedo[c];
+          normal[c] += r.normal[c];
+        }
+        depth += r.depth;
+        // Welford's update of the luminance mean and M2.
+        luminance_stats.add(0.2126 * double(L.x) + 0.7152 * double(L.y) + 0.0722 * double(L.z));
+      }
+      for (int c = 0; c < 3; ++c) {
+        out->rgb_sum[3 * i + size_t(c)] = sum[c];
+        out->albedo_sum[3 * i + size_t(c)] = albedo[c];
+        out->normal_sum[3 * i + size_t(c)] = normal[c];
+      }
+      out->luminance_m2[i] = luminance_stats.m2;
+      out->depth_sum[i] = depth;
+    }
+  }
+  return true;
+}
+
+}  // namespace rf

@@ -1,0 +1,1345 @@
+// glTF 2.0 -> SceneDescription via tinygltf. Every index read from the file is range-checked
+// before use, so a malformed file produces a SceneError naming the offending part, never a
+// crash.
+#include <tiny_gltf.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <cctype>
+#include <cstring>
+#include <filesystem>
+#include <iterator>
+#include <limits>
+#include <optional>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <set>
+
+#include "scene/gltf_compression.h"
+#include "scene/scene.h"
+
+namespace rf {
+namespace {
+
+// Images are decoded by OpenImageIO later (TextureSystem), not by tinygltf: keep the encoded
+// bytes tinygltf hands us (from a data: URI, a file next to the .gltf or a GLB buffer view).
+bool keep_encoded_image(tinygltf::Image* image, const int, std::string*, std::string*, int,
+                        int, const unsigned char* bytes, int size, void*) {
+  if (bytes && size > 0) image->image.assign(bytes, bytes + size);
+  image->as_is = true;
+  return true;
+}
+
+// Extensions the renderer implements.
+const std::set<std::string>& supported_extensions() {
+  static const std::set<std::string> s = {
+      "KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_ior",
+      "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual",
+      "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression",
+      "KHR_materials_volume"};
+  return s;
+}
+
+float number_or(const tinygltf::Value& obj, const char* key, float fallback) {
+  if (!obj.IsObject() || !obj.Has(key)) return fallback;
+  const tinygltf::Value& v = obj.Get(key);
+  return v.IsNumber() ? float(v.GetNumberAsDouble()) : fallback;
+}
+
+class Loader {
+ public:
+  Loader(const tinygltf::Model& model, std::string source, std::vector<std::string>* warnings,
+         const LoadOptions& options)
+      : model_(model), source_(std::move(source)), warnings_(warnings), options_(options) {}
+
+  SceneDescription run() {
+    SceneDescription desc;
+    desc.source = source_;
+    desc.limits = options_.limits;
+    desc.stats.nodes = model_.nodes.size();
+    desc.stats.extensions_used = model_.extensionsUsed;
+    // glTF 2.0, 3.12: "loaders must not load an asset that requires an extension they do not
+    // support".
+    for (size_t i = 0; i < model_.extensionsRequired.size(); ++i) {
+      const std::string& ext = model_.extensionsRequired[i];
+      if (!supported_extensions().count(ext)) {
+        std::string list;
+        for (const std::string& s : supported_extensions()) list += (list.empty() ? "" : ", ") + s;
+        fail("extensionsRequired[" + std::to_string(i) + "]: the scene requires extension '" +
+             ext + "', which this renderer does not implement (it implements " + list + ")");
+      }
+    }
+    for (const std::string& ext : model_.extensionsUsed)
+      if (!supported_extensions().count(ext) &&
+          std::find(model_.extensionsRequired.begin(), model_.extensionsRequired.end(), ext) ==
+              model_.extensionsRequired.end())
+        warn("extension '" + ext + "' is not supported; ignoring it");
+    for (const std::vector<std::string>* list :
+         {&model_.extensionsUsed, &model_.extensionsRequired})
+      if (std::find(list->begin(), list->end(), "KHR_mesh_quantization") != list->end())
+        quantization_ = true;
+    load_textures(&desc);
+    load_materials(&desc);
+    load_lights();
+    count_mesh_uses();
+
+    if (model_.nodes.size() > options_.limits.max_nodes)
+      fail("nodes: the scene has " + std::to_string(model_.nodes.size()) +
+           " nodes, over the limit of " + std::to_string(options_.limits.max_nodes));
+    const std::vector<int> parent = check_hierarchy();
+    std::vector<int> roots;
+    std::string roots_path;
+    if (!model_.scenes.empty()) {
+      const int scene_index = model_.defaultScene >= 0 ? model_.defaultScene : 0;
+      if (scene_index >= int(model_.scenes.size()))
+        fail("scene: refers to missing scene " + std::to_string(scene_index));
+      roots = model_.scenes[size_t(scene_index)].nodes;
+      roots_path = "scenes[" + std::to_string(scene_index) + "].nodes";
+    } else {
+      // No scenes: render every node that is nobody's child.
+      for (size_t i = 0; i < model_.nodes.size(); ++i)
+        if (parent[i] < 0) roots.push_back(int(i));
+      roots_path = "nodes";
+    }
+    check_roots(roots, roots_path, parent);
+    check_cost(roots, &desc.stats);
+    reserve(world_counts(roots), &desc.world);
+    for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
+    return desc;
+  }
+
+  // glTF textures -> TextureSource list (one per glTF texture, same indices).
+  void load_textures(SceneDescription* desc) {
+    auto wrap = [](int mode) {
+      if (mode == TINYGLTF_TEXTURE_WRAP_CLAMP_TO_EDGE) return TextureWrap::Clamp;
+      if (mode == TINYGLTF_TEXTURE_WRAP_MIRRORED_REPEAT) return TextureWrap::Mirror;
+      return TextureWrap::Repeat;
+    };
+    for (size_t i = 0; i < model_.textures.size(); ++i) {
+      const tinygltf::Texture& gt = model_.textures[i];
+      TextureSource src;
+      src.name = "textures[" + std::to_string(i) + "]" + named(gt.name);
+      for (const auto& ext : gt.extensions)
+        warn(src.name + ": extension '" + ext.first + "' is not supported; using 'source'");
+      if (gt.sampler >= 0 && gt.sampler < int(model_.samplers.size())) {
+        src.wrap_s = wrap(model_.samplers[size_t(gt.sampler)].wrapS);
+        src.wrap_t = wrap(model_.samplers[size_t(gt.sampler)].wrapT);
+        // glTF 3.8.4: magFilter NEAREST or LINEAR (bilinear, also when undefined). The
+        // minification filter is the pixel integral itself: samples spread over the pixel
+        // average the texels it covers, which a MIP level would blur beyond it.
+        src.nearest =
+            model_.samplers[size_t(gt.sampler)].magFilter == TINYGLTF_TEXTURE_FILTER_NEAREST;
+      }
+      if (gt.source < 0 || gt.source >= int(model_.images.size())) {
+        warn(src.name + ": missing image; texture ignored");
+        src.path.clear();
+      } else {
+        const tinygltf::Image& img = model_.images[size_t(gt.source)];
+        src.bytes = img.image;
+        src.mime_type = img.mimeType;
+        if (src.bytes.empty()) {
+          warn(src.name + ": image " + std::to_string(gt.source) +
+               " could not be loaded (uri '" + img.uri + "'); texture ignored");
+        }
+      }
+      desc->textures.push_back(std::move(src));
+    }
+  }
+
+  // KHR_materials_volume: the medium inside the mesh. Its thickness (factor and texture) is
+  // for renderers that cannot measure the path inside; a path tracer has the real length, so
+  // only thicknessFactor > 0 (not thin-walled) is read from it.
+  void load_volume(const tinygltf::Value& ext, const std::string& where, const std::string& name,
+                   Material* m) const {
+    const float thickness = number_or(ext, "thicknessFactor", 0.f);
+    if (!(thickness >= 0.f)) fail(where + ".thicknessFactor" + name + ": must be >= 0");
+    float distance = std::numeric_limits<float>::infinity();
+    if (ext.Has("attenuationDistance")) {
+      distance = number_or(ext, "attenuationDistance", -1.f);
+      if (!(distance > 0.f))
+        fail(where + ".attenuationDistance" + name + ": must be a number > 0");
+    }
+    Vec3 color{1.f, 1.f, 1.f};
+    if (ext.Has("attenuationColor")) {
+      const tinygltf::Value& c = ext.Get("attenuationColor");
+      if (!c.IsArray() || c.ArrayLen() != 3)
+        fail(where + ".attenuationColor" + name + ": must be an array of 3 numbers");
+      for (int k = 0; k < 3; ++k) {
+        const tinygltf::Value& v = c.Get(k);
+        color[k] = v.IsNumber() ? float(v.GetNumberAsDouble()) : -1.f;
+        if (!(color[k] >= 0.f && color[k] <= 1.f))
+          fail(where + ".attenuationColor" + name + ": must be 3 numbers in [0, 1]");
+      }
+    }
+    if (thickness == 0.f || std::isinf(distance)) return;  // thin-walled, or clear
+    for (int k = 0; k < 3; ++k)
+      // A colour of 0 absorbs everything: a coefficient large enough that any length inside
+      // gives 0 (exp underflows), without an infinity that 0 lengths would turn into NaN.
+      m->absorption[k] = color[k] > 0.f ? -std::log(color[k]) / distance : 1e30f;
+  }
+
+  // A material's texture slot, with KHR_texture_transform.
+  TextureRef texture_ref(int index, int texcoord, const tinygltf::ExtensionMap& extensions,
+                         const std::string& where) {
+    TextureRef ref;
+    if (index < 0) return ref;
+    if (index >= int(model_.textures.size()))
+      fail(where + ": refers to missing texture " + std::to_string(index));
+    ref.texture = index;
+    ref.texcoord = uint32_t(std::max(0, texcoord));
+    auto it = extensions.find("KHR_texture_transform");
+    if (it != extensions.end()) {
+      const tinygltf::Value& t = it->second;
+      if (t.Has("offset") && t.Get("offset").IsArray() && t.Get("offset").ArrayLen() == 2) {
+        ref.offset[0] = float(t.Get("offset").Get(0).GetNumberAsDouble());
+        ref.offset[1] = float(t.Get("offset").Get(1).GetNumberAsDouble());
+      }
+      if (t.Has("scale") && t.Get("scale").IsArray() && t.Get("scale").ArrayLen() == 2) {
+        ref.scale[0] = float(t.Get("scale").Get(0).GetNumberAsDouble());
+        ref.scale[1] = float(t.Get("scale").Get(1).GetNumberAsDouble());
+      }
+      ref.rotation = number_or(t, "rotation", 0.f);
+      if (t.Has("texCoord") && t.Get("texCoord").IsNumber())
+        ref.texcoord = uint32_t(std::max(0, t.Get("texCoord").GetNumberAsInt()));
+    }
+    // The TriangleMesh::uv array of the set: sets 0 and 1 are arrays 0 and 1, the others get
+    // arrays from 2 up in the order materials first read them (so that a set numbered in the
+    // millions costs one array, not millions).
+    if (ref.texcoord >= 2)
+      ref.texcoord =
+          uv_array_of_set_.try_emplace(ref.texcoord, uint32_t(2 + uv_array_of_set_.size()))
+              .first->second;
+    return ref;
+  }
+
+  void load_lights() {
+    auto it = model_.extensions.find("KHR_lights_punctual");
+    if (it == model_.extensions.end()) return;
+    const tinygltf::Value& root = it->second;
+    if (!root.Has("lights") || !root.Get("lights").IsArray()) return;
+    const tinygltf::Value& list = root.Get("lights");
+    for (size_t i = 0; i < list.ArrayLen(); ++i) {
+      const tinygltf::Value& l = list.Get(int(i));
+      PunctualLight light;
+      const std::string where = "extensions.KHR_lights_punctual.lights[" + std::to_string(i) + "]";
+      const std::string type = l.Has("type") && l.Get("type").IsString()
+                                   ? l.Get("type").Get<std::string>()
+                                   : std::string();
+      if (type == "point") light.type = PunctualType::Point;
+      else if (type == "spot") light.type = PunctualType::Spot;
+      else if (type == "directional") light.type = PunctualType::Directional;
+      else {
+        warn(where + ": unknown type '" + type + "'; light ignored");
+        lights_.push_back(std::nullopt);
+        continue;
+      }
+      Vec3 color(1.f, 1.f, 1.f);
+      if (l.Has("color") && l.Get("color").IsArray() && l.Get("color").ArrayLen() == 3)
+        for (int c = 0; c < 3; ++c)
+          color[c] = float(l.Get("color").Get(c).GetNumberAsDouble());
+      const float intensity = number_or(l, "intensity", 1.f);
+      light.intensity = color * intensity;
+      if (!is_finite(light.intensity) || light.intensity.x < 0.f || light.intensity.y < 0.f ||
+          light.intensity.z < 0.f)
+        fail(where + ": color x intensity must be finite and >= 0");
+      if (l.Has("range")) warn(where + ": 'range' is ignored (physically based falloff)");
+      if (light.type == PunctualType::Spot) {
+        const tinygltf::Value spot = l.Has("spot") ? l.Get("spot") : tinygltf::Value();
+        const float inner = number_or(spot, "innerConeAngle", 0.f);
+        const float outer = number_or(spot, "outerConeAngle", kPi / 4.f);
+        if (!(inner >= 0.f && inner < outer && outer <= kPi / 2.f))
+          fail(where + ": spot cone angles must satisfy 0 <= inner < outer <= pi/2");
+        light.cos_inner = std::cos(inner);
+        light.cos_outer = std::cos(outer);
+      }
+      lights_.push_back(light);
+    }
+  }
+
+  // The vertex attributes the renderer reads: POSITION, NORMAL, COLOR_0, TEXCOORD_0 and _1,
+  // and the other TEXCOORD_<n> that a material reads.
+  bool reads_attribute(const std::string& name) const {
+    if (name == "POSITION" || name == "NORMAL" || name == "COLOR_0") return true;
+    uint32_t array = 0;
+    return uv_array(name, &array);
+  }
+  // For a TEXCOORD_<n> attribute the renderer reads: the TriangleMesh::uv array it goes to.
+  bool uv_array(const std::string& name, uint32_t* array) const {
+    uint32_t set = 0;
+    if (!texcoord_set(name, &set)) return false;
+    if (set < 2) {
+      *array = set;
+      return true;
+    }
+    const auto it = uv_array_of_set_.find(set);
+    if (it == uv_array_of_set_.end()) return false;
+    *array = it->second;
+    return true;
+  }
+  // n of an attribute named TEXCOORD_<n>.
+  static bool texcoord_set(const std::string& name, uint32_t* set) {
+    static const std::string prefix = "TEXCOORD_";
+    if (name.compare(0, prefix.size(), prefix) != 0 || name.size() == prefix.size() ||
+        name.size() > prefix.size() + 9)
+      return false;
+    uint32_t n = 0;
+    for (size_t i = prefix.size(); i < name.size(); ++i) {
+      if (!std::isdigit(static_cast<unsigned char>(name[i]))) return false;
+      n = 10 * n + uint32_t(name[i] - '0');
+    }
+    // glTF attribute names have no leading zeros ("TEXCOORD_01" is not set 1).
+    if (name.size() > prefix.size() + 1 && name[prefix.size()] == '0') return false;
+    *set = n;
+    return true;
+  }
+
+  // The accessors of the attributes a primitive has that the renderer reads. Primitives of one
+  // mesh with the same key share their vertices (exporters often give every material's
+  // primitive the whole vertex buffer).
+  using VertexKey = std::map<std::string, int>;
+  VertexKey vertex_key(const tinygltf::Primitive& prim) const {
+    VertexKey key;
+    for (const auto& [name, accessor] : prim.attributes)
+      if (reads_attribute(name)) key.emplace(name, accessor);
+    return key;
+  }
+
+  // Vertex and triangle counts of meshes, for reserving TriangleMesh arrays exactly (no
+  // growth slack, no copies while a scene of millions of triangles loads). Accessors that are
+  // invalid count as empty here; add_mesh reports them.
+  struct Counts {
+    size_t vertices = 0, triangles = 0;
+    bool normals = false, colors = false;
+    std::set<uint32_t> uv;  // TriangleMesh::uv arrays
+    void operator+=(const Counts& o) {
+      vertices += o.vertices;
+      triangles += o.triangles;
+      normals = normals || o.normals;
+      colors = colors || o.colors;
+      uv.insert(o.uv.begin(), o.uv.end());
+    }
+  };
+  size_t accessor_count(int index) const {
+    if (index < 0 || index >= int(model_.accessors.size())) return 0;
+    return accessor_problem(model_.accessors[size_t(index)]).empty()
+               ? model_.accessors[size_t(index)].count
+               : 0;
+  }
+
+  // Whether bytes [offset, offset + count - 1 strides + elem) lie in a buffer view of length
+  // `length`, without overflow.
+  static bool fits(size_t length, size_t offset, size_t count, size_t elem, size_t stride) {
+    if (count == 0) return offset <= length;
+    return offset <= length && elem <= length - offset &&
+           (count - 1) <= (length - offset - elem) / stride;
+  }
+  // "" if buffer view `index` exists and lies in its buffer, otherwise why not.
+  std::string view_problem(int index) const {
+    if (index < 0 || index >= int(model_.bufferViews.size()))
+      return "refers to missing buffer view " + std::to_string(index);
+    const tinygltf::BufferView& bv = model_.bufferViews[size_t(index)];
+    if (bv.buffer < 0 || bv.buffer >= int(model_.buffers.size()))
+      return "buffer view refers to a missing buffer";
+    const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
+    if (bv.byteOffset > buf.data.size() || bv.byteLength > buf.data.size() - bv.byteOffset)
+      return "buffer view exceeds its buffer";
+    return {};
+  }
+
+  // Why an accessor's data is not all in its buffers ("" if it is): its own buffer view (none:
+  // zeros, glTF 2.0 3.6.2.3) and a sparse accessor's indices and values. check_accessor
+  // reports it.
+  std::string accessor_problem(const tinygltf::Accessor& acc) const {
+    const int ncomp = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
+    const int csize = tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType));
+    if (ncomp <= 0 || csize <= 0) return "unsupported 'type' or 'componentType'";
+    const size_t elem = size_t(ncomp) * size_t(csize);
+    if (acc.bufferView >= 0 || !acc.sparse.isSparse) {
+      if (acc.bufferView < 0 || acc.bufferView >= int(model_.bufferViews.size()))
+        return "missing or invalid 'bufferView'";
+      const std::string view = view_problem(acc.bufferView);
+      if (!view.empty()) return view;
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+      const size_t stride = bv.byteStride ? bv.byteStride : elem;
+      if (stride < elem) return "'byteStride' smaller than the element";
+      if (!fits(bv.byteLength, acc.byteOffset, acc.count, elem, stride))
+        return "data exceeds its buffer view";
+    }
+    if (!acc.sparse.isSparse) return {};
+    const auto& sp = acc.sparse;
+    if (sp.count < 1 || size_t(sp.count) > acc.count)
+      return "sparse.count " + std::to_string(sp.count) + " is not in [1, count = " +
+             std::to_string(acc.count) + "]";
+    const int isize = tinygltf::GetComponentSizeInBytes(uint32_t(sp.indices.componentType));
+    if (sp.indices.componentType != TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE &&
+        sp.indices.componentType != TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT &&
+        sp.indices.componentType != TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT)
+      return "sparse.indices.componentType must be 5121, 5123 or 5125";
+    const struct {
+      const char* name;
+      int view, offset;
+      size_t elem;
+    } parts[2] = {{"sparse.indices", sp.indices.bufferView, sp.indices.byteOffset, size_t(isize)},
+                  {"sparse.values", sp.values.bufferView, sp.values.byteOffset, elem}};
+    for (const auto& part : parts) {
+      const std::string view = view_problem(part.view);
+      if (!view.empty()) return std::string(part.name) + ": " + view;
+      if (part.offset < 0) return std::string(part.name) + ".byteOffset is negative";
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(part.view)];
+      if (!fits(bv.byteLength, size_t(part.offset), size_t(sp.count), part.elem, part.elem))
+        return std::string(part.name) + ": data exceeds its buffer view";
+    }
+    return {};
+  }
+  Counts mesh_counts(size_t mesh_index) const {
+    Counts c;
+    std::set<VertexKey> seen;
+    for (const tinygltf::Primitive& prim : model_.meshes[mesh_index].primitives) {
+      if (!is_triangles(prim.mode)) continue;
+      const auto pos = prim.attributes.find("POSITION");
+      if (pos == prim.attributes.end()) continue;
+      const size_t nv = accessor_count(pos->second);
+      if (seen.insert(vertex_key(prim)).second) c.vertices += nv;
+      c.triangles +=
+          triangle_count(prim.mode, prim.indices >= 0 ? accessor_count(prim.indices) : nv);
+      for (const auto& attribute : prim.attributes) {
+        uint32_t array = 0;
+        if (attribute.first == "NORMAL") c.normals = true;
+        if (attribute.first == "COLOR_0") c.colors = true;
+        if (uv_array(attribute.first, &array)) c.uv.insert(array);
+      }
+    }
+    return c;
+  }
+  // What visit() will flatten into the world mesh: meshes used by one node, for the nodes
+  // reachable from the roots.
+  Counts world_counts(const std::vector<int>& roots) const {
+    Counts c;
+    std::vector<bool> seen(model_.nodes.size(), false);
+    std::vector<int> stack(roots.begin(), roots.end());
+    while (!stack.empty()) {
+      const int i = stack.back();
+      stack.pop_back();
+      if (i < 0 || i >= int(model_.nodes.size()) || seen[size_t(i)]) continue;
+      seen[size_t(i)] = true;
+      const tinygltf::Node& node = model_.nodes[size_t(i)];
+      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) &&
+          mesh_uses_[size_t(node.mesh)] == 1)
+        c += mesh_counts(size_t(node.mesh));
+      stack.insert(stack.end(), node.children.begin(), node.children.end());
+    }
+    return c;
+  }
+  static void reserve(const Counts& c, TriangleMesh* mesh) {
+    // One vertex more: Embree reads the last vertex with a 16-byte load.
+    mesh->positions.reserve(c.vertices + 1);
+    if (c.normals) mesh->normals.reserve(c.vertices);
+    if (c.colors) mesh->colors.reserve(c.vertices);
+    for (uint32_t set : c.uv) {
+      if (mesh->uv.size() <= set) mesh->uv.resize(set + 1);
+      mesh->uv[set].reserve(c.vertices);
+    }
+    mesh->indices.reserve(3 * c.triangles);
+    mesh->material.reserve(c.triangles);
+    mesh->flags.reserve(c.triangles);
+  }
+
+  // glTF 2.0, 3.5.3: "the node hierarchy must be a set of disjoint strict trees": no node has
+  // two parents, none is its own ancestor. Checked before anything walks the graph, which is
+  // then a forest: a walk from the roots visits each node once. (A graph that shares children
+  // would make the walk exponential: 40 nodes that each list the next one twice are 2^40
+  // visits.) Returns each node's parent, -1 for none.
+  std::vector<int> check_hierarchy() const {
+    const int n = int(model_.nodes.size());
+    std::vector<int> parent(size_t(n), -1);
+    for (int i = 0; i < n; ++i) {
+      const std::vector<int>& children = model_.nodes[size_t(i)].children;
+      for (size_t k = 0; k < children.size(); ++k) {
+        const int c = children[k];
+        const std::string at =
+            "nodes[" + std::to_string(i) + "].children[" + std::to_string(k) + "]: ";
+        if (c < 0 || c >= n) fail(at + "refers to missing node " + std::to_string(c));
+        if (c == i) fail(at + "node " + std::to_string(i) + " lists itself as its child");
+        if (parent[size_t(c)] >= 0)
+          fail(at + "node " + std::to_string(c) + " is already a child of node " +
+               std::to_string(parent[size_t(c)]) +
+               "; glTF node hierarchies are disjoint strict trees (a node has at most one "
+               "parent)");
+        parent[size_t(c)] = i;
+      }
+    }
+    // With one parent each, a cycle is a loop of parent links: follow them from every node,
+    // marking the nodes on the current walk (1) and those known to reach a root (2).
+    std::vector<uint8_t> state(size_t(n), 0);
+    std::vector<int> walk;
+    for (int i = 0; i < n; ++i) {
+      walk.clear();
+      int j = i;
+      while (j >= 0 && state[size_t(j)] == 0) {
+        state[size_t(j)] = 1;
+        walk.push_back(j);
+        j = parent[size_t(j)];
+      }
+      if (j >= 0 && state[size_t(j)] == 1)
+        fail("nodes[" + std::to_string(parent[size_t(j)]) + "].children: the node hierarchy " +
+             "has a cycle through node " + std::to_string(j));
+      for (int w : walk) state[size_t(w)] = 2;
+    }
+    return parent;
+  }
+
+  void check_roots(const std::vector<int>& roots, const std::string& path,
+                   const std::vector<int>& parent) const {
+    std::set<int> seen;
+    for (size_t k = 0; k < roots.size(); ++k) {
+      const int r = roots[k];
+      const std::string at = path + "[" + std::to_string(k) + "]: ";
+      if (r < 0 || r >= int(model_.nodes.size()))
+        fail(at + "refers to missing node " + std::to_string(r));
+      if (parent[size_t(r)] >= 0)
+        fail(at + "node " + std::to_string(r) + " is a child of node " +
+             std::to_string(parent[size_t(r)]) + " and cannot also be a root");
+      if (!seen.insert(r).second) fail(at + "node " + std::to_string(r) + " is listed twice");
+    }
+  }
+
+  // Depth, triangles over every mesh use and the memory estimate of what the roots reach,
+  // checked against the limits before any geometry is allocated.
+  void check_cost(const std::vector<int>& roots, SceneStats* stats) const {
+    const SceneLimits& limits = options_.limits;
+    std::vector<std::pair<int, uint32_t>> stack;  // (node, depth)
+    for (int r : roots) stack.push_back({r, 1});
+    std::vector<uint64_t> uses(model_.meshes.size(), 0);
+    std::vector<uint64_t> mesh_triangles(model_.meshes.size(), UINT64_MAX);
+    uint64_t instances = 0;
+    while (!stack.empty()) {
+      const auto [i, depth] = stack.back();
+      stack.pop_back();
+      const tinygltf::Node& node = model_.nodes[size_t(i)];
+      const std::string where = "nodes[" + std::to_string(i) + "]";
+      if (depth > limits.max_depth)
+        fail(where + ": the node hierarchy is deeper than the limit of " +
+             std::to_string(limits.max_depth) + " levels");
+      stats->depth = std::max(stats->depth, depth);
+      if (node.mesh >= 0) {
+        if (node.mesh >= int(model_.meshes.size()))
+          fail(where + ".mesh: refers to missing mesh " + std::to_string(node.mesh));
+        uint64_t& tris = mesh_triangles[size_t(node.mesh)];
+        if (tris == UINT64_MAX) tris = mesh_counts(size_t(node.mesh)).triangles;
+        ++uses[size_t(node.mesh)];
+        ++instances;
+        stats->instanced_triangles += tris;
+        if (stats->instanced_triangles > limits.max_instanced_triangles)
+          fail(where + ": the scene's mesh uses add up to more than " +
+               std::to_string(limits.max_instanced_triangles) + " triangles (the limit)");
+      }
+      for (int c : node.children) stack.push_back({c, depth + 1});
+    }
+    // Memory: each mesh once (a mesh used by several nodes is instanced, not copied), its
+    // arrays as TriangleMesh holds them, Embree's BVH (docs/architecture.md: about 70 bytes a
+    // triangle, 45 for the compact layout), the instances, and the file's buffers, which the loader
+    // holds until the scene is built.
+    const double bvh_bytes = options_.bvh == BvhLayout::Compact ? 45.0 : 70.0;
+    double bytes = 0.0;
+    for (size_t m = 0; m < model_.meshes.size(); ++m) {
+      if (!uses[m]) continue;
+      const Counts c = mesh_counts(m);
+      const double per_vertex = 12.0 + (c.normals ? 12.0 : 0.0) + (c.colors ? 16.0 : 0.0) +
+                                8.0 * double(c.uv.size());
+      bytes += double(c.vertices) * per_vertex +
+               double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes);
+    }
+    bytes += double(instances) * 256.0;
+    for (const tinygltf::Buffer& b : model_.buffers) bytes += double(b.data.size());
+    stats->estimated_bytes = uint64_t(bytes);
+    if (limits.max_memory_bytes && stats->estimated_bytes > limits.max_memory_bytes)
+      fail("meshes: the scene needs about " + format_bytes(stats->estimated_bytes) +
+           " of memory once loaded, over the limit of " + format_bytes(limits.max_memory_bytes));
+  }
+
+  void count_mesh_uses() {
+    mesh_uses_.assign(model_.meshes.size(), 0);
+    for (const auto& node : model_.nodes)
+      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size())) ++mesh_uses_[size_t(node.mesh)];
+    mesh_slot_.assign(model_.meshes.size(), -1);
+  }
+
+ private:
+  // what starts with the glTF path of the offending part ("nodes[3] ('Cube'): ..."): that path
+  // becomes the error's path().
+  [[noreturn]] void fail(const std::string& what) const {
+    throw SceneError(source_ + ": " + what, leading_path(what));
+  }
+  static std::string leading_path(const std::string& what) {
+    size_t end = 0;
+    while (end < what.size() && (std::isalnum(static_cast<unsigned char>(what[end])) ||
+                                 what[end] == '_' || what[end] == '.' || what[end] == '[' ||
+                                 what[end] == ']'))
+      ++end;
+    const std::string path = what.substr(0, end);
+    return path.find('[') != std::string::npos || path == "nodes" || path == "scenes" ||
+                   path == "scene" || path == "meshes"
+               ? path
+               : std::string();
+  }
+  static std::string named(const std::string& name) {
+    return name.empty() ? std::string() : " ('" + name + "')";
+  }
+  void warn(const std::string& what) {
+    if (warnings_) warnings_->push_back(source_ + ": " + what);
+  }
+
+  void load_materials(SceneDescription* desc) {
+    for (size_t i = 0; i < model_.materials.size(); ++i) {
+      const tinygltf::Material& gm = model_.materials[i];
+      const std::string where = "materials[" + std::to_string(i) + "]" + named(gm.name);
+      Material m;
+      m.name = gm.name;
+      // glTF defaults: metallic = roughness = 1, a dielectric specular layer of ior 1.5.
+      m.metallic = float(gm.pbrMetallicRoughness.metallicFactor);
+      m.roughness = float(gm.pbrMetallicRoughness.roughnessFactor);
+      m.specular = 1.f;
+      if (!(m.metallic >= 0.f && m.metallic <= 1.f))
+        fail(where + ": pbrMetallicRoughness.metallicFactor must be in [0, 1]");
+      if (!(m.roughness >= 0.f && m.roughness <= 1.f))
+        fail(where + ": pbrMetallicRoughness.roughnessFactor must be in [0, 1]");
+      for (const auto& e : gm.extensions)
+        if (!supported_extensions().count(e.first) && warned_material_ext_.insert(e.first).second)
+          warn(where + ": material extension '" + e.first + "' is not supported; ignoring it");
+      auto tr = gm.extensions.find("KHR_materials_transmission");
+      if (tr != gm.extensions.end()) {
+        m.transmission = number_or(tr->second, "transmissionFactor", 0.f);
+        if (tr->second.Has("transmissionTexture"))
+          warn(where + ": KHR_materials_transmission.transmissionTexture is not supported; "
+                       "using transmissionFactor");
+        if (m.transmission > 0.f && m.roughness > 0.f && warned_rough_glass_.insert(i).second)
+          warn(where + ": transmission is rendered as smooth glass (roughness ignored for it)");
+      }
+      if (!(m.transmission >= 0.f && m.transmission <= 1.f))
+        fail(where + ": KHR_materials_transmission.transmissionFactor must be in [0, 1]");
+      auto io = gm.extensions.find("KHR_materials_ior");
+      if (io != gm.extensions.end()) m.ior = number_or(io->second, "ior", 1.5f);
+      if (!(m.ior >= 1.f && m.ior < 10.f)) {
+        warn(where + ": KHR_materials_ior.ior " + std::to_string(m.ior) +
+             " outside [1, 10) is not supported; using 1.5");
+        m.ior = 1.5f;
+      }
+      auto vol = gm.extensions.find("KHR_materials_volume");
+      if (vol != gm.extensions.end())
+        load_volume(vol->second,
+                    "materials[" + std::to_string(i) + "].extensions.KHR_materials_volume",
+                    named(gm.name), &m);
+      auto sp = gm.extensions.find("KHR_materials_specular");
+      if (sp != gm.extensions.end()) {
+        m.specular = std::min(1.f, std::max(0.f, number_or(sp->second, "specularFactor", 1.f)));
+        if (sp->second.Has("specularColorFactor") || sp->second.Has("specularTexture") ||
+            sp->second.Has("specularColorTexture"))
+          warn(where + ": KHR_materials_specular color and textures are not supported; "
+                       "using specularFactor");
+      }
+      const auto& pmr = gm.pbrMetallicRoughness;
+      m.base_color_tex = texture_ref(pmr.baseColorTexture.index, pmr.baseColorTexture.texCoord,
+                                     pmr.baseColorTexture.extensions, where + " baseColorTexture");
+      m.metallic_roughness_tex =
+          texture_ref(pmr.metallicRoughnessTexture.index, pmr.metallicRoughnessTexture.texCoord,
+                      pmr.metallicRoughnessTexture.extensions, where + " metallicRoughnessTexture");
+      m.normal_tex = texture_ref(gm.normalTexture.index, gm.normalTexture.texCoord,
+                                 gm.normalTexture.extensions, where + " normalTexture");
+      m.normal_scale = float(gm.normalTexture.scale);
+      m.emissive_tex = texture_ref(gm.emissiveTexture.index, gm.emissiveTexture.texCoord,
+                                   gm.emissiveTexture.extensions, where + " emissiveTexture");
+      if (gm.occlusionTexture.index >= 0 && !warned_occlusion_) {
+        warn(where + " (and possibly others): occlusionTexture is ignored (a path tracer "
+                     "computes occlusion)");
+        warned_occlusion_ = true;
+      }
+      const std::string at = "materials[" + std::to_string(i) + "]";
+      if (gm.alphaMode == "MASK") {
+        m.alpha_mode = AlphaMode::Mask;
+      } else if (gm.alphaMode == "BLEND") {
+        m.alpha_mode = AlphaMode::Blend;
+      } else if (gm.alphaMode != "OPAQUE" && !gm.alphaMode.empty()) {
+        fail(at + ".alphaMode" + named(gm.name) + ": '" + gm.alphaMode +
+             "' is not OPAQUE, MASK or BLEND");
+      }
+      m.double_sided = gm.doubleSided;
+      m.alpha_cutoff = float(gm.alphaCutoff);
+      if (!(gm.alphaCutoff >= 0.0))
+        fail(at + ".alphaCutoff" + named(gm.name) + ": " + std::to_string(gm.alphaCutoff) +
+             " is negative");
+      const auto& base = gm.pbrMetallicRoughness.baseColorFactor;
+      if (base.size() >= 3)
+        m.albedo = Vec3(float(base[0]), float(base[1]), float(base[2]));
+      if (base.size() >= 4) m.alpha = float(base[3]);
+      for (int k = 0; k < 3; ++k)
+        if (!(m.albedo[k] >= 0.f && m.albedo[k] <= 1.f))
+          fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
+      if (!(m.alpha >= 0.f && m.alpha <= 1.f))
+        fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
+      float strength = 1.f;
+      auto ext = gm.extensions.find("KHR_materials_emissive_strength");
+      if (ext != gm.extensions.end() && ext->second.Has("emissiveStrength")) {
+        const tinygltf::Value& v = ext->second.Get("emissiveStrength");
+        if (!v.IsNumber())
+          fail(where + ": KHR_materials_emissive_strength.emissiveStrength is not a number");
+        strength = float(v.GetNumberAsDouble());
+      }
+      if (gm.emissiveFactor.size() >= 3)
+        m.emission = Vec3(float(gm.emissiveFactor[0]), float(gm.emissiveFactor[1]),
+                          float(gm.emissiveFactor[2])) *
+                     strength;
+      for (int k = 0; k < 3; ++k)
+        if (!(m.emission[k] >= 0.f) || !std::isfinite(m.emission[k]))
+          fail(where + ": emissiveFactor x emissiveStrength must be finite and >= 0");
+      desc->materials.push_back(m);
+    }
+    default_material_ = uint32_t(desc->materials.size());
+    // Primitives without a material: white Lambertian (the glTF default material would be a
+    // white metal, which surprises more than it helps).
+    Material def;
+    def.name = "default";
+    desc->materials.push_back(def);
+  }
+
+  Mat4 local_transform(const tinygltf::Node& node, const std::string& where) const {
+    if (node.matrix.size() == 16) {
+      Mat4 m;
+      for (int i = 0; i < 16; ++i) m.m[size_t(i / 4)][size_t(i % 4)] = node.matrix[size_t(i)];
+      return m;
+    }
+    if (!node.matrix.empty()) fail(where + ": 'matrix' must have 16 elements");
+    Mat4 t = Mat4::identity(), r = Mat4::identity(), s = Mat4::identity();
+    if (!node.translation.empty()) {
+      if (node.translation.size() != 3) fail(where + ": 'translation' must have 3 elements");
+      for (int i = 0; i < 3; ++i) t.m[3][size_t(i)] = node.translation[size_t(i)];
+    }
+    if (!node.rotation.empty()) {
+      if (node.rotation.size() != 4) fail(where + ": 'rotation' must have 4 elements");
+      double x = node.rotation[0], y = node.rotation[1], z = node.rotation[2],
+             w = node.rotation[3];
+      const double n = std::sqrt(x * x + y * y + z * z + w * w);
+      if (!(n > 0.0)) fail(where + ": 'rotation' is not a valid quaternion");
+      x /= n, y /= n, z /= n, w /= n;
+      // Unit quaternion to rotation matrix (column-major m[col][row]).
+      r.m[0][0] = 1 - 2 * (y * y + z * z);
+      r.m[0][1] = 2 * (x * y + z * w);
+      r.m[0][2] = 2 * (x * z - y * w);
+      r.m[1][0] = 2 * (x * y - z * w);
+      r.m[1][1] = 1 - 2 * (x * x + z * z);
+      r.m[1][2] = 2 * (y * z + x * w);
+      r.m[2][0] = 2 * (x * z + y * w);
+      r.m[2][1] = 2 * (y * z - x * w);
+      r.m[2][2] = 1 - 2 * (x * x + y * y);
+    }
+    if (!node.scale.empty()) {
+      if (node.scale.size() != 3) fail(where + ": 'scale' must have 3 elements");
+      for (int i = 0; i < 3; ++i) s.m[size_t(i)][size_t(i)] = node.scale[size_t(i)];
+    }
+    return t * r * s;
+  }
+
+  void visit(int index, const Mat4& parent, SceneDescription* desc, int depth) {
+    if (index < 0 || index >= int(model_.nodes.size()))
+      fail("reference to missing node " + std::to_string(index));
+    // glTF node graphs are trees; a deeper chain than the node count means a cycle.
+    if (depth > int(model_.nodes.size())) fail("node hierarchy contains a cycle");
+    const tinygltf::Node& node = model_.nodes[size_t(index)];
+    const std::string where = "nodes[" + std::to_string(index) + "]" + named(node.name);
+    const Mat4 world = parent * local_transform(node, where);
+    if (node.camera >= 0 && !desc->camera) take_camera(node, world, where, desc);
+    auto light_ext = node.extensions.find("KHR_lights_punctual");
+    if (light_ext != node.extensions.end() && light_ext->second.Has("light")) {
+      const int li = light_ext->second.Get("light").GetNumberAsInt();
+      if (li < 0 || li >= int(lights_.size()))
+        fail(where + ": KHR_lights_punctual.light refers to missing light " + std::to_string(li));
+      if (lights_[size_t(li)]) {
+        PunctualLight light = *lights_[size_t(li)];
+        light.position = world.transform_point({0.f, 0.f, 0.f});
+        const Vec3 dir = world.transform_vector({0.f, 0.f, -1.f});
+        if (!(length(dir) > 0.f)) fail(where + ": light transform is singular");
+        light.direction = normalize(dir);
+        desc->punctual_lights.push_back(light);
+      }
+    }
+    if (node.mesh >= 0) {
+      if (node.mesh >= int(model_.meshes.size()))
+        fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
+      warn_unsupported_mesh_features(node, where);
+      if (mesh_uses_[size_t(node.mesh)] > 1) {
+        // Shared mesh: built once in its own space, placed by an instance.
+        int& slot = mesh_slot_[size_t(node.mesh)];
+        if (slot < 0) {
+          Mesh mesh;
+          mesh.name = model_.meshes[size_t(node.mesh)].name;
+          reserve(mesh_counts(size_t(node.mesh)), &mesh.geometry);
+          add_mesh(size_t(node.mesh), Mat4::identity(), &mesh.geometry);
+          slot = int(desc->meshes.size());
+          desc->meshes.push_back(std::move(mesh));
+        }
+        desc->instances.push_back({uint32_t(slot), world});
+      } else {
+        add_mesh(size_t(node.mesh), world, &desc->world);
+      }
+    }
+    for (int child : node.children) visit(child, world, desc, depth + 1);
+  }
+
+  // Skins and morph targets, which a still of the scene's rest pose would need, are not
+  // implemented: said once per scene.
+  void warn_unsupported_mesh_features(const tinygltf::Node& node, const std::string& where) {
+    const tinygltf::Mesh& mesh = model_.meshes[size_t(node.mesh)];
+    if (node.skin >= 0 && !warned_skin_) {
+      warn(where + " (and possibly others): skins are not supported; the mesh is rendered "
+                   "unskinned, placed by the node");
+      warned_skin_ = true;
+    }
+    const std::vector<double>& weights = node.weights.empty() ? mesh.weights : node.weights;
+    bool morphed = false;
+    for (const tinygltf::Primitive& prim : mesh.primitives)
+      morphed = morphed || !prim.targets.empty();
+    if (morphed && !warned_morph_ &&
+        std::any_of(weights.begin(), weights.end(), [](double w) { return w != 0.0; })) {
+      warn(where + " (and possibly others): morph targets are not supported; the mesh's base "
+                   "geometry is rendered, without its weights");
+      warned_morph_ = true;
+    }
+  }
+
+  // The first camera the walk from the roots meets, of either type (glTF 2.0, 3.10).
+  void take_camera(const tinygltf::Node& node, const Mat4& world, const std::string& where,
+                   SceneDescription* desc) {
+    if (node.camera >= int(model_.cameras.size()))
+      fail(where + ": 'camera' refers to missing camera " + std::to_string(node.camera));
+    const tinygltf::Camera& gc = model_.cameras[size_t(node.camera)];
+    const std::string at = "cameras[" + std::to_string(node.camera) + "]";
+    const std::string of = " (camera of " + where + ")";
+    Camera cam;
+    double znear = 0.0, zfar = 0.0;
+    if (gc.type == "perspective") {
+      cam.yfov = float(gc.perspective.yfov);
+      if (!(cam.yfov > 0.f && cam.yfov < kPi))
+        fail(at + ".perspective.yfov: " + std::to_string(gc.perspective.yfov) +
+             " is outside (0, pi)" + of);
+      znear = gc.perspective.znear;
+      zfar = gc.perspective.zfar;  // 0: absent, an infinite projection
+      if (!(znear >= 0.0 && std::isfinite(znear)))
+        fail(at + ".perspective.znear: " + std::to_string(znear) + " is not >= 0" + of);
+      if (zfar != 0.0 && !(zfar > znear))
+        fail(at + ".perspective.zfar: " + std::to_string(zfar) + " is not greater than znear" +
+             of);
+    } else if (gc.type == "orthographic") {
+      const tinygltf::OrthographicCamera& o = gc.orthographic;
+      cam.orthographic = true;
+      cam.xmag = float(o.xmag);
+      cam.ymag = float(o.ymag);
+      if (!(cam.xmag != 0.f && std::isfinite(cam.xmag)))
+        fail(at + ".orthographic.xmag: " + std::to_string(o.xmag) + " must be finite and not 0" +
+             of);
+      if (!(cam.ymag != 0.f && std::isfinite(cam.ymag)))
+        fail(at + ".orthographic.ymag: " + std::to_string(o.ymag) + " must be finite and not 0" +
+             of);
+      znear = o.znear;
+      zfar = o.zfar;
+      if (!(znear >= 0.0 && std::isfinite(znear)))
+        fail(at + ".orthographic.znear: " + std::to_string(znear) + " is not >= 0" + of);
+      if (!(zfar > znear && std::isfinite(zfar)))
+        fail(at + ".orthographic.zfar: " + std::to_string(zfar) +
+             " is not finite and greater than znear" + of);
+    } else {
+      fail(at + ".type: '" + gc.type + "' is not perspective or orthographic" + of);
+    }
+    cam.znear = float(znear);
+    if (zfar != 0.0) cam.zfar = float(zfar);
+    cam.position = world.transform_point({0.f, 0.f, 0.f});
+    const Vec3 fwd = world.transform_vector({0.f, 0.f, -1.f});
+    const Vec3 up = world.transform_vector({0.f, 1.f, 0.f});
+    if (!(length(fwd) > 0.f) || !(length(cross(fwd, up)) > 0.f))
+      fail(where + ": camera transform is singular");
+    cam.forward = normalize(fwd);
+    // Re-orthogonalize in case of shear: right = fwd x up, up = right x fwd.
+    cam.right = normalize(cross(cam.forward, up));
+    cam.up = cross(cam.right, cam.forward);
+    desc->camera = cam;
+  }
+
+  // Element i, component c of an accessor's data (range-checked by check_accessor, which made
+  // the view).
+  struct View {
+    const unsigned char* base = nullptr;
+    size_t stride = 0;
+    int component_type = 0;
+    int components = 0;
+    size_t count = 0;
+    bool normalized = false;
+    // The stored number.
+    double raw(size_t i, int c) const {
+      const unsigned char* p = base + i * stride;
+      switch (component_type) {
+        case TINYGLTF_COMPONENT_TYPE_FLOAT: {
+          float f;
+          std::memcpy(&f, p + 4 * c, 4);
+          return f;
+        }
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT: {
+          uint32_t u;
+          std::memcpy(&u, p + 4 * c, 4);
+          return u;
+        }
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT: {
+          uint16_t u;
+          std::memcpy(&u, p + 2 * c, 2);
+          return u;
+        }
+        case TINYGLTF_COMPONENT_TYPE_SHORT: {
+          int16_t v;
+          std::memcpy(&v, p + 2 * c, 2);
+          return v;
+        }
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+          return p[c];
+        case TINYGLTF_COMPONENT_TYPE_BYTE:
+          return double(int8_t(p[c]));
+        default:
+          return 0.0;
+      }
+    }
+    // The attribute value: a normalized integer as glTF 2.0 (3.11) maps it to [0, 1] or
+    // [-1, 1] (c / 255, c / 65535, max(c / 127, -1), max(c / 32767, -1)), any other number as
+    // it is (quantized data that a node transform or KHR_texture_transform dequantizes).
+    float get(size_t i, int c) const {
+      const double v = raw(i, c);
+      if (!normalized) return float(v);
+      switch (component_type) {
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE:
+          return float(v / 255.0);
+        case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT:
+          return float(v / 65535.0);
+        case TINYGLTF_COMPONENT_TYPE_BYTE:
+          return float(std::max(v / 127.0, -1.0));
+        case TINYGLTF_COMPONENT_TYPE_SHORT:
+          return float(std::max(v / 32767.0, -1.0));
+        default:
+          return float(v);
+      }
+    }
+  };
+
+  enum class Attribute { Position, Normal, Texcoord, Color, Indices };
+  static const char* component_name(int type) {
+    switch (type) {
+      case TINYGLTF_COMPONENT_TYPE_BYTE: return "byte";
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE: return "unsigned byte";
+      case TINYGLTF_COMPONENT_TYPE_SHORT: return "short";
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT: return "unsigned short";
+      case TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT: return "unsigned int";
+      case TINYGLTF_COMPONENT_TYPE_FLOAT: return "float";
+      default: return "unknown";
+    }
+  }
+  // "" if the accessor's type, componentType and normalized suit the attribute (glTF 2.0,
+  // 3.7.2.1, and KHR_mesh_quantization's table when the scene uses the extension), otherwise
+  // why not.
+  std::string format_problem(Attribute kind, const tinygltf::Accessor& acc) const {
+    const int ct = acc.componentType;
+    const bool norm = acc.normalized;
+    const bool small_int = ct == TINYGLTF_COMPONENT_TYPE_BYTE ||
+                           ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                           ct == TINYGLTF_COMPONENT_TYPE_SHORT ||
+                           ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT;
+    const bool unsigned_norm =
+        norm && (ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                 ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT);
+    bool type_ok = false, ok = false;
+    const char* allowed = "";
+    switch (kind) {
+      case Attribute::Position:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT || (quantization_ && small_int);
+        allowed = "float (8- and 16-bit integers with KHR_mesh_quantization)";
+        break;
+      case Attribute::Normal:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT ||
+             (quantization_ && norm &&
+              (ct == TINYGLTF_COMPONENT_TYPE_BYTE || ct == TINYGLTF_COMPONENT_TYPE_SHORT));
+        allowed = "float (normalized byte and short with KHR_mesh_quantization)";
+        break;
+      case Attribute::Texcoord:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC2;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT || unsigned_norm || (quantization_ && small_int);
+        allowed = "float, normalized unsigned byte or short (any 8- and 16-bit integers with "
+                  "KHR_mesh_quantization)";
+        break;
+      case Attribute::Color:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3 || acc.type == TINYGLTF_TYPE_VEC4;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT || unsigned_norm;
+        allowed = "float, normalized unsigned byte or short";
+        break;
+      case Attribute::Indices:
+        type_ok = acc.type == TINYGLTF_TYPE_SCALAR;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+             ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ||
+             ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT;
+        allowed = "unsigned byte, short or int";
+        break;
+    }
+    if (!type_ok) return "unexpected accessor 'type'";
+    if (ok) return {};
+    return std::string("componentType ") + std::to_string(ct) + " (" + component_name(ct) +
+           (small_int ? (norm ? ", normalized" : ", not normalized") : "") +
+           ") is not allowed here: it must be " + allowed;
+  }
+
+  View check_accessor(int index, Attribute kind, const std::string& where) {
+    if (index < 0 || index >= int(model_.accessors.size()))
+      fail(where + " refers to missing accessor " + std::to_string(index));
+    const tinygltf::Accessor& acc = model_.accessors[size_t(index)];
+    const std::string aw = "accessors[" + std::to_string(index) + "] (" + where + ")";
+    const std::string format = format_problem(kind, acc);
+    if (!format.empty()) fail(aw + ": " + format);
+    const std::string problem = accessor_problem(acc);
+    if (!problem.empty()) fail(aw + ": " + problem);
+    const size_t elem = size_t(tinygltf::GetNumComponentsInType(uint32_t(acc.type))) *
+                        size_t(tinygltf::GetComponentSizeInBytes(uint32_t(acc.componentType)));
+    View v;
+    v.component_type = acc.componentType;
+    v.components = tinygltf::GetNumComponentsInType(uint32_t(acc.type));
+    v.count = acc.count;
+    v.normalized = acc.normalized;
+    if (acc.sparse.isSparse) {
+      auto [it, fresh] = sparse_data_.try_emplace(index);
+      if (fresh) it->second = materialize_sparse(index, elem, where);
+      v.base = it->second.data();
+      v.stride = elem;
+    } else {
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+      const tinygltf::Buffer& buf = model_.buffers[size_t(bv.buffer)];
+      v.stride = bv.byteStride ? bv.byteStride : elem;
+      v.base = buf.data.data() + bv.byteOffset + acc.byteOffset;
+    }
+    return v;
+  }
+
+  // A sparse accessor's elements (glTF 2.0, 3.6.2.3): those of its buffer view, or zeros
+  // without one, with the elements its sparse indices name replaced by its sparse values;
+  // packed (stride = elem). accessor_problem has checked that every byte read is there.
+  std::vector<unsigned char> materialize_sparse(int index, size_t elem,
+                                                const std::string& where) const {
+    const tinygltf::Accessor& acc = model_.accessors[size_t(index)];
+    std::vector<unsigned char> data(acc.count * elem, 0);
+    if (acc.bufferView >= 0) {
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(acc.bufferView)];
+      const unsigned char* base =
+          model_.buffers[size_t(bv.buffer)].data.data() + bv.byteOffset + acc.byteOffset;
+      const size_t stride = bv.byteStride ? bv.byteStride : elem;
+      for (size_t i = 0; i < acc.count; ++i) std::memcpy(&data[i * elem], base + i * stride, elem);
+    }
+    auto start = [&](int view, int offset) {
+      const tinygltf::BufferView& bv = model_.bufferViews[size_t(view)];
+      return model_.buffers[size_t(bv.buffer)].data.data() + bv.byteOffset + size_t(offset);
+    };
+    View indices;
+    indices.base = start(acc.sparse.indices.bufferView, acc.sparse.indices.byteOffset);
+    indices.component_type = acc.sparse.indices.componentType;
+    indices.stride = size_t(tinygltf::GetComponentSizeInBytes(uint32_t(indices.component_type)));
+    const unsigned char* values = start(acc.sparse.values.bufferView, acc.sparse.values.byteOffset);
+    double previous = -1.0;
+    for (size_t k = 0; k < size_t(acc.sparse.count); ++k) {
+      const double i = indices.raw(k, 0);
+      if (!(i > previous) || !(i < double(acc.count)))
+        fail("accessors[" + std::to_string(index) + "].sparse.indices (" + where + "): index " +
+             std::to_string(k) + " is " + std::to_string(uint64_t(i)) +
+             (i < double(acc.count) ? ", not above the one before it (sparse indices strictly "
+                                      "increase)"
+                                    : ", out of range (count " + std::to_string(acc.count) + ")"));
+      std::memcpy(&data[size_t(i) * elem], values + k * elem, elem);
+      previous = i;
+    }
+    return data;
+  }
+
+  // A primitive's vertex attributes that the renderer reads, checked.
+  struct VertexAttributes {
+    View position;
+    std::optional<View> normal, color;
+    std::vector<std::pair<uint32_t, View>> uv;  // (TriangleMesh::uv array, view), ascending
+  };
+
+  // Appends a primitive's vertices to *out, transformed by world: *first is the index of the
+  // first, bad_normal[i] tells the vertices whose normal does not survive the transform (zero
+  // or non-finite), which take the normals of the triangles that use them away.
+  void append_vertices(const VertexAttributes& a, const Mat4& world, TriangleMesh* out,
+                       uint32_t* first, std::vector<bool>* bad_normal, const std::string& where) {
+    const View& pos = a.position;
+    const View* nrm = a.normal ? &*a.normal : nullptr;
+    const View* col = a.color ? &*a.color : nullptr;
+    *first = uint32_t(out->positions.size());
+    if (size_t(*first) + pos.count > size_t(UINT32_MAX))
+      fail(where + ": more than 2^32 vertices in one mesh");
+    // Attribute arrays are written for every vertex once any primitive has them (zeros, or
+    // white for colours, where a primitive has not).
+    const bool write_normals = out->use_normals(nrm != nullptr);
+    const bool write_colors = out->use_colors(col != nullptr);
+    std::vector<const View*> uv_of;  // per set: this primitive's view, or null
+    for (const auto& [set, view] : a.uv) {
+      out->use_uv(set, true);
+      if (uv_of.size() <= set) uv_of.resize(set + 1, nullptr);
+      uv_of[set] = &view;
+    }
+    uv_of.resize(out->uv.size(), nullptr);
+    std::vector<uint32_t> write_uv;  // the sets to write
+    for (uint32_t set = 0; set < out->uv.size(); ++set)
+      if (uv_of[set] || !out->uv[set].empty()) write_uv.push_back(set);
+    if (nrm) bad_normal->assign(pos.count, false);
+    for (size_t vi = 0; vi < pos.count; ++vi) {
+      out->positions.push_back(
+          world.transform_point({pos.get(vi, 0), pos.get(vi, 1), pos.get(vi, 2)}));
+      if (write_normals) {
+        Vec3 n;
+        if (nrm) {
+          n = world.transform_normal({nrm->get(vi, 0), nrm->get(vi, 1), nrm->get(vi, 2)});
+          const float len = length(n);
+          if (len > 0.f && std::isfinite(len)) {
+            n = n / len;
+          } else {
+            n = Vec3();
+            (*bad_normal)[vi] = true;
+          }
+        }
+        out->normals.push_back(n);
+      }
+      for (uint32_t set : write_uv)
+        out->uv[set].push_back(uv_of[set] ? Point2{uv_of[set]->get(vi, 0), uv_of[set]->get(vi, 1)}
+                                          : Point2{0.f, 0.f});
+      if (write_colors)
+        out->colors.push_back(col ? Rgba{col->get(vi, 0), col->get(vi, 1), col->get(vi, 2),
+                                         col->components == 4 ? col->get(vi, 3) : 1.f}
+                                  : Rgba{});
+    }
+  }
+
+  // glTF primitive modes that are surfaces: TRIANGLES (the default), TRIANGLE_STRIP and
+  // TRIANGLE_FAN.
+  static bool is_triangles(int mode) {
+    return mode == -1 || mode == TINYGLTF_MODE_TRIANGLES ||
+           mode == TINYGLTF_MODE_TRIANGLE_STRIP || mode == TINYGLTF_MODE_TRIANGLE_FAN;
+  }
+  static size_t triangle_count(int mode, size_t indices) {
+    if (mode == TINYGLTF_MODE_TRIANGLE_STRIP || mode == TINYGLTF_MODE_TRIANGLE_FAN)
+      return indices >= 3 ? indices - 2 : 0;
+    return indices / 3;
+  }
+  // Vertex k (0, 1, 2) of triangle t of a primitive of that mode with these indices (glTF
+  // 2.0, 3.7.2.1, "Topology types"): strips alternate their winding so that every triangle
+  // keeps the first one's orientation; fans turn around their first vertex.
+  static uint32_t corner(int mode, const std::vector<uint32_t>& indices, size_t t, int k) {
+    if (mode == TINYGLTF_MODE_TRIANGLE_STRIP) {
+      const size_t odd = t % 2;
+      return indices[t + (k == 0 ? 0 : k == 1 ? 1 + odd : 2 - odd)];
+    }
+    if (mode == TINYGLTF_MODE_TRIANGLE_FAN) return indices[k == 2 ? 0 : t + size_t(k) + 1];
+    return indices[3 * t + size_t(k)];
+  }
+
+  void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out) {
+    const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
+    const bool mirror = world.det3() < 0.0;
+    // Vertices already appended for this mesh by an earlier primitive with the same
+    // attribute accessors: their first index, and which of them lost their normal.
+    struct Appended {
+      uint32_t first = 0;
+      std::vector<bool> bad_normal;
+    };
+    std::map<VertexKey, Appended> appended;
+    for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
+      const tinygltf::Primitive& prim = mesh.primitives[pi];
+      const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
+                                std::to_string(pi) + "]" + named(mesh.name);
+      if (!is_triangles(prim.mode)) {
+        warn(where + ": mode " + std::to_string(prim.mode) +
+             " is points or lines, not triangles (4, 5 or 6); primitive skipped");
+        continue;
+      }
+      const auto pos_it = prim.attributes.find("POSITION");
+      if (pos_it == prim.attributes.end()) fail(where + ": missing required attribute POSITION");
+      VertexAttributes attrs;
+      attrs.position = check_accessor(pos_it->second, Attribute::Position, where + " POSITION");
+      const View& pos = attrs.position;
+      for (const auto& [name, accessor] : prim.attributes) {
+        if (name == "POSITION" || !reads_attribute(name)) continue;
+        uint32_t array = 0;
+        const bool texcoord = uv_array(name, &array);
+        const Attribute kind = name == "NORMAL"    ? Attribute::Normal
+                               : name == "COLOR_0" ? Attribute::Color
+                                                   : Attribute::Texcoord;
+        const View view = check_accessor(accessor, kind, where + " " + name);
+        if (view.count != pos.count) fail(where + ": " + name + " and POSITION counts differ");
+        if (kind == Attribute::Normal) attrs.normal = view;
+        if (kind == Attribute::Color) attrs.color = view;
+        if (texcoord) attrs.uv.push_back({array, view});
+      }
+      std::sort(attrs.uv.begin(), attrs.uv.end(),
+                [](const auto& a, const auto& b) { return a.first < b.first; });
+      const bool has_normals = attrs.normal.has_value();
+      if (prim.attributes.count("TANGENT") && !warned_tangent_ && prim.material >= 0 &&
+          prim.material < int(model_.materials.size()) &&
+          model_.materials[size_t(prim.material)].normalTexture.index >= 0) {
+        warn(where + " (and possibly others): TANGENT is not used; normal maps take their "
+                     "tangents from the texture coordinates");
+        warned_tangent_ = true;
+      }
+      bool has_uv[2] = {false, false};
+      for (const auto& uv : attrs.uv)
+        if (uv.first < 2) has_uv[uv.first] = true;
+      uint32_t material = default_material_;
+      if (prim.material >= 0) {
+        if (prim.material >= int(model_.materials.size()))
+          fail(where + ": 'material' refers to missing material " +
+               std::to_string(prim.material));
+        material = uint32_t(prim.material);
+      }
+      std::vector<uint32_t> indices;
+      if (prim.indices >= 0) {
+        const View idx = check_accessor(prim.indices, Attribute::Indices, where + " indices");
+        indices.resize(idx.count);
+        for (size_t i = 0; i < idx.count; ++i) {
+          const double v = idx.raw(i, 0);
+          if (v >= double(pos.count))
+            fail(where + ": index " + std::to_string(uint64_t(v)) + " out of range (" +
+                 std::to_string(pos.count) + " vertices)");
+          indices[i] = uint32_t(v);
+        }
+      } else {
+        indices.resize(pos.count);
+        for (size_t i = 0; i < pos.count; ++i) indices[i] = uint32_t(i);
+      }
+      if (prim.mode != TINYGLTF_MODE_TRIANGLE_STRIP && prim.mode != TINYGLTF_MODE_TRIANGLE_FAN &&
+          indices.size() % 3 != 0)
+        warn(where + ": index count is not a multiple of 3; trailing indices ignored");
+      // The primitive's vertices, each transformed once, appended after the mesh's others
+      // (or those of an earlier primitive with the same attribute accessors).
+      const auto [entry, fresh] = appended.try_emplace(vertex_key(prim));
+      if (fresh)
+        append_vertices(attrs, world, out, &entry->second.first, &entry->second.bad_normal, where);
+      const uint32_t first = entry->second.first;
+      const std::vector<bool>& bad_normal = entry->second.bad_normal;
+      const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
+                                         (has_uv[1] ? TriangleMesh::kHasUv1 : 0));
+      const size_t triangles = triangle_count(prim.mode, indices.size());
+      for (size_t t = 0; t < triangles; ++t) {
+        bool normals_ok = has_normals;
+        for (int k = 0; k < 3; ++k) {
+          // A mirroring transform flips the winding (glTF spec, "Transformations"): swap two
+          // vertices so that counter-clockwise stays the front face in world space.
+          const int src = mirror ? (k == 0 ? 0 : 3 - k) : k;
+          const uint32_t vi = corner(prim.mode, indices, t, src);
+          if (has_normals && bad_normal[vi]) normals_ok = false;
+          out->indices.push_back(first + vi);
+        }
+        out->material.push_back(material);
+        out->flags.push_back(uint8_t(base_flags | (normals_ok ? TriangleMesh::kHasNormals : 0)));
+      }
+      // Degenerate triangles are dropped by Scene.
+    }
+  }
+
+  std::vector<std::optional<PunctualLight>> lights_;
+  std::vector<int> mesh_uses_;
+  std::vector<int> mesh_slot_;
+  std::set<std::string> warned_material_ext_;
+  std::set<size_t> warned_rough_glass_;
+  bool warned_occlusion_ = false, warned_skin_ = false, warned_morph_ = false;
+  bool warned_tangent_ = false;
+  bool quantization_ = false;         // KHR_mesh_quantization's attribute types are allowed
+  // The TriangleMesh::uv array of each TEXCOORD set above 1 that a material reads.
+  std::map<uint32_t, uint32_t> uv_array_of_set_;
+  // Sparse accessors, materialized: each one's elements with its sparse values applied,
+  // packed in its componentType.
+  std::map<int, std::vector<unsigned char>> sparse_data_;
+  const tinygltf::Model& model_;
+  std::string source_;
+  std::vector<std::string>* warnings_;
+  const LoadOptions& options_;
+  uint32_t default_material_ = 0;
+};
+
+SceneDescription finish(bool ok, tinygltf::Model& model, const std::string& err,
+                        const std::string& warn, const std::string& source,
+                        std::vector<std::string>* warnings, const LoadOptions& options,
+                        const std::map<int, size_t>& fallbacks) {
+  if (!warn.empty() && warnings) warnings->push_back(source + ": " + warn);
+  if (!ok) throw SceneError(source + ": cannot parse glTF: " + (err.empty() ? "unknown" : err));
+  decode_compressed_geometry(&model, fallbacks, options.limits, source);
+  return Loader(model, source, warnings, options).run();
+}
+
+// Uploads are self-contained: a file system whose every read is refused, so that a URI in a
+// farm scene can never read a file of the worker's (or of the server's, when it inspects one).
+// Files "exist" so that tinygltf asks to read them and the refusal says why.
+bool no_file_exists(const std::string&, void*) { return true; }
+std::string keep_path(const std::string& path, void*) { return path; }
+bool no_file_read(std::vector<unsigned char>*, std::string* err, const std::string& path, void*) {
+  if (err) *err += "external file '" + path + "' refused: farm scenes must be self-contained\n";
+  return false;
+}
+bool no_file_write(std::string*, const std::string&, const std::vector<unsigned char>&, void*) {
+  return false;
+}
+
+void configure(tinygltf::TinyGLTF* gltf, const LoadOptions& options) {
+  gltf->SetImageLoader(keep_encoded_image, nullptr);
+  if (!options.allow_external_files)
+    gltf->SetFsCallbacks({no_file_exists, keep_path, no_file_read, no_file_write, nullptr});
+}
+
+}  // namespace
+
+SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings,
+                           const LoadOptions& options) {
+  const std::string source = options.display_name.empty() ? path : options.display_name;
+  // Read here rather than by tinygltf, whose file callbacks may refuse every file.
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw SceneError(source + ": cannot open file");
+  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (in.bad()) throw SceneError(source + ": cannot read file");
+  const bool binary = bytes.size() >= 4 && std::memcmp(bytes.data(), "glTF", 4) == 0;
+  std::map<int, size_t> fallbacks;  // meshopt buffers that only exist to be decoded into
+  // (compressed files are rewritten where tinygltf would refuse them: gltf_compression.h)
+  if (binary)
+    prepare_compressed_glb(&bytes, &fallbacks);
+  else
+    prepare_compressed_json(&bytes, &fallbacks);
+  tinygltf::TinyGLTF gltf;
+  configure(&gltf, options);
+  tinygltf::Model model;
+  std::string err, warn;
+  const std::string base_dir = std::filesystem::path(path).parent_path().string();
+  const bool ok =
+      binary ? gltf.LoadBinaryFromMemory(&model, &err, &warn,
+                                         reinterpret_cast<const unsigned char*>(bytes.data()),
+                                         unsigned(bytes.size()), base_dir)
+             : gltf.LoadASCIIFromString(&model, &err, &warn, bytes.data(), unsigned(bytes.size()),
+                                        base_dir);
+  return finish(ok, model, err, warn, source, warnings, options, fallbacks);
+}
+
+SceneDescription load_gltf_from_string(const std::string& json, const std::string& base_dir,
+                                       const std::string& name,
+                                       std::vector<std::string>* warnings,
+                                       const LoadOptions& options) {
+  tinygltf::TinyGLTF gltf;
+  configure(&gltf, options);
+  tinygltf::Model model;
+  std::string err, warn;
+  std::string text = json;
+  std::map<int, size_t> fallbacks;
+  prepare_compressed_json(&text, &fallbacks);
+  const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, text.c_str(),
+                                           unsigned(text.size()), base_dir);
+  return finish(ok, model, err, warn, name, warnings, options, fallbacks);
+}
+
+}  // namespace rf

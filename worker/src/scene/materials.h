@@ -1,0 +1,259 @@
+// Materials: glTF 2.0 metallic-roughness as a Lambert diffuse base plus a GGX microfacet
+// specular layer (Smith height-correlated masking-shadowing, visible-normal sampling),
+// emission (with KHR_materials_emissive_strength), KHR_materials_specular's specularFactor,
+// and KHR_materials_transmission + KHR_materials_ior as smooth dielectric glass.
+//
+// Radiance and emission are linear RGB in the scene's units (W sr^-1 m^-2 up to an arbitrary
+// overall scale); base colors are reflectances in [0, 1]. Directions in the BSDF functions are
+// unit vectors in the local shading frame (normal = +z), wo towards the viewer, wi towards the
+// light.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "sampling/sampling.h"
+#include "math/vecmath.h"
+
+namespace rf {
+
+// A texture slot of a material: which texture, which TEXCOORD set, and the optional
+// KHR_texture_transform (uv' = offset + Rotation(rotation) * (scale * uv), as in the spec).
+struct TextureRef {
+  int texture = -1;       // index into the scene's textures; -1 = no texture
+  // The TEXCOORD set (KHR_texture_transform's texCoord if it has one), as the index of its
+  // array in TriangleMesh::uv: sets 0 and 1 are arrays 0 and 1; the glTF loader gives the
+  // other sets materials read arrays from 2 up.
+  uint32_t texcoord = 0;
+  float offset[2] = {0.f, 0.f};
+  float rotation = 0.f;  // radians, counter-clockwise in uv space
+  float scale[2] = {1.f, 1.f};
+  bool valid() const { return texture >= 0; }
+  Point2 apply(Point2 uv) const {
+    const float su = uv.x * scale[0], sv = uv.y * scale[1];
+    const float c = std::cos(rotation), s = std::sin(rotation);
+    // KHR_texture_transform's matrix: [c s; -s c] in its column-major notation, i.e.
+    // u' = c u + s v, v' = -s u + c v.
+    return {offset[0] + c * su + s * sv, offset[1] - s * su + c * sv};
+  }
+};
+
+// glTF alphaMode (3.9.4): opaque, cut out below alphaCutoff, or blended (see Scene).
+enum class AlphaMode : uint8_t { Opaque, Mask, Blend };
+
+// Constant defaults are a pure white Lambertian (no specular layer): what the tests build
+// by hand. The glTF loader sets the glTF defaults (metallic = roughness = specular = 1).
+struct Material {
+  std::string name;
+  Vec3 albedo{1.f, 1.f, 1.f};    // glTF baseColorFactor rgb (default white)
+  Vec3 emission{0.f, 0.f, 0.f};  // emissiveFactor * KHR_materials_emissive_strength
+  float metallic = 0.f;          // metallicFactor
+  float roughness = 1.f;         // roughnessFactor (perceptual; GGX alpha = roughness^2)
+  float specular = 0.f;          // KHR_materials_specular specularFactor: dielectric layer
+  float ior = 1.5f;              // KHR_materials_ior
+  float transmission = 0.f;      // KHR_materials_transmissionFactor
+  float normal_scale = 1.f;      // normalTexture.scale
+  TextureRef base_color_tex{}, metallic_roughness_tex{}, normal_tex{}, emissive_tex{};
+  AlphaMode alpha_mode = AlphaMode::Opaque;
+  float alpha = 1.f;         // baseColorFactor alpha
+  float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)
+  // KHR_materials_volume: the absorption coefficient per world unit of the medium inside the
+  // mesh, -ln(attenuationColor) / attenuationDistance per channel (0: none; a thin-walled
+  // material, thicknessFactor 0, has none). Light crossing a length d inside is multiplied by
+  // exp(-absorption d) (Beer-Lambert).
+  Vec3 absorption{0.f, 0.f, 0.f};
+  // glTF doubleSided: the back face is lit as the front with the normal reversed (3.9.5), and
+  // so an emissive back face emits like the front; otherwise only the front face emits.
+  bool double_sided = false;
+  bool has_volume() const { return !is_zero(absorption); }
+  bool is_emissive() const { return !is_zero(emission); }
+  bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }
+  // True if shading reads texture coordinates at the hit point (the emissive texture is read
+  // by Scene::emission, which interpolates its own).
+  bool reads_uv() const {
+    return base_color_tex.valid() || metallic_roughness_tex.valid() || normal_tex.valid();
+  }
+};
+
+// Material parameters at one surface point, after texture lookups.
+struct BsdfParams {
+  Vec3 base{1.f, 1.f, 1.f};
+  float metallic = 0.f;
+  float alpha = 1.f;  // GGX alpha = roughness^2, clamped to >= kMinAlpha
+  float specular = 0.f;
+  float ior = 1.5f;
+  float transmission = 0.f;
+  bool front = true;  // wo on the front side of the geometric normal (outside the glass)
+};
+
+// Smallest GGX alpha: below it the lobe is too narrow for float precision; such surfaces
+// render as very slightly rough mirrors.
+constexpr float kMinAlpha = 2e-3f;
+
+struct BsdfSample {
+  Vec3 wi;             // local frame
+  Vec3 weight;         // f cos / pdf (for delta lobes: the lobe's reflectance / probability)
+  float pdf = 0.f;     // solid-angle density of wi among the non-delta lobes; 0 if delta
+  bool delta = false;  // chosen from the glass (specular) lobe
+  bool transmitted = false;
+};
+
+// Lambert + GGX as in the glTF spec (Appendix B): with F_d the dielectric Schlick Fresnel
+// (f0 = specular * ((ior - 1)/(ior + 1))^2) and F_m the conductor Schlick Fresnel (f0 = base),
+//   f = (1 - m)(1 - t)((1 - F_d) base / pi + F_d spec) + m (F_m spec + f_ms),
+//   spec = D G2 / (4 |cos_o cos_i|),
+// where (1 - m) t is the weight of the delta glass lobe and f_ms the metal's multiple-
+// scattering compensation (Kulla & Conty 2017), which makes a white rough metal conserve
+// energy exactly (up to its table). eval returns f times |cos_i| for the non-delta part only
+// (0 if wo or wi is below the surface).
+// Lobe selection probabilities, a function of (params, wo) only; the path tracer computes them
+// once per vertex and passes them to the overloads below (the same values as without them).
+// With them come the wo-dependent terms of the evaluation, so that evaluating several
+// directions at one vertex (light sample, BSDF sample) computes them once.
+struct BsdfLobes {
+  float glass = 0.f;  // probability of the delta glass lobe
+  float spec = 0.f;   // probability of GGX among the non-delta lobes
+  float wd = 0.f;     // (1 - metallic)(1 - transmission): weight of the dielectric base
+  float f0d = 0.f;    // dielectric Fresnel at normal incidence, specular * ((ior-1)/(ior+1))^2
+  float root_o = 0.f;  // sqrt(cos_o^2 + alpha^2 (1 - cos_o^2)) = 2 cos_o (Lambda(wo) + 1/2)
+  float pdf_k = 0.f;   // 1 / (2 (cos_o + root_o)) = G1(wo) / (4 cos_o): GGX pdf = D pdf_k
+  Vec3 ms;             // metal multiple scattering without its (1 - E(mu_i)) factor (0 if
+                       // not metallic)
+};
+BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo);
+
+Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi);
+// Solid-angle density with which bsdf_sample produces wi among the non-delta lobes.
+float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi);
+// Both at once (sharing the half vector and Smith terms): returns f |cos_i|, sets *pdf.
+Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf);
+// u: BSDF direction pair, u_lobe: lobe choice, u_fresnel: glass reflect/refract choice.
+// Returns false if no direction was produced (the path ends).
+bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_fresnel,
+                 BsdfSample* out);
+Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Vec3 wi, float* pdf);
+bool bsdf_sample(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Point2 u, float u_lobe,
+                 float u_fresnel, BsdfSample* out);
+// bsdf_sample in two halves, for callers that evaluate many BSDFs together (BsdfEvalBatch):
+// bsdf_sample_direction chooses the lobe and the direction. It returns Failed (no direction:
+// the path ends), Done (the glass lobe: *out is complete) or NeedsEval: out->wi is set to
+// the direction before normalization (with z > 0), and bsdf_sample_finish(f, pdf, out) with
+// (f, pdf) = bsdf_eval_pdf(p, lobes, wo, normalize(out->wi)) completes *out (false: the path
+// ends) but for out->wi, which the caller sets to normalize(out->wi). Together they give
+// bsdf_sample's result exactly.
+enum class BsdfSampleStep { Failed, Done, NeedsEval };
+// The direction pair u enters as its warps, disks = bsdf_disks(u).
+BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
+                                     const BsdfDisks& disks, float u_lobe, float u_fresnel,
+                                     BsdfSample* out);
+bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out);
+
+// The bsdf_eval_pdf evaluations of up to kLanes vertices (a packet's paths), two directions
+// each (a light sample and a BSDF sample), computed together with bit for bit the same
+// results. One evaluation is a chain of two square roots and two divisions that waits on
+// itself; here the inputs are stored as one array per quantity, so that the arithmetic runs
+// in 4-wide SIMD lanes over independent evaluations, every operation in the scalar function's
+// order (IEEE arithmetic then rounds each lane exactly as the scalar code does). A vertex's
+// parameters are stored once for both of its directions.
+class BsdfEvalBatch {
+ public:
+  static constexpr int kLanes = 16;
+  // Slot `lane` is the vertex's first direction, slot kLanes + lane its second.
+  static constexpr int kSlots = 2 * kLanes;
+  // Forgets the queued evaluations.
+  void clear() { used_ = 0; }
+  // The vertex of `lane`: its BSDF, lobes (bsdf_lobes(p, wo)), wo and shading frame, for the
+  // directions queued for it until the next clear.
+  void set_vertex(int lane, const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
+                  const Frame& frame) {
+    const Vec3* axes[3] = {&frame.s, &frame.t, &frame.n};
+    for (int a = 0; a < 3; ++a) {
+      frame_[a][0][lane] = axes[a]->x;
+      frame_[a][1][lane] = axes[a]->y;
+      frame_[a][2][lane] = axes[a]->z;
+    }
+    wo_[0][lane] = wo.x;
+    wo_[1][lane] = wo.y;
+    wo_[2][lane] = wo.z;
+    base_[0][lane] = p.base.x;
+    base_[1][lane] = p.base.y;
+    base_[2][lane] = p.base.z;
+    ms_[0][lane] = lobes.ms.x;
+    ms_[1][lane] = lobes.ms.y;
+    ms_[2][lane] = lobes.ms.z;
+    metallic_[lane] = p.metallic;
+    alpha_[lane] = p.alpha;
+    specular_[lane] = p.specular;
+    f0d_[lane] = lobes.f0d;
+    wd_[lane] = lobes.wd;
+    glass_[lane] = lobes.glass;
+    spec_[lane] = lobes.spec;
+    root_o_[lane] = lobes.root_o;
+    pdf_k_[lane] = lobes.pdf_k;
+  }
+  // Queues bsdf_eval_pdf(p, lobes, wo, wi) for lane's vertex as its first direction (a light
+  // sample) and returns its slot.
+  int add_light(int lane, Vec3 wi) { return add(lane, lane, wi); }
+  // Queues the second direction, a sampled one not yet normalized (bsdf_sample_direction's
+  // NeedsEval): evaluate normalizes it, evaluates bsdf_eval_pdf(p, lobes, wo, normalize(wi))
+  // and computes the world-space direction normalize(frame.to_world(normalize(wi))), which
+  // world() returns.
+  int add_sampled(int lane, Vec3 wi) { return add(lane, kLanes + lane, wi); }
+  // add_light for each lane in the bit mask `lanes`, with the direction given in world space
+  // (w[c][lane], c = x, y, z): the queued direction is frame.to_local of it, computed four
+  // lanes at a time.
+  void add_lights_world(uint32_t lanes, const float (*w)[kLanes]);
+  // Evaluates the queued slots; f, pdf and world read their results until the next clear.
+  void evaluate();
+  // The first directions' results as arrays over the lanes, for reading four at a time.
+  const float* light_f(int channel) const { return f_[channel]; }
+  const float* light_pdf() const { return pdf_; }
+  Vec3 f(int slot) const { return {f_[0][slot], f_[1][slot], f_[2][slot]}; }
+  float pdf(int slot) const { return pdf_[slot]; }
+  Vec3 world(int slot) const {
+    return {world_[0][slot - kLanes], world_[1][slot - kLanes], world_[2][slot - kLanes]};
+  }
+
+ private:
+  int add(int lane, int slot, Vec3 wi) {
+    wi_[0][slot] = wi.x;
+    wi_[1][slot] = wi.y;
+    wi_[2][slot] = wi.z;
+    // The metal term's table lookup is a gather: done here, as bsdf_eval_pdf does it (on the
+    // normalized direction: a sampled one is normalized here for it, rarely).
+    ms_factor_[slot] = 0.f;
+    if (metallic_[lane] > 0.f && wo_[2][lane] > 0.f && wi.z > 0.f)
+      ms_factor_[slot] =
+          metal_ms_factor(slot >= kLanes ? normalize(wi).z : wi.z, alpha_[lane]);
+    used_ |= uint32_t(1) << slot;
+    return slot;
+  }
+  static float metal_ms_factor(float cos_i, float alpha);  // 1 - E(cos_i, alpha)
+  void evaluate_block(int first);  // slots first .. first + 3
+  uint32_t used_ = 0;              // bit s: slot s queued
+  // Vertex inputs by lane and direction inputs by slot. Slots not queued hold zeros or earlier
+  // inputs (a dropped light sample's may be NaN): they are computed along and never read.
+  alignas(64) float wo_[3][kLanes] = {}, base_[3][kLanes] = {}, ms_[3][kLanes] = {};
+  alignas(64) float metallic_[kLanes] = {}, alpha_[kLanes] = {}, specular_[kLanes] = {};
+  alignas(64) float f0d_[kLanes] = {}, wd_[kLanes] = {}, glass_[kLanes] = {};
+  alignas(64) float spec_[kLanes] = {}, root_o_[kLanes] = {}, pdf_k_[kLanes] = {};
+  alignas(64) float frame_[3][3][kLanes] = {};  // axis (s, t, n), component, lane
+  alignas(64) float wi_[3][kSlots] = {}, ms_factor_[kSlots] = {};
+  // Results.
+  alignas(64) float f_[3][kSlots] = {}, pdf_[kSlots] = {}, world_[3][kLanes] = {};
+};
+
+// True if the BSDF has a non-delta component (next-event estimation is useful).
+inline bool bsdf_has_smooth_part(const BsdfParams& p) {
+  return (1.f - (1.f - p.metallic) * p.transmission) > 0.f;
+}
+
+// Directional albedo E(mu, alpha) of single-scattering GGX with F = 1 (the table behind the
+// metal lobe's multiple-scattering compensation).
+float metal_single_scattering_albedo(float mu, float alpha);
+
+// Unpolarized Fresnel reflectance of a smooth dielectric interface; cos_i > 0 on the side of
+// the normal, eta = n_other / n_this (ior when entering from outside).
+float fresnel_dielectric(float cos_i, float eta);
+
+}  // namespace rf

@@ -1,0 +1,288 @@
+// BSDF tests: sampling matches the pdf (chi-square), the pdf integrates to the non-delta
+// probability, weights equal f cos / pdf, energy bounds and reciprocity, Fresnel values.
+#include "scene/materials.h"
+
+#include <gtest/gtest.h>
+
+#include "testing/chi_square.h"
+
+#include <cstring>
+#include <random>
+#include <vector>
+
+namespace rf {
+namespace {
+
+using testing::ChiSquareResult;
+using testing::ChiSquareTest;
+
+Vec3 spherical(double z, double phi) {
+  const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
+  return Vec3(float(r * std::cos(phi)), float(r * std::sin(phi)), float(z));
+}
+
+BsdfParams params(Vec3 base, float metallic, float roughness, float specular = 1.f,
+                  float transmission = 0.f) {
+  BsdfParams p;
+  p.base = base;
+  p.metallic = metallic;
+  p.alpha = std::max(kMinAlpha, roughness * roughness);
+  p.specular = specular;
+  p.transmission = transmission;
+  return p;
+}
+
+std::vector<BsdfParams> test_materials() {
+  return {params({0.8f, 0.5f, 0.2f}, 0.f, 0.5f),        // plastic
+          params({0.9f, 0.6f, 0.3f}, 1.f, 0.3f),        // rough gold-ish metal
+          params({1.f, 1.f, 1.f}, 1.f, 0.8f),           // very rough white metal
+          params({0.5f, 0.5f, 0.5f}, 0.3f, 0.6f, 0.5f),  // mixture
+          params({0.7f, 0.7f, 0.7f}, 0.f, 0.4f, 1.f, 0.5f)};  // half glass
+}
+
+const Vec3 kOutgoing[] = {normalize(Vec3(0.3f, 0.1f, 0.9f)), normalize(Vec3(-0.8f, 0.2f, 0.4f))};
+
+// Integral of the pdf over the hemisphere in (z, phi) coordinates (dω = dz dφ).
+double integrate_pdf(const BsdfParams& p, Vec3 wo, int n = 600) {
+  double sum = 0.0;
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j) {
+      const double z = (i + 0.5) / n, phi = (j + 0.5) * 2 * M_PI / n;
+      sum += bsdf_pdf(p, wo, spherical(z, phi)) * (1.0 / n) * (2 * M_PI / n);
+    }
+  return sum;
+}
+
+// The pdf over the upper hemisphere integrates to the probability that bsdf_sample returns
+// a non-delta direction: 1 - P(glass lobe) - P(GGX reflection fell below the horizon).
+TEST(Bsdf, PdfIntegratesToTheNonDeltaSuccessProbability) {
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  for (const BsdfParams& p : test_materials())
+    for (Vec3 wo : kOutgoing) {
+      const int n = 100000;
+      int ok = 0;
+      for (int s = 0; s < n; ++s) {
+        BsdfSample bs;
+        ok += bsdf_sample(p, wo, {uni(rng), uni(rng)}, uni(rng), uni(rng), &bs) && !bs.delta;
+      }
+      const double frac = double(ok) / n;
+      const double upper = 1.0 - (1.0 - p.metallic) * p.transmission;
+      const double integral = integrate_pdf(p, wo);
+      EXPECT_NEAR(integral, frac, 4.0 * std::sqrt(frac * (1 - frac) / n) + 3e-3)
+          << "metallic " << p.metallic;
+      EXPECT_LE(integral, upper + 3e-3);
+    }
+}
+
+TEST(Bsdf, SamplesFollowThePdfAndWeightsAreFCosOverPdf) {
+  const int nz = 12, nphi = 24, sub = 8, n = 150000;
+  std::mt19937_64 rng(99);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  for (const BsdfParams& p : test_materials())
+    for (Vec3 wo : kOutgoing) {
+      // The test's unit square: x = z, y = phi / (2 pi), d(omega) = dz dphi = 2 pi dx dy.
+      ChiSquareTest chi2(nz, nphi);
+      for (int s = 0; s < n; ++s) {
+        BsdfSample bs;
+        if (!bsdf_sample(p, wo, {uni(rng), uni(rng)}, uni(rng), uni(rng), &bs) || bs.delta)
+          continue;
+        const Vec3 f = bsdf_eval_cos(p, wo, bs.wi);
+        float joint_pdf = 0.f;
+        const Vec3 joint_f = bsdf_eval_pdf(p, wo, bs.wi, &joint_pdf);
+        ASSERT_NEAR(joint_pdf, bsdf_pdf(p, wo, bs.wi), 1e-4f * (1.f + joint_pdf));
+        ASSERT_NEAR(joint_f.y, f.y, 1e-4f * (1.f + f.y));
+        for (int c = 0; c < 3; ++c)
+          ASSERT_NEAR(bs.weight[c], f[c] / bs.pdf, 1e-3f * (1.f + f[c] / bs.pdf));
+        double phi = std::atan2(bs.wi.y, bs.wi.x);
+        if (phi < 0) phi += 2 * M_PI;
+        chi2.add_sample(bs.wi.z, phi / (2 * M_PI));
+      }
+      chi2.integrate(
+          [&](double x, double y) {
+            return bsdf_pdf(p, wo, spherical(x, 2 * M_PI * y)) * 2 * M_PI;
+          },
+          sub, n);
+      const ChiSquareResult result = chi2.run();
+      EXPECT_TRUE(result.passed) << result.message << ", metallic " << p.metallic << " alpha "
+                                 << p.alpha << " wo.z " << wo.z;
+    }
+}
+
+// bsdf_eval_pdf (the path tracer's evaluation: wo terms precomputed per vertex, the GGX terms
+// rearranged) equals the reference formulas of bsdf_eval_cos and bsdf_pdf in every channel,
+// over a grid of directions including grazing ones and for roughness down to kMinAlpha.
+TEST(Bsdf, JointEvaluationEqualsTheReferenceFormulas) {
+  std::vector<BsdfParams> materials = test_materials();
+  materials.push_back(params({0.9f, 0.9f, 0.9f}, 1.f, 0.f));        // mirror-like metal
+  materials.push_back(params({0.2f, 0.6f, 0.9f}, 0.f, 0.05f, 1.f));  // glossy plastic
+  materials.push_back(params({0.6f, 0.6f, 0.6f}, 0.f, 1.f, 0.f));    // pure Lambert
+  int compared = 0;
+  for (const BsdfParams& p : materials)
+    for (double zo : {0.02, 0.3, 0.7, 0.999})
+      for (double zi : {0.01, 0.2, 0.5, 0.9, 1.0})
+        for (double phi : {0.0, 1.0, 2.5, 3.14159}) {
+          const Vec3 wo = spherical(zo, 0.4), wi = spherical(zi, 0.4 + phi);
+          float pdf = -1.f;
+          const Vec3 f = bsdf_eval_pdf(p, bsdf_lobes(p, wo), wo, wi, &pdf);
+          const Vec3 f_ref = bsdf_eval_cos(p, wo, wi);
+          const float pdf_ref = bsdf_pdf(p, wo, wi);
+          ASSERT_NEAR(pdf, pdf_ref, 1e-3f * pdf_ref + 1e-6f) << zo << " " << zi << " " << phi;
+          for (int c = 0; c < 3; ++c)
+            ASSERT_NEAR(f[c], f_ref[c], 1e-3f * f_ref[c] + 1e-6f) << zo << " " << zi << " " << phi;
+          ++compared;
+        }
+  EXPECT_EQ(compared, 8 * 4 * 5 * 4);
+  // Below either hemisphere: zero, with zero pdf.
+  const BsdfParams p = test_materials()[0];
+  float pdf = 1.f;
+  EXPECT_TRUE(is_zero(bsdf_eval_pdf(p, bsdf_lobes(p, kOutgoing[0]), kOutgoing[0],
+                                    Vec3(0.f, 0.6f, -0.8f), &pdf)));
+  EXPECT_EQ(pdf, 0.f);
+}
+
+uint32_t float_bits(float x) {
+  uint32_t u;
+  std::memcpy(&u, &x, sizeof u);
+  return u;
+}
+
+// BsdfEvalBatch (the path tracer's packet-wide evaluation) gives bsdf_eval_pdf's results, and
+// for sampled directions normalize(frame.to_world(normalize(wi))), bit for bit: random
+// materials (metals, glass, the specular factor on and off), random directions including ones
+// below the surface, lanes left out, both directions of a vertex, and batches reused without
+// resetting the slots left over from earlier rounds.
+TEST(Bsdf, BatchEvaluationEqualsTheScalarOneBitForBit) {
+  std::mt19937 rng(20261123);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  const auto direction = [&](float below) {
+    const float z = uni(rng) < below ? -uni(rng) : uni(rng);
+    const float phi = 6.2831853f * uni(rng);
+    const float r = std::sqrt(std::max(0.f, 1.f - z * z));
+    return normalize(Vec3(r * std::cos(phi), r * std::sin(phi), z));
+  };
+  BsdfEvalBatch batch;
+  int compared = 0, sampled_compared = 0, nonzero = 0;
+  for (int round = 0; round < 300; ++round) {
+    batch.clear();
+    struct Queued {
+      BsdfParams p;
+      Vec3 wo, wi;
+      Frame frame;
+      int slot;
+    };
+    std::vector<Queued> queued;
+    for (int lane = 0; lane < BsdfEvalBatch::kLanes; ++lane) {
+      if (uni(rng) < 0.25f) continue;  // a dead path
+      BsdfParams p = params({uni(rng), uni(rng), uni(rng)}, uni(rng) < 0.3f ? 0.f : uni(rng),
+                            uni(rng), uni(rng) < 0.2f ? 0.f : uni(rng),
+                            uni(rng) < 0.7f ? 0.f : uni(rng));
+      p.ior = 1.f + uni(rng);
+      const Vec3 wo = direction(0.1f);
+      const BsdfLobes lobes = bsdf_lobes(p, wo);
+      const Frame frame(direction(0.f));
+      batch.set_vertex(lane, p, lobes, wo, frame);
+      // A light sample's direction (unit), then a sampled one (any length, normalized by the
+      // batch, which also returns it in world space).
+      if (uni(rng) < 0.7f) {
+        const Vec3 wi = direction(0.2f);
+        queued.push_back({p, wo, wi, frame, batch.add_light(lane, wi)});
+      }
+      if (uni(rng) < 0.7f) {
+        const Vec3 wi = direction(0.2f) * (0.2f + 3.f * uni(rng));
+        queued.push_back({p, wo, wi, frame, batch.add_sampled(lane, wi)});
+      }
+    }
+    batch.evaluate();
+    for (const Queued& q : queued) {
+      const bool sampled = q.slot >= BsdfEvalBatch::kLanes;
+      const Vec3 wi = sampled ? normalize(q.wi) : q.wi;
+      float pdf = -1.f;
+      const Vec3 f = bsdf_eval_pdf(q.p, bsdf_lobes(q.p, q.wo), q.wo, wi, &pdf);
+      ASSERT_EQ(float_bits(batch.pdf(q.slot)), float_bits(pdf)) << "round " << round;
+      for (int c = 0; c < 3; ++c)
+        ASSERT_EQ(float_bits(batch.f(q.slot)[c]), float_bits(f[c])) << "round " << round;
+      if (sampled) {
+        const Vec3 world = normalize(q.frame.to_world(wi));
+        for (int c = 0; c < 3; ++c)
+          ASSERT_EQ(float_bits(batch.world(q.slot)[c]), float_bits(world[c])) << round;
+        ++sampled_compared;
+      }
+      ++compared;
+      nonzero += pdf > 0.f;
+    }
+  }
+  EXPECT_GT(compared, 5000);
+  EXPECT_GT(sampled_compared, 2000);
+  EXPECT_GT(nonzero, compared / 2);  // most pairs are above the surface
+  EXPECT_LT(nonzero, compared);      // and some are not
+}
+
+// Directional albedo integral of f cos over the hemisphere, by quadrature.
+Vec3 albedo(const BsdfParams& p, Vec3 wo, int n = 500) {
+  Vec3 sum;
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j) {
+      const double z = (i + 0.5) / n, phi = (j + 0.5) * 2 * M_PI / n;
+      sum += bsdf_eval_cos(p, wo, spherical(z, phi)) * float((1.0 / n) * (2 * M_PI / n));
+    }
+  return sum;
+}
+
+TEST(Bsdf, EnergyBoundsReciprocityAndLambertLimit) {
+  // specular = 0, metallic = 0: exactly Lambert, albedo = base.
+  const BsdfParams lambert = params({0.6f, 0.6f, 0.6f}, 0.f, 1.f, 0.f);
+  for (Vec3 wo : kOutgoing) EXPECT_NEAR(albedo(lambert, wo).x, 0.6f, 2e-3f);
+  for (const BsdfParams& p : test_materials()) {
+    for (Vec3 wo : kOutgoing) {
+      const Vec3 a = albedo(p, wo);
+      EXPECT_LE(max_component(a), 1.0f + 5e-3f);  // no energy gain
+      EXPECT_GT(max_component(a), 0.f);
+      // Reciprocity f(wo, wi) = f(wi, wo): compare f cos / cos both ways.
+      const Vec3 wi = normalize(Vec3(0.2f, -0.5f, 0.6f));
+      const Vec3 a1 = bsdf_eval_cos(p, wo, wi) * (1.f / wi.z);
+      const Vec3 a2 = bsdf_eval_cos(p, wi, wo) * (1.f / wo.z);
+      for (int c = 0; c < 3; ++c) EXPECT_NEAR(a1[c], a2[c], 1e-4f * (1.f + a1[c]));
+    }
+  }
+  // White metal conserves energy at every roughness and angle (multiple-scattering
+  // compensation), up to the energy table's accuracy.
+  for (float roughness : {0.2f, 0.5f, 0.8f, 1.f})
+    for (Vec3 wo : kOutgoing) {
+      const BsdfParams white = params({1.f, 1.f, 1.f}, 1.f, roughness);
+      EXPECT_NEAR(albedo(white, wo).x, 1.f, 4e-3f) << "roughness " << roughness;
+    }
+  // Nothing below the surface.
+  EXPECT_TRUE(is_zero(bsdf_eval_cos(test_materials()[0], kOutgoing[0], {0.f, 0.6f, -0.8f})));
+}
+
+TEST(Bsdf, FresnelAndGlass) {
+  EXPECT_NEAR(fresnel_dielectric(1.f, 1.5f), 0.04f, 1e-6f);
+  EXPECT_EQ(fresnel_dielectric(0.1f, 1.f / 1.5f), 1.f);  // total internal reflection
+  EXPECT_NEAR(fresnel_dielectric(0.f, 1.5f), 1.f, 1e-6f);
+  // Smooth glass: reflection with probability F, refraction obeys Snell's law and scales
+  // radiance by 1/eta^2.
+  BsdfParams glass = params({1.f, 1.f, 1.f}, 0.f, 0.f, 1.f, 1.f);
+  EXPECT_FALSE(bsdf_has_smooth_part(glass));
+  const Vec3 wo = normalize(Vec3(0.5f, 0.f, 0.8f));
+  const float F = fresnel_dielectric(wo.z, 1.5f);
+  BsdfSample r, t;
+  ASSERT_TRUE(bsdf_sample(glass, wo, {0.5f, 0.5f}, 0.f, F * 0.5f, &r));
+  EXPECT_TRUE(r.delta);
+  EXPECT_FALSE(r.transmitted);
+  EXPECT_NEAR(r.wi.x, -wo.x, 1e-6f);
+  ASSERT_TRUE(bsdf_sample(glass, wo, {0.5f, 0.5f}, 0.f, 0.5f + 0.5f * F, &t));
+  EXPECT_TRUE(t.transmitted);
+  const float sin_o = std::sqrt(1.f - wo.z * wo.z), sin_t = std::sqrt(1.f - t.wi.z * t.wi.z);
+  EXPECT_NEAR(sin_o, 1.5f * sin_t, 1e-5f);
+  EXPECT_LT(t.wi.z, 0.f);
+  EXPECT_NEAR(t.weight.x, 1.f / (1.5f * 1.5f), 1e-6f);
+  glass.front = false;  // leaving the glass: radiance grows by eta^2 (unless TIR)
+  const Vec3 wo2 = normalize(Vec3(0.2f, 0.f, 0.9f));
+  ASSERT_TRUE(bsdf_sample(glass, wo2, {0.5f, 0.5f}, 0.f, 0.999f, &t));
+  EXPECT_TRUE(t.transmitted);
+  EXPECT_NEAR(t.weight.x, 1.5f * 1.5f, 1e-4f);
+}
+
+}  // namespace
+}  // namespace rf

@@ -1,0 +1,944 @@
+#include "scene/scene.h"
+
+#include <embree3/rtcore.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstddef>
+#include <cstdio>
+#include <cstring>
+#include <limits>
+
+#include "sampling/samplers.h"
+
+namespace rf {
+
+Camera::Raster Camera::raster(uint32_t width, uint32_t height) const {
+  // sx = (2 px / width - 1) half_width, sy = (1 - 2 py / height) half_height.
+  float half_width, half_height;
+  if (orthographic) {
+    half_width = xmag;
+    half_height = ymag;
+  } else {
+    half_height = std::tan(0.5f * yfov);
+    half_width = float(width) / float(height) * half_height;
+  }
+  Raster r;
+  r.right = right;
+  r.up = up;
+  r.forward = forward;
+  r.position = position;
+  r.orthographic = orthographic;
+  r.kx = 2.f * half_width / float(width);
+  r.bx = -half_width;
+  r.ky = -2.f * half_height / float(height);
+  r.by = half_height;
+  return r;
+}
+
+uint64_t ray_query(uint64_t seed, uint64_t pixel, uint32_t bounce, RayKind kind) {
+  return hash4(seed, pixel, bounce, uint64_t(kind));
+}
+
+namespace {
+
+// What a query passes to the transparency filters: Embree hands a filter the context its
+// query was given, so the key rides behind Embree's own fields. Every query of a Scene uses
+// one.
+struct QueryContext {
+  RTCIntersectContext rtc;
+  uint64_t query;
+  explicit QueryContext(uint64_t q) : query(q) { rtcInitIntersectContext(&rtc); }
+};
+
+}  // namespace
+
+// The user data of a geometry of non-opaque triangles (triangles first, first + 1, ... of
+// mesh) and its intersection and occlusion filter: Embree calls it for every candidate hit on
+// the geometry, in no particular order, and it rejects those the ray passes. The decision is a
+// function of the ray's key and the hit alone, so the closest hit it lets through is the same
+// whatever the order.
+struct TransparencyFilter {
+  const Scene* scene;
+  const TriangleMesh* mesh;
+  uint32_t first;
+  static void filter(const RTCFilterFunctionNArguments* args) {
+    const auto* self = static_cast<const TransparencyFilter*>(args->geometryUserPtr);
+    const uint64_t query = reinterpret_cast<const QueryContext*>(args->context)->query;
+    const unsigned n = args->N;
+    for (unsigned i = 0; i < n; ++i) {
+      if (args->valid[i] != -1) continue;
+      const uint32_t prim = RTCHitN_primID(args->hit, n, i) + self->first;
+      if (!self->scene->stops(*self->mesh, prim, RTCHitN_u(args->hit, n, i),
+                              RTCHitN_v(args->hit, n, i), query, RTCRayN_id(args->ray, n, i),
+                              RTCHitN_instID(args->hit, n, i, 0)))
+        args->valid[i] = 0;
+    }
+  }
+};
+
+struct Scene::Embree {
+  RTCDevice device = nullptr;
+  RTCScene scene = nullptr;
+  std::vector<RTCScene> mesh_scenes;
+  std::vector<uint32_t> slot_of_geom;  // top-level geometry ID -> slot
+  unsigned world_transparent_geom = RTC_INVALID_GEOMETRY_ID;  // its non-opaque triangles
+  std::vector<std::unique_ptr<TransparencyFilter>> filters;  // the filters' user data
+  std::atomic<int64_t> bytes{0};       // what the device has allocated (memory monitor)
+  ~Embree() {
+    if (scene) rtcReleaseScene(scene);
+    for (RTCScene s : mesh_scenes)
+      if (s) rtcReleaseScene(s);
+    if (device) rtcReleaseDevice(device);
+  }
+};
+
+namespace {
+
+void embree_error(void* /*user*/, RTCError code, const char* message) {
+  // Embree reports API misuse and out-of-memory here; there is no useful recovery, but the
+  // message must reach the user.
+  std::fprintf(stderr, "embree error %d: %s\n", int(code), message ? message : "");
+}
+
+// The unit normal of the triangle's front (counter-clockwise) side in *n, and |cross(p1 - p0,
+// p2 - p0)|, twice its area; *n is left alone when that is 0 or not finite.
+float face_normal(Vec3 p0, Vec3 p1, Vec3 p2, Vec3* n) {
+  const Vec3 c = cross(p1 - p0, p2 - p0);
+  const float len = length(c);
+  if (len > 0.f && std::isfinite(len)) *n = c / len;
+  return len;
+}
+
+// Makes v's capacity its size + extra, copying it if it has more (or less) than that.
+template <typename T>
+void fit(std::vector<T>* v, size_t extra) {
+  if (v->empty() || v->capacity() == v->size() + extra) return;
+  std::vector<T> tight;
+  tight.reserve(v->size() + extra);
+  tight.assign(v->begin(), v->end());
+  v->swap(tight);
+}
+
+// Checks a mesh's materials and indices and drops its degenerate triangles (zero area or
+// non-finite vertices), which have no normal and cannot be hit or sampled meaningfully.
+// Returns how many were dropped. Their vertices stay (unreferenced).
+size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& where) {
+  const size_t n = mesh->size(), nv = mesh->positions.size();
+  if (mesh->indices.size() != 3 * n || mesh->flags.size() != n)
+    throw SceneError(where + ": inconsistent triangle mesh: " + std::to_string(n) +
+                     " materials, " + std::to_string(mesh->indices.size()) + " indices and " +
+                     std::to_string(mesh->flags.size()) + " flags (one material and one flags "
+                     "byte per triangle, three indices)");
+  if (!mesh->normals.empty() && mesh->normals.size() != nv)
+    throw SceneError(where + ": triangle mesh has normals for some vertices only");
+  if (mesh->uv.size() < 2) mesh->uv.resize(2);
+  for (size_t set = 0; set < mesh->uv.size(); ++set)
+    if (!mesh->uv[set].empty() && mesh->uv[set].size() != nv)
+      throw SceneError(where + ": triangle mesh has TEXCOORD_" + std::to_string(set) +
+                       " for some vertices only");
+  if (!mesh->colors.empty() && mesh->colors.size() != nv)
+    throw SceneError(where + ": triangle mesh has COLOR_0 for some vertices only");
+  size_t kept = 0;
+  mesh->face_normals.assign(n, Vec3());
+  for (size_t i = 0; i < n; ++i) {
+    if (mesh->material[i] >= material_count)
+      throw SceneError(where + ": triangle refers to missing material " +
+                       std::to_string(mesh->material[i]));
+    const uint32_t* v = &mesh->indices[3 * i];
+    if (v[0] >= nv || v[1] >= nv || v[2] >= nv)
+      throw SceneError(where + ": triangle " + std::to_string(i) + " refers to a missing vertex");
+    uint8_t flags = mesh->flags[i];
+    if (mesh->normals.empty()) flags &= uint8_t(~TriangleMesh::kHasNormals);
+    if (mesh->uv[0].empty()) flags &= uint8_t(~TriangleMesh::kHasUv0);
+    if (mesh->uv[1].empty()) flags &= uint8_t(~TriangleMesh::kHasUv1);
+    const Vec3 p0 = mesh->positions[v[0]], p1 = mesh->positions[v[1]], p2 = mesh->positions[v[2]];
+    const float len = face_normal(p0, p1, p2, &mesh->face_normals[kept]);
+    if (!(len > 0.f) || !std::isfinite(len) || !is_finite(p0) || !is_finite(p1) ||
+        !is_finite(p2))
+      continue;
+    if (kept != i) {
+      for (int k = 0; k < 3; ++k) mesh->indices[3 * kept + size_t(k)] = v[k];
+      mesh->material[kept] = mesh->material[i];
+    }
+    mesh->flags[kept] = flags;
+    ++kept;
+  }
+  mesh->indices.resize(3 * kept);
+  mesh->material.resize(kept);
+  mesh->flags.resize(kept);
+  mesh->face_normals.resize(kept);
+  // No growth slack is kept for the scene's lifetime (a description built by push_back may
+  // hold up to twice its size). Positions keep room for one more vertex: Embree reads the
+  // last vertex with a 16-byte load, so the float after it must be readable.
+  fit(&mesh->positions, 1);
+  fit(&mesh->normals, 0);
+  for (std::vector<Point2>& set : mesh->uv) fit(&set, 0);
+  fit(&mesh->colors, 0);
+  fit(&mesh->indices, 0);
+  fit(&mesh->material, 0);
+  fit(&mesh->flags, 0);
+  fit(&mesh->face_normals, 0);
+  return n - kept;
+}
+
+// Moves the mesh's triangles with non-opaque materials after the opaque ones, each group in
+// its order, and returns the number of opaque ones.
+uint32_t partition_transparent(TriangleMesh* mesh, const std::vector<Material>& materials) {
+  const size_t n = mesh->size();
+  std::vector<uint32_t> order;
+  order.reserve(n);
+  for (int pass = 0; pass < 2; ++pass)
+    for (size_t i = 0; i < n; ++i)
+      if (materials[mesh->material[i]].is_opaque() == (pass == 0)) order.push_back(uint32_t(i));
+  size_t opaque = 0;
+  while (opaque < n && materials[mesh->material[order[opaque]]].is_opaque()) ++opaque;
+  if (opaque == n || opaque == 0) return uint32_t(opaque);  // nothing moves
+  std::vector<uint32_t> indices(3 * n), material(n);
+  std::vector<uint8_t> flags(n);
+  std::vector<Vec3> face_normals(n);
+  for (size_t k = 0; k < n; ++k) {
+    const uint32_t i = order[k];
+    for (size_t c = 0; c < 3; ++c) indices[3 * k + c] = mesh->indices[3 * size_t(i) + c];
+    material[k] = mesh->material[i];
+    flags[k] = mesh->flags[i];
+    face_normals[k] = mesh->face_normals[i];
+  }
+  mesh->indices.swap(indices);
+  mesh->material.swap(material);
+  mesh->flags.swap(flags);
+  mesh->face_normals.swap(face_normals);
+  return uint32_t(opaque);
+}
+
+// An Embree triangle geometry of triangles [first, first + count) of the mesh that reads its
+// positions and indices in place (clean_mesh left the room after the last vertex that Embree's
+// 16-byte loads need).
+RTCGeometry triangle_geometry(RTCDevice device, const TriangleMesh& mesh, size_t first,
+                              size_t count) {
+  RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
+  rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                             mesh.positions.data(), 0, sizeof(Vec3), mesh.positions.size());
+  rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                             mesh.indices.data(), 3 * sizeof(uint32_t) * first,
+                             3 * sizeof(uint32_t), count);
+  return geom;
+}
+
+void grow_bounds(const TriangleMesh& mesh, Vec3* lo, Vec3* hi) {
+  for (uint32_t v : mesh.indices) {
+    *lo = vmin(*lo, mesh.positions[v]);
+    *hi = vmax(*hi, mesh.positions[v]);
+  }
+}
+
+// Embree's memory monitor: counts the device's allocations (bytes > 0) and frees (< 0).
+bool count_embree_bytes(void* user, ssize_t bytes, bool /*post*/) {
+  static_cast<std::atomic<int64_t>*>(user)->fetch_add(int64_t(bytes), std::memory_order_relaxed);
+  return true;  // never refuse an allocation
+}
+
+}  // namespace
+
+bool parse_bvh_layout(const std::string& name, BvhLayout* out) {
+  if (name == "fast") {
+    *out = BvhLayout::Fast;
+  } else if (name == "compact") {
+    *out = BvhLayout::Compact;
+  } else {
+    return false;
+  }
+  return true;
+}
+
+const char* bvh_layout_name(BvhLayout layout) {
+  return layout == BvhLayout::Compact ? "compact" : "fast";
+}
+
+Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayout bvh)
+    : desc_(std::move(desc)), embree_(new Embree) {
+  static_assert(sizeof(Vec3) == 3 * sizeof(float) && sizeof(Point2) == 2 * sizeof(float),
+                "Embree reads TriangleMesh::positions as packed float triples");
+  if (desc_.world.empty() && desc_.instances.empty())
+    throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
+  if (desc_.materials.empty()) desc_.materials.push_back(Material{});
+  const size_t nmat = desc_.materials.size();
+  size_t dropped = clean_mesh(&desc_.world, nmat, desc_.source);
+  for (Mesh& mesh : desc_.meshes)
+    dropped += clean_mesh(&mesh.geometry, nmat, desc_.source + " mesh '" + mesh.name + "'");
+  if (dropped && warnings)
+    warnings->push_back(desc_.source + ": skipped " + std::to_string(dropped) +
+                        " degenerate triangle(s)");
+  // Per mesh (the world, then desc_.meshes): the number of opaque triangles, which come first.
+  std::vector<uint32_t> first_transparent;
+  first_transparent.push_back(partition_transparent(&desc_.world, desc_.materials));
+  for (Mesh& mesh : desc_.meshes)
+    first_transparent.push_back(partition_transparent(&mesh.geometry, desc_.materials));
+  has_transparency_ = first_transparent[0] < desc_.world.size();
+  has_vertex_colors_ = !desc_.world.colors.empty();
+  for (const Mesh& mesh : desc_.meshes) has_vertex_colors_ |= !mesh.geometry.colors.empty();
+  for (size_t m = 0; m < desc_.meshes.size(); ++m)
+    has_transparency_ |= first_transparent[1 + m] < desc_.meshes[m].geometry.size();
+  for (const Instance& inst : desc_.instances)
+    if (inst.mesh >= desc_.meshes.size())
+      throw SceneError(desc_.source + ": instance refers to missing mesh " +
+                       std::to_string(inst.mesh));
+
+  // Bounds: world triangles, and the transformed corners of each instanced mesh's box.
+  bmin_ = Vec3(std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
+               std::numeric_limits<float>::max());
+  bmax_ = -bmin_;
+  grow_bounds(desc_.world, &bmin_, &bmax_);
+  std::vector<std::pair<Vec3, Vec3>> mesh_bounds;
+  for (const Mesh& mesh : desc_.meshes) {
+    Vec3 lo(1e30f, 1e30f, 1e30f), hi = -lo;
+    grow_bounds(mesh.geometry, &lo, &hi);
+    mesh_bounds.push_back({lo, hi});
+  }
+  bool any_instance = false;
+  for (const Instance& inst : desc_.instances) {
+    const auto& b = mesh_bounds[inst.mesh];
+    if (desc_.meshes[inst.mesh].geometry.empty()) continue;
+    any_instance = true;
+    for (int c = 0; c < 8; ++c) {
+      const Vec3 corner((c & 1) ? b.second.x : b.first.x, (c & 2) ? b.second.y : b.first.y,
+                        (c & 4) ? b.second.z : b.first.z);
+      const Vec3 w = inst.to_world.transform_point(corner);
+      bmin_ = vmin(bmin_, w);
+      bmax_ = vmax(bmax_, w);
+    }
+  }
+  if (desc_.world.empty() && !any_instance)
+    throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
+
+  // Textures: an image OpenImageIO cannot read is dropped with a warning naming it; the
+  // material then uses its constant factor. Each image is registered once for every way its
+  // materials read it: base colour and emissive textures as sRGB colours, decoded before
+  // filtering (TextureSet::add_encoded), the others as linear data.
+  const size_t n = desc_.textures.size();
+  std::vector<char> needed[2] = {std::vector<char>(n, 0), std::vector<char>(n, 0)};  // [srgb]
+  auto is_srgb = [](const Material& m, const TextureRef* ref) {
+    return ref == &m.base_color_tex || ref == &m.emissive_tex;
+  };
+  for (Material& m : desc_.materials)
+    for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
+                            &m.emissive_tex})
+      if (ref->texture >= 0 && size_t(ref->texture) < n) needed[is_srgb(m, ref)][ref->texture] = 1;
+  // A texture no material reads is still registered (header only), so that its pixels count
+  // against the limit like any image the scene carries.
+  for (size_t i = 0; i < n; ++i)
+    if (!needed[0][i] && !needed[1][i]) needed[0][i] = 1;
+  std::vector<int> texture_index[2] = {std::vector<int>(n, -1), std::vector<int>(n, -1)};
+  for (size_t i = 0; i < n; ++i) {
+    const TextureSource& t = desc_.textures[i];
+    bool counted = false;
+    for (int srgb = 0; srgb < 2; ++srgb) {
+      if (!needed[srgb][i]) continue;
+      std::string err;
+      const int index =
+          t.bytes.empty()
+              ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err, srgb, t.nearest)
+              : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err, srgb,
+                                      t.nearest);
+      texture_index[srgb][i] = index;
+      if (index < 0) {
+        if (warnings) warnings->push_back(desc_.source + ": " + t.name + " ignored: " + err);
+        break;
+      }
+      if (counted) continue;  // one image, however many ways it is read
+      counted = true;
+      // Only the image's header has been read so far (OpenImageIO decodes tiles on demand,
+      // into a cache of bounded size), so a huge image is refused before it costs anything.
+      desc_.stats.texture_pixels += textures_.pixels(index);
+      if (desc_.stats.texture_pixels > desc_.limits.max_texture_pixels)
+        throw SceneError(desc_.source + ": textures[" + std::to_string(i) + "]: the textures' " +
+                             "images hold " + std::to_string(desc_.stats.texture_pixels) +
+                             " pixels so far, over the limit of " +
+                             std::to_string(desc_.limits.max_texture_pixels),
+                         "textures[" + std::to_string(i) + "]");
+    }
+  }
+  for (Material& m : desc_.materials)
+    for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
+                            &m.emissive_tex})
+      if (ref->texture >= 0)
+        ref->texture = size_t(ref->texture) < n ? texture_index[is_srgb(m, ref)][ref->texture]
+                                                : -1;
+  desc_.textures.clear();
+  desc_.textures.shrink_to_fit();
+
+  // Lights: emissive world triangles and emissive triangles of every instance.
+  std::vector<Emitter> emitters;
+  for (uint32_t i = 0; i < desc_.world.size(); ++i) {
+    if (!desc_.materials[desc_.world.material[i]].is_emissive()) continue;
+    const Triangle tri = desc_.world.triangle(i);
+    emitters.push_back({{tri.p[0], tri.p[1], tri.p[2]}, tri.ng, tri.area, kWorldSlot, i,
+                        tri.material});
+  }
+  for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
+    const Instance& inst = desc_.instances[k];
+    const TriangleMesh& mesh = desc_.meshes[inst.mesh].geometry;
+    for (uint32_t i = 0; i < mesh.size(); ++i) {
+      if (!desc_.materials[mesh.material[i]].is_emissive()) continue;
+      const Triangle tri = mesh.triangle(i);
+      Emitter e;
+      for (int v = 0; v < 3; ++v) e.p[v] = inst.to_world.transform_point(tri.p[v]);
+      const float len = face_normal(e.p[0], e.p[1], e.p[2], &e.ng);
+      if (!(len > 0.f) || !std::isfinite(len)) continue;
+      // The front face stays the front face under mirroring transforms: follow the
+      // transformed normal, not the (flipped) winding.
+      if (dot(e.ng, inst.to_world.transform_normal(tri.ng)) < 0.f) e.ng = -e.ng;
+      e.area = 0.5f * len;
+      e.slot = 1 + k;
+      e.prim = i;
+      e.material = tri.material;
+      emitters.push_back(e);
+    }
+  }
+  lights_ = LightSet(std::move(emitters), desc_.materials, desc_.punctual_lights,
+                     std::max(1e-3f, 0.5f * length(bmax_ - bmin_)));
+
+  if (desc_.camera) {
+    camera_ = *desc_.camera;
+  } else {
+    // Frame the bounding sphere from +Z, looking down -Z with +Y up.
+    const Vec3 center = (bmin_ + bmax_) * 0.5f;
+    const float radius = std::max(1e-3f, 0.5f * length(bmax_ - bmin_));
+    camera_.yfov = 0.6911f;  // 39.6 degrees, a common default
+    const float distance = radius / std::sin(0.5f * camera_.yfov);
+    camera_.position = center + Vec3(0.f, 0.f, distance);
+    if (warnings)
+      warnings->push_back(desc_.source +
+                          ": no camera in the scene; framing its bounds from +Z");
+  }
+
+  embree_->device = rtcNewDevice(nullptr);
+  if (!embree_->device) throw SceneError(desc_.source + ": cannot create Embree device");
+  rtcSetDeviceErrorFunction(embree_->device, embree_error, nullptr);
+  rtcSetDeviceMemoryMonitorFunction(embree_->device, count_embree_bytes, &embree_->bytes);
+  packet_query_width_ =
+      rtcGetDeviceProperty(embree_->device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED) ? 16 : 8;
+  const RTCSceneFlags scene_flags =
+      bvh == BvhLayout::Compact ? RTC_SCENE_FLAG_COMPACT : RTC_SCENE_FLAG_NONE;
+  embree_->scene = rtcNewScene(embree_->device);
+  rtcSetSceneFlags(embree_->scene, scene_flags);
+  if (has_transparency_ &&
+      !rtcGetDeviceProperty(embree_->device, RTC_DEVICE_PROPERTY_FILTER_FUNCTION_SUPPORTED))
+    throw SceneError(desc_.source + ": materials with alphaMode MASK or BLEND need Embree's "
+                     "filter functions, which this Embree library was built without");
+  // A mesh's opaque triangles (the first `opaque`) are one Embree geometry and its others
+  // another, with the filter functions that test their coverage: rays on opaque geometry run
+  // no filter. Returns the geometry IDs in target (RTC_INVALID_GEOMETRY_ID for an empty part).
+  auto attach = [&](RTCScene target, const TriangleMesh& mesh, uint32_t opaque) {
+    std::pair<unsigned, unsigned> ids{RTC_INVALID_GEOMETRY_ID, RTC_INVALID_GEOMETRY_ID};
+    if (opaque > 0) {
+      RTCGeometry geom = triangle_geometry(embree_->device, mesh, 0, opaque);
+      rtcCommitGeometry(geom);
+      ids.first = rtcAttachGeometry(target, geom);
+      rtcReleaseGeometry(geom);  // the scene holds the reference now
+    }
+    if (opaque < mesh.size()) {
+      RTCGeometry geom =
+          triangle_geometry(embree_->device, mesh, opaque, mesh.size() - opaque);
+      embree_->filters.push_back(
+          std::make_unique<TransparencyFilter>(TransparencyFilter{this, &mesh, opaque}));
+      rtcSetGeometryUserData(geom, embree_->filters.back().get());
+      rtcSetGeometryIntersectFilterFunction(geom, TransparencyFilter::filter);
+      rtcSetGeometryOccludedFilterFunction(geom, TransparencyFilter::filter);
+      rtcCommitGeometry(geom);
+      ids.second = rtcAttachGeometry(target, geom);
+      rtcReleaseGeometry(geom);
+    }
+    return ids;
+  };
+  if (!desc_.world.empty()) {
+    const auto ids = attach(embree_->scene, desc_.world, first_transparent[0]);
+    for (unsigned id : {ids.first, ids.second}) {
+      if (id == RTC_INVALID_GEOMETRY_ID) continue;
+      if (embree_->slot_of_geom.size() <= id) embree_->slot_of_geom.resize(id + 1);
+      embree_->slot_of_geom[id] = kWorldSlot;
+    }
+    embree_->world_transparent_geom = ids.second;
+  }
+  // One Embree scene per shared mesh, built once, placed by instance geometries. In it, the
+  // opaque triangles are geometry 0 if there are any and the others the next geometry.
+  for (size_t m = 0; m < desc_.meshes.size(); ++m) {
+    RTCScene ms = nullptr;
+    if (!desc_.meshes[m].geometry.empty()) {
+      ms = rtcNewScene(embree_->device);
+      rtcSetSceneFlags(ms, scene_flags);
+      attach(ms, desc_.meshes[m].geometry, first_transparent[1 + m]);
+      rtcSetSceneBuildQuality(ms, RTC_BUILD_QUALITY_HIGH);
+      rtcCommitScene(ms);
+    }
+    embree_->mesh_scenes.push_back(ms);
+  }
+  slot_mesh_.push_back(&desc_.world);
+  slot_first_transparent_.push_back(first_transparent[0]);
+  for (const Instance& inst : desc_.instances) {
+    slot_mesh_.push_back(&desc_.meshes[inst.mesh].geometry);
+    slot_first_transparent_.push_back(first_transparent[1 + inst.mesh]);
+  }
+  instance_xf_.reserve(desc_.instances.size());
+  for (const Instance& inst : desc_.instances)
+    instance_xf_.push_back(Affine3f::from(inst.to_world));
+  for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
+    const Instance& inst = desc_.instances[k];
+    RTCScene ms = embree_->mesh_scenes[inst.mesh];
+    if (!ms) continue;
+    RTCGeometry geom = rtcNewGeometry(embree_->device, RTC_GEOMETRY_TYPE_INSTANCE);
+    rtcSetGeometryInstancedScene(geom, ms);
+    float xf[16];
+    for (int c = 0; c < 4; ++c)
+      for (int r = 0; r < 4; ++r) xf[4 * c + r] = float(inst.to_world.m[size_t(c)][size_t(r)]);
+    rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT4X4_COLUMN_MAJOR, xf);
+    rtcCommitGeometry(geom);
+    const unsigned id = rtcAttachGeometry(embree_->scene, geom);
+    rtcReleaseGeometry(geom);
+    if (embree_->slot_of_geom.size() <= id) embree_->slot_of_geom.resize(id + 1);
+    embree_->slot_of_geom[id] = 1 + k;
+  }
+  rtcSetSceneBuildQuality(embree_->scene, RTC_BUILD_QUALITY_HIGH);
+  rtcCommitScene(embree_->scene);
+}
+
+Scene::~Scene() = default;
+
+uint64_t Scene::world_triangle_count() const {
+  uint64_t n = desc_.world.size();
+  for (const Instance& inst : desc_.instances) n += desc_.meshes[inst.mesh].geometry.size();
+  return n;
+}
+
+namespace {
+
+thread_local RayLog* tl_ray_log = nullptr;
+
+inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmin, float tmax, uint32_t id) {
+  ray->org_x = o.x;
+  ray->org_y = o.y;
+  ray->org_z = o.z;
+  ray->dir_x = d.x;
+  ray->dir_y = d.y;
+  ray->dir_z = d.z;
+  ray->tnear = tmin;
+  ray->tfar = tmax;
+  ray->time = 0.f;
+  ray->mask = 0xffffffffu;
+  ray->id = id;
+  ray->flags = 0;
+}
+
+// Closest hit along o + t d, t in [tmin, tmax]; hit.geomID is RTC_INVALID_GEOMETRY_ID on a
+// miss.
+inline RTCRayHit trace_closest(RTCScene scene, Vec3 o, Vec3 d, float tmin, float tmax,
+                               uint64_t query, uint32_t sample) {
+  QueryContext context(query);
+  RTCRayHit rh;
+  init_ray(&rh.ray, o, d, tmin, tmax, sample);
+  rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+  rtcIntersect1(scene, &context.rtc, &rh);
+  return rh;
+}
+
+}  // namespace
+
+void set_thread_ray_log(RayLog* log) { tl_ray_log = log; }
+
+bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, 0.f, tmax, 0, 0);
+  if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
+  *t = rh.ray.tfar;
+  return true;
+}
+
+bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit, uint64_t query, uint32_t sample,
+                      float tmin) const {
+  if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, false});
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmin, tmax, query, sample);
+  if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
+  complete_hit(rh.hit.geomID, rh.hit.instID[0], rh.hit.primID, rh.hit.u, rh.hit.v, rh.ray.tfar,
+               hit);
+  return true;
+}
+
+namespace {
+
+// The valid flags and rays of an Embree packet query of width N (8 or 16) over lanes
+// [first, first + N) of *rays. Active lanes go to the thread's ray log if one is installed.
+template <int N, typename RayN>
+void fill_packet(RayN* ray, int* valid, const RayPacket& rays, int first, bool shadow) {
+  static_assert(offsetof(RayPacket, org_x) == offsetof(RTCRay16, org_x) &&
+                    offsetof(RayPacket, tnear) == offsetof(RTCRay16, tnear) &&
+                    offsetof(RayPacket, dir_x) == offsetof(RTCRay16, dir_x) &&
+                    offsetof(RayPacket, time) == offsetof(RTCRay16, time) &&
+                    offsetof(RayPacket, tfar) == offsetof(RTCRay16, tfar) &&
+                    offsetof(RayPacket, mask) == offsetof(RTCRay16, mask) &&
+                    offsetof(RayPacket, id) == offsetof(RTCRay16, id) &&
+                    offsetof(RayPacket, flags) == offsetof(RTCRay16, flags) &&
+                    offsetof(RayPacket, active) == sizeof(RTCRay16),
+                "RayPacket must have RTCRay16's layout");
+  static_assert(N == kPacketSize || N == kPacketSize / 2, "a whole packet or half of one");
+  if constexpr (N == kPacketSize) {
+    std::memcpy(ray, &rays, sizeof(RTCRay16));
+  } else {
+    // Both layouts are the same twelve 4-byte fields, each an array over the lanes: copy
+    // lanes [first, first + N) of each.
+    constexpr int kFields = 12;
+    static_assert(sizeof(RayN) == kFields * N * 4 && offsetof(RayN, flags) == (kFields - 1) * N * 4,
+                  "twelve 4-byte fields of N lanes each");
+    const auto* from = reinterpret_cast<const unsigned char*>(&rays);
+    auto* to = reinterpret_cast<unsigned char*>(ray);
+    for (int f = 0; f < kFields; ++f)
+      std::memcpy(to + f * N * 4, from + (f * kPacketSize + first) * 4, N * 4);
+  }
+  for (int i = 0; i < N; ++i) valid[i] = rays.active[first + i] ? -1 : 0;
+  if (tl_ray_log)
+    for (int i = first; i < first + N; ++i)
+      if (rays.active[i])
+        tl_ray_log->push_back({rays.origin(i), rays.direction(i), rays.tfar[i], shadow});
+}
+
+bool any_active(const RayPacket& rays, int first, int n) {
+  bool any = false;
+  for (int i = first; i < first + n; ++i) any |= rays.active[i];
+  return any;
+}
+
+// The Embree packet query of each width, chosen by overload.
+void rtc_intersect(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRayHit8* rh) {
+  rtcIntersect8(valid, scene, c, rh);
+}
+void rtc_intersect(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRayHit16* rh) {
+  rtcIntersect16(valid, scene, c, rh);
+}
+void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRay8* ray) {
+  rtcOccluded8(valid, scene, c, ray);
+}
+void rtc_occluded(const int* valid, RTCScene scene, RTCIntersectContext* c, RTCRay16* ray) {
+  rtcOccluded16(valid, scene, c, ray);
+}
+
+}  // namespace
+
+template <int N, typename RayHitN>
+void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* found,
+                            bool coherent, uint64_t query) const {
+  alignas(64) int valid[N];
+  alignas(64) RayHitN rh;
+  fill_packet<N>(&rh.ray, valid, rays, first, false);
+  for (int i = 0; i < N; ++i) {
+    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.primID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+  }
+  QueryContext context(query);
+  context.rtc.flags =
+      coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+  rtc_intersect(valid, embree_->scene, &context.rtc, &rh);
+  // Which lanes hit, without a branch per lane (whether a lane is active and hits something
+  // is data the branch predictor cannot learn); then the hits one after another.
+  uint32_t hit_lanes = 0;
+  for (int i = 0; i < N; ++i) {
+    const bool hit = rays.active[first + i] & (rh.hit.geomID[i] != RTC_INVALID_GEOMETRY_ID);
+    found[first + i] = hit;
+    hit_lanes |= uint32_t(hit) << i;
+  }
+  for (; hit_lanes; hit_lanes &= hit_lanes - 1) {
+    const int i = __builtin_ctz(hit_lanes);
+    complete_hit(rh.hit.geomID[i], rh.hit.instID[0][i], rh.hit.primID[i], rh.hit.u[i],
+                 rh.hit.v[i], rh.ray.tfar[i], &hits[first + i]);
+  }
+}
+
+template <int N, typename RayN>
+void Scene::occluded_lanes(const RayPacket& rays, int first, bool* blocked,
+                           uint64_t query) const {
+  alignas(64) int valid[N];
+  alignas(64) RayN ray;
+  fill_packet<N>(&ray, valid, rays, first, true);
+  QueryContext context(query);
+  rtc_occluded(valid, embree_->scene, &context.rtc, &ray);
+  // Embree sets tfar to -inf in the lanes where it finds an occluder. Written for every lane
+  // (inactive lanes' values mean nothing): cheaper than a branch per lane.
+  for (int i = 0; i < N; ++i) blocked[first + i] = ray.tfar[i] < 0.f;
+}
+
+void Scene::intersect(const RayPacket& rays, Hit* hits, bool* found, bool coherent,
+                      uint64_t query) const {
+  if (packet_query_width_ == kPacketSize) {
+    intersect_lanes<kPacketSize, RTCRayHit16>(rays, 0, hits, found, coherent, query);
+    return;
+  }
+  for (int first = 0; first < kPacketSize; first += kPacketSize / 2) {
+    if (any_active(rays, first, kPacketSize / 2))
+      intersect_lanes<kPacketSize / 2, RTCRayHit8>(rays, first, hits, found, coherent, query);
+    else
+      std::fill(found + first, found + first + kPacketSize / 2, false);
+  }
+}
+
+void Scene::occluded(const RayPacket& rays, bool* blocked, uint64_t query) const {
+  if (packet_query_width_ == kPacketSize) {
+    occluded_lanes<kPacketSize, RTCRay16>(rays, 0, blocked, query);
+    return;
+  }
+  for (int first = 0; first < kPacketSize; first += kPacketSize / 2)
+    if (any_active(rays, first, kPacketSize / 2))
+      occluded_lanes<kPacketSize / 2, RTCRay8>(rays, first, blocked, query);
+}
+
+void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
+                         Hit* hit) const {
+  // A hit inside an instance names the instance as the top-level geometry.
+  const bool in_instance = inst != RTC_INVALID_GEOMETRY_ID;
+  const unsigned top = in_instance ? inst : geom;
+  const uint32_t slot = top < embree_->slot_of_geom.size() ? embree_->slot_of_geom[top] : 0;
+  // Non-opaque triangles are a geometry of their own, after the opaque ones: geometry 1 of an
+  // instanced mesh (or 0 if it has only those, where the offset is 0), or the world's.
+  if (in_instance ? geom != 0 : geom == embree_->world_transparent_geom)
+    prim += slot_first_transparent_[slot];
+  const TriangleMesh& mesh = *slot_mesh_[slot];
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  const uint8_t flags = mesh.flags[prim];
+  hit->t = t;
+  hit->prim = prim;
+  hit->slot = slot;
+  hit->b1 = u;
+  hit->b2 = v;
+  hit->material = mesh.material[prim];
+  const float b0 = 1.f - hit->b1 - hit->b2;
+  const Vec3 p0 = mesh.positions[vi[0]], p1 = mesh.positions[vi[1]], p2 = mesh.positions[vi[2]];
+  // Barycentric position is more accurate than o + t d far from the origin.
+  Vec3 p = p0 * b0 + p1 * hit->b1 + p2 * hit->b2;
+  Vec3 ng = mesh.face_normals[prim];
+  Vec3 ns = ng;
+  if (flags & TriangleMesh::kHasNormals) {
+    const Vec3 n = mesh.normals[vi[0]] * b0 + mesh.normals[vi[1]] * hit->b1 +
+                   mesh.normals[vi[2]] * hit->b2;
+    const float len = length(n);
+    if (len > 0.f && std::isfinite(len)) ns = n / len;
+  }
+  // Tangent for normal mapping, from the uv parameterization of the normal map's set.
+  const Material& mat = desc_.materials[hit->material];
+  const uint32_t set = mat.normal_tex.texcoord;
+  Vec3 dpdu(0.f, 0.f, 0.f);
+  float sign = 1.f;
+  const bool reads_uv = mat.reads_uv();
+  for (int k = 0; k < 2; ++k) {
+    if (!(flags & (TriangleMesh::kHasUv0 << k)) || !reads_uv) {
+      hit->uv[k] = Point2{0.f, 0.f};
+      continue;
+    }
+    const Point2 t0 = mesh.uv[k][vi[0]], t1 = mesh.uv[k][vi[1]], t2 = mesh.uv[k][vi[2]];
+    hit->uv[k] = Point2{t0.x * b0 + t1.x * hit->b1 + t2.x * hit->b2,
+                        t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
+  }
+  if (mat.normal_tex.valid() && has_uv(mesh, prim, set)) {
+    // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
+    const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
+    const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
+    const float du1 = t1.x - t0.x, du2 = t2.x - t0.x;
+    const float dv1 = t1.y - t0.y, dv2 = t2.y - t0.y;
+    const float det = du1 * dv2 - dv1 * du2;
+    if (std::fabs(det) > 1e-12f) {
+      const float inv = 1.f / det;
+      dpdu = (dp1 * dv2 - dp2 * dv1) * inv;
+      const Vec3 dpdv = (dp2 * du1 - dp1 * du2) * inv;
+      // glTF's uv has v pointing down the image while normal maps' green channel points
+      // up: the bitangent is -dpdv. Handedness relative to the geometric normal.
+      sign = dot(cross(dpdu, -dpdv), ng) >= 0.f ? 1.f : -1.f;
+    }
+  }
+  if (slot != kWorldSlot) {
+    const Affine3f& m = instance_xf_[slot - 1];
+    p = m.point(p);
+    const Vec3 ngw = m.normal(ng), nsw = m.normal(ns);
+    const float ngl = length(ngw), nsl = length(nsw);
+    ng = ngl > 0.f ? ngw / ngl : ng;
+    ns = nsl > 0.f ? nsw / nsl : ng;
+    dpdu = m.vector(dpdu);
+    if (m.mirror) sign = -sign;
+  }
+  hit->p = p;
+  hit->ng = ng;
+  hit->ns = ns;
+  hit->dpdu = dpdu;
+  hit->tangent_sign = sign;
+}
+
+bool Scene::occluded(Vec3 o, Vec3 d, float tmax, uint64_t query, uint32_t sample) const {
+  if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, true});
+  QueryContext context(query);
+  RTCRay ray;
+  init_ray(&ray, o, d, 0.f, tmax, sample);
+  rtcOccluded1(embree_->scene, &context.rtc, &ray);
+  // Embree sets tfar to -inf when an occluder is found.
+  return ray.tfar < 0.f;
+}
+
+const Material& Scene::material(uint32_t slot, uint32_t prim) const {
+  return desc_.materials[slot_mesh_[slot]->material[prim]];
+}
+
+Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
+  const TriangleMesh& mesh = *slot_mesh_[slot];
+  const Material& m = desc_.materials[mesh.material[prim]];
+  Vec3 e = m.emission;
+  if (m.emissive_tex.valid() && has_uv(mesh, prim, m.emissive_tex.texcoord)) {
+    const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.emissive_tex.texcoord);
+    float c[3];
+    if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
+      e = e * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
+  }
+  return e;
+}
+
+float Scene::coverage(uint32_t slot, uint32_t prim, float b1, float b2) const {
+  return coverage(*slot_mesh_[slot], prim, b1, b2);
+}
+
+float Scene::coverage(const TriangleMesh& mesh, uint32_t prim, float b1, float b2) const {
+  const Material& m = desc_.materials[mesh.material[prim]];
+  if (m.is_opaque()) return 1.f;
+  // glTF 2.0, 3.9.2: alpha is baseColorFactor.a x baseColorTexture.a x COLOR_0.a (the
+  // texture's alpha is linear, not sRGB-encoded).
+  float alpha = m.alpha;
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  const float b0 = 1.f - b1 - b2;
+  if (!mesh.colors.empty())
+    alpha *= mesh.colors[vi[0]].a * b0 + mesh.colors[vi[1]].a * b1 + mesh.colors[vi[2]].a * b2;
+  if (m.base_color_tex.valid()) {
+    float c[4];
+    const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.base_color_tex.texcoord);
+    if (textures_.lookup(m.base_color_tex.texture, m.base_color_tex.apply(uv), 4, c))
+      alpha *= c[3];
+  }
+  if (m.alpha_mode == AlphaMode::Mask) return alpha >= m.alpha_cutoff ? 1.f : 0.f;
+  return std::min(1.f, std::max(0.f, alpha));
+}
+
+bool Scene::stops(const TriangleMesh& mesh, uint32_t prim, float b1, float b2, uint64_t query,
+                  uint32_t sample, uint32_t instance) const {
+  const float alpha = coverage(mesh, prim, b1, b2);
+  if (alpha >= 1.f) return true;
+  if (alpha <= 0.f) return false;
+  // A uniform number in [0, 1) per (ray, surface): independent between the surfaces a ray
+  // meets (two overlapping layers of alpha 1/2 pass a quarter of the rays), between the rays of
+  // a path, and between samples.
+  const uint64_t h = hash4(query, sample, instance, prim);
+  return fraction_to_float(uint32_t(h >> 32)) < alpha;
+}
+
+bool Scene::has_uv(const TriangleMesh& mesh, uint32_t prim, uint32_t set) {
+  if (set < 2) return (mesh.flags[prim] & (TriangleMesh::kHasUv0 << set)) != 0;
+  return set < mesh.uv.size() && !mesh.uv[set].empty();
+}
+
+Point2 Scene::interpolate_uv(const TriangleMesh& mesh, uint32_t prim, float b1, float b2,
+                             uint32_t set) {
+  if (!has_uv(mesh, prim, set)) return Point2{0.f, 0.f};
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  const std::vector<Point2>& uv = mesh.uv[set];
+  const Point2 t0 = uv[vi[0]], t1 = uv[vi[1]], t2 = uv[vi[2]];
+  const float b0 = 1.f - b1 - b2;
+  return {t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
+}
+
+Point2 Scene::texcoord(const Hit& hit, uint32_t set) const {
+  return interpolate_uv(*slot_mesh_[hit.slot], hit.prim, hit.b1, hit.b2, set);
+}
+
+bool Scene::vertex_color(const Hit& hit, Vec3* rgb) const {
+  if (!has_vertex_colors_) return false;
+  const TriangleMesh& mesh = *slot_mesh_[hit.slot];
+  if (mesh.colors.empty()) return false;
+  const uint32_t* vi = &mesh.indices[3 * size_t(hit.prim)];
+  const float b1 = hit.b1, b2 = hit.b2, b0 = 1.f - b1 - b2;
+  const Rgba c0 = mesh.colors[vi[0]], c1 = mesh.colors[vi[1]], c2 = mesh.colors[vi[2]];
+  *rgb = Vec3(c0.r * b0 + c1.r * b1 + c2.r * b2, c0.g * b0 + c1.g * b1 + c2.g * b2,
+              c0.b * b0 + c1.b * b1 + c2.b * b2);
+  return true;
+}
+
+size_t TriangleMesh::memory_bytes() const {
+  size_t uv_bytes = 0;
+  for (const std::vector<Point2>& set : uv) uv_bytes += set.capacity() * sizeof(Point2);
+  return positions.capacity() * sizeof(Vec3) + normals.capacity() * sizeof(Vec3) + uv_bytes +
+         colors.capacity() * sizeof(Rgba) +
+         (indices.capacity() + material.capacity()) * sizeof(uint32_t) + flags.capacity() +
+         face_normals.capacity() * sizeof(Vec3);
+}
+
+std::string format_bytes(size_t bytes) {
+  char text[32];
+  const double b = double(bytes);
+  if (b < 1e6)
+    std::snprintf(text, sizeof text, "%.1f kB", b * 1e-3);
+  else if (b < 1e9)
+    std::snprintf(text, sizeof text, "%.1f MB", b * 1e-6);
+  else
+    std::snprintf(text, sizeof text, "%.2f GB", b * 1e-9);
+  return text;
+}
+
+size_t Scene::memory_bytes() const {
+  size_t n = desc_.world.memory_bytes() + lights_.memory_bytes() +
+             instance_xf_.capacity() * sizeof(Affine3f) +
+             desc_.instances.capacity() * sizeof(Instance);
+  for (const Mesh& mesh : desc_.meshes) n += mesh.geometry.memory_bytes();
+  return n + size_t(std::max<int64_t>(0, embree_->bytes.load(std::memory_order_relaxed)));
+}
+
+void TriangleMesh::add(const Triangle& t) {
+  const bool write_normals = use_normals(t.has_normals);
+  const bool write_uv[2] = {use_uv(0, t.has_uv[0]), use_uv(1, t.has_uv[1])};
+  const uint32_t first = uint32_t(positions.size());
+  for (int k = 0; k < 3; ++k) {
+    positions.push_back(t.p[k]);
+    if (write_normals) normals.push_back(t.has_normals ? t.n[k] : Vec3());
+    for (int set = 0; set < 2; ++set)
+      if (write_uv[set]) uv[set].push_back(t.has_uv[set] ? t.uv[set][k] : Point2{0.f, 0.f});
+    // Arrays a Triangle has no value for stay as long as positions.
+    for (size_t set = 2; set < uv.size(); ++set)
+      if (!uv[set].empty()) uv[set].push_back(Point2{0.f, 0.f});
+    if (!colors.empty()) colors.push_back(Rgba{});
+    indices.push_back(first + uint32_t(k));
+  }
+  material.push_back(t.material);
+  flags.push_back(uint8_t((t.has_normals ? kHasNormals : 0) | (t.has_uv[0] ? kHasUv0 : 0) |
+                          (t.has_uv[1] ? kHasUv1 : 0)));
+}
+
+Triangle TriangleMesh::triangle(size_t i) const {
+  Triangle t;
+  const uint32_t* vi = &indices[3 * i];
+  t.material = material[i];
+  t.has_normals = (flags[i] & kHasNormals) != 0;
+  for (int set = 0; set < 2; ++set) t.has_uv[set] = (flags[i] & (kHasUv0 << set)) != 0;
+  for (int k = 0; k < 3; ++k) {
+    t.p[k] = positions[vi[k]];
+    if (t.has_normals) t.n[k] = normals[vi[k]];
+    for (int set = 0; set < 2; ++set)
+      if (t.has_uv[set]) t.uv[set][k] = uv[set][vi[k]];
+  }
+  t.area = 0.5f * face_normal(t.p[0], t.p[1], t.p[2], &t.ng);
+  return t;
+}
+
+std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
+                                  const LoadOptions& options) {
+  return std::make_unique<Scene>(load_gltf(path, warnings, options), warnings, options.bvh);
+}
+
+std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
+                                  BvhLayout bvh) {
+  LoadOptions options;
+  options.bvh = bvh;
+  return load_scene(path, warnings, options);
+}
+
+}  // namespace rf

@@ -1,0 +1,262 @@
+#include "scene/textures.h"
+
+#include <OpenImageIO/imageio.h>
+#include <OpenImageIO/texture.h>
+
+#include <algorithm>
+#include <atomic>
+#include <iterator>
+#include <filesystem>
+#include <fstream>
+#include <mutex>
+#include <unistd.h>
+
+#include "util/sha256.h"
+
+namespace fs = std::filesystem;
+
+namespace rf {
+
+namespace {
+
+OIIO::TextureSystem* texture_system() {
+  static OIIO::TextureSystem* ts = [] {
+    OIIO::TextureSystem* t = OIIO::TextureSystem::create(true);
+    t->attribute("automip", 1);          // MIP-map plain PNG/JPEG on demand
+    // glTF colours are not premultiplied by their alpha (a PNG's never are): keep them as they
+    // are rather than let the readers associate alpha (which would darken every texel of
+    // alpha below 1, also on opaque materials, whose alpha glTF ignores).
+    t->attribute("unassociatedalpha", 1);
+    t->attribute("max_memory_MB", 1024.f);
+    return t;
+  }();
+  return ts;
+}
+
+OIIO::TextureOpt::Wrap to_oiio(TextureWrap w) {
+  switch (w) {
+    case TextureWrap::Clamp:
+      return OIIO::TextureOpt::WrapClamp;
+    case TextureWrap::Mirror:
+      return OIIO::TextureOpt::WrapMirror;
+    case TextureWrap::Repeat:
+      break;
+  }
+  return OIIO::TextureOpt::WrapPeriodic;
+}
+
+std::string extension_for(const std::vector<unsigned char>& b, const std::string& mime) {
+  if (b.size() >= 8 && b[0] == 0x89 && b[1] == 'P' && b[2] == 'N' && b[3] == 'G') return ".png";
+  if (b.size() >= 3 && b[0] == 0xff && b[1] == 0xd8 && b[2] == 0xff) return ".jpg";
+  if (b.size() >= 4 && b[0] == 0x76 && b[1] == 0x2f && b[2] == 0x31 && b[3] == 0x01)
+    return ".exr";
+  if (b.size() >= 2 && b[0] == '#' && b[1] == '?') return ".hdr";
+  if (mime == "image/png") return ".png";
+  if (mime == "image/jpeg") return ".jpg";
+  return ".img";
+}
+
+
+// Writes `linear`: the image at `encoded` with its colour channels (gray, or RGB) decoded from
+// sRGB, as floats (the values srgb_to_linear gives, and alpha exactly as read, so that MASK
+// cutoffs decide as on the encoded image), a band of rows at a time into 64 x 64 tiles (a
+// texture may be far larger than the memory one lookup should take; the TextureSystem then
+// pages tiles into its bounded cache). Written under a temporary name and renamed, so that concurrent
+// renders never read a partial file. False if any step fails.
+bool write_linear_copy(const std::string& encoded, const fs::path& linear) {
+  OIIO::ImageSpec config;
+  config.attribute("oiio:UnassociatedAlpha", 1);  // as the TextureSystem reads it
+  auto in = OIIO::ImageInput::open(encoded, &config);
+  if (!in) return false;
+  const OIIO::ImageSpec spec = in->spec();
+  const int nc = spec.nchannels;
+  const int colour = nc <= 2 ? 1 : std::min(3, nc);
+  static std::atomic<uint64_t> counter{0};
+  const fs::path tmp = linear.parent_path() /
+                       ("." + linear.filename().string() + "." + std::to_string(::getpid()) +
+                        "." + std::to_string(++counter) + ".tmp.exr");
+  auto out = OIIO::ImageOutput::create(tmp.string());
+  constexpr int kRows = 64;  // the tile size: a band is one row of tiles
+  OIIO::ImageSpec out_spec(spec.width, spec.height, nc, OIIO::TypeFloat);
+  out_spec.channelnames = spec.channelnames;
+  out_spec.alpha_channel = spec.alpha_channel;
+  out_spec.tile_width = out_spec.tile_height = kRows;
+  if (!out || !out->open(tmp.string(), out_spec)) return false;
+  std::vector<float> rows(size_t(spec.width) * kRows * size_t(nc));
+  bool ok = true;
+  for (int y = spec.y; ok && y < spec.y + spec.height; y += kRows) {
+    const int y1 = std::min(spec.y + spec.height, y + kRows);
+    ok = in->read_scanlines(0, 0, y, y1, 0, 0, nc, OIIO::TypeFloat, rows.data());
+    const size_t texels = size_t(spec.width) * size_t(y1 - y);
+    for (size_t i = 0; ok && i < texels; ++i)
+      for (int c = 0; c < colour; ++c) {
+        float& v = rows[i * size_t(nc) + size_t(c)];
+        v = srgb_to_linear(v);
+      }
+    ok = ok && out->write_tiles(spec.x, spec.x + spec.width, y, y1, 0, 1, OIIO::TypeFloat,
+                                rows.data());
+  }
+  ok = out->close() && ok;
+  std::error_code ec;
+  if (ok) fs::rename(tmp, linear, ec);
+  if (!ok || ec) fs::remove(tmp, ec);
+  return ok && !ec;
+}
+
+}  // namespace
+
+struct TextureSet::Entry {
+  OIIO::ustring filename;
+  OIIO::TextureSystem::TextureHandle* handle = nullptr;
+  int channels = 0;
+  TextureWrap wrap_s = TextureWrap::Repeat, wrap_t = TextureWrap::Repeat;
+  // sRGB textures: the linear copy's path, made at the first lookup (std::call_once), whose
+  // handle then replaces the encoded image's. If it cannot be made, lookups decode after
+  // filtering (decode_after), as a last resort that keeps the render going.
+  bool nearest = false;  // InterpClosest instead of InterpBilinear
+  bool srgb = false;
+  std::string linear_path;
+  mutable std::once_flag linear_once;
+  mutable OIIO::TextureSystem::TextureHandle* linear_handle = nullptr;
+  mutable bool decode_after = false;
+};
+
+TextureSet::TextureSet() = default;
+TextureSet::~TextureSet() = default;
+
+int TextureSet::add_file(const std::string& path, TextureWrap wrap_s, TextureWrap wrap_t,
+                         std::string* error, bool srgb, bool nearest) {
+  if (srgb) {  // by its bytes: the linear copy is named by their hash
+    std::ifstream in(path, std::ios::binary);
+    const std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)),
+                                           std::istreambuf_iterator<char>());
+    if (!in.bad() && !bytes.empty())
+      return add_encoded(bytes, "", wrap_s, wrap_t, error, true, nearest);
+  }
+  OIIO::TextureSystem* ts = texture_system();
+  auto e = std::make_unique<Entry>();
+  e->filename = OIIO::ustring(path);
+  e->handle = ts->get_texture_handle(e->filename);
+  int channels = 0;
+  if (!e->handle ||
+      !ts->get_texture_info(e->filename, 0, OIIO::ustring("channels"), OIIO::TypeInt,
+                            &channels) ||
+      channels <= 0) {
+    // The message names no file: the path is this machine's (a cache or temporary file), and
+    // the message reaches the user; the caller names the texture.
+    if (error) {
+      std::string why = ts->geterror();
+      for (size_t at = why.find(path); !path.empty() && at != std::string::npos;
+           at = why.find(path, at))
+        why.replace(at, path.size(), "the image");
+      *error = "OpenImageIO cannot read the image: " + why;
+    }
+    return -1;
+  }
+  e->channels = channels;
+  e->wrap_s = wrap_s;
+  e->wrap_t = wrap_t;
+  e->nearest = nearest;
+  entries_.push_back(std::move(e));
+  return int(entries_.size() - 1);
+}
+
+int TextureSet::add_encoded(const std::vector<unsigned char>& bytes, const std::string& mime,
+                            TextureWrap wrap_s, TextureWrap wrap_t, std::string* error,
+                            bool srgb, bool nearest) {
+  if (bytes.empty()) {
+    if (error) *error = "image has no data";
+    return -1;
+  }
+  const std::string hex =
+      sha256_hex(std::string(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+  std::error_code ec;
+  const fs::path dir = fs::temp_directory_path(ec) / "renderfarm-textures";
+  fs::create_directories(dir, ec);
+  const fs::path path = dir / (hex + extension_for(bytes, mime));
+  if (!fs::is_regular_file(path, ec) || fs::file_size(path, ec) != bytes.size()) {
+    // Write under a unique temporary name, then rename (atomic within one directory), so
+    // concurrent loaders never see a partial file.
+    static std::mutex counter_mutex;
+    static uint64_t counter = 0;
+    uint64_t n;
+    {
+      std::lock_guard<std::mutex> lock(counter_mutex);
+      n = ++counter;
+    }
+    const fs::path tmp =
+        dir / ("." + hex + "." + std::to_string(::getpid()) + "." + std::to_string(n) + ".tmp");
+    {
+      std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+      out.write(reinterpret_cast<const char*>(bytes.data()), std::streamsize(bytes.size()));
+      if (!out) {
+        if (error) *error = "cannot write the image to the temporary directory";
+        return -1;
+      }
+    }
+    fs::rename(tmp, path, ec);
+    if (ec) {
+      fs::remove(tmp, ec);
+      if (error) *error = "cannot write the image to the temporary directory";
+      return -1;
+    }
+  }
+  const int index = add_file(path.string(), wrap_s, wrap_t, error, false, nearest);
+  if (index >= 0 && srgb) {
+    Entry& e = *entries_[size_t(index)];
+    e.srgb = true;
+    // Named by the source and the conversion (a change of it must not reuse older copies).
+    e.linear_path = (dir / (hex + ".linear-f32-t64.exr")).string();
+  }
+  return index;
+}
+
+uint64_t TextureSet::pixels(int texture) const {
+  if (texture < 0 || size_t(texture) >= entries_.size()) return 0;
+  int resolution[2] = {0, 0};
+  OIIO::TextureSystem* ts = texture_system();
+  if (!ts->get_texture_info(entries_[size_t(texture)]->filename, 0, OIIO::ustring("resolution"),
+                            OIIO::TypeDesc(OIIO::TypeDesc::INT, 2), resolution))
+    return 0;
+  return uint64_t(std::max(0, resolution[0])) * uint64_t(std::max(0, resolution[1]));
+}
+
+bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
+  if (texture < 0 || size_t(texture) >= entries_.size()) return false;
+  const Entry& e = *entries_[size_t(texture)];
+  OIIO::TextureOpt opt;
+  opt.swrap = to_oiio(e.wrap_s);
+  opt.twrap = to_oiio(e.wrap_t);
+  opt.interpmode = e.nearest ? OIIO::TextureOpt::InterpClosest : OIIO::TextureOpt::InterpBilinear;
+  opt.mipmode = OIIO::TextureOpt::MipModeNoMIP;  // no ray differentials: finest level
+  float result[4] = {1.f, 1.f, 1.f, 1.f};
+  // Gray images (one channel, or gray and alpha) give their gray to red, green and blue; the
+  // alpha of a gray-and-alpha image is its second channel.
+  const bool gray = e.channels <= 2;
+  const int want = gray ? (n >= 4 && e.channels == 2 ? 2 : 1)
+                        : std::min(4, std::max(1, std::min(n, e.channels)));
+  OIIO::TextureSystem* ts = texture_system();
+  OIIO::TextureSystem::TextureHandle* handle = e.handle;
+  if (e.srgb) {
+    std::call_once(e.linear_once, [&] {
+      std::error_code ec;
+      if (fs::is_regular_file(e.linear_path, ec) ||
+          write_linear_copy(e.filename.string(), e.linear_path))
+        e.linear_handle = ts->get_texture_handle(OIIO::ustring(e.linear_path));
+      e.decode_after = e.linear_handle == nullptr;
+    });
+    if (e.linear_handle) handle = e.linear_handle;
+  }
+  if (!ts->texture(handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f, 0.f, 0.f, want,
+                   result))
+    return false;
+  if (e.decode_after)
+    for (int c = 0; c < (gray ? 1 : std::min(3, want)); ++c) result[c] = srgb_to_linear(result[c]);
+  for (int c = 0; c < n; ++c) {
+    if (c == 3) out[c] = gray ? (want == 2 ? result[1] : 1.f) : (want > 3 ? result[3] : 1.f);
+    else out[c] = gray ? result[0] : result[std::min(c, want - 1)];
+  }
+  return true;
+}
+
+}  // namespace rf

@@ -1,0 +1,158 @@
+// Textures through the glTF loader and the integrators' shading: base color (sRGB),
+// KHR_texture_transform, normal maps, emissive textures; and unsupported extensions, which
+// must produce a warning naming them, never a failure.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "render/integrators.h"
+#include "testing/test_scenes.h"
+
+namespace rf {
+namespace {
+
+// 2 x 2 texels, sRGB: red green / blue white (top row first).
+std::string checker_uri() {
+  return testing::png_data_uri(2, 2, 3, {255, 0, 0, 0, 255, 0, 0, 0, 255, 255, 255, 255});
+}
+
+// A quad (see quad_gltf_buffers_json) with one material, seen by a narrow camera at +z.
+std::string quad_scene(const std::string& material, const std::string& images,
+                       const std::string& extra = "") {
+  return R"({"asset": {"version": "2.0"}, )" + extra + R"(
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+                              "indices": 3, "material": 0}]}],
+  "materials": [)" + material + R"(],
+  "textures": [{"source": 0, "sampler": 0}],
+  "samplers": [{"magFilter": 9728, "wrapS": 10497, "wrapT": 10497}],
+  "images": [)" + images + R"(],
+  )" + testing::quad_gltf_buffers_json() + "}";
+}
+
+// First-hit AOVs of the scene's 1x1 image (its camera is a narrow probe).
+void probe(const Scene& scene, Vec3* albedo, Vec3* normal) {
+  RenderSettings settings;
+  settings.width = settings.height = 1;
+  settings.integrator = IntegratorType::AmbientOcclusion;
+  TileBuffer tile;
+  EXPECT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 4, &tile));
+  *albedo = Vec3(tile.albedo_sum[0], tile.albedo_sum[1], tile.albedo_sum[2]) / 4.f;
+  *normal = Vec3(tile.normal_sum[0], tile.normal_sum[1], tile.normal_sum[2]) / 4.f;
+}
+
+std::unique_ptr<Scene> load_at(const std::string& json, float x, float y,
+                               std::vector<std::string>* warnings) {
+  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", warnings);
+  desc.camera = testing::look_at({x, y, 2.f}, {x, y, 0.f}, 1e-4f);
+  return std::make_unique<Scene>(std::move(desc), warnings);
+}
+
+Vec3 albedo_at(const std::string& json, float x, float y) {
+  std::vector<std::string> warnings;
+  auto scene = load_at(json, x, y, &warnings);
+  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  Vec3 albedo, normal;
+  probe(*scene, &albedo, &normal);
+  return albedo;
+}
+
+void expect_color(Vec3 got, Vec3 want, const char* what) {
+  for (int c = 0; c < 3; ++c) EXPECT_NEAR(got[c], want[c], 2e-3f) << what << " channel " << c;
+}
+
+TEST(Textures, BaseColorTextureIsSampledInGltfUvConvention) {
+  const std::string images = R"({"uri": ")" + checker_uri() + R"("})";
+  const std::string mat = R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
+      "baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0}})";
+  const std::string json = quad_scene(mat, images);
+  // Texel centers: uv (0.25, 0.25) is the top-left texel, at x = -0.5, y = +0.5.
+  expect_color(albedo_at(json, -0.5f, 0.5f), {1, 0, 0}, "top-left red");
+  expect_color(albedo_at(json, 0.5f, 0.5f), {0, 1, 0}, "top-right green");
+  expect_color(albedo_at(json, -0.5f, -0.5f), {0, 0, 1}, "bottom-left blue");
+  expect_color(albedo_at(json, 0.5f, -0.5f), {1, 1, 1}, "bottom-right white");
+  // baseColorFactor multiplies; mid-gray sRGB 188 is linear ~0.5.
+  const std::string gray = testing::png_data_uri(1, 1, 3, {188, 188, 188});
+  const std::string json2 =
+      quad_scene(R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
+                     "baseColorFactor": [0.5, 1, 1, 1], "metallicFactor": 0}})",
+                 R"({"uri": ")" + gray + R"("})");
+  const float lin = srgb_to_linear(188.f / 255.f);
+  expect_color(albedo_at(json2, 0.f, 0.f), {0.5f * lin, lin, lin}, "factor x sRGB texel");
+}
+
+TEST(Textures, KhrTextureTransformOffsetScaleRotation) {
+  const std::string images = R"({"uri": ")" + checker_uri() + R"("})";
+  auto with = [&](const std::string& transform) {
+    return quad_scene(R"({"pbrMetallicRoughness": {"metallicFactor": 0, "baseColorTexture":
+        {"index": 0, "extensions": {"KHR_texture_transform": )" + transform + "}}}}",
+                      images, R"("extensionsUsed": ["KHR_texture_transform"],)");
+  };
+  // uv (0.25, 0.25) + (0.5, 0) = (0.75, 0.25): top-right green.
+  expect_color(albedo_at(with(R"({"offset": [0.5, 0]})"), -0.5f, 0.5f), {0, 1, 0}, "offset");
+  // Rotation pi/2: u' = v, v' = -u -> (0.25, -0.25) wraps to (0.25, 0.75): bottom-left blue.
+  expect_color(albedo_at(with(R"({"rotation": 1.5707963})"), -0.5f, 0.5f), {0, 0, 1},
+               "rotation");
+  // Scale 2 about the origin: (0.25, 0.25) -> (0.5, 0.5) + offset (0.25, 0.25) = (0.75, 0.75)
+  // -> bottom-right white.
+  expect_color(albedo_at(with(R"({"scale": [2, 2], "offset": [0.25, 0.25]})"), -0.5f, 0.5f),
+               {1, 1, 1}, "scale");
+}
+
+TEST(Textures, NormalMapTiltsTheShadingNormal) {
+  // Tangent-space normal (0.6, 0, 0.8) encoded as (n + 1) / 2 in 8 bits.
+  const std::string nm = testing::png_data_uri(1, 1, 3, {204, 128, 230});
+  const std::string json =
+      quad_scene(R"({"pbrMetallicRoughness": {"metallicFactor": 0}, "normalTexture": {"index": 0}})",
+                 R"({"uri": ")" + nm + R"("})");
+  std::vector<std::string> warnings;
+  auto scene = load_at(json, 0.1f, 0.2f, &warnings);
+  Vec3 albedo, normal;
+  probe(*scene, &albedo, &normal);
+  // u grows along +x (tangent), v down the image = -y, so the bitangent (green up) is +y.
+  EXPECT_NEAR(normal.x, 0.6f, 0.01f);
+  EXPECT_NEAR(normal.y, 0.0f, 0.01f);
+  EXPECT_NEAR(normal.z, 0.8f, 0.01f);
+}
+
+TEST(Textures, EmissiveTextureModulatesEmission) {
+  // Emissive texture: left half black, right half white (2 x 1 texels).
+  const std::string em = testing::png_data_uri(2, 1, 3, {0, 0, 0, 255, 255, 255});
+  const std::string json = quad_scene(
+      R"({"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0},
+          "emissiveFactor": [2, 2, 2], "emissiveTexture": {"index": 0}})",
+      R"({"uri": ")" + em + R"("})");
+  for (float x : {-0.5f, 0.5f}) {
+    std::vector<std::string> warnings;
+    auto scene = load_at(json, x, 0.f, &warnings);
+    RenderSettings settings;
+    settings.width = settings.height = 1;
+    TileBuffer tile;
+    ASSERT_TRUE(render_rect(*scene, settings, {0, 0, 1, 1}, 0, 4, &tile));
+    EXPECT_NEAR(tile.rgb_sum[0] / 4.0, x < 0.f ? 0.0 : 2.0, 1e-3) << x;
+  }
+}
+
+TEST(Textures, UnsupportedExtensionsAndBrokenImagesWarnAndStillRender) {
+  const std::string json = quad_scene(
+      R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0},
+          "extensions": {"KHR_materials_clearcoat": {"clearcoatFactor": 1}}})",
+      R"({"uri": "data:image/png;base64,AAAA"})",
+      R"("extensionsUsed": ["KHR_materials_clearcoat"],)");
+  std::vector<std::string> warnings;
+  auto scene = load_at(json, 0.f, 0.f, &warnings);
+  bool named = false, texture = false;
+  for (const auto& w : warnings) {
+    named = named || w.find("KHR_materials_clearcoat") != std::string::npos;
+    texture = texture || w.find("textures[0]") != std::string::npos;
+  }
+  EXPECT_TRUE(named);
+  EXPECT_TRUE(texture);
+  Vec3 albedo, normal;
+  probe(*scene, &albedo, &normal);
+  expect_color(albedo, {1, 1, 1}, "constant factor used");
+}
+
+}  // namespace
+}  // namespace rf

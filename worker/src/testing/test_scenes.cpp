@@ -1,0 +1,210 @@
+#include "testing/test_scenes.h"
+
+#include <OpenImageIO/imageio.h>
+
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <cstring>
+#include <fstream>
+#include <iterator>
+#include <stdexcept>
+#include <vector>
+
+namespace rf {
+namespace testing {
+
+void add_quad(SceneDescription* desc, Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32_t material) {
+  Triangle a, b;
+  a.p[0] = p0, a.p[1] = p1, a.p[2] = p2;
+  b.p[0] = p0, b.p[1] = p2, b.p[2] = p3;
+  a.material = b.material = material;
+  desc->world.add(a);
+  desc->world.add(b);
+}
+
+void add_sphere(SceneDescription* desc, Vec3 center, float radius, uint32_t material, int rings,
+                int segments) {
+  auto point = [&](int i, int j) {
+    const float theta = kPi * float(i) / float(rings), phi = 2.f * kPi * float(j) / float(segments);
+    return center + Vec3(std::sin(theta) * std::cos(phi), std::cos(theta),
+                         -std::sin(theta) * std::sin(phi)) *
+                        radius;
+  };
+  for (int i = 0; i < rings; ++i)
+    for (int j = 0; j < segments; ++j) {
+      // Counter-clockwise seen from outside.
+      const Vec3 a = point(i, j), b = point(i + 1, j), c = point(i + 1, j + 1), d = point(i, j + 1);
+      Triangle t0, t1;
+      t0.p[0] = a, t0.p[1] = b, t0.p[2] = c;
+      t1.p[0] = a, t1.p[1] = c, t1.p[2] = d;
+      t0.material = t1.material = material;
+      desc->world.add(t0);  // the pole's degenerate ones are dropped by Scene
+      desc->world.add(t1);
+    }
+}
+
+Camera look_at(Vec3 eye, Vec3 target, float yfov) {
+  Camera cam;
+  cam.position = eye;
+  cam.forward = normalize(target - eye);
+  const Vec3 up_hint = std::fabs(cam.forward.y) > 0.99f ? Vec3(0, 0, 1) : Vec3(0, 1, 0);
+  cam.right = normalize(cross(cam.forward, up_hint));
+  cam.up = cross(cam.right, cam.forward);
+  cam.yfov = yfov;
+  return cam;
+}
+
+SceneDescription plane_under_emitter(float rho, float L, float a, float b, float c, Vec3 eye,
+                                     float yfov) {
+  SceneDescription desc;
+  desc.source = "plane-under-emitter";
+  desc.materials.push_back(Material{"plane", {rho, rho, rho}, {0, 0, 0}});
+  desc.materials.push_back(Material{"emitter", {0, 0, 0}, {L, L, L}});
+  add_quad(&desc, {-2, -2, 0}, {2, -2, 0}, {2, 2, 0}, {-2, 2, 0}, 0);  // faces +z
+  const float ha = 0.5f * a, hb = 0.5f * b;
+  // Clockwise seen from above = counter-clockwise seen from below: faces -z.
+  add_quad(&desc, {-ha, -hb, c}, {-ha, hb, c}, {ha, hb, c}, {ha, -hb, c}, 1);
+  desc.camera = look_at(eye, {0, 0, 0}, yfov);
+  return desc;
+}
+
+namespace {
+
+std::string base64(const std::vector<unsigned char>& data) {
+  static const char* table =
+      "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out;
+  for (size_t i = 0; i < data.size(); i += 3) {
+    uint32_t v = uint32_t(data[i]) << 16;
+    if (i + 1 < data.size()) v |= uint32_t(data[i + 1]) << 8;
+    if (i + 2 < data.size()) v |= data[i + 2];
+    out += table[(v >> 18) & 63];
+    out += table[(v >> 12) & 63];
+    out += i + 1 < data.size() ? table[(v >> 6) & 63] : '=';
+    out += i + 2 < data.size() ? table[v & 63] : '=';
+  }
+  return out;
+}
+
+void put_floats(std::vector<unsigned char>* buf, std::initializer_list<float> values) {
+  for (float f : values) {
+    unsigned char b[4];
+    std::memcpy(b, &f, 4);
+    buf->insert(buf->end(), b, b + 4);
+  }
+}
+
+}  // namespace
+
+std::string small_gltf_json() {
+  std::vector<unsigned char> buf;
+  // [0, 48): floor positions, 4 x VEC3, y = 0 plane facing +y (CCW seen from above).
+  put_floats(&buf, {-1, 0, 1, 1, 0, 1, 1, 0, -1, -1, 0, -1});
+  // [48, 60): floor indices uint16 0 1 2 0 2 3.
+  for (uint16_t i : {0, 1, 2, 0, 2, 3}) {
+    buf.push_back(uint8_t(i & 0xff));
+    buf.push_back(uint8_t(i >> 8));
+  }
+  // [60, 132): emitter positions, 6 x VEC3, unit square in y = 0 facing -y (local frame).
+  put_floats(&buf, {-0.5f, 0, -0.5f, 0.5f, 0, -0.5f, 0.5f, 0, 0.5f,  //
+                    -0.5f, 0, -0.5f, 0.5f, 0, 0.5f, -0.5f, 0, 0.5f});
+  const std::string uri = "data:application/octet-stream;base64," + base64(buf);
+  return R"({
+  "asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_materials_emissive_strength", "EXT_made_up"],
+  "scene": 0,
+  "scenes": [{"nodes": [0, 1, 3]}],
+  "nodes": [
+    {"name": "floor", "mesh": 0},
+    {"name": "light-parent", "translation": [0, 2, 0], "scale": [2, 1, 2], "children": [2]},
+    {"name": "light", "mesh": 1},
+    {"name": "camera", "camera": 0, "translation": [0, 1, 5],
+     "rotation": [-0.0998334, 0, 0, 0.9950042]}
+  ],
+  "cameras": [{"type": "perspective", "perspective": {"yfov": 0.7, "znear": 0.01}}],
+  "materials": [
+    {"name": "grey", "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.6, 0.7, 1]}},
+    {"name": "lamp", "emissiveFactor": [1, 0.5, 0.25],
+     "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 4}}}
+  ],
+  "meshes": [
+    {"name": "floor", "primitives": [
+      {"attributes": {"POSITION": 0}, "indices": 1, "material": 0},
+      {"attributes": {"POSITION": 0}, "mode": 1}
+    ]},
+    {"name": "lamp", "primitives": [{"attributes": {"POSITION": 2}, "material": 1}]}
+  ],
+  "accessors": [
+    {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+     "min": [-1, 0, -1], "max": [1, 0, 1]},
+    {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"},
+    {"bufferView": 2, "componentType": 5126, "count": 6, "type": "VEC3",
+     "min": [-0.5, 0, -0.5], "max": [0.5, 0, 0.5]}
+  ],
+  "bufferViews": [
+    {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 48, "byteLength": 12},
+    {"buffer": 0, "byteOffset": 60, "byteLength": 72}
+  ],
+  "buffers": [{"byteLength": 132, "uri": ")" +
+         uri + R"("}]
+})";
+}
+
+std::string quad_gltf_buffers_json() {
+  std::vector<unsigned char> buf;
+  put_floats(&buf, {-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0});       // [0, 48) positions
+  put_floats(&buf, {0, 0, 1, 0, 0, 1, 0, 0, 1, 0, 0, 1});           // [48, 96) normals
+  put_floats(&buf, {0, 1, 1, 1, 1, 0, 0, 0});                       // [96, 128) uv
+  for (uint16_t i : {0, 1, 2, 0, 2, 3}) {                           // [128, 140) indices
+    buf.push_back(uint8_t(i & 0xff));
+    buf.push_back(uint8_t(i >> 8));
+  }
+  return R"("accessors": [
+    {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+     "min": [-1, -1, 0], "max": [1, 1, 0]},
+    {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC3"},
+    {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC2"},
+    {"bufferView": 3, "componentType": 5123, "count": 6, "type": "SCALAR"}
+  ],
+  "bufferViews": [
+    {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 48, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 96, "byteLength": 32},
+    {"buffer": 0, "byteOffset": 128, "byteLength": 12}
+  ],
+  "buffers": [{"byteLength": 140, "uri": "data:application/octet-stream;base64,)" +
+         base64(buf) + R"("}])";
+}
+
+std::string data_uri(const std::string& mime_type, const std::vector<unsigned char>& bytes) {
+  return "data:" + mime_type + ";base64," + base64(bytes);
+}
+
+std::string png_data_uri(int width, int height, int channels,
+                         const std::vector<unsigned char>& pixels) {
+  static int counter = 0;
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("rf_test_" + std::to_string(::getpid()) + "_" +
+                             std::to_string(++counter) + ".png"))
+                               .string();
+  auto out = OIIO::ImageOutput::create(path);
+  if (!out) throw std::runtime_error("cannot create PNG writer");
+  OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
+  // The pixels as given: colours not premultiplied by alpha (OpenImageIO would otherwise
+  // divide them by it on writing).
+  spec.attribute("oiio:UnassociatedAlpha", 1);
+  if (!out->open(path, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels.data()) ||
+      !out->close())
+    throw std::runtime_error("cannot write " + path);
+  std::ifstream in(path, std::ios::binary);
+  const std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)),
+                                         std::istreambuf_iterator<char>());
+  std::remove(path.c_str());
+  return "data:image/png;base64," + base64(bytes);
+}
+
+}  // namespace testing
+}  // namespace rf

@@ -1,0 +1,49 @@
+// Scenes built by the tests (not part of the worker binary).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "scene/scene.h"
+
+namespace rf {
+namespace testing {
+
+// Two triangles p0 p1 p2 and p0 p2 p3 (front face = counter-clockwise as listed).
+void add_quad(SceneDescription* desc, Vec3 p0, Vec3 p1, Vec3 p2, Vec3 p3, uint32_t material);
+
+// A Lambertian square of albedo rho (side 4, centered at the origin in z = 0, facing +z) under
+// a one-sided emissive a x b rectangle of radiance L centered above the origin at height c and
+// facing down; camera at `eye` looking at the origin with field of view yfov.
+SceneDescription plane_under_emitter(float rho, float L, float a, float b, float c, Vec3 eye,
+                                     float yfov);
+
+// A small glTF 2.0 scene as JSON text with its buffer as a base64 data: URI: an indexed
+// (uint16) floor quad, a non-indexed emissive quad (emissiveStrength 4) under a translated and
+// scaled parent node, a camera on a rotated node, and a LINES primitive that must be skipped.
+std::string small_gltf_json();
+
+// JSON members "accessors", "bufferViews" and "buffers" (no surrounding braces) of a unit
+// quad: z = 0, x and y in [-1, 1], facing +z, as accessors 0 POSITION, 1 NORMAL,
+// 2 TEXCOORD_0 = ((x + 1) / 2, (1 - y) / 2) (glTF's v points down the image) and 3 uint16
+// indices.
+std::string quad_gltf_buffers_json();
+
+// bytes as a base64 data: URI of the given MIME type.
+std::string data_uri(const std::string& mime_type, const std::vector<unsigned char>& bytes);
+
+// A PNG of width x height 8-bit pixels (channels per pixel, row-major from the top; colours
+// not premultiplied by alpha) as a data: URI.
+std::string png_data_uri(int width, int height, int channels,
+                         const std::vector<unsigned char>& pixels);
+
+// A flat-shaded (no vertex normals: shading normal = geometric normal) UV sphere of
+// 2 * rings * (segments) triangles, outward facing.
+void add_sphere(SceneDescription* desc, Vec3 center, float radius, uint32_t material,
+                int rings = 48, int segments = 96);
+
+// Camera looking from eye to target with +Y-ish up.
+Camera look_at(Vec3 eye, Vec3 target, float yfov);
+
+}  // namespace testing
+}  // namespace rf
