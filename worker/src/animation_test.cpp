@@ -435,5 +435,40 @@ TEST(AnimationLoader, MorphTargetsAddTheirWeightedDisplacements) {
   expect_vec(d.world.positions[6], {1.25f, 1, 10.5f});
 }
 
+// With weights all 0 the morphed geometry is the base one: a mesh two nodes use stays one
+// shared mesh placed by two instances (as before morph targets applied), and the pose report
+// says where each node's vertices are.
+TEST(AnimationLoader, ZeroWeightsKeepASharedMeshInstanced) {
+  Buffer b;
+  const int pos = b.add(std::vector<float>{0, 0, 0, 1, 0, 0, 0, 1, 0});
+  const int tgt = b.add(std::vector<float>{0, 0, 1, 0, 0, 1, 0, 0, 1});
+  const std::string json = R"({"asset": {"version": "2.0"}, "scene": 0,
+  "scenes": [{"nodes": [0, 1, 2]}],
+  "nodes": [{"mesh": 0}, {"mesh": 0, "translation": [0, 0, 3]}, {"mesh": 0, "weights": [1]}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "targets": [{"POSITION": 1}]}],
+              "weights": [0]}],
+  "accessors": [)" + accessor(pos, 5126, 3, "VEC3") + ", " + accessor(tgt, 5126, 3, "VEC3") +
+                           "], " + b.json() + "}";
+  PoseReport report;
+  LoadOptions options;
+  options.pose_report = &report;
+  const SceneDescription d = load_gltf_from_string(json, "", "shared.gltf", nullptr, options);
+  ASSERT_EQ(d.instances.size(), 2u);
+  ASSERT_EQ(d.meshes.size(), 1u);
+  expect_vec(d.meshes[0].geometry.positions[1], {1, 0, 0}, 0.f);
+  // Node 2's weight 1 moves its own copy by the target: (1, 0, 1).
+  ASSERT_EQ(report.ranges.size(), 3u);
+  const PoseReport::Range& own = report.ranges[2];
+  EXPECT_EQ(own.node, 2);
+  EXPECT_EQ(own.instance, -1);
+  EXPECT_TRUE(own.morphed);
+  ASSERT_EQ(own.count, 3u);
+  expect_vec(d.world.positions[own.first_vertex + 1], {1, 0, 1});
+  EXPECT_EQ(report.ranges[1].instance, 1);
+  EXPECT_EQ(report.ranges[1].mesh_slot, 0);
+  ASSERT_EQ(report.node_world.size(), 3u);
+  EXPECT_EQ(report.node_world[1].m[3][2], 3.0);
+}
+
 }  // namespace
 }  // namespace rf
