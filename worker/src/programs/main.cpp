@@ -20,6 +20,7 @@
 #include <nlohmann/json.hpp>
 
 #include "bench/bench.h"
+#include "scene/animation.h"
 #include "farm/farm_client.h"
 #include "render/film.h"
 #include "render/integrators.h"
@@ -40,6 +41,15 @@ const char* kUsage =
     "      [--max-depth D] [--aperture-radius R --focus-distance F]\n"
     "      [--environment MAP.hdr|MAP.exr [--environment-intensity X]\n"
     "       [--environment-rotation-deg D]] [--bvh fast|compact]\n"
+    "      [--time T [--animation I]...]\n"
+    "      --time T: pose the scene with its glTF animations at T seconds (default: no\n"
+    "      animation, the nodes' own transforms); --animation I: only animation I drives the\n"
+    "      pose (repeatable, or I,J,...; default: every animation)\n"
+    "  renderfarm-worker pose SCENE.gltf|SCENE.glb [--time T [--animation I]...] [--json]\n"
+    "      the posed scene as JSON (indented without --json): every node's world matrix\n"
+    "      (column-major), the camera, the world mesh's vertex positions and normals, the\n"
+    "      shared meshes and their instances, and per mesh node the range of its vertices\n"
+    "      ({node, mesh, first_vertex, count, instance, mesh_slot, skinned, morphed})\n"
     "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
     "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
     "      [--scenes cornell,mesh,instanced]\n"
@@ -131,8 +141,49 @@ rf::BvhLayout parse_bvh_flag(std::map<std::string, std::string>& flags) {
   return bvh;
 }
 
-int cmd_render(const std::vector<std::string>& args) {
+// "a,b,,c" -> {"a", "b", "", "c"}: empty items are kept, for the caller to reject.
+std::vector<std::string> split_commas(const std::string& list) {
+  std::vector<std::string> items;
+  size_t pos = 0;
+  for (;;) {
+    const size_t comma = list.find(',', pos);
+    items.push_back(list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos));
+    if (comma == std::string::npos) return items;
+    pos = comma + 1;
+  }
+}
+
+// --time T and --animation I (repeatable, or I,J,...) onto the load options: the animations'
+// pose at T (animation.h). Takes --animation out of *args (parse_flags takes a flag once).
+void take_animation_flags(std::vector<std::string>* args, rf::LoadOptions* options) {
+  std::vector<std::string> rest;
+  bool time = false;
+  for (size_t i = 0; i < args->size(); ++i) {
+    const std::string& a = (*args)[i];
+    if (a == "--animation" || a == "--time") {
+      if (i + 1 >= args->size()) throw UsageError{"flag '" + a + "' needs a value"};
+      const std::string& value = (*args)[++i];
+      if (a == "--time") {
+        options->time = parse_double("--time", value);
+        time = true;
+        continue;
+      }
+      for (const std::string& item : split_commas(value))
+        options->animations.push_back(int(parse_uint("--animation", item, 0, INT32_MAX)));
+    } else {
+      rest.push_back(a);
+    }
+  }
+  if (!time && !options->animations.empty())
+    throw UsageError{"--animation needs --time (without a time no animation applies)"};
+  *args = rest;
+}
+
+int cmd_render(const std::vector<std::string>& arguments) {
   std::vector<std::string> positional;
+  std::vector<std::string> args = arguments;
+  rf::LoadOptions load;
+  take_animation_flags(&args, &load);
   auto flags = parse_flags(args,
                            {"-o", "--spp", "--width", "--height", "--threads", "--seed",
                             "--sampler", "--integrator", "--max-depth", "--aperture-radius",
@@ -175,7 +226,7 @@ int cmd_render(const std::vector<std::string>& args) {
   if (!flags.count("--environment") &&
       (flags.count("--environment-intensity") || flags.count("--environment-rotation-deg")))
     throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
-  const rf::BvhLayout bvh = parse_bvh_flag(flags);
+  load.bvh = parse_bvh_flag(flags);
   const std::string& scene_path = positional[0];
   const std::string& out_path = flags["-o"];
   // Checked before the render, not after it: a long render must not be lost to a typo.
@@ -187,7 +238,7 @@ int cmd_render(const std::vector<std::string>& args) {
   std::vector<std::string> warnings;
   std::unique_ptr<rf::Scene> scene;
   try {
-    scene = rf::load_scene(scene_path, &warnings, bvh);
+    scene = rf::load_scene(scene_path, &warnings, load);
   } catch (const std::exception& e) {
     for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
     std::cerr << "error: " << e.what() << "\n";
@@ -325,16 +376,84 @@ int cmd_inspect(const std::vector<std::string>& args) {
   return scene ? 0 : kExitRuntime;
 }
 
-// "a,b,,c" -> {"a", "b", "", "c"}: empty items are kept, for the caller to reject.
-std::vector<std::string> split_commas(const std::string& list) {
-  std::vector<std::string> items;
-  size_t pos = 0;
-  for (;;) {
-    const size_t comma = list.find(',', pos);
-    items.push_back(list.substr(pos, comma == std::string::npos ? std::string::npos : comma - pos));
-    if (comma == std::string::npos) return items;
-    pos = comma + 1;
+// The posed scene as the loader flattens it, for tests and users checking an animation:
+// every node's world matrix, the camera, the world mesh's vertices, the shared meshes and
+// their instances, and where each mesh node's vertices are (PoseReport::Range). Exit 0, or 1
+// if the scene is refused ({"ok": false, "error": ..., "path": ...}).
+int cmd_pose(const std::vector<std::string>& arguments) {
+  std::vector<std::string> args, positional;
+  bool json = false;
+  for (const std::string& a : arguments) {
+    if (a == "--json") json = true;
+    else args.push_back(a);
   }
+  rf::LoadOptions options;
+  take_animation_flags(&args, &options);
+  parse_flags(args, {}, &positional);
+  if (positional.size() != 1) throw UsageError{"pose expects exactly one scene file"};
+  rf::PoseReport report;
+  options.pose_report = &report;
+  std::vector<std::string> warnings;
+  nlohmann::json out;
+  auto vec3 = [](rf::Vec3 v) { return nlohmann::json::array({v.x, v.y, v.z}); };
+  auto mat4 = [](const rf::Mat4& m) {
+    nlohmann::json a = nlohmann::json::array();
+    for (int c = 0; c < 4; ++c)
+      for (int r = 0; r < 4; ++r) a.push_back(m.m[size_t(c)][size_t(r)]);
+    return a;
+  };
+  auto vertices = [&](const rf::TriangleMesh& mesh) {
+    nlohmann::json positions = nlohmann::json::array(), normals = nlohmann::json::array();
+    for (const rf::Vec3& p : mesh.positions) positions.push_back(vec3(p));
+    for (const rf::Vec3& n : mesh.normals) normals.push_back(vec3(n));
+    return nlohmann::json{{"positions", positions}, {"normals", normals}};
+  };
+  try {
+    const rf::SceneDescription desc = rf::load_gltf(positional[0], &warnings, options);
+    out = {{"ok", true}, {"warnings", warnings}};
+    out["time"] = options.animated() ? nlohmann::json(options.time) : nlohmann::json();
+    out["animations"] = options.animations;
+    nlohmann::json nodes = nlohmann::json::array();
+    for (size_t i = 0; i < report.node_world.size(); ++i)
+      nodes.push_back({{"index", i}, {"world", mat4(report.node_world[i])}});
+    out["nodes"] = nodes;
+    if (desc.camera) {
+      const rf::Camera& c = *desc.camera;
+      out["camera"] = {{"node", report.camera_node},  {"position", vec3(c.position)},
+                       {"forward", vec3(c.forward)}, {"up", vec3(c.up)},
+                       {"right", vec3(c.right)}};
+    } else {
+      out["camera"] = nullptr;
+    }
+    out["world"] = vertices(desc.world);
+    nlohmann::json meshes = nlohmann::json::array(), instances = nlohmann::json::array();
+    for (const rf::Mesh& m : desc.meshes) {
+      nlohmann::json mesh = vertices(m.geometry);
+      mesh["name"] = m.name;
+      meshes.push_back(mesh);
+    }
+    for (const rf::Instance& inst : desc.instances)
+      instances.push_back({{"mesh_slot", inst.mesh}, {"to_world", mat4(inst.to_world)}});
+    out["meshes"] = meshes;
+    out["instances"] = instances;
+    nlohmann::json ranges = nlohmann::json::array();
+    for (const rf::PoseReport::Range& r : report.ranges) {
+      auto or_null = [](int v) { return v >= 0 ? nlohmann::json(v) : nlohmann::json(); };
+      ranges.push_back({{"node", r.node},
+                        {"mesh", r.mesh},
+                        {"first_vertex", r.first_vertex},
+                        {"count", r.count},
+                        {"instance", or_null(r.instance)},
+                        {"mesh_slot", or_null(r.mesh_slot)},
+                        {"skinned", r.skinned},
+                        {"morphed", r.morphed}});
+    }
+    out["ranges"] = ranges;
+  } catch (const rf::SceneError& e) {
+    out = {{"ok", false}, {"error", e.what()}, {"path", e.path()}, {"warnings", warnings}};
+  }
+  std::cout << (json ? out.dump() : out.dump(2)) << "\n";
+  return out["ok"].get<bool>() ? 0 : kExitRuntime;
 }
 
 int cmd_bench(const std::vector<std::string>& args) {
@@ -523,6 +642,7 @@ int main(int argc, char** argv) {
     if (cmd == "connect") return cmd_connect(args);
     if (cmd == "bench") return cmd_bench(args);
     if (cmd == "inspect") return cmd_inspect(args);
+    if (cmd == "pose") return cmd_pose(args);
     throw UsageError{"unknown command '" + cmd + "'"};
   } catch (const UsageError& e) {
     std::cerr << "renderfarm-worker: " << e.message << " (see renderfarm-worker --help)\n";

@@ -18,6 +18,7 @@
 #include <map>
 #include <set>
 
+#include "scene/animation.h"
 #include "scene/gltf_compression.h"
 #include "scene/scene.h"
 
@@ -84,12 +85,14 @@ class Loader {
     load_textures(&desc);
     load_materials(&desc);
     load_lights();
-    count_mesh_uses();
 
     if (model_.nodes.size() > options_.limits.max_nodes)
       fail("nodes: the scene has " + std::to_string(model_.nodes.size()) +
            " nodes, over the limit of " + std::to_string(options_.limits.max_nodes));
     const std::vector<int> parent = check_hierarchy();
+    parent_ = parent;
+    evaluate_animations();  // animation.h: the pose at options_.time
+    count_mesh_uses();
     std::vector<int> roots;
     std::string roots_path;
     if (!model_.scenes.empty()) {
@@ -108,6 +111,11 @@ class Loader {
     check_cost(roots, &desc.stats);
     reserve(world_counts(roots), &desc.world);
     for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
+    if (options_.pose_report) {
+      options_.pose_report->node_world.clear();
+      for (size_t i = 0; i < model_.nodes.size(); ++i)
+        options_.pose_report->node_world.push_back(global_transform(int(i)));
+    }
     return desc;
   }
 
@@ -427,7 +435,7 @@ class Loader {
       seen[size_t(i)] = true;
       const tinygltf::Node& node = model_.nodes[size_t(i)];
       if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) &&
-          mesh_uses_[size_t(node.mesh)] == 1)
+          (mesh_uses_[size_t(node.mesh)] == 1 || is_deformed(i)))
         c += mesh_counts(size_t(node.mesh));
       stack.insert(stack.end(), node.children.begin(), node.children.end());
     }
@@ -512,7 +520,7 @@ class Loader {
     const SceneLimits& limits = options_.limits;
     std::vector<std::pair<int, uint32_t>> stack;  // (node, depth)
     for (int r : roots) stack.push_back({r, 1});
-    std::vector<uint64_t> uses(model_.meshes.size(), 0);
+    std::vector<uint64_t> uses(model_.meshes.size(), 0), copies(model_.meshes.size(), 0);
     std::vector<uint64_t> mesh_triangles(model_.meshes.size(), UINT64_MAX);
     uint64_t instances = 0;
     while (!stack.empty()) {
@@ -529,7 +537,9 @@ class Loader {
           fail(where + ".mesh: refers to missing mesh " + std::to_string(node.mesh));
         uint64_t& tris = mesh_triangles[size_t(node.mesh)];
         if (tris == UINT64_MAX) tris = mesh_counts(size_t(node.mesh)).triangles;
-        ++uses[size_t(node.mesh)];
+        // A skinned or morphed node has its own copy of the mesh; the others share one.
+        if (is_deformed(i)) ++copies[size_t(node.mesh)];
+        else uses[size_t(node.mesh)] = 1;
         ++instances;
         stats->instanced_triangles += tris;
         if (stats->instanced_triangles > limits.max_instanced_triangles)
@@ -545,12 +555,13 @@ class Loader {
     const double bvh_bytes = options_.bvh == BvhLayout::Compact ? 45.0 : 70.0;
     double bytes = 0.0;
     for (size_t m = 0; m < model_.meshes.size(); ++m) {
-      if (!uses[m]) continue;
+      if (!uses[m] && !copies[m]) continue;
       const Counts c = mesh_counts(m);
       const double per_vertex = 12.0 + (c.normals ? 12.0 : 0.0) + (c.colors ? 16.0 : 0.0) +
                                 8.0 * double(c.uv.size());
-      bytes += double(c.vertices) * per_vertex +
-               double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes);
+      bytes += double(uses[m] + copies[m]) *
+               (double(c.vertices) * per_vertex +
+                double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes));
     }
     bytes += double(instances) * 256.0;
     for (const tinygltf::Buffer& b : model_.buffers) bytes += double(b.data.size());
@@ -562,8 +573,13 @@ class Loader {
 
   void count_mesh_uses() {
     mesh_uses_.assign(model_.meshes.size(), 0);
-    for (const auto& node : model_.nodes)
-      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size())) ++mesh_uses_[size_t(node.mesh)];
+    for (size_t i = 0; i < model_.nodes.size(); ++i) {
+      const tinygltf::Node& node = model_.nodes[i];
+      // Skinned and morphed nodes are flattened (their vertices are their own): they do not
+      // count as uses of a shared mesh.
+      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) && !is_deformed(int(i)))
+        ++mesh_uses_[size_t(node.mesh)];
+    }
     mesh_slot_.assign(model_.meshes.size(), -1);
   }
 
@@ -704,7 +720,10 @@ class Loader {
     desc->materials.push_back(def);
   }
 
-  Mat4 local_transform(const tinygltf::Node& node, const std::string& where) const {
+  // The node's transform; pose (its animation at the load's time, or null) replaces the paths
+  // it animates.
+  Mat4 local_transform(const tinygltf::Node& node, const std::string& where,
+                       const NodePose* pose = nullptr) const {
     if (node.matrix.size() == 16) {
       Mat4 m;
       for (int i = 0; i < 16; ++i) m.m[size_t(i / 4)][size_t(i % 4)] = node.matrix[size_t(i)];
@@ -712,14 +731,28 @@ class Loader {
     }
     if (!node.matrix.empty()) fail(where + ": 'matrix' must have 16 elements");
     Mat4 t = Mat4::identity(), r = Mat4::identity(), s = Mat4::identity();
-    if (!node.translation.empty()) {
-      if (node.translation.size() != 3) fail(where + ": 'translation' must have 3 elements");
-      for (int i = 0; i < 3; ++i) t.m[3][size_t(i)] = node.translation[size_t(i)];
+    if (!node.translation.empty() && node.translation.size() != 3)
+      fail(where + ": 'translation' must have 3 elements");
+    if (!node.rotation.empty() && node.rotation.size() != 4)
+      fail(where + ": 'rotation' must have 4 elements");
+    if (!node.scale.empty() && node.scale.size() != 3)
+      fail(where + ": 'scale' must have 3 elements");
+    // The values in use: the pose's, else the node's (null: the identity).
+    auto pick = [](bool posed, const double* from_pose, const std::vector<double>& own) {
+      return posed ? from_pose : own.empty() ? nullptr : own.data();
+    };
+    const double* translation =
+        pick(pose && pose->has_translation, pose ? pose->translation.data() : nullptr,
+             node.translation);
+    const double* rotation =
+        pick(pose && pose->has_rotation, pose ? pose->rotation.data() : nullptr, node.rotation);
+    const double* scale =
+        pick(pose && pose->has_scale, pose ? pose->scale.data() : nullptr, node.scale);
+    if (translation) {
+      for (int i = 0; i < 3; ++i) t.m[3][size_t(i)] = translation[i];
     }
-    if (!node.rotation.empty()) {
-      if (node.rotation.size() != 4) fail(where + ": 'rotation' must have 4 elements");
-      double x = node.rotation[0], y = node.rotation[1], z = node.rotation[2],
-             w = node.rotation[3];
+    if (rotation) {
+      double x = rotation[0], y = rotation[1], z = rotation[2], w = rotation[3];
       const double n = std::sqrt(x * x + y * y + z * z + w * w);
       if (!(n > 0.0)) fail(where + ": 'rotation' is not a valid quaternion");
       x /= n, y /= n, z /= n, w /= n;
@@ -734,9 +767,8 @@ class Loader {
       r.m[2][1] = 2 * (y * z - x * w);
       r.m[2][2] = 1 - 2 * (x * x + y * y);
     }
-    if (!node.scale.empty()) {
-      if (node.scale.size() != 3) fail(where + ": 'scale' must have 3 elements");
-      for (int i = 0; i < 3; ++i) s.m[size_t(i)][size_t(i)] = node.scale[size_t(i)];
+    if (scale) {
+      for (int i = 0; i < 3; ++i) s.m[size_t(i)][size_t(i)] = scale[i];
     }
     return t * r * s;
   }
@@ -748,8 +780,11 @@ class Loader {
     if (depth > int(model_.nodes.size())) fail("node hierarchy contains a cycle");
     const tinygltf::Node& node = model_.nodes[size_t(index)];
     const std::string where = "nodes[" + std::to_string(index) + "]" + named(node.name);
-    const Mat4 world = parent * local_transform(node, where);
-    if (node.camera >= 0 && !desc->camera) take_camera(node, world, where, desc);
+    const Mat4 world = parent * local_transform(node, where, pose_of(index));
+    if (node.camera >= 0 && !desc->camera) {
+      take_camera(node, world, where, desc);
+      if (options_.pose_report) options_.pose_report->camera_node = index;
+    }
     auto light_ext = node.extensions.find("KHR_lights_punctual");
     if (light_ext != node.extensions.end() && light_ext->second.Has("light")) {
       const int li = light_ext->second.Get("light").GetNumberAsInt();
@@ -767,8 +802,18 @@ class Loader {
     if (node.mesh >= 0) {
       if (node.mesh >= int(model_.meshes.size()))
         fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
-      warn_unsupported_mesh_features(node, where);
-      if (mesh_uses_[size_t(node.mesh)] > 1) {
+      PoseReport::Range range;
+      range.node = index;
+      range.mesh = node.mesh;
+      if (is_deformed(index)) {
+        // Skinned or morphed: vertices of its own, in world space.
+        const Deformation deformation = deformation_of(index, where);
+        range.first_vertex = uint32_t(desc->world.positions.size());
+        range.skinned = deformation.skin >= 0;
+        range.morphed = !deformation.weights.empty();
+        add_mesh(size_t(node.mesh), world, &desc->world, &deformation);
+        range.count = uint32_t(desc->world.positions.size()) - range.first_vertex;
+      } else if (mesh_uses_[size_t(node.mesh)] > 1) {
         // Shared mesh: built once in its own space, placed by an instance.
         int& slot = mesh_slot_[size_t(node.mesh)];
         if (slot < 0) {
@@ -779,33 +824,18 @@ class Loader {
           slot = int(desc->meshes.size());
           desc->meshes.push_back(std::move(mesh));
         }
+        range.instance = int(desc->instances.size());
+        range.mesh_slot = slot;
+        range.count = uint32_t(desc->meshes[size_t(slot)].geometry.positions.size());
         desc->instances.push_back({uint32_t(slot), world});
       } else {
+        range.first_vertex = uint32_t(desc->world.positions.size());
         add_mesh(size_t(node.mesh), world, &desc->world);
+        range.count = uint32_t(desc->world.positions.size()) - range.first_vertex;
       }
+      if (options_.pose_report) options_.pose_report->ranges.push_back(range);
     }
     for (int child : node.children) visit(child, world, desc, depth + 1);
-  }
-
-  // Skins and morph targets, which a still of the scene's rest pose would need, are not
-  // implemented: said once per scene.
-  void warn_unsupported_mesh_features(const tinygltf::Node& node, const std::string& where) {
-    const tinygltf::Mesh& mesh = model_.meshes[size_t(node.mesh)];
-    if (node.skin >= 0 && !warned_skin_) {
-      warn(where + " (and possibly others): skins are not supported; the mesh is rendered "
-                   "unskinned, placed by the node");
-      warned_skin_ = true;
-    }
-    const std::vector<double>& weights = node.weights.empty() ? mesh.weights : node.weights;
-    bool morphed = false;
-    for (const tinygltf::Primitive& prim : mesh.primitives)
-      morphed = morphed || !prim.targets.empty();
-    if (morphed && !warned_morph_ &&
-        std::any_of(weights.begin(), weights.end(), [](double w) { return w != 0.0; })) {
-      warn(where + " (and possibly others): morph targets are not supported; the mesh's base "
-                   "geometry is rendered, without its weights");
-      warned_morph_ = true;
-    }
   }
 
   // The first camera the walk from the roots meets, of either type (glTF 2.0, 3.10).
@@ -927,7 +957,14 @@ class Loader {
     }
   };
 
-  enum class Attribute { Position, Normal, Texcoord, Color, Indices };
+  // What an accessor holds: vertex attributes and indices (3.7.2.1), animation sampler inputs
+  // and outputs (3.11), skin joints, weights and inverse bind matrices (3.7.3), and morph
+  // target displacements (3.7.2.2).
+  enum class Attribute {
+    Position, Normal, Texcoord, Color, Indices,
+    AnimationInput, AnimationVec3, AnimationRotation, AnimationWeights,
+    Joints, Weights, InverseBindMatrices, MorphPosition, MorphNormal
+  };
   static const char* component_name(int type) {
     switch (type) {
       case TINYGLTF_COMPONENT_TYPE_BYTE: return "byte";
@@ -952,6 +989,9 @@ class Loader {
     const bool unsigned_norm =
         norm && (ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
                  ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT);
+    const bool float_type = ct == TINYGLTF_COMPONENT_TYPE_FLOAT;
+    const bool signed_small =
+        ct == TINYGLTF_COMPONENT_TYPE_BYTE || ct == TINYGLTF_COMPONENT_TYPE_SHORT;
     bool type_ok = false, ok = false;
     const char* allowed = "";
     switch (kind) {
@@ -984,6 +1024,49 @@ class Loader {
              ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ||
              ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT;
         allowed = "unsigned byte, short or int";
+        break;
+      case Attribute::AnimationInput:
+        type_ok = acc.type == TINYGLTF_TYPE_SCALAR;
+        ok = float_type;
+        allowed = "float (keyframe times in seconds)";
+        break;
+      case Attribute::AnimationVec3:  // translation, scale
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = float_type;
+        allowed = "float";
+        break;
+      case Attribute::AnimationRotation:
+      case Attribute::AnimationWeights:
+        type_ok = acc.type == (kind == Attribute::AnimationRotation ? TINYGLTF_TYPE_VEC4
+                                                                    : TINYGLTF_TYPE_SCALAR);
+        ok = float_type || (norm && small_int);
+        allowed = "float or a normalized byte, unsigned byte, short or unsigned short";
+        break;
+      case Attribute::Joints:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC4;
+        ok = !norm && (ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||
+                       ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT);
+        allowed = "unsigned byte or unsigned short";
+        break;
+      case Attribute::Weights:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC4;
+        ok = float_type || unsigned_norm;
+        allowed = "float, normalized unsigned byte or short";
+        break;
+      case Attribute::InverseBindMatrices:
+        type_ok = acc.type == TINYGLTF_TYPE_MAT4;
+        ok = float_type;
+        allowed = "float";
+        break;
+      case Attribute::MorphPosition:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = float_type || (quantization_ && signed_small);
+        allowed = "float (byte and short, normalized or not, with KHR_mesh_quantization)";
+        break;
+      case Attribute::MorphNormal:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC3;
+        ok = float_type || (quantization_ && norm && signed_small);
+        allowed = "float (normalized byte and short with KHR_mesh_quantization)";
         break;
     }
     if (!type_ok) return "unexpected accessor 'type'";
@@ -1068,11 +1151,328 @@ class Loader {
     std::vector<std::pair<uint32_t, View>> uv;  // (TriangleMesh::uv array, view), ascending
   };
 
+  // ---- Animation, skins and morph targets (glTF 2.0, 3.11, 3.7.3, 3.7.2.2; animation.h).
+
+  // A deformed mesh node: its morph target weights (empty: none apply) and, if it is skinned,
+  // its skin's joint matrices globalTransform(joints[j]) * inverseBindMatrices[j].
+  struct Deformation {
+    std::vector<double> weights;
+    int skin = -1;
+    std::vector<Mat4> joint_matrices;
+  };
+  // A deformed primitive's vertices in world space: positions, normals (not normalized;
+  // empty without NORMAL) and, for skinned ones, whether each vertex's skin matrix mirrors.
+  struct PosedVertices {
+    std::vector<Vec3> positions, normals;
+    std::vector<uint8_t> mirrored;
+  };
+
+  // The animations' pose at options_.time (none without a time): every channel of the chosen
+  // animations, checked and evaluated. Channels of paths other than the four of glTF 2.0
+  // (KHR_animation_pointer's) are ignored with a warning.
+  void evaluate_animations() {
+    if (!options_.animated()) return;
+    std::vector<int> chosen = options_.animations;
+    if (chosen.empty())
+      for (size_t a = 0; a < model_.animations.size(); ++a) chosen.push_back(int(a));
+    std::vector<ChannelTrack> channels;
+    for (const int a : chosen) {
+      const std::string at = "animations[" + std::to_string(a) + "]";
+      if (a < 0 || a >= int(model_.animations.size()))
+        fail(at + ": no such animation (the scene has " +
+             std::to_string(model_.animations.size()) + ")");
+      const tinygltf::Animation& anim = model_.animations[size_t(a)];
+      for (size_t k = 0; k < anim.channels.size(); ++k) {
+        const tinygltf::AnimationChannel& ch = anim.channels[k];
+        const std::string cw = at + ".channels[" + std::to_string(k) + "]";
+        ChannelTrack track;
+        if (ch.target_path == "translation") {
+          track.path = AnimationPath::Translation;
+        } else if (ch.target_path == "rotation") {
+          track.path = AnimationPath::Rotation;
+        } else if (ch.target_path == "scale") {
+          track.path = AnimationPath::Scale;
+        } else if (ch.target_path == "weights") {
+          track.path = AnimationPath::Weights;
+        } else {
+          warn(cw + ".target.path: '" + ch.target_path +
+               "' is not translation, rotation, scale or weights; channel ignored");
+          continue;
+        }
+        const int n = ch.target_node;
+        if (n < 0 || n >= int(model_.nodes.size()))
+          fail(cw + ".target.node: refers to missing node " + std::to_string(n));
+        const tinygltf::Node& node = model_.nodes[size_t(n)];
+        if (!node.matrix.empty())
+          fail(cw + ".target.node: node " + std::to_string(n) +
+               " has a 'matrix'; glTF 2.0 (3.11) allows animating only nodes whose transform "
+               "is translation, rotation and scale");
+        size_t components = track.path == AnimationPath::Rotation ? 4 : 3;
+        if (track.path == AnimationPath::Weights) {
+          components = node.mesh >= 0 && node.mesh < int(model_.meshes.size())
+                           ? morph_target_count(node.mesh)
+                           : 0;
+          if (components == 0) {
+            warn(cw + ": node " + std::to_string(n) +
+                 " has no mesh with morph targets; weights channel ignored");
+            continue;
+          }
+        }
+        if (ch.sampler < 0 || ch.sampler >= int(anim.samplers.size()))
+          fail(cw + ".sampler: refers to missing sampler " + std::to_string(ch.sampler));
+        track.node = n;
+        track.track = read_sampler(a, ch.sampler, track.path, components);
+        channels.push_back(std::move(track));
+      }
+    }
+    poses_ = evaluate_pose(channels, options_.time);
+  }
+
+  // Sampler j of animation a as keyframes of `components` numbers (glTF 2.0, 3.11): float
+  // times that strictly increase, and one output element per keyframe (three with
+  // CUBICSPLINE: in-tangent, value, out-tangent), dequantized.
+  KeyframeTrack read_sampler(int a, int j, AnimationPath path, size_t components) {
+    const tinygltf::AnimationSampler& s = model_.animations[size_t(a)].samplers[size_t(j)];
+    const std::string sw = "animations[" + std::to_string(a) + "].samplers[" + std::to_string(j) + "]";
+    KeyframeTrack track;
+    track.components = components;
+    track.rotation = path == AnimationPath::Rotation;
+    if (!parse_interpolation(s.interpolation, &track.interpolation))
+      fail(sw + ".interpolation: '" + s.interpolation + "' is not STEP, LINEAR or CUBICSPLINE");
+    const View input = check_accessor(s.input, Attribute::AnimationInput, sw + ".input");
+    const std::string in_at = sw + ".input (accessors[" + std::to_string(s.input) + "])";
+    if (input.count == 0) fail(in_at + ": no keyframes");
+    track.times.resize(input.count);
+    for (size_t k = 0; k < input.count; ++k) {
+      const double t = input.get(k, 0);
+      if (!std::isfinite(t)) fail(in_at + ": keyframe time " + std::to_string(k) + " is not finite");
+      if (k > 0 && !(t > track.times[k - 1]))
+        fail(in_at + ": keyframe time " + std::to_string(k) + " (" + std::to_string(t) +
+             ") is not greater than the one before it (" + std::to_string(track.times[k - 1]) +
+             "); glTF 2.0 (3.11) requires strictly increasing times");
+      track.times[k] = t;
+    }
+    const Attribute kind = path == AnimationPath::Rotation  ? Attribute::AnimationRotation
+                           : path == AnimationPath::Weights ? Attribute::AnimationWeights
+                                                            : Attribute::AnimationVec3;
+    const View output = check_accessor(s.output, kind, sw + ".output");
+    const std::string out_at = sw + ".output (accessors[" + std::to_string(s.output) + "])";
+    const size_t per_key = track.interpolation == Interpolation::CubicSpline ? 3 : 1;
+    // Weights outputs are scalars, `components` (the morph target count) per element.
+    const size_t per_element = path == AnimationPath::Weights ? components : 1;
+    const size_t expected = input.count * per_key * per_element;
+    if (output.count != expected)
+      fail(out_at + ": " + std::to_string(output.count) + " elements, expected " +
+           std::to_string(expected) + " (" + std::to_string(input.count) + " keyframes" +
+           (per_key == 3 ? " x 3 for CUBICSPLINE" : "") +
+           (per_element > 1 ? " x " + std::to_string(per_element) + " morph targets" : "") + ")");
+    track.values.resize(input.count * per_key * components);
+    const int nc = output.components;
+    for (size_t e = 0; e < output.count; ++e)
+      for (int c = 0; c < nc; ++c) {
+        const double v = output.get(e, c);
+        if (!std::isfinite(v)) fail(out_at + ": element " + std::to_string(e) + " is not finite");
+        track.values[e * size_t(nc) + size_t(c)] = v;
+      }
+    return track;
+  }
+
+  const NodePose* pose_of(int node) const {
+    if (poses_.empty()) return nullptr;
+    const auto it = poses_.find(node);
+    return it == poses_.end() ? nullptr : &it->second;
+  }
+  size_t morph_target_count(int mesh) const {
+    size_t n = 0;
+    for (const tinygltf::Primitive& prim : model_.meshes[size_t(mesh)].primitives)
+      n = std::max(n, prim.targets.size());
+    return n;
+  }
+  // A mesh node's morph target weights (3.7.2.2): animated, else the node's, else the mesh's
+  // (missing ones are 0).
+  const std::vector<double>& morph_weights(int index) const {
+    const NodePose* pose = pose_of(index);
+    if (pose && pose->has_weights) return pose->weights;
+    const tinygltf::Node& node = model_.nodes[size_t(index)];
+    if (!node.weights.empty()) return node.weights;
+    return model_.meshes[size_t(node.mesh)].weights;
+  }
+  // Whether a node's mesh is skinned, or morphed by a weight other than 0: the node then has
+  // vertices of its own (flattened into the world mesh, never an instance of a shared mesh).
+  bool is_deformed(int index) const {
+    const tinygltf::Node& node = model_.nodes[size_t(index)];
+    if (node.mesh < 0 || node.mesh >= int(model_.meshes.size())) return false;
+    if (node.skin >= 0) return true;
+    if (morph_target_count(node.mesh) == 0) return false;
+    const std::vector<double>& w = morph_weights(index);
+    return std::any_of(w.begin(), w.end(), [](double x) { return x != 0.0; });
+  }
+
+  // A node's world matrix at the pose, as visit() composes it (parent * local from the root
+  // down), for nodes visit() may not have reached yet (joints) or at all.
+  Mat4 global_transform(int index) {
+    std::vector<int> chain;
+    for (int j = index; j >= 0 && !global_.count(j); j = parent_[size_t(j)]) chain.push_back(j);
+    for (auto it = chain.rbegin(); it != chain.rend(); ++it) {
+      const int j = *it, p = parent_[size_t(j)];
+      const tinygltf::Node& node = model_.nodes[size_t(j)];
+      const Mat4 parent = p >= 0 ? global_.at(p) : Mat4::identity();
+      global_.emplace(j, parent * local_transform(node, "nodes[" + std::to_string(j) + "]" +
+                                                            named(node.name),
+                                                  pose_of(j)));
+    }
+    return global_.at(index);
+  }
+
+  // Skin s's joint matrices (3.7.3): globalTransform(joints[j]) * inverseBindMatrices[j]
+  // (the identity without inverseBindMatrices). The skinned node's own transform is not used.
+  const std::vector<Mat4>& joint_matrices(int s) {
+    const auto found = joint_matrices_.find(s);
+    if (found != joint_matrices_.end()) return found->second;
+    const tinygltf::Skin& skin = model_.skins[size_t(s)];
+    const std::string at = "skins[" + std::to_string(s) + "]" + named(skin.name);
+    std::optional<View> ibm;
+    if (skin.inverseBindMatrices >= 0) {
+      ibm = check_accessor(skin.inverseBindMatrices, Attribute::InverseBindMatrices,
+                           at + ".inverseBindMatrices");
+      if (ibm->count < skin.joints.size())
+        fail("skins[" + std::to_string(s) + "].inverseBindMatrices (accessors[" +
+             std::to_string(skin.inverseBindMatrices) + "]): " + std::to_string(ibm->count) +
+             " matrices for " + std::to_string(skin.joints.size()) + " joints");
+    }
+    std::vector<Mat4> out;
+    for (size_t k = 0; k < skin.joints.size(); ++k) {
+      const int j = skin.joints[k];
+      if (j < 0 || j >= int(model_.nodes.size()))
+        fail("skins[" + std::to_string(s) + "].joints[" + std::to_string(k) +
+             "]: refers to missing node " + std::to_string(j));
+      Mat4 inverse_bind = Mat4::identity();
+      if (ibm)
+        for (int c = 0; c < 16; ++c) inverse_bind.m[size_t(c / 4)][size_t(c % 4)] = ibm->get(k, c);
+      out.push_back(global_transform(j) * inverse_bind);
+    }
+    return joint_matrices_.emplace(s, std::move(out)).first->second;
+  }
+
+  Deformation deformation_of(int index, const std::string& where) {
+    const tinygltf::Node& node = model_.nodes[size_t(index)];
+    Deformation d;
+    if (morph_target_count(node.mesh) > 0) {
+      d.weights = morph_weights(index);
+      if (std::all_of(d.weights.begin(), d.weights.end(), [](double w) { return w == 0.0; }))
+        d.weights.clear();
+    }
+    if (node.skin >= 0) {
+      if (node.skin >= int(model_.skins.size()))
+        fail(where + ": 'skin' refers to missing skin " + std::to_string(node.skin));
+      d.skin = node.skin;
+      d.joint_matrices = joint_matrices(node.skin);
+    }
+    return d;
+  }
+
+  // The accessors a deformed primitive's vertices also depend on: primitives that share their
+  // vertex attributes but not these get vertices of their own.
+  static void add_deformation_key(const tinygltf::Primitive& prim, VertexKey* key) {
+    for (const auto& [name, accessor] : prim.attributes)
+      if (name.rfind("JOINTS_", 0) == 0 || name.rfind("WEIGHTS_", 0) == 0)
+        key->emplace(name, accessor);
+    for (size_t t = 0; t < prim.targets.size(); ++t)
+      for (const auto& [name, accessor] : prim.targets[t])
+        key->emplace("targets[" + std::to_string(t) + "]." + name, accessor);
+  }
+
+  // A deformed primitive's vertices: the morph targets' POSITION and NORMAL displacements
+  // added with the weights (3.7.2.2), then the skin matrix sum_i w_i jointMatrix[j_i] over
+  // every JOINTS_n / WEIGHTS_n set (3.7.3.3), or world for an unskinned node; normals with
+  // the inverse transpose of that matrix.
+  PosedVertices pose_vertices(const tinygltf::Primitive& prim, const VertexAttributes& a,
+                              const Deformation& d, const Mat4& world, const std::string& where) {
+    const size_t n = a.position.count;
+    const View* nrm = a.normal ? &*a.normal : nullptr;
+    std::vector<double> p(3 * n), nn(nrm ? 3 * n : 0);
+    for (size_t vi = 0; vi < n; ++vi)
+      for (int c = 0; c < 3; ++c) {
+        p[3 * vi + size_t(c)] = a.position.get(vi, c);
+        if (nrm) nn[3 * vi + size_t(c)] = nrm->get(vi, c);
+      }
+    for (size_t t = 0; t < prim.targets.size() && t < d.weights.size(); ++t) {
+      const double w = d.weights[t];
+      if (w == 0.0) continue;
+      for (const auto& [name, accessor] : prim.targets[t]) {
+        const bool position = name == "POSITION";
+        if (!position && !(name == "NORMAL" && nrm)) continue;  // TANGENT etc.: not read
+        const std::string tw = where + " targets[" + std::to_string(t) + "]." + name;
+        const View v = check_accessor(
+            accessor, position ? Attribute::MorphPosition : Attribute::MorphNormal, tw);
+        if (v.count != n) fail(tw + ": count differs from POSITION's");
+        std::vector<double>& dst = position ? p : nn;
+        for (size_t vi = 0; vi < n; ++vi)
+          for (int c = 0; c < 3; ++c) dst[3 * vi + size_t(c)] += w * v.get(vi, c);
+      }
+    }
+    // The skin's influences: every JOINTS_n / WEIGHTS_n pair from n = 0 up.
+    std::vector<std::pair<View, View>> sets;
+    std::vector<int> joint_accessors;
+    if (d.skin >= 0) {
+      for (int set = 0;; ++set) {
+        const std::string js = "JOINTS_" + std::to_string(set), ws = "WEIGHTS_" + std::to_string(set);
+        const auto j = prim.attributes.find(js), w = prim.attributes.find(ws);
+        if (j == prim.attributes.end() && w == prim.attributes.end()) break;
+        if (j == prim.attributes.end() || w == prim.attributes.end())
+          fail(where + ": " + (j == prim.attributes.end() ? ws + " without " + js
+                                                          : js + " without " + ws));
+        const View jv = check_accessor(j->second, Attribute::Joints, where + " " + js);
+        const View wv = check_accessor(w->second, Attribute::Weights, where + " " + ws);
+        if (jv.count != n || wv.count != n)
+          fail(where + ": " + js + ", " + ws + " and POSITION counts differ");
+        sets.push_back({jv, wv});
+        joint_accessors.push_back(j->second);
+      }
+      if (sets.empty() && !warned_unskinned_) {
+        warn(where + " (and possibly others): the node has a skin but the primitive no "
+                     "JOINTS_0 and WEIGHTS_0; it is placed by its node, unskinned");
+        warned_unskinned_ = true;
+      }
+    }
+    PosedVertices out;
+    out.positions.resize(n);
+    if (nrm) out.normals.resize(n);
+    if (!sets.empty()) out.mirrored.resize(n);
+    const size_t joint_count = d.joint_matrices.size();
+    std::vector<uint32_t> joints(4 * sets.size());
+    std::vector<double> weights(4 * sets.size());
+    for (size_t vi = 0; vi < n; ++vi) {
+      Mat4 m = world;
+      if (!sets.empty()) {
+        for (size_t k = 0; k < sets.size(); ++k)
+          for (int c = 0; c < 4; ++c) {
+            const double j = sets[k].first.raw(vi, c);
+            if (!(j < double(joint_count)))
+              fail("accessors[" + std::to_string(joint_accessors[k]) + "] (" + where +
+                   " JOINTS_" + std::to_string(k) + "): vertex " + std::to_string(vi) +
+                   " refers to joint " + std::to_string(uint64_t(j)) + ", but skins[" +
+                   std::to_string(d.skin) + "] has " + std::to_string(joint_count) + " joints");
+            joints[4 * k + size_t(c)] = uint32_t(j);
+            weights[4 * k + size_t(c)] = sets[k].second.get(vi, c);
+          }
+        m = blend_skin_matrix(d.joint_matrices, joints.data(), weights.data(), joints.size());
+        out.mirrored[vi] = m.det3() < 0.0;
+      }
+      out.positions[vi] = transform_point(m, &p[3 * vi]);
+      if (nrm) out.normals[vi] = transform_normal(m, &nn[3 * vi]);
+    }
+    return out;
+  }
+
   // Appends a primitive's vertices to *out, transformed by world: *first is the index of the
   // first, bad_normal[i] tells the vertices whose normal does not survive the transform (zero
   // or non-finite), which take the normals of the triangles that use them away.
+  // posed: the vertices' world positions and normals when a skin or morph targets deform
+  // them (world is then not used).
   void append_vertices(const VertexAttributes& a, const Mat4& world, TriangleMesh* out,
-                       uint32_t* first, std::vector<bool>* bad_normal, const std::string& where) {
+                       uint32_t* first, std::vector<bool>* bad_normal, const std::string& where,
+                       const PosedVertices* posed = nullptr) {
     const View& pos = a.position;
     const View* nrm = a.normal ? &*a.normal : nullptr;
     const View* col = a.color ? &*a.color : nullptr;
@@ -1096,11 +1496,13 @@ class Loader {
     if (nrm) bad_normal->assign(pos.count, false);
     for (size_t vi = 0; vi < pos.count; ++vi) {
       out->positions.push_back(
-          world.transform_point({pos.get(vi, 0), pos.get(vi, 1), pos.get(vi, 2)}));
+          posed ? posed->positions[vi]
+                : world.transform_point({pos.get(vi, 0), pos.get(vi, 1), pos.get(vi, 2)}));
       if (write_normals) {
         Vec3 n;
         if (nrm) {
-          n = world.transform_normal({nrm->get(vi, 0), nrm->get(vi, 1), nrm->get(vi, 2)});
+          n = posed ? posed->normals[vi]
+                    : world.transform_normal({nrm->get(vi, 0), nrm->get(vi, 1), nrm->get(vi, 2)});
           const float len = length(n);
           if (len > 0.f && std::isfinite(len)) {
             n = n / len;
@@ -1144,7 +1546,9 @@ class Loader {
     return indices[3 * t + size_t(k)];
   }
 
-  void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out) {
+  // deform: the node's skin and morph target weights (null: none; world places the mesh).
+  void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
+                const Deformation* deform = nullptr) {
     const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
     const bool mirror = world.det3() < 0.0;
     // Vertices already appended for this mesh by an earlier primitive with the same
@@ -1152,6 +1556,7 @@ class Loader {
     struct Appended {
       uint32_t first = 0;
       std::vector<bool> bad_normal;
+      std::vector<uint8_t> mirrored;  // skinned: per vertex, whether its skin matrix mirrors
     };
     std::map<VertexKey, Appended> appended;
     for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
@@ -1221,20 +1626,31 @@ class Loader {
         warn(where + ": index count is not a multiple of 3; trailing indices ignored");
       // The primitive's vertices, each transformed once, appended after the mesh's others
       // (or those of an earlier primitive with the same attribute accessors).
-      const auto [entry, fresh] = appended.try_emplace(vertex_key(prim));
-      if (fresh)
+      VertexKey key = vertex_key(prim);
+      if (deform) add_deformation_key(prim, &key);
+      const auto [entry, fresh] = appended.try_emplace(key);
+      if (fresh && deform) {
+        PosedVertices posed = pose_vertices(prim, attrs, *deform, world, where);
+        append_vertices(attrs, world, out, &entry->second.first, &entry->second.bad_normal, where,
+                        &posed);
+        entry->second.mirrored = std::move(posed.mirrored);
+      } else if (fresh) {
         append_vertices(attrs, world, out, &entry->second.first, &entry->second.bad_normal, where);
+      }
       const uint32_t first = entry->second.first;
       const std::vector<bool>& bad_normal = entry->second.bad_normal;
+      const std::vector<uint8_t>& mirrored = entry->second.mirrored;
       const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
                                          (has_uv[1] ? TriangleMesh::kHasUv1 : 0));
       const size_t triangles = triangle_count(prim.mode, indices.size());
       for (size_t t = 0; t < triangles; ++t) {
         bool normals_ok = has_normals;
+        // A skinned triangle mirrors if its first vertex's skin matrix does.
+        const bool flip = mirrored.empty() ? mirror : mirrored[corner(prim.mode, indices, t, 0)];
         for (int k = 0; k < 3; ++k) {
           // A mirroring transform flips the winding (glTF spec, "Transformations"): swap two
           // vertices so that counter-clockwise stays the front face in world space.
-          const int src = mirror ? (k == 0 ? 0 : 3 - k) : k;
+          const int src = flip ? (k == 0 ? 0 : 3 - k) : k;
           const uint32_t vi = corner(prim.mode, indices, t, src);
           if (has_normals && bad_normal[vi]) normals_ok = false;
           out->indices.push_back(first + vi);
@@ -1247,11 +1663,15 @@ class Loader {
   }
 
   std::vector<std::optional<PunctualLight>> lights_;
+  std::vector<int> parent_;                   // per node: its parent, -1 for none
+  std::map<int, NodePose> poses_;             // the animated nodes' poses at options_.time
+  std::map<int, Mat4> global_;                // world matrices global_transform computed
+  std::map<int, std::vector<Mat4>> joint_matrices_;  // per skin
   std::vector<int> mesh_uses_;
   std::vector<int> mesh_slot_;
   std::set<std::string> warned_material_ext_;
   std::set<size_t> warned_rough_glass_;
-  bool warned_occlusion_ = false, warned_skin_ = false, warned_morph_ = false;
+  bool warned_occlusion_ = false, warned_unskinned_ = false;
   bool warned_tangent_ = false;
   bool quantization_ = false;         // KHR_mesh_quantization's attribute types are allowed
   // The TriangleMesh::uv array of each TEXCOORD set above 1 that a material reads.

@@ -4,6 +4,7 @@
 // by convention).
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <memory>
@@ -55,6 +56,8 @@ struct SceneLimits {
   uint64_t max_memory_bytes = 0;                 // estimated scene memory; 0: no limit
 };
 
+struct PoseReport;  // animation.h
+
 // How a file is loaded: the name its messages use and whether it may read other files.
 struct LoadOptions {
   std::string display_name;  // "" : the path
@@ -63,6 +66,16 @@ struct LoadOptions {
   bool allow_external_files = true;
   SceneLimits limits;
   BvhLayout bvh = BvhLayout::Fast;  // for the memory estimate
+  // Animation (glTF 2.0, 3.11): the time in seconds at which the animations pose the scene,
+  // NaN (the default) for none: the nodes' own translation, rotation, scale, matrix and
+  // weights, as without animations. Skins and morph target weights apply either way.
+  double time = std::numeric_limits<double>::quiet_NaN();
+  // The glTF animations that drive the pose (indices into "animations"); empty: all of them.
+  std::vector<int> animations;
+  // If set, the loader records every node's world matrix and where each mesh node's
+  // vertices went (animation.h; the `pose` command).
+  PoseReport* pose_report = nullptr;
+  bool animated() const { return !std::isnan(time); }
 };
 
 // Figures of a loaded scene, for `inspect` and the limits.
