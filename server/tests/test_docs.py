@@ -2,9 +2,9 @@
 
 from pathlib import Path
 
-from renderfarm.cli import build_parser
-from renderfarm.config import Settings
-from renderfarm.jobspec import SETTINGS
+from renderfarm.cli.commands import build_parser
+from renderfarm.domain.jobspec import SETTINGS
+from renderfarm.infra.config import Settings
 
 README = (Path(__file__).resolve().parents[2] / "README.md").read_text()
 
@@ -35,7 +35,7 @@ def test_every_rest_endpoint_is_documented():
     """Generated check: each path of the OpenAPI document has a row in the README's table."""
     from unittest.mock import MagicMock
 
-    from renderfarm.rest import create_app
+    from renderfarm.api.rest import create_app
 
     farm = MagicMock()
     farm.settings.http_host = farm.settings.grpc_host = "127.0.0.1"
@@ -56,7 +56,7 @@ def test_every_grpc_method_is_documented():
 def test_every_metric_is_documented():
     from unittest.mock import MagicMock
 
-    from renderfarm.metrics import Metrics
+    from renderfarm.api.metrics import Metrics
 
     farm = MagicMock()
     farm.scheduler.jobs = {}

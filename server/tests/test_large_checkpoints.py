@@ -10,12 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 from test_scheduler import render
 
-from renderfarm import service as service_module
-from renderfarm.auth import LOCAL_USER
-from renderfarm.config import Settings
-from renderfarm.images import read_exr
-from renderfarm.jobspec import JobSettings
-from renderfarm.service import FarmService
+from renderfarm.app import jobs as service_module
+from renderfarm.app.auth import LOCAL_USER
+from renderfarm.app.jobs import FarmService
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.infra.config import Settings
+from renderfarm.infra.images import read_exr
 
 JOB = JobSettings(width=256, height=192, tile_size=32, max_spp=8, noise_threshold=0)
 TILE_BYTES = 72 * 32 * 32

@@ -5,10 +5,10 @@ import random
 import numpy as np
 import pytest
 
-from renderfarm import scheduler as scheduler_module
-from renderfarm.jobspec import JobSettings
-from renderfarm.scheduler import BatchResult, Scheduler
-from renderfarm.states import JobState, StopReason
+from renderfarm.domain import scheduler as scheduler_module
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.domain.scheduler import BatchResult, Scheduler
+from renderfarm.domain.states import JobState, StopReason
 
 
 class FakeClock:

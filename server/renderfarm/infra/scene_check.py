@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .scenes import SceneError
+from ..errors import SceneError
 
 log = logging.getLogger(__name__)
 

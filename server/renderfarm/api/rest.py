@@ -34,24 +34,34 @@ from pydantic import BaseModel, Field, create_model
 from sse_starlette import EventSourceResponse, ServerSentEvent
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from . import apicommon
-from .auth import SESSION_COOKIE, Authenticator, AuthError, Caller, Forbidden, request_token
-from .images import LAYERS, Cancelled
-from .jobspec import SETTINGS, SettingsError, check_tags
+from ..app.auth import Authenticator, Caller
+from ..app.jobs import FarmService
+from ..domain.jobspec import SETTINGS, check_tags
+from ..errors import (
+    AuthError,
+    Cancelled,
+    Conflict,
+    Forbidden,
+    NotFound,
+    SceneError,
+    SettingsError,
+    TooLarge,
+)
+from ..infra.images import LAYERS
+from ..infra.store import DatabaseUnavailable
+from . import common as apicommon
 from .metrics import Metrics
-from .scenes import SceneError
-from .service import Conflict, FarmService, NotFound, TooLarge
-from .store import DatabaseUnavailable
-from .webui import index_html
+from .sessions import SESSION_COOKIE, request_token
+from .static import index_html
 
 # The dashboard built by `make web`: package data renderfarm/web where an installed package
 # carries it (the server image copies web/dist there before installing), else web/dist of this
 # checkout; webui.py's page stands in for it when neither has been built.
-_PACKAGED_WEB = Path(__file__).resolve().parent / "web"
+_PACKAGED_WEB = Path(__file__).resolve().parents[1] / "web"
 WEB_DIST = (
     _PACKAGED_WEB
     if (_PACKAGED_WEB / "index.html").is_file()
-    else Path(__file__).resolve().parents[2] / "web" / "dist"
+    else Path(__file__).resolve().parents[3] / "web" / "dist"
 )
 
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from .bundles import scene_upload
-from .jobspec import SettingsError, check_sha256, check_text, is_job_id
-from .service import NotFound
-from .states import JobState
+from ..domain.jobspec import check_sha256, check_text, is_job_id
+from ..domain.scenes.bundles import scene_upload
+from ..domain.states import JobState
+from ..errors import NotFound, SettingsError
 
 MAX_NAME = 200
 MAX_PAGE_TOKEN = 200

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .jobspec import SETTINGS
+from ..domain.jobspec import SETTINGS
 
 log = logging.getLogger("renderfarm.cli")
 
@@ -55,7 +55,7 @@ def _local_file(path: str, what: str) -> Path:
 
 def _check_inputs(args: argparse.Namespace) -> None:
     """The scene and an environment map given as a file must be readable files."""
-    from .client import _is_sha256
+    from ..client import _is_sha256
 
     _local_file(args.scene, "scene file")
     environment = getattr(args, "environment", None)
@@ -64,7 +64,7 @@ def _check_inputs(args: argparse.Namespace) -> None:
 
 
 def _submit(client, args: argparse.Namespace) -> dict[str, Any]:
-    from .scenes import SceneError
+    from ..errors import SceneError
 
     try:
         return client.submit(
@@ -85,7 +85,7 @@ def _error_message(e: BaseException, url: str | None) -> tuple[str, int]:
     import httpx
     import pydantic
 
-    from .client import ApiError
+    from ..client import ApiError
 
     where = url or os.environ.get("RENDERFARM_URL") or "http://127.0.0.1:8080"
     if isinstance(e, CliError):
@@ -172,7 +172,7 @@ def _add_after(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_server_flags(parser: argparse.ArgumentParser) -> None:
-    from .config import Settings
+    from ..infra.config import Settings
 
     group = parser.add_argument_group("server settings (also RENDERFARM_<NAME> variables)")
     for name, info in Settings.model_fields.items():
@@ -182,7 +182,7 @@ def _add_server_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def _server_settings(args: argparse.Namespace, **overrides: Any):
-    from .config import Settings
+    from ..infra.config import Settings
 
     chosen = {
         n: getattr(args, n) for n in Settings.model_fields if getattr(args, n, None) is not None
@@ -194,7 +194,7 @@ def _server_settings(args: argparse.Namespace, **overrides: Any):
 def _client(args: argparse.Namespace, url: str | None = None):
     import ssl
 
-    from .client import Client
+    from ..client import Client
 
     try:
         return Client(url or args.url, token=getattr(args, "token", None))
@@ -285,15 +285,15 @@ def _watch(client, job_id: str, quiet: bool, as_json: bool = False) -> dict[str,
 
 # --------------------------------------------------------------------------------- commands
 def cmd_server(args: argparse.Namespace) -> int:
-    from .server import serve
+    from ..api.server import serve
 
     asyncio.run(serve(_server_settings(args)))
     return 0
 
 
 def cmd_up(args: argparse.Namespace) -> int:
+    from ..api.server import serve
     from .localfarm import spawn_workers, stop_processes
-    from .server import serve
 
     settings = _server_settings(args)
     workers = []
@@ -327,7 +327,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if not url:
         data_dir = Path(args.data_dir) if args.data_dir else None
         if data_dir is None:
-            from .config import default_data_dir
+            from ..infra.config import default_data_dir
 
             data_dir = default_data_dir()
         if not args.quiet:

@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from . import _kernels
+from .. import _kernels
 from .tiling import AOV_SAMPLES, carries_aovs
 
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error

@@ -37,49 +37,41 @@ import numpy as np
 import psycopg
 from psycopg_pool import PoolTimeout
 
-from . import images, spool
-from .auth import Caller, Forbidden
-from .config import Settings
-from .jobspec import ALIASES, JobSettings, SettingsError, parse_settings
-from .merge import TileAccumulator
-from .scene_check import SceneChecker
-from .scenes import SceneError, inspect_environment, inspect_scene
-from .scheduler import CONTINUE_SETTINGS, BatchResult, JobRun, Lease, Scheduler, continue_plan
-from .spill import TileCache
-from .states import JobState, StopReason, TransitionError, check_transition
-from .store import DatabaseUnavailable, JobRow, Store, TileRow
-from .tiling import Rect, tile_grid
+from ..domain.jobspec import ALIASES, JobSettings, parse_settings
+from ..domain.merge import TileAccumulator
+from ..domain.scenes.validate import inspect_environment, inspect_scene
+from ..domain.scheduler import (
+    CONTINUE_SETTINGS,
+    BatchResult,
+    JobRun,
+    Lease,
+    Scheduler,
+    continue_plan,
+)
+from ..domain.states import JobState, StopReason, check_transition
+from ..domain.tiling import Rect, tile_grid
+from ..errors import (
+    Conflict,
+    Forbidden,
+    NotFound,
+    SceneError,
+    SettingsError,
+    TooLarge,
+    TransitionError,
+    Unauthenticated,
+)
+from ..infra import images, spool
+from ..infra.config import Settings
+from ..infra.scene_check import SceneChecker
+from ..infra.spill import TileCache
+from ..infra.store import DatabaseUnavailable, JobRow, Store, TileRow
+from .auth import Caller
 
 log = logging.getLogger(__name__)
 
 SCENE_CHUNK_BYTES = 1 << 20
 STORED_WAIT_S = 5.0  # how long a cancel waits for its final state to be stored
 MAX_IMAGE_SIZE = 1 << 16  # largest max_size of a PNG preview
-
-
-class NotFound(LookupError):
-    def __init__(self, what: str):
-        super().__init__(what)
-        self.message = what
-
-
-class TooLarge(ValueError):
-    def __init__(self, field_name: str, message: str):
-        super().__init__(message)
-        self.field = field_name
-        self.message = message
-
-
-class Unauthenticated(PermissionError):
-    pass
-
-
-class Conflict(RuntimeError):
-    """The request is valid but the job's state does not allow it (REST 409)."""
-
-    def __init__(self, message: str):
-        super().__init__(message)
-        self.message = message
 
 
 @dataclass(frozen=True)
@@ -192,7 +184,7 @@ class FarmService:
         self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
         # Every new uploaded scene goes through the workers' own loader before it is stored.
-        from .localfarm import find_worker_binary  # noqa: PLC0415 (localfarm imports the client)
+        from ..infra.worker_binary import find_worker_binary  # noqa: PLC0415 (localfarm imports the client)
 
         self.scene_checker = SceneChecker(
             settings.scene_inspector or find_worker_binary(),
@@ -1532,12 +1524,9 @@ __all__ = [
     "FarmService",
     "JobView",
     "Lease",
-    "NotFound",
     "SceneError",
     "SettingsError",
     "StopReason",
-    "TooLarge",
-    "Unauthenticated",
     "WorkerSession",
     "decode_result",
 ]

@@ -13,14 +13,14 @@ from collections.abc import Awaitable, Callable
 
 import uvicorn
 
-from .auth import Authenticator, check_exposure, ensure_configured_token
-from .config import Settings
-from .embedded_db import EmbeddedPostgres
+from ..app.auth import Authenticator, check_exposure, ensure_configured_token
+from ..app.jobs import FarmService
+from ..infra.config import Settings
+from ..infra.embedded_db import EmbeddedPostgres
+from ..infra.store import Store
 from .grpc_api import start_grpc
 from .metrics import Metrics
 from .rest import create_app
-from .service import FarmService
-from .store import Store
 
 log = logging.getLogger(__name__)
 

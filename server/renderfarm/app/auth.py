@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import psycopg
 from psycopg_pool import PoolTimeout
 
-from .store import Store, TokenRow
+from ..errors import AuthError
+from ..infra.store import Store, TokenRow
 
 log = logging.getLogger(__name__)
 DB_RETRY_S = 5.0  # while the database is away, ask it again this often
@@ -31,22 +32,6 @@ TOKEN_PREFIX = "rf_"
 # How long a looked-up token (or the "no tokens exist" answer) is trusted before the database
 # is asked again: a revoked token stops working within this many seconds.
 CACHE_S = 2.0
-
-
-class AuthError(PermissionError):
-    """No token, or one that is unknown or revoked (REST 401, gRPC UNAUTHENTICATED)."""
-
-    def __init__(self, message: str):
-        super().__init__(message)
-        self.message = message
-
-
-class Forbidden(PermissionError):
-    """A valid token that may not do this (REST 403, gRPC PERMISSION_DENIED)."""
-
-    def __init__(self, message: str):
-        super().__init__(message)
-        self.message = message
 
 
 @dataclass(frozen=True)
@@ -98,28 +83,6 @@ def check_exposure(
     return f"refusing to listen on {', '.join(sorted(set(exposed)))} (not loopback): " + "; ".join(
         missing
     )
-
-
-# The dashboard's session cookie (POST /api/v1/session): the API token itself, HttpOnly, so that
-# EventSource and <img> requests, which cannot send an Authorization header, carry it.
-SESSION_COOKIE = "renderfarm_token"
-
-
-def request_token(authorization: str | None, cookie: str | None) -> str | None:
-    """The token of a REST request: the Authorization header, else the session cookie."""
-    if authorization:
-        return bearer(authorization)
-    return cookie.strip() if cookie and cookie.strip() else None
-
-
-def bearer(header_value: str | None) -> str | None:
-    """The token of an `Authorization: Bearer TOKEN` value, or None."""
-    if not header_value:
-        return None
-    scheme, _, token = header_value.strip().partition(" ")
-    if scheme.lower() != "bearer" or not token.strip():
-        return None
-    return token.strip()
 
 
 class Authenticator:
@@ -214,15 +177,10 @@ async def create_token(store: Store, name: str, admin: bool) -> tuple[TokenRow, 
 
 __all__ = [
     "LOCAL_USER",
-    "SESSION_COOKIE",
-    "AuthError",
     "Authenticator",
     "Caller",
-    "Forbidden",
-    "bearer",
     "check_exposure",
     "create_token",
     "is_loopback",
-    "request_token",
     "token_sha256",
 ]

@@ -12,10 +12,10 @@ import asyncio
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
-from . import auth
-from .config import Settings
-from .embedded_db import EmbeddedPostgres
-from .store import Store, TokenRow
+from ..app import auth
+from ..infra.config import Settings
+from ..infra.embedded_db import EmbeddedPostgres
+from ..infra.store import Store, TokenRow
 
 T = TypeVar("T")
 

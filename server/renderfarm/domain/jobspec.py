@@ -11,17 +11,10 @@ import re
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from ..errors import SettingsError
+
 SAMPLERS = ("sobol", "halton", "stratified", "independent")
 INTEGRATORS = ("path", "direct", "ao")
-
-
-class SettingsError(ValueError):
-    """A job setting is unknown or out of range. `field` names it (e.g. "settings.max_spp")."""
-
-    def __init__(self, field: str, message: str):
-        super().__init__(message)
-        self.field = field
-        self.message = message
 
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the

@@ -8,7 +8,7 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from .jobspec import Limits
+from ..domain.jobspec import Limits
 from .scene_check import SceneLimits
 
 

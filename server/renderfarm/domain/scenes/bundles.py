@@ -14,8 +14,8 @@ import posixpath
 import tarfile
 import zipfile
 
-from .scenes import SceneError, pack_gltf_files
-from .service import TooLarge
+from ...errors import SceneError, TooLarge
+from .validate import pack_gltf_files
 
 MAX_ENTRIES = 1000
 ZIP_MAGIC = b"PK\x03\x04"

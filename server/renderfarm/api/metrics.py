@@ -8,10 +8,10 @@ from typing import TYPE_CHECKING
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from .states import JobState
+from ..domain.states import JobState
 
 if TYPE_CHECKING:
-    from .service import FarmService
+    from ..app.jobs import FarmService
 
 
 class _FarmCollector:

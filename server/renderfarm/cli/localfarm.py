@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -12,24 +11,8 @@ import sys
 import time
 from pathlib import Path
 
-from .client import Client
-
-
-def find_worker_binary() -> str:
-    """RENDERFARM_WORKER_BINARY, else renderfarm-worker on PATH, else this checkout's build."""
-    explicit = os.environ.get("RENDERFARM_WORKER_BINARY")
-    if explicit:
-        return explicit
-    on_path = shutil.which("renderfarm-worker")
-    if on_path:
-        return on_path
-    built = Path(__file__).resolve().parents[2] / "build" / "worker" / "renderfarm-worker"
-    if built.exists():
-        return str(built)
-    raise FileNotFoundError(
-        "renderfarm-worker not found: run `make build`, put it on PATH, "
-        "or set RENDERFARM_WORKER_BINARY"
-    )
+from ..client import Client
+from ..infra.worker_binary import find_worker_binary
 
 
 def free_port(host: str = "127.0.0.1") -> int:

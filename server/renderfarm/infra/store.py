@@ -23,6 +23,8 @@ from psycopg.rows import dict_row
 from psycopg.types.json import Jsonb
 from psycopg_pool import AsyncConnectionPool, TooManyRequests
 
+from ..errors import SchemaTooNew
+
 _MIGRATION_LOCK = 0x52464D31  # advisory lock key for migrations ("RFM1")
 
 # Seconds a client is told to wait (Retry-After) when the database is away (a restarted
@@ -33,10 +35,6 @@ BUSY_RETRY_AFTER_S = 1
 # most: enough for a database that has just come back, without holding clients for the whole
 # wait of a busy one.
 UNREACHABLE_WAIT_S = 1.0
-
-
-class SchemaTooNew(RuntimeError):
-    pass
 
 
 class DatabaseUnavailable(psycopg.OperationalError):
@@ -61,7 +59,7 @@ class DatabaseBusy(DatabaseUnavailable):
 def migrations() -> list[tuple[int, str, str]]:
     """(version, name, sql) of every migration shipped with the package, in order."""
     found = []
-    for entry in resources.files("renderfarm.migrations").iterdir():
+    for entry in resources.files("renderfarm.infra.migrations").iterdir():
         match = re.fullmatch(r"(\d{4})_(\w+)\.sql", entry.name)
         if match:
             found.append((int(match.group(1)), match.group(2), entry.read_text()))
@@ -705,7 +703,6 @@ __all__ = [
     "DatabaseBusy",
     "DatabaseUnavailable",
     "JobRow",
-    "SchemaTooNew",
     "Store",
     "TileRow",
     "TokenRow",

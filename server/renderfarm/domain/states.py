@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from enum import StrEnum
 
+from ..errors import TransitionError
+
 
 class JobState(StrEnum):
     QUEUED = "queued"
@@ -62,15 +64,6 @@ TRANSITIONS: dict[JobState, frozenset[JobState]] = {
     JobState.FAILED: frozenset({JobState.QUEUED, JobState.WAITING}),
     JobState.CANCELLED: frozenset(),
 }
-
-
-class TransitionError(ValueError):
-    """A state change TRANSITIONS does not allow (the APIs answer 409 Conflict)."""
-
-    def __init__(self, old: JobState, new: JobState):
-        super().__init__(f"a {old.value} job cannot become {new.value}")
-        self.old = old
-        self.new = new
 
 
 def check_transition(old: JobState, new: JobState) -> None:

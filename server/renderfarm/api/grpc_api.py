@@ -25,31 +25,26 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from . import apicommon, images
-from .auth import Authenticator, AuthError, Caller, Forbidden, bearer
-from .jobspec import SETTING_NAMES, SettingsError, check_tags
-from .scenes import SceneError
-from .service import (
+from ..app.auth import Authenticator, Caller
+from ..app.jobs import FarmService, JobView, WorkerSession, decode_result
+from ..domain.jobspec import SETTING_NAMES, check_tags
+from ..domain.states import JobState
+from ..domain.tiling import carries_aovs
+from ..errors import (
+    AuthError,
+    Cancelled,
     Conflict,
-    FarmService,
-    JobView,
+    Forbidden,
     NotFound,
+    SceneError,
+    SettingsError,
     TooLarge,
     Unauthenticated,
-    WorkerSession,
-    decode_result,
 )
-from .states import JobState
-from .store import DatabaseUnavailable
-from .tiling import carries_aovs
-from .v1 import (
-    jobs_pb2,
-    jobs_pb2_grpc,
-    scenes_pb2,
-    scenes_pb2_grpc,
-    workers_pb2,
-    workers_pb2_grpc,
-)
+from ..infra.store import DatabaseUnavailable
+from ..v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc, workers_pb2, workers_pb2_grpc
+from . import common as apicommon
+from .sessions import bearer
 
 log = logging.getLogger(__name__)
 
@@ -266,7 +261,7 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
                 max_size=request.max_size, max_bytes=MAX_MESSAGE_BYTES - (1 << 20),
                 compression=request.compression or "zip",
             )  # fmt: skip
-        except images.Cancelled:
+        except Cancelled:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "the server is stopping")
         return jobs_pb2.GetImageResponse(
             data=data,

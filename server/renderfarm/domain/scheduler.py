@@ -1,5 +1,6 @@
 """The scheduler: tiles, batches, leases, in-order merging and stop decisions. No I/O but the
-spill files of the tile cache it may be given (spill.py), which keeps large jobs' tiles.
+spill files of the tile cache it may be given (infra/spill.py, injected as a TileCache), which
+keeps large jobs' tiles.
 
 One Scheduler holds every unfinished job in memory. Callers (the gRPC worker stream, the REST
 API) tell it what happened (a worker connected, a result arrived, time passed) and read back
@@ -24,12 +25,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from .jobspec import JobSettings
 from .merge import TileAccumulator
-from .spill import TileCache
 from .states import JobState, StopReason, check_transition
 from .tiling import (
     PLANNED_FROM,
@@ -253,6 +254,17 @@ class Progress:
     eta_s: float | None  # None until two batches have been merged (no rate yet)
     samples_merged: int
     elapsed_s: float
+
+
+class TileCache(Protocol):
+    """Where tile accumulators live beyond a RAM budget: infra.spill.TileCache, given by the
+    job service (the scheduler does no I/O itself)."""
+
+    def register(self, job_id: str, acc: TileAccumulator, tile_size: int) -> None: ...
+
+    def use(self, acc: TileAccumulator) -> None: ...
+
+    def forget_job(self, job_id: str) -> None: ...
 
 
 class Scheduler:

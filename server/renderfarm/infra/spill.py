@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .merge import TileAccumulator
+from ..domain.merge import TileAccumulator
 
 _STATS = TileAccumulator._ARRAYS
 _AOVS = TileAccumulator._AOV_ARRAYS

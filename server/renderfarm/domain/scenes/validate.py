@@ -27,9 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ...errors import SceneError
+
 __all__ = [
     "DEFAULT_MAX_BYTES",
-    "SceneError",
     "SceneInfo",
     "inspect_scene",
     "pack_gltf",
@@ -61,15 +62,6 @@ UPLOAD_HINT = (
     "upload the scene as a single .glb: `renderfarm submit`/`renderfarm render` and the Python "
     "client pack a .gltf and its files into one automatically, as do Blender and gltf-transform"
 )
-
-
-class SceneError(ValueError):
-    """A scene was refused.  The message is meant for the user; ``field`` says where."""
-
-    def __init__(self, message: str, field: str = "scene") -> None:
-        super().__init__(message)
-        self.message = message
-        self.field = field
 
 
 @dataclass(frozen=True)

@@ -36,9 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _kernels
-from .merge import DARK_FLOOR, TileAccumulator
-from .tiling import Rect
+from .. import _kernels
+from ..domain.merge import DARK_FLOOR, TileAccumulator
+from ..domain.tiling import Rect
+from ..errors import Cancelled
 
 EXR_CHANNELS = (
     "R", "G", "B", "variance.Y", "spp", "error",
@@ -53,10 +54,6 @@ GREY_LAYERS = ("variance", "spp", "error")  # normalised to the image's maximum
 
 # A band of tiles and what each one holds: None for a tile with no merged samples.
 Band = list[tuple[Rect, TileAccumulator | None]]
-
-
-class Cancelled(RuntimeError):
-    """The server is stopping: an image being written is abandoned."""
 
 
 def arrays_needed(fmt: str, layer: str) -> tuple[str, ...]:
@@ -305,7 +302,7 @@ def denoise_frame(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> 
     jobspec.DENOISE_SCRATCH_MB (maxMemoryMB: beyond it, OIDN denoises in overlapping tiles)."""
     import pyoidn  # heavy import (loads the OIDN library), only where a frame is denoised
 
-    from .jobspec import DENOISE_SCRATCH_MB
+    from ..domain.jobspec import DENOISE_SCRATCH_MB
 
     # Non-finite values would spread through the network: a broken pixel is black for the
     # denoiser (the unbiased layers keep what they are). A copy only when there is one.
