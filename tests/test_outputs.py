@@ -14,7 +14,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from renderfarm.app.jobs import renderer_version
+from renderfarm.app.job_images import renderer_version
 from renderfarm.client import ApiError, Client
 from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc

@@ -26,7 +26,9 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from ..app.auth import Authenticator, Caller
-from ..app.jobs import FarmService, JobView, WorkerSession, decode_result
+from ..app.jobs import FarmService
+from ..app.views import JobView
+from ..app.worker_sessions import WorkerSession
 from ..domain.jobspec import SETTING_NAMES, check_tags
 from ..domain.states import JobState
 from ..domain.tiling import carries_aovs
@@ -44,6 +46,7 @@ from ..errors import (
 from ..infra.store import DatabaseUnavailable
 from ..v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc, workers_pb2, workers_pb2_grpc
 from . import common as apicommon
+from .grpc_decode import decode_result
 from .sessions import bearer
 
 log = logging.getLogger(__name__)

@@ -18,6 +18,7 @@ import logging
 import secrets
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import psycopg
 from psycopg_pool import PoolTimeout
@@ -154,6 +155,13 @@ class Authenticator:
         if row.revoked_at is not None:
             raise AuthError(f"API token {row.id} ({row.name}) was revoked")
         return Caller(owner=row.name, admin=row.admin)
+
+
+def check_caller(caller: Any) -> None:
+    """Every job operation names its caller: there is no default identity to fall back on
+    (one would grant the local admin's rights to a handler that forgot to pass it)."""
+    if not isinstance(caller, Caller):
+        raise TypeError(f"FarmService needs the caller (an auth.Caller), got {caller!r}")
 
 
 async def ensure_configured_token(store: Store, token: str) -> None:
