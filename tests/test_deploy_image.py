@@ -319,7 +319,7 @@ def test_installed_package_carries_the_dashboard(image):
     """The package in the image's environment is a real (not editable) install, holding the
     dashboard the web stage built, and it is the one the entrypoint imports."""
     code = (
-        "import json, renderfarm, renderfarm.api.rest as r, importlib.metadata as m;"
+        "import json, renderfarm, renderfarm.api.static as r, importlib.metadata as m;"
         "print(json.dumps([renderfarm.__file__, str(r.WEB_DIST), m.requires('renderfarm')]))"
     )
     out = _run([str(image["venv"] / "bin" / "python"), "-c", code], cwd=image["venv"],

@@ -1,12 +1,13 @@
 """REST API /api/v1 (FastAPI; OpenAPI at /docs and /openapi.json). Mirrors gRPC JobService.
 
-Every response is declared (pydantic models below), so the OpenAPI document describes exactly
+Every response is declared (pydantic models in models.py), so the OpenAPI document describes exactly
 what the server sends; tests/test_openapi_fuzz.py holds the server to it. Errors are JSON
 {"detail": message, "field": name-of-the-offending-field}: 400 bad input, 401 no or bad token,
 403 another owner's job, 404 unknown job or scene, 409 state conflict, 413 upload too large,
 429 too many requests waiting for the database, 503 database unreachable (both with
 Retry-After); FastAPI's and Starlette's own answers (unknown route, wrong method, a body they
-cannot parse) and unexpected failures (500) are given the same shape.
+cannot parse) and unexpected failures (500) are given the same shape (error_handlers.py).
+Server-Sent Events are in sse.py, the session cookie in sessions.py, the web UI in static.py.
 """
 
 from __future__ import annotations
@@ -14,272 +15,40 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import time
-from pathlib import Path
 from typing import Any, Literal
 
 from fastapi import Depends, FastAPI, Query, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
-from fastapi.staticfiles import StaticFiles
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
-from pydantic import BaseModel, Field, create_model
-from sse_starlette import EventSourceResponse, ServerSentEvent
-from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from ..app.auth import Authenticator, Caller
 from ..app.jobs import FarmService
 from ..domain.jobspec import SETTINGS, check_tags
-from ..errors import (
-    AuthError,
-    Cancelled,
-    Conflict,
-    Forbidden,
-    NotFound,
-    SceneError,
-    SettingsError,
-    TooLarge,
-)
+from ..errors import Cancelled, SettingsError, TooLarge
 from ..infra.images import LAYERS
-from ..infra.store import DatabaseUnavailable
 from . import common as apicommon
+from .error_handlers import add_error_handlers
 from .metrics import Metrics
-from .sessions import SESSION_COOKIE, request_token
-from .static import index_html
-
-# The dashboard built by `make web`: package data renderfarm/web where an installed package
-# carries it (the server image copies web/dist there before installing), else web/dist of this
-# checkout; webui.py's page stands in for it when neither has been built.
-_PACKAGED_WEB = Path(__file__).resolve().parents[1] / "web"
-WEB_DIST = (
-    _PACKAGED_WEB
-    if (_PACKAGED_WEB / "index.html").is_file()
-    else Path(__file__).resolve().parents[3] / "web" / "dist"
+from .models import (
+    CONTINUE_BODY,
+    SUBMIT_BODY,
+    UPDATE_BODY,
+    ConvergencePoint,
+    Job,
+    JobDetail,
+    JobEvent,
+    JobPage,
+    SceneInfo,
+    SettingDoc,
+    WhoAmI,
+    WorkerInfo,
+    error_response,
+    error_responses,
 )
-
-
-# ------------------------------------------------------------------------------ response models
-class ErrorBody(BaseModel):
-    detail: str = Field(description="what is wrong, for people")
-    field: str = Field("", description="the offending field, e.g. settings.max_spp; may be empty")
-
-
-JobSettingsModel = create_model(
-    "JobSettings",
-    **{s.name: (s.kind, Field(s.default, description=s.help)) for s in SETTINGS},
-)
-
-
-class Progress(BaseModel):
-    tiles_total: int
-    tiles_done: int = Field(description="tiles that have stopped")
-    tiles_previewed: int = Field(
-        description="tiles with at least one merged batch (all of them: a full-frame preview)"
-    )
-    mean_spp: float
-    error: float | None = Field(description="RMS relative error over tiles; null before a merge")
-    eta_s: float | None = Field(description="seconds to completion; null when unknown")
-    samples_merged: int
-    elapsed_s: float
-
-
-class Job(BaseModel):
-    id: str
-    name: str
-    state: Literal["queued", "running", "completed", "failed", "cancelled", "paused", "waiting"]
-    settings: JobSettingsModel  # type: ignore[valid-type]
-    scene_sha256: str
-    progress: Progress
-    error: str = Field(description="why the job failed, when it did")
-    created_unix_s: float
-    finished_unix_s: float | None
-    owner: str = Field(description="name of the API token that submitted it; empty without auth")
-    after: list[str] = Field(description="ids of the jobs it waits for (state waiting)")
-    require_tags: list[str] = Field(
-        description="only workers announcing all these tags (--tag) render it"
-    )
-
-
-class StopRecord(BaseModel):
-    tile: int
-    batch: int | None
-    spp: int | None
-    error: float | None
-    reason: str | None
-
-
-class JobDetail(Job):
-    stops: list[StopRecord] = Field(description="every tile stop: tile, batch, spp, error, reason")
-
-
-class JobPage(BaseModel):
-    jobs: list[Job]
-    next_page_token: str = Field(description="pass as page_token for the next page; empty: done")
-
-
-class JobEvent(BaseModel):
-    id: int
-    kind: str
-    data: dict[str, Any]
-    at: float
-
-
-class ConvergencePoint(BaseModel):
-    t: float
-    error: float | None
-    mean_spp: float
-
-
-class WorkerInfo(BaseModel):
-    id: str
-    hostname: str
-    cores: int
-    version: str
-    connected_unix_s: float
-    last_heartbeat_unix_s: float
-    tasks_in_flight: int
-    tasks_done: int
-    samples_per_s: float
-    rays_per_s: float
-    busy_threads: int
-    tasks_failed: int
-    recent_errors: list[str]
-    tags: list[str]
-    state: Literal["active", "draining", "drained", "disabled"]
-
-
-class SceneInfo(BaseModel):
-    sha256: str
-    format: Literal["glb", "gltf", "hdr", "exr"]
-    filename: str
-    size_bytes: int
-
-
-class SettingDoc(BaseModel):
-    name: str
-    type: Literal["int", "float", "str", "bool"]
-    default: bool | int | float | str  # bool first: false stays false, not 0
-    help: str
-
-
-class WhoAmI(BaseModel):
-    owner: str = Field(description="owner name of the caller's jobs; empty when auth is off")
-    admin: bool
-
-
-class SessionIn(BaseModel):
-    token: str = Field(description="an API token, checked like `Authorization: Bearer TOKEN`")
-
-
-def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
-    described = {
-        400: "invalid request (the field is named)",
-        401: "no API token, or an unknown or revoked one",
-        403: "the job belongs to another owner",
-        404: "no such job or scene",
-        409: "the job's state does not allow this",
-        413: "upload too large",
-        429: "too many requests wait for the database; retry after Retry-After seconds",
-        503: "the database is unreachable or busy; retry after Retry-After seconds",
-    }
-    codes = (400, 401, *codes, 429, 503)
-    return {c: {"model": ErrorBody, "description": described[c]} for c in codes}
-
-
-def _error(status: int, field: str, message: str, headers: dict | None = None) -> JSONResponse:
-    return JSONResponse(
-        status_code=status, content={"detail": message, "field": field}, headers=headers
-    )
-
-
-_SUBMIT_BODY = {
-    "required": True,
-    "content": {
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "properties": {
-                    "scene": {
-                        "type": "string",
-                        "format": "binary",
-                        "description": ".glb, self-contained .gltf, or a .zip/.tar(.gz) bundle "
-                        "of one .gltf with its files",
-                    },
-                    "settings": {"type": "string", "description": "job settings, a JSON object"},
-                    "name": {"type": "string"},
-                    "scene_sha256": {"type": "string", "description": "a stored scene instead"},
-                    "environment": {
-                        "type": "string",
-                        "format": "binary",
-                        "description": "equirectangular .hdr/.exr environment map",
-                    },
-                    "after": {
-                        "type": "string",
-                        "description": "ids of jobs to wait for, separated by commas or spaces",
-                    },
-                },
-                "additionalProperties": False,
-            }
-        },
-        "application/json": {
-            "schema": {
-                "type": "object",
-                "properties": {
-                    "scene_sha256": {"type": "string"},
-                    "settings": {"type": "object"},
-                    "name": {"type": "string"},
-                    "after": {
-                        "type": "array",
-                        "items": {"type": "string"},
-                        "description": "ids of jobs to wait for: the job is waiting until all "
-                        "have completed, and fails if one fails or is cancelled",
-                    },
-                },
-                "required": ["scene_sha256"],
-                "additionalProperties": False,
-            }
-        },
-    },
-}
-
-_UPDATE_BODY = {
-    "required": True,
-    "content": {
-        "application/json": {
-            "schema": {
-                "type": "object",
-                "properties": {
-                    "priority": {"type": "integer", "description": "-1000..1000, higher first"},
-                    "name": {"type": "string"},
-                },
-                "additionalProperties": False,
-            }
-        }
-    },
-}
-
-_CONTINUE_BODY = {
-    "required": True,
-    "content": {
-        "application/json": {
-            "schema": {
-                "type": "object",
-                "properties": {
-                    "settings": {
-                        "type": "object",
-                        "properties": {
-                            "max_spp": {"type": "integer"},
-                            "noise_threshold": {"type": "number"},
-                        },
-                        "additionalProperties": False,
-                    }
-                },
-                "additionalProperties": False,
-            }
-        }
-    },
-}
+from .sessions import SESSION_COOKIE, add_session_routes, request_token
+from .sse import add_watch_route
+from .static import add_dashboard
 
 
 def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None = None) -> FastAPI:
@@ -306,74 +75,9 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
 
     Auth = Depends(caller)  # noqa: N806 (a dependency, read like a type)
 
-    @app.exception_handler(AuthError)
-    async def _auth_error(_: Request, e: AuthError):
-        return _error(401, "authorization", e.message, {"WWW-Authenticate": "Bearer"})
+    add_error_handlers(app)
 
-    @app.exception_handler(Forbidden)
-    async def _forbidden(_: Request, e: Forbidden):
-        return _error(403, "job_id", e.message)
-
-    @app.exception_handler(SettingsError)
-    async def _settings_error(_: Request, e: SettingsError):
-        return _error(400, e.field, e.message)
-
-    @app.exception_handler(SceneError)
-    async def _scene_error(_: Request, e: SceneError):
-        return _error(400, e.field, str(e))
-
-    @app.exception_handler(TooLarge)
-    async def _too_large(_: Request, e: TooLarge):
-        return _error(413, e.field, e.message)
-
-    @app.exception_handler(Conflict)
-    async def _conflict(_: Request, e: Conflict):
-        return _error(409, "", e.message)
-
-    @app.exception_handler(NotFound)
-    async def _not_found(_: Request, e: NotFound):
-        return _error(404, "", e.message)
-
-    @app.exception_handler(DatabaseUnavailable)
-    async def _unavailable(_: Request, e: DatabaseUnavailable):
-        return _error(e.status, "database", e.message, {"Retry-After": str(e.retry_after_s)})
-
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(_: Request, e: RequestValidationError):
-        first = e.errors()[0] if e.errors() else {}
-        loc = first.get("loc", ())
-        if first.get("type") == "json_invalid":  # its loc is the character offset, not a field
-            return _error(400, "body", "request body is not valid JSON")
-        where = [str(p) for p in loc if p not in ("query", "path", "body")]
-        name = ".".join(where) or ("body" if loc[:1] == ("body",) else "")
-        return _error(400, name, f"{name or 'request'}: {first.get('msg', 'invalid')}")
-
-    @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, e: StarletteHTTPException):
-        # Raised by FastAPI and Starlette themselves: 404 for an unknown path, 405 for a wrong
-        # method, and 400 for a body they could not parse (JSON nested deeper than the parser
-        # goes, broken multipart).
-        if e.status_code != 400:
-            return _error(e.status_code, "", str(e.detail), e.headers)
-        detail = str(e.detail)
-        if isinstance(e.__cause__, RecursionError):
-            detail = "request body is not valid JSON: nested too deeply"
-        return _error(400, "body", detail, e.headers)
-
-    @app.exception_handler(Exception)
-    async def _unexpected(_: Request, e: Exception):
-        # A bug, not the client's fault; Starlette re-raises it after this answer, so the
-        # traceback is still logged.
-        return _error(500, "", "internal server error")
-
-    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    async def index() -> Response:
-        built = WEB_DIST / "index.html"
-        if built.is_file():
-            return FileResponse(built, headers={"Cache-Control": "no-cache"})
-        return HTMLResponse(index_html())
-
-    app.mount("/assets", _DashboardAssets(directory=WEB_DIST / "assets"), name="dashboard-assets")
+    add_dashboard(app)
 
     @app.get("/healthz", include_in_schema=False)
     async def healthz() -> dict[str, str]:
@@ -382,11 +86,11 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     @app.get("/readyz", include_in_schema=False)
     async def readyz() -> Response:
         if not farm.ready:
-            return _error(503, "", "starting or stopping")
+            return error_response(503, "", "starting or stopping")
         try:
             await asyncio.wait_for(farm.store.ping(), timeout=5)
         except Exception as e:  # any database failure means not ready
-            return _error(503, "database", f"database unreachable: {e}")
+            return error_response(503, "database", f"database unreachable: {e}")
         return JSONResponse({"status": "ready"})
 
     @app.get("/metrics", include_in_schema=False)
@@ -397,7 +101,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/settings",
         summary="Job settings with their defaults",
         response_model=list[SettingDoc],
-        responses=_errors(),
+        responses=error_responses(),
     )
     async def settings_doc(_: Caller = Auth) -> list[dict[str, Any]]:
         return [
@@ -409,53 +113,12 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/whoami",
         summary="The caller: owner name and admin flag",
         response_model=WhoAmI,
-        responses=_errors(),
+        responses=error_responses(),
     )
     async def whoami(who: Caller = Auth) -> dict[str, Any]:
         return {"owner": who.owner, "admin": who.admin}
 
-    @app.post(
-        "/api/v1/session",
-        summary="Sign in the dashboard: check a token and keep it in an HttpOnly session cookie",
-        description=(
-            f"On success sets the cookie `{SESSION_COOKIE}` (HttpOnly, SameSite=Strict, Secure "
-            "over TLS), which then authorizes requests without an Authorization header."
-        ),
-        response_model=WhoAmI,
-        responses=_errors(),
-    )
-    async def sign_in(body: SessionIn, request: Request) -> JSONResponse:
-        token = body.token.strip()
-        if not token:
-            raise AuthError("an API token is required")
-        who = await auth.caller(token)  # AuthError: 401, and no cookie
-        response = JSONResponse({"owner": who.owner, "admin": who.admin})
-        response.set_cookie(
-            SESSION_COOKIE,
-            token,
-            httponly=True,
-            samesite="strict",
-            secure=request.url.scheme == "https",
-            path="/",
-        )
-        return response
-
-    @app.delete(
-        "/api/v1/session",
-        status_code=204,
-        summary="Sign out the dashboard: clear the session cookie",
-        response_class=Response,
-    )
-    async def sign_out(request: Request) -> Response:
-        response = Response(status_code=204)
-        response.delete_cookie(
-            SESSION_COOKIE,
-            path="/",
-            httponly=True,
-            samesite="strict",
-            secure=request.url.scheme == "https",
-        )
-        return response
+    add_session_routes(app, auth)
 
     @app.post(
         "/api/v1/jobs",
@@ -470,8 +133,8 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             "render a scene already stored."
         ),
         response_model=Job,
-        responses=_errors(404, 413),
-        openapi_extra={"requestBody": _SUBMIT_BODY},
+        responses=error_responses(404, 413),
+        openapi_extra={"requestBody": SUBMIT_BODY},
     )
     async def submit(request: Request, who: Caller = Auth) -> JSONResponse:
         limit = farm.settings.max_upload_bytes
@@ -562,7 +225,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs",
         summary="List jobs, newest first (your own; every owner's for admins)",
         response_model=JobPage,
-        responses=_errors(),
+        responses=error_responses(),
     )
     async def list_jobs(
         state: str = "", page_size: int = 50, page_token: str = "", who: Caller = Auth
@@ -577,7 +240,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}",
         summary="Get a job",
         response_model=JobDetail,
-        responses=_errors(403, 404),
+        responses=error_responses(403, 404),
     )
     async def get_job(job_id: str, who: Caller = Auth) -> dict:
         view = await farm.get(apicommon.job_id(job_id), who)
@@ -587,7 +250,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}/convergence",
         summary="Image relative error and mean spp against elapsed time",
         response_model=list[ConvergencePoint],
-        responses=_errors(403, 404),
+        responses=error_responses(403, 404),
     )
     async def convergence(job_id: str, who: Caller = Auth) -> list[dict]:
         return await farm.convergence(apicommon.job_id(job_id), who)
@@ -596,7 +259,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}/cancel",
         summary="Cancel a job (a finished job is left as it is)",
         response_model=Job,
-        responses=_errors(403, 404),
+        responses=error_responses(403, 404),
     )
     async def cancel_job(job_id: str, who: Caller = Auth) -> dict:
         return (await farm.cancel(apicommon.job_id(job_id), who)).to_json()
@@ -605,7 +268,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}/pause",
         summary="Pause a queued or running job: it leases no tasks until resumed",
         response_model=Job,
-        responses=_errors(403, 404, 409),
+        responses=error_responses(403, 404, 409),
     )
     async def pause_job(job_id: str, who: Caller = Auth) -> dict:
         return (await farm.pause(apicommon.job_id(job_id), who)).to_json()
@@ -614,7 +277,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}/resume",
         summary="Resume a paused job where it was",
         response_model=Job,
-        responses=_errors(403, 404, 409),
+        responses=error_responses(403, 404, 409),
     )
     async def resume_job(job_id: str, who: Caller = Auth) -> dict:
         return (await farm.resume(apicommon.job_id(job_id), who)).to_json()
@@ -623,7 +286,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}/retry",
         summary="Queue a failed job again, keeping every batch it merged",
         response_model=Job,
-        responses=_errors(403, 404, 409),
+        responses=error_responses(403, 404, 409),
     )
     async def retry_job(job_id: str, who: Caller = Auth) -> dict:
         return (await farm.retry(apicommon.job_id(job_id), who)).to_json()
@@ -637,8 +300,8 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             "the start; any other setting is refused (400 naming it)."
         ),
         response_model=Job,
-        responses=_errors(403, 404, 409),
-        openapi_extra={"requestBody": _CONTINUE_BODY},
+        responses=error_responses(403, 404, 409),
+        openapi_extra={"requestBody": CONTINUE_BODY},
     )
     async def continue_job(job_id: str, request: Request, who: Caller = Auth) -> dict:
         body = await _json_body(request, {"settings"})
@@ -652,8 +315,8 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         summary="Change a job's priority or name",
         description='application/json {"priority": N, "name": "..."} (either or both).',
         response_model=Job,
-        responses=_errors(403, 404),
-        openapi_extra={"requestBody": _UPDATE_BODY},
+        responses=error_responses(403, 404),
+        openapi_extra={"requestBody": UPDATE_BODY},
     )
     async def update_job(job_id: str, request: Request, who: Caller = Auth) -> dict:
         body = await _json_body(request, {"priority", "name"})
@@ -670,7 +333,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         status_code=204,
         summary="Delete a finished job with its stored data (cancel a running one first)",
         response_class=Response,
-        responses=_errors(403, 404, 409),
+        responses=error_responses(403, 404, 409),
     )
     async def delete_job(job_id: str, who: Caller = Auth) -> Response:
         await farm.delete(apicommon.job_id(job_id), who)
@@ -680,43 +343,12 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/jobs/{job_id}/events",
         summary="The job's event log",
         response_model=list[JobEvent],
-        responses=_errors(403, 404),
+        responses=error_responses(403, 404),
     )
     async def job_events(job_id: str, who: Caller = Auth) -> list[dict]:
         return await farm.events(apicommon.job_id(job_id), who)
 
-    @app.get(
-        "/api/v1/jobs/{job_id}/watch",
-        summary="Server-Sent Events: the job now and after every change, until it finishes",
-        description=(
-            "Each event is `event: job` with the job as JSON in `data:`. Between events a "
-            "comment line (`: ping ...`) is sent every RENDERFARM_SSE_PING_INTERVAL_S seconds "
-            "(15 by default), so that a job waiting in the queue keeps its stream open."
-        ),
-        response_class=EventSourceResponse,
-        responses={
-            200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}},
-            **_errors(403, 404),
-        },
-    )
-    async def watch(job_id: str, who: Caller = Auth) -> EventSourceResponse:
-        await farm.get(apicommon.job_id(job_id), who)  # 404/403 before the stream starts
-
-        async def stream():
-            last_sent = 0.0
-            async for view in farm.watch(job_id, who):
-                # At most ~10 updates a second per watcher; the final state is always sent.
-                wait = 0.1 - (time.monotonic() - last_sent)
-                if wait > 0 and not view.state.finished:
-                    await asyncio.sleep(wait)
-                    view = await farm.get(job_id, who)
-                last_sent = time.monotonic()
-                yield ServerSentEvent(json.dumps(view.to_json()), event="job")
-
-        # Events are sent only on change; the library's keep-alive comments in between stop
-        # clients and proxies from timing out on a job that waits queued. sep="\n" keeps the
-        # framing the dashboard and the client have always read.
-        return EventSourceResponse(stream(), ping=farm.settings.sse_ping_interval_s, sep="\n")
+    add_watch_route(app, farm, Auth)
 
     @app.get(
         "/api/v1/jobs/{job_id}/image.{fmt}",
@@ -729,7 +361,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                     "image/x-exr": {"schema": {"type": "string", "format": "binary"}},
                 }
             },
-            **_errors(403, 404),
+            **error_responses(403, 404),
         },
     )
     async def image(
@@ -753,7 +385,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
                 apicommon.job_id(job_id), fmt, layer, who, max_size, compression
             )
         except Cancelled:
-            return _error(503, "", "the server is stopping")
+            return error_response(503, "", "the server is stopping")
         size = os.fstat(file.fileno()).st_size
 
         async def chunks():
@@ -770,7 +402,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/workers",
         summary="Connected workers",
         response_model=list[WorkerInfo],
-        responses=_errors(),
+        responses=error_responses(),
     )
     async def workers(_: Caller = Auth) -> list[dict]:
         return farm.workers()
@@ -791,7 +423,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             f"/api/v1/workers/{{worker_id}}/{action}",
             summary=summary,
             response_model=WorkerInfo,
-            responses=_errors(403, 404),
+            responses=error_responses(403, 404),
             name=f"{action}_worker",
         )(control())
 
@@ -799,26 +431,12 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "/api/v1/scenes/{sha256}",
         summary="A stored scene's metadata",
         response_model=SceneInfo,
-        responses=_errors(404),
+        responses=error_responses(404),
     )
     async def scene(sha256: str, _: Caller = Auth) -> dict:
         return await farm.scene_info(apicommon.scene_sha256(sha256))
 
     return app
-
-
-class _DashboardAssets(StaticFiles):
-    """web/dist/assets, or 404 for everything under /assets while the dashboard is not built
-    (StaticFiles itself fails with a 500 then); checked per request, so `make web` on a running
-    server is picked up."""
-
-    def __init__(self, directory: Path):
-        super().__init__(directory=directory, check_dir=False)
-
-    async def check_config(self) -> None:
-        if not Path(str(self.directory)).is_dir():
-            raise StarletteHTTPException(404, "the dashboard is not built (make web)")
-        await super().check_config()
 
 
 async def _json_body(request: Request, known: set[str]) -> dict[str, Any]:

@@ -1,9 +1,26 @@
-"""A server-rendered status page at / (jobs with live previews, workers), no build step.
-
-It polls the REST API every two seconds; the full dashboard lives in web/.
+"""The web UI at /: the dashboard built by `make web` (web/dist, or the copy an installed package
+carries) with its /assets, else a server-rendered status page (jobs with live previews,
+workers; no build step), which polls the REST API every two seconds.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import FileResponse, HTMLResponse, Response
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+# The dashboard built by `make web`: package data renderfarm/web where an installed package
+# carries it (the server image copies web/dist there before installing), else web/dist of this
+# checkout; index_html() stands in for it when neither has been built.
+_PACKAGED_WEB = Path(__file__).resolve().parents[1] / "web"
+WEB_DIST = (
+    _PACKAGED_WEB
+    if (_PACKAGED_WEB / "index.html").is_file()
+    else Path(__file__).resolve().parents[3] / "web" / "dist"
+)
 
 _PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>renderfarm</title>
@@ -49,3 +66,30 @@ refresh(); setInterval(refresh, 2000);
 
 def index_html() -> str:
     return _PAGE
+
+
+def add_dashboard(app: FastAPI) -> None:
+    """GET / and /assets."""
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def index() -> Response:
+        built = WEB_DIST / "index.html"
+        if built.is_file():
+            return FileResponse(built, headers={"Cache-Control": "no-cache"})
+        return HTMLResponse(index_html())
+
+    app.mount("/assets", _DashboardAssets(directory=WEB_DIST / "assets"), name="dashboard-assets")
+
+
+class _DashboardAssets(StaticFiles):
+    """web/dist/assets, or 404 for everything under /assets while the dashboard is not built
+    (StaticFiles itself fails with a 500 then); checked per request, so `make web` on a running
+    server is picked up."""
+
+    def __init__(self, directory: Path):
+        super().__init__(directory=directory, check_dir=False)
+
+    async def check_config(self) -> None:
+        if not Path(str(self.directory)).is_dir():
+            raise StarletteHTTPException(404, "the dashboard is not built (make web)")
+        await super().check_config()
