@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderfarm.domain.scenes.validate import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
 from renderfarm.infra.images import read_exr
 
 from .test_blender_addon import blender_python

@@ -23,7 +23,7 @@ import psycopg
 
 from renderfarm.cli.localfarm import LocalFarm, stop_processes
 from renderfarm.client import Client
-from renderfarm.domain.scenes.validate import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
 from renderfarm.infra.embedded_db import pg_ctl
 from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc

@@ -397,7 +397,7 @@ def test_image_api_docs_use_only_assets_the_server_serves(image_server, page):
 def test_image_checks_uploads_with_the_workers_loader(image_server):
     """The image's server finds renderfarm-worker on its PATH and runs its loader on an upload:
     the Cornell box is accepted, a node with two parents refused naming it."""
-    from renderfarm.domain.scenes.validate import pack_gltf
+    from renderfarm.domain.scenes.pack import pack_gltf
 
     from .test_scene_acceptance import hostile
 

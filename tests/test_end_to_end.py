@@ -160,7 +160,7 @@ def test_unknown_job_and_stored_scene_are_404(client):
 
 
 def _glb() -> bytes:
-    from renderfarm.domain.scenes.validate import pack_gltf
+    from renderfarm.domain.scenes.pack import pack_gltf
 
     return pack_gltf(CORNELL)
 

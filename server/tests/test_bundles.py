@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from renderfarm.domain.scenes.bundles import MAX_ENTRIES, bundle_to_glb, is_bundle, scene_upload
-from renderfarm.domain.scenes.validate import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
 from renderfarm.errors import SceneError, TooLarge
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"

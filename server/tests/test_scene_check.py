@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from renderfarm.domain.scenes.validate import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
 from renderfarm.errors import SceneError
 from renderfarm.infra.scene_check import SceneChecker, SceneLimits
 from renderfarm.infra.worker_binary import find_worker_binary

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderfarm.domain.scenes.validate import SceneInfo, inspect_scene, pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.domain.scenes.validate import SceneInfo, inspect_scene
 from renderfarm.errors import SceneError
 
 REPO = Path(__file__).resolve().parents[2]

@@ -29,7 +29,8 @@ from typing import Any
 
 from ..domain.jobspec import JobSettings, parse_settings
 from ..domain.merge import TileAccumulator
-from ..domain.scenes.validate import inspect_environment, inspect_scene
+from ..domain.scenes.environment import inspect_environment
+from ..domain.scenes.validate import inspect_scene
 from ..domain.scheduler import JobRun, Scheduler
 from ..domain.states import JobState
 from ..domain.tiling import tile_grid

@@ -15,7 +15,7 @@ import tarfile
 import zipfile
 
 from ...errors import SceneError, TooLarge
-from .validate import pack_gltf_files
+from .pack import pack_gltf_files
 
 MAX_ENTRIES = 1000
 ZIP_MAGIC = b"PK\x03\x04"
