@@ -12,7 +12,8 @@ import numpy as np
 from support.results import write_results
 
 from renderfarm.domain.jobspec import JobSettings
-from renderfarm.domain.scheduler import BatchResult, Scheduler
+from renderfarm.domain.records import BatchResult
+from renderfarm.domain.scheduler import Scheduler
 
 
 def main(results_target: int = 20000) -> dict:

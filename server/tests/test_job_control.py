@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from test_scheduler import FakeClock, render, run_farm
 
+from renderfarm.domain.continuation import continue_plan
 from renderfarm.domain.jobspec import JobSettings
-from renderfarm.domain.scheduler import Scheduler, continue_plan
+from renderfarm.domain.scheduler import Scheduler
 from renderfarm.domain.states import JobState, check_transition
 from renderfarm.errors import TransitionError
 

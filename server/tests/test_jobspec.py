@@ -87,7 +87,8 @@ def test_the_estimate_covers_what_a_job_really_holds():
 
     from renderfarm.domain.jobspec import ACCUMULATOR_BYTES_PER_PIXEL, TILE_OVERHEAD_BYTES
     from renderfarm.domain.merge import TileAccumulator
-    from renderfarm.domain.scheduler import BatchResult, Scheduler
+    from renderfarm.domain.records import BatchResult
+    from renderfarm.domain.scheduler import Scheduler
 
     acc = TileAccumulator(5, 3)
     arrays = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS

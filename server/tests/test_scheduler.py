@@ -7,7 +7,8 @@ import pytest
 
 from renderfarm.domain import scheduler as scheduler_module
 from renderfarm.domain.jobspec import JobSettings
-from renderfarm.domain.scheduler import BatchResult, Scheduler
+from renderfarm.domain.records import BatchResult
+from renderfarm.domain.scheduler import Scheduler
 from renderfarm.domain.states import JobState, StopReason
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..domain.scheduler import BatchResult
+from ..domain.records import BatchResult
 from ..domain.tiling import Rect
 
 

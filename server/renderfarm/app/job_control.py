@@ -10,8 +10,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from ..domain.continuation import CONTINUE_SETTINGS, continue_plan
 from ..domain.jobspec import ALIASES, JobSettings, parse_settings
-from ..domain.scheduler import CONTINUE_SETTINGS, JobRun, Scheduler, continue_plan
+from ..domain.records import JobRun
+from ..domain.scheduler import Scheduler
 from ..domain.states import JobState, check_transition
 from ..errors import Conflict, NotFound, SettingsError, TransitionError
 from . import checkpoints
@@ -97,7 +99,7 @@ class JobControl:
         """Carry a completed job on to a higher max_spp or a lower noise_threshold. The result
         equals, bit for bit, a job submitted with the new settings from the start: tiles whose
         merged batches those settings would have planned alike carry on; any other tile
-        renders again from its first sample (scheduler.continue_plan)."""
+        renders again from its first sample (domain/continuation.py)."""
         view = await self.get(job_id, caller)
         old = view.settings
         raw = {}

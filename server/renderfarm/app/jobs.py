@@ -29,9 +29,10 @@ from typing import Any
 
 from ..domain.jobspec import JobSettings, parse_settings
 from ..domain.merge import TileAccumulator
+from ..domain.records import JobRun
 from ..domain.scenes.environment import inspect_environment
 from ..domain.scenes.validate import inspect_scene
-from ..domain.scheduler import JobRun, Scheduler
+from ..domain.scheduler import Scheduler
 from ..domain.states import JobState
 from ..domain.tiling import tile_grid
 from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge

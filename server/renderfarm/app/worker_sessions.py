@@ -15,7 +15,7 @@ from typing import Any
 import psycopg
 from psycopg_pool import PoolTimeout
 
-from ..domain.scheduler import BatchResult
+from ..domain.records import BatchResult
 from ..errors import Forbidden, NotFound, Unauthenticated
 from .auth import Caller, check_caller
 

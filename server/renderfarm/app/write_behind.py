@@ -14,7 +14,7 @@ from typing import Any
 import psycopg
 from psycopg_pool import PoolTimeout
 
-from ..domain.scheduler import JobRun
+from ..domain.records import JobRun
 from ..domain.states import JobState
 from ..infra import spool
 from ..infra.store import DatabaseUnavailable
