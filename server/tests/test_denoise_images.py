@@ -197,7 +197,8 @@ def test_grey_png_records_its_scale(tmp_path, layer):
 
 
 def test_cli_denoise_flag_is_on_off_or_the_servers_default():
-    from renderfarm.cli.commands import _job_settings, build_parser
+    from renderfarm.cli.commands import _job_settings
+    from renderfarm.cli.parser import build_parser
 
     parse = build_parser().parse_args
     assert _job_settings(parse(["submit", "s.glb", "--denoise"])) == {"denoise": True}

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from renderfarm.cli.commands import build_parser
+from renderfarm.cli.parser import build_parser
 from renderfarm.domain.jobspec import SETTINGS
 from renderfarm.infra.config import Settings
 

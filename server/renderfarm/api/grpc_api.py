@@ -11,6 +11,9 @@ body's "field".
 Clients authenticate with the metadata `authorization: Bearer TOKEN` (JobService,
 SceneService.GetScene); workers with Hello.token. SceneService.FetchScene is open to anyone who
 knows a scene's full SHA-256 (workers call it without client tokens).
+
+One module: the three servicers share the error mapping and the caller lookup above them, and
+each method is a thin translation of one proto rpc.
 """
 
 from __future__ import annotations

@@ -1,9 +1,11 @@
 """FarmService: the one place where API calls, worker streams, the scheduler and the store meet.
+This module is its facade (jobs: submit, read, list, cancel, delete, watch; scenes; the
+background round); its other parts are mixins in the modules of app/ named in the class.
 
 Everything runs on one asyncio event loop: the scheduler is plain Python without locks, merges
 are vectorised numpy on tiles (tens of microseconds), and every database call is awaited, so a
 slow database never blocks a merge. REST and gRPC handlers are thin: they parse, call a method
-here, and map the errors below to status codes.
+here, and map the exceptions of errors.py to status codes.
 
 Durability: a submission is acknowledged only after its scene and job rows are committed. Merged
 tiles are checkpointed every `checkpoint_interval_s` by a background task (only tiles that

@@ -14,6 +14,10 @@ image is the same whichever worker rendered what, in any order; duplicates and b
 tile's stop point are discarded. The same holds for planned batch sizes (tiling.plan_batch):
 batch k's size is planned from the tile's state after batches 0..k-2, once they are merged, so
 one batch can render while the next is leased.
+
+The Scheduler class stays whole (its records are in records.py, the continue rule in
+continuation.py): its methods keep leases, tile heaps, credits and states consistent with one
+another, which a split across modules would hide.
 """
 
 from __future__ import annotations

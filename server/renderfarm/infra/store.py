@@ -3,6 +3,9 @@
 Schema changes are numbered files in migrations/ (NNNN_name.sql), applied in order at start in
 one transaction each, under an advisory lock so two servers starting together do not race. A
 database whose schema is newer than this code knows is refused.
+
+One module although long: every SQL statement in one place is the point (a schema change is
+checked against all of its queries here).
 """
 
 from __future__ import annotations
