@@ -187,6 +187,7 @@ __all__ = [
     "LOCAL_USER",
     "Authenticator",
     "Caller",
+    "check_caller",
     "check_exposure",
     "create_token",
     "is_loopback",

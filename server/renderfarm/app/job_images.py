@@ -102,7 +102,7 @@ class JobImages:
                 top = max(top, await asyncio.to_thread(images.layer_maximum, layer, await band(r)))
         denoised = None
         if settings.denoise and (fmt == "exr" or layer == "denoised"):
-            # A first pass gathers the frame Open Image Denoise needs whole (images.py).
+            # A first pass gathers the frame Open Image Denoise needs whole (infra/images.py).
             frame = images.DenoiseFrame(settings.width, settings.height)
             for r in range(rows):
                 await asyncio.to_thread(frame.add_band, rects[r * cols].height, await band(r))

@@ -188,7 +188,7 @@ class WriteBehind:
 
     def _spool_unsaved(self) -> None:
         """The final flush failed: keep whatever is not stored in the spool, replayed at the
-        next start (spool.py). Synchronous, so no merge lands between snapshot and file."""
+        next start (infra/spool.py). Synchronous, so no merge lands between snapshot and file."""
         events = list(self._pending_events)
         for job_id in self._pending_finishes:  # what flush() writes after a finished job
             events.append((job_id, "convergence", {"points": self.history.get(job_id, [])}))

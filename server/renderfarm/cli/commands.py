@@ -357,7 +357,7 @@ def cmd_ls(args: argparse.Namespace) -> int:
     return 0
 
 
-# The EXR channels of each layer (images.py), for `get -o out.exr --layer NAME`.
+# The EXR channels of each layer (infra/images.py), for `get -o out.exr --layer NAME`.
 EXR_LAYER_CHANNELS = {
     "rgb": ("R", "G", "B"),
     "variance": ("variance.Y",),

@@ -66,7 +66,7 @@ TILE_OVERHEAD_BYTES = 4096
 
 def job_memory_bytes(width: int, height: int, tile_size: int) -> int:
     """Estimated memory of a job's accumulators, whether in RAM or spilled to the scratch
-    directory (spill.py), from its size and tile size."""
+    directory (infra/spill.py), from its size and tile size."""
     tiles = math.ceil(width / tile_size) * math.ceil(height / tile_size)
     return ACCUMULATOR_BYTES_PER_PIXEL * width * height + TILE_OVERHEAD_BYTES * tiles
 

@@ -4,7 +4,7 @@ The server runs `renderfarm-worker inspect --json` (the loader every worker uses
 server's limits) on each new scene before it stores it, in a child process under CPU-time and
 address-space limits, so that a scene the server accepts can neither be refused by the workers
 nor hang or exhaust them; and a hostile scene costs the server one bounded child process. There
-is no second validator here that could drift from the loader: scenes.py only reads the upload's
+is no second validator here that could drift from the loader: domain/scenes only reads the upload's
 container (GLB or JSON, sizes, self-containment) and this module asks the loader.
 
 The loader refuses, naming the glTF path of the offending part (`scene.nodes[3].children`):

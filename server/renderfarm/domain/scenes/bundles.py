@@ -1,7 +1,7 @@
 """Scene bundles: a .gltf with its buffers and textures uploaded as one .zip or .tar(.gz).
 
 A bundle is read in memory only (nothing is ever written to disk), checked entry by entry, and
-packed into a single .glb (scenes.pack_gltf_files), so workers always receive one .glb. Refused,
+packed into a single .glb (pack.pack_gltf_files), so workers always receive one .glb. Refused,
 with SceneError(field "scene") naming the entry: absolute paths, `..` components, drive letters,
 symlinks, hard links and device files, more than MAX_ENTRIES entries, duplicate names, a total
 uncompressed size over the upload limit (TooLarge), and bundles without exactly one .gltf.
