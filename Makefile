@@ -42,7 +42,7 @@ blender-deps:
 openapi: proto
 	$(VENV)/bin/python scripts/openapi_json.py
 
-# docs/settings.md's table, from server/renderfarm/jobspec.py SETTINGS (a test fails while stale).
+# docs/settings.md's table, from server/renderfarm/domain/jobspec.py SETTINGS (a test fails while stale).
 settings-doc: proto
 	$(VENV)/bin/python scripts/settings_doc.py
 

@@ -45,10 +45,10 @@ import numpy as np
 from support import shelter_scene, sky_scene
 from support.results import write_results
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.images import read_exr, srgb_encode
-from renderfarm.localfarm import LocalFarm
-from renderfarm.merge import DARK_FLOOR
+from renderfarm.domain.merge import DARK_FLOOR
+from renderfarm.infra.images import read_exr, srgb_encode
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "examples" / "cornell-box.gltf"

@@ -40,7 +40,7 @@ import numpy as np
 from support.parity_scenes import SCENES
 from support.results import write_results
 
-from renderfarm.images import read_exr, srgb_encode
+from renderfarm.infra.images import read_exr, srgb_encode
 
 ROOT = Path(__file__).resolve().parents[1]
 SUPPORT = Path(__file__).resolve().parent / "support"

@@ -22,9 +22,9 @@ from pathlib import Path
 
 from support.results import write_results
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm
+from renderfarm.infra.images import read_exr
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "examples" / "cornell-box.gltf"

@@ -28,8 +28,8 @@ from pathlib import Path
 
 from support.results import write_results
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "examples" / "cornell-box.gltf"

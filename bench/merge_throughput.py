@@ -11,8 +11,9 @@ import time
 import numpy as np
 from support.results import write_results
 
-from renderfarm.jobspec import JobSettings
-from renderfarm.scheduler import BatchResult, Scheduler
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.domain.records import BatchResult
+from renderfarm.domain.scheduler import Scheduler
 
 
 def main(results_target: int = 20000) -> dict:

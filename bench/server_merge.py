@@ -29,8 +29,8 @@ import httpx
 import numpy as np
 from support.results import write_results
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm
 from renderfarm.v1 import workers_pb2
 
 ROOT = Path(__file__).resolve().parents[1]

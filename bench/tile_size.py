@@ -15,9 +15,9 @@ from pathlib import Path
 
 from support.results import write_results
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm
-from renderfarm.tiling import batch_count
+from renderfarm.domain.tiling import batch_count
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "examples" / "cornell-box.gltf"

@@ -56,7 +56,7 @@ APT_RUNTIME_WORKER=(
 # (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter,
 # openssl for the farm's certificates (deploy/docker/make-certs.sh), util-linux's prlimit, and
 # the worker's libraries: it checks every uploaded scene with the worker's own loader
-# (`renderfarm-worker inspect`, server/renderfarm/scene_check.py).
+# (`renderfarm-worker inspect`, server/renderfarm/infra/scene_check.py).
 APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6 openssl util-linux "${APT_RUNTIME_WORKER[@]}")
 # The deployment checks: `docker-compose config` validates deploy/compose.yaml, iproute2 builds
 # the network namespaces of the multi-host test, openssl makes its certificates.

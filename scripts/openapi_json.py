@@ -17,7 +17,7 @@ sys.path.insert(0, str(ROOT / "server"))
 def document() -> str:
     """The document as the server serves it at /openapi.json (routes and models only: no farm
     is started, the app's handlers are never called)."""
-    from renderfarm.rest import create_app
+    from renderfarm.api.rest import create_app
 
     farm = MagicMock()
     farm.settings.http_host = farm.settings.grpc_host = "127.0.0.1"

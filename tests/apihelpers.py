@@ -14,7 +14,7 @@ import grpc
 import httpx
 
 from renderfarm.client import Client
-from renderfarm.scenes import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc
 
 from .conftest import CORNELL

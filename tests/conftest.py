@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm, find_worker_binary
+from renderfarm.infra.worker_binary import find_worker_binary
 
 ROOT = Path(__file__).resolve().parents[1]
 CORNELL = ROOT / "examples" / "cornell-box.gltf"

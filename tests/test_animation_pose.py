@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderfarm.images import read_exr
+from renderfarm.infra.images import read_exr
 
 RTOL = 1e-5
 ATOL = 1e-5

@@ -16,7 +16,7 @@ import grpc
 import httpx
 import pytest
 
-from renderfarm.localfarm import LocalFarm, free_port
+from renderfarm.cli.localfarm import LocalFarm, free_port
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, workers_pb2, workers_pb2_grpc
 
 from .apihelpers import TINY, Apis, Error, cornell_glb, create_token

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm
 
 from .apihelpers import TINY, cornell_glb, escaping_zip
 from .conftest import CORNELL

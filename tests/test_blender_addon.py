@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm
+from renderfarm.infra.images import read_exr
 
 from .tools import require_tool
 from .waiting import wait_until

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm, free_port
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm, free_port
 
 from .tlshelpers import make_pki
 

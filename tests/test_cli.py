@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from renderfarm.images import read_exr
+from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
 

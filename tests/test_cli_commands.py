@@ -12,8 +12,8 @@ import time
 import httpx
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm, spawn_workers
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm, spawn_workers
 
 from .conftest import CORNELL
 

@@ -17,8 +17,8 @@ import time
 
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm, free_port
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm, free_port
 
 from .conftest import CORNELL
 from .test_auth import _self_signed

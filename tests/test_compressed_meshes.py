@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderfarm.images import read_exr
-from renderfarm.scenes import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.infra.images import read_exr
 
 from .test_blender_addon import blender_python
 from .tools import require_tool

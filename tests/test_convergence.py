@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm, spawn_workers, stop_processes
 from renderfarm.client import Client
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm, spawn_workers, stop_processes
-from renderfarm.merge import DARK_FLOOR
+from renderfarm.domain.merge import DARK_FLOOR
+from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
 

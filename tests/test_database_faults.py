@@ -21,11 +21,11 @@ import numpy as np
 import psutil
 import psycopg
 
+from renderfarm.cli.localfarm import LocalFarm, stop_processes
 from renderfarm.client import Client
-from renderfarm.embedded_db import pg_ctl
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm, stop_processes
-from renderfarm.scenes import pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.infra.embedded_db import pg_ctl
+from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc
 
 from .conftest import CORNELL

@@ -28,7 +28,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from renderfarm.localfarm import find_worker_binary, free_port
+from renderfarm.cli.localfarm import free_port
+from renderfarm.infra.worker_binary import find_worker_binary
 
 from .conftest import ROOT
 from .waiting import wait_until
@@ -318,7 +319,7 @@ def test_installed_package_carries_the_dashboard(image):
     """The package in the image's environment is a real (not editable) install, holding the
     dashboard the web stage built, and it is the one the entrypoint imports."""
     code = (
-        "import json, renderfarm, renderfarm.rest as r, importlib.metadata as m;"
+        "import json, renderfarm, renderfarm.api.static as r, importlib.metadata as m;"
         "print(json.dumps([renderfarm.__file__, str(r.WEB_DIST), m.requires('renderfarm')]))"
     )
     out = _run([str(image["venv"] / "bin" / "python"), "-c", code], cwd=image["venv"],
@@ -396,7 +397,7 @@ def test_image_api_docs_use_only_assets_the_server_serves(image_server, page):
 def test_image_checks_uploads_with_the_workers_loader(image_server):
     """The image's server finds renderfarm-worker on its PATH and runs its loader on an upload:
     the Cornell box is accepted, a node with two parents refused naming it."""
-    from renderfarm.scenes import pack_gltf
+    from renderfarm.domain.scenes.pack import pack_gltf
 
     from .test_scene_acceptance import hostile
 

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from renderfarm.client import Client
-from renderfarm.images import read_exr
+from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL, ROOT
 from .tools import require_tool

@@ -363,7 +363,7 @@ def test_compose_settings_are_environment_variables_documented_in_the_docs(compo
         assert f"`{var}`" in section, f"{var} is not documented in docs/operations.md, Deployment"
         assert var in example, f"{var} is not in deploy/env.example"
     # With everything at its default, the server gets exactly the server defaults.
-    from renderfarm.config import Settings
+    from renderfarm.infra.config import Settings
 
     env = compose_config["services"]["server"]["environment"]
     defaults = Settings()
@@ -488,7 +488,8 @@ def test_compose_certificates_carry_real_worker_traffic(compose_config, compose_
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-    from renderfarm.localfarm import find_worker_binary, free_port
+    from renderfarm.cli.localfarm import free_port
+    from renderfarm.infra.worker_binary import find_worker_binary
 
     services = compose_config["services"]
     dirs = compose_certs["dirs"]
@@ -831,7 +832,7 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     labels = server["template"]["metadata"]["labels"]
     assert all(labels.get(k) == v for k, v in service["selector"].items())
     assert {p["targetPort"] for p in service["ports"]} == {"http", "grpc"}
-    from renderfarm.config import Settings
+    from renderfarm.infra.config import Settings
 
     Settings(**{k.removeprefix("RENDERFARM_").lower(): v for k, v in config.items()})
 

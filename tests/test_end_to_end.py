@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from renderfarm.client import ApiError
-from renderfarm.images import read_exr
+from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
 
 from .conftest import CORNELL
@@ -160,7 +160,7 @@ def test_unknown_job_and_stored_scene_are_404(client):
 
 
 def _glb() -> bytes:
-    from renderfarm.scenes import pack_gltf
+    from renderfarm.domain.scenes.pack import pack_gltf
 
     return pack_gltf(CORNELL)
 

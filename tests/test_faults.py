@@ -21,10 +21,10 @@ import numpy as np
 import psycopg
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.embedded_db import EmbeddedPostgres, pg_ctl
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm
+from renderfarm.infra.embedded_db import EmbeddedPostgres, pg_ctl
+from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
 
@@ -409,7 +409,7 @@ def test_a_newer_database_schema_refuses_to_start_the_server(tmp_path):
     data = tmp_path / "farm"
     with LocalFarm(workers=0, data_dir=data):
         pass  # creates and migrates the embedded database, then stops
-    from renderfarm.embedded_db import EmbeddedPostgres
+    from renderfarm.infra.embedded_db import EmbeddedPostgres
 
     pg = EmbeddedPostgres(data)
     url = pg.start()

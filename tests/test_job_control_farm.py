@@ -14,9 +14,9 @@ import httpx
 import numpy as np
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm, stop_processes
 from renderfarm.client import ApiError, Client
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm, stop_processes
+from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
 from .waiting import wait_until

@@ -12,8 +12,8 @@ import httpx
 import numpy as np
 import pytest
 
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm
+from renderfarm.cli.localfarm import LocalFarm
+from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2
 
 from .apihelpers import Apis, Error, cornell_glb

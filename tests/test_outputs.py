@@ -14,9 +14,9 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from renderfarm.app.job_images import renderer_version
 from renderfarm.client import ApiError, Client
-from renderfarm.images import read_exr
-from renderfarm.service import renderer_version
+from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
 
 from .conftest import CORNELL

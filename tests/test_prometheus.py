@@ -11,8 +11,8 @@ import time
 import httpx
 import pytest
 
+from renderfarm.cli.localfarm import free_port
 from renderfarm.client import Client
-from renderfarm.localfarm import free_port
 
 from .conftest import CORNELL
 from .tools import require_tool

@@ -15,8 +15,8 @@ import struct
 import grpc
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
 
 from .apihelpers import TINY, cornell_glb

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm
+from renderfarm.infra.images import read_exr
 
 from .apihelpers import TINY
 from .conftest import CORNELL

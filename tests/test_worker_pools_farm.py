@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import ApiError, Client
-from renderfarm.images import read_exr
-from renderfarm.localfarm import LocalFarm
+from renderfarm.infra.images import read_exr
 
 from .apihelpers import create_token
 from .conftest import CORNELL

@@ -24,7 +24,7 @@ from urllib.parse import quote
 
 import httpx
 
-from .scenes import pack_gltf
+from .domain.scenes.pack import pack_gltf
 
 FINISHED = ("completed", "failed", "cancelled")
 

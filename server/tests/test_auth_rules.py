@@ -7,16 +7,16 @@ import asyncio
 
 import pytest
 
-from renderfarm.auth import (
+from renderfarm.api.sessions import bearer
+from renderfarm.app.auth import (
     LOCAL_USER,
     Authenticator,
-    AuthError,
     Caller,
-    bearer,
     check_exposure,
     is_loopback,
     token_sha256,
 )
+from renderfarm.errors import AuthError
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "127.8.9.1", "::1", "[::1]", "localhost"])
@@ -74,7 +74,7 @@ def test_auth_is_off_only_without_tokens_on_loopback():
 def test_tokens_are_looked_up_by_hash_and_cached():
     from datetime import UTC, datetime
 
-    from renderfarm.store import TokenRow
+    from renderfarm.infra.store import TokenRow
 
     row = TokenRow("id1", "alice", token_sha256("rf_a"), False, datetime.now(UTC), None)
     store = FakeStore({row.sha256: row})

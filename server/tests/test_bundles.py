@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from renderfarm.bundles import MAX_ENTRIES, bundle_to_glb, is_bundle, scene_upload
-from renderfarm.scenes import SceneError, pack_gltf
-from renderfarm.service import TooLarge
+from renderfarm.domain.scenes.bundles import MAX_ENTRIES, bundle_to_glb, is_bundle, scene_upload
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.errors import SceneError, TooLarge
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 GLTF = (EXAMPLES / "cornell-box.gltf").read_bytes()

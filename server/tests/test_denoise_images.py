@@ -10,18 +10,24 @@ import OpenImageIO as oiio
 import pyoidn
 import pytest
 
-from renderfarm import images
-from renderfarm.images import DENOISED_CHANNELS, EXR_CHANNELS, DenoiseFrame, ImageWriter, read_exr
-from renderfarm.jobspec import (
+from renderfarm.domain.jobspec import (
     DENOISE_BYTES_PER_PIXEL,
     Limits,
-    SettingsError,
     denoise_memory_bytes,
     job_memory_bytes,
     parse_settings,
 )
-from renderfarm.merge import TileAccumulator
-from renderfarm.tiling import tile_grid
+from renderfarm.domain.merge import TileAccumulator
+from renderfarm.domain.tiling import tile_grid
+from renderfarm.errors import SettingsError
+from renderfarm.infra import images
+from renderfarm.infra.images import (
+    DENOISED_CHANNELS,
+    EXR_CHANNELS,
+    DenoiseFrame,
+    ImageWriter,
+    read_exr,
+)
 
 W, H, TILE = 70, 45, 16
 
@@ -191,7 +197,8 @@ def test_grey_png_records_its_scale(tmp_path, layer):
 
 
 def test_cli_denoise_flag_is_on_off_or_the_servers_default():
-    from renderfarm.cli import _job_settings, build_parser
+    from renderfarm.cli.commands import _job_settings
+    from renderfarm.cli.parser import build_parser
 
     parse = build_parser().parse_args
     assert _job_settings(parse(["submit", "s.glb", "--denoise"])) == {"denoise": True}
@@ -204,8 +211,8 @@ def test_cli_denoise_flag_is_on_off_or_the_servers_default():
 def test_denoise_frame_of_spilled_tiles_is_that_of_tiles_in_ram(tmp_path):
     """The frame gathered from tile views (as the server hands them over), some of them read
     back from a spill file, is the one gathered from the accumulators in RAM."""
-    from renderfarm.images import TileView, arrays_needed
-    from renderfarm.spill import TileCache
+    from renderfarm.infra.images import TileView, arrays_needed
+    from renderfarm.infra.spill import TileCache
 
     tiles = accumulators()
     names = arrays_needed("png", "denoised")

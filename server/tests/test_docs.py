@@ -3,8 +3,8 @@ and metric (docs/settings.md, docs/usage.md, docs/api.md)."""
 
 from pathlib import Path
 
-from renderfarm.cli import build_parser
-from renderfarm.config import Settings
+from renderfarm.cli.parser import build_parser
+from renderfarm.infra.config import Settings
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 SETTINGS_MD = (DOCS / "settings.md").read_text()
@@ -31,7 +31,7 @@ def test_every_rest_endpoint_is_documented():
     """Generated check: each path of the OpenAPI document has a row in docs/api.md's table."""
     from unittest.mock import MagicMock
 
-    from renderfarm.rest import create_app
+    from renderfarm.api.rest import create_app
 
     farm = MagicMock()
     farm.settings.http_host = farm.settings.grpc_host = "127.0.0.1"
@@ -52,7 +52,7 @@ def test_every_grpc_method_is_documented():
 def test_every_metric_is_documented():
     from unittest.mock import MagicMock
 
-    from renderfarm.metrics import Metrics
+    from renderfarm.api.metrics import Metrics
 
     farm = MagicMock()
     farm.scheduler.jobs = {}

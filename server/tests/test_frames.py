@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from renderfarm.frames import frame_time, parse_frames
-from renderfarm.jobspec import SettingsError
+from renderfarm.domain.frames import frame_time, parse_frames
+from renderfarm.domain.jobspec import SettingsError
 
 
 @pytest.mark.parametrize(

@@ -7,11 +7,11 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from renderfarm import images
-from renderfarm.images import EXR_CHANNELS, ImageWriter, TileView, arrays_needed, read_exr
-from renderfarm.merge import TileAccumulator
-from renderfarm.spill import TileCache
-from renderfarm.tiling import tile_grid
+from renderfarm.domain.merge import TileAccumulator
+from renderfarm.domain.tiling import tile_grid
+from renderfarm.infra import images
+from renderfarm.infra.images import EXR_CHANNELS, ImageWriter, TileView, arrays_needed, read_exr
+from renderfarm.infra.spill import TileCache
 
 W, H, TILE = 70, 45, 16  # edge tiles narrower and shorter than the others
 
@@ -111,7 +111,7 @@ def write(path, fmt, tiles, layer="rgb", max_size=0, as_views=False):
         bands = [[(r, a if a.samples else None) for r, a in band] for band in bands]
     top = -np.inf
     if layer in ("variance", "spp", "error"):
-        from renderfarm.images import layer_maximum
+        from renderfarm.infra.images import layer_maximum
 
         top = max(layer_maximum(layer, band) for band in bands)
     writer = ImageWriter(str(path), fmt, W, H, layer, max_size, top)

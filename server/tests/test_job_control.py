@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 from test_scheduler import FakeClock, render, run_farm
 
-from renderfarm.jobspec import JobSettings
-from renderfarm.scheduler import Scheduler, continue_plan
-from renderfarm.states import JobState, TransitionError, check_transition
+from renderfarm.domain.continuation import continue_plan
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.domain.scheduler import Scheduler
+from renderfarm.domain.states import JobState, check_transition
+from renderfarm.errors import TransitionError
 
 Q, R, C, F, X, P, W = (
     JobState.QUEUED,

@@ -2,7 +2,8 @@
 
 import pytest
 
-from renderfarm.jobspec import JobSettings, Limits, SettingsError, parse_settings
+from renderfarm.domain.jobspec import JobSettings, Limits, parse_settings
+from renderfarm.errors import SettingsError
 
 
 def test_defaults():
@@ -84,9 +85,10 @@ def test_the_estimate_covers_what_a_job_really_holds():
 
     import numpy as np
 
-    from renderfarm.jobspec import ACCUMULATOR_BYTES_PER_PIXEL, TILE_OVERHEAD_BYTES
-    from renderfarm.merge import TileAccumulator
-    from renderfarm.scheduler import BatchResult, Scheduler
+    from renderfarm.domain.jobspec import ACCUMULATOR_BYTES_PER_PIXEL, TILE_OVERHEAD_BYTES
+    from renderfarm.domain.merge import TileAccumulator
+    from renderfarm.domain.records import BatchResult
+    from renderfarm.domain.scheduler import Scheduler
 
     acc = TileAccumulator(5, 3)
     arrays = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS

@@ -10,12 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 from test_scheduler import render
 
-from renderfarm import service as service_module
-from renderfarm.auth import LOCAL_USER
-from renderfarm.config import Settings
-from renderfarm.images import read_exr
-from renderfarm.jobspec import JobSettings
-from renderfarm.service import FarmService
+from renderfarm.app import checkpoints
+from renderfarm.app.auth import LOCAL_USER
+from renderfarm.app.jobs import FarmService
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.infra.config import Settings
+from renderfarm.infra.images import read_exr
 
 JOB = JobSettings(width=256, height=192, tile_size=32, max_spp=8, noise_threshold=0)
 TILE_BYTES = 72 * 32 * 32
@@ -70,7 +70,7 @@ def test_a_large_checkpoint_is_written_in_chunks_holding_every_tile(tmp_path, mo
     cache = service.scheduler.cache
     job = service.scheduler.jobs["j"]
     assert sum(not t.acc.resident for t in job.tiles) > len(job.tiles) // 2
-    monkeypatch.setattr(service_module, "CHECKPOINT_CHUNK_BYTES", 5 * TILE_BYTES)
+    monkeypatch.setattr(checkpoints, "CHECKPOINT_CHUNK_BYTES", 5 * TILE_BYTES)
     asyncio.run(service._persist_job("j", tiles=True))
     assert [len(rows) for rows in store.saved] == [5] * 9 + [3]  # one transaction per chunk
     rows = [r for chunk in store.saved for r in chunk]

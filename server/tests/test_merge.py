@@ -5,8 +5,8 @@ import itertools
 import numpy as np
 import pytest
 
-from renderfarm.merge import DARK_FLOOR, TileAccumulator
-from renderfarm.tiling import AOV_SAMPLES, batch_count, batch_range
+from renderfarm.domain.merge import DARK_FLOOR, TileAccumulator
+from renderfarm.domain.tiling import AOV_SAMPLES, batch_count, batch_range
 
 H, W = 3, 5
 

@@ -7,9 +7,9 @@ from types import SimpleNamespace
 
 from fastapi.testclient import TestClient
 
-from renderfarm.auth import Authenticator
-from renderfarm.config import Settings
-from renderfarm.rest import create_app
+from renderfarm.api.rest import create_app
+from renderfarm.app.auth import Authenticator
+from renderfarm.infra.config import Settings
 
 
 class NoTokens:

@@ -12,9 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from renderfarm.localfarm import find_worker_binary
-from renderfarm.scene_check import SceneChecker, SceneLimits
-from renderfarm.scenes import SceneError, pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.errors import SceneError
+from renderfarm.infra.scene_check import SceneChecker, SceneLimits
+from renderfarm.infra.worker_binary import find_worker_binary
 
 CORNELL = Path(__file__).resolve().parents[2] / "examples" / "cornell-box.gltf"
 

@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderfarm.scenes import SceneError, SceneInfo, inspect_scene, pack_gltf
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.domain.scenes.validate import SceneInfo, inspect_scene
+from renderfarm.errors import SceneError
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = REPO / "examples"
@@ -25,7 +27,7 @@ TRIANGLE = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype="<f4").tobytes()  #
 
 
 # --------------------------------------------------------------------------------------
-# Helpers, written independently of renderfarm.scenes.
+# Helpers, written independently of renderfarm.domain.scenes.
 # --------------------------------------------------------------------------------------
 
 

@@ -5,10 +5,11 @@ import random
 import numpy as np
 import pytest
 
-from renderfarm import scheduler as scheduler_module
-from renderfarm.jobspec import JobSettings
-from renderfarm.scheduler import BatchResult, Scheduler
-from renderfarm.states import JobState, StopReason
+from renderfarm.domain import scheduler as scheduler_module
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.domain.records import BatchResult
+from renderfarm.domain.scheduler import Scheduler
+from renderfarm.domain.states import JobState, StopReason
 
 
 class FakeClock:

@@ -8,10 +8,10 @@ import inspect
 
 import pytest
 
-from renderfarm.auth import Caller
-from renderfarm.config import Settings
-from renderfarm.jobspec import JobSettings
-from renderfarm.service import FarmService
+from renderfarm.app.auth import Caller
+from renderfarm.app.jobs import FarmService
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.infra.config import Settings
 
 JOB = "0123456789ab"
 
@@ -88,7 +88,7 @@ def test_a_caller_that_is_not_a_caller_is_refused(tmp_path, name, bad):
 
 
 def test_the_caller_given_is_the_one_checked(tmp_path):
-    from renderfarm.auth import Forbidden
+    from renderfarm.errors import Forbidden
 
     service = _service(tmp_path)
     assert asyncio.run(service.get(JOB, Caller("alice", admin=False))).owner == "alice"

@@ -9,13 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from renderfarm.auth import Caller, Forbidden
-from renderfarm.config import Settings
-from renderfarm.jobspec import SettingsError
-from renderfarm.memory_store import MemoryStore
-from renderfarm.scenes import pack_gltf
-from renderfarm.service import FarmService, NotFound
-from renderfarm.states import JobState
+from renderfarm.app.auth import Caller
+from renderfarm.app.jobs import FarmService
+from renderfarm.domain.jobspec import SettingsError
+from renderfarm.domain.scenes.pack import pack_gltf
+from renderfarm.domain.states import JobState
+from renderfarm.errors import Forbidden, NotFound
+from renderfarm.infra.config import Settings
+from renderfarm.infra.memory_store import MemoryStore
 
 CORNELL = Path(__file__).resolve().parents[2] / "examples" / "cornell-box.gltf"
 ANN, BOB, ADMIN = Caller("ann", False), Caller("bob", False), Caller("", True)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import asyncio
 
-from renderfarm.config import Settings
-from renderfarm.jobspec import JobSettings
-from renderfarm.service import FarmService
+from renderfarm.app.jobs import FarmService
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.infra.config import Settings
 
 
 class RecordingStore:

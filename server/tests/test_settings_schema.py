@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from google.protobuf.descriptor import FieldDescriptor
 
-from renderfarm import jobspec
-from renderfarm.jobspec import SETTINGS, JobSettings, Sampler
+from renderfarm.domain import jobspec
+from renderfarm.domain.jobspec import SETTINGS, JobSettings, Sampler
 from renderfarm.v1 import jobs_pb2
 
 ROOT = Path(__file__).resolve().parents[2]

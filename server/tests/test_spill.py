@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from test_scheduler import FakeClock, render
 
-from renderfarm.jobspec import JobSettings
-from renderfarm.merge import TileAccumulator
-from renderfarm.scheduler import Scheduler
-from renderfarm.spill import TileCache
+from renderfarm.domain.jobspec import JobSettings
+from renderfarm.domain.merge import TileAccumulator
+from renderfarm.domain.scheduler import Scheduler
+from renderfarm.infra.spill import TileCache
 
 ARRAYS = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
 SETTINGS = JobSettings(

@@ -9,8 +9,8 @@ import math
 
 import pytest
 
-from renderfarm import spool
-from renderfarm.store import TileRow
+from renderfarm.infra import spool
+from renderfarm.infra.store import TileRow
 
 
 def tile(index: int, aovs: bytes | None) -> TileRow:

@@ -13,11 +13,11 @@ import psycopg
 import pytest
 from psycopg.conninfo import make_conninfo
 
-from renderfarm.embedded_db import EmbeddedPostgres
-from renderfarm.memory_store import JobStore, MemoryStore
-from renderfarm.scheduler import StopRecord
-from renderfarm.states import StopReason
-from renderfarm.store import Store, TileRow
+from renderfarm.domain.scheduler import StopRecord
+from renderfarm.domain.states import StopReason
+from renderfarm.infra.embedded_db import EmbeddedPostgres
+from renderfarm.infra.memory_store import JobStore, MemoryStore
+from renderfarm.infra.store import Store, TileRow
 
 T0 = 1_800_000_000.0  # 2027-01-15 08:00 UTC
 

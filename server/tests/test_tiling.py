@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from renderfarm.tiling import (
+from renderfarm.domain.tiling import (
     AOV_SAMPLES,
     BATCH_CAP,
     PLAN_GRAIN,

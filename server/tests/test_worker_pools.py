@@ -4,9 +4,10 @@ keeps across reconnects (a fake worker set; no processes)."""
 import pytest
 from test_scheduler import FakeClock, render
 
-from renderfarm.jobspec import JobSettings, SettingsError, check_tags
-from renderfarm.scheduler import Scheduler
-from renderfarm.states import JobState
+from renderfarm.domain.jobspec import JobSettings, check_tags
+from renderfarm.domain.scheduler import Scheduler
+from renderfarm.domain.states import JobState
+from renderfarm.errors import SettingsError
 
 # 4 tiles of one batch each: every task is a whole tile.
 ONE_BATCH = JobSettings(width=16, height=16, tile_size=8, noise_threshold=0, max_spp=1)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from playwright.sync_api import Page, expect
 
-from renderfarm.images import read_exr
+from renderfarm.infra.images import read_exr
 
 from ..conftest import CORNELL
 from ..waiting import wait_until

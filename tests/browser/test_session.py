@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
+from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
-from renderfarm.localfarm import LocalFarm
 
 from .conftest import PageProblems, canvas_pixels, mean_abs_diff, screenshot, watched_page
 from .test_dashboard import wait_layer

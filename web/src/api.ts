@@ -10,7 +10,7 @@ import type { components } from "./generated/openapi";
 
 type Schemas = components["schemas"];
 export type Progress = Schemas["Progress"];
-/** A job's settings (the server's one table, server/renderfarm/jobspec.py). */
+/** A job's settings (the server's one table, server/renderfarm/domain/jobspec.py). */
 export type JobSettings = Schemas["JobSettings"];
 export type Job = Schemas["Job"] & { state: JobState };
 export type StopRecord = Schemas["StopRecord"];

@@ -63,7 +63,7 @@ struct RunningTask {
 
 // Maps the protocol's settings onto the renderer's; zero/empty fields take the documented
 // defaults (the server normally fills them in).
-// The task's settings. The server sends every field set (server/renderfarm/jobspec.py holds
+// The task's settings. The server sends every field set (server/renderfarm/domain/jobspec.py holds
 // their defaults, in one place): an unset or unknown one fails the task rather than taking a
 // default of the worker's own.
 bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std::string* err) {

@@ -65,9 +65,9 @@ constexpr uint32_t kLightU = 0, kLightV = 1, kBsdfU = 2, kBsdfV = 3, kLightSelec
 inline uint32_t bounce(uint32_t b, uint32_t k) { return kFirstBounce + kPerBounce * b + k; }
 }  // namespace dim
 
-// ---- The farm's fixed batch schedule (server/renderfarm/tiling.py): sizes 1, 1, 2, 4, 8, 16,
-// 32, then 64 forever; batch b starts at the sum of the earlier sizes, so every batch is a power
-// of two aligned to its size. Sizes here are unclipped (max_spp clips only the last batch).
+// ---- The farm's fixed batch schedule (server/renderfarm/domain/tiling.py): sizes 1, 1, 2, 4,
+// 8, 16, 32, then 64 forever; batch b starts at the sum of the earlier sizes, so every batch is a
+// power of two aligned to its size. Sizes here are unclipped (max_spp clips only the last batch).
 struct BatchRange {
   uint32_t index = 0;  // b
   uint64_t start = 0;  // first global sample index of the batch

@@ -230,7 +230,7 @@ TEST(Samplers, ParseNames) {
   }
 }
 
-// The schedule of server/renderfarm/tiling.py, written out from its specification: sizes
+// The schedule of server/renderfarm/domain/tiling.py, written out from its specification: sizes
 // 1, 1, 2, 4, 8, 16, 32, 64, 64, 64, ...; batch b starts at the sum of the earlier sizes.
 TEST(BatchSchedule, MatchesTheFarmSchedule) {
   const uint64_t starts[] = {0, 1, 2, 4, 8, 16, 32, 64, 128, 192, 256, 320};

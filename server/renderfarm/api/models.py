@@ -1,0 +1,251 @@
+"""The REST API's bodies as declared in its OpenAPI document: pydantic response models, the
+error shape ({"detail", "field"}) and the per-route error responses, and the request bodies
+written out by hand (multipart and JSON alternatives that FastAPI cannot derive)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field, create_model
+
+from ..domain.jobspec import SETTINGS
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(description="what is wrong, for people")
+    field: str = Field("", description="the offending field, e.g. settings.max_spp; may be empty")
+
+
+def _setting_field(s) -> tuple[type, Any]:
+    """A job setting as a pydantic field: its type (an enumeration: its values, so the OpenAPI
+    document and the dashboard's generated types list them), default, help and fixed range (a
+    range set by the server's configuration is in /api/v1/settings)."""
+    bounds: dict[str, float] = {}
+    if s.minimum is not None:
+        bounds["gt" if s.exclusive_minimum else "ge"] = s.minimum
+    if s.maximum is not None and not s.limit:
+        bounds["le"] = s.maximum
+    kind = Literal[s.choices] if s.choices else s.kind
+    return kind, Field(s.default, description=s.help, **bounds)
+
+
+JobSettingsModel = create_model("JobSettings", **{s.name: _setting_field(s) for s in SETTINGS})
+
+
+class Progress(BaseModel):
+    tiles_total: int
+    tiles_done: int = Field(description="tiles that have stopped")
+    tiles_previewed: int = Field(
+        description="tiles with at least one merged batch (all of them: a full-frame preview)"
+    )
+    mean_spp: float
+    error: float | None = Field(description="RMS relative error over tiles; null before a merge")
+    eta_s: float | None = Field(description="seconds to completion; null when unknown")
+    samples_merged: int
+    elapsed_s: float
+
+
+class Job(BaseModel):
+    id: str
+    name: str
+    state: Literal["queued", "running", "completed", "failed", "cancelled", "paused", "waiting"]
+    settings: JobSettingsModel  # type: ignore[valid-type]
+    scene_sha256: str
+    progress: Progress
+    error: str = Field(description="why the job failed, when it did")
+    created_unix_s: float
+    finished_unix_s: float | None
+    owner: str = Field(description="name of the API token that submitted it; empty without auth")
+    after: list[str] = Field(description="ids of the jobs it waits for (state waiting)")
+    require_tags: list[str] = Field(
+        description="only workers announcing all these tags (--tag) render it"
+    )
+
+
+class StopRecord(BaseModel):
+    tile: int
+    batch: int | None
+    spp: int | None
+    error: float | None
+    reason: str | None
+
+
+class JobDetail(Job):
+    stops: list[StopRecord] = Field(description="every tile stop: tile, batch, spp, error, reason")
+
+
+class JobPage(BaseModel):
+    jobs: list[Job]
+    next_page_token: str = Field(description="pass as page_token for the next page; empty: done")
+
+
+class JobEvent(BaseModel):
+    id: int
+    kind: str
+    data: dict[str, Any]
+    at: float
+
+
+class ConvergencePoint(BaseModel):
+    t: float
+    error: float | None
+    mean_spp: float
+
+
+class WorkerInfo(BaseModel):
+    id: str
+    hostname: str
+    cores: int
+    version: str
+    connected_unix_s: float
+    last_heartbeat_unix_s: float
+    tasks_in_flight: int
+    tasks_done: int
+    samples_per_s: float
+    rays_per_s: float
+    busy_threads: int
+    tasks_failed: int
+    recent_errors: list[str]
+    tags: list[str]
+    state: Literal["active", "draining", "drained", "disabled"]
+
+
+class SceneInfo(BaseModel):
+    sha256: str
+    format: Literal["glb", "gltf", "hdr", "exr"]
+    filename: str
+    size_bytes: int
+
+
+class SettingDoc(BaseModel):
+    name: str
+    type: Literal["int", "float", "str", "bool"]
+    default: bool | int | float | str  # bool first: false stays false, not 0
+    help: str
+    choices: list[str] = Field([], description="the values of an enumerated setting")
+    minimum: float | None = Field(None, description="lowest value (exclusive_minimum: above it)")
+    exclusive_minimum: bool = False
+    maximum: float | None = Field(None, description="highest value (this server's limit)")
+    unit: str = Field("", description="px, s, m, deg or empty")
+
+
+class WhoAmI(BaseModel):
+    owner: str = Field(description="owner name of the caller's jobs; empty when auth is off")
+    admin: bool
+
+
+class SessionIn(BaseModel):
+    token: str = Field(description="an API token, checked like `Authorization: Bearer TOKEN`")
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    described = {
+        400: "invalid request (the field is named)",
+        401: "no API token, or an unknown or revoked one",
+        403: "the job belongs to another owner",
+        404: "no such job or scene",
+        409: "the job's state does not allow this",
+        413: "upload too large",
+        429: "too many requests wait for the database; retry after Retry-After seconds",
+        503: "the database is unreachable or busy; retry after Retry-After seconds",
+    }
+    codes = (400, 401, *codes, 429, 503)
+    return {c: {"model": ErrorBody, "description": described[c]} for c in codes}
+
+
+def error_response(
+    status: int, field: str, message: str, headers: dict | None = None
+) -> JSONResponse:
+    return JSONResponse(
+        status_code=status, content={"detail": message, "field": field}, headers=headers
+    )
+
+
+SUBMIT_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "scene": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": ".glb, self-contained .gltf, or a .zip/.tar(.gz) bundle "
+                        "of one .gltf with its files",
+                    },
+                    "settings": {"type": "string", "description": "job settings, a JSON object"},
+                    "name": {"type": "string"},
+                    "scene_sha256": {"type": "string", "description": "a stored scene instead"},
+                    "environment": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "equirectangular .hdr/.exr environment map",
+                    },
+                    "after": {
+                        "type": "string",
+                        "description": "ids of jobs to wait for, separated by commas or spaces",
+                    },
+                },
+                "additionalProperties": False,
+            }
+        },
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "scene_sha256": {"type": "string"},
+                    "settings": {"type": "object"},
+                    "name": {"type": "string"},
+                    "after": {
+                        "type": "array",
+                        "items": {"type": "string"},
+                        "description": "ids of jobs to wait for: the job is waiting until all "
+                        "have completed, and fails if one fails or is cancelled",
+                    },
+                },
+                "required": ["scene_sha256"],
+                "additionalProperties": False,
+            }
+        },
+    },
+}
+
+UPDATE_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "priority": {"type": "integer", "description": "-1000..1000, higher first"},
+                    "name": {"type": "string"},
+                },
+                "additionalProperties": False,
+            }
+        }
+    },
+}
+
+CONTINUE_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "settings": {
+                        "type": "object",
+                        "properties": {
+                            "max_spp": {"type": "integer"},
+                            "noise_threshold": {"type": "number"},
+                        },
+                        "additionalProperties": False,
+                    }
+                },
+                "additionalProperties": False,
+            }
+        }
+    },
+}

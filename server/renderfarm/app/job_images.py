@@ -1,0 +1,188 @@
+"""A job's image (PNG or EXR, any layer) written to a scratch file a row of tiles at a time, from
+memory while the job is held, else from its checkpoint in the database.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib.metadata
+import json
+import math
+import os
+import tempfile
+from typing import BinaryIO
+
+from ..domain.jobspec import JobSettings
+from ..domain.tiling import tile_grid
+from ..errors import NotFound, SettingsError, TooLarge
+from ..infra import images
+from . import checkpoints
+from .auth import Caller, check_caller
+from .views import JobView
+
+MAX_IMAGE_SIZE = 1 << 16  # largest max_size of a PNG preview
+
+
+class JobImages:
+    """Part of FarmService (jobs.py), whose __init__ sets the attributes used here."""
+
+    async def image_file(
+        self,
+        job_id: str,
+        fmt: str,
+        layer: str,
+        caller: Caller,
+        max_size: int = 0,
+        compression: str = "zip",
+        _denoise_turn_held: bool = False,
+    ) -> BinaryIO:
+        """The image written to a scratch file, returned open for reading (the file is
+        already unlinked: closing it frees the space). Written one row of tiles at a time
+        (images.ImageWriter), from memory while the job is held, else from the database."""
+        check_caller(caller)
+        if fmt not in ("png", "exr"):
+            raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
+        if layer not in images.LAYERS:
+            raise SettingsError(
+                "layer", f"unknown layer {layer!r}; one of {', '.join(images.LAYERS)}"
+            )
+        if not 0 <= max_size <= MAX_IMAGE_SIZE:
+            raise SettingsError("max_size", f"max_size must be in 0..{MAX_IMAGE_SIZE}")
+        if compression not in images.EXR_COMPRESSIONS:
+            raise SettingsError(
+                "compression",
+                f"unknown compression {compression[:40]!r}; one of "
+                f"{', '.join(images.EXR_COMPRESSIONS)}",
+            )
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
+        job = self.scheduler.jobs.get(job_id)
+        row = await self.store.get_job(job_id)
+        if row is None:
+            raise NotFound(f"no job with id {job_id!r}")
+        settings = job.settings if job is not None else JobSettings(**row.settings)
+        if layer == "denoised" and fmt == "png" and not settings.denoise:
+            raise SettingsError(
+                "layer",
+                f"job {job_id} was submitted without settings.denoise: it has no denoised layer",
+            )
+        if settings.denoise and (fmt == "exr" or layer == "denoised") and not _denoise_turn_held:
+            async with self._denoise_turn:
+                return await self.image_file(
+                    job_id, fmt, layer, caller, max_size, compression, _denoise_turn_held=True
+                )
+        # The EXR's DateTime: when the job finished (when it was submitted while it runs).
+        stamp = (row.finished_at or row.created_at).timestamp()
+        rects = tile_grid(settings.width, settings.height, settings.tile_size)
+        cols = math.ceil(settings.width / settings.tile_size)
+        rows = len(rects) // cols
+        names = images.arrays_needed(fmt, layer)
+
+        async def band(r: int) -> images.Band:
+            """Row r of tiles with their arrays (read in a thread: from RAM, a spill file or
+            the database)."""
+            live = self.scheduler.jobs.get(job_id)
+            if live is not None:  # snapshots on the loop (cheap), arrays read in the thread
+                views = [(t.rect, images.TileView.of(t.rect, t.acc, names)) for t in
+                         live.tiles[r * cols : (r + 1) * cols]]  # fmt: skip
+                return await asyncio.to_thread(
+                    lambda: [(rect, v and v.accumulator()) for rect, v in views]
+                )
+            stored = await self.store.load_tiles(job_id, first=r * cols, count=cols)
+            if not stored and await self.store.get_job(job_id) is None:
+                raise NotFound(f"no job with id {job_id!r}")  # deleted meanwhile
+            return await asyncio.to_thread(
+                checkpoints.band_from_rows, settings, rects, r * cols, cols, stored
+            )
+
+        top = 1.0
+        if fmt == "png" and layer in images.GREY_LAYERS:  # normalised: a pass for the maximum
+            top = -math.inf
+            for r in range(rows):
+                top = max(top, await asyncio.to_thread(images.layer_maximum, layer, await band(r)))
+        denoised = None
+        if settings.denoise and (fmt == "exr" or layer == "denoised"):
+            # A first pass gathers the frame Open Image Denoise needs whole (infra/images.py).
+            frame = images.DenoiseFrame(settings.width, settings.height)
+            for r in range(rows):
+                await asyncio.to_thread(frame.add_band, rects[r * cols].height, await band(r))
+            denoised = await asyncio.to_thread(frame.denoise)
+            del frame
+        attributes = exr_attributes(view) if fmt == "exr" else None
+        scratch = self.scheduler.cache.directory
+        scratch.mkdir(parents=True, exist_ok=True)
+        fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
+        os.close(fd)
+        writer = None
+        try:
+            writer = await asyncio.to_thread(
+                images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
+                top, self._stopping, compression, stamp, denoised, attributes,
+            )  # fmt: skip
+            for r in range(rows):
+                tiles = await band(r)
+                await asyncio.to_thread(
+                    writer.write_band, rects[r * cols].height, tiles, r == rows - 1
+                )
+            await asyncio.to_thread(writer.close)
+            f = open(path, "rb")  # noqa: SIM115 (the caller closes it)
+        except BaseException:
+            # The writer may still be in its thread (this task was cancelled while it wrote a
+            # band): close and remove it there, after that band, without waiting here.
+            asyncio.get_running_loop().run_in_executor(None, _discard_image, writer, path)
+            raise
+        os.unlink(path)
+        return f
+
+    async def image(
+        self,
+        job_id: str,
+        fmt: str,
+        layer: str,
+        caller: Caller,
+        max_size: int = 0,
+        max_bytes: int | None = None,
+        compression: str = "zip",
+    ) -> bytes:
+        """The image as bytes (for gRPC's one message); TooLarge past max_bytes."""
+        with await self.image_file(job_id, fmt, layer, caller, max_size, compression) as f:
+            size = os.fstat(f.fileno()).st_size
+            if max_bytes is not None and size > max_bytes:
+                raise TooLarge(
+                    "format",
+                    f"the {fmt} image is {size} bytes, more than one message may hold "
+                    f"({max_bytes}); GET /api/v1/jobs/{job_id}/image.{fmt} streams it",
+                )
+            return await asyncio.to_thread(f.read)
+
+
+def renderer_version() -> str:
+    """The renderfarm release that rendered a job (the server's package; workers are built
+    from the same release and report it in their hello)."""
+    try:
+        return importlib.metadata.version("renderfarm")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def exr_attributes(view: JobView) -> dict[str, str | float]:
+    """The job's record in its EXR header (docs/usage.md, "Outputs"): its settings as JSON, scene,
+    renderer version, mean spp and estimated error (absent while unknown). No wall-clock
+    time: the EXR stays a function of the job."""
+    attributes: dict[str, str | float] = {
+        "renderfarm:settings": json.dumps(view.settings.to_dict(), sort_keys=True),
+        "renderfarm:scene_sha256": view.scene_sha256,
+        "renderfarm:version": renderer_version(),
+        "renderfarm:mean_spp": float(view.progress.mean_spp),
+    }
+    if view.progress.error is not None:
+        attributes["renderfarm:error"] = float(view.progress.error)
+    return attributes
+
+
+def _discard_image(writer: images.ImageWriter | None, path: str) -> None:
+    if writer is not None:
+        with contextlib.suppress(Exception):
+            writer.abandon()
+    with contextlib.suppress(OSError):
+        os.unlink(path)

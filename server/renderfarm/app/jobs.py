@@ -1,0 +1,568 @@
+"""FarmService: the one place where API calls, worker streams, the scheduler and the store meet.
+This module is its facade (jobs: submit, read, list, cancel, delete, watch; scenes; the
+background round); its other parts are mixins in the modules of app/ named in the class.
+
+Everything runs on one asyncio event loop: the scheduler is plain Python without locks, merges
+are vectorised numpy on tiles (tens of microseconds), and every database call is awaited, so a
+slow database never blocks a merge. REST and gRPC handlers are thin: they parse, call a method
+here, and map the exceptions of errors.py to status codes.
+
+Durability: a submission is acknowledged only after its scene and job rows are committed. Merged
+tiles are checkpointed every `checkpoint_interval_s` by a background task (only tiles that
+changed), and immediately when a job finishes. On start, unfinished jobs resume from their
+checkpoints. A finished job is reported finished only once its final state is stored (until
+then a restart would resume it); a server stopped while the database is unreachable keeps what
+it could not write in its spool (infra/spool.py) and writes it at its next start.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import secrets
+import threading
+import time
+from collections.abc import AsyncIterator
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from ..domain.jobspec import JobSettings, parse_settings
+from ..domain.merge import TileAccumulator
+from ..domain.records import JobRun
+from ..domain.scenes.environment import inspect_environment
+from ..domain.scenes.validate import inspect_scene
+from ..domain.scheduler import Scheduler
+from ..domain.states import JobState
+from ..domain.tiling import tile_grid
+from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge
+from ..infra import spool
+from ..infra.config import Settings
+from ..infra.scene_check import SceneChecker
+from ..infra.spill import TileCache
+from ..infra.store import JobRow, Store
+from ..infra.worker_binary import find_worker_binary
+from . import checkpoints
+from .auth import Caller, check_caller
+from .history import History
+from .job_control import JobControl
+from .job_images import JobImages
+from .views import JobView, ProgressView, finite_or_none
+from .worker_sessions import WorkerSession, WorkerSessions
+from .write_behind import CheckpointRate, WriteBehind
+
+log = logging.getLogger(__name__)
+
+SCENE_CHUNK_BYTES = 1 << 20
+
+
+class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
+    """The job API facade: submit, read, list, cancel and delete jobs, watch them, serve scenes,
+    and the background round. Its other parts, by concern: job_control.py (pause, resume,
+    update, retry, continue), job_images.py (images), worker_sessions.py (worker streams),
+    write_behind.py (database writes and checkpoints), history.py (convergence, stops)."""
+
+    def __init__(self, settings: Settings, store: Store):
+        self.settings = settings
+        self.store = store
+        # Tiles past the RAM budget wait in DATA_DIR/scratch (infra/spill.py), as do images being
+        # written.
+        cache = TileCache(settings.data_dir / "scratch", settings.tile_cache_mb * 2**20)
+        self.scheduler = Scheduler(
+            clock=time.time,
+            lease_s=settings.lease_s,
+            max_task_failures=settings.max_task_failures,
+            cache=cache,
+        )
+        self._stopping = threading.Event()  # images being written give up when set
+        # One image with a denoised layer at a time, from gathering its frame to its last row:
+        # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
+        self._denoise_turn = asyncio.Lock()
+        self._checkpoint_rate = CheckpointRate(50e6)  # bytes/s; measured by every large checkpoint
+        self.sessions: dict[str, WorkerSession] = {}
+        self.names: dict[str, str] = {}  # job id -> name for live jobs
+        self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
+        self.owners: dict[str, str] = {}  # job id -> owner (token name) for live jobs
+        # Bumped each time a finished job comes back (retry, continue): a delayed forget of
+        # its earlier run leaves the new one alone.
+        self._generation: dict[str, int] = {}
+        self._waiting_dirty = True  # waiting jobs' dependencies to be checked again
+        self._reactivating: set[str] = set()  # retries and continues under way
+        self._changed = asyncio.Condition()
+        self._tasks: list[asyncio.Task] = []
+        self._last_checkpoint = time.time()
+        self.metrics = None  # a metrics.Metrics, set by the server
+        # Writes that must reach the database but may not block merging: flushed by the
+        # background task, retried with backoff while the database is away.
+        self._pending_events: list[tuple[str | None, str, dict[str, Any]]] = []
+        self._pending_finishes: list[str] = []
+        self._db_retry_at = 0.0
+        self._db_failures = 0
+        self.db_errors = 0  # failed database operations since start (metrics)
+        self.database_ok = True
+        self.draining = False
+        # Convergence history of live jobs: (elapsed s, relative error or None, mean spp).
+        self.history: dict[str, list[tuple[float, float | None, float]]] = {}
+        self.ready = False
+        # Every new uploaded scene goes through the workers' own loader before it is stored.
+        self.scene_checker = SceneChecker(
+            settings.scene_inspector or find_worker_binary(),
+            settings.scene_limits(),
+            Path(settings.data_dir) / "tmp",
+        )
+
+    # ------------------------------------------------------------------------- lifecycle
+    async def start(self) -> None:
+        await spool.replay(self.store, self.settings.data_dir)
+        self.scheduler.cache.clear_directory()
+        await self.store.mark_all_workers_disconnected()
+        await self._resume_unfinished()
+        self._tasks.append(asyncio.create_task(self._background(), name="farm-background"))
+        self.ready = True
+
+    async def stop(self, timeout_s: float | None = None) -> None:
+        """Write the last checkpoint (within timeout_s, at least 1 s, when given: what is not
+        written by then is rendered again after a restart) and let go of everything."""
+        self.ready = False
+        self._stopping.set()
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        try:
+            timeout = None if timeout_s is None else max(1.0, timeout_s)
+            written = await asyncio.wait_for(self.flush(force=True), timeout)
+        except TimeoutError:
+            written = False
+        if not written:
+            # Whatever is not stored goes to the spool, replayed at the next start; the
+            # spilled tiles are read from the cache's files, which close() then removes.
+            self._spool_unsaved()
+        self.scheduler.cache.close()
+        for session in list(self.sessions.values()):
+            session.outbox.put_nowait(None)
+
+    async def _resume_unfinished(self) -> None:
+        for row in await self.store.unfinished_jobs():
+            settings = JobSettings(**row.settings)
+            # A chunk of tiles at a time, each put under the tile cache at once: a large job
+            # comes back within the cache's RAM (the rest goes to its spill file).
+            checkpoint, plans, bases, old_aovs = {}, {}, {}, []
+            tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+            tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
+            step = max(1, checkpoints.CHECKPOINT_CHUNK_BYTES // tile_bytes)
+            for first in range(0, tiles, step):
+                tile_rows = await self.store.load_tiles(row.id, first=first, count=step)
+                for index, (_, acc) in checkpoints.restore_tiles(settings, tile_rows).items():
+                    self.scheduler.cache.register(row.id, acc, settings.tile_size)
+                    checkpoint[index] = acc
+                plans.update({t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan})
+                bases.update({t.tile_index: t.plan_basis for t in tile_rows if t.plan_basis})
+                old_aovs += [t.tile_index for t in tile_rows if t.aovs is None and t.samples > 0]
+            self.scheduler.add_job(
+                row.id,
+                settings,
+                row.scene_sha256,
+                checkpoint=checkpoint,
+                plans=plans,
+                bases=bases,
+                state=JobState(row.state),
+                elapsed_s=row.elapsed_s,
+                after=tuple(row.after_jobs),
+                require_tags=tuple(row.require_tags),
+            )
+            self.scheduler.take_events()  # the stops were recorded before the restart
+            for index in old_aovs:
+                # A checkpoint from before the AOVs were stored apart: the next one writes
+                # them in their own column (later ones leave that column alone).
+                tile = self.scheduler.jobs[row.id].tiles[index]
+                tile.dirty = tile.aovs_dirty = True
+            self.names[row.id] = row.name
+            self.created[row.id] = row.created_at.timestamp()
+            self.owners[row.id] = row.owner
+            merged = sum(acc.batches for acc in checkpoint.values())
+            log.info("resumed job %s from its checkpoint (%d batches merged)", row.id, merged)
+        await self._after_change()
+
+    async def _background(self) -> None:
+        while True:
+            await asyncio.sleep(0.25)
+            try:
+                self.scheduler.tick()
+                self._sample_history()
+                await self._after_change()
+                await self.flush()
+                if self._waiting_dirty:
+                    await self._check_waiting()
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # keep serving; the next round retries
+                log.exception("background round failed")
+
+    # ---------------------------------------------------------------------------- jobs
+    async def submit(
+        self,
+        *,
+        scene_data: bytes | None,
+        scene_sha256: str | None,
+        filename: str,
+        name: str,
+        raw_settings: dict[str, Any] | None,
+        environment_data: bytes | None = None,
+        environment_filename: str = "",
+        after: list[str] | None = None,
+        caller: Caller,
+        require_tags: list[str] | None = None,
+    ) -> JobView:
+        check_caller(caller)
+        require_tags = sorted(set(require_tags or []))
+        settings = parse_settings(raw_settings, self.settings.limits())
+        after = list(dict.fromkeys(after or []))  # in order, once each
+        ready = await self._dependencies_ready(after, caller)
+        settings = await self._environment(settings, environment_data, environment_filename)
+        if scene_data is not None and scene_sha256:
+            raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
+        if scene_data is not None:
+            if len(scene_data) > self.settings.max_upload_bytes:
+                raise TooLarge(
+                    "scene",
+                    f"scene is {len(scene_data)} bytes, more than the server's limit of "
+                    f"{self.settings.max_upload_bytes} bytes",
+                )
+            info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
+            if await self.store.get_scene_info(info.sha256) is None:
+                await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
+            await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
+            sha = info.sha256
+        elif scene_sha256:
+            sha = scene_sha256.strip().lower()
+            stored = await self.store.get_scene_info(sha)
+            # Environment maps share the table; only a glTF scene can be rendered as one.
+            if stored is None or stored["format"] not in ("glb", "gltf"):
+                raise NotFound(f"no stored scene with sha256 {sha}")
+            filename = filename or stored["filename"]
+        else:
+            raise SettingsError(
+                "scene", "a scene is required: upload a .glb/.gltf or give scene_sha256"
+            )
+        job_id = secrets.token_hex(6)
+        name = (name or filename or "job").strip()[:200]
+        tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+        state = JobState.QUEUED if ready else JobState.WAITING
+        row = await self.store.insert_job(
+            job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner, after=after,
+            state=state.value, require_tags=require_tags,
+        )  # fmt: skip
+        # Stored and committed: only now does the job exist for the scheduler and the caller.
+        self.owners[job_id] = caller.owner
+        self.names[job_id] = name
+        self.created[job_id] = row.created_at.timestamp()
+        self.scheduler.add_job(
+            job_id, settings, sha, state=state, after=tuple(after), require_tags=tuple(require_tags)
+        )
+        self._waiting_dirty = True  # a dependency may have completed since it was looked at
+        await self._after_change()
+        return await self.get(job_id, caller)
+
+    async def _dependencies_ready(self, after: list[str], caller: Caller) -> bool:
+        """Check the jobs a submission names in `after`: each must exist and be the caller's
+        to see (else 400 naming `after`, like an unknown id: another owner's jobs are not
+        revealed), and must still be able to complete. True when all have completed."""
+        ready = True
+        for dep in after:
+            try:
+                view = await self.get(dep, caller)
+            except (NotFound, Forbidden):
+                raise SettingsError("after", f"after: no job with id {dep[:80]!r}") from None
+            if view.state in (JobState.FAILED, JobState.CANCELLED):
+                raise SettingsError(
+                    "after", f"after: job {dep} is {view.state.value}; it will never complete"
+                )
+            ready &= view.state == JobState.COMPLETED
+        return ready
+
+    async def _dependency_state(self, dep: str) -> JobState | None:
+        """A dependency's state as the APIs report it; None when it was deleted."""
+        live = self.scheduler.jobs.get(dep)
+        if live is not None:
+            return self._reported_state(live)
+        row = await self.store.get_job(dep)
+        return None if row is None else JobState(row.state)
+
+    async def _check_waiting(self) -> None:
+        """Queue each waiting job whose dependencies have all completed; fail each one with a
+        dependency that failed, was cancelled or was deleted (the reason names it)."""
+        self._waiting_dirty = False
+        for job in [j for j in self.scheduler.jobs.values() if j.state == JobState.WAITING]:
+            problem, ready = "", True
+            for dep in job.after:
+                state = await self._dependency_state(dep)
+                if state is None:
+                    problem = f"dependency {dep} was deleted"
+                elif state in (JobState.FAILED, JobState.CANCELLED):
+                    what = "failed" if state == JobState.FAILED else "was cancelled"
+                    problem = f"dependency {dep} {what}"
+                ready &= state == JobState.COMPLETED
+                if problem:
+                    break
+            if job.state != JobState.WAITING:  # changed while the database answered
+                continue
+            if problem:
+                self.scheduler.fail_job(job.job_id, problem)
+            elif ready:
+                self.scheduler.release_job(job.job_id)
+                await self._store_state(job.job_id)
+        await self._after_change()
+
+    async def _store_state(self, job_id: str) -> None:
+        """Write a live job's row now (its state after a job-control change), so that a
+        restart finds it as it is; the tiles follow with the next checkpoint."""
+        await self._persist_job(job_id, tiles=False)
+
+    async def _environment(
+        self, settings: JobSettings, data: bytes | None, filename: str
+    ) -> JobSettings:
+        """Store an uploaded environment map, or check that the referenced one is stored."""
+        if data:
+            sha, fmt = inspect_environment(data, filename, self.settings.max_upload_bytes)
+            if settings.environment and settings.environment != sha:
+                raise SettingsError(
+                    "settings.environment", "an environment map was uploaded and another named"
+                )
+            await self.store.put_scene(sha, fmt, filename or f"environment.{fmt}", data)
+            return dataclasses.replace(settings, environment=sha)
+        if settings.environment:
+            info = await self.store.get_scene_info(settings.environment)
+            if info is None or info["format"] not in ("hdr", "exr"):
+                raise NotFound(f"no stored environment map with sha256 {settings.environment}")
+        return settings
+
+    async def get(self, job_id: str, caller: Caller) -> JobView:
+        check_caller(caller)
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None:
+            view = self._live_view(job)
+        else:
+            row = await self.store.get_job(job_id)
+            if row is None:
+                raise NotFound(f"no job with id {job_id!r}")
+            view = self._row_view(row)
+        if not caller.may_access(view.owner):
+            raise Forbidden(f"job {job_id} belongs to another owner")
+        return view
+
+    async def list(
+        self, state: JobState | None, page_size: int, page_token: str, caller: Caller
+    ) -> tuple[list[JobView], str]:
+        check_caller(caller)
+        page_size = max(1, min(page_size or 50, 500))
+        after = None
+        if page_token:
+            try:
+                stamp, _, last_id = page_token.partition("|")
+                after = (datetime.fromisoformat(stamp), last_id)
+            except ValueError:
+                raise SettingsError(
+                    "page_token", "page_token is not one this server issued"
+                ) from None
+        owner = None if caller.admin else caller.owner  # admins see every owner's jobs
+        rows = await self.store.list_jobs(
+            state.value if state else None, page_size + 1, after, owner=owner
+        )
+        more = len(rows) > page_size
+        rows = rows[:page_size]
+        views = []
+        for row in rows:
+            live = self.scheduler.jobs.get(row.id)
+            views.append(self._live_view(live) if live is not None else self._row_view(row))
+        token = f"{rows[-1].created_at.isoformat()}|{rows[-1].id}" if more else ""
+        return views, token
+
+    async def cancel(self, job_id: str, caller: Caller) -> JobView:
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
+        job = self.scheduler.jobs.get(job_id)
+        if job is None:
+            return view  # already finished: cancelling is a no-op
+        self.scheduler.cancel_job(job_id)
+        await self._after_change()
+        await self._until_stored(job_id)
+        return await self.get(job_id, caller)
+
+    async def delete(self, job_id: str, caller: Caller) -> None:
+        """Delete a finished job and its stored data (tiles, events, its scene if unshared).
+        A job still queued or running must be cancelled first."""
+        await self.get(job_id, caller)  # raises NotFound / Forbidden
+        job = self.scheduler.jobs.get(job_id)
+        if job is not None and not self._reported_state(job).finished:
+            state = self._reported_state(job).value
+            raise Conflict(f"job {job_id} is {state}; cancel it before deleting it")
+        if not await self.store.delete_job(job_id):
+            raise NotFound(f"no job with id {job_id!r}")
+        self.scheduler.forget_job(job_id)
+        for table in (self.history, self.names, self.created, self.owners):
+            table.pop(job_id, None)
+        self._waiting_dirty = True  # a job waiting for it fails
+
+    # ----------------------------------------------------------------------- job control
+
+    async def watch(self, job_id: str, caller: Caller) -> AsyncIterator[JobView]:
+        """The job now, then after every visible change, until it is finished."""
+        view = await self.get(job_id, caller)
+        yield view
+        last = view  # unchanged views are not sent again
+        while not view.state.finished:
+            job = self.scheduler.jobs.get(job_id)
+            version = job.version if job else None
+            async with self._changed:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(
+                        self._changed.wait_for(
+                            lambda seen=version: (
+                                (self.scheduler.jobs.get(job_id) is None)
+                                or self.scheduler.jobs[job_id].version != seen
+                            )
+                        ),
+                        timeout=5.0,
+                    )
+            view = await self.get(job_id, caller)
+            if view != last:
+                yield view
+                last = view
+
+    async def events(self, job_id: str, caller: Caller) -> list[dict[str, Any]]:
+        await self.get(job_id, caller)
+        rows = await self.store.list_events(job_id)
+        return [
+            {"id": r["id"], "kind": r["kind"], "data": r["data"], "at": r["at"].timestamp()}
+            for r in rows
+        ]
+
+    def _live_view(self, job: JobRun) -> JobView:
+        p = self.scheduler.progress(job)
+        state = self._reported_state(job)
+        return JobView(
+            id=job.job_id,
+            name=self.names.get(job.job_id, ""),
+            state=state,
+            settings=job.settings,
+            scene_sha256=job.scene_sha256,
+            progress=ProgressView(
+                tiles_total=p.tiles_total,
+                tiles_done=p.tiles_done,
+                tiles_previewed=p.tiles_previewed,
+                mean_spp=p.mean_spp,
+                error=finite_or_none(p.error),
+                eta_s=p.eta_s,
+                samples_merged=p.samples_merged,
+                elapsed_s=p.elapsed_s,
+            ),
+            error=job.error_message if state == JobState.FAILED else self._unplaced(job),
+            created_unix_s=self.created.get(job.job_id, job.created),
+            finished_unix_s=job.finished if state.finished else None,
+            owner=self.owners.get(job.job_id, ""),
+            after=job.after,
+            require_tags=tuple(sorted(job.require_tags)),
+        )
+
+    def _unplaced(self, job: JobRun) -> str:
+        """Why a queued job with required tags waits: no connected worker has them all."""
+        if job.state != JobState.QUEUED or not job.require_tags:
+            return ""
+        if any(job.require_tags <= slot.tags for slot in self.scheduler.workers.values()):
+            return ""
+        return "waiting for a worker with the tags " + ", ".join(sorted(job.require_tags))
+
+    def _row_view(self, row: JobRow) -> JobView:
+        return JobView(
+            id=row.id,
+            name=row.name,
+            state=JobState(row.state),
+            settings=JobSettings(**row.settings),
+            scene_sha256=row.scene_sha256,
+            progress=ProgressView(
+                tiles_total=row.tiles_total,
+                tiles_done=row.tiles_done,
+                tiles_previewed=row.tiles_previewed,
+                mean_spp=row.mean_spp,
+                error=row.error_estimate,
+                eta_s=0.0 if JobState(row.state).finished else None,
+                samples_merged=row.samples_merged,
+                elapsed_s=row.elapsed_s,
+            ),
+            error=row.error,
+            created_unix_s=row.created_at.timestamp(),
+            finished_unix_s=row.finished_at.timestamp() if row.finished_at else None,
+            owner=row.owner,
+            after=tuple(row.after_jobs),
+            require_tags=tuple(row.require_tags),
+        )
+
+    # -------------------------------------------------------------------------- images
+
+    # -------------------------------------------------------------------------- scenes
+    async def scene_info(self, sha256: str) -> dict[str, Any]:
+        info = await self.store.get_scene_info(sha256.strip().lower())
+        if info is None:
+            raise NotFound(f"no stored scene with sha256 {sha256}")
+        return info
+
+    async def scene_chunks(self, sha256: str) -> AsyncIterator[tuple[int, bytes]]:
+        info = await self.scene_info(sha256)
+        offset = 0
+        while offset < info["size_bytes"]:
+            data = await self.store.read_scene(info["sha256"], offset, SCENE_CHUNK_BYTES)
+            if not data:
+                break
+            yield offset, data
+            offset += len(data)
+
+    # ------------------------------------------------------------------------- workers
+
+    # -------------------------------------------------------------------- after changes
+    async def _after_change(self) -> None:
+        """Send cancellations and new leases, store events, finish jobs, wake watchers."""
+        for worker_id, session in self.sessions.items():
+            cancels = self.scheduler.take_cancellations(worker_id)
+            if cancels:
+                session.outbox.put_nowait(("cancel", cancels))
+            if self.draining:
+                continue
+            for lease in self.scheduler.assign(worker_id):
+                session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))
+        events = self.scheduler.take_events()
+        finished = [e.job_id for e in events if e.kind == "job_finished"]
+        for job_id in finished:  # readers see the final point at once
+            self._sample_history_final(job_id)
+        # Stored by flush() from the background task: a slow or absent database never holds
+        # up a merge or a worker stream.
+        self._pending_events.extend((e.job_id, e.kind, e.data) for e in events)
+        self._pending_finishes.extend(finished)
+        async with self._changed:
+            self._changed.notify_all()
+
+    def _forget_later(self, job_id: str) -> None:
+        """Keep a finished job in memory for a minute (fast image requests), then drop it.
+        A job that outgrew the tile cache gives its RAM back now (its checkpoint is written):
+        its tiles go to its spill file, which its images read until it is dropped."""
+
+        generation = self._generation.get(job_id, 0)
+
+        async def forget() -> None:
+            while self.scheduler.cache.evict_job(job_id, checkpoints.CHECKPOINT_CHUNK_BYTES):
+                await asyncio.sleep(0)  # a chunk at a time: merges of other jobs go on
+            await asyncio.sleep(60)
+            if self._generation.get(job_id, 0) != generation:
+                return  # retried or continued since: that run is forgotten when it finishes
+            self.scheduler.forget_job(job_id)
+            self.history.pop(job_id, None)
+            self.names.pop(job_id, None)
+            self.created.pop(job_id, None)
+            self.owners.pop(job_id, None)
+
+        self._tasks.append(asyncio.create_task(forget()))
+        self._tasks = [t for t in self._tasks if not t.done()]
+
+    # ---------------------------------------------------------------------- durability

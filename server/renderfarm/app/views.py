@@ -1,0 +1,60 @@
+"""A job as the APIs show it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from ..domain.jobspec import JobSettings
+from ..domain.states import JobState
+
+
+@dataclass(frozen=True)
+class ProgressView:
+    tiles_total: int
+    tiles_done: int
+    tiles_previewed: int
+    mean_spp: float
+    error: float | None
+    eta_s: float | None
+    samples_merged: int
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class JobView:
+    """A job as the APIs show it (REST JSON and the gRPC Job message are built from this)."""
+
+    id: str
+    name: str
+    state: JobState
+    settings: JobSettings
+    scene_sha256: str
+    progress: ProgressView
+    error: str
+    created_unix_s: float
+    finished_unix_s: float | None
+    owner: str = ""
+    after: tuple[str, ...] = ()  # ids of the jobs it waits for
+    require_tags: tuple[str, ...] = ()  # only workers with all these tags render it
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "state": self.state.value,
+            "settings": self.settings.to_dict(),
+            "scene_sha256": self.scene_sha256,
+            "progress": self.progress.__dict__,
+            "error": self.error,
+            "created_unix_s": self.created_unix_s,
+            "finished_unix_s": self.finished_unix_s,
+            "owner": self.owner,
+            "after": list(self.after),
+            "require_tags": list(self.require_tags),
+        }
+
+
+def finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None

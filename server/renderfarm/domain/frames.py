@@ -1,0 +1,59 @@
+"""Frame lists in the syntax render farms take (OpenCue, Deadline, Flamenco): the `frames`
+setting of an animation job.
+
+    7            one frame
+    1-120        every frame from 1 to 120
+    1-120x2      every second frame: 1, 3, ..., 119
+    1,5,10-20    a list of frames and ranges
+    -10--1       negative frames (Blender allows them)
+
+The frames of a list are rendered in ascending order, each once, however often the list names
+it. A frame number means what the artist saw in Blender: frame f is glTF time f / fps (the glTF
+exporter's mapping), frame_time() gives it.
+"""
+
+from __future__ import annotations
+
+import re
+
+from ..errors import SettingsError
+
+_ITEM = re.compile(r"(-?\d+)(?:-(-?\d+)(?:x(\d+))?)?")
+MAX_FRAME = 10**6  # frame numbers within +-1e6 (Blender's range is +-1048574)
+
+
+def parse_frames(text: str, max_frames: int, field: str = "settings.frames") -> tuple[int, ...]:
+    """The frames of a list, ascending and unique; SettingsError naming `field` for a list that
+    is malformed, has an empty range or a step below 1, or names more than max_frames frames."""
+    if not isinstance(text, str) or not text.strip():
+        raise SettingsError(field, f"{field} is empty: give frames as 1-120, 1-120x2 or 1,5,10-20")
+    frames: set[int] = set()
+    for part in text.replace(" ", "").split(","):
+        match = _ITEM.fullmatch(part)
+        if match is None:
+            raise SettingsError(
+                field,
+                f"{field}: {part[:40]!r} is not a frame, a range a-b or a stepped range a-bxN",
+            )
+        first = int(match.group(1))
+        last = int(match.group(2)) if match.group(2) is not None else first
+        step = int(match.group(3)) if match.group(3) is not None else 1
+        for value in (first, last):
+            if abs(value) > MAX_FRAME:
+                raise SettingsError(field, f"{field}: frame {value} is beyond +-{MAX_FRAME}")
+        if last < first:
+            raise SettingsError(field, f"{field}: the range {part} is empty (its end is first)")
+        if step < 1:
+            raise SettingsError(field, f"{field}: the step of {part} must be at least 1")
+        too_many = f"{field} names more than {max_frames} frames (the server's limit)"
+        if (last - first) // step + 1 > max_frames:  # refused before any set is built
+            raise SettingsError(field, too_many)
+        frames.update(range(first, last + 1, step))
+        if len(frames) > max_frames:
+            raise SettingsError(field, too_many)
+    return tuple(sorted(frames))
+
+
+def frame_time(frame: int, fps: float) -> float:
+    """The glTF time of a frame, in seconds: frame / fps (frame 1 is 1/24 s at 24 fps)."""
+    return frame / fps

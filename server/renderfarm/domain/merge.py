@@ -1,0 +1,329 @@
+"""Progressive merge of batch results and the per-pixel error estimate.
+
+The statistics are explained in docs/architecture.md, "Statistics".
+
+Per pixel a tile keeps, in float64:
+  rgb_sum        sum of every merged sample's RGB
+  lum_mean       mean luminance of the merged samples
+  m2_within      sum over batches of the worker's within-batch M2 of luminance
+  m2_between     sum over batches b of S_b (m_b - m)^2, m_b the batch's mean luminance and m the
+                 overall mean; updated incrementally with Chan et al.'s parallel formula
+                 (delta^2 n_a n_b / (n_a + n_b)), never with the naive sum of squares.
+and per tile the sample count N (every pixel of a tile has the same count) and the batch count B.
+m2_within + m2_between is the M2 over all samples, as if computed in one pass.
+
+Error of a pixel's mean (variance of the mean):
+  independent sampler: (m2_within + m2_between) / (N - 1) / N, the ordinary sample variance of
+          i.i.d. samples (N - 1 degrees of freedom, unbiased);
+  other samplers, B >= 2: s^2 = m2_between / (B - 1) per sample, variance of the mean
+          s^2 / N. Batch means of stratified/QMC batches behave like independent replicates,
+          so this stays honest (and conservative for sobol) where the within-pixel sample
+          variance overstates the error.
+          E[sum_b S_b (m_b - m)^2] = (B - 1) sigma^2 for independent batches of any sizes S_b.
+  B == 1: the within-batch estimate m2_within / (N - 1) stands in (infinite while N < 2).
+
+Relative error of a pixel: s / max(mean luminance - s, DARK_FLOOR), s = sqrt(variance of the
+mean). Dividing by the estimated mean itself would understate the error exactly where the
+estimate is worst: a dark pixel whose few bright samples have inflated its mean also gets a
+large denominator, and a tile whose error lives in a few such pixels stops early (measured in a
+sunlit scene's shadowed strip: stop estimates of 0.06-0.1 against true errors of 0.09-0.3). The
+mean less one standard error is a lower confidence bound on the brightness; for a converged
+pixel (s / mean = e small) it changes the error only by a factor 1 / (1 - e).
+Relative error of a tile: root mean square of its pixels' relative errors.
+
+The per-pixel loops of merge_batch() and tile_error() are fused in C (_kernels.c, built with
+the package): one pass over a tile's arrays instead of a dozen numpy passes, which matters on
+a server merging thousands of results a second (bench/server_merge.py). The arithmetic is the
+same; relative_error() states it in numpy, and the tests hold the C loops to it and to the
+statistics of all samples computed at once.
+
+Albedo and normal sums cover each pixel's first AOV_SAMPLES samples only (tiling.py): batches
+merged after that point do not add to them, whatever they carry.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import _kernels
+from .tiling import AOV_SAMPLES, carries_aovs
+
+DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
+
+
+def _batch_array(values) -> np.ndarray:
+    """A batch's values as a contiguous float32 or float64 array, as the merge kernel reads."""
+    a = np.ascontiguousarray(values)
+    return a if a.dtype in (np.float32, np.float64) else a.astype(np.float64)
+
+
+class TileAccumulator:
+    """Merged statistics of one tile. No I/O; merge order is the caller's job."""
+
+    __slots__ = (
+        "height",
+        "width",
+        "rgb_sum",
+        "lum_mean",
+        "m2_within",
+        "m2_between",
+        "albedo_sum",
+        "normal_sum",
+        "samples",
+        "batches",
+        "nonfinite",
+        "iid",
+        "spill",
+    )
+
+    # Bytes of the per-pixel arrays: float64 RGB sum (24), mean luminance and the two M2 (24);
+    # float32 albedo and normal sums (24).
+    BYTES_PER_PIXEL = 72
+
+    def __init__(self, width: int, height: int, iid: bool = False, arrays: bool = True):
+        """arrays=False leaves the per-pixel arrays None (a tile cache fills them on demand)."""
+        # iid: the samples are independent (the `independent` sampler); see variance_of_mean.
+        self.iid = iid
+        self.width = width
+        self.height = height
+        # Where the arrays are kept while they are out of RAM (spill.TileCache); None when
+        # the accumulator lives in RAM only.
+        self.spill = None
+        if arrays:
+            self.zero_arrays()
+        else:
+            self.drop_arrays()
+        self.samples = 0
+        self.batches = 0
+        self.nonfinite = 0
+
+    def zero_arrays(self) -> None:
+        """Fresh zero arrays: the statistics of no samples."""
+        height, width = self.height, self.width
+        self.rgb_sum = np.zeros((height, width, 3))
+        self.lum_mean = np.zeros((height, width))
+        self.m2_within = np.zeros((height, width))
+        self.m2_between = np.zeros((height, width))
+        # Sums over at most AOV_SAMPLES samples: float32 holds them to its rounding.
+        self.albedo_sum = np.zeros((height, width, 3), np.float32)
+        self.normal_sum = np.zeros((height, width, 3), np.float32)
+
+    def drop_arrays(self) -> None:
+        """Let go of the per-pixel arrays (evicted; spill.TileCache restores them)."""
+        for name in self._ARRAYS + self._AOV_ARRAYS:
+            setattr(self, name, None)
+
+    @property
+    def resident(self) -> bool:
+        """Whether the per-pixel arrays are in RAM."""
+        return self.rgb_sum is not None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the per-pixel arrays."""
+        return self.BYTES_PER_PIXEL * self.width * self.height
+
+    def merge_batch(
+        self,
+        rgb_sum: np.ndarray,
+        luminance_m2: np.ndarray,
+        sample_count: int,
+        albedo_sum: np.ndarray | None = None,
+        normal_sum: np.ndarray | None = None,
+        nonfinite: int = 0,
+    ) -> None:
+        """Merge one batch of `sample_count` samples per pixel (Chan et al. 1979)."""
+        if sample_count <= 0:
+            raise ValueError("a batch has at least one sample")
+        shape = (self.height, self.width)
+        n_a = float(self.samples)
+        # Copy on write: every merge writes new arrays instead of updating in place, so a
+        # checkpoint can hold on to the arrays of a snapshot() and serialise them in another
+        # thread while merging goes on.
+        out = tuple(
+            np.empty_like(a) for a in (self.rgb_sum, self.lum_mean, self.m2_within, self.m2_between)
+        )
+        # One fused pass (_kernels.c): the luminance of the batch's mean, delta to the running
+        # mean, m2_between += delta^2 n_a n_b / n (none for a first batch), the running mean,
+        # m2_within and the RGB sum; float32 or float64 input, float64 arithmetic.
+        _kernels.merge(
+            self.height * self.width,
+            n_a,
+            float(sample_count),
+            self.rgb_sum,
+            self.lum_mean,
+            self.m2_within,
+            self.m2_between,
+            _batch_array(rgb_sum),
+            _batch_array(luminance_m2),
+            *out,
+        )
+        self.rgb_sum, self.lum_mean, self.m2_within, self.m2_between = out
+        if carries_aovs(self.samples):  # in-order merges: self.samples is the batch's start
+            if albedo_sum is not None:
+                aov = np.asarray(albedo_sum).reshape(*shape, 3)
+                self.albedo_sum = np.add(self.albedo_sum, aov, dtype=np.float32)
+            if normal_sum is not None:
+                aov = np.asarray(normal_sum).reshape(*shape, 3)
+                self.normal_sum = np.add(self.normal_sum, aov, dtype=np.float32)
+        self.samples += sample_count
+        self.batches += 1
+        self.nonfinite += nonfinite
+
+    def mean_rgb(self) -> np.ndarray:
+        if self.samples == 0:
+            return np.zeros_like(self.rgb_sum)
+        return self.rgb_sum / self.samples
+
+    @property
+    def aov_samples(self) -> int:
+        """Samples behind albedo_sum and normal_sum."""
+        return min(self.samples, AOV_SAMPLES)
+
+    def mean_albedo(self) -> np.ndarray:
+        return self.albedo_sum / max(1, self.aov_samples)
+
+    def mean_normal(self) -> np.ndarray:
+        return self.normal_sum / max(1, self.aov_samples)
+
+    def _variance_terms(self) -> tuple[tuple[np.ndarray, ...], float] | None:
+        """(M2 arrays, k) with variance of the mean = sum(M2 arrays) * k per pixel; None while
+        unknown."""
+        n = self.samples
+        if self.iid and n >= 2:
+            # Independent samples: the pooled M2 over every sample is exact and has N - 1
+            # degrees of freedom instead of B - 1, so its estimate is far less noisy.
+            return (self.m2_within, self.m2_between), 1.0 / ((n - 1) * n)
+        if self.batches >= 2:
+            return (self.m2_between,), 1.0 / ((self.batches - 1) * n)
+        if n >= 2:
+            return (self.m2_within,), 1.0 / ((n - 1) * n)
+        return None
+
+    def variance_of_mean(self) -> np.ndarray:
+        """Per-pixel estimated variance of the mean luminance (inf when unknown)."""
+        terms = self._variance_terms()
+        if terms is None:
+            return np.full((self.height, self.width), np.inf)
+        m2, k = terms
+        return sum(m2[1:], m2[0]) * k
+
+    def relative_error(self) -> np.ndarray:
+        """Per-pixel standard error over a lower bound of the brightness (module docstring);
+        inf before any estimate exists (the bound is then the floor)."""
+        s = np.sqrt(self.variance_of_mean())
+        return s / np.maximum(self.lum_mean - s, DARK_FLOOR)
+
+    def tile_error(self) -> float:
+        """Root mean square of the pixels' relative_error() (inf before any estimate exists),
+        in one fused pass (_kernels.c)."""
+        terms = self._variance_terms()
+        if terms is None:
+            return float("inf")
+        m2, k = terms
+        pixels = self.height * self.width
+        extra = m2[1] if len(m2) > 1 else None
+        total = _kernels.squared_relative_error(pixels, self.lum_mean, m2[0], extra, k, DARK_FLOOR)
+        return math.sqrt(total / pixels)
+
+    # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order; statistics
+    # float64, AOVs float32). The statistics change with every merge; the AOVs only during the
+    # first AOV_SAMPLES samples, so they are stored apart and written only while they change.
+    _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")
+    _AOV_ARRAYS = ("albedo_sum", "normal_sum")
+
+    def snapshot(self, names: tuple | None = None) -> tuple:
+        """An immutable view of the statistics (cheap: arrays are replaced, never mutated), or
+        of the arrays named. Of an evicted accumulator: a reference to its copy out of RAM
+        (spill.SpillRef), read by snapshot_arrays()."""
+        names = self._ARRAYS if names is None else names
+        if not self.resident:
+            return self.spill.reference(names)
+        return tuple(getattr(self, a) for a in names)
+
+    def aov_snapshot(self) -> tuple:
+        """The same for the albedo and normal sums."""
+        return self.snapshot(self._AOV_ARRAYS)
+
+    @staticmethod
+    def snapshot_arrays(snapshot) -> tuple:
+        """The arrays of a snapshot() or aov_snapshot(); safe to call from another thread."""
+        return snapshot if isinstance(snapshot, tuple) else snapshot.read()
+
+    @staticmethod
+    def snapshot_bytes(snapshot, dtype: str = "<f8") -> bytearray:
+        """Serialise a snapshot() (float64) or aov_snapshot() (dtype "<f4") with one copy;
+        safe to call from another thread."""
+        snapshot = TileAccumulator.snapshot_arrays(snapshot)
+        itemsize = np.dtype(dtype).itemsize
+        out = bytearray(itemsize * sum(a.size for a in snapshot))
+        view = np.frombuffer(out, dtype=dtype)
+        offset = 0
+        for a in snapshot:
+            np.copyto(view[offset : offset + a.size], a.reshape(-1))
+            offset += a.size
+        return out
+
+    def to_bytes(self) -> bytearray:
+        return self.snapshot_bytes(self.snapshot())
+
+    def aovs_to_bytes(self) -> bytearray:
+        return self.snapshot_bytes(self.aov_snapshot(), "<f4")
+
+    def _load(self, names: tuple, data: bytes, what: str, dtype: str = "<f8") -> None:
+        itemsize = np.dtype(dtype).itemsize
+        expected = itemsize * sum(getattr(self, name).size for name in names)
+        if len(data) != expected:
+            raise ValueError(f"checkpoint {what} has {len(data)} bytes, expected {expected}")
+        offset = 0
+        for name in names:
+            target = getattr(self, name)
+            chunk = np.frombuffer(data, dtype=dtype, count=target.size, offset=offset)
+            target[...] = chunk.reshape(target.shape)
+            offset += target.size * itemsize
+
+    @classmethod
+    def from_bytes(
+        cls,
+        width: int,
+        height: int,
+        data: bytes,
+        samples: int,
+        batches: int,
+        nonfinite: int = 0,
+        iid: bool = False,
+        aovs: bytes | None = None,
+    ) -> TileAccumulator:
+        """Restore to_bytes() (with aovs_to_bytes(), or zero AOVs when None). Checkpoints
+        written before the AOVs were split off hold both in `data`, and load as well."""
+        acc = cls(width, height, iid)
+        combined = cls._ARRAYS + cls._AOV_ARRAYS
+        if aovs is None and len(data) == 8 * width * height * 12:
+            acc._load(combined, data, "accumulators")
+        else:
+            acc._load(cls._ARRAYS, data, "accumulators")
+            if aovs is not None:
+                acc._load(cls._AOV_ARRAYS, aovs, "aovs", "<f4")
+        acc.samples, acc.batches, acc.nonfinite = samples, batches, nonfinite
+        return acc
+
+    @classmethod
+    def from_snapshot(
+        cls,
+        width: int,
+        height: int,
+        names: tuple,
+        snapshot,
+        samples: int,
+        batches: int,
+        iid: bool = False,
+    ) -> TileAccumulator:
+        """A read-only accumulator over the arrays of a snapshot(names) (no copy of arrays in
+        RAM; the others None), for images written in another thread."""
+        acc = cls(width, height, iid, arrays=False)
+        for name, a in zip(names, cls.snapshot_arrays(snapshot), strict=True):
+            setattr(acc, name, a)
+        acc.samples, acc.batches = samples, batches
+        return acc
