@@ -351,12 +351,15 @@ def test_frozen_worker_loses_its_leases_and_its_late_results_change_nothing(tmp_
             frozen.send_signal(signal.SIGSTOP)
             try:
                 # Its heartbeats stop: its leases (2 s) run out and their batches are re-queued.
-                wait_until(
-                    lambda: metric(farm.url, "renderfarm_leases_expired_total") > expired,
-                    30,
-                    "the frozen worker's leases to expire",
-                    poll_s=0.2,
-                )
+                try:
+                    wait_until(
+                        lambda: metric(farm.url, "renderfarm_leases_expired_total") > expired,
+                        30,
+                        "the frozen worker's leases to expire",
+                        poll_s=0.2,
+                    )
+                except AssertionError as e:  # what the server saw of the workers meanwhile
+                    raise AssertionError(f"{e}; workers: {client.workers()}") from None
                 before = client.get(job["id"])["progress"]["samples_merged"]
                 wait_until(
                     lambda: client.get(job["id"])["progress"]["samples_merged"] > before,
