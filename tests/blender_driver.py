@@ -17,7 +17,6 @@ import json
 import math
 import os
 import sys
-import time
 
 # Blender's user resources (preferences, installed extensions) in the test's directory, never
 # the user's own; read when bpy is imported, so set first.
@@ -26,6 +25,9 @@ os.environ["BLENDER_USER_RESOURCES"] = CONFIG["user_resources"]
 
 import bpy  # noqa: E402
 from mathutils import Vector  # noqa: E402
+
+# Run as a script, so tests/ is sys.path[0]: the tests' own waiting helper (stdlib only).
+from waiting import wait_until  # noqa: E402
 
 ADDON = "bl_ext.user_default.renderfarm"
 
@@ -244,17 +246,18 @@ def scenario_render() -> dict:
     # Blender without a window runs no timers: call the add-on's timer function until the job
     # has finished, as Blender would every quarter of a second.
     watch = module("watch")
-    deadline = time.monotonic() + CONFIG["timeout_s"]
     seen_states = [entry.state]
-    while entry.state not in ("completed", "failed", "cancelled"):
-        assert time.monotonic() < deadline, f"job still {entry.state} after {CONFIG['timeout_s']} s"
+
+    def finished():
         watch.apply_updates()
         entry = rf.current_job()
         if entry.state != seen_states[-1]:
             seen_states.append(entry.state)
         if entry.state == "running" and "panel_running" not in out:
             out["panel_running"] = draw_panel()
-        time.sleep(0.05)
+        return entry if entry.state in ("completed", "failed", "cancelled") else None
+
+    entry = wait_until(finished, CONFIG["timeout_s"], "the job to finish")
     out["states"] = seen_states
     out["progress"] = {
         "tiles_done": entry.tiles_done,

@@ -3,8 +3,6 @@ the same images, and for each invalid input the same error class naming the same
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from renderfarm.v1 import jobs_pb2
@@ -19,15 +17,13 @@ from .apihelpers import (
     job_from_proto,
     settings_message,
 )
+from .waiting import wait_until
 
 
 @pytest.fixture(scope="module")
 def apis(farm):
     a = Apis(farm.url, farm.grpc_address)
-    deadline = time.monotonic() + 30
-    while len(a.client.workers()) < 2:
-        assert time.monotonic() < deadline, "workers did not connect"
-        time.sleep(0.1)
+    wait_until(lambda: len(a.client.workers()) >= 2, 30, "2 workers connected")
     yield a
     a.close()
 
@@ -64,12 +60,15 @@ def test_get_agrees_for_the_same_job(apis, twin_jobs):
 
 def test_list_filters_and_pages_alike(apis, twin_jobs):
     # The state filter reads the stored state, written right after the job finished in memory.
-    deadline = time.monotonic() + 20
-    while not {j["id"] for j in twin_jobs} <= {
-        j["id"] for j in apis.client.list(state="completed", page_size=500)["jobs"]
-    }:
-        assert time.monotonic() < deadline, "finished jobs never listed as completed"
-        time.sleep(0.2)
+    wait_until(
+        lambda: (
+            {j["id"] for j in twin_jobs}
+            <= {j["id"] for j in apis.client.list(state="completed", page_size=500)["jobs"]}
+        ),
+        20,
+        "the finished jobs to be listed as completed",
+        poll_s=0.2,
+    )
     pages_rest, pages_rpc = [], []
     token = ""
     for _ in range(50):  # bounded: at most 50 pages of 1

@@ -10,7 +10,6 @@ import os
 import ssl
 import subprocess
 import sys
-import time
 
 import grpc
 import httpx
@@ -20,6 +19,7 @@ from renderfarm.cli.localfarm import LocalFarm, free_port
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, workers_pb2, workers_pb2_grpc
 
 from .apihelpers import TINY, Apis, Error, cornell_glb, create_token
+from .waiting import wait_until
 
 CLI = [sys.executable, "-m", "renderfarm"]
 WORKER_TOKEN = "worker-secret-for-tests"
@@ -126,19 +126,24 @@ def test_a_revoked_token_stops_working(secured, tmp_path):
     spare = _token(farm.data_dir, "spare")
     a = Apis(farm.url, farm.grpc_address, spare["token"])
     try:
-        deadline = time.monotonic() + 10  # the server trusts its token cache for 2 s
-        while isinstance(a.rest("GET", "/api/v1/whoami"), Error):
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        wait_until(
+            lambda: not isinstance(a.rest("GET", "/api/v1/whoami"), Error),
+            10,
+            "the new token to be accepted",
+            poll_s=0.2,
+        )
         done = subprocess.run(
             CLI + ["token", "revoke", spare["id"], "--data-dir", str(farm.data_dir)],
             capture_output=True, text=True, timeout=120,
         )  # fmt: skip
         assert done.returncode == 0 and "revoked" in done.stdout, done.stderr
-        deadline = time.monotonic() + 10
-        while not isinstance(a.rest("GET", "/api/v1/whoami"), Error):
-            assert time.monotonic() < deadline, "a revoked token kept working"
-            time.sleep(0.2)
+        # The server trusts its token cache for 2 s.
+        wait_until(
+            lambda: isinstance(a.rest("GET", "/api/v1/whoami"), Error),
+            10,
+            "the revoked token to be refused",
+            poll_s=0.2,
+        )
         rest = a.rest("GET", "/api/v1/jobs")
         rpc = a.rpc("ListJobs", jobs_pb2.ListJobsRequest())
         assert rest.kind == rpc.kind == "unauthenticated"
@@ -275,17 +280,16 @@ def test_tls_for_rest_and_grpc(tmp_path):
     )  # fmt: skip
     try:
         url = f"https://127.0.0.1:{http_port}"
-        deadline = time.monotonic() + 120
         with httpx.Client(verify=ssl.create_default_context(cafile=cert), timeout=5) as https:
-            while True:
+
+            def ready() -> bool:
                 assert server.poll() is None, (tmp_path / "server.log").read_text()
-                assert time.monotonic() < deadline, "TLS server never became ready"
                 try:
-                    if https.get(f"{url}/readyz").status_code == 200:
-                        break
+                    return https.get(f"{url}/readyz").status_code == 200
                 except httpx.HTTPError:
-                    pass
-                time.sleep(0.2)
+                    return False
+
+            wait_until(ready, 120, "the TLS server to be ready", poll_s=0.2)
             assert https.get(f"{url}/api/v1/jobs").json()["jobs"] == []
         with pytest.raises(httpx.HTTPError):  # plain HTTP is not served
             httpx.get(f"http://127.0.0.1:{http_port}/readyz", timeout=5)

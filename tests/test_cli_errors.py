@@ -22,6 +22,7 @@ from renderfarm.client import Client
 
 from .conftest import CORNELL
 from .test_auth import _self_signed
+from .waiting import wait_until
 
 CLI = [sys.executable, "-m", "renderfarm"]
 TINY = ["--width", "32", "--height", "32", "--tile-size", "16", "--spp", "4"]
@@ -151,11 +152,12 @@ def _start_tls_server(farm: LocalFarm, client: Client) -> None:
     log = open(farm.data_dir / "server.log", "ab")  # noqa: SIM115
     farm.server = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
                                    env={**os.environ, **farm.env})  # fmt: skip
-    deadline = time.monotonic() + 120
-    while not client.ready():
+
+    def ready() -> bool:
         assert farm.server.poll() is None, (farm.data_dir / "server.log").read_text()
-        assert time.monotonic() < deadline, "the TLS server was not ready in 120 s"
-        time.sleep(0.2)
+        return client.ready()
+
+    wait_until(ready, 120, "the TLS server to be ready", poll_s=0.2)
 
 
 def test_refusals_and_unfinished_jobs_are_one_line(idle_farm):

@@ -18,6 +18,7 @@ from renderfarm.domain.merge import DARK_FLOOR
 from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
+from .waiting import wait_until
 
 W = H = 96
 TILE = 24
@@ -124,13 +125,7 @@ def test_one_and_three_workers_give_the_same_image_and_spp(tmp_path):
             one_job, one = render(client, tmp_path, "one-worker", **settings)
             extra = spawn_workers(2, farm.grpc_address, threads=1, first_index=1)
             try:
-                for _ in range(300):
-                    if len(client.workers()) == 3:
-                        break
-                    import time
-
-                    time.sleep(0.1)
-                assert len(client.workers()) == 3
+                wait_until(lambda: len(client.workers()) == 3, 30, "3 workers connected")
                 three_job, three = render(client, tmp_path, "three-workers", **settings)
             finally:
                 stop_processes(extra)

@@ -29,7 +29,8 @@ from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc, scenes_pb2, scenes_pb2_grpc
 
 from .conftest import CORNELL
-from .test_faults import FAST_LEASES, SETTINGS, TOTAL, metric, wait_for
+from .test_faults import FAST_LEASES, SETTINGS, TOTAL, metric
+from .waiting import wait_until
 
 TILES = (96 // 16) ** 2
 
@@ -76,7 +77,7 @@ def finished_events(data: Path) -> dict[str, int]:
 
 def undisturbed(client: Client, tmp_path: Path) -> tuple[dict, bytes]:
     """Render the SETTINGS job once without faults: the image every other run must equal."""
-    wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+    wait_until(lambda: len(client.workers()) == 2, 30, "two workers")
     ref = client.wait(client.submit(CORNELL, settings=SETTINGS)["id"], poll_s=0.2, timeout_s=600)
     assert ref["state"] == "completed"
     assert ref["progress"]["samples_merged"] == TOTAL
@@ -93,7 +94,7 @@ def test_a_killed_postmaster_is_restarted_and_the_job_ends_with_the_same_image(t
         with Client(farm.url) as client:
             expected = undisturbed(client, tmp_path)
             job = client.submit(CORNELL, settings=SETTINGS)
-            wait_for(
+            wait_until(
                 lambda: client.get(job["id"])["progress"]["samples_merged"] > 0.2 * TOTAL,
                 300,
                 "20% merged",
@@ -105,9 +106,9 @@ def test_a_killed_postmaster_is_restarted_and_the_job_ends_with_the_same_image(t
             assert client.get(job["id"])["progress"]["samples_merged"] < TOTAL, (
                 "the job ended before the postmaster was killed"
             )
-            wait_for(lambda: postmaster_pid(pgdata) not in (None, killed), 60, "a new postmaster")
+            wait_until(lambda: postmaster_pid(pgdata) not in (None, killed), 60, "a new postmaster")
             restarted_s = time.monotonic() - killed_at
-            wait_for(client.ready, 30, "the server to be ready again")
+            wait_until(client.ready, 30, "the server to be ready again")
             ready_s = time.monotonic() - killed_at
             print(f"postmaster restarted after {restarted_s:.1f} s, ready after {ready_s:.1f} s")
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
@@ -138,7 +139,7 @@ def test_a_job_finished_while_the_database_is_down_survives_a_shutdown(tmp_path)
             job = client.submit(CORNELL, settings=SETTINGS)
             # Rendered only once the first job has nothing left to lease (lower priority).
             long = client.submit(CORNELL, settings={**SETTINGS, "max_spp": 1 << 16, "priority": -1})
-            wait_for(
+            wait_until(
                 lambda: client.get(job["id"])["progress"]["samples_merged"] > 0.05 * TOTAL,
                 300,
                 "5% merged",
@@ -155,10 +156,10 @@ def test_a_job_finished_while_the_database_is_down_survives_a_shutdown(tmp_path)
                 p = view["progress"]
                 return p["samples_merged"] == TOTAL and p["tiles_done"] == TILES
 
-            wait_for(merged_in_memory, 300, "every sample merged in memory")
+            wait_until(merged_in_memory, 300, "every sample merged in memory")
             assert client.get(job["id"])["state"] == "running"
             assert not client.ready()
-            wait_for(
+            wait_until(
                 lambda: client.get(long["id"])["progress"]["samples_merged"] > 0,
                 60,
                 "the second job to merge samples",
@@ -215,7 +216,7 @@ def test_every_api_answers_503_or_unavailable_while_the_database_is_down(tmp_pat
         assert client.cancel(job["id"])["state"] == "cancelled"
         pg_ctl(pgdata, "stop", "-m", "fast", "-w")
         try:
-            wait_for(lambda: not client.ready(), 30, "the server to report unready")
+            wait_until(lambda: not client.ready(), 30, "the server to report unready")
             unknown = "ffffffffffff"
             requests = [
                 ("POST", "/api/v1/jobs", {"json": {"scene_sha256": sha, "settings": tiny}}),
@@ -266,7 +267,7 @@ def test_every_api_answers_503_or_unavailable_while_the_database_is_down(tmp_pat
                         raise AssertionError(f"{type(request).__name__} answered")
         finally:
             pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"), "-o", f'-h "" -k {pgdata}')
-        wait_for(client.ready, 60, "the server to be ready again")
+        wait_until(client.ready, 60, "the server to be ready again")
         listed = client.list(page_size=50)["jobs"]
         assert [j["name"] for j in listed] == ["before"]  # nothing half-stored
         client.delete(job["id"])
@@ -359,7 +360,7 @@ def test_500_concurrent_submissions_get_201_or_a_documented_refusal_and_run_once
         # The queue is sized for this burst (RENDERFARM_DB_QUEUE): nobody was turned away.
         assert statuses.get(429, 0) == 0
 
-        wait_for(
+        wait_until(
             lambda: len(every_job(client, "completed")) == len(accepted) + 1,
             240,
             "every accepted job to complete",

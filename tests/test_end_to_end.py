@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import subprocess
-import time
 
 import grpc
 import numpy as np
@@ -14,6 +13,7 @@ from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
 
 from .conftest import CORNELL
+from .waiting import wait_until
 
 SETTINGS = {
     "width": 64,
@@ -34,10 +34,7 @@ def _rgb(path) -> np.ndarray:
 
 
 def _wait_for_workers(client, count: int, timeout_s: float = 30) -> None:
-    deadline = time.monotonic() + timeout_s
-    while len(client.workers()) < count:
-        assert time.monotonic() < deadline, "workers did not connect"
-        time.sleep(0.1)
+    wait_until(lambda: len(client.workers()) >= count, timeout_s, f"{count} workers connected")
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,6 @@ import re
 import signal
 import subprocess
 import threading
-import time
 from pathlib import Path
 
 import httpx
@@ -27,6 +26,7 @@ from renderfarm.infra.embedded_db import EmbeddedPostgres, pg_ctl
 from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
+from .waiting import wait_until
 
 # Long enough (about 9.4M samples) that a fault injected a second after a fraction of the job
 # merged still lands mid-job on a fast renderer: at 256 spp two one-thread workers finished the
@@ -74,14 +74,28 @@ def assert_same_image(image: np.ndarray, reference: np.ndarray) -> None:
     np.testing.assert_allclose(image, reference, rtol=1e-6, atol=1e-7)
 
 
-def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.05):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll_s)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+def database_url(data: Path) -> str:
+    """The embedded PostgreSQL of the farm in `data` (it outlives a killed server)."""
+    return f"postgresql://postgres:@/postgres?host={data / 'pg'}"
+
+
+def checkpointed_samples(data: Path, job_id: str) -> int:
+    """Pixel samples of the job's tiles in the database: what a restart resumes from (SETTINGS'
+    tiles are all 16 x 16; the tiles table holds each tile's samples per pixel)."""
+    with psycopg.connect(database_url(data)) as conn:
+        (spp,) = conn.execute(
+            "SELECT coalesce(sum(samples), 0) FROM tiles WHERE job_id = %s", (job_id,)
+        ).fetchone()
+    return spp * 16 * 16
+
+
+def planned_tiles(data: Path, job_id: str) -> int:
+    """The job's checkpointed tiles that hold planned batch sizes."""
+    with psycopg.connect(database_url(data)) as conn:
+        (planned,) = conn.execute(
+            "SELECT count(*) FROM tiles WHERE job_id = %s AND batch_plan IS NOT NULL", (job_id,)
+        ).fetchone()
+    return planned
 
 
 def merged_fraction(client: Client, job_id: str) -> float:
@@ -92,9 +106,9 @@ def merged_fraction(client: Client, job_id: str) -> float:
 def submit_when_two_workers(client: Client, until_merged: float) -> dict:
     """Wait for both workers, submit the SETTINGS job, and wait until that fraction of its
     samples is merged."""
-    wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+    wait_until(lambda: len(client.workers()) == 2, 30, "two workers")
     job = client.submit(CORNELL, settings=SETTINGS)
-    wait_for(
+    wait_until(
         lambda: merged_fraction(client, job["id"]) > until_merged,
         300,
         f"{until_merged:.0%} merged",
@@ -137,7 +151,14 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
             job = submit_when_two_workers(client, until_merged=0.4)
-            time.sleep(1.0)  # at least one checkpoint interval (0.5 s) of merged work
+            merged = client.get(job["id"])["progress"]["samples_merged"]
+            # Checkpoints come every 0.5 s: wait for one holding what is merged by now.
+            wait_until(
+                lambda: checkpointed_samples(farm.data_dir, job["id"]) >= merged,
+                30,
+                f"a checkpoint of the {merged} samples merged",
+                poll_s=0.1,
+            )
             merged_before_crash = client.get(job["id"])["progress"]["samples_merged"]
             assert merged_before_crash < TOTAL, "the job finished before the server was killed"
         farm.server.send_signal(signal.SIGKILL)
@@ -146,8 +167,10 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
         with Client(farm.url) as client:
             resumed = client.get(job["id"])
             checkpointed = resumed["progress"]["samples_merged"]
-            # Checkpoints come every 0.5 s, so most merged work survived the crash.
-            assert 0.5 * merged_before_crash <= checkpointed <= merged_before_crash
+            # The checkpoint seen before the crash survived it; checkpoints come every 0.5 s,
+            # so most merged work survived.
+            assert merged <= checkpointed <= merged_before_crash
+            assert 0.5 * merged_before_crash <= checkpointed
             assert resumed["state"] == "running"
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
@@ -183,27 +206,25 @@ def test_kill_9_server_mid_plan_resumes_the_planned_batches(tmp_path):
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            wait_until(lambda: len(client.workers()) == 2, 30, "two workers")
             ref = client.wait(client.submit(CORNELL, settings=settings)["id"], timeout_s=600)
             assert ref["state"] == "completed"
             total = ref["progress"]["samples_merged"]
             job = client.submit(CORNELL, settings=settings)
-            wait_for(
+            wait_until(
                 lambda: client.get(job["id"])["progress"]["samples_merged"] > 0.4 * total,
                 300,
                 "40% of the samples merged",
             )
-            time.sleep(0.6)  # a checkpoint interval
+            # A checkpoint (every 0.5 s) holding planned batches, before the kill.
+            wait_until(
+                lambda: planned_tiles(data, job["id"]), 30, "planned batches checkpointed", 0.1
+            )
+            assert client.get(job["id"])["state"] == "running"
         farm.server.send_signal(signal.SIGKILL)
         farm.server.wait(timeout=10)
         # The database outlives the killed server: the checkpoint holds planned batches.
-        url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
-        with psycopg.connect(url) as conn:
-            (planned,) = conn.execute(
-                "SELECT count(*) FROM tiles WHERE job_id = %s AND batch_plan IS NOT NULL",
-                (job["id"],),
-            ).fetchone()
-        assert planned > 0
+        assert planned_tiles(data, job["id"]) > 0
         farm.start_server()
         with Client(farm.url) as client:
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
@@ -273,24 +294,24 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            wait_for(lambda: len(client.workers()) == 2, 30, "two workers")
+            wait_until(lambda: len(client.workers()) == 2, 30, "two workers")
             job = client.submit(CORNELL, settings=settings)
 
             def merged() -> int:
                 return client.get(job["id"])["progress"]["samples_merged"]
 
-            wait_for(lambda: merged() > 0.05 * total, 300, "5% merged")
+            wait_until(lambda: merged() > 0.05 * total, 300, "5% merged")
             pgdata = data / "pg"
             pg_ctl(pgdata, "stop", "-m", "fast", "-w")
             try:
                 during = merged()
                 assert during < total, "the job ended before the database went away"
-                wait_for(lambda: merged() > during, 60, "merging to go on without the database")
-                wait_for(lambda: not client.ready(), 30, "the server to report unready")
+                wait_until(lambda: merged() > during, 60, "merging to go on without the database")
+                wait_until(lambda: not client.ready(), 30, "the server to report unready")
             finally:
                 pg_ctl(pgdata, "start", "-w", "-l", str(pgdata / "log"),
                         "-o", f'-h "" -k {pgdata}')  # fmt: skip
-            wait_for(client.ready, 60, "the server to be ready again")
+            wait_until(client.ready, 60, "the server to be ready again")
             job = client.wait(job["id"], poll_s=0.2, timeout_s=600)
             assert job["state"] == "completed"
             assert job["progress"]["samples_merged"] == total
@@ -310,7 +331,7 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
                 }
                 return state.fetchone()[0], tiles, kinds
 
-        state, (tiles, min_samples), kinds = wait_for(
+        state, (tiles, min_samples), kinds = wait_until(
             lambda: stored() if stored()[0] == "completed" else None, 30, "the final state stored"
         )
         assert tiles == 9 and min_samples == settings["max_spp"]
@@ -325,12 +346,22 @@ def test_frozen_worker_loses_its_leases_and_its_late_results_change_nothing(tmp_
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
             job = submit_when_two_workers(client, until_merged=0.2)
+            expired = metric(farm.url, "renderfarm_leases_expired_total")
             frozen = farm.worker_procs[0]
             frozen.send_signal(signal.SIGSTOP)
             try:
-                time.sleep(3.0)  # past the 2 s lease
+                # Its heartbeats stop: its leases (2 s) run out and their batches are re-queued.
+                try:
+                    wait_until(
+                        lambda: metric(farm.url, "renderfarm_leases_expired_total") > expired,
+                        30,
+                        "the frozen worker's leases to expire",
+                        poll_s=0.2,
+                    )
+                except AssertionError as e:  # what the server saw of the workers meanwhile
+                    raise AssertionError(f"{e}; workers: {client.workers()}") from None
                 before = client.get(job["id"])["progress"]["samples_merged"]
-                wait_for(
+                wait_until(
                     lambda: client.get(job["id"])["progress"]["samples_merged"] > before,
                     60,
                     "the other worker to carry on with the re-leased work",

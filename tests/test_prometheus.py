@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import time
 
 import httpx
 import pytest
@@ -16,6 +15,7 @@ from renderfarm.client import Client
 
 from .conftest import CORNELL
 from .tools import require_tool
+from .waiting import wait_until
 
 PROMETHEUS = shutil.which("prometheus") or "/usr/bin/prometheus"
 PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
@@ -31,10 +31,7 @@ def _prometheus_installed():
 
 def _wait_for_workers(farm, count: int = 2) -> None:
     with Client(farm.url) as client:
-        deadline = time.monotonic() + 30
-        while len(client.workers()) < count:
-            assert time.monotonic() < deadline, "workers did not connect"
-            time.sleep(0.1)
+        wait_until(lambda: len(client.workers()) >= count, 30, f"{count} workers connected")
 
 
 def test_promtool_accepts_the_exposition(farm, tmp_path):
@@ -44,6 +41,7 @@ def test_promtool_accepts_the_exposition(farm, tmp_path):
         "renderfarm_jobs",
         "renderfarm_queue_depth",
         "renderfarm_tasks_leased",
+        "renderfarm_leases_expired_total",
         "renderfarm_tasks_assigned_total",
         "renderfarm_tasks_completed_total",
         "renderfarm_tasks_failed_total",
@@ -80,30 +78,29 @@ def test_prometheus_scrapes_a_render_and_promql_sees_the_samples_rate(farm, tmp_
     )  # fmt: skip
     api = f"http://127.0.0.1:{port}/api/v1"
     try:
-        deadline = time.monotonic() + 60
-        while True:  # until Prometheus reports the farm as a healthy target
+
+        def farm_scraped() -> bool:
             assert prometheus.poll() is None, (tmp_path / "prometheus.log").read_text()
-            assert time.monotonic() < deadline, "Prometheus never scraped the farm"
             try:
                 targets = httpx.get(f"{api}/targets", timeout=5).json()["data"]["activeTargets"]
-                if targets and targets[0]["health"] == "up":
-                    break
             except (httpx.HTTPError, ValueError, KeyError):
-                pass
-            time.sleep(0.5)
+                return False
+            return bool(targets) and targets[0]["health"] == "up"
+
+        wait_until(farm_scraped, 60, "Prometheus to report the farm as a healthy target", 0.5)
         with Client(farm.url, timeout=60) as client:
             settings = {"width": 96, "height": 96, "tile_size": 16, "max_spp": 64,
                         "noise_threshold": 0, "seed": 11}  # fmt: skip
             job = client.submit(CORNELL, settings=settings, name="scraped")
-            rate = 0.0
             query = "sum(rate(renderfarm_samples_merged_total[15s]))"
-            deadline = time.monotonic() + 120
-            while rate <= 0:
-                assert time.monotonic() < deadline, "PromQL never saw samples being merged"
+
+            def samples_rate() -> float:
                 result = httpx.get(f"{api}/query", params={"query": query}, timeout=5).json()
                 values = result["data"]["result"]
                 rate = float(values[0]["value"][1]) if values else 0.0
-                time.sleep(0.5)
+                return rate if rate > 0 else 0.0
+
+            rate = wait_until(samples_rate, 120, "PromQL to see samples being merged", 0.5)
             done = client.wait(job["id"], poll_s=0.5, timeout_s=300)
         assert done["state"] == "completed"
         assert rate > 0

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import time
-
 from playwright.sync_api import Page, expect
 
+from ..waiting import wait_until
 from .conftest import LARGE, canvas_pixels, mean_abs_diff, screenshot
 
 # Small renders that take a few seconds on two one-thread workers, so progress can be watched.
@@ -32,13 +31,11 @@ def wait_layer(page: Page, layer: str, not_key: str = "") -> str:
 
 
 def wait_finished(client, job_id: str, timeout_s: float = 120) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    def finished() -> dict | None:
         job = client.get(job_id)
-        if job["state"] in ("completed", "failed", "cancelled"):
-            return job
-        time.sleep(0.25)
-    raise TimeoutError(f"job {job_id} did not finish in {timeout_s} s")
+        return job if job["state"] in ("completed", "failed", "cancelled") else None
+
+    return wait_until(finished, timeout_s, f"job {job_id} to finish", poll_s=0.25)
 
 
 def test_submit_through_the_form_and_watch_the_image_converge(page: Page, scene_glb, client):
@@ -197,10 +194,12 @@ def test_jobs_list_updates_live_and_filters_by_state(page: Page, client, scene_g
 
 
 def test_workers_page_shows_both_workers_and_farm_throughput(page: Page, client, scene_glb):
-    deadline = time.monotonic() + 30  # workers connect a moment after the farm is up
-    while len(client.workers()) < 2 and time.monotonic() < deadline:
-        time.sleep(0.2)
-    ids = sorted(w["id"] for w in client.workers())
+    def both_workers() -> list[dict] | None:  # they connect a moment after the farm is up
+        workers = client.workers()
+        return workers if len(workers) >= 2 else None
+
+    workers = wait_until(both_workers, 30, "2 workers connected", poll_s=0.2)
+    ids = sorted(w["id"] for w in workers)
     assert len(ids) == 2
     job = client.submit(scene_glb, name="browser-workers", settings=LONG)
     try:

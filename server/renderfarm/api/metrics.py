@@ -39,6 +39,11 @@ class _FarmCollector:
             "renderfarm_queue_depth", "Open tiles with no task leased", value=queued
         )
         yield GaugeMetricFamily("renderfarm_tasks_leased", "Tasks leased", value=len(sched.leases))
+        yield CounterMetricFamily(
+            "renderfarm_leases_expired",
+            "Leases that ran out without a heartbeat (their batches re-queued)",
+            value=sched.leases_expired,
+        )
         yield GaugeMetricFamily(
             "renderfarm_workers_connected", "Connected workers", value=len(farm.sessions)
         )

@@ -89,6 +89,7 @@ class Scheduler:
         self.events: list[Event] = []
         self.cancellations: dict[str, list[str]] = {}  # worker -> task ids to cancel
         self.records: dict[str, WorkerRecord] = {}  # worker id -> mode and counts (kept)
+        self.leases_expired = 0  # since start (renderfarm_leases_expired_total)
         self._task_ids = itertools.count(1)
 
     # ----------------------------------------------------------------------------- jobs
@@ -369,6 +370,7 @@ class Scheduler:
         for lease in expired:
             self._release(lease, requeue=True)
             self.cancellations.setdefault(lease.worker_id, []).append(lease.task_id)
+        self.leases_expired += len(expired)
         return expired
 
     def tick(self) -> None:
