@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import itertools
 import random
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -43,6 +45,16 @@ def test_every_transition_is_allowed_or_refused_as_designed(old, new):
     else:
         with pytest.raises(TransitionError, match=f"a {old.value} job cannot become {new.value}"):
             check_transition(old, new)
+
+
+def test_the_proto_enum_comment_lists_the_same_transitions():
+    """jobs.proto's JobState comment (what a gRPC client reads) says what the table allows."""
+    proto = (Path(__file__).resolve().parents[2] / "proto/renderfarm/v1/jobs.proto").read_text()
+    stated = set()
+    for old, targets in re.findall(r"^//   (\w+) > (.+)$", proto, re.M):
+        for new in re.findall(r"\b(\w+)\b", targets.split("(")[0]):
+            stated.add((JobState(old), JobState(new)))
+    assert stated == ALLOWED
 
 
 def test_the_scheduler_refuses_a_transition_the_table_refuses():

@@ -1,47 +1,26 @@
 // The server's REST API (/api/v1) as typed functions. Errors carry the server's message and the
 // offending field ({"detail", "field"}), so forms can show them beside the field.
 
-export type JobState = "waiting" | "queued" | "running" | "paused" | "completed" | "failed" | "cancelled";
-export const JOB_STATES: JobState[] = ["waiting", "queued", "running", "paused", "completed", "failed", "cancelled"];
-
 // The API's types are generated from the server's OpenAPI document (web/openapi.json, written
 // by `make openapi` from the server's models) by openapi-typescript: `npm run api-types`.
 import type { components } from "./generated/openapi";
 
 type Schemas = components["schemas"];
+export type JobState = Schemas["Job"]["state"];
+export const JOB_STATES: JobState[] = ["waiting", "queued", "running", "paused", "completed", "failed", "cancelled"];
 export type Progress = Schemas["Progress"];
 /** A job's settings (the server's one table, server/renderfarm/domain/jobspec.py). */
 export type JobSettings = Schemas["JobSettings"];
-export type Job = Schemas["Job"] & { state: JobState };
+export type Job = Schemas["Job"];
 export type StopRecord = Schemas["StopRecord"];
-export type JobDetail = Schemas["JobDetail"] & { state: JobState };
+export type JobDetail = Schemas["JobDetail"];
 export type JobEvent = Schemas["JobEvent"];
 export type SettingDoc = Schemas["SettingDoc"];
 
-export interface Worker {
-  id: string;
-  hostname: string;
-  cores: number;
-  version: string;
-  connected_unix_s: number;
-  last_heartbeat_unix_s: number;
-  tasks_in_flight: number;
-  tasks_done: number;
-  samples_per_s: number;
-  rays_per_s: number;
-  busy_threads: number;
-  /** Operator control (docs/operators.md): drained = draining with no task left. */
-  state: "active" | "draining" | "drained" | "disabled";
-  tags: string[];
-  tasks_failed: number;
-  recent_errors: string[];
-}
-
-export interface ConvergencePoint {
-  t: number;
-  error: number | null;
-  mean_spp: number;
-}
+/** A connected worker; `state` is operator control (docs/operators.md): drained = draining
+ *  with no task left. */
+export type Worker = Schemas["WorkerInfo"];
+export type ConvergencePoint = Schemas["ConvergencePoint"];
 
 export const FINISHED: ReadonlySet<JobState> = new Set(["completed", "failed", "cancelled"]);
 
@@ -87,10 +66,7 @@ async function request<T>(path: string, init?: RequestInit, signingIn = false): 
   return (await response.json()) as T;
 }
 
-export interface Caller {
-  owner: string;
-  admin: boolean;
-}
+export type Caller = Schemas["WhoAmI"];
 
 /** Checks a token and keeps it in the HttpOnly session cookie (which EventSource and images use). */
 export const signIn = (token: string) =>
