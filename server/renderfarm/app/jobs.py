@@ -1,6 +1,7 @@
 """FarmService: the one place where API calls, worker streams, the scheduler and the store meet.
 This module is its facade (jobs: submit, read, list, cancel, delete, watch; scenes; the
-background round); its other parts are mixins in the modules of app/ named in the class.
+background round); its other parts are mixins in the modules of app/ named in the class. Over
+500 lines because the facade's methods are the API's operations, each short, one after another.
 
 Everything runs on one asyncio event loop: the scheduler is plain Python without locks, merges
 are vectorised numpy on tiles (tens of microseconds), and every database call is awaited, so a

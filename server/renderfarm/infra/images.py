@@ -27,6 +27,10 @@ The denoised layer is the exception: Open Image Denoise needs its inputs for the
 so a DenoiseFrame gathers the colour, albedo and normal (float32) band by band and denoises them
 at once, and the writer then takes its rows from that frame. What it costs
 (jobspec.denoise_memory_bytes) is checked against the job memory limit at submission.
+
+One module although over 500 lines: the layers' arithmetic, the band writer and the denoise
+frame share the band and slicing conventions above, and tests hold them to the whole-frame
+values together (server/tests/test_images.py).
 """
 
 from __future__ import annotations
