@@ -173,6 +173,44 @@ def test_expired_lease_is_released_and_late_result_merged_once():
     assert sched.jobs["j"].tiles[0].acc.samples == 1
 
 
+def test_a_worker_whose_lease_expired_is_leased_nothing_until_it_is_heard_from():
+    """A hung worker stays connected: the batches its expired leases hand back must go to the
+    live worker, not straight back to it (which would repeat every lease period)."""
+    clock = FakeClock()
+    s = JobSettings(width=32, height=16, tile_size=16, noise_threshold=0, max_spp=1)
+    sched = Scheduler(clock=clock, lease_s=10)
+    sched.add_job("j", s, "scene")
+    sched.add_worker("hung", 2)
+    (a, b) = sched.assign("hung")
+    clock.now += 11
+    sched.tick()
+    assert sched.leases_expired == 2
+    assert sched.assign("hung") == []  # no heartbeat since: nothing for it
+    sched.add_worker("alive", 2)
+    taken = sched.assign("alive")
+    assert sorted(t.tile_index for t in taken) == sorted([a.tile_index, b.tile_index])
+    sched.heartbeat("hung")  # it is back; the two batches are the live worker's now
+    assert sched.assign("hung") == []
+    for lease in taken:
+        assert sched.complete(lease.task_id, render(s, lease)) == "merged"
+    assert sched.jobs["j"].state == JobState.COMPLETED
+
+
+def test_a_heartbeat_after_an_expiry_makes_the_worker_eligible_again():
+    clock = FakeClock()
+    s = JobSettings(width=16, height=16, tile_size=16, noise_threshold=0, max_spp=1)
+    sched = Scheduler(clock=clock, lease_s=10)
+    sched.add_job("j", s, "scene")
+    sched.add_worker("w", 1)
+    (lease,) = sched.assign("w")
+    clock.now += 11
+    sched.tick()
+    assert sched.assign("w") == []
+    sched.heartbeat("w")
+    (again,) = sched.assign("w")
+    assert again.batch_index == lease.batch_index
+
+
 def test_worker_disconnect_requeues_its_batches():
     s = JobSettings(width=16, height=16, tile_size=8, noise_threshold=0, max_spp=1)
     sched = Scheduler(clock=FakeClock())

@@ -135,6 +135,9 @@ class WorkerSlot:
     credit: int
     leases: dict[str, Lease] = field(default_factory=dict)
     tags: frozenset[str] = frozenset()  # announced in its Hello (--tag)
+    # A lease of it ran out without a heartbeat (hung, stopped or cut off): it is leased
+    # nothing more until its next heartbeat, so the batches handed back go to other workers.
+    unresponsive: bool = False
 
 
 # Operator modes of a worker (docs/operators.md): an active worker takes tasks; a draining one

@@ -359,6 +359,7 @@ class Scheduler:
         slot = self.workers.get(worker_id)
         if slot is None:
             return
+        slot.unresponsive = False
         deadline = self.clock() + self.lease_s
         for lease in slot.leases.values():
             lease.deadline = deadline
@@ -368,6 +369,9 @@ class Scheduler:
         now = self.clock()
         expired = [lease for lease in self.leases.values() if lease.deadline < now]
         for lease in expired:
+            slot = self.workers.get(lease.worker_id)
+            if slot is not None:
+                slot.unresponsive = True
             self._release(lease, requeue=True)
             self.cancellations.setdefault(lease.worker_id, []).append(lease.task_id)
         self.leases_expired += len(expired)
@@ -393,6 +397,8 @@ class Scheduler:
         slot = self.workers.get(worker_id)
         if slot is None or self.record(worker_id).mode != "active":
             return []  # a draining or disabled worker takes no new task
+        if slot.unresponsive:
+            return []  # its last lease expired: nothing more until it is heard from
         new: list[Lease] = []
         while len(slot.leases) < slot.credit:
             lease = self._next_task(slot)
