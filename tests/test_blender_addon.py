@@ -137,12 +137,15 @@ def test_submit_follow_fetch(token_farm, addon_zip, tmp_path):
         assert "HTTP 401" in result["wrong_token"]["error"]
         assert "API token" in result["wrong_token"]["error"]
 
-        # The settings fields are the farm's list: every setting, type, default and help.
+        # The settings fields are the farm's list: every setting, type, default, help and the
+        # choices of the enumerated ones.
         docs = client.http.get("/api/v1/settings").json()
         assert result["refresh"]["result"] == ["FINISHED"]
-        assert [
-            {k: s[k] for k in ("name", "type", "default", "help")} for s in result["settings"]
-        ] == docs
+        keys = ("name", "type", "default", "help")
+        assert [{k: s[k] for k in keys} for s in result["settings"]] == [
+            {k: d[k] for k in keys} for d in docs
+        ]
+        assert [s["choices"] for s in result["settings"]] == [d["choices"] for d in docs]
         for s in result["settings"]:  # Blender holds floats in single precision
             expected = (
                 pytest.approx(s["default"], rel=1e-6) if s["type"] == "float" else s["default"]

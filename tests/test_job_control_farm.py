@@ -257,10 +257,12 @@ def test_paused_waiting_and_continued_jobs_survive_a_server_restart(tmp_path):
 
 
 def test_a_failed_job_is_retried_with_what_it_had_merged(tmp_path):
-    """A worker with a 1 s task budget renders the small first batches of one 128x128 tile and
+    """A worker with a 1 s task budget renders the small first batches of one 256x256 tile and
     fails on a large one (the job fails); a retry on an unlimited worker carries on from the
-    merged batches and ends with the image of a job that never failed."""
-    settings = {"width": 128, "height": 128, "tile_size": 128, "max_spp": 128,
+    merged batches and ends with the image of a job that never failed. The tile is sized so
+    that the first batch (1 spp, 65k samples) takes a fraction of the budget even on a busy
+    machine and a 64-spp batch (4.2M samples) several times it on a fast one."""
+    settings = {"width": 256, "height": 256, "tile_size": 256, "max_spp": 128,
                 "noise_threshold": 0, "seed": 2}  # fmt: skip
     with LocalFarm(workers=0, data_dir=tmp_path / "farm") as farm:
         farm.add_workers(1, threads=1, extra_args=["--task-timeout-s", "1"])
@@ -269,7 +271,7 @@ def test_a_failed_job_is_retried_with_what_it_had_merged(tmp_path):
             failed = client.wait(job["id"], poll_s=0.1, timeout_s=180)
             assert failed["state"] == "failed", failed
             merged = failed["progress"]["samples_merged"]
-            assert 0 < merged < 128 * 128 * 128, failed
+            assert 0 < merged < 256 * 256 * 128, failed
             stop_processes(farm.worker_procs)
             wait_until(lambda: not client.workers(), 30, "the limited worker gone")
             farm.add_workers(1, threads=2)
@@ -278,7 +280,7 @@ def test_a_failed_job_is_retried_with_what_it_had_merged(tmp_path):
             assert retried["progress"]["samples_merged"] == merged
             done = client.wait(job["id"], poll_s=0.1, timeout_s=300)
             assert done["state"] == "completed"
-            assert done["progress"]["samples_merged"] == 128 * 128 * 128
+            assert done["progress"]["samples_merged"] == 256 * 256 * 128
             fresh = client.submit(CORNELL, settings=settings, name="never failed")
             assert client.wait(fresh["id"], poll_s=0.1, timeout_s=300)["state"] == "completed"
             assert_identical(client, job["id"], fresh["id"], tmp_path)

@@ -50,14 +50,16 @@ def check_docs(docs: Any) -> list[dict[str, Any]]:
             isinstance(default, bool) or not isinstance(default, (int, float))
         ):
             raise ValueError(f"setting {d['name']}: default {default!r} is not a number")
-        out.append(
-            {
-                "name": d["name"],
-                "type": d["type"],
-                "default": default,
-                "help": str(d.get("help", "")),
-            }
-        )
+        entry = {
+            "name": d["name"],
+            "type": d["type"],
+            "default": default,
+            "help": str(d.get("help", "")),
+        }
+        served = d.get("choices")
+        if isinstance(served, list) and all(isinstance(c, str) for c in served):
+            entry["choices"] = list(served)
+        out.append(entry)
     return out
 
 
