@@ -30,7 +30,7 @@ import numpy as np
 from support.results import write_results
 
 from renderfarm.cli.localfarm import LocalFarm
-from renderfarm.client import Client
+from renderfarm.client import ApiError, Client
 from renderfarm.v1 import workers_pb2
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -228,7 +228,17 @@ def main() -> dict:
             after, t1 = scrape(farm.url), time.monotonic()
             gen.join(timeout=60)
             with Client(farm.url) as client:
-                client.cancel(job["id"])
+                # Clean-up: the server, one core flooded with results, may still be storing
+                # the job (503 with Retry-After): ask again for up to a minute, then stop anyway.
+                deadline = time.monotonic() + 60
+                while True:
+                    try:
+                        client.cancel(job["id"])
+                        break
+                    except ApiError as e:
+                        if e.status != 503 or time.monotonic() > deadline:
+                            raise
+                        time.sleep(1)
         except Exception:
             print((Path(data) / "server.log").read_text()[-3000:], file=sys.stderr)
             raise
