@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -25,6 +26,9 @@ def threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
+WORKER_NICE = 10  # scheduling priority of local workers (spawn_workers)
+
+
 def spawn_workers(
     count: int,
     grpc_address: str,
@@ -37,9 +41,13 @@ def spawn_workers(
     a worker connecting with the id of a connected one replaces it)."""
     binary = find_worker_binary()
     threads = threads or threads_per_worker(count)
+    # Local workers share the machine with the server and its database: at a lower priority
+    # (nice WORKER_NICE, for the whole process from exec) they still take every idle cycle,
+    # but a preview, a download or a merge never waits behind a render thread.
+    nice = ["nice", "-n", str(WORKER_NICE)] if shutil.which("nice") else []
     procs = []
     for i in range(first_index, first_index + count):
-        args = [binary, "connect", "--server", grpc_address, "--threads", str(threads)]
+        args = [*nice, binary, "connect", "--server", grpc_address, "--threads", str(threads)]
         args += ["--id", f"{socket.gethostname()}-local-{i}", *(extra_args or [])]
         out = open(log_dir / f"worker-{i}.log", "ab") if log_dir else subprocess.DEVNULL  # noqa: SIM115
         procs.append(subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT))
