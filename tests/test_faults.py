@@ -13,6 +13,7 @@ import re
 import signal
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import httpx
@@ -289,8 +290,10 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
     are all stored. (A long job at low resolution, so it is still running when the database
     goes away; whether it is still running or has finished by the time the server notices the
     outage depends on the renderer's speed, and both must be caught up on.)"""
-    settings = {"width": 48, "height": 48, "tile_size": 16, "max_spp": 12288, "noise_threshold": 0}
-    total = 48 * 48 * 12288
+    # ~50 s of rendering for two one-thread workers on this project's CI machine; the database
+    # goes away at 2%, so a stop that is slow on a busy machine still finds the job running.
+    settings = {"width": 48, "height": 48, "tile_size": 16, "max_spp": 49152, "noise_threshold": 0}
+    total = 48 * 48 * 49152
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
@@ -300,12 +303,16 @@ def test_database_restart_mid_job_loses_nothing(tmp_path):
             def merged() -> int:
                 return client.get(job["id"])["progress"]["samples_merged"]
 
-            wait_until(lambda: merged() > 0.05 * total, 300, "5% merged")
+            wait_until(lambda: merged() > 0.02 * total, 300, "2% merged")
+            at_2_percent = time.monotonic()
             pgdata = data / "pg"
             pg_ctl(pgdata, "stop", "-m", "fast", "-w")
             try:
                 during = merged()
-                assert during < total, "the job ended before the database went away"
+                assert during < total, (
+                    f"the job ended before the database went away: it merged the last 98% in"
+                    f" under {time.monotonic() - at_2_percent:.1f} s"
+                )
                 wait_until(lambda: merged() > during, 60, "merging to go on without the database")
                 wait_until(lambda: not client.ready(), 30, "the server to report unready")
             finally:

@@ -13,7 +13,7 @@ LONG = {"width": 128, "height": 128, "tile_size": 32, "noise_threshold": 0, "max
 
 
 PROGRESS = '[data-stat="progress"] [role="progressbar"]'
-LOADED = "() => document.querySelector('.viewer').dataset.loaded || ''"
+LOADED = "() => document.querySelector('.viewer')?.dataset.loaded || ''"
 
 
 def progress_now(page: Page, attribute: str = "aria-valuenow") -> int:
@@ -68,7 +68,7 @@ def test_submit_through_the_form_and_watch_the_image_converge(page: Page, scene_
     total = progress_now(page, "aria-valuemax")
     assert total == 16
     page.wait_for_function(
-        f"() => Number(document.querySelector('{PROGRESS}').getAttribute('aria-valuenow')) > 0",
+        f"() => Number(document.querySelector('{PROGRESS}')?.getAttribute('aria-valuenow')) > 0",
         timeout=60_000,
     )
     seen = {progress_now(page)}

@@ -19,7 +19,7 @@ SHORT = {"width": 64, "height": 64, "tile_size": 32, "noise_threshold": 0.001, "
 
 def wait_layer(page: Page, layer: str) -> None:
     page.wait_for_function(
-        "(layer) => (document.querySelector('.viewer').dataset.loaded || '')"
+        "(layer) => (document.querySelector('.viewer')?.dataset.loaded || '')"
         ".startsWith(layer + ':')",
         arg=layer,
     )
