@@ -57,3 +57,52 @@ def parse_frames(text: str, max_frames: int, field: str = "settings.frames") -> 
 def frame_time(frame: int, fps: float) -> float:
     """The glTF time of a frame, in seconds: frame / fps (frame 1 is 1/24 s at 24 fps)."""
     return frame / fps
+
+
+def still_or_frames(frames: str, max_frames: int) -> tuple[int, ...] | None:
+    """A job's frames: None for a still (frames empty), else its frame list."""
+    return parse_frames(frames, max_frames) if frames else None
+
+
+def check_animation_selection(
+    text: str, field: str = "settings.animation"
+) -> tuple[int | str, ...]:
+    """The animations a job names: a comma list of indices (0, 2) and names ("Walk"), in the
+    order given; () = all. SettingsError naming `field` for an empty item or a bad name."""
+    if not text:
+        return ()
+    chosen: list[int | str] = []
+    for item in text.split(","):
+        item = item.strip()
+        if not item:
+            raise SettingsError(field, f"{field} has an empty item: give indices or names, 0,Walk")
+        if len(item) > 256 or any(ord(c) < 32 for c in item):
+            raise SettingsError(field, f"{field}: {item[:40]!r} is not an animation index or name")
+        chosen.append(int(item) if item.isdigit() else item)
+    return tuple(chosen)
+
+
+def resolve_animations(
+    text: str, names: list[str], field: str = "settings.animation"
+) -> tuple[int, ...]:
+    """The indices of the animations a job names, checked against the scene's animations
+    (their names in glTF order; an unnamed one is ""). () for all of them."""
+    indices: list[int] = []
+    for item in check_animation_selection(text, field):
+        if isinstance(item, int):
+            if item >= len(names):
+                raise SettingsError(
+                    field,
+                    f"{field}: the scene has {len(names)} animation(s); there is no index {item}",
+                )
+            index = item
+        elif item in names:
+            index = names.index(item)
+        else:
+            known = ", ".join(repr(n) for n in names if n) or "none"
+            raise SettingsError(
+                field, f"{field}: the scene has no animation named {item!r} (named: {known})"
+            )
+        if index not in indices:
+            indices.append(index)
+    return tuple(indices)

@@ -18,6 +18,7 @@ from enum import EnumMeta, StrEnum
 from typing import Any
 
 from ..errors import SettingsError
+from .frames import check_animation_selection, parse_frames
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
 # same rule in worker/src/programs/main.cpp.
@@ -55,6 +56,7 @@ class Limits:
     max_pixels: int = 64 * 2**20
     max_spp: int = 1 << 20
     max_time_limit_s: float = 7 * 24 * 3600.0
+    max_frames: int = 10000  # frames one job may name (settings.frames)
     max_job_memory_bytes: int = 1 << 62  # estimated accumulator memory (job_memory_bytes)
 
 
@@ -205,6 +207,16 @@ SETTINGS: tuple[Setting, ...] = (
             "add a `denoised` layer (Intel Open Image Denoise of the colour, with the albedo and "
             "normal as guides) beside the unbiased image, which stays as it is", 18,
             worker=False),
+    Setting("frames", str, "",
+            "frames of an animation to render: 1-120, 1-120x2 (every 2nd), 1,5,10-20; frame f is "
+            "glTF time f / fps; at most 10000 frames (`RENDERFARM_MAX_FRAMES`). Empty: one still "
+            "of the scene as stored, no animation", 21, worker=False),
+    Setting("fps", float, 24.0,
+            "frames per second of the animation: frame f is rendered at glTF time f / fps", 22,
+            minimum=0.0, maximum=1000.0, exclusive_minimum=True, unit="1/s", worker=False),
+    Setting("animation", str, "",
+            "the glTF animations that drive the frames: a comma list of their indices or names "
+            "(names are case-sensitive); empty = all of them", 23),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -227,7 +239,7 @@ JobSettings = make_dataclass(
 
 
 # Limits an operator sets (config.Settings, environment RENDERFARM_<NAME>); the others are fixed.
-CONFIGURABLE_LIMITS = ("max_width", "max_height", "max_spp")
+CONFIGURABLE_LIMITS = ("max_width", "max_height", "max_spp", "max_frames")
 
 
 def setting_docs(limits: Limits = Limits()) -> list[dict[str, Any]]:
@@ -277,7 +289,11 @@ def settings_markdown() -> str:
     return "\n".join(rows) + "\n"
 
 
-def _coerce(name: str, kind: type, value: Any) -> Any:
+# String settings whose case means something (animation names); the others are lowercased.
+KEEP_CASE = frozenset({"animation"})
+
+
+def _coerce(name: str, kind: type, value: Any, keep_case: bool = False) -> Any:
     field = f"settings.{name}"
     if kind is bool:
         # JSON true/false; "true"/"false" from a form field or the command line.
@@ -308,7 +324,7 @@ def _coerce(name: str, kind: type, value: Any) -> Any:
         return number
     if not isinstance(value, str):
         raise SettingsError(field, f"{field} must be a string, got {value!r}")
-    return value.strip().lower()
+    return value.strip() if keep_case else value.strip().lower()
 
 
 def parse_settings(raw: dict[str, Any] | None, limits: Limits = Limits()) -> JobSettings:
@@ -331,7 +347,7 @@ def parse_settings(raw: dict[str, Any] | None, limits: Limits = Limits()) -> Job
         if value is None:
             continue
         kind = SETTING_BY_NAME[name].kind
-        coerced = _coerce(key, kind, value)
+        coerced = _coerce(key, kind, value, keep_case=name in KEEP_CASE)
         if name in values and values[name] != coerced:
             alias = key if key in ALIASES else next(a for a, n in ALIASES.items() if n == name)
             raise SettingsError(
@@ -423,6 +439,18 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
         "environment",
         "must be the sha256 of a stored environment map (64 hex digits)",
     )
+    if s.frames:
+        frame_count = len(parse_frames(s.frames, limits.max_frames))
+        need = frame_count * job_memory_bytes(s.width, s.height, s.tile_size)
+        _require(
+            need <= limits.max_job_memory_bytes,
+            "frames",
+            f"names {frame_count} frames of {s.width} x {s.height}: about {need / 2**20:.0f} MB of "
+            f"accumulators in all, more than the server's limit of "
+            f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB); "
+            "split the range into several jobs",
+        )
+    check_animation_selection(s.animation)
     _require(
         s.aperture_radius == 0.0 or s.focus_distance > 0.0,
         "focus_distance",

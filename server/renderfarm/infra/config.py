@@ -76,6 +76,7 @@ class Settings(BaseSettings):
     max_height: int = Field(16384, gt=0, description="largest image height a job may ask for")
     max_pixels: int = Field(64 * 2**20, gt=0, description="largest width x height")
     max_spp: int = Field(1 << 20, gt=0, description="largest max_spp a job may ask for")
+    max_frames: int = Field(10000, gt=0, description="most frames one job may name (frames)")
     max_job_memory_mb: int = Field(
         default_factory=default_max_job_memory_mb,
         gt=0,
@@ -166,5 +167,6 @@ class Settings(BaseSettings):
             max_height=self.max_height,
             max_pixels=self.max_pixels,
             max_spp=self.max_spp,
+            max_frames=self.max_frames,
             max_job_memory_bytes=self.max_job_memory_mb * 2**20,
         )
