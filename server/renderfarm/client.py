@@ -279,12 +279,38 @@ class Client:
         response = self.http.get(f"/api/v1/jobs/{job_id}/image.{fmt}", params=params)
         return self._check(response).content
 
+    def frames(self, job_id: str) -> list[dict[str, Any]]:
+        """Every frame of the job with its progress, in frame order: frame, state (queued,
+        rendering or done), tiles_total, tiles_done, mean_spp, error (a still: one, frame 0)."""
+        return self._check(self.http.get(f"/api/v1/jobs/{job_id}/frames")).json()
+
+    def frame_image(
+        self,
+        job_id: str,
+        frame: int,
+        fmt: str = "png",
+        layer: str = "rgb",
+        max_size: int = 0,
+        compression: str = "zip",
+    ) -> bytes:
+        """One frame of an animation job, as image() gives the first."""
+        params = {"layer": layer, "max_size": max_size, "compression": compression}
+        response = self.http.get(f"/api/v1/jobs/{job_id}/frames/{frame}/image.{fmt}", params=params)
+        return self._check(response).content
+
     def save_image(
-        self, job_id: str, path: str | os.PathLike, fmt: str = "png", layer: str = "rgb"
+        self,
+        job_id: str,
+        path: str | os.PathLike,
+        fmt: str = "png",
+        layer: str = "rgb",
+        frame: int | None = None,
     ) -> None:
-        """An image of the job (as image()) streamed into a file, never whole in memory."""
+        """An image of the job (as image(), or frame_image() for a frame) streamed into a
+        file, never whole in memory."""
         params = {"layer": layer} if fmt == "png" else {}
-        with self.http.stream("GET", f"/api/v1/jobs/{job_id}/image.{fmt}", params=params) as r:
+        where = f"/api/v1/jobs/{job_id}" + ("" if frame is None else f"/frames/{frame}")
+        with self.http.stream("GET", f"{where}/image.{fmt}", params=params) as r:
             if r.status_code >= 400:
                 r.read()
                 self._check(r)

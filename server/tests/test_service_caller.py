@@ -41,6 +41,7 @@ CALLS = {
     "delete": ((JOB,), {}),
     "watch": ((JOB,), {}),
     "events": ((JOB,), {}),
+    "frames": ((JOB,), {}),
     "image": ((JOB, "png", "rgb"), {}),
     "image_file": ((JOB, "png", "rgb"), {}),
     "convergence": ((JOB,), {}),

@@ -32,6 +32,7 @@ from ..app.auth import Authenticator, Caller
 from ..app.jobs import FarmService
 from ..app.views import JobView
 from ..app.worker_sessions import WorkerSession
+from ..domain.frames import frame_time
 from ..domain.jobspec import SETTINGS, check_tags
 from ..domain.states import JobState
 from ..domain.tiling import carries_aovs
@@ -115,6 +116,8 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
             eta_s=p.eta_s if p.eta_s is not None else -1.0,
             samples_merged=p.samples_merged,
             elapsed_s=p.elapsed_s,
+            frames_total=p.frames_total,
+            frames_done=p.frames_done,
         ),
         error=view.error,
         created_unix_s=view.created_unix_s,
@@ -287,6 +290,7 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
                 apicommon.job_id(request.job_id), fmt, request.layer or "rgb", who,
                 max_size=request.max_size, max_bytes=MAX_MESSAGE_BYTES - (1 << 20),
                 compression=request.compression or "zip",
+                frame=request.frame if request.HasField("frame") else None,
             )  # fmt: skip
         except Cancelled:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "the server is stopping")
@@ -294,6 +298,24 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
             data=data,
             format=jobs_pb2.IMAGE_FORMAT_EXR if fmt == "exr" else jobs_pb2.IMAGE_FORMAT_PNG,
             media_type=apicommon.IMAGE_MEDIA_TYPES[fmt],
+        )
+
+    @_maps_errors
+    async def ListFrames(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        frames = await self.farm.frames(apicommon.job_id(request.job_id), who)
+        return jobs_pb2.ListFramesResponse(
+            frames=[
+                jobs_pb2.FrameStatus(
+                    frame=f.frame,
+                    state=f.state,
+                    tiles_total=f.tiles_total,
+                    tiles_done=f.tiles_done,
+                    mean_spp=f.mean_spp,
+                    error=f.error if f.error is not None else -1.0,
+                )  # fmt: skip
+                for f in frames
+            ]
         )
 
     @_maps_errors
@@ -452,6 +474,11 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             sample_count=lease.sample_count,
         )
         task.settings.CopyFrom(self._settings_proto(job))
+        if job.frames is not None:  # a frame of an animation: posed at its glTF time
+            frame = job.frames[lease.tile_index // job.tiles_per_frame]
+            task.animated = True
+            task.frame = frame
+            task.time_s = frame_time(frame, job.settings.fps)
         return workers_pb2.ServerMessage(
             assign=workers_pb2.Assign(task=task, lease_deadline_unix_ms=int(lease.deadline * 1000))
         )

@@ -44,6 +44,19 @@ class Progress(BaseModel):
     eta_s: float | None = Field(description="seconds to completion; null when unknown")
     samples_merged: int
     elapsed_s: float
+    frames_total: int = Field(1, description="images the job renders: its frames, 1 for a still")
+    frames_done: int = Field(0, description="frames whose every tile has stopped")
+
+
+class Frame(BaseModel):
+    frame: int = Field(description="the frame number (0 for a still)")
+    state: Literal["queued", "rendering", "done"] = Field(
+        description="queued: nothing merged yet; done: every tile has stopped"
+    )
+    tiles_total: int
+    tiles_done: int
+    mean_spp: float
+    error: float | None = Field(description="RMS relative error over its tiles; null before one")
 
 
 class Job(BaseModel):

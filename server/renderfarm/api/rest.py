@@ -35,6 +35,7 @@ from .models import (
     SUBMIT_BODY,
     UPDATE_BODY,
     ConvergencePoint,
+    Frame,
     Job,
     JobDetail,
     JobEvent,
@@ -347,39 +348,33 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
 
     add_watch_route(app, farm, Auth)
 
-    @app.get(
-        "/api/v1/jobs/{job_id}/image.{fmt}",
-        summary="The image (also while rendering): image.png (one layer) or image.exr (all)",
-        response_class=Response,
-        responses={
-            200: {
-                "content": {
-                    "image/png": {"schema": {"type": "string", "format": "binary"}},
-                    "image/x-exr": {"schema": {"type": "string", "format": "binary"}},
-                }
-            },
-            **error_responses(403, 404),
+    image_responses = {
+        200: {
+            "content": {
+                "image/png": {"schema": {"type": "string", "format": "binary"}},
+                "image/x-exr": {"schema": {"type": "string", "format": "binary"}},
+            }
         },
+        **error_responses(403, 404),
+    }
+    max_size_query = Query(
+        0,
+        description="PNG only: downscale (box filter) until neither side exceeds this; "
+        "0 = full resolution",
     )
-    async def image(
-        job_id: str,
-        fmt: Literal["png", "exr"],
-        layer: str = "rgb",
-        max_size: int = Query(
-            0,
-            description="PNG only: downscale (box filter) until neither side exceeds this; "
-            "0 = full resolution",
-        ),
-        compression: str = Query("zip", description="EXR only: zip, or none (faster, larger)"),
-        who: Caller = Auth,
-    ) -> Response:
+    compression_query = Query("zip", description="EXR only: zip, or none (faster, larger)")
+
+    async def image_response(
+        job_id: str, fmt: str, layer: str, max_size: int, compression: str, who: Caller,
+        frame: int | None,
+    ) -> Response:  # fmt: skip
         if layer not in LAYERS:
             raise SettingsError(
                 "layer", f"unknown layer {layer[:40]!r}; one of {', '.join(LAYERS)}"
             )
         try:
             file = await farm.image_file(
-                apicommon.job_id(job_id), fmt, layer, who, max_size, compression
+                apicommon.job_id(job_id), fmt, layer, who, max_size, compression, frame
             )
         except Cancelled:
             return error_response(503, "", "the server is stopping")
@@ -394,6 +389,49 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         media = apicommon.IMAGE_MEDIA_TYPES[fmt]
         headers = {"Cache-Control": "no-store", "Content-Length": str(size)}
         return StreamingResponse(chunks(), media_type=media, headers=headers)
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/image.{fmt}",
+        summary="The image (also while rendering): image.png (one layer) or image.exr (all); "
+        "of an animation, its first frame",
+        response_class=Response,
+        responses=image_responses,
+    )
+    async def image(
+        job_id: str,
+        fmt: Literal["png", "exr"],
+        layer: str = "rgb",
+        max_size: int = max_size_query,
+        compression: str = compression_query,
+        who: Caller = Auth,
+    ) -> Response:
+        return await image_response(job_id, fmt, layer, max_size, compression, who, None)
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/frames",
+        summary="Every frame of the job with its progress (a still has one, frame 0)",
+        response_model=list[Frame],
+        responses=error_responses(403, 404),
+    )
+    async def frames(job_id: str, who: Caller = Auth) -> list[dict]:
+        return [f.to_json() for f in await farm.frames(apicommon.job_id(job_id), who)]
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/frames/{frame}/image.{fmt}",
+        summary="One frame of an animation (also while rendering), as image.png or image.exr",
+        response_class=Response,
+        responses=image_responses,
+    )
+    async def frame_image(
+        job_id: str,
+        frame: int,
+        fmt: Literal["png", "exr"],
+        layer: str = "rgb",
+        max_size: int = max_size_query,
+        compression: str = compression_query,
+        who: Caller = Auth,
+    ) -> Response:
+        return await image_response(job_id, fmt, layer, max_size, compression, who, frame)
 
     @app.get(
         "/api/v1/workers",

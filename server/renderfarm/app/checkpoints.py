@@ -4,10 +4,11 @@ a thread) in chunks of about CHECKPOINT_CHUNK_BYTES, and rows back to accumulato
 
 from __future__ import annotations
 
+from ..domain.frames import job_rects
 from ..domain.jobspec import JobSettings
 from ..domain.merge import TileAccumulator
 from ..domain.scheduler import Scheduler
-from ..domain.tiling import Rect, tile_grid
+from ..domain.tiling import Rect
 from ..infra import images
 from ..infra.store import TileRow
 
@@ -16,7 +17,7 @@ def restore_tiles(
     settings: JobSettings, rows: list[TileRow]
 ) -> dict[int, tuple[Rect, TileAccumulator]]:
     """Checkpointed tiles of a job as accumulators, by tile index."""
-    rects = tile_grid(settings.width, settings.height, settings.tile_size)
+    rects = job_rects(settings)
     restored = {}
     for t in rows:
         rect = rects[t.tile_index]

@@ -13,13 +13,15 @@ import os
 import tempfile
 from typing import BinaryIO
 
+from ..domain.frames import frame_slot, job_frames, job_rects, tiles_per_frame
 from ..domain.jobspec import JobSettings
-from ..domain.tiling import tile_grid
+from ..domain.records import FrameProgress
 from ..errors import NotFound, SettingsError, TooLarge
 from ..infra import images
+from ..infra.store import TileSummary
 from . import checkpoints
 from .auth import Caller, check_caller
-from .views import JobView
+from .views import FrameView, JobView, finite_or_none
 
 MAX_IMAGE_SIZE = 1 << 16  # largest max_size of a PNG preview
 
@@ -35,11 +37,15 @@ class JobImages:
         caller: Caller,
         max_size: int = 0,
         compression: str = "zip",
+        frame: int | None = None,
         _denoise_turn_held: bool = False,
     ) -> BinaryIO:
         """The image written to a scratch file, returned open for reading (the file is
         already unlinked: closing it frees the space). Written one row of tiles at a time
-        (images.ImageWriter), from memory while the job is held, else from the database."""
+        (images.ImageWriter), from memory while the job is held, else from the database.
+
+        frame: which frame of an animation (None: the first frame, or the still); NotFound
+        when the job does not render it."""
         check_caller(caller)
         if fmt not in ("png", "exr"):
             raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
@@ -69,13 +75,16 @@ class JobImages:
         if settings.denoise and (fmt == "exr" or layer == "denoised") and not _denoise_turn_held:
             async with self._denoise_turn:
                 return await self.image_file(
-                    job_id, fmt, layer, caller, max_size, compression, _denoise_turn_held=True
-                )
+                    job_id, fmt, layer, caller, max_size, compression, frame,
+                    _denoise_turn_held=True,
+                )  # fmt: skip
         # The EXR's DateTime: when the job finished (when it was submitted while it runs).
         stamp = (row.finished_at or row.created_at).timestamp()
-        rects = tile_grid(settings.width, settings.height, settings.tile_size)
+        slot = frame_slot(settings, frame)
+        rects = job_rects(settings)  # of every frame; this frame's start at `base`
+        base = slot * tiles_per_frame(settings)
         cols = math.ceil(settings.width / settings.tile_size)
-        rows = len(rects) // cols
+        rows = tiles_per_frame(settings) // cols
         names = images.arrays_needed(fmt, layer)
 
         async def band(r: int) -> images.Band:
@@ -83,16 +92,17 @@ class JobImages:
             the database)."""
             live = self.scheduler.jobs.get(job_id)
             if live is not None:  # snapshots on the loop (cheap), arrays read in the thread
+                first = base + r * cols
                 views = [(t.rect, images.TileView.of(t.rect, t.acc, names)) for t in
-                         live.tiles[r * cols : (r + 1) * cols]]  # fmt: skip
+                         live.tiles[first : first + cols]]  # fmt: skip
                 return await asyncio.to_thread(
                     lambda: [(rect, v and v.accumulator()) for rect, v in views]
                 )
-            stored = await self.store.load_tiles(job_id, first=r * cols, count=cols)
+            stored = await self.store.load_tiles(job_id, first=base + r * cols, count=cols)
             if not stored and await self.store.get_job(job_id) is None:
                 raise NotFound(f"no job with id {job_id!r}")  # deleted meanwhile
             return await asyncio.to_thread(
-                checkpoints.band_from_rows, settings, rects, r * cols, cols, stored
+                checkpoints.band_from_rows, settings, rects, base + r * cols, cols, stored
             )
 
         top = 1.0
@@ -103,12 +113,15 @@ class JobImages:
         denoised = None
         if settings.denoise and (fmt == "exr" or layer == "denoised"):
             # A first pass gathers the frame Open Image Denoise needs whole (infra/images.py).
-            frame = images.DenoiseFrame(settings.width, settings.height)
+            whole = images.DenoiseFrame(settings.width, settings.height)
             for r in range(rows):
-                await asyncio.to_thread(frame.add_band, rects[r * cols].height, await band(r))
-            denoised = await asyncio.to_thread(frame.denoise)
-            del frame
-        attributes = exr_attributes(view) if fmt == "exr" else None
+                await asyncio.to_thread(whole.add_band, rects[r * cols].height, await band(r))
+            denoised = await asyncio.to_thread(whole.denoise)
+            del whole
+        attributes = None
+        if fmt == "exr":
+            numbers = job_frames(settings)
+            attributes = exr_attributes(view, None if numbers is None else numbers[slot])
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
@@ -134,6 +147,39 @@ class JobImages:
         os.unlink(path)
         return f
 
+    async def frames(self, job_id: str, caller: Caller) -> list[FrameView]:
+        """Every frame of the job with its progress (one, frame 0, for a still): from memory
+        while the job is held, else from its stored tiles."""
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
+        settings = view.settings
+        numbers = job_frames(settings) or (0,)
+        live = self.scheduler.jobs.get(job_id)
+        if live is not None:
+            return [
+                _frame_view(self.scheduler.frame_progress(live, slot))
+                for slot in range(len(numbers))
+            ]
+        per_frame = tiles_per_frame(settings)
+        rects = job_rects(settings)
+        slots: list[list[TileSummary]] = [[] for _ in numbers]
+        for t in await self.store.tile_summaries(job_id):
+            if 0 <= t.tile_index < len(rects):
+                slots[t.tile_index // per_frame].append(t)
+        views = []
+        for frame, tiles in zip(numbers, slots, strict=True):
+            errors = [t.error for t in tiles if t.samples > 0 and t.error is not None]
+            done = sum(1 for t in tiles if t.stopped)
+            views.append(FrameView(
+                frame=frame,
+                state="done" if done == per_frame else ("rendering" if errors else "queued"),
+                tiles_total=per_frame,
+                tiles_done=done,
+                mean_spp=sum(t.samples * rects[t.tile_index].pixels for t in tiles)
+                / (settings.width * settings.height),
+                error=math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None,
+            ))  # fmt: skip
+        return views
+
     async def image(
         self,
         job_id: str,
@@ -143,9 +189,10 @@ class JobImages:
         max_size: int = 0,
         max_bytes: int | None = None,
         compression: str = "zip",
+        frame: int | None = None,
     ) -> bytes:
         """The image as bytes (for gRPC's one message); TooLarge past max_bytes."""
-        with await self.image_file(job_id, fmt, layer, caller, max_size, compression) as f:
+        with await self.image_file(job_id, fmt, layer, caller, max_size, compression, frame) as f:
             size = os.fstat(f.fileno()).st_size
             if max_bytes is not None and size > max_bytes:
                 raise TooLarge(
@@ -154,6 +201,13 @@ class JobImages:
                     f"({max_bytes}); GET /api/v1/jobs/{job_id}/image.{fmt} streams it",
                 )
             return await asyncio.to_thread(f.read)
+
+
+def _frame_view(p: FrameProgress) -> FrameView:
+    return FrameView(
+        frame=p.frame, state=p.state, tiles_total=p.tiles_total, tiles_done=p.tiles_done,
+        mean_spp=p.mean_spp, error=finite_or_none(p.error),
+    )  # fmt: skip
 
 
 def renderer_version() -> str:
@@ -165,10 +219,10 @@ def renderer_version() -> str:
         return "unknown"
 
 
-def exr_attributes(view: JobView) -> dict[str, str | float]:
+def exr_attributes(view: JobView, frame: int | None = None) -> dict[str, str | float]:
     """The job's record in its EXR header (docs/usage.md, "Outputs"): its settings as JSON, scene,
-    renderer version, mean spp and estimated error (absent while unknown). No wall-clock
-    time: the EXR stays a function of the job."""
+    renderer version, mean spp and estimated error (absent while unknown), and for a frame of
+    an animation its number. No wall-clock time: the EXR stays a function of the job."""
     attributes: dict[str, str | float] = {
         "renderfarm:settings": json.dumps(view.settings.to_dict(), sort_keys=True),
         "renderfarm:scene_sha256": view.scene_sha256,
@@ -177,6 +231,8 @@ def exr_attributes(view: JobView) -> dict[str, str | float]:
     }
     if view.progress.error is not None:
         attributes["renderfarm:error"] = float(view.progress.error)
+    if frame is not None:
+        attributes["renderfarm:frame"] = float(frame)
     return attributes
 
 

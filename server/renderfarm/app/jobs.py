@@ -30,6 +30,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from ..domain.frames import frame_count, job_rects, resolve_animations
 from ..domain.jobspec import JobSettings, parse_settings
 from ..domain.merge import TileAccumulator
 from ..domain.records import JobRun
@@ -37,7 +38,6 @@ from ..domain.scenes.environment import inspect_environment
 from ..domain.scenes.validate import inspect_scene
 from ..domain.scheduler import Scheduler
 from ..domain.states import JobState
-from ..domain.tiling import tile_grid
 from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge
 from ..infra import spool
 from ..infra.config import Settings
@@ -152,7 +152,7 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
             # A chunk of tiles at a time, each put under the tile cache at once: a large job
             # comes back within the cache's RAM (the rest goes to its spill file).
             checkpoint, plans, bases, old_aovs = {}, {}, {}, []
-            tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+            tiles = len(job_rects(settings))
             tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
             step = max(1, checkpoints.CHECKPOINT_CHUNK_BYTES // tile_bytes)
             for first in range(0, tiles, step):
@@ -234,6 +234,7 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
                     f"{self.settings.max_upload_bytes} bytes",
                 )
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
+            resolve_animations(settings.animation, info.animations)
             if await self.store.get_scene_info(info.sha256) is None:
                 await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
             await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
@@ -245,13 +246,17 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
             if stored is None or stored["format"] not in ("glb", "gltf"):
                 raise NotFound(f"no stored scene with sha256 {sha}")
             filename = filename or stored["filename"]
+            if settings.animation:  # names are checked against the stored scene's animations
+                data = await self.store.read_scene(sha, 0, stored["size_bytes"])
+                info = inspect_scene(data, filename, max(len(data), 1))
+                resolve_animations(settings.animation, info.animations)
         else:
             raise SettingsError(
                 "scene", "a scene is required: upload a .glb/.gltf or give scene_sha256"
             )
         job_id = secrets.token_hex(6)
         name = (name or filename or "job").strip()[:200]
-        tiles = len(tile_grid(settings.width, settings.height, settings.tile_size))
+        tiles = len(job_rects(settings))
         state = JobState.QUEUED if ready else JobState.WAITING
         row = await self.store.insert_job(
             job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner, after=after,
@@ -459,6 +464,8 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
                 eta_s=p.eta_s,
                 samples_merged=p.samples_merged,
                 elapsed_s=p.elapsed_s,
+                frames_total=p.frames_total,
+                frames_done=p.frames_done,
             ),
             error=job.error_message if state == JobState.FAILED else self._unplaced(job),
             created_unix_s=self.created.get(job.job_id, job.created),
@@ -477,11 +484,12 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
         return "waiting for a worker with the tags " + ", ".join(sorted(job.require_tags))
 
     def _row_view(self, row: JobRow) -> JobView:
+        settings = JobSettings(**row.settings)
         return JobView(
             id=row.id,
             name=row.name,
             state=JobState(row.state),
-            settings=JobSettings(**row.settings),
+            settings=settings,
             scene_sha256=row.scene_sha256,
             progress=ProgressView(
                 tiles_total=row.tiles_total,
@@ -492,6 +500,8 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
                 eta_s=0.0 if JobState(row.state).finished else None,
                 samples_merged=row.samples_merged,
                 elapsed_s=row.elapsed_s,
+                frames_total=frame_count(settings),
+                frames_done=row.frames_done,
             ),
             error=row.error,
             created_unix_s=row.created_at.timestamp(),

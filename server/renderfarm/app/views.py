@@ -20,6 +20,23 @@ class ProgressView:
     eta_s: float | None
     samples_merged: int
     elapsed_s: float
+    frames_total: int = 1  # images the job renders: its frames, or 1 for a still
+    frames_done: int = 0  # frames whose every tile has stopped
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """One frame of an animation job (GET /api/v1/jobs/{id}/frames)."""
+
+    frame: int
+    state: str  # "queued" (nothing merged yet), "rendering" or "done"
+    tiles_total: int
+    tiles_done: int
+    mean_spp: float
+    error: float | None  # RMS of its tiles' relative errors; None before any estimate
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.__dict__)
 
 
 @dataclass(frozen=True)

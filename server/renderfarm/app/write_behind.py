@@ -154,6 +154,7 @@ class WriteBehind:
             "error_estimate": finite_or_none(p.error),
             "tiles_done": p.tiles_done,
             "tiles_previewed": p.tiles_previewed,
+            "frames_done": p.frames_done,
         }
 
     def _reported_state(self, job: JobRun) -> JobState:

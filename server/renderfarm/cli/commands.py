@@ -17,6 +17,7 @@ import asyncio
 import json
 import logging
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -200,18 +201,32 @@ def _progress_status(job: dict[str, Any]) -> str:
     )
 
 
+def _frames_text(job: dict[str, Any]) -> str:
+    """ "  3/48 frames" for an animation; "" for a still."""
+    p = job["progress"]
+    if not job["settings"].get("frames"):
+        return ""
+    return f"  {p.get('frames_done', 0)}/{p.get('frames_total', 1)} frames"
+
+
 def progress_line(job: dict[str, Any], width: int = 24) -> str:
     p = job["progress"]
     total = max(1, p["tiles_total"])
     filled = int(width * p["tiles_done"] / total)
     bar = "#" * filled + "-" * (width - filled)
-    return f"[{bar}] {p['tiles_done']}/{p['tiles_total']} tiles  {_progress_status(job)}"
+    return (
+        f"[{bar}] {p['tiles_done']}/{p['tiles_total']} tiles{_frames_text(job)}  "
+        f"{_progress_status(job)}"
+    )
 
 
-def _watch(client, job_id: str, quiet: bool, as_json: bool = False) -> dict[str, Any]:
+def _watch(
+    client, job_id: str, quiet: bool, as_json: bool = False, on_update=None
+) -> dict[str, Any]:
     """Follow the job's Server-Sent Events until it finishes: a live progress bar (rich) when
     stderr, where it is drawn, is a terminal; one line per second otherwise; one JSON object
-    per update with as_json. A job that did not complete is an error (exit 1)."""
+    per update with as_json. on_update(job) is called with every update. A job that did not
+    complete is an error (exit 1)."""
     from rich.console import Console
 
     console = Console(stderr=True)
@@ -219,6 +234,8 @@ def _watch(client, job_id: str, quiet: bool, as_json: bool = False) -> dict[str,
     if as_json or quiet or not console.is_terminal:
         last_line = 0.0
         for job in client.watch(job_id):
+            if on_update is not None:
+                on_update(job)
             if as_json:
                 sys.stdout.write(json.dumps(job) + "\n")
                 sys.stdout.flush()
@@ -237,8 +254,10 @@ def _watch(client, job_id: str, quiet: bool, as_json: bool = False) -> dict[str,
         with Progress(*columns, console=console) as bar:
             task = bar.add_task(job_id, total=None, status="connecting")
             for job in client.watch(job_id):
+                if on_update is not None:
+                    on_update(job)
                 p = job["progress"]
-                status = _progress_status(job)
+                status = _frames_text(job).strip() + "  " + _progress_status(job)
                 bar.update(task, total=p["tiles_total"], completed=p["tiles_done"], status=status)
     if not job:
         raise CliError(f"the server sent nothing for job {job_id}")
@@ -289,6 +308,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise CliError("-o must name an .exr file (a .png is written beside it)", EXIT_USAGE)
+    if "#" in out.name and not getattr(args, "frames", None):
+        raise CliError("-o has a #### frame number but no --frames were given", EXIT_USAGE)
     _check_inputs(args)
     url = args.url or os.environ.get("RENDERFARM_URL")
     farm = None
@@ -308,8 +329,9 @@ def cmd_render(args: argparse.Namespace) -> int:
             job = _submit(client, args)
             if not args.quiet:
                 print(f"job {job['id']} submitted to {url}", file=sys.stderr)
+            sequence = FrameWriter(client, job["id"], out) if job["settings"]["frames"] else None
             try:
-                job = _watch(client, job["id"], args.quiet)
+                job = _watch(client, job["id"], args.quiet, on_update=sequence)
             except KeyboardInterrupt:
                 try:
                     client.cancel(job["id"])
@@ -319,11 +341,24 @@ def cmd_render(args: argparse.Namespace) -> int:
                     message, _ = error_message(e, url)
                     print(f"\njob {job['id']} was not cancelled: {message}", file=sys.stderr)
                 return EXIT_INTERRUPTED
+            p = job["progress"]
+            if sequence is not None:
+                sequence(job)  # the frames that finished with the job
+                print(
+                    f"rendered {p['frames_total']} frames of {job['settings']['width']}x"
+                    f"{job['settings']['height']} in {time.monotonic() - started:.1f} s: "
+                    f"{p['mean_spp']:.1f} spp mean, error {100 * (p['error'] or 0):.2f}%",
+                    file=sys.stderr,
+                )
+                print(f"EXR: {sequence.template.resolve()}")
+                print(f"PNG: {sequence.template.with_suffix('.png').resolve()}")
+                if args.json:
+                    _print_json(job)
+                return 0
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_bytes(client.image(job["id"], "exr"))
             png = out.with_suffix(".png")
             png.write_bytes(client.image(job["id"], "png"))
-            p = job["progress"]
             print(
                 f"rendered {job['settings']['width']}x{job['settings']['height']} "
                 f"in {time.monotonic() - started:.1f} s: {p['mean_spp']:.1f} spp mean, "
@@ -338,6 +373,44 @@ def cmd_render(args: argparse.Namespace) -> int:
     finally:
         if farm is not None:
             farm.stop()
+
+
+def frame_path(template: Path, frame: int) -> Path:
+    """The file of one frame: the template's run of # replaced by the frame number padded to
+    its length (shot_####.exr, frame 7: shot_0007.exr; frame -3: shot_-003.exr)."""
+    name = template.name
+    run = re.search(r"#+", name)
+    if run is None:
+        raise ValueError(f"{template} has no #### for the frame number")
+    width = len(run.group(0))
+    number = f"-{abs(frame):0{width - 1}d}" if frame < 0 else f"{frame:0{width}d}"
+    return template.with_name(name[: run.start()] + number + name[run.end() :])
+
+
+class FrameWriter:
+    """Writes each frame of an animation job (EXR and PNG, from the -o template) as soon as it
+    is done, so a long sequence is on disk frame by frame (called with every job update)."""
+
+    def __init__(self, client, job_id: str, template: Path):
+        if "#" not in template.name:  # shot.exr -> shot_####.exr
+            template = template.with_name(f"{template.stem}_####{template.suffix}")
+        self.client, self.job_id, self.template = client, job_id, template
+        self.written: set[int] = set()
+        self.done_seen = 0
+
+    def __call__(self, job: dict[str, Any]) -> None:
+        done = job["progress"].get("frames_done", 0)
+        if done <= self.done_seen and job["state"] not in FINISHED:
+            return
+        self.done_seen = done
+        for f in self.client.frames(self.job_id):
+            if f["state"] != "done" or f["frame"] in self.written:
+                continue
+            path = frame_path(self.template, f["frame"])
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.client.save_image(self.job_id, path, "exr", frame=f["frame"])
+            self.client.save_image(self.job_id, path.with_suffix(".png"), "png", frame=f["frame"])
+            self.written.add(f["frame"])
 
 
 def cmd_submit(args: argparse.Namespace) -> int:

@@ -14,9 +14,13 @@ exporter's mapping), frame_time() gives it.
 
 from __future__ import annotations
 
+import bisect
+import functools
 import re
+from typing import Any
 
-from ..errors import SettingsError
+from ..errors import NotFound, SettingsError
+from .tiling import Rect, tile_grid
 
 _ITEM = re.compile(r"(-?\d+)(?:-(-?\d+)(?:x(\d+))?)?")
 MAX_FRAME = 10**6  # frame numbers within +-1e6 (Blender's range is +-1048574)
@@ -59,9 +63,45 @@ def frame_time(frame: int, fps: float) -> float:
     return frame / fps
 
 
-def still_or_frames(frames: str, max_frames: int) -> tuple[int, ...] | None:
-    """A job's frames: None for a still (frames empty), else its frame list."""
-    return parse_frames(frames, max_frames) if frames else None
+@functools.lru_cache(maxsize=256)
+def _frames_of(text: str) -> tuple[int, ...]:
+    return parse_frames(text, 2 * MAX_FRAME + 1)
+
+
+def job_frames(settings: Any) -> tuple[int, ...] | None:
+    """The frames of a job's (validated) settings, ascending; None for a still."""
+    return _frames_of(settings.frames) if settings.frames else None
+
+
+def frame_count(settings: Any) -> int:
+    """How many images a job renders: its frames, or 1 for a still."""
+    frames = job_frames(settings)
+    return 1 if frames is None else len(frames)
+
+
+def tiles_per_frame(settings: Any) -> int:
+    return len(tile_grid(settings.width, settings.height, settings.tile_size))
+
+
+def job_rects(settings: Any) -> list[Rect]:
+    """The rect of every tile of a job, by tile index: frame slot s (its place in the frame
+    list) holds tiles s * tiles_per_frame ... (s + 1) * tiles_per_frame - 1, each frame's grid
+    in row-major order (workers.proto, Task.tile_index)."""
+    grid = tile_grid(settings.width, settings.height, settings.tile_size)
+    return grid * frame_count(settings)
+
+
+def frame_slot(settings: Any, frame: int | None) -> int:
+    """The slot of a frame number in a job's frame list (None: the still, or the first frame);
+    NotFound when the job does not render that frame."""
+    frames = job_frames(settings)
+    if frame is None:
+        return 0
+    slot = bisect.bisect_left(frames, frame) if frames is not None else 0
+    if frames is None or slot == len(frames) or frames[slot] != frame:
+        rendered = "it is a still" if frames is None else f"its frames are {settings.frames}"
+        raise NotFound(f"the job does not render frame {frame}: {rendered}")
+    return slot
 
 
 def check_animation_selection(
@@ -83,7 +123,7 @@ def check_animation_selection(
 
 
 def resolve_animations(
-    text: str, names: list[str], field: str = "settings.animation"
+    text: str, names: list[str] | tuple[str, ...], field: str = "settings.animation"
 ) -> tuple[int, ...]:
     """The indices of the animations a job names, checked against the scene's animations
     (their names in glTF order; an unnamed one is ""). () for all of them."""

@@ -77,6 +77,7 @@ class TileState:
     stop: StopRecord | None = None
     error: float = math.inf
     seconds_per_sample: float = 0.0  # measured render cost per pixel sample
+    slot: int = 0  # the frame's place in the job's frame list (0 for a still)
     dirty: bool = False  # merged since the last checkpoint
     aovs_dirty: bool = False  # albedo/normal sums changed since the last checkpoint
     stamp: int = 0  # bumped on every change; heap entries with an older stamp are stale
@@ -123,10 +124,22 @@ class JobRun:
     paused_at: float | None = None  # clock when paused: the pause does not count as elapsed
     elapsed_before: float = 0.0  # elapsed seconds of earlier runs (restored, retried, continued)
     require_tags: frozenset[str] = frozenset()  # only workers with all of these take its tasks
+    frames: tuple[int, ...] | None = None  # the frame numbers of an animation; None: a still
+    tiles_per_frame: int = 0
+    frame_tiles_stopped: list[int] = field(default_factory=list)  # by slot
 
     @property
     def pixels(self) -> int:
+        """Pixels of one frame."""
         return self.settings.width * self.settings.height
+
+    @property
+    def frame_count(self) -> int:
+        return 1 if self.frames is None else len(self.frames)
+
+    def frame_tiles(self, slot: int) -> list[TileState]:
+        n = self.tiles_per_frame
+        return self.tiles[slot * n : (slot + 1) * n]
 
 
 @dataclass
@@ -158,6 +171,18 @@ class WorkerRecord:
 
 
 @dataclass(frozen=True)
+class FrameProgress:
+    """One frame of an animation job."""
+
+    frame: int
+    state: str  # "queued" (nothing merged), "rendering" or "done" (every tile stopped)
+    tiles_total: int
+    tiles_done: int
+    mean_spp: float
+    error: float  # RMS over its merged tiles of the tile relative error; inf before any
+
+
+@dataclass(frozen=True)
 class Progress:
     tiles_total: int
     tiles_done: int
@@ -167,3 +192,5 @@ class Progress:
     eta_s: float | None  # None until two batches have been merged (no rate yet)
     samples_merged: int
     elapsed_s: float
+    frames_total: int = 1
+    frames_done: int = 0

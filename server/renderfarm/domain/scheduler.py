@@ -31,12 +31,14 @@ from typing import Protocol
 
 import numpy as np
 
+from .frames import job_frames, job_rects, tiles_per_frame
 from .jobspec import JobSettings
 from .merge import TileAccumulator
 from .records import (
     WORKER_MODES,
     BatchResult,
     Event,
+    FrameProgress,
     JobRun,
     Lease,
     Progress,
@@ -46,7 +48,7 @@ from .records import (
     WorkerSlot,
 )
 from .states import JobState, StopReason, check_transition
-from .tiling import PLANNED_FROM, batch_range, batch_start, carries_aovs, plan_batch, tile_grid
+from .tiling import PLANNED_FROM, batch_range, batch_start, carries_aovs, plan_batch
 
 # How many batches of one tile may be leased or waiting beyond the merged ones when every tile
 # already has work: speculation keeps workers busy on small images at the risk of rendering a
@@ -120,11 +122,16 @@ class Scheduler:
         events_before = len(self.events)
         iid = settings.sampler == "independent"
         cached = self.cache is not None  # then arrays are made when a tile is first used
+        per_frame = tiles_per_frame(settings)
         tiles = [
-            TileState(i, r, TileAccumulator(r.width, r.height, iid, arrays=not cached))
-            for i, r in enumerate(tile_grid(settings.width, settings.height, settings.tile_size))
-        ]
+            TileState(i, r, TileAccumulator(r.width, r.height, iid, arrays=not cached),
+                      slot=i // per_frame)
+            for i, r in enumerate(job_rects(settings))
+        ]  # fmt: skip
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state, after=after)
+        job.frames = job_frames(settings)
+        job.tiles_per_frame = per_frame
+        job.frame_tiles_stopped = [0] * job.frame_count
         job.elapsed_before = elapsed_s
         job.require_tags = frozenset(require_tags)
         if state in (JobState.RUNNING, JobState.PAUSED):
@@ -249,7 +256,9 @@ class Scheduler:
         now = self.clock()
         paused = job.paused_at if job.state == JobState.PAUSED else None
         done = job.tiles_stopped
-        mean_spp = sum(t.acc.samples * t.rect.pixels for t in job.tiles) / job.pixels
+        mean_spp = sum(t.acc.samples * t.rect.pixels for t in job.tiles) / (
+            job.pixels * job.frame_count
+        )
         errors = [t.error for t in job.tiles if t.merged]
         error = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf
         if job.started is None:
@@ -265,6 +274,27 @@ class Scheduler:
             eta_s=self._eta(job, now, elapsed),
             samples_merged=job.samples_merged,
             elapsed_s=elapsed,
+            frames_total=job.frame_count,
+            frames_done=sum(1 for n in job.frame_tiles_stopped if n == job.tiles_per_frame),
+        )
+
+    @staticmethod
+    def frame_progress(job: JobRun, slot: int) -> FrameProgress:
+        """Progress of one frame of a job (slot: its place in the frame list)."""
+        tiles = job.frame_tiles(slot)
+        errors = [t.error for t in tiles if t.merged]
+        done = job.frame_tiles_stopped[slot]
+        if done == len(tiles):
+            state = "done"
+        else:
+            state = "rendering" if errors else "queued"
+        return FrameProgress(
+            frame=job.frames[slot] if job.frames is not None else 0,
+            state=state,
+            tiles_total=len(tiles),
+            tiles_done=done,
+            mean_spp=sum(t.acc.samples * t.rect.pixels for t in tiles) / job.pixels,
+            error=math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf,
         )
 
     def _eta(self, job: JobRun, now: float, elapsed: float) -> float | None:
@@ -445,10 +475,12 @@ class Scheduler:
     def _tile_key(self, job: JobRun, tile: TileState) -> tuple | None:
         """Dispatch order of a tile, or None when it has nothing to lease.
 
-        Tiles with no work out come first (depth), then the largest error x cost (tiles never
-        merged count as infinitely noisy, so a full-frame preview comes first), then the fewest
-        merged batches, then the tile index. Deeper tiles are leased speculatively only when no
-        tile is idle."""
+        Tiles with no work out come first (depth), then the earliest frame of an animation (so
+        the first frame previews first and frames are filled in order: a frame's tiles go
+        before the next frame's whenever they have work), then the largest error x cost (tiles
+        never merged count as infinitely noisy, so a full-frame preview comes first), then the
+        fewest merged batches, then the tile index. Deeper tiles are leased speculatively only
+        when no tile is idle."""
         if tile.stopped:
             return None
         span = self._span(job, tile, min(tile.requeue) if tile.requeue else tile.next_batch)
@@ -459,7 +491,7 @@ class Scheduler:
             return None
         cost = tile.seconds_per_sample or (job.cost_sum / job.cost_count if job.cost_count else 1.0)
         urgency = tile.error * cost if math.isfinite(tile.error) else math.inf
-        return (depth, -urgency, tile.merged, tile.index)
+        return (depth, tile.slot, -urgency, tile.merged, tile.index)
 
     # ------------------------------------------------------------------- batch planning
     def _span(self, job: JobRun, tile: TileState, batch: int) -> tuple[int, int] | None:
@@ -661,6 +693,7 @@ class Scheduler:
 
     def _stop_tile(self, job: JobRun, tile: TileState, reason: StopReason) -> None:
         job.tiles_stopped += 1
+        job.frame_tiles_stopped[tile.slot] += 1
         tile.stop = StopRecord(tile.index, tile.merged - 1, tile.acc.samples, tile.error, reason)
         tile.dirty = True
         tile.pending.clear()
@@ -683,9 +716,19 @@ class Scheduler:
                     "spp": tile.stop.spp,
                     "error": tile.stop.error,
                     "reason": reason.value,
+                    **({} if job.frames is None else {"frame": job.frames[tile.slot]}),
                 },
             )
         )
+        if job.frames is not None and job.frame_tiles_stopped[tile.slot] == job.tiles_per_frame:
+            frame = self.frame_progress(job, tile.slot)
+            self.events.append(
+                Event(
+                    "frame_finished",
+                    job.job_id,
+                    {"frame": frame.frame, "spp": frame.mean_spp, "error": frame.error},
+                )
+            )
 
     def _maybe_finish(self, job: JobRun) -> None:
         if not job.state.finished and job.tiles_stopped == len(job.tiles):

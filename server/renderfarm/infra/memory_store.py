@@ -16,7 +16,7 @@ from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from typing import Any, Protocol
 
-from .store import JobRow, TileRow, TokenRow, _clean, _finite, _ts
+from .store import JobRow, TileRow, TileSummary, TokenRow, _clean, _finite, _ts
 
 _UNFINISHED = ("waiting", "queued", "running", "paused")
 
@@ -65,6 +65,7 @@ class JobStore(Protocol):
     async def load_tiles(
         self, job_id: str, first: int = 0, count: int | None = None
     ) -> list[TileRow]: ...
+    async def tile_summaries(self, job_id: str) -> list[TileSummary]: ...
     async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None: ...
     async def add_events_once(
         self, events: list[tuple[str | None, str, dict[str, Any]]]
@@ -186,6 +187,7 @@ class MemoryStore:
         error_estimate: float | None,
         tiles_done: int,
         tiles_previewed: int,
+        frames_done: int = 0,
     ) -> None:
         row = self._jobs.get(job_id)
         if row is None:
@@ -194,7 +196,7 @@ class MemoryStore:
             row, state=state, error=error, started_at=row.started_at or _ts(started),
             finished_at=_ts(finished), elapsed_s=elapsed_s, samples_merged=samples_merged,
             mean_spp=mean_spp, error_estimate=error_estimate, tiles_done=tiles_done,
-            tiles_previewed=tiles_previewed,
+            tiles_previewed=tiles_previewed, frames_done=frames_done,
         )  # fmt: skip
 
     async def update_job_spec(self, job_id: str, name: str, settings: dict[str, Any]) -> None:
@@ -295,6 +297,13 @@ class MemoryStore:
         last = 2**31 - 1 if count is None else first + count - 1
         stored = self._tiles.get(job_id, {})
         return [copy.deepcopy(stored[i]) for i in sorted(stored) if first <= i <= last]
+
+    async def tile_summaries(self, job_id: str) -> list[TileSummary]:
+        stored = self._tiles.get(job_id, {})
+        return [
+            TileSummary(i, stored[i].samples, stored[i].error, stored[i].stop_reason is not None)
+            for i in sorted(stored)
+        ]
 
     # ---------------------------------------------------------------------------- events
     def _add_event(self, job_id: str | None, kind: str, data: dict[str, Any]) -> None:

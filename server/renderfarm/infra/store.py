@@ -94,6 +94,7 @@ class JobRow:
     tiles_previewed: int = 0
     after_jobs: list[str] = dataclass_field(default_factory=list)  # ids of the jobs it waits for
     require_tags: list[str] = dataclass_field(default_factory=list)  # worker tags it needs
+    frames_done: int = 0  # frames whose every tile has stopped
 
 
 @dataclass(frozen=True)
@@ -127,10 +128,18 @@ class TileRow:
     plan_basis: list[list] | None = None
 
 
+@dataclass(frozen=True)
+class TileSummary:
+    tile_index: int
+    samples: int
+    error: float | None
+    stopped: bool
+
+
 _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
     "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner, "
-    "tiles_previewed, after_jobs, require_tags"
+    "tiles_previewed, after_jobs, require_tags, frames_done"
 )
 _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
@@ -332,13 +341,14 @@ class Store:
         error_estimate: float | None,
         tiles_done: int,
         tiles_previewed: int,
+        frames_done: int = 0,
     ) -> None:
         async with self._connection(internal=True) as conn:
             await conn.execute(
                 "UPDATE jobs SET state = %s, error = %s,"
                 " started_at = coalesce(started_at, %s), finished_at = %s, elapsed_s = %s,"
                 " samples_merged = %s, mean_spp = %s, error_estimate = %s, tiles_done = %s,"
-                " tiles_previewed = %s WHERE id = %s",
+                " tiles_previewed = %s, frames_done = %s WHERE id = %s",
                 (
                     state,
                     error,
@@ -350,6 +360,7 @@ class Store:
                     error_estimate,
                     tiles_done,
                     tiles_previewed,
+                    frames_done,
                     job_id,
                 ),
             )
@@ -552,6 +563,18 @@ class Store:
                 )
                 for r in await cur.fetchall()
             ]
+
+    async def tile_summaries(self, job_id: str) -> list[TileSummary]:
+        """Every checkpointed tile of the job without its arrays (per-frame progress of a job
+        no longer held in memory), in index order."""
+        async with self._connection() as conn:
+            cur = conn.cursor()
+            await cur.execute(
+                "SELECT tile_index, samples, error, stop_reason IS NOT NULL FROM tiles"
+                " WHERE job_id = %s ORDER BY tile_index",
+                (job_id,),
+            )
+            return [TileSummary(*r) for r in await cur.fetchall()]
 
     # ----------------------------------------------------------------------------- events
     async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:

@@ -50,6 +50,7 @@ class SceneInfo:
     meshes: int
     nodes: int
     extensions_required: tuple[str, ...]
+    animations: tuple[str, ...] = ()  # the names of its animations in order ("" when unnamed)
 
 
 def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_BYTES) -> SceneInfo:
@@ -100,6 +101,10 @@ def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_
         meshes=len(meshes),
         nodes=len(nodes),
         extensions_required=tuple(required),
+        animations=tuple(
+            a.get("name", "") if isinstance(a, dict) and isinstance(a.get("name"), str) else ""
+            for a in json_list(document, "animations")
+        ),
     )
 
 

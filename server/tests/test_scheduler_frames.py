@@ -1,0 +1,124 @@
+"""Animation jobs in the scheduler: one tile grid per frame, the first frame previewed first and
+frames filled in order, each frame stopping on its own, and progress and events per frame."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+import pytest
+from test_scheduler import FakeClock, render
+
+from renderfarm.domain.frames import frame_slot, job_rects
+from renderfarm.domain.jobspec import JobSettings, parse_settings
+from renderfarm.domain.scheduler import Scheduler
+from renderfarm.domain.states import JobState
+from renderfarm.domain.tiling import tile_grid
+from renderfarm.errors import NotFound
+
+ANIMATION = parse_settings(
+    {"width": 48, "height": 32, "tile_size": 16, "noise_threshold": 0.01, "min_spp": 4,
+     "max_spp": 64, "frames": "1-5x2"}
+)  # fmt: skip
+PER_FRAME = 6  # 3 x 2 tiles of 16 px
+
+
+def frame_render(settings, job, lease):
+    """The fake renderer with the frame in its seed, as workers mix it into theirs."""
+    frame = job.frames[lease.tile_index // job.tiles_per_frame]
+    seeded = JobSettings(**{**settings.to_dict(), "seed": 1000 + frame})
+    with np.errstate(over="ignore"):  # the hash wraps around on purpose
+        return render(seeded, lease)
+
+
+def run(settings, workers, seed, credit=3, reorder=True):
+    clock = FakeClock()
+    sched = Scheduler(clock=clock)
+    job = sched.add_job("j", settings, "scene")
+    rng = random.Random(seed)
+    outstanding = []
+    events = []
+    for w in range(workers):
+        sched.add_worker(f"w{w}", credit)
+    for _ in range(100000):
+        for w in range(workers):
+            outstanding += sched.assign(f"w{w}")
+        cancelled = {t for w in range(workers) for t in sched.take_cancellations(f"w{w}")}
+        outstanding = [lease for lease in outstanding if lease.task_id not in cancelled]
+        events += sched.take_events()
+        if job.state.finished:
+            break
+        assert outstanding, "the scheduler stalled"
+        lease = outstanding.pop(rng.randrange(len(outstanding)) if reorder else 0)
+        sched.complete(lease.task_id, frame_render(settings, job, lease))
+        clock.now += 0.01
+    return sched, job, events + sched.take_events()
+
+
+def test_every_frame_has_its_own_tile_grid_in_frame_order():
+    rects = job_rects(ANIMATION)
+    grid = tile_grid(48, 32, 16)
+    assert len(grid) == PER_FRAME and rects == grid * 3
+    job = Scheduler(clock=FakeClock()).add_job("j", ANIMATION, "scene")
+    assert job.frames == (1, 3, 5) and job.tiles_per_frame == PER_FRAME
+    assert [t.slot for t in job.tiles] == [0] * 6 + [1] * 6 + [2] * 6
+    assert [frame_slot(ANIMATION, f) for f in (1, 3, 5)] == [0, 1, 2]
+    with pytest.raises(NotFound):
+        frame_slot(ANIMATION, 2)  # not in 1-5x2
+
+
+def test_the_first_frame_previews_first_then_the_next_frames_in_order():
+    sched = Scheduler(clock=FakeClock())
+    sched.add_job("j", ANIMATION, "scene")
+    sched.add_worker("w", PER_FRAME)
+    first = sched.assign("w")
+    assert sorted(lease.tile_index for lease in first) == list(range(PER_FRAME))
+    assert {lease.batch_index for lease in first} == {0}
+    # With more room, an idle tile of the next frame goes before a second batch of this one.
+    sched.add_worker("v", PER_FRAME + 2)
+    more = sched.assign("v")
+    assert [lease.tile_index // PER_FRAME for lease in more] == [1] * PER_FRAME + [2, 2]
+
+
+def test_one_and_three_workers_give_the_same_frames():
+    _, one, _ = run(ANIMATION, workers=1, seed=1, credit=1, reorder=False)
+    _, many, _ = run(ANIMATION, workers=3, seed=7)
+    assert one.state == many.state == JobState.COMPLETED
+    for a, b in zip(one.tiles, many.tiles, strict=True):
+        assert a.acc.samples == b.acc.samples and a.stop == b.stop
+        np.testing.assert_array_equal(a.acc.rgb_sum, b.acc.rgb_sum)
+    # Frames differ: the frame is in every random number.
+    assert not np.array_equal(one.tiles[0].acc.rgb_sum, one.tiles[PER_FRAME].acc.rgb_sum)
+
+
+def test_each_frame_finishes_on_its_own_with_an_event_and_progress():
+    sched, job, events = run(ANIMATION, workers=1, seed=1, credit=1, reorder=False)
+    finished = [e.data["frame"] for e in events if e.kind == "frame_finished"]
+    assert finished == [1, 3, 5]  # one worker, in order: frames are filled in order
+    stops = [e for e in events if e.kind == "tile_stopped"]
+    assert len(stops) == 18
+    assert all(e.data["frame"] == job.frames[e.data["tile"] // PER_FRAME] for e in stops)
+    p = sched.progress(job)
+    assert (p.frames_total, p.frames_done, p.tiles_total) == (3, 3, 18)
+    for slot, number in enumerate((1, 3, 5)):
+        f = sched.frame_progress(job, slot)
+        assert (f.frame, f.state, f.tiles_done, f.tiles_total) == (number, "done", 6, 6)
+        tiles = job.tiles[slot * PER_FRAME : (slot + 1) * PER_FRAME]
+        spp = sum(t.acc.samples * t.rect.pixels for t in tiles) / (48 * 32)
+        assert f.mean_spp == pytest.approx(spp)
+
+
+def test_mean_spp_is_per_pixel_of_one_frame():
+    s = parse_settings({"width": 16, "height": 16, "tile_size": 8, "noise_threshold": 0,
+                        "max_spp": 8, "frames": "1-4"})  # fmt: skip
+    sched, job, _ = run(s, workers=2, seed=3)
+    assert job.samples_merged == 4 * 16 * 16 * 8
+    assert sched.progress(job).mean_spp == pytest.approx(8.0)
+
+
+def test_a_still_is_one_frame():
+    sched = Scheduler(clock=FakeClock())
+    job = sched.add_job("j", JobSettings(width=32, height=32, tile_size=16), "scene")
+    assert job.frames is None and job.frame_count == 1
+    assert sched.progress(job).frames_total == 1
+    assert sched.frame_progress(job, 0).frame == 0
