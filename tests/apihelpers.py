@@ -87,6 +87,8 @@ def job_from_proto(job: jobs_pb2.Job) -> dict[str, Any]:
             "eta_s": None if p.eta_s < 0 else p.eta_s,
             "samples_merged": p.samples_merged,
             "elapsed_s": p.elapsed_s,
+            "frames_total": p.frames_total,
+            "frames_done": p.frames_done,
         },
         "error": job.error,
         "created_unix_s": job.created_unix_s,

@@ -10,15 +10,16 @@ import pytest
 from test_scheduler import FakeClock, render
 
 from renderfarm.domain.frames import frame_slot, job_rects
-from renderfarm.domain.jobspec import JobSettings, parse_settings
+from renderfarm.domain.jobspec import JobSettings, SettingsError, parse_settings
 from renderfarm.domain.scheduler import Scheduler
 from renderfarm.domain.states import JobState
 from renderfarm.domain.tiling import tile_grid
 from renderfarm.errors import NotFound
 
-ANIMATION = parse_settings(
-    {"width": 48, "height": 32, "tile_size": 16, "noise_threshold": 0.01, "min_spp": 4,
-     "max_spp": 64, "frames": "1-5x2"}
+# Built directly: the table's validation refuses frames until the workers pose farm tasks.
+ANIMATION = JobSettings(
+    width=48, height=32, tile_size=16, noise_threshold=0.01, min_spp=4, max_spp=64,
+    frames="1-5x2",
 )  # fmt: skip
 PER_FRAME = 6  # 3 x 2 tiles of 16 px
 
@@ -109,11 +110,16 @@ def test_each_frame_finishes_on_its_own_with_an_event_and_progress():
 
 
 def test_mean_spp_is_per_pixel_of_one_frame():
-    s = parse_settings({"width": 16, "height": 16, "tile_size": 8, "noise_threshold": 0,
-                        "max_spp": 8, "frames": "1-4"})  # fmt: skip
+    s = JobSettings(width=16, height=16, tile_size=8, noise_threshold=0, max_spp=8, frames="1-4")
     sched, job, _ = run(s, workers=2, seed=3)
     assert job.samples_merged == 4 * 16 * 16 * 8
     assert sched.progress(job).mean_spp == pytest.approx(8.0)
+
+
+def test_frames_are_refused_until_workers_pose_farm_tasks():
+    with pytest.raises(SettingsError) as e:
+        parse_settings({"frames": "1-3"})
+    assert e.value.field == "settings.frames"
 
 
 def test_a_still_is_one_frame():

@@ -216,7 +216,7 @@ SETTINGS: tuple[Setting, ...] = (
             minimum=0.0, maximum=1000.0, exclusive_minimum=True, unit="1/s", worker=False),
     Setting("animation", str, "",
             "the glTF animations that drive the frames: a comma list of their indices or names "
-            "(names are case-sensitive); empty = all of them", 23),
+            "(names are case-sensitive); empty = all of them", 23, worker=False),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -441,6 +441,13 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
     )
     if s.frames:
         frame_count = len(parse_frames(s.frames, limits.max_frames))
+        # The server schedules, stores and serves frames; the workers of this release do not
+        # pose farm tasks yet (issue #25), so a sequence would render the same unposed scene.
+        raise SettingsError(
+            "settings.frames",
+            "settings.frames: animation jobs are not served yet: this release's workers do not "
+            "pose the scene per frame (render one pose with `renderfarm-worker render --time`)",
+        )
         need = frame_count * job_memory_bytes(s.width, s.height, s.tile_size)
         _require(
             need <= limits.max_job_memory_bytes,
