@@ -10,10 +10,12 @@
 #include <deque>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <sstream>
 #include <thread>
 #include <vector>
@@ -21,6 +23,7 @@
 #include "render/integrators.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
+#include "farm/frames.h"
 #include "farm/scene_cache.h"
 #include "util/sha256.h"
 
@@ -65,8 +68,11 @@ struct RunningTask {
 // defaults (the server normally fills them in).
 // The task's settings. The server sends every field set (server/renderfarm/domain/jobspec.py holds
 // their defaults, in one place): an unset or unknown one fails the task rather than taking a
-// default of the worker's own.
-bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std::string* err) {
+// default of the worker's own. *animation: the glTF animations an animated task's pose uses
+// (resolve_animation_selection; frames and fps are the server's, which sends the frame and its
+// time with the task).
+bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std::string* animation,
+                         std::string* err) {
   if (!in.has_width() || !in.has_height() || !in.has_max_depth() || !in.has_seed()) {
     *err = "width, height, max_depth and seed must be set";
     return false;
@@ -96,6 +102,7 @@ bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std:
   }
   out->aperture_radius = float(in.aperture_radius());
   out->focus_distance = float(in.focus_distance());
+  *animation = in.animation();
   return true;
 }
 
@@ -135,6 +142,16 @@ class Worker {
   void supervise(Session& s, const std::atomic<bool>& stop);
   void run_task(Session& s, const pb::Task& task, const RunningTask& running);
   std::shared_ptr<const Scene> scene_for(const std::string& sha256);
+  // An animated task's scene: sha256 posed at time_s by the animations `animation` selects.
+  std::shared_ptr<const Scene> posed_scene_for(const std::string& sha256,
+                                               const std::string& animation, double time_s);
+  // load(path, fetched) on the cached file of sha256, fetched first if there is none; a cached
+  // file whose load fails with a SceneError and whose content no longer matches its name is
+  // fetched again and loaded once more.
+  template <typename T>
+  T load_scene_file(const std::string& sha256,
+                    const std::function<T(const std::string& path)>& load);
+  LoadOptions farm_load_options(const std::string& sha256) const;
   std::shared_ptr<const Environment> environment_for(const pb::RenderSettings& settings);
   std::string fetch_scene(const std::string& sha256);
 
@@ -143,6 +160,8 @@ class Worker {
   std::unique_ptr<pb::WorkerService::Stub> worker_stub_;
   std::unique_ptr<pb::SceneService::Stub> scene_stub_;
   SceneCache scenes_;
+  std::mutex warned_mutex_;
+  std::set<std::string> warned_;  // scenes whose loader warnings were logged (posed scenes)
   // Loaded environment maps by (sha256, intensity, rotation); a handful at most.
   std::mutex env_mutex_;
   std::map<std::string, std::shared_ptr<const Environment>> environments_;
@@ -315,17 +334,28 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
     write(s, msg);
   };
   RenderSettings settings;
-  std::string err;
-  if (!settings_from_proto(task.settings(), &settings, &err)) return fail({"settings: " + err, false});
+  std::string animation, err;
+  if (!settings_from_proto(task.settings(), &settings, &animation, &err))
+    return fail({"settings: " + err, false});
+  if (task.animated()) {
+    if (!std::isfinite(task.time_s()))
+      return fail({"task: time_s of frame " + std::to_string(task.frame()) + " is not finite",
+                   false});
+    // docs/architecture.md, "Determinism": the frame enters every random number.
+    settings.seed = frame_seed(settings.seed, task.frame());
+  }
   const PixelRect rect{task.rect().x0(), task.rect().y0(), task.rect().width(),
                        task.rect().height()};
   err = validate_render_request(settings, rect, task.sample_start(), task.sample_count());
   if (!err.empty()) return fail({"task: " + err, false});
   std::shared_ptr<const Scene> scene;
   try {
-    scene = scene_for(task.scene_sha256());
+    scene = task.animated() ? posed_scene_for(task.scene_sha256(), animation, task.time_s())
+                            : scene_for(task.scene_sha256());
   } catch (const TaskError& e) {
     return fail(e);
+  } catch (const AnimationSelectionError& e) {
+    return fail({e.what(), false});
   } catch (const SceneError& e) {
     return fail({std::string("scene load: ") + e.what(), false});
   } catch (const std::exception& e) {
@@ -377,43 +407,101 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   write(s, msg);
 }
 
+// Farm scenes are uploads: self-contained, within the limits, and named by their hash in
+// messages (which reach the user) rather than by this machine's cache path.
+LoadOptions Worker::farm_load_options(const std::string& sha256) const {
+  LoadOptions load;
+  load.display_name = "scene " + sha256.substr(0, 12);
+  load.allow_external_files = false;
+  load.limits = options_.limits;
+  load.bvh = options_.bvh;
+  return load;
+}
+
+template <typename T>
+T Worker::load_scene_file(const std::string& sha256,
+                          const std::function<T(const std::string& path)>& load) {
+  std::string path = find_cached_scene(options_.cache_dir, sha256);
+  bool fetched = false;
+  if (path.empty()) {
+    path = fetch_scene(sha256);
+    fetched = true;
+  }
+  try {
+    return load(path);
+  } catch (const SceneError&) {
+    // A cached file that no longer matches its name was damaged on disk: fetch it again.
+    if (fetched || sha256_file_hex(path) == sha256) throw;
+    log_line("cached scene " + path + " is corrupt; fetching it again");
+    fs::remove(path);
+    return load(fetch_scene(sha256));
+  }
+}
+
 std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
   return scenes_.get(sha256, [&]() -> std::shared_ptr<const Scene> {
-    std::string path = find_cached_scene(options_.cache_dir, sha256);
-    bool fetched = false;
-    if (path.empty()) {
-      path = fetch_scene(sha256);
-      fetched = true;
-    }
+    const LoadOptions load = farm_load_options(sha256);
+    return load_scene_file<std::shared_ptr<const Scene>>(
+        sha256, [&](const std::string& path) -> std::shared_ptr<const Scene> {
+          std::vector<std::string> warnings;
+          std::unique_ptr<Scene> scene = load_scene(path, &warnings, load);
+          for (const auto& w : warnings) log_line("warning: " + w);
+          log_line("scene " + sha256.substr(0, 12) + ": " +
+                   std::to_string(scene->world_triangle_count()) + " triangles, " +
+                   format_bytes(scene->memory_bytes()) + " in memory (" +
+                   bvh_layout_name(options_.bvh) + " BVH)");
+          return scene;
+        });
+  });
+}
+
+std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
+                                                     const std::string& animation,
+                                                     double time_s) {
+  if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
+  // The exact time (hexadecimal floating point) and the selection as sent: the tasks of one
+  // frame of one job share a key.
+  char time_key[40];
+  std::snprintf(time_key, sizeof time_key, "%a", time_s);
+  const std::string pose_key = std::string(time_key) + " " + animation;
+  const SceneCache::DocumentLoader parse = [&]() -> std::shared_ptr<const GltfDocument> {
+    const LoadOptions load = farm_load_options(sha256);
+    return load_scene_file<std::shared_ptr<const GltfDocument>>(
+        sha256, [&](const std::string& path) -> std::shared_ptr<const GltfDocument> {
+          std::vector<std::string> warnings;
+          std::shared_ptr<const GltfDocument> document = parse_gltf(path, &warnings, load);
+          for (const auto& w : warnings) log_line("warning: " + w);
+          log_line("scene " + sha256.substr(0, 12) + ": parsed for animation (" +
+                   format_bytes(gltf_document_bytes(*document)) + " of buffers and images)");
+          return document;
+        });
+  };
+  const SceneCache::Poser pose = [&](const GltfDocument& document) -> std::shared_ptr<const Scene> {
+    LoadOptions load = farm_load_options(sha256);
+    load.time = time_s;
+    load.animations = resolve_animation_selection(animation, gltf_animation_names(document));
     std::vector<std::string> warnings;
-    auto loaded = [&](std::unique_ptr<Scene> scene) -> std::shared_ptr<const Scene> {
+    auto scene = std::make_unique<Scene>(describe_gltf(document, &warnings, load), &warnings,
+                                         load.bvh);
+    // The loader warns of the same things at every time: once per scene and selection.
+    bool first;
+    {
+      std::lock_guard<std::mutex> lock(warned_mutex_);
+      first = warned_.insert(sha256 + " " + animation).second;
+    }
+    if (first) {
       for (const auto& w : warnings) log_line("warning: " + w);
-      log_line("scene " + sha256.substr(0, 12) + ": " +
+      char at[32];
+      std::snprintf(at, sizeof at, "%g", time_s);
+      log_line("scene " + sha256.substr(0, 12) + " posed at " + at + " s: " +
                std::to_string(scene->world_triangle_count()) + " triangles, " +
                format_bytes(scene->memory_bytes()) + " in memory (" +
                bvh_layout_name(options_.bvh) + " BVH)");
-      return scene;
-    };
-    // Farm scenes are uploads: self-contained, within the limits, and named by their hash in
-    // messages (which reach the user) rather than by this machine's cache path.
-    LoadOptions load;
-    load.display_name = "scene " + sha256.substr(0, 12);
-    load.allow_external_files = false;
-    load.limits = options_.limits;
-    load.bvh = options_.bvh;
-    try {
-      return loaded(load_scene(path, &warnings, load));
-    } catch (const SceneError&) {
-      // A cached file that no longer matches its name was damaged on disk: fetch it again.
-      if (fetched || sha256_file_hex(path) == sha256) throw;
-      log_line("cached scene " + path + " is corrupt; fetching it again");
-      fs::remove(path);
-      warnings.clear();
-      path = fetch_scene(sha256);
-      return loaded(load_scene(path, &warnings, load));
     }
-  });
+    return scene;
+  };
+  return scenes_.get_posed(sha256, pose_key, parse, pose);
 }
 
 std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSettings& settings) {

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <filesystem>
 #include <fstream>
@@ -314,6 +315,152 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_EQ(r.rays(), local.rays);
     EXPECT_GT(r.render_seconds(), 0.0);
   }
+}
+
+// The seed of frame f of a job of seed s, written out from docs/architecture.md,
+// "Determinism" (SplitMix64's output function, applied twice), not taken from the worker.
+uint64_t spec_splitmix64(uint64_t x) {
+  uint64_t z = x + 0x9E3779B97F4A7C15ull;
+  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+  z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+  return z ^ (z >> 31);
+}
+uint64_t spec_frame_seed(uint64_t seed, int32_t frame) {
+  return spec_splitmix64(seed ^ spec_splitmix64(uint64_t(int64_t(frame))));
+}
+
+TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::animated_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  const fs::path cache = fs::path(::testing::TempDir()) / "rf-farm-frames-cache";
+  fs::remove_all(cache);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = cache.string();
+  options.worker_id = "frames-worker";
+  std::atomic<bool> stop{false};
+  int exit_code = -1;
+  std::thread client([&] { exit_code = run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+
+  auto frame_task = [&](const std::string& id, int32_t frame, double time_s,
+                        const std::string& animation, uint32_t spp = 4) {
+    pb::Task t = make_task(id, farm.scene_sha, spp);
+    t.set_animated(true);
+    t.set_frame(frame);
+    t.set_time_s(time_s);
+    t.mutable_settings()->set_animation(animation);
+    return t;
+  };
+  auto find = [&](const std::string& id) -> const pb::WorkerMessage* {
+    for (const auto& m : farm.received)
+      if ((m.has_result() && m.result().task_id() == id) ||
+          (m.has_failed() && m.failed().task_id() == id))
+        return &m;
+    return nullptr;
+  };
+  // One task at a time, in this order: frame 5, frame 9, frame 5 again (its pose rebuilt or
+  // found in the cache), an index selection, two frames of one pose (a static scene), a still
+  // and an unknown animation name.
+  auto run = [&](const pb::Task& t) {
+    pb::ServerMessage m;
+    *m.mutable_assign()->mutable_task() = t;
+    ASSERT_TRUE(farm.send(m));
+    ASSERT_TRUE(farm.wait_for([&] { return find(t.task_id()) != nullptr; }));
+  };
+  run(frame_task("f5", 5, 0.5, "slide"));
+  run(frame_task("f9", 9, 1.5, "slide"));
+  run(frame_task("f5-again", 5, 0.5, "slide"));
+  run(frame_task("by-index", 7, 1.0, " 1"));
+  run(frame_task("static-3", 3, 0.0, "slide", 16));
+  run(frame_task("static-4", 4, 0.0, "slide", 16));
+  run(make_task("still", farm.scene_sha, 4));
+  run(frame_task("unknown", 6, 0.25, "slide,Slide"));
+  stop = true;
+  client.join();
+  EXPECT_EQ(exit_code, 0);
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  EXPECT_EQ(farm.fetches, 1);
+  for (const char* id : {"f5", "f9", "f5-again", "by-index", "static-3", "static-4", "still"})
+    ASSERT_TRUE(find(id)->has_result()) << id << ": " << find(id)->failed().error();
+  // Each result is the local render of the scene loaded at the frame's time with the chosen
+  // animations, with the frame's seed, bit for bit.
+  auto local = [&](double time, std::vector<int> animations, uint64_t seed, uint32_t spp) {
+    LoadOptions load;
+    load.time = time;
+    load.animations = std::move(animations);
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "animated.gltf", nullptr, load));
+    RenderSettings settings;
+    settings.width = 16;
+    settings.height = 12;
+    settings.seed = seed;
+    settings.max_depth = 4;
+    TileBuffer tile;
+    EXPECT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, spp, &tile));
+    return tile;
+  };
+  auto rgb = [&](const std::string& id) { return unpack_f32_le(find(id)->result().rgb_sum()); };
+  const TileBuffer f5 = local(0.5, {0}, spec_frame_seed(77, 5), 4);
+  EXPECT_EQ(rgb("f5"), as_floats(f5.rgb_sum));
+  EXPECT_EQ(unpack_f32_le(find("f5")->result().luminance_m2()), as_floats(f5.luminance_m2));
+  EXPECT_EQ(rgb("f9"), as_floats(local(1.5, {0}, spec_frame_seed(77, 9), 4).rgb_sum));
+  EXPECT_EQ(rgb("f5-again"), rgb("f5"));
+  EXPECT_NE(rgb("f9"), rgb("f5"));
+  EXPECT_EQ(rgb("by-index"), as_floats(local(1.0, {1}, spec_frame_seed(77, 7), 4).rgb_sum));
+  // A still keeps the job's seed and the scene as stored (no animation).
+  {
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "animated.gltf", nullptr));
+    RenderSettings settings;
+    settings.width = 16;
+    settings.height = 12;
+    settings.seed = 77;
+    settings.max_depth = 4;
+    TileBuffer tile;
+    ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 4, &tile));
+    EXPECT_EQ(rgb("still"), as_floats(tile.rgb_sum));
+  }
+  // Two frames of one pose: different noise, the same mean within it. The tile's mean
+  // luminance per frame, and its standard error from the per-pixel luminance M2.
+  auto tile_mean = [&](const std::string& id, double* variance) {
+    const std::vector<float> sums = rgb(id);
+    const std::vector<float> m2 = unpack_f32_le(find(id)->result().luminance_m2());
+    const double n = 16.0, pixels = double(m2.size());
+    double mean = 0.0;
+    *variance = 0.0;
+    for (size_t p = 0; p < m2.size(); ++p) {
+      mean += (0.2126 * sums[3 * p] + 0.7152 * sums[3 * p + 1] + 0.0722 * sums[3 * p + 2]) / n;
+      *variance += double(m2[p]) / (n - 1.0) / n;
+    }
+    *variance /= pixels * pixels;
+    return mean / pixels;
+  };
+  EXPECT_NE(rgb("static-3"), rgb("static-4"));
+  double v3 = 0.0, v4 = 0.0;
+  const double m3 = tile_mean("static-3", &v3), m4 = tile_mean("static-4", &v4);
+  EXPECT_GT(m3, 0.0);
+  EXPECT_LT(std::fabs(m3 - m4), 5.0 * std::sqrt(v3 + v4)) << m3 << " vs " << m4;
+  // An unknown name fails the task for good, naming the setting and the name.
+  const pb::WorkerMessage* unknown = find("unknown");
+  ASSERT_TRUE(unknown->has_failed());
+  EXPECT_FALSE(unknown->failed().retryable());
+  EXPECT_NE(unknown->failed().error().find("settings.animation"), std::string::npos)
+      << unknown->failed().error();
+  EXPECT_NE(unknown->failed().error().find("\"Slide\""), std::string::npos)
+      << unknown->failed().error();
 }
 
 }  // namespace

@@ -41,31 +41,72 @@ std::string find_cached_scene(const std::string& dir, const std::string& sha256)
 }
 
 std::shared_ptr<const Scene> SceneCache::get(const std::string& key, const Loader& load) {
-  std::promise<std::shared_ptr<const Scene>> promise;
-  std::shared_future<std::shared_ptr<const Scene>> future;
+  return std::static_pointer_cast<const Scene>(get_value(key, "", [&] {
+    std::shared_ptr<const Scene> scene = load();
+    return Loaded{scene, scene ? scene->memory_bytes() : 0};
+  }));
+}
+
+std::shared_ptr<const Scene> SceneCache::get_posed(const std::string& sha256,
+                                                   const std::string& pose_key,
+                                                   const DocumentLoader& parse,
+                                                   const Poser& pose) {
+  // Keys no still (a sha256) can take: a document, and a pose of one.
+  const std::string document_key = sha256 + " document";
+  auto document = [&] {
+    return std::static_pointer_cast<const GltfDocument>(get_value(document_key, "", [&] {
+      std::shared_ptr<const GltfDocument> parsed = parse();
+      return Loaded{parsed, parsed ? gltf_document_bytes(*parsed) : 0};
+    }));
+  };
+  const std::string key = sha256 + " pose " + pose_key;
+  bool built = false;
+  Value scene = get_value(key, sha256, [&] {
+    built = true;
+    std::shared_ptr<const GltfDocument> doc = document();
+    std::shared_ptr<const Scene> posed = pose(*doc);
+    return Loaded{posed, posed ? posed->memory_bytes() : 0};
+  });
+  // A pose found in memory still counts as a use of its document, which the next frame needs.
+  if (!built) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    auto it = entries_.find(document_key);
+    if (it != entries_.end()) it->second.last_used = ++clock_;
+  }
+  return std::static_pointer_cast<const Scene>(scene);
+}
+
+SceneCache::Value SceneCache::get_value(const std::string& key, const std::string& posed_of,
+                                        const std::function<Loaded()>& load) {
+  std::promise<Value> promise;
+  std::shared_future<Value> future;
   bool owner = false;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     auto it = entries_.find(key);
     if (it != entries_.end()) {
       it->second.last_used = ++clock_;
-      future = it->second.scene;
+      future = it->second.value;
     } else {
       future = promise.get_future().share();
-      entries_[key] = Entry{future, ++clock_, false};
+      Entry entry;
+      entry.value = future;
+      entry.last_used = ++clock_;
+      entry.posed_of = posed_of;
+      entries_[key] = std::move(entry);
       owner = true;
     }
   }
   if (owner) {
     // Load outside the lock: other scenes stay available meanwhile.
     try {
-      std::shared_ptr<const Scene> scene = load();
-      promise.set_value(scene);
+      Loaded loaded = load();
+      promise.set_value(loaded.value);
       std::lock_guard<std::mutex> lock(mutex_);
       auto it = entries_.find(key);
       if (it != entries_.end()) {
         it->second.ready = true;
-        it->second.bytes = scene ? scene->memory_bytes() : 0;
+        it->second.bytes = loaded.bytes;
       }
       evict_locked(key);
     } catch (...) {
@@ -84,15 +125,36 @@ size_t SceneCache::memory_bytes_locked() const {
 }
 
 void SceneCache::evict_locked(const std::string& keep) {
-  // Drop the least recently used loaded scenes; callers still rendering keep theirs alive
+  // Drop the least recently used loaded entries; callers still rendering keep theirs alive
   // through their shared_ptr.
+  uint64_t newest = 0;
+  for (const auto& e : entries_) newest = std::max(newest, e.second.last_used);
+  auto evictable = [&](const std::map<std::string, Entry>::const_iterator& it) {
+    return it->second.ready && it->first != keep && it->second.last_used != newest;
+  };
+  // A scene's posed scenes beyond posed_per_scene: its least recently used ones go first.
+  const auto kept = entries_.find(keep);
+  if (kept != entries_.end() && !kept->second.posed_of.empty()) {
+    const std::string& of = kept->second.posed_of;
+    for (;;) {
+      size_t posed = 0;
+      auto victim = entries_.end();
+      for (auto it = entries_.begin(); it != entries_.end(); ++it) {
+        if (it->second.posed_of != of) continue;
+        ++posed;
+        if (evictable(it) &&
+            (victim == entries_.end() || it->second.last_used < victim->second.last_used))
+          victim = it;
+      }
+      if (posed <= posed_per_scene_ || victim == entries_.end()) break;
+      entries_.erase(victim);
+    }
+  }
   while (entries_.size() > capacity_ ||
          (memory_budget_ > 0 && memory_bytes_locked() > memory_budget_)) {
-    uint64_t newest = 0;
-    for (const auto& e : entries_) newest = std::max(newest, e.second.last_used);
     auto victim = entries_.end();
     for (auto it = entries_.begin(); it != entries_.end(); ++it)
-      if (it->second.ready && it->first != keep && it->second.last_used != newest &&
+      if (evictable(it) &&
           (victim == entries_.end() || it->second.last_used < victim->second.last_used))
         victim = it;
     if (victim == entries_.end()) return;

@@ -2,7 +2,8 @@
 // and serves like scenes) on disk, content-addressed by SHA-256
 // (<dir>/<sha256>.glb|.gltf|.hdr|.exr), and loaded scenes in memory (an LRU keyed by sha256,
 // bounded in count and in bytes, each scene loaded once even when several threads ask for it at
-// the same time).
+// the same time). Animated tasks share the LRU: a scene's parsed glTF document, once, and its
+// posed render scenes, one per (animation selection, time), a few per scene.
 #pragma once
 
 #include <cstdint>
@@ -28,31 +29,52 @@ std::string find_cached_scene(const std::string& dir, const std::string& sha256)
 class SceneCache {
  public:
   using Loader = std::function<std::shared_ptr<const Scene>()>;
-  // Keeps at most `capacity` loaded scenes and, if memory_budget > 0, evicts the least
-  // recently used ones while the loaded scenes hold more than memory_budget bytes
-  // (Scene::memory_bytes). The scene just loaded and the most recently used one are always
-  // kept, whatever their size: a scene larger than the budget still renders.
-  explicit SceneCache(size_t capacity, size_t memory_budget = 0)
-      : capacity_(capacity ? capacity : 1), memory_budget_(memory_budget) {}
+  using DocumentLoader = std::function<std::shared_ptr<const GltfDocument>()>;
+  using Poser = std::function<std::shared_ptr<const Scene>(const GltfDocument&)>;
+  // Keeps at most `capacity` loaded scenes (stills, parsed documents and posed scenes alike)
+  // and, if memory_budget > 0, evicts the least recently used ones while they hold more than
+  // memory_budget bytes (Scene::memory_bytes, gltf_document_bytes). The entry just loaded and
+  // the most recently used one are always kept, whatever their size: a scene larger than the
+  // budget still renders. At most posed_per_scene posed scenes of one scene are kept: frames
+  // are leased mostly in order, and the tasks of one frame arrive together.
+  explicit SceneCache(size_t capacity, size_t memory_budget = 0, size_t posed_per_scene = 3)
+      : capacity_(capacity ? capacity : 1),
+        memory_budget_(memory_budget),
+        posed_per_scene_(posed_per_scene ? posed_per_scene : 1) {}
   // Returns the scene for key, calling load() if it is not in memory. Concurrent callers for
   // the same key wait for one load. If load throws, every waiting caller gets the exception
   // and the next call tries again.
   std::shared_ptr<const Scene> get(const std::string& key, const Loader& load);
+  // The scene sha256 posed as pose_key says (the caller's name for an animation selection and
+  // a time: equal keys must mean equal poses), built by pose() from the scene's parsed
+  // document, which parse() makes once per sha256 while it stays cached. The same waiting,
+  // failure and eviction rules as get().
+  std::shared_ptr<const Scene> get_posed(const std::string& sha256, const std::string& pose_key,
+                                         const DocumentLoader& parse, const Poser& pose);
   size_t size() const;
-  // Bytes held by the loaded scenes in the cache.
+  // Bytes held by the loaded entries in the cache.
   size_t memory_bytes() const;
 
  private:
+  using Value = std::shared_ptr<const void>;
+  struct Loaded {
+    Value value;
+    size_t bytes = 0;
+  };
   struct Entry {
-    std::shared_future<std::shared_ptr<const Scene>> scene;
+    std::shared_future<Value> value;
     uint64_t last_used = 0;
     bool ready = false;
-    size_t bytes = 0;  // Scene::memory_bytes once ready
+    size_t bytes = 0;     // the value's memory once ready
+    std::string posed_of;  // a posed scene: the sha256 it poses; "" otherwise
   };
+  Value get_value(const std::string& key, const std::string& posed_of,
+                  const std::function<Loaded()>& load);
   size_t memory_bytes_locked() const;
   void evict_locked(const std::string& keep);
   size_t capacity_;
   size_t memory_budget_;
+  size_t posed_per_scene_;
   mutable std::mutex mutex_;
   std::map<std::string, Entry> entries_;
   uint64_t clock_ = 0;

@@ -23,6 +23,12 @@
 #include "scene/scene.h"
 
 namespace rf {
+
+struct GltfDocument {
+  tinygltf::Model model;
+  std::string source;  // the name messages use
+};
+
 namespace {
 
 // Images are decoded by OpenImageIO later (TextureSystem), not by tinygltf: keep the encoded
@@ -1686,14 +1692,19 @@ class Loader {
   uint32_t default_material_ = 0;
 };
 
-SceneDescription finish(bool ok, tinygltf::Model& model, const std::string& err,
-                        const std::string& warn, const std::string& source,
-                        std::vector<std::string>* warnings, const LoadOptions& options,
-                        const std::map<int, size_t>& fallbacks) {
+// tinygltf's result, checked, with its compressed geometry decoded: the parsed document.
+std::shared_ptr<const GltfDocument> parsed(bool ok, tinygltf::Model* model, const std::string& err,
+                                           const std::string& warn, const std::string& source,
+                                           std::vector<std::string>* warnings,
+                                           const LoadOptions& options,
+                                           const std::map<int, size_t>& fallbacks) {
   if (!warn.empty() && warnings) warnings->push_back(source + ": " + warn);
   if (!ok) throw SceneError(source + ": cannot parse glTF: " + (err.empty() ? "unknown" : err));
-  decode_compressed_geometry(&model, fallbacks, options.limits, source);
-  return Loader(model, source, warnings, options).run();
+  decode_compressed_geometry(model, fallbacks, options.limits, source);
+  auto document = std::make_shared<GltfDocument>();
+  document->model = std::move(*model);
+  document->source = source;
+  return document;
 }
 
 // Uploads are self-contained: a file system whose every read is refused, so that a URI in a
@@ -1717,8 +1728,9 @@ void configure(tinygltf::TinyGLTF* gltf, const LoadOptions& options) {
 
 }  // namespace
 
-SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings,
-                           const LoadOptions& options) {
+std::shared_ptr<const GltfDocument> parse_gltf(const std::string& path,
+                                               std::vector<std::string>* warnings,
+                                               const LoadOptions& options) {
   const std::string source = options.display_name.empty() ? path : options.display_name;
   // Read here rather than by tinygltf, whose file callbacks may refuse every file.
   std::ifstream in(path, std::ios::binary);
@@ -1743,7 +1755,30 @@ SceneDescription load_gltf(const std::string& path, std::vector<std::string>* wa
                                          unsigned(bytes.size()), base_dir)
              : gltf.LoadASCIIFromString(&model, &err, &warn, bytes.data(), unsigned(bytes.size()),
                                         base_dir);
-  return finish(ok, model, err, warn, source, warnings, options, fallbacks);
+  return parsed(ok, &model, err, warn, source, warnings, options, fallbacks);
+}
+
+SceneDescription describe_gltf(const GltfDocument& document, std::vector<std::string>* warnings,
+                               const LoadOptions& options) {
+  return Loader(document.model, document.source, warnings, options).run();
+}
+
+std::vector<std::string> gltf_animation_names(const GltfDocument& document) {
+  std::vector<std::string> names;
+  for (const tinygltf::Animation& a : document.model.animations) names.push_back(a.name);
+  return names;
+}
+
+size_t gltf_document_bytes(const GltfDocument& document) {
+  size_t bytes = 0;
+  for (const tinygltf::Buffer& b : document.model.buffers) bytes += b.data.size();
+  for (const tinygltf::Image& i : document.model.images) bytes += i.image.size();
+  return bytes;
+}
+
+SceneDescription load_gltf(const std::string& path, std::vector<std::string>* warnings,
+                           const LoadOptions& options) {
+  return describe_gltf(*parse_gltf(path, warnings, options), warnings, options);
 }
 
 SceneDescription load_gltf_from_string(const std::string& json, const std::string& base_dir,
@@ -1759,7 +1794,8 @@ SceneDescription load_gltf_from_string(const std::string& json, const std::strin
   prepare_compressed_json(&text, &fallbacks);
   const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, text.c_str(),
                                            unsigned(text.size()), base_dir);
-  return finish(ok, model, err, warn, name, warnings, options, fallbacks);
+  return describe_gltf(*parsed(ok, &model, err, warn, name, warnings, options, fallbacks),
+                       warnings, options);
 }
 
 }  // namespace rf

@@ -471,6 +471,21 @@ SceneDescription load_gltf_from_string(const std::string& json, const std::strin
                                        const std::string& name,
                                        std::vector<std::string>* warnings,
                                        const LoadOptions& options = {});
+// A glTF file parsed once (tinygltf's model, its compressed geometry decoded), from which
+// describe_gltf builds scene descriptions, one per LoadOptions: the farm worker parses an
+// animated job's scene once and poses it at each frame's time. load_gltf(path, w, o) is
+// describe_gltf(*parse_gltf(path, w, o), w, o); parse_gltf uses o's allow_external_files,
+// limits and display_name, describe_gltf the rest.
+struct GltfDocument;
+std::shared_ptr<const GltfDocument> parse_gltf(const std::string& path,
+                                               std::vector<std::string>* warnings,
+                                               const LoadOptions& options = {});
+SceneDescription describe_gltf(const GltfDocument& document, std::vector<std::string>* warnings,
+                               const LoadOptions& options = {});
+// The "name" of each of the document's animations, by index ("" where it has none).
+std::vector<std::string> gltf_animation_names(const GltfDocument& document);
+// Bytes the document holds (its buffers and encoded images), for cache budgets.
+size_t gltf_document_bytes(const GltfDocument& document);
 // load_gltf + Scene construction (with options.bvh).
 std::unique_ptr<Scene> load_scene(const std::string& path, std::vector<std::string>* warnings,
                                   const LoadOptions& options);

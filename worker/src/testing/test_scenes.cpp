@@ -98,7 +98,9 @@ void put_floats(std::vector<unsigned char>* buf, std::initializer_list<float> va
 
 }  // namespace
 
-std::string small_gltf_json() {
+namespace {
+
+std::string small_gltf(bool animated) {
   std::vector<unsigned char> buf;
   // [0, 48): floor positions, 4 x VEC3, y = 0 plane facing +y (CCW seen from above).
   put_floats(&buf, {-1, 0, 1, 1, 0, 1, 1, 0, -1, -1, 0, -1});
@@ -110,6 +112,19 @@ std::string small_gltf_json() {
   // [60, 132): emitter positions, 6 x VEC3, unit square in y = 0 facing -y (local frame).
   put_floats(&buf, {-0.5f, 0, -0.5f, 0.5f, 0, -0.5f, 0.5f, 0, 0.5f,  //
                     -0.5f, 0, -0.5f, 0.5f, 0, 0.5f, -0.5f, 0, 0.5f});
+  std::string animation_json;
+  if (animated) {
+    put_floats(&buf, {0, 2});                    // [132, 140): keyframe times
+    put_floats(&buf, {0, 2, 0, 1.5f, 2, 0});     // [140, 164): light-parent translations
+    put_floats(&buf, {1, 1, 1, 0.5f, 1, 0.5f});  // [164, 188): floor scales
+    animation_json = R"(,
+  "animations": [
+    {"name": "slide", "channels": [{"sampler": 0, "target": {"node": 1, "path": "translation"}}],
+     "samplers": [{"input": 3, "output": 4}]},
+    {"name": "shrink", "channels": [{"sampler": 0, "target": {"node": 0, "path": "scale"}}],
+     "samplers": [{"input": 3, "output": 5}]}
+  ])";
+  }
   const std::string uri = "data:application/octet-stream;base64," + base64(buf);
   return R"({
   "asset": {"version": "2.0"},
@@ -141,17 +156,36 @@ std::string small_gltf_json() {
      "min": [-1, 0, -1], "max": [1, 0, 1]},
     {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"},
     {"bufferView": 2, "componentType": 5126, "count": 6, "type": "VEC3",
-     "min": [-0.5, 0, -0.5], "max": [0.5, 0, 0.5]}
+     "min": [-0.5, 0, -0.5], "max": [0.5, 0, 0.5]})" +
+         std::string(animated ? R"(,
+    {"bufferView": 3, "componentType": 5126, "count": 2, "type": "SCALAR", "min": [0],
+     "max": [2]},
+    {"bufferView": 4, "componentType": 5126, "count": 2, "type": "VEC3"},
+    {"bufferView": 5, "componentType": 5126, "count": 2, "type": "VEC3"})"
+                             : "") +
+         R"(
   ],
   "bufferViews": [
     {"buffer": 0, "byteOffset": 0, "byteLength": 48},
     {"buffer": 0, "byteOffset": 48, "byteLength": 12},
-    {"buffer": 0, "byteOffset": 60, "byteLength": 72}
+    {"buffer": 0, "byteOffset": 60, "byteLength": 72})" +
+         std::string(animated ? R"(,
+    {"buffer": 0, "byteOffset": 132, "byteLength": 8},
+    {"buffer": 0, "byteOffset": 140, "byteLength": 24},
+    {"buffer": 0, "byteOffset": 164, "byteLength": 24})"
+                             : "") +
+         R"(
   ],
-  "buffers": [{"byteLength": 132, "uri": ")" +
-         uri + R"("}]
+  "buffers": [{"byteLength": )" +
+         std::to_string(buf.size()) + R"(, "uri": ")" + uri + R"("}])" + animation_json + R"(
 })";
 }
+
+}  // namespace
+
+std::string small_gltf_json() { return small_gltf(false); }
+
+std::string animated_gltf_json() { return small_gltf(true); }
 
 std::string quad_gltf_buffers_json() {
   std::vector<unsigned char> buf;

@@ -22,6 +22,10 @@ SceneDescription plane_under_emitter(float rho, float L, float a, float b, float
 // (uint16) floor quad, a non-indexed emissive quad (emissiveStrength 4) under a translated and
 // scaled parent node, a camera on a rotated node, and a LINES primitive that must be skipped.
 std::string small_gltf_json();
+// small_gltf_json's scene with two LINEAR animations over t in [0, 2]: 0 "slide" moves the
+// light's parent from (0, 2, 0) to (1.5, 2, 0), 1 "shrink" scales the floor from 1 to
+// (0.5, 1, 0.5).
+std::string animated_gltf_json();
 
 // JSON members "accessors", "bufferViews" and "buffers" (no surrounding braces) of a unit
 // quad: z = 0, x and y in [-1, 1], facing +z, as accessors 0 POSITION, 1 NORMAL,
