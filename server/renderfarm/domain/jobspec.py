@@ -216,7 +216,7 @@ SETTINGS: tuple[Setting, ...] = (
             minimum=0.0, maximum=1000.0, exclusive_minimum=True, unit="1/s", worker=False),
     Setting("animation", str, "",
             "the glTF animations that drive the frames: a comma list of their indices or names "
-            "(names are case-sensitive); empty = all of them", 23, worker=False),
+            "(names are case-sensitive); empty = all of them", 23),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
