@@ -302,7 +302,7 @@ struct Hit {
   Point2 uv[2];        // interpolated TEXCOORD_0 and TEXCOORD_1 (0 where the mesh has none,
                        // or where the material reads no texture but the emissive one; other
                        // sets: Scene::texcoord)
-  Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<normal_tex.texcoord> for
+  Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<tangent_map().texcoord> for
                        // normal mapping (0 if undefined)
   float tangent_sign = 1.f;  // handedness of (dpdu, dpdv, ng)
 };
