@@ -83,7 +83,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     return;
   }
   if (cos_emit > 0.f && hit_material.is_emissive()) {
-    const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2);
+    const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
     if (p.prev_delta) {
       result.radiance += p.beta * Le;
     } else {

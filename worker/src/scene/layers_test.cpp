@@ -507,6 +507,36 @@ TEST(Layers, RenderClearcoatOnBlackShowsTheCoatsReflection) {
   for (int c = 0; c < 3; ++c) EXPECT_NEAR(coat[c], want, 0.02 * want) << c;
 }
 
+TEST(Layers, RenderEmissionUnderACoat) {
+  // The emitter of plane_under_emitter coated: seen from below it shows L (1 - F_c), and the
+  // white Lambertian floor under it receives its emission dimmed by 1 - F_c(cos) in every
+  // direction (light samples and rays that hit the emitter alike): rho / pi times the integral
+  // of L (1 - F_c(cos)) cos^2 / d^2 over the emitter, by quadrature here.
+  const float L = 50.f, side = 0.4f, height = 1.f;
+  SceneDescription desc = testing::plane_under_emitter(1.f, L, side, side, height,
+                                                       {0.f, -0.01f, 0.02f}, 1e-3f);
+  desc.materials[1].clearcoat = 1.f;
+  desc.camera = testing::look_at({0.f, 0.f, 0.5f}, {0.f, 0.f, 2.f}, 1e-3f);
+  RenderSettings settings;
+  const Vec3 seen = render_pixel(Scene(SceneDescription(desc)), settings, 64);
+  desc.camera = testing::look_at({0.f, -0.01f, 0.02f}, {0.f, 0.f, 0.f}, 1e-3f);
+  settings.max_depth = 1;
+  const Vec3 floor = render_pixel(Scene(std::move(desc)), settings, 1024);
+  double irradiance = 0.0;
+  const int n = 400;
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j) {
+      const double x = side * ((i + 0.5) / n - 0.5), y = side * ((j + 0.5) / n - 0.5);
+      const double d2 = x * x + y * y + height * height, cos = height / std::sqrt(d2);
+      irradiance += L * (1.0 - spec_clearcoat_fresnel(cos)) * cos * cos / d2 * (side * side) /
+                    (double(n) * n);
+    }
+  const double want = irradiance / M_PI;
+  EXPECT_NEAR(floor.x, want, 0.02 * want);
+  // From below: the emission through the coat, plus the coat's mirror image of the lit floor.
+  EXPECT_NEAR(seen.x, L * (1.0 - 0.04) + 0.04 * want, 2e-4 * L);
+}
+
 TEST(Layers, RenderSheenInAWhiteFurnace) {
   // A black base with a white sheen in a uniform environment of radiance 1: the pixel is the
   // sheen's directional albedo E(mu) at the view angle (nothing else reflects).

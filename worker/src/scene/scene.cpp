@@ -789,7 +789,7 @@ const Material& Scene::material(uint32_t slot, uint32_t prim) const {
   return desc_.materials[slot_mesh_[slot]->material[prim]];
 }
 
-Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
+Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2, float cos_view) const {
   const TriangleMesh& mesh = *slot_mesh_[slot];
   const Material& m = desc_.materials[mesh.material[prim]];
   Vec3 e = m.emission;
@@ -798,6 +798,18 @@ Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
     float c[3];
     if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
       e = e * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
+  }
+  if (m.clearcoat > 0.f) {
+    // KHR_materials_clearcoat, "Emission": the coat is above the emission, which the
+    // layering weighs by 1 - clearcoat F_c like the rest of the material.
+    float coat = m.clearcoat, c[3];
+    if (m.clearcoat_tex.valid() && has_uv(mesh, prim, m.clearcoat_tex.texcoord) &&
+        textures_.lookup(m.clearcoat_tex.texture,
+                         m.clearcoat_tex.apply(
+                             interpolate_uv(mesh, prim, b1, b2, m.clearcoat_tex.texcoord)),
+                         3, c))
+      coat *= c[0];
+    e = e * (1.f - std::min(1.f, std::max(0.f, coat)) * clearcoat_fresnel(cos_view));
   }
   return e;
 }
