@@ -85,7 +85,8 @@ struct Material {
   // so an emissive back face emits like the front; otherwise only the front face emits.
   bool double_sided = false;
   bool has_volume() const { return !is_zero(absorption); }
-  bool is_emissive() const { return !is_zero(emission); }
+  // An unlit material's emission is never used (it shows its base colour instead).
+  bool is_emissive() const { return !unlit && !is_zero(emission); }
   bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }
   // True if shading reads texture coordinates at the hit point (the emissive texture is read
   // by Scene::emission, which interpolates its own).
