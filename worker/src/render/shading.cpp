@@ -26,7 +26,9 @@ Vec3 normal_mapped(const Scene& scene, const Hit& hit, const TextureRef& ref, fl
 
 // KHR_materials_clearcoat and KHR_materials_sheen parameters at the hit, into sp->params
 // (after the shading normal is final: the coat normal is stored in its local frame).
-void add_layers(const Scene& scene, const Hit& hit, Vec3 wo, ShadingPoint* sp) {
+// Out of line: most materials have no layers, and the common path stays small.
+__attribute__((noinline)) void add_layers(const Scene& scene, const Hit& hit, Vec3 wo,
+                                          ShadingPoint* sp) {
   const Material& mat = scene.materials()[hit.material];
   const TextureSet& tex = scene.textures();
   BsdfParams& bp = sp->params;

@@ -216,6 +216,14 @@ TEST(Layers, WhiteFurnacePerLobe) {
       sampled_albedo(coated(sheened(base(kWhite, 1.f, 0.5f), kWhite, roughness), 1.f, roughness),
                      wo, n, seed++, &m, &e);
       EXPECT_LE(max_component(m), 1.0 + 4 * max_component(e) + 5e-3) << "all, mu " << mu;
+      // Coated and sheened glass (its delta lobe weighted under the layers): the reflected
+      // and transmitted energy is at most what arrives (the transmitted radiance is also
+      // scaled by 1 / eta^2 entering the glass).
+      BsdfParams glass = coated(sheened(base(kWhite, 0.f, 0.f), kWhite, 0.5f), 1.f, roughness);
+      glass.transmission = 1.f;
+      sampled_albedo(glass, wo, n, seed++, &m, &e);
+      EXPECT_LE(max_component(m), 1.0 + 4 * max_component(e) + 2e-3) << "glass, mu " << mu;
+      EXPECT_GT(m.x, 0.4f);
     }
 }
 

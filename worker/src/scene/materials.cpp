@@ -236,8 +236,10 @@ namespace {
 // The layers on a base value (f_base = the base's f cos at (wo, wi), pdf_base = the density
 // of the base's own sampling): the layered f cos, and *pdf the mixture density (the formulas
 // in materials.h).
-Vec3 add_layers(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, Vec3 f_base,
-                float pdf_base, float* pdf) {
+// The layered functions are out of line: most materials have no layers, and the common path
+// stays as small as it was.
+__attribute__((noinline)) Vec3 add_layers(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                          Vec3 wi, Vec3 f_base, float pdf_base, float* pdf) {
   float density = l.base_pick * pdf_base;
   Vec3 f = f_base;
   if (!is_zero(p.sheen)) {
@@ -273,7 +275,8 @@ Vec3 add_layers(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, Vec3 
 // bsdf_lobes' layered part: the lobe probabilities from estimates of each lobe's albedo at wo
 // (the coat: c F_c; the sheen: S luminance(sheenColor) E(wo.z); the base: S (1 - sheen_e)
 // times the base's estimate, base_albedo), S = 1 - c F_c.
-void layer_lobes(const BsdfParams& p, Vec3 wo, float base_albedo, BsdfLobes* l) {
+__attribute__((noinline)) void layer_lobes(const BsdfParams& p, Vec3 wo, float base_albedo,
+                                           BsdfLobes* l) {
   l->layered = true;
   float a_coat = 0.f, above = 1.f;
   if (p.clearcoat > 0.f) {
@@ -447,35 +450,54 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
   return bsdf_sample_finish(f, pdf, out);
 }
 
+namespace {
+
+// bsdf_sample_direction's layers: the coat (its VNDF on its own normal) with probability
+// l.coat, the sheen (cosine-weighted) with l.sheen, and false with *step the result
+// (NeedsEval with out->wi set, or Failed); otherwise true, the base: *u_lobe rescaled to the
+// base's share and *glass_scale the glass lobe's weight under the layers over the base's
+// probability.
+__attribute__((noinline)) bool sample_layers(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                             const BsdfDisks& disks, float* u_lobe,
+                                             float* glass_scale, BsdfSampleStep* step,
+                                             BsdfSample* out) {
+  *step = BsdfSampleStep::Failed;
+  if (*u_lobe < l.coat) {
+    const CoatFrame cf(p.clearcoat_n);
+    const Vec3 wo_c = cf.to_local(wo);
+    if (wo_c.z <= 0.f) return false;
+    const Vec3 m = sample_ggx_vndf_from_disk(wo_c, p.clearcoat_alpha, disks.polar);
+    const Vec3 wi_c = m * (2.f * dot(wo_c, m)) - wo_c;
+    if (wi_c.z <= 0.f) return false;
+    const Vec3 wi = cf.to_world(wi_c);
+    if (wi.z <= 0.f) return false;
+    out->wi = wi;
+    *step = BsdfSampleStep::NeedsEval;
+    return false;
+  }
+  if (*u_lobe < l.coat + l.sheen) {
+    if (disks.cosine.z <= 0.f) return false;
+    out->wi = disks.cosine;
+    *step = BsdfSampleStep::NeedsEval;
+    return false;
+  }
+  if (!(l.base_pick > 0.f)) return false;
+  *u_lobe = std::min(0.99999994f, (*u_lobe - l.coat - l.sheen) / l.base_pick);
+  *glass_scale = (1.f - l.coat_f) * (1.f - l.sheen_e) / l.base_pick;
+  return true;
+}
+
+}  // namespace
+
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
                                      const BsdfDisks& disks, float u_lobe, float u_fresnel,
                                      BsdfSample* out) {
   if (wo.z <= 0.f) return BsdfSampleStep::Failed;
   float glass_scale = 1.f;
   if (l.layered) {
-    // The layers first: the coat (its VNDF on its own normal), the sheen (cosine-weighted),
-    // then the base with u_lobe rescaled to its share.
-    if (u_lobe < l.coat) {
-      const CoatFrame cf(p.clearcoat_n);
-      const Vec3 wo_c = cf.to_local(wo);
-      if (wo_c.z <= 0.f) return BsdfSampleStep::Failed;
-      const Vec3 m = sample_ggx_vndf_from_disk(wo_c, p.clearcoat_alpha, disks.polar);
-      const Vec3 wi_c = m * (2.f * dot(wo_c, m)) - wo_c;
-      if (wi_c.z <= 0.f) return BsdfSampleStep::Failed;
-      const Vec3 wi = cf.to_world(wi_c);
-      if (wi.z <= 0.f) return BsdfSampleStep::Failed;
-      out->wi = wi;
-      return BsdfSampleStep::NeedsEval;
-    }
-    if (u_lobe < l.coat + l.sheen) {
-      if (disks.cosine.z <= 0.f) return BsdfSampleStep::Failed;
-      out->wi = disks.cosine;
-      return BsdfSampleStep::NeedsEval;
-    }
-    if (!(l.base_pick > 0.f)) return BsdfSampleStep::Failed;
-    u_lobe = std::min(0.99999994f, (u_lobe - l.coat - l.sheen) / l.base_pick);
-    // The glass lobe's weight under the layers, over the probability of the base.
-    glass_scale = (1.f - l.coat_f) * (1.f - l.sheen_e) / l.base_pick;
+    // The layers first, then the base with u_lobe rescaled to its share.
+    BsdfSampleStep step;
+    if (!sample_layers(p, l, wo, disks, &u_lobe, &glass_scale, &step, out)) return step;
   }
   if (u_lobe < l.glass) {
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
@@ -557,7 +579,7 @@ void BsdfEvalBatch::evaluate() {
   // Layered vertices: bsdf_eval_pdf itself, on the direction the blocks normalized.
   for (uint32_t m = used_ & (layered_ | (layered_ << kLanes)); m; m &= m - 1) {
     const int slot = __builtin_ctz(m);
-    const LayeredVertex& v = layered_vertex_[slot % kLanes];
+    const LayeredVertex& v = layered_vertex(slot % kLanes);
     Vec3 wi(wi_[0][slot], wi_[1][slot], wi_[2][slot]);
     if (slot >= kLanes) wi = normalize(wi);
     float pdf = 0.f;

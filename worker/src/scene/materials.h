@@ -13,6 +13,7 @@
 #pragma once
 
 #include <cstdint>
+#include <new>
 #include <string>
 
 #include "sampling/sampling.h"
@@ -259,7 +260,7 @@ class BsdfEvalBatch {
     const uint32_t bit = uint32_t(1) << lane;
     if (lobes.layered) {
       layered_ |= bit;
-      layered_vertex_[lane] = {p, lobes, wo};
+      new (&layered_storage_[lane]) LayeredVertex{p, lobes, wo};
     } else {
       layered_ &= ~bit;
     }
@@ -310,7 +311,15 @@ class BsdfEvalBatch {
     Vec3 wo;
   };
   uint32_t layered_ = 0;  // bit lane: its vertex is layered (set_vertex)
-  LayeredVertex layered_vertex_[kLanes];
+  // Storage for the layered vertices, written by set_vertex only for them (never initialized
+  // as a whole: the batch is made once per packet and most scenes have no layered material).
+  struct alignas(LayeredVertex) LayeredSlot {
+    unsigned char bytes[sizeof(LayeredVertex)];
+  };
+  LayeredSlot layered_storage_[kLanes];
+  const LayeredVertex& layered_vertex(int lane) const {
+    return *std::launder(reinterpret_cast<const LayeredVertex*>(&layered_storage_[lane]));
+  }
   // Vertex inputs by lane and direction inputs by slot. Slots not queued hold zeros or earlier
   // inputs (a dropped light sample's may be NaN): they are computed along and never read.
   alignas(64) float wo_[3][kLanes] = {}, base_[3][kLanes] = {}, ms_[3][kLanes] = {};
