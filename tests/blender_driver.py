@@ -313,6 +313,8 @@ def scenario_scan() -> dict:
     marble.node_tree.links.new(
         gnode.outputs[0], marble.node_tree.nodes["Principled BSDF"].inputs["Base Color"]
     )
+    marble.node_tree.nodes["Principled BSDF"].inputs["Anisotropic"].default_value = 0.5
+    # Exported as KHR_materials_clearcoat, which the farm renders: not listed.
     marble.node_tree.nodes["Principled BSDF"].inputs["Coat Weight"].default_value = 0.5
     unused = marble.node_tree.nodes.new("ShaderNodeTexVoronoi")  # linked to nothing: harmless
     unused.name = "Unused Voronoi"

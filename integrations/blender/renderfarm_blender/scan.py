@@ -52,8 +52,6 @@ _PRINCIPLED_DROPPED = (
     ("Subsurface Weight", "subsurface scattering is not exported"),
     ("Diffuse Roughness", "diffuse roughness is not exported"),
     ("Thin Film Thickness", "thin film is not exported"),
-    ("Coat Weight", "the coat is exported, but the farm does not render it"),
-    ("Sheen Weight", "sheen is exported, but the farm does not render it"),
     ("Anisotropic", "anisotropy is exported, but the farm does not render it"),
 )
 

@@ -144,7 +144,15 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
   set3(lb->ng, sp.ng);
   lb->eps[lane] = ray_epsilon(ls.p);
   lb->k[lane] = p_scene * ls.pdf_area;
-  set3(lb->radiance, scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2));
+  // The cosine at the light towards the vertex, for an emitter under a clear coat only (the
+  // batch computes it for the pdf later); its sign does not matter.
+  float cos_view = 1.f;
+  if (scene.material(ls.slot, ls.prim).clearcoat > 0.f) {
+    const Vec3 to = origin - ls.p;
+    const float d = length(to);
+    if (d > 0.f) cos_view = dot(ls.n, to) / d;
+  }
+  set3(lb->radiance, scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2, cos_view));
   lb->area |= bit;
   lb->waiting |= bit;
   return LightSampleKind::Waiting;

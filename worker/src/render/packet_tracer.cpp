@@ -76,8 +76,14 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   // Emission: the front (counter-clockwise) face emits, and the back of a double-sided one.
   const Material& hit_material = scene.materials()[hit->material];
   const float cos_emit = emitting_cosine(hit_material, hit->ng, wo);
+  if (hit_material.unlit) {
+    // KHR_materials_unlit: the base colour as radiance on the faces that would emit, and
+    // nothing reflected (the path ends). Not a light of the light set: no MIS weight.
+    if (cos_emit > 0.f) result.radiance += p.beta * sp.albedo;
+    return;
+  }
   if (cos_emit > 0.f && hit_material.is_emissive()) {
-    const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2);
+    const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
     if (p.prev_delta) {
       result.radiance += p.beta * Le;
     } else {

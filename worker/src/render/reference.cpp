@@ -80,7 +80,7 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
   const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
   if (!(tmax > 0.f)) return false;
   const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
-  const Vec3 Le = scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2);
+  const Vec3 Le = scene.covered_emission(ls.slot, ls.prim, ls.b1, ls.b2, cos_light);
   out->wi = wi;
   out->tmax = tmax;
   out->contribution = f * Le * (w / pdf_light);
@@ -134,8 +134,12 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     }
     const Material& hit_material = scene.materials()[hit.material];
     const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
+    if (hit_material.unlit) {  // as in the packet tracer
+      if (cos_emit > 0.f) result.radiance += p.beta * sp.albedo;
+      return result;
+    }
     if (cos_emit > 0.f && hit_material.is_emissive()) {
-      const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2);
+      const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2, cos_emit);
       if (p.prev_delta) {
         result.radiance += p.beta * Le;
       } else {

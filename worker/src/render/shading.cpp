@@ -2,6 +2,80 @@
 
 namespace rf {
 
+namespace {
+
+// Tangent-space normal map (glTF 3.9.3): n = normalize((2c - 1) * (scale, scale, 1)) in the
+// frame (T, B, N) of the interpolated normal N, with T the uv tangent made orthogonal to N.
+// The interpolated normal where the map cannot be read.
+Vec3 normal_mapped(const Scene& scene, const Hit& hit, const TextureRef& ref, float scale) {
+  const Vec3 ns = hit.ns;
+  float c[4];
+  if (!(length(hit.dpdu) > 0.f) ||
+      !scene.textures().lookup(ref.texture, texcoord(scene, hit, ref), 3, c))
+    return ns;
+  const Vec3 tn((2.f * c[0] - 1.f) * scale, (2.f * c[1] - 1.f) * scale, 2.f * c[2] - 1.f);
+  Vec3 t = hit.dpdu - ns * dot(ns, hit.dpdu);
+  const float tl = length(t);
+  if (!(tl > 0.f) || !std::isfinite(tl)) return ns;
+  t = t / tl;
+  const Vec3 b = cross(ns, t) * hit.tangent_sign;
+  const Vec3 n = t * tn.x + b * tn.y + ns * tn.z;
+  const float nl = length(n);
+  return nl > 0.f && std::isfinite(nl) ? n / nl : ns;
+}
+
+// KHR_materials_clearcoat and KHR_materials_sheen parameters at the hit, into sp->params
+// (after the shading normal is final: the coat normal is stored in its local frame).
+// Out of line: most materials have no layers, and the common path stays small.
+__attribute__((noinline)) void add_layers(const Scene& scene, const Hit& hit, Vec3 wo,
+                                          ShadingPoint* sp) {
+  const Material& mat = scene.materials()[hit.material];
+  const TextureSet& tex = scene.textures();
+  BsdfParams& bp = sp->params;
+  float c[4];
+  if (mat.clearcoat > 0.f) {
+    float coat = mat.clearcoat, roughness = mat.clearcoat_roughness;
+    if (mat.clearcoat_tex.valid() &&
+        tex.lookup(mat.clearcoat_tex.texture, texcoord(scene, hit, mat.clearcoat_tex), 3, c))
+      coat *= c[0];
+    if (mat.clearcoat_roughness_tex.valid() &&
+        tex.lookup(mat.clearcoat_roughness_tex.texture,
+                   texcoord(scene, hit, mat.clearcoat_roughness_tex), 3, c))
+      roughness *= c[1];
+    bp.clearcoat = std::min(1.f, std::max(0.f, coat));
+    const float r = std::min(1.f, std::max(0.f, roughness));
+    bp.clearcoat_alpha = std::max(kMinAlpha, r * r);
+    // The coat's normal: its own map, else the interpolated normal (not the base's map), on
+    // the side of wo; one that wo sees from below falls back to the shading normal.
+    Vec3 nc = mat.clearcoat_normal_tex.valid()
+                  ? normal_mapped(scene, hit, mat.clearcoat_normal_tex, mat.clearcoat_normal_scale)
+                  : hit.ns;
+    if (dot(nc, sp->ng) < 0.f) nc = -nc;
+    if (dot(nc, wo) > 1e-4f) {
+      const Vec3 local = Frame(sp->ns).to_local(nc);
+      const float l = length(local);
+      if (l > 0.f && std::isfinite(l) && local.z > 0.f) bp.clearcoat_n = local / l;
+    }
+  }
+  if (!is_zero(mat.sheen_color)) {
+    Vec3 color = mat.sheen_color;
+    float roughness = mat.sheen_roughness;
+    if (mat.sheen_color_tex.valid() &&
+        tex.lookup(mat.sheen_color_tex.texture, texcoord(scene, hit, mat.sheen_color_tex), 3, c))
+      color = color * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
+    if (mat.sheen_roughness_tex.valid() &&
+        tex.lookup(mat.sheen_roughness_tex.texture,
+                   texcoord(scene, hit, mat.sheen_roughness_tex), 4, c))
+      roughness *= c[3];
+    for (int k = 0; k < 3; ++k) color[k] = std::min(1.f, std::max(0.f, color[k]));
+    bp.sheen = color;
+    const float r = std::min(1.f, std::max(0.f, roughness));
+    bp.sheen_alpha = std::max(kMinSheenAlpha, r * r);
+  }
+}
+
+}  // namespace
+
 ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   const Material& mat = scene.materials()[hit.material];
   const TextureSet& tex = scene.textures();
@@ -32,28 +106,15 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   sp.albedo = bp.base;
 
   Vec3 ns = hit.ns;
-  if (mat.normal_tex.valid() && length(hit.dpdu) > 0.f &&
-      tex.lookup(mat.normal_tex.texture, texcoord(scene, hit, mat.normal_tex), 3, c)) {
-    // Tangent-space normal map (glTF 3.9.3): n = normalize((2c - 1) * (scale, scale, 1)) in
-    // the frame (T, B, N) with T the uv tangent made orthogonal to N.
-    const Vec3 tn((2.f * c[0] - 1.f) * mat.normal_scale, (2.f * c[1] - 1.f) * mat.normal_scale,
-                  2.f * c[2] - 1.f);
-    Vec3 t = hit.dpdu - ns * dot(ns, hit.dpdu);
-    const float tl = length(t);
-    if (tl > 0.f && std::isfinite(tl)) {
-      t = t / tl;
-      const Vec3 b = cross(ns, t) * hit.tangent_sign;
-      const Vec3 n = t * tn.x + b * tn.y + ns * tn.z;
-      const float nl = length(n);
-      if (nl > 0.f && std::isfinite(nl)) ns = n / nl;
-    }
-  }
+  if (mat.normal_tex.valid()) ns = normal_mapped(scene, hit, mat.normal_tex, mat.normal_scale);
   bp.front = dot(hit.ng, wo) >= 0.f;
   sp.ng = bp.front ? hit.ng : -hit.ng;
   sp.ns = dot(ns, sp.ng) >= 0.f ? ns : -ns;
   // A shading normal that puts wo below its hemisphere cannot be used (the BSDF would see
   // wo.z <= 0 and the path would end black): fall back to the geometric normal.
   if (dot(sp.ns, wo) <= 1e-4f) sp.ns = sp.ng;
+  // The layers are on the outside of a transmissive material: a ray inside meets none.
+  if (bp.front || (1.f - bp.metallic) * bp.transmission <= 0.f) add_layers(scene, hit, wo, &sp);
   sp.p = hit.p;
   sp.eps = ray_epsilon(hit.p);
   return sp;

@@ -46,7 +46,8 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_ior",
       "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual",
       "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression",
-      "KHR_materials_volume"};
+      "KHR_materials_volume",            "KHR_materials_clearcoat",    "KHR_materials_sheen",
+      "KHR_materials_unlit"};
   return s;
 }
 
@@ -227,6 +228,94 @@ class Loader {
           uv_array_of_set_.try_emplace(ref.texcoord, uint32_t(2 + uv_array_of_set_.size()))
               .first->second;
     return ref;
+  }
+
+  // A textureInfo (or normalTextureInfo) object inside a material extension: index, texCoord and
+  // its own KHR_texture_transform, as texture_ref reads them from tinygltf's parsed slots.
+  TextureRef texture_ref(const tinygltf::Value& ext, const char* key, const std::string& where,
+                         float* scale = nullptr) {
+    if (!ext.Has(key)) return TextureRef{};
+    const tinygltf::Value& info = ext.Get(key);
+    const std::string at = where + "." + key;
+    if (!info.IsObject() || !info.Has("index") || !info.Get("index").IsNumber())
+      fail(at + ": a texture reference needs a numeric index");
+    const int index = info.Get("index").GetNumberAsInt();
+    if (index < 0) fail(at + ": index " + std::to_string(index) + " is negative");
+    int texcoord = 0;
+    if (info.Has("texCoord")) {
+      if (!info.Get("texCoord").IsNumber()) fail(at + ".texCoord is not a number");
+      texcoord = info.Get("texCoord").GetNumberAsInt();
+    }
+    if (scale) *scale = number_or(info, "scale", 1.f);
+    tinygltf::ExtensionMap extensions;
+    if (info.Has("extensions") && info.Get("extensions").IsObject()) {
+      const tinygltf::Value& e = info.Get("extensions");
+      for (const std::string& k : e.Keys()) extensions[k] = e.Get(k);
+    }
+    return texture_ref(index, texcoord, extensions, at);
+  }
+
+  // A number in [0, 1] of a material extension (fallback when absent).
+  float unit_factor(const tinygltf::Value& ext, const char* key, float fallback,
+                    const std::string& where) {
+    if (!ext.Has(key)) return fallback;
+    const tinygltf::Value& v = ext.Get(key);
+    const float x = v.IsNumber() ? float(v.GetNumberAsDouble()) : -1.f;
+    if (!(x >= 0.f && x <= 1.f)) fail(where + "." + key + " must be a number in [0, 1]");
+    return x;
+  }
+
+  // KHR_materials_clearcoat, KHR_materials_sheen and KHR_materials_unlit of material i.
+  void load_layers(const tinygltf::Material& gm, size_t i, Material* m) {
+    const std::string base = "materials[" + std::to_string(i) + "].extensions.";
+    auto unlit = gm.extensions.find("KHR_materials_unlit");
+    if (unlit != gm.extensions.end()) {
+      // Shadeless: the base colour term alone (the extension text); the other properties
+      // are a fallback for viewers without the extension.
+      m->unlit = true;
+      m->emission = Vec3(0.f, 0.f, 0.f);
+      m->emissive_tex = TextureRef{};
+      if (gm.extensions.count("KHR_materials_clearcoat") ||
+          gm.extensions.count("KHR_materials_sheen"))
+        warn("materials[" + std::to_string(i) + "]" + named(gm.name) +
+             ": KHR_materials_unlit excludes clearcoat and sheen; the material is unlit");
+      return;
+    }
+    auto cc = gm.extensions.find("KHR_materials_clearcoat");
+    if (cc != gm.extensions.end()) {
+      const tinygltf::Value& e = cc->second;
+      const std::string where = base + "KHR_materials_clearcoat";
+      m->clearcoat = unit_factor(e, "clearcoatFactor", 0.f, where);
+      m->clearcoat_roughness = unit_factor(e, "clearcoatRoughnessFactor", 0.f, where);
+      m->clearcoat_tex = texture_ref(e, "clearcoatTexture", where);
+      m->clearcoat_roughness_tex = texture_ref(e, "clearcoatRoughnessTexture", where);
+      m->clearcoat_normal_tex =
+          texture_ref(e, "clearcoatNormalTexture", where, &m->clearcoat_normal_scale);
+      if (m->normal_tex.valid() && m->clearcoat_normal_tex.valid() &&
+          m->normal_tex.texcoord != m->clearcoat_normal_tex.texcoord)
+        warn(where + named(gm.name) +
+             ": clearcoatNormalTexture uses another TEXCOORD set than normalTexture; its "
+             "tangents are those of normalTexture's set");
+    }
+    auto sh = gm.extensions.find("KHR_materials_sheen");
+    if (sh != gm.extensions.end()) {
+      const tinygltf::Value& e = sh->second;
+      const std::string where = base + "KHR_materials_sheen";
+      if (e.Has("sheenColorFactor")) {
+        const tinygltf::Value& v = e.Get("sheenColorFactor");
+        if (!v.IsArray() || v.ArrayLen() != 3)
+          fail(where + ".sheenColorFactor must be an array of 3 numbers in [0, 1]");
+        for (int k = 0; k < 3; ++k) {
+          const float x = v.Get(k).IsNumber() ? float(v.Get(k).GetNumberAsDouble()) : -1.f;
+          if (!(x >= 0.f && x <= 1.f))
+            fail(where + ".sheenColorFactor must be an array of 3 numbers in [0, 1]");
+          m->sheen_color[k] = x;
+        }
+      }
+      m->sheen_roughness = unit_factor(e, "sheenRoughnessFactor", 0.f, where);
+      m->sheen_color_tex = texture_ref(e, "sheenColorTexture", where);
+      m->sheen_roughness_tex = texture_ref(e, "sheenRoughnessTexture", where);
+    }
   }
 
   void load_lights() {
@@ -716,6 +805,7 @@ class Loader {
       for (int k = 0; k < 3; ++k)
         if (!(m.emission[k] >= 0.f) || !std::isfinite(m.emission[k]))
           fail(where + ": emissiveFactor x emissiveStrength must be finite and >= 0");
+      load_layers(gm, i, &m);
       desc->materials.push_back(m);
     }
     default_material_ = uint32_t(desc->materials.size());

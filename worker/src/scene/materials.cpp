@@ -74,6 +74,109 @@ const EnergyTable& energy_table() {
   return table;
 }
 
+// ---- KHR_materials_sheen: the Charlie lobe (Conty Estevez and Kulla 2017, as the extension
+// text writes it) and its directional albedo.
+
+// The extension's fit of the Charlie lambda: L(x) = a / (1 + b x^c) + d x + e, its
+// coefficients interpolated between those for alpha 0 and 1 by (1 - alpha)^2.
+float charlie_l(float x, float alpha) {
+  const float t = (1.f - alpha) * (1.f - alpha);
+  const float a = 21.5473f + (25.3245f - 21.5473f) * t;
+  const float b = 3.82987f + (3.32435f - 3.82987f) * t;
+  const float c = 0.19823f + (0.16801f - 0.19823f) * t;
+  const float d = -1.97760f + (-1.27393f + 1.97760f) * t;
+  const float e = -4.32054f + (-4.85967f + 4.32054f) * t;
+  return a / (1.f + b * std::pow(x, c)) + d * x + e;
+}
+
+float charlie_lambda(float cos_theta, float alpha) {
+  const float c = std::abs(cos_theta);
+  return c < 0.5f ? std::exp(charlie_l(c, alpha))
+                  : std::exp(2.f * charlie_l(0.5f, alpha) - charlie_l(1.f - c, alpha));
+}
+
+// f_sheen cos_i for sheenColor 1: D V cos_i = D / ((1 + L(cos_o) + L(cos_i)) 4 cos_o), with
+// cos_h = h.z for h = (wo + wi) / |wo + wi|.
+float sheen_lobe_cos(Vec3 wo, Vec3 wi, float alpha) {
+  const Vec3 s = wo + wi;
+  const float sl = length(s);
+  if (!(sl > 0.f)) return 0.f;
+  const float d = sheen_charlie_d(s.z / sl, alpha);
+  return d / ((1.f + charlie_lambda(wo.z, alpha) + charlie_lambda(wi.z, alpha)) * 4.f * wo.z);
+}
+
+// E(mu, alpha): the integral over wi of sheen_lobe_cos, by the midpoint rule over
+// (t, phi) with cos_i = t^2 (denser towards the horizon, where the lobe's grazing peak is) and
+// phi in [0, pi] (the lobe is symmetric about the plane of wo), on a grid of mu = s^2 (s at
+// cell centres: dense at grazing angles, where E changes fastest) and sheen roughness
+// sqrt(alpha) (kRough points from sqrt(kMinSheenAlpha) to 1). E is not clamped: the spec's
+// lobe (its fitted visibility) reflects more than it receives at grazing angles for sheen
+// roughness below about 0.3 (E(0.05) = 1.03 at roughness 0.1), which add_layers corrects.
+class SheenTable {
+ public:
+  static constexpr int kMu = 32, kRough = 32;
+  SheenTable() {
+    const int nt = 96, nphi = 48;
+    for (int ir = 0; ir < kRough; ++ir) {
+      const float alpha = alpha_at(ir);
+      for (int im = 0; im < kMu; ++im) {
+        const float s = (float(im) + 0.5f) / kMu, mu = s * s;
+        const Vec3 wo(std::sqrt(std::max(0.f, 1.f - mu * mu)), 0.f, mu);
+        double sum = 0.0;
+        for (int i = 0; i < nt; ++i) {
+          const double t = (i + 0.5) / nt, ci = t * t;
+          const double si = std::sqrt(std::max(0.0, 1.0 - ci * ci));
+          double ring = 0.0;
+          for (int j = 0; j < nphi; ++j) {
+            const double phi = (j + 0.5) * kPi / nphi;
+            const Vec3 wi(float(si * std::cos(phi)), float(si * std::sin(phi)), float(ci));
+            ring += double(sheen_lobe_cos(wo, wi, alpha));
+          }
+          // d omega = d cos_i d phi = 2 t dt d phi; both halves of phi.
+          sum += ring * 2.0 * t * (1.0 / nt) * (kPi / nphi) * 2.0;
+        }
+        e_[ir][im] = float(sum);
+      }
+    }
+  }
+  float e(float mu, float alpha) const {
+    const float fr =
+        std::min(float(kRough - 1),
+                 std::max(0.f, (std::sqrt(alpha) - kMinRough) / (1.f - kMinRough) * (kRough - 1)));
+    const float fm = std::min(float(kMu - 1), std::max(0.f, std::sqrt(std::max(0.f, mu)) * kMu - 0.5f));
+    const int r0 = std::min(kRough - 2, int(fr)), m0 = std::min(kMu - 2, int(fm));
+    const float tr = fr - float(r0), tm = fm - float(m0);
+    const float lo = e_[r0][m0] * (1.f - tm) + e_[r0][m0 + 1] * tm;
+    const float hi = e_[r0 + 1][m0] * (1.f - tm) + e_[r0 + 1][m0 + 1] * tm;
+    return lo * (1.f - tr) + hi * tr;
+  }
+
+ private:
+  static constexpr float kMinRough = 0.07f;  // sqrt(kMinSheenAlpha)
+  static float alpha_at(int i) {
+    const float r = kMinRough + (1.f - kMinRough) * float(i) / float(kRough - 1);
+    return std::max(kMinSheenAlpha, r * r);
+  }
+  float e_[kRough][kMu];
+};
+
+const SheenTable& sheen_table() {
+  static const SheenTable table;
+  return table;
+}
+
+inline float max3(Vec3 v) { return std::max(v.x, std::max(v.y, v.z)); }
+
+// ---- KHR_materials_clearcoat: the coat's directions in a frame around its normal (the
+// shading frame itself when the coat has no normal map of its own).
+struct CoatFrame {
+  bool tilted;
+  Frame frame;
+  explicit CoatFrame(Vec3 n) : tilted(n.x != 0.f || n.y != 0.f), frame(n) {}
+  Vec3 to_local(Vec3 v) const { return tilted ? frame.to_local(v) : v; }
+  Vec3 to_world(Vec3 v) const { return tilted ? frame.to_world(v) : v; }
+};
+
 inline float schlick_weight(float c) {
   const float m = std::min(1.f, std::max(0.f, 1.f - c));
   const float m2 = m * m;
@@ -109,6 +212,98 @@ Vec3 metal_multiple_scattering(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 
 }  // namespace
 
+float clearcoat_fresnel(float cos_v) {
+  const float m = std::min(1.f, std::max(0.f, 1.f - std::abs(cos_v)));
+  const float m2 = m * m;
+  return 0.04f + 0.96f * (m2 * m2 * m);
+}
+
+float sheen_charlie_d(float cos_h, float alpha) {
+  const float inv_r = 1.f / alpha;
+  const float sin2h = std::max(0.f, 1.f - cos_h * cos_h);
+  return (2.f + inv_r) * std::pow(sin2h, inv_r * 0.5f) / (2.f * kPi);
+}
+
+float sheen_charlie_visibility(float cos_o, float cos_i, float alpha) {
+  return 1.f / ((1.f + charlie_lambda(cos_o, alpha) + charlie_lambda(cos_i, alpha)) *
+                (4.f * cos_o * cos_i));
+}
+
+float sheen_albedo(float mu, float alpha) { return sheen_table().e(mu, alpha); }
+
+namespace {
+
+// The layers on a base value (f_base = the base's f cos at (wo, wi), pdf_base = the density
+// of the base's own sampling): the layered f cos, and *pdf the mixture density (the formulas
+// in materials.h).
+// The layered functions are out of line: most materials have no layers, and the common path
+// stays as small as it was.
+__attribute__((noinline)) Vec3 add_layers(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                          Vec3 wi, Vec3 f_base, float pdf_base, float* pdf) {
+  float density = l.base_pick * pdf_base;
+  Vec3 f = f_base;
+  if (!is_zero(p.sheen)) {
+    // The spec's albedo scaling, with E clamped to 1; the lobe divided by max(1, E(mu_o),
+    // E(mu_i)) (1 wherever the spec's lobe conserves energy), which keeps it reciprocal and its
+    // albedo at most min(1, E(mu_o)).
+    const float e_i = sheen_albedo(wi.z, p.sheen_alpha);
+    const float s = max3(p.sheen);
+    const float lobe = sheen_lobe_cos(wo, wi, p.sheen_alpha) / std::max(l.sheen_norm, e_i);
+    f = f * std::min(1.f - l.sheen_e, 1.f - s * std::min(1.f, e_i)) + p.sheen * lobe;
+    density += l.sheen * wi.z * kInvPi;
+  }
+  if (p.clearcoat > 0.f) {
+    f = f * (1.f - l.coat_f);
+    const CoatFrame cf(p.clearcoat_n);
+    const Vec3 wo_c = cf.to_local(wo), wi_c = cf.to_local(wi);
+    const Vec3 h_raw = wo_c + wi_c;
+    const float hl = length(h_raw);
+    if (wo_c.z > 0.f && wi_c.z > 0.f && hl > 0.f) {
+      const Vec3 h = h_raw / hl;
+      const float a = p.clearcoat_alpha;
+      // D G2 / (4 cos_o cos_i) times cos_i, on the coat normal.
+      const float spec = ggx_d(h, a) * ggx_g2(wo_c, wi_c, a) / (4.f * wo_c.z);
+      f += Vec3(1.f, 1.f, 1.f) * (l.coat_f * spec);
+      const float c = dot(wo_c, h);
+      if (c > 0.f) density += l.coat * ggx_vndf_pdf(wo_c, h, a) / (4.f * c);
+    }
+  }
+  *pdf = density;
+  return f;
+}
+
+// bsdf_lobes' layered part: the lobe probabilities from estimates of each lobe's albedo at wo
+// (the coat: c F_c; the sheen: S luminance(sheenColor) E(wo.z); the base: S (1 - sheen_e)
+// times the base's estimate, base_albedo), S = 1 - c F_c.
+__attribute__((noinline)) void layer_lobes(const BsdfParams& p, Vec3 wo, float base_albedo,
+                                           BsdfLobes* l) {
+  l->layered = true;
+  float a_coat = 0.f, above = 1.f;
+  if (p.clearcoat > 0.f) {
+    const float cos_c = CoatFrame(p.clearcoat_n).to_local(wo).z;
+    l->coat_f = p.clearcoat * clearcoat_fresnel(cos_c);
+    a_coat = l->coat_f;
+    above = 1.f - l->coat_f;
+  }
+  float a_sheen = 0.f;
+  if (!is_zero(p.sheen)) {
+    const float e_raw = sheen_albedo(wo.z, p.sheen_alpha);
+    l->sheen_norm = std::max(1.f, e_raw);
+    const float e_o = std::min(1.f, e_raw);
+    l->sheen_e = max3(p.sheen) * e_o;
+    a_sheen = above * std::max(luminance(p.sheen), 1e-3f) * e_o;
+  }
+  const float a_base = above * (1.f - l->sheen_e) * base_albedo;
+  const float total = a_coat + a_sheen + a_base;
+  if (total > 0.f) {
+    l->coat = a_coat / total;
+    l->sheen = a_sheen / total;
+  }
+  l->base_pick = std::max(0.f, 1.f - l->coat - l->sheen);
+}
+
+}  // namespace
+
 // A function of wo only, so that bsdf_pdf can recompute them.
 BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
   BsdfLobes l;
@@ -134,6 +329,7 @@ BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
   const float c2 = wo.z * wo.z;
   l.root_o = std::sqrt(c2 + p.alpha * p.alpha * std::max(0.f, 1.f - c2));
   l.pdf_k = wo.z > 0.f ? 1.f / (2.f * (wo.z + l.root_o)) : 0.f;
+  if (p.layered()) layer_lobes(p, wo, l.glass + ws + wdiff, &l);
   return l;
 }
 
@@ -167,7 +363,10 @@ Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   const float spec = ggx_d(h, p.alpha) * ggx_g2(wo, wi, p.alpha) / (4.f * wo.z * wi.z);
   const Vec3 diffuse = p.base * (wd * (1.f - fd) * kInvPi);
   const Vec3 specular = (Vec3(1.f, 1.f, 1.f) * (wd * fd) + fm * p.metallic) * spec;
-  return (diffuse + specular + metal_multiple_scattering(p, wo, wi)) * wi.z;
+  const Vec3 f = (diffuse + specular + metal_multiple_scattering(p, wo, wi)) * wi.z;
+  if (!p.layered()) return f;
+  float pdf = 0.f;
+  return add_layers(p, bsdf_lobes(p, wo), wo, wi, f, 0.f, &pdf);
 }
 
 float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
@@ -183,7 +382,11 @@ float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
     if (c > 0.f) pdf_spec = ggx_vndf_pdf(wo, h, p.alpha) / (4.f * c);
   }
   const float pdf_diffuse = wi.z * kInvPi;
-  return (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * pdf_diffuse);
+  const float pdf_base = (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * pdf_diffuse);
+  if (!l.layered) return pdf_base;
+  float pdf = 0.f;
+  add_layers(p, l, wo, wi, Vec3(0.f, 0.f, 0.f), pdf_base, &pdf);
+  return pdf;
 }
 
 Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
@@ -222,7 +425,8 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, fl
   const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
   const Vec3 specular = (Vec3(spec_weight_d, spec_weight_d, spec_weight_d) + fm * p.metallic) * spec;
   *pdf = (1.f - l.glass) * (l.spec * d * l.pdf_k + (1.f - l.spec) * wi.z * kInvPi);
-  return (diffuse + specular) * wi.z;
+  if (!l.layered) return (diffuse + specular) * wi.z;
+  return add_layers(p, l, wo, wi, (diffuse + specular) * wi.z, *pdf, pdf);
 }
 
 bool bsdf_sample(const BsdfParams& p, Vec3 wo, Point2 u, float u_lobe, float u_fresnel,
@@ -246,10 +450,55 @@ bool bsdf_sample(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Point2 u, flo
   return bsdf_sample_finish(f, pdf, out);
 }
 
+namespace {
+
+// bsdf_sample_direction's layers: the coat (its VNDF on its own normal) with probability
+// l.coat, the sheen (cosine-weighted) with l.sheen, and false with *step the result
+// (NeedsEval with out->wi set, or Failed); otherwise true, the base: *u_lobe rescaled to the
+// base's share and *glass_scale the glass lobe's weight under the layers over the base's
+// probability.
+__attribute__((noinline)) bool sample_layers(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                             const BsdfDisks& disks, float* u_lobe,
+                                             float* glass_scale, BsdfSampleStep* step,
+                                             BsdfSample* out) {
+  *step = BsdfSampleStep::Failed;
+  if (*u_lobe < l.coat) {
+    const CoatFrame cf(p.clearcoat_n);
+    const Vec3 wo_c = cf.to_local(wo);
+    if (wo_c.z <= 0.f) return false;
+    const Vec3 m = sample_ggx_vndf_from_disk(wo_c, p.clearcoat_alpha, disks.polar);
+    const Vec3 wi_c = m * (2.f * dot(wo_c, m)) - wo_c;
+    if (wi_c.z <= 0.f) return false;
+    const Vec3 wi = cf.to_world(wi_c);
+    if (wi.z <= 0.f) return false;
+    out->wi = wi;
+    *step = BsdfSampleStep::NeedsEval;
+    return false;
+  }
+  if (*u_lobe < l.coat + l.sheen) {
+    if (disks.cosine.z <= 0.f) return false;
+    out->wi = disks.cosine;
+    *step = BsdfSampleStep::NeedsEval;
+    return false;
+  }
+  if (!(l.base_pick > 0.f)) return false;
+  *u_lobe = std::min(0.99999994f, (*u_lobe - l.coat - l.sheen) / l.base_pick);
+  *glass_scale = (1.f - l.coat_f) * (1.f - l.sheen_e) / l.base_pick;
+  return true;
+}
+
+}  // namespace
+
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
                                      const BsdfDisks& disks, float u_lobe, float u_fresnel,
                                      BsdfSample* out) {
   if (wo.z <= 0.f) return BsdfSampleStep::Failed;
+  float glass_scale = 1.f;
+  if (l.layered) {
+    // The layers first, then the base with u_lobe rescaled to its share.
+    BsdfSampleStep step;
+    if (!sample_layers(p, l, wo, disks, &u_lobe, &glass_scale, &step, out)) return step;
+  }
   if (u_lobe < l.glass) {
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
     // the indices across the interface in the direction of travel of wi.
@@ -259,7 +508,7 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
     out->pdf = 0.f;
     if (u_fresnel < F) {
       out->wi = Vec3(-wo.x, -wo.y, wo.z);
-      out->weight = Vec3(1.f, 1.f, 1.f);
+      out->weight = Vec3(glass_scale, glass_scale, glass_scale);
       out->transmitted = false;
       return BsdfSampleStep::Done;
     }
@@ -268,7 +517,7 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
     out->wi = normalize(Vec3(-wo.x / eta, -wo.y / eta, -cos_t));
     // Radiance is scaled by 1/eta^2 across the interface (pbrt-v4, TransportMode::Radiance);
     // the transmitted light is tinted by the base color (glTF transmission).
-    out->weight = p.base * (1.f / (eta * eta));
+    out->weight = p.base * (glass_scale / (eta * eta));
     out->transmitted = true;
     return BsdfSampleStep::Done;
   }
@@ -327,6 +576,17 @@ void BsdfEvalBatch::evaluate() {
   uint32_t blocks = 0;
   for (int b = 0; b < kSlots / 4; ++b) blocks |= uint32_t(((used_ >> (4 * b)) & 0xfu) != 0) << b;
   for (; blocks; blocks &= blocks - 1) evaluate_block(4 * __builtin_ctz(blocks));
+  // Layered vertices: bsdf_eval_pdf itself, on the direction the blocks normalized.
+  for (uint32_t m = used_ & (layered_ | (layered_ << kLanes)); m; m &= m - 1) {
+    const int slot = __builtin_ctz(m);
+    const LayeredVertex& v = layered_vertex(slot % kLanes);
+    Vec3 wi(wi_[0][slot], wi_[1][slot], wi_[2][slot]);
+    if (slot >= kLanes) wi = normalize(wi);
+    float pdf = 0.f;
+    const Vec3 f = bsdf_eval_pdf(v.p, v.lobes, v.wo, wi, &pdf);
+    for (int c = 0; c < 3; ++c) f_[c][slot] = f[c];
+    pdf_[slot] = pdf;
+  }
 }
 
 // bsdf_eval_pdf's arithmetic on four slots at a time, every operation in the scalar function's

@@ -1,7 +1,10 @@
 // Materials: glTF 2.0 metallic-roughness as a Lambert diffuse base plus a GGX microfacet
 // specular layer (Smith height-correlated masking-shadowing, visible-normal sampling),
 // emission (with KHR_materials_emissive_strength), KHR_materials_specular's specularFactor,
-// and KHR_materials_transmission + KHR_materials_ior as smooth dielectric glass.
+// KHR_materials_transmission + KHR_materials_ior as smooth dielectric glass, and the layers
+// of KHR_materials_sheen (Charlie sheen over the base, albedo-scaled) and
+// KHR_materials_clearcoat (a GGX coat over everything, Fresnel-weighted). KHR_materials_unlit
+// materials are not shaded at all (Material::unlit; the path tracers handle them).
 //
 // Radiance and emission are linear RGB in the scene's units (W sr^-1 m^-2 up to an arbitrary
 // overall scale); base colors are reflectances in [0, 1]. Directions in the BSDF functions are
@@ -10,6 +13,7 @@
 #pragma once
 
 #include <cstdint>
+#include <new>
 #include <string>
 
 #include "sampling/sampling.h"
@@ -54,6 +58,22 @@ struct Material {
   float transmission = 0.f;      // KHR_materials_transmissionFactor
   float normal_scale = 1.f;      // normalTexture.scale
   TextureRef base_color_tex{}, metallic_roughness_tex{}, normal_tex{}, emissive_tex{};
+  // KHR_materials_clearcoat: clearcoat = clearcoatFactor x clearcoatTexture.r, roughness =
+  // clearcoatRoughnessFactor x clearcoatRoughnessTexture.g, both linear; the coat's own normal
+  // map (none: the interpolated normal, not the base's normal map).
+  float clearcoat = 0.f;
+  float clearcoat_roughness = 0.f;
+  float clearcoat_normal_scale = 1.f;
+  TextureRef clearcoat_tex{}, clearcoat_roughness_tex{}, clearcoat_normal_tex{};
+  // KHR_materials_sheen: sheenColor = sheenColorFactor x sheenColorTexture.rgb (sRGB-encoded),
+  // sheenRoughness = sheenRoughnessFactor x sheenRoughnessTexture.a (linear).
+  Vec3 sheen_color{0.f, 0.f, 0.f};
+  float sheen_roughness = 0.f;
+  TextureRef sheen_color_tex{}, sheen_roughness_tex{};
+  // KHR_materials_unlit: the surface shows its base colour (factor x texture x COLOR_0) as
+  // radiance towards any ray that meets its front (either face if double-sided), and reflects
+  // and transmits nothing; alpha coverage applies as for any material.
+  bool unlit = false;
   AlphaMode alpha_mode = AlphaMode::Opaque;
   float alpha = 1.f;         // baseColorFactor alpha
   float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)
@@ -66,14 +86,29 @@ struct Material {
   // so an emissive back face emits like the front; otherwise only the front face emits.
   bool double_sided = false;
   bool has_volume() const { return !is_zero(absorption); }
-  bool is_emissive() const { return !is_zero(emission); }
+  // An unlit material's emission is never used (it shows its base colour instead).
+  bool is_emissive() const { return !unlit && !is_zero(emission); }
   bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }
   // True if shading reads texture coordinates at the hit point (the emissive texture is read
   // by Scene::emission, which interpolates its own).
   bool reads_uv() const {
-    return base_color_tex.valid() || metallic_roughness_tex.valid() || normal_tex.valid();
+    return base_color_tex.valid() || metallic_roughness_tex.valid() || normal_tex.valid() ||
+           clearcoat_tex.valid() || clearcoat_roughness_tex.valid() ||
+           clearcoat_normal_tex.valid() || sheen_color_tex.valid() || sheen_roughness_tex.valid();
+  }
+  // The tangent-space normal map whose TEXCOORD set gives the hit's tangent (Hit::dpdu): the
+  // base's, else the clear coat's.
+  const TextureRef& tangent_map() const {
+    return normal_tex.valid() ? normal_tex : clearcoat_normal_tex;
   }
 };
+
+// Smallest GGX alpha: below it the lobe is too narrow for float precision; such surfaces
+// render as very slightly rough mirrors.
+constexpr float kMinAlpha = 2e-3f;
+// Smallest Charlie sheen alpha (sheenRoughness^2; the distribution is a delta at 0): sheen
+// roughness below 0.07 renders as 0.07.
+constexpr float kMinSheenAlpha = 0.0049f;
 
 // Material parameters at one surface point, after texture lookups.
 struct BsdfParams {
@@ -84,11 +119,16 @@ struct BsdfParams {
   float ior = 1.5f;
   float transmission = 0.f;
   bool front = true;  // wo on the front side of the geometric normal (outside the glass)
+  // KHR_materials_clearcoat: the coat's weight (0: none), GGX alpha and normal (a unit vector
+  // in the local shading frame, on the side of wo).
+  float clearcoat = 0.f;
+  float clearcoat_alpha = kMinAlpha;
+  Vec3 clearcoat_n{0.f, 0.f, 1.f};
+  // KHR_materials_sheen: sheen colour (0: none) and Charlie alpha (sheenRoughness^2).
+  Vec3 sheen{0.f, 0.f, 0.f};
+  float sheen_alpha = kMinSheenAlpha;
+  bool layered() const { return clearcoat > 0.f || !is_zero(sheen); }
 };
-
-// Smallest GGX alpha: below it the lobe is too narrow for float precision; such surfaces
-// render as very slightly rough mirrors.
-constexpr float kMinAlpha = 2e-3f;
 
 struct BsdfSample {
   Vec3 wi;             // local frame
@@ -98,6 +138,23 @@ struct BsdfSample {
   bool transmitted = false;
 };
 
+// The layers (glTF extension texts, implementation sections), on the base f_base below:
+//   f = (1 - c F_c(wo)) (f_sheen + f_base s) + c F_c(wo) f_coat,
+//   F_c(wo) = 0.04 + 0.96 (1 - |wo . n_c|)^5 (KHR_materials_clearcoat: Schlick at ior 1.5 on
+//   the coat normal's N.V, so the coated material is not reciprocal unless wo . n_c = wi . n_c),
+//   f_coat = D(alpha_c) G2 / (4 |wo . n_c| |wi . n_c|) on the coat normal, times wi . n_c in
+//   the cosine-weighted value eval returns (the base and sheen lobes take wi.z),
+//   f_sheen = sheenColor D_charlie V_charlie / max(1, E(wo.z), E(wi.z)) (KHR_materials_sheen,
+//   Conty and Kulla 2017; E the lobe's directional albedo, sheen_albedo: the spec's lobe where
+//   E <= 1, scaled down where it would reflect more than it receives, at grazing angles for
+//   sheen roughness below about 0.3),
+//   s = min(1 - max3(sheenColor) E'(wo.z), 1 - max3(sheenColor) E'(wi.z)), E' = min(1, E)
+//   (the extension's reciprocal albedo scaling).
+// The delta glass lobe is weighted (1 - c F_c(wo)) (1 - max3(sheenColor) E(wo.z)).
+// Sampling picks the coat, the sheen (cosine-weighted) or the base by estimates of their
+// albedos at wo (BsdfLobes::coat, ::sheen), and the pdf of a direction is the mixture of the
+// three lobes' densities (one-sample MIS with the balance heuristic).
+//
 // Lambert + GGX as in the glTF spec (Appendix B): with F_d the dielectric Schlick Fresnel
 // (f0 = specular * ((ior - 1)/(ior + 1))^2) and F_m the conductor Schlick Fresnel (f0 = base),
 //   f = (1 - m)(1 - t)((1 - F_d) base / pi + F_d spec) + m (F_m spec + f_ms),
@@ -119,6 +176,12 @@ struct BsdfLobes {
   float pdf_k = 0.f;   // 1 / (2 (cos_o + root_o)) = G1(wo) / (4 cos_o): GGX pdf = D pdf_k
   Vec3 ms;             // metal multiple scattering without its (1 - E(mu_i)) factor (0 if
                        // not metallic)
+  // Layered materials only (BsdfParams::layered): the probabilities of picking the coat and
+  // the sheen lobe (the base gets the rest, base_pick; glass and spec above are then the
+  // base's own choices), c F_c(wo), max3(sheenColor) min(1, E(wo.z)) and max(1, E(wo.z)).
+  bool layered = false;
+  float coat = 0.f, sheen = 0.f, base_pick = 1.f;
+  float coat_f = 0.f, sheen_e = 0.f, sheen_norm = 1.f;
 };
 BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo);
 
@@ -161,7 +224,10 @@ class BsdfEvalBatch {
   // Slot `lane` is the vertex's first direction, slot kLanes + lane its second.
   static constexpr int kSlots = 2 * kLanes;
   // Forgets the queued evaluations.
-  void clear() { used_ = 0; }
+  void clear() {
+    used_ = 0;
+    layered_ = 0;
+  }
   // The vertex of `lane`: its BSDF, lobes (bsdf_lobes(p, wo)), wo and shading frame, for the
   // directions queued for it until the next clear.
   void set_vertex(int lane, const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo,
@@ -190,6 +256,14 @@ class BsdfEvalBatch {
     spec_[lane] = lobes.spec;
     root_o_[lane] = lobes.root_o;
     pdf_k_[lane] = lobes.pdf_k;
+    // A layered BSDF is evaluated by bsdf_eval_pdf itself after the SIMD blocks.
+    const uint32_t bit = uint32_t(1) << lane;
+    if (lobes.layered) {
+      layered_ |= bit;
+      new (&layered_storage_[lane]) LayeredVertex{p, lobes, wo};
+    } else {
+      layered_ &= ~bit;
+    }
   }
   // Queues bsdf_eval_pdf(p, lobes, wo, wi) for lane's vertex as its first direction (a light
   // sample) and returns its slot.
@@ -231,6 +305,21 @@ class BsdfEvalBatch {
   static float metal_ms_factor(float cos_i, float alpha);  // 1 - E(cos_i, alpha)
   void evaluate_block(int first);  // slots first .. first + 3
   uint32_t used_ = 0;              // bit s: slot s queued
+  struct LayeredVertex {
+    BsdfParams p;
+    BsdfLobes lobes;
+    Vec3 wo;
+  };
+  uint32_t layered_ = 0;  // bit lane: its vertex is layered (set_vertex)
+  // Storage for the layered vertices, written by set_vertex only for them (never initialized
+  // as a whole: the batch is made once per packet and most scenes have no layered material).
+  struct alignas(LayeredVertex) LayeredSlot {
+    unsigned char bytes[sizeof(LayeredVertex)];
+  };
+  LayeredSlot layered_storage_[kLanes];
+  const LayeredVertex& layered_vertex(int lane) const {
+    return *std::launder(reinterpret_cast<const LayeredVertex*>(&layered_storage_[lane]));
+  }
   // Vertex inputs by lane and direction inputs by slot. Slots not queued hold zeros or earlier
   // inputs (a dropped light sample's may be NaN): they are computed along and never read.
   alignas(64) float wo_[3][kLanes] = {}, base_[3][kLanes] = {}, ms_[3][kLanes] = {};
@@ -245,8 +334,20 @@ class BsdfEvalBatch {
 
 // True if the BSDF has a non-delta component (next-event estimation is useful).
 inline bool bsdf_has_smooth_part(const BsdfParams& p) {
-  return (1.f - (1.f - p.metallic) * p.transmission) > 0.f;
+  return (1.f - (1.f - p.metallic) * p.transmission) > 0.f || p.layered();
 }
+
+// KHR_materials_clearcoat's layering Fresnel: 0.04 + (1 - 0.04) (1 - |cos_v|)^5.
+float clearcoat_fresnel(float cos_v);
+// KHR_materials_sheen's Charlie distribution, (2 + 1/alpha) sin^(1/alpha)(theta_h) / (2 pi),
+// of cos_h = N.H, and its visibility 1 / ((1 + L(cos_o) + L(cos_i)) 4 cos_o cos_i) with the
+// extension's fitted lambda L.
+float sheen_charlie_d(float cos_h, float alpha);
+float sheen_charlie_visibility(float cos_o, float cos_i, float alpha);
+// Directional albedo of the sheen lobe with sheenColor 1, E(mu, alpha) = the integral of
+// D V cos_i over the hemisphere: tabulated at first use by quadrature of that integral over
+// (mu, sheen roughness) and interpolated bilinearly.
+float sheen_albedo(float mu, float alpha);
 
 // Directional albedo E(mu, alpha) of single-scattering GGX with F = 1 (the table behind the
 // metal lobe's multiple-scattering compensation).

@@ -315,15 +315,18 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
   // Textures: an image OpenImageIO cannot read is dropped with a warning naming it; the
   // material then uses its constant factor. Each image is registered once for every way its
   // materials read it: base colour and emissive textures as sRGB colours, decoded before
-  // filtering (TextureSet::add_encoded), the others as linear data.
+  // filtering (TextureSet::add_encoded), and so are sheen colour textures
+  // (KHR_materials_sheen); the others as linear data.
   const size_t n = desc_.textures.size();
   std::vector<char> needed[2] = {std::vector<char>(n, 0), std::vector<char>(n, 0)};  // [srgb]
   auto is_srgb = [](const Material& m, const TextureRef* ref) {
-    return ref == &m.base_color_tex || ref == &m.emissive_tex;
+    return ref == &m.base_color_tex || ref == &m.emissive_tex || ref == &m.sheen_color_tex;
   };
   for (Material& m : desc_.materials)
     for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
-                            &m.emissive_tex})
+                            &m.emissive_tex, &m.clearcoat_tex, &m.clearcoat_roughness_tex,
+                            &m.clearcoat_normal_tex, &m.sheen_color_tex,
+                            &m.sheen_roughness_tex})
       if (ref->texture >= 0 && size_t(ref->texture) < n) needed[is_srgb(m, ref)][ref->texture] = 1;
   // A texture no material reads is still registered (header only), so that its pixels count
   // against the limit like any image the scene carries.
@@ -361,7 +364,9 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
   }
   for (Material& m : desc_.materials)
     for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
-                            &m.emissive_tex})
+                            &m.emissive_tex, &m.clearcoat_tex, &m.clearcoat_roughness_tex,
+                            &m.clearcoat_normal_tex, &m.sheen_color_tex,
+                            &m.sheen_roughness_tex})
       if (ref->texture >= 0)
         ref->texture = size_t(ref->texture) < n ? texture_index[is_srgb(m, ref)][ref->texture]
                                                 : -1;
@@ -724,7 +729,7 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   }
   // Tangent for normal mapping, from the uv parameterization of the normal map's set.
   const Material& mat = desc_.materials[hit->material];
-  const uint32_t set = mat.normal_tex.texcoord;
+  const uint32_t set = mat.tangent_map().texcoord;
   Vec3 dpdu(0.f, 0.f, 0.f);
   float sign = 1.f;
   const bool reads_uv = mat.reads_uv();
@@ -737,7 +742,7 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
     hit->uv[k] = Point2{t0.x * b0 + t1.x * hit->b1 + t2.x * hit->b2,
                         t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
   }
-  if (mat.normal_tex.valid() && has_uv(mesh, prim, set)) {
+  if (mat.tangent_map().valid() && has_uv(mesh, prim, set)) {
     // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
     const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
     const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
@@ -784,7 +789,7 @@ const Material& Scene::material(uint32_t slot, uint32_t prim) const {
   return desc_.materials[slot_mesh_[slot]->material[prim]];
 }
 
-Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
+Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2, float cos_view) const {
   const TriangleMesh& mesh = *slot_mesh_[slot];
   const Material& m = desc_.materials[mesh.material[prim]];
   Vec3 e = m.emission;
@@ -793,6 +798,18 @@ Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
     float c[3];
     if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
       e = e * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
+  }
+  if (m.clearcoat > 0.f) {
+    // KHR_materials_clearcoat, "Emission": the coat is above the emission, which the
+    // layering weighs by 1 - clearcoat F_c like the rest of the material.
+    float coat = m.clearcoat, c[3];
+    if (m.clearcoat_tex.valid() && has_uv(mesh, prim, m.clearcoat_tex.texcoord) &&
+        textures_.lookup(m.clearcoat_tex.texture,
+                         m.clearcoat_tex.apply(
+                             interpolate_uv(mesh, prim, b1, b2, m.clearcoat_tex.texcoord)),
+                         3, c))
+      coat *= c[0];
+    e = e * (1.f - std::min(1.f, std::max(0.f, coat)) * clearcoat_fresnel(cos_view));
   }
   return e;
 }

@@ -302,7 +302,7 @@ struct Hit {
   Point2 uv[2];        // interpolated TEXCOORD_0 and TEXCOORD_1 (0 where the mesh has none,
                        // or where the material reads no texture but the emissive one; other
                        // sets: Scene::texcoord)
-  Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<normal_tex.texcoord> for
+  Vec3 dpdu;           // world-space tangent along +u of TEXCOORD_<tangent_map().texcoord> for
                        // normal mapping (0 if undefined)
   float tangent_sign = 1.f;  // handedness of (dpdu, dpdv, ng)
 };
@@ -374,14 +374,16 @@ class Scene {
   // space.
   const TriangleMesh& slot_mesh(uint32_t slot) const { return *slot_mesh_[slot]; }
   // Emitted radiance of the front face of triangle prim of slot at barycentrics (b1, b2),
-  // including the emissive texture.
-  Vec3 emission(uint32_t slot, uint32_t prim, float b1, float b2) const;
+  // including the emissive texture, towards a viewer at cosine cos_view with the emitter's
+  // normal: under a clear coat (KHR_materials_clearcoat) emission is dimmed by 1 - c F_c, F_c
+  // the coat's Fresnel at cos_view (read only for a coated material).
+  Vec3 emission(uint32_t slot, uint32_t prim, float b1, float b2, float cos_view) const;
   // The same times the point's coverage (1 for opaque materials; MASK: 0 or 1 by the cutoff;
   // BLEND: alpha): what light sampling sees of an emitter, which a ray would find with
   // probability coverage (and then see its full emission).
-  Vec3 covered_emission(uint32_t slot, uint32_t prim, float b1, float b2) const {
-    if (!has_transparency_) return emission(slot, prim, b1, b2);
-    return emission(slot, prim, b1, b2) * coverage(slot, prim, b1, b2);
+  Vec3 covered_emission(uint32_t slot, uint32_t prim, float b1, float b2, float cos_view) const {
+    if (!has_transparency_) return emission(slot, prim, b1, b2, cos_view);
+    return emission(slot, prim, b1, b2, cos_view) * coverage(slot, prim, b1, b2);
   }
   // Coverage of the point, as above.
   float coverage(uint32_t slot, uint32_t prim, float b1, float b2) const;

@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "render/integrators.h"
+#include "render/shading.h"
 #include "testing/test_scenes.h"
 
 namespace rf {
@@ -137,21 +138,66 @@ TEST(Textures, EmissiveTextureModulatesEmission) {
 TEST(Textures, UnsupportedExtensionsAndBrokenImagesWarnAndStillRender) {
   const std::string json = quad_scene(
       R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0},
-          "extensions": {"KHR_materials_clearcoat": {"clearcoatFactor": 1}}})",
+          "extensions": {"KHR_materials_iridescence": {"iridescenceFactor": 1},
+                         "KHR_materials_clearcoat": {"clearcoatFactor": 1}}})",
       R"({"uri": "data:image/png;base64,AAAA"})",
-      R"("extensionsUsed": ["KHR_materials_clearcoat"],)");
+      R"("extensionsUsed": ["KHR_materials_iridescence", "KHR_materials_clearcoat"],)");
   std::vector<std::string> warnings;
   auto scene = load_at(json, 0.f, 0.f, &warnings);
-  bool named = false, texture = false;
+  bool named = false, texture = false, clearcoat = false;
   for (const auto& w : warnings) {
-    named = named || w.find("KHR_materials_clearcoat") != std::string::npos;
+    named = named || w.find("KHR_materials_iridescence") != std::string::npos;
     texture = texture || w.find("textures[0]") != std::string::npos;
+    clearcoat = clearcoat || w.find("KHR_materials_clearcoat") != std::string::npos;
   }
   EXPECT_TRUE(named);
   EXPECT_TRUE(texture);
+  EXPECT_FALSE(clearcoat);  // supported (layers_test.cpp)
   Vec3 albedo, normal;
   probe(*scene, &albedo, &normal);
   expect_color(albedo, {1, 1, 1}, "constant factor used");
+}
+
+// The layers' textures: clearcoatTexture (R) and clearcoatRoughnessTexture (G) linear,
+// sheenColorTexture (RGB) sRGB, sheenRoughnessTexture (A) linear, and the coat's normal map
+// with its scale, each read through its own slot.
+TEST(Textures, LayerTexturesAreReadFromTheirChannels) {
+  // One RGBA texel: (R, G, B, A) = (128, 64, 255, 51).
+  const std::string texel = testing::png_data_uri(1, 1, 4, {128, 64, 255, 51});
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_materials_clearcoat", "KHR_materials_sheen"],
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+                              "indices": 3, "material": 0}]}],
+  "materials": [{"extensions": {
+      "KHR_materials_clearcoat": {"clearcoatFactor": 1, "clearcoatTexture": {"index": 0},
+                                  "clearcoatRoughnessFactor": 1,
+                                  "clearcoatRoughnessTexture": {"index": 0}},
+      "KHR_materials_sheen": {"sheenColorFactor": [1, 1, 1], "sheenColorTexture": {"index": 0},
+                              "sheenRoughnessFactor": 1, "sheenRoughnessTexture": {"index": 0}}}}],
+  "textures": [{"source": 0, "sampler": 0}],
+  "samplers": [{"magFilter": 9728}],
+  "images": [{"uri": ")" + texel + R"("}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
+  const Scene scene(std::move(desc), &warnings);
+  Hit hit;
+  ASSERT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
+  const ShadingPoint sp = make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  EXPECT_NEAR(sp.params.clearcoat, 128.f / 255.f, 1e-3f);
+  const float rc = 64.f / 255.f;
+  EXPECT_NEAR(sp.params.clearcoat_alpha, rc * rc, 1e-3f);
+  EXPECT_NEAR(sp.params.sheen.x, srgb_to_linear(128.f / 255.f), 1e-3f);
+  EXPECT_NEAR(sp.params.sheen.y, srgb_to_linear(64.f / 255.f), 1e-3f);
+  EXPECT_NEAR(sp.params.sheen.z, 1.f, 1e-3f);
+  const float rs = 51.f / 255.f;
+  EXPECT_NEAR(sp.params.sheen_alpha, rs * rs, 1e-3f);
+  // No coat normal map: the coat's normal is the (flat) shading normal.
+  EXPECT_NEAR(sp.params.clearcoat_n.z, 1.f, 1e-6f);
 }
 
 }  // namespace
