@@ -272,31 +272,26 @@ class Client:
         layer: str = "rgb",
         max_size: int = 0,
         compression: str = "zip",
+        frame: int | None = None,
     ) -> bytes:
         """An image of the job: a PNG layer (max_size > 0: downscaled to fit) or the EXR
-        (compression zip or none)."""
+        (compression zip or none); of an animation, its first frame unless `frame` is given."""
         params = {"layer": layer, "max_size": max_size, "compression": compression}
-        response = self.http.get(f"/api/v1/jobs/{job_id}/image.{fmt}", params=params)
+        response = self.http.get(f"{self._image_base(job_id, frame)}/image.{fmt}", params=params)
         return self._check(response).content
+
+    @staticmethod
+    def _image_base(job_id: str, frame: int | None) -> str:
+        return f"/api/v1/jobs/{job_id}" + ("" if frame is None else f"/frames/{frame}")
 
     def frames(self, job_id: str) -> list[dict[str, Any]]:
         """Every frame of the job with its progress, in frame order: frame, state (queued,
         rendering or done), tiles_total, tiles_done, mean_spp, error (a still: one, frame 0)."""
         return self._check(self.http.get(f"/api/v1/jobs/{job_id}/frames")).json()
 
-    def frame_image(
-        self,
-        job_id: str,
-        frame: int,
-        fmt: str = "png",
-        layer: str = "rgb",
-        max_size: int = 0,
-        compression: str = "zip",
-    ) -> bytes:
-        """One frame of an animation job, as image() gives the first."""
-        params = {"layer": layer, "max_size": max_size, "compression": compression}
-        response = self.http.get(f"/api/v1/jobs/{job_id}/frames/{frame}/image.{fmt}", params=params)
-        return self._check(response).content
+    def frame_image(self, job_id: str, frame: int, fmt: str = "png", **options: Any) -> bytes:
+        """One frame of an animation job (image()'s options: layer, max_size, compression)."""
+        return self.image(job_id, fmt, frame=frame, **options)
 
     def save_image(
         self,
@@ -309,8 +304,8 @@ class Client:
         """An image of the job (as image(), or frame_image() for a frame) streamed into a
         file, never whole in memory."""
         params = {"layer": layer} if fmt == "png" else {}
-        where = f"/api/v1/jobs/{job_id}" + ("" if frame is None else f"/frames/{frame}")
-        with self.http.stream("GET", f"{where}/image.{fmt}", params=params) as r:
+        url = f"{self._image_base(job_id, frame)}/image.{fmt}"
+        with self.http.stream("GET", url, params=params) as r:
             if r.status_code >= 400:
                 r.read()
                 self._check(r)

@@ -308,7 +308,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise CliError("-o must name an .exr file (a .png is written beside it)", EXIT_USAGE)
-    if "#" in out.name and not getattr(args, "frames", None):
+    if "#" in out.name and not args.frames:
         raise CliError("-o has a #### frame number but no --frames were given", EXIT_USAGE)
     _check_inputs(args)
     url = args.url or os.environ.get("RENDERFARM_URL")
@@ -342,31 +342,22 @@ def cmd_render(args: argparse.Namespace) -> int:
                     print(f"\njob {job['id']} was not cancelled: {message}", file=sys.stderr)
                 return EXIT_INTERRUPTED
             p = job["progress"]
+            size = f"{job['settings']['width']}x{job['settings']['height']}"
             if sequence is not None:
                 sequence(job)  # the frames that finished with the job
-                print(
-                    f"rendered {p['frames_total']} frames of {job['settings']['width']}x"
-                    f"{job['settings']['height']} in {time.monotonic() - started:.1f} s: "
-                    f"{p['mean_spp']:.1f} spp mean, error {100 * (p['error'] or 0):.2f}%",
-                    file=sys.stderr,
-                )
-                print(f"EXR: {sequence.template.resolve()}")
-                print(f"PNG: {sequence.template.with_suffix('.png').resolve()}")
-                if args.json:
-                    _print_json(job)
-                return 0
-            out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_bytes(client.image(job["id"], "exr"))
-            png = out.with_suffix(".png")
-            png.write_bytes(client.image(job["id"], "png"))
+                what, exr = f"{p['frames_total']} frames of {size}", sequence.template
+            else:
+                out.parent.mkdir(parents=True, exist_ok=True)
+                out.write_bytes(client.image(job["id"], "exr"))
+                out.with_suffix(".png").write_bytes(client.image(job["id"], "png"))
+                what, exr = size, out
             print(
-                f"rendered {job['settings']['width']}x{job['settings']['height']} "
-                f"in {time.monotonic() - started:.1f} s: {p['mean_spp']:.1f} spp mean, "
-                f"error {100 * (p['error'] or 0):.2f}%",
+                f"rendered {what} in {time.monotonic() - started:.1f} s: "
+                f"{p['mean_spp']:.1f} spp mean, error {100 * (p['error'] or 0):.2f}%",
                 file=sys.stderr,
             )
-            print(f"EXR: {out.resolve()}")
-            print(f"PNG: {png.resolve()}")
+            print(f"EXR: {exr.resolve()}")
+            print(f"PNG: {exr.with_suffix('.png').resolve()}")
             if args.json:
                 _print_json(job)
             return 0

@@ -441,13 +441,6 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
     )
     if s.frames:
         frame_count = len(parse_frames(s.frames, limits.max_frames))
-        # The server schedules, stores and serves frames; the workers of this release do not
-        # pose farm tasks yet (issue #25), so a sequence would render the same unposed scene.
-        raise SettingsError(
-            "settings.frames",
-            "settings.frames: animation jobs are not served yet: this release's workers do not "
-            "pose the scene per frame (render one pose with `renderfarm-worker render --time`)",
-        )
         need = frame_count * job_memory_bytes(s.width, s.height, s.tile_size)
         _require(
             need <= limits.max_job_memory_bytes,
@@ -456,6 +449,13 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             f"accumulators in all, more than the server's limit of "
             f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB); "
             "split the range into several jobs",
+        )
+        # The server schedules, stores and serves frames, and workers pose farm tasks; the
+        # sequence is refused until a farm test holds it end to end (issue #25).
+        raise SettingsError(
+            "settings.frames",
+            "settings.frames: animation jobs are not served yet (render one pose with "
+            "`renderfarm-worker render --time`)",
         )
     check_animation_selection(s.animation)
     _require(

@@ -2,17 +2,12 @@
 
 #include <algorithm>
 
+#include "sampling/samplers.h"
+
 namespace rf {
 
-uint64_t splitmix64(uint64_t x) {
-  uint64_t z = x + 0x9E3779B97F4A7C15ull;
-  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-  z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-  return z ^ (z >> 31);
-}
-
 uint64_t frame_seed(uint64_t seed, int32_t frame) {
-  return splitmix64(seed ^ splitmix64(uint64_t(int64_t(frame))));
+  return mix64(seed ^ mix64(uint64_t(int64_t(frame))));
 }
 
 namespace {

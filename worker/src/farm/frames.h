@@ -9,12 +9,9 @@
 
 namespace rf {
 
-// SplitMix64's output function (Steele, Lea and Flood, 2014): x + 0x9E3779B97F4A7C15, then
-// z ^= z >> 30, z *= 0xBF58476D1CE4E5B9, z ^= z >> 27, z *= 0x94D049BB133111EB, z ^= z >> 31.
-uint64_t splitmix64(uint64_t x);
-
 // The seed every random number of frame `frame` of an animated job uses in place of the job's
-// seed: splitmix64(seed ^ splitmix64(uint64_t(int64_t(frame)))). A pure function of (seed,
+// seed: mix64(seed ^ mix64(uint64_t(int64_t(frame)))), with mix64 SplitMix64's output function
+// (sampling/samplers.h). A pure function of (seed,
 // frame), so frame 5 is the same image whoever renders it and whatever the job's frame list;
 // the two rounds of mixing make the seeds of neighbouring frames unrelated, so frames get
 // independent noise. Stills keep the job's seed.

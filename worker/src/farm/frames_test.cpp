@@ -4,21 +4,24 @@
 
 #include <set>
 
+#include "sampling/samplers.h"
+
 namespace rf {
 namespace {
 
-TEST(FrameSeed, SplitMix64MatchesItsPublishedOutputs) {
+TEST(FrameSeed, Mix64IsSplitMix64WithItsPublishedOutputs) {
   // The first two outputs of the SplitMix64 generator seeded with 0 (the state advances by
-  // 0x9E3779B97F4A7C15 per output), as published with Vigna's reference implementation.
-  EXPECT_EQ(splitmix64(0), 0xE220A8397B1DCDAFull);
-  EXPECT_EQ(splitmix64(0x9E3779B97F4A7C15ull), 0x6E789E6AA1B965F4ull);
+  // 0x9E3779B97F4A7C15 per output), as published with Vigna's reference implementation:
+  // the frame seed's mixer is the samplers' mix64.
+  EXPECT_EQ(mix64(0), 0xE220A8397B1DCDAFull);
+  EXPECT_EQ(mix64(0x9E3779B97F4A7C15ull), 0x6E789E6AA1B965F4ull);
 }
 
 TEST(FrameSeed, IsTheDocumentedMixOfSeedAndFrame) {
-  EXPECT_EQ(frame_seed(77, 5), splitmix64(77 ^ splitmix64(5)));
-  EXPECT_EQ(frame_seed(0, 0), splitmix64(splitmix64(0)));
+  EXPECT_EQ(frame_seed(77, 5), mix64(77 ^ mix64(5)));
+  EXPECT_EQ(frame_seed(0, 0), mix64(mix64(0)));
   // A negative frame is its 64-bit two's complement.
-  EXPECT_EQ(frame_seed(3, -1), splitmix64(3 ^ splitmix64(~0ull)));
+  EXPECT_EQ(frame_seed(3, -1), mix64(3 ^ mix64(~0ull)));
 }
 
 TEST(FrameSeed, FramesAndSeedsGetDistinctWellMixedSeeds) {
