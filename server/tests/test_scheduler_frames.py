@@ -16,7 +16,6 @@ from renderfarm.domain.states import JobState
 from renderfarm.domain.tiling import tile_grid
 from renderfarm.errors import NotFound
 
-# Built directly: the table's validation refuses frames until the workers pose farm tasks.
 ANIMATION = JobSettings(
     width=48, height=32, tile_size=16, noise_threshold=0.01, min_spp=4, max_spp=64,
     frames="1-5x2",
@@ -116,10 +115,17 @@ def test_mean_spp_is_per_pixel_of_one_frame():
     assert sched.progress(job).mean_spp == pytest.approx(8.0)
 
 
-def test_frames_are_refused_until_workers_pose_farm_tasks():
+def test_settings_take_a_frame_list_and_refuse_a_bad_one_naming_the_setting():
+    assert parse_settings({"frames": "1-3", "fps": 30}).frames == "1-3"
+    for bad in ("3-1", "1-", "0-1000000"):
+        with pytest.raises(SettingsError) as e:
+            parse_settings({"frames": bad})
+        assert e.value.field == "settings.frames", bad
+    # 200 frames of 4K accumulators are more than the default job memory limit.
     with pytest.raises(SettingsError) as e:
-        parse_settings({"frames": "1-3"})
+        parse_settings({"frames": "1-200", "width": 3840, "height": 2160})
     assert e.value.field == "settings.frames"
+    assert "split the range" in str(e.value)
 
 
 def test_a_still_is_one_frame():

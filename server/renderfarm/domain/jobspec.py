@@ -450,13 +450,6 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB); "
             "split the range into several jobs",
         )
-        # The server schedules, stores and serves frames, and workers pose farm tasks; the
-        # sequence is refused until a farm test holds it end to end (issue #25).
-        raise SettingsError(
-            "settings.frames",
-            "settings.frames: animation jobs are not served yet (render one pose with "
-            "`renderfarm-worker render --time`)",
-        )
     check_animation_selection(s.animation)
     _require(
         s.aperture_radius == 0.0 or s.focus_distance > 0.0,
