@@ -184,7 +184,7 @@ def write_scene(path: Path, grid: int, rings: int, frames: int) -> dict:
     lid_idx = glb.add(li, "SCALAR", 5125)
     lamp = np.array([[-1, 3, -1], [1, 3, -1], [-1, 3, 1], [1, 3, 1]], np.float32)
     lamp_pos = glb.add(lamp, "VEC3", bounds=True)
-    lamp_idx = glb.add(np.array([0, 2, 1, 1, 2, 3], np.uint32), "SCALAR", 5125)  # faces -y
+    lamp_idx = glb.add(np.array([0, 1, 2, 1, 3, 2], np.uint32), "SCALAR", 5125)  # faces -y
     joints = 8
     tp, tn, ti, tj, tw = tentacle(rings, 64, joints, 2.0)
     tentacle_attrs = {
