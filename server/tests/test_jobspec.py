@@ -121,3 +121,52 @@ def test_the_estimate_covers_what_a_job_really_holds():
     pixels = settings.width * settings.height
     per_tile = (peak - ACCUMULATOR_BYTES_PER_PIXEL * pixels) / len(job.tiles)
     assert 0 < per_tile <= TILE_OVERHEAD_BYTES, per_tile
+
+
+# ---- settings.shutter: motion blur (frames.parse_shutter)
+@pytest.mark.parametrize(
+    "text,interval",
+    [
+        ("", None),
+        ("  ", None),
+        ("0,0.5", (0.0, 0.5)),
+        ("-0.25, 0.25", (-0.25, 0.25)),
+        ("0,1", (0.0, 1.0)),
+        ("-1,0", (-1.0, 0.0)),
+    ],
+)
+def test_shutter_intervals(text, interval):
+    from renderfarm.domain.frames import parse_shutter
+
+    assert parse_shutter(text) == interval
+    s = parse_settings({"frames": "1-10", "shutter": text})
+    assert s.shutter == text.strip()
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("0.5", "is not OPEN,CLOSE"),
+        ("0,0.5,1", "is not OPEN,CLOSE"),
+        ("a,b", "is not OPEN,CLOSE"),
+        ("0.5,0.5", "must open before it closes"),
+        ("0.5,0", "must open before it closes"),
+        ("-1.5,0", "within [-1, 1]"),
+        ("0,1.5", "within [-1, 1]"),
+        ("-0.75,0.5", "at most one frame apart"),
+        ("nan,1", "must open before it closes"),
+    ],
+)
+def test_bad_shutters_name_the_setting(text, message):
+    with pytest.raises(SettingsError) as e:
+        parse_settings({"frames": "1-10", "shutter": text})
+    assert e.value.field == "settings.shutter"
+    assert message in str(e.value)
+
+
+def test_a_shutter_needs_frames():
+    with pytest.raises(SettingsError) as e:
+        parse_settings({"shutter": "0,0.5"})
+    assert e.value.field == "settings.shutter"
+    assert "needs settings.frames" in str(e.value)
+    assert parse_settings({"shutter": ""}).shutter == ""  # closed: fine for a still

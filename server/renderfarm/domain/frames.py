@@ -146,3 +146,32 @@ def resolve_animations(
         if index not in indices:
             indices.append(index)
     return tuple(indices)
+
+
+def parse_shutter(text: str, field: str = "settings.shutter") -> tuple[float, float] | None:
+    """The shutter interval of a motion-blurred frame: "OPEN,CLOSE", fractions of a frame from
+    the frame's time (frame f opens at (f + OPEN) / fps); None for "" (closed: no motion blur).
+    SettingsError naming `field` unless both are finite numbers with -1 <= OPEN < CLOSE <= 1
+    and CLOSE - OPEN <= 1 (at most one frame)."""
+    if not isinstance(text, str):
+        raise SettingsError(field, f"{field} must be a string such as 0,0.5")
+    if not text.strip():
+        return None
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        opens, closes = (float(p) for p in parts)
+    except ValueError:
+        raise SettingsError(
+            field,
+            f"{field}: {text[:40]!r} is not OPEN,CLOSE: give the open and close times as "
+            "fractions of a frame, 0,0.5 for a half-frame shutter",
+        ) from None
+    if not (-1.0 <= opens < closes <= 1.0 and closes - opens <= 1.0):
+        raise SettingsError(
+            field,
+            f"{field}: {text[:40]!r}: the shutter must open before it closes, both within "
+            "[-1, 1] frames of the frame's time and at most one frame apart",
+        )
+    return opens, closes

@@ -18,7 +18,7 @@ from enum import EnumMeta, StrEnum
 from typing import Any
 
 from ..errors import SettingsError
-from .frames import check_animation_selection, parse_frames
+from .frames import check_animation_selection, parse_frames, parse_shutter
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
 # same rule in worker/src/programs/main.cpp.
@@ -213,10 +213,15 @@ SETTINGS: tuple[Setting, ...] = (
             "of the scene as stored, no animation", 21, worker=False),
     Setting("fps", float, 24.0,
             "frames per second of the animation: frame f is rendered at glTF time f / fps", 22,
-            minimum=0.0, maximum=1000.0, exclusive_minimum=True, unit="1/s", worker=False),
+            minimum=0.0, maximum=1000.0, exclusive_minimum=True, unit="1/s"),
     Setting("animation", str, "",
             "the glTF animations that drive the frames: a comma list of their indices or names "
             "(names are case-sensitive); empty = all of them", 23),
+    Setting("shutter", str, "",
+            "motion blur: the shutter's open and close times as fractions of a frame after the "
+            "frame's time, OPEN,CLOSE with -1 <= OPEN < CLOSE <= 1 at most 1 apart (0,0.5: a "
+            "half-frame shutter); each sample sees the scene at one time between them. Empty: "
+            "closed, no motion blur. Needs frames", 24),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -451,6 +456,13 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             "split the range into several jobs",
         )
     check_animation_selection(s.animation)
+    if parse_shutter(s.shutter) is not None:
+        _require(
+            bool(s.frames),
+            "shutter",
+            "needs settings.frames: a still is the scene as stored, with nothing that moves "
+            "(leave shutter empty, or render frames)",
+        )
     _require(
         s.aperture_radius == 0.0 or s.focus_distance > 0.0,
         "focus_distance",

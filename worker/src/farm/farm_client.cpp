@@ -142,9 +142,11 @@ class Worker {
   void supervise(Session& s, const std::atomic<bool>& stop);
   void run_task(Session& s, const pb::Task& task, const RunningTask& running);
   std::shared_ptr<const Scene> scene_for(const std::string& sha256);
-  // An animated task's scene: sha256 posed at time_s by the animations `animation` selects.
+  // An animated task's scene: sha256 posed at time_s by the animations `animation` selects,
+  // moving during the shutter if it is open (motion blur).
   std::shared_ptr<const Scene> posed_scene_for(const std::string& sha256,
-                                               const std::string& animation, double time_s);
+                                               const std::string& animation, double time_s,
+                                               const Shutter& shutter);
   // load(path, fetched) on the cached file of sha256, fetched first if there is none; a cached
   // file whose load fails with a SceneError and whose content no longer matches its name is
   // fetched again and loaded once more.
@@ -337,10 +339,15 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   std::string animation, err;
   if (!settings_from_proto(task.settings(), &settings, &animation, &err))
     return fail({"settings: " + err, false});
+  Shutter shutter;
   if (task.animated()) {
     if (!std::isfinite(task.time_s()))
       return fail({"task: time_s of frame " + std::to_string(task.frame()) + " is not finite",
                    false});
+    // Motion blur: the shutter in seconds from the frame's time (fractions of a frame of
+    // 1 / fps seconds).
+    if (!parse_shutter(task.settings().shutter(), task.settings().fps(), &shutter, &err))
+      return fail({err, false});
     // docs/architecture.md, "Determinism": the frame enters every random number.
     settings.seed = frame_seed(settings.seed, task.frame());
   }
@@ -350,8 +357,9 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   if (!err.empty()) return fail({"task: " + err, false});
   std::shared_ptr<const Scene> scene;
   try {
-    scene = task.animated() ? posed_scene_for(task.scene_sha256(), animation, task.time_s())
-                            : scene_for(task.scene_sha256());
+    scene = task.animated()
+                ? posed_scene_for(task.scene_sha256(), animation, task.time_s(), shutter)
+                : scene_for(task.scene_sha256());
   } catch (const TaskError& e) {
     return fail(e);
   } catch (const AnimationSelectionError& e) {
@@ -458,12 +466,13 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
 
 std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
                                                      const std::string& animation,
-                                                     double time_s) {
+                                                     double time_s, const Shutter& shutter) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
   // The exact time (hexadecimal floating point) and the selection as sent: the tasks of one
   // frame of one job share a key.
-  char time_key[40];
-  std::snprintf(time_key, sizeof time_key, "%a", time_s);
+  char time_key[128];
+  std::snprintf(time_key, sizeof time_key, "%a [%a %a]", time_s,
+                shutter.is_open() ? shutter.open_s : 0.0, shutter.is_open() ? shutter.close_s : 0.0);
   const std::string pose_key = std::string(time_key) + " " + animation;
   const SceneCache::AnimatedLoader prepare = [&]() -> std::shared_ptr<const AnimatedScene> {
     const LoadOptions load = farm_load_options(sha256);
@@ -489,7 +498,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
   const SceneCache::Poser pose = [&](const AnimatedScene& animated) -> std::shared_ptr<const Scene> {
     std::vector<std::string> warnings;
     const auto start = Clock::now();
-    std::shared_ptr<const Scene> scene = animated.pose(time_s, &warnings);
+    std::shared_ptr<const Scene> scene = animated.pose(time_s, &warnings, shutter);
     const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
     // The loader warns of the same things at every time: once per scene and selection.
     bool first;

@@ -389,6 +389,14 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
   run(frame_task("static-4", 4, 0.0, "slide", 16));
   run(make_task("still", farm.scene_sha, 4));
   run(frame_task("unknown", 6, 0.25, "slide,Slide"));
+  pb::Task blurred = frame_task("blurred", 5, 0.5, "slide");
+  blurred.mutable_settings()->set_shutter("0,0.5");
+  blurred.mutable_settings()->set_fps(2.0);
+  run(blurred);
+  pb::Task bad_shutter = frame_task("bad-shutter", 5, 0.5, "slide");
+  bad_shutter.mutable_settings()->set_shutter("0.5,0");
+  bad_shutter.mutable_settings()->set_fps(2.0);
+  run(bad_shutter);
   stop = true;
   client.join();
   EXPECT_EQ(exit_code, 0);
@@ -396,7 +404,8 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
 
   std::lock_guard<std::mutex> lock(farm.mutex);
   EXPECT_EQ(farm.fetches, 1);
-  for (const char* id : {"f5", "f9", "f5-again", "by-index", "static-3", "static-4", "still"})
+  for (const char* id :
+       {"f5", "f9", "f5-again", "by-index", "static-3", "static-4", "still", "blurred"})
     ASSERT_TRUE(find(id)->has_result()) << id << ": " << find(id)->failed().error();
   // Each result is the local render of the scene loaded at the frame's time with the chosen
   // animations (`render --time`: a fresh AnimatedScene's pose), with the frame's seed, bit for
@@ -406,11 +415,13 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
     std::ofstream out(scene_path);
     out << farm.scene_bytes;
   }
-  auto local = [&](double time, std::vector<int> animations, uint64_t seed, uint32_t spp) {
+  auto local = [&](double time, std::vector<int> animations, uint64_t seed, uint32_t spp,
+                   Shutter shutter = {}) {
     LoadOptions load;
     load.time = time;
     load.animations = std::move(animations);
-    const std::shared_ptr<const Scene> posed = load_animated_scene(scene_path, nullptr, load);
+    const AnimatedScene animated(parse_gltf(scene_path, nullptr, load), load);
+    const std::shared_ptr<const Scene> posed = animated.pose(time, nullptr, shutter);
     const Scene& scene = *posed;
     RenderSettings settings;
     settings.width = 16;
@@ -429,6 +440,16 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
   EXPECT_EQ(rgb("f5-again"), rgb("f5"));
   EXPECT_NE(rgb("f9"), rgb("f5"));
   EXPECT_EQ(rgb("by-index"), as_floats(local(1.0, {1}, spec_frame_seed(77, 7), 4).rgb_sum));
+  // Motion blur: the shutter of half a frame at 2 fps, [0.5, 0.75] s, which the light crosses
+  // moving; the task renders what the scene posed over that shutter renders.
+  EXPECT_EQ(rgb("blurred"),
+            as_floats(local(0.5, {0}, spec_frame_seed(77, 5), 4, Shutter{0.0, 0.25}).rgb_sum));
+  EXPECT_NE(rgb("blurred"), rgb("f5"));
+  const pb::WorkerMessage* bad = find("bad-shutter");
+  ASSERT_TRUE(bad->has_failed());
+  EXPECT_FALSE(bad->failed().retryable());
+  EXPECT_NE(bad->failed().error().find("settings.shutter"), std::string::npos)
+      << bad->failed().error();
   // A still keeps the job's seed and the scene as stored (no animation).
   {
     Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "animated.gltf", nullptr));

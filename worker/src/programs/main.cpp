@@ -49,6 +49,8 @@ const char* kUsage =
     "      pose (repeatable, or I,J,...; default: every animation); --times: one image per\n"
     "      time from one load, OUT's '{i}' replaced by the time's index (0000, 0001, ...);\n"
     "      --stats-json: the load's and each frame's scene update and render times as JSON\n"
+    "      [--shutter OPEN,CLOSE [--fps F]]: motion blur over the shutter, its open and close\n"
+    "      times fractions of a frame of 1/F seconds (default 24) after each time\n"
     "  renderfarm-worker pose SCENE.gltf|SCENE.glb [--time T [--animation I]...] [--json]\n"
     "      the posed scene as JSON (indented without --json): every node's world matrix\n"
     "      (column-major), the camera, the world mesh's vertex positions and normals, the\n"
@@ -207,7 +209,8 @@ int cmd_render(const std::vector<std::string>& arguments) {
                            {"-o", "--spp", "--width", "--height", "--threads", "--seed",
                             "--sampler", "--integrator", "--max-depth", "--aperture-radius",
                             "--focus-distance", "--environment", "--environment-intensity",
-                            "--environment-rotation-deg", "--bvh", "--stats-json"},
+                            "--environment-rotation-deg", "--bvh", "--stats-json", "--shutter",
+                            "--fps"},
                            &positional);
   if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
   if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
@@ -246,6 +249,16 @@ int cmd_render(const std::vector<std::string>& arguments) {
       (flags.count("--environment-intensity") || flags.count("--environment-rotation-deg")))
     throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
   load.bvh = parse_bvh_flag(flags);
+  rf::Shutter shutter;
+  if (flags.count("--shutter") || flags.count("--fps")) {
+    if (!load.animated()) throw UsageError{"--shutter and --fps need --time or --times"};
+    const double fps = flags.count("--fps") ? parse_double("--fps", flags["--fps"]) : 24.0;
+    std::string shutter_err;
+    if (!rf::parse_shutter(flags.count("--shutter") ? flags["--shutter"] : "", fps, &shutter,
+                           &shutter_err))
+      throw UsageError{shutter_err.rfind("settings.", 0) == 0 ? "--" + shutter_err.substr(9)
+                                                             : shutter_err};
+  }
   const std::string& scene_path = positional[0];
   const std::string& out_pattern = flags["-o"];
   const bool sequence = !times.empty();
@@ -316,7 +329,7 @@ int cmd_render(const std::vector<std::string>& arguments) {
       std::vector<std::string> pose_warnings;
       const auto pose_start = std::chrono::steady_clock::now();
       try {
-        scene = animated->pose(times[i], &pose_warnings);
+        scene = animated->pose(times[i], &pose_warnings, shutter);
       } catch (const std::exception& e) {
         std::cerr << "error: " << e.what() << "\n";
         return kExitRuntime;

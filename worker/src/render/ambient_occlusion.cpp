@@ -5,14 +5,14 @@
 
 namespace rf {
 
-SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float tmin,
-                      float tmax) {
+SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float time,
+                      float tmin, float tmax) {
   SampleResult result;
   Hit hit;
   ++result.rays;
   const uint64_t seed = s.sampler->seed(), pixel = s.sampler->pixel();
   if (!scene.intersect(o, d, tmax, &hit, ray_query(seed, pixel, 0, RayKind::Path), s.index,
-                       tmin))
+                       tmin, time))
     return result;  // background = 0
   const ShadingPoint sp = make_shading_point(scene, hit, -d);
   result.albedo = sp.albedo;
@@ -24,7 +24,8 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d,
   const float radius = 0.1f * scene.diagonal();
   ++result.rays;
   const float v =
-      scene.occluded(sp.above(), wi, radius, ray_query(seed, pixel, 0, RayKind::Shadow), s.index)
+      scene.occluded(sp.above(), wi, radius, ray_query(seed, pixel, 0, RayKind::Shadow), s.index,
+                     time)
           ? 0.f
           : 1.f;
   result.radiance = Vec3(v, v, v);

@@ -193,7 +193,11 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
   LightBatch lights;
   DiskBatch disks;
   // A lane's rays carry its sample index (for the transparency test).
-  for (int i = 0; i < kPacketSize; ++i) rays.id[i] = shadow.id[i] = paths[i].s.index;
+  // And its time within the shutter (motion blur; 0 otherwise).
+  for (int i = 0; i < kPacketSize; ++i) {
+    rays.id[i] = shadow.id[i] = paths[i].s.index;
+    rays.time[i] = shadow.time[i] = paths[i].time;
+  }
   // Lanes are visited through bit masks of the live ones: whether a path is still alive is
   // data the branch predictor cannot learn, and a branch per lane per loop mispredicts often.
   for (uint32_t bounce = 0;; ++bounce) {
@@ -301,10 +305,19 @@ PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSe
                                     : p.s.get2(dim::kPixelX);
   const float px = float(x) + jitter.x;
   const float py = float(y) + jitter.y;
-  const Camera& cam = scene.camera();
-  p.o = ctx.raster.origin(px, py);
+  // Motion blur: the sample's time, and the camera where it is then if it moves.
+  if (scene.has_motion()) p.time = p.s.get(dim::shutter_time(path_max_depth(settings)));
+  Camera moved;
+  Camera::Raster moved_raster;
+  if (scene.camera_moves()) {
+    moved = scene.camera_at(p.time);
+    moved_raster = moved.raster(settings.width, settings.height);
+  }
+  const Camera& cam = scene.camera_moves() ? moved : scene.camera();
+  const Camera::Raster& raster = scene.camera_moves() ? moved_raster : ctx.raster;
+  p.o = raster.origin(px, py);
   float per_axial;
-  p.d = ctx.raster.direction(px, py, &per_axial);
+  p.d = raster.direction(px, py, &per_axial);
   if (settings.aperture_radius > 0.f) {
     // Thin lens: the pinhole ray through the pixel meets the plane of focus (at
     // focus_distance along the viewing axis) at p_focus; the lens ray starts at a uniform
@@ -336,7 +349,7 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
   if (settings.integrator == IntegratorType::AmbientOcclusion) {
     for (uint32_t k = 0; k < n; ++k) {
       const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
-      out[k] = trace_ao(scene, p.s, p.o, p.d, p.tmin, p.tmax);
+      out[k] = trace_ao(scene, p.s, p.o, p.d, p.time, p.tmin, p.tmax);
     }
     return;
   }

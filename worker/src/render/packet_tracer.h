@@ -21,6 +21,7 @@ struct PathState {
   SampleResult result;  // radiance accumulates here
   Vec3 o, d;            // the ray of the next bounce
   float tmin = 0.f, tmax = kInfinity;  // the camera ray's range (its clipping planes)
+  float time = 0.f;  // motion blur: where in the shutter every ray of the path is, in [0, 1]
   Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
   float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
   bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
@@ -60,9 +61,11 @@ PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSe
 // The number of bounces of a path: max_depth, or at most 1 for the direct integrator.
 uint32_t path_max_depth(const RenderSettings& settings);
 
-// Ambient occlusion of one sample whose camera ray is o + t d, t in (tmin, tmax)
+// Ambient occlusion of one sample whose camera ray is o + t d, t in (tmin, tmax), at time
+// `time` in the shutter
 // (src/render/ambient_occlusion.cpp).
-SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float tmin,
+SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float time,
+                      float tmin,
                       float tmax);
 
 // Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).

@@ -95,7 +95,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
   const TraceContext ctx(scene, settings);
   PathState p = start_path(ctx, scene, settings, sampler, x, y, index);
   if (settings.integrator == IntegratorType::AmbientOcclusion)
-    return trace_ao(scene, p.s, p.o, p.d, p.tmin, p.tmax);
+    return trace_ao(scene, p.s, p.o, p.d, p.time, p.tmin, p.tmax);
   const LightContext& lc = ctx.lights;
   const uint32_t max_depth = path_max_depth(settings);
   SampleResult& result = p.result;
@@ -111,6 +111,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     ray.set(0, p.o, p.d, bounce == 0 ? p.tmax : kInfinity);
     ray.tnear[0] = bounce == 0 ? p.tmin : 0.f;
     ray.id[0] = shadow.id[0] = index;
+    ray.time[0] = shadow.time[0] = p.time;
     ++result.rays;
     scene.intersect(ray, hits, found, false, ray_query(seed, pixel, bounce, RayKind::Path));
     const Vec3 wo = -p.d;

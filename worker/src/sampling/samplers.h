@@ -63,6 +63,10 @@ constexpr uint32_t kFirstBounce = 4, kPerBounce = 8;
 constexpr uint32_t kLightU = 0, kLightV = 1, kBsdfU = 2, kBsdfV = 3, kLightSelect = 4,
                    kRoulette = 5, kLobe = 6, kFresnel = 7;
 inline uint32_t bounce(uint32_t b, uint32_t k) { return kFirstBounce + kPerBounce * b + k; }
+// Motion blur: the sample's time within the shutter, on the first dimension after those of
+// the deepest bounce a path of max_depth bounces can use (scenes without motion never read it,
+// so their images do not depend on it).
+inline uint32_t shutter_time(uint32_t max_depth) { return bounce(max_depth + 1, 0); }
 }  // namespace dim
 
 // ---- The farm's fixed batch schedule (server/renderfarm/domain/tiling.py): sizes 1, 1, 2, 4,

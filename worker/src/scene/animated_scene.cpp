@@ -40,17 +40,60 @@ size_t AnimatedScene::memory_bytes() const {
   return gltf_document_bytes(*document_) + base_->memory_bytes();
 }
 
-std::shared_ptr<const Scene> AnimatedScene::pose(double time,
-                                                 std::vector<std::string>* warnings) const {
+bool parse_shutter(const std::string& text, double fps, Shutter* out, std::string* err) {
+  *out = Shutter{};
+  if (text.find_first_not_of(" \t") == std::string::npos) return true;
+  const size_t comma = text.find(',');
+  double open = 0.0, close = 0.0;
+  bool ok = comma != std::string::npos && text.find(',', comma + 1) == std::string::npos;
+  if (ok) {
+    try {
+      size_t end = 0;
+      const std::string a = text.substr(0, comma), b = text.substr(comma + 1);
+      open = std::stod(a, &end);
+      ok = a.find_first_not_of(" \t", end) == std::string::npos;
+      close = std::stod(b, &end);
+      ok = ok && b.find_first_not_of(" \t", end) == std::string::npos;
+    } catch (const std::exception&) {
+      ok = false;
+    }
+  }
+  if (!ok) {
+    *err = "settings.shutter: '" + text + "' is not OPEN,CLOSE (fractions of a frame)";
+    return false;
+  }
+  if (!(open >= -1.0 && open < close && close <= 1.0 && close - open <= 1.0)) {
+    *err = "settings.shutter: '" + text + "': the shutter must open before it closes, both " +
+           "within [-1, 1] frames of the frame's time and at most one frame apart";
+    return false;
+  }
+  if (!(fps > 0.0) || !std::isfinite(fps)) {
+    *err = "settings.fps must be positive for a shutter";
+    return false;
+  }
+  out->open_s = open / fps;
+  out->close_s = close / fps;
+  return true;
+}
+
+std::shared_ptr<const Scene> AnimatedScene::pose(double time, std::vector<std::string>* warnings,
+                                                 const Shutter& shutter) const {
   if (!std::isfinite(time))
     throw SceneError(base_->source() + ": animation: the time is not finite");
-  AnimatedLayout layout;
-  layout.pose_only = true;
-  LoadOptions load = options_;
-  load.time = time;
-  load.layout = &layout;
-  // The loader's warnings are the construction's: the same at every time.
-  SceneDescription desc = describe_gltf(*document_, nullptr, load);
+  // One description per time step: the frame's time, or the shutter's steps.
+  std::vector<SceneDescription> steps;
+  const uint32_t count = shutter.is_open() ? kShutterSteps : 1;
+  for (uint32_t k = 0; k < count; ++k) {
+    AnimatedLayout layout;
+    layout.pose_only = true;
+    LoadOptions load = options_;
+    load.time = shutter.is_open() ? time + shutter.open_s +
+                                        (shutter.close_s - shutter.open_s) * k / (count - 1)
+                                  : time;
+    load.layout = &layout;
+    // The loader's warnings are the construction's: the same at every time.
+    steps.push_back(describe_gltf(*document_, nullptr, load));
+  }
   std::unique_ptr<DeformedMeshes> set;
   {
     std::lock_guard<std::mutex> lock(pool_->mutex);
@@ -70,7 +113,7 @@ std::shared_ptr<const Scene> AnimatedScene::pose(double time,
       if (p->free.size() < kPooledSets) p->free.push_back(std::move(owned));
     }
   });
-  return std::make_shared<const Scene>(base_, std::move(desc), std::move(held), warnings);
+  return std::make_shared<const Scene>(base_, std::move(steps), std::move(held), warnings);
 }
 
 std::shared_ptr<const Scene> load_animated_scene(const std::string& path,

@@ -32,6 +32,20 @@
 
 namespace rf {
 
+// A motion-blurred frame's shutter: open and close in seconds from the frame's time (close >
+// open: blurred; otherwise closed, no motion blur).
+struct Shutter {
+  double open_s = 0.0, close_s = 0.0;
+  bool is_open() const { return close_s > open_s; }
+};
+// The time steps of a motion-blurred pose: the scene is posed at this many times evenly
+// spaced over the shutter, and Embree interpolates linearly between them.
+constexpr uint32_t kShutterSteps = 5;
+// The setting `shutter` ("OPEN,CLOSE", fractions of a frame; "" closed) at fps frames per
+// second into *out; false with *err set for anything else (the server's rule: finite, -1 <=
+// OPEN < CLOSE <= 1, at most one frame apart).
+bool parse_shutter(const std::string& text, double fps, Shutter* out, std::string* err);
+
 class AnimatedScene {
  public:
   // Splits the document's scene for options.animations (empty: every animation; options.time
@@ -44,9 +58,11 @@ class AnimatedScene {
   AnimatedScene& operator=(const AnimatedScene&) = delete;
 
   // The scene at time t (seconds, finite). Thread-safe. *warnings gets the pose's own
-  // (a missing camera); the load's were given at construction.
-  std::shared_ptr<const Scene> pose(double time,
-                                    std::vector<std::string>* warnings = nullptr) const;
+  // (a missing camera); the load's were given at construction. With an open shutter the
+  // scene is posed at kShutterSteps times from t + open_s to t + close_s and moves between
+  // them during the shutter (motion blur: Scene's posing constructor).
+  std::shared_ptr<const Scene> pose(double time, std::vector<std::string>* warnings = nullptr,
+                                    const Shutter& shutter = {}) const;
 
   const Scene& static_part() const { return *base_; }
   // Bytes the document and the static part hold (a pose's own: Scene::memory_bytes).

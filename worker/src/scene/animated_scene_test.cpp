@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <string>
 #include <thread>
@@ -252,6 +253,110 @@ TEST_F(AnimatedSceneTest, LoadAnimatedSceneIsOnePose) {
   const auto once = load_animated_scene(path_, nullptr, load);
   const AnimatedScene animated(document(), LoadOptions{});
   EXPECT_EQ(render(*once).rgb, render(*animated.pose(0.6)).rgb);
+}
+
+// ---- Motion blur: a white (emissive) half-plane whose edge moves at constant speed across
+// the image during the shutter, seen by an orthographic camera. A pixel column [x, x + w) of
+// the image is covered for the part of the shutter the edge e(s) = e0 + (e1 - e0) s spends
+// beyond it, fractionally while it crosses it: its value is
+// (1 / (e1 - e0)) integral over e in [e0, e1] of clamp((e - x) / w, 0, 1) de,
+// (e1 - x - w / 2) / (e1 - e0) for a column inside the sweep: a linear ramp.
+std::string edge_scene_json(bool camera_moves) {
+  Buffer b;
+  constexpr int kFloat = 5126, kUShort = 5123;
+  const int pos = b.add(std::vector<float>{-10, -5, 0, 0, -5, 0, 0, 5, 0, -10, 5, 0}, kFloat, 4,
+                        "VEC3");
+  const int idx = b.add(std::vector<uint16_t>{0, 1, 2, 0, 2, 3}, kUShort, 6, "SCALAR");
+  const int times = b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
+  // The edge goes from x = 0 to x = 4 in one second (or the camera from 0 to -4).
+  const int moves = camera_moves ? b.add(std::vector<float>{0, 0, 5, -4, 0, 5}, kFloat, 2, "VEC3")
+                                 : b.add(std::vector<float>{0, 0, 0, 4, 0, 0}, kFloat, 2, "VEC3");
+  return R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1]}],
+  "cameras": [{"type": "orthographic",
+               "orthographic": {"xmag": 4, "ymag": 1, "znear": 0.01, "zfar": 100}}],
+  "materials": [{"emissiveFactor": [1, 1, 1],
+                 "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1]}}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": )" + std::to_string(pos) +
+         R"(}, "indices": )" + std::to_string(idx) + R"(, "material": 0}]}],
+  "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 0, 5]}],
+  "animations": [{"channels": [{"sampler": 0, "target": {"node": )" +
+         std::string(camera_moves ? "1" : "0") + R"(, "path": "translation"}}],
+                  "samplers": [{"input": )" + std::to_string(times) + R"(, "output": )" +
+         std::to_string(moves) + R"(}]}],
+  )" + b.json() + "}";
+}
+
+// Each column's mean over the image's rows.
+std::vector<double> column_means(const Image& image) {
+  std::vector<double> out(image.width, 0.0);
+  for (uint32_t y = 0; y < image.height; ++y)
+    for (uint32_t x = 0; x < image.width; ++x)
+      out[x] += image.rgb[3 * (size_t(y) * image.width + x)] / double(image.height);
+  return out;
+}
+
+class MotionBlur : public ::testing::TestWithParam<bool> {};
+
+TEST_P(MotionBlur, AMovingEdgeCoversPixelsAsItsSweepSays) {
+  const std::string path = ::testing::TempDir() + "/motion_edge.gltf";
+  {
+    std::ofstream out(path);
+    out << edge_scene_json(GetParam());
+  }
+  const AnimatedScene animated(parse_gltf(path, nullptr), LoadOptions{});
+  Shutter shutter;
+  std::string err;
+  ASSERT_TRUE(parse_shutter("0,1", 1.0, &shutter, &err)) << err;  // one frame of 1 s
+  const auto blurred = animated.pose(0.0, nullptr, shutter);
+  EXPECT_TRUE(blurred->has_motion());
+  EXPECT_EQ(blurred->camera_moves(), GetParam());
+  RenderSettings settings;
+  settings.width = 64;  // the image spans x in [-4, 4]: pixels 0.125 wide
+  settings.height = 16;
+  settings.max_depth = 1;
+  settings.seed = 11;
+  RenderStats stats;
+  const Image image = render_image(*blurred, settings, 1024, 2, &stats);
+  const std::vector<double> got = column_means(image);
+  const double w = 0.125, e0 = 0.0, e1 = 4.0;
+  for (uint32_t c = 0; c < settings.width; ++c) {
+    const double x = -4.0 + w * c;
+    double want;
+    if (x + w <= e0) {
+      want = 1.0;
+    } else if (x >= e1) {
+      want = 0.0;
+    } else {
+      want = (e1 - x - w / 2) / (e1 - e0);
+    }
+    // 16 x 1024 samples of a value in [0, 1] per column: a standard error below 0.004.
+    EXPECT_NEAR(got[c], want, 0.02) << "column " << c << " (x = " << x << ")";
+  }
+  // Rendered again: the same image (every sample's time is a sampler dimension).
+  EXPECT_EQ(render_image(*blurred, settings, 1024, 1, &stats).rgb, image.rgb);
+  // A closed shutter: the sharp edge at the frame's time (x = 2 at t = 0.5).
+  const auto sharp = animated.pose(0.5);
+  EXPECT_FALSE(sharp->has_motion());
+  const std::vector<double> edge = column_means(render_image(*sharp, settings, 16, 1, &stats));
+  for (uint32_t c = 0; c < settings.width; ++c)
+    EXPECT_NEAR(edge[c], -4.0 + w * (c + 1) <= 2.0 ? 1.0 : 0.0, 1e-6) << "column " << c;
+  std::remove(path.c_str());
+}
+
+INSTANTIATE_TEST_SUITE_P(ObjectOrCamera, MotionBlur, ::testing::Bool());
+
+TEST(MotionBlurShutter, ParsesFractionsOfAFrame) {
+  Shutter s;
+  std::string err;
+  ASSERT_TRUE(parse_shutter("", 24.0, &s, &err));
+  EXPECT_FALSE(s.is_open());
+  ASSERT_TRUE(parse_shutter("-0.25, 0.5", 25.0, &s, &err)) << err;
+  EXPECT_DOUBLE_EQ(s.open_s, -0.01);
+  EXPECT_DOUBLE_EQ(s.close_s, 0.02);
+  for (const char* bad : {"0.5", "0.5,0.5", "0,2", "-0.75,0.5", "a,b", "0,1,2", "nan,1"}) {
+    EXPECT_FALSE(parse_shutter(bad, 24.0, &s, &err)) << bad;
+    EXPECT_NE(err.find("settings.shutter"), std::string::npos) << err;
+  }
 }
 
 }  // namespace

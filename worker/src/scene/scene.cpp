@@ -552,9 +552,11 @@ void Scene::finish_lights_and_camera(std::vector<std::string>* warnings) {
 Scene::~Scene() = default;
 
 struct DeformedMeshes::Part {
-  TriangleMesh mesh;
+  TriangleMesh mesh;    // its vertices at the pose's time (motion blur: the shutter's opening)
   uint32_t opaque = 0;  // the first `opaque` triangles are opaque (partition_transparent)
   bool finite = true;   // every vertex is finite: the BVH may be refit (else it is rebuilt)
+  // Motion blur: the positions and normals at time steps 1, 2, ... (step 0 is mesh's).
+  std::vector<std::vector<Vec3>> step_positions, step_normals;
   RTCScene scene = nullptr;
   std::pair<unsigned, unsigned> geoms;
   std::vector<std::unique_ptr<TransparencyFilter>> filters;
@@ -568,8 +570,12 @@ DeformedMeshes::~DeformedMeshes() = default;
 
 size_t DeformedMeshes::memory_bytes() const {
   size_t n = 0;
-  for (const auto& part : parts_)
-    if (part) n += part->mesh.memory_bytes();
+  for (const auto& part : parts_) {
+    if (!part) continue;
+    n += part->mesh.memory_bytes();
+    for (const auto& v : part->step_positions) n += v.capacity() * sizeof(Vec3);
+    for (const auto& v : part->step_normals) n += v.capacity() * sizeof(Vec3);
+  }
   return n;
 }
 
@@ -586,24 +592,60 @@ bool all_finite(const std::vector<Vec3>& points) {
   return true;
 }
 
+bool same_matrix(const Mat4& a, const Mat4& b) {
+  for (size_t c = 0; c < 4; ++c)
+    for (size_t r = 0; r < 4; ++r)
+      if (a.m[c][r] != b.m[c][r]) return false;
+  return true;
+}
+
+// Where time t in [0, 1] falls among `steps` evenly spaced time steps: the step before it
+// and the fraction towards the next (Embree's linear motion blur).
+inline void time_segment(float t, uint32_t steps, uint32_t* k, float* f) {
+  const float x = std::min(std::max(t, 0.f), 1.f) * float(steps - 1);
+  *k = std::min(uint32_t(x), steps - 2);
+  *f = x - float(*k);
+}
+
+Mat4 lerp_matrix(const Mat4& a, const Mat4& b, double f) {
+  Mat4 m;
+  for (size_t c = 0; c < 4; ++c)
+    for (size_t r = 0; r < 4; ++r) m.m[c][r] = a.m[c][r] + (b.m[c][r] - a.m[c][r]) * f;
+  return m;
+}
+
+void column_major(const Mat4& m, float xf[16]) {
+  for (int c = 0; c < 4; ++c)
+    for (int r = 0; r < 4; ++r) xf[4 * c + r] = float(m.m[size_t(c)][size_t(r)]);
+}
+
 }  // namespace
 
-Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
+Scene::Scene(std::shared_ptr<const Scene> base, std::vector<SceneDescription> steps,
              std::shared_ptr<DeformedMeshes> deformed, std::vector<std::string>* warnings)
-    : desc_(std::move(pose)), embree_(new Embree) {
+    : embree_(new Embree) {
+  if (steps.empty()) throw SceneError("a pose needs at least one time");
+  desc_ = std::move(steps[0]);
   if (!base || !base->static_part_)
     throw SceneError(desc_.source + ": a pose needs the static part of its animated scene");
   base_ = std::move(base);
   deformed_ = deformed ? std::move(deformed) : std::make_shared<DeformedMeshes>();
   const Scene& b = *base_;
   const size_t nmesh = b.desc_.meshes.size();
-  if (desc_.meshes.size() != nmesh)
-    throw SceneError(desc_.source + ": a pose has " + std::to_string(desc_.meshes.size()) +
-                     " meshes, its static part " + std::to_string(nmesh));
-  for (const Instance& inst : desc_.instances)
-    if (inst.mesh >= nmesh)
-      throw SceneError(desc_.source + ": instance refers to missing mesh " +
-                       std::to_string(inst.mesh));
+  const uint32_t nsteps = uint32_t(steps.size());
+  for (uint32_t k = 0; k < nsteps; ++k) {
+    const SceneDescription& d = k == 0 ? desc_ : steps[k];
+    if (d.meshes.size() != nmesh || d.instances.size() != desc_.instances.size())
+      throw SceneError(desc_.source + ": a pose has " + std::to_string(d.meshes.size()) +
+                       " meshes and " + std::to_string(d.instances.size()) +
+                       " instances, its static part " + std::to_string(nmesh) +
+                       " meshes and the first time step " +
+                       std::to_string(desc_.instances.size()) + " instances");
+    for (size_t i = 0; i < d.instances.size(); ++i)
+      if (d.instances[i].mesh >= nmesh || d.instances[i].mesh != desc_.instances[i].mesh)
+        throw SceneError(desc_.source + ": instance refers to missing mesh " +
+                         std::to_string(d.instances[i].mesh));
+  }
   desc_.materials = b.desc_.materials;  // with the texture indices the base registered
   desc_.textures.clear();
   desc_.limits = b.desc_.limits;
@@ -617,8 +659,10 @@ Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
   embree_->device = device;
   embree_->scene_flags = b.embree_->scene_flags;
   const bool compact = (embree_->scene_flags & RTC_SCENE_FLAG_COMPACT) != 0;
+  bool moves = false;  // anything differs between the time steps
 
-  // The deformed meshes: refit where the set holds the same triangles, built otherwise.
+  // The deformed meshes: refit where the set holds the same triangles, built otherwise (and
+  // always with motion blur: Embree's refit is for one time step).
   DeformedMeshes& set = *deformed_;
   if (set.base_ != base_) {
     set.parts_.clear();
@@ -629,69 +673,118 @@ Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
   uint64_t deformed_triangles = 0;
   // A pose that fails part way leaves no half-updated mesh in the set.
   try {
-  for (size_t m = 0; m < nmesh; ++m) {
-    TriangleMesh& fresh = desc_.meshes[m].geometry;
-    std::unique_ptr<DeformedMeshes::Part>& part = set.parts_[m];
-    if (fresh.empty()) {
-      part.reset();
-      continue;
-    }
-    clean_mesh(&fresh, desc_.materials.size(), desc_.source + " mesh '" + desc_.meshes[m].name + "'",
-               false);
-    const uint32_t opaque = partition_transparent(&fresh, desc_.materials);
-    has_transparency_ |= opaque < fresh.size();
-    has_vertex_colors_ |= !fresh.colors.empty();
-    deformed_triangles += fresh.size();
-    const bool finite = all_finite(fresh.positions);
-    if (part && finite && part->finite && part->opaque == opaque &&
-        same_triangles(part->mesh, fresh)) {
-      // Embree reads the arrays in place: overwrite them (same sizes) and refit.
-      std::copy(fresh.positions.begin(), fresh.positions.end(), part->mesh.positions.begin());
-      std::copy(fresh.normals.begin(), fresh.normals.end(), part->mesh.normals.begin());
-      std::copy(fresh.face_normals.begin(), fresh.face_normals.end(),
-                part->mesh.face_normals.begin());
-      for (unsigned id : {part->geoms.first, part->geoms.second}) {
-        if (id == RTC_INVALID_GEOMETRY_ID) continue;
-        RTCGeometry geom = rtcGetGeometry(part->scene, id);
-        rtcUpdateGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0);
-        rtcCommitGeometry(geom);
+    for (size_t m = 0; m < nmesh; ++m) {
+      TriangleMesh& fresh = desc_.meshes[m].geometry;
+      std::unique_ptr<DeformedMeshes::Part>& part = set.parts_[m];
+      if (fresh.empty()) {
+        part.reset();
+        continue;
       }
-      rtcCommitScene(part->scene);
-      ++set.refits_;
-    } else {
-      part = std::make_unique<DeformedMeshes::Part>();
-      part->mesh = std::move(fresh);
-      part->opaque = opaque;
-      part->finite = finite;
-      part->scene = rtcNewScene(device);
-      rtcSetSceneFlags(part->scene, embree_->scene_flags);
-      // A two-level build (quality LOW) is the one that honours the geometries' REFIT.
-      rtcSetSceneBuildQuality(part->scene, RTC_BUILD_QUALITY_LOW);
-      part->geoms = attach_triangles(device, part->scene, part->mesh, opaque, &b, &part->filters,
-                                     true);
-      rtcCommitScene(part->scene);
-      ++set.builds_;
+      const std::string where = desc_.source + " mesh '" + desc_.meshes[m].name + "'";
+      clean_mesh(&fresh, desc_.materials.size(), where, false);
+      const uint32_t opaque = partition_transparent(&fresh, desc_.materials);
+      has_transparency_ |= opaque < fresh.size();
+      has_vertex_colors_ |= !fresh.colors.empty();
+      deformed_triangles += fresh.size();
+      bool finite = all_finite(fresh.positions);
+      // The later steps' vertices, if their triangles are the first's (a winding that flips
+      // within the shutter keeps the first step's vertices throughout).
+      std::vector<std::vector<Vec3>> step_positions, step_normals;
+      for (uint32_t k = 1; k < nsteps; ++k) {
+        TriangleMesh& later = steps[k].meshes[m].geometry;
+        clean_mesh(&later, desc_.materials.size(), where, false);
+        partition_transparent(&later, desc_.materials);
+        if (!same_triangles(later, fresh)) {
+          step_positions.clear();
+          step_normals.clear();
+          break;
+        }
+        finite = finite && all_finite(later.positions);
+        later.positions.reserve(later.positions.size() + 1);  // Embree's 16-byte loads
+        step_positions.push_back(std::move(later.positions));
+        step_normals.push_back(std::move(later.normals));
+        later = TriangleMesh();
+      }
+      bool mesh_moves = false;
+      for (const auto& positions : step_positions)
+        mesh_moves = mesh_moves || std::memcmp(positions.data(), fresh.positions.data(),
+                                               positions.size() * sizeof(Vec3)) != 0;
+      if (!mesh_moves) {
+        step_positions.clear();
+        step_normals.clear();
+      }
+      moves = moves || mesh_moves;
+      if (!mesh_moves && part && part->step_positions.empty() && finite && part->finite &&
+          part->opaque == opaque && same_triangles(part->mesh, fresh)) {
+        // Embree reads the arrays in place: overwrite them (same sizes) and refit.
+        std::copy(fresh.positions.begin(), fresh.positions.end(), part->mesh.positions.begin());
+        std::copy(fresh.normals.begin(), fresh.normals.end(), part->mesh.normals.begin());
+        std::copy(fresh.face_normals.begin(), fresh.face_normals.end(),
+                  part->mesh.face_normals.begin());
+        for (unsigned id : {part->geoms.first, part->geoms.second}) {
+          if (id == RTC_INVALID_GEOMETRY_ID) continue;
+          RTCGeometry geom = rtcGetGeometry(part->scene, id);
+          rtcUpdateGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0);
+          rtcCommitGeometry(geom);
+        }
+        rtcCommitScene(part->scene);
+        ++set.refits_;
+      } else {
+        part = std::make_unique<DeformedMeshes::Part>();
+        part->mesh = std::move(fresh);
+        part->opaque = opaque;
+        part->finite = finite;
+        part->step_positions = std::move(step_positions);
+        part->step_normals = std::move(step_normals);
+        part->scene = rtcNewScene(device);
+        rtcSetSceneFlags(part->scene, embree_->scene_flags);
+        // A two-level build (quality LOW) is the one that honours the geometries' REFIT.
+        rtcSetSceneBuildQuality(part->scene, RTC_BUILD_QUALITY_LOW);
+        const bool blurred = !part->step_positions.empty();
+        part->geoms = attach_triangles(device, part->scene, part->mesh, opaque, &b,
+                                       &part->filters, !blurred);
+        if (blurred)
+          for (unsigned id : {part->geoms.first, part->geoms.second}) {
+            if (id == RTC_INVALID_GEOMETRY_ID) continue;
+            RTCGeometry geom = rtcGetGeometry(part->scene, id);
+            rtcSetGeometryTimeStepCount(geom, nsteps);
+            rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                       part->mesh.positions.data(), 0, sizeof(Vec3),
+                                       part->mesh.positions.size());
+            for (uint32_t k = 1; k < nsteps; ++k)
+              rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, k, RTC_FORMAT_FLOAT3,
+                                         part->step_positions[k - 1].data(), 0, sizeof(Vec3),
+                                         part->mesh.positions.size());
+            rtcCommitGeometry(geom);
+          }
+        rtcCommitScene(part->scene);
+        ++set.builds_;
+      }
+      fresh = TriangleMesh();
     }
-    fresh = TriangleMesh();
-  }
   } catch (...) {
     set.parts_.clear();
     throw;
   }
 
   // The top level: the base's world triangles as one instance at the identity (slot 0, as
-  // the world of a scene of one piece), then the pose's instances.
+  // the world of a scene of one piece), then the pose's instances, with a transform per time
+  // step where they move.
   embree_->scene = rtcNewScene(device);
   rtcSetSceneFlags(embree_->scene, embree_->scene_flags);
   bmin_ = b.bmin_;
   bmax_ = b.bmax_;
   bool any = false;
-  float identity[16] = {1.f, 0.f, 0.f, 0.f, 0.f, 1.f, 0.f, 0.f,
-                        0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 0.f, 1.f};
-  auto place = [&](RTCScene instanced, const float* xf, uint32_t slot) {
+  const Mat4 identity = Mat4::identity();
+  auto place = [&](RTCScene instanced, const std::vector<const Mat4*>& xfs, uint32_t slot) {
     RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_INSTANCE);
     rtcSetGeometryInstancedScene(geom, instanced);
-    rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT4X4_COLUMN_MAJOR, xf);
+    rtcSetGeometryTimeStepCount(geom, unsigned(xfs.size()));
+    for (size_t k = 0; k < xfs.size(); ++k) {
+      float xf[16];
+      column_major(*xfs[k], xf);
+      rtcSetGeometryTransform(geom, unsigned(k), RTC_FORMAT_FLOAT4X4_COLUMN_MAJOR, xf);
+    }
     rtcCommitGeometry(geom);
     const unsigned id = rtcAttachGeometry(embree_->scene, geom);
     rtcReleaseGeometry(geom);
@@ -700,11 +793,13 @@ Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
   };
   slot_mesh_.push_back(&b.desc_.world);
   slot_first_transparent_.push_back(b.slot_first_transparent_[kWorldSlot]);
+  slot_motion_.push_back(nullptr);
   if (!b.desc_.world.empty()) {
-    place(b.embree_->scene, identity, kWorldSlot);
+    place(b.embree_->scene, {&identity}, kWorldSlot);
     any = true;
   }
   instance_xf_.reserve(desc_.instances.size());
+  instance_motion_.resize(desc_.instances.size());
   for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
     const Instance& inst = desc_.instances[k];
     const DeformedMeshes::Part* part = set.parts_[inst.mesh].get();
@@ -712,27 +807,41 @@ Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
     slot_mesh_.push_back(&mesh);
     slot_first_transparent_.push_back(part ? part->opaque
                                            : b.embree_->mesh_first_transparent[inst.mesh]);
+    slot_motion_.push_back(part && !part->step_positions.empty() ? part : nullptr);
     instance_xf_.push_back(Affine3f::from(inst.to_world));
+    std::vector<const Mat4*> xfs{&inst.to_world};
+    for (uint32_t j = 1; j < nsteps; ++j) xfs.push_back(&steps[j].instances[k].to_world);
+    bool instance_moves = false;
+    for (const Mat4* xf : xfs) instance_moves = instance_moves || !same_matrix(*xf, inst.to_world);
+    if (instance_moves) {
+      for (const Mat4* xf : xfs) instance_motion_[k].push_back(*xf);
+      moves = true;
+    } else {
+      xfs.resize(1);
+    }
     RTCScene ms = part ? part->scene : b.embree_->mesh_scenes[inst.mesh];
     if (!ms || mesh.empty()) continue;
     any = true;
     Vec3 lo(1e30f, 1e30f, 1e30f), hi = -lo;
     if (part) {
       grow_bounds(mesh, &lo, &hi);
+      for (const auto& positions : part->step_positions)
+        for (uint32_t v : mesh.indices) {
+          lo = vmin(lo, positions[v]);
+          hi = vmax(hi, positions[v]);
+        }
     } else {
       lo = b.mesh_bounds_[inst.mesh].first;
       hi = b.mesh_bounds_[inst.mesh].second;
     }
-    for (int c = 0; c < 8; ++c) {
-      const Vec3 corner((c & 1) ? hi.x : lo.x, (c & 2) ? hi.y : lo.y, (c & 4) ? hi.z : lo.z);
-      const Vec3 w = inst.to_world.transform_point(corner);
-      bmin_ = vmin(bmin_, w);
-      bmax_ = vmax(bmax_, w);
-    }
-    float xf[16];
-    for (int c = 0; c < 4; ++c)
-      for (int r = 0; r < 4; ++r) xf[4 * c + r] = float(inst.to_world.m[size_t(c)][size_t(r)]);
-    place(ms, xf, 1 + k);
+    for (const Mat4* xf : xfs)
+      for (int c = 0; c < 8; ++c) {
+        const Vec3 corner((c & 1) ? hi.x : lo.x, (c & 2) ? hi.y : lo.y, (c & 4) ? hi.z : lo.z);
+        const Vec3 w = xf->transform_point(corner);
+        bmin_ = vmin(bmin_, w);
+        bmax_ = vmax(bmax_, w);
+      }
+    place(ms, xfs, 1 + k);
   }
   if (!any)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
@@ -745,6 +854,51 @@ Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
   desc_.meshes.clear();
   desc_.meshes.shrink_to_fit();
   finish_lights_and_camera(warnings);
+  // The camera at every step, if it moves (a scene without a camera frames its bounds at
+  // every time alike).
+  if (desc_.camera) {
+    bool camera_moves = false;
+    for (uint32_t k = 1; k < nsteps; ++k) {
+      const std::optional<Camera>& c = steps[k].camera;
+      if (!c) continue;
+      camera_moves = camera_moves || length(c->position - camera_.position) != 0.f ||
+                     length(c->forward - camera_.forward) != 0.f ||
+                     length(c->up - camera_.up) != 0.f || c->yfov != camera_.yfov ||
+                     c->xmag != camera_.xmag || c->ymag != camera_.ymag;
+    }
+    if (camera_moves) {
+      for (uint32_t k = 0; k < nsteps; ++k)
+        camera_steps_.push_back(k == 0 || !steps[k].camera ? camera_ : *steps[k].camera);
+      moves = true;
+    }
+  }
+  motion_steps_ = moves ? nsteps : 1;
+  if (!moves) {
+    instance_motion_.clear();
+    slot_motion_.clear();
+  }
+}
+
+Camera Scene::camera_at(float t) const {
+  if (camera_steps_.empty()) return camera_;
+  uint32_t k;
+  float f;
+  time_segment(t, uint32_t(camera_steps_.size()), &k, &f);
+  const Camera& a = camera_steps_[k];
+  const Camera& b = camera_steps_[k + 1];
+  auto mix = [f](float x, float y) { return x + (y - x) * f; };
+  Camera c = a;
+  c.position = a.position + (b.position - a.position) * f;
+  c.yfov = mix(a.yfov, b.yfov);
+  c.xmag = mix(a.xmag, b.xmag);
+  c.ymag = mix(a.ymag, b.ymag);
+  // The axes interpolated and made orthonormal again, as the loader makes a camera's.
+  const Vec3 forward = a.forward + (b.forward - a.forward) * f;
+  const Vec3 up = a.up + (b.up - a.up) * f;
+  c.forward = normalize(forward);
+  c.right = normalize(cross(c.forward, up));
+  c.up = cross(c.right, c.forward);
+  return c;
 }
 
 uint64_t Scene::world_triangle_count() const {
@@ -757,7 +911,8 @@ namespace {
 
 thread_local RayLog* tl_ray_log = nullptr;
 
-inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmin, float tmax, uint32_t id) {
+inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmin, float tmax, uint32_t id,
+                     float time = 0.f) {
   ray->org_x = o.x;
   ray->org_y = o.y;
   ray->org_z = o.z;
@@ -766,7 +921,7 @@ inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmin, float tmax, uint32
   ray->dir_z = d.z;
   ray->tnear = tmin;
   ray->tfar = tmax;
-  ray->time = 0.f;
+  ray->time = time;
   ray->mask = 0xffffffffu;
   ray->id = id;
   ray->flags = 0;
@@ -775,10 +930,10 @@ inline void init_ray(RTCRay* ray, Vec3 o, Vec3 d, float tmin, float tmax, uint32
 // Closest hit along o + t d, t in [tmin, tmax]; hit.geomID is RTC_INVALID_GEOMETRY_ID on a
 // miss.
 inline RTCRayHit trace_closest(RTCScene scene, Vec3 o, Vec3 d, float tmin, float tmax,
-                               uint64_t query, uint32_t sample) {
+                               uint64_t query, uint32_t sample, float time = 0.f) {
   QueryContext context(query);
   RTCRayHit rh;
-  init_ray(&rh.ray, o, d, tmin, tmax, sample);
+  init_ray(&rh.ray, o, d, tmin, tmax, sample, time);
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
@@ -798,12 +953,12 @@ bool Scene::intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const {
 }
 
 bool Scene::intersect(Vec3 o, Vec3 d, float tmax, Hit* hit, uint64_t query, uint32_t sample,
-                      float tmin) const {
+                      float tmin, float time) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, false});
-  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmin, tmax, query, sample);
+  const RTCRayHit rh = trace_closest(embree_->scene, o, d, tmin, tmax, query, sample, time);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
   complete_hit(rh.hit.geomID, rh.hit.instID[0], rh.hit.primID, rh.hit.u, rh.hit.v, rh.ray.tfar,
-               hit);
+               hit, time);
   return true;
 }
 
@@ -892,7 +1047,7 @@ void Scene::intersect_lanes(const RayPacket& rays, int first, Hit* hits, bool* f
   for (; hit_lanes; hit_lanes &= hit_lanes - 1) {
     const int i = __builtin_ctz(hit_lanes);
     complete_hit(rh.hit.geomID[i], rh.hit.instID[0][i], rh.hit.primID[i], rh.hit.u[i],
-                 rh.hit.v[i], rh.ray.tfar[i], &hits[first + i]);
+                 rh.hit.v[i], rh.ray.tfar[i], &hits[first + i], rays.time[first + i]);
   }
 }
 
@@ -934,7 +1089,7 @@ void Scene::occluded(const RayPacket& rays, bool* blocked, uint64_t query) const
 }
 
 void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
-                         Hit* hit) const {
+                         Hit* hit, float time) const {
   // A hit inside an instance names the instance as the top-level geometry.
   const bool in_instance = inst != RTC_INVALID_GEOMETRY_ID;
   const unsigned top = in_instance ? inst : geom;
@@ -953,14 +1108,40 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   hit->b2 = v;
   hit->material = mesh.material[prim];
   const float b0 = 1.f - hit->b1 - hit->b2;
-  const Vec3 p0 = mesh.positions[vi[0]], p1 = mesh.positions[vi[1]], p2 = mesh.positions[vi[2]];
+  Vec3 p0 = mesh.positions[vi[0]], p1 = mesh.positions[vi[1]], p2 = mesh.positions[vi[2]];
+  Vec3 ng = mesh.face_normals[prim];
+  Vec3 n0, n1, n2;
+  if (flags & TriangleMesh::kHasNormals) {
+    n0 = mesh.normals[vi[0]];
+    n1 = mesh.normals[vi[1]];
+    n2 = mesh.normals[vi[2]];
+  }
+  const DeformedMeshes::Part* moving = slot_motion_.empty() ? nullptr : slot_motion_[slot];
+  if (moving) {
+    // A deformed mesh under motion blur: its triangle where it is at the ray's time, as
+    // Embree interpolates it (linearly between the two time steps around it).
+    uint32_t k;
+    float f;
+    time_segment(time, motion_steps_, &k, &f);
+    const std::vector<Vec3>& pa = k == 0 ? mesh.positions : moving->step_positions[k - 1];
+    const std::vector<Vec3>& pb = moving->step_positions[k];
+    p0 = pa[vi[0]] + (pb[vi[0]] - pa[vi[0]]) * f;
+    p1 = pa[vi[1]] + (pb[vi[1]] - pa[vi[1]]) * f;
+    p2 = pa[vi[2]] + (pb[vi[2]] - pa[vi[2]]) * f;
+    face_normal(p0, p1, p2, &ng);
+    if (flags & TriangleMesh::kHasNormals) {
+      const std::vector<Vec3>& na = k == 0 ? mesh.normals : moving->step_normals[k - 1];
+      const std::vector<Vec3>& nb = moving->step_normals[k];
+      n0 = na[vi[0]] + (nb[vi[0]] - na[vi[0]]) * f;
+      n1 = na[vi[1]] + (nb[vi[1]] - na[vi[1]]) * f;
+      n2 = na[vi[2]] + (nb[vi[2]] - na[vi[2]]) * f;
+    }
+  }
   // Barycentric position is more accurate than o + t d far from the origin.
   Vec3 p = p0 * b0 + p1 * hit->b1 + p2 * hit->b2;
-  Vec3 ng = mesh.face_normals[prim];
   Vec3 ns = ng;
   if (flags & TriangleMesh::kHasNormals) {
-    const Vec3 n = mesh.normals[vi[0]] * b0 + mesh.normals[vi[1]] * hit->b1 +
-                   mesh.normals[vi[2]] * hit->b2;
+    const Vec3 n = n0 * b0 + n1 * hit->b1 + n2 * hit->b2;
     const float len = length(n);
     if (len > 0.f && std::isfinite(len)) ns = n / len;
   }
@@ -996,7 +1177,19 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
     }
   }
   if (slot != kWorldSlot) {
-    const Affine3f& m = instance_xf_[slot - 1];
+    Affine3f blurred;
+    if (!instance_motion_.empty() && !instance_motion_[slot - 1].empty()) {
+      // A moving instance: its transform at the ray's time (Embree interpolates the matrices
+      // linearly between the time steps).
+      const std::vector<Mat4>& xfs = instance_motion_[slot - 1];
+      uint32_t k;
+      float f;
+      time_segment(time, uint32_t(xfs.size()), &k, &f);
+      blurred = Affine3f::from(lerp_matrix(xfs[k], xfs[k + 1], double(f)));
+    }
+    const Affine3f& m = !instance_motion_.empty() && !instance_motion_[slot - 1].empty()
+                            ? blurred
+                            : instance_xf_[slot - 1];
     p = m.point(p);
     const Vec3 ngw = m.normal(ng), nsw = m.normal(ns);
     const float ngl = length(ngw), nsl = length(nsw);
@@ -1012,11 +1205,12 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   hit->tangent_sign = sign;
 }
 
-bool Scene::occluded(Vec3 o, Vec3 d, float tmax, uint64_t query, uint32_t sample) const {
+bool Scene::occluded(Vec3 o, Vec3 d, float tmax, uint64_t query, uint32_t sample,
+                     float time) const {
   if (tl_ray_log) tl_ray_log->push_back({o, d, tmax, true});
   QueryContext context(query);
   RTCRay ray;
-  init_ray(&ray, o, d, 0.f, tmax, sample);
+  init_ray(&ray, o, d, 0.f, tmax, sample, time);
   rtcOccluded1(embree_->scene, &context.rtc, &ray);
   // Embree sets tfar to -inf when an occluder is found.
   return ray.tfar < 0.f;

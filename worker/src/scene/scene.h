@@ -370,20 +370,31 @@ class Scene {
   // *deformed (rewritten in place and refit if the set holds that mesh already). The scene
   // is what the first constructor builds from the same triangles up to the BVH's shape: rays
   // find the same hits (see docs/scenes.md, "Animated farm tasks").
-  Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
+  //
+  // Motion blur: with several poses (the same scene at times evenly spaced over a shutter
+  // interval, steps[0] at its opening), the scene moves during the shutter: Embree's motion
+  // blur with one time step per pose (instances with a transform per step, deformed meshes
+  // with vertices per step; the BVHs are built, never refit), the camera interpolated between
+  // its poses, and each ray sees the scene at its RTCRay time in [0, 1] (0: steps[0], 1: the
+  // last). Light sampling uses the emitters of steps[0]; a ray finds them where they are at its
+  // own time.
+  Scene(std::shared_ptr<const Scene> base, std::vector<SceneDescription> steps,
         std::shared_ptr<DeformedMeshes> deformed, std::vector<std::string>* warnings);
   ~Scene();
   Scene(const Scene&) = delete;
   Scene& operator=(const Scene&) = delete;
 
   // Closest hit along o + t d for t in (tmin, tmax); d need not be unit (t is then in units of
-  // d). query and sample: the ray's transparency key (see ray_query).
+  // d). query and sample: the ray's transparency key (see ray_query). time: where in the
+  // shutter the ray is, in [0, 1] (RayPacket::time likewise; only a scene with motion reads
+  // it).
   bool intersect(Vec3 o, Vec3 d, float tmax, Hit* hit, uint64_t query = 0, uint32_t sample = 0,
-                 float tmin = 0.f) const;
+                 float tmin = 0.f, float time = 0.f) const;
   // Closest hit distance only (no hit record); the benchmark's raw Embree rate uses it.
   bool intersect_t(Vec3 o, Vec3 d, float tmax, float* t) const;
   // True if anything blocks o + t d for t in (0, tmax).
-  bool occluded(Vec3 o, Vec3 d, float tmax, uint64_t query = 0, uint32_t sample = 0) const;
+  bool occluded(Vec3 o, Vec3 d, float tmax, uint64_t query = 0, uint32_t sample = 0,
+                float time = 0.f) const;
   // intersect / occluded for the active lanes of a packet. found[i] is written for every lane
   // (false for inactive ones), hits[i] for the lanes found; blocked[i] is meaningful for
   // active lanes only.
@@ -455,6 +466,13 @@ class Scene {
   // A pose's deformed meshes (null for other scenes).
   const DeformedMeshes* deformed_meshes() const { return deformed_.get(); }
   const Camera& camera() const { return camera_; }
+  // Motion blur (the posing constructor with several steps): whether anything moves during
+  // the shutter, so that rays need a time; whether the camera does; the camera at time t in
+  // [0, 1] (positions and every other parameter interpolated linearly between the steps, the
+  // axes then made orthonormal again; camera() is the one at 0).
+  bool has_motion() const { return motion_steps_ > 1; }
+  bool camera_moves() const { return !camera_steps_.empty(); }
+  Camera camera_at(float t) const;
   bool has_file_camera() const { return desc_.camera.has_value(); }
   const LightSet& lights() const { return lights_; }
   Vec3 bounds_min() const { return bmin_; }
@@ -477,6 +495,13 @@ class Scene {
   // warnings: the end of every constructor.
   void finish_lights_and_camera(std::vector<std::string>* warnings);
   void build(std::vector<std::string>* warnings, BvhLayout bvh);  // the first two constructors
+  // Motion blur: the number of time steps (1: none), per instance its transform at each step
+  // (empty: it does not move), per slot the deformed mesh whose vertices move (null: none), and
+  // the camera at each step (empty: it does not move).
+  uint32_t motion_steps_ = 1;
+  std::vector<std::vector<Mat4>> instance_motion_;
+  std::vector<const DeformedMeshes::Part*> slot_motion_;
+  std::vector<Camera> camera_steps_;
   friend class DeformedMeshes;
   std::vector<Affine3f> instance_xf_;  // desc_.instances[k].to_world, for hits in slot k + 1
   std::vector<const TriangleMesh*> slot_mesh_;  // per slot: &desc_.world, then the meshes
@@ -505,7 +530,7 @@ class Scene {
   template <int N, typename RayN>
   void occluded_lanes(const RayPacket& rays, int first, bool* blocked, uint64_t query) const;
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
-                    Hit* hit) const;
+                    Hit* hit, float time = 0.f) const;
   struct Embree;
   std::unique_ptr<Embree> embree_;
   int packet_query_width_ = 8;
