@@ -131,6 +131,23 @@ def test_settings_take_a_frame_list_and_refuse_a_bad_one_naming_the_setting():
     assert "split the range" in str(e.value)
 
 
+def test_small_frames_are_sent_whole_unless_a_tile_size_is_given():
+    def tiles(raw):
+        s = parse_settings(raw)
+        return s.tile_size, len(tile_grid(s.width, s.height, s.tile_size))
+
+    # 128 x 96 and 128 x 128 frames are single chunks; a still of that size keeps 64-pixel tiles.
+    assert tiles({"frames": "1-10", "width": 128, "height": 96}) == (128, 1)
+    assert tiles({"frames": "1-10", "width": 128, "height": 128}) == (128, 1)
+    assert tiles({"width": 128, "height": 96}) == (64, 4)
+    # Over 16384 pixels, or a tile size given: tiles as asked.
+    assert tiles({"frames": "1-10", "width": 129, "height": 128}) == (64, 6)
+    assert tiles({"frames": "1-10", "width": 128, "height": 96, "tile_size": 32}) == (32, 12)
+    # A thin frame of 16384 pixels is still one tile, within the largest tile side.
+    assert tiles({"frames": "1-10", "width": 512, "height": 32}) == (512, 1)
+    assert tiles({"frames": "1-10", "width": 1024, "height": 16})[1] > 1
+
+
 def test_a_still_is_one_frame():
     sched = Scheduler(clock=FakeClock())
     job = sched.add_job("j", JobSettings(width=32, height=32, tile_size=16), "scene")
