@@ -227,6 +227,7 @@ def test_the_frame_strip_follows_an_animation_frame_by_frame(
     wait_viewer_frame(page, 3)
     assert pressed_frame(page) == "3"
     assert abs(brightness_column(canvas_pixels(page)) - third) < 1e-9
+    page.wait_for_url(re.compile(r"\?frame=3$"))  # the address follows a moment later
 
     # Reloading keeps the frame the URL names; so does opening the link afresh.
     page.reload()
@@ -241,6 +242,12 @@ def test_the_frame_strip_follows_an_animation_frame_by_frame(
     wait_viewer_frame(page, 1)
     page.wait_for_url(re.compile(rf"#/jobs/{job['id']}$"))
     screenshot(page, "frames-done")
+    # A narrow window: the strip wraps, nothing overflows sideways.
+    page.set_viewport_size({"width": 420, "height": 900})
+    expect(page.locator(f'{CELLS}[data-frame="4"]')).to_be_visible()
+    width = page.evaluate("() => document.documentElement.scrollWidth")
+    assert width <= 420, f"the animation's page overflows horizontally ({width} px)"
+    screenshot(page, "narrow-frames")
 
 
 def test_a_still_has_no_frame_strip(page: Page, client, moving_square):

@@ -214,6 +214,16 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
     let movie: MoviePanel | null = null;
     let movieServed = false;
     let frameSlots = new Map<number, number>(); // frame number -> its place in the frame list
+    // The address follows the frame a moment after the last change: dragging the slider over
+    // many frames would otherwise replace the history entry faster than browsers allow.
+    let addressTimer: number | undefined;
+    const frameToAddress = (n: number) => {
+      window.clearTimeout(addressTimer);
+      addressTimer = window.setTimeout(() => {
+        if (!disposed) history.replaceState(history.state, "", jobHash(jobId, n));
+      }, 150);
+    };
+    cleanups.push(() => window.clearTimeout(addressTimer));
     if (initialFrames) {
       const wanted = frameIndex(initialFrames, frame);
       if (frame !== null && initialFrames[wanted].frame !== frame) history.replaceState(history.state, "", jobHash(jobId));
@@ -228,7 +238,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
           viewer.setFrame(f.frame, finalKey(f));
           frameDownloads(f.frame);
           renderStops(lastDetail);
-          history.replaceState(history.state, "", jobHash(jobId, f.frame));
+          frameToAddress(f.frame);
         },
         movie.el,
       );
