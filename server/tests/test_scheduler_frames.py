@@ -10,7 +10,7 @@ import pytest
 from test_scheduler import FakeClock, render
 
 from renderfarm.domain.frames import frame_slot, job_rects
-from renderfarm.domain.jobspec import JobSettings, SettingsError, parse_settings
+from renderfarm.domain.jobspec import JobSettings, Limits, SettingsError, parse_settings
 from renderfarm.domain.scheduler import Scheduler
 from renderfarm.domain.states import JobState
 from renderfarm.domain.tiling import tile_grid
@@ -121,9 +121,12 @@ def test_settings_take_a_frame_list_and_refuse_a_bad_one_naming_the_setting():
         with pytest.raises(SettingsError) as e:
             parse_settings({"frames": bad})
         assert e.value.field == "settings.frames", bad
-    # 200 frames of 4K accumulators are more than the default job memory limit.
+    # Every frame's accumulators count against the job memory limit: one 256 x 256 frame fits
+    # in 64 MB, 200 of them do not.
+    limits = Limits(max_job_memory_bytes=64 << 20)
+    parse_settings({"width": 256, "height": 256}, limits)
     with pytest.raises(SettingsError) as e:
-        parse_settings({"frames": "1-200", "width": 3840, "height": 2160})
+        parse_settings({"frames": "1-200", "width": 256, "height": 256}, limits)
     assert e.value.field == "settings.frames"
     assert "split the range" in str(e.value)
 
