@@ -292,6 +292,7 @@ def test_the_preview_movie_plays_and_downloads(page: Page, client, moving_square
     screenshot(page, "frames-movie")
     with page.expect_download() as download:
         link.click()
-    assert download.value.suggested_filename == "browser-movie.mp4"
+    # The server's Content-Disposition names the file (it wins over the link's download name).
+    assert download.value.suggested_filename == f"{job['id']}.mp4"
     head = Path(download.value.path()).read_bytes()[:12]
     assert head[4:8] == b"ftyp", head  # an MP4 (ISO base media file)

@@ -184,7 +184,8 @@ export class MoviePanel {
     this.problem = h("p", { class: "control-message error small", role: "status", hidden: true });
     this.video.addEventListener("error", () => {
       this.problem.hidden = false;
-      setText(this.problem, "This browser cannot play the movie; download it instead.");
+      // A 503 (a server without ffmpeg) or a browser without H.264 both end here.
+      setText(this.problem, "The movie cannot be played here (the server may lack ffmpeg, or this browser H.264): try Download MP4.");
     });
     this.video.addEventListener("loadedmetadata", () => {
       this.problem.hidden = true;
