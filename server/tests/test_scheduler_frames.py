@@ -154,3 +154,35 @@ def test_a_still_is_one_frame():
     assert job.frames is None and job.frame_count == 1
     assert sched.progress(job).frames_total == 1
     assert sched.frame_progress(job, 0).frame == 0
+
+
+def test_failed_tasks_and_worker_warnings_go_to_the_task_log():
+    """task_failed names the worker, the error, the tile, batch and frame; task_warning events
+    record each distinct message of a worker once per job, at most TASK_LOG_MAX of them."""
+    from dataclasses import replace
+
+    from renderfarm.domain.records import TASK_LOG_MAX
+
+    sched = Scheduler(clock=FakeClock())
+    job = sched.add_job("j", ANIMATION, "scene")
+    sched.add_worker("w", 1)
+    (lease,) = sched.assign("w")
+    sched.failed(lease.task_id, "scene load: out of memory", retryable=True)
+    (event,) = [e for e in sched.take_events() if e.kind == "task_failed"]
+    slot = lease.tile_index // PER_FRAME
+    assert event.data == {
+        "worker": "w", "error": "scene load: out of memory", "retryable": True,
+        "tile": lease.tile_index, "batch": lease.batch_index, "frame": job.frames[slot],
+    }  # fmt: skip
+    (lease,) = sched.assign("w")
+    result = replace(frame_render(ANIMATION, job, lease), warnings=("texture ignored",) * 2)
+    sched.task_warnings("w", result)
+    sched.task_warnings("w2", result)  # another worker, the same message: logged already
+    warnings = [e for e in sched.take_events() if e.kind == "task_warning"]
+    assert [(e.data["worker"], e.data["message"]) for e in warnings] == [("w", "texture ignored")]
+    assert warnings[0].data["tile"] == lease.tile_index
+    many = replace(result, warnings=tuple(f"w{i}" for i in range(2 * TASK_LOG_MAX)))
+    sched.task_warnings("w", many)
+    logged = [e.data["message"] for e in sched.take_events() if e.kind == "task_warning"]
+    assert len(logged) == TASK_LOG_MAX
+    assert logged[-1].startswith(f"more than {TASK_LOG_MAX} warnings")

@@ -33,6 +33,7 @@ import { dateTime, duration, label, percent, si, spp } from "../format";
 import { frameIndex, frameTiles } from "../frames";
 import { noiseTargetShortfall } from "../outputs";
 import { jobHash } from "../router";
+import { taskLog } from "../tasklog";
 import { Throttled } from "../throttle";
 import { TileProgress, card, errorVsTarget, setConnection, stat, stateBadge, updateBadge } from "../ui";
 import { FrameStrip, MoviePanel } from "./framestrip";
@@ -329,6 +330,23 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       ),
     );
     const eventsList = h("ol", { class: "event-log", reversed: true });
+    // What workers reported about the job's tasks (tasklog.ts); hidden while there is none.
+    const taskLogBody = h("tbody", {});
+    const taskLogCard = card(
+      "Task log",
+      h(
+        "div",
+        { class: "table-scroll" },
+        h(
+          "table",
+          { class: "table compact task-log" },
+          h("caption", { class: "visually-hidden" }, "Task log"),
+          h("thead", {}, h("tr", {}, ["Time", "Worker", "Where", "Message"].map((t) => h("th", { scope: "col" }, t)))),
+          taskLogBody,
+        ),
+      ),
+    );
+    taskLogCard.hidden = true;
     const renderStops = (d: JobDetail) => {
       lastDetail = d;
       // A still's tiles are numbered in its grid; an animation's across frames (frameTiles).
@@ -365,6 +383,20 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
     const renderEvents = (events: JobEvent[]) => {
       finishLogged = events.some((e) => e.kind === "job_finished");
       const t0 = initial.created_unix_s;
+      const entries = taskLog(events, perFrame, frameSlots).slice(-MAX_ROWS).reverse();
+      taskLogCard.hidden = entries.length === 0;
+      taskLogBody.replaceChildren(
+        ...entries.map((t) =>
+          h(
+            "tr",
+            { class: `task-log-${t.level}` },
+            h("td", { class: "mono muted", title: dateTime(t.at) }, `+${(t.at - t0).toFixed(1)} s`),
+            h("td", { class: "mono" }, t.worker),
+            h("td", {}, t.place),
+            h("td", { class: `level-${t.level}` }, h("span", { class: "visually-hidden" }, `${t.level}: `), t.message),
+          ),
+        ),
+      );
       const shown = events.slice(-MAX_ROWS).reverse();
       eventsList.replaceChildren(
         ...shown.map((e) =>
@@ -541,6 +573,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       h(
         "div",
         { class: "job-lower" },
+        taskLogCard,
         card("Tile stop records", stopsNote, stopsTable),
         card("Event log", h("div", { class: "table-scroll tall" }, eventsList)),
       ),
