@@ -465,25 +465,32 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
   char time_key[40];
   std::snprintf(time_key, sizeof time_key, "%a", time_s);
   const std::string pose_key = std::string(time_key) + " " + animation;
-  const SceneCache::DocumentLoader parse = [&]() -> std::shared_ptr<const GltfDocument> {
+  const SceneCache::AnimatedLoader prepare = [&]() -> std::shared_ptr<const AnimatedScene> {
     const LoadOptions load = farm_load_options(sha256);
-    return load_scene_file<std::shared_ptr<const GltfDocument>>(
-        sha256, [&](const std::string& path) -> std::shared_ptr<const GltfDocument> {
+    return load_scene_file<std::shared_ptr<const AnimatedScene>>(
+        sha256, [&](const std::string& path) -> std::shared_ptr<const AnimatedScene> {
           std::vector<std::string> warnings;
           std::shared_ptr<const GltfDocument> document = parse_gltf(path, &warnings, load);
+          LoadOptions split = load;
+          split.animations =
+              resolve_animation_selection(animation, gltf_animation_names(*document));
+          auto animated = std::make_shared<const AnimatedScene>(document, split, &warnings);
           for (const auto& w : warnings) log_line("warning: " + w);
-          log_line("scene " + sha256.substr(0, 12) + ": parsed for animation (" +
-                   format_bytes(gltf_document_bytes(*document)) + " of buffers and images)");
-          return document;
+          const Scene& part = animated->static_part();
+          log_line("scene " + sha256.substr(0, 12) + ": loaded for animation (" +
+                   format_bytes(gltf_document_bytes(*document)) + " of buffers and images; " +
+                   "static part " + std::to_string(part.world_triangle_count()) + " + " +
+                   std::to_string(animated->moving_nodes()) + " moving and " +
+                   std::to_string(animated->deformed_nodes()) + " deformed mesh nodes, " +
+                   format_bytes(part.memory_bytes()) + ")");
+          return animated;
         });
   };
-  const SceneCache::Poser pose = [&](const GltfDocument& document) -> std::shared_ptr<const Scene> {
-    LoadOptions load = farm_load_options(sha256);
-    load.time = time_s;
-    load.animations = resolve_animation_selection(animation, gltf_animation_names(document));
+  const SceneCache::Poser pose = [&](const AnimatedScene& animated) -> std::shared_ptr<const Scene> {
     std::vector<std::string> warnings;
-    auto scene = std::make_unique<Scene>(describe_gltf(document, &warnings, load), &warnings,
-                                         load.bvh);
+    const auto start = Clock::now();
+    std::shared_ptr<const Scene> scene = animated.pose(time_s, &warnings);
+    const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
     // The loader warns of the same things at every time: once per scene and selection.
     bool first;
     {
@@ -492,16 +499,16 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
     }
     if (first) {
       for (const auto& w : warnings) log_line("warning: " + w);
-      char at[32];
-      std::snprintf(at, sizeof at, "%g", time_s);
-      log_line("scene " + sha256.substr(0, 12) + " posed at " + at + " s: " +
+      char at[96];
+      std::snprintf(at, sizeof at, "%g s in %.3f s", time_s, seconds);
+      log_line("scene " + sha256.substr(0, 12) + " posed at " + at + ": " +
                std::to_string(scene->world_triangle_count()) + " triangles, " +
-               format_bytes(scene->memory_bytes()) + " in memory (" +
+               format_bytes(scene->memory_bytes()) + " of its own in memory (" +
                bvh_layout_name(options_.bvh) + " BVH)");
     }
     return scene;
   };
-  return scenes_.get_posed(sha256, pose_key, parse, pose);
+  return scenes_.get_posed(sha256, animation, pose_key, prepare, pose);
 }
 
 std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSettings& settings) {

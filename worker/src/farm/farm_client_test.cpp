@@ -13,6 +13,7 @@
 #include <thread>
 
 #include "render/integrators.h"
+#include "scene/animated_scene.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
 #include "util/sha256.h"
@@ -398,12 +399,19 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
   for (const char* id : {"f5", "f9", "f5-again", "by-index", "static-3", "static-4", "still"})
     ASSERT_TRUE(find(id)->has_result()) << id << ": " << find(id)->failed().error();
   // Each result is the local render of the scene loaded at the frame's time with the chosen
-  // animations, with the frame's seed, bit for bit.
+  // animations (`render --time`: a fresh AnimatedScene's pose), with the frame's seed, bit for
+  // bit.
+  const std::string scene_path = (fs::path(::testing::TempDir()) / "rf-farm-frames.gltf").string();
+  {
+    std::ofstream out(scene_path);
+    out << farm.scene_bytes;
+  }
   auto local = [&](double time, std::vector<int> animations, uint64_t seed, uint32_t spp) {
     LoadOptions load;
     load.time = time;
     load.animations = std::move(animations);
-    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "animated.gltf", nullptr, load));
+    const std::shared_ptr<const Scene> posed = load_animated_scene(scene_path, nullptr, load);
+    const Scene& scene = *posed;
     RenderSettings settings;
     settings.width = 16;
     settings.height = 12;

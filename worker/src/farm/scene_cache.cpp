@@ -48,29 +48,31 @@ std::shared_ptr<const Scene> SceneCache::get(const std::string& key, const Loade
 }
 
 std::shared_ptr<const Scene> SceneCache::get_posed(const std::string& sha256,
+                                                   const std::string& selection,
                                                    const std::string& pose_key,
-                                                   const DocumentLoader& parse,
+                                                   const AnimatedLoader& prepare,
                                                    const Poser& pose) {
-  // Keys no still (a sha256) can take: a document, and a pose of one.
-  const std::string document_key = sha256 + " document";
-  auto document = [&] {
-    return std::static_pointer_cast<const GltfDocument>(get_value(document_key, "", [&] {
-      std::shared_ptr<const GltfDocument> parsed = parse();
-      return Loaded{parsed, parsed ? gltf_document_bytes(*parsed) : 0};
+  // Keys no still (a sha256) can take: an animated scene, and a pose of one.
+  const std::string animated_key = sha256 + " animated " + selection;
+  auto animated = [&] {
+    return std::static_pointer_cast<const AnimatedScene>(get_value(animated_key, "", [&] {
+      std::shared_ptr<const AnimatedScene> made = prepare();
+      return Loaded{made, made ? made->memory_bytes() : 0};
     }));
   };
   const std::string key = sha256 + " pose " + pose_key;
   bool built = false;
   Value scene = get_value(key, sha256, [&] {
     built = true;
-    std::shared_ptr<const GltfDocument> doc = document();
-    std::shared_ptr<const Scene> posed = pose(*doc);
+    std::shared_ptr<const AnimatedScene> source = animated();
+    std::shared_ptr<const Scene> posed = pose(*source);
     return Loaded{posed, posed ? posed->memory_bytes() : 0};
   });
-  // A pose found in memory still counts as a use of its document, which the next frame needs.
+  // A pose found in memory still counts as a use of its animated scene, which the next frame
+  // needs.
   if (!built) {
     std::lock_guard<std::mutex> lock(mutex_);
-    auto it = entries_.find(document_key);
+    auto it = entries_.find(animated_key);
     if (it != entries_.end()) it->second.last_used = ++clock_;
   }
   return std::static_pointer_cast<const Scene>(scene);

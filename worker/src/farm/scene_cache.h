@@ -2,8 +2,11 @@
 // and serves like scenes) on disk, content-addressed by SHA-256
 // (<dir>/<sha256>.glb|.gltf|.hdr|.exr), and loaded scenes in memory (an LRU keyed by sha256,
 // bounded in count and in bytes, each scene loaded once even when several threads ask for it at
-// the same time). Animated tasks share the LRU: a scene's parsed glTF document, once, and its
-// posed render scenes, one per (animation selection, time), a few per scene.
+// the same time). Animated tasks share the LRU: a scene's AnimatedScene (its parsed glTF
+// document and static part, animated_scene.h), once per animation selection, and its posed
+// render scenes, one per (animation selection, time), a few per scene. A pose is cheap to make
+// from the AnimatedScene and shares its static BVH; poses of different times render
+// concurrently, each its own Scene (the AnimatedScene's concurrency rules).
 #pragma once
 
 #include <cstdint>
@@ -15,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "scene/animated_scene.h"
 #include "scene/scene.h"
 
 namespace rf {
@@ -29,11 +33,11 @@ std::string find_cached_scene(const std::string& dir, const std::string& sha256)
 class SceneCache {
  public:
   using Loader = std::function<std::shared_ptr<const Scene>()>;
-  using DocumentLoader = std::function<std::shared_ptr<const GltfDocument>()>;
-  using Poser = std::function<std::shared_ptr<const Scene>(const GltfDocument&)>;
-  // Keeps at most `capacity` loaded scenes (stills, parsed documents and posed scenes alike)
+  using AnimatedLoader = std::function<std::shared_ptr<const AnimatedScene>()>;
+  using Poser = std::function<std::shared_ptr<const Scene>(const AnimatedScene&)>;
+  // Keeps at most `capacity` loaded scenes (stills, animated scenes and posed scenes alike)
   // and, if memory_budget > 0, evicts the least recently used ones while they hold more than
-  // memory_budget bytes (Scene::memory_bytes, gltf_document_bytes). The entry just loaded and
+  // memory_budget bytes (Scene::memory_bytes, AnimatedScene::memory_bytes). The entry just loaded and
   // the most recently used one are always kept, whatever their size: a scene larger than the
   // budget still renders. At most posed_per_scene posed scenes of one scene are kept: frames
   // are leased mostly in order, and the tasks of one frame arrive together.
@@ -46,11 +50,12 @@ class SceneCache {
   // and the next call tries again.
   std::shared_ptr<const Scene> get(const std::string& key, const Loader& load);
   // The scene sha256 posed as pose_key says (the caller's name for an animation selection and
-  // a time: equal keys must mean equal poses), built by pose() from the scene's parsed
-  // document, which parse() makes once per sha256 while it stays cached. The same waiting,
-  // failure and eviction rules as get().
-  std::shared_ptr<const Scene> get_posed(const std::string& sha256, const std::string& pose_key,
-                                         const DocumentLoader& parse, const Poser& pose);
+  // a time: equal keys must mean equal poses), made by pose() from the scene's AnimatedScene
+  // for the animation selection `selection`, which prepare() makes once per (sha256,
+  // selection) while it stays cached. The same waiting, failure and eviction rules as get().
+  std::shared_ptr<const Scene> get_posed(const std::string& sha256, const std::string& selection,
+                                         const std::string& pose_key,
+                                         const AnimatedLoader& prepare, const Poser& pose);
   size_t size() const;
   // Bytes held by the loaded entries in the cache.
   size_t memory_bytes() const;

@@ -97,68 +97,70 @@ TEST(SceneCache, ConcurrentRequestsShareOneLoadAndFailuresAreRetried) {
   EXPECT_NE(cache.get("bad", [] { return sphere_scene(4); }), nullptr);
 }
 
-TEST(SceneCache, ParsesAnAnimatedSceneOnceAndKeepsAFewPosesOfIt) {
+TEST(SceneCache, PreparesAnAnimatedSceneOnceAndKeepsAFewPosesOfIt) {
   const std::string path = ::testing::TempDir() + "/scene_cache_animated.gltf";
   {
     std::ofstream out(path);
     out << testing::animated_gltf_json();
   }
   SceneCache cache(8, 0, 2);
-  int parses = 0, poses = 0;
-  auto parse = [&] {
-    ++parses;
-    return parse_gltf(path, nullptr);
+  int prepares = 0, poses = 0;
+  auto prepare = [&] {
+    ++prepares;
+    return std::make_shared<const AnimatedScene>(parse_gltf(path, nullptr), LoadOptions{});
   };
   auto pose_at = [&](double t) {
-    return [&, t](const GltfDocument& document) {
+    return [&, t](const AnimatedScene& animated) {
       ++poses;
-      LoadOptions options;
-      options.time = t;
-      return std::make_shared<const Scene>(describe_gltf(document, nullptr, options));
+      return animated.pose(t);
     };
   };
-  const auto a = cache.get_posed("s", "0", parse, pose_at(0.0));
-  const auto b = cache.get_posed("s", "1", parse, pose_at(1.0));
-  EXPECT_EQ(cache.get_posed("s", "0", parse, pose_at(0.0)), a);  // a is now newer than b
-  EXPECT_EQ(parses, 1);
+  const auto a = cache.get_posed("s", "", "0", prepare, pose_at(0.0));
+  const auto b = cache.get_posed("s", "", "1", prepare, pose_at(1.0));
+  EXPECT_EQ(cache.get_posed("s", "", "0", prepare, pose_at(0.0)), a);  // a is now newer than b
+  EXPECT_EQ(prepares, 1);
   EXPECT_EQ(poses, 2);
   // The poses differ: the light moved by 0.75 along x between t = 0 and t = 1.
   EXPECT_NEAR(b->bounds_max().x - a->bounds_max().x, 0.75f, 1e-5f);
-  // A third pose of the scene evicts its least recently used one (b), not the document.
-  cache.get_posed("s", "2", parse, pose_at(2.0));
-  EXPECT_EQ(cache.size(), 3u);  // the document and two poses
-  cache.get_posed("s", "0", parse, pose_at(0.0));
+  // A third pose of the scene evicts its least recently used one (b), not the animated scene.
+  cache.get_posed("s", "", "2", prepare, pose_at(2.0));
+  EXPECT_EQ(cache.size(), 3u);  // the animated scene and two poses
+  cache.get_posed("s", "", "0", prepare, pose_at(0.0));
   EXPECT_EQ(poses, 3);
-  cache.get_posed("s", "1", parse, pose_at(1.0));
+  cache.get_posed("s", "", "1", prepare, pose_at(1.0));
   EXPECT_EQ(poses, 4);
-  EXPECT_EQ(parses, 1);
-  // The document and the poses count in the memory the cache holds.
+  EXPECT_EQ(prepares, 1);
+  // The animated scene and the poses count in the memory the cache holds.
   EXPECT_GT(cache.memory_bytes(), 2 * a->memory_bytes());
+  // Another animation selection is an animated scene of its own.
+  cache.get_posed("s", "1", "1 1", prepare, pose_at(1.0));
+  EXPECT_EQ(prepares, 2);
   // A still of the same scene is an entry of its own.
+  const size_t before = cache.size();
   cache.get("s", [] { return sphere_scene(4); });
-  EXPECT_EQ(cache.size(), 4u);
+  EXPECT_EQ(cache.size(), before + 1);
   std::filesystem::remove(path);
 }
 
-TEST(SceneCache, AFailedPoseIsNotCachedAndKeepsTheDocument) {
+TEST(SceneCache, AFailedPoseIsNotCachedAndKeepsTheAnimatedScene) {
   const std::string path = ::testing::TempDir() + "/scene_cache_animated_fail.gltf";
   {
     std::ofstream out(path);
     out << testing::animated_gltf_json();
   }
   SceneCache cache(8);
-  int parses = 0;
-  auto parse = [&] {
-    ++parses;
-    return parse_gltf(path, nullptr);
+  int prepares = 0;
+  auto prepare = [&] {
+    ++prepares;
+    return std::make_shared<const AnimatedScene>(parse_gltf(path, nullptr), LoadOptions{});
   };
-  auto failing = [](const GltfDocument&) -> std::shared_ptr<const Scene> {
+  auto failing = [](const AnimatedScene&) -> std::shared_ptr<const Scene> {
     throw std::runtime_error("no such animation");
   };
-  EXPECT_THROW(cache.get_posed("s", "bad", parse, failing), std::runtime_error);
-  EXPECT_THROW(cache.get_posed("s", "bad", parse, failing), std::runtime_error);
-  EXPECT_EQ(parses, 1);
-  EXPECT_EQ(cache.size(), 1u);  // the document only
+  EXPECT_THROW(cache.get_posed("s", "", "bad", prepare, failing), std::runtime_error);
+  EXPECT_THROW(cache.get_posed("s", "", "bad", prepare, failing), std::runtime_error);
+  EXPECT_EQ(prepares, 1);
+  EXPECT_EQ(cache.size(), 1u);  // the animated scene only
   std::filesystem::remove(path);
 }
 

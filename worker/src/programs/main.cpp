@@ -4,6 +4,7 @@
 
 #include <atomic>
 #include <cerrno>
+#include <chrono>
 #include <cctype>
 #include <cmath>
 #include <csignal>
@@ -20,6 +21,7 @@
 #include <nlohmann/json.hpp>
 
 #include "bench/bench.h"
+#include "scene/animated_scene.h"
 #include "scene/animation.h"
 #include "farm/farm_client.h"
 #include "render/film.h"
@@ -41,10 +43,12 @@ const char* kUsage =
     "      [--max-depth D] [--aperture-radius R --focus-distance F]\n"
     "      [--environment MAP.hdr|MAP.exr [--environment-intensity X]\n"
     "       [--environment-rotation-deg D]] [--bvh fast|compact]\n"
-    "      [--time T [--animation I]...]\n"
+    "      [--time T | --times T0,T1,... [--animation I]...] [--stats-json FILE]\n"
     "      --time T: pose the scene with its glTF animations at T seconds (default: no\n"
     "      animation, the nodes' own transforms); --animation I: only animation I drives the\n"
-    "      pose (repeatable, or I,J,...; default: every animation)\n"
+    "      pose (repeatable, or I,J,...; default: every animation); --times: one image per\n"
+    "      time from one load, OUT's '{i}' replaced by the time's index (0000, 0001, ...);\n"
+    "      --stats-json: the load's and each frame's scene update and render times as JSON\n"
     "  renderfarm-worker pose SCENE.gltf|SCENE.glb [--time T [--animation I]...] [--json]\n"
     "      the posed scene as JSON (indented without --json): every node's world matrix\n"
     "      (column-major), the camera, the world mesh's vertex positions and normals, the\n"
@@ -155,16 +159,27 @@ std::vector<std::string> split_commas(const std::string& list) {
 
 // --time T and --animation I (repeatable, or I,J,...) onto the load options: the animations'
 // pose at T (animation.h). Takes --animation out of *args (parse_flags takes a flag once).
-void take_animation_flags(std::vector<std::string>* args, rf::LoadOptions* options) {
+// With times given (the render command), also --times T0,T1,...: a sequence of poses, the
+// first of which is options->time.
+void take_animation_flags(std::vector<std::string>* args, rf::LoadOptions* options,
+                          std::vector<double>* times = nullptr) {
   std::vector<std::string> rest;
   bool time = false;
   for (size_t i = 0; i < args->size(); ++i) {
     const std::string& a = (*args)[i];
-    if (a == "--animation" || a == "--time") {
+    if (a == "--animation" || a == "--time" || (times && a == "--times")) {
       if (i + 1 >= args->size()) throw UsageError{"flag '" + a + "' needs a value"};
       const std::string& value = (*args)[++i];
-      if (a == "--time") {
-        options->time = parse_double("--time", value);
+      if (a == "--time" || a == "--times") {
+        if (time) throw UsageError{"give one of --time and --times, once"};
+        if (a == "--time") {
+          options->time = parse_double("--time", value);
+        } else {
+          for (const std::string& item : split_commas(value))
+            times->push_back(parse_double("--times", item));
+          options->time = times->front();
+        }
+        if (!std::isfinite(options->time)) throw UsageError{a + " must be finite"};
         time = true;
         continue;
       }
@@ -176,6 +191,9 @@ void take_animation_flags(std::vector<std::string>* args, rf::LoadOptions* optio
   }
   if (!time && !options->animations.empty())
     throw UsageError{"--animation needs --time (without a time no animation applies)"};
+  if (times)
+    for (double t : *times)
+      if (!std::isfinite(t)) throw UsageError{"--times must be finite"};
   *args = rest;
 }
 
@@ -183,12 +201,13 @@ int cmd_render(const std::vector<std::string>& arguments) {
   std::vector<std::string> positional;
   std::vector<std::string> args = arguments;
   rf::LoadOptions load;
-  take_animation_flags(&args, &load);
+  std::vector<double> times;
+  take_animation_flags(&args, &load, &times);
   auto flags = parse_flags(args,
                            {"-o", "--spp", "--width", "--height", "--threads", "--seed",
                             "--sampler", "--integrator", "--max-depth", "--aperture-radius",
                             "--focus-distance", "--environment", "--environment-intensity",
-                            "--environment-rotation-deg", "--bvh"},
+                            "--environment-rotation-deg", "--bvh", "--stats-json"},
                            &positional);
   if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
   if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
@@ -228,22 +247,44 @@ int cmd_render(const std::vector<std::string>& arguments) {
     throw UsageError{"--environment-intensity/--environment-rotation-deg need --environment"};
   load.bvh = parse_bvh_flag(flags);
   const std::string& scene_path = positional[0];
-  const std::string& out_path = flags["-o"];
+  const std::string& out_pattern = flags["-o"];
+  const bool sequence = !times.empty();
+  if (times.empty()) times.push_back(load.time);
+  if (sequence && out_pattern.find("{i}") == std::string::npos)
+    throw UsageError{"--times needs '{i}' in -o (each time's image has its own file)"};
+  auto out_path_of = [&](size_t i) {
+    std::string path = out_pattern;
+    char index[16];
+    std::snprintf(index, sizeof index, "%04zu", i);
+    for (size_t at; sequence && (at = path.find("{i}")) != std::string::npos;)
+      path.replace(at, 3, index);
+    return path;
+  };
   // Checked before the render, not after it: a long render must not be lost to a typo.
-  check_output_path(out_path);
+  for (size_t i = 0; i < times.size(); ++i) check_output_path(out_path_of(i));
   const std::string err = rf::validate_render_request(
       settings, {0, 0, settings.width, settings.height}, 0, spp);
   if (!err.empty()) throw UsageError{err};
 
+  // An animated scene is split once into its static part and what moves (animated_scene.h);
+  // each time is a pose of it, as on a farm worker.
   std::vector<std::string> warnings;
-  std::unique_ptr<rf::Scene> scene;
+  std::shared_ptr<const rf::Scene> scene;
+  std::unique_ptr<rf::AnimatedScene> animated;
+  const auto load_start = std::chrono::steady_clock::now();
   try {
-    scene = rf::load_scene(scene_path, &warnings, load);
+    if (load.animated())
+      animated = std::make_unique<rf::AnimatedScene>(rf::parse_gltf(scene_path, &warnings, load),
+                                                     load, &warnings);
+    else
+      scene = rf::load_scene(scene_path, &warnings, load);
   } catch (const std::exception& e) {
     for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
     std::cerr << "error: " << e.what() << "\n";
     return kExitRuntime;
   }
+  const double load_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - load_start).count();
   for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
   if (flags.count("--environment")) {
     try {
@@ -254,37 +295,93 @@ int cmd_render(const std::vector<std::string>& arguments) {
       return kExitRuntime;
     }
   }
-  std::cerr << "rendering " << scene_path << ": " << scene->world_triangle_count() << " triangles ("
-            << rf::format_bytes(scene->memory_bytes()) << " in memory), "
-            << scene->lights().size() << " emissive, " << settings.width << "x"
-            << settings.height << ", " << spp << " spp, " << threads << " threads, "
-            << rf::sampler_type_name(settings.sampler) << "/"
-            << rf::integrator_type_name(settings.integrator) << "\n";
-  rf::RenderStats stats;
-  int last_percent = -1;
-  const rf::Image image =
-      rf::render_image(*scene, settings, spp, threads, &stats, [&](size_t done, size_t total) {
-        const int percent = int(100 * done / total);
-        if (percent != last_percent) {
-          last_percent = percent;
-          std::fprintf(stderr, "\rprogress: %3d%%", percent);
-          std::fflush(stderr);
-        }
-      });
-  std::fprintf(stderr, "\n");
-  try {
-    rf::write_exr(out_path, image);
-  } catch (const std::exception& e) {
-    std::cerr << "error: " << e.what() << "\n";
-    return kExitRuntime;
+  nlohmann::json stats_json = {{"scene", scene_path},
+                               {"load_s", load_seconds},
+                               {"width", settings.width},
+                               {"height", settings.height},
+                               {"spp", spp},
+                               {"threads", threads},
+                               {"frames", nlohmann::json::array()}};
+  if (animated) {
+    stats_json["static_triangles"] = animated->static_part().world_triangle_count();
+    stats_json["moving_nodes"] = animated->moving_nodes();
+    stats_json["deformed_nodes"] = animated->deformed_nodes();
   }
-  std::fprintf(stderr, "wrote %s in %.3f s: %.0f samples/s, %.2f Mrays/s", out_path.c_str(),
-               stats.seconds, double(stats.samples) / stats.seconds,
-               double(stats.rays) / stats.seconds * 1e-6);
-  if (stats.nonfinite_samples)
-    std::fprintf(stderr, " (%llu non-finite samples recorded as 0)",
-                 static_cast<unsigned long long>(stats.nonfinite_samples));
-  std::fprintf(stderr, "\n");
+  for (size_t i = 0; i < times.size(); ++i) {
+    const std::string out_path = out_path_of(i);
+    double update_seconds = 0.0;
+    if (animated) {
+      // The previous pose goes first: its deformed meshes are this pose's, refit.
+      scene.reset();
+      std::vector<std::string> pose_warnings;
+      const auto pose_start = std::chrono::steady_clock::now();
+      try {
+        scene = animated->pose(times[i], &pose_warnings);
+      } catch (const std::exception& e) {
+        std::cerr << "error: " << e.what() << "\n";
+        return kExitRuntime;
+      }
+      update_seconds =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - pose_start).count();
+      if (i == 0)
+        for (const auto& w : pose_warnings) std::cerr << "warning: " << w << "\n";
+    }
+    std::cerr << "rendering " << scene_path;
+    if (load.animated()) std::cerr << " at " << times[i] << " s";
+    std::cerr << ": " << scene->world_triangle_count() << " triangles ("
+              << rf::format_bytes(scene->memory_bytes()) << " in memory), "
+              << scene->lights().size() << " emissive, " << settings.width << "x"
+              << settings.height << ", " << spp << " spp, " << threads << " threads, "
+              << rf::sampler_type_name(settings.sampler) << "/"
+              << rf::integrator_type_name(settings.integrator) << "\n";
+    rf::RenderStats stats;
+    int last_percent = -1;
+    const rf::Image image =
+        rf::render_image(*scene, settings, spp, threads, &stats, [&](size_t done, size_t total) {
+          const int percent = int(100 * done / total);
+          if (percent != last_percent) {
+            last_percent = percent;
+            std::fprintf(stderr, "\rprogress: %3d%%", percent);
+            std::fflush(stderr);
+          }
+        });
+    std::fprintf(stderr, "\n");
+    try {
+      rf::write_exr(out_path, image);
+    } catch (const std::exception& e) {
+      std::cerr << "error: " << e.what() << "\n";
+      return kExitRuntime;
+    }
+    std::fprintf(stderr, "wrote %s in %.3f s: %.0f samples/s, %.2f Mrays/s", out_path.c_str(),
+                 stats.seconds, double(stats.samples) / stats.seconds,
+                 double(stats.rays) / stats.seconds * 1e-6);
+    if (animated) std::fprintf(stderr, " (scene update %.4f s)", update_seconds);
+    if (stats.nonfinite_samples)
+      std::fprintf(stderr, " (%llu non-finite samples recorded as 0)",
+                   static_cast<unsigned long long>(stats.nonfinite_samples));
+    std::fprintf(stderr, "\n");
+    nlohmann::json frame = {{"index", i},
+                            {"output", out_path},
+                            {"update_s", update_seconds},
+                            {"render_s", stats.seconds},
+                            {"samples", stats.samples},
+                            {"rays", stats.rays},
+                            {"triangles", scene->world_triangle_count()}};
+    if (load.animated()) frame["time"] = times[i];
+    if (const rf::DeformedMeshes* d = scene->deformed_meshes()) {
+      frame["refits"] = d->refits();
+      frame["builds"] = d->builds();
+    }
+    stats_json["frames"].push_back(frame);
+  }
+  if (flags.count("--stats-json")) {
+    std::ofstream out(flags["--stats-json"]);
+    out << stats_json.dump(2) << "\n";
+    if (!out) {
+      std::cerr << "error: cannot write " << flags["--stats-json"] << "\n";
+      return kExitRuntime;
+    }
+  }
   return 0;
 }
 

@@ -85,6 +85,27 @@ Mat4 blend_skin_matrix(const std::vector<Mat4>& joint_matrices, const uint32_t* 
 Vec3 transform_point(const Mat4& m, const double* p);
 Vec3 transform_normal(const Mat4& m, const double* n);
 
+// How the loader splits an animated scene into what a time changes and what it does not
+// (LoadOptions::layout; AnimatedScene, animated_scene.h, builds on it). A node "moves" if a
+// chosen animation targets the translation, rotation or scale of it or of a node on its path
+// to the root. A mesh node whose deformation varies (a skin with a moving joint, a weights
+// channel on the node, or a morphed node that moves) gets a mesh of its own, in world space,
+// placed at the identity; the mesh of a moving node is kept in its own space (once per glTF
+// mesh) and placed by an instance at the node's world matrix; everything else is flattened
+// or instanced as in a still. The description lists every mesh in both modes, with the same
+// numbering and the same instances; each mode fills only its own meshes, the others stay
+// empty.
+struct AnimatedLayout {
+  // In. false: the static part (the world triangles and the meshes of moving and shared
+  // nodes; deformed meshes empty). true: one time's pose (only the deformed meshes, camera,
+  // lights and instances; no world triangles, no textures).
+  bool pose_only = false;
+  // Out, per mesh of the description: whether it is a varying deformed mesh.
+  std::vector<char> deformed_mesh;
+  // Out: the mesh nodes that move rigidly and those deformed per time.
+  uint32_t moving_nodes = 0, deformed_nodes = 0;
+};
+
 // A loaded scene's pose, filled by the loader when LoadOptions::pose_report is set (the
 // `renderfarm-worker pose` command): every node's world matrix, the node of the camera, and
 // where each mesh node's vertices went.

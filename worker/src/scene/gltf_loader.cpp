@@ -89,7 +89,9 @@ class Loader {
          {&model_.extensionsUsed, &model_.extensionsRequired})
       if (std::find(list->begin(), list->end(), "KHR_mesh_quantization") != list->end())
         quantization_ = true;
-    load_textures(&desc);
+    split_ = options_.layout && options_.animated() ? options_.layout : nullptr;
+    const bool pose_only = split_ && split_->pose_only;
+    if (!pose_only) load_textures(&desc);  // a pose uses its static part's textures
     load_materials(&desc);
     load_lights();
 
@@ -99,6 +101,7 @@ class Loader {
     const std::vector<int> parent = check_hierarchy();
     parent_ = parent;
     evaluate_animations();  // animation.h: the pose at options_.time
+    if (split_) classify_nodes();
     count_mesh_uses();
     std::vector<int> roots;
     std::string roots_path;
@@ -115,9 +118,17 @@ class Loader {
       roots_path = "nodes";
     }
     check_roots(roots, roots_path, parent);
-    check_cost(roots, &desc.stats);
-    reserve(world_counts(roots), &desc.world);
+    if (!pose_only) {
+      check_cost(roots, &desc.stats);
+      reserve(world_counts(roots), &desc.world);
+    }
     for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
+    if (split_) {
+      split_->deformed_mesh.assign(desc.meshes.size(), 0);
+      for (int slot : deformed_slots_) split_->deformed_mesh[size_t(slot)] = 1;
+      split_->moving_nodes = moving_mesh_nodes_;
+      split_->deformed_nodes = uint32_t(deformed_slots_.size());
+    }
     if (options_.pose_report) {
       options_.pose_report->node_world.clear();
       for (size_t i = 0; i < model_.nodes.size(); ++i)
@@ -671,8 +682,10 @@ class Loader {
     for (size_t i = 0; i < model_.nodes.size(); ++i) {
       const tinygltf::Node& node = model_.nodes[i];
       // Skinned and morphed nodes are flattened (their vertices are their own): they do not
-      // count as uses of a shared mesh.
-      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) && !is_deformed(int(i)))
+      // count as uses of a shared mesh. Nor, in an animated layout, do the nodes that move or
+      // deform with time (whose is_deformed may change with it).
+      if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) && !is_deformed(int(i)) &&
+          !(split_ && (moving_[i] || varying_[i])))
         ++mesh_uses_[size_t(node.mesh)];
     }
     mesh_slot_.assign(model_.meshes.size(), -1);
@@ -895,7 +908,11 @@ class Loader {
         desc->punctual_lights.push_back(light);
       }
     }
-    if (node.mesh >= 0) {
+    if (node.mesh >= 0 && split_) {
+      if (node.mesh >= int(model_.meshes.size()))
+        fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
+      visit_split(index, node, world, where, desc);
+    } else if (node.mesh >= 0) {
       if (node.mesh >= int(model_.meshes.size()))
         fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
       PoseReport::Range range;
@@ -932,6 +949,88 @@ class Loader {
       if (options_.pose_report) options_.pose_report->ranges.push_back(range);
     }
     for (int child : node.children) visit(child, world, desc, depth + 1);
+  }
+
+  // A mesh node in an animated layout (AnimatedLayout): a varying deformed node gets a mesh of
+  // its own at the identity, a moving one an instance of its mesh in the mesh's own space, the
+  // others go where a still puts them. Each mode fills its own meshes only (the numbering is
+  // the same in both).
+  void visit_split(int index, const tinygltf::Node& node, const Mat4& world,
+                   const std::string& where, SceneDescription* desc) {
+    const bool pose_only = split_->pose_only;
+    const size_t mi = size_t(node.mesh);
+    if (varying_[size_t(index)]) {
+      Mesh mesh;
+      mesh.name = model_.meshes[mi].name + " (" + where + ")";
+      if (pose_only) {
+        const Deformation deformation = deformation_of(index, where);
+        add_mesh(mi, world, &mesh.geometry, &deformation);
+      }
+      const int slot = int(desc->meshes.size());
+      desc->meshes.push_back(std::move(mesh));
+      deformed_slots_.push_back(slot);
+      desc->instances.push_back({uint32_t(slot), Mat4::identity()});
+      return;
+    }
+    if (moving_[size_t(index)] || (!is_deformed(index) && mesh_uses_[mi] > 1)) {
+      if (moving_[size_t(index)]) ++moving_mesh_nodes_;
+      int& slot = mesh_slot_[mi];
+      if (slot < 0) {
+        Mesh mesh;
+        mesh.name = model_.meshes[mi].name;
+        if (!pose_only) {
+          reserve(mesh_counts(mi), &mesh.geometry);
+          add_mesh(mi, Mat4::identity(), &mesh.geometry);
+        }
+        slot = int(desc->meshes.size());
+        desc->meshes.push_back(std::move(mesh));
+      }
+      desc->instances.push_back({uint32_t(slot), world});
+      return;
+    }
+    if (pose_only) return;  // static world triangles: the static part's
+    if (is_deformed(index)) {
+      const Deformation deformation = deformation_of(index, where);
+      add_mesh(mi, world, &desc->world, &deformation);
+    } else {
+      add_mesh(mi, world, &desc->world);
+    }
+  }
+
+  // moving_ and varying_ per node (AnimatedLayout): from the channels the chosen animations
+  // have, whatever their values at the time.
+  void classify_nodes() {
+    const size_t n = model_.nodes.size();
+    moving_.assign(n, 0);
+    varying_.assign(n, 0);
+    // A node moves if its TRS is animated or its parent moves (parents first: memoized walk).
+    std::vector<char> known(n, 0);
+    for (size_t i = 0; i < n; ++i) {
+      std::vector<int> chain;
+      int j = int(i);
+      while (j >= 0 && !known[size_t(j)]) {
+        chain.push_back(j);
+        j = parent_[size_t(j)];
+      }
+      char moves = j >= 0 ? moving_[size_t(j)] : 0;
+      for (auto it = chain.rbegin(); it != chain.rend(); ++it) {
+        moves = char(moves || trs_animated_.count(*it));
+        moving_[size_t(*it)] = moves;
+        known[size_t(*it)] = 1;
+      }
+    }
+    for (size_t i = 0; i < n; ++i) {
+      const tinygltf::Node& node = model_.nodes[i];
+      if (node.mesh < 0 || node.mesh >= int(model_.meshes.size())) continue;
+      bool varies = morph_target_count(node.mesh) > 0 &&
+                    (weights_animated_.count(int(i)) || (moving_[i] && is_deformed(int(i))));
+      if (node.skin >= 0 && node.skin < int(model_.skins.size()))
+        for (int j : model_.skins[size_t(node.skin)].joints)
+          if (j >= 0 && j < int(n) && moving_[size_t(j)]) varies = true;
+      // A skinned node's own transform is not used: it does not move the skinned mesh.
+      if (node.skin >= 0 && !varies) moving_[i] = 0;
+      varying_[i] = char(varies);
+    }
   }
 
   // The first camera the walk from the roots meets, of either type (glTF 2.0, 3.10).
@@ -1318,6 +1417,8 @@ class Loader {
           fail(cw + ".sampler: refers to missing sampler " + std::to_string(ch.sampler));
         track.node = n;
         track.track = read_sampler(a, ch.sampler, track.path, components);
+        (track.path == AnimationPath::Weights ? weights_animated_ : trs_animated_)
+            .insert(track.node);
         channels.push_back(std::move(track));
       }
     }
@@ -1765,6 +1866,14 @@ class Loader {
   std::map<int, std::vector<Mat4>> joint_matrices_;  // per skin
   std::vector<int> mesh_uses_;
   std::vector<int> mesh_slot_;
+  // The animated layout (AnimatedLayout), if the options ask for one: the nodes whose TRS or
+  // weights a chosen channel animates, per node whether it moves and whether its deformation
+  // varies, and the meshes of varying deformed nodes.
+  AnimatedLayout* split_ = nullptr;
+  std::set<int> trs_animated_, weights_animated_;
+  std::vector<char> moving_, varying_;
+  std::vector<int> deformed_slots_;
+  uint32_t moving_mesh_nodes_ = 0;
   std::set<std::string> warned_material_ext_;
   std::set<size_t> warned_rough_glass_;
   bool warned_occlusion_ = false, warned_unskinned_ = false;

@@ -82,6 +82,8 @@ struct Scene::Embree {
   RTCDevice device = nullptr;
   RTCScene scene = nullptr;
   std::vector<RTCScene> mesh_scenes;
+  std::vector<uint32_t> mesh_first_transparent;  // per mesh: its opaque triangle count
+  RTCSceneFlags scene_flags = RTC_SCENE_FLAG_NONE;
   std::vector<uint32_t> slot_of_geom;  // top-level geometry ID -> slot
   unsigned world_transparent_geom = RTC_INVALID_GEOMETRY_ID;  // its non-opaque triangles
   std::vector<std::unique_ptr<TransparencyFilter>> filters;  // the filters' user data
@@ -123,8 +125,11 @@ void fit(std::vector<T>* v, size_t extra) {
 
 // Checks a mesh's materials and indices and drops its degenerate triangles (zero area or
 // non-finite vertices), which have no normal and cannot be hit or sampled meaningfully.
-// Returns how many were dropped. Their vertices stay (unreferenced).
-size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& where) {
+// Returns how many were dropped. Their vertices stay (unreferenced). With drop false (the
+// deformed meshes of a pose, whose triangles must not depend on the time) they stay too, with
+// a zero face normal: Embree never hits a triangle of zero area, and emitters skip them.
+size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& where,
+                  bool drop = true) {
   const size_t n = mesh->size(), nv = mesh->positions.size();
   if (mesh->indices.size() != 3 * n || mesh->flags.size() != n)
     throw SceneError(where + ": inconsistent triangle mesh: " + std::to_string(n) +
@@ -155,8 +160,8 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
     if (mesh->uv[1].empty()) flags &= uint8_t(~TriangleMesh::kHasUv1);
     const Vec3 p0 = mesh->positions[v[0]], p1 = mesh->positions[v[1]], p2 = mesh->positions[v[2]];
     const float len = face_normal(p0, p1, p2, &mesh->face_normals[kept]);
-    if (!(len > 0.f) || !std::isfinite(len) || !is_finite(p0) || !is_finite(p1) ||
-        !is_finite(p2))
+    if (drop && (!(len > 0.f) || !std::isfinite(len) || !is_finite(p0) || !is_finite(p1) ||
+                 !is_finite(p2)))
       continue;
     if (kept != i) {
       for (int k = 0; k < 3; ++k) mesh->indices[3 * kept + size_t(k)] = v[k];
@@ -226,6 +231,37 @@ RTCGeometry triangle_geometry(RTCDevice device, const TriangleMesh& mesh, size_t
   return geom;
 }
 
+// A mesh's opaque triangles (the first `opaque`) are one Embree geometry and its others
+// another, with the filter functions that test their coverage (against scene's materials):
+// rays on opaque geometry run no filter. Returns the geometry IDs in target
+// (RTC_INVALID_GEOMETRY_ID for an empty part). refit: the geometries are refit, not rebuilt,
+// when their vertices change (the target's build quality must be RTC_BUILD_QUALITY_LOW).
+std::pair<unsigned, unsigned> attach_triangles(
+    RTCDevice device, RTCScene target, const TriangleMesh& mesh, uint32_t opaque,
+    const Scene* scene, std::vector<std::unique_ptr<TransparencyFilter>>* filters, bool refit) {
+  std::pair<unsigned, unsigned> ids{RTC_INVALID_GEOMETRY_ID, RTC_INVALID_GEOMETRY_ID};
+  if (opaque > 0) {
+    RTCGeometry geom = triangle_geometry(device, mesh, 0, opaque);
+    if (refit) rtcSetGeometryBuildQuality(geom, RTC_BUILD_QUALITY_REFIT);
+    rtcCommitGeometry(geom);
+    ids.first = rtcAttachGeometry(target, geom);
+    rtcReleaseGeometry(geom);  // the scene holds the reference now
+  }
+  if (opaque < mesh.size()) {
+    RTCGeometry geom = triangle_geometry(device, mesh, opaque, mesh.size() - opaque);
+    filters->push_back(
+        std::make_unique<TransparencyFilter>(TransparencyFilter{scene, &mesh, opaque}));
+    rtcSetGeometryUserData(geom, filters->back().get());
+    rtcSetGeometryIntersectFilterFunction(geom, TransparencyFilter::filter);
+    rtcSetGeometryOccludedFilterFunction(geom, TransparencyFilter::filter);
+    if (refit) rtcSetGeometryBuildQuality(geom, RTC_BUILD_QUALITY_REFIT);
+    rtcCommitGeometry(geom);
+    ids.second = rtcAttachGeometry(target, geom);
+    rtcReleaseGeometry(geom);
+  }
+  return ids;
+}
+
 void grow_bounds(const TriangleMesh& mesh, Vec3* lo, Vec3* hi) {
   for (uint32_t v : mesh.indices) {
     *lo = vmin(*lo, mesh.positions[v]);
@@ -258,9 +294,23 @@ const char* bvh_layout_name(BvhLayout layout) {
 
 Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayout bvh)
     : desc_(std::move(desc)), embree_(new Embree) {
+  build(warnings, bvh);
+}
+
+Scene::Scene(StaticPart, SceneDescription desc, std::vector<std::string>* warnings,
+             BvhLayout bvh)
+    : desc_(std::move(desc)), embree_(new Embree) {
+  static_part_ = true;
+  if (!desc_.instances.empty())
+    throw SceneError(desc_.source + ": the static part of an animated scene has no instances");
+  build(warnings, bvh);
+}
+
+void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
   static_assert(sizeof(Vec3) == 3 * sizeof(float) && sizeof(Point2) == 2 * sizeof(float),
                 "Embree reads TriangleMesh::positions as packed float triples");
-  if (desc_.world.empty() && desc_.instances.empty())
+  textures_ = std::make_shared<TextureSet>();
+  if (desc_.world.empty() && desc_.instances.empty() && !static_part_)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
   if (desc_.materials.empty()) desc_.materials.push_back(Material{});
   const size_t nmat = desc_.materials.size();
@@ -296,6 +346,7 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
     grow_bounds(mesh.geometry, &lo, &hi);
     mesh_bounds.push_back({lo, hi});
   }
+  if (static_part_) mesh_bounds_ = mesh_bounds;
   bool any_instance = false;
   for (const Instance& inst : desc_.instances) {
     const auto& b = mesh_bounds[inst.mesh];
@@ -309,7 +360,7 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       bmax_ = vmax(bmax_, w);
     }
   }
-  if (desc_.world.empty() && !any_instance)
+  if (desc_.world.empty() && !any_instance && !static_part_)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
 
   // Textures: an image OpenImageIO cannot read is dropped with a warning naming it; the
@@ -341,8 +392,8 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       std::string err;
       const int index =
           t.bytes.empty()
-              ? textures_.add_file(t.path, t.wrap_s, t.wrap_t, &err, srgb, t.nearest)
-              : textures_.add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err, srgb,
+              ? textures_->add_file(t.path, t.wrap_s, t.wrap_t, &err, srgb, t.nearest)
+              : textures_->add_encoded(t.bytes, t.mime_type, t.wrap_s, t.wrap_t, &err, srgb,
                                       t.nearest);
       texture_index[srgb][i] = index;
       if (index < 0) {
@@ -353,7 +404,7 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       counted = true;
       // Only the image's header has been read so far (OpenImageIO decodes tiles on demand,
       // into a cache of bounded size), so a huge image is refused before it costs anything.
-      desc_.stats.texture_pixels += textures_.pixels(index);
+      desc_.stats.texture_pixels += textures_->pixels(index);
       if (desc_.stats.texture_pixels > desc_.limits.max_texture_pixels)
         throw SceneError(desc_.source + ": textures[" + std::to_string(i) + "]: the textures' " +
                              "images hold " + std::to_string(desc_.stats.texture_pixels) +
@@ -373,51 +424,6 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
   desc_.textures.clear();
   desc_.textures.shrink_to_fit();
 
-  // Lights: emissive world triangles and emissive triangles of every instance.
-  std::vector<Emitter> emitters;
-  for (uint32_t i = 0; i < desc_.world.size(); ++i) {
-    if (!desc_.materials[desc_.world.material[i]].is_emissive()) continue;
-    const Triangle tri = desc_.world.triangle(i);
-    emitters.push_back({{tri.p[0], tri.p[1], tri.p[2]}, tri.ng, tri.area, kWorldSlot, i,
-                        tri.material});
-  }
-  for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
-    const Instance& inst = desc_.instances[k];
-    const TriangleMesh& mesh = desc_.meshes[inst.mesh].geometry;
-    for (uint32_t i = 0; i < mesh.size(); ++i) {
-      if (!desc_.materials[mesh.material[i]].is_emissive()) continue;
-      const Triangle tri = mesh.triangle(i);
-      Emitter e;
-      for (int v = 0; v < 3; ++v) e.p[v] = inst.to_world.transform_point(tri.p[v]);
-      const float len = face_normal(e.p[0], e.p[1], e.p[2], &e.ng);
-      if (!(len > 0.f) || !std::isfinite(len)) continue;
-      // The front face stays the front face under mirroring transforms: follow the
-      // transformed normal, not the (flipped) winding.
-      if (dot(e.ng, inst.to_world.transform_normal(tri.ng)) < 0.f) e.ng = -e.ng;
-      e.area = 0.5f * len;
-      e.slot = 1 + k;
-      e.prim = i;
-      e.material = tri.material;
-      emitters.push_back(e);
-    }
-  }
-  lights_ = LightSet(std::move(emitters), desc_.materials, desc_.punctual_lights,
-                     std::max(1e-3f, 0.5f * length(bmax_ - bmin_)));
-
-  if (desc_.camera) {
-    camera_ = *desc_.camera;
-  } else {
-    // Frame the bounding sphere from +Z, looking down -Z with +Y up.
-    const Vec3 center = (bmin_ + bmax_) * 0.5f;
-    const float radius = std::max(1e-3f, 0.5f * length(bmax_ - bmin_));
-    camera_.yfov = 0.6911f;  // 39.6 degrees, a common default
-    const float distance = radius / std::sin(0.5f * camera_.yfov);
-    camera_.position = center + Vec3(0.f, 0.f, distance);
-    if (warnings)
-      warnings->push_back(desc_.source +
-                          ": no camera in the scene; framing its bounds from +Z");
-  }
-
   embree_->device = rtcNewDevice(nullptr);
   if (!embree_->device) throw SceneError(desc_.source + ": cannot create Embree device");
   rtcSetDeviceErrorFunction(embree_->device, embree_error, nullptr);
@@ -426,36 +432,17 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
       rtcGetDeviceProperty(embree_->device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED) ? 16 : 8;
   const RTCSceneFlags scene_flags =
       bvh == BvhLayout::Compact ? RTC_SCENE_FLAG_COMPACT : RTC_SCENE_FLAG_NONE;
+  embree_->scene_flags = scene_flags;
+  embree_->mesh_first_transparent.assign(first_transparent.begin() + 1, first_transparent.end());
   embree_->scene = rtcNewScene(embree_->device);
   rtcSetSceneFlags(embree_->scene, scene_flags);
   if (has_transparency_ &&
       !rtcGetDeviceProperty(embree_->device, RTC_DEVICE_PROPERTY_FILTER_FUNCTION_SUPPORTED))
     throw SceneError(desc_.source + ": materials with alphaMode MASK or BLEND need Embree's "
                      "filter functions, which this Embree library was built without");
-  // A mesh's opaque triangles (the first `opaque`) are one Embree geometry and its others
-  // another, with the filter functions that test their coverage: rays on opaque geometry run
-  // no filter. Returns the geometry IDs in target (RTC_INVALID_GEOMETRY_ID for an empty part).
   auto attach = [&](RTCScene target, const TriangleMesh& mesh, uint32_t opaque) {
-    std::pair<unsigned, unsigned> ids{RTC_INVALID_GEOMETRY_ID, RTC_INVALID_GEOMETRY_ID};
-    if (opaque > 0) {
-      RTCGeometry geom = triangle_geometry(embree_->device, mesh, 0, opaque);
-      rtcCommitGeometry(geom);
-      ids.first = rtcAttachGeometry(target, geom);
-      rtcReleaseGeometry(geom);  // the scene holds the reference now
-    }
-    if (opaque < mesh.size()) {
-      RTCGeometry geom =
-          triangle_geometry(embree_->device, mesh, opaque, mesh.size() - opaque);
-      embree_->filters.push_back(
-          std::make_unique<TransparencyFilter>(TransparencyFilter{this, &mesh, opaque}));
-      rtcSetGeometryUserData(geom, embree_->filters.back().get());
-      rtcSetGeometryIntersectFilterFunction(geom, TransparencyFilter::filter);
-      rtcSetGeometryOccludedFilterFunction(geom, TransparencyFilter::filter);
-      rtcCommitGeometry(geom);
-      ids.second = rtcAttachGeometry(target, geom);
-      rtcReleaseGeometry(geom);
-    }
-    return ids;
+    return attach_triangles(embree_->device, target, mesh, opaque, this, &embree_->filters,
+                            false);
   };
   if (!desc_.world.empty()) {
     const auto ids = attach(embree_->scene, desc_.world, first_transparent[0]);
@@ -506,13 +493,263 @@ Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayou
   }
   rtcSetSceneBuildQuality(embree_->scene, RTC_BUILD_QUALITY_HIGH);
   rtcCommitScene(embree_->scene);
+  if (static_part_) {
+    static_embree_bytes_ =
+        size_t(std::max<int64_t>(0, embree_->bytes.load(std::memory_order_relaxed)));
+  } else {
+    finish_lights_and_camera(warnings);
+  }
+}
+
+void Scene::finish_lights_and_camera(std::vector<std::string>* warnings) {
+  // Lights: emissive world triangles and emissive triangles of every instance.
+  std::vector<Emitter> emitters;
+  const TriangleMesh& world = *slot_mesh_[kWorldSlot];
+  for (uint32_t i = 0; i < world.size(); ++i) {
+    if (!desc_.materials[world.material[i]].is_emissive()) continue;
+    const Triangle tri = world.triangle(i);
+    emitters.push_back({{tri.p[0], tri.p[1], tri.p[2]}, tri.ng, tri.area, kWorldSlot, i,
+                        tri.material});
+  }
+  for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
+    const Instance& inst = desc_.instances[k];
+    const TriangleMesh& mesh = *slot_mesh_[1 + k];
+    for (uint32_t i = 0; i < mesh.size(); ++i) {
+      if (!desc_.materials[mesh.material[i]].is_emissive()) continue;
+      const Triangle tri = mesh.triangle(i);
+      Emitter e;
+      for (int v = 0; v < 3; ++v) e.p[v] = inst.to_world.transform_point(tri.p[v]);
+      const float len = face_normal(e.p[0], e.p[1], e.p[2], &e.ng);
+      if (!(len > 0.f) || !std::isfinite(len)) continue;
+      // The front face stays the front face under mirroring transforms: follow the
+      // transformed normal, not the (flipped) winding.
+      if (dot(e.ng, inst.to_world.transform_normal(tri.ng)) < 0.f) e.ng = -e.ng;
+      e.area = 0.5f * len;
+      e.slot = 1 + k;
+      e.prim = i;
+      e.material = tri.material;
+      emitters.push_back(e);
+    }
+  }
+  lights_ = LightSet(std::move(emitters), desc_.materials, desc_.punctual_lights,
+                     std::max(1e-3f, 0.5f * length(bmax_ - bmin_)));
+
+  if (desc_.camera) {
+    camera_ = *desc_.camera;
+  } else {
+    // Frame the bounding sphere from +Z, looking down -Z with +Y up.
+    const Vec3 center = (bmin_ + bmax_) * 0.5f;
+    const float radius = std::max(1e-3f, 0.5f * length(bmax_ - bmin_));
+    camera_.yfov = 0.6911f;  // 39.6 degrees, a common default
+    const float distance = radius / std::sin(0.5f * camera_.yfov);
+    camera_.position = center + Vec3(0.f, 0.f, distance);
+    if (warnings)
+      warnings->push_back(desc_.source +
+                          ": no camera in the scene; framing its bounds from +Z");
+  }
 }
 
 Scene::~Scene() = default;
 
+struct DeformedMeshes::Part {
+  TriangleMesh mesh;
+  uint32_t opaque = 0;  // the first `opaque` triangles are opaque (partition_transparent)
+  bool finite = true;   // every vertex is finite: the BVH may be refit (else it is rebuilt)
+  RTCScene scene = nullptr;
+  std::pair<unsigned, unsigned> geoms;
+  std::vector<std::unique_ptr<TransparencyFilter>> filters;
+  ~Part() {
+    if (scene) rtcReleaseScene(scene);
+  }
+};
+
+DeformedMeshes::DeformedMeshes() = default;
+DeformedMeshes::~DeformedMeshes() = default;
+
+size_t DeformedMeshes::memory_bytes() const {
+  size_t n = 0;
+  for (const auto& part : parts_)
+    if (part) n += part->mesh.memory_bytes();
+  return n;
+}
+
+namespace {
+
+bool same_triangles(const TriangleMesh& a, const TriangleMesh& b) {
+  return a.positions.size() == b.positions.size() && a.normals.size() == b.normals.size() &&
+         a.indices == b.indices && a.material == b.material && a.flags == b.flags;
+}
+
+bool all_finite(const std::vector<Vec3>& points) {
+  for (const Vec3& p : points)
+    if (!is_finite(p)) return false;
+  return true;
+}
+
+}  // namespace
+
+Scene::Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
+             std::shared_ptr<DeformedMeshes> deformed, std::vector<std::string>* warnings)
+    : desc_(std::move(pose)), embree_(new Embree) {
+  if (!base || !base->static_part_)
+    throw SceneError(desc_.source + ": a pose needs the static part of its animated scene");
+  base_ = std::move(base);
+  deformed_ = deformed ? std::move(deformed) : std::make_shared<DeformedMeshes>();
+  const Scene& b = *base_;
+  const size_t nmesh = b.desc_.meshes.size();
+  if (desc_.meshes.size() != nmesh)
+    throw SceneError(desc_.source + ": a pose has " + std::to_string(desc_.meshes.size()) +
+                     " meshes, its static part " + std::to_string(nmesh));
+  for (const Instance& inst : desc_.instances)
+    if (inst.mesh >= nmesh)
+      throw SceneError(desc_.source + ": instance refers to missing mesh " +
+                       std::to_string(inst.mesh));
+  desc_.materials = b.desc_.materials;  // with the texture indices the base registered
+  desc_.textures.clear();
+  desc_.limits = b.desc_.limits;
+  desc_.stats = b.desc_.stats;
+  textures_ = b.textures_;
+  has_transparency_ = b.has_transparency_;
+  has_vertex_colors_ = b.has_vertex_colors_;
+  packet_query_width_ = b.packet_query_width_;
+  RTCDevice device = b.embree_->device;
+  rtcRetainDevice(device);  // released by ~Embree like a device of the scene's own
+  embree_->device = device;
+  embree_->scene_flags = b.embree_->scene_flags;
+  const bool compact = (embree_->scene_flags & RTC_SCENE_FLAG_COMPACT) != 0;
+
+  // The deformed meshes: refit where the set holds the same triangles, built otherwise.
+  DeformedMeshes& set = *deformed_;
+  if (set.base_ != base_) {
+    set.parts_.clear();
+    set.base_ = base_;
+  }
+  set.parts_.resize(nmesh);
+  set.refits_ = set.builds_ = 0;
+  uint64_t deformed_triangles = 0;
+  // A pose that fails part way leaves no half-updated mesh in the set.
+  try {
+  for (size_t m = 0; m < nmesh; ++m) {
+    TriangleMesh& fresh = desc_.meshes[m].geometry;
+    std::unique_ptr<DeformedMeshes::Part>& part = set.parts_[m];
+    if (fresh.empty()) {
+      part.reset();
+      continue;
+    }
+    clean_mesh(&fresh, desc_.materials.size(), desc_.source + " mesh '" + desc_.meshes[m].name + "'",
+               false);
+    const uint32_t opaque = partition_transparent(&fresh, desc_.materials);
+    has_transparency_ |= opaque < fresh.size();
+    has_vertex_colors_ |= !fresh.colors.empty();
+    deformed_triangles += fresh.size();
+    const bool finite = all_finite(fresh.positions);
+    if (part && finite && part->finite && part->opaque == opaque &&
+        same_triangles(part->mesh, fresh)) {
+      // Embree reads the arrays in place: overwrite them (same sizes) and refit.
+      std::copy(fresh.positions.begin(), fresh.positions.end(), part->mesh.positions.begin());
+      std::copy(fresh.normals.begin(), fresh.normals.end(), part->mesh.normals.begin());
+      std::copy(fresh.face_normals.begin(), fresh.face_normals.end(),
+                part->mesh.face_normals.begin());
+      for (unsigned id : {part->geoms.first, part->geoms.second}) {
+        if (id == RTC_INVALID_GEOMETRY_ID) continue;
+        RTCGeometry geom = rtcGetGeometry(part->scene, id);
+        rtcUpdateGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0);
+        rtcCommitGeometry(geom);
+      }
+      rtcCommitScene(part->scene);
+      ++set.refits_;
+    } else {
+      part = std::make_unique<DeformedMeshes::Part>();
+      part->mesh = std::move(fresh);
+      part->opaque = opaque;
+      part->finite = finite;
+      part->scene = rtcNewScene(device);
+      rtcSetSceneFlags(part->scene, embree_->scene_flags);
+      // A two-level build (quality LOW) is the one that honours the geometries' REFIT.
+      rtcSetSceneBuildQuality(part->scene, RTC_BUILD_QUALITY_LOW);
+      part->geoms = attach_triangles(device, part->scene, part->mesh, opaque, &b, &part->filters,
+                                     true);
+      rtcCommitScene(part->scene);
+      ++set.builds_;
+    }
+    fresh = TriangleMesh();
+  }
+  } catch (...) {
+    set.parts_.clear();
+    throw;
+  }
+
+  // The top level: the base's world triangles as one instance at the identity (slot 0, as
+  // the world of a scene of one piece), then the pose's instances.
+  embree_->scene = rtcNewScene(device);
+  rtcSetSceneFlags(embree_->scene, embree_->scene_flags);
+  bmin_ = b.bmin_;
+  bmax_ = b.bmax_;
+  bool any = false;
+  float identity[16] = {1.f, 0.f, 0.f, 0.f, 0.f, 1.f, 0.f, 0.f,
+                        0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 0.f, 1.f};
+  auto place = [&](RTCScene instanced, const float* xf, uint32_t slot) {
+    RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_INSTANCE);
+    rtcSetGeometryInstancedScene(geom, instanced);
+    rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT4X4_COLUMN_MAJOR, xf);
+    rtcCommitGeometry(geom);
+    const unsigned id = rtcAttachGeometry(embree_->scene, geom);
+    rtcReleaseGeometry(geom);
+    if (embree_->slot_of_geom.size() <= id) embree_->slot_of_geom.resize(id + 1);
+    embree_->slot_of_geom[id] = slot;
+  };
+  slot_mesh_.push_back(&b.desc_.world);
+  slot_first_transparent_.push_back(b.slot_first_transparent_[kWorldSlot]);
+  if (!b.desc_.world.empty()) {
+    place(b.embree_->scene, identity, kWorldSlot);
+    any = true;
+  }
+  instance_xf_.reserve(desc_.instances.size());
+  for (uint32_t k = 0; k < desc_.instances.size(); ++k) {
+    const Instance& inst = desc_.instances[k];
+    const DeformedMeshes::Part* part = set.parts_[inst.mesh].get();
+    const TriangleMesh& mesh = part ? part->mesh : b.desc_.meshes[inst.mesh].geometry;
+    slot_mesh_.push_back(&mesh);
+    slot_first_transparent_.push_back(part ? part->opaque
+                                           : b.embree_->mesh_first_transparent[inst.mesh]);
+    instance_xf_.push_back(Affine3f::from(inst.to_world));
+    RTCScene ms = part ? part->scene : b.embree_->mesh_scenes[inst.mesh];
+    if (!ms || mesh.empty()) continue;
+    any = true;
+    Vec3 lo(1e30f, 1e30f, 1e30f), hi = -lo;
+    if (part) {
+      grow_bounds(mesh, &lo, &hi);
+    } else {
+      lo = b.mesh_bounds_[inst.mesh].first;
+      hi = b.mesh_bounds_[inst.mesh].second;
+    }
+    for (int c = 0; c < 8; ++c) {
+      const Vec3 corner((c & 1) ? hi.x : lo.x, (c & 2) ? hi.y : lo.y, (c & 4) ? hi.z : lo.z);
+      const Vec3 w = inst.to_world.transform_point(corner);
+      bmin_ = vmin(bmin_, w);
+      bmax_ = vmax(bmax_, w);
+    }
+    float xf[16];
+    for (int c = 0; c < 4; ++c)
+      for (int r = 0; r < 4; ++r) xf[4 * c + r] = float(inst.to_world.m[size_t(c)][size_t(r)]);
+    place(ms, xf, 1 + k);
+  }
+  if (!any)
+    throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
+  rtcSetSceneBuildQuality(embree_->scene, RTC_BUILD_QUALITY_HIGH);
+  rtcCommitScene(embree_->scene);
+  // The loader's estimate (architecture.md): about 70 bytes a triangle (45 compact) and 256
+  // an instance.
+  pose_bvh_bytes_ = size_t(double(deformed_triangles) * (compact ? 45.0 : 70.0)) +
+                    256 * (desc_.instances.size() + 1);
+  desc_.meshes.clear();
+  desc_.meshes.shrink_to_fit();
+  finish_lights_and_camera(warnings);
+}
+
 uint64_t Scene::world_triangle_count() const {
-  uint64_t n = desc_.world.size();
-  for (const Instance& inst : desc_.instances) n += desc_.meshes[inst.mesh].geometry.size();
+  uint64_t n = 0;
+  for (const TriangleMesh* mesh : slot_mesh_) n += mesh->size();
   return n;
 }
 
@@ -796,7 +1033,7 @@ Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2, float cos
   if (m.emissive_tex.valid() && has_uv(mesh, prim, m.emissive_tex.texcoord)) {
     const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.emissive_tex.texcoord);
     float c[3];
-    if (textures_.lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
+    if (textures_->lookup(m.emissive_tex.texture, m.emissive_tex.apply(uv), 3, c))
       e = e * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB before filtering
   }
   if (m.clearcoat > 0.f) {
@@ -804,7 +1041,7 @@ Vec3 Scene::emission(uint32_t slot, uint32_t prim, float b1, float b2, float cos
     // layering weighs by 1 - clearcoat F_c like the rest of the material.
     float coat = m.clearcoat, c[3];
     if (m.clearcoat_tex.valid() && has_uv(mesh, prim, m.clearcoat_tex.texcoord) &&
-        textures_.lookup(m.clearcoat_tex.texture,
+        textures_->lookup(m.clearcoat_tex.texture,
                          m.clearcoat_tex.apply(
                              interpolate_uv(mesh, prim, b1, b2, m.clearcoat_tex.texcoord)),
                          3, c))
@@ -831,7 +1068,7 @@ float Scene::coverage(const TriangleMesh& mesh, uint32_t prim, float b1, float b
   if (m.base_color_tex.valid()) {
     float c[4];
     const Point2 uv = interpolate_uv(mesh, prim, b1, b2, m.base_color_tex.texcoord);
-    if (textures_.lookup(m.base_color_tex.texture, m.base_color_tex.apply(uv), 4, c))
+    if (textures_->lookup(m.base_color_tex.texture, m.base_color_tex.apply(uv), 4, c))
       alpha *= c[3];
   }
   if (m.alpha_mode == AlphaMode::Mask) return alpha >= m.alpha_cutoff ? 1.f : 0.f;
@@ -903,6 +1140,15 @@ std::string format_bytes(size_t bytes) {
 }
 
 size_t Scene::memory_bytes() const {
+  if (base_)
+    return lights_.memory_bytes() + instance_xf_.capacity() * sizeof(Affine3f) +
+           desc_.instances.capacity() * sizeof(Instance) +
+           (deformed_ ? deformed_->memory_bytes() : 0) + pose_bvh_bytes_;
+  if (static_part_) {
+    size_t n = desc_.world.memory_bytes() + static_embree_bytes_;
+    for (const Mesh& mesh : desc_.meshes) n += mesh.geometry.memory_bytes();
+    return n;
+  }
   size_t n = desc_.world.memory_bytes() + lights_.memory_bytes() +
              instance_xf_.capacity() * sizeof(Affine3f) +
              desc_.instances.capacity() * sizeof(Instance);

@@ -56,7 +56,8 @@ struct SceneLimits {
   uint64_t max_memory_bytes = 0;                 // estimated scene memory; 0: no limit
 };
 
-struct PoseReport;  // animation.h
+struct PoseReport;      // animation.h
+struct AnimatedLayout;  // animation.h
 
 // How a file is loaded: the name its messages use and whether it may read other files.
 struct LoadOptions {
@@ -75,6 +76,9 @@ struct LoadOptions {
   // If set, the loader records every node's world matrix and where each mesh node's
   // vertices went (animation.h; the `pose` command).
   PoseReport* pose_report = nullptr;
+  // If set (with a time), the loader splits the scene into its static part and what moves,
+  // as AnimatedLayout says (animation.h; the AnimatedScene of animated_scene.h).
+  AnimatedLayout* layout = nullptr;
   bool animated() const { return !std::isnan(time); }
 };
 
@@ -319,12 +323,55 @@ struct Hit {
 enum class RayKind : uint32_t { Path = 0, Shadow = 1 };
 uint64_t ray_query(uint64_t seed, uint64_t pixel, uint32_t bounce, RayKind kind);
 
+class Scene;
+
+// The deformed (skinned or morphed) meshes of one pose of an animated scene with their Embree
+// BVHs, for the posing Scene constructor below: a pose given a set that already holds the same
+// meshes (the same triangles, only the vertices moved) rewrites their vertices in place and
+// refits the BVHs (RTC_BUILD_QUALITY_REFIT) instead of building them. A set serves one Scene
+// at a time: the Scene holds it while it lives, and it may be handed to the next pose after.
+class DeformedMeshes {
+ public:
+  DeformedMeshes();
+  ~DeformedMeshes();
+  DeformedMeshes(const DeformedMeshes&) = delete;
+  DeformedMeshes& operator=(const DeformedMeshes&) = delete;
+  // Bytes of the meshes' arrays (their BVHs are counted by the posed Scene's estimate).
+  size_t memory_bytes() const;
+  // What the last pose did with the meshes: how many it refit and how many it built.
+  uint32_t refits() const { return refits_; }
+  uint32_t builds() const { return builds_; }
+
+ private:
+  friend class Scene;
+  struct Part;
+  std::shared_ptr<const Scene> base_;  // the device and materials its BVHs use
+  std::vector<std::unique_ptr<Part>> parts_;  // per mesh index of the base (null: not deformed)
+  uint32_t refits_ = 0, builds_ = 0;
+};
+
 class Scene {
  public:
   // Builds the BVH; throws SceneError if the description has no usable triangle.
   // Warnings (e.g. missing camera) are appended to *warnings if given.
   explicit Scene(SceneDescription desc, std::vector<std::string>* warnings = nullptr,
                  BvhLayout bvh = BvhLayout::Fast);
+  // The static part of an animated scene (AnimatedScene, animated_scene.h), which its poses
+  // share: like the constructor above, but desc's instances must be empty (each pose places
+  // the meshes itself), and it may hold no triangle at all (everything moves). Its own BVH
+  // holds the world triangles only, and the poses place it as one instance.
+  struct StaticPart {};
+  Scene(StaticPart, SceneDescription desc, std::vector<std::string>* warnings, BvhLayout bvh);
+  // A pose of an animated scene: base (a StaticPart scene) gives the static world triangles,
+  // the meshes with their BVHs, built once and shared by every pose (never copied), materials
+  // and textures; pose gives the camera, punctual lights and instances at this pose's time.
+  // pose.meshes has one entry per base mesh: empty where the base mesh is used, else a
+  // deformed mesh of this pose (in world space, placed at the identity), which goes into
+  // *deformed (rewritten in place and refit if the set holds that mesh already). The scene
+  // is what the first constructor builds from the same triangles up to the BVH's shape: rays
+  // find the same hits (see docs/scenes.md, "Animated farm tasks").
+  Scene(std::shared_ptr<const Scene> base, SceneDescription pose,
+        std::shared_ptr<DeformedMeshes> deformed, std::vector<std::string>* warnings);
   ~Scene();
   Scene(const Scene&) = delete;
   Scene& operator=(const Scene&) = delete;
@@ -360,16 +407,16 @@ class Scene {
   void set_packet_query_width(int width) { packet_query_width_ = width == 16 ? 16 : 8; }
 
   const std::string& source() const { return desc_.source; }
-  // The world triangles (meshes used by one node, in world space).
-  const TriangleMesh& world() const { return desc_.world; }
+  // The world triangles (meshes used by one node, in world space; a pose's are its base's).
+  const TriangleMesh& world() const { return *slot_mesh_[kWorldSlot]; }
   // Material of world triangle prim.
   const Material& material(uint32_t prim) const {
-    return desc_.materials[desc_.world.material[prim]];
+    return desc_.materials[world().material[prim]];
   }
   // The material of triangle prim of slot's mesh.
   const Material& material(uint32_t slot, uint32_t prim) const;
   const std::vector<Material>& materials() const { return desc_.materials; }
-  const TextureSet& textures() const { return textures_; }
+  const TextureSet& textures() const { return *textures_; }
   // The triangles of a geometry slot (the world, or instance slot - 1's mesh), in that slot's
   // space.
   const TriangleMesh& slot_mesh(uint32_t slot) const { return *slot_mesh_[slot]; }
@@ -394,14 +441,19 @@ class Scene {
   // mesh has no vertex colours.
   bool vertex_color(const Hit& hit, Vec3* rgb) const;
   size_t instance_count() const { return desc_.instances.size(); }
-  size_t mesh_count() const { return desc_.meshes.size(); }
+  size_t mesh_count() const { return base_ ? base_->mesh_count() : desc_.meshes.size(); }
   // Triangles in the world after instancing (world triangles + sum over instances).
   uint64_t world_triangle_count() const;
   // Bytes the scene holds: its triangle meshes and light tables, and everything Embree
   // allocated for it (BVHs, instance data). Textures are not included: OpenImageIO's
-  // TextureSystem caches tiles in a budget of its own.
+  // TextureSystem caches tiles in a budget of its own. A pose counts only what is its own
+  // (light tables, deformed meshes, and an estimate of its top-level and deformed BVHs), not
+  // its base, which the poses share; a StaticPart scene counts its Embree allocations up to
+  // the end of its construction.
   size_t memory_bytes() const;
   const SceneStats& stats() const { return desc_.stats; }
+  // A pose's deformed meshes (null for other scenes).
+  const DeformedMeshes* deformed_meshes() const { return deformed_.get(); }
   const Camera& camera() const { return camera_; }
   bool has_file_camera() const { return desc_.camera.has_value(); }
   const LightSet& lights() const { return lights_; }
@@ -414,7 +466,18 @@ class Scene {
   Camera camera_;
   LightSet lights_;
   Vec3 bmin_, bmax_;
-  TextureSet textures_;
+  std::shared_ptr<TextureSet> textures_;  // shared by a StaticPart scene with its poses
+  std::shared_ptr<const Scene> base_;     // a pose's StaticPart scene, else null
+  std::shared_ptr<DeformedMeshes> deformed_;  // a pose's deformed meshes, else null
+  std::vector<std::pair<Vec3, Vec3>> mesh_bounds_;  // StaticPart: per mesh, its bounds
+  size_t static_embree_bytes_ = 0;  // StaticPart: Embree's bytes once it was built
+  size_t pose_bvh_bytes_ = 0;       // a pose: the estimate of its own BVHs
+  bool static_part_ = false;
+  // The lights, the camera (framing the bounds if the description has none) and their
+  // warnings: the end of every constructor.
+  void finish_lights_and_camera(std::vector<std::string>* warnings);
+  void build(std::vector<std::string>* warnings, BvhLayout bvh);  // the first two constructors
+  friend class DeformedMeshes;
   std::vector<Affine3f> instance_xf_;  // desc_.instances[k].to_world, for hits in slot k + 1
   std::vector<const TriangleMesh*> slot_mesh_;  // per slot: &desc_.world, then the meshes
   // Per slot: the number of its mesh's opaque triangles. The Scene puts them first; the others

@@ -1,0 +1,258 @@
+// AnimatedScene (animated_scene.h): a scene split once into its static part and what moves,
+// posed at a time by instances and refit deformed meshes. A pose made from another pose's
+// leftovers renders the image a fresh pose renders, bit for bit; against the loader's
+// flattened scene (everything baked into world-space vertices) the hits agree to float
+// rounding.
+#include "scene/animated_scene.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "render/integrators.h"
+#include "render/render.h"
+#include "scene/animation.h"
+#include "testing/test_scenes.h"
+
+namespace rf {
+namespace {
+
+struct Buffer {
+  std::vector<unsigned char> bytes;
+  std::vector<std::string> views;
+  std::vector<std::string> accessors;
+  // Appends values as a buffer view and an accessor of count elements of `type`; returns the
+  // accessor's index.
+  template <typename T>
+  int add(const std::vector<T>& values, int component_type, size_t count, const std::string& type) {
+    while (bytes.size() % 4) bytes.push_back(0);
+    const size_t offset = bytes.size();
+    const auto* p = reinterpret_cast<const unsigned char*>(values.data());
+    bytes.insert(bytes.end(), p, p + values.size() * sizeof(T));
+    views.push_back(R"({"buffer": 0, "byteOffset": )" + std::to_string(offset) +
+                    R"(, "byteLength": )" + std::to_string(values.size() * sizeof(T)) + "}");
+    accessors.push_back(R"({"bufferView": )" + std::to_string(views.size() - 1) +
+                        R"(, "componentType": )" + std::to_string(component_type) +
+                        R"(, "count": )" + std::to_string(count) + R"(, "type": ")" + type +
+                        "\"}");
+    return int(accessors.size() - 1);
+  }
+  std::string json() const {
+    auto join = [](const std::vector<std::string>& items) {
+      std::string list;
+      for (const std::string& v : items) list += (list.empty() ? "" : ", ") + v;
+      return list;
+    };
+    return R"("accessors": [)" + join(accessors) + R"(], "bufferViews": [)" + join(views) +
+           R"(], "buffers": [{"byteLength": )" + std::to_string(bytes.size()) + R"(, "uri": ")" +
+           testing::data_uri("application/octet-stream", bytes) + R"("}])";
+  }
+};
+
+// A static floor under a static lamp, a door (a quad on a hinge whose rotation is animated),
+// a strip skinned to two joints (one translated over time), a quad with a morph target whose
+// weight is animated, and a camera sliding sideways. Times 0 to 1.
+std::string moving_scene_json() {
+  Buffer b;
+  constexpr int kFloat = 5126, kUShort = 5123, kUByte = 5121;
+  // A unit quad in the xz plane facing +y.
+  const int quad_p = b.add(std::vector<float>{-1, 0, -1, -1, 0, 1, 1, 0, 1, 1, 0, -1}, kFloat, 4,
+                           "VEC3");
+  const int quad_n = b.add(std::vector<float>{0, 1, 0, 0, 1, 0, 0, 1, 0, 0, 1, 0}, kFloat, 4,
+                           "VEC3");
+  const int quad_i = b.add(std::vector<uint16_t>{0, 1, 2, 0, 2, 3}, kUShort, 6, "SCALAR");
+  // The strip: x in {-1, 0, 1}, y in {0.5, 1.5}, facing +z.
+  const int strip_p = b.add(std::vector<float>{-1, 0.5f, 0, 0, 0.5f, 0, 1, 0.5f, 0,
+                                               -1, 1.5f, 0, 0, 1.5f, 0, 1, 1.5f, 0},
+                            kFloat, 6, "VEC3");
+  const int strip_n = b.add(std::vector<float>{0, 0, 1, 0, 0, 1, 0, 0, 1, 0, 0, 1, 0, 0, 1,
+                                               0, 0, 1},
+                            kFloat, 6, "VEC3");
+  const int strip_i =
+      b.add(std::vector<uint16_t>{0, 1, 4, 0, 4, 3, 1, 2, 5, 1, 5, 4}, kUShort, 12, "SCALAR");
+  const int strip_j = b.add(std::vector<uint8_t>{0, 1, 0, 0, 0, 1, 0, 0, 1, 0, 0, 0,
+                                                 0, 1, 0, 0, 0, 1, 0, 0, 1, 0, 0, 0},
+                            kUByte, 6, "VEC4");
+  const int strip_w = b.add(std::vector<float>{1, 0, 0, 0, 0.5f, 0.5f, 0, 0, 0, 1, 0, 0,
+                                               1, 0, 0, 0, 0.5f, 0.5f, 0, 0, 0, 1, 0, 0},
+                            kFloat, 6, "VEC4");
+  const int morph_t = b.add(std::vector<float>{0, 0, 0, 0, 0, 0, 0, 0.8f, 0, 0, 0, 0}, kFloat, 4,
+                            "VEC3");
+  const int times = b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
+  const int camera_moves = b.add(std::vector<float>{0, 1.6f, 5, 0.8f, 1.8f, 5}, kFloat, 2, "VEC3");
+  const float s = std::sqrt(0.5f);
+  const int hinge_turns = b.add(std::vector<float>{0, 0, 0, 1, 0, s, 0, s}, kFloat, 2, "VEC4");
+  const int joint_moves = b.add(std::vector<float>{0, 0, 0, 0.3f, 0.4f, 0.6f}, kFloat, 2, "VEC3");
+  const int weights = b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
+  const std::string quad = R"({"attributes": {"POSITION": )" + std::to_string(quad_p) +
+                           R"(, "NORMAL": )" + std::to_string(quad_n) + R"(}, "indices": )" +
+                           std::to_string(quad_i);
+  return R"({"asset": {"version": "2.0"}, "scene": 0,
+  "scenes": [{"nodes": [0, 1, 2, 3, 5, 6, 8]}],
+  "cameras": [{"type": "perspective", "perspective": {"yfov": 0.9, "znear": 0.01}}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1],
+                                          "metallicFactor": 0}, "doubleSided": true},
+                {"emissiveFactor": [1, 1, 1],
+                 "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 6}},
+                 "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1]}},
+                {"pbrMetallicRoughness": {"baseColorFactor": [0.9, 0.3, 0.2, 1],
+                                          "metallicFactor": 0}, "doubleSided": true}],
+  "meshes": [{"primitives": [)" + quad + R"(, "material": 0}]},
+             {"primitives": [)" + quad + R"(, "material": 1}]},
+             {"primitives": [{"attributes": {"POSITION": )" + std::to_string(strip_p) +
+         R"(, "NORMAL": )" + std::to_string(strip_n) + R"(, "JOINTS_0": )" +
+         std::to_string(strip_j) + R"(, "WEIGHTS_0": )" + std::to_string(strip_w) +
+         R"(}, "indices": )" + std::to_string(strip_i) + R"(, "material": 2}]},
+             {"primitives": [)" + quad + R"(, "material": 2, "targets": [{"POSITION": )" +
+         std::to_string(morph_t) + R"(}]}], "weights": [0]}],
+  "nodes": [{"camera": 0, "translation": [0, 1.6, 5], "rotation": [-0.0998, 0, 0, 0.995]},
+            {"mesh": 0, "scale": [4, 1, 4]},
+            {"mesh": 1, "translation": [0, 3, 0], "rotation": [1, 0, 0, 0]},
+            {"translation": [-1.5, 0, 0], "children": [4]},
+            {"mesh": 0, "translation": [0.5, 1, 0], "rotation": [0.7071068, 0, 0, 0.7071068],
+             "scale": [0.5, 1, 0.8]},
+            {"mesh": 2, "skin": 0},
+            {"translation": [0, 0, -1], "children": [7]},
+            {},
+            {"mesh": 3, "translation": [1.8, 0.6, 0.5], "scale": [0.6, 1, 0.6],
+             "rotation": [0.5, 0, 0, 0.8660254]}],
+  "skins": [{"joints": [6, 7]}],
+  "animations": [{"channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}},
+                               {"sampler": 1, "target": {"node": 3, "path": "rotation"}},
+                               {"sampler": 2, "target": {"node": 7, "path": "translation"}},
+                               {"sampler": 3, "target": {"node": 8, "path": "weights"}}],
+                  "samplers": [{"input": )" + std::to_string(times) + R"(, "output": )" +
+         std::to_string(camera_moves) + R"(},
+                               {"input": )" + std::to_string(times) + R"(, "output": )" +
+         std::to_string(hinge_turns) + R"(},
+                               {"input": )" + std::to_string(times) + R"(, "output": )" +
+         std::to_string(joint_moves) + R"(},
+                               {"input": )" + std::to_string(times) + R"(, "output": )" +
+         std::to_string(weights) + R"(}]}],
+  )" + b.json() + "}";
+}
+
+class AnimatedSceneTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    path_ = ::testing::TempDir() + "/animated_scene_test.gltf";
+    std::ofstream out(path_);
+    out << moving_scene_json();
+  }
+  static std::shared_ptr<const GltfDocument> document() { return parse_gltf(path_, nullptr); }
+  static std::string path_;
+};
+std::string AnimatedSceneTest::path_;
+
+Image render(const Scene& scene, uint64_t seed = 5) {
+  RenderSettings settings;
+  settings.width = 40;
+  settings.height = 30;
+  settings.seed = seed;
+  settings.max_depth = 3;
+  RenderStats stats;
+  return render_image(scene, settings, 8, 1, &stats);
+}
+
+TEST_F(AnimatedSceneTest, SplitsTheStaticPartFromWhatMoves) {
+  std::vector<std::string> warnings;
+  const AnimatedScene animated(document(), LoadOptions{}, &warnings);
+  for (const std::string& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  // The floor and the lamp are static world triangles; the door moves with its hinge; the
+  // skinned strip (a moving joint) and the morphed quad (a weights channel) deform.
+  EXPECT_EQ(animated.static_part().world().size(), 4u);
+  EXPECT_EQ(animated.moving_nodes(), 1u);
+  EXPECT_EQ(animated.deformed_nodes(), 2u);
+  const auto pose = animated.pose(0.5);
+  EXPECT_EQ(pose->world_triangle_count(), 4u + 2u + 4u + 2u);
+  EXPECT_EQ(&pose->world(), &animated.static_part().world());  // shared, not copied
+  ASSERT_NE(pose->deformed_meshes(), nullptr);
+  EXPECT_EQ(pose->deformed_meshes()->builds(), 2u);
+}
+
+TEST_F(AnimatedSceneTest, APoseRefitFromAnotherTimeRendersLikeAFreshOne) {
+  const AnimatedScene reused(document(), LoadOptions{});
+  Image first = render(*reused.pose(0.2));  // its deformed meshes go back to the pool
+  const auto refit = reused.pose(0.7);
+  ASSERT_NE(refit->deformed_meshes(), nullptr);
+  EXPECT_EQ(refit->deformed_meshes()->refits(), 2u);
+  EXPECT_EQ(refit->deformed_meshes()->builds(), 0u);
+  const AnimatedScene fresh_scene(document(), LoadOptions{});
+  const auto fresh = fresh_scene.pose(0.7);
+  EXPECT_EQ(fresh->deformed_meshes()->builds(), 2u);
+  const Image a = render(*refit), b = render(*fresh);
+  EXPECT_EQ(a.rgb, b.rgb);
+  EXPECT_EQ(a.normal, b.normal);
+  EXPECT_EQ(a.depth, b.depth);
+  EXPECT_NE(a.rgb, first.rgb);  // the pose did change
+  double sum = 0.0;
+  for (float v : a.rgb) sum += v;
+  EXPECT_GT(sum, 0.0);
+  // Back to the first time through the refit set: the first image again.
+  const auto back = reused.pose(0.2);
+  EXPECT_EQ(render(*back).rgb, first.rgb);
+}
+
+TEST_F(AnimatedSceneTest, PosesAliveTogetherHaveSetsOfTheirOwn) {
+  const AnimatedScene animated(document(), LoadOptions{});
+  const AnimatedScene fresh_scene(document(), LoadOptions{});
+  const auto a = animated.pose(0.3);
+  const auto b = animated.pose(0.9);  // a still holds its set: b builds one
+  EXPECT_EQ(b->deformed_meshes()->builds(), 2u);
+  EXPECT_NE(a->deformed_meshes(), b->deformed_meshes());
+  // Rendered concurrently, each is its own time.
+  Image ia(1, 1), ib(1, 1);
+  std::thread ta([&] { ia = render(*a); });
+  std::thread tb([&] { ib = render(*b); });
+  ta.join();
+  tb.join();
+  EXPECT_EQ(ia.rgb, render(*fresh_scene.pose(0.3)).rgb);
+  EXPECT_EQ(ib.rgb, render(*fresh_scene.pose(0.9)).rgb);
+}
+
+// Against the loader's flattened scene at the same time: the same surfaces, to float rounding
+// (the door is transformed at ray time by its instance instead of in its vertices).
+TEST_F(AnimatedSceneTest, HitsMatchTheFlattenedSceneToRounding) {
+  const AnimatedScene animated(document(), LoadOptions{});
+  for (double t : {0.0, 0.45, 1.0}) {
+    const auto pose = animated.pose(t);
+    LoadOptions load;
+    load.time = t;
+    const auto flat = load_scene(path_, nullptr, load);
+    const Camera& cam = flat->camera();
+    EXPECT_NEAR(length(pose->camera().position - cam.position), 0.f, 1e-6f);
+    int hits = 0, differ = 0;
+    const Camera::Raster raster = cam.raster(64, 48);
+    for (int y = 0; y < 48; ++y)
+      for (int x = 0; x < 64; ++x) {
+        const Vec3 o = raster.origin(x + 0.5f, y + 0.5f), d = raster.direction(x + 0.5f, y + 0.5f);
+        Hit h1, h2;
+        const bool f1 = pose->intersect(o, d, 1e30f, &h1), f2 = flat->intersect(o, d, 1e30f, &h2);
+        if (f1 != f2 || (f1 && (std::fabs(h1.t - h2.t) > 1e-4f * h2.t ||
+                                length(h1.ng - h2.ng) > 1e-4f || h1.material != h2.material))) {
+          ++differ;
+          continue;
+        }
+        hits += f1;
+      }
+    EXPECT_GT(hits, 1500) << "t = " << t;
+    EXPECT_LE(differ, 3) << "t = " << t << ": rays on an edge may part";
+    EXPECT_NEAR(length(pose->bounds_max() - flat->bounds_max()), 0.f, 1e-4f);
+    EXPECT_EQ(pose->lights().size(), flat->lights().size());
+  }
+}
+
+TEST_F(AnimatedSceneTest, LoadAnimatedSceneIsOnePose) {
+  LoadOptions load;
+  load.time = 0.6;
+  const auto once = load_animated_scene(path_, nullptr, load);
+  const AnimatedScene animated(document(), LoadOptions{});
+  EXPECT_EQ(render(*once).rgb, render(*animated.pose(0.6)).rgb);
+}
+
+}  // namespace
+}  // namespace rf
