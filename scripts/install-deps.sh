@@ -38,6 +38,7 @@ APT_BUILD=(
   python3 python3-venv python3-pip python3-dev  # headers: the server's C merge loops
   chromium  # headless browser of the dashboard tests (tests/browser, driven by Playwright)
   prometheus  # scrapes a farm in tests/test_prometheus.py; promtool checks the exposition
+  ffmpeg  # encodes the preview movies of animation jobs (H.264 by libx264)
   # The system libraries Blender's bpy module links (X11, input, session, OpenGL; it bundles
   # the rest), for the Blender add-on's tests.
   libx11-6 libxext6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libxcb1 libsm6 libice6 libgl1
@@ -54,10 +55,13 @@ APT_RUNTIME_WORKER=(
 )
 # The server runs from a virtual environment whose wheels bundle their native libraries
 # (grpcio, OpenImageIO, psycopg-binary, the embedded PostgreSQL); it needs the interpreter,
-# openssl for the farm's certificates (deploy/docker/make-certs.sh), util-linux's prlimit, and
-# the worker's libraries: it checks every uploaded scene with the worker's own loader
-# (`renderfarm-worker inspect`, server/renderfarm/infra/scene_check.py).
-APT_RUNTIME_SERVER=(python3 libssl3 libstdc++6 openssl util-linux "${APT_RUNTIME_WORKER[@]}")
+# openssl for the farm's certificates (deploy/docker/make-certs.sh), util-linux's prlimit,
+# ffmpeg for preview movies, and the worker's libraries: it checks every uploaded scene with
+# the worker's own loader (`renderfarm-worker inspect`, server/renderfarm/infra/scene_check.py).
+APT_RUNTIME_SERVER=(
+  python3 libssl3 libstdc++6 openssl util-linux "${APT_RUNTIME_WORKER[@]}"
+  ffmpeg  # preview movies of animation jobs (server/renderfarm/infra/movie.py)
+)
 # The deployment checks: `docker-compose config` validates deploy/compose.yaml, iproute2 builds
 # the network namespaces of the multi-host test, openssl makes its certificates.
 APT_DEPLOY=(docker-compose iproute2 openssl)

@@ -77,6 +77,16 @@ def test_local_files_that_are_missing_or_not_files_are_usage_errors(tmp_path, no
                     "render [scene.meshes]")  # fmt: skip
     _fails_with(_run("render", str(CORNELL), "-o", str(tmp_path / "x.png")), 2,
                 "renderfarm: -o must name an .exr file (a .png is written beside it)")  # fmt: skip
+    _fails_with(_run("render", str(CORNELL), "-o", str(tmp_path / "s_##.exr")), 2,
+                "renderfarm: -o has a #### frame number but no --frames were given")  # fmt: skip
+    _fails_with(_run("render", str(CORNELL), "-o", exr, "--movie", str(tmp_path / "m.mp4")), 2,
+                "renderfarm: --movie needs --frames (a still has no movie)")  # fmt: skip
+    _fails_with(
+        _run("render", str(CORNELL), "-o", exr, "--frames", "1-2", "--movie", exr), 2,
+        "renderfarm: --movie must name an .mp4 file",
+    )  # fmt: skip
+    _fails_with(_run("get", "0123456789ab", "-o", exr, "--movie", "m.mp4", "--url", dead), 2,
+                "renderfarm: -o and --movie download one thing each: give one")  # fmt: skip
 
 
 def test_every_client_command_reports_a_server_that_is_not_running():

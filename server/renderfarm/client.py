@@ -313,6 +313,18 @@ class Client:
                 for chunk in r.iter_bytes(1 << 20):
                     f.write(chunk)
 
+    def save_movie(self, job_id: str, path: str | os.PathLike, max_size: int = 1920) -> None:
+        """The preview movie of an animation job's finished frames (H.264 MP4 at the job's
+        fps, neither side above max_size) streamed into a file."""
+        url = f"/api/v1/jobs/{job_id}/movie.mp4"
+        with self.http.stream("GET", url, params={"max_size": max_size}) as r:
+            if r.status_code >= 400:
+                r.read()
+                self._check(r)
+            with open(path, "wb") as f:
+                for chunk in r.iter_bytes(1 << 20):
+                    f.write(chunk)
+
     def ready(self) -> bool:
         try:
             return self.http.get("/readyz", timeout=2).status_code == 200

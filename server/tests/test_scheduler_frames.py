@@ -10,7 +10,7 @@ import pytest
 from test_scheduler import FakeClock, render
 
 from renderfarm.domain.frames import frame_slot, job_rects
-from renderfarm.domain.jobspec import JobSettings, SettingsError, parse_settings
+from renderfarm.domain.jobspec import JobSettings, Limits, SettingsError, parse_settings
 from renderfarm.domain.scheduler import Scheduler
 from renderfarm.domain.states import JobState
 from renderfarm.domain.tiling import tile_grid
@@ -121,11 +121,31 @@ def test_settings_take_a_frame_list_and_refuse_a_bad_one_naming_the_setting():
         with pytest.raises(SettingsError) as e:
             parse_settings({"frames": bad})
         assert e.value.field == "settings.frames", bad
-    # 200 frames of 4K accumulators are more than the default job memory limit.
+    # Every frame's accumulators count against the job memory limit: one 256 x 256 frame fits
+    # in 64 MB, 200 of them do not.
+    limits = Limits(max_job_memory_bytes=64 << 20)
+    parse_settings({"width": 256, "height": 256}, limits)
     with pytest.raises(SettingsError) as e:
-        parse_settings({"frames": "1-200", "width": 3840, "height": 2160})
+        parse_settings({"frames": "1-200", "width": 256, "height": 256}, limits)
     assert e.value.field == "settings.frames"
     assert "split the range" in str(e.value)
+
+
+def test_small_frames_are_sent_whole_unless_a_tile_size_is_given():
+    def tiles(raw):
+        s = parse_settings(raw)
+        return s.tile_size, len(tile_grid(s.width, s.height, s.tile_size))
+
+    # 128 x 96 and 128 x 128 frames are single chunks; a still of that size keeps 64-pixel tiles.
+    assert tiles({"frames": "1-10", "width": 128, "height": 96}) == (128, 1)
+    assert tiles({"frames": "1-10", "width": 128, "height": 128}) == (128, 1)
+    assert tiles({"width": 128, "height": 96}) == (64, 4)
+    # Over 16384 pixels, or a tile size given: tiles as asked.
+    assert tiles({"frames": "1-10", "width": 129, "height": 128}) == (64, 6)
+    assert tiles({"frames": "1-10", "width": 128, "height": 96, "tile_size": 32}) == (32, 12)
+    # A thin frame of 16384 pixels is still one tile, within the largest tile side.
+    assert tiles({"frames": "1-10", "width": 512, "height": 32}) == (512, 1)
+    assert tiles({"frames": "1-10", "width": 1024, "height": 16})[1] > 1
 
 
 def test_a_still_is_one_frame():
@@ -134,3 +154,35 @@ def test_a_still_is_one_frame():
     assert job.frames is None and job.frame_count == 1
     assert sched.progress(job).frames_total == 1
     assert sched.frame_progress(job, 0).frame == 0
+
+
+def test_failed_tasks_and_worker_warnings_go_to_the_task_log():
+    """task_failed names the worker, the error, the tile, batch and frame; task_warning events
+    record each distinct message of a worker once per job, at most TASK_LOG_MAX of them."""
+    from dataclasses import replace
+
+    from renderfarm.domain.records import TASK_LOG_MAX
+
+    sched = Scheduler(clock=FakeClock())
+    job = sched.add_job("j", ANIMATION, "scene")
+    sched.add_worker("w", 1)
+    (lease,) = sched.assign("w")
+    sched.failed(lease.task_id, "scene load: out of memory", retryable=True)
+    (event,) = [e for e in sched.take_events() if e.kind == "task_failed"]
+    slot = lease.tile_index // PER_FRAME
+    assert event.data == {
+        "worker": "w", "error": "scene load: out of memory", "retryable": True,
+        "tile": lease.tile_index, "batch": lease.batch_index, "frame": job.frames[slot],
+    }  # fmt: skip
+    (lease,) = sched.assign("w")
+    result = replace(frame_render(ANIMATION, job, lease), warnings=("texture ignored",) * 2)
+    sched.task_warnings("w", result)
+    sched.task_warnings("w2", result)  # another worker, the same message: logged already
+    warnings = [e for e in sched.take_events() if e.kind == "task_warning"]
+    assert [(e.data["worker"], e.data["message"]) for e in warnings] == [("w", "texture ignored")]
+    assert warnings[0].data["tile"] == lease.tile_index
+    many = replace(result, warnings=tuple(f"w{i}" for i in range(2 * TASK_LOG_MAX)))
+    sched.task_warnings("w", many)
+    logged = [e.data["message"] for e in sched.take_events() if e.kind == "task_warning"]
+    assert len(logged) == TASK_LOG_MAX
+    assert logged[-1].startswith(f"more than {TASK_LOG_MAX} warnings")

@@ -44,6 +44,7 @@ CALLS = {
     "frames": ((JOB,), {}),
     "image": ((JOB, "png", "rgb"), {}),
     "image_file": ((JOB, "png", "rgb"), {}),
+    "movie_file": ((JOB,), {}),
     "convergence": ((JOB,), {}),
     "pause": ((JOB,), {}),
     "resume": ((JOB,), {}),

@@ -21,6 +21,8 @@ export type SettingDoc = Schemas["SettingDoc"];
  *  with no task left. */
 export type Worker = Schemas["WorkerInfo"];
 export type ConvergencePoint = Schemas["ConvergencePoint"];
+/** One frame of a job (`GET .../frames`): a still has one, frame 0. */
+export type Frame = Schemas["Frame"];
 
 export const FINISHED: ReadonlySet<JobState> = new Set(["completed", "failed", "cancelled"]);
 
@@ -114,6 +116,7 @@ export const workers = () => request<Worker[]>(`${BASE}/workers`);
 /** Admin tokens only: drain (finish, take no more), disable (hand tasks back now), enable. */
 export const controlWorker = (id: string, action: "drain" | "disable" | "enable") =>
   request<Worker>(`${BASE}/workers/${encodeURIComponent(id)}/${action}`, { method: "POST" });
+export const listFrames = (id: string) => request<Frame[]>(`${BASE}/jobs/${encodeURIComponent(id)}/frames`);
 export const convergence = (id: string) =>
   request<ConvergencePoint[]>(`${BASE}/jobs/${encodeURIComponent(id)}/convergence`);
 
@@ -136,6 +139,15 @@ export function submitJob(scene: File, name: string, jobSettings: Record<string,
 
 export const imageUrl = (id: string, fmt: "png" | "exr", layer = "rgb") =>
   `${BASE}/jobs/${encodeURIComponent(id)}/image.${fmt}` + (fmt === "png" ? `?layer=${layer}` : "");
+
+/** One frame of an animation, with the query parameters of imageUrl. */
+export const frameImageUrl = (id: string, frame: number, fmt: "png" | "exr", layer = "rgb") =>
+  `${BASE}/jobs/${encodeURIComponent(id)}/frames/${frame}/image.${fmt}` + (fmt === "png" ? `?layer=${layer}` : "");
+
+/** The API path of the preview movie, as the server's OpenAPI document names it. */
+export const MOVIE_PATH = "/api/v1/jobs/{job_id}/movie.mp4";
+/** The H.264 preview movie of an animation's finished frames (404 for a still, 409 before a frame finished). */
+export const movieUrl = (id: string) => `${BASE}/jobs/${encodeURIComponent(id)}/movie.mp4`;
 
 export const watchUrl = (id: string) => `${BASE}/jobs/${encodeURIComponent(id)}/watch`;
 

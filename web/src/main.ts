@@ -18,7 +18,7 @@ function route(): void {
   unmount?.();
   unmount = null;
   const current = parseRoute(location.hash);
-  if (current.page === "job") unmount = mountJob(main, current.jobId);
+  if (current.page === "job") unmount = mountJob(main, current.jobId, current.frame);
   else if (current.page === "workers") unmount = mountWorkers(main);
   else if (current.page === "submit") unmount = mountSubmit(main);
   else unmount = mountJobs(main, current.query);

@@ -7,6 +7,10 @@ import numpy as np
 from ..domain.records import BatchResult
 from ..domain.tiling import Rect
 
+# What one result may say about its task (TileResult.warnings); more is cut off.
+MAX_WARNINGS = 50
+MAX_WARNING_CHARS = 1000
+
 
 def decode_result(msg) -> BatchResult:
     """A TileResult protobuf message as numpy arrays (little-endian, row-major)."""
@@ -35,4 +39,5 @@ def decode_result(msg) -> BatchResult:
         nonfinite=msg.nonfinite_samples,
         render_seconds=msg.render_seconds,
         rays=msg.rays,
+        warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
     )

@@ -161,7 +161,8 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         409: "the job's state does not allow this",
         413: "upload too large",
         429: "too many requests wait for the database; retry after Retry-After seconds",
-        503: "the database is unreachable or busy; retry after Retry-After seconds",
+        503: "the database is unreachable or busy (retry after Retry-After seconds), the server "
+        "is stopping, or it lacks a tool the request needs (ffmpeg for movies)",
     }
     codes = (400, 401, *codes, 429, 503)
     return {c: {"model": ErrorBody, "description": described[c]} for c in codes}

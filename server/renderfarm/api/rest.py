@@ -18,7 +18,7 @@ import os
 from typing import Any, Literal
 
 from fastapi import Depends, FastAPI, Query, Request
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST
 
@@ -27,6 +27,7 @@ from ..app.jobs import FarmService
 from ..domain.jobspec import check_tags, setting_docs
 from ..errors import Cancelled, SettingsError, TooLarge
 from ..infra.images import LAYERS
+from ..infra.movie import EncoderMissing
 from . import common as apicommon
 from .error_handlers import add_error_handlers
 from .metrics import Metrics
@@ -432,6 +433,33 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         who: Caller = Auth,
     ) -> Response:
         return await image_response(job_id, fmt, layer, max_size, compression, who, frame)
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/movie.mp4",
+        summary="A preview movie of the animation's finished frames (H.264 MP4 at the job's fps)",
+        response_class=Response,
+        responses={
+            200: {"content": {"video/mp4": {"schema": {"type": "string", "format": "binary"}}}},
+            **error_responses(403, 404, 409),
+        },
+    )
+    async def movie(
+        job_id: str,
+        max_size: int = Query(
+            1920, description="downscale (box filter) until neither side exceeds this"
+        ),
+        who: Caller = Auth,
+    ) -> Response:
+        try:
+            path = await farm.movie_file(apicommon.job_id(job_id), who, max_size)
+        except EncoderMissing as e:
+            return error_response(503, "", str(e))
+        except Cancelled:
+            return error_response(503, "", "the server is stopping")
+        return FileResponse(
+            path, media_type="video/mp4", filename=f"{job_id}.mp4",
+            content_disposition_type="inline", headers={"Cache-Control": "no-cache"},
+        )  # fmt: skip
 
     @app.get(
         "/api/v1/workers",

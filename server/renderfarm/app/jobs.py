@@ -50,6 +50,7 @@ from .auth import Caller, check_caller
 from .history import History
 from .job_control import JobControl
 from .job_images import JobImages
+from .job_movies import JobMovies
 from .views import JobView, ProgressView, finite_or_none
 from .worker_sessions import WorkerSession, WorkerSessions
 from .write_behind import CheckpointRate, WriteBehind
@@ -59,11 +60,12 @@ log = logging.getLogger(__name__)
 SCENE_CHUNK_BYTES = 1 << 20
 
 
-class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
+class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind, History):
     """The job API facade: submit, read, list, cancel and delete jobs, watch them, serve scenes,
     and the background round. Its other parts, by concern: job_control.py (pause, resume,
-    update, retry, continue), job_images.py (images), worker_sessions.py (worker streams),
-    write_behind.py (database writes and checkpoints), history.py (convergence, stops)."""
+    update, retry, continue), job_images.py (images), job_movies.py (preview movies),
+    worker_sessions.py (worker streams), write_behind.py (database writes and checkpoints),
+    history.py (convergence, stops)."""
 
     def __init__(self, settings: Settings, store: Store):
         self.settings = settings
@@ -81,6 +83,7 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
         # One image with a denoised layer at a time, from gathering its frame to its last row:
         # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
         self._denoise_turn = asyncio.Lock()
+        self._movie_turn = asyncio.Lock()  # one preview movie encoded at a time (job_movies.py)
         self._checkpoint_rate = CheckpointRate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
         self.names: dict[str, str] = {}  # job id -> name for live jobs
@@ -408,6 +411,7 @@ class FarmService(JobControl, JobImages, WorkerSessions, WriteBehind, History):
         if not await self.store.delete_job(job_id):
             raise NotFound(f"no job with id {job_id!r}")
         self.scheduler.forget_job(job_id)
+        self._forget_movies(job_id)
         for table in (self.history, self.names, self.created, self.owners):
             table.pop(job_id, None)
         self._waiting_dirty = True  # a job waiting for it fails

@@ -103,6 +103,7 @@ class WorkerSessions:
 
     async def worker_result(self, session: WorkerSession, task_id: str, result: BatchResult) -> str:
         started = time.perf_counter()
+        self.scheduler.task_warnings(session.worker_id, result)  # whatever becomes of the result
         outcome = self.scheduler.complete(task_id, result)
         if self.metrics is not None:
             self.metrics.merge_seconds.observe(time.perf_counter() - started)

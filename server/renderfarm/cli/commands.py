@@ -310,6 +310,10 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CliError("-o must name an .exr file (a .png is written beside it)", EXIT_USAGE)
     if "#" in out.name and not args.frames:
         raise CliError("-o has a #### frame number but no --frames were given", EXIT_USAGE)
+    if args.movie is not None and not args.frames:
+        raise CliError("--movie needs --frames (a still has no movie)", EXIT_USAGE)
+    if args.movie is not None and Path(args.movie).suffix.lower() != ".mp4":
+        raise CliError("--movie must name an .mp4 file", EXIT_USAGE)
     _check_inputs(args)
     url = args.url or os.environ.get("RENDERFARM_URL")
     farm = None
@@ -358,6 +362,11 @@ def cmd_render(args: argparse.Namespace) -> int:
             )
             print(f"EXR: {exr.resolve()}")
             print(f"PNG: {exr.with_suffix('.png').resolve()}")
+            if args.movie is not None and p["frames_done"]:
+                movie = Path(args.movie)
+                movie.parent.mkdir(parents=True, exist_ok=True)
+                client.save_movie(job["id"], movie)
+                print(f"movie: {movie.resolve()}")
             if args.json:
                 _print_json(job)
             return 0
@@ -499,6 +508,15 @@ def _save_image(client, job_id: str, output: str, layer: str | None) -> None:
 
 def cmd_get(args: argparse.Namespace) -> int:
     with _client(args) as client:
+        if args.movie is not None:
+            if args.output is not None:
+                raise CliError("-o and --movie download one thing each: give one", EXIT_USAGE)
+            client.save_movie(args.job_id, args.movie)
+            if args.json:
+                _print_json({"id": args.job_id, "movie": str(Path(args.movie).resolve())})
+            else:
+                print(Path(args.movie).resolve())
+            return 0
         if args.output is not None:
             _save_image(client, args.job_id, args.output, args.layer)
             if not args.json:

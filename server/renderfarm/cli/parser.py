@@ -110,6 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default=None, help="job name")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--json", action="store_true", help="print the finished job as JSON")
+    p.add_argument(
+        "--movie", default=None, metavar="FILE.mp4",
+        help="with --frames: also write a preview movie of the sequence (H.264, needs ffmpeg on "
+        "the server)",
+    )  # fmt: skip
     _add_after(p)
     _add_job_settings(p)
     p.set_defaults(func=cmd_render)
@@ -146,6 +151,10 @@ def build_parser() -> argparse.ArgumentParser:
             q.add_argument(
                 "--layer", default=None,
                 help="with -o: only this layer (" + ", ".join(EXR_LAYER_CHANNELS) + ")",
+            )  # fmt: skip
+            q.add_argument(
+                "--movie", default=None, metavar="FILE.mp4",
+                help="download the preview movie of an animation's finished frames",
             )  # fmt: skip
         if name == "update":
             q.add_argument("--priority", type=int, default=None, help="-1000..1000, higher first")

@@ -34,6 +34,7 @@ class BatchResult:
     nonfinite: int = 0
     render_seconds: float = 0.0
     rays: int = 0
+    warnings: tuple[str, ...] = ()  # the worker's messages about the task (its scene's loader)
 
 
 @dataclass
@@ -127,6 +128,8 @@ class JobRun:
     frames: tuple[int, ...] | None = None  # the frame numbers of an animation; None: a still
     tiles_per_frame: int = 0
     frame_tiles_stopped: list[int] = field(default_factory=list)  # by slot
+    # The task log (task_warning events): messages recorded once each, at most TASK_LOG_MAX.
+    warnings_logged: set[str] = field(default_factory=set)
 
     @property
     def pixels(self) -> int:
@@ -158,6 +161,7 @@ class WorkerSlot:
 WORKER_MODES = ("active", "draining", "disabled")
 
 RECENT_ERRORS = 5  # error messages kept per worker
+TASK_LOG_MAX = 100  # distinct worker warnings recorded per job run (task_warning events)
 
 
 @dataclass

@@ -35,6 +35,7 @@ from .frames import job_frames, job_rects, tiles_per_frame
 from .jobspec import JobSettings
 from .merge import TileAccumulator
 from .records import (
+    TASK_LOG_MAX,
     WORKER_MODES,
     BatchResult,
     Event,
@@ -780,9 +781,11 @@ class Scheduler:
             return
         count = job.failures.get(lease.worker_id, 0) + 1
         job.failures[lease.worker_id] = count
+        where = self._task_place(job, lease.tile_index, lease.batch_index)
         self.events.append(
-            Event("task_failed", job.job_id, {"worker": lease.worker_id, "error": error})
-        )
+            Event("task_failed", job.job_id,
+                  {"worker": lease.worker_id, "error": error, "retryable": retryable, **where})
+        )  # fmt: skip
         if not retryable or count >= self.max_task_failures:
             job.excluded_workers.add(lease.worker_id)
             job.error_message = error
@@ -790,6 +793,31 @@ class Scheduler:
                 Event("worker_excluded", job.job_id, {"worker": lease.worker_id, "error": error})
             )
             self._check_renderable(job)
+
+    @staticmethod
+    def _task_place(job: JobRun, tile_index: int, batch_index: int) -> dict[str, int]:
+        """Where a task was: its tile (and batch), and the frame of an animation."""
+        where = {"tile": tile_index, "batch": batch_index}
+        if job.frames is not None and 0 <= tile_index < len(job.tiles):
+            where["frame"] = job.frames[job.tiles[tile_index].slot]
+        return where
+
+    def task_warnings(self, worker_id: str, result: BatchResult) -> None:
+        """Record what a worker said about a task (its scene loader's warnings) in the job's
+        task log: a task_warning event per message the job has not logged yet, at most
+        TASK_LOG_MAX of them (then one saying that later ones are left out)."""
+        job = self.jobs.get(result.job_id)
+        if job is None or job.state.finished or not result.warnings:
+            return
+        for message in result.warnings:
+            if message in job.warnings_logged or len(job.warnings_logged) > TASK_LOG_MAX:
+                continue
+            job.warnings_logged.add(message)
+            if len(job.warnings_logged) > TASK_LOG_MAX:
+                message = f"more than {TASK_LOG_MAX} warnings: later ones are not recorded"
+            data = {"worker": worker_id, "message": message}
+            data |= self._task_place(job, result.tile_index, result.batch_index)
+            self.events.append(Event("task_warning", job.job_id, data))
 
     def _check_renderable(self, job: JobRun) -> None:
         if job.state.finished or not job.excluded_workers:

@@ -1,19 +1,25 @@
 // Job page: the image refining live over Server-Sent Events, the error-against-time plot,
 // settings, tile stop records, the event log, cancel, job control (pause, resume, retry,
-// continue, priority and name) and downloads.
+// continue, priority and name) and downloads. An animation's page adds its frame strip
+// (framestrip.ts): the image, its layers, the tile grid, the stop records and the downloads
+// then show the chosen frame, which the URL carries (#/jobs/ID?frame=N).
 
 import {
   ApiError,
   FINISHED,
+  type Frame,
   type Job,
   type JobDetail,
   type JobEvent,
   cancelJob,
   continueJob,
   convergence,
+  frameImageUrl,
   getJob,
   imageUrl,
   jobEvents,
+  listFrames,
+  MOVIE_PATH,
   pauseJob,
   resumeJob,
   retryJob,
@@ -24,18 +30,29 @@ import {
 import { type ErrorPoint, convergencePlot } from "../chart";
 import { h, replace, setText } from "../dom";
 import { dateTime, duration, label, percent, si, spp } from "../format";
+import { frameIndex, frameTiles } from "../frames";
 import { noiseTargetShortfall } from "../outputs";
+import { jobHash } from "../router";
+import { taskLog } from "../tasklog";
 import { Throttled } from "../throttle";
 import { TileProgress, card, errorVsTarget, setConnection, stat, stateBadge, updateBadge } from "../ui";
+import { FrameStrip, MoviePanel } from "./framestrip";
 import { Viewer } from "./viewer";
 
 const CONVERGENCE_PATH = "/api/v1/jobs/{job_id}/convergence";
 const MAX_ROWS = 500;
 
-function eventSummary(e: JobEvent): string {
+/** A finished frame's image is final (until the job is continued, which raises its spp). */
+const finalKey = (f: Frame) => (f.state === "done" ? `done-${f.mean_spp}` : null);
+
+/** tileName: how a tile_stopped event's tile is named (of an animation: frame and its own tile). */
+function eventSummary(e: JobEvent, tileName: (d: Record<string, unknown>) => string): string {
   const d = e.data ?? {};
   if (e.kind === "tile_stopped") {
-    return `tile ${d.tile} at ${d.spp} spp, error ${percent(Number(d.error))} (${d.reason})`;
+    return `${tileName(d)} at ${d.spp} spp, error ${percent(Number(d.error))} (${d.reason})`;
+  }
+  if (e.kind === "frame_finished") {
+    return `frame ${d.frame} at ${spp(Number(d.spp))} spp, error ${percent(d.error === null ? null : Number(d.error))}`;
   }
   if (e.kind === "convergence" && Array.isArray(d.points)) {
     return `${d.points.length} error samples recorded for the plot`;
@@ -46,7 +63,8 @@ function eventSummary(e: JobEvent): string {
     .join(", ");
 }
 
-export function mountJob(root: HTMLElement, jobId: string): () => void {
+/** frame: the frame of an animation the URL asks for (null: its first). */
+export function mountJob(root: HTMLElement, jobId: string, frame: number | null = null): () => void {
   let disposed = false;
   let source: EventSource | null = null;
   const cleanups: (() => void)[] = [];
@@ -62,11 +80,20 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       replace(root, h("div", { class: "card empty" }, h("p", {}, text), h("a", { href: "#/jobs" }, "Back to the jobs")));
       return;
     }
+    // An animation's frames, for the strip (a still's page is the same as ever).
+    let frames: Frame[] | null = null;
+    if ((detail.progress.frames_total ?? 1) > 1) {
+      try {
+        frames = await listFrames(jobId);
+      } catch (e) {
+        setConnection(false, `Cannot load the frames of job ${jobId}: ${(e as Error).message}`);
+      }
+    }
     if (disposed) return;
-    build(detail);
+    build(detail, frames && frames.length > 1 ? frames : null);
   };
 
-  const build = (initial: JobDetail) => {
+  const build = (initial: JobDetail, initialFrames: Frame[] | null) => {
     let job: Job = initial;
     const st = initial.settings;
     document.title = `${initial.name || initial.id} · renderfarm`;
@@ -120,14 +147,33 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     };
 
     const safeName = (job.name || job.id).replace(/[^\w.-]+/g, "_");
+    const pngLink = h("a", { class: "button secondary", href: imageUrl(jobId, "png"), download: `${safeName}.png` }, "Download PNG");
+    const exrLink = h("a", { class: "button secondary", href: imageUrl(jobId, "exr"), download: `${safeName}.exr` }, "Download EXR");
+    const denoisedLink =
+      st.denoise === true
+        ? h("a", { class: "button secondary", href: imageUrl(jobId, "png", "denoised"), download: `${safeName}-denoised.png` }, "Download denoised PNG")
+        : null;
+    /** Of an animation the downloads are the frame shown. */
+    const frameDownloads = (n: number) => {
+      const links: [HTMLAnchorElement | null, "png" | "exr", string, string][] = [
+        [pngLink, "png", "rgb", "PNG"],
+        [exrLink, "exr", "rgb", "EXR"],
+        [denoisedLink, "png", "denoised", "denoised PNG"],
+      ];
+      for (const [a, fmt, layer, what] of links) {
+        if (!a) continue;
+        a.href = frameImageUrl(jobId, n, fmt, layer);
+        a.download = `${safeName}-frame${n}${layer === "denoised" ? "-denoised" : ""}.${fmt}`;
+        a.dataset.frame = String(n);
+        setText(a, `Download ${what} (frame ${n})`);
+      }
+    };
     const actions = h(
       "div",
       { class: "actions" },
-      h("a", { class: "button secondary", href: imageUrl(jobId, "png"), download: `${safeName}.png` }, "Download PNG"),
-      h("a", { class: "button secondary", href: imageUrl(jobId, "exr"), download: `${safeName}.exr` }, "Download EXR"),
-      st.denoise === true
-        ? h("a", { class: "button secondary", href: imageUrl(jobId, "png", "denoised"), download: `${safeName}-denoised.png` }, "Download denoised PNG")
-        : null,
+      pngLink,
+      exrLink,
+      denoisedLink,
       pauseButton,
       resumeButton,
       retryButton,
@@ -145,9 +191,11 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     const elapsed = h("span");
     const eta = h("span");
     const merged = h("span");
+    const framesDoneText = h("span");
     const stats = h(
       "div",
       { class: "stats" },
+      initialFrames ? stat("Frames done", framesDoneText, "frames") : null,
       stat("Tiles converged", bar.el, "progress"),
       stat("Mean spp", meanSpp, "spp"),
       stat("Error / target", error, "error"),
@@ -158,6 +206,63 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
 
     const viewer = new Viewer(jobId, st.width, st.height, st.tile_size, st.denoise === true);
     cleanups.push(() => viewer.stop());
+
+    // An animation: the strip of its frames, the frame shown, the preview movie.
+    const cols = Math.ceil(st.width / st.tile_size);
+    const perFrame = cols * Math.ceil(st.height / st.tile_size);
+    let lastDetail: JobDetail = initial;
+    let strip: FrameStrip | null = null;
+    let movie: MoviePanel | null = null;
+    let movieServed = false;
+    let frameSlots = new Map<number, number>(); // frame number -> its place in the frame list
+    // The address follows the frame a moment after the last change: dragging the slider over
+    // many frames would otherwise replace the history entry faster than browsers allow.
+    let addressTimer: number | undefined;
+    const frameToAddress = (n: number) => {
+      window.clearTimeout(addressTimer);
+      addressTimer = window.setTimeout(() => {
+        if (!disposed) history.replaceState(history.state, "", jobHash(jobId, n));
+      }, 150);
+    };
+    cleanups.push(() => window.clearTimeout(addressTimer));
+    if (initialFrames) {
+      const wanted = frameIndex(initialFrames, frame);
+      if (frame !== null && initialFrames[wanted].frame !== frame) history.replaceState(history.state, "", jobHash(jobId));
+      frameSlots = new Map(initialFrames.map((f, i) => [f.frame, i]));
+      movie = new MoviePanel(jobId, safeName, Number(st.fps));
+      cleanups.push(() => movie?.stop());
+      strip = new FrameStrip(
+        initialFrames,
+        wanted,
+        st.noise_threshold,
+        (f) => {
+          viewer.setFrame(f.frame, finalKey(f));
+          frameDownloads(f.frame);
+          renderStops(lastDetail);
+          frameToAddress(f.frame);
+        },
+        movie.el,
+      );
+      viewer.setFrame(strip.current.frame, finalKey(strip.current));
+      frameDownloads(strip.current.frame);
+      void serverHas(MOVIE_PATH).then((has) => {
+        movieServed = has;
+        if (has && !disposed) movie?.update(job.progress.frames_done ?? 0, job.progress.frames_total ?? 1);
+      });
+    }
+    const framesLoader = new Throttled(async () => {
+      if (!strip) return;
+      try {
+        const list = await listFrames(jobId);
+        if (disposed || list.length < 1) return;
+        frameSlots = new Map(list.map((f, i) => [f.frame, i]));
+        strip.update(list);
+        viewer.setFrame(strip.current.frame, finalKey(strip.current));
+      } catch (e) {
+        setConnection(false, (e as Error).message);
+      }
+    }, 1500);
+    cleanups.push(() => framesLoader.stop());
 
     // Convergence plot: from the server's history when it has the endpoint, else from the stream.
     let points: ErrorPoint[] = [];
@@ -210,8 +315,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     );
     const finishedCell = settingsList.querySelector<HTMLElement>('[data-field="finished"]')!;
 
-    // Stop records and events.
-    const cols = Math.ceil(st.width / st.tile_size);
+    // Stop records and events (of an animation: the frame shown).
     const stopsBody = h("tbody");
     const stopsNote = h("p", { class: "muted small" });
     const stopsTable = h(
@@ -226,16 +330,38 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       ),
     );
     const eventsList = h("ol", { class: "event-log", reversed: true });
+    // What workers reported about the job's tasks (tasklog.ts); hidden while there is none.
+    const taskLogBody = h("tbody", {});
+    const taskLogCard = card(
+      "Task log",
+      h(
+        "div",
+        { class: "table-scroll" },
+        h(
+          "table",
+          { class: "table compact task-log" },
+          h("caption", { class: "visually-hidden" }, "Task log"),
+          h("thead", {}, h("tr", {}, ["Time", "Worker", "Where", "Message"].map((t) => h("th", { scope: "col" }, t)))),
+          taskLogBody,
+        ),
+      ),
+    );
+    taskLogCard.hidden = true;
     const renderStops = (d: JobDetail) => {
-      const stops = [...d.stops].sort((a, b) => a.tile - b.tile);
-      setText(stopsNote, `${stops.length} of ${d.progress.tiles_total} tiles stopped` + (stops.length > MAX_ROWS ? ` (first ${MAX_ROWS} shown)` : ""));
+      lastDetail = d;
+      // A still's tiles are numbered in its grid; an animation's across frames (frameTiles).
+      const stops = (strip ? frameTiles(d.stops, strip.currentIndex, perFrame) : d.stops.map((r) => ({ ...r, local: r.tile }))).sort(
+        (a, b) => a.tile - b.tile,
+      );
+      const of = strip ? `${perFrame} tiles of frame ${strip.current.frame}` : `${d.progress.tiles_total} tiles`;
+      setText(stopsNote, `${stops.length} of ${of} stopped` + (stops.length > MAX_ROWS ? ` (first ${MAX_ROWS} shown)` : ""));
       stopsBody.replaceChildren(
         ...stops.slice(0, MAX_ROWS).map((r) =>
           h(
             "tr",
             {},
-            h("td", { class: "num" }, r.tile),
-            h("td", { class: "num" }, `${Math.floor(r.tile / cols)}, ${r.tile % cols}`),
+            h("td", { class: "num" }, r.local),
+            h("td", { class: "num" }, `${Math.floor(r.local / cols)}, ${r.local % cols}`),
             h("td", { class: "num" }, r.batch),
             h("td", { class: "num" }, r.spp),
             h("td", { class: "num" }, percent(r.error)),
@@ -243,15 +369,34 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
           ),
         ),
       );
-      viewer.setConverged(stops.map((r) => r.tile));
+      viewer.setConverged(stops.map((r) => r.local));
       const short = noiseTargetShortfall(d, d.stops);
       shortfall.hidden = short === null;
       setText(shortfall, short ?? "");
+    };
+    const tileName = (d: Record<string, unknown>) => {
+      const slot = typeof d.frame === "number" ? frameSlots.get(d.frame) : undefined;
+      if (slot === undefined) return `tile ${d.tile}`;
+      return `frame ${d.frame}, tile ${Number(d.tile) - slot * perFrame}`;
     };
     let finishLogged = false;
     const renderEvents = (events: JobEvent[]) => {
       finishLogged = events.some((e) => e.kind === "job_finished");
       const t0 = initial.created_unix_s;
+      const entries = taskLog(events, perFrame, frameSlots).slice(-MAX_ROWS).reverse();
+      taskLogCard.hidden = entries.length === 0;
+      taskLogBody.replaceChildren(
+        ...entries.map((t) =>
+          h(
+            "tr",
+            { class: `task-log-${t.level}` },
+            h("td", { class: "mono muted", title: dateTime(t.at) }, `+${(t.at - t0).toFixed(1)} s`),
+            h("td", { class: "mono" }, t.worker),
+            h("td", {}, t.place),
+            h("td", { class: `level-${t.level}` }, h("span", { class: "visually-hidden" }, `${t.level}: `), t.message),
+          ),
+        ),
+      );
       const shown = events.slice(-MAX_ROWS).reverse();
       eventsList.replaceChildren(
         ...shown.map((e) =>
@@ -260,7 +405,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
             { class: `event event-${e.kind}` },
             h("time", { class: "mono muted", datetime: new Date(e.at * 1000).toISOString(), title: dateTime(e.at) }, `+${(e.at - t0).toFixed(1)} s`),
             h("span", { class: "event-kind" }, e.kind.replace(/_/g, " ")),
-            h("span", { class: "muted" }, eventSummary(e)),
+            h("span", { class: "muted" }, eventSummary(e, tileName)),
           ),
         ),
       );
@@ -279,6 +424,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     cleanups.push(() => details.stop());
 
     let lastTilesDone = -1;
+    let lastMerged = -1;
     const show = (j: Job) => {
       const wasFinished = FINISHED.has(job.state);
       job = j;
@@ -312,6 +458,14 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       if (p.tiles_done !== lastTilesDone) {
         lastTilesDone = p.tiles_done;
         details.request();
+      }
+      if (strip) {
+        setText(framesDoneText, `${p.frames_done ?? 0} / ${p.frames_total ?? 1}`);
+        if (movieServed) movie?.update(p.frames_done ?? 0, p.frames_total ?? 1);
+        if (p.samples_merged !== lastMerged) {
+          lastMerged = p.samples_merged;
+          framesLoader.request();
+        }
       }
       if (finished && !wasFinished) void onFinished();
       if (!finished && wasFinished) openStream(); // retried or continued: live again
@@ -359,6 +513,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
     const onFinished = async () => {
       source?.close();
       source = null;
+      await framesLoader.flush(); // a finished frame's image is final: the viewer keys it so
       await Promise.all([viewer.final(job.progress.samples_merged), details.flush(), loadHistory()]);
       drawPlot();
       // The server logs the finish right after the state changes: look again until it is there.
@@ -406,7 +561,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       h(
         "div",
         { class: "job-grid" },
-        h("div", { class: "job-main" }, viewer.el),
+        h("div", { class: "job-main" }, viewer.el, strip?.el),
         h(
           "div",
           { class: "job-side" },
@@ -418,6 +573,7 @@ export function mountJob(root: HTMLElement, jobId: string): () => void {
       h(
         "div",
         { class: "job-lower" },
+        taskLogCard,
         card("Tile stop records", stopsNote, stopsTable),
         card("Event log", h("div", { class: "table-scroll tall" }, eventsList)),
       ),

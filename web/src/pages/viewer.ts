@@ -1,10 +1,13 @@
 // The job's image: a canvas showing one layer of the progressive preview, refreshed as samples
 // are merged (at most one request in flight, at most two a second), with exposure for the image,
-// false colour for the error/spp/variance maps and an SVG overlay of the tile grid.
+// false colour for the error/spp/variance maps and an SVG overlay of the tile grid. Of an
+// animation it shows one frame at a time (setFrame); the images of finished frames, which no
+// longer change, are kept decoded so that scrubbing back over them fetches nothing.
 
-import { imageUrl } from "../api";
+import { frameImageUrl, imageUrl } from "../api";
 import { applyColourMap, applyExposure, type ColourMap, cssGradient } from "../colormap";
 import { h, s, setText } from "../dom";
+import { BudgetCache } from "../frames";
 import { layerScale, pngText, type Scale, scaleValue } from "../outputs";
 import { Throttled } from "../throttle";
 
@@ -32,6 +35,16 @@ export const LAYERS: Layer[] = [
 /** Layers shown with exposure: the radiance ones. */
 const RADIANCE = new Set(["rgb", "denoised"]);
 
+/** Decoded images of finished frames kept for scrubbing: at most this many bytes of RGBA. */
+const FRAME_CACHE_BYTES = 192 << 20;
+
+interface Loaded {
+  url: string;
+  raw: ImageData;
+  scale: Scale | null;
+  caption: string;
+}
+
 export class Viewer {
   readonly el: HTMLElement;
   private canvas: HTMLCanvasElement;
@@ -51,6 +64,11 @@ export class Viewer {
   private loader: Throttled;
   private converged = new Set<number>();
   private tiles = { width: 0, height: 0, size: 1 };
+  // The frame of an animation shown (null: a still, image.png) and, once that frame has
+  // finished, a key of its final image (which then no longer follows samples_merged).
+  private frame: number | null = null;
+  private finalKey: string | null = null;
+  private frameCache = new BudgetCache<string, Loaded>(FRAME_CACHE_BYTES, (l) => l.raw.data.byteLength);
 
   constructor(
     private readonly jobId: string,
@@ -147,9 +165,23 @@ export class Viewer {
     await this.loader.flush();
   }
 
+  /**
+   * Shows `frame` of an animation; `finalKey` names its final image once it has finished (its
+   * mean spp, say: a job carried on to more samples renders it again), null while it renders.
+   * A finished frame seen before is painted at once from memory; others are fetched (throttled,
+   * so scrubbing asks for the frame the user stops at, not for every one passed).
+   */
+  setFrame(frame: number, finalKey: string | null): void {
+    if (frame === this.frame && finalKey === this.finalKey) return;
+    this.frame = frame;
+    this.finalKey = finalKey;
+    if (this.fromCache()) return;
+    this.loader.request();
+  }
+
   setConverged(tiles: Iterable<number>): void {
     const next = new Set(tiles);
-    if (next.size === this.converged.size) return;
+    if (next.size === this.converged.size && [...next].every((t) => this.converged.has(t))) return;
     this.converged = next;
     this.drawOverlay();
   }
@@ -165,7 +197,24 @@ export class Viewer {
     this.exposureBox.hidden = !RADIANCE.has(id);
     this.legend.hidden = !layer.colourMap;
     this.drawLegend(null);
+    if (this.fromCache()) return;
     void this.loader.flush();
+  }
+
+  /** The key of the image wanted now: layer and version, of a frame also the frame. */
+  private wantedKey(): string {
+    if (this.frame === null) return `${this.layer}:${this.version}`;
+    return `${this.layer}:${this.finalKey ?? this.version}@${this.frame}`;
+  }
+
+  /** Paints a finished frame's image from memory when it is there. */
+  private fromCache(): boolean {
+    if (this.frame === null || this.finalKey === null) return false;
+    const key = this.wantedKey();
+    const hit = this.frameCache.get(key);
+    if (!hit) return false;
+    this.show(this.layer, key, this.frame, hit);
+    return true;
   }
 
   /** The colour bar of a heat map with the values of its ends: the scale the server recorded
@@ -197,11 +246,15 @@ export class Viewer {
   private async load(): Promise<void> {
     const layer = this.layer;
     const version = this.version;
-    const key = `${layer}:${version}`;
+    const frame = this.frame;
+    const finalKey = this.finalKey;
+    const key = this.wantedKey();
     if (key === this.loadedKey) return;
     // A preview no larger than the screen shows: a large render's full-resolution PNG takes
     // the server seconds to encode (the Download buttons still fetch it).
-    const response = await fetch(`${imageUrl(this.jobId, "png", layer)}&max_size=${PREVIEW_MAX_SIZE}&v=${version}`);
+    const base = frame === null ? imageUrl(this.jobId, "png", layer) : frameImageUrl(this.jobId, frame, "png", layer);
+    const url = `${base}&max_size=${PREVIEW_MAX_SIZE}&v=${encodeURIComponent(finalKey ?? version)}`;
+    const response = await fetch(url);
     if (!response.ok) return; // e.g. no samples merged yet; the next update tries again
     const blob = await response.blob();
     // The scale is in the PNG's tEXt chunks, ahead of the image data.
@@ -213,13 +266,38 @@ export class Viewer {
     const ctx = work.getContext("2d", { willReadFrequently: true })!;
     ctx.drawImage(bitmap, 0, 0);
     bitmap.close();
-    this.raw = ctx.getImageData(0, 0, work.width, work.height);
+    const name = LAYERS.find((l) => l.id === layer)!.label.toLowerCase();
+    const size = `${work.width}×${work.height}`;
+    const loaded: Loaded = {
+      url,
+      raw: ctx.getImageData(0, 0, work.width, work.height),
+      scale,
+      caption:
+        frame === null
+          ? `${size} · ${name} at ${version.toLocaleString("en")} samples merged`
+          : `frame ${frame} · ${size} · ${name}` + (finalKey === null ? ` at ${version.toLocaleString("en")} samples merged` : ", finished"),
+    };
+    if (frame !== null && finalKey !== null) this.frameCache.set(key, loaded);
+    if (frame !== this.frame) {
+      this.loader.request(); // another frame was chosen meanwhile: that one next
+      return;
+    }
+    this.show(layer, key, frame, loaded);
+  }
+
+  private show(layer: string, key: string, frame: number | null, loaded: Loaded): void {
+    this.raw = loaded.raw;
     this.rawLayer = layer;
     this.loadedKey = key;
-    if (layer === this.layer) this.drawLegend(scale);
+    if (layer === this.layer) this.drawLegend(loaded.scale);
     this.paint();
     this.el.dataset.loaded = key; // lets tests wait for a given layer and version
-    setText(this.caption, `${work.width}×${work.height} · ${LAYERS.find((l) => l.id === layer)!.label.toLowerCase()} at ${version.toLocaleString("en")} samples merged`);
+    this.canvas.dataset.src = loaded.url; // the image shown
+    if (frame !== null) {
+      this.el.dataset.frame = String(frame);
+      this.canvas.setAttribute("aria-label", `Preview of frame ${frame} of the render`);
+    }
+    setText(this.caption, loaded.caption);
   }
 
   private paint(): void {

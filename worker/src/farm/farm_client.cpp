@@ -3,6 +3,7 @@
 #include <grpcpp/grpcpp.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -164,6 +165,16 @@ class Worker {
   SceneCache scenes_;
   std::mutex warned_mutex_;
   std::set<std::string> warned_;  // scenes whose loader warnings were logged (posed scenes)
+  // The task log (TileResult.warnings): the loader's warnings of each loaded scene, by scene
+  // key (the sha256, and for animated tasks the animation selection after it), and the
+  // (job, scene key) pairs whose warnings went out with a result already.
+  void remember_warnings(const std::string& scene_key, const std::vector<std::string>& warnings,
+                         bool append = false);
+  std::vector<std::string> warnings_to_send(const std::string& job_id,
+                                            const std::string& scene_key);
+  std::mutex warnings_mutex_;
+  std::map<std::string, std::vector<std::string>> scene_warnings_;
+  std::set<std::string> warnings_sent_;
   // Loaded environment maps by (sha256, intensity, rotation); a handful at most.
   std::mutex env_mutex_;
   std::map<std::string, std::shared_ptr<const Environment>> environments_;
@@ -410,9 +421,34 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   r->set_nonfinite_samples(tile.nonfinite_samples);
   r->set_render_seconds(std::chrono::duration<double>(Clock::now() - t0).count());
   r->set_rays(tile.rays);
+  const std::string scene_key =
+      task.animated() ? task.scene_sha256() + " " + animation : task.scene_sha256();
+  for (const std::string& w : warnings_to_send(task.job_id(), scene_key)) r->add_warnings(w);
   s.samples += uint64_t(rect.pixel_count()) * task.sample_count();
   s.rays += tile.rays;
   write(s, msg);
+}
+
+void Worker::remember_warnings(const std::string& scene_key,
+                               const std::vector<std::string>& warnings, bool append) {
+  std::lock_guard<std::mutex> lock(warnings_mutex_);
+  std::vector<std::string>& kept = scene_warnings_[scene_key];
+  if (!append) kept.clear();
+  for (const std::string& w : warnings) {
+    // The server reads at most 50 messages of 1000 characters (workers.proto).
+    if (kept.size() >= 50) break;
+    if (std::find(kept.begin(), kept.end(), w) == kept.end()) kept.push_back(w.substr(0, 1000));
+  }
+}
+
+std::vector<std::string> Worker::warnings_to_send(const std::string& job_id,
+                                                  const std::string& scene_key) {
+  std::lock_guard<std::mutex> lock(warnings_mutex_);
+  auto it = scene_warnings_.find(scene_key);
+  if (it == scene_warnings_.end() || it->second.empty()) return {};
+  if (warnings_sent_.size() > 100000) warnings_sent_.clear();  // a long-lived worker's memory
+  if (!warnings_sent_.insert(job_id + "\n" + scene_key).second) return {};
+  return it->second;
 }
 
 // Farm scenes are uploads: self-contained, within the limits, and named by their hash in
@@ -455,6 +491,7 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
           std::vector<std::string> warnings;
           std::unique_ptr<Scene> scene = load_scene(path, &warnings, load);
           for (const auto& w : warnings) log_line("warning: " + w);
+          remember_warnings(sha256, warnings);
           log_line("scene " + sha256.substr(0, 12) + ": " +
                    std::to_string(scene->world_triangle_count()) + " triangles, " +
                    format_bytes(scene->memory_bytes()) + " in memory (" +
@@ -485,6 +522,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
               resolve_animation_selection(animation, gltf_animation_names(*document));
           auto animated = std::make_shared<const AnimatedScene>(document, split, &warnings);
           for (const auto& w : warnings) log_line("warning: " + w);
+          remember_warnings(sha256 + " " + animation, warnings);
           const Scene& part = animated->static_part();
           log_line("scene " + sha256.substr(0, 12) + ": loaded for animation (" +
                    format_bytes(gltf_document_bytes(*document)) + " of buffers and images; " +
@@ -508,6 +546,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
     }
     if (first) {
       for (const auto& w : warnings) log_line("warning: " + w);
+      remember_warnings(sha256 + " " + animation, warnings, true);
       char at[96];
       std::snprintf(at, sizeof at, "%g s in %.3f s", time_s, seconds);
       log_line("scene " + sha256.substr(0, 12) + " posed at " + at + ": " +
