@@ -12,7 +12,9 @@ one-time load (parse and static part). Writes bench/results/animation.json.
 
 Environment: RENDERFARM_WORKER (binary, default build/worker/renderfarm-worker), BENCH_SIZE
 (default 512), BENCH_SPP (64), BENCH_FRAMES (6), BENCH_THREADS (2), BENCH_GRID (floor quads
-per side, 500: 0.5M triangles), BENCH_RINGS (tentacle rings, 400: 51K triangles).
+per side, 500: 0.5M triangles), BENCH_RINGS (tentacle rings, 400: 51K triangles),
+BENCH_SHUTTER (OPEN,CLOSE: motion blur over that shutter at 24 fps, written to
+bench/results/animation_blur.json; default none).
 """
 
 from __future__ import annotations
@@ -333,6 +335,7 @@ def main() -> dict:
     threads = os.environ.get("BENCH_THREADS", "2")
     grid = int(os.environ.get("BENCH_GRID", "500"))
     rings = int(os.environ.get("BENCH_RINGS", "400"))
+    shutter = os.environ.get("BENCH_SHUTTER", "")
     times = [f / FPS for f in range(frames)]
     with tempfile.TemporaryDirectory(prefix="rf-animation-") as tmp:
         scene = Path(tmp) / "animated.glb"
@@ -357,6 +360,8 @@ def main() -> dict:
             "--stats-json",
             str(stats_path),
         ]
+        if shutter:
+            cmd += ["--shutter", shutter, "--fps", str(FPS)]
         proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if proc.returncode != 0:
             sys.exit(f"renderfarm-worker failed ({proc.returncode}):\n{proc.stderr}")
@@ -374,6 +379,7 @@ def main() -> dict:
         "spp": spp,
         "frames": frames,
         "threads": threads,
+        "shutter": shutter,
         **parts,
         "load_s": stats["load_s"],
         "per_frame": per_frame,
@@ -388,7 +394,7 @@ def main() -> dict:
     print(
         f"{parts['static_triangles']:,} static, {parts['rigid_triangles']} rigid and "
         f"{parts['skinned_triangles']:,} skinned triangles; {frames} frames at {size}x{size}, "
-        f"{spp} spp, {threads} threads"
+        f"{spp} spp, {threads} threads" + (f", shutter {shutter} (motion blur)" if shutter else "")
     )
     print(f"load (parse + static part, once): {stats['load_s']:.3f} s")
     for f in per_frame:
@@ -403,7 +409,7 @@ def main() -> dict:
         f"render ({verdict} the {TARGET_UPDATE_SHARE:.0%} goal); {frames_per_hour:.0f} frames "
         f"per hour"
     )
-    out = write_results("animation", figures)
+    out = write_results("animation_blur" if shutter else "animation", figures)
     print(f"wrote {out.relative_to(ROOT)}")
     return figures
 

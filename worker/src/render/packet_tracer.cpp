@@ -293,28 +293,15 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
 
 }  // namespace
 
-// Sample `index` of pixel (x, y) up to its camera ray: a path ready for its first bounce.
-// camera_dims: the sample's values of dimensions kPixelX .. kLensV if already computed, or null.
-PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
-                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index,
-                     const float* camera_dims) {
-  PathState p;
-  p.s = SampleStream{&sampler, index};
-  // Box filter: the sample position is uniform inside the pixel.
-  const Point2 jitter = camera_dims ? Point2{camera_dims[dim::kPixelX], camera_dims[dim::kPixelY]}
-                                    : p.s.get2(dim::kPixelX);
-  const float px = float(x) + jitter.x;
-  const float py = float(y) + jitter.y;
-  // Motion blur: the sample's time, and the camera where it is then if it moves.
-  if (scene.has_motion()) p.time = p.s.get(dim::shutter_time(path_max_depth(settings)));
-  Camera moved;
-  Camera::Raster moved_raster;
-  if (scene.camera_moves()) {
-    moved = scene.camera_at(p.time);
-    moved_raster = moved.raster(settings.width, settings.height);
-  }
-  const Camera& cam = scene.camera_moves() ? moved : scene.camera();
-  const Camera::Raster& raster = scene.camera_moves() ? moved_raster : ctx.raster;
+namespace {
+
+// The camera ray through image position (px, py) into *p (whose sample stream is set).
+inline __attribute__((always_inline)) void camera_ray(const Camera& cam,
+                                                      const Camera::Raster& raster,
+                                                      const RenderSettings& settings,
+                                                      const float* camera_dims, float px,
+                                                      float py, PathState* out) {
+  PathState& p = *out;
   p.o = raster.origin(px, py);
   float per_axial;
   p.d = raster.direction(px, py, &per_axial);
@@ -334,8 +321,35 @@ PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSe
   p.tmin = cam.znear * per_axial;
   p.tmax = cam.zfar * per_axial;
   p.alive = true;
+}
+
+}  // namespace
+
+// Sample `index` of pixel (x, y) up to its camera ray: a path ready for its first bounce.
+// camera_dims: the sample's values of dimensions kPixelX .. kLensV if already computed, or null.
+PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
+                     const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index,
+                     const float* camera_dims) {
+  PathState p;
+  p.s = SampleStream{&sampler, index};
+  // Box filter: the sample position is uniform inside the pixel.
+  const Point2 jitter = camera_dims ? Point2{camera_dims[dim::kPixelX], camera_dims[dim::kPixelY]}
+                                    : p.s.get2(dim::kPixelX);
+  const float px = float(x) + jitter.x;
+  const float py = float(y) + jitter.y;
+  // Motion blur: the sample's time, and the camera where it is then if it moves.
+  if (scene.has_motion()) p.time = p.s.get(dim::shutter_time(path_max_depth(settings)));
+  if (scene.camera_moves()) {
+    const Camera moved = scene.camera_at(p.time);
+    camera_ray(moved, moved.raster(settings.width, settings.height), settings, camera_dims, px,
+               py, &p);
+  } else {
+    camera_ray(scene.camera(), ctx.raster, settings, camera_dims, px, py, &p);
+  }
   return p;
 }
+
+
 
 uint32_t path_max_depth(const RenderSettings& settings) {
   return settings.integrator == IntegratorType::Direct ? std::min<uint32_t>(settings.max_depth, 1u)

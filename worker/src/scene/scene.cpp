@@ -1090,6 +1090,16 @@ void Scene::occluded(const RayPacket& rays, bool* blocked, uint64_t query) const
 
 void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                          Hit* hit, float time) const {
+  // A scene without motion runs the code without a thought of it.
+  if (motion_steps_ > 1)
+    complete_hit_at<true>(geom, inst, prim, u, v, t, hit, time);
+  else
+    complete_hit_at<false>(geom, inst, prim, u, v, t, hit, time);
+}
+
+template <bool kMotion>
+void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u, float v,
+                            float t, Hit* hit, float time) const {
   // A hit inside an instance names the instance as the top-level geometry.
   const bool in_instance = inst != RTC_INVALID_GEOMETRY_ID;
   const unsigned top = in_instance ? inst : geom;
@@ -1110,38 +1120,40 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
   const float b0 = 1.f - hit->b1 - hit->b2;
   Vec3 p0 = mesh.positions[vi[0]], p1 = mesh.positions[vi[1]], p2 = mesh.positions[vi[2]];
   Vec3 ng = mesh.face_normals[prim];
-  Vec3 n0, n1, n2;
-  if (flags & TriangleMesh::kHasNormals) {
-    n0 = mesh.normals[vi[0]];
-    n1 = mesh.normals[vi[1]];
-    n2 = mesh.normals[vi[2]];
-  }
-  const DeformedMeshes::Part* moving = slot_motion_.empty() ? nullptr : slot_motion_[slot];
-  if (moving) {
-    // A deformed mesh under motion blur: its triangle where it is at the ray's time, as
-    // Embree interpolates it (linearly between the two time steps around it).
-    uint32_t k;
-    float f;
-    time_segment(time, motion_steps_, &k, &f);
-    const std::vector<Vec3>& pa = k == 0 ? mesh.positions : moving->step_positions[k - 1];
-    const std::vector<Vec3>& pb = moving->step_positions[k];
-    p0 = pa[vi[0]] + (pb[vi[0]] - pa[vi[0]]) * f;
-    p1 = pa[vi[1]] + (pb[vi[1]] - pa[vi[1]]) * f;
-    p2 = pa[vi[2]] + (pb[vi[2]] - pa[vi[2]]) * f;
-    face_normal(p0, p1, p2, &ng);
-    if (flags & TriangleMesh::kHasNormals) {
-      const std::vector<Vec3>& na = k == 0 ? mesh.normals : moving->step_normals[k - 1];
-      const std::vector<Vec3>& nb = moving->step_normals[k];
-      n0 = na[vi[0]] + (nb[vi[0]] - na[vi[0]]) * f;
-      n1 = na[vi[1]] + (nb[vi[1]] - na[vi[1]]) * f;
-      n2 = na[vi[2]] + (nb[vi[2]] - na[vi[2]]) * f;
+  // A deformed mesh under motion blur: its triangle where it is at the ray's time, as Embree
+  // interpolates it (linearly between the two time steps around it).
+  const DeformedMeshes::Part* moving = nullptr;
+  uint32_t step = 0;
+  float frac = 0.f;
+  if constexpr (kMotion) {
+    moving = slot_motion_[slot];
+    if (moving) {
+      time_segment(time, motion_steps_, &step, &frac);
+      const std::vector<Vec3>& pa = step == 0 ? mesh.positions : moving->step_positions[step - 1];
+      const std::vector<Vec3>& pb = moving->step_positions[step];
+      p0 = pa[vi[0]] + (pb[vi[0]] - pa[vi[0]]) * frac;
+      p1 = pa[vi[1]] + (pb[vi[1]] - pa[vi[1]]) * frac;
+      p2 = pa[vi[2]] + (pb[vi[2]] - pa[vi[2]]) * frac;
+      face_normal(p0, p1, p2, &ng);
     }
   }
   // Barycentric position is more accurate than o + t d far from the origin.
   Vec3 p = p0 * b0 + p1 * hit->b1 + p2 * hit->b2;
   Vec3 ns = ng;
   if (flags & TriangleMesh::kHasNormals) {
-    const Vec3 n = n0 * b0 + n1 * hit->b1 + n2 * hit->b2;
+    Vec3 n = mesh.normals[vi[0]] * b0 + mesh.normals[vi[1]] * hit->b1 +
+             mesh.normals[vi[2]] * hit->b2;
+    if constexpr (kMotion) {
+      if (moving) {
+        const std::vector<Vec3>& na = step == 0 ? mesh.normals : moving->step_normals[step - 1];
+        const std::vector<Vec3>& nb = moving->step_normals[step];
+        n = Vec3();
+        for (int c = 0; c < 3; ++c) {
+          const float w = c == 0 ? b0 : c == 1 ? hit->b1 : hit->b2;
+          n += (na[vi[c]] + (nb[vi[c]] - na[vi[c]]) * frac) * w;
+        }
+      }
+    }
     const float len = length(n);
     if (len > 0.f && std::isfinite(len)) ns = n / len;
   }
@@ -1177,19 +1189,19 @@ void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, f
     }
   }
   if (slot != kWorldSlot) {
-    Affine3f blurred;
-    if (!instance_motion_.empty() && !instance_motion_[slot - 1].empty()) {
-      // A moving instance: its transform at the ray's time (Embree interpolates the matrices
-      // linearly between the time steps).
-      const std::vector<Mat4>& xfs = instance_motion_[slot - 1];
-      uint32_t k;
-      float f;
-      time_segment(time, uint32_t(xfs.size()), &k, &f);
-      blurred = Affine3f::from(lerp_matrix(xfs[k], xfs[k + 1], double(f)));
+    std::optional<Affine3f> blurred;
+    if constexpr (kMotion) {
+      if (!instance_motion_[slot - 1].empty()) {
+        // A moving instance: its transform at the ray's time (Embree interpolates the
+        // matrices linearly between the time steps).
+        const std::vector<Mat4>& xfs = instance_motion_[slot - 1];
+        uint32_t k;
+        float f;
+        time_segment(time, uint32_t(xfs.size()), &k, &f);
+        blurred.emplace(Affine3f::from(lerp_matrix(xfs[k], xfs[k + 1], double(f))));
+      }
     }
-    const Affine3f& m = !instance_motion_.empty() && !instance_motion_[slot - 1].empty()
-                            ? blurred
-                            : instance_xf_[slot - 1];
+    const Affine3f& m = kMotion && blurred ? *blurred : instance_xf_[slot - 1];
     p = m.point(p);
     const Vec3 ngw = m.normal(ng), nsw = m.normal(ns);
     const float ngl = length(ngw), nsl = length(nsw);

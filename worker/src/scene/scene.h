@@ -531,6 +531,9 @@ class Scene {
   void occluded_lanes(const RayPacket& rays, int first, bool* blocked, uint64_t query) const;
   void complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                     Hit* hit, float time = 0.f) const;
+  template <bool kMotion>
+  void complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
+                       Hit* hit, float time) const;
   struct Embree;
   std::unique_ptr<Embree> embree_;
   int packet_query_width_ = 8;
