@@ -261,7 +261,11 @@ TEST_F(AnimatedSceneTest, LoadAnimatedSceneIsOnePose) {
 // beyond it, fractionally while it crosses it: its value is
 // (1 / (e1 - e0)) integral over e in [e0, e1] of clamp((e - x) / w, 0, 1) de,
 // (e1 - x - w / 2) / (e1 - e0) for a column inside the sweep: a linear ramp.
-std::string edge_scene_json(bool camera_moves) {
+// What moves the edge: its node (an instance), the camera the other way, or a morph target
+// whose weight goes from 0 to 1 (a deformed mesh, its vertices per time step).
+enum class Mover { Node, Camera, Morph };
+
+std::string edge_scene_json(Mover mover) {
   Buffer b;
   constexpr int kFloat = 5126, kUShort = 5123;
   const int pos = b.add(std::vector<float>{-10, -5, 0, 0, -5, 0, 0, 5, 0, -10, 5, 0}, kFloat, 4,
@@ -269,18 +273,29 @@ std::string edge_scene_json(bool camera_moves) {
   const int idx = b.add(std::vector<uint16_t>{0, 1, 2, 0, 2, 3}, kUShort, 6, "SCALAR");
   const int times = b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
   // The edge goes from x = 0 to x = 4 in one second (or the camera from 0 to -4).
-  const int moves = camera_moves ? b.add(std::vector<float>{0, 0, 5, -4, 0, 5}, kFloat, 2, "VEC3")
-                                 : b.add(std::vector<float>{0, 0, 0, 4, 0, 0}, kFloat, 2, "VEC3");
+  const int moves =
+      mover == Mover::Camera ? b.add(std::vector<float>{0, 0, 5, -4, 0, 5}, kFloat, 2, "VEC3")
+      : mover == Mover::Node ? b.add(std::vector<float>{0, 0, 0, 4, 0, 0}, kFloat, 2, "VEC3")
+                             : b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
+  // The morph target moves the edge's vertices (1 and 2) by 4 along x.
+  const int target = b.add(std::vector<float>{0, 0, 0, 4, 0, 0, 4, 0, 0, 0, 0, 0}, kFloat, 4,
+                           "VEC3");
+  const std::string targets = mover == Mover::Morph
+                                  ? R"(, "targets": [{"POSITION": )" + std::to_string(target) +
+                                        "}]"
+                                  : std::string();
+  const std::string animated = mover == Mover::Camera ? "1" : "0";
+  const std::string path = mover == Mover::Morph ? "weights" : "translation";
   return R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1]}],
   "cameras": [{"type": "orthographic",
                "orthographic": {"xmag": 4, "ymag": 1, "znear": 0.01, "zfar": 100}}],
   "materials": [{"emissiveFactor": [1, 1, 1],
                  "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1]}}],
   "meshes": [{"primitives": [{"attributes": {"POSITION": )" + std::to_string(pos) +
-         R"(}, "indices": )" + std::to_string(idx) + R"(, "material": 0}]}],
+         R"(}, "indices": )" + std::to_string(idx) + R"(, "material": 0)" + targets + R"(}]}],
   "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 0, 5]}],
-  "animations": [{"channels": [{"sampler": 0, "target": {"node": )" +
-         std::string(camera_moves ? "1" : "0") + R"(, "path": "translation"}}],
+  "animations": [{"channels": [{"sampler": 0, "target": {"node": )" + animated +
+         R"(, "path": ")" + path + R"("}}],
                   "samplers": [{"input": )" + std::to_string(times) + R"(, "output": )" +
          std::to_string(moves) + R"(}]}],
   )" + b.json() + "}";
@@ -295,7 +310,7 @@ std::vector<double> column_means(const Image& image) {
   return out;
 }
 
-class MotionBlur : public ::testing::TestWithParam<bool> {};
+class MotionBlur : public ::testing::TestWithParam<Mover> {};
 
 TEST_P(MotionBlur, AMovingEdgeCoversPixelsAsItsSweepSays) {
   const std::string path = ::testing::TempDir() + "/motion_edge.gltf";
@@ -309,7 +324,8 @@ TEST_P(MotionBlur, AMovingEdgeCoversPixelsAsItsSweepSays) {
   ASSERT_TRUE(parse_shutter("0,1", 1.0, &shutter, &err)) << err;  // one frame of 1 s
   const auto blurred = animated.pose(0.0, nullptr, shutter);
   EXPECT_TRUE(blurred->has_motion());
-  EXPECT_EQ(blurred->camera_moves(), GetParam());
+  EXPECT_EQ(blurred->camera_moves(), GetParam() == Mover::Camera);
+  EXPECT_EQ(animated.deformed_nodes(), GetParam() == Mover::Morph ? 1u : 0u);
   RenderSettings settings;
   settings.width = 64;  // the image spans x in [-4, 4]: pixels 0.125 wide
   settings.height = 16;
@@ -343,7 +359,8 @@ TEST_P(MotionBlur, AMovingEdgeCoversPixelsAsItsSweepSays) {
   std::remove(path.c_str());
 }
 
-INSTANTIATE_TEST_SUITE_P(ObjectOrCamera, MotionBlur, ::testing::Bool());
+INSTANTIATE_TEST_SUITE_P(NodeCameraOrMorph, MotionBlur,
+                         ::testing::Values(Mover::Node, Mover::Camera, Mover::Morph));
 
 TEST(MotionBlurShutter, ParsesFractionsOfAFrame) {
   Shutter s;
