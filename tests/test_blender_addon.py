@@ -8,6 +8,7 @@ fetched with renderfarm.client."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -274,3 +275,95 @@ def test_unsupported_features_listed_and_submission_allowed(token_farm, addon_zi
     assert result["camera_nodes"] == ["SideCam"]
     assert {"Camera", "SideCam", "Box", "Ground", "Lamp"} <= set(result["exported_nodes"])
     assert "Box" in result["mesh_nodes"] and "Smoke" not in result["mesh_nodes"]
+
+
+# The moving box of blender_driver.moving_box_scene: its x at frames 1, 2, 3 (unequal steps, so
+# every frame's position differs from its neighbours' by a different amount).
+BOX_X = {1: -1.2, 2: 0.0, 3: 0.9}
+ANIM_WIDTH, ANIM_HEIGHT = 48, 24
+
+
+def _settings_docs(farm) -> list:
+    with Client(farm.url, token=TOKEN, timeout=30) as client:
+        return client.http.get("/api/v1/settings").json()
+
+
+def test_animation_export_carries_and_lists(token_farm, addon_zip, tmp_path):
+    """The animation export, read from its .glb: one animation holding the whole timeline at
+    frame / fps seconds, transforms baked whatever moves them, shape keys of a mesh without
+    modifiers; and what it drops is what the scan lists (only for Animation)."""
+    result = run_driver(
+        "animation_scan",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "box_x": BOX_X,
+            "settings_docs": json.dumps(_settings_docs(token_farm)),
+        },
+        tmp_path,
+    )
+    issues = [(i["owner"], i["message"]) for i in result["issues"]]
+
+    def listed(owner: str, *words: str) -> bool:
+        return any(o == owner and all(w in m for w in words) for o, m in issues)
+
+    # Listed for Animation, and not for a Still (where the export evaluates the current frame).
+    assert listed("Object 'Lumpy'", "shape keys", "modifiers"), issues
+    assert listed("Object 'Waver'", "'Ripple' (wave)", "as at frame 0"), issues
+    assert listed("Object 'Ticker'", "'Clock' (geometry nodes using the scene time)"), issues
+    assert listed("Object 'Blinker'", "visibility"), issues
+    assert listed("Camera 'Camera'", "lens"), issues
+    assert listed("Light 'Lamp'", "energy"), issues
+    assert listed("Material 'Pulse'", "(Principled BSDF: Emission Strength)"), issues
+    assert {i["kind"] for i in result["issues"]} == {"animation"}, issues
+    for name in ("Mover", "Follower", "Blob", "Beveled"):  # carried: not listed
+        assert not any(o == f"Object '{name}'" for o, _ in issues), (name, issues)
+    assert result["still_issues"] == []
+
+    # One animation, named after the scene, for every animated node.
+    assert [a["name"] for a in result["animations"]] == ["Scene"]
+    channels = {(c["node"], c["path"]): c for c in result["animations"][0]["channels"]}
+    fps = 24.0
+    assert result["settings"]["frames"] == "1-3" and result["settings"]["fps"] == fps
+    assert "animation" not in result["settings"]
+    for key in (("Mover", "translation"), ("Follower", "translation"), ("Blob", "weights")):
+        times = channels[key]["times"]
+        np.testing.assert_allclose(times, [f / fps for f in (1, 2, 3)], rtol=1e-6)
+    # Baked translations are Blender's world positions at those frames (glTF is y up: x, z, -y).
+    for name in ("Mover", "Follower"):
+        values = channels[(name, "translation")]["values"]
+        for frame, value in zip((1, 2, 3), values, strict=True):
+            x, y, z = result["world"][str(frame)][name]
+            np.testing.assert_allclose(value, [x, z, -y], atol=1e-5)
+    np.testing.assert_allclose([v[0] for v in channels[("Mover", "translation")]["values"]],
+                               [BOX_X[f] for f in (1, 2, 3)], atol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(
+        [v[0] for v in channels[("Blob", "weights")]["values"]], [0.0, 0.5, 1.0], atol=1e-6
+    )
+    # Dropped as listed: Lumpy's mesh has no morph targets; no data animation is written.
+    assert result["morphed_nodes"] == ["Blob"]
+    assert "KHR_animation_pointer" not in result["extensions"]
+    assert {c["path"] for c in result["animations"][0]["channels"]} <= {
+        "translation", "rotation", "scale", "weights"
+    }  # fmt: skip
+    assert result["frame_after_export"] == 2
+
+    # The camera is written as at frame 0 (lens 50 mm, the first key held), not as at the
+    # current frame 2 (60 mm): horizontal fov 2 atan(sensor / 2 / lens), the image 16 x 12.
+    def yfov(lens: float) -> float:
+        return 2 * math.atan(math.tan(math.atan(result["sensor_width"] / 2 / lens)) * 12 / 16)
+
+    assert result["camera_yfov"] == pytest.approx(yfov(50.0), rel=1e-5)
+    assert abs(result["camera_yfov"] - yfov(60.0)) > 0.05
+
+    # A frame step: farm frames a-bxN, the last frame the last one Blender renders (1, 4, 7).
+    assert result["stepped_settings"]["frames"] == "1-7x3"
+    # fps_base: the exporter times frame f at f / (fps * fps_base), and the add-on sends that
+    # rate, so the farm's f / fps is the time the .glb holds for frame f.
+    ntsc = result["ntsc_settings"]["fps"]
+    assert ntsc == pytest.approx(30 * result["ntsc_fps_base"], rel=1e-12)
+    sent_times = [f / ntsc for f in (1, 2, 3)]
+    np.testing.assert_allclose(result["ntsc_times"], sent_times, rtol=1e-6)
+    playback_times = [f / (30 / result["ntsc_fps_base"]) for f in (1, 2, 3)]
+    assert abs(result["ntsc_times"][-1] - playback_times[-1]) > 1e-4  # the check can fail
+    assert any("30.03 fps" in m and "29.97 fps" in m for m in result["ntsc_issues"])
