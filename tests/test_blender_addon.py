@@ -367,3 +367,108 @@ def test_animation_export_carries_and_lists(token_farm, addon_zip, tmp_path):
     playback_times = [f / (30 / result["ntsc_fps_base"]) for f in (1, 2, 3)]
     assert abs(result["ntsc_times"][-1] - playback_times[-1]) > 1e-4  # the check can fail
     assert any("30.03 fps" in m and "29.97 fps" in m for m in result["ntsc_issues"])
+
+
+def _centroid_x(rgb: np.ndarray) -> float:
+    """The brightness-weighted mean column (pixel centres at 0.5, 1.5, ...) of an image whose
+    only bright thing is the box."""
+    weight = rgb.sum(axis=-1)
+    weight = np.where(weight > 0.1 * weight.max(), weight, 0.0)
+    columns = np.arange(rgb.shape[1]) + 0.5
+    return float((weight.sum(axis=0) * columns).sum() / weight.sum())
+
+
+def test_animation_submit_follow_fetch(token_farm, addon_zip, tmp_path):
+    frames = sorted(BOX_X)
+    result = run_driver(
+        "animation",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "token": TOKEN,
+            "width": ANIM_WIDTH,
+            "height": ANIM_HEIGHT,
+            "box_x": BOX_X,
+            "frame_count": len(frames),
+            "settings": SETTINGS,
+            "timeout_s": 300,
+            "blend": str(tmp_path / "shot.blend"),
+            "out_dir": str(tmp_path),
+        },
+        tmp_path,
+    )
+    assert result["refresh"]["result"] == ["FINISHED"]
+    assert result["check"]["result"] == ["FINISHED"] and result["issues"] == []
+    assert any("Renders frames 1-3: 3 frames at 24 fps (farm frames 1-3)" in t
+               for t in result["panel_before"]), result["panel_before"]  # fmt: skip
+    assert result["submit"]["result"] == ["FINISHED"], result["submit"]
+    assert result["frame_after_submit"] == 2  # the export left the current frame as it was
+
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        job = client.get(result["job_id"])
+        assert job["state"] == "completed", job["error"]
+        assert job["name"] == "moving box"
+        # The scene's range 1..3 at 24 fps, whatever the farm's own fields said (7-9, 12).
+        assert job["settings"]["frames"] == "1-3"
+        assert job["settings"]["fps"] == 24.0
+        assert job["settings"]["animation"] == ""
+        for name, value in {**SETTINGS, "width": ANIM_WIDTH, "height": ANIM_HEIGHT}.items():
+            assert job["settings"][name] == value, name
+        assert job["progress"]["frames_total"] == job["progress"]["frames_done"] == 3
+        assert [f["frame"] for f in client.frames(job["id"])] == frames
+
+        progress = result["progress"]
+        assert (progress["frames_done"], progress["frames_total"]) == (3, 3)
+        assert (progress["frames"], progress["fps"]) == ("1-3", 24.0)
+        assert progress["summary"].startswith("completed, frames 3/3, tiles ")
+        if "panel_running" in result:  # unless the sequence finished between two polls
+            running = [t for t in result["panel_running"] if t.startswith("running, frames ")]
+            assert running and all("/3, tiles " in t for t in running), result["panel_running"]
+            assert any(t.startswith("Farm: moving box running, frames ")
+                       for t in result["panel_running"])  # fmt: skip
+        assert any(t.startswith("completed, frames 3/3") for t in result["panel_after"])
+
+        # Fetched: every frame's EXR into renderfarm/NAME-ID/ next to the .blend, numbered by
+        # the scene's frames, opened as one image sequence.
+        assert result["fetch"]["result"] == ["FINISHED"], result["fetch"]
+        image = result["image"]
+        assert image["name"] == "moving box"
+        assert image["source"] == "SEQUENCE" and image["type"] == "MULTILAYER"
+        directory = tmp_path / "renderfarm" / f"moving_box-{job['id'][:8]}"
+        assert Path(image["path"]) == directory / "moving_box_0001.exr"
+        assert image["files"] == [f"moving_box_{f:04d}.exr" for f in frames]
+        assert any("Image sequence 'moving box': 3 of 3 frames" in t
+                   for t in result["panel_fetched"])  # fmt: skip
+        assert any("Frames 3, Start 1, Offset 0" in t for t in result["panel_fetched"])
+
+        farm_frames, still_frames = {}, {}
+        for f in frames:
+            (tmp_path / f"farm_{f}.exr").write_bytes(client.frame_image(job["id"], f, "exr"))
+            farm_frames[f] = read_exr(str(tmp_path / f"farm_{f}.exr"))
+            still = client.get(result["stills"][str(f)])
+            assert still["state"] == "completed" and still["settings"]["frames"] == ""
+            (tmp_path / f"still_{f}.exr").write_bytes(client.image(still["id"], "exr"))
+            still_frames[f] = read_exr(str(tmp_path / f"still_{f}.exr"))
+
+    centroids, still_centroids = {}, {}
+    for f in frames:
+        fetched = read_exr(str(directory / f"moving_box_{f:04d}.exr"))
+        read_back = read_exr(result["read_back"][str(f)])  # Blender's reading of the sequence
+        for c in "RGB":
+            assert farm_frames[f][c].shape == (ANIM_HEIGHT, ANIM_WIDTH)
+            np.testing.assert_array_equal(fetched[c], farm_frames[f][c])
+            np.testing.assert_array_equal(read_back[c], farm_frames[f][c])
+        centroids[f] = _centroid_x(np.stack([farm_frames[f][c] for c in "RGB"], axis=-1))
+        still_centroids[f] = _centroid_x(np.stack([still_frames[f][c] for c in "RGB"], axis=-1))
+
+    # Timing, checked two ways. Frame f of the sequence shows the box where Blender put it at
+    # frame f: (1) its image column is the one of Blender's own projection of the box's
+    # centre at frame f through the camera, and (2) the one of the still exported at frame f.
+    # The box moves 1.2 and 0.9 units between frames (several pixels): a frame off by one, or
+    # a time mapping that drifts, would put it columns away.
+    for f in frames:
+        projected = result["projected"][str(f)][0] * ANIM_WIDTH
+        assert centroids[f] == pytest.approx(projected, abs=0.5), (f, centroids, projected)
+        assert centroids[f] == pytest.approx(still_centroids[f], abs=0.25), (f, still_centroids)
+    steps = np.diff([centroids[f] for f in frames])
+    assert steps.min() > 3.0, centroids
