@@ -518,6 +518,9 @@ def scenario_animation() -> dict:
         "files": sorted(os.listdir(directory)),
     }
     out["panel_fetched"] = draw_panel()
+    out["refetch"] = run_op(bpy.ops.renderfarm.fetch)  # again: the same image, reloaded
+    out["images_after_refetch"] = sorted(i.name for i in bpy.data.images if i.source == "SEQUENCE")
+    image = bpy.data.images[entry.image_name]
     out["read_back"] = {}
     for frame in range(1, CONFIG["frame_count"] + 1):
         path = os.path.join(CONFIG["out_dir"], f"read_{frame}.exr")

@@ -440,6 +440,8 @@ def test_animation_submit_follow_fetch(token_farm, addon_zip, tmp_path):
         assert any("Image sequence 'moving box': 3 of 3 frames" in t
                    for t in result["panel_fetched"])  # fmt: skip
         assert any("Frames 3, Start 1, Offset 0" in t for t in result["panel_fetched"])
+        assert result["refetch"]["result"] == ["FINISHED"]
+        assert result["images_after_refetch"] == ["moving box"]
 
         farm_frames, still_frames = {}, {}
         for f in frames:

@@ -327,7 +327,11 @@ class RENDERFARM_OT_fetch(bpy.types.Operator):
             return {"CANCELLED"}
         first_path = sequence_path(entry, done[0], digits)
         image = bpy.data.images.get(entry.image_name) if entry.image_name else None
-        if image is not None and bpy.path.abspath(image.filepath) == first_path:
+        if image is not None and os.path.dirname(bpy.path.abspath(image.filepath)) == (
+            os.path.dirname(first_path)
+        ):
+            # Fetched before: the same image, its first file perhaps an earlier frame now.
+            image.filepath = first_path
             image.reload()
         else:
             image = bpy.data.images.load(first_path, check_existing=False)
