@@ -446,16 +446,17 @@ def follow(rf, watch, what: str, timeout_s: float, seen: dict) -> None:
     wait_until(finished, timeout_s, what)
 
 
-def sequence_frame_to_exr(image, frame: int, width: int, height: int, path: str) -> None:
-    """Frame `frame` of an image sequence, as Blender reads it at scene frame `frame` with the
-    image user the files' numbering implies (the first frame at scene frame 1, no offset), through
-    the compositor into a plain EXR."""
+def sequence_frame_to_exr(image, frame: int, user: dict, width: int, height: int, path: str):
+    """What Blender reads of an image sequence at scene frame `frame` under the image-user
+    settings `user` (frame_start, frame_offset, frame_duration), through the compositor into a
+    plain EXR."""
     scene = bpy.context.scene
     tree = bpy.data.node_groups.new("Read frame", "CompositorNodeTree")
     scene.compositing_node_group = tree
     node = tree.nodes.new("CompositorNodeImage")
     node.image = image
-    node.frame_start, node.frame_offset, node.frame_duration = 1, 0, CONFIG["frame_count"]
+    node.frame_start, node.frame_offset = user["frame_start"], user["frame_offset"]
+    node.frame_duration = user["frame_duration"]
     tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
     out = tree.nodes.new("NodeGroupOutput")
     tree.links.new(node.outputs["Combined"], out.inputs[0])
@@ -521,12 +522,37 @@ def scenario_animation() -> dict:
     out["refetch"] = run_op(bpy.ops.renderfarm.fetch)  # again: the same image, reloaded
     out["images_after_refetch"] = sorted(i.name for i in bpy.data.images if i.source == "SEQUENCE")
     image = bpy.data.images[entry.image_name]
+    # Blender's reading of the sequence at every scene frame, under the image-user settings
+    # the files' numbering implies (files 1..3: the first at scene frame 1, no offset).
+    count = CONFIG["frame_count"]
     out["read_back"] = {}
-    for frame in range(1, CONFIG["frame_count"] + 1):
+    for frame in range(1, count + 1):
         path = os.path.join(CONFIG["out_dir"], f"read_{frame}.exr")
-        sequence_frame_to_exr(image, frame, width, height, path)
+        user = {"frame_start": 1, "frame_offset": 0, "frame_duration": count}
+        sequence_frame_to_exr(image, frame, user, width, height, path)
         out["read_back"][frame] = path
     out["image"]["type"] = image.type  # known once Blender has read a frame
+    # The add-on's image-user settings for a range that does not start at 1 (the panel's line
+    # and the Image Editors it sets): the same files numbered 11..13 read at scene frames
+    # 11..13.
+    operators = module("operators")
+    shifted = os.path.join(CONFIG["out_dir"], "shifted")
+    os.makedirs(shifted)
+    for frame in range(1, count + 1):
+        name = os.path.join(directory, out["image"]["files"][frame - 1])
+        with (
+            open(name, "rb") as src,
+            open(os.path.join(shifted, f"s_{frame + 10:04d}.exr"), "wb") as dst,
+        ):
+            dst.write(src.read())
+    moved = bpy.data.images.load(os.path.join(shifted, "s_0011.exr"), check_existing=False)
+    moved.source = "SEQUENCE"
+    out["shifted_user"] = operators.sequence_user(11, 10 + count)
+    out["shifted_read_back"] = {}
+    for frame in range(1, count + 1):
+        path = os.path.join(CONFIG["out_dir"], f"shifted_{frame}.exr")
+        sequence_frame_to_exr(moved, frame + 10, out["shifted_user"], width, height, path)
+        out["shifted_read_back"][frame] = path
 
     # Where Blender puts the box: its centre projected through the camera at every frame.
     out["projected"] = {}
