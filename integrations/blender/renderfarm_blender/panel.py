@@ -108,7 +108,7 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
             )
 
         col = layout.column()
-        col.prop(rf, "render_mode", expand=True)
+        col.row().prop(rf, "render_mode", expand=True)
         for line in describe_submission(scene):
             col.label(text=line)
         row = layout.row()
