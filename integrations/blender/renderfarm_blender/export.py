@@ -149,7 +149,10 @@ def _export(scene, options: dict, frame: int | None) -> bytes:
     try:
         if frame is not None and frame != scene.frame_current:
             scene.frame_set(frame)
-        result = bpy.ops.export_scene.gltf(filepath=path, **options)
+        try:
+            result = bpy.ops.export_scene.gltf(filepath=path, **options)
+        except RuntimeError as e:  # the exporter's own error, e.g. a rig it cannot bake
+            raise ExportError(f"Blender's glTF exporter failed: {e}") from None
         if "FINISHED" not in result or not os.path.exists(path):
             raise ExportError("Blender's glTF exporter did not write the scene")
         with open(path, "rb") as f:
