@@ -6,8 +6,11 @@ The test, in the project's own Python, checks that against the farm.
     python tests/blender_driver.py SCENARIO CONFIG.json
 
 SCENARIO: `render` (settings, submit, follow, fetch, the Combined pass written as a plain EXR
-by the compositor, the .blend saved) or `scan` (a scene of things the farm does not render:
-checked, submitted anyway, and exported with two cameras).
+by the compositor, the .blend saved), `scan` (a scene of things the farm does not render:
+checked, submitted anyway, and exported with two cameras), `animation` (a moving box submitted
+as Animation, followed, fetched as an image sequence read back frame by frame through the
+compositor, and each frame submitted again as a Still) or `animation_scan` (what the animation
+export carries and drops, and its frame times, read from the .glb; no farm).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import importlib
 import json
 import math
 import os
+import struct
 import sys
 
 # Blender's user resources (preferences, installed extensions) in the test's directory, never
@@ -24,6 +28,7 @@ CONFIG = json.loads(open(sys.argv[2]).read())
 os.environ["BLENDER_USER_RESOURCES"] = CONFIG["user_resources"]
 
 import bpy  # noqa: E402
+from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
 from mathutils import Vector  # noqa: E402
 
 # Run as a script, so tests/ is sys.path[0]: the tests' own waiting helper (stdlib only).
@@ -377,7 +382,339 @@ def scenario_scan() -> dict:
     return out
 
 
+def read_glb(glb: bytes):
+    """(JSON document, accessor reader) of a .glb: the reader gives an accessor's float
+    elements as tuples (the exporter writes animation data as plain floats)."""
+    length = int.from_bytes(glb[12:16], "little")
+    doc = json.loads(glb[20 : 20 + length])
+    binary = 20 + length + 8  # the BIN chunk's data, after its 8-byte header
+
+    def accessor(index: int) -> list[tuple]:
+        a = doc["accessors"][index]
+        assert a["componentType"] == 5126, a  # FLOAT
+        view = doc["bufferViews"][a["bufferView"]]
+        width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[a["type"]]
+        start = binary + view.get("byteOffset", 0) + a.get("byteOffset", 0)
+        flat = struct.unpack_from(f"<{a['count'] * width}f", glb, start)
+        return [tuple(flat[i * width : (i + 1) * width]) for i in range(a["count"])]
+
+    return doc, accessor
+
+
+def keyframe(obj, path: str, frame: int, value, index: int = -1) -> None:
+    """A key of obj.path at frame, interpolated linearly to its neighbours."""
+    if index >= 0:
+        getattr(obj, path)[index] = value
+    else:
+        setattr(obj, path, value)
+    obj.keyframe_insert(path, index=index, frame=frame)
+
+
+def moving_box_scene(width: int, height: int):
+    """An emissive red box on black, its x keyed at frames 1, 2, 3 (-1.2, 0.0, 0.9: unequal
+    steps, before frame 1 it stays at -1.2), a point light, a camera looking along +y."""
+    scene = empty_scene()
+    box = mesh_object(
+        scene, "Mover", "cube", 0.8, (0, 0, 0.5), principled("Hot", (0.9, 0.1, 0.05), 6.0)
+    )
+    for frame, x in CONFIG["box_x"].items():
+        keyframe(box, "location", int(frame), x, index=0)
+    light = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    light.data.energy = 100.0
+    light.data.shadow_soft_size = 0.0
+    light.location = (0.0, -3.0, 3.0)
+    scene.collection.objects.link(light)
+    scene.camera = camera(scene, "Camera", (0.0, -6.0, 0.5), (0.0, 0.0, 0.5))
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.frame_start, scene.frame_end, scene.frame_step = 1, 3, 1
+    scene.render.fps, scene.render.fps_base = 24, 1.0
+    scene.frame_set(2)  # the current frame is inside the range, and not its start
+    return scene, box
+
+
+def follow(rf, watch, what: str, timeout_s: float, seen: dict) -> None:
+    """Run the add-on's timer until the current job finishes; draw the panel while it runs."""
+
+    def finished():
+        watch.apply_updates()
+        entry = rf.current_job()
+        if entry.state == "running" and "panel_running" not in seen:
+            seen["panel_running"] = draw_panel()
+        return entry.state in ("completed", "failed", "cancelled")
+
+    wait_until(finished, timeout_s, what)
+
+
+def sequence_frame_to_exr(image, frame: int, user: dict, width: int, height: int, path: str):
+    """What Blender reads of an image sequence at scene frame `frame` under the image-user
+    settings `user` (frame_start, frame_offset, frame_duration), through the compositor into a
+    plain EXR."""
+    scene = bpy.context.scene
+    tree = bpy.data.node_groups.new("Read frame", "CompositorNodeTree")
+    scene.compositing_node_group = tree
+    node = tree.nodes.new("CompositorNodeImage")
+    node.image = image
+    node.frame_start, node.frame_offset = user["frame_start"], user["frame_offset"]
+    node.frame_duration = user["frame_duration"]
+    tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    out = tree.nodes.new("NodeGroupOutput")
+    tree.links.new(node.outputs["Combined"], out.inputs[0])
+    scene.frame_set(frame)
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.filepath = path
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    settings.color_mode = "RGB"
+    bpy.ops.render.render(write_still=True)
+
+
+def scenario_animation() -> dict:
+    out: dict = {}
+    width, height = CONFIG["width"], CONFIG["height"]
+    scene, box = moving_box_scene(width, height)
+    prefs = bpy.context.preferences.addons[ADDON].preferences
+    prefs.url, prefs.token = CONFIG["url"], CONFIG["token"]
+    rf = scene.renderfarm
+    out["refresh"] = run_op(bpy.ops.renderfarm.refresh_settings)
+    for name, value in CONFIG["settings"].items():
+        set_setting(rf, name, value)
+    # Settings the artist typed into the farm's own frames / fps fields are not what is sent:
+    # the Still / Animation choice is.
+    set_setting(rf, "frames", "7-9")
+    set_setting(rf, "fps", 12.0)
+    rf.render_mode = "ANIMATION"
+    rf.job_name = "moving box"
+    out["panel_before"] = draw_panel()
+    out["check"] = run_op(bpy.ops.renderfarm.check_scene)
+    out["issues"] = [f"{i.owner}: {i.message}" for i in rf.issues]
+    bpy.ops.wm.save_as_mainfile(filepath=CONFIG["blend"])  # results go next to it
+
+    out["submit"] = run_op(bpy.ops.renderfarm.submit)
+    out["frame_after_submit"] = scene.frame_current
+    entry = rf.current_job()
+    out["job_id"] = entry.job_id
+    watch = module("watch")
+    follow(rf, watch, "the sequence to finish", CONFIG["timeout_s"], out)
+    entry = rf.current_job()
+    out["progress"] = {
+        "state": entry.state,
+        "frames_done": entry.frames_done,
+        "frames_total": entry.frames_total,
+        "frames": entry.frames,
+        "fps": entry.fps,
+        "summary": entry.summary(),
+    }
+    out["panel_after"] = draw_panel()
+    assert watch.wait_all(10), "a watcher still runs after its job finished"
+
+    out["fetch"] = run_op(bpy.ops.renderfarm.fetch)
+    image = bpy.data.images[entry.image_name]
+    directory = os.path.dirname(bpy.path.abspath(image.filepath))
+    out["image"] = {
+        "name": image.name,
+        "source": image.source,
+        "path": bpy.path.abspath(image.filepath),
+        "files": sorted(os.listdir(directory)),
+    }
+    out["panel_fetched"] = draw_panel()
+    out["refetch"] = run_op(bpy.ops.renderfarm.fetch)  # again: the same image, reloaded
+    out["images_after_refetch"] = sorted(i.name for i in bpy.data.images if i.source == "SEQUENCE")
+    image = bpy.data.images[entry.image_name]
+    # Blender's reading of the sequence at every scene frame, under the image-user settings
+    # the files' numbering implies (files 1..3: the first at scene frame 1, no offset).
+    count = CONFIG["frame_count"]
+    out["read_back"] = {}
+    for frame in range(1, count + 1):
+        path = os.path.join(CONFIG["out_dir"], f"read_{frame}.exr")
+        user = {"frame_start": 1, "frame_offset": 0, "frame_duration": count}
+        sequence_frame_to_exr(image, frame, user, width, height, path)
+        out["read_back"][frame] = path
+    out["image"]["type"] = image.type  # known once Blender has read a frame
+    # The add-on's image-user settings for a range that does not start at 1 (the panel's line
+    # and the Image Editors it sets): the same files numbered 11..13 read at scene frames
+    # 11..13.
+    operators = module("operators")
+    shifted = os.path.join(CONFIG["out_dir"], "shifted")
+    os.makedirs(shifted)
+    for frame in range(1, count + 1):
+        name = os.path.join(directory, out["image"]["files"][frame - 1])
+        with (
+            open(name, "rb") as src,
+            open(os.path.join(shifted, f"s_{frame + 10:04d}.exr"), "wb") as dst,
+        ):
+            dst.write(src.read())
+    moved = bpy.data.images.load(os.path.join(shifted, "s_0011.exr"), check_existing=False)
+    moved.source = "SEQUENCE"
+    out["shifted_user"] = operators.sequence_user(11, 10 + count)
+    out["shifted_read_back"] = {}
+    for frame in range(1, count + 1):
+        path = os.path.join(CONFIG["out_dir"], f"shifted_{frame}.exr")
+        sequence_frame_to_exr(moved, frame + 10, out["shifted_user"], width, height, path)
+        out["shifted_read_back"][frame] = path
+
+    # Where Blender puts the box: its centre projected through the camera at every frame.
+    out["projected"] = {}
+    for frame in range(1, CONFIG["frame_count"] + 1):
+        scene.frame_set(frame)
+        p = world_to_camera_view(scene, scene.camera, box.matrix_world.translation)
+        out["projected"][frame] = [p.x, p.y]
+
+    # Each frame again as a Still, exported at that frame (export_current_frame).
+    rf.render_mode = "STILL"
+    out["stills"] = {}
+    for frame in range(1, CONFIG["frame_count"] + 1):
+        scene.frame_set(frame)
+        rf.job_name = f"still {frame}"
+        result = run_op(bpy.ops.renderfarm.submit)
+        assert result["result"] == ["FINISHED"], result
+        out["stills"][frame] = rf.current_job().job_id
+        follow(rf, watch, f"the still of frame {frame}", CONFIG["timeout_s"], {})
+    watch.stop_all()
+    return out
+
+
+def scenario_animation_scan() -> dict:
+    """What the animation export carries (transforms baked whatever moves them, shape keys of a
+    mesh without modifiers) and what it drops, as the scan lists it and as the .glb holds it."""
+    out: dict = {}
+    scene, box = moving_box_scene(16, 12)
+    rf = scene.renderfarm
+    rf.load_docs(json.loads(CONFIG["settings_docs"]), CONFIG["url"])
+    grey = principled("Grey")
+
+    follower = mesh_object(scene, "Follower", "cube", 0.3, (0, 2, 0), grey)
+    constraint = follower.constraints.new("COPY_LOCATION")  # moves with the box, no keys
+    constraint.target = box
+    constraint.use_y = constraint.use_z = False
+
+    blob = mesh_object(scene, "Blob", "cube", 0.5, (0, 3, 0), grey)
+    blob.shape_key_add(name="Basis")
+    up = blob.shape_key_add(name="Up")
+    for v in up.data:
+        v.co.z += 1.0
+    keyframe(up, "value", 1, 0.0)
+    keyframe(up, "value", 3, 1.0)
+
+    lumpy = mesh_object(scene, "Lumpy", "cube", 0.5, (0, 4, 0), grey)
+    lumpy.shape_key_add(name="Basis")
+    up = lumpy.shape_key_add(name="Up")
+    for v in up.data:
+        v.co.z += 1.0
+    keyframe(up, "value", 1, 0.0)
+    keyframe(up, "value", 3, 1.0)
+    lumpy.modifiers.new("Smooth", "SUBSURF")
+
+    waver = mesh_object(scene, "Waver", "plane", 1.0, (2, 4, 0), grey)
+    waver.modifiers.new("Ripple", "WAVE")
+    still_mod = mesh_object(scene, "Beveled", "cube", 0.5, (-2, 4, 0), grey)
+    still_mod.modifiers.new("Bevel", "BEVEL")  # a modifier that does not change over time
+
+    clock = bpy.data.node_groups.new("Clock", "GeometryNodeTree")
+    clock.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    clock.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    gin, gout = clock.nodes.new("NodeGroupInput"), clock.nodes.new("NodeGroupOutput")
+    setpos = clock.nodes.new("GeometryNodeSetPosition")
+    time = clock.nodes.new("GeometryNodeInputSceneTime")
+    xyz = clock.nodes.new("ShaderNodeCombineXYZ")
+    clock.links.new(gin.outputs[0], setpos.inputs["Geometry"])
+    clock.links.new(time.outputs["Seconds"], xyz.inputs["Z"])
+    clock.links.new(xyz.outputs[0], setpos.inputs["Offset"])
+    clock.links.new(setpos.outputs[0], gout.inputs[0])
+    ticker = mesh_object(scene, "Ticker", "cube", 0.5, (2, -2, 0), grey)
+    ticker.modifiers.new("Clock", "NODES").node_group = clock
+
+    blinker = mesh_object(scene, "Blinker", "cube", 0.5, (-2, -2, 0), grey)
+    keyframe(blinker, "hide_render", 1, False)
+    keyframe(blinker, "hide_render", 3, True)
+
+    pulse = principled("Pulse", emission=1.0)
+    strength = pulse.node_tree.nodes["Principled BSDF"].inputs["Emission Strength"]
+    strength.default_value = 1.0
+    strength.keyframe_insert("default_value", frame=1)
+    strength.default_value = 5.0
+    strength.keyframe_insert("default_value", frame=3)
+    mesh_object(scene, "Pulsing", "cube", 0.3, (-2, 0, 2), pulse)
+
+    keyframe(scene.camera.data, "lens", 1, 50.0)
+    keyframe(scene.camera.data, "lens", 3, 70.0)
+    keyframe(bpy.data.objects["Lamp"].data, "energy", 1, 100.0)
+    keyframe(bpy.data.objects["Lamp"].data, "energy", 3, 300.0)
+    scene.frame_set(2)
+
+    rf.render_mode = "STILL"
+    run_op(bpy.ops.renderfarm.check_scene)
+    out["still_issues"] = [
+        {"kind": i.kind, "owner": i.owner, "message": i.message} for i in rf.issues
+    ]
+    rf.render_mode = "ANIMATION"
+    out["check"] = run_op(bpy.ops.renderfarm.check_scene)
+    out["issues"] = [{"kind": i.kind, "owner": i.owner, "message": i.message} for i in rf.issues]
+
+    export = module("export")
+    out["settings"] = rf.job_settings(scene)
+    glb = export.export_animation(scene)
+    out["frame_after_export"] = scene.frame_current
+    doc, accessor = read_glb(glb)
+    nodes = doc["nodes"]
+    out["extensions"] = doc.get("extensionsUsed", [])
+    out["animations"] = []
+    for anim in doc.get("animations", []):
+        channels = []
+        for ch in anim["channels"]:
+            sampler = anim["samplers"][ch["sampler"]]
+            channels.append(
+                {
+                    "node": nodes[ch["target"]["node"]].get("name"),
+                    "path": ch["target"]["path"],
+                    "times": [t[0] for t in accessor(sampler["input"])],
+                    "values": accessor(sampler["output"]),
+                }
+            )
+        out["animations"].append({"name": anim.get("name"), "channels": channels})
+    out["morphed_nodes"] = sorted(
+        n["name"]
+        for n in nodes
+        if "mesh" in n and any("targets" in p for p in doc["meshes"][n["mesh"]]["primitives"])
+    )
+    out["exported_nodes"] = sorted(n.get("name", "") for n in nodes)
+    out["camera_yfov"] = doc["cameras"][0]["perspective"]["yfov"]
+    out["sensor_width"] = scene.camera.data.sensor_width
+    # Blender's own world positions at every frame (z up), for the baked translations.
+    out["world"] = {}
+    for frame in (1, 2, 3):
+        scene.frame_set(frame)
+        out["world"][frame] = {
+            name: list(bpy.data.objects[name].matrix_world.translation)
+            for name in ("Mover", "Follower")
+        }
+    scene.frame_set(2)
+
+    # A frame step, and a rate with fps_base (29.97 = 30 / 1.001): the settings sent, and the
+    # times the exporter writes for them.
+    scene.frame_end, scene.frame_step = 8, 3
+    out["stepped_settings"] = rf.job_settings(scene)
+    scene.frame_end, scene.frame_step = 3, 1
+    scene.render.fps, scene.render.fps_base = 30, 1.001
+    out["ntsc_settings"] = rf.job_settings(scene)
+    out["ntsc_fps_base"] = scene.render.fps_base  # as Blender holds it (single precision)
+    doc, accessor = read_glb(export.export_animation(scene))
+    anim = doc["animations"][0]
+    mover = next(i for i, n in enumerate(doc["nodes"]) if n.get("name") == "Mover")
+    ch = next(c for c in anim["channels"] if c["target"] == {"node": mover, "path": "translation"})
+    out["ntsc_times"] = [t[0] for t in accessor(anim["samplers"][ch["sampler"]]["input"])]
+    run_op(bpy.ops.renderfarm.check_scene)
+    out["ntsc_issues"] = [i.message for i in rf.issues if i.owner == f"Scene '{scene.name}'"]
+    return out
+
+
 if __name__ == "__main__":
     install_addon()
-    result = {"render": scenario_render, "scan": scenario_scan}[sys.argv[1]]()
+    result = {
+        "render": scenario_render,
+        "scan": scenario_scan,
+        "animation": scenario_animation,
+        "animation_scan": scenario_animation_scan,
+    }[sys.argv[1]]()
     print("RESULT " + json.dumps(result), flush=True)

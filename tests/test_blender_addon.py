@@ -8,6 +8,7 @@ fetched with renderfarm.client."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -274,3 +275,207 @@ def test_unsupported_features_listed_and_submission_allowed(token_farm, addon_zi
     assert result["camera_nodes"] == ["SideCam"]
     assert {"Camera", "SideCam", "Box", "Ground", "Lamp"} <= set(result["exported_nodes"])
     assert "Box" in result["mesh_nodes"] and "Smoke" not in result["mesh_nodes"]
+
+
+# The moving box of blender_driver.moving_box_scene: its x at frames 1, 2, 3 (unequal steps, so
+# every frame's position differs from its neighbours' by a different amount).
+BOX_X = {1: -1.2, 2: 0.0, 3: 0.9}
+ANIM_WIDTH, ANIM_HEIGHT = 48, 24
+
+
+def _settings_docs(farm) -> list:
+    with Client(farm.url, token=TOKEN, timeout=30) as client:
+        return client.http.get("/api/v1/settings").json()
+
+
+def test_animation_export_carries_and_lists(token_farm, addon_zip, tmp_path):
+    """The animation export, read from its .glb: one animation holding the whole timeline at
+    frame / fps seconds, transforms baked whatever moves them, shape keys of a mesh without
+    modifiers; and what it drops is what the scan lists (only for Animation)."""
+    result = run_driver(
+        "animation_scan",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "box_x": BOX_X,
+            "settings_docs": json.dumps(_settings_docs(token_farm)),
+        },
+        tmp_path,
+    )
+    issues = [(i["owner"], i["message"]) for i in result["issues"]]
+
+    def listed(owner: str, *words: str) -> bool:
+        return any(o == owner and all(w in m for w in words) for o, m in issues)
+
+    # Listed for Animation, and not for a Still (where the export evaluates the current frame).
+    assert listed("Object 'Lumpy'", "shape keys", "modifiers"), issues
+    assert listed("Object 'Waver'", "'Ripple' (wave)", "as at frame 0"), issues
+    assert listed("Object 'Ticker'", "'Clock' (geometry nodes using the scene time)"), issues
+    assert listed("Object 'Blinker'", "visibility"), issues
+    assert listed("Camera 'Camera'", "lens"), issues
+    assert listed("Light 'Lamp'", "energy"), issues
+    assert listed("Material 'Pulse'", "(Principled BSDF: Emission Strength)"), issues
+    assert {i["kind"] for i in result["issues"]} == {"animation"}, issues
+    for name in ("Mover", "Follower", "Blob", "Beveled"):  # carried: not listed
+        assert not any(o == f"Object '{name}'" for o, _ in issues), (name, issues)
+    assert result["still_issues"] == []
+
+    # One animation, named after the scene, for every animated node.
+    assert [a["name"] for a in result["animations"]] == ["Scene"]
+    channels = {(c["node"], c["path"]): c for c in result["animations"][0]["channels"]}
+    fps = 24.0
+    assert result["settings"]["frames"] == "1-3" and result["settings"]["fps"] == fps
+    assert "animation" not in result["settings"]
+    for key in (("Mover", "translation"), ("Follower", "translation"), ("Blob", "weights")):
+        times = channels[key]["times"]
+        np.testing.assert_allclose(times, [f / fps for f in (1, 2, 3)], rtol=1e-6)
+    # Baked translations are Blender's world positions at those frames (glTF is y up: x, z, -y).
+    for name in ("Mover", "Follower"):
+        values = channels[(name, "translation")]["values"]
+        for frame, value in zip((1, 2, 3), values, strict=True):
+            x, y, z = result["world"][str(frame)][name]
+            np.testing.assert_allclose(value, [x, z, -y], atol=1e-5)
+    np.testing.assert_allclose([v[0] for v in channels[("Mover", "translation")]["values"]],
+                               [BOX_X[f] for f in (1, 2, 3)], atol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(
+        [v[0] for v in channels[("Blob", "weights")]["values"]], [0.0, 0.5, 1.0], atol=1e-6
+    )
+    # Dropped as listed: Lumpy's mesh has no morph targets; no data animation is written.
+    assert result["morphed_nodes"] == ["Blob"]
+    assert "KHR_animation_pointer" not in result["extensions"]
+    assert {c["path"] for c in result["animations"][0]["channels"]} <= {
+        "translation", "rotation", "scale", "weights"
+    }  # fmt: skip
+    assert result["frame_after_export"] == 2
+
+    # The camera is written as at frame 0 (lens 50 mm, the first key held), not as at the
+    # current frame 2 (60 mm): horizontal fov 2 atan(sensor / 2 / lens), the image 16 x 12.
+    def yfov(lens: float) -> float:
+        return 2 * math.atan(math.tan(math.atan(result["sensor_width"] / 2 / lens)) * 12 / 16)
+
+    assert result["camera_yfov"] == pytest.approx(yfov(50.0), rel=1e-5)
+    assert abs(result["camera_yfov"] - yfov(60.0)) > 0.05
+
+    # A frame step: farm frames a-bxN, the last frame the last one Blender renders (1, 4, 7).
+    assert result["stepped_settings"]["frames"] == "1-7x3"
+    # fps_base: the exporter times frame f at f / (fps * fps_base), and the add-on sends that
+    # rate, so the farm's f / fps is the time the .glb holds for frame f.
+    ntsc = result["ntsc_settings"]["fps"]
+    assert ntsc == pytest.approx(30 * result["ntsc_fps_base"], rel=1e-12)
+    sent_times = [f / ntsc for f in (1, 2, 3)]
+    np.testing.assert_allclose(result["ntsc_times"], sent_times, rtol=1e-6)
+    playback_times = [f / (30 / result["ntsc_fps_base"]) for f in (1, 2, 3)]
+    assert abs(result["ntsc_times"][-1] - playback_times[-1]) > 1e-4  # the check can fail
+    assert any("30.03 fps" in m and "29.97 fps" in m for m in result["ntsc_issues"])
+
+
+def _centroid_x(rgb: np.ndarray) -> float:
+    """The brightness-weighted mean column (pixel centres at 0.5, 1.5, ...) of an image whose
+    only bright thing is the box."""
+    weight = rgb.sum(axis=-1)
+    weight = np.where(weight > 0.1 * weight.max(), weight, 0.0)
+    columns = np.arange(rgb.shape[1]) + 0.5
+    return float((weight.sum(axis=0) * columns).sum() / weight.sum())
+
+
+def test_animation_submit_follow_fetch(token_farm, addon_zip, tmp_path):
+    frames = sorted(BOX_X)
+    result = run_driver(
+        "animation",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "token": TOKEN,
+            "width": ANIM_WIDTH,
+            "height": ANIM_HEIGHT,
+            "box_x": BOX_X,
+            "frame_count": len(frames),
+            "settings": SETTINGS,
+            "timeout_s": 300,
+            "blend": str(tmp_path / "shot.blend"),
+            "out_dir": str(tmp_path),
+        },
+        tmp_path,
+    )
+    assert result["refresh"]["result"] == ["FINISHED"]
+    assert result["check"]["result"] == ["FINISHED"] and result["issues"] == []
+    assert any("Renders frames 1-3: 3 frames at 24 fps (farm frames 1-3)" in t
+               for t in result["panel_before"]), result["panel_before"]  # fmt: skip
+    assert result["submit"]["result"] == ["FINISHED"], result["submit"]
+    assert result["frame_after_submit"] == 2  # the export left the current frame as it was
+
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        job = client.get(result["job_id"])
+        assert job["state"] == "completed", job["error"]
+        assert job["name"] == "moving box"
+        # The scene's range 1..3 at 24 fps, whatever the farm's own fields said (7-9, 12).
+        assert job["settings"]["frames"] == "1-3"
+        assert job["settings"]["fps"] == 24.0
+        assert job["settings"]["animation"] == ""
+        for name, value in {**SETTINGS, "width": ANIM_WIDTH, "height": ANIM_HEIGHT}.items():
+            assert job["settings"][name] == value, name
+        assert job["progress"]["frames_total"] == job["progress"]["frames_done"] == 3
+        assert [f["frame"] for f in client.frames(job["id"])] == frames
+
+        progress = result["progress"]
+        assert (progress["frames_done"], progress["frames_total"]) == (3, 3)
+        assert (progress["frames"], progress["fps"]) == ("1-3", 24.0)
+        assert progress["summary"].startswith("completed, frames 3/3, tiles ")
+        if "panel_running" in result:  # unless the sequence finished between two polls
+            running = [t for t in result["panel_running"] if t.startswith("running, frames ")]
+            assert running and all("/3, tiles " in t for t in running), result["panel_running"]
+            assert any(t.startswith("Farm: moving box running, frames ")
+                       for t in result["panel_running"])  # fmt: skip
+        assert any(t.startswith("completed, frames 3/3") for t in result["panel_after"])
+
+        # Fetched: every frame's EXR into renderfarm/NAME-ID/ next to the .blend, numbered by
+        # the scene's frames, opened as one image sequence.
+        assert result["fetch"]["result"] == ["FINISHED"], result["fetch"]
+        image = result["image"]
+        assert image["name"] == "moving box"
+        assert image["source"] == "SEQUENCE" and image["type"] == "MULTILAYER"
+        directory = tmp_path / "renderfarm" / f"moving_box-{job['id'][:8]}"
+        assert Path(image["path"]) == directory / "moving_box_0001.exr"
+        assert image["files"] == [f"moving_box_{f:04d}.exr" for f in frames]
+        assert any("Image sequence 'moving box': 3 of 3 frames" in t
+                   for t in result["panel_fetched"])  # fmt: skip
+        assert any("Frames 3, Start 1, Offset 0" in t for t in result["panel_fetched"])
+        assert result["refetch"]["result"] == ["FINISHED"]
+        assert result["images_after_refetch"] == ["moving box"]
+        assert result["shifted_user"] == {
+            "frame_start": 11, "frame_offset": 10, "frame_duration": 3, "use_auto_refresh": True
+        }  # fmt: skip
+
+        farm_frames, still_frames = {}, {}
+        for f in frames:
+            (tmp_path / f"farm_{f}.exr").write_bytes(client.frame_image(job["id"], f, "exr"))
+            farm_frames[f] = read_exr(str(tmp_path / f"farm_{f}.exr"))
+            still = client.get(result["stills"][str(f)])
+            assert still["state"] == "completed" and still["settings"]["frames"] == ""
+            (tmp_path / f"still_{f}.exr").write_bytes(client.image(still["id"], "exr"))
+            still_frames[f] = read_exr(str(tmp_path / f"still_{f}.exr"))
+
+    centroids, still_centroids = {}, {}
+    for f in frames:
+        fetched = read_exr(str(directory / f"moving_box_{f:04d}.exr"))
+        read_back = read_exr(result["read_back"][str(f)])  # Blender's reading of the sequence
+        shifted = read_exr(result["shifted_read_back"][str(f)])  # ... of it renumbered 11..13
+        for c in "RGB":
+            assert farm_frames[f][c].shape == (ANIM_HEIGHT, ANIM_WIDTH)
+            np.testing.assert_array_equal(fetched[c], farm_frames[f][c])
+            np.testing.assert_array_equal(read_back[c], farm_frames[f][c])
+            np.testing.assert_array_equal(shifted[c], farm_frames[f][c])
+        centroids[f] = _centroid_x(np.stack([farm_frames[f][c] for c in "RGB"], axis=-1))
+        still_centroids[f] = _centroid_x(np.stack([still_frames[f][c] for c in "RGB"], axis=-1))
+
+    # Timing, checked two ways. Frame f of the sequence shows the box where Blender put it at
+    # frame f: (1) its image column is the one of Blender's own projection of the box's
+    # centre at frame f through the camera, and (2) the one of the still exported at frame f.
+    # The box moves 1.2 and 0.9 units between frames (several pixels): a frame off by one, or
+    # a time mapping that drifts, would put it columns away.
+    for f in frames:
+        projected = result["projected"][str(f)][0] * ANIM_WIDTH
+        assert centroids[f] == pytest.approx(projected, abs=1.0), (f, centroids, projected)
+        assert centroids[f] == pytest.approx(still_centroids[f], abs=0.25), (f, still_centroids)
+    steps = np.diff([centroids[f] for f in frames])
+    assert steps.min() > 3.0, centroids

@@ -100,6 +100,11 @@ def test_farm_image_equals_standalone_render(cornell_job, worker_binary, tmp_pat
     a, b = _rgb(farm_exr), _rgb(alone)
     assert a.shape == b.shape
     np.testing.assert_allclose(a, b, rtol=2e-7 * 4, atol=1e-7)
+    # The alpha (share of samples whose camera ray hit geometry) is a count over the same
+    # samples: equal exactly, and within [0, 1].
+    farm_alpha, alone_alpha = read_exr(str(farm_exr))["A"], read_exr(str(alone))["A"]
+    np.testing.assert_array_equal(farm_alpha, alone_alpha)
+    assert 0 <= farm_alpha.min() and farm_alpha.max() <= 1
 
 
 def test_grpc_job_service_sees_the_same_state(farm, cornell_job):

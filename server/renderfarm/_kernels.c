@@ -244,67 +244,71 @@ static PyObject *block_means(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+#define EXR_CHANNEL_COUNT 13
+
 PyDoc_STRVAR(exr_tile_doc,
-             "exr_tile(rgb_sum, lum_mean, m2, m2_extra, albedo_sum, normal_sum, height, width,\n"
-             "         samples, aov_samples, k, floor, out, out_width, x0)\n"
+             "exr_tile(rgb_sum, lum_mean, m2, m2_extra, albedo_sum, normal_sum, coverage_sum,\n"
+             "         height, width, samples, aov_samples, k, floor, out, out_width, x0)\n"
              "--\n\n"
-             "A tile's 12 EXR channels (images.EXR_CHANNELS) as float32 into a band `out` of\n"
+             "A tile's 13 EXR channels (images.EXR_CHANNELS) as float32 into a band `out` of\n"
              "out_width pixels a row, from column x0: the mean RGB, the variance of the mean\n"
              "luminance (m2 + m2_extra) * k (m2_extra may be None; m2 None: unknown, inf), the\n"
              "spp, the relative error sqrt(v) / max(mean - sqrt(v), floor), and the albedo and\n"
-             "normal means (float32 sums over aov_samples, divided in float32). The same\n"
+             "normal means (float32 sums over aov_samples, divided in float32), and the alpha\n"
+             "coverage_sum / samples (float32 counts). The same\n"
              "arithmetic as merge.py's numpy, rounded once to float32.");
 
 static PyObject *exr_tile(PyObject *self, PyObject *args) {
     (void)self;
-    PyObject *objs[7];
+    PyObject *objs[8];
     Py_ssize_t h, w, samples, aov_samples, out_width, x0;
     double k, floor_value;
-    if (!PyArg_ParseTuple(args, "OOOOOOnnnnddOnn", &objs[0], &objs[1], &objs[2], &objs[3],
-                          &objs[4], &objs[5], &h, &w, &samples, &aov_samples, &k, &floor_value,
-                          &objs[6], &out_width, &x0)) {
+    if (!PyArg_ParseTuple(args, "OOOOOOOnnnnddOnn", &objs[0], &objs[1], &objs[2], &objs[3],
+                          &objs[4], &objs[5], &objs[7], &h, &w, &samples, &aov_samples, &k,
+                          &floor_value, &objs[6], &out_width, &x0)) {
         return NULL;
     }
-    static const char *names[7] = {"rgb_sum",    "lum_mean",   "m2",  "m2_extra",
-                                   "albedo_sum", "normal_sum", "out"};
+    static const char *names[8] = {"rgb_sum",    "lum_mean",   "m2",  "m2_extra",
+                                   "albedo_sum", "normal_sum", "out", "coverage_sum"};
     if (h <= 0 || w <= 0 || samples <= 0 || aov_samples <= 0 || x0 < 0 || x0 + w > out_width) {
         PyErr_SetString(PyExc_ValueError, "exr_tile: sizes out of range");
         return NULL;
     }
-    Buffer b[7];
+    Buffer b[8];
     memset(b, 0, sizeof b);
-    for (int i = 0; i < 7; ++i) {
+    for (int i = 0; i < 8; ++i) {
         if ((i == 2 || i == 3) && objs[i] == Py_None) continue;
         if (get_buffer(objs[i], &b[i], i == 6, names[i]) != 0) {
-            release(b, 7);
+            release(b, 8);
             return NULL;
         }
     }
     const Py_ssize_t pixels = h * w;
-    const Py_ssize_t expected[7] = {24, 8, 8, 8, 12, 12, 0};
-    for (int i = 0; i < 6; ++i) {
-        if (b[i].held && b[i].view.len != expected[i] * pixels) {
+    const Py_ssize_t expected[8] = {24, 8, 8, 8, 12, 12, 0, 4};
+    for (int i = 0; i < 8; ++i) {
+        if (i != 6 && b[i].held && b[i].view.len != expected[i] * pixels) {
             PyErr_Format(PyExc_ValueError, "exr_tile: %s has %zd bytes, expected %zd", names[i],
                          b[i].view.len, expected[i] * pixels);
-            release(b, 7);
+            release(b, 8);
             return NULL;
         }
     }
-    if (b[6].view.len != 48 * out_width * h) {
-        PyErr_SetString(PyExc_ValueError, "exr_tile: out is not height x out_width x 12 floats");
-        release(b, 7);
+    if (b[6].view.len != 4 * EXR_CHANNEL_COUNT * out_width * h) {
+        PyErr_SetString(PyExc_ValueError, "exr_tile: out is not height x out_width x 13 floats");
+        release(b, 8);
         return NULL;
     }
     const double *rgb = b[0].view.buf, *mean = b[1].view.buf;
     const double *m2 = b[2].held ? b[2].view.buf : NULL, *extra = b[3].held ? b[3].view.buf : NULL;
     const float *albedo = b[4].view.buf, *normal = b[5].view.buf;
+    const float *coverage = b[7].view.buf;
     float *out = b[6].view.buf;
     const double n = (double)samples;
     const float aov_n = (float)aov_samples;
     for (Py_ssize_t y = 0; y < h; ++y) {
         for (Py_ssize_t x = 0; x < w; ++x) {
             const Py_ssize_t p = y * w + x;
-            float *o = out + (y * out_width + x0 + x) * 12;
+            float *o = out + (y * out_width + x0 + x) * EXR_CHANNEL_COUNT;
             o[0] = (float)(rgb[3 * p] / n);
             o[1] = (float)(rgb[3 * p + 1] / n);
             o[2] = (float)(rgb[3 * p + 2] / n);
@@ -323,9 +327,10 @@ static PyObject *exr_tile(PyObject *self, PyObject *args) {
                 o[6 + c] = albedo[3 * p + c] / aov_n;
                 o[9 + c] = normal[3 * p + c] / aov_n;
             }
+            o[12] = (float)((double)coverage[p] / n);
         }
     }
-    release(b, 7);
+    release(b, 8);
     Py_RETURN_NONE;
 }
 

@@ -45,7 +45,8 @@ def accumulators(seed: int = 0) -> list[tuple]:
                 acc.merge_batch(
                     rgb, rng.random(shape) * n, n,
                     rng.random((*shape, 3), dtype=np.float32) * n,
-                    rng.standard_normal((*shape, 3)).astype(np.float32) * n,
+                    rng.standard_normal((*shape, 3)).astype(np.float32) * n, 0,
+                    rng.integers(0, n + 1, shape).astype(np.float32),  # hits of n samples
                 )  # fmt: skip
         tiles.append((rect, acc))
     return tiles
@@ -61,6 +62,7 @@ def whole_frame(tiles) -> dict[str, np.ndarray]:
         "error": np.full((H, W), np.inf),
         "albedo": np.zeros((H, W, 3)),
         "normal": np.zeros((H, W, 3)),
+        "alpha": np.zeros((H, W)),
     }
     for rect, acc in tiles:
         if acc.samples == 0:
@@ -73,6 +75,7 @@ def whole_frame(tiles) -> dict[str, np.ndarray]:
         frame["error"][at] = acc.relative_error()
         frame["albedo"][at] = acc.albedo_sum / min(n, 16)
         frame["normal"][at] = acc.normal_sum / min(n, 16)
+        frame["alpha"][at] = acc.coverage_sum.astype(np.float64) / n
     return frame
 
 
@@ -139,11 +142,18 @@ def test_exr_has_every_layer_of_the_whole_frame(tmp_path):
         "variance.Y": frame["variance"], "spp": frame["spp"], "error": frame["error"],
         **{f"albedo.{c}": frame["albedo"][..., i] for i, c in enumerate("RGB")},
         **{f"normal.{c}": frame["normal"][..., i] for i, c in enumerate("XYZ")},
+        "A": frame["alpha"],
     }  # fmt: skip
     for name, values in expected.items():
         want = values.astype(np.float32)  # rounded once, from the float64 value
         assert got[name].tobytes() == want.tobytes(), name
     assert np.isinf(got["variance.Y"]).any() and (got["spp"] == 0).any()  # unmerged tiles
+    assert 0 < got["A"].mean() < 1 and got["A"].max() <= 1
+    spec = oiio.ImageInput.open(str(tmp_path / "a.exr"))
+    try:  # readers that composite know which channel is the alpha
+        assert spec.spec().channelnames[spec.spec().alpha_channel] == "A"
+    finally:
+        spec.close()
 
 
 @pytest.mark.parametrize("layer", ["rgb", "variance", "spp", "error", "albedo", "normal"])

@@ -64,8 +64,9 @@ def test_limits_are_settings():
 
 
 def test_jobs_whose_accumulators_outgrow_the_memory_limit_are_refused_naming_width():
-    # 1024 x 1024 with 64-pixel tiles: 72 bytes a pixel and 4 KB for each of the 256 tiles.
-    need = 72 * 1024 * 1024 + 4096 * 256
+    # 1024 x 1024 with 64-pixel tiles: 76 bytes a pixel (float64 RGB, mean and two M2;
+    # float32 coverage, albedo and normal) and 4 KB for each of the 256 tiles.
+    need = (8 * 6 + 4 * 7) * 1024 * 1024 + 4096 * 256
     settings = {"width": 1024, "height": 1024, "tile_size": 64}
     assert parse_settings(settings, Limits(max_job_memory_bytes=need)).width == 1024
     with pytest.raises(SettingsError) as e:
@@ -78,7 +79,7 @@ def test_jobs_whose_accumulators_outgrow_the_memory_limit_are_refused_naming_wid
 
 
 def test_the_estimate_covers_what_a_job_really_holds():
-    """72 bytes a pixel are the accumulator's arrays; 4 KB a tile bound the rest, measured
+    """76 bytes a pixel are the accumulator's arrays; 4 KB a tile bound the rest, measured
     with tracemalloc on a job whose tiles all merge batches and stop (no timing involved)."""
     import gc
     import tracemalloc

@@ -18,7 +18,7 @@ from renderfarm.infra.config import Settings
 from renderfarm.infra.images import read_exr
 
 JOB = JobSettings(width=256, height=192, tile_size=32, max_spp=8, noise_threshold=0)
-TILE_BYTES = 72 * 32 * 32
+TILE_BYTES = 76 * 32 * 32  # float64 RGB, mean, 2 M2; float32 coverage, albedo, normal
 
 
 class RecordingStore:
@@ -65,7 +65,7 @@ def merge_batches(service: FarmService, batches: int) -> None:
 
 def test_a_large_checkpoint_is_written_in_chunks_holding_every_tile(tmp_path, monkeypatch):
     store = RecordingStore()
-    service = farm(tmp_path, 1, store)  # 48 tiles of 72 KB: most of them go to the file
+    service = farm(tmp_path, 1, store)  # 48 tiles of 76 KB: most of them go to the file
     merge_batches(service, 2)
     cache = service.scheduler.cache
     job = service.scheduler.jobs["j"]

@@ -111,29 +111,42 @@ def test_between_batch_error_is_calibrated_for_independent_batches():
 
 
 ALL_ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between", "albedo_sum", "normal_sum")
+LEGACY_STATS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")  # before the coverage
 
 
 def test_checkpoint_round_trip():
     rng = np.random.default_rng(5)
     acc = TileAccumulator(W, H)
+    hits = np.zeros((H, W))
     for samples in _batches(rng, 20):
         aov = rng.random((H, W, 3)).astype(np.float32)
-        acc.merge_batch(*_batch_payload(samples), aov, -aov)
+        batch_hits = rng.integers(0, samples.shape[0] + 1, (H, W)).astype(np.float32)
+        hits += batch_hits
+        acc.merge_batch(*_batch_payload(samples), aov, -aov, 0, batch_hits)
     assert np.any(acc.albedo_sum != 0) and np.any(acc.normal_sum != 0)
+    # The alpha is the share of samples that hit: the hits summed over batches / samples.
+    np.testing.assert_array_equal(acc.mean_alpha(), hits / 20)
     back = TileAccumulator.from_bytes(
         W, H, acc.to_bytes(), acc.samples, acc.batches, aovs=acc.aovs_to_bytes()
     )
-    for name in ALL_ARRAYS:
+    for name in (*ALL_ARRAYS, "coverage_sum"):
         np.testing.assert_array_equal(getattr(back, name), getattr(acc, name))
     # Without the AOV blob: statistics restored, AOVs zero.
     bare = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches)
     np.testing.assert_array_equal(bare.rgb_sum, acc.rgb_sum)
     assert not np.any(bare.albedo_sum)
-    # The format before the AOVs were split off: all six arrays in one blob.
+    # The format before the AOVs were split off: all six arrays in one blob, float64; and the
+    # split format before the coverage. Both restore fully covered (alpha 1).
     legacy = b"".join(getattr(acc, name).astype("<f8").tobytes() for name in ALL_ARRAYS)
     old = TileAccumulator.from_bytes(W, H, legacy, acc.samples, acc.batches)
     for name in ALL_ARRAYS:
         np.testing.assert_array_equal(getattr(old, name), getattr(acc, name))
+    assert (old.mean_alpha() == 1).all()
+    split = b"".join(getattr(acc, name).astype("<f8").tobytes() for name in LEGACY_STATS)
+    old = TileAccumulator.from_bytes(W, H, split, acc.samples, acc.batches)
+    for name in LEGACY_STATS:
+        np.testing.assert_array_equal(getattr(old, name), getattr(acc, name))
+    assert (old.mean_alpha() == 1).all()
     with pytest.raises(ValueError):
         TileAccumulator.from_bytes(W, H, acc.to_bytes()[:-8], 1, 1)
     with pytest.raises(ValueError):

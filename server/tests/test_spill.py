@@ -17,7 +17,8 @@ ARRAYS = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
 SETTINGS = JobSettings(
     width=72, height=40, tile_size=16, noise_threshold=0.01, min_spp=4, max_spp=128
 )
-TILE_BYTES = 72 * 16 * 16  # one full tile's accumulators
+PIXEL = 76  # bytes of a pixel's accumulators (float64 RGB, mean, 2 M2; float32 coverage, AOVs)
+TILE_BYTES = PIXEL * 16 * 16  # one full tile's accumulators
 
 
 def with_aovs(result):
@@ -124,7 +125,7 @@ def test_checkpoint_bytes_of_an_evicted_tile_are_those_of_the_tile(tmp_path):
     cache.register("j", merged_acc(rng), 16)
     assert not acc.resident
     got_stats = TileAccumulator.snapshot_bytes(acc.snapshot())
-    got_aovs = TileAccumulator.snapshot_bytes(acc.aov_snapshot(), "<f4")
+    got_aovs = TileAccumulator.snapshot_bytes(acc.aov_snapshot())
     assert (bytes(got_stats), bytes(got_aovs)) == want
 
 
@@ -147,7 +148,7 @@ def fd_count() -> int:
 
 def test_forgetting_a_job_removes_its_file_and_frees_its_ram(tmp_path):
     rng = np.random.default_rng(4)
-    cache = TileCache(tmp_path / "scratch", budget_bytes=2 * 72 * 16 * 8)
+    cache = TileCache(tmp_path / "scratch", budget_bytes=2 * PIXEL * 16 * 8)
     fds = fd_count()
     for job in ("a", "b"):
         for _ in range(4):
@@ -179,13 +180,13 @@ def test_a_removed_file_stays_readable_for_snapshots_taken_before(tmp_path):
 
 def test_finished_jobs_give_their_ram_back_a_chunk_at_a_time(tmp_path):
     rng = np.random.default_rng(7)
-    cache = TileCache(tmp_path, budget_bytes=5 * 72 * 16 * 8)
+    cache = TileCache(tmp_path, budget_bytes=5 * PIXEL * 16 * 8)
     for _ in range(8):  # three of them spill
         cache.register("j", merged_acc(rng), 16)
-    assert cache.resident_bytes == 5 * 72 * 16 * 8
-    assert cache.evict_job("j", limit_bytes=2 * 72 * 16 * 8)  # more is left
-    assert cache.resident_bytes == 3 * 72 * 16 * 8
-    assert not cache.evict_job("j", limit_bytes=10 * 72 * 16 * 8)
+    assert cache.resident_bytes == 5 * PIXEL * 16 * 8
+    assert cache.evict_job("j", limit_bytes=2 * PIXEL * 16 * 8)  # more is left
+    assert cache.resident_bytes == 3 * PIXEL * 16 * 8
+    assert not cache.evict_job("j", limit_bytes=10 * PIXEL * 16 * 8)
     assert cache.resident_bytes == 0
     assert not cache.evict_job("never-spilled", limit_bytes=1)
 

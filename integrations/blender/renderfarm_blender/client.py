@@ -162,3 +162,13 @@ class FarmClient:
     def image_exr(self, job_id: str) -> bytes:
         """GET /api/v1/jobs/{id}/image.exr: the multi-layer OpenEXR (colour and AOVs)."""
         return self._request("GET", f"/api/v1/jobs/{urllib.parse.quote(job_id, safe='')}/image.exr")
+
+    def frames(self, job_id: str) -> list[dict[str, Any]]:
+        """GET /api/v1/jobs/{id}/frames: every frame with its state (queued, rendering, done),
+        in frame order."""
+        return self._json("GET", f"/api/v1/jobs/{urllib.parse.quote(job_id, safe='')}/frames")
+
+    def frame_exr(self, job_id: str, frame: int) -> bytes:
+        """GET /api/v1/jobs/{id}/frames/{n}/image.exr: one frame's multi-layer OpenEXR."""
+        quoted = urllib.parse.quote(job_id, safe="")
+        return self._request("GET", f"/api/v1/jobs/{quoted}/frames/{int(frame)}/image.exr")

@@ -17,6 +17,10 @@ KINDS = ("int", "float", "str", "bool")
 _CHOICES = re.compile(r":\s*([a-z0-9_]+(?:,\s*[a-z0-9_]+)+)\s*$", re.IGNORECASE)
 # Set from the Blender scene rather than by hand (see scene_overrides).
 RESOLUTION = ("width", "height")
+# Set by the add-on's Still / Animation choice: a still sends none of them, an animation sends
+# the scene's frame range and frame rate (its export holds one animation, so `animation` stays
+# empty: every animation plays).
+SEQUENCE = ("frames", "fps", "animation")
 
 
 def choices(doc: dict[str, Any]) -> list[str]:
@@ -92,3 +96,15 @@ def scene_overrides(docs: list[dict[str, Any]], width: int, height: int) -> dict
     the exported camera's field of view follows the scene's aspect ratio."""
     names = {d["name"] for d in docs}
     return {k: v for k, v in (("width", width), ("height", height)) if k in names}
+
+
+def sequence_overrides(docs: list[dict[str, Any]], frames: str, fps: float) -> dict[str, Any]:
+    """frames and fps of an animation submission; ValueError when the farm has no `frames`
+    setting (a farm that renders stills only)."""
+    names = {d["name"] for d in docs}
+    if "frames" not in names or "fps" not in names:
+        raise ValueError(
+            "this farm renders stills only (its settings have no frames and fps): "
+            "choose Still, or update the farm"
+        )
+    return {"frames": frames, "fps": float(fps)}

@@ -25,7 +25,7 @@ def refresh_settings(context) -> None:
 
 
 def check_scene(scene) -> list[scan.Issue]:
-    issues = scan.scan(scene)
+    issues = scan.scan(scene, animation=scene.renderfarm.render_mode == "ANIMATION")
     rf = scene.renderfarm
     rf.issues.clear()
     for issue in issues:
@@ -106,17 +106,23 @@ class RENDERFARM_OT_check_scene(bpy.types.Operator):
         return {"FINISHED"}
 
 
-def _default_job_name(scene, frame: int) -> str:
+def _default_job_name(scene, what: str) -> str:
     blend = os.path.splitext(os.path.basename(bpy.data.filepath))[0] or "untitled"
-    return f"{blend} {scene.name} frame {frame}"
+    return f"{blend} {scene.name} {what}"
+
+
+def _fail(op, rf, e) -> set:
+    rf.status = e.report() if isinstance(e, FarmError) else str(e)
+    op.report({"ERROR"}, f"Render farm: {rf.status}")
+    return {"CANCELLED"}
 
 
 class RENDERFARM_OT_submit(bpy.types.Operator):
     bl_idname = "renderfarm.submit"
     bl_label = "Submit to farm"
     bl_description = (
-        "Export the scene at the current frame with Blender's glTF exporter and submit it "
-        "to the farm as a job"
+        "Export the scene with Blender's glTF exporter (the current frame, or for Animation "
+        "the frame range with its animation baked) and submit it to the farm as a job"
     )
 
     @classmethod
@@ -127,41 +133,46 @@ class RENDERFARM_OT_submit(bpy.types.Operator):
         scene = context.scene
         rf = scene.renderfarm
         if scene.camera is None:
-            rf.status = f"scene '{scene.name}' has no active camera"
-            self.report({"ERROR"}, f"Render farm: {rf.status}")
-            return {"CANCELLED"}
+            return _fail(self, rf, export.ExportError(f"scene '{scene.name}' has no active camera"))
         try:
             client = _client(context)
             if not rf.settings_json or rf.settings_url != client.url:
                 rf.load_docs(client.settings(), client.url)  # first use on this farm
+            settings = rf.job_settings(scene)
         except (FarmError, ValueError) as e:
-            rf.status = e.report() if isinstance(e, FarmError) else str(e)
-            self.report({"ERROR"}, f"Render farm: {rf.status}")
-            return {"CANCELLED"}
+            return _fail(self, rf, e)
         issues = check_scene(scene)
         for issue in issues:
             self.report({"WARNING"}, f"Not rendered by the farm: {issue.text()}")
-        settings = rf.job_settings(scene)
-        submitted = []
-        for frame in export.frames_to_submit(scene):
-            try:
-                glb = export.export_frame(scene, frame)
-                name = rf.job_name.strip() or _default_job_name(scene, frame)
-                job = client.submit(glb, f"{bpy.path.clean_name(scene.name)}.glb", settings, name)
-            except (export.ExportError, FarmError) as e:
-                rf.status = e.report() if isinstance(e, FarmError) else str(e)
-                self.report({"ERROR"}, f"Render farm: {rf.status}")
-                return {"CANCELLED"} if not submitted else {"FINISHED"}
-            entry = rf.jobs.add()
-            entry.name = str(job.get("name") or name)
-            entry.job_id = str(job["id"])
-            entry.farm_url = client.url
-            entry.frame = frame
-            watch.apply_job(entry, job)
-            rf.active_job = len(rf.jobs) - 1
-            watch.watch(client, entry.job_id)
-            submitted.append(entry.job_id)
-        rf.status = f"submitted job {submitted[-1]} (frame {scene.frame_current})"
+        sequence = rf.render_mode == "ANIMATION"
+        if sequence:
+            first, last, step = export.frame_range(scene)
+            what = f"frames {settings['frames']}"
+            described = (
+                f"frames {settings['frames']}, {export.frame_count(first, last, step)} frames "
+                f"at {settings['fps']:g} fps"
+            )
+        else:
+            first = scene.frame_current
+            what = described = f"frame {first}"
+        name = rf.job_name.strip() or _default_job_name(scene, what)
+        try:
+            glb = export.export_animation(scene) if sequence else export.export_frame(scene, first)
+            job = client.submit(glb, f"{bpy.path.clean_name(scene.name)}.glb", settings, name)
+        except (export.ExportError, FarmError) as e:
+            return _fail(self, rf, e)
+        entry = rf.jobs.add()
+        entry.name = str(job.get("name") or name)
+        entry.job_id = str(job["id"])
+        entry.farm_url = client.url
+        entry.frame = first
+        entry.frame_last = last if sequence else first
+        entry.frames = settings.get("frames", "") if sequence else ""
+        entry.fps = settings.get("fps", 0.0) if sequence else 0.0
+        watch.apply_job(entry, job)
+        rf.active_job = len(rf.jobs) - 1
+        watch.watch(client, entry.job_id)
+        rf.status = f"submitted job {entry.job_id} ({described})"
         if issues:
             rf.status += f"; {len(issues)} thing(s) will not render as in Blender"
         self.report({"INFO"}, f"Render farm: {rf.status}")
@@ -193,24 +204,72 @@ class RENDERFARM_OT_cancel(bpy.types.Operator):
         return {"FINISHED"}
 
 
-def result_path(entry) -> str:
-    """Where a job's EXR is written: `renderfarm/` next to the saved .blend, else the
-    temporary directory."""
-    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", entry.name).strip("._") or "job"
-    filename = f"{safe}-{entry.job_id[:8]}.exr"
+def _safe_name(entry) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", entry.name).strip("._") or "job"
+
+
+def _results_directory() -> str:
+    """`renderfarm/` next to the saved .blend, else in the temporary directory."""
     if bpy.data.filepath:
-        directory = os.path.join(os.path.dirname(bpy.data.filepath), "renderfarm")
-    else:
-        directory = os.path.join(tempfile.gettempdir(), "renderfarm")
-    return os.path.join(directory, filename)
+        return os.path.join(os.path.dirname(bpy.data.filepath), "renderfarm")
+    return os.path.join(tempfile.gettempdir(), "renderfarm")
+
+
+def result_path(entry) -> str:
+    """Where a still job's EXR is written: renderfarm/NAME-ID.exr."""
+    return os.path.join(_results_directory(), f"{_safe_name(entry)}-{entry.job_id[:8]}.exr")
+
+
+def sequence_path(entry, frame: int, digits: int) -> str:
+    """Where a frame of a sequence job is written: renderfarm/NAME-ID/NAME_0001.exr, the frame
+    number zero-padded to `digits` (Blender's #### convention, so Blender reads the files as an
+    image sequence numbered by the scene's frames)."""
+    safe = _safe_name(entry)
+    directory = os.path.join(_results_directory(), f"{safe}-{entry.job_id[:8]}")
+    return os.path.join(directory, f"{safe}_{frame:0{digits}d}.exr")
+
+
+def sequence_user(first: int, last: int) -> dict:
+    """The image-user settings (Image Editor sidebar > Image: Frames, Start, Offset) under which
+    scene frame f shows the sequence's file of frame f, for files first..last: Blender shows
+    file (f - Start + 1) + Offset while Start <= f < Start + Frames."""
+    return {
+        "frame_start": first,
+        "frame_offset": first - 1,
+        "frame_duration": last - first + 1,
+        "use_auto_refresh": True,
+    }
+
+
+def _show_sequence(context, image, first: int, last: int) -> None:
+    """Image Editors that show the image, or show nothing, show it as the sequence, following
+    the scene's frame."""
+    for window in getattr(context.window_manager, "windows", ()):
+        for area in window.screen.areas:
+            if area.type != "IMAGE_EDITOR":
+                continue
+            space = area.spaces.active
+            if space.image is not None and space.image != image:
+                continue
+            space.image = image
+            for key, value in sequence_user(first, last).items():
+                setattr(space.image_user, key, value)
+            area.tag_redraw()
+
+
+def _write(path: str, data: bytes) -> None:
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "wb") as f:
+        f.write(data)
 
 
 class RENDERFARM_OT_fetch(bpy.types.Operator):
     bl_idname = "renderfarm.fetch"
     bl_label = "Fetch result"
     bl_description = (
-        "Download the job's multi-layer EXR (colour, albedo, normal, variance, spp, error) "
-        "and open it as an image named after the job"
+        "Download the job's multi-layer EXR (colour, albedo, normal, variance, spp, error), or "
+        "every finished frame's of a sequence, and open it as an image named after the job "
+        "(an image sequence for Animation)"
     )
 
     @classmethod
@@ -220,12 +279,11 @@ class RENDERFARM_OT_fetch(bpy.types.Operator):
 
     def execute(self, context):
         entry = context.scene.renderfarm.current_job()
+        if entry.frames:
+            return self.fetch_sequence(context, entry)
         path = result_path(entry)
         try:
-            data = _job_client(context, entry).image_exr(entry.job_id)
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            with open(path, "wb") as f:
-                f.write(data)
+            _write(path, _job_client(context, entry).image_exr(entry.job_id))
         except FarmError as e:
             self.report({"ERROR"}, f"Render farm: {e.report()}")
             return {"CANCELLED"}
@@ -241,6 +299,53 @@ class RENDERFARM_OT_fetch(bpy.types.Operator):
         entry.image_name, entry.image_path = image.name, path
         partial = "" if entry.state == "completed" else f" (job {entry.state}: partial image)"
         self.report({"INFO"}, f"Render farm: image '{image.name}' from {path}{partial}")
+        return {"FINISHED"}
+
+    def fetch_sequence(self, context, entry):
+        client = _job_client(context, entry)
+        path = ""
+        try:
+            frames = client.frames(entry.job_id)
+            numbers = [int(f["frame"]) for f in frames]
+            done = [int(f["frame"]) for f in frames if f.get("state") == "done"]
+            if not done:
+                self.report(
+                    {"ERROR"},
+                    f"Render farm: no frame of the sequence is finished yet "
+                    f"(0 of {len(numbers)} done)",
+                )
+                return {"CANCELLED"}
+            digits = max(4, len(str(max(numbers))))
+            for frame in done:
+                path = sequence_path(entry, frame, digits)
+                _write(path, client.frame_exr(entry.job_id, frame))
+        except FarmError as e:
+            self.report({"ERROR"}, f"Render farm: {e.report()}")
+            return {"CANCELLED"}
+        except OSError as e:
+            self.report({"ERROR"}, f"Render farm: cannot write {path}: {e}")
+            return {"CANCELLED"}
+        first_path = sequence_path(entry, done[0], digits)
+        image = bpy.data.images.get(entry.image_name) if entry.image_name else None
+        if image is not None and os.path.dirname(bpy.path.abspath(image.filepath)) == (
+            os.path.dirname(first_path)
+        ):
+            # Fetched before: the same image, its first file perhaps an earlier frame now.
+            image.filepath = first_path
+            image.reload()
+        else:
+            image = bpy.data.images.load(first_path, check_existing=False)
+            image.name = entry.name
+        image.source = "SEQUENCE"
+        _show_sequence(context, image, numbers[0], numbers[-1])
+        entry.image_name, entry.image_path = image.name, first_path
+        entry.frames_fetched = len(done)
+        partial = "" if len(done) == len(numbers) else f" ({len(numbers) - len(done)} not done yet)"
+        self.report(
+            {"INFO"},
+            f"Render farm: image sequence '{image.name}', {len(done)} of {len(numbers)} frames "
+            f"in {os.path.dirname(first_path)}{partial}",
+        )
         return {"FINISHED"}
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import export, props
+from . import export, jobsettings, operators, props
 
 _STATE_ICONS = {
     "queued": "SORTTIME",
@@ -33,6 +33,26 @@ def _draw_setting(layout, item, enabled: bool) -> None:
         row.prop(item, "str_value", text=label)
     op = row.operator("renderfarm.setting_help", text="", icon="INFO", emboss=False)
     op.setting = item.name
+
+
+def describe_submission(scene) -> list[str]:
+    """What Submit renders, in the panel's words."""
+    if scene.renderfarm.render_mode != "ANIMATION":
+        return [f"Renders the current frame only (frame {export.frames_to_submit(scene)[0]})"]
+    first, last, step = export.frame_range(scene)
+    count = export.frame_count(first, last, step)
+    every = f", every {step}" if step > 1 else ""
+    farm = export.farm_frames(first, last, step)
+    lines = [
+        f"Renders frames {first}-{last}{every}: {count} frame{'s' * (count != 1)} "
+        f"at {export.playback_fps(scene):.4g} fps (farm frames {farm})"
+    ]
+    if abs(export.exporter_fps(scene) - export.playback_fps(scene)) > 1e-6:
+        lines.append(
+            f"The glTF export times frames at {export.exporter_fps(scene):.4g} fps: the farm "
+            "renders Blender's frames, its preview movie plays at that rate"
+        )
+    return lines
 
 
 class RENDER_PT_renderfarm(bpy.types.Panel):
@@ -65,7 +85,9 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
             box.prop(rf, "job_name")
             box.prop(rf, "use_scene_resolution")
             for item in rf.settings:
-                resolution = item.name in ("width", "height")
+                if item.name in jobsettings.SEQUENCE:
+                    continue  # set by Still / Animation below
+                resolution = item.name in jobsettings.RESOLUTION
                 _draw_setting(box, item, not (resolution and rf.use_scene_resolution))
             box.operator("renderfarm.reset_settings", icon="LOOP_BACK")
 
@@ -85,11 +107,13 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
                 "(Submit reports them all in the Info log)"
             )
 
-        frames = export.frames_to_submit(scene)
         col = layout.column()
-        col.label(text=f"Renders the current frame only (frame {frames[0]}); no frame ranges yet")
-        col.scale_y = 1.3
-        col.operator("renderfarm.submit", icon="EXPORT")
+        col.row().prop(rf, "render_mode", expand=True)
+        for line in describe_submission(scene):
+            col.label(text=line)
+        row = layout.row()
+        row.scale_y = 1.3
+        row.operator("renderfarm.submit", icon="EXPORT")
 
         entry = rf.current_job()
         if entry is not None:
@@ -104,7 +128,18 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
             row = box.row()
             row.operator("renderfarm.cancel", icon="CANCEL")
             row.operator("renderfarm.fetch", icon="IMAGE_DATA")
-            if entry.image_name:
+            if entry.image_name and entry.frames:
+                user = operators.sequence_user(entry.frame, entry.frame_last)
+                box.label(
+                    text=f"Image sequence '{entry.image_name}': {entry.frames_fetched} of "
+                    f"{entry.frames_total} frames",
+                    icon="IMAGE",
+                )
+                box.label(
+                    text=f"Image Editor sidebar > Image: Frames {user['frame_duration']}, "
+                    f"Start {user['frame_start']}, Offset {user['frame_offset']}, Auto Refresh"
+                )
+            elif entry.image_name:
                 box.label(text=f"Image '{entry.image_name}'", icon="IMAGE")
         if rf.status:
             layout.label(text=rf.status)

@@ -17,7 +17,7 @@ from bpy.props import (
     StringProperty,
 )
 
-from . import jobsettings
+from . import export, jobsettings
 
 DEFAULT_URL = "http://127.0.0.1:8080"
 
@@ -154,7 +154,13 @@ class RenderfarmJob(bpy.types.PropertyGroup):
 
     job_id: StringProperty()
     farm_url: StringProperty(description="the farm the job was submitted to")
-    frame: IntProperty()
+    frame: IntProperty(description="the frame of a still; the first frame of a sequence")
+    frames: StringProperty(description="a sequence's frames in the farm's syntax; empty: a still")
+    fps: FloatProperty(description="a sequence's frames per second, as sent to the farm")
+    frame_last: IntProperty(description="the last frame of a sequence")
+    frames_total: IntProperty()
+    frames_fetched: IntProperty(description="the frames of a sequence last fetched")
+    frames_done: IntProperty()
     state: StringProperty(default="queued")
     message: StringProperty(description="the farm's error, or why the job cannot be followed")
     tiles_done: IntProperty()
@@ -170,10 +176,14 @@ class RenderfarmJob(bpy.types.PropertyGroup):
     def progress(self) -> float:
         if self.state == "completed":
             return 1.0
-        return self.tiles_done / self.tiles_total if self.tiles_total else 0.0
+        if self.tiles_total:
+            return self.tiles_done / self.tiles_total
+        return self.frames_done / self.frames_total if self.frames and self.frames_total else 0.0
 
     def summary(self) -> str:
         text = f"{self.state}"
+        if self.frames and self.frames_total:
+            text += f", frames {self.frames_done}/{self.frames_total}"
         if self.tiles_total:
             text += f", tiles {self.tiles_done}/{self.tiles_total}, {self.mean_spp:.0f} spp"
         if self.state == "running" and self.eta_s >= 0:
@@ -182,6 +192,20 @@ class RenderfarmJob(bpy.types.PropertyGroup):
 
 
 class RenderfarmSceneSettings(bpy.types.PropertyGroup):
+    render_mode: EnumProperty(
+        name="Render",
+        description="What a submission renders",
+        items=(
+            ("STILL", "Still", "The current frame, as one image"),
+            (
+                "ANIMATION",
+                "Animation",
+                "The scene's frame range (Output properties: Frame Start, End and Step) as a "
+                "sequence of frames, from one export with the animation baked",
+            ),
+        ),
+        default="STILL",
+    )
     url_override: StringProperty(
         name="Farm URL (this scene)",
         description="A farm for this scene only; empty uses the add-on's preferences",
@@ -237,10 +261,13 @@ class RenderfarmSceneSettings(bpy.types.PropertyGroup):
             s.set_value(s.default())
 
     def job_settings(self, scene) -> dict:
-        """What a submission sends: the settings changed from the farm's defaults, and the
-        scene's resolution when use_scene_resolution is on."""
+        """What a submission sends: the settings changed from the farm's defaults, the scene's
+        resolution when use_scene_resolution is on, and for an animation the scene's frames and
+        frame rate (ValueError if the farm renders stills only)."""
         docs = self.docs()
         values = {s.name: s.value() for s in self.settings}
+        for name in jobsettings.SEQUENCE:
+            values.pop(name, None)
         if self.use_scene_resolution:
             for name in jobsettings.RESOLUTION:
                 values.pop(name, None)
@@ -250,6 +277,9 @@ class RenderfarmSceneSettings(bpy.types.PropertyGroup):
             width = max(1, round(r.resolution_x * r.resolution_percentage / 100))
             height = max(1, round(r.resolution_y * r.resolution_percentage / 100))
             out.update(jobsettings.scene_overrides(docs, width, height))
+        if self.render_mode == "ANIMATION":
+            frames = export.farm_frames(*export.frame_range(scene))
+            out.update(jobsettings.sequence_overrides(docs, frames, export.exporter_fps(scene)))
         return out
 
     def current_job(self):

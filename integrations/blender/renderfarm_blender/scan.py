@@ -69,7 +69,7 @@ _OBJECT_TYPES_DROPPED = {
 
 @dataclass(frozen=True)
 class Issue:
-    kind: str  # material, volume, hair, object, light, camera, world, render
+    kind: str  # material, volume, hair, object, light, camera, world, render, animation
     owner: str  # the data-block's name, as the artist sees it in Blender
     message: str
 
@@ -263,15 +263,220 @@ def _world_issues(world) -> list[Issue]:
     ]
 
 
-def scan(scene) -> list[Issue]:
-    """Everything the farm will not render of `scene` as Blender would, in a stable order."""
+# What an animation export (export.ANIMATION_OPTIONS: "SCENE" mode, modifiers applied) carries
+# and drops. It bakes every object's transform, every bone and the shape-key weights of meshes
+# without modifiers at every frame, whatever moves them (keys, drivers, constraints, parents,
+# rigid bodies). It writes each mesh once, evaluated at frame 0: a mesh whose modifiers change
+# over time keeps its frame-0 shape, and a mesh with modifiers loses its shape keys (the
+# evaluated mesh has none, so its shape-key animation does not play). Data animation (camera
+# lens, light power, material values) would be KHR_animation_pointer, which the export leaves
+# off and the farm ignores; visibility and camera switches at markers have no glTF form.
+
+# Modifiers that change the mesh from frame to frame by themselves (simulations and caches).
+_TIME_MODIFIERS = {
+    "CLOTH": "cloth simulation",
+    "SOFT_BODY": "soft body simulation",
+    "FLUID": "fluid simulation",
+    "DYNAMIC_PAINT": "dynamic paint",
+    "OCEAN": "ocean",
+    "WAVE": "wave",
+    "EXPLODE": "explode",
+    "MESH_CACHE": "mesh cache",
+    "MESH_SEQUENCE_CACHE": "mesh sequence cache",
+    "PARTICLE_INSTANCE": "particle instance",
+}
+# Geometry-nodes nodes whose output follows the scene's time.
+_TIME_NODES = frozenset(
+    {"GeometryNodeInputSceneTime", "GeometryNodeSimulationInput", "GeometryNodeSimulationOutput"}
+)
+
+
+def _animated_paths(idblock) -> list[str]:
+    """The data paths animated on an ID (keyframes of its action, NLA strips' actions, drivers)."""
+    anim = getattr(idblock, "animation_data", None) if idblock is not None else None
+    if anim is None:
+        return []
+    paths: list[str] = []
+    actions = [anim.action] + [s.action for t in anim.nla_tracks for s in t.strips]
+    for action in actions:
+        if action is None:
+            continue
+        for fc in _action_fcurves(action, anim):
+            paths.append(fc.data_path)
+    paths.extend(d.data_path for d in anim.drivers)
+    return list(dict.fromkeys(paths))
+
+
+def _action_fcurves(action, anim):
+    """An action's F-curves: a layered action's (Blender 4.4+) of the slot the ID uses, else the
+    legacy list."""
+    layers = getattr(action, "layers", None)
+    if layers:
+        slot = getattr(anim, "action_slot", None)
+        for layer in layers:
+            for strip in layer.strips:
+                for bag in getattr(strip, "channelbags", ()):
+                    if slot is None or bag.slot == slot:
+                        yield from bag.fcurves
+        return
+    yield from getattr(action, "fcurves", ())
+
+
+def _moves(obj) -> bool:
+    """The object's transform can change over the frames (keys, drivers, constraints)."""
+    paths = _animated_paths(obj)
+    transform = ("location", "rotation", "scale", "delta_", "matrix")
+    return any(p.startswith(transform) for p in paths) or len(obj.constraints) > 0
+
+
+def _tree_uses_time(tree, seen=None) -> bool:
+    seen = set() if seen is None else seen
+    if tree is None or tree.name in seen:
+        return False
+    seen.add(tree.name)
+    for node in tree.nodes:
+        if node.bl_idname in _TIME_NODES:
+            return True
+        if node.bl_idname == "GeometryNodeGroup" and _tree_uses_time(node.node_tree, seen):
+            return True
+    return bool(_animated_paths(tree))
+
+
+def _socket_paths(tree) -> list[str]:
+    """A node tree's animated paths, a node's input named as the artist sees it
+    (`Principled BSDF: Emission Strength` for nodes["Principled BSDF"].inputs[28].default_value)."""
+    named = []
+    for path in _animated_paths(tree):
+        owner, _, prop = path.rpartition(".")
+        try:
+            socket = tree.path_resolve(owner) if owner else None
+        except ValueError:
+            socket = None
+        if socket is not None and hasattr(socket, "node") and prop == "default_value":
+            named.append(f"{socket.node.label or socket.node.name}: {socket.name}")
+        else:
+            named.append(path)
+    return named
+
+
+def _short(paths: list[str]) -> str:
+    shown = ", ".join(paths[:3])
+    return shown + (f" and {len(paths) - 3} more" if len(paths) > 3 else "")
+
+
+def _animation_issues(scene, objects, materials) -> list[Issue]:
     issues: list[Issue] = []
+    for obj in objects:
+        owner = f"Object '{obj.name}'"
+        paths = _animated_paths(obj)
+        if any(p in ("hide_render", "hide_viewport") for p in paths):
+            issues.append(
+                Issue(
+                    "animation",
+                    owner,
+                    "animated visibility is not exported: the object is shown (or hidden) on "
+                    "every frame as at frame 0",
+                )
+            )
+        modifiers = [m for m in getattr(obj, "modifiers", ()) if m.show_viewport]
+        if obj.type == "MESH" and modifiers:
+            key = obj.data.shape_keys
+            if key is not None and _animated_paths(key):
+                issues.append(
+                    Issue(
+                        "animation",
+                        owner,
+                        "shape keys of a mesh with modifiers are not exported (the export "
+                        "applies the modifiers): its shape-key animation does not play",
+                    )
+                )
+        why = []
+        for m in modifiers:
+            if m.type in _TIME_MODIFIERS:
+                why.append(f"'{m.name}' ({_TIME_MODIFIERS[m.type]})")
+            elif m.type == "NODES" and _tree_uses_time(m.node_group):
+                why.append(f"'{m.name}' (geometry nodes using the scene time)")
+            elif any(p.startswith(f'modifiers["{m.name}"]') for p in paths):
+                why.append(f"'{m.name}' (animated settings)")
+            elif m.type != "ARMATURE":
+                for prop in m.bl_rna.properties:
+                    if prop.type != "POINTER" or getattr(prop, "fixed_type", None) is None:
+                        continue
+                    if prop.fixed_type.identifier != "Object":
+                        continue
+                    other = getattr(m, prop.identifier, None)
+                    if other is not None and other != obj and _moves(other):
+                        why.append(f"'{m.name}' (follows '{other.name}', which moves)")
+                        break
+        if why:
+            issues.append(
+                Issue(
+                    "animation",
+                    owner,
+                    f"modifier {', '.join(why)} changes the mesh over time: the export writes "
+                    "the mesh once, as at frame 0 (only transforms, bones and shape keys animate)",
+                )
+            )
+        if obj.type in ("LIGHT", "CAMERA") and (obj.type == "LIGHT" or obj == scene.camera):
+            data_paths = _animated_paths(obj.data)
+            if data_paths:
+                what = "light" if obj.type == "LIGHT" else "camera"
+                issues.append(
+                    Issue(
+                        "animation",
+                        f"{what.capitalize()} '{obj.name}'",
+                        f"the {what}'s animated settings ({_short(data_paths)}) are not exported: "
+                        "every frame has them as at frame 0",
+                    )
+                )
+    for mat in materials:
+        mat_paths = _animated_paths(mat) + (_socket_paths(mat.node_tree) if mat.node_tree else [])
+        if mat_paths:
+            issues.append(
+                Issue(
+                    "animation",
+                    f"Material '{mat.name}'",
+                    f"animated material values ({_short(mat_paths)}) are not exported: every "
+                    "frame has them as at frame 0",
+                )
+            )
+    start, end = scene.frame_start, scene.frame_end
+    bound = [m for m in scene.timeline_markers if m.camera is not None and m.frame <= end]
+    if len({m.camera.name for m in bound}) > 1 or any(m.frame > start for m in bound):
+        cam = scene.camera.name if scene.camera is not None else "the active camera"
+        issues.append(
+            Issue(
+                "animation",
+                f"Scene '{scene.name}'",
+                f"camera switches at markers are not exported: every frame renders through '{cam}'",
+            )
+        )
+    r = scene.render
+    if abs(r.fps_base - 1.0) > 1e-6:
+        issues.append(
+            Issue(
+                "animation",
+                f"Scene '{scene.name}'",
+                f"Blender plays {r.fps / r.fps_base:.4g} fps, but the glTF export times frames "
+                f"at {r.fps * r.fps_base:.4g} fps: the farm renders Blender's frames, and its "
+                "preview movie plays at the export's rate",
+            )
+        )
+    return issues
+
+
+def scan(scene, animation: bool = False) -> list[Issue]:
+    """Everything the farm will not render of `scene` as Blender would, in a stable order;
+    with `animation`, also what the animation export does not carry."""
+    issues: list[Issue] = []
+    exported = []
     materials = []
     seen_materials = set()
     soft_lights = []
     for obj in sorted(scene.objects, key=lambda o: o.name):
         if obj.hide_render or all(c.hide_render for c in obj.users_collection):
             continue  # not exported (the export keeps renderable objects only)
+        exported.append(obj)
         if obj.type in _OBJECT_TYPES_DROPPED:
             kind = {"VOLUME": "volume", "CURVES": "hair"}.get(obj.type, "object")
             issues.append(Issue(kind, f"Object '{obj.name}'", _OBJECT_TYPES_DROPPED[obj.type]))
@@ -336,12 +541,14 @@ def scan(scene) -> list[Issue]:
                 )
             )
     issues.extend(_world_issues(scene.world))
+    if animation:
+        issues.extend(_animation_issues(scene, exported, sorted(materials, key=lambda m: m.name)))
     if scene.render.use_motion_blur:
         issues.append(
             Issue(
                 "render",
                 f"Scene '{scene.name}'",
-                "motion blur is not rendered (the farm renders a still frame)",
+                "motion blur is not rendered (each frame is rendered at one instant)",
             )
         )
     return issues

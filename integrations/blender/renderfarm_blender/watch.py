@@ -98,6 +98,8 @@ def apply_job(entry, job: dict) -> None:
     eta = progress.get("eta_s")
     entry.eta_s = -1.0 if eta is None else float(eta)
     entry.elapsed_s = float(progress.get("elapsed_s") or 0.0)
+    entry.frames_total = int(progress.get("frames_total") or 1)
+    entry.frames_done = int(progress.get("frames_done") or 0)
     entry.noise_threshold = float((job.get("settings") or {}).get("noise_threshold") or 0.0)
 
 

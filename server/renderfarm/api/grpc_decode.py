@@ -25,6 +25,8 @@ def decode_result(msg) -> BatchResult:
     # AOVs are float32; absent, or of the wrong size, they are left out.
     albedo = np.frombuffer(albedo_raw, dtype="<f4") if len(albedo_raw) == 12 * n else None
     normal = np.frombuffer(normal_raw, dtype="<f4") if len(normal_raw) == 12 * n else None
+    coverage_raw = msg.coverage_sum  # float32 counts; absent or of the wrong size: left out
+    coverage = np.frombuffer(coverage_raw, dtype="<f4") if len(coverage_raw) == 4 * n else None
     return BatchResult(
         job_id=msg.job_id,
         tile_index=msg.tile_index,
@@ -39,5 +41,6 @@ def decode_result(msg) -> BatchResult:
         nonfinite=msg.nonfinite_samples,
         render_seconds=msg.render_seconds,
         rays=msg.rays,
+        coverage_sum=coverage,
         warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
     )

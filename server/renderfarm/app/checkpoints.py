@@ -54,8 +54,9 @@ def dirty_bytes(tiles, taken=None) -> int:
     """Bytes a checkpoint writes for these tiles (statistics, and AOVs where they changed)."""
     aovs = [a for _, a in taken] if taken is not None else [t.aovs_dirty for t in tiles]
     per_pixel = TileAccumulator.BYTES_PER_PIXEL
+    stats = per_pixel - TileAccumulator.AOV_BYTES_PER_PIXEL
     return sum(
-        t.rect.pixels * (per_pixel if with_aovs else per_pixel * 2 // 3)
+        t.rect.pixels * (per_pixel if with_aovs else stats)
         for t, with_aovs in zip(tiles, aovs, strict=True)
     )
 
@@ -83,7 +84,7 @@ def tile_row(index, samples, batches, nonfinite, error, arrays, aovs, stop, plan
         stop_spp=stop.spp if stop else None,
         stop_error=stop.error if stop else None,
         stop_reason=stop.reason.value if stop else None,
-        aovs=None if aovs is None else TileAccumulator.snapshot_bytes(aovs, "<f4"),
+        aovs=None if aovs is None else TileAccumulator.snapshot_bytes(aovs),
         batch_plan=plan,
         plan_basis=basis,
     )

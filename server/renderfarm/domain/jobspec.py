@@ -61,10 +61,10 @@ class Limits:
 
 
 # What a job's tile accumulators take (merge.TileAccumulator): float64 RGB sum, mean luminance
-# and two M2 sums, float32 albedo and normal sums (72 bytes a pixel), and the bookkeeping of
-# each tile (its accumulator objects, scheduling state and dispatch entries: under 4 KB,
-# measured with tracemalloc in server/tests/test_jobspec.py).
-ACCUMULATOR_BYTES_PER_PIXEL = 72
+# and two M2 sums, float32 coverage, albedo and normal sums (76 bytes a pixel), and the
+# bookkeeping of each tile (its accumulator objects, scheduling state and dispatch entries:
+# under 4 KB, measured with tracemalloc in server/tests/test_jobspec.py).
+ACCUMULATOR_BYTES_PER_PIXEL = 76
 TILE_OVERHEAD_BYTES = 4096
 
 

@@ -69,6 +69,7 @@ class TileAccumulator:
         "lum_mean",
         "m2_within",
         "m2_between",
+        "coverage_sum",
         "albedo_sum",
         "normal_sum",
         "samples",
@@ -79,8 +80,10 @@ class TileAccumulator:
     )
 
     # Bytes of the per-pixel arrays: float64 RGB sum (24), mean luminance and the two M2 (24);
-    # float32 albedo and normal sums (24).
-    BYTES_PER_PIXEL = 72
+    # float32 coverage count (4; whole numbers, exact to 2^24 samples) and albedo and normal
+    # sums (24).
+    BYTES_PER_PIXEL = 76
+    AOV_BYTES_PER_PIXEL = 24
 
     def __init__(self, width: int, height: int, iid: bool = False, arrays: bool = True):
         """arrays=False leaves the per-pixel arrays None (a tile cache fills them on demand)."""
@@ -106,6 +109,9 @@ class TileAccumulator:
         self.lum_mean = np.zeros((height, width))
         self.m2_within = np.zeros((height, width))
         self.m2_between = np.zeros((height, width))
+        # Samples whose camera ray hit geometry (the alpha's numerator): a count, exact in
+        # float32 up to 2^24 samples (the max_spp limit is below it).
+        self.coverage_sum = np.zeros((height, width), np.float32)
         # Sums over at most AOV_SAMPLES samples: float32 holds them to its rounding.
         self.albedo_sum = np.zeros((height, width, 3), np.float32)
         self.normal_sum = np.zeros((height, width, 3), np.float32)
@@ -133,8 +139,10 @@ class TileAccumulator:
         albedo_sum: np.ndarray | None = None,
         normal_sum: np.ndarray | None = None,
         nonfinite: int = 0,
+        coverage_sum: np.ndarray | None = None,
     ) -> None:
-        """Merge one batch of `sample_count` samples per pixel (Chan et al. 1979)."""
+        """Merge one batch of `sample_count` samples per pixel (Chan et al. 1979). A batch
+        without coverage_sum adds no coverage (its samples count as misses in the alpha)."""
         if sample_count <= 0:
             raise ValueError("a batch has at least one sample")
         shape = (self.height, self.width)
@@ -161,6 +169,9 @@ class TileAccumulator:
             *out,
         )
         self.rgb_sum, self.lum_mean, self.m2_within, self.m2_between = out
+        if coverage_sum is not None:  # a new array (copy on write, as above)
+            hits = np.asarray(coverage_sum).reshape(shape)
+            self.coverage_sum = np.add(self.coverage_sum, hits, dtype=np.float32)
         if carries_aovs(self.samples):  # in-order merges: self.samples is the batch's start
             if albedo_sum is not None:
                 aov = np.asarray(albedo_sum).reshape(*shape, 3)
@@ -181,6 +192,10 @@ class TileAccumulator:
     def aov_samples(self) -> int:
         """Samples behind albedo_sum and normal_sum."""
         return min(self.samples, AOV_SAMPLES)
+
+    def mean_alpha(self) -> np.ndarray:
+        """The alpha: the share of samples whose camera ray hit geometry (0 before any)."""
+        return self.coverage_sum.astype(np.float64) / max(1, self.samples)
 
     def mean_albedo(self) -> np.ndarray:
         return self.albedo_sum / max(1, self.aov_samples)
@@ -228,10 +243,12 @@ class TileAccumulator:
         total = _kernels.squared_relative_error(pixels, self.lum_mean, m2[0], extra, k, DARK_FLOOR)
         return math.sqrt(total / pixels)
 
-    # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order; statistics
-    # float64, AOVs float32). The statistics change with every merge; the AOVs only during the
-    # first AOV_SAMPLES samples, so they are stored apart and written only while they change.
-    _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")
+    # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order, each array
+    # in its own dtype: statistics float64, coverage and AOVs float32). The statistics change
+    # with every merge; the AOVs only during the first AOV_SAMPLES samples, so they are stored
+    # apart and written only while they change.
+    _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between", "coverage_sum")
+    _LEGACY_ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")  # before coverage
     _AOV_ARRAYS = ("albedo_sum", "normal_sum")
 
     def snapshot(self, names: tuple | None = None) -> tuple:
@@ -253,36 +270,40 @@ class TileAccumulator:
         return snapshot if isinstance(snapshot, tuple) else snapshot.read()
 
     @staticmethod
-    def snapshot_bytes(snapshot, dtype: str = "<f8") -> bytearray:
-        """Serialise a snapshot() (float64) or aov_snapshot() (dtype "<f4") with one copy;
-        safe to call from another thread."""
+    def snapshot_bytes(snapshot) -> bytearray:
+        """Serialise a snapshot() or aov_snapshot() with one copy, each array little-endian
+        in its own dtype; safe to call from another thread."""
         snapshot = TileAccumulator.snapshot_arrays(snapshot)
-        itemsize = np.dtype(dtype).itemsize
-        out = bytearray(itemsize * sum(a.size for a in snapshot))
-        view = np.frombuffer(out, dtype=dtype)
+        out = bytearray(sum(a.nbytes for a in snapshot))
         offset = 0
         for a in snapshot:
-            np.copyto(view[offset : offset + a.size], a.reshape(-1))
-            offset += a.size
+            dtype = a.dtype.newbyteorder("<")
+            view = np.frombuffer(out, dtype=dtype, count=a.size, offset=offset)
+            np.copyto(view, a.reshape(-1))
+            offset += a.nbytes
         return out
 
     def to_bytes(self) -> bytearray:
         return self.snapshot_bytes(self.snapshot())
 
     def aovs_to_bytes(self) -> bytearray:
-        return self.snapshot_bytes(self.aov_snapshot(), "<f4")
+        return self.snapshot_bytes(self.aov_snapshot())
 
-    def _load(self, names: tuple, data: bytes, what: str, dtype: str = "<f8") -> None:
-        itemsize = np.dtype(dtype).itemsize
-        expected = itemsize * sum(getattr(self, name).size for name in names)
+    def _load(self, names: tuple, data: bytes, what: str, dtype: str | None = None) -> None:
+        """Fill the arrays named from data, each in its own dtype (or all in `dtype`, as
+        checkpoints from before the AOV split stored them)."""
+        kinds = [np.dtype(dtype) if dtype else getattr(self, n).dtype.newbyteorder("<")
+                 for n in names]  # fmt: skip
+        sizes = [getattr(self, n).size for n in names]
+        expected = sum(k.itemsize * size for k, size in zip(kinds, sizes, strict=True))
         if len(data) != expected:
             raise ValueError(f"checkpoint {what} has {len(data)} bytes, expected {expected}")
         offset = 0
-        for name in names:
+        for kind, name in zip(kinds, names, strict=True):
             target = getattr(self, name)
-            chunk = np.frombuffer(data, dtype=dtype, count=target.size, offset=offset)
+            chunk = np.frombuffer(data, dtype=kind, count=target.size, offset=offset)
             target[...] = chunk.reshape(target.shape)
-            offset += target.size * itemsize
+            offset += target.size * kind.itemsize
 
     @classmethod
     def from_bytes(
@@ -297,15 +318,20 @@ class TileAccumulator:
         aovs: bytes | None = None,
     ) -> TileAccumulator:
         """Restore to_bytes() (with aovs_to_bytes(), or zero AOVs when None). Checkpoints
-        written before the AOVs were split off hold both in `data`, and load as well."""
+        written before the AOVs were split off hold both in `data`, and load as well; those
+        written before the coverage existed restore as fully covered (alpha 1)."""
         acc = cls(width, height, iid)
-        combined = cls._ARRAYS + cls._AOV_ARRAYS
-        if aovs is None and len(data) == 8 * width * height * 12:
-            acc._load(combined, data, "accumulators")
+        pixels = width * height
+        if aovs is None and len(data) == 8 * pixels * 12:  # float64 statistics and AOVs
+            acc._load(cls._LEGACY_ARRAYS + cls._AOV_ARRAYS, data, "accumulators", "<f8")
+            acc.coverage_sum[...] = samples
+        elif len(data) == 8 * pixels * 6:  # the statistics without the coverage
+            acc._load(cls._LEGACY_ARRAYS, data, "accumulators")
+            acc.coverage_sum[...] = samples
         else:
             acc._load(cls._ARRAYS, data, "accumulators")
-            if aovs is not None:
-                acc._load(cls._AOV_ARRAYS, aovs, "aovs", "<f4")
+        if aovs is not None:
+            acc._load(cls._AOV_ARRAYS, aovs, "aovs")
         acc.samples, acc.batches, acc.nonfinite = samples, batches, nonfinite
         return acc
 

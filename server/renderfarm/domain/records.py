@@ -35,6 +35,7 @@ class BatchResult:
     render_seconds: float = 0.0
     rays: int = 0
     warnings: tuple[str, ...] = ()  # the worker's messages about the task (its scene's loader)
+    coverage_sum: np.ndarray | None = None  # per pixel, samples whose camera ray hit geometry
 
 
 @dataclass

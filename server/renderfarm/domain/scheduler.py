@@ -645,8 +645,9 @@ class Scheduler:
             r = tile.pending.pop(tile.merged)
             tile.aovs_dirty |= carries_aovs(r.sample_start)
             tile.acc.merge_batch(
-                r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite
-            )
+                r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite,
+                r.coverage_sum,
+            )  # fmt: skip
             job.samples_merged += r.sample_count * tile.rect.pixels
             self._record_merge(job)
             tile.error = tile.acc.tile_error()

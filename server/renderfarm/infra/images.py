@@ -7,6 +7,8 @@ EXR channels (32-bit float):
   error                   relative error: sqrt(variance.Y) / max(Y, DARK_FLOOR)
   albedo.R/G/B            mean first-hit albedo
   normal.X/Y/Z            mean first-hit shading normal (world space)
+  A                       alpha: the share of the pixel's samples whose camera ray hit
+                          geometry (0 where only the background or environment is seen)
   denoised.R/G/B          with settings.denoise only: Open Image Denoise of R, G, B with the
                           albedo and normal as guides (denoise_frame)
 PNG: one layer, clamped to [0, 1], 8 bits; rgb, albedo, normal and denoised sRGB-encoded, the
@@ -50,7 +52,7 @@ from ..errors import Cancelled
 
 EXR_CHANNELS = (
     "R", "G", "B", "variance.Y", "spp", "error",
-    "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z",
+    "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z", "A",
 )  # fmt: skip
 LAYERS = ("rgb", "variance", "spp", "error", "albedo", "normal", "denoised")
 # The EXR of a job with settings.denoise: its channels, then the denoised RGB.
@@ -110,22 +112,22 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
 
 
 def _exr_band(width: int, height: int, tiles: Band) -> np.ndarray:
-    """The EXR channels of a band, float32 (height, width, 12)."""
+    """The EXR channels of a band, float32 (height, width, 13)."""
     out = np.empty((height, width, len(EXR_CHANNELS)), np.float32)
     for rect, acc in tiles:
         if acc is None:  # nothing merged: zeros, and variance and error unknown
             t = out[:, rect.x0 : rect.x0 + rect.width]
             t[...] = 0.0
             t[..., 3] = t[..., 5] = np.inf
-            continue
+            continue  # (alpha 0: nothing is known to cover it)
         # One pass in C (_kernels.c) of what rgb_sum / samples, variance_of_mean(),
         # relative_error(), mean_albedo() and mean_normal() compute.
         terms = acc._variance_terms()
         m2, k = terms if terms is not None else ((None,), 0.0)
         _kernels.exr_tile(
             acc.rgb_sum, acc.lum_mean, m2[0], m2[1] if len(m2) > 1 else None, acc.albedo_sum,
-            acc.normal_sum, rect.height, rect.width, acc.samples, max(1, acc.aov_samples), k,
-            DARK_FLOOR, out, width, rect.x0,
+            acc.normal_sum, acc.coverage_sum, rect.height, rect.width, acc.samples,
+            max(1, acc.aov_samples), k, DARK_FLOOR, out, width, rect.x0,
         )  # fmt: skip
     return out
 
@@ -399,6 +401,7 @@ class ImageWriter:
             channels = EXR_CHANNELS + (DENOISED_CHANNELS if denoised is not None else ())
             spec = oiio.ImageSpec(width, height, len(channels), oiio.FLOAT)
             spec.channelnames = channels
+            spec.alpha_channel = channels.index("A")
             # The job's record (renderfarm:settings, ...): string, int or float attributes.
             for name, value in (attributes or {}).items():
                 spec.attribute(name, value)

@@ -1,7 +1,7 @@
 """Merged tile statistics under a RAM budget: the rest waits in files, read back on demand.
 
-A tile's accumulators take 72 bytes a pixel (TileAccumulator.BYTES_PER_PIXEL), so an 8192x8192
-job holds 4.8 GB of them. TileCache keeps the most recently used tiles of every job in RAM up to
+A tile's accumulators take 76 bytes a pixel (TileAccumulator.BYTES_PER_PIXEL), so an 8192x8192
+job holds 5.1 GB of them. TileCache keeps the most recently used tiles of every job in RAM up to
 its budget (RENDERFARM_TILE_CACHE_MB); when a tile is needed past it, the least recently used
 ones are written to their job's file in the scratch directory (DATA_DIR/scratch/JOB.tiles) and
 their arrays let go. A merge of an evicted tile reads it back first (TileCache.use); a
@@ -43,6 +43,7 @@ def _shapes(width: int, height: int) -> dict[str, tuple[tuple[int, ...], type]]:
         "lum_mean": ((height, width), np.float64),
         "m2_within": ((height, width), np.float64),
         "m2_between": ((height, width), np.float64),
+        "coverage_sum": ((height, width), np.float32),
         "albedo_sum": ((height, width, 3), np.float32),
         "normal_sum": ((height, width, 3), np.float32),
     }

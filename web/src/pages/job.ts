@@ -573,8 +573,8 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       h(
         "div",
         { class: "job-lower" },
-        taskLogCard,
         card("Tile stop records", stopsNote, stopsTable),
+        taskLogCard,
         card("Event log", h("div", { class: "table-scroll tall" }, eventsList)),
       ),
     );

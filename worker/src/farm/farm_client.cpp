@@ -418,6 +418,7 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
     r->set_albedo_sum(pack_f32_le(tile.albedo_sum));
     r->set_normal_sum(pack_f32_le(tile.normal_sum));
   }
+  r->set_coverage_sum(pack_f32_le(tile.coverage_sum));
   r->set_nonfinite_samples(tile.nonfinite_samples);
   r->set_render_seconds(std::chrono::duration<double>(Clock::now() - t0).count());
   r->set_rays(tile.rays);

@@ -18,6 +18,7 @@ void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count) {
   albedo_sum.assign(3 * n, 0.f);
   normal_sum.assign(3 * n, 0.f);
   depth_sum.assign(n, 0.f);
+  coverage_sum.assign(n, 0.f);
   nonfinite_samples = 0;
   rays = 0;
 }
@@ -66,7 +67,8 @@ Image::Image(uint32_t w, uint32_t h)
       rgb(3 * size_t(w) * h, 0.f),
       albedo(3 * size_t(w) * h, 0.f),
       normal(3 * size_t(w) * h, 0.f),
-      depth(size_t(w) * h, 0.f) {}
+      depth(size_t(w) * h, 0.f),
+      alpha(size_t(w) * h, 0.f) {}
 
 void Image::set_from_tile(const TileBuffer& tile) {
   const double inv = tile.sample_count ? 1.0 / double(tile.sample_count) : 0.0;
@@ -80,25 +82,27 @@ void Image::set_from_tile(const TileBuffer& tile) {
         normal[3 * dst + size_t(c)] = float(tile.normal_sum[3 * src + size_t(c)] * inv);
       }
       depth[dst] = float(double(tile.depth_sum[src]) * inv);
+      alpha[dst] = float(double(tile.coverage_sum[src]) * inv);
     }
 }
 
 void write_exr(const std::string& path, const Image& image) {
-  constexpr size_t kChannels = 10;
+  constexpr size_t kChannels = 11;
   OIIO::ImageSpec spec(int(image.width), int(image.height), int(kChannels),
                        OIIO::TypeDesc::FLOAT);
-  spec.channelnames = {"R",        "G",        "B",        "albedo.R", "albedo.G",
+  spec.channelnames = {"R",        "G",        "B",        "A",        "albedo.R", "albedo.G",
                        "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth"};
-  spec.alpha_channel = -1;
+  spec.alpha_channel = 3;
   spec.attribute("compression", "zip");
   std::vector<float> interleaved(size_t(image.width) * image.height * kChannels);
   for (size_t i = 0; i < size_t(image.width) * image.height; ++i) {
     for (size_t c = 0; c < 3; ++c) {
       interleaved[kChannels * i + c] = image.rgb[3 * i + c];
-      interleaved[kChannels * i + 3 + c] = image.albedo[3 * i + c];
-      interleaved[kChannels * i + 6 + c] = image.normal[3 * i + c];
+      interleaved[kChannels * i + 4 + c] = image.albedo[3 * i + c];
+      interleaved[kChannels * i + 7 + c] = image.normal[3 * i + c];
     }
-    interleaved[kChannels * i + 9] = image.depth[i];
+    interleaved[kChannels * i + 3] = image.alpha[i];
+    interleaved[kChannels * i + 10] = image.depth[i];
   }
   auto out = OIIO::ImageOutput::create(path);
   if (!out) throw std::runtime_error(path + ": cannot create EXR writer: " + OIIO::geterror());

@@ -26,6 +26,8 @@ struct TileBuffer {
   std::vector<float> normal_sum;     // 3 per pixel, first-hit shading normal (0 on miss)
   std::vector<float> depth_sum;      // 1 per pixel, first-hit distance (0 on miss); not part
                                      // of the farm's TileResult (standalone EXR only)
+  std::vector<float> coverage_sum;   // 1 per pixel, samples whose camera ray hit geometry
+                                     // (an integer count, exact in float32): the alpha
   uint64_t nonfinite_samples = 0;    // samples whose radiance was NaN/Inf, recorded as 0
   uint64_t rays = 0;                 // closest-hit plus shadow rays
 
@@ -40,17 +42,18 @@ std::string pack_f64_as_f32_le(const std::vector<double>& values);
 std::vector<double> unpack_f64_le(const std::string& bytes);
 std::vector<float> unpack_f32_le(const std::string& bytes);
 
-// A full image of per-pixel means: radiance, albedo and normal (3 floats each per pixel) and
-// depth (1 float per pixel: mean first-hit distance, misses counting as 0).
+// A full image of per-pixel means: radiance, albedo and normal (3 floats each per pixel),
+// depth (1 float per pixel: mean first-hit distance, misses counting as 0) and alpha (the
+// share of samples whose camera ray hit geometry).
 struct Image {
   uint32_t width = 0, height = 0;
-  std::vector<float> rgb, albedo, normal, depth;
+  std::vector<float> rgb, albedo, normal, depth, alpha;
   Image(uint32_t w, uint32_t h);
   // Stores the tile's means (sums / sample_count) at its rect.
   void set_from_tile(const TileBuffer& tile);
 };
 
-// Writes R, G, B, albedo.{R,G,B}, normal.{X,Y,Z}, depth as 32-bit float channels. Throws
+// Writes R, G, B, A, albedo.{R,G,B}, normal.{X,Y,Z}, depth as 32-bit float channels. Throws
 // std::runtime_error naming the file on failure.
 void write_exr(const std::string& path, const Image& image);
 

@@ -126,6 +126,36 @@ TEST(PathIntegrator, CancelStopsEarly) {
   EXPECT_FALSE(render_rect(scene, settings, {0, 0, 32, 32}, 0, 4, &tile, &cancel));
 }
 
+// Coverage (the alpha): a quad whose right edge lies a quarter of the way into column 8 of a
+// 16 x 16 image. With the box pixel filter, a pixel's alpha is the share of its area the quad
+// covers: 1 left of the edge's column, 1/4 in it, 0 right of it. The edge's x at the quad's
+// depth follows from the pinhole: column c's left side is at (2 c / 16 - 1) tan(yfov / 2) d.
+TEST(Coverage, IsTheShareOfThePixelTheGeometryCovers) {
+  SceneDescription desc;
+  desc.source = "edge";
+  desc.materials.push_back(Material{});
+  const float d = 3.f, yfov = 1.2f;
+  const float edge = (2.f * 8.25f / 16.f - 1.f) * std::tan(yfov / 2) * d;
+  testing::add_quad(&desc, {-10, -10, 0}, {edge, -10, 0}, {edge, 10, 0}, {-10, 10, 0}, 0);
+  desc.camera = testing::look_at({0.f, 0.f, d}, {0.f, 0.f, 0.f}, yfov);
+  Scene scene(std::move(desc));
+  RenderSettings settings;
+  settings.integrator = IntegratorType::AmbientOcclusion;
+  settings.width = settings.height = 16;
+  const uint32_t spp = 256;
+  TileBuffer tile;
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 16, 16}, 0, spp, &tile));
+  for (uint32_t y = 0; y < 16; ++y) {
+    for (uint32_t x = 0; x < 16; ++x) {
+      const float alpha = tile.coverage_sum[y * 16 + x] / float(spp);
+      const float want = x < 8 ? 1.f : x == 8 ? 0.25f : 0.f;
+      // Owen-scrambled Sobol' points stratify the pixel: far under 1/spp of error per axis.
+      EXPECT_NEAR(alpha, want, 2.f / float(spp)) << x << ", " << y;
+      EXPECT_EQ(tile.coverage_sum[y * 16 + x], std::floor(tile.coverage_sum[y * 16 + x]));
+    }
+  }
+}
+
 TEST(AoIntegrator, OpenPlaneIsUnoccludedAndMissesAreBlack) {
   SceneDescription desc;
   desc.source = "plane";

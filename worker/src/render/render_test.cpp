@@ -44,20 +44,27 @@ TEST(RenderImage, WritesExrWithAllChannels) {
   const OIIO::ImageSpec& spec = in->spec();
   EXPECT_EQ(spec.width, 20);
   EXPECT_EQ(spec.height, 10);
-  ASSERT_EQ(spec.nchannels, 10);
-  std::vector<float> pixels(20 * 10 * 10);
-  ASSERT_TRUE(in->read_image(0, 0, 0, 10, OIIO::TypeDesc::FLOAT, pixels.data()));
-  bool saw_depth = false;
-  for (int c = 0; c < 10; ++c) {
+  ASSERT_EQ(spec.nchannels, 11);
+  EXPECT_EQ(spec.alpha_channel, 3);
+  std::vector<float> pixels(20 * 10 * 11);
+  ASSERT_TRUE(in->read_image(0, 0, 0, 11, OIIO::TypeDesc::FLOAT, pixels.data()));
+  bool saw_depth = false, saw_alpha = false;
+  for (int c = 0; c < 11; ++c) {
     const std::string name = spec.channelnames[size_t(c)];
-    if (name == "depth") {
-      saw_depth = true;
-      float max_depth = 0.f;
+    if (name == "depth" || name == "A") {
+      const std::vector<float>& plane = name == "A" ? image.alpha : image.depth;
+      (name == "A" ? saw_alpha : saw_depth) = true;
+      float top = 0.f;
       for (size_t i = 0; i < 200; ++i) {
-        ASSERT_EQ(pixels[10 * i + size_t(c)], image.depth[i]);
-        max_depth = std::max(max_depth, image.depth[i]);
+        ASSERT_EQ(pixels[11 * i + size_t(c)], plane[i]) << name;
+        top = std::max(top, plane[i]);
       }
-      EXPECT_GT(max_depth, 1.f);  // the plane is ~3 units from the camera
+      // The plane is ~3 units from the camera; alpha is a share of samples, at most 1.
+      if (name == "depth") {
+        EXPECT_GT(top, 1.f);
+      } else {
+        EXPECT_LE(top, 1.f);
+      }
       continue;
     }
     const std::vector<float>* plane = name.rfind("albedo.", 0) == 0   ? &image.albedo
@@ -66,8 +73,9 @@ TEST(RenderImage, WritesExrWithAllChannels) {
     const char last = name.back();
     const int k = (last == 'R' || last == 'X') ? 0 : (last == 'G' || last == 'Y') ? 1 : 2;
     for (size_t i = 0; i < 200; ++i)
-      ASSERT_EQ(pixels[10 * i + size_t(c)], (*plane)[3 * i + size_t(k)]) << name;
+      ASSERT_EQ(pixels[11 * i + size_t(c)], (*plane)[3 * i + size_t(k)]) << name;
   }
+  EXPECT_TRUE(saw_alpha);
   EXPECT_TRUE(saw_depth);
   in->close();
   std::remove(path.c_str());

@@ -21,7 +21,7 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       double sum[3] = {0.0, 0.0, 0.0};
       RunningStats luminance_stats;
       float albedo[3] = {0.f, 0.f, 0.f}, normal[3] = {0.f, 0.f, 0.f};
-      float depth = 0.f;
+      float depth = 0.f, coverage = 0.f;
       const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
                                                     (rect.x0 + tx));
       SampleResult results[kPacketSize];
@@ -44,6 +44,8 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
           normal[c] += r.normal[c];
         }
         depth += r.depth;
+        // Every integrator sets depth to the camera ray's hit distance (> 0), 0 on a miss.
+        if (r.depth > 0.f) coverage += 1.f;
         // Welford's update of the luminance mean and M2.
         luminance_stats.add(0.2126 * double(L.x) + 0.7152 * double(L.y) + 0.0722 * double(L.z));
       }
@@ -54,6 +56,7 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       }
       out->luminance_m2[i] = luminance_stats.m2;
       out->depth_sum[i] = depth;
+      out->coverage_sum[i] = coverage;
     }
   }
   return true;
