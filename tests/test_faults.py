@@ -240,8 +240,8 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
     tmp_path, reference, worker_binary
 ):
     """A job checkpointed in the old format (all six arrays in `accumulators`, float64, no
-    `aovs`) resumes with its albedo and normal intact, and its tiles are written again in the
-    new format (statistics, and AOVs apart)."""
+    `aovs`, no coverage) resumes with its albedo and normal intact, and its tiles are written
+    again in the new format (statistics and coverage, and AOVs apart)."""
     data = tmp_path / "farm"
     with LocalFarm(workers=2, data_dir=data, threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
@@ -258,8 +258,11 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
                     (job["id"],),
                 ).fetchall()
                 assert rows and all(aov is not None for _, _, aov in rows)
+                pixels = 16 * 16
                 for index, stats, aov in rows:
-                    legacy = bytes(stats) + np.frombuffer(aov, "<f4").astype("<f8").tobytes()
+                    # The float64 statistics without the float32 coverage that now ends them.
+                    old_stats = bytes(stats)[: pixels * 6 * 8]
+                    legacy = old_stats + np.frombuffer(aov, "<f4").astype("<f8").tobytes()
                     conn.execute(
                         "UPDATE tiles SET accumulators = %s, aovs = NULL"
                         " WHERE job_id = %s AND tile_index = %s",
@@ -280,7 +283,8 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
                     (job["id"],),
                 ).fetchall()
     pixels = 16 * 16
-    assert lengths and all(lengths_ == (pixels * 6 * 8, pixels * 6 * 4) for lengths_ in lengths)
+    new_format = (pixels * (6 * 8 + 4), pixels * 6 * 4)  # statistics and coverage; AOVs
+    assert lengths and all(lengths_ == new_format for lengths_ in lengths)
     assert_aovs_of_the_first_16_samples(farm_exr, worker_binary, tmp_path)
 
 

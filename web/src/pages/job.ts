@@ -139,11 +139,22 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       h("button", { type: "submit", class: "button secondary", "data-action": "save" }, "Save"),
     ) as HTMLFormElement;
     const title = h("h1", {}, initial.name || "(unnamed)");
+    // The forms show the job's values, except in a field the user has typed into since: a
+    // control's answer (a Resume's, say) arriving meanwhile must not undo what they typed.
+    const formInputs = [maxSppInput, thresholdInput, priorityInput, nameInput];
+    for (const input of formInputs) input.addEventListener("input", () => (input.dataset.edited = "1"));
     const fillForms = (j: Job) => {
-      maxSppInput.value = String(j.settings.max_spp * 2);
-      thresholdInput.value = String(j.settings.noise_threshold);
-      priorityInput.value = String(j.settings.priority);
-      nameInput.value = j.name;
+      const values: [HTMLInputElement, string][] = [
+        [maxSppInput, String(j.settings.max_spp * 2)],
+        [thresholdInput, String(j.settings.noise_threshold)],
+        [priorityInput, String(j.settings.priority)],
+        [nameInput, j.name],
+      ];
+      for (const [input, value] of values) if (!input.dataset.edited) input.value = value;
+    };
+    /** A form was sent: its fields show the job's values again once the answer comes. */
+    const sent = (...inputs: HTMLInputElement[]) => {
+      for (const input of inputs) delete input.dataset.edited;
     };
 
     const safeName = (job.name || job.id).replace(/[^\w.-]+/g, "_");
@@ -500,6 +511,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       if (maxSppInput.value !== "") change.max_spp = Number(maxSppInput.value);
       if (thresholdInput.value !== "") change.noise_threshold = Number(thresholdInput.value);
       const button = continueForm.querySelector<HTMLButtonElement>("button")!;
+      sent(maxSppInput, thresholdInput);
       void control(button, () => continueJob(jobId, change), "Continued");
     });
     editForm.addEventListener("submit", (ev) => {
@@ -507,6 +519,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       const change: { priority?: number; name?: string } = { name: nameInput.value };
       if (priorityInput.value !== "") change.priority = Number(priorityInput.value);
       const button = editForm.querySelector<HTMLButtonElement>("button")!;
+      sent(priorityInput, nameInput);
       void control(button, () => updateJob(jobId, change), "Saved");
     });
 
