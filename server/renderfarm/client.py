@@ -304,20 +304,16 @@ class Client:
         """An image of the job (as image(), or frame_image() for a frame) streamed into a
         file, never whole in memory."""
         params = {"layer": layer} if fmt == "png" else {}
-        url = f"{self._image_base(job_id, frame)}/image.{fmt}"
-        with self.http.stream("GET", url, params=params) as r:
-            if r.status_code >= 400:
-                r.read()
-                self._check(r)
-            with open(path, "wb") as f:
-                for chunk in r.iter_bytes(1 << 20):
-                    f.write(chunk)
+        self._download(f"{self._image_base(job_id, frame)}/image.{fmt}", params, path)
 
     def save_movie(self, job_id: str, path: str | os.PathLike, max_size: int = 1920) -> None:
         """The preview movie of an animation job's finished frames (H.264 MP4 at the job's
         fps, neither side above max_size) streamed into a file."""
-        url = f"/api/v1/jobs/{job_id}/movie.mp4"
-        with self.http.stream("GET", url, params={"max_size": max_size}) as r:
+        self._download(f"/api/v1/jobs/{job_id}/movie.mp4", {"max_size": max_size}, path)
+
+    def _download(self, url: str, params: dict[str, Any], path: str | os.PathLike) -> None:
+        """GET url streamed into the file at path (written only once the server answered)."""
+        with self.http.stream("GET", url, params=params) as r:
             if r.status_code >= 400:
                 r.read()
                 self._check(r)
