@@ -72,6 +72,14 @@ export function frameTiles<T extends { tile: number }>(stops: readonly T[], slot
   return stops.filter((s) => s.tile >= first && s.tile < first + perFrame).map((s) => ({ ...s, local: s.tile - first }));
 }
 
+/** How an event names its tile: "tile 5" of a still; of an animation "frame 20, tile 2", the
+ *  tile numbered in its frame's own grid (frameSlots: frame number -> its place in the list). */
+export function tileLabel(d: Record<string, unknown>, perFrame: number, frameSlots: ReadonlyMap<number, number>): string {
+  const slot = typeof d.frame === "number" ? frameSlots.get(d.frame) : undefined;
+  if (slot === undefined || perFrame <= 0) return typeof d.frame === "number" ? `frame ${d.frame}, tile ${d.tile}` : `tile ${d.tile}`;
+  return `frame ${d.frame}, tile ${Number(d.tile) - slot * perFrame}`;
+}
+
 /** "3 of 4 frames finished, 0.75 s at 4 fps": what the preview movie holds. */
 export function movieSummary(framesDone: number, framesTotal: number, fps: number): string {
   const seconds = fps > 0 ? framesDone / fps : 0;

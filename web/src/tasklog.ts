@@ -2,6 +2,7 @@
 // loader's warnings) and the workers kept off the job, picked out of its event log.
 
 import type { JobEvent } from "./api";
+import { tileLabel } from "./frames";
 
 export type TaskLogLevel = "error" | "warning";
 
@@ -34,13 +35,8 @@ export function taskLog(
     if (level === undefined) continue;
     const d = (e.data ?? {}) as Record<string, unknown>;
     const parts: string[] = [];
-    let tile = typeof d.tile === "number" ? d.tile : null;
-    if (typeof d.frame === "number") {
-      parts.push(`frame ${d.frame}`);
-      const slot = frameSlots.get(d.frame);
-      if (tile !== null && slot !== undefined && perFrame > 0) tile -= slot * perFrame;
-    }
-    if (tile !== null) parts.push(`tile ${tile}`);
+    if (typeof d.tile === "number") parts.push(tileLabel(d, perFrame, frameSlots));
+    else if (typeof d.frame === "number") parts.push(`frame ${d.frame}`);
     if (typeof d.batch === "number") parts.push(`batch ${d.batch}`);
     let message = String(d.message ?? d.error ?? "");
     if (e.kind === "worker_excluded") message = `kept off the job: ${message}`;

@@ -27,7 +27,7 @@ from ..app.jobs import FarmService
 from ..domain.jobspec import check_tags, setting_docs
 from ..errors import Cancelled, SettingsError, TooLarge
 from ..infra.images import LAYERS
-from ..infra.movie import EncoderMissing
+from ..infra.movie import MovieError
 from . import common as apicommon
 from .error_handlers import add_error_handlers
 from .metrics import Metrics
@@ -452,7 +452,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     ) -> Response:
         try:
             path = await farm.movie_file(apicommon.job_id(job_id), who, max_size)
-        except EncoderMissing as e:
+        except MovieError as e:  # no ffmpeg, or it failed
             return error_response(503, "", str(e))
         except Cancelled:
             return error_response(503, "", "the server is stopping")

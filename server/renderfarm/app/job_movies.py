@@ -38,13 +38,13 @@ class JobMovies:
     ) -> Path:
         """The preview movie of the job's finished frames (a file under DATA_DIR/movies,
         made now if it is not there). NotFound for a still; Conflict while no frame is
-        finished; movie.EncoderMissing without ffmpeg."""
+        finished; movie.MovieError without ffmpeg or when it fails."""
         if not 16 <= max_size <= MAX_MOVIE_SIZE:
             raise SettingsError("max_size", f"max_size must be in 16..{MAX_MOVIE_SIZE}")
-        frames = await self.frames(job_id, caller)  # raises NotFound / Forbidden
-        view = await self.get(job_id, caller)
+        view = await self.get(job_id, caller)  # raises NotFound / Forbidden
         if not view.settings.frames:
             raise NotFound(f"job {job_id} renders a still: it has no preview movie")
+        frames = await self.frames(job_id, caller)
         done = [f for f in frames if f.state == "done"]
         if not done:
             raise Conflict(f"no frame of job {job_id} has finished yet: the movie has none to show")

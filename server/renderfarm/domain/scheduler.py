@@ -807,8 +807,10 @@ class Scheduler:
         """Record what a worker said about a task (its scene loader's warnings) in the job's
         task log: a task_warning event per message the job has not logged yet, at most
         TASK_LOG_MAX of them (then one saying that later ones are left out)."""
+        if not result.warnings:  # nearly every result: nothing to look up
+            return
         job = self.jobs.get(result.job_id)
-        if job is None or job.state.finished or not result.warnings:
+        if job is None or job.state.finished:
             return
         for message in result.warnings:
             if message in job.warnings_logged or len(job.warnings_logged) > TASK_LOG_MAX:

@@ -20,7 +20,11 @@ X264_ARGS = ("-c:v", "libx264", "-preset", "veryfast", "-crf", "18", "-pix_fmt",
 EVEN_SIDES = "scale=trunc(iw/2)*2:trunc(ih/2)*2"
 
 
-class EncoderMissing(RuntimeError):
+class MovieError(RuntimeError):
+    """The server could not make the movie: ffmpeg failed or ran out of time (REST 503)."""
+
+
+class EncoderMissing(MovieError):
     """ffmpeg is not installed where the server runs (REST 503)."""
 
 
@@ -38,7 +42,8 @@ def find_ffmpeg() -> str:
 async def encode_mp4(frames_dir: Path, pattern: str, fps: float, out: Path, timeout_s: float):
     """Encode frames_dir/pattern (a printf pattern numbered from 0, e.g. "f%05d.png") at fps
     into out (an MP4 with its index at the front, so browsers play it while it downloads).
-    RuntimeError with ffmpeg's last words when it fails or runs past timeout_s."""
+    MovieError with ffmpeg's last words when it fails, or saying so when it runs past
+    timeout_s."""
     ffmpeg = find_ffmpeg()
     partial = out.with_name(out.name + ".partial")
     args = [
@@ -54,16 +59,18 @@ async def encode_mp4(frames_dir: Path, pattern: str, fps: float, out: Path, time
     )
     try:
         _, err = await asyncio.wait_for(proc.communicate(), timeout=timeout_s)
-    except BaseException:  # the time limit, or the request went away
+    except BaseException as e:  # the time limit, or the request went away
         with contextlib.suppress(ProcessLookupError):
             proc.kill()
         await proc.wait()
         with contextlib.suppress(OSError):
             partial.unlink()
+        if isinstance(e, TimeoutError):
+            raise MovieError(f"ffmpeg took more than {timeout_s:g} s to encode the movie") from None
         raise
     if proc.returncode != 0:
         with contextlib.suppress(OSError):
             partial.unlink()
         words = err.decode(errors="replace").strip()[-1000:]
-        raise RuntimeError(f"ffmpeg failed (status {proc.returncode}): {words}")
+        raise MovieError(f"ffmpeg failed (status {proc.returncode}): {words}")
     os.replace(partial, out)

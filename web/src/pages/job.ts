@@ -30,7 +30,7 @@ import {
 import { type ErrorPoint, convergencePlot } from "../chart";
 import { h, replace, setText } from "../dom";
 import { dateTime, duration, label, percent, si, spp } from "../format";
-import { frameIndex, frameTiles } from "../frames";
+import { frameIndex, frameTiles, tileLabel } from "../frames";
 import { noiseTargetShortfall } from "../outputs";
 import { jobHash } from "../router";
 import { taskLog } from "../tasklog";
@@ -385,11 +385,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       shortfall.hidden = short === null;
       setText(shortfall, short ?? "");
     };
-    const tileName = (d: Record<string, unknown>) => {
-      const slot = typeof d.frame === "number" ? frameSlots.get(d.frame) : undefined;
-      if (slot === undefined) return `tile ${d.tile}`;
-      return `frame ${d.frame}, tile ${Number(d.tile) - slot * perFrame}`;
-    };
+    const tileName = (d: Record<string, unknown>) => tileLabel(d, perFrame, frameSlots);
     let finishLogged = false;
     const renderEvents = (events: JobEvent[]) => {
       finishLogged = events.some((e) => e.kind === "job_finished");
