@@ -8,6 +8,10 @@ what the server sends; tests/test_openapi_fuzz.py holds the server to it. Errors
 Retry-After); FastAPI's and Starlette's own answers (unknown route, wrong method, a body they
 cannot parse) and unexpected failures (500) are given the same shape (error_handlers.py).
 Server-Sent Events are in sse.py, the session cookie in sessions.py, the web UI in static.py.
+
+One module although over 500 lines: one short decorated handler per endpoint (the framework's
+shape, which gives the OpenAPI document its operations), sharing the caller and error helpers
+above them; the logic is in app/.
 """
 
 from __future__ import annotations

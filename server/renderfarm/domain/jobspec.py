@@ -6,6 +6,9 @@ come the JobSettings dataclass, the validation below, the REST models and /api/v
 so the OpenAPI document, the dashboard's generated types and the Blender add-on's fields), the CLI
 flags and docs/settings.md (`python -m renderfarm settings --markdown`); the proto and the worker's
 reading of it are held to it by server/tests/test_settings_schema.py.
+
+One module although over 500 lines: the table is most of it, one row per setting, and the
+validation beside it reads the same rows; splitting them would put a setting in two places.
 """
 
 from __future__ import annotations

