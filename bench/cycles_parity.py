@@ -102,7 +102,8 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
     ref = {"spp": args.reference_spp, "seed": 1000, "path": str(scratch / "cycles-reference.exr")}
     config = {"scene": str(scene), "width": args.width, "height": args.height,
               "max_depth": args.max_depth, "threads": args.threads,
-              "renders": [*renders, ref], "environment": env}  # fmt: skip
+              "renders": [*renders, ref], "environment": env,
+              "microfacet": args.cycles_microfacet}  # fmt: skip
     config_path = scratch / "cycles.json"
     config_path.write_text(json.dumps(config))
     result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
@@ -294,7 +295,8 @@ def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) 
         "environment": env,
         "description": SCENES.get(name, ""),
         "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
-                                                   "renders", "threads", "max_depth", "grid")},
+                                                   "renders", "threads", "max_depth", "grid",
+                                                   "cycles_microfacet")},
         **analyse(cyc, wrk, wrk_t, args, rects),
     }  # fmt: skip
     (out / f"{name}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -381,6 +383,13 @@ def main() -> list[dict]:
     )
     parser.add_argument("--environment-intensity", type=float, default=1.0)
     parser.add_argument("--environment-rotation-deg", type=float, default=0.0)
+    parser.add_argument(
+        "--cycles-microfacet",
+        choices=("multi_ggx", "ggx"),
+        default="multi_ggx",
+        help="Cycles' Principled BSDF distribution: multi_ggx as Blender's importer makes it, "
+        "or ggx, the single-scattering GGX of the glTF spec (docs/parity.md)",
+    )
     args = parser.parse_args()
     for key in ("width", "height", "spp", "reference_spp", "threads", "max_depth", "grid"):
         if getattr(args, key) < 1:

@@ -5,7 +5,7 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
 
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
-"rotation_deg"}}. The scene is imported once with Blender's own glTF
+"rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx"}. The scene is imported once with Blender's own glTF
 importer (lights in the COMPAT units the exporter of the parity scenes and the Blender add-on
 use), then rendered once per entry of "renders" into a 32-bit float linear EXR (R, G, B: the
 Combined pass of the render result, no view transform, no compositor). Prints
@@ -90,6 +90,14 @@ def match_settings(scene: bpy.types.Scene) -> None:
     scene.world = None
     if CONFIG.get("environment"):
         scene.world = environment_world(CONFIG["environment"])
+    # The importer's Principled BSDFs use multiple-scattering GGX (energy that single
+    # scattering loses is put back); glTF's BRDF (Appendix B) is single-scattering GGX.
+    # "ggx" makes Cycles compute the spec's model, so what remains is the renderers' own.
+    if CONFIG.get("microfacet", "multi_ggx") == "ggx":
+        for material in bpy.data.materials:
+            for node in material.node_tree.nodes if material.node_tree else ():
+                if node.type == "BSDF_PRINCIPLED":
+                    node.distribution = "GGX"
     for obj in scene.objects:
         # Shadow-terminator fixes move shadow rays off the surface or bend the shading
         # normal's cosine; the farm does neither.
