@@ -5,10 +5,11 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
 
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
-"rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx"}. The scene is imported once with Blender's own glTF
-importer (lights in the COMPAT units the exporter of the parity scenes and the Blender add-on
-use), then rendered once per entry of "renders" into a 32-bit float linear EXR (R, G, B: the
-Combined pass of the render result, no view transform, no compositor). Prints
+"rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx"}. The scene is imported
+once with Blender's own glTF importer (lights in the COMPAT units the exporter of the parity
+scenes and the Blender add-on use), then rendered once per entry of "renders" into a 32-bit
+float linear EXR (R, G, B: the Combined pass of the render result, no view transform, no
+compositor). Prints
 `RESULT {"seconds": [...], "camera": NAME}`: the wall time of each bpy.ops.render.render
 (scene synchronisation, BVH build, sampling and writing the EXR; not Blender's start-up or the
 import).
