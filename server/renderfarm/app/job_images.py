@@ -132,21 +132,11 @@ class JobImages:
                 images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
                 top, self._stopping, compression, stamp, denoised, attributes,
             )  # fmt: skip
-            # Row r + 1 of tiles is read (from RAM, a spill file or the database) while row r
-            # is written, so the reading does not wait for the compression nor it for the reading.
-            upcoming = asyncio.ensure_future(band(0))
-            try:
-                for r in range(rows):
-                    tiles = await upcoming
-                    if r + 1 < rows:
-                        upcoming = asyncio.ensure_future(band(r + 1))
-                    await asyncio.to_thread(
-                        writer.write_band, rects[r * cols].height, tiles, r == rows - 1
-                    )
-                    del tiles
-            finally:
-                if not upcoming.done():
-                    upcoming.cancel()
+            for r in range(rows):
+                tiles = await band(r)
+                await asyncio.to_thread(
+                    writer.write_band, rects[r * cols].height, tiles, r == rows - 1
+                )
             await asyncio.to_thread(writer.close)
             f = open(path, "rb")  # noqa: SIM115 (the caller closes it)
         except BaseException:
