@@ -1,4 +1,4 @@
-# renderfarm: `make demo` renders the Cornell box on a local farm; `make test` runs every test.
+# renderfarm: `make demo` renders the Cornell box (or SCENE=...) on a local farm; `make test` runs every test.
 SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -70,8 +70,12 @@ test-deploy: build
 	$(PY) -m pytest -q tests/test_deploy_static.py tests/test_deploy_image.py \
 	  tests/test_deploy_multihost.py
 
-demo: build
-	@scripts/demo.sh
+# SCENE: an example's short name (cornell-box, studio, hinged-box) or a .glb/.gltf path; it is
+# checked before anything is built or started.
+demo:
+	@scripts/demo.sh --resolve "$(SCENE)" >/dev/null
+	@$(MAKE) --no-print-directory build
+	@scripts/demo.sh "$(SCENE)"
 
 stop:
 	@scripts/demo.sh stop

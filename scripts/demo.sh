@@ -1,9 +1,65 @@
 #!/usr/bin/env bash
-# `make demo`: start a local farm (embedded PostgreSQL, server, 2 workers) in the background,
-# render the Cornell box on it, print where the image and the dashboard are. The farm keeps
-# running so the dashboard can be looked at; `make stop` stops it.
+# `make demo [SCENE=...]`: start a local farm (embedded PostgreSQL, server, 2 workers) in the
+# background, render a scene on it (the Cornell box unless SCENE names another), print where
+# the image and the dashboard are. The farm keeps running so the dashboard can be looked at;
+# `make stop` stops it.
+#
+#   scripts/demo.sh [SCENE]            render SCENE: an example's short name or a .glb/.gltf path
+#   scripts/demo.sh --resolve [SCENE]  only print what SCENE resolves to (starts nothing)
+#   scripts/demo.sh stop               stop the local farm
+#
+# A scene that is neither an example nor an existing .glb/.gltf file is one error line and
+# exit status 2, before anything starts.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+
+# The examples: short name, file, generator (empty: the file is committed), width, height,
+# noise threshold, max spp. Each is sized to finish in a few minutes on 2 local workers.
+EXAMPLES="
+cornell-box examples/cornell-box.gltf -                        512 512 0.08 1024
+studio      examples/studio.glb       examples/make_studio.py  512 384 0.1  512
+hinged-box  examples/hinged-box.glb   examples/make_hinged_box.py 480 360 0.08 256
+"
+NAMES=$(echo "$EXAMPLES" | awk 'NF {printf "%s%s", sep, $1; sep=", "}')
+
+# resolve SCENE: sets SCENE_FILE (relative to ROOT for an example, absolute for a path),
+# GENERATOR, NAME (the output's name), WIDTH, HEIGHT, NOISE, MAX_SPP; or exits 2.
+resolve() {
+  local scene=${1:-cornell-box}
+  [ "$scene" = cornell ] && scene=cornell-box
+  local row
+  row=$(echo "$EXAMPLES" | awk -v n="$scene" '$1 == n')
+  if [ -z "$row" ] && [ -f "$scene" ]; then  # an example's file by its path: its settings
+    row=$(echo "$EXAMPLES" | awk -v f="$(realpath "$scene")" -v r="$ROOT" 'NF && r "/" $2 == f')
+  fi
+  if [ -n "$row" ]; then
+    read -r NAME SCENE_FILE GENERATOR WIDTH HEIGHT NOISE MAX_SPP <<< "$row"
+    if [ "$GENERATOR" = - ]; then GENERATOR=; fi
+    return 0
+  fi
+  case "$scene" in
+    *.glb | *.gltf) ;;
+    */*) echo "demo: SCENE=$scene: not a .glb or .gltf file (examples: $NAMES)" >&2; exit 2 ;;
+    *) echo "demo: SCENE=$scene: no such example (examples: $NAMES; or a path to a .glb/.gltf)" >&2; exit 2 ;;
+  esac
+  if [ ! -f "$scene" ]; then
+    echo "demo: SCENE=$scene: no such file" >&2
+    exit 2
+  fi
+  SCENE_FILE=$(realpath "$scene")
+  GENERATOR=
+  NAME=$(basename "${scene%.*}")
+  WIDTH=640 HEIGHT=480 NOISE=0.1 MAX_SPP=512
+}
+
+if [ "${1:-}" = --resolve ]; then
+  resolve "${2:-}"
+  echo "scene=$SCENE_FILE generator=${GENERATOR:--} output=out/$NAME.exr width=$WIDTH height=$HEIGHT noise_threshold=$NOISE max_spp=$MAX_SPP"
+  exit 0
+fi
+[ "${1:-}" = stop ] || resolve "${1:-}"  # before the cd: a relative path is the caller's
+
+cd "$ROOT"
 STATE=.farm
 PIDFILE=$STATE/farm.pid
 HTTP_PORT=${RENDERFARM_HTTP_PORT:-8080}
@@ -43,7 +99,12 @@ for _ in $(seq 1 100); do
   sleep 0.2
 done
 
-.venv/bin/renderfarm render examples/cornell-box.gltf -o out/cornell-box.exr --url "$URL" \
-  --width 512 --height 512 --noise-threshold 0.08 --max-spp 1024
+if [ -n "$GENERATOR" ] && [ ! -f "$SCENE_FILE" ]; then
+  echo "writing $SCENE_FILE ($GENERATOR)"
+  .venv/bin/python "$GENERATOR" -o "$SCENE_FILE" >/dev/null
+fi
+echo "rendering $SCENE_FILE at ${WIDTH}x$HEIGHT (noise threshold $NOISE, at most $MAX_SPP spp)"
+.venv/bin/renderfarm render "$SCENE_FILE" -o "out/$NAME.exr" --url "$URL" \
+  --width "$WIDTH" --height "$HEIGHT" --noise-threshold "$NOISE" --max-spp "$MAX_SPP"
 echo "Dashboard: $URL/   API docs: $URL/docs"
 echo "The farm keeps running; stop it with: make stop"
