@@ -67,6 +67,61 @@ TEST(PathIntegrator, PlaneUnderEmitterMatchesClosedForm) {
   }
 }
 
+// Lights at very different distances and orientations around one floor point (the origin):
+// the per-point light selection weights them very unequally, and lights that cannot reach the
+// point (behind the floor, facing away) get none; the mean is still the closed form.
+TEST(PathIntegrator, ManyLightsAtDifferentDistancesMatchTheClosedForm) {
+  const float rho = 0.5f;
+  SceneDescription desc;
+  desc.source = "many-lights";
+  desc.materials.push_back(Material{"floor", {rho, rho, rho}, {0, 0, 0}});
+  desc.materials.push_back(Material{"near", {0, 0, 0}, {2, 2, 2}});
+  desc.materials.push_back(Material{"far", {0, 0, 0}, {20, 20, 20}});
+  desc.materials.push_back(Material{"away", {0, 0, 0}, {50, 50, 50}});
+  testing::add_quad(&desc, {-20, -20, 0}, {20, -20, 0}, {20, 20, 0}, {-20, 20, 0}, 0);
+  // Facing -z (clockwise from above): 0.5 x 0.5 at height 0.5 with the origin under its
+  // corner; 2 x 1 at height 3 the same, in the other quadrant.
+  testing::add_quad(&desc, {0, 0, 0.5f}, {0, 0.5f, 0.5f}, {0.5f, 0.5f, 0.5f}, {0.5f, 0, 0.5f}, 1);
+  testing::add_quad(&desc, {-2, -1, 3}, {-2, 0, 3}, {0, 0, 3}, {0, -1, 3}, 2);
+  // Facing +z, above the floor: it lights nothing here.
+  testing::add_quad(&desc, {3, 3, 2}, {4, 3, 2}, {4, 4, 2}, {3, 4, 2}, 3);
+  struct Point {
+    Vec3 p;
+    float I;
+  };
+  // (None on a segment to the origin crosses the near quad.)
+  const Point points[] = {{{1, 1.5f, 1}, 2.f}, {{-4, 3, 6}, 60.f}, {{0.2f, 0.1f, -1}, 100.f},
+                          {{8, -5, 0.5f}, 30.f}};
+  for (const Point& pt : points) {
+    PunctualLight l;
+    l.position = pt.p;
+    l.intensity = Vec3(pt.I, pt.I, pt.I);
+    desc.punctual_lights.push_back(l);
+  }
+  desc.camera = testing::look_at({0.f, -2.f, 0.4f}, {0, 0, 0}, 1e-3f);
+  Scene scene(std::move(desc));
+  double E = 2.0 * M_PI * form_factor_corner(0.5, 0.5, 0.5) +
+             20.0 * M_PI * form_factor_corner(2.0, 1.0, 3.0);
+  for (const Point& pt : points) {
+    const double d2 = double(dot(pt.p, pt.p));
+    if (pt.p.z > 0.f) E += pt.I * double(pt.p.z) / (d2 * std::sqrt(d2));
+  }
+  const double expected = rho / M_PI * E;
+  for (SamplerType sampler : {SamplerType::Sobol, SamplerType::Independent}) {
+    for (IntegratorType integrator : {IntegratorType::Path, IntegratorType::Direct}) {
+      RenderSettings settings;
+      settings.width = settings.height = 1;
+      settings.sampler = sampler;
+      settings.integrator = integrator;
+      settings.seed = 5;
+      const Estimate e = render_pixel(scene, settings, 16384);
+      EXPECT_LT(e.standard_error, 0.02 * expected) << "test would have no power";
+      EXPECT_NEAR(e.mean, expected, 4.0 * e.standard_error + 1e-4 * expected)
+          << sampler_type_name(sampler) << " " << integrator_type_name(integrator);
+    }
+  }
+}
+
 TEST(PathIntegrator, EmitterSeenDirectlyHasFullWeightAndIsOneSided) {
   const float L = 2.5f;
   RenderSettings settings;

@@ -10,20 +10,74 @@ namespace rf {
 
 LightContext light_context(const Scene& scene, const RenderSettings& settings) {
   LightContext c;
-  c.env = settings.environment.get();
-  const double scene_power = scene.lights().empty() ? 0.0 : scene.lights().total_power();
-  double env_power = 0.0;
-  if (c.env) {
-    const double r = 0.5 * double(scene.diagonal());
-    env_power = double(kPi) * double(kPi) * r * r * double(c.env->mean_luminance());
+  c.lights = &scene.lights();
+  c.clusters = scene.lights().empty() ? 0 : scene.lights().cluster_count();
+  const Environment* env = settings.environment.get();
+  if (env && env->mean_luminance() > 0.f) {
+    c.env = env;
+    c.env_weight = kPi * env->mean_luminance();
   }
-  if (scene_power + env_power > 0.0) {
-    c.any = true;
-    c.p_env = float(env_power / (scene_power + env_power));
-    if (scene_power == 0.0) c.p_env = 1.f;
-    if (env_power == 0.0) c.p_env = 0.f;
-  }
+  c.any = c.entries() > 0;
+  c.single = c.entries() == 1;
   return c;
+}
+
+float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w) {
+  if (lc.single) return 1.f;
+  float total = lc.clusters ? lc.lights->importances(o, ng, w) : 0.f;
+  if (lc.env) {
+    w[lc.clusters] = lc.env_weight;
+    total += lc.env_weight;
+  }
+  return total;
+}
+
+float light_entry_pmf(const LightContext& lc, uint32_t e, Vec3 o, Vec3 ng, float total) {
+  if (lc.single) return 1.f;
+  if (!(total > 0.f)) return 0.f;
+  const float w = e < lc.clusters ? lc.lights->importance(e, o, ng) : lc.env_weight;
+  return w / total;
+}
+
+float light_pdf_area(const LightContext& lc, Vec3 o, Vec3 ng, float total, uint32_t slot,
+                     uint32_t prim, Vec3 d) {
+  if (!lc.clusters) return 0.f;
+  uint32_t c = 0;
+  const float pdf = lc.lights->pdf_area_in_cluster(slot, prim, &c);
+  if (!(pdf > 0.f) || dot(ng, d) <= 0.f) return 0.f;
+  return light_entry_pmf(lc, c, o, ng, total) * pdf;
+}
+
+float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d) {
+  if (!lc.env || dot(d, ng) <= 0.f) return 0.f;
+  return light_entry_pmf(lc, lc.clusters, o, ng, total);
+}
+
+bool choose_light(const LightContext& lc, const float* w, float total, float u_select,
+                  uint32_t* entry, float* pmf, float* u_rest) {
+  if (lc.single) {
+    *entry = lc.clusters ? 0u : lc.clusters;
+    *pmf = 1.f;
+    *u_rest = u_select;
+    return true;
+  }
+  if (!(total > 0.f)) return false;
+  const uint32_t n = lc.entries();
+  const float target = u_select * total;
+  float below = 0.f;
+  uint32_t last = n;
+  for (uint32_t e = 0; e < n; ++e) {
+    if (!(w[e] > 0.f)) continue;
+    last = e;
+    if (below + w[e] > target) break;
+    below += w[e];
+  }
+  // Rounding may leave target past the sum: the last entry with weight takes it.
+  if (last == n) return false;
+  *entry = last;
+  *pmf = w[last] / total;
+  *u_rest = std::min(0.99999994f, std::max(0.f, (target - below) / w[last]));
+  return true;
 }
 
 void LightBatch::finish_geometry(BsdfEvalBatch* batch) {
@@ -79,8 +133,12 @@ void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
 
 LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                              const Frame& frame, Vec3 wo_local, const BounceSamples& s,
-                             BsdfEvalBatch* batch, LightBatch* lb, int lane, LightRay* out) {
-  float u_sel = s.get(dim::kLightSelect);
+                             const float* w, float total, BsdfEvalBatch* batch, LightBatch* lb,
+                             int lane, LightRay* out) {
+  uint32_t entry = 0;
+  float p_entry = 0.f, u_sel = 0.f;
+  if (!choose_light(lc, w, total, s.get(dim::kLightSelect), &entry, &p_entry, &u_sel))
+    return LightSampleKind::None;
   const Point2 u = s.get2(dim::kLightU);
   const Vec3 origin = sp.above();
   const uint32_t bit = uint32_t(1) << lane;
@@ -89,10 +147,10 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
     to[1][lane] = v.y;
     to[2][lane] = v.z;
   };
-  if (lc.env && u_sel < lc.p_env) {
+  if (entry == lc.clusters) {
     float pdf = 0.f;
     const Vec3 wi = lc.env->sample(u, &pdf);
-    pdf *= lc.p_env;
+    pdf *= p_entry;
     if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return LightSampleKind::None;
     set3(lb->o, origin);
     set3(lb->wi, wi);
@@ -105,14 +163,10 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
     return LightSampleKind::Waiting;
   }
   const LightSet& lights = scene.lights();
-  if (lights.empty()) return LightSampleKind::None;
-  // Reuse the selection variate: rescale the part above p_env to [0, 1).
-  const float p_scene = 1.f - lc.p_env;
-  u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
-  const LightSample ls = lights.sample(u_sel, u.x, u.y);
+  const LightSample ls = lights.sample_in(entry, u_sel, u.x, u.y);
   if (ls.punctual >= 0) {
     const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
-    const float pdf = ls.pdf_area * p_scene;  // selection probability only: a delta light
+    const float pdf = ls.pdf_area * p_entry;  // selection probability only: a delta light
     Vec3 wi, Li;
     float tmax;
     if (light.type == PunctualType::Directional) {
@@ -143,7 +197,7 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
   set3(lb->ln, facing_light_normal(scene, ls, origin));
   set3(lb->ng, sp.ng);
   lb->eps[lane] = ray_epsilon(ls.p);
-  lb->k[lane] = p_scene * ls.pdf_area;
+  lb->k[lane] = p_entry * ls.pdf_area;
   // The cosine at the light towards the vertex, for an emitter under a clear coat only (the
   // batch computes it for the pdf later); its sign does not matter.
   float cos_view = 1.f;

@@ -13,16 +13,40 @@
 
 namespace rf {
 
-// Light selection between the scene's lights and the environment, by power (the scene's own
-// alias table does the rest): P_env = pi^2 R^2 mean luminance, the power an environment of
-// that mean radiance sends through a disk of the scene's bounding radius R.
+// Light selection per shading point between the scene's light clusters (LightSet::importance:
+// an estimate of the irradiance each sends to the point, 0 only where it cannot contribute)
+// and the environment, whose importance is pi * its mean luminance (the irradiance an
+// environment of that mean radiance gives an unoccluded surface). Entries 0 .. clusters - 1
+// are the scene's clusters, entry `clusters` the environment. With a single entry (one
+// cluster and no environment, or the environment alone) it is chosen with probability 1 and
+// no weights are computed.
 struct LightContext {
   const Environment* env = nullptr;
-  float p_env = 0.f;  // probability of choosing the environment
+  const LightSet* lights = nullptr;
+  uint32_t clusters = 0;   // the scene's light clusters
+  float env_weight = 0.f;  // the environment's importance (0: none)
+  bool single = false;     // one entry only
   bool any = false;
+  uint32_t entries() const { return clusters + (env ? 1u : 0u); }
 };
+constexpr uint32_t kMaxLightEntries = LightSet::kMaxClusters + 1;
 
 LightContext light_context(const Scene& scene, const RenderSettings& settings);
+
+// The entries' weights at a light-sampling origin o with geometric normal ng into
+// w[0, lc.entries()) (not computed when lc.single); their sum (1 when lc.single).
+float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w);
+// The probability with which light sampling at (o, ng), whose weights summed to total, chose
+// entry e (a cluster, or lc.clusters for the environment): what MIS needs when a BSDF-sampled
+// ray finds that light.
+float light_entry_pmf(const LightContext& lc, uint32_t e, Vec3 o, Vec3 ng, float total);
+// The area density with which light sampling at (o, ng) (weights summing to total) samples a
+// point on triangle prim of slot, seen along direction d from o (0 if light sampling cannot
+// produce it: not a light, or d below ng's plane, where light samples are dropped).
+float light_pdf_area(const LightContext& lc, Vec3 o, Vec3 ng, float total, uint32_t slot,
+                     uint32_t prim, Vec3 d);
+// The probability of choosing the environment at (o, ng) for direction d likewise.
+float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d);
 
 // A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
 // origin + t wi for t in (0, tmax). In the packet tracer only delta lights' samples are held
@@ -44,7 +68,7 @@ struct LightBatch {
   uint32_t area = 0;     // lanes with an area-light sample to finish
   uint32_t waiting = 0;  // lanes with a sample waiting for its BSDF value (area or environment)
   // Shadow ray origin; point, unit normal and ray_epsilon of the light; geometric normal of the
-  // vertex; p_scene * pdf_area (area lights).
+  // vertex; the selection probability times pdf_area (area lights).
   alignas(16) float o[3][kLanes] = {}, lp[3][kLanes] = {}, ln[3][kLanes] = {};
   alignas(16) float ng[3][kLanes] = {}, eps[kLanes] = {}, k[kLanes] = {};
   // Radiance arriving along wi; solid-angle pdf of wi; the shadow ray (set for the environment,
@@ -68,11 +92,18 @@ enum class LightSampleKind {
   Waiting,  // a light with a pdf: in the LightBatch, waiting for its BSDF value
 };
 
-// Next-event estimation: one light (or the environment) chosen by power, its contribution
-// f cos L / pdf, MIS-weighted against BSDF sampling with the power heuristic unless the light
-// is a delta light.
+// A light (or the environment) chosen with u_select from the weights w (summing to total):
+// its entry, its probability, and u_select rescaled to [0, 1) within the entry. False if no
+// entry has weight.
+bool choose_light(const LightContext& lc, const float* w, float total, float u_select,
+                  uint32_t* entry, float* pmf, float* u_rest);
+
+// Next-event estimation: one light (or the environment) chosen by the weights w at sp.above()
+// (light_weights, summing to total), its contribution f cos L / pdf, MIS-weighted against
+// BSDF sampling with the power heuristic unless the light is a delta light.
 LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                              const Frame& frame, Vec3 wo_local, const BounceSamples& s,
-                             BsdfEvalBatch* batch, LightBatch* lb, int lane, LightRay* out);
+                             const float* w, float total, BsdfEvalBatch* batch, LightBatch* lb,
+                             int lane, LightRay* out);
 
 }  // namespace rf

@@ -59,7 +59,10 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     if (lc.env) {
       const Vec3 L = lc.env->eval(d);
       const float w =
-          p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(d));
+          p.prev_delta ? 1.f
+                       : power_heuristic(p.prev_bsdf_pdf,
+                                         light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, d) *
+                                             lc.env->pdf(d));
       result.radiance +=
           (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w;
     }
@@ -89,8 +92,9 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     } else {
       // The same point could have come from light sampling at the previous vertex: convert
       // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
-      const float pdf_light = (1.f - lc.p_env) * scene.lights().pdf_area(hit->slot, hit->prim) *
-                              hit->t * hit->t / cos_emit;
+      const float pdf_light =
+          light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit->slot, hit->prim, d) *
+          hit->t * hit->t / cos_emit;
       result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
     }
   }
@@ -107,8 +111,14 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   const Vec3 wo_local = frame.to_local(wo);
   const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
   batch->set_vertex(lane, sp.params, lobes, wo_local, frame);
-  if (lc.any && bsdf_has_smooth_part(sp.params))
-    p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, batch, lb, lane, &p.light);
+  if (lc.any && bsdf_has_smooth_part(sp.params)) {
+    float w[kMaxLightEntries];
+    p.sel_o = sp.above();
+    p.sel_ng = sp.ng;
+    p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, w);
+    p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, w, p.sel_total, batch, lb,
+                                lane, &p.light);
+  }
 
   BsdfSample& bs = p.bs;
   const BsdfSampleStep step =

@@ -27,6 +27,10 @@ struct PathState {
   bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
                               // have produced this direction, so emission gets weight 1
   bool alive = false;
+  // Where the previous vertex's light sampling looked from (its origin, geometric normal and
+  // the sum of its light weights): the light pdf of the MIS weight when d finds a light.
+  Vec3 sel_o, sel_ng;
+  float sel_total = 0.f;
   BounceSamples u;  // this bounce's sample values
   Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
   // Between the halves of a vertex's shading (shade_vertex_begin, then shade_vertex_end_light

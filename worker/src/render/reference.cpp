@@ -16,15 +16,19 @@ namespace {
 // contribution.
 bool reference_light_sample(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                             const BsdfLobes& lobes, const Frame& frame, Vec3 wo_local,
-                            const BounceSamples& s, LightRay* out) {
-  float u_sel = s.get(dim::kLightSelect);
+                            const BounceSamples& s, const float* weights, float total,
+                            LightRay* out) {
+  uint32_t entry = 0;
+  float p_entry = 0.f, u_sel = 0.f;
+  if (!choose_light(lc, weights, total, s.get(dim::kLightSelect), &entry, &p_entry, &u_sel))
+    return false;
   const Point2 u = s.get2(dim::kLightU);
   const Vec3 origin = sp.above();
   out->origin = origin;
-  if (lc.env && u_sel < lc.p_env) {
+  if (entry == lc.clusters) {
     float pdf = 0.f;
     const Vec3 wi = lc.env->sample(u, &pdf);
-    pdf *= lc.p_env;
+    pdf *= p_entry;
     if (!(pdf > 0.f) || dot(wi, sp.ng) <= 0.f) return false;
     float bsdf_pdf_wi = 0.f;
     const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
@@ -36,13 +40,10 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
     return true;
   }
   const LightSet& lights = scene.lights();
-  if (lights.empty()) return false;
-  const float p_scene = 1.f - lc.p_env;
-  u_sel = std::min(0.99999994f, (u_sel - lc.p_env) / p_scene);
-  const LightSample ls = lights.sample(u_sel, u.x, u.y);
+  const LightSample ls = lights.sample_in(entry, u_sel, u.x, u.y);
   if (ls.punctual >= 0) {
     const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
-    const float pdf = ls.pdf_area * p_scene;
+    const float pdf = ls.pdf_area * p_entry;
     Vec3 wi, Li;
     float tmax;
     if (light.type == PunctualType::Directional) {
@@ -76,7 +77,7 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
   float bsdf_pdf_wi = 0.f;
   const Vec3 f = bsdf_eval_pdf(sp.params, lobes, wo_local, frame.to_local(wi), &bsdf_pdf_wi);
   if (is_zero(f)) return false;
-  const float pdf_light = p_scene * ls.pdf_area * dist2 / cos_light;
+  const float pdf_light = p_entry * ls.pdf_area * dist2 / cos_light;
   const float tmax = dist * (1.f - 1e-4f) - ray_epsilon(ls.p);
   if (!(tmax > 0.f)) return false;
   const float w = power_heuristic(pdf_light, bsdf_pdf_wi);
@@ -118,7 +119,10 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     if (!found[0]) {
       if (lc.env) {
         const float w =
-            p.prev_delta ? 1.f : power_heuristic(p.prev_bsdf_pdf, lc.p_env * lc.env->pdf(p.d));
+            p.prev_delta ? 1.f
+                         : power_heuristic(p.prev_bsdf_pdf,
+                                           light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, p.d) *
+                                               lc.env->pdf(p.d));
         const Vec3 beta =
             is_zero(p.medium) ? p.beta : p.beta * transmittance(p.medium, kInfinity);
         result.radiance += beta * lc.env->eval(p.d) * w;
@@ -144,8 +148,9 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       if (p.prev_delta) {
         result.radiance += p.beta * Le;
       } else {
-        const float pdf_light = (1.f - lc.p_env) * scene.lights().pdf_area(hit.slot, hit.prim) *
-                                hit.t * hit.t / cos_emit;
+        const float pdf_light =
+            light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit.slot, hit.prim, p.d) * hit.t *
+            hit.t / cos_emit;
         result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
       }
     }
@@ -159,8 +164,15 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     const Vec3 wo_local = frame.to_local(wo);
     const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
     LightRay light;
+    float weights[kMaxLightEntries];
+    if (lc.any && bsdf_has_smooth_part(sp.params)) {
+      p.sel_o = sp.above();
+      p.sel_ng = sp.ng;
+      p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, weights);
+    }
     if (lc.any && bsdf_has_smooth_part(sp.params) &&
-        reference_light_sample(scene, lc, sp, lobes, frame, wo_local, u, &light)) {
+        reference_light_sample(scene, lc, sp, lobes, frame, wo_local, u, weights, p.sel_total,
+                               &light)) {
       Vec3 nee = p.beta * light.contribution;
       if (!is_zero(p.medium)) nee *= transmittance(p.medium, light.tmax);
       shadow.set(0, light.origin, light.wi, light.tmax);

@@ -1,7 +1,20 @@
-// Lights of a scene: emissive triangles (area lights) and KHR_lights_punctual lights. One is
-// chosen with probability proportional to its power by an alias table, then (area lights) a
-// point on it uniformly by area. The environment is a job setting, not part of the scene: the
-// integrator selects it against this set by power (see render/light_sampling.cpp).
+// Lights of a scene: emissive triangles (area lights) and KHR_lights_punctual lights.
+//
+// The renderer selects a light per shading point (select / sample_in): the lights are grouped
+// into at most kMaxClusters clusters (an emissive mesh per material, split by position when it
+// has many triangles; each punctual light alone, many of them split by position), each with a
+// bounding sphere, a cone bounding its emitters' normals and its energy. At a shading point o
+// with geometric normal ng a cluster's importance estimates the irradiance it sends to o,
+// energy * cos-bound at o * cos-bound at the light / distance^2 (Conty & Kulla's light-tree
+// importance, one level), and is 0 only where no light of the cluster can contribute to light
+// sampling at o (wholly below ng's plane, or every emitter facing away). A cluster is chosen
+// with probability proportional to its importance (and the environment's, a constant the
+// caller adds), then a light inside it by power (an alias table), then (area lights) a point
+// uniformly by area. The environment is a job setting, not part of the scene: see
+// render/light_sampling.cpp.
+//
+// sample() and pdf_area() are the older global choice by power alone (one alias table over
+// every light), kept for tools and tests.
 #pragma once
 
 #include <cstdint>
@@ -73,6 +86,17 @@ struct LightSample {
   int punctual = -1;         // index of the punctual light, -1 for an area light
 };
 
+// The bounds of a cluster of lights, for its importance at a shading point.
+struct LightCluster {
+  Vec3 center;               // bounding sphere (radius 0: a point light)
+  float radius = 0.f;
+  Vec3 axis{0.f, 0.f, 1.f};  // cone around every emitter's front normal
+  float cos_spread = -1.f, sin_spread = 0.f;  // its half-angle; cos -1: any direction
+  float energy = 0.f;        // sum of luminance(L) * area, or of luminance(I) (punctual)
+  bool infinite = false;     // directional lights: `axis` is the direction light travels in
+  uint32_t first = 0, count = 0;  // its lights: members_[first, first + count)
+};
+
 // Every light of a scene (emissive triangles and punctual lights), selected with
 // probability proportional to its power by one alias table:
 //   triangle: pi * area * luminance(emission),  point: 4 pi * luminance(I),
@@ -98,6 +122,31 @@ class LightSet {
   }
   float pdf_area(uint32_t prim) const { return pdf_area(0, prim); }
   const std::vector<PunctualLight>& punctual() const { return punctual_; }
+
+  // ---- Per-shading-point selection.
+  static constexpr uint32_t kMaxClusters = 40;
+  uint32_t cluster_count() const { return uint32_t(clusters_.size()); }
+  const LightCluster& cluster(uint32_t c) const { return clusters_[c]; }
+  // Light i of the clusters' list (LightCluster::first, count): an index into emitters()
+  // below emitter_count(), else emitter_count() + an index into punctual().
+  uint32_t member(uint32_t i) const { return members_[i]; }
+  const std::vector<Emitter>& emitters() const { return emitters_; }
+  // Importance of cluster c at point o with geometric normal ng (unit): >= 0, and 0 only if
+  // no light of c can send light to o from above ng's plane (where light sampling looks).
+  float importance(uint32_t c, Vec3 o, Vec3 ng) const;
+  // The importance of every cluster at (o, ng) into w[0, cluster_count()); their sum.
+  float importances(Vec3 o, Vec3 ng, float* w) const;
+  // Light sample of a light of cluster c chosen by power with u_select, (u, v) the point;
+  // pdf_area is the probability within the cluster (divided by the area for area lights).
+  LightSample sample_in(uint32_t c, float u_select, float u, float v) const;
+  // For triangle prim of slot: its cluster and its area density within it (0: not a light).
+  float pdf_area_in_cluster(uint32_t slot, uint32_t prim, uint32_t* cluster) const {
+    if (slot >= local_by_slot_.size()) return 0.f;
+    const std::vector<Local>& v = local_by_slot_[slot];
+    if (prim >= v.size()) return 0.f;
+    *cluster = v[prim].cluster;
+    return v[prim].pdf_area;
+  }
   // Bytes held by the tables.
   size_t memory_bytes() const;
 
@@ -111,6 +160,19 @@ class LightSet {
   // one load instead of a slot lookup or a division.
   std::vector<float> emitter_pdf_area_;
   double total_power_ = 0.0;
+  // Per-shading-point selection: the clusters, their lights (indices into emitters_ then
+  // punctual_, as table_'s), per cluster an alias table over its lights by power.
+  struct Local {
+    float pdf_area = 0.f;
+    uint32_t cluster = 0;
+  };
+  void build_clusters(const std::vector<double>& power, const std::vector<Material>& materials);
+  LightSample sample_light(uint32_t li, float pdf, float u, float v) const;
+  std::vector<LightCluster> clusters_;
+  std::vector<uint32_t> members_;
+  std::vector<AliasTable> cluster_tables_;
+  std::vector<float> member_pmf_;  // by light index: its probability within its cluster
+  std::vector<std::vector<Local>> local_by_slot_;
 };
 
 }  // namespace rf
