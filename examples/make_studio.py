@@ -9,7 +9,7 @@ generated here; a smooth metal (gold) lathed vase; glass with KHR_materials_tran
 KHR_materials_ior and KHR_materials_volume (a blue-green tint that deepens with the length of
 glass a ray crosses); leaves that are alpha-masked cards (alphaMode MASK, a generated RGBA leaf
 texture, doubleSided); a box under KHR_materials_clearcoat; one emissive area light
-(KHR_materials_emissive_strength), one KHR_lights_punctual spot light and a camera. About 40,000
+(KHR_materials_emissive_strength), one KHR_lights_punctual spot light and a camera. About 24,000
 triangles and four PNG textures (encoded here with zlib, no imaging library).
 
 Usage:
