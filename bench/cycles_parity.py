@@ -103,7 +103,8 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
     config = {"scene": str(scene), "width": args.width, "height": args.height,
               "max_depth": args.max_depth, "threads": args.threads,
               "renders": [*renders, ref], "environment": env,
-              "microfacet": args.cycles_microfacet}  # fmt: skip
+              "microfacet": args.cycles_microfacet, "textures": args.cycles_textures,
+              "volume": args.cycles_volume}  # fmt: skip
     config_path = scratch / "cycles.json"
     config_path.write_text(json.dumps(config))
     result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
@@ -296,7 +297,8 @@ def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) 
         "description": SCENES.get(name, ""),
         "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
                                                    "renders", "threads", "max_depth", "grid",
-                                                   "cycles_microfacet")},
+                                                   "cycles_microfacet", "cycles_textures",
+                                                   "cycles_volume")},
         **analyse(cyc, wrk, wrk_t, args, rects),
     }  # fmt: skip
     (out / f"{name}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -389,6 +391,22 @@ def main() -> list[dict]:
         default="multi_ggx",
         help="Cycles' Principled BSDF distribution: multi_ggx as Blender's importer makes it, "
         "or ggx, the single-scattering GGX of the glTF spec (docs/parity.md)",
+    )
+    parser.add_argument(
+        "--cycles-textures",
+        choices=("as_imported", "linear"),
+        default="as_imported",
+        help="Cycles' 8-bit sRGB textures as imported (filtered, then decoded), or replaced "
+        "by linear float copies (decoded, then filtered, as glTF and the farm do; "
+        "docs/parity.md)",
+    )
+    parser.add_argument(
+        "--cycles-volume",
+        choices=("as_imported", "gltf"),
+        default="as_imported",
+        help="Cycles' Volume Absorption as Blender's importer maps KHR_materials_volume, or "
+        "set to absorb as the extension defines (Beer-Lambert with attenuationColor ^ "
+        "(length / attenuationDistance); docs/parity.md)",
     )
     args = parser.parse_args()
     for key in ("width", "height", "spp", "reference_spp", "threads", "max_depth", "grid"):

@@ -5,7 +5,8 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
 
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
-"rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx"}. The scene is imported
+"rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx", "textures": "as_imported"
+or "linear", "volume": "as_imported" or "gltf"}. The scene is imported
 once with Blender's own glTF importer (lights in the COMPAT units the exporter of the parity
 scenes and the Blender add-on use), then rendered once per entry of "renders" into a 32-bit
 float linear EXR (R, G, B: the Combined pass of the render result, no view transform, no
@@ -99,6 +100,10 @@ def match_settings(scene: bpy.types.Scene) -> None:
             for node in material.node_tree.nodes if material.node_tree else ():
                 if node.type == "BSDF_PRINCIPLED":
                     node.distribution = "GGX"
+    if CONFIG.get("textures", "as_imported") == "linear":
+        decode_textures_first()
+    if CONFIG.get("volume", "as_imported") == "gltf":
+        beer_lambert_volumes()
     for obj in scene.objects:
         # Shadow-terminator fixes move shadow rays off the surface or bend the shading
         # normal's cosine; the farm does neither.
@@ -109,6 +114,63 @@ def match_settings(scene: bpy.types.Scene) -> None:
     settings.color_depth = "32"
     settings.color_mode = "RGB"
     settings.exr_codec = "ZIP"
+
+
+def srgb_to_linear(v):
+    """The sRGB transfer function's inverse (IEC 61966-2-1), as the glTF spec defines it."""
+    import numpy as np
+
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def decode_textures_first() -> None:
+    """Replace every 8-bit sRGB image by a linear float copy, so that Cycles filters decoded
+    values as glTF asks (and the farm does), instead of filtering the 8-bit sRGB values and
+    decoding the result. Alpha and non-colour images are unchanged."""
+    import numpy as np
+
+    for image in list(bpy.data.images):
+        if image.is_float or image.colorspace_settings.name != "sRGB" or 0 in image.size:
+            continue
+        w, h = image.size
+        pixels = np.empty(w * h * 4, np.float32)
+        image.pixels.foreach_get(pixels)  # a byte image's stored values / 255: sRGB-encoded
+        pixels = pixels.reshape(-1, 4)
+        pixels[:, :3] = srgb_to_linear(pixels[:, :3].astype(np.float64))
+        linear = bpy.data.images.new(image.name + ".linear", w, h, alpha=True,
+                                     float_buffer=True)  # fmt: skip
+        linear.colorspace_settings.name = "Linear Rec.709"
+        linear.alpha_mode = image.alpha_mode
+        linear.pixels.foreach_set(pixels.ravel())
+        linear.pack()
+        for material in bpy.data.materials:
+            for node in material.node_tree.nodes if material.node_tree else ():
+                if node.type == "TEX_IMAGE" and node.image == image:
+                    node.image = linear
+
+
+def beer_lambert_volumes() -> None:
+    """Make every Volume Absorption node absorb as KHR_materials_volume defines it.
+
+    The importer sets the node's colour to attenuationColor c and its density to
+    1 / attenuationDistance d; Cycles then absorbs with coefficient density x (1 - colour), so
+    light keeps exp(-(1 - c) x / d) over a length x instead of the extension's c^(x / d).
+    Here the coefficient per channel becomes -ln(c) / d: density its largest, colour
+    1 - coefficient / density."""
+    for material in bpy.data.materials:
+        for node in material.node_tree.nodes if material.node_tree else ():
+            if node.type != "VOLUME_ABSORPTION":
+                continue
+            colour = node.inputs["Color"].default_value
+            density = node.inputs["Density"].default_value
+            if not density > 0 or not math.isfinite(density):
+                continue
+            sigma = [-math.log(max(float(colour[c]), 1e-6)) * density for c in range(3)]
+            top = max(sigma)
+            if not top > 0:
+                continue
+            node.inputs["Density"].default_value = top
+            node.inputs["Color"].default_value = (*(1.0 - s / top for s in sigma), 1.0)
 
 
 def environment_world(env: dict) -> bpy.types.World:

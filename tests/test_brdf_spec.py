@@ -1,0 +1,197 @@
+"""The worker's metallic-roughness BRDF against the glTF 2.0 specification's closed form
+(Appendix B, "BRDF Implementation"), evaluated here in numpy and nowhere else.
+
+Each render is a flat, untextured ground (normal +Y) of four dielectric materials side by
+side, seen by an orthographic camera from direction V and lit by one directional light
+(KHR_lights_punctual, intensity I) from direction L over a black world. Every sample of a
+pixel then sees the same point of the same BRDF with the same V and L, and the path tracer's
+estimate is exact: the pixel is I x f(V, L) x N.L, with f the spec's
+
+    f = fresnel_mix(ior, diffuse_brdf(baseColor), specular_brdf(roughness^2))
+    fresnel_mix: mix(base, layer, F0 + (1 - F0) (1 - |V.H|)^5), F0 = ((ior - 1) / (ior + 1))^2
+    specular_brdf = Vis D,  D = a^2 X(N.H) / (pi ((N.H)^2 (a^2 - 1) + 1)^2),
+    Vis = X(H.L) X(H.V) / (2 (|N.V| sqrt(a^2 + (1 - a^2)(N.L)^2)
+                              + |N.L| sqrt(a^2 + (1 - a^2)(N.V)^2)))
+
+(the height-correlated Smith masking-shadowing function of the spec's "Specular BRDF")
+over a grid of view and light elevations and azimuths. This is the dielectric that Blender's
+Principled BSDF differs from (docs/parity.md, "Model differences"): its diffuse is weighted by
+the specular layer's directional albedo instead of 1 - F(V.H), and its GGX by default puts
+back the energy lost between microfacets. The spec's discussion of its sample
+implementation names both (the "Coupling Diffuse and Specular Reflection" and "Masking-Shadowing
+Term and Multiple Scattering" sections). Metals are left out here: the farm adds Kulla and
+Conty's multiple-scattering term to the metal lobe, as the spec's "Microfacet Surfaces" note
+suggests, which its single-scattering sample formula does not have.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from renderfarm.infra.images import read_exr
+
+INTENSITY = 2.0
+WIDTH, HEIGHT = 64, 16
+# (baseColor, roughness, ior): rough and glossy dielectrics, one with KHR_materials_ior.
+MATERIALS = [
+    ((0.5, 0.5, 0.5), 0.8, 1.5),  # the parity scenes' floor
+    ((0.9, 0.3, 0.1), 0.3, 1.5),
+    ((0.2, 0.6, 0.9), 1.0, 1.5),
+    ((0.7, 0.7, 0.2), 0.5, 1.8),
+]
+# The ground's strips: material k covers z in [2k - 3.8, 2k - 2.2], along the image's width.
+STRIP_CENTRES = [2.0 * k - 3.0 for k in range(len(MATERIALS))]
+XMAG = 4.0
+
+
+def direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Unit vector at an elevation from the normal (+Y), azimuth from +X towards +Z."""
+    t, p = np.radians(elevation_deg), np.radians(azimuth_deg)
+    return np.array([np.sin(t) * np.cos(p), np.cos(t), np.sin(t) * np.sin(p)])
+
+
+def frame_matrix(z_axis: np.ndarray, x_hint: np.ndarray, position: np.ndarray) -> list[float]:
+    """A glTF node matrix (column-major) whose local +Z is z_axis."""
+    z = z_axis / np.linalg.norm(z_axis)
+    x = x_hint - z * np.dot(x_hint, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.identity(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, position
+    return [float(v) for v in m.T.ravel()]
+
+
+def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
+    """The four strips, the camera looking along -view and the light shining along -light."""
+    positions, normals, indices = [], [], []
+    for k, centre in enumerate(STRIP_CENTRES):
+        z0, z1 = centre - 0.8, centre + 0.8
+        positions += [[-60, 0, z0], [-60, 0, z1], [60, 0, z1], [60, 0, z0]]
+        normals += [[0, 1, 0]] * 4
+        b = 4 * k
+        indices += [b, b + 1, b + 2, b, b + 2, b + 3]  # counter-clockwise seen from +Y
+    pos = np.asarray(positions, np.float32)
+    blob = pos.tobytes() + np.asarray(normals, np.float32).tobytes()
+    index_offset = len(blob)
+    blob += np.asarray(indices, np.uint16).tobytes()
+    n = len(positions)
+    views = [
+        {"buffer": 0, "byteOffset": 0, "byteLength": 12 * n},
+        {"buffer": 0, "byteOffset": 12 * n, "byteLength": 12 * n},
+    ]
+    accessors = [
+        {"bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3",
+         "min": pos.min(0).tolist(), "max": pos.max(0).tolist()},
+        {"bufferView": 1, "componentType": 5126, "count": n, "type": "VEC3"},
+    ]  # fmt: skip
+    primitives, materials = [], []
+    for k, (colour, roughness, ior) in enumerate(MATERIALS):
+        views.append({"buffer": 0, "byteOffset": index_offset + 12 * k, "byteLength": 12})
+        accessors.append({"bufferView": 2 + k, "componentType": 5123, "count": 6,
+                          "type": "SCALAR"})  # fmt: skip
+        primitives.append({"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2 + k,
+                           "material": k})  # fmt: skip
+        material = {"pbrMetallicRoughness": {"baseColorFactor": [*colour, 1.0],
+                                             "metallicFactor": 0.0,
+                                             "roughnessFactor": roughness}}  # fmt: skip
+        if ior != 1.5:
+            material["extensions"] = {"KHR_materials_ior": {"ior": ior}}
+        materials.append(material)
+    # Image right is world +Z (the strips side by side); the camera 30 units out along view.
+    camera_matrix = frame_matrix(view, np.array([0.0, 0.0, 1.0]), 30.0 * view)
+    light_matrix = frame_matrix(light, np.array([0.3, 0.1, 0.9]), 10.0 * light)
+    gltf = {
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior"],
+        "extensions": {"KHR_lights_punctual": {"lights": [
+            {"type": "directional", "color": [1, 1, 1], "intensity": INTENSITY}]}},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1, 2]}],
+        "nodes": [
+            {"mesh": 0},
+            {"camera": 0, "matrix": camera_matrix},
+            {"matrix": light_matrix, "extensions": {"KHR_lights_punctual": {"light": 0}}},
+        ],
+        "cameras": [{"type": "orthographic", "orthographic": {
+            "xmag": XMAG, "ymag": XMAG * HEIGHT / WIDTH, "znear": 0.1, "zfar": 100.0}}],
+        "meshes": [{"primitives": primitives}],
+        "materials": materials,
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": len(blob)}],
+    }  # fmt: skip
+    body = json.dumps(gltf).encode()
+    body += b" " * (-len(body) % 4)
+    blob += b"\0" * (-len(blob) % 4)
+    chunks = (struct.pack("<II", len(body), 0x4E4F534A) + body
+              + struct.pack("<II", len(blob), 0x004E4942) + blob)  # fmt: skip
+    path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(chunks)) + chunks)
+
+
+def spec_brdf(colour, roughness, ior, v: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """glTF 2.0 Appendix B, the dielectric (metallic 0): f(V, L) for normal +Y, RGB."""
+    n = np.array([0.0, 1.0, 0.0])
+    h = (v + light) / np.linalg.norm(v + light)
+    nl, nv, nh = np.dot(n, light), np.dot(n, v), np.dot(n, h)
+    vh, hl = np.dot(v, h), np.dot(h, light)
+    a2 = roughness**4  # alpha = roughness^2
+    d = a2 * (nh > 0) / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
+    vis = (hl > 0) * (vh > 0) / (2.0 * (abs(nv) * np.sqrt(a2 + (1 - a2) * nl * nl)
+                                        + abs(nl) * np.sqrt(a2 + (1 - a2) * nv * nv)))  # fmt: skip
+    f0 = ((1.0 - ior) / (1.0 + ior)) ** 2
+    fr = f0 + (1.0 - f0) * (1.0 - abs(vh)) ** 5
+    diffuse = np.asarray(colour) / np.pi
+    return (1.0 - fr) * diffuse + fr * vis * d
+
+
+def strip_pixels(image: np.ndarray) -> list[np.ndarray]:
+    """The mean RGB of a block of pixels well inside each strip."""
+    means = []
+    for centre in STRIP_CENTRES:
+        col = int((centre + XMAG) / (2 * XMAG) * WIDTH)
+        means.append(image[HEIGHT // 2 - 3 : HEIGHT // 2 + 3, col - 3 : col + 3].reshape(-1, 3)
+                     .mean(0))  # fmt: skip
+    return means
+
+
+# (view elevation, light elevation, light azimuth relative to the view's), degrees: normal,
+# oblique and grazing views; the light on the view's side (retro and mirror directions), across
+# and behind.
+GRID = [(tv, tl, phi) for tv in (0.0, 35.0, 70.0) for tl in (10.0, 45.0, 80.0)
+        for phi in (0.0, 90.0, 180.0)]  # fmt: skip
+
+
+@pytest.mark.parametrize("view_deg", [0.0, 35.0, 70.0])
+def test_dielectric_brdf_is_the_specs_closed_form(
+    tmp_path: Path, worker_binary: str, view_deg: float
+) -> None:
+    worst = 0.0
+    compared = 0
+    for tv, tl, phi in GRID:
+        if tv != view_deg:
+            continue
+        view, light = direction(tv, 0.0), direction(tl, phi)
+        scene = tmp_path / f"ground-{tv:g}-{tl:g}-{phi:g}.glb"
+        ground_scene(scene, view, light)
+        out = tmp_path / f"ground-{tv:g}-{tl:g}-{phi:g}.exr"
+        subprocess.run([worker_binary, "render", str(scene), "-o", str(out), "--spp", "4",
+                        "--width", str(WIDTH), "--height", str(HEIGHT), "--threads", "1",
+                        "--max-depth", "2"],
+                       check=True, capture_output=True, timeout=120)  # fmt: skip
+        channels = read_exr(str(out))
+        image = np.stack([channels["R"], channels["G"], channels["B"]], -1).astype(np.float64)
+        for k, got in enumerate(strip_pixels(image)):
+            colour, roughness, ior = MATERIALS[k]
+            want = INTENSITY * spec_brdf(colour, roughness, ior, view, light) * light[1]
+            where = f"material {k} {MATERIALS[k]}, view {tv} deg, light {tl} deg at {phi} deg"
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7, err_msg=where)
+            worst = max(worst, float(np.max(np.abs(got / want - 1))))
+            compared += 1
+    assert compared == 9 * len(MATERIALS)
+    print(f"view {view_deg} deg: worst relative difference {worst:.2e} over {compared}")
