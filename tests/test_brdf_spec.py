@@ -15,7 +15,7 @@ estimate is exact: the pixel is I x f(V, L) x N.L, with f the spec's
 
 (the height-correlated Smith masking-shadowing function of the spec's "Specular BRDF")
 over a grid of view and light elevations and azimuths. This is the dielectric that Blender's
-Principled BSDF differs from (docs/parity.md, "Model differences"): its diffuse is weighted by
+Principled BSDF differs from (docs/parity.md, "Differences to expect"): its diffuse is weighted by
 the specular layer's directional albedo instead of 1 - F(V.H), and its GGX by default puts
 back the energy lost between microfacets. The spec's discussion of its sample
 implementation names both (the "Coupling Diffuse and Specular Reflection" and "Masking-Shadowing
