@@ -26,14 +26,13 @@ suggests, which its single-scattering sample formula does not have.
 
 from __future__ import annotations
 
-import json
-import struct
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from renderfarm.domain.scenes.glb import build_glb
 from renderfarm.infra.images import read_exr
 
 INTENSITY = 2.0
@@ -126,12 +125,7 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
         "bufferViews": views,
         "buffers": [{"byteLength": len(blob)}],
     }  # fmt: skip
-    body = json.dumps(gltf).encode()
-    body += b" " * (-len(body) % 4)
-    blob += b"\0" * (-len(blob) % 4)
-    chunks = (struct.pack("<II", len(body), 0x4E4F534A) + body
-              + struct.pack("<II", len(blob), 0x004E4942) + blob)  # fmt: skip
-    path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(chunks)) + chunks)
+    path.write_bytes(build_glb(gltf, blob))
 
 
 def spec_brdf(colour, roughness, ior, v: np.ndarray, light: np.ndarray) -> np.ndarray:
