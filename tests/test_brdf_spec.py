@@ -154,11 +154,9 @@ def strip_pixels(image: np.ndarray) -> list[np.ndarray]:
     return means
 
 
-# (view elevation, light elevation, light azimuth relative to the view's), degrees: normal,
-# oblique and grazing views; the light on the view's side (retro and mirror directions), across
-# and behind.
-GRID = [(tv, tl, phi) for tv in (0.0, 35.0, 70.0) for tl in (10.0, 45.0, 80.0)
-        for phi in (0.0, 90.0, 180.0)]  # fmt: skip
+# Per view elevation (normal, oblique, grazing), the light's (elevation, azimuth relative to
+# the view's), degrees: on the view's side (retro and mirror directions), across and behind.
+LIGHTS = [(tl, phi) for tl in (10.0, 45.0, 80.0) for phi in (0.0, 90.0, 180.0)]
 
 
 @pytest.mark.parametrize("view_deg", [0.0, 35.0, 70.0])
@@ -167,9 +165,8 @@ def test_dielectric_brdf_is_the_specs_closed_form(
 ) -> None:
     worst = 0.0
     compared = 0
-    for tv, tl, phi in GRID:
-        if tv != view_deg:
-            continue
+    tv = view_deg
+    for tl, phi in LIGHTS:
         view, light = direction(tv, 0.0), direction(tl, phi)
         scene = tmp_path / f"ground-{tv:g}-{tl:g}-{phi:g}.glb"
         ground_scene(scene, view, light)
@@ -187,5 +184,5 @@ def test_dielectric_brdf_is_the_specs_closed_form(
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7, err_msg=where)
             worst = max(worst, float(np.max(np.abs(got / want - 1))))
             compared += 1
-    assert compared == 9 * len(MATERIALS)
+    assert compared == len(LIGHTS) * len(MATERIALS)
     print(f"view {view_deg} deg: worst relative difference {worst:.2e} over {compared}")

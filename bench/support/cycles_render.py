@@ -96,10 +96,8 @@ def match_settings(scene: bpy.types.Scene) -> None:
     # scattering loses is put back); glTF's BRDF (Appendix B) is single-scattering GGX.
     # "ggx" makes Cycles compute the spec's model, so what remains is the renderers' own.
     if CONFIG.get("microfacet", "multi_ggx") == "ggx":
-        for material in bpy.data.materials:
-            for node in material.node_tree.nodes if material.node_tree else ():
-                if node.type == "BSDF_PRINCIPLED":
-                    node.distribution = "GGX"
+        for node in material_nodes("BSDF_PRINCIPLED"):
+            node.distribution = "GGX"
     if CONFIG.get("textures", "as_imported") == "linear":
         decode_textures_first()
     if CONFIG.get("volume", "as_imported") == "gltf":
@@ -116,6 +114,14 @@ def match_settings(scene: bpy.types.Scene) -> None:
     settings.exr_codec = "ZIP"
 
 
+def material_nodes(kind: str):
+    """Every shader node of one type in the scene's materials."""
+    for material in bpy.data.materials:
+        for node in material.node_tree.nodes if material.node_tree else ():
+            if node.type == kind:
+                yield node
+
+
 def srgb_to_linear(v):
     """The sRGB transfer function's inverse (IEC 61966-2-1), as the glTF spec defines it."""
     import numpy as np
@@ -129,6 +135,7 @@ def decode_textures_first() -> None:
     decoding the result. Alpha and non-colour images are unchanged."""
     import numpy as np
 
+    linear_of = {}
     for image in list(bpy.data.images):
         if image.is_float or image.colorspace_settings.name != "sRGB" or 0 in image.size:
             continue
@@ -143,10 +150,10 @@ def decode_textures_first() -> None:
         linear.alpha_mode = image.alpha_mode
         linear.pixels.foreach_set(pixels.ravel())
         linear.pack()
-        for material in bpy.data.materials:
-            for node in material.node_tree.nodes if material.node_tree else ():
-                if node.type == "TEX_IMAGE" and node.image == image:
-                    node.image = linear
+        linear_of[image.name] = linear
+    for node in material_nodes("TEX_IMAGE"):
+        if node.image is not None and node.image.name in linear_of:
+            node.image = linear_of[node.image.name]
 
 
 def beer_lambert_volumes() -> None:
@@ -157,20 +164,17 @@ def beer_lambert_volumes() -> None:
     light keeps exp(-(1 - c) x / d) over a length x instead of the extension's c^(x / d).
     Here the coefficient per channel becomes -ln(c) / d: density its largest, colour
     1 - coefficient / density."""
-    for material in bpy.data.materials:
-        for node in material.node_tree.nodes if material.node_tree else ():
-            if node.type != "VOLUME_ABSORPTION":
-                continue
-            colour = node.inputs["Color"].default_value
-            density = node.inputs["Density"].default_value
-            if not density > 0 or not math.isfinite(density):
-                continue
-            sigma = [-math.log(max(float(colour[c]), 1e-6)) * density for c in range(3)]
-            top = max(sigma)
-            if not top > 0:
-                continue
-            node.inputs["Density"].default_value = top
-            node.inputs["Color"].default_value = (*(1.0 - s / top for s in sigma), 1.0)
+    for node in material_nodes("VOLUME_ABSORPTION"):
+        colour = node.inputs["Color"].default_value
+        density = node.inputs["Density"].default_value
+        if not density > 0 or not math.isfinite(density):
+            continue
+        sigma = [-math.log(max(float(colour[c]), 1e-6)) * density for c in range(3)]
+        top = max(sigma)
+        if not top > 0:
+            continue
+        node.inputs["Density"].default_value = top
+        node.inputs["Color"].default_value = (*(1.0 - s / top for s in sigma), 1.0)
 
 
 def environment_world(env: dict) -> bpy.types.World:
