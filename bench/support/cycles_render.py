@@ -107,6 +107,12 @@ def match_settings(scene: bpy.types.Scene) -> None:
         # normal's cosine; the farm does neither.
         obj.cycles.shadow_terminator_offset = 0.0
         obj.cycles.shadow_terminator_geometry_offset = 0.0
+    for material in bpy.data.materials:
+        # Cycles' "Bump Map Correction" (on by default) darkens diffuse light that grazes a
+        # normal-mapped surface (Conty Estevez et al.'s bump-terminator shadowing) and bends
+        # the normal so that specular reflections stay above the surface; glTF's normalTexture
+        # (3.9.3) does neither, nor does the farm.
+        material.cycles.use_bump_map_correction = False
     settings = scene.render.image_settings
     settings.file_format = "OPEN_EXR"
     settings.color_depth = "32"

@@ -137,9 +137,12 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
                              int lane, LightRay* out) {
   uint32_t entry = 0;
   float p_entry = 0.f, u_sel = 0.f;
-  if (!choose_light(lc, w, total, s.get(dim::kLightSelect), &entry, &p_entry, &u_sel))
+  // The light position's first coordinate also chooses the light (rescaled at each choice),
+  // so that the pair's stratification reaches every light (LightSet::sample_in).
+  const Point2 u_light = s.get2(dim::kLightU);
+  if (!choose_light(lc, w, total, u_light.x, &entry, &p_entry, &u_sel))
     return LightSampleKind::None;
-  const Point2 u = s.get2(dim::kLightU);
+  const Point2 u{u_sel, u_light.y};
   const Vec3 origin = sp.above();
   const uint32_t bit = uint32_t(1) << lane;
   const auto set3 = [lane](float (*to)[LightBatch::kLanes], Vec3 v) {
@@ -163,7 +166,7 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
     return LightSampleKind::Waiting;
   }
   const LightSet& lights = scene.lights();
-  const LightSample ls = lights.sample_in(entry, u_sel, u.x, u.y);
+  const LightSample ls = lights.sample_in(entry, u.x, u.y);
   if (ls.punctual >= 0) {
     const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
     const float pdf = ls.pdf_area * p_entry;  // selection probability only: a delta light

@@ -172,7 +172,7 @@ TEST(LightSelection, ChoosesEveryLightWithItsProbability) {
         chi2.observed()[cells - 1] += 1;
         continue;
       }
-      const LightSample ls = lights.sample_in(entry, u_rest, uni(rng), uni(rng));
+      const LightSample ls = lights.sample_in(entry, u_rest, uni(rng));
       const uint32_t li = ls.punctual >= 0 ? uint32_t(lights.emitter_count()) + uint32_t(ls.punctual)
                                            : emitter_index.at({ls.slot, ls.prim});
       ASSERT_EQ(cluster_of[li], entry);

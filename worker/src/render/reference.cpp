@@ -20,9 +20,9 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
                             LightRay* out) {
   uint32_t entry = 0;
   float p_entry = 0.f, u_sel = 0.f;
-  if (!choose_light(lc, weights, total, s.get(dim::kLightSelect), &entry, &p_entry, &u_sel))
-    return false;
-  const Point2 u = s.get2(dim::kLightU);
+  const Point2 u_light = s.get2(dim::kLightU);
+  if (!choose_light(lc, weights, total, u_light.x, &entry, &p_entry, &u_sel)) return false;
+  const Point2 u{u_sel, u_light.y};
   const Vec3 origin = sp.above();
   out->origin = origin;
   if (entry == lc.clusters) {
@@ -40,7 +40,7 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
     return true;
   }
   const LightSet& lights = scene.lights();
-  const LightSample ls = lights.sample_in(entry, u_sel, u.x, u.y);
+  const LightSample ls = lights.sample_in(entry, u.x, u.y);
   if (ls.punctual >= 0) {
     const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
     const float pdf = ls.pdf_area * p_entry;

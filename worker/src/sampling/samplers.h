@@ -6,8 +6,10 @@
 // Dimension layout used by the integrators (never depends on what happened on the path):
 //   0, 1   pixel jitter (box filter: sample position (x + u0, y + u1))
 //   2, 3   thin lens position (concentric disk)
-//   4 + 8 b + k   for bounce b: k = 0-1 light position, 2-3 BSDF direction, 4 light
-//                 selection, 5 Russian roulette, 6 BSDF lobe selection, 7 glass
+//   4 + 8 b + k   for bounce b: k = 0-1 light selection and position (the first coordinate
+//                 chooses the light, then, rescaled, places the point with the second), 2-3
+//                 BSDF direction, 4 unused (light selection had its own dimension until
+//                 2026-12), 5 Russian roulette, 6 BSDF lobe selection, 7 glass
 //                 reflect/refract choice.
 // 2D quantities sit on an even dimension and the next one: the sobol sampler pads pairs
 // (2p, 2p + 1), each pair a scrambled (0, m, 2)-net; the stratified sampler stratifies the
@@ -60,7 +62,7 @@ constexpr uint64_t kMaxSamplesPerPixel = uint64_t(1) << 31;
 namespace dim {
 constexpr uint32_t kPixelX = 0, kPixelY = 1, kLensU = 2, kLensV = 3;
 constexpr uint32_t kFirstBounce = 4, kPerBounce = 8;
-constexpr uint32_t kLightU = 0, kLightV = 1, kBsdfU = 2, kBsdfV = 3, kLightSelect = 4,
+constexpr uint32_t kLightU = 0, kLightV = 1, kBsdfU = 2, kBsdfV = 3,
                    kRoulette = 5, kLobe = 6, kFresnel = 7;
 inline uint32_t bounce(uint32_t b, uint32_t k) { return kFirstBounce + kPerBounce * b + k; }
 // Motion blur: the sample's time within the shutter, on the first dimension after those of

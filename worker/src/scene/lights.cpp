@@ -115,10 +115,10 @@ size_t LightSet::memory_bytes() const {
              emitter_pdf_area_.capacity() * sizeof(float) +
              clusters_.capacity() * sizeof(LightCluster) +
              members_.capacity() * sizeof(uint32_t) + member_pmf_.capacity() * sizeof(float) +
+             member_cdf_.capacity() * sizeof(float) +
              local_by_slot_.capacity() * sizeof(std::vector<Local>);
   for (const std::vector<float>& v : pdf_area_by_slot_) n += v.capacity() * sizeof(float);
   for (const std::vector<Local>& v : local_by_slot_) n += v.capacity() * sizeof(Local);
-  for (const AliasTable& t : cluster_tables_) n += sizeof(AliasTable) + t.memory_bytes();
   return n;
 }
 
@@ -128,11 +128,17 @@ LightSample LightSet::sample(float u_select, float u, float v) const {
                       u, v);
 }
 
-LightSample LightSet::sample_in(uint32_t c, float u_select, float u, float v) const {
+LightSample LightSet::sample_in(uint32_t c, float u, float v) const {
   const LightCluster& k = clusters_[c];
-  const uint32_t li = members_[k.first + cluster_tables_[c].sample(u_select)];
+  // The last light whose interval starts at or below u (lights of probability 0 have empty
+  // intervals and are never chosen: the search skips to the next start above them).
+  const auto first = member_cdf_.begin() + k.first, last = first + k.count;
+  uint32_t i = uint32_t(std::upper_bound(first + 1, last, u) - first) - 1;
+  uint32_t li = members_[k.first + i];
+  while (!(member_pmf_[li] > 0.f) && i > 0) li = members_[k.first + --i];
   const float pmf = member_pmf_[li];
-  return sample_light(li, li < emitters_.size() ? pmf / emitters_[li].area : pmf, u, v);
+  const float rest = std::min(0.99999994f, std::max(0.f, (u - first[i]) / pmf));
+  return sample_light(li, li < emitters_.size() ? pmf / emitters_[li].area : pmf, rest, v);
 }
 
 LightSample LightSet::sample_light(uint32_t li, float pdf, float u, float v) const {
@@ -272,7 +278,7 @@ void LightSet::build_clusters(const std::vector<double>& power,
     std::sort(upper.lights.begin(), upper.lights.end());
     groups.push_back(std::move(upper));
   }
-  // The clusters: bounds, normal cone, energy; the alias table over each one's lights.
+  // The clusters: bounds, normal cone, energy; the distribution of each one's lights.
   member_pmf_.assign(n, 0.f);
   for (const Group& gr : groups) {
     LightCluster k;
@@ -316,10 +322,14 @@ void LightSet::build_clusters(const std::vector<double>& power,
         }
       }
     }
-    const AliasTable table(w);
-    for (uint32_t i = 0; i < k.count; ++i)
-      member_pmf_[gr.lights[i]] = float(table.pmf(i));
-    cluster_tables_.push_back(table);
+    double sum = 0.0;
+    for (double x : w) sum += x;
+    double below = 0.0;
+    for (uint32_t i = 0; i < k.count; ++i) {
+      member_pmf_[gr.lights[i]] = float(w[i] / sum);
+      member_cdf_.push_back(float(below / sum));
+      below += w[i];
+    }
     clusters_.push_back(k);
   }
   for (size_t c = 0; c < clusters_.size(); ++c) {

@@ -9,9 +9,11 @@
 // importance, one level), and is 0 only where no light of the cluster can contribute to light
 // sampling at o (wholly below ng's plane, or every emitter facing away). A cluster is chosen
 // with probability proportional to its importance (and the environment's, a constant the
-// caller adds), then a light inside it by power (an alias table), then (area lights) a point
-// uniformly by area. The environment is a job setting, not part of the scene: see
-// render/light_sampling.cpp.
+// caller adds), then a light inside it by power (its cumulative distribution), then (area
+// lights) a point uniformly by area. One number makes every choice, rescaled to [0, 1) within
+// the interval each choice took, and then places the point with the light sample's second
+// number: a stratified pair stays stratified over every light (sample_in). The environment is
+// a job setting, not part of the scene: see render/light_sampling.cpp.
 //
 // sample() and pdf_area() are the older global choice by power alone (one alias table over
 // every light), kept for tools and tests.
@@ -136,9 +138,13 @@ class LightSet {
   float importance(uint32_t c, Vec3 o, Vec3 ng) const;
   // The importance of every cluster at (o, ng) into w[0, cluster_count()); their sum.
   float importances(Vec3 o, Vec3 ng, float* w) const;
-  // Light sample of a light of cluster c chosen by power with u_select, (u, v) the point;
+  // Light sample of a light of cluster c chosen by power with u, the point on it from (u', v)
+  // where u' is u rescaled to [0, 1) within the chosen light's interval of the cluster's
+  // cumulative distribution (its lights in the order of members_). A stratified (u, v) set
+  // therefore stays stratified over each light and across them: the two triangles of a quad
+  // light share one well-spread point set instead of each getting a random half of it.
   // pdf_area is the probability within the cluster (divided by the area for area lights).
-  LightSample sample_in(uint32_t c, float u_select, float u, float v) const;
+  LightSample sample_in(uint32_t c, float u, float v) const;
   // For triangle prim of slot: its cluster and its area density within it (0: not a light).
   float pdf_area_in_cluster(uint32_t slot, uint32_t prim, uint32_t* cluster) const {
     if (slot >= local_by_slot_.size()) return 0.f;
@@ -161,7 +167,8 @@ class LightSet {
   std::vector<float> emitter_pdf_area_;
   double total_power_ = 0.0;
   // Per-shading-point selection: the clusters, their lights (indices into emitters_ then
-  // punctual_, as table_'s), per cluster an alias table over its lights by power.
+  // punctual_, as table_'s) and, per entry of members_, the cluster's cumulative probability
+  // of the lights before it (its lights by power).
   struct Local {
     float pdf_area = 0.f;
     uint32_t cluster = 0;
@@ -170,7 +177,7 @@ class LightSet {
   LightSample sample_light(uint32_t li, float pdf, float u, float v) const;
   std::vector<LightCluster> clusters_;
   std::vector<uint32_t> members_;
-  std::vector<AliasTable> cluster_tables_;
+  std::vector<float> member_cdf_;
   std::vector<float> member_pmf_;  // by light index: its probability within its cluster
   std::vector<std::vector<Local>> local_by_slot_;
 };
