@@ -40,6 +40,7 @@ import numpy as np
 from support.parity_scenes import SCENES
 from support.results import write_results
 
+from renderfarm.domain.scenes.glb import build_glb, parse_json, split_glb
 from renderfarm.infra.images import read_exr, srgb_encode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -281,7 +282,39 @@ def equal_time_spp(spp: int, cycles_s: float, wrk: dict) -> int:
     return max(1, round(spp * max(cycles_s - fixed, 0.0) / max(sampling, 1e-9)))
 
 
+def without_dielectric_specular(scene: Path, out: Path) -> tuple[Path, list[str]]:
+    """A copy of the GLB scene in which every opaque dielectric (metallicFactor 0, no
+    KHR_materials_transmission) has KHR_materials_specular's specularFactor 0, so that its
+    BRDF is the spec's Lambert lobe alone in both renderers (Blender's importer makes that a
+    Principled BSDF with Specular IOR Level 0). Metals, glass, coats and sheen are unchanged.
+    What the copy leaves of a difference is not the coupling of diffuse and specular
+    reflection, which is a model difference (docs/parity.md). Returns the copy and the names of
+    the materials changed."""
+    json_chunk, blob = split_glb(scene.read_bytes(), scene.name)
+    document = parse_json(json_chunk, scene.name)
+    changed = []
+    for i, material in enumerate(document.get("materials", [])):
+        pbr = material.get("pbrMetallicRoughness", {})
+        transmission = material.get("extensions", {}).get("KHR_materials_transmission", {})
+        if pbr.get("metallicFactor", 1.0) != 0 or transmission.get("transmissionFactor", 0) > 0:
+            continue
+        material.setdefault("extensions", {})["KHR_materials_specular"] = {"specularFactor": 0.0}
+        changed.append(material.get("name", f"materials[{i}]"))
+    if changed:
+        used = document.setdefault("extensionsUsed", [])
+        if "KHR_materials_specular" not in used:
+            used.append("KHR_materials_specular")
+    copy = out / "scenes" / f"{scene.stem}-lambert.glb"
+    copy.parent.mkdir(parents=True, exist_ok=True)
+    copy.write_bytes(build_glb(document, blob or b""))
+    return copy, changed
+
+
 def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) -> dict:
+    if args.lambert_dielectrics:
+        scene, changed = without_dielectric_specular(scene, out)
+        print(f"{name}: specularFactor 0 on {len(changed)} material(s): "
+              f"{', '.join(changed) or 'none'}", flush=True)  # fmt: skip
     print(f"{name}: Cycles ({args.renders} x {args.spp} spp + reference "
           f"{args.reference_spp} spp)", flush=True)  # fmt: skip
     cyc = render_cycles(scene, env, name, args, out)
@@ -298,7 +331,8 @@ def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) 
         "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
                                                    "renders", "threads", "max_depth", "grid",
                                                    "cycles_microfacet", "cycles_textures",
-                                                   "cycles_volume")},
+                                                   "cycles_volume",
+                                                   "lambert_dielectrics")},
         **analyse(cyc, wrk, wrk_t, args, rects),
     }  # fmt: skip
     (out / f"{name}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -326,6 +360,34 @@ def print_table(all_figures: list[dict]) -> None:
         print(f"{figures['scene']}: Cycles {np.mean(figures['cycles_seconds']):.3f} s/render, "
               f"worker {np.mean(figures['worker_seconds']):.3f} s/render at equal spp, "
               f"{figures['equal_time_worker_spp']} spp at equal time")  # fmt: skip
+
+
+def furthest_block(figures: dict, tolerance: float = 0.005) -> dict | None:
+    """The block and channel whose ratio is furthest from 1 in standard errors, among those
+    more than tolerance away from 1 (None if none is)."""
+    blocks = [r for r in figures["rows"] if r["region"] != "image" and r["ratio"] is not None
+              and r["ratio_se"] and abs(r["ratio"] - 1) > tolerance]  # fmt: skip
+    return max(blocks, key=lambda r: abs(r["ratio"] - 1) / r["ratio_se"], default=None)
+
+
+def print_summary(all_figures: list[dict]) -> None:
+    """One Markdown row per scene, as docs/parity.md's results table has them."""
+    print("| scene | ratio R / G / B (± SE), whole image | furthest block from 1 "
+          "| MSE worker / Cycles (G) | efficiency, equal spp / equal time (G) |")  # fmt: skip
+    print("|---|---|---|---|---|")
+    for figures in all_figures:
+        image = {r["channel"]: r for r in figures["rows"] if r["region"] == "image"}
+        se = max(image[c]["ratio_se"] or 0.0 for c in CHANNELS)
+        ratios = " / ".join(fmt(image[c]["ratio"], ".3f") for c in CHANNELS)
+        block = furthest_block(figures)
+        far = ("none more than 0.5 % off" if block is None else
+               f"{block['region']} {block['channel']} {block['ratio']:.3f} ± "
+               f"{block['ratio_se']:.4f}")  # fmt: skip
+        g = image["G"]
+        print(f"| `{figures['scene']}` | {ratios} (± {se:.4f}) | {far} "
+              f"| {fmt(g['worker_mse'], '.3g')} / {fmt(g['cycles_mse'], '.3g')} "
+              f"| {fmt(g['efficiency_ratio_equal_spp'], '.2f')} / "
+              f"{fmt(g['efficiency_ratio_equal_time'], '.2f')} |")  # fmt: skip
 
 
 def rectangle(text: str) -> tuple[int, int, int, int]:
@@ -408,6 +470,13 @@ def main() -> list[dict]:
         "set to absorb as the extension defines (Beer-Lambert with attenuationColor ^ "
         "(length / attenuationDistance); docs/parity.md)",
     )
+    parser.add_argument(
+        "--lambert-dielectrics",
+        action="store_true",
+        help="render a copy of each scene in which every opaque dielectric has "
+        "KHR_materials_specular specularFactor 0 (the spec's Lambert lobe alone): what it "
+        "leaves of a difference is not the diffuse/specular coupling (docs/parity.md)",
+    )
     args = parser.parse_args()
     for key in ("width", "height", "spp", "reference_spp", "threads", "max_depth", "grid"):
         if getattr(args, key) < 1:
@@ -448,10 +517,13 @@ def main() -> list[dict]:
                    "rotation_deg": args.environment_rotation_deg}  # fmt: skip
         all_figures.append(run_scene(name, Path(files["scene"]), env, args, args.region, out))
     print_table(all_figures)
+    print()
+    print_summary(all_figures)
     if len(all_figures) > 1:
         (out / "parity.json").write_text(json.dumps(all_figures, indent=2) + "\n")
     if args.suite:
-        write_results("cycles_parity", {f["scene"]: f for f in all_figures})
+        name = "cycles_parity_lambert" if args.lambert_dielectrics else "cycles_parity"
+        write_results(name, {f["scene"]: f for f in all_figures})
     print(f"wrote {out}")
     return all_figures
 
