@@ -506,6 +506,9 @@ def main() -> list[dict]:
             parser.error(f"scene {args.scene!r}: neither a file nor a parity scene "
                          f"({', '.join(SCENES)})")  # fmt: skip
         scenes = {path.stem: {"scene": str(path.resolve()), "environment": None}}
+        if args.lambert_dielectrics and path.read_bytes()[:4] != b"glTF":
+            parser.error(f"--lambert-dielectrics: {args.scene} is not a GLB; it rewrites a "
+                         "self-contained .glb (export the scene as one)")  # fmt: skip
     all_figures = []
     for name, files in scenes.items():
         # A parity scene's own map, else --environment; either with --environment-intensity
