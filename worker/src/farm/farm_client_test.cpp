@@ -149,7 +149,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   farm.scene_bytes = testing::small_gltf_json();
   farm.scene_sha = sha256_hex(farm.scene_bytes);
   // A small HDR environment map (Radiance RGBE), written with OpenImageIO.
-  const std::string env_path = ::testing::TempDir() + "/farm_env_test.hdr";
+  const std::string env_path = testing::test_path("farm_env_test.hdr");
   {
     auto out = OIIO::ImageOutput::create(env_path);
     ASSERT_TRUE(out);
@@ -173,7 +173,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   ASSERT_TRUE(server);
   ASSERT_GT(port, 0);
 
-  const fs::path cache = fs::path(::testing::TempDir()) / "rf-farm-test-cache";
+  const fs::path cache = fs::path(testing::test_path("rf-farm-test-cache"));
   fs::remove_all(cache);
   FarmOptions options;
   options.server = "127.0.0.1:" + std::to_string(port);
@@ -343,7 +343,7 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
   builder.RegisterService(&scene_service);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   ASSERT_TRUE(server);
-  const fs::path cache = fs::path(::testing::TempDir()) / "rf-farm-frames-cache";
+  const fs::path cache = fs::path(testing::test_path("rf-farm-frames-cache"));
   fs::remove_all(cache);
   FarmOptions options;
   options.server = "127.0.0.1:" + std::to_string(port);
@@ -410,7 +410,7 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
   // Each result is the local render of the scene loaded at the frame's time with the chosen
   // animations (`render --time`: a fresh AnimatedScene's pose), with the frame's seed, bit for
   // bit.
-  const std::string scene_path = (fs::path(::testing::TempDir()) / "rf-farm-frames.gltf").string();
+  const std::string scene_path = testing::test_path("rf-farm-frames.gltf");
   {
     std::ofstream out(scene_path);
     out << farm.scene_bytes;

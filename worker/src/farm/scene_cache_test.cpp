@@ -98,7 +98,7 @@ TEST(SceneCache, ConcurrentRequestsShareOneLoadAndFailuresAreRetried) {
 }
 
 TEST(SceneCache, PreparesAnAnimatedSceneOnceAndKeepsAFewPosesOfIt) {
-  const std::string path = ::testing::TempDir() + "/scene_cache_animated.gltf";
+  const std::string path = testing::test_path("scene_cache_animated.gltf");
   {
     std::ofstream out(path);
     out << testing::animated_gltf_json();
@@ -143,7 +143,7 @@ TEST(SceneCache, PreparesAnAnimatedSceneOnceAndKeepsAFewPosesOfIt) {
 }
 
 TEST(SceneCache, AFailedPoseIsNotCachedAndKeepsTheAnimatedScene) {
-  const std::string path = ::testing::TempDir() + "/scene_cache_animated_fail.gltf";
+  const std::string path = testing::test_path("scene_cache_animated_fail.gltf");
   {
     std::ofstream out(path);
     out << testing::animated_gltf_json();

@@ -37,7 +37,7 @@ TEST(RenderImage, WritesExrWithAllChannels) {
   settings.width = 20;
   settings.height = 10;
   const Image image = render_image(scene, settings, 4, 2, nullptr);
-  const std::string path = ::testing::TempDir() + "/render_test.exr";
+  const std::string path = testing::test_path("render_test.exr");
   write_exr(path, image);
   auto in = OIIO::ImageInput::open(path);
   ASSERT_TRUE(in);

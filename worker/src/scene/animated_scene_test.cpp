@@ -140,7 +140,7 @@ std::string moving_scene_json() {
 class AnimatedSceneTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    path_ = ::testing::TempDir() + "/animated_scene_test.gltf";
+    path_ = testing::test_path("animated_scene_test.gltf");
     std::ofstream out(path_);
     out << moving_scene_json();
   }
@@ -313,7 +313,7 @@ std::vector<double> column_means(const Image& image) {
 class MotionBlur : public ::testing::TestWithParam<Mover> {};
 
 TEST_P(MotionBlur, AMovingEdgeCoversPixelsAsItsSweepSays) {
-  const std::string path = ::testing::TempDir() + "/motion_edge.gltf";
+  const std::string path = testing::test_path("motion_edge.gltf");
   {
     std::ofstream out(path);
     out << edge_scene_json(GetParam());

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include "testing/chi_square.h"
+#include "testing/test_scenes.h"
 
 #include <cstdio>
 #include <random>
@@ -112,7 +113,7 @@ TEST(Environment, ConventionsCenterIsMinusZTopIsPlusYRotationAboutY) {
 }
 
 TEST(Environment, LoadsAnHdrFile) {
-  const std::string path = ::testing::TempDir() + "/env_test.hdr";
+  const std::string path = testing::test_path("env_test.hdr");
   {
     auto out = OIIO::ImageOutput::create(path);
     ASSERT_TRUE(out);

@@ -1,12 +1,15 @@
 #include "testing/test_scenes.h"
 
 #include <OpenImageIO/imageio.h>
-
+#include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <atomic>
 #include <cstdio>
-#include <filesystem>
 #include <cstring>
+#include <filesystem>
+#include <mutex>
 #include <fstream>
 #include <iterator>
 #include <stdexcept>
@@ -213,23 +216,63 @@ std::string quad_gltf_buffers_json() {
          base64(buf) + R"("}])";
 }
 
+namespace {
+
+// The folders test_path made in this process, removed at exit.
+struct TestFolders {
+  std::mutex mutex;
+  std::vector<std::filesystem::path> made;
+  ~TestFolders() {
+    std::error_code ec;
+    for (const auto& dir : made) std::filesystem::remove_all(dir, ec);
+  }
+};
+
+TestFolders& test_folders() {
+  static TestFolders folders;
+  return folders;
+}
+
+}  // namespace
+
+std::string test_path(const std::string& name) {
+  const ::testing::TestInfo* info = ::testing::UnitTest::GetInstance()->current_test_info();
+  std::string test = info ? std::string(info->test_suite_name()) + "." + info->name() : "none";
+  for (char& ch : test)
+    if (ch == '/') ch = '_';  // parameterized tests: Suite/Name.Case/0
+  const std::filesystem::path dir = std::filesystem::path(::testing::TempDir()) /
+                                    ("rf-" + std::to_string(::getpid()) + "-" + test);
+  TestFolders& folders = test_folders();
+  {
+    std::lock_guard<std::mutex> lock(folders.mutex);
+    if (std::find(folders.made.begin(), folders.made.end(), dir) == folders.made.end()) {
+      std::filesystem::create_directories(dir);
+      folders.made.push_back(dir);
+    }
+  }
+  return (dir / name).string();
+}
+
 std::string data_uri(const std::string& mime_type, const std::vector<unsigned char>& bytes) {
   return "data:" + mime_type + ";base64," + base64(bytes);
 }
 
 std::string png_data_uri(int width, int height, int channels,
                          const std::vector<unsigned char>& pixels) {
-  static int counter = 0;
-  const std::string path = (std::filesystem::temp_directory_path() /
-                            ("rf_test_" + std::to_string(::getpid()) + "_" +
-                             std::to_string(++counter) + ".png"))
-                               .string();
+  return image_data_uri("png", width, height, channels, pixels);
+}
+
+std::string image_data_uri(const std::string& format, int width, int height, int channels,
+                           const std::vector<unsigned char>& pixels) {
+  static std::atomic<int> counter{0};
+  const std::string path = test_path("image_" + std::to_string(++counter) + "." + format);
   auto out = OIIO::ImageOutput::create(path);
   if (!out) throw std::runtime_error("cannot create PNG writer");
   OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
   // The pixels as given: colours not premultiplied by alpha (OpenImageIO would otherwise
   // divide them by it on writing).
   spec.attribute("oiio:UnassociatedAlpha", 1);
+  spec.attribute("CompressionQuality", 100);  // the lossy formats (webp, avif) at their best
   if (!out->open(path, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels.data()) ||
       !out->close())
     throw std::runtime_error("cannot write " + path);
@@ -237,7 +280,7 @@ std::string png_data_uri(int width, int height, int channels,
   const std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)),
                                          std::istreambuf_iterator<char>());
   std::remove(path.c_str());
-  return "data:image/png;base64," + base64(bytes);
+  return "data:image/" + format + ";base64," + base64(bytes);
 }
 
 }  // namespace testing

@@ -33,6 +33,13 @@ std::string animated_gltf_json();
 // indices.
 std::string quad_gltf_buffers_json();
 
+// A folder of the running test's own, created on first use: ::testing::TempDir()/
+// rf-<pid>-<Suite>.<Test> (ctest -j runs the instances of a parameterized test, and every
+// other test, in processes of their own at once; fixed file names in the shared temporary
+// folder let one read another's half-written file). Removed with everything in it when the
+// test process exits. `name` is appended as a path inside it.
+std::string test_path(const std::string& name);
+
 // bytes as a base64 data: URI of the given MIME type.
 std::string data_uri(const std::string& mime_type, const std::vector<unsigned char>& bytes);
 
@@ -40,6 +47,10 @@ std::string data_uri(const std::string& mime_type, const std::vector<unsigned ch
 // not premultiplied by alpha) as a data: URI.
 std::string png_data_uri(int width, int height, int channels,
                          const std::vector<unsigned char>& pixels);
+// The same pixels in another format OpenImageIO writes ("webp", "avif": lossy, at quality
+// 100), as a data:image/<format> URI.
+std::string image_data_uri(const std::string& format, int width, int height, int channels,
+                           const std::vector<unsigned char>& pixels);
 
 // A flat-shaded (no vertex normals: shading normal = geometric normal) UV sphere of
 // 2 * rings * (segments) triangles, outward facing.
