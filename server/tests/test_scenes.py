@@ -489,6 +489,21 @@ def test_pack_refuses_a_buffer_file_shorter_than_byte_length(tmp_path):
         pack_gltf(write_gltf(tmp_path, triangle_doc("short.bin")))
 
 
+def test_pack_names_avif_images_by_their_extension_or_their_ftyp_box(tmp_path):
+    """EXT_texture_avif's images: image/avif from the file name, or from the ISO-BMFF box
+    'ftyp' with brand avif (or avis, a sequence) when the name says nothing."""
+    (tmp_path / "t.bin").write_bytes(TRIANGLE)
+    avif = bytes([0, 0, 0, 0x1C]) + b"ftypavif" + bytes(16)
+    avis = bytes([0, 0, 0, 0x1C]) + b"ftypavis" + bytes(16)
+    (tmp_path / "leaf.AVIF").write_bytes(avif)
+    (tmp_path / "bark.img").write_bytes(avif)
+    (tmp_path / "moss.img").write_bytes(avis)
+    doc = triangle_doc("t.bin")
+    doc["images"] = [{"uri": "leaf.AVIF"}, {"uri": "bark.img"}, {"uri": "moss.img"}]
+    out, _blob = read_glb(pack_gltf(write_gltf(tmp_path, doc)))
+    assert [img["mimeType"] for img in out["images"]] == ["image/avif"] * 3
+
+
 def test_pack_refuses_image_of_unknown_type(tmp_path):
     (tmp_path / "t.bin").write_bytes(TRIANGLE)
     (tmp_path / "picture.xyz").write_bytes(b"not an image")

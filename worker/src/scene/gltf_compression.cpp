@@ -10,6 +10,7 @@
 
 #include <cstdint>
 #include <cstring>
+#include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <set>
@@ -149,6 +150,10 @@ struct DracoPrimitive {
   size_t buffer = 0, offset = 0, length = 0;  // the compressed bytes
   std::vector<std::pair<int, uint32_t>> attributes;  // (accessor, Draco attribute id)
   double bytes = 0.0;  // decoded size, from the accessors' declared counts
+  // Every accessor it decodes into is decoded the same way (the same compressed buffer view
+  // and attribute id) by an earlier primitive: exporters write the primitives of one Draco
+  // mesh that differ only in material so. Decoded once, by the first.
+  bool duplicate = false;
 };
 
 size_t round4(size_t n) { return (n + 3) & ~size_t(3); }
@@ -162,16 +167,23 @@ size_t element_size(const tinygltf::Accessor& acc) {
 std::vector<DracoPrimitive> draco_primitives(const tinygltf::Model& model,
                                              const std::string& source) {
   std::vector<DracoPrimitive> prims;
-  std::set<int> claimed;  // accessors a Draco primitive decodes into
-  auto claim = [&](int accessor, const std::string& path) {
+  // The accessors Draco primitives decode into, with what fills each: (compressed buffer view,
+  // attribute id; -1 for the indices). Two primitives may share an accessor only if they fill
+  // it from the same data; otherwise which one's values it holds would be a guess.
+  std::map<int, std::pair<size_t, int64_t>> claimed;
+  auto claim = [&](int accessor, size_t view, int64_t id, const std::string& path) {
     if (accessor < 0 || size_t(accessor) >= model.accessors.size())
       fail(source, path, "refers to missing accessor " + std::to_string(accessor));
-    if (!claimed.insert(accessor).second)
+    const auto [it, fresh] = claimed.emplace(accessor, std::make_pair(view, id));
+    if (!fresh && it->second != std::make_pair(view, id))
       fail(source, path,
-           "accessor " + std::to_string(accessor) + " is decoded by two Draco primitives");
+           "accessor " + std::to_string(accessor) +
+               " is decoded by two Draco primitives from different data (buffer views " +
+               std::to_string(it->second.first) + " and " + std::to_string(view) + ")");
     const tinygltf::Accessor& acc = model.accessors[size_t(accessor)];
     if (acc.sparse.isSparse) fail(source, path, "a Draco accessor cannot be sparse");
     if (!element_size(acc)) fail(source, path, "unsupported 'type' or 'componentType'");
+    return fresh;
   };
   for (size_t m = 0; m < model.meshes.size(); ++m) {
     for (size_t p = 0; p < model.meshes[m].primitives.size(); ++p) {
@@ -200,6 +212,7 @@ std::vector<DracoPrimitive> draco_primitives(const tinygltf::Model& model,
       d.length = bv.byteLength;
       const tinygltf::Value& attrs = ext.Get("attributes");
       if (!attrs.IsObject()) fail(source, d.path, "'attributes' must be an object");
+      int fresh = 0;  // accessors no earlier primitive decodes
       for (const std::string& name : attrs.Keys()) {
         const std::string where = d.path + ".attributes." + name;
         auto a = prim.attributes.find(name);
@@ -209,17 +222,20 @@ std::vector<DracoPrimitive> draco_primitives(const tinygltf::Model& model,
         if (!id.IsNumber() || id.GetNumberAsDouble() < 0 || id.GetNumberAsDouble() > 4.0e9 ||
             id.GetNumberAsDouble() != double(uint32_t(id.GetNumberAsDouble())))
           fail(source, where, "must be a Draco attribute id (a non-negative integer)");
-        claim(a->second, where);
-        d.attributes.push_back({a->second, uint32_t(id.GetNumberAsDouble())});
+        const uint32_t draco_id = uint32_t(id.GetNumberAsDouble());
+        fresh += claim(a->second, view, draco_id, where);
+        d.attributes.push_back({a->second, draco_id});
         const tinygltf::Accessor& acc = model.accessors[size_t(a->second)];
         d.bytes += double(acc.count) * double(element_size(acc));
       }
       if (prim.indices >= 0) {
-        claim(prim.indices, prim_path + ".indices");
+        fresh += claim(prim.indices, view, -1, prim_path + ".indices");
         d.bytes += double(model.accessors[size_t(prim.indices)].count) * 4.0;
       } else {
         fail(source, prim_path, "a Draco primitive needs an 'indices' accessor (the triangles)");
       }
+      d.duplicate = fresh == 0;
+      if (d.duplicate) d.bytes = 0.0;
       prims.push_back(std::move(d));
     }
   }
@@ -432,7 +448,15 @@ void decode_compressed_geometry(tinygltf::Model* model, const std::map<int, size
   for (const auto& [index, length] : fallbacks)
     if (index < int(model->buffers.size())) model->buffers[size_t(index)].data.assign(length, 0);
   for (const MeshoptView& v : views) decode_meshopt(model, v, source);
-  for (const DracoPrimitive& d : dracos) decode_draco(model, d, source);
+  for (const DracoPrimitive& d : dracos) {
+    if (!d.duplicate) {
+      decode_draco(model, d, source);
+    } else {
+      // Its accessors hold the first primitive's decoded triangles (a list, whatever the
+      // mode was).
+      model->meshes[d.mesh].primitives[d.primitive].mode = TINYGLTF_MODE_TRIANGLES;
+    }
+  }
 }
 
 }  // namespace rf

@@ -9,6 +9,8 @@
 #include <gtest/gtest.h>
 #include <meshoptimizer.h>
 
+#include <nlohmann/json.hpp>
+
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -428,6 +430,51 @@ TEST(DracoCompression, MismatchesAndCorruptDataAreRefusedByPath) {
   const std::string from = R"("NORMAL": 1, )";
   missing.replace(missing.find(from), from.size(), "");  // the primitive's NORMAL attribute
   EXPECT_EQ(refusal(missing, &message), path + ".attributes.NORMAL") << message;
+}
+
+// Two primitives of one Draco mesh that differ only in material, decoding into the same
+// accessors from the same compressed data (as some exporters write them): the data is decoded
+// once and both primitives render its triangles, each with its material. Two primitives that
+// would fill one accessor from different data are refused: which values it holds would be a
+// guess.
+std::string two_primitive_draco_json(const Grid& g, bool swap_ids) {
+  nlohmann::json doc = nlohmann::json::parse(draco_json(g));
+  nlohmann::json& prims = doc["meshes"][0]["primitives"];
+  nlohmann::json second = prims[0];
+  prims[0]["material"] = 0;
+  second["material"] = 1;
+  if (swap_ids) {
+    nlohmann::json& attrs = second["extensions"]["KHR_draco_mesh_compression"]["attributes"];
+    std::swap(attrs["POSITION"], attrs["NORMAL"]);
+  }
+  prims.push_back(second);
+  doc["materials"] = nlohmann::json::array({{{"name", "red"}}, {{"name", "blue"}}});
+  return doc.dump();
+}
+
+TEST(DracoCompression, PrimitivesSharingTheirDecodedAccessorsDecodeOnce) {
+  const Grid g;
+  const SceneDescription one = load(draco_json(g));
+  const SceneDescription two = load(two_primitive_draco_json(g, false));
+  const size_t n = one.world.size();
+  ASSERT_EQ(n, g.indices.size() / 3);
+  ASSERT_EQ(two.world.size(), 2 * n);
+  for (size_t t = 0; t < n; ++t) {
+    const Triangle a = two.world.triangle(t), b = two.world.triangle(n + t), ref =
+                                                                           one.world.triangle(t);
+    for (int k = 0; k < 3; ++k)
+      for (int c = 0; c < 3; ++c) {
+        EXPECT_EQ(a.p[k][c], ref.p[k][c]) << "triangle " << t;
+        EXPECT_EQ(b.p[k][c], ref.p[k][c]) << "triangle " << t;
+      }
+    EXPECT_EQ(two.materials[two.world.material[t]].name, "red");
+    EXPECT_EQ(two.materials[two.world.material[n + t]].name, "blue");
+  }
+  std::string message;
+  EXPECT_EQ(refusal(two_primitive_draco_json(g, true), &message),
+            "meshes[0].primitives[1].extensions.KHR_draco_mesh_compression.attributes.NORMAL")
+      << message;
+  EXPECT_NE(message.find("from different data"), std::string::npos) << message;
 }
 
 }  // namespace

@@ -1124,5 +1124,115 @@ TEST(DoubleSided, TheBackFaceOfADoubleSidedEmitterEmitsLikeItsFront) {
   EXPECT_EQ(centre(emitter_scene(true, false)), 0.0);
 }
 
+// ---- KHR_node_visibility: a hidden node renders nothing below it, not even a descendant
+// whose own `visible` is true; its light is off; a camera below it still frames the image.
+
+std::string visibility_scene(const std::string& hidden) {
+  return R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_node_visibility", "KHR_lights_punctual"],
+  "extensions": {"KHR_lights_punctual": {"lights": [{"type": "point", "intensity": 5}]}},
+  "scene": 0, "scenes": [{"nodes": [0, 1]}],
+  "nodes": [{"mesh": 0},
+            {"children": [2, 3], "translation": [0, 0, 3], )" + hidden + R"(},
+            {"mesh": 1, "extensions": {"KHR_node_visibility": {"visible": true}}},
+            {"camera": 0, "extensions": {"KHR_lights_punctual": {"light": 0}}}],
+  "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.01}}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3}]},
+             {"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3}]}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+}
+
+TEST(NodeVisibility, AHiddenNodeHidesItsSubtreeButNotItsCamera) {
+  std::vector<std::string> warnings;
+  const SceneDescription shown = load_gltf_from_string(
+      visibility_scene(R"("extensions": {"KHR_node_visibility": {"visible": true}})"), "",
+      "visibility.gltf", &warnings);
+  EXPECT_EQ(shown.world.size(), 4u);  // both quads
+  EXPECT_EQ(shown.punctual_lights.size(), 1u);
+  const SceneDescription hidden = load_gltf_from_string(
+      visibility_scene(R"("extensions": {"KHR_node_visibility": {"visible": false}})"), "",
+      "visibility.gltf", &warnings);
+  EXPECT_EQ(hidden.world.size(), 2u);  // the root's quad only
+  EXPECT_TRUE(hidden.instances.empty());
+  EXPECT_TRUE(hidden.punctual_lights.empty());
+  ASSERT_TRUE(hidden.camera.has_value());  // the camera below the hidden node
+  EXPECT_NEAR(hidden.camera->position.z, 3.f, 1e-6f);
+  for (const auto& w : warnings)
+    EXPECT_EQ(w.find("KHR_node_visibility"), std::string::npos) << "supported: " << w;
+  std::string message;
+  EXPECT_EQ(refusal(visibility_scene(R"("extensions": {"KHR_node_visibility": {"visible": 0}})"),
+                    &message),
+            "nodes[1].extensions.KHR_node_visibility.visible")
+      << message;
+}
+
+// ---- EXT_mesh_gpu_instancing: the node's mesh once, drawn at node x T R S of each instance.
+
+// The unit quad under a node at (0, 0, -1) with three instances: (1) moved by (3, 0, 0);
+// (2) turned a quarter about +z (ROTATION as normalized shorts when `short_rotation`);
+// (3) scaled by 2 and moved by (0, 3, 0).
+std::string gpu_instancing_scene(bool short_rotation, size_t scale_count = 3) {
+  GltfBuffer b;
+  const int positions = b.add(kQuadPositions);
+  const int indices = b.add(kQuadIndices);
+  const int translation = b.add(std::vector<float>{3, 0, 0, 0, 0, 0, 0, 3, 0});
+  const float h = std::sqrt(0.5f);
+  const int rotation =
+      short_rotation
+          ? b.add(std::vector<int16_t>{0, 0, 0, 32767, 0, 0, 23170, 23170, 0, 0, 0, 32767})
+          : b.add(std::vector<float>{0, 0, 0, 1, 0, 0, h, h, 0, 0, 0, 1});
+  std::vector<float> scales = {1, 1, 1, 1, 1, 1, 2, 2, 2, 1, 1, 1};
+  scales.resize(3 * scale_count);
+  const int scale = b.add(scales);
+  return R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["EXT_mesh_gpu_instancing"],
+  "extensionsRequired": ["EXT_mesh_gpu_instancing"],
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0, "translation": [0, 0, -1], "extensions": {"EXT_mesh_gpu_instancing":
+      {"attributes": {"TRANSLATION": 2, "ROTATION": 3, "SCALE": 4}}}}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+  "accessors": [
+    {"bufferView": )" + std::to_string(positions) + R"(, "componentType": 5126, "count": 4,
+     "type": "VEC3", "min": [-1, -1, 0], "max": [1, 1, 0]},
+    {"bufferView": )" + std::to_string(indices) + R"(, "componentType": 5123, "count": 6,
+     "type": "SCALAR"},
+    {"bufferView": )" + std::to_string(translation) + R"(, "componentType": 5126, "count": 3,
+     "type": "VEC3"},
+    {"bufferView": )" + std::to_string(rotation) + R"(, "componentType": )" +
+         (short_rotation ? "5122, \"normalized\": true" : "5126") + R"(, "count": 3,
+     "type": "VEC4"},
+    {"bufferView": )" + std::to_string(scale) + R"(, "componentType": 5126, "count": )" +
+         std::to_string(scale_count) + R"(, "type": "VEC3"}],
+  )" + b.json() + "}";
+}
+
+TEST(GpuInstancing, EachInstanceDrawsTheMeshAtNodeTimesItsTrs) {
+  for (bool short_rotation : {false, true}) {
+    const SceneDescription desc =
+        load_gltf_from_string(gpu_instancing_scene(short_rotation), "", "forest.gltf", nullptr);
+    ASSERT_EQ(desc.meshes.size(), 1u);  // the mesh once
+    EXPECT_EQ(desc.meshes[0].geometry.size(), 2u);
+    EXPECT_TRUE(desc.world.empty());  // not also drawn at the node itself
+    ASSERT_EQ(desc.instances.size(), 3u);
+    EXPECT_EQ(desc.stats.instanced_triangles, 6u);
+    // The quad's corner (1, 1, 0) in each instance, by hand: node (0, 0, -1) + T + R S p.
+    const Vec3 want[3] = {{4, 1, -1}, {-1, 1, -1}, {2, 5, -1}};
+    for (size_t i = 0; i < 3; ++i) {
+      const Vec3 got = desc.instances[i].to_world.transform_point({1.f, 1.f, 0.f});
+      // A normalized short quaternion holds 1/32767 of precision.
+      const float tol = short_rotation ? 1e-4f : 1e-6f;
+      for (int c = 0; c < 3; ++c)
+        EXPECT_NEAR(got[c], want[i][c], tol) << "instance " << i << " short " << short_rotation;
+    }
+  }
+}
+
+TEST(GpuInstancing, AttributesOfDifferentCountsAreRefusedNamingThem) {
+  std::string message;
+  EXPECT_EQ(refusal(gpu_instancing_scene(false, 4), &message),
+            "nodes[0].extensions.EXT_mesh_gpu_instancing.attributes.SCALE")
+      << message;
+}
+
 }  // namespace
 }  // namespace rf

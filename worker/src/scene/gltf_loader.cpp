@@ -15,8 +15,10 @@
 #include <optional>
 #include <fstream>
 #include <functional>
+#include <iomanip>
 #include <map>
 #include <set>
+#include <sstream>
 
 #include "scene/animation.h"
 #include "scene/gltf_compression.h"
@@ -47,7 +49,8 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_specular",          "KHR_texture_transform",      "KHR_lights_punctual",
       "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression",
       "KHR_materials_volume",            "KHR_materials_clearcoat",    "KHR_materials_sheen",
-      "KHR_materials_unlit"};
+      "KHR_materials_unlit",             "EXT_texture_webp",           "EXT_texture_avif",
+      "KHR_node_visibility",             "EXT_mesh_gpu_instancing"};
   return s;
 }
 
@@ -148,8 +151,7 @@ class Loader {
       const tinygltf::Texture& gt = model_.textures[i];
       TextureSource src;
       src.name = "textures[" + std::to_string(i) + "]" + named(gt.name);
-      for (const auto& ext : gt.extensions)
-        warn(src.name + ": extension '" + ext.first + "' is not supported; using 'source'");
+      const int image = texture_image(gt, i);
       if (gt.sampler >= 0 && gt.sampler < int(model_.samplers.size())) {
         src.wrap_s = wrap(model_.samplers[size_t(gt.sampler)].wrapS);
         src.wrap_t = wrap(model_.samplers[size_t(gt.sampler)].wrapT);
@@ -159,20 +161,56 @@ class Loader {
         src.nearest =
             model_.samplers[size_t(gt.sampler)].magFilter == TINYGLTF_TEXTURE_FILTER_NEAREST;
       }
-      if (gt.source < 0 || gt.source >= int(model_.images.size())) {
+      if (image < 0 || image >= int(model_.images.size())) {
         warn(src.name + ": missing image; texture ignored");
         src.path.clear();
       } else {
-        const tinygltf::Image& img = model_.images[size_t(gt.source)];
+        const tinygltf::Image& img = model_.images[size_t(image)];
         src.bytes = img.image;
         src.mime_type = img.mimeType;
         if (src.bytes.empty()) {
-          warn(src.name + ": image " + std::to_string(gt.source) +
+          warn(src.name + ": image " + std::to_string(image) +
                " could not be loaded (uri '" + img.uri + "'); texture ignored");
         }
       }
       desc->textures.push_back(std::move(src));
     }
+  }
+
+  // The image a texture shows (an index into images, -1: none). EXT_texture_webp and
+  // EXT_texture_avif name their image in the extension's `source`, which replaces the
+  // texture's own (OpenImageIO decodes both: libwebp, and libheif for AV1). KHR_texture_basisu
+  // has no decoder here (docs/scenes.md says what was searched): the texture's own `source` is
+  // the fallback the extension text provides for viewers without it, and a texture without
+  // one is refused with its path, since it cannot be rendered as its author meant.
+  int texture_image(const tinygltf::Texture& gt, size_t i) {
+    const std::string at = "textures[" + std::to_string(i) + "]";
+    for (const char* name : {"EXT_texture_webp", "EXT_texture_avif"}) {
+      auto it = gt.extensions.find(name);
+      if (it == gt.extensions.end()) continue;
+      const std::string where = at + ".extensions." + name + ".source";
+      if (!it->second.Has("source") || !it->second.Get("source").IsNumber())
+        fail(where + named(gt.name) + ": must be an image index");
+      const int source = it->second.Get("source").GetNumberAsInt();
+      if (source < 0 || source >= int(model_.images.size()))
+        fail(where + named(gt.name) + ": refers to missing image " + std::to_string(source));
+      return source;
+    }
+    for (const auto& ext : gt.extensions) {
+      if (ext.first == "KHR_texture_basisu") {
+        if (gt.source < 0)
+          fail(at + ".extensions.KHR_texture_basisu" + named(gt.name) +
+               ": a KTX2/Basis Universal image without a fallback 'source'; this renderer "
+               "has no Basis Universal decoder (re-export the texture as PNG, JPEG or WebP)");
+        if (warned_texture_ext_.insert(ext.first).second)
+          warn(at + named(gt.name) + " (and possibly others): KHR_texture_basisu is not "
+                    "decoded; using the texture's fallback 'source' image");
+      } else if (warned_texture_ext_.insert(ext.first).second) {
+        warn(at + named(gt.name) + ": extension '" + ext.first +
+             "' is not supported; using 'source'");
+      }
+    }
+    return gt.source;
   }
 
   // KHR_materials_volume: the medium inside the mesh. Its thickness (factor and texture) is
@@ -266,14 +304,35 @@ class Loader {
     return texture_ref(index, texcoord, extensions, at);
   }
 
+  // A factor the spec bounds to [0, 1], at glTF path `field`. Exporters write values a
+  // rounding error outside (a baseColorFactor of 1.0000001, or 1.004 after a colour-space
+  // round trip): within kFactorSlack of the range the author's intent is clear, and the value
+  // is clamped with a warning naming the field; anything further out, or not finite, is
+  // refused.
+  static constexpr double kFactorSlack = 0.01;
+  float unit_number(double x, const std::string& field, const std::string& name) {
+    if (x >= 0.0 && x <= 1.0) return float(x);
+    if (x >= -kFactorSlack && x <= 1.0 + kFactorSlack) {
+      const double c = std::min(1.0, std::max(0.0, x));
+      std::ostringstream msg;
+      msg << field << named(name) << ": " << std::setprecision(9) << x
+          << " is outside [0, 1]; clamped to " << c;
+      warn(msg.str());
+      return float(c);
+    }
+    std::ostringstream msg;
+    msg << field << named(name) << ": must be a number in [0, 1], not " << std::setprecision(9)
+        << x;
+    fail(msg.str());
+  }
+
   // A number in [0, 1] of a material extension (fallback when absent).
   float unit_factor(const tinygltf::Value& ext, const char* key, float fallback,
                     const std::string& where) {
     if (!ext.Has(key)) return fallback;
     const tinygltf::Value& v = ext.Get(key);
-    const float x = v.IsNumber() ? float(v.GetNumberAsDouble()) : -1.f;
-    if (!(x >= 0.f && x <= 1.f)) fail(where + "." + key + " must be a number in [0, 1]");
-    return x;
+    if (!v.IsNumber()) fail(where + "." + key + " must be a number in [0, 1]");
+    return unit_number(v.GetNumberAsDouble(), where + "." + key, "");
   }
 
   // KHR_materials_clearcoat, KHR_materials_sheen and KHR_materials_unlit of material i.
@@ -646,8 +705,11 @@ class Loader {
         // A skinned or morphed node has its own copy of the mesh; the others share one.
         if (is_deformed(i)) ++copies[size_t(node.mesh)];
         else uses[size_t(node.mesh)] = 1;
-        ++instances;
-        stats->instanced_triangles += tris;
+        // EXT_mesh_gpu_instancing: the mesh once, drawn once per instance.
+        const int64_t gpu = gpu_instance_count(node, i);
+        const uint64_t drawn = gpu >= 0 ? uint64_t(gpu) : 1;
+        instances += drawn;
+        stats->instanced_triangles += tris * drawn;
         if (stats->instanced_triangles > limits.max_instanced_triangles)
           fail(where + ": the scene's mesh uses add up to more than " +
                std::to_string(limits.max_instanced_triangles) + " triangles (the limit)");
@@ -686,7 +748,7 @@ class Loader {
       // deform with time (whose is_deformed may change with it).
       if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) && !is_deformed(int(i)) &&
           !(split_ && (moving_[i] || varying_[i])))
-        ++mesh_uses_[size_t(node.mesh)];
+        mesh_uses_[size_t(node.mesh)] += gpu_instancing(node) ? 2 : 1;  // instanced either way
     }
     mesh_slot_.assign(model_.meshes.size(), -1);
   }
@@ -723,19 +785,20 @@ class Loader {
       Material m;
       m.name = gm.name;
       // glTF defaults: metallic = roughness = 1, a dielectric specular layer of ior 1.5.
-      m.metallic = float(gm.pbrMetallicRoughness.metallicFactor);
-      m.roughness = float(gm.pbrMetallicRoughness.roughnessFactor);
+      const std::string at_pmr = "materials[" + std::to_string(i) + "].pbrMetallicRoughness";
+      m.metallic = unit_number(gm.pbrMetallicRoughness.metallicFactor,
+                               at_pmr + ".metallicFactor", gm.name);
+      m.roughness = unit_number(gm.pbrMetallicRoughness.roughnessFactor,
+                                at_pmr + ".roughnessFactor", gm.name);
       m.specular = 1.f;
-      if (!(m.metallic >= 0.f && m.metallic <= 1.f))
-        fail(where + ": pbrMetallicRoughness.metallicFactor must be in [0, 1]");
-      if (!(m.roughness >= 0.f && m.roughness <= 1.f))
-        fail(where + ": pbrMetallicRoughness.roughnessFactor must be in [0, 1]");
       for (const auto& e : gm.extensions)
         if (!supported_extensions().count(e.first) && warned_material_ext_.insert(e.first).second)
           warn(where + ": material extension '" + e.first + "' is not supported; ignoring it");
       auto tr = gm.extensions.find("KHR_materials_transmission");
       if (tr != gm.extensions.end()) {
-        m.transmission = number_or(tr->second, "transmissionFactor", 0.f);
+        m.transmission = unit_factor(
+            tr->second, "transmissionFactor", 0.f,
+            "materials[" + std::to_string(i) + "].extensions.KHR_materials_transmission");
         if (tr->second.Has("transmissionTexture"))
           warn(where + ": KHR_materials_transmission.transmissionTexture is not supported; "
                        "using transmissionFactor");
@@ -795,14 +858,14 @@ class Loader {
         fail(at + ".alphaCutoff" + named(gm.name) + ": " + std::to_string(gm.alphaCutoff) +
              " is negative");
       const auto& base = gm.pbrMetallicRoughness.baseColorFactor;
-      if (base.size() >= 3)
-        m.albedo = Vec3(float(base[0]), float(base[1]), float(base[2]));
-      if (base.size() >= 4) m.alpha = float(base[3]);
-      for (int k = 0; k < 3; ++k)
-        if (!(m.albedo[k] >= 0.f && m.albedo[k] <= 1.f))
-          fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
-      if (!(m.alpha >= 0.f && m.alpha <= 1.f))
-        fail(where + ": pbrMetallicRoughness.baseColorFactor must be in [0, 1]");
+      for (size_t k = 0; k < std::min<size_t>(4, base.size()); ++k) {
+        const float v = unit_number(base[k], at_pmr + ".baseColorFactor[" + std::to_string(k) + "]",
+                                    gm.name);
+        if (k < 3)
+          m.albedo[int(k)] = v;
+        else
+          m.alpha = v;
+      }
       float strength = 1.f;
       auto ext = gm.extensions.find("KHR_materials_emissive_strength");
       if (ext != gm.extensions.end() && ext->second.Has("emissiveStrength")) {
@@ -839,7 +902,6 @@ class Loader {
       return m;
     }
     if (!node.matrix.empty()) fail(where + ": 'matrix' must have 16 elements");
-    Mat4 t = Mat4::identity(), r = Mat4::identity(), s = Mat4::identity();
     if (!node.translation.empty() && node.translation.size() != 3)
       fail(where + ": 'translation' must have 3 elements");
     if (!node.rotation.empty() && node.rotation.size() != 4)
@@ -857,6 +919,14 @@ class Loader {
         pick(pose && pose->has_rotation, pose ? pose->rotation.data() : nullptr, node.rotation);
     const double* scale =
         pick(pose && pose->has_scale, pose ? pose->scale.data() : nullptr, node.scale);
+    return trs(translation, rotation, scale, where);
+  }
+
+  // T R S (glTF 3.5.3) from a translation, a rotation quaternion (x, y, z, w; normalized
+  // here) and a scale, each null for the identity.
+  Mat4 trs(const double* translation, const double* rotation, const double* scale,
+           const std::string& where) const {
+    Mat4 t = Mat4::identity(), r = Mat4::identity(), s = Mat4::identity();
     if (translation) {
       for (int i = 0; i < 3; ++i) t.m[3][size_t(i)] = translation[i];
     }
@@ -882,7 +952,92 @@ class Loader {
     return t * r * s;
   }
 
-  void visit(int index, const Mat4& parent, SceneDescription* desc, int depth) {
+  // EXT_mesh_gpu_instancing: the node's mesh is drawn once per instance, at the node's
+  // transform times the instance's T R S (TRANSLATION, ROTATION, SCALE accessors of one
+  // count; a missing one is the identity), and not at the node's own transform. -1 when the
+  // node has no such extension. The accessors' counts are checked here; their formats and
+  // values when the transforms are read (gpu_instances).
+  const tinygltf::Value* gpu_instancing(const tinygltf::Node& node) const {
+    auto ext = node.extensions.find("EXT_mesh_gpu_instancing");
+    if (ext == node.extensions.end() || node.mesh < 0) return nullptr;
+    return &ext->second;
+  }
+  static constexpr const char* kInstanceAttributes[3] = {"TRANSLATION", "ROTATION", "SCALE"};
+  int64_t gpu_instance_count(const tinygltf::Node& node, int index) const {
+    const tinygltf::Value* ext = gpu_instancing(node);
+    if (!ext) return -1;
+    const std::string where =
+        "nodes[" + std::to_string(index) + "].extensions.EXT_mesh_gpu_instancing.attributes";
+    if (!ext->Has("attributes") || !ext->Get("attributes").IsObject())
+      fail(where + named(node.name) + ": must be an object of accessors");
+    const tinygltf::Value& attrs = ext->Get("attributes");
+    int64_t count = -1;
+    for (const char* name : kInstanceAttributes) {
+      if (!attrs.Has(name)) continue;
+      const tinygltf::Value& a = attrs.Get(name);
+      const int acc = a.IsNumber() ? a.GetNumberAsInt() : -1;
+      if (acc < 0 || acc >= int(model_.accessors.size()))
+        fail(where + "." + name + named(node.name) + ": refers to missing accessor " +
+             std::to_string(acc));
+      const int64_t n = int64_t(model_.accessors[size_t(acc)].count);
+      if (count >= 0 && n != count)
+        fail(where + "." + name + named(node.name) + ": " + std::to_string(n) +
+             " instances, but another attribute has " + std::to_string(count));
+      count = n;
+    }
+    if (count < 0)
+      fail(where + named(node.name) + ": needs TRANSLATION, ROTATION or SCALE");
+    return count;
+  }
+  // The instances' transforms in the node's space (gpu_instance_count's order).
+  std::vector<Mat4> gpu_instances(const tinygltf::Node& node, int index) {
+    const int64_t count = gpu_instance_count(node, index);
+    const std::string where =
+        "nodes[" + std::to_string(index) + "].extensions.EXT_mesh_gpu_instancing.attributes";
+    const tinygltf::Value& attrs = gpu_instancing(node)->Get("attributes");
+    std::optional<View> views[3];
+    const Attribute kinds[3] = {Attribute::AnimationVec3, Attribute::AnimationRotation,
+                                Attribute::AnimationVec3};
+    for (int k = 0; k < 3; ++k)
+      if (attrs.Has(kInstanceAttributes[k]))
+        views[k] = check_accessor(attrs.Get(kInstanceAttributes[k]).GetNumberAsInt(), kinds[k],
+                                  where + "." + kInstanceAttributes[k]);
+    std::vector<Mat4> out;
+    out.reserve(size_t(count));
+    for (size_t i = 0; i < size_t(count); ++i) {
+      double v[3][4];
+      for (int k = 0; k < 3; ++k) {
+        if (!views[k]) continue;
+        for (int c = 0; c < views[k]->components; ++c) {
+          v[k][c] = views[k]->get(i, c);
+          if (!std::isfinite(v[k][c]))
+            fail(where + "." + kInstanceAttributes[k] + named(node.name) + ": element " +
+                 std::to_string(i) + " is not finite");
+        }
+      }
+      out.push_back(trs(views[0] ? v[0] : nullptr, views[1] ? v[1] : nullptr,
+                        views[2] ? v[2] : nullptr,
+                        where + " (instance " + std::to_string(i) + ")"));
+    }
+    return out;
+  }
+
+  // KHR_node_visibility: the node's own `visible` (true when absent).
+  bool node_visible(const tinygltf::Node& node, int index) const {
+    auto ext = node.extensions.find("KHR_node_visibility");
+    if (ext == node.extensions.end() || !ext->second.Has("visible")) return true;
+    const tinygltf::Value& v = ext->second.Get("visible");
+    if (!v.IsBool())
+      fail("nodes[" + std::to_string(index) + "].extensions.KHR_node_visibility.visible" +
+           named(node.name) + ": must be true or false");
+    return v.Get<bool>();
+  }
+
+  // `visible`: no ancestor is hidden by KHR_node_visibility. A hidden node and everything
+  // below it render nothing (meshes, lights), "even any nodes below that have a value of
+  // true"; cameras are not affected (the extension's text), so the walk goes on for them.
+  void visit(int index, const Mat4& parent, SceneDescription* desc, int depth,
+             bool visible = true) {
     if (index < 0 || index >= int(model_.nodes.size()))
       fail("reference to missing node " + std::to_string(index));
     // glTF node graphs are trees; a deeper chain than the node count means a cycle.
@@ -890,9 +1045,14 @@ class Loader {
     const tinygltf::Node& node = model_.nodes[size_t(index)];
     const std::string where = "nodes[" + std::to_string(index) + "]" + named(node.name);
     const Mat4 world = parent * local_transform(node, where, pose_of(index));
+    visible = node_visible(node, index) && visible;
     if (node.camera >= 0 && !desc->camera) {
       take_camera(node, world, where, desc);
       if (options_.pose_report) options_.pose_report->camera_node = index;
+    }
+    if (!visible) {
+      for (int child : node.children) visit(child, world, desc, depth + 1, false);
+      return;
     }
     auto light_ext = node.extensions.find("KHR_lights_punctual");
     if (light_ext != node.extensions.end() && light_ext->second.Has("light")) {
@@ -908,7 +1068,27 @@ class Loader {
         desc->punctual_lights.push_back(light);
       }
     }
-    if (node.mesh >= 0 && split_) {
+    if (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) && gpu_instancing(node)) {
+      if (is_deformed(index) || (split_ && varying_[size_t(index)]))
+        fail(where + ".extensions.EXT_mesh_gpu_instancing: instancing a skinned or morphed "
+                     "mesh is not supported");
+      // One mesh in its own space, an instance per element (moving with the node in an
+      // animated layout: both of its modes place the same instances in the same order).
+      int& slot = mesh_slot_[size_t(node.mesh)];
+      if (slot < 0) {
+        Mesh mesh;
+        mesh.name = model_.meshes[size_t(node.mesh)].name;
+        if (!(split_ && split_->pose_only)) {
+          reserve(mesh_counts(size_t(node.mesh)), &mesh.geometry);
+          add_mesh(size_t(node.mesh), Mat4::identity(), &mesh.geometry);
+        }
+        slot = int(desc->meshes.size());
+        desc->meshes.push_back(std::move(mesh));
+      }
+      if (split_ && moving_[size_t(index)]) ++moving_mesh_nodes_;
+      for (const Mat4& local : gpu_instances(node, index))
+        desc->instances.push_back({uint32_t(slot), world * local});
+    } else if (node.mesh >= 0 && split_) {
       if (node.mesh >= int(model_.meshes.size()))
         fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
       visit_split(index, node, world, where, desc);
@@ -1874,7 +2054,7 @@ class Loader {
   std::vector<char> moving_, varying_;
   std::vector<int> deformed_slots_;
   uint32_t moving_mesh_nodes_ = 0;
-  std::set<std::string> warned_material_ext_;
+  std::set<std::string> warned_material_ext_, warned_texture_ext_;
   std::set<size_t> warned_rough_glass_;
   bool warned_occlusion_ = false, warned_unskinned_ = false;
   bool warned_tangent_ = false;
@@ -1910,7 +2090,6 @@ std::shared_ptr<const GltfDocument> parsed(bool ok, tinygltf::Model* model, cons
 // farm scene can never read a file of the worker's (or of the server's, when it inspects one).
 // Files "exist" so that tinygltf asks to read them and the refusal says why.
 bool no_file_exists(const std::string&, void*) { return true; }
-std::string keep_path(const std::string& path, void*) { return path; }
 bool no_file_read(std::vector<unsigned char>*, std::string* err, const std::string& path, void*) {
   if (err) *err += "external file '" + path + "' refused: farm scenes must be self-contained\n";
   return false;
@@ -1919,10 +2098,67 @@ bool no_file_write(std::string*, const std::string&, const std::vector<unsigned 
   return false;
 }
 
+// tinygltf decodes the data: URIs of a few MIME types itself (PNG, JPEG, BMP, GIF, buffers)
+// and takes any other (image/webp, image/avif, image/ktx2) for a file name, joined to the
+// scene's folder. The file callbacks below recognise such a "file" by its data: URI (the
+// last "data:" in the path: base64 has no ':') and decode it.
+std::optional<std::string> data_uri_payload(const std::string& path) {
+  const size_t start = path.rfind("data:");
+  if (start == std::string::npos) return std::nullopt;
+  const size_t comma = path.find(";base64,", start);
+  if (comma == std::string::npos || path.find('/', start) > comma) return std::nullopt;
+  return path.substr(comma + 8);
+}
+// RFC 4648 base64 (tinygltf keeps its decoder to itself); false on a character outside the
+// alphabet. tinygltf has URI-decoded the path, which turns '+' into ' ': taken back here.
+bool base64_decode(const std::string& text, std::vector<unsigned char>* out) {
+  out->clear();
+  uint32_t bits = 0;
+  int count = 0;
+  for (char ch : text) {
+    int v;
+    if (ch >= 'A' && ch <= 'Z') v = ch - 'A';
+    else if (ch >= 'a' && ch <= 'z') v = ch - 'a' + 26;
+    else if (ch >= '0' && ch <= '9') v = ch - '0' + 52;
+    else if (ch == '+' || ch == ' ') v = 62;
+    else if (ch == '/') v = 63;
+    else if (ch == '=') break;
+    else return false;
+    bits = (bits << 6) | uint32_t(v);
+    if ((count += 6) >= 8) {
+      count -= 8;
+      out->push_back(static_cast<unsigned char>((bits >> count) & 0xffu));
+    }
+  }
+  return true;
+}
+bool file_exists(const std::string& path, void* allow_files) {
+  if (data_uri_payload(path)) return true;
+  return allow_files ? tinygltf::FileExists(path, nullptr) : no_file_exists(path, nullptr);
+}
+std::string expand_path(const std::string& path, void* allow_files) {
+  if (data_uri_payload(path) || !allow_files) return path;
+  return tinygltf::ExpandFilePath(path, nullptr);
+}
+bool read_file(std::vector<unsigned char>* out, std::string* err, const std::string& path,
+               void* allow_files) {
+  if (const std::optional<std::string> payload = data_uri_payload(path)) {
+    if (!base64_decode(*payload, out) || out->empty()) {
+      if (err) *err += "a data: URI that is not base64 data\n";
+      return false;
+    }
+    return true;
+  }
+  return allow_files ? tinygltf::ReadWholeFile(out, err, path, nullptr)
+                     : no_file_read(out, err, path, nullptr);
+}
+
 void configure(tinygltf::TinyGLTF* gltf, const LoadOptions& options) {
   gltf->SetImageLoader(keep_encoded_image, nullptr);
-  if (!options.allow_external_files)
-    gltf->SetFsCallbacks({no_file_exists, keep_path, no_file_read, no_file_write, nullptr});
+  // The user data is only a flag: non-null when the scene may read files beside it.
+  static int allow = 1;
+  gltf->SetFsCallbacks({file_exists, expand_path, read_file, no_file_write,
+                        options.allow_external_files ? &allow : nullptr});
 }
 
 }  // namespace

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cstring>
 #include <iterator>
 #include <filesystem>
 #include <fstream>
@@ -51,7 +52,17 @@ std::string extension_for(const std::vector<unsigned char>& b, const std::string
   if (b.size() >= 4 && b[0] == 0x76 && b[1] == 0x2f && b[2] == 0x31 && b[3] == 0x01)
     return ".exr";
   if (b.size() >= 2 && b[0] == '#' && b[1] == '?') return ".hdr";
+  // RIFF....WEBP (EXT_texture_webp); an ISO-BMFF box "ftyp" with brand avif or avis
+  // (EXT_texture_avif). OpenImageIO picks its reader by the file's extension.
+  if (b.size() >= 12 && std::memcmp(b.data(), "RIFF", 4) == 0 &&
+      std::memcmp(b.data() + 8, "WEBP", 4) == 0)
+    return ".webp";
+  if (b.size() >= 12 && std::memcmp(b.data() + 4, "ftyp", 4) == 0 &&
+      (std::memcmp(b.data() + 8, "avif", 4) == 0 || std::memcmp(b.data() + 8, "avis", 4) == 0))
+    return ".avif";
   if (mime == "image/png") return ".png";
+  if (mime == "image/webp") return ".webp";
+  if (mime == "image/avif") return ".avif";
   if (mime == "image/jpeg") return ".jpg";
   return ".img";
 }

@@ -200,5 +200,196 @@ TEST(Textures, LayerTexturesAreReadFromTheirChannels) {
   EXPECT_NEAR(sp.params.clearcoat_n.z, 1.f, 1e-6f);
 }
 
+// ---- Image formats: EXT_texture_webp and EXT_texture_avif name their image in the
+// extension's `source`, which replaces the texture's own (the PNG fallback below, black, so a
+// texture that read the fallback would show black); KHR_texture_basisu, which this renderer
+// cannot decode, falls back to the texture's own `source`.
+
+// 16 x 16 texels in four solid 8 x 8 quadrants, sRGB: red green / blue white (top row
+// first), so that the lossy codecs' 4:2:0 chroma and 8 x 8 blocks keep each quadrant's colour.
+std::vector<unsigned char> quadrant_texels() {
+  const unsigned char colours[4][3] = {{255, 0, 0}, {0, 255, 0}, {0, 0, 255}, {255, 255, 255}};
+  std::vector<unsigned char> px;
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 16; ++x)
+      for (int c = 0; c < 3; ++c) px.push_back(colours[(y / 8) * 2 + x / 8][c]);
+  return px;
+}
+
+// A quad whose base colour texture 0 has `texture` as its JSON (sampler 0, images: 0 a black
+// PNG, 1 `image`).
+std::string format_scene(const std::string& texture, const std::string& image,
+                         const std::string& extensions) {
+  const std::string black = testing::png_data_uri(1, 1, 3, {0, 0, 0});
+  return R"({"asset": {"version": "2.0"}, )" + extensions + R"(
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+                              "indices": 3, "material": 0}]}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
+                                          "metallicFactor": 0}}],
+  "textures": [)" + texture + R"(],
+  "samplers": [{"magFilter": 9728, "wrapS": 33071, "wrapT": 33071}],
+  "images": [{"uri": ")" + black + R"("}, {"uri": ")" + image + R"("}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+}
+
+// The quadrants' centres (uv 0.25 / 0.75 at x, y = -+0.5) against the sRGB colours, within
+// what a lossy codec at quality 100 changes (0.03 linear is about 4 levels at the top).
+void expect_quadrants(const std::string& json, float tolerance, const char* what) {
+  const struct {
+    float x, y;
+    Vec3 colour;
+  } quadrants[] = {{-0.5f, 0.5f, {1, 0, 0}},
+                   {0.5f, 0.5f, {0, 1, 0}},
+                   {-0.5f, -0.5f, {0, 0, 1}},
+                   {0.5f, -0.5f, {1, 1, 1}}};
+  for (const auto& q : quadrants) {
+    const Vec3 got = albedo_at(json, q.x, q.y);
+    for (int c = 0; c < 3; ++c)
+      EXPECT_NEAR(got[c], q.colour[c], tolerance) << what << " at " << q.x << ", " << q.y;
+  }
+}
+
+TEST(TextureFormats, WebpAndAvifImagesReplaceTheTexturesSource) {
+  for (const char* format : {"webp", "avif"}) {
+    const std::string ext = std::string("EXT_texture_") + format;
+    const std::string image = testing::image_data_uri(format, 16, 16, 3, quadrant_texels());
+    // Used only, with the black PNG as the texture's own source (the fallback).
+    expect_quadrants(
+        format_scene(R"({"source": 0, "sampler": 0, "extensions": {")" + ext +
+                         R"(": {"source": 1}}})",
+                     image, R"("extensionsUsed": [")" + ext + R"("],)"),
+        0.03f, format);
+    // Required, without a fallback.
+    expect_quadrants(format_scene(R"({"sampler": 0, "extensions": {")" + ext +
+                                      R"(": {"source": 1}}})",
+                                  image,
+                                  R"("extensionsUsed": [")" + ext +
+                                      R"("], "extensionsRequired": [")" + ext + R"("],)"),
+                     0.03f, format);
+  }
+}
+
+TEST(TextureFormats, ABrokenFormatExtensionIsRefusedNamingItsSource) {
+  const std::string image = testing::png_data_uri(1, 1, 3, {255, 255, 255});
+  for (const char* source : {R"("source": 7)", R"("source": "one")", R"("other": 1)"}) {
+    const std::string json = format_scene(
+        std::string(R"({"source": 0, "extensions": {"EXT_texture_webp": {)") + source + "}}}",
+        image, R"("extensionsUsed": ["EXT_texture_webp"],)");
+    try {
+      load_gltf_from_string(json, "", "quad.gltf", nullptr);
+      ADD_FAILURE() << source << " was accepted";
+    } catch (const SceneError& e) {
+      EXPECT_EQ(e.path(), "textures[0].extensions.EXT_texture_webp.source") << e.what();
+    }
+  }
+}
+
+TEST(TextureFormats, BasisUniversalFallsBackToTheSourceImageOrIsRefused) {
+  const std::string white = testing::png_data_uri(1, 1, 3, {255, 255, 255});
+  // With a fallback: the texture's own source (image 1, white), and a warning naming the
+  // extension (the KTX2 image itself, image 0 here, is never read).
+  {
+    const std::string json = format_scene(
+        R"({"source": 1, "sampler": 0, "extensions": {"KHR_texture_basisu": {"source": 0}}})",
+        white, R"("extensionsUsed": ["KHR_texture_basisu"],)");
+    std::vector<std::string> warnings;
+    auto scene = load_at(json, 0.5f, 0.5f, &warnings);
+    bool named = false;
+    for (const auto& w : warnings)
+      named = named || (w.find("textures[0]") != std::string::npos &&
+                        w.find("KHR_texture_basisu") != std::string::npos &&
+                        w.find("fallback") != std::string::npos);
+    EXPECT_TRUE(named);
+    Vec3 albedo, normal;
+    probe(*scene, &albedo, &normal);
+    expect_color(albedo, {1, 1, 1}, "the fallback image");
+  }
+  // Without one: refused, naming the texture's extension.
+  try {
+    load_gltf_from_string(
+        format_scene(R"({"extensions": {"KHR_texture_basisu": {"source": 0}}})", white,
+                     R"("extensionsUsed": ["KHR_texture_basisu"],)"),
+        "", "quad.gltf", nullptr);
+    ADD_FAILURE() << "a Basis Universal texture without a fallback was accepted";
+  } catch (const SceneError& e) {
+    EXPECT_EQ(e.path(), "textures[0].extensions.KHR_texture_basisu") << e.what();
+  }
+  // Required: refused at extensionsRequired, naming the extension.
+  try {
+    load_gltf_from_string(
+        format_scene(R"({"extensions": {"KHR_texture_basisu": {"source": 0}}})", white,
+                     R"("extensionsUsed": ["KHR_texture_basisu"],
+                        "extensionsRequired": ["KHR_texture_basisu"],)"),
+        "", "quad.gltf", nullptr);
+    ADD_FAILURE() << "a scene requiring KHR_texture_basisu was accepted";
+  } catch (const SceneError& e) {
+    EXPECT_EQ(e.path(), "extensionsRequired[0]") << e.what();
+    EXPECT_NE(std::string(e.what()).find("KHR_texture_basisu"), std::string::npos);
+  }
+}
+
+// ---- Factors a rounding error outside [0, 1] are clamped with a warning naming the field;
+// further out they are refused.
+
+std::string factor_scene(const std::string& material) {
+  return quad_scene(material, R"({"uri": ")" + testing::png_data_uri(1, 1, 3, {255, 255, 255}) +
+                                  R"("})",
+                    R"("extensionsUsed": ["KHR_materials_transmission"],)");
+}
+
+TEST(MaterialFactors, SlightlyOutOfRangeFactorsAreClampedWithAWarningNamingThem) {
+  const std::string json = factor_scene(
+      R"({"pbrMetallicRoughness": {"baseColorFactor": [1.0000001, 1.004, 0.5, 1],
+                                   "metallicFactor": -0.002, "roughnessFactor": 1.001}})");
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+  ASSERT_FALSE(desc.materials.empty());
+  const Material& m = desc.materials[0];
+  EXPECT_EQ(m.albedo.x, 1.f);
+  EXPECT_EQ(m.albedo.y, 1.f);
+  EXPECT_EQ(m.albedo.z, 0.5f);
+  EXPECT_EQ(m.metallic, 0.f);
+  EXPECT_EQ(m.roughness, 1.f);
+  for (const char* field :
+       {"materials[0].pbrMetallicRoughness.baseColorFactor[0]",
+        "materials[0].pbrMetallicRoughness.baseColorFactor[1]",
+        "materials[0].pbrMetallicRoughness.metallicFactor",
+        "materials[0].pbrMetallicRoughness.roughnessFactor"}) {
+    bool named = false;
+    for (const auto& w : warnings)
+      named = named || (w.find(field + std::string(":")) != std::string::npos &&
+                        w.find("clamped") != std::string::npos);
+    EXPECT_TRUE(named) << field;
+  }
+  for (const auto& w : warnings)
+    EXPECT_EQ(w.find("baseColorFactor[2]"), std::string::npos) << "0.5 is in range: " << w;
+}
+
+TEST(MaterialFactors, FactorsFurtherOutAreRefusedNamingTheField) {
+  const struct {
+    const char* material;
+    const char* path;
+  } cases[] = {
+      {R"({"pbrMetallicRoughness": {"baseColorFactor": [1, 1.5, 1, 1]}})",
+       "materials[0].pbrMetallicRoughness.baseColorFactor[1]"},
+      {R"({"pbrMetallicRoughness": {"metallicFactor": -0.5}})",
+       "materials[0].pbrMetallicRoughness.metallicFactor"},
+      {R"({"pbrMetallicRoughness": {"roughnessFactor": 1.02}})",
+       "materials[0].pbrMetallicRoughness.roughnessFactor"},
+      {R"({"extensions": {"KHR_materials_transmission": {"transmissionFactor": 2}}})",
+       "materials[0].extensions.KHR_materials_transmission.transmissionFactor"},
+  };
+  for (const auto& c : cases) {
+    try {
+      load_gltf_from_string(factor_scene(c.material), "", "quad.gltf", nullptr);
+      ADD_FAILURE() << c.material << " was accepted";
+    } catch (const SceneError& e) {
+      EXPECT_EQ(e.path(), c.path) << e.what();
+    }
+  }
+}
+
 }  // namespace
 }  // namespace rf

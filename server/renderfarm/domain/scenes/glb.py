@@ -34,6 +34,7 @@ IMAGE_MIME_TYPES = {
     ".jpeg": "image/jpeg",
     ".ktx2": "image/ktx2",
     ".webp": "image/webp",
+    ".avif": "image/avif",
 }
 
 IMAGE_MAGIC = (

@@ -179,7 +179,7 @@ def _pack_document(raw: bytes, name: str, read, max_bytes: int) -> bytes:
         if mime is None:
             raise SceneError(
                 f"image {i} ({_shown(uri)}) has an unknown type; use .png, .jpg/.jpeg, "
-                ".ktx2 or .webp",
+                ".webp, .avif or .ktx2",
                 f"{field}.uri",
             )
         views.append({"buffer": 0, "byteOffset": append(data), "byteLength": len(data)})
@@ -278,4 +278,6 @@ def _image_mime_type(uri: str, data_mime: str, declared: Any, data: bytes) -> st
             return mime
     if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
         return "image/webp"
+    if data[4:8] == b"ftyp" and data[8:12] in (b"avif", b"avis"):
+        return "image/avif"
     return None
