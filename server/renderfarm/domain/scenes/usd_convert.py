@@ -1,0 +1,873 @@
+"""A USD stage as the farm's glTF: what a path tracer needs, converted by this code on usd-core.
+
+`convert_stage(root_layer, root, work)` checks every asset path of every layer first
+(usd_assets.check_layers: nothing outside the upload is opened or read), composes the stage and
+writes one GLB, which then goes through the same acceptance as any upload (the workers' loader).
+It runs in the conversion's child process (infra/usd_import.py) under CPU, memory and file-size
+limits; nothing here imports usd-core at module level.
+
+What converts (docs/scenes.md, "USD scenes", is the users' version):
+- Units and axes: positions and translations are multiplied by metersPerUnit (glTF is in
+  metres); a Z-up stage is turned to glTF's Y-up by a root node rotating -90 degrees about X.
+- Transforms: each Xformable's local transformation (all xformOps) as its node's matrix.
+- Meshes: faces fan-triangulated (holes dropped), leftHanded orientation reversed, normals
+  (primvars:normals or normals, any interpolation), every st-like primvar a material reads as
+  TEXCOORD_n (v flipped), displayColor/displayOpacity as COLOR_0 where no material is bound;
+  UsdGeomSubsets of the materialBind family as primitives of their own material. Cube and
+  Sphere gprims are tessellated. Subdivision surfaces render as their control cage (warned).
+- Materials: usd_materials.py (UsdPreviewSurface).
+- Instancing: an instanceable prim's prototype and a PointInstancer's prototypes are converted
+  once; each instance is a node of its own using the same glTF meshes (the worker builds a
+  shared mesh once and instances it).
+- Cameras: UsdGeomCamera to a glTF camera (yfov = 2 atan(verticalAperture / (2 focalLength)),
+  clipping range to znear/zfar); one camera: the stage's render settings' camera, else the
+  first met. Depth of field (fStop, focusDistance) is reported for the job's aperture_radius
+  (focalLength / (2 fStop), in metres) and focus_distance.
+- Lights (radiance L = intensity x 2^exposure x color x blackbody(colorTemperature) when
+  enabled, divided by the light's world-space area when normalize is on): rect, disk and sphere
+  lights become emissive meshes of that radiance (emitting along -Z for rect and disk, one-sided;
+  outward for a sphere); a distant light a KHR_lights_punctual directional light of illuminance
+  L x solid angle of its disk (normalized: intensity x 2^exposure is the illuminance); a
+  treatAsPoint sphere light a point light of intensity L x pi r^2.
+What cannot be carried is one warning per prim path (`warnings`), and a stage with nothing to
+render is refused.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...errors import SceneError
+from .gltf_writer import GltfWriter
+from .usd_assets import check_layers
+from .usd_materials import MaterialConverter, _set_emission
+
+MAX_NODES = 2_000_000
+
+
+@dataclass
+class Conversion:
+    glb: bytes
+    warnings: list[str] = field(default_factory=list)
+    camera: dict[str, float] = field(default_factory=dict)  # aperture_radius, focus_distance
+    meters_per_unit: float = 1.0
+    up_axis: str = "Y"
+
+
+def light_radiance(prim, time, area: float | None) -> np.ndarray:
+    """A UsdLux light's radiance in the rendering colour space (nits): intensity x 2^exposure x
+    color (x the blackbody colour when enableColorTemperature), divided by `area` when the
+    light's normalize is on and an area is given."""
+    from pxr import UsdLux
+
+    api = UsdLux.LightAPI(prim)
+    intensity = float(api.GetIntensityAttr().Get(time))
+    exposure = float(api.GetExposureAttr().Get(time))
+    color = np.array(api.GetColorAttr().Get(time), dtype=np.float64)
+    if api.GetEnableColorTemperatureAttr().Get(time):
+        color = color * np.array(
+            UsdLux.BlackbodyTemperatureAsRgb(float(api.GetColorTemperatureAttr().Get(time)))
+        )
+    radiance = intensity * 2.0**exposure * color
+    if area is not None and api.GetNormalizeAttr().Get(time):
+        radiance = radiance / area
+    return radiance
+
+
+def _gltf_matrix(matrix, mpu: float) -> list[float] | None:
+    """A USD (row-vector) Gf.Matrix4d as glTF's column-major matrix with its translation in
+    metres; None for the identity. USD's p' = p M is glTF's p' = M^T p, and the column-major
+    list of M^T is M's rows in order."""
+    rows = np.array(matrix, dtype=np.float64).reshape(4, 4)
+    rows[3, :3] *= mpu
+    if np.allclose(rows, np.eye(4), atol=1e-12):
+        return None
+    return [float(v) for v in rows.reshape(-1)]
+
+
+def _fan(counts: np.ndarray) -> np.ndarray:
+    """(triangles, 3) corner indices of faces with `counts` corners, each fanned from its first."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tris_per = np.maximum(counts - 2, 0)
+    face = np.repeat(np.arange(len(counts)), tris_per)
+    first_tri = np.concatenate([[0], np.cumsum(tris_per)[:-1]])
+    k = np.arange(int(tris_per.sum())) - np.repeat(first_tri, tris_per) + 1
+    s = starts[face]
+    return np.stack([s, s + k, s + k + 1], axis=1)
+
+
+class _StageConverter:
+    def __init__(self, stage, root: Path, work: Path):
+        from pxr import Usd, UsdGeom
+
+        self.stage = stage
+        self.root = root
+        self.mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+        self.up = str(UsdGeom.GetStageUpAxis(stage))
+        if stage.HasAuthoredTimeCodeRange():
+            self.time = Usd.TimeCode(stage.GetStartTimeCode())
+        else:
+            self.time = Usd.TimeCode.EarliestTime()
+        self.writer = GltfWriter("renderfarm usd_convert (usd-core)")
+        self.warnings: dict[str, list[str]] = {}
+        self.materials = MaterialConverter(self.writer, root, work, self.warn)
+        self.meshes: dict[tuple, int] = {}
+        self.plain_materials: dict[tuple, int] = {}
+        self.camera_prim = None
+        self.camera: dict[str, float] = {}
+        self.node_count = 0
+        self.renderables = 0
+
+    def warn(self, path: str, text: str) -> None:
+        texts = self.warnings.setdefault(path, [])
+        if text not in texts:
+            texts.append(text)
+
+    # ------------------------------------------------------------------ traversal
+    def convert(self) -> Conversion:
+        from pxr import Usd
+
+        self.camera_prim = self._chosen_camera()
+        roots = []
+        for prim in self.stage.GetPseudoRoot().GetFilteredChildren(Usd.PrimDefaultPredicate):
+            node = self.walk(prim)
+            if node is not None:
+                roots.append(node)
+        if self.renderables == 0:
+            raise SceneError(
+                "the stage has no mesh, gprim or light that converts to glTF: nothing to render"
+                + self._warning_summary()
+            )
+        top: dict[str, Any] = {"name": "usd stage", "children": roots}
+        if self.up == "Z":
+            top["rotation"] = [-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]  # -90 deg about X
+        scene_root = self.writer.add("nodes", top)
+        self.writer.doc["scenes"] = [{"nodes": [scene_root]}]
+        self.writer.doc["scene"] = 0
+        warnings = [f"{p}: {t}" for p, texts in self.warnings.items() for t in texts]
+        return Conversion(
+            glb=self.writer.glb(),
+            warnings=warnings,
+            camera=self.camera,
+            meters_per_unit=self.mpu,
+            up_axis=self.up,
+        )
+
+    def _warning_summary(self) -> str:
+        items = [f"{p}: {t}" for p, texts in self.warnings.items() for t in texts][:5]
+        return (" (" + "; ".join(items) + ")") if items else ""
+
+    def _chosen_camera(self):
+        from pxr import Usd, UsdGeom, UsdRender
+
+        settings = UsdRender.Settings.GetStageRenderSettings(self.stage)
+        if settings:
+            targets = settings.GetCameraRel().GetForwardedTargets()
+            if targets:
+                prim = self.stage.GetPrimAtPath(targets[0])
+                if prim and prim.IsA(UsdGeom.Camera):
+                    return prim
+        for prim in Usd.PrimRange(self.stage.GetPseudoRoot(), Usd.PrimDefaultPredicate):
+            if prim.IsA(UsdGeom.Camera):
+                return prim
+        return None
+
+    def _visible(self, prim) -> bool:
+        from pxr import UsdGeom
+
+        if not prim.IsA(UsdGeom.Imageable):
+            return True
+        imageable = UsdGeom.Imageable(prim)
+        if imageable.GetVisibilityAttr().Get(self.time) == UsdGeom.Tokens.invisible:
+            return False
+        return imageable.GetPurposeAttr().Get(self.time) not in (
+            UsdGeom.Tokens.guide,
+            UsdGeom.Tokens.proxy,
+        )
+
+    def walk(self, prim, *, own_xform: bool = True) -> int | None:
+        """The glTF node of a prim and its subtree (None when nothing under it renders)."""
+        from pxr import Usd, UsdGeom, UsdLux
+
+        if not self._visible(prim):
+            return None
+        self.node_count += 1
+        if self.node_count > MAX_NODES:
+            raise SceneError(f"the stage expands to more than {MAX_NODES} nodes")
+        path = str(prim.GetPath())
+        node: dict[str, Any] = {"name": prim.GetName()}
+        if own_xform and prim.IsA(UsdGeom.Xformable):
+            xformable = UsdGeom.Xformable(prim)
+            if xformable.GetResetXformStack():
+                self.warn(path, "resetXformStack is ignored (the parent transform still applies)")
+            if xformable.TransformMightBeTimeVarying():
+                self.warn(path, "a time-varying transform is converted at its first time only")
+            matrix = _gltf_matrix(xformable.GetLocalTransformation(self.time), self.mpu)
+            if matrix is not None:
+                node["matrix"] = matrix
+        children: list[int] = []
+        walk_children = True
+        if prim.IsA(UsdGeom.Mesh):
+            mesh = self.mesh(prim)
+            if mesh is not None:
+                node["mesh"] = mesh
+        elif prim.IsA(UsdGeom.Cube) or prim.IsA(UsdGeom.Sphere):
+            node["mesh"] = self.gprim(prim)
+        elif prim.IsA(UsdGeom.Camera):
+            if self.camera_prim is not None and prim.GetPath() == self.camera_prim.GetPath():
+                node["camera"] = self.camera_of(prim)
+            else:
+                self.warn(path, f"a second camera; the farm renders {self.camera_prim.GetPath()}")
+        elif prim.IsA(UsdGeom.PointInstancer):
+            children = self.point_instancer(prim)
+            walk_children = False
+        elif prim.HasAPI(UsdLux.LightAPI) and not prim.IsA(UsdGeom.Gprim):
+            self.light(prim, node)
+        elif prim.IsA(UsdGeom.Gprim):
+            self.warn(path, f"{prim.GetTypeName()} prims are not converted")
+        elif prim.GetTypeName() in ("Volume", "OpenVDBAsset", "Field3DAsset"):
+            self.warn(path, "volumes are not converted")
+        if prim.HasAPI(UsdLux.LightAPI) and prim.IsA(UsdGeom.Gprim):
+            self.warn(path, "mesh lights (MeshLightAPI) are not converted: the mesh renders unlit")
+        if walk_children:
+            source = prim.GetPrototype() if prim.IsInstance() else prim
+            for child in source.GetFilteredChildren(Usd.PrimDefaultPredicate):
+                index = self.walk(child)
+                if index is not None:
+                    children.append(index)
+        if children:
+            node["children"] = children
+        if not any(k in node for k in ("mesh", "camera", "children", "extensions")):
+            return None
+        return self.writer.add("nodes", node)
+
+    # ------------------------------------------------------------------ instancing
+    def point_instancer(self, prim) -> list[int]:
+        from pxr import UsdGeom
+
+        path = str(prim.GetPath())
+        instancer = UsdGeom.PointInstancer(prim)
+        protos = instancer.GetPrototypesRel().GetForwardedTargets()
+        indices = instancer.GetProtoIndicesAttr().Get(self.time)
+        if indices is None or not protos:
+            return []
+        indices = np.array(indices, dtype=np.int64)
+        if len(indices) and (indices.min() < 0 or indices.max() >= len(protos)):
+            raise SceneError(
+                f"{path}.protoIndices: an index is outside the {len(protos)} prototypes",
+                f"scene:{path}.protoIndices",
+            )
+        xforms = instancer.ComputeInstanceTransformsAtTime(
+            self.time,
+            self.time,
+            UsdGeom.PointInstancer.IncludeProtoXform,
+            UsdGeom.PointInstancer.IgnoreMask,
+        )
+        if xforms is None or len(xforms) != len(indices):
+            raise SceneError(
+                f"{path}: positions, orientations and scales do not match protoIndices",
+                f"scene:{path}.positions",
+            )
+        mask = instancer.ComputeMaskAtTime(self.time)
+        proto_prims = [self.stage.GetPrimAtPath(p) for p in protos]
+        nodes = []
+        for i, (matrix, proto) in enumerate(zip(xforms, indices, strict=True)):
+            if mask and not mask[i]:
+                continue
+            child = self.walk(proto_prims[proto], own_xform=False)
+            if child is None:
+                continue
+            node: dict[str, Any] = {"name": f"{prim.GetName()}[{i}]", "children": [child]}
+            gltf = _gltf_matrix(matrix, self.mpu)
+            if gltf is not None:
+                node["matrix"] = gltf
+            nodes.append(self.writer.add("nodes", node))
+        return nodes
+
+    # ------------------------------------------------------------------ materials
+    def _material_for(self, prim, double_sided: bool):
+        from pxr import UsdShade
+
+        material, _rel = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+        if not material:
+            return None
+        return self.materials.convert(material, double_sided)
+
+    def _plain_material(
+        self, color, opacity: float, double_sided: bool, vertex_colors: bool
+    ) -> int:
+        key = (
+            tuple(round(float(c), 6) for c in color),
+            round(opacity, 6),
+            double_sided,
+            vertex_colors,
+        )
+        index = self.plain_materials.get(key)
+        if index is None:
+            gltf: dict[str, Any] = {
+                "name": "displayColor",
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": [*(float(c) for c in color), float(opacity)],
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 0.5,
+                },
+            }
+            if opacity < 1.0 or vertex_colors:
+                gltf["alphaMode"] = (
+                    "BLEND" if opacity < 1.0 or vertex_colors == "alpha" else "OPAQUE"
+                )
+            if double_sided:
+                gltf["doubleSided"] = True
+            index = self.writer.add("materials", gltf)
+            self.plain_materials[key] = index
+        return index
+
+    # ------------------------------------------------------------------ meshes
+    def _primvar(self, prim, name: str):
+        from pxr import UsdGeom
+
+        primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
+        if not primvar or not primvar.HasAuthoredValue():
+            return None, None
+        values = primvar.ComputeFlattened(self.time)
+        if values is None:
+            return None, None
+        return np.array(values, dtype=np.float64), str(primvar.GetInterpolation())
+
+    def _per_corner(self, values, interp, counts, indices, n_points, where, width):
+        """Per-corner values (corners, width) of a primvar with the given interpolation."""
+        values = values.reshape(len(values), -1) if values.ndim > 1 else values.reshape(-1, 1)
+        corners = len(indices)
+        if interp == "constant" or len(values) == 1 and interp != "faceVarying":
+            return np.repeat(values[:1], corners, axis=0)
+        if interp == "uniform":
+            expected = len(counts)
+            if len(values) < expected:
+                raise SceneError(
+                    f"{where}: {len(values)} uniform values for {expected} faces", f"scene:{where}"
+                )
+            return np.repeat(values[:expected], counts, axis=0)
+        if interp in ("vertex", "varying"):
+            if len(values) < n_points:
+                raise SceneError(
+                    f"{where}: {len(values)} values for {n_points} points", f"scene:{where}"
+                )
+            return values[indices]
+        if interp == "faceVarying":
+            if len(values) < corners:
+                raise SceneError(
+                    f"{where}: {len(values)} face-varying values for {corners} face corners",
+                    f"scene:{where}",
+                )
+            return values[:corners]
+        raise SceneError(f"{where}: unknown interpolation {interp!r}", f"scene:{where}")
+
+    def mesh(self, prim) -> int | None:
+        from pxr import UsdGeom, UsdShade
+
+        path = str(prim.GetPath())
+        key = ("mesh", path)
+        if key in self.meshes:
+            return self.meshes[key]
+        mesh = UsdGeom.Mesh(prim)
+        t = self.time
+        points = mesh.GetPointsAttr().Get(t)
+        counts = mesh.GetFaceVertexCountsAttr().Get(t)
+        indices = mesh.GetFaceVertexIndicesAttr().Get(t)
+        if points is None or counts is None or indices is None or len(points) == 0:
+            self.warn(path, "a mesh without points or faces")
+            return None
+        points = np.array(points, dtype=np.float64).reshape(-1, 3) * self.mpu
+        counts = np.array(counts, dtype=np.int64)
+        indices = np.array(indices, dtype=np.int64)
+        if not np.all(np.isfinite(points)):
+            raise SceneError(f"{path}.points: a point is not finite", f"scene:{path}.points")
+        if counts.sum() != len(indices) or (counts < 0).any():
+            raise SceneError(
+                f"{path}.faceVertexCounts: the counts add up to {int(counts.sum())}, but "
+                f"faceVertexIndices has {len(indices)} entries",
+                f"scene:{path}.faceVertexCounts",
+            )
+        if len(indices) and (indices.min() < 0 or indices.max() >= len(points)):
+            raise SceneError(
+                f"{path}.faceVertexIndices: an index is outside the {len(points)} points",
+                f"scene:{path}.faceVertexIndices",
+            )
+        scheme = mesh.GetSubdivisionSchemeAttr().Get(t)
+        if scheme and scheme != "none":
+            self.warn(path, f"subdivision ({scheme}) is not applied: the control cage is rendered")
+        if (counts < 3).any():
+            self.warn(path, "faces with fewer than 3 corners are skipped")
+        face_keep = counts >= 3
+        holes = mesh.GetHoleIndicesAttr().Get(t)
+        if holes is not None and len(holes):
+            face_keep[np.array(holes, dtype=np.int64).clip(0, len(counts) - 1)] = False
+            self.warn(path, "holes (holeIndices) are left out")
+        left = mesh.GetOrientationAttr().Get(t) == UsdGeom.Tokens.leftHanded
+        double_sided = bool(mesh.GetDoubleSidedAttr().Get(t))
+
+        # Per-corner attributes: positions, normals, colours, texture coordinates.
+        attributes: dict[str, np.ndarray] = {"POSITION": points[indices]}
+        normals, interp = self._primvar(prim, "normals")
+        if normals is None:
+            raw = mesh.GetNormalsAttr().Get(t)
+            if raw is not None and len(raw):
+                normals, interp = (
+                    np.array(raw, dtype=np.float64),
+                    str(mesh.GetNormalsInterpolation()),
+                )
+        if normals is not None:
+            n = self._per_corner(
+                normals, interp, counts, indices, len(points), f"{path}.normals", 3
+            )
+            length = np.linalg.norm(n, axis=1, keepdims=True)
+            attributes["NORMAL"] = np.where(
+                length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]
+            )
+
+        # Material per face: GeomSubsets of the materialBind family, the rest the mesh's.
+        face_material: dict[int, Any] = {}
+        binding = UsdShade.MaterialBindingAPI(prim)
+        groups: list[tuple[np.ndarray, Any]] = []
+        assigned = np.zeros(len(counts), dtype=bool)
+        for subset in binding.GetMaterialBindSubsets():
+            faces = subset.GetIndicesAttr().Get(t)
+            if faces is None:
+                continue
+            faces = np.array(faces, dtype=np.int64)
+            if len(faces) and (faces.min() < 0 or faces.max() >= len(counts)):
+                sp = str(subset.GetPath())
+                raise SceneError(
+                    f"{sp}.indices: a face index is outside the mesh's {len(counts)} faces",
+                    f"scene:{sp}.indices",
+                )
+            faces = faces[~assigned[faces]]
+            assigned[faces] = True
+            groups.append((faces, self._material_for(subset.GetPrim(), double_sided)))
+        rest = np.flatnonzero(~assigned)
+        if len(rest):
+            groups.append((rest, self._material_for(prim, double_sided)))
+        del face_material
+
+        display, display_interp = self._primvar(prim, "displayColor")
+        opacity, opacity_interp = self._primvar(prim, "displayOpacity")
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        primitives = []
+        for faces, material in groups:
+            faces = faces[face_keep[faces]]
+            if not len(faces):
+                continue
+            sub_counts = counts[faces]
+            corner_ids = np.concatenate(
+                [np.arange(starts[f], starts[f] + counts[f]) for f in faces]
+            )
+            tris = _fan(sub_counts)
+            if left:
+                tris = tris[:, [0, 2, 1]]
+            attrs = {k: v[corner_ids] for k, v in attributes.items()}
+            if material is not None:
+                for i, name in enumerate(material.uv_sets):
+                    uv, uv_interp = self._primvar(prim, name)
+                    if uv is None:
+                        self.warn(
+                            path, f"the material reads primvar {name!r}, which the mesh lacks"
+                        )
+                        uv_corner = np.zeros((len(indices), 2))
+                    else:
+                        uv_corner = self._per_corner(
+                            uv,
+                            uv_interp,
+                            counts,
+                            indices,
+                            len(points),
+                            f"{path}.primvars:{name}",
+                            2,
+                        )[:, :2]
+                    uv_corner = uv_corner[corner_ids]
+                    attrs[f"TEXCOORD_{i}"] = np.stack(
+                        [uv_corner[:, 0], 1.0 - uv_corner[:, 1]], axis=1
+                    )
+                material_index = material.index
+            else:
+                material_index, colors = self._display_material(
+                    path,
+                    display,
+                    display_interp,
+                    opacity,
+                    opacity_interp,
+                    counts,
+                    indices,
+                    len(points),
+                    double_sided,
+                )
+                if colors is not None:
+                    attrs["COLOR_0"] = colors[corner_ids]
+            primitives.append(self._primitive(attrs, tris, material_index))
+        if not primitives:
+            self.warn(path, "no faces to render")
+            return None
+        index = self.writer.add("meshes", {"name": path, "primitives": primitives})
+        self.meshes[key] = index
+        self.renderables += 1
+        return index
+
+    def _display_material(
+        self, path, display, d_interp, opacity, o_interp, counts, indices, n_points, double_sided
+    ):
+        """A material (and COLOR_0 per corner, or None) from displayColor/displayOpacity."""
+        color = display[0] if display is not None and len(display) else np.array([0.18, 0.18, 0.18])
+        alpha = float(opacity.reshape(-1)[0]) if opacity is not None and len(opacity) else 1.0
+        varying_color = display is not None and len(display) > 1 and d_interp != "constant"
+        varying_alpha = opacity is not None and len(opacity) > 1 and o_interp != "constant"
+        if not varying_color and not varying_alpha:
+            return self._plain_material(
+                np.array(color).reshape(-1)[:3], alpha, double_sided, False
+            ), None
+        corners = len(indices)
+        rgb = (
+            self._per_corner(
+                display, d_interp, counts, indices, n_points, f"{path}.primvars:displayColor", 3
+            )[:, :3]
+            if varying_color
+            else np.repeat(np.array(color).reshape(1, -1)[:, :3], corners, axis=0)
+        )
+        a = (
+            self._per_corner(
+                opacity, o_interp, counts, indices, n_points, f"{path}.primvars:displayOpacity", 1
+            )[:, :1]
+            if varying_alpha
+            else np.full((corners, 1), alpha)
+        )
+        material = self._plain_material(
+            (1.0, 1.0, 1.0),
+            1.0 if varying_alpha else alpha,
+            double_sided,
+            "alpha" if varying_alpha else True,
+        )
+        return material, np.concatenate([rgb, a], axis=1)
+
+    def _primitive(
+        self, attrs: dict[str, np.ndarray], tris: np.ndarray, material: int | None
+    ) -> dict[str, Any]:
+        """Weld identical corners, then one glTF primitive."""
+        names = sorted(attrs)
+        table = np.concatenate([attrs[n].reshape(len(attrs[n]), -1) for n in names], axis=1)
+        unique, inverse = np.unique(table, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        out_attrs = {}
+        col = 0
+        for n in names:
+            width = attrs[n].reshape(len(attrs[n]), -1).shape[1]
+            out_attrs[n] = self.writer.accessor(
+                unique[:, col : col + width], bounds=n == "POSITION"
+            )
+            col += width
+        primitive: dict[str, Any] = {
+            "attributes": out_attrs,
+            "indices": self.writer.accessor(inverse[tris], indices=True),
+        }
+        if material is not None:
+            primitive["material"] = material
+        return primitive
+
+    def gprim(self, prim) -> int:
+        """A Cube (size) or Sphere (radius) tessellated, with normals."""
+        from pxr import UsdGeom
+
+        t = self.time
+        path = str(prim.GetPath())
+        key = ("gprim", path)
+        if key in self.meshes:
+            return self.meshes[key]
+        if prim.IsA(UsdGeom.Cube):
+            size = float(UsdGeom.Cube(prim).GetSizeAttr().Get(t)) * self.mpu
+            pos, nrm, tris = _box(size / 2.0)
+        else:
+            radius = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(t)) * self.mpu
+            pos, nrm, tris = _uv_sphere(radius, 48, 24)
+        double_sided = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(t))
+        material = self._material_for(prim, double_sided)
+        attrs = {"POSITION": pos, "NORMAL": nrm}
+        if material is not None:
+            if material.uv_sets:
+                self.warn(
+                    path,
+                    "a textured material on a Cube or Sphere gprim, which has no st: "
+                    "texture coordinates are 0",
+                )
+                for i, _name in enumerate(material.uv_sets):
+                    attrs[f"TEXCOORD_{i}"] = np.zeros((len(pos), 2))
+            material_index = material.index
+        else:
+            display, _ = self._primvar(prim, "displayColor")
+            opacity, _ = self._primvar(prim, "displayOpacity")
+            color = display.reshape(-1, 3)[0] if display is not None else (0.18, 0.18, 0.18)
+            alpha = float(opacity.reshape(-1)[0]) if opacity is not None else 1.0
+            material_index = self._plain_material(color, alpha, double_sided, False)
+        primitive = self._primitive(attrs, tris, material_index)
+        index = self.writer.add("meshes", {"name": path, "primitives": [primitive]})
+        self.meshes[key] = index
+        self.renderables += 1
+        return index
+
+    # ------------------------------------------------------------------ cameras
+    def camera_of(self, prim) -> int:
+        from pxr import UsdGeom
+
+        t = self.time
+        path = str(prim.GetPath())
+        cam = UsdGeom.Camera(prim)
+        focal = float(cam.GetFocalLengthAttr().Get(t))
+        h_ap = float(cam.GetHorizontalApertureAttr().Get(t))
+        v_ap = float(cam.GetVerticalApertureAttr().Get(t))
+        near, far = (float(v) for v in cam.GetClippingRangeAttr().Get(t))
+        for name in ("horizontalApertureOffset", "verticalApertureOffset"):
+            if float(prim.GetAttribute(name).Get(t) or 0.0) != 0.0:
+                self.warn(path, f"{name} (a shifted lens) is not supported")
+        if focal <= 0 or h_ap <= 0 or v_ap <= 0:
+            field = (
+                "focalLength"
+                if focal <= 0
+                else "horizontalAperture"
+                if h_ap <= 0
+                else "verticalAperture"
+            )
+            raise SceneError(f"{path}.{field} must be positive", f"scene:{path}.{field}")
+        projection = cam.GetProjectionAttr().Get(t)
+        if projection == UsdGeom.Tokens.orthographic:
+            # Apertures are in tenths of a scene unit (USD's camera convention).
+            camera = {
+                "type": "orthographic",
+                "orthographic": {
+                    "xmag": h_ap * 0.1 * self.mpu / 2.0,
+                    "ymag": v_ap * 0.1 * self.mpu / 2.0,
+                    "znear": max(near, 0.0) * self.mpu,
+                    "zfar": far * self.mpu,
+                },
+            }
+        else:
+            camera = {
+                "type": "perspective",
+                "perspective": {
+                    "yfov": 2.0 * math.atan(v_ap / (2.0 * focal)),
+                    "aspectRatio": h_ap / v_ap,
+                    "znear": max(near, 1e-6) * self.mpu,
+                    "zfar": far * self.mpu,
+                },
+            }
+            f_stop = float(cam.GetFStopAttr().Get(t) or 0.0)
+            focus = float(cam.GetFocusDistanceAttr().Get(t) or 0.0)
+            if f_stop > 0.0 and focus > 0.0:
+                self.camera = {
+                    "aperture_radius": focal * 0.1 * self.mpu / (2.0 * f_stop),
+                    "focus_distance": focus * self.mpu,
+                }
+                camera["extras"] = dict(self.camera)
+        camera["name"] = path
+        return self.writer.add("cameras", camera)
+
+    # ------------------------------------------------------------------ lights
+    def _emitter_material(self, radiance: np.ndarray, double_sided: bool) -> int:
+        key = ("emitter", tuple(round(float(c), 9) for c in radiance), double_sided)
+        index = self.plain_materials.get(key)
+        if index is None:
+            gltf: dict[str, Any] = {
+                "name": "UsdLux emitter",
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": [0.0, 0.0, 0.0, 1.0],
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 1.0,
+                },
+            }
+            _set_emission(gltf, [float(c) for c in radiance], self.writer)
+            if double_sided:
+                gltf["doubleSided"] = True
+            index = self.writer.add("materials", gltf)
+            self.plain_materials[key] = index
+        return index
+
+    def _world_scale(self, prim) -> tuple[float, float, float]:
+        from pxr import UsdGeom
+
+        m = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(self.time)).reshape(4, 4)
+        return tuple(float(np.linalg.norm(m[i, :3])) for i in range(3))  # type: ignore[return-value]
+
+    def light(self, prim, node: dict[str, Any]) -> None:
+        from pxr import UsdLux
+
+        t = self.time
+        path = str(prim.GetPath())
+        api = UsdLux.LightAPI(prim)
+        for name, attr in (("diffuse", api.GetDiffuseAttr()), ("specular", api.GetSpecularAttr())):
+            if float(attr.Get(t)) != 1.0:
+                self.warn(path, f"inputs:{name} (a per-response multiplier) is not supported")
+        if prim.HasAPI(UsdLux.ShapingAPI):
+            self.warn(
+                path, "light shaping (cone, focus, IES) is not supported: the light is unshaped"
+            )
+        link = api.GetLightLinkCollectionAPI()
+        if link and (link.GetIncludesRel().GetTargets() or link.GetExcludesRel().GetTargets()):
+            self.warn(path, "light linking is not supported: the light lights everything")
+        sx, sy, sz = self._world_scale(prim)
+        if prim.IsA(UsdLux.RectLight):
+            rect = UsdLux.RectLight(prim)
+            width, height = float(rect.GetWidthAttr().Get(t)), float(rect.GetHeightAttr().Get(t))
+            if rect.GetTextureFileAttr().Get(t):
+                self.warn(path, "a rect light's texture is not supported: it emits its colour")
+            radiance = light_radiance(prim, t, width * height * sx * sy)
+            pos, nrm, tris = _rect(width * self.mpu, height * self.mpu)
+            node["mesh"] = self._light_mesh(path, pos, nrm, tris, radiance)
+        elif prim.IsA(UsdLux.DiskLight):
+            radius = float(UsdLux.DiskLight(prim).GetRadiusAttr().Get(t))
+            radiance = light_radiance(prim, t, math.pi * radius * radius * sx * sy)
+            pos, nrm, tris = _disk(radius * self.mpu, 64)
+            node["mesh"] = self._light_mesh(path, pos, nrm, tris, radiance)
+        elif prim.IsA(UsdLux.SphereLight):
+            sphere = UsdLux.SphereLight(prim)
+            radius = float(sphere.GetRadiusAttr().Get(t))
+            scale = (sx * sy * sz) ** (1.0 / 3.0)
+            if sphere.GetTreatAsPointAttr().Get(t) or radius <= 0.0:
+                radiance = light_radiance(prim, t, None)
+                r_m = radius * scale * self.mpu
+                intensity = radiance * math.pi * r_m * r_m  # candela: L x projected area
+                self._punctual(node, "point", intensity, path)
+                if radius <= 0.0:
+                    self.warn(path, "a sphere light of radius 0 emits nothing")
+            else:
+                radiance = light_radiance(prim, t, 4.0 * math.pi * (radius * scale) ** 2)
+                pos, nrm, tris = _uv_sphere(radius * self.mpu, 32, 16)
+                node["mesh"] = self._light_mesh(path, pos, nrm, tris, radiance)
+        elif prim.IsA(UsdLux.DistantLight):
+            distant = UsdLux.DistantLight(prim)
+            angle = math.radians(float(distant.GetAngleAttr().Get(t)))
+            radiance = light_radiance(prim, t, None)
+            if api.GetNormalizeAttr().Get(t):
+                illuminance = radiance
+            elif angle > 0.0:
+                illuminance = radiance * 2.0 * math.pi * (1.0 - math.cos(angle / 2.0))
+            else:
+                illuminance = radiance
+                self.warn(
+                    path,
+                    "a distant light of angle 0 without normalize: its intensity is taken as "
+                    "the illuminance",
+                )
+            if angle > 0.0:
+                self.warn(
+                    path,
+                    "the distant light's angle (soft shadows) is not carried: it is a "
+                    "directional light",
+                )
+            self._punctual(node, "directional", illuminance, path)
+        elif prim.IsA(UsdLux.DomeLight):
+            self.warn(path, "dome lights are not converted yet: give the job an environment map")
+        else:
+            self.warn(path, f"{prim.GetTypeName()} lights are not converted")
+
+    def _light_mesh(self, path: str, pos, nrm, tris, radiance) -> int:
+        material = self._emitter_material(radiance, False)
+        primitive = self._primitive({"POSITION": pos, "NORMAL": nrm}, tris, material)
+        self.renderables += 1
+        return self.writer.add("meshes", {"name": path, "primitives": [primitive]})
+
+    def _punctual(self, node: dict[str, Any], kind: str, value: np.ndarray, path: str) -> None:
+        peak = float(np.max(value))
+        if peak <= 0.0:
+            self.warn(path, "the light emits nothing")
+            return
+        lights = self.writer.doc.setdefault("extensions", {}).setdefault(
+            "KHR_lights_punctual", {"lights": []}
+        )["lights"]
+        lights.append(
+            {
+                "name": path,
+                "type": kind,
+                "color": [float(c) / peak for c in value],
+                "intensity": peak,
+            }
+        )
+        node.setdefault("extensions", {})["KHR_lights_punctual"] = {"light": len(lights) - 1}
+        self.writer.use_extension("KHR_lights_punctual")
+        self.renderables += 1
+
+
+# ---------------------------------------------------------------------- shapes
+def _rect(width: float, height: float):
+    """A width x height rectangle in the XY plane whose front face (counter-clockwise) looks
+    along -Z, as a UsdLux RectLight emits."""
+    x, y = width / 2.0, height / 2.0
+    pos = np.array([[-x, -y, 0], [-x, y, 0], [x, y, 0], [x, -y, 0]], dtype=np.float64)
+    nrm = np.tile([0.0, 0.0, -1.0], (4, 1))
+    return pos, nrm, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def _disk(radius: float, segments: int):
+    """A disk in the XY plane facing -Z (a UsdLux DiskLight)."""
+    a = 2.0 * math.pi * np.arange(segments) / segments
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(segments)], axis=1)
+    pos = np.concatenate([[[0.0, 0.0, 0.0]], ring])
+    nrm = np.tile([0.0, 0.0, -1.0], (segments + 1, 1))
+    i = np.arange(segments)
+    # counter-clockwise seen from -Z: centre, next, this
+    tris = np.stack([np.zeros(segments, dtype=np.int64), 1 + (i + 1) % segments, 1 + i], axis=1)
+    return pos, nrm, tris
+
+
+def _uv_sphere(radius: float, slices: int, stacks: int):
+    theta = np.linspace(0.0, math.pi, stacks + 1)
+    phi = np.linspace(0.0, 2.0 * math.pi, slices + 1)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    nrm = np.stack([np.sin(t) * np.cos(p), np.cos(t), -np.sin(t) * np.sin(p)], axis=-1).reshape(
+        -1, 3
+    )
+    pos = radius * nrm
+    tris = []
+    for i in range(stacks):
+        for j in range(slices):
+            a, b = i * (slices + 1) + j, (i + 1) * (slices + 1) + j
+            if i != 0:
+                tris.append([a, b, a + 1])
+            if i != stacks - 1:
+                tris.append([a + 1, b, b + 1])
+    return pos, nrm, np.array(tris)
+
+
+def _box(h: float):
+    faces = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            n = np.zeros(3)
+            n[axis] = sign
+            u = np.zeros(3)
+            u[(axis + 1) % 3] = 1.0
+            v = np.cross(n, u)
+            corners = [h * (n + su * u + sv * v) for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+            faces.append((corners, n))
+    pos = np.array([c for corners, _ in faces for c in corners])
+    nrm = np.array([n for _, n in faces for _ in range(4)])
+    tris = np.array(
+        [[4 * f, 4 * f + 1, 4 * f + 2] for f in range(6)]
+        + [[4 * f, 4 * f + 2, 4 * f + 3] for f in range(6)]
+    )
+    return pos, nrm, tris
+
+
+def convert_stage(root_layer: Path, root: Path, work: Path) -> Conversion:
+    """Check the upload's layers, compose the stage and convert it (see the module's text)."""
+    from pxr import Usd
+
+    root = Path(os.path.realpath(root))
+    check_layers(root_layer, root)
+    stage = Usd.Stage.Open(str(root_layer), Usd.Stage.LoadAll)
+    if stage is None:
+        raise SceneError(f"{root_layer.name} cannot be opened as a USD stage")
+    return _StageConverter(stage, root, work).convert()
+
+
+__all__ = ["Conversion", "convert_stage", "light_radiance"]

@@ -1,0 +1,565 @@
+"""USD to glTF conversion (domain/scenes/usd_convert.py), held to analytic answers.
+
+Stages are built here with usd-core; the GLB is read back with a small reader written here from
+the glTF 2.0 specification (node matrices composed parent x child, column-major; accessors read
+from the BIN chunk), never with the converter's own helpers. The expected values are worked out
+by hand from the USD schemas' definitions (UsdGeomCamera: apertures and focal length in tenths
+of a scene unit; UsdLux: radiance = intensity x 2^exposure x color, divided by the world-space
+area when normalize is on; KHR_texture_transform's GLSL).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pxr = pytest.importorskip("pxr")
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade  # noqa: E402
+
+from renderfarm.domain.scenes.usd_convert import convert_stage  # noqa: E402
+from renderfarm.domain.scenes.usd_materials import texture_transform  # noqa: E402
+from renderfarm.errors import SceneError  # noqa: E402
+
+# ------------------------------------------------------------------ a glTF reader (spec-only)
+
+_COMPONENTS = {5126: ("<f4", 4), 5125: ("<u4", 4), 5123: ("<u2", 2)}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+
+
+def read_glb(glb: bytes) -> tuple[dict, bytes]:
+    assert glb[:4] == b"glTF"
+    json_len = struct.unpack_from("<I", glb, 12)[0]
+    doc = json.loads(glb[20 : 20 + json_len])
+    rest = glb[20 + json_len :]
+    blob = rest[8 : 8 + struct.unpack_from("<I", rest, 0)[0]] if rest else b""
+    return doc, blob
+
+
+def accessor(doc: dict, blob: bytes, index: int) -> np.ndarray:
+    acc = doc["accessors"][index]
+    view = doc["bufferViews"][acc["bufferView"]]
+    dtype, size = _COMPONENTS[acc["componentType"]]
+    width = _WIDTH[acc["type"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    data = np.frombuffer(blob, dtype=dtype, count=acc["count"] * width, offset=start)
+    return data.reshape(acc["count"], width) if width > 1 else data
+
+
+def local_matrix(node: dict) -> np.ndarray:
+    if "matrix" in node:
+        return np.array(node["matrix"], dtype=np.float64).reshape(4, 4).T  # column-major
+    t = np.eye(4)
+    t[:3, 3] = node.get("translation", [0, 0, 0])
+    x, y, z, w = node.get("rotation", [0, 0, 0, 1])
+    r = np.eye(4)
+    r[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    s = np.diag([*node.get("scale", [1, 1, 1]), 1.0])
+    return t @ r @ s
+
+
+def world_matrices(doc: dict) -> dict[int, np.ndarray]:
+    out: dict[int, np.ndarray] = {}
+
+    def visit(index: int, parent: np.ndarray) -> None:
+        m = parent @ local_matrix(doc["nodes"][index])
+        out[index] = m
+        for child in doc["nodes"][index].get("children", []):
+            visit(child, m)
+
+    for root in doc["scenes"][doc.get("scene", 0)]["nodes"]:
+        visit(root, np.eye(4))
+    return out
+
+
+def world_triangles(doc: dict, blob: bytes, node_name: str) -> list[np.ndarray]:
+    """Each world-space triangle (3 x 3) of every node named `node_name`."""
+    tris = []
+    for index, m in world_matrices(doc).items():
+        node = doc["nodes"][index]
+        if node.get("name") != node_name or "mesh" not in node:
+            continue
+        for prim in doc["meshes"][node["mesh"]]["primitives"]:
+            pos = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+            idx = accessor(doc, blob, prim["indices"]).reshape(-1, 3)
+            world = (m @ np.c_[pos, np.ones(len(pos))].T).T[:, :3]
+            tris += [world[t] for t in idx]
+    return tris
+
+
+def convert(stage: Usd.Stage, root: Path):
+    stage.GetRootLayer().Save()
+    conversion = convert_stage(Path(stage.GetRootLayer().realPath), root, root)
+    doc, blob = read_glb(conversion.glb)
+    return conversion, doc, blob
+
+
+def new_stage(tmp_path: Path, *, meters_per_unit: float = 1.0, up: str = "Y") -> Usd.Stage:
+    stage = Usd.Stage.CreateNew(str(tmp_path / "scene.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up == "Z" else UsdGeom.Tokens.y)
+    return stage
+
+
+def unit_cube(stage: Usd.Stage, path: str) -> UsdGeom.Mesh:
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    h = 0.5
+    mesh.CreatePointsAttr([(x, y, z) for z in (-h, h) for y in (-h, h) for x in (-h, h)])
+    mesh.CreateFaceVertexCountsAttr([4] * 6)
+    mesh.CreateFaceVertexIndicesAttr(
+        [0, 2, 3, 1, 4, 5, 7, 6, 0, 1, 5, 4, 2, 6, 7, 3, 0, 4, 6, 2, 1, 3, 7, 5]
+    )
+    mesh.CreateSubdivisionSchemeAttr("none")
+    return mesh
+
+
+# ------------------------------------------------------------------ transforms and units
+
+
+def test_a_unit_cube_lands_where_its_transform_units_and_up_axis_put_it(tmp_path):
+    """Centimetres, Z up: the cube scaled 2, turned 90 degrees about Z and moved (10, 20, 30)
+    cm. A corner (x, y, z) goes to 2 (-y, x, z) + (10, 20, 30) cm, then to metres, then Z-up to
+    glTF's Y-up: (X, Y, Z) -> (X, Z, -Y)."""
+    stage = new_stage(tmp_path, meters_per_unit=0.01, up="Z")
+    xform = UsdGeom.Xform.Define(stage, "/World/Place")
+    xform.AddTranslateOp().Set(Gf.Vec3d(10, 20, 30))
+    xform.AddRotateZOp().Set(90.0)
+    xform.AddScaleOp().Set(Gf.Vec3f(2, 2, 2))
+    unit_cube(stage, "/World/Place/Cube")
+    conversion, doc, blob = convert(stage, tmp_path)
+    triangles = world_triangles(doc, blob, "Cube")
+    assert len(triangles) == 12  # six quads, two triangles each
+    corners = {tuple(np.round(v, 6)) for t in triangles for v in t}
+    expected = set()
+    for x in (-0.5, 0.5):
+        for y in (-0.5, 0.5):
+            for z in (-0.5, 0.5):
+                cm = (2 * -y + 10, 2 * x + 20, 2 * z + 30)
+                m = [c * 0.01 for c in cm]
+                expected.add(tuple(np.round([m[0], m[2], -m[1]], 6)))
+    assert corners == expected
+    assert conversion.meters_per_unit == 0.01 and conversion.up_axis == "Z"
+    # Every triangle faces out of the cube (counter-clockwise seen from outside).
+    centre = np.mean([v for t in triangles for v in t], axis=0)
+    for t in triangles:
+        normal = np.cross(t[1] - t[0], t[2] - t[0])
+        assert np.dot(normal, t.mean(axis=0) - centre) > 0
+
+
+def test_a_left_handed_mesh_keeps_its_outward_faces(tmp_path):
+    stage = new_stage(tmp_path)
+    mesh = unit_cube(stage, "/Cube")
+    # The same faces listed the other way round, declared leftHanded: still outward.
+    indices = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(6, 4)[:, ::-1]
+    mesh.GetFaceVertexIndicesAttr().Set(indices.reshape(-1).tolist())
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
+    _, doc, blob = convert(stage, tmp_path)
+    triangles = world_triangles(doc, blob, "Cube")
+    for t in triangles:
+        normal = np.cross(t[1] - t[0], t[2] - t[0])
+        assert np.dot(normal, t.mean(axis=0)) > 0
+
+
+# ------------------------------------------------------------------ cameras
+
+
+def test_a_cameras_field_of_view_comes_from_its_apertures(tmp_path):
+    """yfov = 2 atan(verticalAperture / (2 focalLength)); apertures and focal length in tenths
+    of a scene unit, so with centimetres the lens is 50 mm and the aperture radius of f/2 is
+    50 mm / (2 x 2) = 12.5 mm; clipping and focus distance in centimetres."""
+    stage = new_stage(tmp_path, meters_per_unit=0.01)
+    unit_cube(stage, "/Cube")
+    camera = UsdGeom.Camera.Define(stage, "/Cam")
+    camera.CreateFocalLengthAttr(50.0)
+    camera.CreateHorizontalApertureAttr(36.0)
+    camera.CreateVerticalApertureAttr(24.0)
+    camera.CreateClippingRangeAttr(Gf.Vec2f(1.0, 1000.0))
+    camera.CreateFStopAttr(2.0)
+    camera.CreateFocusDistanceAttr(250.0)
+    conversion, doc, _ = convert(stage, tmp_path)
+    (gltf_camera,) = doc["cameras"]
+    p = gltf_camera["perspective"]
+    assert p["yfov"] == pytest.approx(2 * math.atan(12.0 / 50.0), rel=1e-6)  # 26.99 degrees
+    assert p["aspectRatio"] == pytest.approx(1.5)
+    assert p["znear"] == pytest.approx(0.01) and p["zfar"] == pytest.approx(10.0)
+    assert conversion.camera["aperture_radius"] == pytest.approx(0.0125, rel=1e-6)
+    assert conversion.camera["focus_distance"] == pytest.approx(2.5, rel=1e-6)
+
+
+def test_the_render_settings_camera_is_the_one_kept(tmp_path):
+    from pxr import UsdRender
+
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    UsdGeom.Camera.Define(stage, "/A").CreateFocalLengthAttr(20.0)
+    UsdGeom.Camera.Define(stage, "/B").CreateFocalLengthAttr(80.0)
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateCameraRel().SetTargets([Sdf.Path("/B")])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    conversion, doc, _ = convert(stage, tmp_path)
+    (gltf_camera,) = doc["cameras"]
+    assert gltf_camera["name"] == "/B"
+    assert gltf_camera["perspective"]["yfov"] == pytest.approx(2 * math.atan(15.2908 / 160.0))
+    assert any(w.startswith("/A: a second camera") for w in conversion.warnings)
+
+
+# ------------------------------------------------------------------ lights
+
+
+def _emitter(doc: dict, blob: bytes, name: str):
+    (node,) = [n for n in doc["nodes"] if n.get("name") == name]
+    prim = doc["meshes"][node["mesh"]]["primitives"][0]
+    material = doc["materials"][prim["material"]]
+    strength = material.get("extensions", {}).get("KHR_materials_emissive_strength", {})
+    radiance = np.array(material["emissiveFactor"]) * strength.get("emissiveStrength", 1.0)
+    return radiance, world_triangles(doc, blob, name), material
+
+
+def test_a_rect_lights_radiance_comes_from_intensity_exposure_and_area(tmp_path):
+    """Normalized: L = intensity x 2^exposure x color / (world width x height). A 2 x 0.5 rect
+    scaled 2 has 4 square units: L = 3 x 4 x color / 4. Emitting along its -Z."""
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    light = UsdLux.RectLight.Define(stage, "/Key")
+    light.CreateWidthAttr(2.0)
+    light.CreateHeightAttr(0.5)
+    light.CreateIntensityAttr(3.0)
+    light.CreateExposureAttr(2.0)
+    light.CreateColorAttr(Gf.Vec3f(1.0, 0.5, 0.25))
+    light.CreateNormalizeAttr(True)
+    light.AddTranslateOp().Set(Gf.Vec3d(0, 3, 0))
+    light.AddRotateXOp().Set(-90.0)  # -Z turns to -Y: the light looks down
+    light.AddScaleOp().Set(Gf.Vec3f(2, 2, 2))
+    _, doc, blob = convert(stage, tmp_path)
+    radiance, triangles, material = _emitter(doc, blob, "Key")
+    assert radiance == pytest.approx([3.0, 1.5, 0.75], rel=1e-6)
+    area = sum(np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) / 2 for t in triangles)
+    assert area == pytest.approx(4.0, rel=1e-6)
+    for t in triangles:
+        normal = np.cross(t[1] - t[0], t[2] - t[0])
+        assert normal / np.linalg.norm(normal) == pytest.approx([0, -1, 0], abs=1e-6)
+    assert not material.get("doubleSided", False)  # one-sided, as UsdLux's rect light
+
+
+def test_an_unnormalized_disk_light_emits_intensity_times_two_to_the_exposure(tmp_path):
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    light = UsdLux.DiskLight.Define(stage, "/Disk")
+    light.CreateRadiusAttr(0.25)
+    light.CreateIntensityAttr(5.0)
+    light.CreateExposureAttr(-1.0)
+    _, doc, blob = convert(stage, tmp_path)
+    radiance, triangles, _ = _emitter(doc, blob, "Disk")
+    assert radiance == pytest.approx([2.5, 2.5, 2.5], rel=1e-6)
+    area = sum(np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) / 2 for t in triangles)
+    # A 64-gon inscribed in the circle: (64/2) sin(2 pi / 64) r^2.
+    assert area == pytest.approx(32 * math.sin(2 * math.pi / 64) * 0.25**2, rel=1e-6)
+
+
+def test_a_distant_light_is_a_directional_light_of_its_illuminance(tmp_path):
+    """Unnormalized, a distant light is a disk of radiance L filling the cone of its angle:
+    illuminance L x 2 pi (1 - cos(angle / 2)). Normalized, intensity is the illuminance."""
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    sun = UsdLux.DistantLight.Define(stage, "/Sun")
+    sun.CreateIntensityAttr(1000.0)
+    sun.CreateAngleAttr(10.0)
+    lamp = UsdLux.DistantLight.Define(stage, "/Lamp")
+    lamp.CreateIntensityAttr(7.0)
+    lamp.CreateNormalizeAttr(True)
+    _, doc, _ = convert(stage, tmp_path)
+    lights = {li["name"]: li for li in doc["extensions"]["KHR_lights_punctual"]["lights"]}
+    expected = 1000.0 * 2 * math.pi * (1 - math.cos(math.radians(5.0)))
+    assert lights["/Sun"]["type"] == "directional"
+    assert lights["/Sun"]["intensity"] == pytest.approx(expected, rel=1e-6)
+    assert lights["/Lamp"]["intensity"] == pytest.approx(7.0)
+
+
+# ------------------------------------------------------------------ materials
+
+
+def _material(stage: Usd.Stage, path: str, **inputs) -> UsdShade.Material:
+    material = UsdShade.Material.Define(stage, path)
+    shader = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    types = {tuple: Sdf.ValueTypeNames.Color3f, float: Sdf.ValueTypeNames.Float}
+    for name, value in inputs.items():
+        kind = Sdf.ValueTypeNames.Int if name == "useSpecularWorkflow" else types[type(value)]
+        shader.CreateInput(name, kind).Set(value)
+    material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    return material
+
+
+def test_geom_subsets_bind_their_own_materials(tmp_path):
+    stage = new_stage(tmp_path)
+    mesh = UsdGeom.Mesh.Define(stage, "/Two")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 0, 0), (2, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4, 4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 1, 4, 5, 2])
+    red = _material(stage, "/Looks/Red", diffuseColor=(1.0, 0.0, 0.0))
+    blue = _material(stage, "/Looks/Blue", diffuseColor=(0.0, 0.0, 1.0))
+    binding = UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim())
+    for name, faces, material in (("left", [0], red), ("right", [1], blue)):
+        subset = binding.CreateMaterialBindSubset(name, faces)
+        UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
+    _, doc, blob = convert(stage, tmp_path)
+    (mesh_doc,) = doc["meshes"]
+    by_colour = {}
+    for prim in mesh_doc["primitives"]:
+        colour = tuple(
+            doc["materials"][prim["material"]]["pbrMetallicRoughness"]["baseColorFactor"]
+        )
+        pos = accessor(doc, blob, prim["attributes"]["POSITION"])
+        by_colour[colour[:3]] = pos[:, 0].mean()
+    assert by_colour[(1.0, 0.0, 0.0)] == pytest.approx(0.5)  # the left quad, x in [0, 1]
+    assert by_colour[(0.0, 0.0, 1.0)] == pytest.approx(1.5)  # the right quad, x in [1, 2]
+
+
+def test_preview_surface_factors_opacity_and_workflows(tmp_path):
+    stage = new_stage(tmp_path)
+    cases = {
+        "Metal": dict(diffuseColor=(0.9, 0.6, 0.2), metallic=1.0, roughness=0.25),
+        "Coat": dict(clearcoat=0.7, clearcoatRoughness=0.1, ior=1.33),
+        "Glow": dict(emissiveColor=(4.0, 2.0, 0.0)),
+        "Mask": dict(opacity=0.2, opacityThreshold=0.5),
+        "Veil": dict(opacity=0.3),
+        # F0 of ior 1.5 is 0.04: a specularColor of 0.02 is half of it.
+        "Plastic": dict(useSpecularWorkflow=1, specularColor=(0.02, 0.02, 0.02)),
+        "Gold": dict(useSpecularWorkflow=1, specularColor=(1.0, 0.8, 0.3)),
+    }
+    for i, (name, inputs) in enumerate(cases.items()):
+        mesh = unit_cube(stage, f"/{name}Cube")
+        mesh.AddTranslateOp().Set(Gf.Vec3d(2 * i, 0, 0))
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(
+            _material(stage, f"/Looks/{name}", **inputs)
+        )
+    _, doc, _ = convert(stage, tmp_path)
+    m = {mat["name"].rsplit("/", 1)[-1]: mat for mat in doc["materials"]}
+    pbr = m["Metal"]["pbrMetallicRoughness"]
+    assert pbr["baseColorFactor"] == pytest.approx([0.9, 0.6, 0.2, 1.0], rel=1e-6)
+    assert (pbr["metallicFactor"], pbr["roughnessFactor"]) == pytest.approx((1.0, 0.25))
+    coat = m["Coat"]["extensions"]
+    assert coat["KHR_materials_clearcoat"]["clearcoatFactor"] == pytest.approx(0.7)
+    assert coat["KHR_materials_clearcoat"]["clearcoatRoughnessFactor"] == pytest.approx(0.1)
+    assert coat["KHR_materials_ior"]["ior"] == pytest.approx(1.33)
+    glow = m["Glow"]
+    strength = glow["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"]
+    assert np.array(glow["emissiveFactor"]) * strength == pytest.approx([4.0, 2.0, 0.0])
+    assert m["Mask"]["alphaMode"] == "MASK" and m["Mask"]["alphaCutoff"] == pytest.approx(0.5)
+    assert m["Veil"]["alphaMode"] == "BLEND"
+    assert m["Veil"]["pbrMetallicRoughness"]["baseColorFactor"][3] == pytest.approx(0.3)
+    plastic = m["Plastic"]
+    assert plastic["pbrMetallicRoughness"]["metallicFactor"] == 0.0
+    assert plastic["extensions"]["KHR_materials_specular"]["specularFactor"] == pytest.approx(0.5)
+    gold = m["Gold"]["pbrMetallicRoughness"]
+    assert gold["metallicFactor"] == 1.0
+    assert gold["baseColorFactor"][:3] == pytest.approx([1.0, 0.8, 0.3], rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("scale", "rotation", "translation"),
+    [((2.0, 2.0), 0.0, (0.0, 0.0)), ((1.0, 3.0), 30.0, (0.25, -0.5)), ((0.5, 0.5), -90.0, (1, 1))],
+)
+def test_texture_transform_maps_every_point_as_usd_does(scale, rotation, translation):
+    """UsdTransform2d: st' = R(rotation) (scale * st) + translation, st with v up; glTF reads
+    uv = (s, 1 - t). The extension's GLSL (translation * rotation * scale, rotation matrix
+    mat3(cos, sin, 0, -sin, cos, 0, 0, 0, 1) column-major) must give uv' = (s', 1 - t')."""
+    ext = texture_transform(scale[0], scale[1], rotation, translation[0], translation[1])
+    off = ext.get("offset", [0.0, 0.0])
+    rot = ext.get("rotation", 0.0)
+    sc = ext.get("scale", [1.0, 1.0])
+    a = math.radians(rotation)
+    for s, t in [(0.0, 0.0), (0.3, 0.2), (1.0, 0.7), (-0.4, 1.5)]:
+        s2 = math.cos(a) * scale[0] * s - math.sin(a) * scale[1] * t + translation[0]
+        t2 = math.sin(a) * scale[0] * s + math.cos(a) * scale[1] * t + translation[1]
+        u, v = s, 1.0 - t
+        u, v = sc[0] * u, sc[1] * v
+        u, v = math.cos(rot) * u - math.sin(rot) * v, math.sin(rot) * u + math.cos(rot) * v
+        u, v = u + off[0], v + off[1]
+        assert (u, v) == pytest.approx((s2, 1.0 - t2), abs=1e-9)
+
+
+def test_textures_st_and_transform_reach_the_gltf(tmp_path):
+    import OpenImageIO as oiio
+
+    image = oiio.ImageBuf(oiio.ImageSpec(2, 2, 3, oiio.UINT8))
+    image.set_pixels(oiio.ROI(0, 2, 0, 2, 0, 1, 0, 3), np.full((2, 2, 3), 0.5, np.float32))
+    assert image.write(str(tmp_path / "wood.png"))
+    stage = new_stage(tmp_path)
+    mesh = unit_cube(stage, "/Cube")
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "uvmap", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    )
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)] * 6)
+    material = _material(stage, "/Looks/Wood")
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/Looks/Wood/Surface"))
+    reader = UsdShade.Shader.Define(stage, "/Looks/Wood/Reader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("uvmap")
+    place = UsdShade.Shader.Define(stage, "/Looks/Wood/Place")
+    place.CreateIdAttr("UsdTransform2d")
+    place.CreateInput("in", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        reader.ConnectableAPI(), "result"
+    )
+    place.CreateInput("scale", Sdf.ValueTypeNames.Float2).Set(Gf.Vec2f(4, 4))
+    texture = UsdShade.Shader.Define(stage, "/Looks/Wood/Texture")
+    texture.CreateIdAttr("UsdUVTexture")
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./wood.png")
+    texture.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        place.ConnectableAPI(), "result"
+    )
+    texture.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        texture.ConnectableAPI(), "rgb"
+    )
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    _, doc, blob = convert(stage, tmp_path)
+    info = doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]
+    assert info["extensions"]["KHR_texture_transform"]["scale"] == pytest.approx([4, 4])
+    image = doc["images"][doc["textures"][info["index"]]["source"]]
+    view = doc["bufferViews"][image["bufferView"]]
+    embedded = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+    assert embedded == (tmp_path / "wood.png").read_bytes()  # the file itself, unchanged
+    prim = doc["meshes"][0]["primitives"][0]
+    uv = accessor(doc, blob, prim["attributes"]["TEXCOORD_0"])
+    assert sorted({tuple(p) for p in uv.tolist()}) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+
+
+# ------------------------------------------------------------------ instancing
+
+
+def test_instances_and_point_instancers_share_their_meshes(tmp_path):
+    stage = new_stage(tmp_path)
+    proto = UsdGeom.Xform.Define(stage, "/Library/Bolt")
+    unit_cube(stage, "/Library/Bolt/Body")
+    stage.GetPrimAtPath("/Library").SetSpecifier(Sdf.SpecifierClass)
+    for i in range(3):
+        prim = stage.DefinePrim(f"/World/Bolt{i}", "Xform")
+        prim.GetReferences().AddInternalReference("/Library/Bolt")
+        prim.SetInstanceable(True)
+        UsdGeom.XformCommonAPI(prim).SetTranslate(Gf.Vec3d(3 * i, 0, 0))
+    instancer = UsdGeom.PointInstancer.Define(stage, "/World/Scatter")
+    ball = UsdGeom.Sphere.Define(stage, "/World/Scatter/Protos/Ball")
+    ball.CreateRadiusAttr(0.25)
+    instancer.CreatePrototypesRel().SetTargets([ball.GetPath()])
+    instancer.CreateProtoIndicesAttr([0, 0, 0, 0])
+    instancer.CreatePositionsAttr([(0, 5, 0), (1, 5, 0), (2, 5, 0), (3, 5, 0)])
+    del proto
+    _, doc, blob = convert(stage, tmp_path)
+    assert len(doc["meshes"]) == 2  # one cube, one sphere: instances, not copies
+    bodies = [n for n in doc["nodes"] if n.get("name") == "Body"]
+    balls = [n for n in doc["nodes"] if n.get("name") == "Ball"]
+    assert len(bodies) == 3 and len({n["mesh"] for n in bodies}) == 1
+    assert len(balls) == 4 and len({n["mesh"] for n in balls}) == 1
+    worlds = world_matrices(doc)
+    ball_origins = sorted(
+        tuple(np.round(worlds[i][:3, 3], 6))
+        for i, n in enumerate(doc["nodes"])
+        if n.get("name") == "Ball"
+    )
+    assert ball_origins == [(x, 5.0, 0.0) for x in (0.0, 1.0, 2.0, 3.0)]
+    body_origins = sorted(
+        tuple(np.round(worlds[i][:3, 3], 6))
+        for i, n in enumerate(doc["nodes"])
+        if n.get("name") == "Body"
+    )
+    assert body_origins == [(x, 0.0, 0.0) for x in (0.0, 3.0, 6.0)]
+
+
+# ------------------------------------------------------------------ what is refused
+
+
+def _textured(stage: Usd.Stage, asset: str) -> None:
+    mesh = unit_cube(stage, "/World/Cube")
+    material = _material(stage, "/World/Looks/M")
+    texture = UsdShade.Shader.Define(stage, "/World/Looks/M/Tex")
+    texture.CreateIdAttr("UsdUVTexture")
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(asset)
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/M/Surface"))
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        texture.ConnectableAPI(), "rgb"
+    )
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+
+
+@pytest.mark.parametrize(
+    ("asset", "words"),
+    [
+        ("/etc/hostname", "absolute"),
+        ("../outside.png", "'..'"),
+        ("sub/../../outside.png", "'..'"),
+        ("https://example.com/t.png", "URL"),
+        ("file:///etc/hostname", "URL"),
+        ("missing.png", "names no file of the upload"),
+        ("pack.usdz[t.png]", "package path"),
+    ],
+)
+def test_an_asset_path_outside_the_upload_is_refused_naming_prim_and_attribute(
+    tmp_path, asset, words
+):
+    root = tmp_path / "upload"
+    root.mkdir()
+    (tmp_path / "outside.png").write_bytes(b"\x89PNG\r\n\x1a\nsecret")
+    stage = new_stage(root)
+    _textured(stage, asset)
+    with pytest.raises(SceneError) as refused:
+        convert(stage, root)
+    assert refused.value.field == "scene:/World/Looks/M/Tex.inputs:file"
+    assert words in refused.value.message
+
+
+def test_a_symlink_out_of_the_upload_is_refused(tmp_path):
+    root = tmp_path / "upload"
+    root.mkdir()
+    (root / "link.png").symlink_to("/etc/hostname")
+    stage = new_stage(root)
+    _textured(stage, "link.png")
+    with pytest.raises(SceneError) as refused:
+        convert(stage, root)
+    assert refused.value.field == "scene:/World/Looks/M/Tex.inputs:file"
+    assert "outside the upload" in refused.value.message
+
+
+@pytest.mark.parametrize("arc", ["sublayer", "reference", "payload"])
+def test_a_composition_arc_outside_the_upload_is_refused_before_it_is_opened(tmp_path, arc):
+    root = tmp_path / "upload"
+    root.mkdir()
+    outside = Usd.Stage.CreateNew(str(tmp_path / "outside.usda"))
+    unit_cube(outside, "/Thing")
+    outside.GetRootLayer().Save()
+    stage = new_stage(root)
+    unit_cube(stage, "/Cube")
+    if arc == "sublayer":
+        stage.GetRootLayer().subLayerPaths.append("../outside.usda")
+        field = "scene:scene.usda.subLayers[0]"
+    elif arc == "reference":
+        stage.DefinePrim("/Ref").GetReferences().AddReference(
+            str(tmp_path / "outside.usda"), "/Thing"
+        )
+        field = "scene:/Ref.references"
+    else:
+        stage.DefinePrim("/Load").GetPayloads().AddPayload("../outside.usda", "/Thing")
+        field = "scene:/Load.payload"
+    stage.GetRootLayer().Save()
+    with pytest.raises(SceneError) as refused:
+        convert_stage(root / "scene.usda", root, root)
+    assert refused.value.field == field
+
+
+def test_a_stage_with_nothing_to_render_is_refused_with_what_was_dropped(tmp_path):
+    stage = new_stage(tmp_path)
+    curves = UsdGeom.BasisCurves.Define(stage, "/Hair")
+    curves.CreatePointsAttr([(0, 0, 0), (0, 1, 0), (0, 2, 0), (0, 3, 0)])
+    curves.CreateCurveVertexCountsAttr([4])
+    with pytest.raises(SceneError) as refused:
+        convert(stage, tmp_path)
+    assert "nothing to render" in refused.value.message
+    assert "/Hair: BasisCurves prims are not converted" in refused.value.message
