@@ -44,6 +44,8 @@ def _is_sha256(value: str) -> bool:
 
 
 BUNDLE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
+# USD layers and packages go as they are: the server converts them (infra/usd_import.py).
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 DEFAULT_TIMEOUT_S = 60.0
 
 
@@ -108,8 +110,9 @@ class Client:
         after: list[str] | None = None,
         require_tags: list[str] | None = None,
     ) -> dict[str, Any]:
-        """Submit a scene file (.glb, or .gltf packed with its files into a .glb) or a stored
-        scene's hash. `after`: ids of jobs it waits for (state waiting until all completed).
+        """Submit a scene file (.glb, or .gltf packed with its files into a .glb; a USD layer,
+        .usdz or .zip/.tar bundle, which the server converts or packs) or a stored scene's
+        hash. `after`: ids of jobs it waits for (state waiting until all completed).
         `require_tags`: only workers announcing all these tags (--tag) render it.
         Returns the job."""
         after = list(after or [])
@@ -126,7 +129,7 @@ class Client:
             del settings["environment"]
         if scene is not None:
             path = Path(scene)
-            if path.name.lower().endswith(BUNDLE_SUFFIXES):  # unpacked and packed by the server
+            if path.name.lower().endswith(BUNDLE_SUFFIXES + USD_SUFFIXES):  # the server unpacks
                 data, upload_name = path.read_bytes(), path.name
             else:
                 data = path.read_bytes() if path.suffix.lower() == ".glb" else pack_gltf(path)

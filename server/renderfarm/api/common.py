@@ -8,6 +8,7 @@ from typing import Any
 
 from ..domain.jobspec import check_sha256, check_text, is_job_id
 from ..domain.scenes.bundles import scene_upload
+from ..domain.scenes.usd_upload import usd_kind
 from ..domain.states import JobState
 from ..errors import NotFound, SettingsError
 
@@ -41,7 +42,8 @@ def submission(
     max_upload_bytes: int,
 ) -> Submission:
     """Text fields free of control characters, a well-formed scene hash, and a .zip/.tar
-    bundle packed into the .glb the workers will receive."""
+    bundle packed into the .glb the workers will receive. A USD upload (a layer, a .usdz or a
+    bundle of USD layers) is passed on as it is: the service converts it in a child process."""
     name = check_text("name", name, 10 * MAX_NAME)
     filename = check_text("scene_filename", filename, MAX_NAME)
     environment_filename = check_text("environment_filename", environment_filename, MAX_NAME)
@@ -49,7 +51,8 @@ def submission(
         scene_sha256 = check_sha256("scene_sha256", scene_sha256)
     if scene_data is not None and scene_sha256:
         raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
-    scene_data, filename = scene_upload(scene_data, filename, max_upload_bytes)
+    if usd_kind(scene_data, filename) is None:
+        scene_data, filename = scene_upload(scene_data, filename, max_upload_bytes)
     return Submission(
         scene_data=scene_data,
         scene_sha256=scene_sha256 or None,

@@ -44,6 +44,7 @@ from ..infra.config import Settings
 from ..infra.scene_check import SceneChecker
 from ..infra.spill import TileCache
 from ..infra.store import JobRow, Store
+from ..infra.usd_import import UsdImport, UsdImporter
 from ..infra.worker_binary import find_worker_binary
 from . import checkpoints
 from .auth import Caller, check_caller
@@ -115,6 +116,13 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             settings.scene_inspector or find_worker_binary(),
             settings.scene_limits(),
             Path(settings.data_dir) / "tmp",
+        )
+        # USD uploads become glTF in a limited child process before that check (usd_import.py).
+        self.usd_importer = UsdImporter(
+            Path(settings.data_dir) / "tmp",
+            cpu_seconds=settings.scene_inspect_cpu_s,
+            memory_mb=settings.max_scene_memory_mb,
+            max_output_bytes=settings.max_upload_bytes,
         )
 
     # ------------------------------------------------------------------------- lifecycle
@@ -227,6 +235,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         after = list(dict.fromkeys(after or []))  # in order, once each
         ready = await self._dependencies_ready(after, caller)
         settings = await self._environment(settings, environment_data, environment_filename)
+        usd: UsdImport | None = None
         if scene_data is not None and scene_sha256:
             raise SettingsError("scene", "give either an uploaded scene or scene_sha256, not both")
         if scene_data is not None:
@@ -236,6 +245,10 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                     f"scene is {len(scene_data)} bytes, more than the server's limit of "
                     f"{self.settings.max_upload_bytes} bytes",
                 )
+            if self.usd_importer.is_usd(scene_data, filename):
+                usd = await self.usd_importer.convert(scene_data, filename or "scene.usd")
+                scene_data, filename = usd.glb, usd.filename
+                settings = self._usd_camera_settings(settings, raw_settings, usd)
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
             resolve_animations(settings.animation, info.animations)
             if await self.store.get_scene_info(info.sha256) is None:
@@ -258,6 +271,8 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 "scene", "a scene is required: upload a .glb/.gltf or give scene_sha256"
             )
         job_id = secrets.token_hex(6)
+        if usd is not None:
+            name = name or usd.source_filename
         name = (name or filename or "job").strip()[:200]
         tiles = len(job_rects(settings))
         state = JobState.QUEUED if ready else JobState.WAITING
@@ -273,8 +288,20 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             job_id, settings, sha, state=state, after=tuple(after), require_tags=tuple(require_tags)
         )
         self._waiting_dirty = True  # a dependency may have completed since it was looked at
+        if usd is not None:
+            self._pending_events.append((job_id, "scene_converted", _usd_event(usd)))
         await self._after_change()
         return await self.get(job_id, caller)
+
+    def _usd_camera_settings(
+        self, settings: JobSettings, raw: dict[str, Any] | None, usd: UsdImport
+    ) -> JobSettings:
+        """The USD camera's depth of field as the job's aperture_radius and focus_distance,
+        unless the submission set either."""
+        raw = dict(raw or {})
+        if not usd.camera or "aperture_radius" in raw or "focus_distance" in raw:
+            return settings
+        return parse_settings({**settings.to_dict(), **usd.camera}, self.settings.limits())
 
     async def _dependencies_ready(self, after: list[str], caller: Caller) -> bool:
         """Check the jobs a submission names in `after`: each must exist and be the caller's
@@ -581,3 +608,21 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self._tasks = [t for t in self._tasks if not t.done()]
 
     # ---------------------------------------------------------------------- durability
+
+
+USD_EVENT_WARNINGS = 200
+
+
+def _usd_event(usd: UsdImport) -> dict[str, Any]:
+    """The job's record of its USD source: hash, file name, and what the conversion could not
+    carry (one message per prim path and problem, at most USD_EVENT_WARNINGS)."""
+    warnings = usd.warnings[:USD_EVENT_WARNINGS]
+    if len(usd.warnings) > USD_EVENT_WARNINGS:
+        warnings.append(f"{len(usd.warnings) - USD_EVENT_WARNINGS} more warnings left out")
+    return {
+        "source_format": "usd",
+        "source_sha256": usd.source_sha256,
+        "source_filename": usd.source_filename,
+        "warnings": warnings,
+        "camera": usd.camera,
+    }

@@ -101,7 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_up)
 
     p = sub.add_parser("render", help="render a scene to an EXR (+PNG) and exit")
-    p.add_argument("scene", help="a .glb or .gltf file")
+    p.add_argument(
+        "scene", help="a .glb, .gltf, USD (.usd/.usda/.usdc/.usdz) or .zip/.tar bundle file"
+    )
     p.add_argument("-o", "--output", required=True, help="output .exr; the .png goes beside it")
     p.add_argument("--url", default=None, help="server URL (default: start a local farm)")
     p.add_argument("--workers", type=int, default=2, help="workers of the local farm (default 2)")
@@ -120,7 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("submit", help="submit a scene to a running server")
-    p.add_argument("scene")
+    p.add_argument(
+        "scene", help="a .glb, .gltf, USD (.usd/.usda/.usdc/.usdz) or .zip/.tar bundle file"
+    )
     p.add_argument("--name", default=None)
     p.add_argument("--wait", action="store_true", help="show progress until the job finishes")
     p.add_argument("--quiet", action="store_true")

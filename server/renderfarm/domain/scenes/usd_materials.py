@@ -405,7 +405,7 @@ class MaterialConverter:
                     ext["KHR_materials_specular"] = {"specularFactor": factor}
             else:
                 pbr["metallicFactor"] = 1.0
-                if any(c > 0.0 for c in base) and diffuse_tex is None:
+                if shader.GetInput("diffuseColor") and any(c > 0.0 for c in base):
                     self.warn(
                         sp,
                         "specular workflow: a specularColor brighter than a dielectric's is "

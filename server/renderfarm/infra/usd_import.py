@@ -1,0 +1,191 @@
+"""USD uploads converted to the farm's glTF in a child process under limits.
+
+The server never opens a USD stage itself: a stage can name any file, and composing one can
+take any time and memory. `UsdImporter.convert` lays the upload's files out in a fresh private
+directory (domain/scenes/usd_upload.py), then runs this module as a child process
+(`python -m renderfarm.infra.usd_import DIR ROOT OUT`) through prlimit, with CPU-time,
+address-space, file-size and open-file limits, its working directory and HOME that directory,
+and an environment without any PXR_* variable (so no plug-in or search path of the server's
+applies). The child checks every asset path of every layer before the stage is composed
+(domain/scenes/usd_assets.py: nothing outside the directory is opened or read), converts
+(domain/scenes/usd_convert.py), writes the GLB and prints one JSON line. The GLB then goes
+through the ordinary acceptance (the workers' loader), like any other upload.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import posixpath
+import shutil
+import signal
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..domain.scenes.usd_upload import usd_files, usd_kind
+from ..errors import SceneError
+
+log = logging.getLogger(__name__)
+
+# What the child needs before it reads a byte: Python, numpy, OpenImageIO and usd-core's
+# libraries and plug-in registry map about 1.5 GB of address space.
+BASE_ADDRESS_SPACE = 3 << 30
+
+
+@dataclass(frozen=True)
+class UsdImport:
+    """A converted USD upload: the GLB to accept and store, and what the user should know."""
+
+    glb: bytes
+    filename: str  # the GLB's name: the upload's stem + ".glb"
+    source_sha256: str  # the USD upload's own hash (the bytes as uploaded)
+    source_filename: str
+    warnings: list[str] = field(default_factory=list)
+    camera: dict[str, float] = field(default_factory=dict)  # aperture_radius, focus_distance
+
+
+class UsdImporter:
+    """Converts USD uploads one (by default) at a time in a limited child process."""
+
+    def __init__(
+        self,
+        tmp_dir: Path,
+        *,
+        cpu_seconds: float = 60.0,
+        memory_mb: int = 2048,
+        max_output_bytes: int = 256 * 2**20,
+        concurrency: int = 1,
+        python: str = sys.executable,
+    ):
+        prlimit = shutil.which("prlimit")
+        if prlimit is None:
+            raise RuntimeError("prlimit (util-linux) is needed to convert USD uploads")
+        self.prlimit = prlimit
+        self.tmp_dir = Path(tmp_dir)
+        self.cpu_seconds = cpu_seconds
+        self.memory_mb = memory_mb
+        self.max_output_bytes = max_output_bytes
+        self.python = python
+        self._slots = asyncio.Semaphore(max(1, concurrency))
+
+    @staticmethod
+    def is_usd(data: bytes | None, filename: str = "") -> bool:
+        return usd_kind(data, filename) is not None
+
+    async def convert(self, data: bytes, filename: str) -> UsdImport:
+        kind = usd_kind(data, filename)
+        if kind is None:
+            raise SceneError(f"{filename or 'scene'} is not a USD upload")
+        files, root_layer = usd_files(data, filename, kind, self.max_output_bytes)
+        self.tmp_dir.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix="usd-", dir=self.tmp_dir))
+        try:
+            upload = work / "upload"
+            for rel, content in files.items():
+                target = upload / rel
+                target.parent.mkdir(parents=True, exist_ok=True)
+                target.write_bytes(content)
+            out = work / "scene.glb"
+            async with self._slots:
+                result = await self._run(upload, root_layer, out, work, filename or root_layer)
+            glb = out.read_bytes()
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        stem = posixpath.splitext(posixpath.basename((filename or root_layer).replace("\\", "/")))
+        return UsdImport(
+            glb=glb,
+            filename=(stem[0] or "scene") + ".glb",
+            source_sha256=hashlib.sha256(data).hexdigest(),
+            source_filename=filename or root_layer,
+            warnings=[str(w) for w in result.get("warnings", [])],
+            camera={k: float(v) for k, v in dict(result.get("camera") or {}).items()},
+        )
+
+    async def _run(self, upload: Path, root_layer: str, out: Path, work: Path, name: str):
+        cpu = max(1, int(self.cpu_seconds + 0.999))
+        address_space = BASE_ADDRESS_SPACE + int(self.memory_mb * 2**20)
+        fsize = self.max_output_bytes + (1 << 20)
+        env = {
+            k: os.environ[k] for k in ("PATH", "PYTHONPATH", "LANG", "LC_ALL") if k in os.environ
+        }
+        env.update(HOME=str(work), TMPDIR=str(work), PYTHONDONTWRITEBYTECODE="1")
+        args = [
+            self.prlimit, f"--cpu={cpu}:{cpu + 1}", f"--as={address_space}", f"--fsize={fsize}",
+            "--nofile=256", "--core=0", "--",
+            self.python, "-P", "-s", "-m", "renderfarm.infra.usd_import",
+            str(upload), root_layer, str(out),
+        ]  # fmt: skip
+        proc = await asyncio.create_subprocess_exec(
+            *args,
+            stdin=asyncio.subprocess.DEVNULL,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+            cwd=str(work),
+            env=env,
+        )
+        try:
+            stdout, stderr = await asyncio.wait_for(proc.communicate(), timeout=2 * cpu + 30)
+        except TimeoutError:
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+            await proc.wait()
+            raise SceneError(self._too_costly(name)) from None
+        result = _parse(stdout)
+        if proc.returncode == 0 and result and result.get("ok"):
+            return result
+        if result and not result.get("ok") and result.get("error"):
+            raise SceneError(str(result["error"]), str(result.get("field") or "scene"))
+        log.warning(
+            "USD conversion of %s ended with status %s: %s",
+            name,
+            proc.returncode,
+            stderr.decode(errors="replace")[-2000:],
+        )
+        if proc.returncode in (-signal.SIGXCPU, -signal.SIGKILL, -signal.SIGXFSZ):
+            raise SceneError(self._too_costly(name))
+        raise SceneError(self._too_costly(name))
+
+    def _too_costly(self, name: str) -> str:
+        return (
+            f"{name}: the USD stage cannot be converted within the server's limits of "
+            f"{self.cpu_seconds:g} s of CPU time, {self.memory_mb} MB of memory and "
+            f"{self.max_output_bytes} bytes of glTF"
+        )
+
+
+def _parse(out: bytes) -> dict[str, Any] | None:
+    try:
+        value = json.loads(out.decode(errors="replace").strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def main(argv: list[str]) -> int:
+    """The child: convert DIR/ROOT into OUT; print {"ok", "warnings", "camera"} or
+    {"ok": false, "error", "field"} as the last line of stdout."""
+    upload, root_layer, out = Path(argv[0]), argv[1], Path(argv[2])
+    for key in [k for k in os.environ if k.startswith(("PXR_", "TF_"))]:
+        del os.environ[key]
+    try:
+        from ..domain.scenes.usd_convert import convert_stage
+
+        root = Path(os.path.realpath(upload))
+        conversion = convert_stage(root / root_layer, root, Path(os.path.realpath(out.parent)))
+        out.write_bytes(conversion.glb)
+    except SceneError as e:
+        print(json.dumps({"ok": False, "error": e.message, "field": e.field}))
+        return 1
+    print(json.dumps({"ok": True, "warnings": conversion.warnings, "camera": conversion.camera}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,179 @@
+"""USD scenes submitted as users submit them (issue #41): a bundle of a .usda and its texture
+over REST, a .usdz over gRPC and through the Python client (the CLI's path), each converted by
+the server in its limited child process, accepted by the workers' loader and rendered; and a
+stage naming a file outside the upload refused with 400 naming the prim and attribute, over
+both APIs, before anything is read.
+
+The scene is the example generator's (examples/make_usd_scene.py). What the conversion must
+produce is checked analytically in server/tests/test_usd_convert.py; here the path a user takes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+
+from renderfarm.infra.images import read_exr  # noqa: E402
+
+from .apihelpers import TINY, Apis, Error  # noqa: E402
+from .waiting import wait_until  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+GENERATOR = ROOT / "examples" / "make_usd_scene.py"
+SETTINGS = {**TINY, "width": 48, "height": 32}
+
+ESCAPING_LAYER = """#usda 1.0
+(
+    upAxis = "Y"
+)
+
+def Xform "World"
+{
+    def Mesh "Card" (
+        prepend apiSchemas = ["MaterialBindingAPI"]
+    )
+    {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 1, 2, 3]
+        point3f[] points = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
+        rel material:binding = </World/Looks/M>
+    }
+
+    def Scope "Looks"
+    {
+        def Material "M"
+        {
+            token outputs:surface.connect = </World/Looks/M/Surface.outputs:surface>
+
+            def Shader "Surface"
+            {
+                uniform token info:id = "UsdPreviewSurface"
+                color3f inputs:diffuseColor.connect = </World/Looks/M/Tex.outputs:rgb>
+                token outputs:surface
+            }
+
+            def Shader "Tex"
+            {
+                uniform token info:id = "UsdUVTexture"
+                asset inputs:file = @PATH@
+                float3 outputs:rgb
+            }
+        }
+    }
+}
+"""
+
+
+def load_generator():
+    spec = importlib.util.spec_from_file_location("make_usd_scene", GENERATOR)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def apis(farm):
+    a = Apis(farm.url, farm.grpc_address)
+    wait_until(lambda: len(a.client.workers()) >= 1, 60, "a worker connected")
+    yield a
+    a.close()
+
+
+@pytest.fixture(scope="module")
+def usd_scene(tmp_path_factory) -> dict[str, Path]:
+    """The example as loose files zipped (layer + textures/) and as a .usdz package."""
+    generator = load_generator()
+    loose = tmp_path_factory.mktemp("usd-loose")
+    layer = generator.build(loose)
+    bundle = loose.parent / "still-life.zip"
+    with zipfile.ZipFile(bundle, "w") as archive:
+        for path in sorted(loose.rglob("*")):
+            if path.is_file():
+                archive.write(path, path.relative_to(loose).as_posix())
+    package = generator.write(tmp_path_factory.mktemp("usdz") / "still-life.usdz")
+    return {"layer": layer, "bundle": bundle, "usdz": package}
+
+
+def _finished(apis: Apis, job: dict) -> dict:
+    job = apis.client.wait(job["id"], poll_s=0.2, timeout_s=300)
+    assert job["state"] == "completed", job["error"]
+    return job
+
+
+def test_a_usd_bundle_over_rest_renders_and_the_job_names_its_source(apis, usd_scene, tmp_path):
+    data = usd_scene["bundle"].read_bytes()
+    job = apis.submit_rest(data, "still-life.zip", SETTINGS, "")
+    assert not isinstance(job, Error), job
+    assert job["name"] == "still-life.zip"
+    # The camera's f/8 on a 35 mm lens: aperture radius 35 mm / 16; focused at 320 cm.
+    assert job["settings"]["aperture_radius"] == pytest.approx(0.035 / 16, rel=1e-6)
+    assert job["settings"]["focus_distance"] == pytest.approx(3.2, rel=1e-6)
+    stored = apis.client.scene(job["scene_sha256"])
+    assert stored["format"] == "glb" and stored["filename"] == "still-life.glb"
+    job = _finished(apis, job)
+    events = wait_until(
+        lambda: [e for e in apis.client.events(job["id"]) if e["kind"] == "scene_converted"],
+        30,
+        "the scene_converted event",
+    )
+    (event,) = events
+    assert event["data"]["source_sha256"] == hashlib.sha256(data).hexdigest()
+    assert event["data"]["source_filename"] == "still-life.zip"
+    # The specular-workflow gold is a metal: the one thing of the scene with a warning of its
+    # own besides the sun's angle.
+    assert any(w.startswith("/World/Lights/Sun:") for w in event["data"]["warnings"])
+    exr = tmp_path / "usd.exr"
+    exr.write_bytes(apis.client.image(job["id"], "exr"))
+    channels = read_exr(str(exr))
+    rgb = np.stack([channels[c] for c in ("R", "G", "B")], axis=-1)
+    assert np.isfinite(rgb).all() and rgb.mean() > 0.01  # lit, not black
+
+
+def test_a_usdz_over_grpc_and_through_the_python_client_is_accepted(apis, usd_scene):
+    via_grpc = apis.submit_rpc(usd_scene["usdz"].read_bytes(), "still-life.usdz", SETTINGS, "g")
+    assert not isinstance(via_grpc, Error), via_grpc
+    via_client = apis.client.submit(str(usd_scene["usdz"]), settings=SETTINGS, name="c")
+    # The same package converts to the same GLB: one stored scene.
+    assert via_client["scene_sha256"] == via_grpc["scene_sha256"]
+    _finished(apis, via_grpc)
+    _finished(apis, via_client)
+
+
+def _escaping(path: str) -> bytes:
+    return ESCAPING_LAYER.replace("@PATH@", f"@{path}@").encode()
+
+
+@pytest.mark.parametrize(
+    ("path", "words"),
+    [("/etc/hostname", "absolute"), ("../../etc/hostname", "'..'"), ("https://x.y/t.png", "URL")],
+)
+def test_an_asset_path_outside_the_upload_is_a_400_naming_prim_and_attribute(apis, path, words):
+    before = len(apis.client.list()["jobs"])
+    hostname = Path("/etc/hostname").read_text().strip() if Path("/etc/hostname").exists() else ""
+    for answer in (
+        apis.submit_rest(_escaping(path), "card.usda", SETTINGS, "bad"),
+        apis.submit_rpc(_escaping(path), "card.usda", SETTINGS, "bad"),
+    ):
+        assert isinstance(answer, Error) and answer.kind == "invalid", answer
+        assert answer.field == "scene:/World/Looks/M/Tex.inputs:file", answer
+        assert words in answer.message, answer
+        assert not hostname or hostname not in answer.message
+    assert len(apis.client.list()["jobs"]) == before
+
+
+def test_a_bundle_with_two_root_layers_is_refused_by_name(apis):
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as z:
+        z.writestr("a.usda", _escaping("t.png"))
+        z.writestr("b.usda", _escaping("t.png"))
+    answer = apis.submit_rest(archive.getvalue(), "two.zip", SETTINGS, "two")
+    assert isinstance(answer, Error) and answer.kind == "invalid", answer
+    assert "a.usda, b.usda" in answer.message
