@@ -17,6 +17,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import OpenImageIO as oiio
 import pytest
 
 pytest.importorskip("pxr")
@@ -132,6 +133,10 @@ def test_a_usd_bundle_over_rest_renders_and_the_job_names_its_source(apis, usd_s
     assert any(w.startswith("/World/Lights/Sun:") for w in event["data"]["warnings"])
     exr = tmp_path / "usd.exr"
     exr.write_bytes(apis.client.image(job["id"], "exr"))
+    spec = oiio.ImageInput.open(str(exr)).spec()
+    assert spec.getattribute("renderfarm:scene_source_sha256") == hashlib.sha256(data).hexdigest()
+    assert spec.getattribute("renderfarm:scene_source_filename") == "still-life.zip"
+    assert spec.getattribute("renderfarm:scene_source_format") == "usd"
     channels = read_exr(str(exr))
     rgb = np.stack([channels[c] for c in ("R", "G", "B")], axis=-1)
     assert np.isfinite(rgb).all() and rgb.mean() > 0.01  # lit, not black

@@ -249,6 +249,25 @@ def test_deleting_a_job_takes_its_rows_and_unshared_scenes(run):
     assert scenes == [True, False, False]
 
 
+def test_a_scene_remembers_its_source_once_and_loses_it_with_the_scene(run):
+    async def body(store):
+        await store.put_scene(sha("glb"), "glb", "shot.glb", b"x")
+        before = await store.get_scene_source(sha("glb"))
+        await store.put_scene_source(sha("glb"), "usd", sha("usd"), "shot.usdz")
+        await store.put_scene_source(sha("glb"), "usd", sha("other"), "again.usdz")  # kept first
+        source = await store.get_scene_source(sha("glb"))
+        info = await store.get_scene_info(sha("glb"))
+        await store.insert_job("j", "j", {}, sha("glb"), tiles=1)
+        await store.delete_job("j")  # the scene goes with its last job, and its source with it
+        return before, source, info, await store.get_scene_source(sha("glb"))
+
+    before, source, info, after = run(body)
+    assert before is None and after is None
+    assert source == {"source_format": "usd", "source_sha256": sha("usd"),
+                      "source_filename": "shot.usdz"}  # fmt: skip
+    assert info == {"sha256": sha("glb"), "format": "glb", "filename": "shot.glb", "size_bytes": 1}
+
+
 def test_a_job_needs_its_scene_stored(run):
     async def body(store):
         with pytest.raises(Exception) as refused:

@@ -11,7 +11,7 @@ import json
 import math
 import os
 import tempfile
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from ..domain.frames import frame_slot, job_frames, job_rects, tiles_per_frame
 from ..domain.jobspec import JobSettings
@@ -121,7 +121,8 @@ class JobImages:
         attributes = None
         if fmt == "exr":
             numbers = job_frames(settings)
-            attributes = exr_attributes(view, None if numbers is None else numbers[slot])
+            source = await self.store.get_scene_source(view.scene_sha256)
+            attributes = exr_attributes(view, None if numbers is None else numbers[slot], source)
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
@@ -219,10 +220,14 @@ def renderer_version() -> str:
         return "unknown"
 
 
-def exr_attributes(view: JobView, frame: int | None = None) -> dict[str, str | float]:
+def exr_attributes(
+    view: JobView, frame: int | None = None, source: dict[str, Any] | None = None
+) -> dict[str, str | float]:
     """The job's record in its EXR header (docs/usage.md, "Outputs"): its settings as JSON, scene,
-    renderer version, mean spp and estimated error (absent while unknown), and for a frame of
-    an animation its number. No wall-clock time: the EXR stays a function of the job."""
+    renderer version, mean spp and estimated error (absent while unknown), for a frame of an
+    animation its number, and for a scene converted at upload (USD) the source it was converted
+    from (`source`: the store's scene source). No wall-clock time: the EXR stays a function of
+    the job."""
     attributes: dict[str, str | float] = {
         "renderfarm:settings": json.dumps(view.settings.to_dict(), sort_keys=True),
         "renderfarm:scene_sha256": view.scene_sha256,
@@ -233,6 +238,10 @@ def exr_attributes(view: JobView, frame: int | None = None) -> dict[str, str | f
         attributes["renderfarm:error"] = float(view.progress.error)
     if frame is not None:
         attributes["renderfarm:frame"] = float(frame)
+    if source:
+        attributes["renderfarm:scene_source_format"] = str(source["source_format"])
+        attributes["renderfarm:scene_source_sha256"] = str(source["source_sha256"])
+        attributes["renderfarm:scene_source_filename"] = str(source["source_filename"])
     return attributes
 
 

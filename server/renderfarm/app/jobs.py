@@ -254,6 +254,10 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             if await self.store.get_scene_info(info.sha256) is None:
                 await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
             await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
+            if usd is not None:
+                await self.store.put_scene_source(
+                    info.sha256, "usd", usd.source_sha256, usd.source_filename
+                )
             sha = info.sha256
         elif scene_sha256:
             sha = scene_sha256.strip().lower()

@@ -34,6 +34,10 @@ class JobStore(Protocol):
     async def ping(self) -> None: ...
     async def put_scene(self, sha256: str, fmt: str, filename: str, data: bytes) -> None: ...
     async def get_scene_info(self, sha256: str) -> dict[str, Any] | None: ...
+    async def put_scene_source(
+        self, sha256: str, source_format: str, source_sha256: str, source_filename: str
+    ) -> None: ...
+    async def get_scene_source(self, sha256: str) -> dict[str, Any] | None: ...
     async def read_scene(self, sha256: str, offset: int, length: int) -> bytes: ...
     async def insert_job(
         self,
@@ -134,9 +138,25 @@ class MemoryStore:
              "data": bytes(data)},
         )  # fmt: skip
 
+    async def put_scene_source(
+        self, sha256: str, source_format: str, source_sha256: str, source_filename: str
+    ) -> None:
+        if sha256 in self._scenes:  # the database's foreign key to scenes
+            self._scenes[sha256].setdefault(
+                "source",
+                {"source_format": source_format, "source_sha256": source_sha256,
+                 "source_filename": source_filename},
+            )  # fmt: skip
+
+    async def get_scene_source(self, sha256: str) -> dict[str, Any] | None:
+        row = self._scenes.get(sha256)
+        return None if row is None or "source" not in row else dict(row["source"])
+
     async def get_scene_info(self, sha256: str) -> dict[str, Any] | None:
         row = self._scenes.get(sha256)
-        return None if row is None else {k: v for k, v in row.items() if k != "data"}
+        return (
+            None if row is None else {k: v for k, v in row.items() if k not in ("data", "source")}
+        )
 
     async def read_scene(self, sha256: str, offset: int, length: int) -> bytes:
         row = self._scenes.get(sha256)

@@ -278,6 +278,27 @@ class Store:
                 (sha256, fmt, filename, len(data), data),
             )
 
+    async def put_scene_source(
+        self, sha256: str, source_format: str, source_sha256: str, source_filename: str
+    ) -> None:
+        """Record what a stored scene was converted from (the first record stays)."""
+        async with self._connection() as conn:
+            await conn.execute(
+                "INSERT INTO scene_sources (sha256, source_format, source_sha256, source_filename)"
+                " VALUES (%s, %s, %s, %s) ON CONFLICT (sha256) DO NOTHING",
+                (sha256, source_format, source_sha256, source_filename),
+            )
+
+    async def get_scene_source(self, sha256: str) -> dict[str, Any] | None:
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "SELECT source_format, source_sha256, source_filename FROM scene_sources"
+                " WHERE sha256 = %s",
+                (sha256,),
+            )
+            return await cur.fetchone()
+
     async def get_scene_info(self, sha256: str) -> dict[str, Any] | None:
         async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
