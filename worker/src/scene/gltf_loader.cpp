@@ -435,7 +435,8 @@ class Loader {
   // The vertex attributes the renderer reads: POSITION, NORMAL, COLOR_0, TEXCOORD_0 and _1,
   // and the other TEXCOORD_<n> that a material reads.
   bool reads_attribute(const std::string& name) const {
-    if (name == "POSITION" || name == "NORMAL" || name == "COLOR_0") return true;
+    if (name == "POSITION" || name == "NORMAL" || name == "COLOR_0" || name == "TANGENT")
+      return true;
     uint32_t array = 0;
     return uv_array(name, &array);
   }
@@ -485,13 +486,14 @@ class Loader {
   // invalid count as empty here; add_mesh reports them.
   struct Counts {
     size_t vertices = 0, triangles = 0;
-    bool normals = false, colors = false;
+    bool normals = false, colors = false, tangents = false;
     std::set<uint32_t> uv;  // TriangleMesh::uv arrays
     void operator+=(const Counts& o) {
       vertices += o.vertices;
       triangles += o.triangles;
       normals = normals || o.normals;
       colors = colors || o.colors;
+      tangents = tangents || o.tangents;
       uv.insert(o.uv.begin(), o.uv.end());
     }
   };
@@ -582,6 +584,7 @@ class Loader {
         uint32_t array = 0;
         if (attribute.first == "NORMAL") c.normals = true;
         if (attribute.first == "COLOR_0") c.colors = true;
+        if (attribute.first == "TANGENT") c.tangents = true;
         if (uv_array(attribute.first, &array)) c.uv.insert(array);
       }
     }
@@ -611,6 +614,7 @@ class Loader {
     mesh->positions.reserve(c.vertices + 1);
     if (c.normals) mesh->normals.reserve(c.vertices);
     if (c.colors) mesh->colors.reserve(c.vertices);
+    if (c.tangents) mesh->tangents.reserve(c.vertices);
     for (uint32_t set : c.uv) {
       if (mesh->uv.size() <= set) mesh->uv.resize(set + 1);
       mesh->uv[set].reserve(c.vertices);
@@ -726,7 +730,7 @@ class Loader {
       if (!uses[m] && !copies[m]) continue;
       const Counts c = mesh_counts(m);
       const double per_vertex = 12.0 + (c.normals ? 12.0 : 0.0) + (c.colors ? 16.0 : 0.0) +
-                                8.0 * double(c.uv.size());
+                                (c.tangents ? 16.0 : 0.0) + 8.0 * double(c.uv.size());
       bytes += double(uses[m] + copies[m]) *
                (double(c.vertices) * per_vertex +
                 double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes));
@@ -1338,7 +1342,7 @@ class Loader {
   enum class Attribute {
     Position, Normal, Texcoord, Color, Indices,
     AnimationInput, AnimationVec3, AnimationRotation, AnimationWeights,
-    Joints, Weights, InverseBindMatrices, MorphPosition, MorphNormal
+    Joints, Weights, InverseBindMatrices, MorphPosition, MorphNormal, Tangent
   };
   static const char* component_name(int type) {
     switch (type) {
@@ -1438,6 +1442,13 @@ class Loader {
         ok = float_type || (quantization_ && signed_small);
         allowed = "float (byte and short, normalized or not, with KHR_mesh_quantization)";
         break;
+      case Attribute::Tangent:
+        type_ok = acc.type == TINYGLTF_TYPE_VEC4;
+        ok = ct == TINYGLTF_COMPONENT_TYPE_FLOAT ||
+             (quantization_ && norm &&
+              (ct == TINYGLTF_COMPONENT_TYPE_BYTE || ct == TINYGLTF_COMPONENT_TYPE_SHORT));
+        allowed = "float (normalized byte and short with KHR_mesh_quantization)";
+        break;
       case Attribute::MorphNormal:
         type_ok = acc.type == TINYGLTF_TYPE_VEC3;
         ok = float_type || (quantization_ && norm && signed_small);
@@ -1522,7 +1533,7 @@ class Loader {
   // A primitive's vertex attributes that the renderer reads, checked.
   struct VertexAttributes {
     View position;
-    std::optional<View> normal, color;
+    std::optional<View> normal, color, tangent;
     std::vector<std::pair<uint32_t, View>> uv;  // (TriangleMesh::uv array, view), ascending
   };
 
@@ -1860,6 +1871,12 @@ class Loader {
     // white for colours, where a primitive has not).
     const bool write_normals = out->use_normals(nrm != nullptr);
     const bool write_colors = out->use_colors(col != nullptr);
+    const View* tan = a.tangent ? &*a.tangent : nullptr;
+    const bool write_tangents = out->use_tangents(tan != nullptr);
+    // A tangent is a direction on the surface: transformed as positions' differences are;
+    // a mirroring transform reverses the bitangent cross(normal, tangent), so the handedness
+    // turns (the winding, which add_mesh swaps, does not enter it).
+    const float handedness = world.det3() < 0.0 ? -1.f : 1.f;
     std::vector<const View*> uv_of;  // per set: this primitive's view, or null
     for (const auto& [set, view] : a.uv) {
       out->use_uv(set, true);
@@ -1897,6 +1914,16 @@ class Loader {
         out->colors.push_back(col ? Rgba{col->get(vi, 0), col->get(vi, 1), col->get(vi, 2),
                                          col->components == 4 ? col->get(vi, 3) : 1.f}
                                   : Rgba{});
+      if (write_tangents) {
+        TriangleMesh::Tangent t;
+        if (tan) {
+          t.xyz = world.transform_vector({tan->get(vi, 0), tan->get(vi, 1), tan->get(vi, 2)});
+          const float w = tan->get(vi, 3);
+          t.w = std::isfinite(length(t.xyz)) && w != 0.f ? (w < 0.f ? -handedness : handedness)
+                                                         : 0.f;
+        }
+        out->tangents.push_back(t);
+      }
     }
   }
 
@@ -1952,6 +1979,15 @@ class Loader {
       const View& pos = attrs.position;
       for (const auto& [name, accessor] : prim.attributes) {
         if (name == "POSITION" || !reads_attribute(name)) continue;
+        if (name == "TANGENT") {
+          // Read for rigid meshes; a skinned or morphed one takes its tangents from the
+          // texture coordinates (warned below).
+          if (deform) continue;
+          attrs.tangent = check_accessor(accessor, Attribute::Tangent, where + " TANGENT");
+          if (attrs.tangent->count != pos.count)
+            fail(where + ": TANGENT and POSITION counts differ");
+          continue;
+        }
         uint32_t array = 0;
         const bool texcoord = uv_array(name, &array);
         const Attribute kind = name == "NORMAL"    ? Attribute::Normal
@@ -1966,11 +2002,11 @@ class Loader {
       std::sort(attrs.uv.begin(), attrs.uv.end(),
                 [](const auto& a, const auto& b) { return a.first < b.first; });
       const bool has_normals = attrs.normal.has_value();
-      if (prim.attributes.count("TANGENT") && !warned_tangent_ && prim.material >= 0 &&
-          prim.material < int(model_.materials.size()) &&
+      if (deform && prim.attributes.count("TANGENT") && !warned_tangent_ &&
+          prim.material >= 0 && prim.material < int(model_.materials.size()) &&
           model_.materials[size_t(prim.material)].normalTexture.index >= 0) {
-        warn(where + " (and possibly others): TANGENT is not used; normal maps take their "
-                     "tangents from the texture coordinates");
+        warn(where + " (and possibly others): TANGENT of a skinned or morphed mesh is not "
+                     "used; its normal maps take their tangents from the texture coordinates");
         warned_tangent_ = true;
       }
       bool has_uv[2] = {false, false};
@@ -2018,7 +2054,8 @@ class Loader {
       const std::vector<bool>& bad_normal = entry->second.bad_normal;
       const std::vector<uint8_t>& mirrored = entry->second.mirrored;
       const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
-                                         (has_uv[1] ? TriangleMesh::kHasUv1 : 0));
+                                         (has_uv[1] ? TriangleMesh::kHasUv1 : 0) |
+                                         (attrs.tangent ? TriangleMesh::kHasTangents : 0));
       const size_t triangles = triangle_count(prim.mode, indices.size());
       for (size_t t = 0; t < triangles; ++t) {
         bool normals_ok = has_normals;

@@ -145,6 +145,8 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
                        " for some vertices only");
   if (!mesh->colors.empty() && mesh->colors.size() != nv)
     throw SceneError(where + ": triangle mesh has COLOR_0 for some vertices only");
+  if (!mesh->tangents.empty() && mesh->tangents.size() != nv)
+    throw SceneError(where + ": triangle mesh has TANGENT for some vertices only");
   size_t kept = 0;
   mesh->face_normals.assign(n, Vec3());
   for (size_t i = 0; i < n; ++i) {
@@ -158,6 +160,7 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
     if (mesh->normals.empty()) flags &= uint8_t(~TriangleMesh::kHasNormals);
     if (mesh->uv[0].empty()) flags &= uint8_t(~TriangleMesh::kHasUv0);
     if (mesh->uv[1].empty()) flags &= uint8_t(~TriangleMesh::kHasUv1);
+    if (mesh->tangents.empty()) flags &= uint8_t(~TriangleMesh::kHasTangents);
     const Vec3 p0 = mesh->positions[v[0]], p1 = mesh->positions[v[1]], p2 = mesh->positions[v[2]];
     const float len = face_normal(p0, p1, p2, &mesh->face_normals[kept]);
     if (drop && (!(len > 0.f) || !std::isfinite(len) || !is_finite(p0) || !is_finite(p1) ||
@@ -181,6 +184,7 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
   fit(&mesh->normals, 0);
   for (std::vector<Point2>& set : mesh->uv) fit(&set, 0);
   fit(&mesh->colors, 0);
+  fit(&mesh->tangents, 0);
   fit(&mesh->indices, 0);
   fit(&mesh->material, 0);
   fit(&mesh->flags, 0);
@@ -1172,7 +1176,20 @@ void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u
     hit->uv[k] = Point2{t0.x * b0 + t1.x * hit->b1 + t2.x * hit->b2,
                         t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
   }
-  if (mat.tangent_map().valid() && has_uv(mesh, prim, set)) {
+  const TriangleMesh::Tangent* tangent = nullptr;
+  if (mat.tangent_map().valid() && (flags & TriangleMesh::kHasTangents)) {
+    // The supplied TANGENT (glTF 3.7.2.1: MikkTSpace only where it is absent), interpolated;
+    // the handedness is the first vertex's (glTF: +-1, the same over a triangle).
+    const TriangleMesh::Tangent& a = mesh.tangents[vi[0]];
+    const Vec3 along = a.xyz * b0 + mesh.tangents[vi[1]].xyz * hit->b1 +
+                       mesh.tangents[vi[2]].xyz * hit->b2;
+    if (length(along) > 0.f && a.w != 0.f) {
+      dpdu = along;
+      sign = a.w < 0.f ? -1.f : 1.f;
+      tangent = &a;
+    }
+  }
+  if (!tangent && mat.tangent_map().valid() && has_uv(mesh, prim, set)) {
     // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
     const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
     const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];
@@ -1328,7 +1345,7 @@ size_t TriangleMesh::memory_bytes() const {
   size_t uv_bytes = 0;
   for (const std::vector<Point2>& set : uv) uv_bytes += set.capacity() * sizeof(Point2);
   return positions.capacity() * sizeof(Vec3) + normals.capacity() * sizeof(Vec3) + uv_bytes +
-         colors.capacity() * sizeof(Rgba) +
+         colors.capacity() * sizeof(Rgba) + tangents.capacity() * sizeof(Tangent) +
          (indices.capacity() + material.capacity()) * sizeof(uint32_t) + flags.capacity() +
          face_normals.capacity() * sizeof(Vec3);
 }

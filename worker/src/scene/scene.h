@@ -174,9 +174,16 @@ struct Rgba {
 // without a texture coordinate set above 1 that another primitive has read (0, 0) there, and
 // vertices without COLOR_0 in a mesh that has it read white.
 struct TriangleMesh {
-  enum : uint8_t { kHasNormals = 1, kHasUv0 = 2, kHasUv1 = 4 };
+  enum : uint8_t { kHasNormals = 1, kHasUv0 = 2, kHasUv1 = 4, kHasTangents = 8 };
   std::vector<Vec3> positions;
   std::vector<Vec3> normals;       // unit vertex normals
+  // glTF TANGENT: xyz the tangent (along +u of the normal map's texture coordinates), w = +-1
+  // the handedness (bitangent = cross(normal, xyz) w); zeros where a primitive has none.
+  struct Tangent {
+    Vec3 xyz;
+    float w = 0.f;
+  };
+  std::vector<Tangent> tangents;
   // Texture coordinates: TEXCOORD_0 and TEXCOORD_1 (always the two first entries, either may
   // be empty), then the other sets materials read (TextureRef::texcoord numbers them).
   std::vector<std::vector<Point2>> uv = std::vector<std::vector<Point2>>(2);
@@ -219,6 +226,10 @@ struct TriangleMesh {
   bool use_colors(bool needed) {
     if (needed) colors.resize(positions.size(), Rgba{});
     return needed || !colors.empty();
+  }
+  bool use_tangents(bool needed) {
+    if (needed) tangents.resize(positions.size());
+    return needed || !tangents.empty();
   }
 };
 

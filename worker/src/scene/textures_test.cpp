@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstring>
 
 #include "render/integrators.h"
 #include "render/shading.h"
@@ -388,6 +389,64 @@ TEST(MaterialFactors, FactorsFurtherOutAreRefusedNamingTheField) {
     } catch (const SceneError& e) {
       EXPECT_EQ(e.path(), c.path) << e.what();
     }
+  }
+}
+
+// ---- A supplied TANGENT is used (glTF 3.7.2.1: MikkTSpace tangents only where it is absent):
+// bitangent = cross(normal, tangent.xyz) x tangent.w.
+
+// The quad facing +z with TEXCOORD_0 as quad_gltf_buffers_json's (u along +x) and the given
+// TANGENT on every vertex, normal-mapped by one texel.
+std::string tangent_scene(const float tangent[4], const std::string& texel) {
+  std::vector<float> floats = {-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0,  // POSITION
+                               0,  0,  1, 0, 0,  1, 0, 0, 1, 0,  0, 1,  // NORMAL
+                               0,  1,  1, 1, 1,  0, 0, 0};              // TEXCOORD_0
+  for (int v = 0; v < 4; ++v) floats.insert(floats.end(), tangent, tangent + 4);
+  std::vector<unsigned char> bytes(floats.size() * 4);
+  std::memcpy(bytes.data(), floats.data(), bytes.size());
+  for (uint16_t i : {0, 1, 2, 0, 2, 3}) {
+    bytes.push_back(uint8_t(i & 0xff));
+    bytes.push_back(uint8_t(i >> 8));
+  }
+  return R"({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2,
+                                             "TANGENT": 3}, "indices": 4, "material": 0}]}],
+  "materials": [{"pbrMetallicRoughness": {"metallicFactor": 0}, "normalTexture": {"index": 0}}],
+  "textures": [{"source": 0, "sampler": 0}], "samplers": [{"magFilter": 9728}],
+  "images": [{"uri": ")" + texel + R"("}],
+  "accessors": [
+    {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+     "min": [-1, -1, 0], "max": [1, 1, 0]},
+    {"bufferView": 0, "byteOffset": 48, "componentType": 5126, "count": 4, "type": "VEC3"},
+    {"bufferView": 0, "byteOffset": 96, "componentType": 5126, "count": 4, "type": "VEC2"},
+    {"bufferView": 0, "byteOffset": 128, "componentType": 5126, "count": 4, "type": "VEC4"},
+    {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"}],
+  "bufferViews": [{"buffer": 0, "byteLength": 192}, {"buffer": 0, "byteOffset": 192,
+                                                     "byteLength": 12}],
+  "buffers": [{"byteLength": 204, "uri": ")" +
+         testing::data_uri("application/octet-stream", bytes) + R"("}]})";
+}
+
+TEST(Textures, ASuppliedTangentFramesTheNormalMap) {
+  // Tangent-space normal (0, 0.6, 0.8) (green: along the bitangent), encoded (n + 1) / 2.
+  const std::string texel = testing::png_data_uri(1, 1, 3, {128, 204, 230});
+  const float c[3] = {128.f / 255.f, 204.f / 255.f, 230.f / 255.f};
+  const Vec3 tn(2.f * c[0] - 1.f, 2.f * c[1] - 1.f, 2.f * c[2] - 1.f);
+  const Vec3 n(0.f, 0.f, 1.f);
+  const float tangents[3][4] = {{0, 1, 0, 1}, {0, 1, 0, -1}, {1, 0, 0, 1}};
+  for (const auto& tangent : tangents) {
+    const Vec3 t(tangent[0], tangent[1], tangent[2]);
+    const Vec3 b = cross(n, t) * tangent[3];
+    const Vec3 want = normalize(t * tn.x + b * tn.y + n * tn.z);
+    std::vector<std::string> warnings;
+    auto scene = load_at(tangent_scene(tangent, texel), 0.1f, 0.2f, &warnings);
+    for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+    Vec3 albedo, normal;
+    probe(*scene, &albedo, &normal);
+    for (int k = 0; k < 3; ++k)
+      EXPECT_NEAR(normal[k], want[k], 0.01f)
+          << "tangent (" << t.x << ", " << t.y << ", " << t.z << ", " << tangent[3] << ")";
   }
 }
 
