@@ -7,8 +7,8 @@ read through a UsdPrimvarReader_float2 and a UsdTransform2d (tiled 4 x 4); a two
 whose faces are split between two materials by UsdGeomSubsets; a row of clear-coated balls
 placed by a PointInstancer (one shared sphere); three instanceable references to one crate
 asset (one shared mesh); a gold block in UsdPreviewSurface's specular workflow; a camera with
-focal length, apertures and depth of field; a rect light (an emissive panel) and a sun
-(a distant light).
+focal length, apertures and depth of field; a rect light (an emissive panel), a sun (a distant
+light) and a pale sky (a dome light: the job's environment).
 
 Usage:
     python make_usd_scene.py                      # write usd-still-life.usdz next to this script
@@ -206,6 +206,11 @@ def build(directory: Path) -> Path:
     sun.CreateIntensityAttr(3.0)
     sun.CreateNormalizeAttr(True)  # intensity is then the illuminance (lux)
     sun.AddRotateXYZOp().Set(Gf.Vec3f(50.0, 0.0, 35.0))
+    # A pale sky: a dome light without a texture (the job's environment, a constant map). The
+    # DomeLight_1 schema's pole follows the stage's up axis (Z here).
+    sky = UsdLux.DomeLight_1.Define(stage, "/World/Lights/Sky")
+    sky.CreateColorAttr(Gf.Vec3f(0.6, 0.75, 1.0))
+    sky.CreateIntensityAttr(0.25)
     stage.GetRootLayer().Save()
     return layer
 

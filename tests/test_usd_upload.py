@@ -117,6 +117,9 @@ def test_a_usd_bundle_over_rest_renders_and_the_job_names_its_source(apis, usd_s
     # The camera's f/8 on a 35 mm lens: aperture radius 35 mm / 16; focused at 320 cm.
     assert job["settings"]["aperture_radius"] == pytest.approx(0.035 / 16, rel=1e-6)
     assert job["settings"]["focus_distance"] == pytest.approx(3.2, rel=1e-6)
+    # The dome light is the job's environment: a stored map, scaled by its intensity.
+    assert len(job["settings"]["environment"]) == 64
+    assert job["settings"]["environment_intensity"] == pytest.approx(0.25, rel=1e-6)
     stored = apis.client.scene(job["scene_sha256"])
     assert stored["format"] == "glb" and stored["filename"] == "still-life.glb"
     job = _finished(apis, job)

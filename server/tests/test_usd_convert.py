@@ -563,3 +563,62 @@ def test_a_stage_with_nothing_to_render_is_refused_with_what_was_dropped(tmp_pat
         convert(stage, tmp_path)
     assert "nothing to render" in refused.value.message
     assert "/Hair: BasisCurves prims are not converted" in refused.value.message
+
+
+# ------------------------------------------------------------------ dome lights
+
+
+def test_a_textured_dome_is_the_environment_turned_as_the_dome_is(tmp_path):
+    """The farm's map centre looks along -Z at rotation 0 and turns about +Y: its centre
+    direction is R_y(r) (0, 0, -1) = (-sin r, 0, -cos r). A USD dome's latitude-longitude
+    centre looks along its +Z; turned 90 degrees about Y it looks along +X, so -sin r = 1:
+    r = -90 degrees. Intensity x 2^exposure scales it."""
+    import OpenImageIO as oiio
+
+    sky = oiio.ImageBuf(oiio.ImageSpec(8, 4, 3, oiio.FLOAT))
+    sky.set_pixels(oiio.ROI(0, 8, 0, 4, 0, 1, 0, 3), np.full((4, 8, 3), 0.25, np.float32))
+    assert sky.write(str(tmp_path / "sky.exr"))
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateTextureFileAttr("./sky.exr")
+    dome.CreateIntensityAttr(3.0)
+    dome.CreateExposureAttr(1.0)
+    dome.AddRotateYOp().Set(90.0)
+    conversion, _, _ = convert(stage, tmp_path)
+    env = conversion.environment
+    assert env["data"] == (tmp_path / "sky.exr").read_bytes() and env["filename"] == "sky.exr"
+    assert env["intensity"] == pytest.approx(6.0)
+    r = math.radians(env["rotation_deg"])
+    assert (-math.sin(r), -math.cos(r)) == pytest.approx((1.0, 0.0), abs=1e-6)
+
+
+def test_a_dome_without_a_texture_is_a_constant_map_of_its_radiance(tmp_path):
+    import OpenImageIO as oiio
+
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateColorAttr(Gf.Vec3f(0.5, 1.0, 0.25))
+    dome.CreateIntensityAttr(2.0)
+    conversion, _, _ = convert(stage, tmp_path)
+    env = conversion.environment
+    (tmp_path / "constant.hdr").write_bytes(env["data"])
+    pixels = oiio.ImageBuf(str(tmp_path / "constant.hdr")).get_pixels(oiio.FLOAT)
+    # Radiance (1, 2, 0.5) = the map's (0.5, 1, 0.25) x intensity 2; RGBE keeps 8 bits.
+    assert pixels.reshape(-1, 3) * env["intensity"] == pytest.approx(
+        np.tile([1.0, 2.0, 0.5], (pixels.size // 3, 1)), rel=1 / 128
+    )
+    # USD's centre (+Z) is the farm's centre (-Z) turned half round.
+    assert math.cos(math.radians(env["rotation_deg"])) == pytest.approx(-1.0)
+
+
+def test_a_dome_texture_outside_the_upload_is_refused(tmp_path):
+    root = tmp_path / "upload"
+    root.mkdir()
+    stage = new_stage(root)
+    unit_cube(stage, "/Cube")
+    UsdLux.DomeLight.Define(stage, "/Sky").CreateTextureFileAttr("/etc/sky.exr")
+    with pytest.raises(SceneError) as refused:
+        convert(stage, root)
+    assert refused.value.field == "scene:/Sky.inputs:texture:file"

@@ -249,6 +249,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 usd = await self.usd_importer.convert(scene_data, filename or "scene.usd")
                 scene_data, filename = usd.glb, usd.filename
                 settings = self._usd_camera_settings(settings, raw_settings, usd)
+                settings = await self._usd_environment(settings, raw_settings, usd)
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
             resolve_animations(settings.animation, info.animations)
             if await self.store.get_scene_info(info.sha256) is None:
@@ -296,6 +297,18 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             self._pending_events.append((job_id, "scene_converted", _usd_event(usd)))
         await self._after_change()
         return await self.get(job_id, caller)
+
+    async def _usd_environment(
+        self, settings: JobSettings, raw: dict[str, Any] | None, usd: UsdImport
+    ) -> JobSettings:
+        """A USD dome light as the job's environment map, with its intensity and rotation,
+        unless the submission names or uploads an environment of its own."""
+        if usd.environment_data is None or settings.environment:
+            return settings
+        settings = await self._environment(settings, usd.environment_data, usd.environment_filename)
+        raw = dict(raw or {})
+        chosen = {k: v for k, v in usd.environment.items() if k not in raw}
+        return parse_settings({**settings.to_dict(), **chosen}, self.settings.limits())
 
     def _usd_camera_settings(
         self, settings: JobSettings, raw: dict[str, Any] | None, usd: UsdImport

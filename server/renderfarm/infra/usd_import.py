@@ -49,6 +49,11 @@ class UsdImport:
     source_filename: str
     warnings: list[str] = field(default_factory=list)
     camera: dict[str, float] = field(default_factory=dict)  # aperture_radius, focus_distance
+    # A dome light: the environment map's bytes and name, and its environment_intensity and
+    # environment_rotation_deg.
+    environment_data: bytes | None = None
+    environment_filename: str = ""
+    environment: dict[str, float] = field(default_factory=dict)
 
 
 class UsdImporter:
@@ -96,6 +101,8 @@ class UsdImporter:
             async with self._slots:
                 result = await self._run(upload, root_layer, out, work, filename or root_layer)
             glb = out.read_bytes()
+            env = dict(result.get("environment") or {})
+            env_data = (work / "environment").read_bytes() if env else None
         finally:
             shutil.rmtree(work, ignore_errors=True)
         stem = posixpath.splitext(posixpath.basename((filename or root_layer).replace("\\", "/")))
@@ -106,6 +113,14 @@ class UsdImporter:
             source_filename=filename or root_layer,
             warnings=[str(w) for w in result.get("warnings", [])],
             camera={k: float(v) for k, v in dict(result.get("camera") or {}).items()},
+            environment_data=env_data,
+            environment_filename=str(env.get("filename") or ""),
+            environment={
+                "environment_intensity": float(env.get("intensity", 1.0)),
+                "environment_rotation_deg": float(env.get("rotation_deg", 0.0)),
+            }
+            if env
+            else {},
         )
 
     async def _run(self, upload: Path, root_layer: str, out: Path, work: Path, name: str):
@@ -180,10 +195,16 @@ def main(argv: list[str]) -> int:
         root = Path(os.path.realpath(upload))
         conversion = convert_stage(root / root_layer, root, Path(os.path.realpath(out.parent)))
         out.write_bytes(conversion.glb)
+        environment = None
+        if conversion.environment is not None:
+            env = conversion.environment
+            (out.parent / "environment").write_bytes(env["data"])
+            environment = {k: env[k] for k in ("filename", "intensity", "rotation_deg", "prim")}
     except SceneError as e:
         print(json.dumps({"ok": False, "error": e.message, "field": e.field}))
         return 1
-    print(json.dumps({"ok": True, "warnings": conversion.warnings, "camera": conversion.camera}))
+    answer = {"ok": True, "warnings": conversion.warnings, "camera": conversion.camera}
+    print(json.dumps({**answer, "environment": environment}))
     return 0
 
 

@@ -28,7 +28,9 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
   lights become emissive meshes of that radiance (emitting along -Z for rect and disk, one-sided;
   outward for a sphere); a distant light a KHR_lights_punctual directional light of illuminance
   L x solid angle of its disk (normalized: intensity x 2^exposure is the illuminance); a
-  treatAsPoint sphere light a point light of intensity L x pi r^2.
+  treatAsPoint sphere light a point light of intensity L x pi r^2; a dome light the job's
+  environment (its .hdr/.exr latitude-longitude texture, or a constant map of its colour,
+  with intensity x 2^exposure and its turn about the up axis; Conversion.environment).
 What cannot be carried is one warning per prim path (`warnings`), and a stage with nothing to
 render is refused.
 """
@@ -45,7 +47,7 @@ import numpy as np
 
 from ...errors import SceneError
 from .gltf_writer import GltfWriter
-from .usd_assets import check_layers
+from .usd_assets import check_layers, read_inside
 from .usd_materials import MaterialConverter, _set_emission
 
 MAX_NODES = 2_000_000
@@ -58,6 +60,9 @@ class Conversion:
     camera: dict[str, float] = field(default_factory=dict)  # aperture_radius, focus_distance
     meters_per_unit: float = 1.0
     up_axis: str = "Y"
+    # A dome light as the job's environment: data (.hdr/.exr bytes), filename, intensity,
+    # rotation_deg, prim.
+    environment: dict[str, Any] | None = None
 
 
 def light_radiance(prim, time, area: float | None) -> np.ndarray:
@@ -123,6 +128,7 @@ class _StageConverter:
         self.camera: dict[str, float] = {}
         self.node_count = 0
         self.renderables = 0
+        self.environment: dict[str, Any] | None = None
 
     def warn(self, path: str, text: str) -> None:
         texts = self.warnings.setdefault(path, [])
@@ -157,6 +163,7 @@ class _StageConverter:
             camera=self.camera,
             meters_per_unit=self.mpu,
             up_axis=self.up,
+            environment=self.environment,
         )
 
     def _warning_summary(self) -> str:
@@ -765,10 +772,92 @@ class _StageConverter:
                     "directional light",
                 )
             self._punctual(node, "directional", illuminance, path)
-        elif prim.IsA(UsdLux.DomeLight):
-            self.warn(path, "dome lights are not converted yet: give the job an environment map")
+        elif prim.IsA(UsdLux.DomeLight) or prim.IsA(UsdLux.DomeLight_1):
+            self.dome(prim)
         else:
             self.warn(path, f"{prim.GetTypeName()} lights are not converted")
+
+    def dome(self, prim) -> None:
+        """A dome light as the job's environment: its .hdr/.exr texture (or, without one, a
+        constant map of its radiance), intensity x 2^exposure as environment_intensity, and its
+        turn about the up axis as environment_rotation_deg."""
+        from pxr import UsdLux
+
+        t = self.time
+        path = str(prim.GetPath())
+        if self.environment is not None:
+            self.warn(path, f"a second dome light; the farm uses {self.environment['prim']}")
+            return
+        is_1 = prim.IsA(UsdLux.DomeLight_1)
+        dome = UsdLux.DomeLight_1(prim) if is_1 else UsdLux.DomeLight(prim)
+        fmt = str(dome.GetTextureFormatAttr().Get(t) or "automatic")
+        if fmt not in ("automatic", "latlong"):
+            self.warn(path, f"a dome texture in the {fmt} format is not supported: no environment")
+            return
+        api = UsdLux.LightAPI(prim)
+        radiance = light_radiance(prim, t, None)
+        scale = float(api.GetIntensityAttr().Get(t)) * 2.0 ** float(api.GetExposureAttr().Get(t))
+        asset = dome.GetTextureFileAttr().Get(t)
+        environment: dict[str, Any] = {"prim": path}
+        if asset is not None and asset.path:
+            suffix = Path(asset.path).suffix.lower()
+            if suffix not in (".hdr", ".exr"):
+                self.warn(
+                    path, f"a dome texture must be .hdr or .exr ({asset.path!r}): no environment"
+                )
+                return
+            where = f"{path}.inputs:texture:file"
+            environment["data"] = read_inside(asset.resolvedPath, self.root, where)
+            environment["filename"] = Path(asset.path).name
+            if np.ptp(radiance / max(scale, 1e-30)) > 1e-6:
+                self.warn(
+                    path, "a dome's colour or colour temperature is not applied to its texture"
+                )
+            environment["intensity"] = scale
+        else:
+            peak = float(np.max(radiance))
+            if peak <= 0.0:
+                self.warn(path, "the dome light emits nothing")
+                return
+            environment["data"] = constant_hdr(radiance / peak)
+            environment["filename"] = f"{prim.GetName()}.hdr"
+            environment["intensity"] = peak
+        if environment["intensity"] <= 0.0:
+            self.warn(path, "the dome light emits nothing")
+            return
+        environment["rotation_deg"] = self._dome_rotation(prim, dome, is_1)
+        self.environment = environment
+        self.renderables += 1
+
+    def _dome_rotation(self, prim, dome, is_1: bool) -> float:
+        """The farm's environment_rotation_deg for a dome: the farm's map centre looks along
+        glTF -Z at 0 and turns about +Y; a USD dome's (OpenEXR latitude-longitude) looks along
+        the dome's +Z with its pole on its +Y (DomeLight_1: on poleAxis; "scene", the stage's
+        up axis). Its world orientation in glTF space M maps the centre to d, and the rotation r
+        with R_y(r) (0, 0, -1) = d is atan2(-d.x, -d.z)."""
+        from pxr import UsdGeom
+
+        path = str(prim.GetPath())
+        world = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(self.time))
+        rotation = world.reshape(4, 4)[:3, :3].T  # column vectors
+        rotation = rotation / np.maximum(np.linalg.norm(rotation, axis=0), 1e-30)
+        pole = str(dome.GetPoleAxisAttr().Get(self.time)) if is_1 else "Y"
+        if pole == "scene":
+            pole = self.up
+        align = np.eye(3)
+        if pole == "Z":  # dome +Y onto +Z: +90 degrees about X
+            align = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+        to_gltf = np.eye(3)
+        if self.up == "Z":  # (x, y, z) -> (x, z, -y), as the root node turns the stage
+            to_gltf = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+        m = to_gltf @ rotation @ align
+        if np.linalg.det(m) < 0:
+            self.warn(path, "a mirrored dome is rendered unmirrored")
+        up = m @ np.array([0.0, 1.0, 0.0])
+        if up[1] < 1.0 - 1e-4:
+            self.warn(path, "the dome's pole does not point up: it is rendered with its pole up")
+        d = m @ np.array([0.0, 0.0, 1.0])
+        return math.degrees(math.atan2(-d[0], -d[2]))
 
     def _light_mesh(self, path: str, pos, nrm, tris, radiance) -> int:
         material = self._emitter_material(radiance, False)
@@ -795,6 +884,19 @@ class _StageConverter:
         node.setdefault("extensions", {})["KHR_lights_punctual"] = {"light": len(lights) - 1}
         self.writer.use_extension("KHR_lights_punctual")
         self.renderables += 1
+
+
+def constant_hdr(rgb: np.ndarray, width: int = 8, height: int = 4) -> bytes:
+    """A Radiance .hdr of one colour (flat RGBE scanlines): a dome light without a texture."""
+    peak = float(np.max(rgb))
+    if peak < 1e-32:
+        pixel = bytes(4)
+    else:
+        mantissa, exponent = math.frexp(peak)
+        factor = mantissa * 256.0 / peak
+        pixel = bytes([*(min(255, int(c * factor)) for c in rgb), exponent + 128])
+    header = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {height} +X {width}\n".encode()
+    return header + pixel * (width * height)
 
 
 # ---------------------------------------------------------------------- shapes
