@@ -31,7 +31,7 @@ export function mountSubmit(root: HTMLElement): () => void {
   let disposed = false;
   let scene: File | null = null;
 
-  const fileInput = h("input", { type: "file", id: "scene-file", name: "scene", accept: ".glb,.gltf", class: "visually-hidden", "aria-describedby": "scene-help scene-error" });
+  const fileInput = h("input", { type: "file", id: "scene-file", name: "scene", accept: ".glb,.gltf,.usd,.usda,.usdc,.usdz,.zip,.tar,.tgz", class: "visually-hidden", "aria-describedby": "scene-help scene-error" });
   const fileInfo = h("p", { class: "file-info", "aria-live": "polite" });
   const sceneError = h("p", { class: "field-error", id: "scene-error" });
   const drop = h(
@@ -39,7 +39,7 @@ export function mountSubmit(root: HTMLElement): () => void {
     { class: "dropzone", for: "scene-file", "data-testid": "dropzone" },
     fileInput,
     h("span", { class: "dropzone-title" }, "Drop a scene here"),
-    h("span", { class: "muted", id: "scene-help" }, "or press to choose a file: .glb, or a .gltf with every buffer and image embedded"),
+    h("span", { class: "muted", id: "scene-help" }, "or press to choose a file: .glb, a .gltf with every buffer and image embedded, a USD stage (.usd, .usda, .usdc, .usdz) or a .zip/.tar bundle of a scene and its files"),
     fileInfo,
   );
   const setScene = (file: File | null) => {
@@ -47,7 +47,7 @@ export function mountSubmit(root: HTMLElement): () => void {
     drop.classList.toggle("has-file", !!file);
     setText(fileInfo, file ? `${file.name} · ${bytes(file.size)}` : "");
     clearError("scene");
-    if (file && !nameInput.value) nameInput.placeholder = file.name.replace(/\.(glb|gltf)$/i, "");
+    if (file && !nameInput.value) nameInput.placeholder = file.name.replace(/\.(glb|gltf|usd|usda|usdc|usdz|zip|tar|tgz)$/i, "");
   };
   fileInput.addEventListener("change", () => setScene(fileInput.files?.[0] ?? null));
   drop.addEventListener("dragenter", (e) => {
@@ -222,7 +222,7 @@ export function mountSubmit(root: HTMLElement): () => void {
     e.preventDefault();
     clearAll();
     if (!scene) {
-      showError("scene", "Choose a scene file (.glb or self-contained .gltf) first.");
+      showError("scene", "Choose a scene file (.glb, self-contained .gltf, USD or a bundle) first.");
       fileInput.focus();
       return;
     }
