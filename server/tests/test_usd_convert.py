@@ -622,3 +622,58 @@ def test_a_dome_texture_outside_the_upload_is_refused(tmp_path):
     with pytest.raises(SceneError) as refused:
         convert(stage, root)
     assert refused.value.field == "scene:/Sky.inputs:texture:file"
+
+
+# ------------------------------------------------------------------ animation
+
+
+def _sample(doc: dict, blob: bytes, node: int, path: str, seconds: float) -> np.ndarray | None:
+    """A channel's value at `seconds` by glTF's LINEAR rule (Appendix C; slerp for rotation)."""
+    for channel in doc["animations"][0]["channels"]:
+        if channel["target"] != {"node": node, "path": path}:
+            continue
+        sampler = doc["animations"][0]["samplers"][channel["sampler"]]
+        times = accessor(doc, blob, sampler["input"]).reshape(-1)
+        values = accessor(doc, blob, sampler["output"]).astype(np.float64)
+        i = int(np.clip(np.searchsorted(times, seconds) - 1, 0, len(times) - 2))
+        f = (seconds - times[i]) / (times[i + 1] - times[i])
+        a, b = values[i], values[i + 1]
+        if path != "rotation":
+            return (1 - f) * a + f * b
+        d = np.dot(a, b)
+        if d < 0:
+            b, d = -b, -d
+        theta = math.acos(min(1.0, d))
+        if theta < 1e-9:
+            return a
+        return (math.sin((1 - f) * theta) * a + math.sin(f * theta) * b) / math.sin(theta)
+    return None
+
+
+def test_transform_time_samples_become_a_glTF_animation(tmp_path):
+    """translate (0,0,0) at frame 0 to (4,0,0) at frame 48, rotateY 0 to 360 degrees over the
+    same frames, at 24 time codes per second: at 1 s (frame 24) the cube is at (2, 0, 0) and
+    half way round (180 degrees about Y), at 0.5 s at (1, 0, 0) and 90 degrees round."""
+    stage = new_stage(tmp_path)
+    stage.SetTimeCodesPerSecond(24.0)
+    stage.SetStartTimeCode(0.0)
+    stage.SetEndTimeCode(48.0)
+    cube = unit_cube(stage, "/Spinner")
+    move = cube.AddTranslateOp()
+    turn = cube.AddRotateYOp()
+    move.Set(Gf.Vec3d(0, 0, 0), 0.0)
+    move.Set(Gf.Vec3d(4, 0, 0), 48.0)
+    turn.Set(0.0, 0.0)
+    turn.Set(360.0, 48.0)
+    _, doc, blob = convert(stage, tmp_path)
+    (node,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == "Spinner"]
+    assert "matrix" not in doc["nodes"][node]  # glTF: an animated node has TRS
+    for seconds, x, degrees in ((0.5, 1.0, 90.0), (1.0, 2.0, 180.0), (1.75, 3.5, 315.0)):
+        translation = _sample(doc, blob, node, "translation", seconds)
+        assert translation == pytest.approx([x, 0.0, 0.0], abs=1e-6)
+        q = _sample(doc, blob, node, "rotation", seconds)
+        half = math.radians(degrees) / 2
+        expected = np.array([0.0, math.sin(half), 0.0, math.cos(half)])
+        assert abs(np.dot(q, expected)) == pytest.approx(1.0, abs=1e-6)  # q and -q: one turn
+    times = accessor(doc, blob, doc["animations"][0]["samplers"][0]["input"])
+    assert times.min() == 0.0 and times.max() == pytest.approx(2.0)

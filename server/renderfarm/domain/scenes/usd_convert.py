@@ -9,7 +9,9 @@ limits; nothing here imports usd-core at module level.
 What converts (docs/scenes.md, "USD scenes", is the users' version):
 - Units and axes: positions and translations are multiplied by metersPerUnit (glTF is in
   metres); a Z-up stage is turned to glTF's Y-up by a root node rotating -90 degrees about X.
-- Transforms: each Xformable's local transformation (all xformOps) as its node's matrix.
+- Transforms: each Xformable's local transformation (all xformOps) as its node's matrix;
+  one with time samples as TRS and a channel of the glTF animation "usd"
+  (transform_animation).
 - Meshes: faces fan-triangulated (holes dropped), leftHanded orientation reversed, normals
   (primvars:normals or normals, any interpolation), every st-like primvar a material reads as
   TEXCOORD_n (v flipped), displayColor/displayOpacity as COLOR_0 where no material is bound;
@@ -51,6 +53,7 @@ from .usd_assets import check_layers, read_inside
 from .usd_materials import MaterialConverter, _set_emission
 
 MAX_NODES = 2_000_000
+MAX_ANIMATION_SAMPLES = 100_000
 
 
 @dataclass
@@ -96,6 +99,40 @@ def _gltf_matrix(matrix, mpu: float) -> list[float] | None:
     return [float(v) for v in rows.reshape(-1)]
 
 
+def _decompose(matrix, mpu: float):
+    """(translation in metres, rotation quaternion xyzw, scale, sheared) of a USD row-vector
+    matrix: the column-vector A = M^T split as A = T R S (a mirror kept as a negative x scale)."""
+    a = np.array(matrix, dtype=np.float64).reshape(4, 4).T
+    translation = a[:3, 3] * mpu
+    basis = a[:3, :3]
+    scale = np.linalg.norm(basis, axis=0)
+    rot = basis / np.maximum(scale, 1e-30)
+    if np.linalg.det(rot) < 0:
+        scale[0] = -scale[0]
+        rot[:, 0] = -rot[:, 0]
+    sheared = not np.allclose(rot.T @ rot, np.eye(3), atol=1e-5)
+    return translation, _quaternion(rot), scale, sheared
+
+
+def _quaternion(r: np.ndarray) -> np.ndarray:
+    """The unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
 def _fan(counts: np.ndarray) -> np.ndarray:
     """(triangles, 3) corner indices of faces with `counts` corners, each fanned from its first."""
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -129,6 +166,9 @@ class _StageConverter:
         self.node_count = 0
         self.renderables = 0
         self.environment: dict[str, Any] | None = None
+        self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
+        self.animation: dict[str, Any] = {"name": "usd", "samplers": []}
+        self.channels: list[dict[str, Any]] = []
 
     def warn(self, path: str, text: str) -> None:
         texts = self.warnings.setdefault(path, [])
@@ -154,6 +194,9 @@ class _StageConverter:
         if self.up == "Z":
             top["rotation"] = [-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]  # -90 deg about X
         scene_root = self.writer.add("nodes", top)
+        if self.channels:
+            self.animation["channels"] = self.channels
+            self.writer.doc["animations"] = [self.animation]
         self.writer.doc["scenes"] = [{"nodes": [scene_root]}]
         self.writer.doc["scene"] = 0
         warnings = [f"{p}: {t}" for p, texts in self.warnings.items() for t in texts]
@@ -200,7 +243,7 @@ class _StageConverter:
 
     def walk(self, prim, *, own_xform: bool = True) -> int | None:
         """The glTF node of a prim and its subtree (None when nothing under it renders)."""
-        from pxr import Usd, UsdGeom, UsdLux
+        from pxr import Usd, UsdGeom, UsdLux, UsdSkel
 
         if not self._visible(prim):
             return None
@@ -213,11 +256,19 @@ class _StageConverter:
             xformable = UsdGeom.Xformable(prim)
             if xformable.GetResetXformStack():
                 self.warn(path, "resetXformStack is ignored (the parent transform still applies)")
+            animation = None
             if xformable.TransformMightBeTimeVarying():
-                self.warn(path, "a time-varying transform is converted at its first time only")
-            matrix = _gltf_matrix(xformable.GetLocalTransformation(self.time), self.mpu)
-            if matrix is not None:
-                node["matrix"] = matrix
+                animation = self.transform_animation(xformable, node)
+            if animation is None:
+                matrix = _gltf_matrix(xformable.GetLocalTransformation(self.time), self.mpu)
+                if matrix is not None:
+                    node["matrix"] = matrix
+        else:
+            animation = None
+        if prim.IsA(UsdGeom.PointBased) and prim.GetAttribute("points").ValueMightBeTimeVarying():
+            self.warn(path, "deforming points (time samples) are converted at the first time only")
+        if prim.IsA(UsdSkel.Root) or prim.IsA(UsdSkel.Skeleton):
+            self.warn(path, "UsdSkel skinning is not converted: meshes stay in their bind pose")
         children: list[int] = []
         walk_children = True
         if prim.IsA(UsdGeom.Mesh):
@@ -252,7 +303,57 @@ class _StageConverter:
             node["children"] = children
         if not any(k in node for k in ("mesh", "camera", "children", "extensions")):
             return None
-        return self.writer.add("nodes", node)
+        index = self.writer.add("nodes", node)
+        if animation is not None:
+            for channel in animation:
+                channel["target"]["node"] = index
+            self.channels += animation
+        return index
+
+    def transform_animation(self, xformable, node: dict[str, Any]) -> list[dict] | None:
+        """glTF animation channels (their target node left to the caller) for a prim whose
+        transform has time samples: its local transformation sampled at every authored time and
+        every whole time code between the first and the last (USD interpolates each xformOp's
+        value, so whole frames are exact for a farm job at fps = timeCodesPerSecond), split into
+        translation (metres), rotation and scale, LINEAR; glTF time = time code /
+        timeCodesPerSecond. The node takes TRS at the stage's start time. None when the
+        samples do not vary."""
+        path = str(xformable.GetPath())
+        authored = sorted(set(xformable.GetTimeSamples()))
+        if len(authored) < 2:
+            return None
+        first, last = authored[0], authored[-1]
+        whole = np.arange(math.ceil(first), math.floor(last) + 1, dtype=np.float64)
+        times = np.unique(np.concatenate([np.array(authored), whole]))
+        if len(times) > MAX_ANIMATION_SAMPLES:
+            self.warn(path, f"more than {MAX_ANIMATION_SAMPLES} transform samples: thinned")
+            times = times[:: math.ceil(len(times) / MAX_ANIMATION_SAMPLES)]
+        trs = [_decompose(xformable.GetLocalTransformation(float(t)), self.mpu) for t in times]
+        if any(sheared for *_, sheared in trs):
+            self.warn(path, "a sheared transform animates without its shear")
+        rotations = [r for _, r, _, _ in trs]
+        for i in range(1, len(rotations)):  # the shorter arc between neighbouring keys
+            if np.dot(rotations[i], rotations[i - 1]) < 0:
+                rotations[i] = -rotations[i]
+        start = _decompose(xformable.GetLocalTransformation(self.time), self.mpu)
+        node["translation"] = [float(v) for v in start[0]]
+        node["rotation"] = [float(v) for v in start[1]]
+        node["scale"] = [float(v) for v in start[2]]
+        seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
+        channels = []
+        for name, values in (
+            ("translation", [t for t, _, _, _ in trs]),
+            ("rotation", rotations),
+            ("scale", [s for _, _, s, _ in trs]),
+        ):
+            values = np.array(values)
+            if np.allclose(values, values[0], atol=1e-9):
+                continue
+            sampler = {"input": seconds, "output": self.writer.accessor(values)}
+            samplers = self.animation["samplers"]
+            samplers.append({**sampler, "interpolation": "LINEAR"})
+            channels.append({"sampler": len(samplers) - 1, "target": {"path": name}})
+        return channels or None
 
     # ------------------------------------------------------------------ instancing
     def point_instancer(self, prim) -> list[int]:
