@@ -677,3 +677,78 @@ def test_transform_time_samples_become_a_glTF_animation(tmp_path):
         assert abs(np.dot(q, expected)) == pytest.approx(1.0, abs=1e-6)  # q and -q: one turn
     times = accessor(doc, blob, doc["animations"][0]["samplers"][0]["input"])
     assert times.min() == 0.0 and times.max() == pytest.approx(2.0)
+
+
+def _world_at(doc: dict, blob: bytes, seconds: float) -> dict[int, np.ndarray]:
+    """Every node's world matrix with the animation's channels sampled at `seconds`."""
+    posed = []
+    for i, node in enumerate(doc["nodes"]):
+        node = dict(node)
+        for path in ("translation", "rotation", "scale"):
+            value = _sample(doc, blob, i, path, seconds) if "animations" in doc else None
+            if value is not None:
+                node[path] = list(value)
+        posed.append(node)
+    return world_matrices({**doc, "nodes": posed})
+
+
+def test_a_skeleton_and_its_animation_skin_the_mesh(tmp_path):
+    """Two joints, root at the origin and tip one unit up; a strip whose top edge is bound to
+    the tip. The SkelAnimation turns the tip 90 degrees about Z by frame 24: at 1 s the top
+    corners (+-0.5, 2, 0) have turned about the tip's origin (0, 1, 0) to (-1, 1 +- 0.5, 0);
+    corners bound to the root stay where they are."""
+    from pxr import UsdSkel
+
+    stage = new_stage(tmp_path, meters_per_unit=1.0)
+    stage.SetTimeCodesPerSecond(24.0)
+    root = UsdSkel.Root.Define(stage, "/Rig")
+    skeleton = UsdSkel.Skeleton.Define(stage, "/Rig/Skel")
+    joints = ["root", "root/tip"]
+    skeleton.CreateJointsAttr(joints)
+    up = Gf.Matrix4d().SetTranslate(Gf.Vec3d(0, 1, 0))
+    skeleton.CreateBindTransformsAttr([Gf.Matrix4d(1), up])
+    skeleton.CreateRestTransformsAttr([Gf.Matrix4d(1), up])
+    anim = UsdSkel.Animation.Define(stage, "/Rig/Anim")
+    anim.CreateJointsAttr(joints)
+    anim.CreateTranslationsAttr([Gf.Vec3f(0, 0, 0), Gf.Vec3f(0, 1, 0)])
+    anim.CreateScalesAttr([Gf.Vec3h(1, 1, 1), Gf.Vec3h(1, 1, 1)])
+    rotations = anim.CreateRotationsAttr()
+    turned = Gf.Quatf(math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4))  # 90 deg about Z
+    rotations.Set([Gf.Quatf(1), Gf.Quatf(1)], 0.0)
+    rotations.Set([Gf.Quatf(1), turned], 24.0)
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [anim.GetPath()]
+    )
+    strip = UsdGeom.Mesh.Define(stage, "/Rig/Strip")
+    strip.CreatePointsAttr(
+        [(-0.5, 0, 0), (0.5, 0, 0), (0.5, 1, 0), (-0.5, 1, 0), (0.5, 2, 0), (-0.5, 2, 0)]
+    )
+    strip.CreateFaceVertexCountsAttr([4, 4])
+    strip.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 3, 2, 4, 5])
+    strip.CreateSubdivisionSchemeAttr("none")
+    binding = UsdSkel.BindingAPI.Apply(strip.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(False, 1).Set([0, 0, 1, 1, 1, 1])
+    binding.CreateJointWeightsPrimvar(False, 1).Set([1.0] * 6)
+    del root
+    _, doc, blob = convert(stage, tmp_path)
+    (node,) = [n for n in doc["nodes"] if n.get("name") == "Strip"]
+    skin = doc["skins"][node["skin"]]
+    prim = doc["meshes"][node["mesh"]]["primitives"][0]
+    pos = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+    joint_ids = accessor(doc, blob, prim["attributes"]["JOINTS_0"])
+    weights = accessor(doc, blob, prim["attributes"]["WEIGHTS_0"]).astype(np.float64)
+    ibm = accessor(doc, blob, skin["inverseBindMatrices"]).astype(np.float64)
+    ibm = [m.reshape(4, 4).T for m in ibm]  # column-major
+    for seconds, expected in (
+        (0.0, {(-0.5, 2.0, 0.0), (0.5, 2.0, 0.0)}),
+        (1.0, {(-1.0, 2.5 - 1.0, 0.0), (-1.0, 0.5, 0.0)}),
+    ):
+        world = _world_at(doc, blob, seconds)
+        skinned = []
+        for p, ids, w in zip(pos, joint_ids, weights, strict=True):
+            m = sum(wk * world[skin["joints"][j]] @ ibm[j] for j, wk in zip(ids, w, strict=True))
+            skinned.append(tuple(np.round((m @ np.r_[p, 1.0])[:3], 5)))
+        assert {(-0.5, 0.0, 0.0), (0.5, 0.0, 0.0)} <= set(skinned)  # the root's, unmoved
+        top = {s for s, p in zip(skinned, pos, strict=True) if p[1] == 2.0}
+        assert top == {tuple(np.round(e, 5)) for e in expected}

@@ -49,9 +49,24 @@ class GltfWriter:
         self.blob.extend(data)
         return self.add("bufferViews", view)
 
-    def accessor(self, values: np.ndarray, *, indices: bool = False, bounds: bool = False) -> int:
-        """An accessor of a (count, n) float32 array (n = 1, 2, 3, 4 or 16) or of a flat array
-        of triangle indices (uint32, or uint16 when small)."""
+    def accessor(
+        self,
+        values: np.ndarray,
+        *,
+        indices: bool = False,
+        bounds: bool = False,
+        joints: bool = False,
+    ) -> int:
+        """An accessor of a (count, n) float32 array (n = 1, 2, 3, 4 or 16), of a flat array
+        of triangle indices (uint32, or uint16 when small), or of joint indices (`joints`:
+        (count, 4) as uint16, as glTF's JOINTS_n)."""
+        if joints:
+            array = np.ascontiguousarray(np.rint(values), dtype=np.uint16)
+            view = self._view(array.tobytes(), ARRAY_BUFFER)
+            return self.add(
+                "accessors",
+                {"bufferView": view, "componentType": 5123, "count": len(array), "type": "VEC4"},
+            )
         if indices:
             flat = np.ascontiguousarray(values, dtype=np.uint32).reshape(-1)
             if flat.size and int(flat.max()) < 65535:

@@ -21,6 +21,9 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
 - Instancing: an instanceable prim's prototype and a PointInstancer's prototypes are converted
   once; each instance is a node of its own using the same glTF meshes (the worker builds a
   shared mesh once and instances it).
+- Skinning: a UsdSkel Skeleton's joints as nodes under its node (animated by its bound
+  SkelAnimation), a glTF skin per skinned mesh (four influences a point), inverse bind
+  matrices (geomBindTransform x bindTransform^-1)^T.
 - Cameras: UsdGeomCamera to a glTF camera (yfov = 2 atan(verticalAperture / (2 focalLength)),
   clipping range to znear/zfar); one camera: the stage's render settings' camera, else the
   first met. Depth of field (fStop, focusDistance) is reported for the job's aperture_radius
@@ -114,6 +117,13 @@ def _decompose(matrix, mpu: float):
     return translation, _quaternion(rot), scale, sheared
 
 
+def _set_trs(node: dict[str, Any], matrix, mpu: float) -> None:
+    translation, rotation, scale, _ = _decompose(matrix, mpu)
+    node["translation"] = [float(v) for v in translation]
+    node["rotation"] = [float(v) for v in rotation]
+    node["scale"] = [float(v) for v in scale]
+
+
 def _quaternion(r: np.ndarray) -> np.ndarray:
     """The unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
     trace = r[0, 0] + r[1, 1] + r[2, 2]
@@ -146,7 +156,7 @@ def _fan(counts: np.ndarray) -> np.ndarray:
 
 class _StageConverter:
     def __init__(self, stage, root: Path, work: Path):
-        from pxr import Usd, UsdGeom
+        from pxr import Usd, UsdGeom, UsdSkel
 
         self.stage = stage
         self.root = root
@@ -169,6 +179,10 @@ class _StageConverter:
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
         self.animation: dict[str, Any] = {"name": "usd", "samplers": []}
         self.channels: list[dict[str, Any]] = []
+        self.skel_cache = UsdSkel.Cache()
+        self.joint_nodes: dict[str, list[int]] = {}  # skeleton path -> joint nodes, its order
+        self.mesh_skins: dict[str, tuple[str, np.ndarray]] = {}  # mesh -> (skeleton, IBMs)
+        self.pending_skins: list[tuple[dict, str, np.ndarray, str]] = []
 
     def warn(self, path: str, text: str) -> None:
         texts = self.warnings.setdefault(path, [])
@@ -194,6 +208,7 @@ class _StageConverter:
         if self.up == "Z":
             top["rotation"] = [-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]  # -90 deg about X
         scene_root = self.writer.add("nodes", top)
+        self.resolve_skins()
         if self.channels:
             self.animation["channels"] = self.channels
             self.writer.doc["animations"] = [self.animation]
@@ -267,14 +282,16 @@ class _StageConverter:
             animation = None
         if prim.IsA(UsdGeom.PointBased) and prim.GetAttribute("points").ValueMightBeTimeVarying():
             self.warn(path, "deforming points (time samples) are converted at the first time only")
-        if prim.IsA(UsdSkel.Root) or prim.IsA(UsdSkel.Skeleton):
-            self.warn(path, "UsdSkel skinning is not converted: meshes stay in their bind pose")
+        if prim.IsA(UsdSkel.Root):
+            self.skel_cache.Populate(UsdSkel.Root(prim), Usd.PrimDefaultPredicate)
         children: list[int] = []
         walk_children = True
         if prim.IsA(UsdGeom.Mesh):
             mesh = self.mesh(prim)
             if mesh is not None:
                 node["mesh"] = mesh
+                if path in self.mesh_skins:
+                    self.pending_skins.append((node, *self.mesh_skins[path], path))
         elif prim.IsA(UsdGeom.Cube) or prim.IsA(UsdGeom.Sphere):
             node["mesh"] = self.gprim(prim)
         elif prim.IsA(UsdGeom.Camera):
@@ -282,6 +299,8 @@ class _StageConverter:
                 node["camera"] = self.camera_of(prim)
             else:
                 self.warn(path, f"a second camera; the farm renders {self.camera_prim.GetPath()}")
+        elif prim.IsA(UsdSkel.Skeleton):
+            children += self.skeleton_joints(prim)
         elif prim.IsA(UsdGeom.PointInstancer):
             children = self.point_instancer(prim)
             walk_children = False
@@ -312,14 +331,25 @@ class _StageConverter:
 
     def transform_animation(self, xformable, node: dict[str, Any]) -> list[dict] | None:
         """glTF animation channels (their target node left to the caller) for a prim whose
-        transform has time samples: its local transformation sampled at every authored time and
-        every whole time code between the first and the last (USD interpolates each xformOp's
-        value, so whole frames are exact for a farm job at fps = timeCodesPerSecond), split into
-        translation (metres), rotation and scale, LINEAR; glTF time = time code /
-        timeCodesPerSecond. The node takes TRS at the stage's start time. None when the
-        samples do not vary."""
-        path = str(xformable.GetPath())
-        authored = sorted(set(xformable.GetTimeSamples()))
+        transform has time samples (trs_animation of its local transformation)."""
+        return self.trs_animation(
+            str(xformable.GetPath()),
+            xformable.GetTimeSamples(),
+            xformable.GetLocalTransformation,
+            node,
+        )
+
+    def trs_animation(self, path: str, authored, matrix_at, node: dict) -> list[dict] | None:
+        """Channels of the glTF animation "usd" for a local transformation `matrix_at(time)`
+        with time samples at `authored`: sampled at every authored time and every whole time
+        code between the first and the last (USD interpolates each xformOp's or joint's
+        components, so whole frames are exact for a farm job at fps = timeCodesPerSecond),
+        split into translation (metres), rotation and scale, LINEAR; glTF time = time code /
+        timeCodesPerSecond. The node takes TRS at the stage's start time. None when fewer than
+        two samples."""
+        from pxr import Usd
+
+        authored = sorted(set(authored))
         if len(authored) < 2:
             return None
         first, last = authored[0], authored[-1]
@@ -328,17 +358,14 @@ class _StageConverter:
         if len(times) > MAX_ANIMATION_SAMPLES:
             self.warn(path, f"more than {MAX_ANIMATION_SAMPLES} transform samples: thinned")
             times = times[:: math.ceil(len(times) / MAX_ANIMATION_SAMPLES)]
-        trs = [_decompose(xformable.GetLocalTransformation(float(t)), self.mpu) for t in times]
+        trs = [_decompose(matrix_at(Usd.TimeCode(float(t))), self.mpu) for t in times]
         if any(sheared for *_, sheared in trs):
             self.warn(path, "a sheared transform animates without its shear")
         rotations = [r for _, r, _, _ in trs]
         for i in range(1, len(rotations)):  # the shorter arc between neighbouring keys
             if np.dot(rotations[i], rotations[i - 1]) < 0:
                 rotations[i] = -rotations[i]
-        start = _decompose(xformable.GetLocalTransformation(self.time), self.mpu)
-        node["translation"] = [float(v) for v in start[0]]
-        node["rotation"] = [float(v) for v in start[1]]
-        node["scale"] = [float(v) for v in start[2]]
+        _set_trs(node, matrix_at(self.time), self.mpu)
         seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
         channels = []
         for name, values in (
@@ -354,6 +381,119 @@ class _StageConverter:
             samplers.append({**sampler, "interpolation": "LINEAR"})
             channels.append({"sampler": len(samplers) - 1, "target": {"path": name}})
         return channels or None
+
+    # ------------------------------------------------------------------ skeletons
+    def skeleton_joints(self, prim) -> list[int]:
+        """A UsdSkel Skeleton's joints as glTF nodes under its own node (their local
+        transforms, animated by its bound SkelAnimation); returns the root joints' nodes and
+        remembers every joint's node in skeleton order for the skins."""
+        from pxr import UsdSkel
+
+        path = str(prim.GetPath())
+        query = self.skel_cache.GetSkelQuery(UsdSkel.Skeleton(prim))
+        if not query:
+            self.warn(path, "a skeleton UsdSkel cannot read: its meshes stay in their bind pose")
+            return []
+        order = list(query.GetJointOrder())
+        parents = list(query.GetTopology().GetParentIndices())
+        anim = query.GetAnimQuery()
+        authored = list(anim.GetJointTransformTimeSamples()) if anim else []
+        if anim and anim.GetBlendShapeOrder():
+            self.warn(path, "blend shapes are not converted")
+        nodes: list[dict[str, Any]] = []
+        indices: list[int] = []
+        channels_of: list[list[dict] | None] = []
+        for j, joint in enumerate(order):
+            node: dict[str, Any] = {"name": str(joint).rsplit("/", 1)[-1]}
+
+            def local_at(time, j: int = j):
+                return query.ComputeJointLocalTransforms(time)[j]
+
+            channels = self.trs_animation(f"{path} joint {joint}", authored, local_at, node)
+            if channels is None:
+                _set_trs(node, query.ComputeJointLocalTransforms(self.time)[j], self.mpu)
+            nodes.append(node)
+            channels_of.append(channels)
+        for node, channels in zip(nodes, channels_of, strict=True):
+            index = self.writer.add("nodes", node)
+            indices.append(index)
+            for channel in channels or []:
+                channel["target"]["node"] = index
+                self.channels.append(channel)
+        roots = []
+        for j, parent in enumerate(parents):
+            if parent < 0:
+                roots.append(indices[j])
+            else:
+                nodes[parent].setdefault("children", []).append(indices[j])
+        self.joint_nodes[path] = indices
+        return roots
+
+    def skin_attributes(self, prim, indices: np.ndarray, n_points: int) -> dict | None:
+        """JOINTS_0 and WEIGHTS_0 per face corner for a mesh UsdSkel binds to a skeleton (the
+        four largest influences of each point, renormalized), and the skin to give its node
+        later (self.pending_skins); None when the mesh is not skinned."""
+        from pxr import UsdSkel
+
+        path = str(prim.GetPath())
+        skinning = self.skel_cache.GetSkinningQuery(prim)
+        if not skinning or not skinning.HasJointInfluences():
+            return None
+        skeleton = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
+        query = self.skel_cache.GetSkelQuery(skeleton) if skeleton else None
+        if not query:
+            self.warn(path, "bound to no skeleton UsdSkel can read: rendered in its bind pose")
+            return None
+        if skinning.HasBlendShapes():
+            self.warn(path, "blend shapes are not converted")
+        joint_ids, weights = skinning.ComputeVaryingJointInfluences(n_points, self.time)
+        width = skinning.GetNumInfluencesPerComponent()
+        joint_ids = np.array(joint_ids, dtype=np.int64).reshape(n_points, width)
+        weights = np.array(weights, dtype=np.float64).reshape(n_points, width)
+        skel_order = [str(j) for j in query.GetJointOrder()]
+        local_order = skinning.GetJointOrder()
+        if local_order:  # the mesh's own skel:joints order: map to the skeleton's
+            remap = np.array([skel_order.index(str(j)) for j in local_order], dtype=np.int64)
+            joint_ids = remap[np.clip(joint_ids, 0, len(remap) - 1)]
+        if width > 4:
+            self.warn(path, f"{width} joint influences per point: the 4 largest are kept")
+        keep = np.argsort(-weights, axis=1)[:, :4]
+        joint_ids = np.take_along_axis(joint_ids, keep, axis=1)
+        weights = np.take_along_axis(weights, keep, axis=1)
+        if width < 4:
+            pad = 4 - width
+            joint_ids = np.pad(joint_ids, ((0, 0), (0, pad)))
+            weights = np.pad(weights, ((0, 0), (0, pad)))
+        total = weights.sum(axis=1, keepdims=True)
+        weights = np.where(total > 0, weights / np.where(total > 0, total, 1.0), 0.0)
+        geom_bind = np.array(skinning.GetGeomBindTransform(self.time), dtype=np.float64)
+        binds = query.GetJointWorldBindTransforms()
+        if not binds or len(binds) != len(skel_order):
+            self.warn(path, "its skeleton has no bind transforms: rendered in its bind pose")
+            return None
+        ibm = []
+        for bind in binds:
+            # USD row vectors: p_skel = p GB B^-1 J; glTF: G_j IBM_j p, IBM_j = (GB B^-1)^T.
+            m = geom_bind.reshape(4, 4) @ np.linalg.inv(np.array(bind).reshape(4, 4))
+            m[3, :3] *= self.mpu
+            ibm.append(m.reshape(-1))
+        return {
+            "JOINTS_0": joint_ids[indices].astype(np.float64),
+            "WEIGHTS_0": weights[indices],
+            "skeleton": str(skeleton.GetPath()),
+            "ibm": np.array(ibm),
+        }
+
+    def resolve_skins(self) -> None:
+        for node, skeleton, ibm, path in self.pending_skins:
+            joints = self.joint_nodes.get(skeleton)
+            if not joints:
+                self.warn(path, f"its skeleton {skeleton} is not rendered: no skin")
+                continue
+            accessor = self.writer.accessor(ibm)
+            node["skin"] = self.writer.add(
+                "skins", {"name": skeleton, "joints": joints, "inverseBindMatrices": accessor}
+            )
 
     # ------------------------------------------------------------------ instancing
     def point_instancer(self, prim) -> list[int]:
@@ -538,6 +678,11 @@ class _StageConverter:
             attributes["NORMAL"] = np.where(
                 length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]
             )
+        skin = self.skin_attributes(prim, indices, len(points))
+        if skin is not None:
+            attributes["JOINTS_0"] = skin["JOINTS_0"]
+            attributes["WEIGHTS_0"] = skin["WEIGHTS_0"]
+            self.mesh_skins[path] = (skin["skeleton"], skin["ibm"])
 
         # Material per face: GeomSubsets of the materialBind family, the rest the mesh's.
         face_material: dict[int, Any] = {}
@@ -673,7 +818,9 @@ class _StageConverter:
         for n in names:
             width = attrs[n].reshape(len(attrs[n]), -1).shape[1]
             out_attrs[n] = self.writer.accessor(
-                unique[:, col : col + width], bounds=n == "POSITION"
+                unique[:, col : col + width],
+                bounds=n == "POSITION",
+                joints=n.startswith("JOINTS_"),
             )
             col += width
         primitive: dict[str, Any] = {
