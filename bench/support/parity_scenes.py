@@ -53,6 +53,7 @@ SCENES = {
     "metal": "a rough gold floor seen at grazing angles, reflecting two boxes",
     "glass": "a smooth glass sphere (IOR 1.5) on a checker floor",
     "glass_volume": "the glass sphere with KHR_materials_volume absorption (blue-green)",
+    "rough_glass": "a frosted glass sphere (IOR 1.5, roughness 0.3) on a checker floor",
     "alpha_mask": "an alpha-masked leaf card (MASK, cutoff 0.5) casting a shadow",
     "vertex_colors": "an icosphere coloured by a COLOR_0 vertex attribute",
     "emissive_texture": "a panel with an emissive texture lighting a floor and a box",
@@ -186,8 +187,10 @@ def checker(n=256, squares=8, a=(0.85, 0.85, 0.85), b=(0.1, 0.1, 0.1)) -> np.nda
 # --- the features' materials and objects --------------------------------------------------
 
 
-def glass_material(volume: bool):
-    glass = principled("Glass", (1.0, 1.0, 1.0), 0.0, **{"Transmission Weight": 1.0, "IOR": 1.5})
+def glass_material(volume: bool, roughness: float = 0.0):
+    glass = principled(
+        "Glass", (1.0, 1.0, 1.0), roughness, **{"Transmission Weight": 1.0, "IOR": 1.5}
+    )
     if volume:
         from io_scene_gltf2.blender.com.material_helpers import (
             create_settings_group,
@@ -344,9 +347,9 @@ def metal():
     camera((0.0, -6.0, 0.45), (0.0, 1.5, 0.4), lens=40.0)
 
 
-def _glass(volume: bool):
+def _glass(volume: bool, roughness: float = 0.0):
     floor(checker_material())
-    sphere("GlassBall", glass_material(volume), (0.0, 0.0, 0.7), radius=0.7)
+    sphere("GlassBall", glass_material(volume, roughness), (0.0, 0.0, 0.7), radius=0.7)
     quad_light((0.5, 0.5, 3.0))
     point_light((-2.5, 1.5, 3.5), 300.0)
     camera()
@@ -358,6 +361,14 @@ def glass():
 
 def glass_volume():
     _glass(True)
+
+
+def rough_glass():
+    """KHR_materials_transmission with roughness: the exporter writes the Principled BSDF's
+    roughness as the material's roughnessFactor, which shapes both the reflection and the
+    microfacet BTDF; Blender's importer maps it back onto the Principled BSDF, whose
+    transmission is Cycles' rough dielectric (GGX, multiple-scattering by default)."""
+    _glass(False, 0.3)
 
 
 def alpha_mask():

@@ -103,6 +103,10 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   bp.specular = mat.specular;
   bp.ior = mat.ior;
   bp.transmission = mat.transmission;
+  // KHR_materials_transmission: transmissionFactor x transmissionTexture.r (linear).
+  if (mat.transmission_tex.valid() && mat.transmission > 0.f &&
+      tex.lookup(mat.transmission_tex.texture, texcoord(scene, hit, mat.transmission_tex), 3, c))
+    bp.transmission = std::min(1.f, std::max(0.f, mat.transmission * c[0]));
   sp.albedo = bp.base;
 
   Vec3 ns = hit.ns;

@@ -83,6 +83,30 @@ TEST(WhiteFurnace, DiffuseGlassAndRoughMetalSpheresRenderOne) {
   }
 }
 
+// A rough glass sphere (roughness 0.5, KHR_materials_transmission's microfacet BSDF) in the
+// same furnace: radiance crosses its surface scaled by 1/eta^2 going in and eta^2 coming out,
+// so an energy-conserving BSDF would render 1; single-scattering microfacets lose the light
+// that meets a second microfacet (1-18 % per interface at this roughness, by side and angle). So every
+// pixel is at most 1 (no energy created; a wrong radiance scaling shows as 2.25 or 0.44) and
+// the image stays near it.
+TEST(WhiteFurnace, RoughGlassSphereCreatesNoEnergy) {
+  const Material m = furnace_material("rough-glass", 1.f, 0.f, 0.5f, 1.f, 1.f);
+  Scene scene(sphere_scene(m, {0.f, 0.3f, 3.f}, 0.75f));
+  RenderSettings settings;
+  settings.width = settings.height = 8;
+  settings.sampler = SamplerType::Independent;
+  settings.max_depth = 64;
+  settings.environment = Environment::constant({1.f, 1.f, 1.f});
+  settings.seed = 11;
+  double sum = 0.0;
+  for (const PixelStats& p : render_stats(scene, settings, 512)) {
+    EXPECT_LE(p.mean, 1.0 + 4.0 * p.standard_error);
+    sum += p.mean;
+  }
+  EXPECT_GT(sum / 64, 0.85);
+  EXPECT_LT(sum / 64, 1.0);
+}
+
 // Albedo 0.5 in the same furnace: a convex object is seen by one bounce only, so the pixel is
 // 0.5 exactly; and from inside a closed sphere of albedo 0.5 that emits 1 everywhere, the
 // infinite bounce series gives L = Le (1 + rho + rho^2 + ...) = Le / (1 - rho) = 2.

@@ -803,11 +803,9 @@ class Loader {
         m.transmission = unit_factor(
             tr->second, "transmissionFactor", 0.f,
             "materials[" + std::to_string(i) + "].extensions.KHR_materials_transmission");
-        if (tr->second.Has("transmissionTexture"))
-          warn(where + ": KHR_materials_transmission.transmissionTexture is not supported; "
-                       "using transmissionFactor");
-        if (m.transmission > 0.f && m.roughness > 0.f && warned_rough_glass_.insert(i).second)
-          warn(where + ": transmission is rendered as smooth glass (roughness ignored for it)");
+        m.transmission_tex = texture_ref(
+            tr->second, "transmissionTexture",
+            "materials[" + std::to_string(i) + "].extensions.KHR_materials_transmission");
       }
       if (!(m.transmission >= 0.f && m.transmission <= 1.f))
         fail(where + ": KHR_materials_transmission.transmissionFactor must be in [0, 1]");
@@ -2092,7 +2090,6 @@ class Loader {
   std::vector<int> deformed_slots_;
   uint32_t moving_mesh_nodes_ = 0;
   std::set<std::string> warned_material_ext_, warned_texture_ext_;
-  std::set<size_t> warned_rough_glass_;
   bool warned_occlusion_ = false, warned_unskinned_ = false;
   bool warned_tangent_ = false;
   bool quantization_ = false;         // KHR_mesh_quantization's attribute types are allowed

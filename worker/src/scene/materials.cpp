@@ -212,6 +212,22 @@ Vec3 metal_multiple_scattering(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 
 }  // namespace
 
+const Material::TextureSlot (&Material::texture_slots())[Material::kTextureSlots] {
+  static const TextureSlot slots[kTextureSlots] = {
+      {&Material::base_color_tex, "baseColorTexture", true, true},
+      {&Material::metallic_roughness_tex, "metallicRoughnessTexture", false, true},
+      {&Material::normal_tex, "normalTexture", false, true},
+      {&Material::emissive_tex, "emissiveTexture", true, false},
+      {&Material::transmission_tex, "transmissionTexture", false, true},
+      {&Material::clearcoat_tex, "clearcoatTexture", false, true},
+      {&Material::clearcoat_roughness_tex, "clearcoatRoughnessTexture", false, true},
+      {&Material::clearcoat_normal_tex, "clearcoatNormalTexture", false, true},
+      {&Material::sheen_color_tex, "sheenColorTexture", true, true},
+      {&Material::sheen_roughness_tex, "sheenRoughnessTexture", false, true},
+  };
+  return slots;
+}
+
 float clearcoat_fresnel(float cos_v) {
   const float m = std::min(1.f, std::max(0.f, 1.f - std::abs(cos_v)));
   const float m2 = m * m;
@@ -489,6 +505,45 @@ __attribute__((noinline)) bool sample_layers(const BsdfParams& p, const BsdfLobe
 
 }  // namespace
 
+namespace {
+
+// The rough glass lobe (KHR_materials_transmission with roughness): a visible normal m of
+// GGX(alpha) (Heitz 2018), then reflection about m with probability F(wo.m), the exact
+// dielectric Fresnel, else refraction through m (Walter et al. 2007). With these choices the
+// weight f |cos_i| / pdf of the reflection f = F D G2 / (4 |cos_o cos_i|) and of the
+// transmission f = (1 - F) D G2 |wi.m| |wo.m| / (|cos_o cos_i| (wo.m + eta wi.m)^2) (Walter's
+// BTDF with radiance scaled by 1/eta^2) is G2(wo, wi) / G1(wo): the lobe is sampled, never
+// evaluated, like the smooth glass it becomes at alpha -> 0 (materials.h).
+BsdfSampleStep sample_rough_glass(const BsdfParams& p, Vec3 wo, const BsdfDisks& disks,
+                                  float u_fresnel, float eta, float scale, BsdfSample* out) {
+  const Vec3 m = sample_ggx_vndf_from_disk(wo, p.alpha, disks.polar);
+  const float c = dot(wo, m);
+  if (!(c > 0.f)) return BsdfSampleStep::Failed;
+  const float F = fresnel_dielectric(c, eta);
+  Vec3 wi;
+  if (u_fresnel < F) {
+    wi = m * (2.f * c) - wo;
+    if (wi.z <= 0.f) return BsdfSampleStep::Failed;  // reflected below the surface
+    out->transmitted = false;
+  } else {
+    // Snell through m (F < 1 here, so no total internal reflection): wi = -wo / eta +
+    // (c / eta - cos_t) m.
+    const float cos_t = std::sqrt(std::max(0.f, 1.f - (1.f - c * c) / (eta * eta)));
+    wi = normalize(m * (c / eta - cos_t) - wo / eta);
+    if (wi.z >= 0.f) return BsdfSampleStep::Failed;  // refracted above the surface
+    out->transmitted = true;
+  }
+  const float g = ggx_g2(wo, wi, p.alpha) / ggx_g1(wo, p.alpha);
+  out->wi = wi;
+  out->delta = true;
+  out->pdf = 0.f;
+  out->weight = out->transmitted ? p.base * (scale * g / (eta * eta))
+                                 : Vec3(1.f, 1.f, 1.f) * (scale * g);
+  return BsdfSampleStep::Done;
+}
+
+}  // namespace
+
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
                                      const BsdfDisks& disks, float u_lobe, float u_fresnel,
                                      BsdfSample* out) {
@@ -503,6 +558,8 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
     // the indices across the interface in the direction of travel of wi.
     const float eta = p.front ? p.ior : 1.f / p.ior;
+    if (p.alpha > kMinAlpha)
+      return sample_rough_glass(p, wo, disks, u_fresnel, eta, glass_scale, out);
     const float F = fresnel_dielectric(wo.z, eta);
     out->delta = true;
     out->pdf = 0.f;

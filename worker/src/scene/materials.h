@@ -1,7 +1,8 @@
 // Materials: glTF 2.0 metallic-roughness as a Lambert diffuse base plus a GGX microfacet
 // specular layer (Smith height-correlated masking-shadowing, visible-normal sampling),
 // emission (with KHR_materials_emissive_strength), KHR_materials_specular's specularFactor,
-// KHR_materials_transmission + KHR_materials_ior as smooth dielectric glass, and the layers
+// KHR_materials_transmission + KHR_materials_ior as dielectric glass (smooth, or with the
+// material's roughness a GGX microfacet BSDF after Walter et al. 2007), and the layers
 // of KHR_materials_sheen (Charlie sheen over the base, albedo-scaled) and
 // KHR_materials_clearcoat (a GGX coat over everything, Fresnel-weighted). KHR_materials_unlit
 // materials are not shaded at all (Material::unlit; the path tracers handle them).
@@ -55,7 +56,8 @@ struct Material {
   float roughness = 1.f;         // roughnessFactor (perceptual; GGX alpha = roughness^2)
   float specular = 0.f;          // KHR_materials_specular specularFactor: dielectric layer
   float ior = 1.5f;              // KHR_materials_ior
-  float transmission = 0.f;      // KHR_materials_transmissionFactor
+  float transmission = 0.f;      // KHR_materials_transmission transmissionFactor
+  TextureRef transmission_tex{};  // transmissionTexture: its R channel (linear) multiplies
   float normal_scale = 1.f;      // normalTexture.scale
   TextureRef base_color_tex{}, metallic_roughness_tex{}, normal_tex{}, emissive_tex{};
   // KHR_materials_clearcoat: clearcoat = clearcoatFactor x clearcoatTexture.r, roughness =
@@ -89,12 +91,23 @@ struct Material {
   // An unlit material's emission is never used (it shows its base colour instead).
   bool is_emissive() const { return !unlit && !is_zero(emission); }
   bool is_opaque() const { return alpha_mode == AlphaMode::Opaque; }
-  // True if shading reads texture coordinates at the hit point (the emissive texture is read
-  // by Scene::emission, which interpolates its own).
+  // The material's texture slots: the one list of them that the scene's texture registration
+  // and reads_uv walk. `srgb`: texels are sRGB-encoded colours, decoded before filtering
+  // (glTF 3.9.2, and sheenColorTexture); otherwise linear data. `at_hit`: shading reads it at
+  // the hit's texture coordinates (the emissive texture is read by Scene::emission, which
+  // interpolates its own).
+  struct TextureSlot {
+    TextureRef Material::*ref;
+    const char* name;  // the glTF property
+    bool srgb, at_hit;
+  };
+  static constexpr int kTextureSlots = 10;
+  static const TextureSlot (&texture_slots())[kTextureSlots];
+  // True if shading reads texture coordinates at the hit point.
   bool reads_uv() const {
-    return base_color_tex.valid() || metallic_roughness_tex.valid() || normal_tex.valid() ||
-           clearcoat_tex.valid() || clearcoat_roughness_tex.valid() ||
-           clearcoat_normal_tex.valid() || sheen_color_tex.valid() || sheen_roughness_tex.valid();
+    for (const TextureSlot& slot : texture_slots())
+      if (slot.at_hit && (this->*slot.ref).valid()) return true;
+    return false;
   }
   // The tangent-space normal map whose TEXCOORD set gives the hit's tangent (Hit::dpdu): the
   // base's, else the clear coat's.
@@ -159,7 +172,14 @@ struct BsdfSample {
 // (f0 = specular * ((ior - 1)/(ior + 1))^2) and F_m the conductor Schlick Fresnel (f0 = base),
 //   f = (1 - m)(1 - t)((1 - F_d) base / pi + F_d spec) + m (F_m spec + f_ms),
 //   spec = D G2 / (4 |cos_o cos_i|),
-// where (1 - m) t is the weight of the delta glass lobe and f_ms the metal's multiple-
+// where (1 - m) t is the weight of the glass lobe (smooth: a delta, reflection with the exact
+// dielectric Fresnel F(wo.n) and refraction tinted by the base colour; rough, alpha above
+// kMinAlpha: KHR_materials_transmission's microfacet BTDF with the reflection it pairs with,
+// F(wo.m) D G2 / (4 |cos_o cos_i|) and base (1 - F(wo.m)) D G2 |wi.m| |wo.m| /
+// (|cos_o cos_i| (wo.m + eta wi.m)^2) / eta^2 (Walter et al. 2007, radiance scaled by
+// 1/eta^2); sampled through visible normals with weight G2 / G1, never evaluated: like the
+// smooth lobe it is reached by BSDF sampling only, so light sampling and MIS leave it out and
+// the estimate stays unbiased) and f_ms the metal's multiple-
 // scattering compensation (Kulla & Conty 2017), which makes a white rough metal conserve
 // energy exactly (up to its table). eval returns f times |cos_i| for the non-delta part only
 // (0 if wo or wi is below the surface).

@@ -284,5 +284,166 @@ TEST(Bsdf, FresnelAndGlass) {
   EXPECT_NEAR(t.weight.x, 1.5f * 1.5f, 1e-4f);
 }
 
+// ---- Rough glass (KHR_materials_transmission with roughness): Walter et al. 2007's microfacet
+// BSDF, its formulas written here in double from the paper, independently of materials.cpp.
+// eta = n_i / n_o: the index on wi's side over wo's (the material's ior entering it).
+struct WalterGlass {
+  double alpha, eta;
+  static double dot3(const double* a, const double* b) {
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+  }
+  double d(const double* h) const {  // GGX (Trowbridge-Reitz), h.z > 0
+    const double a2 = alpha * alpha, c2 = h[2] * h[2];
+    const double t = c2 * (a2 - 1.0) + 1.0;
+    return a2 / (M_PI * t * t);
+  }
+  double lambda(const double* w) const {
+    const double c2 = w[2] * w[2];
+    return 0.5 * (-1.0 + std::sqrt(1.0 + alpha * alpha * (1.0 - c2) / c2));
+  }
+  double g1(const double* w) const { return 1.0 / (1.0 + lambda(w)); }
+  double g2(const double* wo, const double* wi) const {
+    return 1.0 / (1.0 + lambda(wo) + lambda(wi));
+  }
+  double fresnel(double c) const {  // exact, unpolarized; c = cos at the interface, wo's side
+    const double s2 = (1.0 - c * c) / (eta * eta);
+    if (s2 >= 1.0) return 1.0;
+    const double ct = std::sqrt(1.0 - s2);
+    const double rs = (c - eta * ct) / (c + eta * ct), rp = (eta * c - ct) / (eta * c + ct);
+    return 0.5 * (rs * rs + rp * rp);
+  }
+  // The half vector of (wo, wi), towards +z: reflection wo + wi, refraction -(wo + eta wi).
+  bool half(const double* wo, const double* wi, double* h) const {
+    const bool refl = wi[2] > 0.0;
+    for (int k = 0; k < 3; ++k) h[k] = refl ? wo[k] + wi[k] : -(wo[k] + eta * wi[k]);
+    const double l = std::sqrt(dot3(h, h));
+    if (!(l > 0.0)) return false;
+    for (int k = 0; k < 3; ++k) h[k] /= l;
+    if (h[2] < 0.0)
+      for (int k = 0; k < 3; ++k) h[k] = -h[k];
+    // Both directions on the sides of h that the configuration needs.
+    return dot3(wo, h) > 0.0 && (refl ? dot3(wi, h) > 0.0 : dot3(wi, h) < 0.0);
+  }
+  // f |cos_i| in importance form (no 1/eta^2 radiance scaling) and the density with which
+  // the sampling strategy (visible normal, then F(wo.h) reflect / refract) gives wi.
+  void eval(const double* wo, const double* wi, double* f_cos, double* pdf) const {
+    *f_cos = *pdf = 0.0;
+    double h[3];
+    if (!half(wo, wi, h)) return;
+    const double oh = dot3(wo, h), ih = dot3(wi, h);
+    const double F = fresnel(oh), D = d(h), G = g2(wo, wi);
+    const double vndf = g1(wo) * oh * D / wo[2];
+    if (wi[2] > 0.0) {
+      *f_cos = F * D * G / (4.0 * wo[2]);
+      *pdf = F * vndf / (4.0 * oh);
+    } else {
+      const double den = oh + eta * ih;
+      *f_cos = (1.0 - F) * D * G * std::fabs(ih) * oh * eta * eta / (wo[2] * den * den);
+      *pdf = (1.0 - F) * vndf * eta * eta * std::fabs(ih) / (den * den);
+    }
+  }
+};
+
+BsdfParams rough_glass(float roughness, bool front) {
+  BsdfParams p = params({1.f, 1.f, 1.f}, 0.f, roughness, 1.f, 1.f);
+  p.front = front;
+  return p;
+}
+
+// Every sample's direction follows the strategy's density (chi-square over the whole sphere),
+// its weight is f |cos_i| / pdf of the model (over eta^2 for a refraction: radiance), and it
+// is marked as the sampled-only glass lobe (delta, pdf 0: light sampling leaves it out).
+TEST(RoughGlass, SamplesFollowWaltersDensityWithWeightFCosOverPdf) {
+  // Fine midpoint integration of the expected counts: the lobes at roughness 0.3 are narrow.
+  const int nz = 16, nphi = 24, sub = 32, n = 200000;
+  std::mt19937_64 rng(17);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  for (float roughness : {0.3f, 0.7f})
+    for (bool front : {true, false})
+      for (Vec3 wo : kOutgoing) {
+        const BsdfParams p = rough_glass(roughness, front);
+        const WalterGlass w{double(p.alpha), front ? 1.5 : 1.0 / 1.5};
+        const double wod[3] = {wo.x, wo.y, wo.z};
+        ChiSquareTest chi2(nz, nphi);
+        int refracted = 0;
+        for (int s = 0; s < n; ++s) {
+          BsdfSample bs;
+          if (!bsdf_sample(p, wo, {uni(rng), uni(rng)}, uni(rng), uni(rng), &bs)) continue;
+          ASSERT_TRUE(bs.delta);
+          ASSERT_EQ(bs.pdf, 0.f);
+          ASSERT_EQ(bs.transmitted, bs.wi.z < 0.f);
+          refracted += bs.transmitted;
+          const double wid[3] = {bs.wi.x, bs.wi.y, bs.wi.z};
+          double f_cos, pdf;
+          w.eval(wod, wid, &f_cos, &pdf);
+          ASSERT_GT(pdf, 0.0) << "a sample where the model has no density";
+          const double want = f_cos / pdf / (bs.transmitted ? w.eta * w.eta : 1.0);
+          ASSERT_NEAR(bs.weight.x, want, 2e-3 * (1.0 + want))
+              << "roughness " << roughness << " front " << front << " wi.z " << bs.wi.z;
+          double phi = std::atan2(bs.wi.y, bs.wi.x);
+          if (phi < 0) phi += 2 * M_PI;
+          chi2.add_sample(0.5 * (bs.wi.z + 1.0), phi / (2 * M_PI));
+        }
+        // Entering, most light refracts; leaving at grazing angles, most is totally reflected.
+        EXPECT_GT(refracted, front ? n / 2 : n / 100);
+        chi2.integrate(
+            [&](double x, double y) {
+              const Vec3 v = spherical(2.0 * x - 1.0, 2 * M_PI * y);
+              const double vd[3] = {v.x, v.y, v.z};
+              double f_cos, pdf;
+              w.eval(wod, vd, &f_cos, &pdf);
+              return pdf * 4 * M_PI;  // d(omega) = dz dphi = 2 dx 2 pi dy
+            },
+            sub, n);
+        const ChiSquareResult result = chi2.run();
+        EXPECT_TRUE(result.passed) << result.message << ", roughness " << roughness
+                                   << " front " << front << " wo.z " << wo.z;
+      }
+}
+
+// White furnace of the lobe: its albedo (importance form), integrated over the sphere from
+// the model's f, is at most 1 (single scattering loses the energy of light that meets a second
+// microfacet) and is what the samples' mean weight estimates; at low roughness it nears 1.
+TEST(RoughGlass, WhiteFurnaceAlbedoAtMostOneAndEstimatedByTheSamples) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  for (float roughness : {0.2f, 0.5f, 0.9f})
+    for (bool front : {true, false})
+      for (Vec3 wo : kOutgoing) {
+        const BsdfParams p = rough_glass(roughness, front);
+        const WalterGlass w{double(p.alpha), front ? 1.5 : 1.0 / 1.5};
+        const double wod[3] = {wo.x, wo.y, wo.z};
+        // Quadrature over the sphere, dense in z near the poles where the lobes peak.
+        const int nzq = 1200, nphiq = 600;
+        double albedo = 0.0;
+        for (int i = 0; i < nzq; ++i)
+          for (int j = 0; j < nphiq; ++j) {
+            const double z = -1.0 + 2.0 * (i + 0.5) / nzq, phi = 2 * M_PI * (j + 0.5) / nphiq;
+            const Vec3 v = spherical(z, phi);
+            const double vd[3] = {v.x, v.y, v.z};
+            double f_cos, pdf;
+            w.eval(wod, vd, &f_cos, &pdf);
+            albedo += f_cos * (2.0 / nzq) * (2 * M_PI / nphiq);
+          }
+        EXPECT_LE(albedo, 1.0 + 2e-3) << "roughness " << roughness << " front " << front;
+        if (roughness <= 0.2f) {
+          EXPECT_GT(albedo, 0.95);
+        }
+        const int n = 200000;
+        double sum = 0.0, sum2 = 0.0;
+        for (int s = 0; s < n; ++s) {
+          BsdfSample bs;
+          double x = 0.0;
+          if (bsdf_sample(p, wo, {uni(rng), uni(rng)}, uni(rng), uni(rng), &bs))
+            x = bs.weight.x * (bs.transmitted ? w.eta * w.eta : 1.0);
+          sum += x;
+          sum2 += x * x;
+        }
+        const double mean = sum / n, se = std::sqrt((sum2 / n - mean * mean) / n);
+        EXPECT_NEAR(mean, albedo, 4.0 * se + 3e-3)
+            << "roughness " << roughness << " front " << front << " wo.z " << wo.z;
+      }
+}
+
 }  // namespace
 }  // namespace rf

@@ -369,20 +369,15 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
 
   // Textures: an image OpenImageIO cannot read is dropped with a warning naming it; the
   // material then uses its constant factor. Each image is registered once for every way its
-  // materials read it: base colour and emissive textures as sRGB colours, decoded before
-  // filtering (TextureSet::add_encoded), and so are sheen colour textures
-  // (KHR_materials_sheen); the others as linear data.
+  // materials read it (Material::texture_slots): colours as sRGB, decoded before filtering
+  // (TextureSet::add_encoded), the others as linear data.
   const size_t n = desc_.textures.size();
   std::vector<char> needed[2] = {std::vector<char>(n, 0), std::vector<char>(n, 0)};  // [srgb]
-  auto is_srgb = [](const Material& m, const TextureRef* ref) {
-    return ref == &m.base_color_tex || ref == &m.emissive_tex || ref == &m.sheen_color_tex;
-  };
   for (Material& m : desc_.materials)
-    for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
-                            &m.emissive_tex, &m.clearcoat_tex, &m.clearcoat_roughness_tex,
-                            &m.clearcoat_normal_tex, &m.sheen_color_tex,
-                            &m.sheen_roughness_tex})
-      if (ref->texture >= 0 && size_t(ref->texture) < n) needed[is_srgb(m, ref)][ref->texture] = 1;
+    for (const Material::TextureSlot& slot : Material::texture_slots()) {
+      const TextureRef& ref = m.*slot.ref;
+      if (ref.texture >= 0 && size_t(ref.texture) < n) needed[slot.srgb][ref.texture] = 1;
+    }
   // A texture no material reads is still registered (header only), so that its pixels count
   // against the limit like any image the scene carries.
   for (size_t i = 0; i < n; ++i)
@@ -418,13 +413,11 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
     }
   }
   for (Material& m : desc_.materials)
-    for (TextureRef* ref : {&m.base_color_tex, &m.metallic_roughness_tex, &m.normal_tex,
-                            &m.emissive_tex, &m.clearcoat_tex, &m.clearcoat_roughness_tex,
-                            &m.clearcoat_normal_tex, &m.sheen_color_tex,
-                            &m.sheen_roughness_tex})
-      if (ref->texture >= 0)
-        ref->texture = size_t(ref->texture) < n ? texture_index[is_srgb(m, ref)][ref->texture]
-                                                : -1;
+    for (const Material::TextureSlot& slot : Material::texture_slots()) {
+      TextureRef& ref = m.*slot.ref;
+      if (ref.texture >= 0)
+        ref.texture = size_t(ref.texture) < n ? texture_index[slot.srgb][ref.texture] : -1;
+    }
   desc_.textures.clear();
   desc_.textures.shrink_to_fit();
 

@@ -450,5 +450,26 @@ TEST(Textures, ASuppliedTangentFramesTheNormalMap) {
   }
 }
 
+// KHR_materials_transmission: transmissionFactor x transmissionTexture.r (linear), and the
+// material's roughness now shapes the glass lobe (no warning says it is dropped).
+TEST(Textures, TransmissionTextureScalesTheFactorByItsRedChannel) {
+  const std::string texel = testing::png_data_uri(1, 1, 3, {128, 255, 0});
+  const std::string json = quad_scene(
+      R"({"pbrMetallicRoughness": {"metallicFactor": 0, "roughnessFactor": 0.4},
+          "extensions": {"KHR_materials_transmission": {"transmissionFactor": 0.8,
+                                                        "transmissionTexture": {"index": 0}}}})",
+      R"({"uri": ")" + texel + R"("})", R"("extensionsUsed": ["KHR_materials_transmission"],)");
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
+  const Scene scene(std::move(desc), &warnings);
+  Hit hit;
+  ASSERT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
+  const ShadingPoint sp = make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  EXPECT_NEAR(sp.params.transmission, 0.8f * 128.f / 255.f, 1e-3f);
+  EXPECT_NEAR(sp.params.alpha, 0.4f * 0.4f, 1e-6f);
+}
+
 }  // namespace
 }  // namespace rf
