@@ -752,3 +752,15 @@ def test_a_skeleton_and_its_animation_skin_the_mesh(tmp_path):
         assert {(-0.5, 0.0, 0.0), (0.5, 0.0, 0.0)} <= set(skinned)  # the root's, unmoved
         top = {s for s, p in zip(skinned, pos, strict=True) if p[1] == 2.0}
         assert top == {tuple(np.round(e, 5)) for e in expected}
+
+
+def test_a_udim_texture_is_warned_and_its_fallback_used(tmp_path):
+    stage = new_stage(tmp_path)
+    _textured(stage, "tiles/wood.<UDIM>.png")
+    texture = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/M/Tex"))
+    texture.CreateInput("fallback", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(0.2, 0.3, 0.4, 1))
+    conversion, doc, _ = convert(stage, tmp_path)
+    assert "/World/Looks/M/Tex: UDIM texture sets are not supported" in conversion.warnings[0]
+    assert "images" not in doc and "baseColorTexture" not in str(doc["materials"])
+    base = doc["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
+    assert base[:3] == pytest.approx([0.2, 0.3, 0.4], rel=1e-6)  # the texture's fallback

@@ -5,7 +5,9 @@ on its own with Sdf, without composition, and every asset path in it is checked:
 references, payloads, value clips and every asset-valued attribute (defaults and time samples,
 in variants too). An asset path must be relative, stay inside the upload's directory after
 `..` and symbolic links are resolved, name a file that is there, and be no URL, absolute path,
-package path (`a.usdz[b.usd]`) or search path outside the upload. A refusal is a SceneError
+package path (`a.usdz[b.usd]`) or search path outside the upload; a UDIM tile set
+(`tex.<UDIM>.png`) is never read (the converter warns and uses the texture's
+fallback). A refusal is a SceneError
 whose field names the layer's prim and attribute as USD writes a property path
 (`scene:/World/Looks/Wood/Texture.inputs:file`). Layers the checked arcs name are checked in
 turn, before anything opens them; only then may Usd.Stage.Open compose the stage.
@@ -56,8 +58,6 @@ def check_asset_path(path: str, anchor_dir: Path, root: Path, where: str) -> Pat
             "(or the .usdz itself as the scene) instead",
             _field(where),
         )
-    if "<UDIM>" in path.upper() or "<UVTILE" in path.upper():
-        raise SceneError(f"{where}: UDIM texture sets ({shown!r}) are not supported", _field(where))
     parts = path.replace("\\", "/").split("/")
     if ".." in parts:
         raise SceneError(
@@ -65,6 +65,8 @@ def check_asset_path(path: str, anchor_dir: Path, root: Path, where: str) -> Pat
             "the layer inside the upload are allowed",
             _field(where),
         )
+    if is_udim(path):  # a tile set, not a file: never read (the converter warns)
+        return None
     target = Path(os.path.realpath(anchor_dir / path.replace("\\", "/")))
     if not target.is_relative_to(root):
         raise SceneError(
@@ -75,6 +77,12 @@ def check_asset_path(path: str, anchor_dir: Path, root: Path, where: str) -> Pat
             f"{where}: the asset path {shown!r} names no file of the upload", _field(where)
         )
     return target
+
+
+def is_udim(path: str) -> bool:
+    """Whether an asset path names a UDIM tile set (`tex.<UDIM>.png`)."""
+    upper = path.upper()
+    return "<UDIM>" in upper or "<UVTILE" in upper
 
 
 def read_inside(path: str, root: Path, where: str) -> bytes:
@@ -196,4 +204,4 @@ def _asset_text(value) -> str:
     return value.path if hasattr(value, "path") else str(value)
 
 
-__all__ = ["USD_LAYER_SUFFIXES", "check_asset_path", "check_layers", "read_inside"]
+__all__ = ["USD_LAYER_SUFFIXES", "check_asset_path", "check_layers", "is_udim", "read_inside"]

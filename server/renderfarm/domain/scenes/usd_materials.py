@@ -36,7 +36,7 @@ import numpy as np
 
 from ...errors import SceneError
 from .gltf_writer import GltfWriter
-from .usd_assets import read_inside
+from .usd_assets import is_udim, read_inside
 
 WRAP = {"repeat": 10497, "mirror": 33648, "clamp": 33071, "black": 33071, "useMetadata": 10497}
 DIRECT_IMAGES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
@@ -130,6 +130,9 @@ class MaterialConverter:
         asset = _input_value(prim, "file", None)
         if asset is None or not getattr(asset, "path", ""):
             self.warn(path, "UsdUVTexture without inputs:file: its fallback is used")
+            return None
+        if is_udim(asset.path):
+            self.warn(path, "UDIM texture sets are not supported: the texture's fallback is used")
             return None
         resolved = asset.resolvedPath
         if not resolved:
@@ -357,7 +360,10 @@ class MaterialConverter:
             if kind == "value":
                 return (default if rest[0] is None else rest[0]), None
             src_prim, output = rest
-            return default, self._texture_ref(src_prim, output, f"{sp}.inputs:{name}")
+            ref = self._texture_ref(src_prim, output, f"{sp}.inputs:{name}")
+            if ref is None:  # unread: the UsdUVTexture's fallback, as the spec says
+                return _fallback(src_prim, output, default), None
+            return default, ref
 
         diffuse, diffuse_tex = read("diffuseColor", (0.18, 0.18, 0.18))
         opacity, opacity_tex = read("opacity", 1.0)
@@ -498,6 +504,19 @@ class MaterialConverter:
     def _bias_warning(self, ref: TextureRef) -> None:
         if any(abs(b) > 1e-6 for b in ref.bias):
             self.warn(ref.shader, "a texture bias is only supported on normal maps; it is ignored")
+
+
+def _fallback(texture_prim, output: str, default: Any) -> Any:
+    """The value a UsdUVTexture gives when its file cannot be read: its `fallback` input's
+    channels for `output` (rgb, r, g, b or a); else `default`."""
+    value = _input_value(texture_prim, "fallback", None)
+    if value is None:
+        return default
+    rgba = _vec(value, 4)
+    if output in ("rgb", "rgba"):
+        return rgba[:3]
+    index = {"r": 0, "g": 1, "b": 2, "a": 3}.get(output)
+    return default if index is None else rgba[index]
 
 
 def _chan(ref: TextureRef) -> int:
