@@ -717,9 +717,10 @@ class _StageConverter:
             if not len(faces):
                 continue
             sub_counts = counts[faces]
-            corner_ids = np.concatenate(
-                [np.arange(starts[f], starts[f] + counts[f]) for f in faces]
-            )
+            # The corners of the chosen faces in order: each face's start plus 0..count-1.
+            first = np.concatenate([[0], np.cumsum(sub_counts)[:-1]])
+            within = np.arange(int(sub_counts.sum())) - np.repeat(first, sub_counts)
+            corner_ids = np.repeat(starts[faces], sub_counts) + within
             tris = _fan(sub_counts)
             if left:
                 tris = tris[:, [0, 2, 1]]
