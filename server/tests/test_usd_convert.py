@@ -764,3 +764,79 @@ def test_a_udim_texture_is_warned_and_its_fallback_used(tmp_path):
     assert "images" not in doc and "baseColorTexture" not in str(doc["materials"])
     base = doc["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"]
     assert base[:3] == pytest.approx([0.2, 0.3, 0.4], rel=1e-6)  # the texture's fallback
+
+
+def _png(path: Path, pixels: np.ndarray) -> None:
+    import OpenImageIO as oiio
+
+    height, width, channels = pixels.shape
+    image = oiio.ImageBuf(oiio.ImageSpec(width, height, channels, oiio.UINT8))
+    image.set_pixels(oiio.ROI(0, width, 0, height, 0, 1, 0, channels), pixels.astype(np.float32))
+    assert image.write(str(path))
+
+
+def _connect(stage, material_path: str, name: str, file: str, output: str, type_name, **extra):
+    """A UsdUVTexture reading `file` connected to the surface's input `name` via `output`."""
+    surface = UsdShade.Shader(stage.GetPrimAtPath(f"{material_path}/Surface"))
+    texture = UsdShade.Shader.Define(stage, f"{material_path}/{name}Texture")
+    texture.CreateIdAttr("UsdUVTexture")
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    for key, value in extra.items():
+        texture.CreateInput(key, Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*value))
+    texture.CreateOutput(output, type_name)
+    surface.CreateInput(name, type_name).ConnectToSource(texture.ConnectableAPI(), output)
+
+
+def _embedded(doc: dict, blob: bytes, info: dict, tmp_path: Path) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    image = doc["images"][doc["textures"][info["index"]]["source"]]
+    view = doc["bufferViews"][image["bufferView"]]
+    path = tmp_path / f"embedded-{info['index']}.png"
+    path.write_bytes(blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]])
+    return np.asarray(oiio.ImageBuf(str(path)).get_pixels(oiio.FLOAT))
+
+
+def test_separate_texture_channels_are_packed_as_gltf_reads_them(tmp_path):
+    """roughness from one grey image, metallic from another: one metallic-roughness image with
+    roughness in G and metallic in B (glTF 3.9.2), R unused (1); the diffuse texture's alpha as
+    opacity: the RGBA file itself, BLEND; a normal map with scale 2 and bias -1: normalTexture
+    without a warning."""
+    rough = np.linspace(0.0, 1.0, 16).reshape(4, 4, 1)
+    metal = 1.0 - rough
+    _png(tmp_path / "rough.png", rough)
+    _png(tmp_path / "metal.png", metal)
+    colour = np.concatenate([np.full((4, 4, 3), 0.5), rough], axis=2)
+    _png(tmp_path / "colour.png", colour)
+    _png(tmp_path / "normal.png", np.tile([0.5, 0.5, 1.0], (4, 4, 1)))
+    stage = new_stage(tmp_path)
+    mesh = unit_cube(stage, "/Cube")
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    )
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)] * 6)
+    material = _material(stage, "/Looks/M")
+    float_, colour3 = Sdf.ValueTypeNames.Float, Sdf.ValueTypeNames.Color3f
+    _connect(stage, "/Looks/M", "roughness", "rough.png", "r", float_)
+    _connect(stage, "/Looks/M", "metallic", "metal.png", "r", float_)
+    _connect(stage, "/Looks/M", "diffuseColor", "colour.png", "rgb", colour3)
+    _connect(stage, "/Looks/M", "opacity", "colour.png", "a", float_)
+    _connect(
+        stage, "/Looks/M", "normal", "normal.png", "rgb", Sdf.ValueTypeNames.Normal3f,
+        scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0),
+    )  # fmt: skip
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not [w for w in conversion.warnings if "normal" in w or "packed" in w]
+    gltf = doc["materials"][0]
+    pbr = gltf["pbrMetallicRoughness"]
+    packed = _embedded(doc, blob, pbr["metallicRoughnessTexture"], tmp_path)
+    assert packed[:, :, 1] == pytest.approx(rough[:, :, 0], abs=1 / 255)
+    assert packed[:, :, 2] == pytest.approx(metal[:, :, 0], abs=1 / 255)
+    assert pbr["metallicFactor"] == pbr["roughnessFactor"] == 1.0  # the texture says it all
+    base = pbr["baseColorTexture"]
+    image = doc["images"][doc["textures"][base["index"]]["source"]]
+    view = doc["bufferViews"][image["bufferView"]]
+    embedded = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+    assert embedded == (tmp_path / "colour.png").read_bytes() and gltf["alphaMode"] == "BLEND"
+    assert "normalTexture" in gltf
