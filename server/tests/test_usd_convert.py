@@ -840,3 +840,37 @@ def test_separate_texture_channels_are_packed_as_gltf_reads_them(tmp_path):
     embedded = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
     assert embedded == (tmp_path / "colour.png").read_bytes() and gltf["alphaMode"] == "BLEND"
     assert "normalTexture" in gltf
+
+
+@pytest.mark.parametrize("where", ["variant", "time sample", "asset array", "clip"])
+def test_an_escaping_path_anywhere_in_a_layer_is_refused(tmp_path, where):
+    """Variants, time samples, asset arrays and value clips are checked as well as plain
+    defaults: each names a file outside the upload here."""
+    root = tmp_path / "upload"
+    root.mkdir()
+    stage = new_stage(root)
+    unit_cube(stage, "/Cube")
+    prim = stage.DefinePrim("/Thing")
+    if where == "variant":
+        variants = prim.GetVariantSets().AddVariantSet("look")
+        variants.AddVariant("dirty")
+        variants.SetVariantSelection("dirty")
+        with variants.GetVariantEditContext():
+            prim.CreateAttribute("texture", Sdf.ValueTypeNames.Asset).Set("../secret.png")
+        field = "scene:/Thing.texture"
+    elif where == "time sample":
+        attr = prim.CreateAttribute("texture", Sdf.ValueTypeNames.Asset)
+        attr.Set(Sdf.AssetPath("ok.png"), 1.0)
+        attr.Set(Sdf.AssetPath("/etc/hostname"), 2.0)
+        field = "scene:/Thing.texture"
+    elif where == "asset array":
+        attr = prim.CreateAttribute("textures", Sdf.ValueTypeNames.AssetArray)
+        attr.Set(Sdf.AssetPathArray([Sdf.AssetPath("ok.png"), Sdf.AssetPath("../x.png")]))
+        field = "scene:/Thing.textures"
+    else:
+        Usd.ClipsAPI(prim).SetClipAssetPaths([Sdf.AssetPath("/tmp/clip.usda")])
+        field = "scene:/Thing.clips[default].assetPaths"
+    (root / "ok.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(SceneError) as refused:
+        convert(stage, root)
+    assert refused.value.field == field, refused.value.message
