@@ -874,3 +874,26 @@ def test_an_escaping_path_anywhere_in_a_layer_is_refused(tmp_path, where):
     with pytest.raises(SceneError) as refused:
         convert(stage, root)
     assert refused.value.field == field, refused.value.message
+
+
+def test_point_instancer_positions_over_time_animate_each_instance(tmp_path):
+    """Two instances moving from x = 0 and 1 at frame 0 to x = 4 and 7 at frame 24: at 0.5 s
+    (frame 12, timeCodesPerSecond 24) they are half way, at x = 2 and 4."""
+    stage = new_stage(tmp_path, meters_per_unit=1.0)
+    stage.SetTimeCodesPerSecond(24.0)
+    stage.SetStartTimeCode(0.0)
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Flock")
+    bird = UsdGeom.Sphere.Define(stage, "/Flock/Protos/Bird")
+    bird.CreateRadiusAttr(0.1)
+    instancer.CreatePrototypesRel().SetTargets([bird.GetPath()])
+    instancer.CreateProtoIndicesAttr([0, 0])
+    positions = instancer.CreatePositionsAttr()
+    positions.Set([(0, 0, 0), (1, 0, 0)], 0.0)
+    positions.Set([(4, 0, 0), (7, 0, 0)], 24.0)
+    _, doc, blob = convert(stage, tmp_path)
+    assert len(doc["meshes"]) == 1  # still one shared sphere
+    xs = []
+    for name in ("Flock[0]", "Flock[1]"):
+        (index,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == name]
+        xs.append(float(_world_at(doc, blob, 0.5)[index][0, 3]))
+    assert xs == pytest.approx([2.0, 4.0], abs=1e-6)

@@ -179,6 +179,7 @@ class _StageConverter:
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
         self.animation: dict[str, Any] = {"name": "usd", "samplers": []}
         self.channels: list[dict[str, Any]] = []
+        self.time_accessors: dict[bytes, int] = {}  # sample times -> their accessor
         self.skel_cache = UsdSkel.Cache()
         self.joint_nodes: dict[str, list[int]] = {}  # skeleton path -> joint nodes, its order
         self.mesh_skins: dict[str, tuple[str, np.ndarray]] = {}  # mesh -> (skeleton, IBMs)
@@ -366,7 +367,11 @@ class _StageConverter:
             if np.dot(rotations[i], rotations[i - 1]) < 0:
                 rotations[i] = -rotations[i]
         _set_trs(node, matrix_at(self.time), self.mpu)
-        seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
+        key = times.tobytes()
+        seconds = self.time_accessors.get(key)
+        if seconds is None:
+            seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
+            self.time_accessors[key] = seconds
         channels = []
         for name, values in (
             ("translation", [t for t, _, _, _ in trs]),
@@ -524,6 +529,7 @@ class _StageConverter:
             )
         mask = instancer.ComputeMaskAtTime(self.time)
         proto_prims = [self.stage.GetPrimAtPath(p) for p in protos]
+        at_time = self._instancer_samples(instancer, len(indices))
         nodes = []
         for i, (matrix, proto) in enumerate(zip(xforms, indices, strict=True)):
             if mask and not mask[i]:
@@ -532,11 +538,63 @@ class _StageConverter:
             if child is None:
                 continue
             node: dict[str, Any] = {"name": f"{prim.GetName()}[{i}]", "children": [child]}
-            gltf = _gltf_matrix(matrix, self.mpu)
-            if gltf is not None:
-                node["matrix"] = gltf
-            nodes.append(self.writer.add("nodes", node))
+            channels = None
+            if at_time:
+
+                def matrix_at(time, i: int = i, start=matrix):
+                    sample = at_time.get(time.GetValue()) if time.IsNumeric() else None
+                    return start if sample is None else sample[i]
+
+                channels = self.trs_animation(f"{path}[{i}]", list(at_time), matrix_at, node)
+            if channels is None:
+                for key in ("translation", "rotation", "scale"):
+                    node.pop(key, None)
+                gltf = _gltf_matrix(matrix, self.mpu)
+                if gltf is not None:
+                    node["matrix"] = gltf
+            index = self.writer.add("nodes", node)
+            for channel in channels or []:
+                channel["target"]["node"] = index
+                self.channels.append(channel)
+            nodes.append(index)
         return nodes
+
+    def _instancer_samples(self, instancer, count: int) -> dict[float, Any]:
+        """The instance transforms at each time the instancer's positions, orientations or
+        scales are sampled, and at every whole time code between the first and the last
+        ({time code: transforms}); empty when they do not vary or the instances change."""
+        from pxr import Usd, UsdGeom
+
+        path = str(instancer.GetPath())
+        attrs = [
+            instancer.GetPositionsAttr(),
+            instancer.GetOrientationsAttr(),
+            instancer.GetOrientationsfAttr(),
+            instancer.GetScalesAttr(),
+        ]
+        authored = sorted({t for a in attrs if a for t in a.GetTimeSamples()})
+        if len(authored) < 2:
+            return {}
+        if instancer.GetProtoIndicesAttr().ValueMightBeTimeVarying():
+            self.warn(path, "instances that change over time are converted at the first time")
+            return {}
+        whole = np.arange(math.ceil(authored[0]), math.floor(authored[-1]) + 1)
+        times = sorted(set(authored) | {float(t) for t in whole})
+        if len(times) * count > MAX_ANIMATION_SAMPLES * 10:
+            self.warn(path, "too many animated instance keys: instances converted at first time")
+            return {}
+        samples = {}
+        for t in times:
+            code = Usd.TimeCode(t)
+            xforms = instancer.ComputeInstanceTransformsAtTime(
+                code, code, UsdGeom.PointInstancer.IncludeProtoXform,
+                UsdGeom.PointInstancer.IgnoreMask,
+            )  # fmt: skip
+            if xforms is None or len(xforms) != count:
+                self.warn(path, "the instance count changes over time: converted at first time")
+                return {}
+            samples[float(t)] = xforms
+        return samples
 
     # ------------------------------------------------------------------ materials
     def _material_for(self, prim, double_sided: bool):
