@@ -897,3 +897,41 @@ def test_point_instancer_positions_over_time_animate_each_instance(tmp_path):
         (index,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == name]
         xs.append(float(_world_at(doc, blob, 0.5)[index][0, 3]))
     assert xs == pytest.approx([2.0, 4.0], abs=1e-6)
+
+
+def test_deforming_points_become_morph_targets_played_by_the_animation(tmp_path):
+    """A quad whose corner (1, 1, 0) rises to z = 2 by frame 24 (24 time codes a second) and
+    back to 0 at frame 48, inside a moved Xform: at 0.5 s the corner is at z = 1, at 1.5 s at
+    z = 1 again, the other corners never move. glTF: POSITION + sum of weight_k x target_k, the
+    weights sampled LINEAR from the weights channel."""
+    stage = new_stage(tmp_path, meters_per_unit=1.0)
+    stage.SetTimeCodesPerSecond(24.0)
+    stage.SetStartTimeCode(0.0)
+    UsdGeom.Xform.Define(stage, "/Moved").AddTranslateOp().Set(Gf.Vec3d(5, 0, 0))
+    quad = UsdGeom.Mesh.Define(stage, "/Moved/Sheet")
+    quad.CreateFaceVertexCountsAttr([4])
+    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    quad.CreateSubdivisionSchemeAttr("none")
+    flat = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+    raised = [(0, 0, 0), (1, 0, 0), (1, 1, 2), (0, 1, 0)]
+    points = quad.CreatePointsAttr()
+    points.Set(flat, 0.0)
+    points.Set(raised, 24.0)
+    points.Set(flat, 48.0)
+    _, doc, blob = convert(stage, tmp_path)
+    (node_index,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == "Sheet"]
+    prim = doc["meshes"][doc["nodes"][node_index]["mesh"]]["primitives"][0]
+    base = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+    targets = [accessor(doc, blob, t["POSITION"]).astype(np.float64) for t in prim["targets"]]
+    (channel,) = [c for c in doc["animations"][0]["channels"] if c["target"]["path"] == "weights"]
+    assert channel["target"]["node"] == node_index
+    sampler = doc["animations"][0]["samplers"][channel["sampler"]]
+    times = accessor(doc, blob, sampler["input"]).reshape(-1)
+    weights = accessor(doc, blob, sampler["output"]).reshape(len(times), len(targets))
+    for seconds, lift in ((0.0, 0.0), (0.5, 1.0), (1.0, 2.0), (1.5, 1.0), (2.0, 0.0)):
+        w = np.array([np.interp(seconds, times, weights[:, k]) for k in range(len(targets))])
+        posed = base + sum(wk * t for wk, t in zip(w, targets, strict=True))
+        corners = {tuple(np.round(p, 6)) for p in posed}
+        assert corners == {(0, 0, 0), (1, 0, 0), (1, 1, lift), (0, 1, 0)}, seconds
+    world = world_matrices(doc)[node_index]
+    assert world[:3, 3] == pytest.approx([5.0, 0.0, 0.0])  # the parent still places it

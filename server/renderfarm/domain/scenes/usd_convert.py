@@ -57,6 +57,7 @@ from .usd_materials import MaterialConverter, _set_emission
 
 MAX_NODES = 2_000_000
 MAX_ANIMATION_SAMPLES = 100_000
+MAX_MORPH_VALUES = 8_000_000  # points over every sample of a deforming mesh (96 MB of targets)
 
 
 @dataclass
@@ -180,6 +181,7 @@ class _StageConverter:
         self.animation: dict[str, Any] = {"name": "usd", "samplers": []}
         self.channels: list[dict[str, Any]] = []
         self.time_accessors: dict[bytes, int] = {}  # sample times -> their accessor
+        self.mesh_morphs: dict[str, tuple[np.ndarray, int]] = {}  # mesh -> (times, targets)
         self.skel_cache = UsdSkel.Cache()
         self.joint_nodes: dict[str, list[int]] = {}  # skeleton path -> joint nodes, its order
         self.mesh_skins: dict[str, tuple[str, np.ndarray]] = {}  # mesh -> (skeleton, IBMs)
@@ -281,8 +283,6 @@ class _StageConverter:
                     node["matrix"] = matrix
         else:
             animation = None
-        if prim.IsA(UsdGeom.PointBased) and prim.GetAttribute("points").ValueMightBeTimeVarying():
-            self.warn(path, "deforming points (time samples) are converted at the first time only")
         if prim.IsA(UsdSkel.Root):
             self.skel_cache.Populate(UsdSkel.Root(prim), Usd.PrimDefaultPredicate)
         children: list[int] = []
@@ -291,6 +291,8 @@ class _StageConverter:
             mesh = self.mesh(prim)
             if mesh is not None:
                 node["mesh"] = mesh
+                if path in self.mesh_morphs:
+                    animation = (animation or []) + [self.morph_channel(*self.mesh_morphs[path])]
                 if path in self.mesh_skins:
                     self.pending_skins.append((node, *self.mesh_skins[path], path))
         elif prim.IsA(UsdGeom.Cube) or prim.IsA(UsdGeom.Sphere):
@@ -323,6 +325,9 @@ class _StageConverter:
             node["children"] = children
         if not any(k in node for k in ("mesh", "camera", "children", "extensions")):
             return None
+        if animation and "matrix" in node:  # glTF: an animated node has no matrix
+            rows = np.array(node.pop("matrix")).reshape(4, 4)
+            _set_trs(node, rows, 1.0)  # (its translation is in metres already)
         index = self.writer.add("nodes", node)
         if animation is not None:
             for channel in animation:
@@ -736,6 +741,9 @@ class _StageConverter:
             attributes["NORMAL"] = np.where(
                 length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]
             )
+        morph = self.morph_samples(mesh, len(points))
+        if morph is not None:  # welded apart by point, so each vertex follows its own point
+            attributes["_POINT"] = indices.astype(np.float64)
         skin = self.skin_attributes(prim, indices, len(points))
         if skin is not None:
             attributes["JOINTS_0"] = skin["JOINTS_0"]
@@ -820,14 +828,60 @@ class _StageConverter:
                 )
                 if colors is not None:
                     attrs["COLOR_0"] = colors[corner_ids]
-            primitives.append(self._primitive(attrs, tris, material_index))
+            primitives.append(self._primitive(attrs, tris, material_index, morph))
         if not primitives:
             self.warn(path, "no faces to render")
             return None
-        index = self.writer.add("meshes", {"name": path, "primitives": primitives})
+        gltf_mesh: dict[str, Any] = {"name": path, "primitives": primitives}
+        if morph is not None:
+            gltf_mesh["weights"] = [0.0] * len(morph[0])
+            self.mesh_morphs[path] = (morph[0], len(morph[0]))
+        index = self.writer.add("meshes", gltf_mesh)
         self.meshes[key] = index
         self.renderables += 1
         return index
+
+    def morph_samples(self, mesh, n_points: int):
+        """(time codes, the points at each in metres) of a mesh whose points have time samples
+        over a fixed topology, sampled at every authored time and every whole time code
+        between, at most MAX_MORPH_VALUES point values in all; None when they do not vary."""
+        path = str(mesh.GetPath())
+        attr = mesh.GetPointsAttr()
+        authored = sorted(set(attr.GetTimeSamples()))
+        if len(authored) < 2:
+            return None
+        for topology in (mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()):
+            if topology.ValueMightBeTimeVarying():
+                self.warn(path, "a topology that changes over time: converted at the first time")
+                return None
+        whole = np.arange(math.ceil(authored[0]), math.floor(authored[-1]) + 1)
+        times = np.unique(np.concatenate([np.array(authored), whole.astype(np.float64)]))
+        if len(times) * n_points > MAX_MORPH_VALUES:
+            keep = max(2, MAX_MORPH_VALUES // max(n_points, 1))
+            self.warn(path, f"deforming points thinned to {keep} samples (a memory limit)")
+            times = times[np.linspace(0, len(times) - 1, keep).round().astype(int)]
+        frames = []
+        for t in times:
+            points = attr.Get(float(t))
+            if points is None or len(points) != n_points:
+                self.warn(path, "the point count changes over time: converted at the first time")
+                return None
+            frames.append(np.array(points, dtype=np.float64).reshape(-1, 3) * self.mpu)
+        return times, frames
+
+    def morph_channel(self, times: np.ndarray, count: int) -> dict[str, Any]:
+        """A weights channel (its node left to the caller) that shows morph target k alone at
+        time k: LINEAR between neighbours blends two samples' points linearly, as USD
+        interpolates points."""
+        key = times.tobytes()
+        seconds = self.time_accessors.get(key)
+        if seconds is None:
+            seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
+            self.time_accessors[key] = seconds
+        output = self.writer.accessor(np.eye(count).reshape(-1))
+        samplers = self.animation["samplers"]
+        samplers.append({"input": seconds, "output": output, "interpolation": "LINEAR"})
+        return {"sampler": len(samplers) - 1, "target": {"path": "weights"}}
 
     def _display_material(
         self, path, display, d_interp, opacity, o_interp, counts, indices, n_points, double_sided
@@ -865,27 +919,38 @@ class _StageConverter:
         return material, np.concatenate([rgb, a], axis=1)
 
     def _primitive(
-        self, attrs: dict[str, np.ndarray], tris: np.ndarray, material: int | None
+        self, attrs: dict[str, np.ndarray], tris: np.ndarray, material: int | None, morph=None
     ) -> dict[str, Any]:
-        """Weld identical corners, then one glTF primitive."""
+        """Weld identical corners, then one glTF primitive (with a POSITION morph target per
+        sample of `morph`, (times, points per time), whose `_POINT` attribute says which
+        point each corner is)."""
         names = sorted(attrs)
         table = np.concatenate([attrs[n].reshape(len(attrs[n]), -1) for n in names], axis=1)
         unique, inverse = np.unique(table, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
         out_attrs = {}
+        columns = {}
         col = 0
         for n in names:
             width = attrs[n].reshape(len(attrs[n]), -1).shape[1]
-            out_attrs[n] = self.writer.accessor(
-                unique[:, col : col + width],
-                bounds=n == "POSITION",
-                joints=n.startswith("JOINTS_"),
-            )
+            columns[n] = unique[:, col : col + width]
             col += width
+            if n.startswith("_"):
+                continue
+            out_attrs[n] = self.writer.accessor(
+                columns[n], bounds=n == "POSITION", joints=n.startswith("JOINTS_")
+            )
         primitive: dict[str, Any] = {
             "attributes": out_attrs,
             "indices": self.writer.accessor(inverse[tris], indices=True),
         }
+        if morph is not None:
+            point = columns["_POINT"][:, 0].astype(np.int64)
+            base = columns["POSITION"]
+            primitive["targets"] = [
+                {"POSITION": self.writer.accessor(frame[point] - base, bounds=True)}
+                for frame in morph[1]
+            ]
         if material is not None:
             primitive["material"] = material
         return primitive
