@@ -85,31 +85,33 @@ class UsdImporter:
         return usd_kind(data, filename) is not None
 
     async def convert(self, data: bytes, filename: str) -> UsdImport:
-        kind = usd_kind(data, filename)
-        if kind is None:
-            raise SceneError(f"{filename or 'scene'} is not a USD upload")
-        files, root_layer = usd_files(data, filename, kind, self.max_output_bytes)
+        """The upload converted (SceneError naming the prim and attribute, or the limits).
+        Unpacking, writing and hashing run in a thread: the event loop serves meanwhile."""
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix="usd-", dir=self.tmp_dir))
         try:
-            upload = work / "upload"
-            for rel, content in files.items():
-                target = upload / rel
-                target.parent.mkdir(parents=True, exist_ok=True)
-                target.write_bytes(content)
+            root_layer, source_sha256 = await asyncio.to_thread(
+                self._lay_out, data, filename, work / "upload"
+            )
             out = work / "scene.glb"
             async with self._slots:
-                result = await self._run(upload, root_layer, out, work, filename or root_layer)
-            glb = out.read_bytes()
+                result = await self._run(
+                    work / "upload", root_layer, out, work, filename or root_layer
+                )
             env = dict(result.get("environment") or {})
-            env_data = (work / "environment").read_bytes() if env else None
+            glb, env_data = await asyncio.to_thread(
+                lambda: (
+                    out.read_bytes(),
+                    (work / "environment").read_bytes() if env else None,
+                )
+            )
         finally:
-            shutil.rmtree(work, ignore_errors=True)
+            await asyncio.to_thread(shutil.rmtree, work, True)
         stem = posixpath.splitext(posixpath.basename((filename or root_layer).replace("\\", "/")))
         return UsdImport(
             glb=glb,
             filename=(stem[0] or "scene") + ".glb",
-            source_sha256=hashlib.sha256(data).hexdigest(),
+            source_sha256=source_sha256,
             source_filename=filename or root_layer,
             warnings=[str(w) for w in result.get("warnings", [])],
             camera={k: float(v) for k, v in dict(result.get("camera") or {}).items()},
@@ -122,6 +124,18 @@ class UsdImporter:
             if env
             else {},
         )
+
+    def _lay_out(self, data: bytes, filename: str, upload: Path) -> tuple[str, str]:
+        """Write the upload's files under `upload`; (the root layer's path, the sha256)."""
+        kind = usd_kind(data, filename)
+        if kind is None:
+            raise SceneError(f"{filename or 'scene'} is not a USD upload")
+        files, root_layer = usd_files(data, filename, kind, self.max_output_bytes)
+        for rel, content in files.items():
+            target = upload / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(content)
+        return root_layer, hashlib.sha256(data).hexdigest()
 
     async def _run(self, upload: Path, root_layer: str, out: Path, work: Path, name: str):
         cpu = max(1, int(self.cpu_seconds + 0.999))
