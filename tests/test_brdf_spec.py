@@ -1,8 +1,8 @@
 """The worker's metallic-roughness BRDF against the glTF 2.0 specification's closed form
 (Appendix B, "BRDF Implementation"), evaluated here in numpy and nowhere else.
 
-Each render is a flat, untextured ground (normal +Y) of four dielectric materials side by
-side, seen by an orthographic camera from direction V and lit by one directional light
+Each render is a flat, untextured ground (normal +Y) of the dielectric materials of MATERIALS
+side by side (two with KHR_materials_specular's weight and colour), seen by an orthographic camera from direction V and lit by one directional light
 (KHR_lights_punctual, intensity I) from direction L over a black world. Every sample of a
 pixel then sees the same point of the same BRDF with the same V and L, and the path tracer's
 estimate is exact: the pixel is I x f(V, L) x N.L, with f the spec's
@@ -36,17 +36,22 @@ from renderfarm.domain.scenes.glb import build_glb
 from renderfarm.infra.images import read_exr
 
 INTENSITY = 2.0
-WIDTH, HEIGHT = 64, 16
-# (baseColor, roughness, ior): rough and glossy dielectrics, one with KHR_materials_ior.
+# (baseColor, roughness, ior, specularFactor, specularColorFactor): rough and glossy
+# dielectrics, one with KHR_materials_ior, two with KHR_materials_specular (a weight and a
+# colour, one of whose channels F0 clamps to 1: 0.04 x 30).
 MATERIALS = [
-    ((0.5, 0.5, 0.5), 0.8, 1.5),  # the parity scenes' floor
-    ((0.9, 0.3, 0.1), 0.3, 1.5),
-    ((0.2, 0.6, 0.9), 1.0, 1.5),
-    ((0.7, 0.7, 0.2), 0.5, 1.8),
+    ((0.5, 0.5, 0.5), 0.8, 1.5, 1.0, (1.0, 1.0, 1.0)),  # the parity scenes' floor
+    ((0.9, 0.3, 0.1), 0.3, 1.5, 1.0, (1.0, 1.0, 1.0)),
+    ((0.2, 0.6, 0.9), 1.0, 1.5, 1.0, (1.0, 1.0, 1.0)),
+    ((0.7, 0.7, 0.2), 0.5, 1.8, 1.0, (1.0, 1.0, 1.0)),
+    ((0.6, 0.4, 0.3), 0.35, 1.5, 0.7, (0.2, 2.5, 30.0)),
+    ((0.1, 0.8, 0.3), 0.6, 1.6, 0.4, (1.0, 0.5, 0.0)),
 ]
-# The ground's strips: material k covers z in [2k - 3.8, 2k - 2.2], along the image's width.
-STRIP_CENTRES = [2.0 * k - 3.0 for k in range(len(MATERIALS))]
-XMAG = 4.0
+WIDTH, HEIGHT = 16 * len(MATERIALS), 16
+# The ground's strips: material k covers z in [2k - n + 0.2, 2k - n + 1.8], side by side along
+# the image's width (x in [-XMAG, XMAG]).
+STRIP_CENTRES = [2.0 * k - len(MATERIALS) + 1.0 for k in range(len(MATERIALS))]
+XMAG = float(len(MATERIALS))
 
 
 def direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
@@ -90,7 +95,7 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
         {"bufferView": 1, "componentType": 5126, "count": n, "type": "VEC3"},
     ]  # fmt: skip
     primitives, materials = [], []
-    for k, (colour, roughness, ior) in enumerate(MATERIALS):
+    for k, (colour, roughness, ior, specular, specular_colour) in enumerate(MATERIALS):
         views.append({"buffer": 0, "byteOffset": index_offset + 12 * k, "byteLength": 12})
         accessors.append({"bufferView": 2 + k, "componentType": 5123, "count": 6,
                           "type": "SCALAR"})  # fmt: skip
@@ -99,15 +104,23 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
         material = {"pbrMetallicRoughness": {"baseColorFactor": [*colour, 1.0],
                                              "metallicFactor": 0.0,
                                              "roughnessFactor": roughness}}  # fmt: skip
+        extensions = {}
         if ior != 1.5:
-            material["extensions"] = {"KHR_materials_ior": {"ior": ior}}
+            extensions["KHR_materials_ior"] = {"ior": ior}
+        if specular != 1.0 or specular_colour != (1.0, 1.0, 1.0):
+            extensions["KHR_materials_specular"] = {
+                "specularFactor": specular,
+                "specularColorFactor": list(specular_colour),
+            }
+        if extensions:
+            material["extensions"] = extensions
         materials.append(material)
     # Image right is world +Z (the strips side by side); the camera 30 units out along view.
     camera_matrix = frame_matrix(view, np.array([0.0, 0.0, 1.0]), 30.0 * view)
     light_matrix = frame_matrix(light, np.array([0.3, 0.1, 0.9]), 10.0 * light)
     gltf = {
         "asset": {"version": "2.0"},
-        "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior"],
+        "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior", "KHR_materials_specular"],
         "extensions": {"KHR_lights_punctual": {"lights": [
             {"type": "directional", "color": [1, 1, 1], "intensity": INTENSITY}]}},
         "scene": 0,
@@ -128,8 +141,16 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
     path.write_bytes(build_glb(gltf, blob))
 
 
-def spec_brdf(colour, roughness, ior, v: np.ndarray, light: np.ndarray) -> np.ndarray:
-    """glTF 2.0 Appendix B, the dielectric (metallic 0): f(V, L) for normal +Y, RGB."""
+def spec_brdf(
+    colour, roughness, ior, specular, specular_colour, v: np.ndarray, light: np.ndarray
+) -> np.ndarray:
+    """glTF 2.0 Appendix B, the dielectric (metallic 0), with KHR_materials_specular's
+    fresnel_mix (its "Implementation" section):
+
+        f0 = min(((ior - 1) / (ior + 1))^2 specularColor, 1),  Fr = f0 + (1 - f0)(1 - |V.H|)^5,
+        f = (1 - specular max(Fr)) diffuse + specular Fr specular_brdf,
+
+    f(V, L) for normal +Y, RGB; specular 1 and a white colour give Appendix B's mix."""
     n = np.array([0.0, 1.0, 0.0])
     h = (v + light) / np.linalg.norm(v + light)
     nl, nv, nh = np.dot(n, light), np.dot(n, v), np.dot(n, h)
@@ -138,10 +159,10 @@ def spec_brdf(colour, roughness, ior, v: np.ndarray, light: np.ndarray) -> np.nd
     d = a2 * (nh > 0) / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
     vis = (hl > 0) * (vh > 0) / (2.0 * (abs(nv) * np.sqrt(a2 + (1 - a2) * nl * nl)
                                         + abs(nl) * np.sqrt(a2 + (1 - a2) * nv * nv)))  # fmt: skip
-    f0 = ((1.0 - ior) / (1.0 + ior)) ** 2
+    f0 = np.minimum(((1.0 - ior) / (1.0 + ior)) ** 2 * np.asarray(specular_colour), 1.0)
     fr = f0 + (1.0 - f0) * (1.0 - abs(vh)) ** 5
     diffuse = np.asarray(colour) / np.pi
-    return (1.0 - fr) * diffuse + fr * vis * d
+    return (1.0 - specular * np.max(fr)) * diffuse + specular * fr * vis * d
 
 
 def strip_pixels(image: np.ndarray) -> list[np.ndarray]:
@@ -178,8 +199,7 @@ def test_dielectric_brdf_is_the_specs_closed_form(
         channels = read_exr(str(out))
         image = np.stack([channels["R"], channels["G"], channels["B"]], -1).astype(np.float64)
         for k, got in enumerate(strip_pixels(image)):
-            colour, roughness, ior = MATERIALS[k]
-            want = INTENSITY * spec_brdf(colour, roughness, ior, view, light) * light[1]
+            want = INTENSITY * spec_brdf(*MATERIALS[k], view, light) * light[1]
             where = f"material {k} {MATERIALS[k]}, view {tv} deg, light {tl} deg at {phi} deg"
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7, err_msg=where)
             worst = max(worst, float(np.max(np.abs(got / want - 1))))

@@ -101,6 +101,16 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   const float r = std::min(1.f, std::max(0.f, roughness));
   bp.alpha = std::max(kMinAlpha, r * r);
   bp.specular = mat.specular;
+  bp.specular_color = mat.specular_color;
+  // KHR_materials_specular: specularFactor x specularTexture.a (linear), specularColorFactor x
+  // specularColorTexture.rgb (sRGB, decoded before filtering).
+  if (mat.specular_tex.valid() && mat.specular > 0.f &&
+      tex.lookup(mat.specular_tex.texture, texcoord(scene, hit, mat.specular_tex), 4, c))
+    bp.specular = std::min(1.f, std::max(0.f, mat.specular * c[3]));
+  if (mat.specular_color_tex.valid() &&
+      tex.lookup(mat.specular_color_tex.texture, texcoord(scene, hit, mat.specular_color_tex), 3,
+                 c))
+    bp.specular_color = mat.specular_color * Vec3(c[0], c[1], c[2]);
   bp.ior = mat.ior;
   bp.transmission = mat.transmission;
   // KHR_materials_transmission: transmissionFactor x transmissionTexture.r (linear).

@@ -823,11 +823,26 @@ class Loader {
                     named(gm.name), &m);
       auto sp = gm.extensions.find("KHR_materials_specular");
       if (sp != gm.extensions.end()) {
-        m.specular = std::min(1.f, std::max(0.f, number_or(sp->second, "specularFactor", 1.f)));
-        if (sp->second.Has("specularColorFactor") || sp->second.Has("specularTexture") ||
-            sp->second.Has("specularColorTexture"))
-          warn(where + ": KHR_materials_specular color and textures are not supported; "
-                       "using specularFactor");
+        const std::string at_sp =
+            "materials[" + std::to_string(i) + "].extensions.KHR_materials_specular";
+        m.specular = unit_factor(sp->second, "specularFactor", 1.f, at_sp);
+        if (sp->second.Has("specularColorFactor")) {
+          const tinygltf::Value& c = sp->second.Get("specularColorFactor");
+          if (!c.IsArray() || c.ArrayLen() != 3)
+            fail(at_sp + ".specularColorFactor" + named(gm.name) +
+                 ": must be an array of 3 numbers");
+          for (int k = 0; k < 3; ++k) {
+            const tinygltf::Value& v = c.Get(k);
+            // The extension's range is [0, inf): the colour scales F0 = ((ior-1)/(ior+1))^2,
+            // which is then clamped to 1.
+            m.specular_color[k] = v.IsNumber() ? float(v.GetNumberAsDouble()) : -1.f;
+            if (!(m.specular_color[k] >= 0.f) || !std::isfinite(m.specular_color[k]))
+              fail(at_sp + ".specularColorFactor" + named(gm.name) +
+                   ": must be 3 finite numbers >= 0");
+          }
+        }
+        m.specular_tex = texture_ref(sp->second, "specularTexture", at_sp);
+        m.specular_color_tex = texture_ref(sp->second, "specularColorTexture", at_sp);
       }
       const auto& pmr = gm.pbrMetallicRoughness;
       m.base_color_tex = texture_ref(pmr.baseColorTexture.index, pmr.baseColorTexture.texCoord,

@@ -183,9 +183,25 @@ inline float schlick_weight(float c) {
   return m2 * m2 * m;
 }
 
-inline float dielectric_f0(const BsdfParams& p) {
+// KHR_materials_specular: dielectric_f0 = min(((ior - 1)/(ior + 1))^2 specularColor, 1)
+// specular, per channel (specular = specularFactor x specularTexture.a, specularColor =
+// specularColorFactor x specularColorTexture.rgb).
+inline Vec3 dielectric_f0(const BsdfParams& p) {
   const float r = (p.ior - 1.f) / (p.ior + 1.f);
-  return std::min(1.f, p.specular * r * r);
+  const float r2 = r * r;
+  Vec3 f0;
+  for (int c = 0; c < 3; ++c) f0[c] = std::min(1.f, r2 * p.specular_color[c]) * p.specular;
+  return f0;
+}
+
+// The dielectric Fresnel of the extension's fresnel_mix, weight x (f0 + (1 - f0) fw) per
+// channel, as f0d + (specular - f0d) fw with f0d = weight x f0 (dielectric_f0); 0 without a
+// specular layer.
+inline Vec3 dielectric_fresnel(const BsdfParams& p, const Vec3& f0d, float fw) {
+  if (!(p.specular > 0.f)) return {0.f, 0.f, 0.f};
+  Vec3 fd;
+  for (int c = 0; c < 3; ++c) fd[c] = f0d[c] + (p.specular - f0d[c]) * fw;
+  return fd;
 }
 
 
@@ -219,6 +235,8 @@ const Material::TextureSlot (&Material::texture_slots())[Material::kTextureSlots
       {&Material::normal_tex, "normalTexture", false, true},
       {&Material::emissive_tex, "emissiveTexture", true, false},
       {&Material::transmission_tex, "transmissionTexture", false, true},
+      {&Material::specular_tex, "specularTexture", false, true},
+      {&Material::specular_color_tex, "specularColorTexture", true, true},
       {&Material::clearcoat_tex, "clearcoatTexture", false, true},
       {&Material::clearcoat_roughness_tex, "clearcoatRoughnessTexture", false, true},
       {&Material::clearcoat_normal_tex, "clearcoatNormalTexture", false, true},
@@ -327,7 +345,7 @@ BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
   l.wd = (1.f - p.metallic) * (1.f - p.transmission);
   const float fw = schlick_weight(wo.z);
   l.f0d = dielectric_f0(p);
-  const float fd = p.specular > 0.f ? l.f0d + (p.specular - l.f0d) * fw : 0.f;
+  const float fd = max3(dielectric_fresnel(p, l.f0d, fw));
   const float lum = luminance(p.base);
   const float fm = lum + (1.f - lum) * fw;
   const float ws = l.wd * fd + p.metallic * fm;
@@ -372,13 +390,13 @@ Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   const Vec3 h = h_raw / hl;
   const float c = std::max(0.f, dot(wo, h));
   const float fw = schlick_weight(c);
-  // KHR_materials_specular: the dielectric Fresnel is scaled by specularFactor.
-  const float f0d = dielectric_f0(p);
-  const float fd = p.specular > 0.f ? f0d + (p.specular - f0d) * fw : 0.f;
+  // KHR_materials_specular's fresnel_mix: the specular layer weighted by the coloured
+  // Fresnel F, the diffuse base by 1 - max(F).
+  const Vec3 fd = dielectric_fresnel(p, dielectric_f0(p), fw);
   const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
   const float spec = ggx_d(h, p.alpha) * ggx_g2(wo, wi, p.alpha) / (4.f * wo.z * wi.z);
-  const Vec3 diffuse = p.base * (wd * (1.f - fd) * kInvPi);
-  const Vec3 specular = (Vec3(1.f, 1.f, 1.f) * (wd * fd) + fm * p.metallic) * spec;
+  const Vec3 diffuse = p.base * (wd * (1.f - max3(fd)) * kInvPi);
+  const Vec3 specular = (fd * wd + fm * p.metallic) * spec;
   const Vec3 f = (diffuse + specular + metal_multiple_scattering(p, wo, wi)) * wi.z;
   if (!p.layered()) return f;
   float pdf = 0.f;
@@ -426,7 +444,7 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, fl
   if (!(c2 > 0.f)) return {0.f, 0.f, 0.f};
   const float c = std::sqrt(c2);
   const float fw = schlick_weight(c);
-  const float fd = p.specular > 0.f ? l.f0d + (p.specular - l.f0d) * fw : 0.f;
+  const Vec3 fd = dielectric_fresnel(p, l.f0d, fw);
   const float a2 = p.alpha * p.alpha;
   const float sz = sum.z;
   const float four_c2 = 4.f * c2;
@@ -435,11 +453,12 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, fl
   const float ci2 = wi.z * wi.z;
   const float root_i = std::sqrt(ci2 + a2 * std::max(0.f, 1.f - ci2));
   const float spec = d / (2.f * (l.root_o * wi.z + root_i * wo.z));
-  const float spec_weight_d = l.wd * fd;
-  Vec3 diffuse = p.base * (l.wd * (1.f - fd) * kInvPi);
+  const float fdm = std::max(fd.x, std::max(fd.y, fd.z));
+  Vec3 diffuse = p.base * (l.wd * (1.f - fdm) * kInvPi);
   if (p.metallic > 0.f) diffuse += l.ms * (1.f - energy_table().e(wi.z, p.alpha));
   const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
-  const Vec3 specular = (Vec3(spec_weight_d, spec_weight_d, spec_weight_d) + fm * p.metallic) * spec;
+  Vec3 specular;
+  for (int ch = 0; ch < 3; ++ch) specular[ch] = (l.wd * fd[ch] + fm[ch] * p.metallic) * spec;
   *pdf = (1.f - l.glass) * (l.spec * d * l.pdf_k + (1.f - l.spec) * wi.z * kInvPi);
   if (!l.layered) return (diffuse + specular) * wi.z;
   return add_layers(p, l, wo, wi, (diffuse + specular) * wi.z, *pdf, pdf);
@@ -673,8 +692,14 @@ void BsdfEvalBatch::evaluate_block(int i) {
   const F32x4 m = min4(one, max4(zero, one - c));
   const F32x4 m2 = m * m;
   const F32x4 fw = m2 * m2 * m;
-  const F32x4 specular = load4(&specular_[v]), f0d = load4(&f0d_[v]);
-  const F32x4 fd = select4(specular > zero, f0d + (specular - f0d) * fw, zero);
+  const F32x4 specular = load4(&specular_[v]);
+  const I32x4 has_specular = specular > zero;
+  F32x4 fd[3];
+  for (int ch = 0; ch < 3; ++ch) {
+    const F32x4 f0d = load4(&f0d_[ch][v]);
+    fd[ch] = select4(has_specular, f0d + (specular - f0d) * fw, zero);
+  }
+  const F32x4 fdm = max4(fd[0], max4(fd[1], fd[2]));
   const F32x4 alpha = load4(&alpha_[v]);
   const F32x4 a2 = alpha * alpha;
   const F32x4 four_c2 = 4.f * c2;
@@ -684,8 +709,7 @@ void BsdfEvalBatch::evaluate_block(int i) {
   const F32x4 root_i = sqrt4(ci2 + a2 * max4(zero, one - ci2));
   const F32x4 spec = d / (2.f * (load4(&root_o_[v]) * wi_z + root_i * wo_z));
   const F32x4 wd = load4(&wd_[v]);
-  const F32x4 spec_weight_d = wd * fd;
-  const F32x4 kd = wd * (1.f - fd) * kInvPi;
+  const F32x4 kd = wd * (1.f - fdm) * kInvPi;
   const F32x4 metallic = load4(&metallic_[v]);
   const F32x4 ms_factor = load4(&ms_factor_[i]);
   for (int ch = 0; ch < 3; ++ch) {
@@ -693,7 +717,7 @@ void BsdfEvalBatch::evaluate_block(int i) {
     // ms is 0 for non-metals, where bsdf_eval_pdf adds nothing: x + 0 = x.
     const F32x4 diffuse = base * kd + load4(&ms_[ch][v]) * ms_factor;
     const F32x4 fm = base + (1.f - base) * fw;
-    const F32x4 specular_ch = (spec_weight_d + fm * metallic) * spec;
+    const F32x4 specular_ch = (wd * fd[ch] + fm * metallic) * spec;
     store4(&f_[ch][i], select4(valid, (diffuse + specular_ch) * wi_z, zero));
   }
   const F32x4 lobe = load4(&spec_[v]);

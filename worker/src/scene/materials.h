@@ -55,6 +55,9 @@ struct Material {
   float metallic = 0.f;          // metallicFactor
   float roughness = 1.f;         // roughnessFactor (perceptual; GGX alpha = roughness^2)
   float specular = 0.f;          // KHR_materials_specular specularFactor: dielectric layer
+  Vec3 specular_color{1.f, 1.f, 1.f};  // specularColorFactor (>= 0, scales F0)
+  TextureRef specular_tex{};        // specularTexture: its A channel (linear) multiplies
+  TextureRef specular_color_tex{};  // specularColorTexture: RGB (sRGB) multiply the colour
   float ior = 1.5f;              // KHR_materials_ior
   float transmission = 0.f;      // KHR_materials_transmission transmissionFactor
   TextureRef transmission_tex{};  // transmissionTexture: its R channel (linear) multiplies
@@ -101,7 +104,7 @@ struct Material {
     const char* name;  // the glTF property
     bool srgb, at_hit;
   };
-  static constexpr int kTextureSlots = 10;
+  static constexpr int kTextureSlots = 12;
   static const TextureSlot (&texture_slots())[kTextureSlots];
   // True if shading reads texture coordinates at the hit point.
   bool reads_uv() const {
@@ -129,6 +132,7 @@ struct BsdfParams {
   float metallic = 0.f;
   float alpha = 1.f;  // GGX alpha = roughness^2, clamped to >= kMinAlpha
   float specular = 0.f;
+  Vec3 specular_color{1.f, 1.f, 1.f};  // KHR_materials_specular's colour (scales F0)
   float ior = 1.5f;
   float transmission = 0.f;
   bool front = true;  // wo on the front side of the geometric normal (outside the glass)
@@ -191,7 +195,9 @@ struct BsdfLobes {
   float glass = 0.f;  // probability of the delta glass lobe
   float spec = 0.f;   // probability of GGX among the non-delta lobes
   float wd = 0.f;     // (1 - metallic)(1 - transmission): weight of the dielectric base
-  float f0d = 0.f;    // dielectric Fresnel at normal incidence, specular * ((ior-1)/(ior+1))^2
+  // Dielectric Fresnel at normal incidence per channel, specular x min(1, specularColor x
+  // ((ior-1)/(ior+1))^2) (KHR_materials_specular).
+  Vec3 f0d{0.f, 0.f, 0.f};
   float root_o = 0.f;  // sqrt(cos_o^2 + alpha^2 (1 - cos_o^2)) = 2 cos_o (Lambda(wo) + 1/2)
   float pdf_k = 0.f;   // 1 / (2 (cos_o + root_o)) = G1(wo) / (4 cos_o): GGX pdf = D pdf_k
   Vec3 ms;             // metal multiple scattering without its (1 - E(mu_i)) factor (0 if
@@ -270,7 +276,9 @@ class BsdfEvalBatch {
     metallic_[lane] = p.metallic;
     alpha_[lane] = p.alpha;
     specular_[lane] = p.specular;
-    f0d_[lane] = lobes.f0d;
+    f0d_[0][lane] = lobes.f0d.x;
+    f0d_[1][lane] = lobes.f0d.y;
+    f0d_[2][lane] = lobes.f0d.z;
     wd_[lane] = lobes.wd;
     glass_[lane] = lobes.glass;
     spec_[lane] = lobes.spec;
@@ -344,7 +352,7 @@ class BsdfEvalBatch {
   // inputs (a dropped light sample's may be NaN): they are computed along and never read.
   alignas(64) float wo_[3][kLanes] = {}, base_[3][kLanes] = {}, ms_[3][kLanes] = {};
   alignas(64) float metallic_[kLanes] = {}, alpha_[kLanes] = {}, specular_[kLanes] = {};
-  alignas(64) float f0d_[kLanes] = {}, wd_[kLanes] = {}, glass_[kLanes] = {};
+  alignas(64) float f0d_[3][kLanes] = {}, wd_[kLanes] = {}, glass_[kLanes] = {};
   alignas(64) float spec_[kLanes] = {}, root_o_[kLanes] = {}, pdf_k_[kLanes] = {};
   alignas(64) float frame_[3][3][kLanes] = {};  // axis (s, t, n), component, lane
   alignas(64) float wi_[3][kSlots] = {}, ms_factor_[kSlots] = {};

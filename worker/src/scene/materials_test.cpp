@@ -32,12 +32,20 @@ BsdfParams params(Vec3 base, float metallic, float roughness, float specular = 1
   return p;
 }
 
+// KHR_materials_specular with a colour: F0 per channel, one of them clamped to 1 (0.04 x 30).
+BsdfParams coloured_specular() {
+  BsdfParams p = params({0.6f, 0.4f, 0.3f}, 0.f, 0.35f, 0.7f);
+  p.specular_color = Vec3(0.2f, 2.5f, 30.f);
+  return p;
+}
+
 std::vector<BsdfParams> test_materials() {
   return {params({0.8f, 0.5f, 0.2f}, 0.f, 0.5f),        // plastic
           params({0.9f, 0.6f, 0.3f}, 1.f, 0.3f),        // rough gold-ish metal
           params({1.f, 1.f, 1.f}, 1.f, 0.8f),           // very rough white metal
           params({0.5f, 0.5f, 0.5f}, 0.3f, 0.6f, 0.5f),  // mixture
-          params({0.7f, 0.7f, 0.7f}, 0.f, 0.4f, 1.f, 0.5f)};  // half glass
+          params({0.7f, 0.7f, 0.7f}, 0.f, 0.4f, 1.f, 0.5f),  // half glass
+          coloured_specular()};
 }
 
 const Vec3 kOutgoing[] = {normalize(Vec3(0.3f, 0.1f, 0.9f)), normalize(Vec3(-0.8f, 0.2f, 0.4f))};
@@ -132,7 +140,7 @@ TEST(Bsdf, JointEvaluationEqualsTheReferenceFormulas) {
             ASSERT_NEAR(f[c], f_ref[c], 1e-3f * f_ref[c] + 1e-6f) << zo << " " << zi << " " << phi;
           ++compared;
         }
-  EXPECT_EQ(compared, 8 * 4 * 5 * 4);
+  EXPECT_EQ(compared, int(materials.size()) * 4 * 5 * 4);
   // Below either hemisphere: zero, with zero pdf.
   const BsdfParams p = test_materials()[0];
   float pdf = 1.f;
