@@ -2,8 +2,9 @@
 (Appendix B, "BRDF Implementation"), evaluated here in numpy and nowhere else.
 
 Each render is a flat, untextured ground (normal +Y) of the dielectric materials of MATERIALS
-side by side (two with KHR_materials_specular's weight and colour), seen by an orthographic camera from direction V and lit by one directional light
-(KHR_lights_punctual, intensity I) from direction L over a black world. Every sample of a
+side by side (two with KHR_materials_specular's weight and colour), seen by an orthographic
+camera from direction V and lit by one directional light (KHR_lights_punctual, intensity I)
+from direction L over a black world. Every sample of a
 pixel then sees the same point of the same BRDF with the same V and L, and the path tracer's
 estimate is exact: the pixel is I x f(V, L) x N.L, with f the spec's
 
