@@ -432,7 +432,7 @@ TEST(PunctualLights, PointSpotAndDirectionalMatchClosedForms) {
 
 // The Cornell box with a half-metal back wall, a metal left wall, a glass right wall and three
 // punctual lights (point, spot, directional) besides its emissive ceiling.
-std::unique_ptr<Scene> varied_cornell_box() {
+std::unique_ptr<Scene> varied_cornell_box(float glass_roughness = 0.f) {
   std::vector<std::string> warnings;
   SceneDescription desc =
       load_gltf(std::string(RENDERFARM_EXAMPLES_DIR) + "/cornell-box.gltf", &warnings);
@@ -442,7 +442,7 @@ std::unique_ptr<Scene> varied_cornell_box() {
   desc.materials[1].metallic = 1.f;
   desc.materials[1].roughness = 0.3f;
   desc.materials[2].transmission = 1.f;
-  desc.materials[2].roughness = 0.f;
+  desc.materials[2].roughness = glass_roughness;
   desc.materials[2].absorption = Vec3(0.9f, 2.f, 0.3f);  // KHR_materials_volume
   for (Material& m : desc.materials)  // the light's back face, towards the ceiling, emits too
     if (m.is_emissive()) m.double_sided = true;
@@ -626,6 +626,13 @@ void expect_packet_tracer_equals_the_scalar_reference(const std::unique_ptr<Scen
 // With glass, metals, punctual and area lights.
 TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceBitForBit) {
   expect_packet_tracer_equals_the_scalar_reference(varied_cornell_box());
+}
+
+// With the glass rough: its lobe sampled through visible normals, and evaluated for the
+// punctual lights on either side (two-sided light selection, shadow rays through the surface
+// in the volume's medium).
+TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceWithRoughGlass) {
+  expect_packet_tracer_equals_the_scalar_reference(varied_cornell_box(0.4f));
 }
 
 // With surfaces that let rays through (alphaMode MASK and BLEND, on camera, indirect and

@@ -22,9 +22,26 @@ LightContext light_context(const Scene& scene, const RenderSettings& settings) {
   return c;
 }
 
-float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w) {
+namespace {
+
+float cluster_weight(const LightContext& lc, uint32_t c, Vec3 o, Vec3 ng, bool two_sided) {
+  const float w = lc.lights->importance(c, o, ng);
+  return two_sided ? std::max(w, lc.lights->importance(c, o, -ng)) : w;
+}
+
+}  // namespace
+
+float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w, bool two_sided) {
   if (lc.single) return 1.f;
-  float total = lc.clusters ? lc.lights->importances(o, ng, w) : 0.f;
+  float total = 0.f;
+  if (lc.clusters && !two_sided) {
+    total = lc.lights->importances(o, ng, w);
+  } else {
+    for (uint32_t c = 0; c < lc.clusters; ++c) {
+      w[c] = cluster_weight(lc, c, o, ng, true);
+      total += w[c];
+    }
+  }
   if (lc.env) {
     w[lc.clusters] = lc.env_weight;
     total += lc.env_weight;
@@ -32,25 +49,69 @@ float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w) {
   return total;
 }
 
-float light_entry_pmf(const LightContext& lc, uint32_t e, Vec3 o, Vec3 ng, float total) {
+float light_entry_pmf(const LightContext& lc, uint32_t e, Vec3 o, Vec3 ng, float total,
+                      bool two_sided) {
   if (lc.single) return 1.f;
   if (!(total > 0.f)) return 0.f;
-  const float w = e < lc.clusters ? lc.lights->importance(e, o, ng) : lc.env_weight;
+  const float w = e < lc.clusters ? cluster_weight(lc, e, o, ng, two_sided) : lc.env_weight;
   return w / total;
 }
 
 float light_pdf_area(const LightContext& lc, Vec3 o, Vec3 ng, float total, uint32_t slot,
-                     uint32_t prim, Vec3 d) {
+                     uint32_t prim, Vec3 d, bool two_sided) {
   if (!lc.clusters) return 0.f;
   uint32_t c = 0;
   const float pdf = lc.lights->pdf_area_in_cluster(slot, prim, &c);
   if (!(pdf > 0.f) || dot(ng, d) <= 0.f) return 0.f;
-  return light_entry_pmf(lc, c, o, ng, total) * pdf;
+  return light_entry_pmf(lc, c, o, ng, total, two_sided) * pdf;
 }
 
-float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d) {
+float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d,
+                    bool two_sided) {
   if (!lc.env || dot(d, ng) <= 0.f) return 0.f;
-  return light_entry_pmf(lc, lc.clusters, o, ng, total);
+  return light_entry_pmf(lc, lc.clusters, o, ng, total, two_sided);
+}
+
+bool punctual_light_sample(const PunctualLight& light, float p_entry, const ShadingPoint& sp,
+                           const Frame& frame, Vec3 wo_local, LightRay* out) {
+  // A light behind the surface is reached only through a rough glass lobe; its shadow ray
+  // then leaves below the surface.
+  const bool rough = has_rough_glass(sp.params);
+  for (int side = 0; side < (rough ? 2 : 1); ++side) {
+    const Vec3 origin = side == 0 ? sp.above() : sp.below();
+    Vec3 wi, Li;
+    float tmax;
+    if (light.type == PunctualType::Directional) {
+      wi = -light.direction;
+      Li = light.intensity;  // irradiance normal to the direction
+      tmax = kInfinity;
+    } else {
+      const Vec3 to = light.position - origin;
+      const float d2 = dot(to, to);
+      if (!(d2 > 0.f)) return false;
+      const float dist = std::sqrt(d2);
+      wi = to / dist;
+      Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
+      tmax = dist;
+    }
+    const float cos_ng = dot(wi, sp.ng);
+    if (side == 0 && !(cos_ng > 0.f)) continue;  // behind: the other side, if any
+    if (side == 1 && !(cos_ng < 0.f)) return false;
+    if (is_zero(Li)) return false;
+    const Vec3 wl = frame.to_local(wi);
+    Vec3 f = side == 0 ? bsdf_eval_cos(sp.params, wo_local, wl) : Vec3(0.f, 0.f, 0.f);
+    // The rough glass lobe where the shading frame agrees on the side.
+    if (rough && (wl.z > 0.f) == (side == 0))
+      f += rough_glass_eval_cos(sp.params, wo_local, wl);
+    if (is_zero(f)) return false;
+    out->origin = origin;
+    out->wi = wi;
+    out->tmax = tmax;
+    out->contribution = f * Li * (1.f / p_entry);
+    out->through = side == 1;
+    return true;
+  }
+  return false;
 }
 
 bool choose_light(const LightContext& lc, const float* w, float total, float u_select,
@@ -168,31 +229,11 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
   const LightSet& lights = scene.lights();
   const LightSample ls = lights.sample_in(entry, u.x, u.y);
   if (ls.punctual >= 0) {
-    const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
-    const float pdf = ls.pdf_area * p_entry;  // selection probability only: a delta light
-    Vec3 wi, Li;
-    float tmax;
-    if (light.type == PunctualType::Directional) {
-      wi = -light.direction;
-      Li = light.intensity;  // irradiance normal to the direction
-      tmax = kInfinity;
-    } else {
-      const Vec3 to = light.position - origin;
-      const float d2 = dot(to, to);
-      if (!(d2 > 0.f)) return LightSampleKind::None;
-      const float dist = std::sqrt(d2);
-      wi = to / dist;
-      Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
-      tmax = dist;
-    }
-    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return LightSampleKind::None;
-    const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
-    if (is_zero(f)) return LightSampleKind::None;
-    out->origin = origin;
-    out->wi = wi;
-    out->tmax = tmax;
-    out->contribution = f * Li * (1.f / pdf);
-    return LightSampleKind::Delta;
+    // The selection probability only: a delta light.
+    return punctual_light_sample(lights.punctual()[size_t(ls.punctual)], ls.pdf_area * p_entry,
+                                 sp, frame, wo_local, out)
+               ? LightSampleKind::Delta
+               : LightSampleKind::None;
   }
   // An emissive triangle: the rest is LightBatch::finish_geometry's.
   set3(lb->o, origin);

@@ -34,19 +34,23 @@ constexpr uint32_t kMaxLightEntries = LightSet::kMaxClusters + 1;
 LightContext light_context(const Scene& scene, const RenderSettings& settings);
 
 // The entries' weights at a light-sampling origin o with geometric normal ng into
-// w[0, lc.entries()) (not computed when lc.single); their sum (1 when lc.single).
-float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w);
+// w[0, lc.entries()) (not computed when lc.single); their sum (1 when lc.single). two_sided
+// (a vertex with a rough glass lobe, which punctual lights behind the surface reach): a
+// cluster weighs the larger of its importances on either side of ng's plane.
+float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w, bool two_sided = false);
 // The probability with which light sampling at (o, ng), whose weights summed to total, chose
 // entry e (a cluster, or lc.clusters for the environment): what MIS needs when a BSDF-sampled
 // ray finds that light.
-float light_entry_pmf(const LightContext& lc, uint32_t e, Vec3 o, Vec3 ng, float total);
+float light_entry_pmf(const LightContext& lc, uint32_t e, Vec3 o, Vec3 ng, float total,
+                      bool two_sided = false);
 // The area density with which light sampling at (o, ng) (weights summing to total) samples a
 // point on triangle prim of slot, seen along direction d from o (0 if light sampling cannot
 // produce it: not a light, or d below ng's plane, where light samples are dropped).
 float light_pdf_area(const LightContext& lc, Vec3 o, Vec3 ng, float total, uint32_t slot,
-                     uint32_t prim, Vec3 d);
+                     uint32_t prim, Vec3 d, bool two_sided = false);
 // The probability of choosing the environment at (o, ng) for direction d likewise.
-float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d);
+float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d,
+                    bool two_sided = false);
 
 // A light sample waiting for its shadow ray: it contributes `contribution` if nothing blocks
 // origin + t wi for t in (0, tmax). In the packet tracer only delta lights' samples are held
@@ -55,7 +59,17 @@ struct LightRay {
   Vec3 origin, wi;
   float tmax = 0.f;
   Vec3 contribution;
+  // Through the surface (a punctual light behind a rough glass lobe): the shadow ray leaves
+  // below it, in the medium a transmission enters.
+  bool through = false;
 };
+
+// The sample of punctual light `light` chosen with probability p_entry at sp (the caller's
+// frame and wo in it): false if it contributes nothing whatever the visibility, otherwise
+// *out holds the shadow ray and the unoccluded contribution f cos Li / p_entry, with f the
+// BSDF's value above the surface and the rough glass lobe's on either side.
+bool punctual_light_sample(const PunctualLight& light, float p_entry, const ShadingPoint& sp,
+                           const Frame& frame, Vec3 wo_local, LightRay* out);
 
 // The light samples of a packet's vertices that wait for their BSDF values (lights with a pdf:
 // emissive triangles and the environment). Area-light samples finish their geometry here

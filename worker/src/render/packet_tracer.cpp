@@ -61,7 +61,8 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
       const float w =
           p.prev_delta ? 1.f
                        : power_heuristic(p.prev_bsdf_pdf,
-                                         light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, d) *
+                                         light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, d,
+                                                       p.sel_two_sided) *
                                              lc.env->pdf(d));
       result.radiance +=
           (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w;
@@ -93,7 +94,8 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
       // The same point could have come from light sampling at the previous vertex: convert
       // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
       const float pdf_light =
-          light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit->slot, hit->prim, d) *
+          light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit->slot, hit->prim, d,
+                         p.sel_two_sided) *
           hit->t * hit->t / cos_emit;
       result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
     }
@@ -115,9 +117,15 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     float w[kMaxLightEntries];
     p.sel_o = sp.above();
     p.sel_ng = sp.ng;
-    p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, w);
+    p.sel_two_sided = has_rough_glass(sp.params);
+    p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, w, p.sel_two_sided);
     p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, w, p.sel_total, batch, lb,
                                 lane, &p.light);
+    // A punctual light's shadow ray through the surface travels in the medium a transmission
+    // enters.
+    if (p.light_kind == LightSampleKind::Delta)
+      p.light_medium = p.light.through ? medium_after(hit_material, sp.params.front, p.medium)
+                                       : p.medium;
   }
 
   BsdfSample& bs = p.bs;
@@ -150,8 +158,9 @@ void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shado
   if (p.light_kind == LightSampleKind::Delta) {
     shadow->set(lane, p.light.origin, p.light.wi, p.light.tmax);
     p.nee = p.beta * p.light.contribution;
-    // The shadow ray leaves on the side of wo: in the medium the path arrived through.
-    if (!is_zero(p.medium)) p.nee *= transmittance(p.medium, p.light.tmax);
+    // The shadow ray leaves on the side of wo, in the medium the path arrived through, or
+    // through a rough glass lobe into the other one.
+    if (!is_zero(p.light_medium)) p.nee *= transmittance(p.light_medium, p.light.tmax);
     ++p.result.rays;
     return;
   }

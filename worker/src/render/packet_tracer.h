@@ -31,12 +31,14 @@ struct PathState {
   // the sum of its light weights): the light pdf of the MIS weight when d finds a light.
   Vec3 sel_o, sel_ng;
   float sel_total = 0.f;
+  bool sel_two_sided = false;  // its weights were two-sided (light_weights: rough glass)
   BounceSamples u;  // this bounce's sample values
   Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
   // Between the halves of a vertex's shading (shade_vertex_begin, then shade_vertex_end_light
   // and shade_vertex_end_bsdf):
   LightSampleKind light_kind = LightSampleKind::None;
   LightRay light;          // light_kind Delta
+  Vec3 light_medium;       // the medium its shadow ray travels in
   int bsdf_slot = -2;      // BsdfEvalBatch slot of the sampled direction's f and pdf; -1: the
                            // sample (glass) is complete; -2: the path ends at this vertex
   BsdfSample bs;

@@ -41,32 +41,9 @@ bool reference_light_sample(const Scene& scene, const LightContext& lc, const Sh
   }
   const LightSet& lights = scene.lights();
   const LightSample ls = lights.sample_in(entry, u.x, u.y);
-  if (ls.punctual >= 0) {
-    const PunctualLight& light = lights.punctual()[size_t(ls.punctual)];
-    const float pdf = ls.pdf_area * p_entry;
-    Vec3 wi, Li;
-    float tmax;
-    if (light.type == PunctualType::Directional) {
-      wi = -light.direction;
-      Li = light.intensity;
-      tmax = kInfinity;
-    } else {
-      const Vec3 to = light.position - origin;
-      const float d2 = dot(to, to);
-      if (!(d2 > 0.f)) return false;
-      const float dist = std::sqrt(d2);
-      wi = to / dist;
-      Li = light.intensity * (light.spot_falloff(dot(-wi, light.direction)) / d2);
-      tmax = dist;
-    }
-    if (is_zero(Li) || dot(wi, sp.ng) <= 0.f) return false;
-    const Vec3 f = bsdf_eval_cos(sp.params, wo_local, frame.to_local(wi));
-    if (is_zero(f)) return false;
-    out->wi = wi;
-    out->tmax = tmax;
-    out->contribution = f * Li * (1.f / pdf);
-    return true;
-  }
+  if (ls.punctual >= 0)
+    return punctual_light_sample(lights.punctual()[size_t(ls.punctual)], ls.pdf_area * p_entry,
+                                 sp, frame, wo_local, out);
   const Vec3 to_light = ls.p - origin;
   const float dist2 = dot(to_light, to_light);
   const float dist = std::sqrt(dist2);
@@ -121,7 +98,8 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
         const float w =
             p.prev_delta ? 1.f
                          : power_heuristic(p.prev_bsdf_pdf,
-                                           light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, p.d) *
+                                           light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, p.d,
+                                                         p.sel_two_sided) *
                                                lc.env->pdf(p.d));
         const Vec3 beta =
             is_zero(p.medium) ? p.beta : p.beta * transmittance(p.medium, kInfinity);
@@ -149,8 +127,9 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
         result.radiance += p.beta * Le;
       } else {
         const float pdf_light =
-            light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit.slot, hit.prim, p.d) * hit.t *
-            hit.t / cos_emit;
+            light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit.slot, hit.prim, p.d,
+                           p.sel_two_sided) *
+            hit.t * hit.t / cos_emit;
         result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
       }
     }
@@ -168,13 +147,18 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     if (lc.any && bsdf_has_smooth_part(sp.params)) {
       p.sel_o = sp.above();
       p.sel_ng = sp.ng;
-      p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, weights);
+      p.sel_two_sided = has_rough_glass(sp.params);
+      p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, weights, p.sel_two_sided);
     }
     if (lc.any && bsdf_has_smooth_part(sp.params) &&
         reference_light_sample(scene, lc, sp, lobes, frame, wo_local, u, weights, p.sel_total,
                                &light)) {
       Vec3 nee = p.beta * light.contribution;
-      if (!is_zero(p.medium)) nee *= transmittance(p.medium, light.tmax);
+      // The shadow ray travels in the medium on its side: through the surface, the one a
+      // transmission enters.
+      const Vec3 medium =
+          light.through ? medium_after(hit_material, sp.params.front, p.medium) : p.medium;
+      if (!is_zero(medium)) nee *= transmittance(medium, light.tmax);
       shadow.set(0, light.origin, light.wi, light.tmax);
       ++result.rays;
       scene.occluded(shadow, blocked, ray_query(seed, pixel, bounce, RayKind::Shadow));

@@ -611,6 +611,31 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
   return BsdfSampleStep::NeedsEval;
 }
 
+Vec3 rough_glass_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
+  if (!has_rough_glass(p) || wo.z <= 0.f || wi.z == 0.f) return {0.f, 0.f, 0.f};
+  const float eta = p.front ? p.ior : 1.f / p.ior;  // n(wi's side) / n(wo's) if transmitted
+  const bool reflect = wi.z > 0.f;
+  Vec3 h = reflect ? wo + wi : -(wo + wi * eta);
+  const float hl = length(h);
+  if (!(hl > 0.f)) return {0.f, 0.f, 0.f};
+  h = h / hl;
+  if (h.z < 0.f) h = -h;
+  const float oh = dot(wo, h), ih = dot(wi, h);
+  if (!(oh > 0.f) || (reflect ? !(ih > 0.f) : !(ih < 0.f))) return {0.f, 0.f, 0.f};
+  const float F = fresnel_dielectric(oh, eta);
+  const float dg = ggx_d(h, p.alpha) * ggx_g2(wo, wi, p.alpha);
+  float weight = (1.f - p.metallic) * p.transmission;
+  if (p.layered()) {
+    const BsdfLobes l = bsdf_lobes(p, wo);
+    weight *= (1.f - l.coat_f) * (1.f - l.sheen_e);
+  }
+  if (reflect) return Vec3(1.f, 1.f, 1.f) * (weight * F * dg / (4.f * wo.z));
+  // (1 - F) D G2 |wi.h| (wo.h) / (cos_o (wo.h + eta wi.h)^2): Walter's BTDF times |cos_i|,
+  // over eta^2 (radiance).
+  const float den = oh + eta * ih;
+  return p.base * (weight * (1.f - F) * dg * (-ih) * oh / (wo.z * den * den));
+}
+
 bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out) {
   if (!(pdf > 0.f)) return false;
   out->pdf = pdf;

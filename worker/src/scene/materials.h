@@ -360,10 +360,25 @@ class BsdfEvalBatch {
   alignas(64) float f_[3][kSlots] = {}, pdf_[kSlots] = {}, world_[3][kLanes] = {};
 };
 
-// True if the BSDF has a non-delta component (next-event estimation is useful).
-inline bool bsdf_has_smooth_part(const BsdfParams& p) {
-  return (1.f - (1.f - p.metallic) * p.transmission) > 0.f || p.layered();
+// True if the glass lobe is rough (KHR_materials_transmission with roughness): sampled like
+// the smooth one, and evaluated for punctual lights (rough_glass_eval_cos).
+inline bool has_rough_glass(const BsdfParams& p) {
+  return (1.f - p.metallic) * p.transmission > 0.f && p.alpha > kMinAlpha;
 }
+
+// True if next-event estimation is useful: the BSDF has a non-delta component, or a rough
+// glass lobe (which punctual lights reach by light sampling only).
+inline bool bsdf_has_smooth_part(const BsdfParams& p) {
+  return (1.f - (1.f - p.metallic) * p.transmission) > 0.f || p.layered() || has_rough_glass(p);
+}
+
+// The rough glass lobe's f |cos_i| (materials.h's formulas, radiance: a transmission is
+// divided by eta^2), with its weight (1 - metallic) transmission and the layers' over it
+// ((1 - c F_c(wo)) (1 - max3(sheenColor) E(wo.z))): wi above the surface is its reflection,
+// below its transmission (tinted by the base colour). 0 without a rough glass lobe. Light
+// sampling adds it to bsdf_eval_cos for punctual lights, which BSDF sampling never reaches;
+// other lights reach the lobe through BSDF sampling only, as for smooth glass.
+Vec3 rough_glass_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi);
 
 // KHR_materials_clearcoat's layering Fresnel: 0.04 + (1 - 0.04) (1 - |cos_v|)^5.
 float clearcoat_fresnel(float cos_v);
