@@ -2,7 +2,8 @@
 (Appendix B, "BRDF Implementation"), evaluated here in numpy and nowhere else.
 
 Each render is a flat, untextured ground (normal +Y) of the dielectric materials of MATERIALS
-side by side (two with KHR_materials_specular's weight and colour), seen by an orthographic
+side by side (two with KHR_materials_specular's weight and colour, two
+KHR_materials_pbrSpecularGlossiness), seen by an orthographic
 camera from direction V and lit by one directional light (KHR_lights_punctual, intensity I)
 from direction L over a black world. Every sample of a
 pixel then sees the same point of the same BRDF with the same V and L, and the path tracer's
@@ -39,7 +40,10 @@ from renderfarm.infra.images import read_exr
 INTENSITY = 2.0
 # (baseColor, roughness, ior, specularFactor, specularColorFactor): rough and glossy
 # dielectrics, one with KHR_materials_ior, two with KHR_materials_specular (a weight and a
-# colour, one of whose channels F0 clamps to 1: 0.04 x 30).
+# colour, one of whose channels F0 clamps to 1: 0.04 x 30). SPEC_GLOSS ones are
+# KHR_materials_pbrSpecularGlossiness materials written as (diffuseFactor, 1 - glossinessFactor,
+# -, -, specularFactor): a grey specular on a coloured diffuse, and the extension's own gold.
+SPEC_GLOSS = "specular-glossiness"
 MATERIALS = [
     ((0.5, 0.5, 0.5), 0.8, 1.5, 1.0, (1.0, 1.0, 1.0)),  # the parity scenes' floor
     ((0.9, 0.3, 0.1), 0.3, 1.5, 1.0, (1.0, 1.0, 1.0)),
@@ -47,6 +51,8 @@ MATERIALS = [
     ((0.7, 0.7, 0.2), 0.5, 1.8, 1.0, (1.0, 1.0, 1.0)),
     ((0.6, 0.4, 0.3), 0.35, 1.5, 0.7, (0.2, 2.5, 30.0)),
     ((0.1, 0.8, 0.3), 0.6, 1.6, 0.4, (1.0, 0.5, 0.0)),
+    ((0.8, 0.2, 0.1), 0.4, SPEC_GLOSS, None, (0.25, 0.25, 0.25)),
+    ((0.0, 0.0, 0.0), 0.1, SPEC_GLOSS, None, (1.0, 0.766, 0.336)),
 ]
 WIDTH, HEIGHT = 16 * len(MATERIALS), 16
 # The ground's strips: material k covers z in [2k - n + 0.2, 2k - n + 1.8], side by side along
@@ -106,9 +112,17 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
                                              "metallicFactor": 0.0,
                                              "roughnessFactor": roughness}}  # fmt: skip
         extensions = {}
-        if ior != 1.5:
+        if ior == SPEC_GLOSS:
+            # The metallic-roughness fallback above must not be what renders.
+            extensions["KHR_materials_pbrSpecularGlossiness"] = {
+                "diffuseFactor": [*colour, 1.0],
+                "specularFactor": list(specular_colour),
+                "glossinessFactor": 1.0 - roughness,
+            }
+            material["pbrMetallicRoughness"]["baseColorFactor"] = [1.0, 0.0, 1.0, 1.0]
+        elif ior != 1.5:
             extensions["KHR_materials_ior"] = {"ior": ior}
-        if specular != 1.0 or specular_colour != (1.0, 1.0, 1.0):
+        if ior != SPEC_GLOSS and (specular != 1.0 or specular_colour != (1.0, 1.0, 1.0)):
             extensions["KHR_materials_specular"] = {
                 "specularFactor": specular,
                 "specularColorFactor": list(specular_colour),
@@ -121,7 +135,8 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
     light_matrix = frame_matrix(light, np.array([0.3, 0.1, 0.9]), 10.0 * light)
     gltf = {
         "asset": {"version": "2.0"},
-        "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior", "KHR_materials_specular"],
+        "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior", "KHR_materials_specular",
+                           "KHR_materials_pbrSpecularGlossiness"],
         "extensions": {"KHR_lights_punctual": {"lights": [
             {"type": "directional", "color": [1, 1, 1], "intensity": INTENSITY}]}},
         "scene": 0,
@@ -151,7 +166,10 @@ def spec_brdf(
         f0 = min(((ior - 1) / (ior + 1))^2 specularColor, 1),  Fr = f0 + (1 - f0)(1 - |V.H|)^5,
         f = (1 - specular max(Fr)) diffuse + specular Fr specular_brdf,
 
-    f(V, L) for normal +Y, RGB; specular 1 and a white colour give Appendix B's mix."""
+    f(V, L) for normal +Y, RGB; specular 1 and a white colour give Appendix B's mix. For
+    KHR_materials_pbrSpecularGlossiness (ior == SPEC_GLOSS) its BRDF inputs in Appendix B's
+    form: c_diff = diffuse (1 - max(specular)), F0 = specular, alpha = (1 - glossiness)^2, and
+    f = (1 - F) c_diff / pi + F specular_brdf per channel."""
     n = np.array([0.0, 1.0, 0.0])
     h = (v + light) / np.linalg.norm(v + light)
     nl, nv, nh = np.dot(n, light), np.dot(n, v), np.dot(n, h)
@@ -160,6 +178,11 @@ def spec_brdf(
     d = a2 * (nh > 0) / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
     vis = (hl > 0) * (vh > 0) / (2.0 * (abs(nv) * np.sqrt(a2 + (1 - a2) * nl * nl)
                                         + abs(nl) * np.sqrt(a2 + (1 - a2) * nv * nv)))  # fmt: skip
+    if ior == SPEC_GLOSS:
+        f0 = np.asarray(specular_colour)
+        fr = f0 + (1.0 - f0) * (1.0 - abs(vh)) ** 5
+        c_diff = np.asarray(colour) * (1.0 - np.max(f0))
+        return (1.0 - fr) * c_diff / np.pi + fr * vis * d
     f0 = np.minimum(((1.0 - ior) / (1.0 + ior)) ** 2 * np.asarray(specular_colour), 1.0)
     fr = f0 + (1.0 - f0) * (1.0 - abs(vh)) ** 5
     diffuse = np.asarray(colour) / np.pi

@@ -74,6 +74,31 @@ __attribute__((noinline)) void add_layers(const Scene& scene, const Hit& hit, Ve
   }
 }
 
+// KHR_materials_pbrSpecularGlossiness: the extension's BRDF inputs, c_diff = diffuse (1 -
+// max(specular)), F0 = specular, alpha = (1 - glossiness)^2, as a dielectric of ior 1.5 whose
+// specular colour gives that F0 (F0 = 0.04 x colour; specular = 1, so f90 = 1). bp->base holds
+// the diffuse colour (factor x texture x COLOR_0).
+void specular_glossiness(const Scene& scene, const Hit& hit, BsdfParams* bp) {
+  const Material& mat = scene.materials()[hit.material];
+  Vec3 specular = mat.specular_color;
+  float glossiness = mat.glossiness;
+  float c[4];
+  if (mat.specular_color_tex.valid() &&
+      scene.textures().lookup(mat.specular_color_tex.texture,
+                              texcoord(scene, hit, mat.specular_color_tex), 4, c)) {
+    specular = specular * Vec3(c[0], c[1], c[2]);  // linear: decoded from sRGB
+    glossiness *= c[3];                            // linear
+  }
+  for (int k = 0; k < 3; ++k) specular[k] = std::min(1.f, std::max(0.f, specular[k]));
+  const float rough = 1.f - std::min(1.f, std::max(0.f, glossiness));
+  bp->metallic = 0.f;
+  bp->alpha = std::max(kMinAlpha, rough * rough);
+  bp->base = bp->base * (1.f - std::max(specular.x, std::max(specular.y, specular.z)));
+  bp->specular = 1.f;
+  bp->ior = 1.5f;
+  bp->specular_color = specular * (1.f / 0.04f);
+}
+
 }  // namespace
 
 ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
@@ -102,16 +127,20 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   bp.alpha = std::max(kMinAlpha, r * r);
   bp.specular = mat.specular;
   bp.specular_color = mat.specular_color;
-  // KHR_materials_specular: specularFactor x specularTexture.a (linear), specularColorFactor x
-  // specularColorTexture.rgb (sRGB, decoded before filtering).
-  if (mat.specular_tex.valid() && mat.specular > 0.f &&
-      tex.lookup(mat.specular_tex.texture, texcoord(scene, hit, mat.specular_tex), 4, c))
-    bp.specular = std::min(1.f, std::max(0.f, mat.specular * c[3]));
-  if (mat.specular_color_tex.valid() &&
-      tex.lookup(mat.specular_color_tex.texture, texcoord(scene, hit, mat.specular_color_tex), 3,
-                 c))
-    bp.specular_color = mat.specular_color * Vec3(c[0], c[1], c[2]);
   bp.ior = mat.ior;
+  if (mat.specular_glossiness) {
+    specular_glossiness(scene, hit, &bp);
+  } else {
+    // KHR_materials_specular: specularFactor x specularTexture.a (linear), specularColorFactor
+    // x specularColorTexture.rgb (sRGB, decoded before filtering).
+    if (mat.specular_tex.valid() && mat.specular > 0.f &&
+        tex.lookup(mat.specular_tex.texture, texcoord(scene, hit, mat.specular_tex), 4, c))
+      bp.specular = std::min(1.f, std::max(0.f, mat.specular * c[3]));
+    if (mat.specular_color_tex.valid() &&
+        tex.lookup(mat.specular_color_tex.texture,
+                   texcoord(scene, hit, mat.specular_color_tex), 3, c))
+      bp.specular_color = mat.specular_color * Vec3(c[0], c[1], c[2]);
+  }
   bp.transmission = mat.transmission;
   // KHR_materials_transmission: transmissionFactor x transmissionTexture.r (linear).
   if (mat.transmission_tex.valid() && mat.transmission > 0.f &&

@@ -50,7 +50,8 @@ const std::set<std::string>& supported_extensions() {
       "KHR_mesh_quantization",           "EXT_meshopt_compression",    "KHR_draco_mesh_compression",
       "KHR_materials_volume",            "KHR_materials_clearcoat",    "KHR_materials_sheen",
       "KHR_materials_unlit",             "EXT_texture_webp",           "EXT_texture_avif",
-      "KHR_node_visibility",             "EXT_mesh_gpu_instancing"};
+      "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
+      "KHR_materials_pbrSpecularGlossiness"};
   return s;
 }
 
@@ -333,6 +334,45 @@ class Loader {
     const tinygltf::Value& v = ext.Get(key);
     if (!v.IsNumber()) fail(where + "." + key + " must be a number in [0, 1]");
     return unit_number(v.GetNumberAsDouble(), where + "." + key, "");
+  }
+
+  // KHR_materials_pbrSpecularGlossiness (archived, still in older assets): it replaces the
+  // metallic-roughness parameters ("a client that supports the extension should always render
+  // the asset using the specular-glossiness material properties"). The factors are stored as
+  // given and turned into BRDF inputs at shading (shading.cpp, specular_glossiness).
+  void load_specular_glossiness(const tinygltf::Value& ext, size_t i, const std::string& name,
+                                Material* m) {
+    const std::string where =
+        "materials[" + std::to_string(i) + "].extensions.KHR_materials_pbrSpecularGlossiness";
+    auto numbers = [&](const char* key, size_t n, float* out) {
+      if (!ext.Has(key)) return;
+      const tinygltf::Value& v = ext.Get(key);
+      if (!v.IsArray() || v.ArrayLen() != n)
+        fail(where + "." + key + named(name) + ": must be an array of " + std::to_string(n) +
+             " numbers");
+      for (size_t k = 0; k < n; ++k) {
+        const tinygltf::Value& x = v.Get(int(k));
+        if (!x.IsNumber()) fail(where + "." + key + named(name) + ": must hold numbers");
+        out[k] = unit_number(x.GetNumberAsDouble(),
+                             where + "." + key + "[" + std::to_string(k) + "]", name);
+      }
+    };
+    float diffuse[4] = {1.f, 1.f, 1.f, 1.f}, specular[3] = {1.f, 1.f, 1.f};
+    numbers("diffuseFactor", 4, diffuse);
+    numbers("specularFactor", 3, specular);
+    m->specular_glossiness = true;
+    m->albedo = Vec3(diffuse[0], diffuse[1], diffuse[2]);
+    m->alpha = diffuse[3];
+    m->specular_color = Vec3(specular[0], specular[1], specular[2]);
+    m->glossiness = unit_factor(ext, "glossinessFactor", 1.f, where);
+    m->metallic = 0.f;
+    m->roughness = 1.f - m->glossiness;
+    m->specular = 1.f;
+    m->ior = 1.5f;
+    m->metallic_roughness_tex = TextureRef{};
+    m->specular_tex = TextureRef{};
+    m->base_color_tex = texture_ref(ext, "diffuseTexture", where);
+    m->specular_color_tex = texture_ref(ext, "specularGlossinessTexture", where);
   }
 
   // KHR_materials_clearcoat, KHR_materials_sheen and KHR_materials_unlit of material i.
@@ -898,6 +938,8 @@ class Loader {
       for (int k = 0; k < 3; ++k)
         if (!(m.emission[k] >= 0.f) || !std::isfinite(m.emission[k]))
           fail(where + ": emissiveFactor x emissiveStrength must be finite and >= 0");
+      auto sg = gm.extensions.find("KHR_materials_pbrSpecularGlossiness");
+      if (sg != gm.extensions.end()) load_specular_glossiness(sg->second, i, gm.name, &m);
       load_layers(gm, i, &m);
       desc->materials.push_back(m);
     }

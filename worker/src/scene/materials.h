@@ -79,6 +79,12 @@ struct Material {
   // radiance towards any ray that meets its front (either face if double-sided), and reflects
   // and transmits nothing; alpha coverage applies as for any material.
   bool unlit = false;
+  // KHR_materials_pbrSpecularGlossiness (archived): specular_color holds specularFactor (F0
+  // itself), glossiness glossinessFactor, specular_color_tex specularGlossinessTexture (RGB
+  // sRGB: F0; A linear: glossiness), albedo and base_color_tex the diffuse factor and texture.
+  // Shading turns them into the BRDF inputs the extension defines (shading.cpp).
+  bool specular_glossiness = false;
+  float glossiness = 1.f;
   AlphaMode alpha_mode = AlphaMode::Opaque;
   float alpha = 1.f;         // baseColorFactor alpha
   float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)

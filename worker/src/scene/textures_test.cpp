@@ -471,5 +471,49 @@ TEST(Textures, TransmissionTextureScalesTheFactorByItsRedChannel) {
   EXPECT_NEAR(sp.params.alpha, 0.4f * 0.4f, 1e-6f);
 }
 
+// KHR_materials_pbrSpecularGlossiness: specularGlossinessTexture's RGB (sRGB) times
+// specularFactor is F0, its A (linear) times glossinessFactor the glossiness; the diffuse is
+// diffuseFactor x diffuseTexture x (1 - max(F0)); the metallic-roughness fallback is not used.
+TEST(Textures, SpecularGlossinessTexturesGiveTheExtensionsBrdfInputs) {
+  const std::string texel = testing::png_data_uri(1, 1, 4, {128, 64, 200, 51});
+  const std::string white = testing::png_data_uri(1, 1, 3, {255, 255, 255});
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_materials_pbrSpecularGlossiness"],
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
+                              "indices": 3, "material": 0}]}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1, 0, 1, 1], "metallicFactor": 1},
+                 "extensions": {"KHR_materials_pbrSpecularGlossiness": {
+                     "diffuseFactor": [0.5, 1, 1, 1], "diffuseTexture": {"index": 1},
+                     "specularFactor": [1, 1, 0.5], "glossinessFactor": 0.8,
+                     "specularGlossinessTexture": {"index": 0}}}}],
+  "textures": [{"source": 0, "sampler": 0}, {"source": 1, "sampler": 0}],
+  "samplers": [{"magFilter": 9728}],
+  "images": [{"uri": ")" + texel + R"("}, {"uri": ")" + white + R"("}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
+  const Scene scene(std::move(desc), &warnings);
+  Hit hit;
+  ASSERT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
+  const ShadingPoint sp = make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  const Vec3 f0(srgb_to_linear(128.f / 255.f), srgb_to_linear(64.f / 255.f),
+                0.5f * srgb_to_linear(200.f / 255.f));
+  const float rough = 1.f - 0.8f * 51.f / 255.f;
+  EXPECT_EQ(sp.params.metallic, 0.f);
+  EXPECT_NEAR(sp.params.alpha, rough * rough, 1e-4f);
+  EXPECT_EQ(sp.params.specular, 1.f);
+  const float keep = 1.f - std::max(f0.x, std::max(f0.y, f0.z));
+  EXPECT_NEAR(sp.params.base.x, 0.5f * keep, 1e-3f);
+  EXPECT_NEAR(sp.params.base.y, keep, 1e-3f);
+  // F0 = ((ior - 1) / (ior + 1))^2 x specular colour, at the dielectric's ior 1.5.
+  const float r2 = (sp.params.ior - 1.f) * (sp.params.ior - 1.f) /
+                   ((sp.params.ior + 1.f) * (sp.params.ior + 1.f));
+  for (int k = 0; k < 3; ++k) EXPECT_NEAR(r2 * sp.params.specular_color[k], f0[k], 1e-3f);
+}
+
 }  // namespace
 }  // namespace rf
