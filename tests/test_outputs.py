@@ -132,6 +132,37 @@ def test_exr_header_is_the_jobs_record(farm, jobs):
         assert again.read_bytes() == reference_path.read_bytes()
 
 
+def test_exr_header_carries_the_scenes_xmp_metadata(farm, jobs, tmp_path):
+    """KHR_xmp_json_ld: the asset's metadata packet (title, creator, licence) goes into the
+    EXR header as renderfarm:xmp_json_ld; a scene without one (the noisy job's) has none."""
+    packet = {
+        "@context": {"dc": "http://purl.org/dc/elements/1.1/"},
+        "dc:title": "Cornell box",
+        "dc:rights": "CC0",
+    }
+    doc = json.loads(CORNELL.read_text())
+    doc.setdefault("asset", {})["extensions"] = {"KHR_xmp_json_ld": {"packet": 0}}
+    doc.setdefault("extensions", {})["KHR_xmp_json_ld"] = {"packets": [packet]}
+    doc["extensionsUsed"] = [*doc.get("extensionsUsed", []), "KHR_xmp_json_ld"]
+    scene = tmp_path / "cornell-box.gltf"
+    scene.write_text(json.dumps(doc))
+    for name in doc.get("buffers", []):  # the buffers beside the scene, as the example has them
+        uri = name.get("uri", "")
+        if uri and not uri.startswith("data:"):
+            (tmp_path / uri).write_bytes((CORNELL.parent / uri).read_bytes())
+    with Client(farm.url, timeout=120) as client:
+        job = client.submit(scene, settings={**SCENE, "max_spp": 1}, name="xmp")
+        job = client.wait(job["id"], poll_s=0.2, timeout_s=300)
+        assert job["state"] == "completed"
+        path = tmp_path / "xmp.exr"
+        client.save_image(job["id"], path, "exr")
+    for exr, want in ((path, packet), (jobs[2], None)):
+        inp = oiio.ImageInput.open(str(exr))
+        text = inp.spec().getattribute("renderfarm:xmp_json_ld")
+        inp.close()
+        assert (None if text is None else json.loads(text)) == want
+
+
 CLI = [sys.executable, "-m", "renderfarm"]
 
 

@@ -16,6 +16,7 @@ from typing import Any, BinaryIO
 from ..domain.frames import frame_slot, job_frames, job_rects, tiles_per_frame
 from ..domain.jobspec import JobSettings
 from ..domain.records import FrameProgress
+from ..domain.scenes import metadata
 from ..errors import NotFound, SettingsError, TooLarge
 from ..infra import images
 from ..infra.store import TileSummary
@@ -24,10 +25,28 @@ from .auth import Caller, check_caller
 from .views import FrameView, JobView, finite_or_none
 
 MAX_IMAGE_SIZE = 1 << 16  # largest max_size of a PNG preview
+# A .gltf scene (JSON throughout, its buffers as data: URIs) larger than this is not parsed for
+# its KHR_xmp_json_ld metadata when an EXR is written; a GLB's JSON chunk always is.
+MAX_METADATA_GLTF_BYTES = 64 << 20
 
 
 class JobImages:
     """Part of FarmService (jobs.py), whose __init__ sets the attributes used here."""
+
+    async def _scene_xmp(self, sha256: str) -> str | None:
+        """The stored scene's asset metadata (KHR_xmp_json_ld) for the EXR header, or None:
+        read from a GLB's JSON chunk only (domain/scenes/metadata.py)."""
+        head = await self.store.read_scene(sha256, 0, metadata.JSON_CHUNK_OFFSET)
+        length = metadata.json_chunk_length(head)
+        if length is None:
+            info = await self.store.get_scene_info(sha256)
+            size = int(info["size_bytes"]) if info else 0
+            if not 0 < size <= MAX_METADATA_GLTF_BYTES:
+                return None
+            raw = await self.store.read_scene(sha256, 0, size)
+        else:
+            raw = await self.store.read_scene(sha256, metadata.JSON_CHUNK_OFFSET, length)
+        return await asyncio.to_thread(metadata.xmp_attribute, raw)
 
     async def image_file(
         self,
@@ -123,6 +142,9 @@ class JobImages:
             numbers = job_frames(settings)
             source = await self.store.get_scene_source(view.scene_sha256)
             attributes = exr_attributes(view, None if numbers is None else numbers[slot], source)
+            xmp = await self._scene_xmp(view.scene_sha256)
+            if xmp is not None:
+                attributes["renderfarm:xmp_json_ld"] = xmp
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)

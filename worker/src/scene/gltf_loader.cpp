@@ -51,7 +51,10 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_volume",            "KHR_materials_clearcoat",    "KHR_materials_sheen",
       "KHR_materials_unlit",             "EXT_texture_webp",           "EXT_texture_avif",
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
-      "KHR_materials_pbrSpecularGlossiness"};
+      "KHR_materials_pbrSpecularGlossiness",
+      // Metadata, which the renderer does not read: the server copies the asset's packet into
+      // the EXR header (server/renderfarm/domain/scenes/metadata.py).
+      "KHR_xmp_json_ld"};
   return s;
 }
 
