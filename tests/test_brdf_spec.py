@@ -3,7 +3,7 @@
 
 Each render is a flat, untextured ground (normal +Y) of the dielectric materials of MATERIALS
 side by side (two with KHR_materials_specular's weight and colour, two
-KHR_materials_pbrSpecularGlossiness), seen by an orthographic
+KHR_materials_pbrSpecularGlossiness, two KHR_materials_anisotropy), seen by an orthographic
 camera from direction V and lit by one directional light (KHR_lights_punctual, intensity I)
 from direction L over a black world. Every sample of a
 pixel then sees the same point of the same BRDF with the same V and L, and the path tracer's
@@ -53,7 +53,12 @@ MATERIALS = [
     ((0.1, 0.8, 0.3), 0.6, 1.6, 0.4, (1.0, 0.5, 0.0)),
     ((0.8, 0.2, 0.1), 0.4, SPEC_GLOSS, None, (0.25, 0.25, 0.25)),
     ((0.0, 0.0, 0.0), 0.1, SPEC_GLOSS, None, (1.0, 0.766, 0.336)),
+    # KHR_materials_anisotropy (strength, rotation in radians): the ground's TANGENT is +X.
+    ((0.5, 0.5, 0.5), 0.3, 1.5, 1.0, (1.0, 1.0, 1.0), (0.8, 0.0)),
+    ((0.2, 0.4, 0.9), 0.5, 1.5, 1.0, (1.0, 1.0, 1.0), (0.6, 1.0)),
 ]
+# Every strip's TANGENT (xyz, handedness): bitangent = cross(normal +Y, +X) = -Z.
+TANGENT = (1.0, 0.0, 0.0, 1.0)
 WIDTH, HEIGHT = 16 * len(MATERIALS), 16
 # The ground's strips: material k covers z in [2k - n + 0.2, 2k - n + 1.8], side by side along
 # the image's width (x in [-XMAG, XMAG]).
@@ -88,26 +93,30 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
         b = 4 * k
         indices += [b, b + 1, b + 2, b, b + 2, b + 3]  # counter-clockwise seen from +Y
     pos = np.asarray(positions, np.float32)
+    n = len(positions)
     blob = pos.tobytes() + np.asarray(normals, np.float32).tobytes()
+    blob += np.asarray([TANGENT] * n, np.float32).tobytes()
     index_offset = len(blob)
     blob += np.asarray(indices, np.uint16).tobytes()
-    n = len(positions)
     views = [
         {"buffer": 0, "byteOffset": 0, "byteLength": 12 * n},
         {"buffer": 0, "byteOffset": 12 * n, "byteLength": 12 * n},
+        {"buffer": 0, "byteOffset": 24 * n, "byteLength": 16 * n},
     ]
     accessors = [
         {"bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3",
          "min": pos.min(0).tolist(), "max": pos.max(0).tolist()},
         {"bufferView": 1, "componentType": 5126, "count": n, "type": "VEC3"},
+        {"bufferView": 2, "componentType": 5126, "count": n, "type": "VEC4"},
     ]  # fmt: skip
     primitives, materials = [], []
-    for k, (colour, roughness, ior, specular, specular_colour) in enumerate(MATERIALS):
+    for k, entry in enumerate(MATERIALS):
+        colour, roughness, ior, specular, specular_colour = entry[:5]
         views.append({"buffer": 0, "byteOffset": index_offset + 12 * k, "byteLength": 12})
-        accessors.append({"bufferView": 2 + k, "componentType": 5123, "count": 6,
+        accessors.append({"bufferView": 3 + k, "componentType": 5123, "count": 6,
                           "type": "SCALAR"})  # fmt: skip
-        primitives.append({"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2 + k,
-                           "material": k})  # fmt: skip
+        primitives.append({"attributes": {"POSITION": 0, "NORMAL": 1, "TANGENT": 2},
+                           "indices": 3 + k, "material": k})  # fmt: skip
         material = {"pbrMetallicRoughness": {"baseColorFactor": [*colour, 1.0],
                                              "metallicFactor": 0.0,
                                              "roughnessFactor": roughness}}  # fmt: skip
@@ -127,6 +136,12 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
                 "specularFactor": specular,
                 "specularColorFactor": list(specular_colour),
             }
+        if len(entry) > 5:
+            strength, rotation = entry[5]
+            extensions["KHR_materials_anisotropy"] = {
+                "anisotropyStrength": strength,
+                "anisotropyRotation": rotation,
+            }
         if extensions:
             material["extensions"] = extensions
         materials.append(material)
@@ -136,7 +151,7 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
     gltf = {
         "asset": {"version": "2.0"},
         "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior", "KHR_materials_specular",
-                           "KHR_materials_pbrSpecularGlossiness"],
+                           "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy"],
         "extensions": {"KHR_lights_punctual": {"lights": [
             {"type": "directional", "color": [1, 1, 1], "intensity": INTENSITY}]}},
         "scene": 0,
@@ -158,7 +173,14 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
 
 
 def spec_brdf(
-    colour, roughness, ior, specular, specular_colour, v: np.ndarray, light: np.ndarray
+    colour,
+    roughness,
+    ior,
+    specular,
+    specular_colour,
+    *rest,
+    v: np.ndarray,
+    light: np.ndarray,
 ) -> np.ndarray:
     """glTF 2.0 Appendix B, the dielectric (metallic 0), with KHR_materials_specular's
     fresnel_mix (its "Implementation" section):
@@ -169,7 +191,12 @@ def spec_brdf(
     f(V, L) for normal +Y, RGB; specular 1 and a white colour give Appendix B's mix. For
     KHR_materials_pbrSpecularGlossiness (ior == SPEC_GLOSS) its BRDF inputs in Appendix B's
     form: c_diff = diffuse (1 - max(specular)), F0 = specular, alpha = (1 - glossiness)^2, and
-    f = (1 - F) c_diff / pi + F specular_brdf per channel."""
+    f = (1 - F) c_diff / pi + F specular_brdf per channel. With KHR_materials_anisotropy
+    (rest = ((strength, rotation),)) specular_brdf is the extension's
+    BRDF_specularAnisotropicGGX: at = mix(alpha, 1, strength^2) along the tangent rotated by
+    rotation counter-clockwise towards the bitangent, ab = alpha across it,
+    D = a2 w2^2 / pi with a2 = at ab, w2 = a2 / |(ab T.H, at B.H, a2 N.H)|^2, and
+    V = 0.5 / (N.L |(at T.V, ab B.V, N.V)| + N.V |(at T.L, ab B.L, N.L)|)."""
     n = np.array([0.0, 1.0, 0.0])
     h = (v + light) / np.linalg.norm(v + light)
     nl, nv, nh = np.dot(n, light), np.dot(n, v), np.dot(n, h)
@@ -178,6 +205,20 @@ def spec_brdf(
     d = a2 * (nh > 0) / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
     vis = (hl > 0) * (vh > 0) / (2.0 * (abs(nv) * np.sqrt(a2 + (1 - a2) * nl * nl)
                                         + abs(nl) * np.sqrt(a2 + (1 - a2) * nv * nv)))  # fmt: skip
+    if rest:
+        (strength, rotation), alpha = rest[0], roughness**2
+        t0 = np.asarray(TANGENT[:3])
+        b0 = np.cross(n, t0) * TANGENT[3]
+        t = np.cos(rotation) * t0 + np.sin(rotation) * b0
+        b = np.cross(n, t)
+        at, ab = alpha * (1.0 - strength**2) + strength**2, alpha
+        a2 = at * ab
+        fv = np.array([ab * np.dot(t, h), at * np.dot(b, h), a2 * nh])
+        w2 = a2 / np.dot(fv, fv)
+        d = a2 * w2 * w2 / np.pi
+        ggx_v = nl * np.linalg.norm([at * np.dot(t, v), ab * np.dot(b, v), nv])
+        ggx_l = nv * np.linalg.norm([at * np.dot(t, light), ab * np.dot(b, light), nl])
+        vis = 0.5 / (ggx_v + ggx_l)
     if ior == SPEC_GLOSS:
         f0 = np.asarray(specular_colour)
         fr = f0 + (1.0 - f0) * (1.0 - abs(vh)) ** 5
@@ -223,7 +264,7 @@ def test_dielectric_brdf_is_the_specs_closed_form(
         channels = read_exr(str(out))
         image = np.stack([channels["R"], channels["G"], channels["B"]], -1).astype(np.float64)
         for k, got in enumerate(strip_pixels(image)):
-            want = INTENSITY * spec_brdf(*MATERIALS[k], view, light) * light[1]
+            want = INTENSITY * spec_brdf(*MATERIALS[k], v=view, light=light) * light[1]
             where = f"material {k} {MATERIALS[k]}, view {tv} deg, light {tl} deg at {phi} deg"
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7, err_msg=where)
             worst = max(worst, float(np.max(np.abs(got / want - 1))))

@@ -104,6 +104,12 @@ struct Frame {
     s = {1.f + sign * n.x * n.x * a, sign * b, -sign * n.x};
     t = {b, sign + n.y * n.y * a, -n.y};
   }
+  // The frame around n whose s is `tangent` made orthogonal to n (tangent must not be
+  // parallel to n), t = cross(n, s): right-handed like the one above.
+  Frame(Vec3 n_, Vec3 tangent) : n(n_) {
+    s = normalize(tangent - n * dot(n, tangent));
+    t = cross(n, s);
+  }
   Vec3 to_world(Vec3 v) const { return s * v.x + t * v.y + n * v.z; }
   Vec3 to_local(Vec3 v) const { return {dot(v, s), dot(v, t), dot(v, n)}; }
 };

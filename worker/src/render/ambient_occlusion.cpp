@@ -19,7 +19,7 @@ SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d,
   result.normal = sp.ns;
   result.depth = hit.t;
   const Vec3 local = sample_cosine_hemisphere(s.get2(dim::bounce(0, dim::kBsdfU)));
-  const Vec3 wi = normalize(Frame(sp.ns).to_world(local));
+  const Vec3 wi = normalize(sp.frame().to_world(local));
   if (dot(wi, sp.ng) <= 0.f) return result;  // below the surface: blocked by it
   const float radius = 0.1f * scene.diagonal();
   ++result.rays;

@@ -443,6 +443,11 @@ std::unique_ptr<Scene> varied_cornell_box(float glass_roughness = 0.f) {
   desc.materials[1].roughness = 0.3f;
   desc.materials[2].transmission = 1.f;
   desc.materials[2].roughness = glass_roughness;
+  // With rough glass, the metal brushed too (KHR_materials_anisotropy: its own frame).
+  if (glass_roughness > 0.f) {
+    desc.materials[1].anisotropy = 0.7f;
+    desc.materials[1].anisotropy_rotation = 0.5f;
+  }
   desc.materials[2].absorption = Vec3(0.9f, 2.f, 0.3f);  // KHR_materials_volume
   for (Material& m : desc.materials)  // the light's back face, towards the ceiling, emits too
     if (m.is_emissive()) m.double_sided = true;
@@ -630,7 +635,7 @@ TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceBitForBit) {
 
 // With the glass rough: its lobe sampled through visible normals, and evaluated for the
 // punctual lights on either side (two-sided light selection, shadow rays through the surface
-// in the volume's medium).
+// in the volume's medium); and the metal anisotropic (its BSDF in a frame of its own).
 TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceWithRoughGlass) {
   expect_packet_tracer_equals_the_scalar_reference(varied_cornell_box(0.4f));
 }

@@ -109,7 +109,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     if (!(u.get(dim::kRoulette) < q)) return;
     p.beta = p.beta / q;
   }
-  const Frame frame(sp.ns);
+  const Frame frame = sp.frame();
   const Vec3 wo_local = frame.to_local(wo);
   const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
   batch->set_vertex(lane, sp.params, lobes, wo_local, frame);

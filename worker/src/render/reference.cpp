@@ -139,7 +139,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       if (!(u.get(dim::kRoulette) < q)) return result;
       p.beta = p.beta / q;
     }
-    const Frame frame(sp.ns);
+    const Frame frame = sp.frame();
     const Vec3 wo_local = frame.to_local(wo);
     const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
     LightRay light;

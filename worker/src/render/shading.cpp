@@ -52,7 +52,7 @@ __attribute__((noinline)) void add_layers(const Scene& scene, const Hit& hit, Ve
                   : hit.ns;
     if (dot(nc, sp->ng) < 0.f) nc = -nc;
     if (dot(nc, wo) > 1e-4f) {
-      const Vec3 local = Frame(sp->ns).to_local(nc);
+      const Vec3 local = sp->frame().to_local(nc);
       const float l = length(local);
       if (l > 0.f && std::isfinite(l) && local.z > 0.f) bp.clearcoat_n = local / l;
     }
@@ -72,6 +72,54 @@ __attribute__((noinline)) void add_layers(const Scene& scene, const Hit& hit, Ve
     const float r = std::min(1.f, std::max(0.f, roughness));
     bp.sheen_alpha = std::max(kMinSheenAlpha, r * r);
   }
+}
+
+// KHR_materials_anisotropy: the direction (anisotropyRotation applied to the texture's RG, or
+// to the tangent) in the hit's tangent frame (TANGENT, else the texture coordinates'), and the
+// alpha along it, mix(alpha, 1, strength^2) with strength = anisotropyStrength x texture B.
+// Without a tangent frame (no TANGENT and no texture coordinates) the direction is taken
+// from an arbitrary frame around the normal.
+void anisotropy(const Scene& scene, const Hit& hit, ShadingPoint* sp) {
+  const Material& mat = scene.materials()[hit.material];
+  float strength = mat.anisotropy;
+  float dx = 1.f, dy = 0.f;
+  float c[4];
+  if (mat.anisotropy_tex.valid() &&
+      scene.textures().lookup(mat.anisotropy_tex.texture,
+                              texcoord(scene, hit, mat.anisotropy_tex), 3, c)) {
+    dx = 2.f * c[0] - 1.f;
+    dy = 2.f * c[1] - 1.f;
+    const float l = std::sqrt(dx * dx + dy * dy);
+    if (l > 0.f) {
+      dx /= l;
+      dy /= l;
+    } else {
+      dx = 1.f;
+      dy = 0.f;
+    }
+    strength *= c[2];
+  }
+  strength = std::min(1.f, std::max(0.f, strength));
+  if (!(strength > 0.f)) return;
+  const float cr = std::cos(mat.anisotropy_rotation), sr = std::sin(mat.anisotropy_rotation);
+  const float rx = cr * dx - sr * dy, ry = sr * dx + cr * dy;  // counter-clockwise
+  const Vec3 ns = sp->ns;
+  Vec3 t = hit.dpdu - ns * dot(ns, hit.dpdu);
+  float tl = length(t);
+  float sign = hit.tangent_sign;
+  if (!(tl > 0.f) || !std::isfinite(tl)) {
+    t = Frame(ns).s;
+    tl = 1.f;
+    sign = 1.f;
+  }
+  t = t / tl;
+  const Vec3 b = cross(ns, t) * sign;
+  const Vec3 dir = t * rx + b * ry;
+  const float dl = length(dir);
+  if (!(dl > 0.f)) return;
+  sp->tangent = dir / dl;
+  const float a = sp->params.alpha;
+  sp->params.alpha_t = a * (1.f - strength * strength) + strength * strength;
 }
 
 // KHR_materials_pbrSpecularGlossiness: the extension's BRDF inputs, c_diff = diffuse (1 -
@@ -156,6 +204,7 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   // A shading normal that puts wo below its hemisphere cannot be used (the BSDF would see
   // wo.z <= 0 and the path would end black): fall back to the geometric normal.
   if (dot(sp.ns, wo) <= 1e-4f) sp.ns = sp.ng;
+  if (mat.anisotropy > 0.f) anisotropy(scene, hit, &sp);
   // The layers are on the outside of a transmissive material: a ray inside meets none.
   if (bp.front || (1.f - bp.metallic) * bp.transmission <= 0.f) add_layers(scene, hit, wo, &sp);
   sp.p = hit.p;

@@ -26,8 +26,13 @@ struct ShadingPoint {
   Vec3 albedo;  // base color, the albedo AOV
   Vec3 ng;      // geometric normal on the side of wo
   Vec3 ns;      // shading normal (normal-mapped) on the same side as ng
+  // KHR_materials_anisotropy: the direction of the anisotropy (the local frame's x axis, along
+  // which GGX has alpha params.alpha_t); zero for an isotropic BSDF (any frame around ns).
+  Vec3 tangent;
   Vec3 p;
   float eps = 0.f;
+  // The BSDF's local frame: BsdfParams directions are in it.
+  Frame frame() const { return is_zero(tangent) ? Frame(ns) : Frame(ns, tangent); }
   Vec3 above() const { return p + ng * eps; }
   Vec3 below() const { return p - ng * eps; }
 };

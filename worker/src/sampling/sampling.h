@@ -193,6 +193,34 @@ struct BsdfDisks {
 inline BsdfDisks bsdf_disks(Point2 u) {
   return {sample_cosine_hemisphere(u), sample_polar_disk(u)};
 }
+// ---- Anisotropic GGX (KHR_materials_anisotropy; Heitz 2014 and 2018): alpha ax along the
+// local x axis, ay along y. D(m) = 1 / (pi ax ay ((m.x/ax)^2 + (m.y/ay)^2 + m.z^2)^2),
+// Lambda(w) = (-1 + sqrt(1 + (ax^2 w.x^2 + ay^2 w.y^2) / w.z^2)) / 2; with ax = ay they are
+// ggx_d and ggx_lambda.
+inline float ggx_d_aniso(Vec3 m, float ax, float ay) {
+  if (m.z <= 0.f) return 0.f;
+  const float x = m.x / ax, y = m.y / ay;
+  const float t = x * x + y * y + m.z * m.z;
+  return 1.f / (kPi * ax * ay * t * t);
+}
+inline float ggx_lambda_aniso(Vec3 w, float ax, float ay) {
+  const float z2 = w.z * w.z;
+  if (z2 <= 0.f) return 1e30f;
+  return 0.5f * (-1.f + std::sqrt(1.f + (ax * ax * w.x * w.x + ay * ay * w.y * w.y) / z2));
+}
+// Visible normals of the anisotropic distribution: the isotropic construction in the space
+// stretched by (ax, ay), from the disk point d = sample_polar_disk(u).
+inline Vec3 sample_ggx_vndf_aniso_from_disk(Vec3 wo, float ax, float ay, Point2 d) {
+  const Vec3 vh = normalize(Vec3(ax * wo.x, ay * wo.y, wo.z));
+  const float lensq = vh.x * vh.x + vh.y * vh.y;
+  const Vec3 t1 = lensq > 0.f ? Vec3(-vh.y, vh.x, 0.f) / std::sqrt(lensq) : Vec3(1.f, 0.f, 0.f);
+  const Vec3 t2 = cross(vh, t1);
+  const float s = 0.5f * (1.f + vh.z);
+  const float p1 = d.x;
+  const float p2 = (1.f - s) * std::sqrt(std::max(0.f, 1.f - p1 * p1)) + s * d.y;
+  const Vec3 nh = t1 * p1 + t2 * p2 + vh * std::sqrt(std::max(0.f, 1.f - p1 * p1 - p2 * p2));
+  return normalize(Vec3(ax * nh.x, ay * nh.y, std::max(1e-7f, nh.z)));
+}
 // Density of sample_ggx_vndf per unit solid angle of m.
 inline float ggx_vndf_pdf(Vec3 wo, Vec3 m, float alpha) {
   if (wo.z <= 0.f) return 0.f;

@@ -51,7 +51,7 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_volume",            "KHR_materials_clearcoat",    "KHR_materials_sheen",
       "KHR_materials_unlit",             "EXT_texture_webp",           "EXT_texture_avif",
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
-      "KHR_materials_pbrSpecularGlossiness",
+      "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
       // the EXR header (server/renderfarm/domain/scenes/metadata.py).
       "KHR_xmp_json_ld"};
@@ -941,6 +941,19 @@ class Loader {
       for (int k = 0; k < 3; ++k)
         if (!(m.emission[k] >= 0.f) || !std::isfinite(m.emission[k]))
           fail(where + ": emissiveFactor x emissiveStrength must be finite and >= 0");
+      auto an = gm.extensions.find("KHR_materials_anisotropy");
+      if (an != gm.extensions.end()) {
+        const std::string at_an =
+            "materials[" + std::to_string(i) + "].extensions.KHR_materials_anisotropy";
+        m.anisotropy = unit_factor(an->second, "anisotropyStrength", 0.f, at_an);
+        if (an->second.Has("anisotropyRotation")) {
+          const tinygltf::Value& r = an->second.Get("anisotropyRotation");
+          if (!r.IsNumber() || !std::isfinite(r.GetNumberAsDouble()))
+            fail(at_an + ".anisotropyRotation" + named(gm.name) + ": must be a finite number");
+          m.anisotropy_rotation = float(r.GetNumberAsDouble());
+        }
+        m.anisotropy_tex = texture_ref(an->second, "anisotropyTexture", at_an);
+      }
       auto sg = gm.extensions.find("KHR_materials_pbrSpecularGlossiness");
       if (sg != gm.extensions.end()) load_specular_glossiness(sg->second, i, gm.name, &m);
       load_layers(gm, i, &m);

@@ -237,6 +237,7 @@ const Material::TextureSlot (&Material::texture_slots())[Material::kTextureSlots
       {&Material::transmission_tex, "transmissionTexture", false, true},
       {&Material::specular_tex, "specularTexture", false, true},
       {&Material::specular_color_tex, "specularColorTexture", true, true},
+      {&Material::anisotropy_tex, "anisotropyTexture", false, true},
       {&Material::clearcoat_tex, "clearcoatTexture", false, true},
       {&Material::clearcoat_roughness_tex, "clearcoatRoughnessTexture", false, true},
       {&Material::clearcoat_normal_tex, "clearcoatNormalTexture", false, true},
@@ -353,9 +354,11 @@ BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
   float ms = 0.f;
   if (p.metallic > 0.f) {
     const EnergyTable& t = energy_table();
-    const float e_o = t.e(wo.z, p.alpha);
+    // An anisotropic lobe's compensation at the isotropic alpha of the same area.
+    const float ms_alpha = p.anisotropic() ? std::sqrt(p.alpha_t * p.alpha) : p.alpha;
+    const float e_o = t.e(wo.z, ms_alpha);
     ms = p.metallic * (1.f - e_o);
-    const float e_avg = t.e_avg(p.alpha);
+    const float e_avg = t.e_avg(ms_alpha);
     l.ms = metal_ms_fresnel(p, e_avg) * (ms / (kPi * (1.f - e_avg)));
   }
   const float wdiff = l.wd * (1.f - fd) * std::max(lum, 1e-3f) + ms;
@@ -363,6 +366,7 @@ BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
   const float c2 = wo.z * wo.z;
   l.root_o = std::sqrt(c2 + p.alpha * p.alpha * std::max(0.f, 1.f - c2));
   l.pdf_k = wo.z > 0.f ? 1.f / (2.f * (wo.z + l.root_o)) : 0.f;
+  l.anisotropic = p.anisotropic();
   if (p.layered()) layer_lobes(p, wo, l.glass + ws + wdiff, &l);
   return l;
 }
@@ -381,7 +385,47 @@ float fresnel_dielectric(float cos_i, float eta) {
   return 0.5f * (r_parl * r_parl + r_perp * r_perp);
 }
 
+namespace {
+
+// The base's f cos and pdf with an anisotropic GGX lobe (KHR_materials_anisotropy): the
+// formulas of bsdf_eval_cos and bsdf_pdf with D and Lambda of the anisotropic distribution
+// (alpha_t along x, alpha along y), the spec's BRDF_specularAnisotropicGGX: V = G2 / (4
+// cos_o cos_i) is its V_GGX_anisotropic. The metal's multiple-scattering term keeps its
+// isotropic table at alpha sqrt(alpha_t alpha) (the compensation only).
+__attribute__((noinline)) Vec3 anisotropic_base(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                                Vec3 wi, float* pdf) {
+  *pdf = 0.f;
+  if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
+  const Vec3 h_raw = wo + wi;
+  const float hl = length(h_raw);
+  if (!(hl > 0.f)) return {0.f, 0.f, 0.f};
+  const Vec3 h = h_raw / hl;
+  const float c = std::max(0.f, dot(wo, h));
+  const float fw = schlick_weight(c);
+  const float ax = p.alpha_t, ay = p.alpha;
+  const Vec3 fd = dielectric_fresnel(p, l.f0d, fw);
+  const Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
+  const float d = ggx_d_aniso(h, ax, ay);
+  const float lo = ggx_lambda_aniso(wo, ax, ay), li = ggx_lambda_aniso(wi, ax, ay);
+  const float spec = d / ((1.f + lo + li) * 4.f * wo.z * wi.z);
+  Vec3 diffuse = p.base * (l.wd * (1.f - max3(fd)) * kInvPi);
+  if (p.metallic > 0.f)
+    diffuse += l.ms * (1.f - energy_table().e(wi.z, std::sqrt(ax * ay)));
+  Vec3 specular;
+  for (int ch = 0; ch < 3; ++ch) specular[ch] = (l.wd * fd[ch] + fm[ch] * p.metallic) * spec;
+  // The GGX sample's density: visible normals, G1(wo) (wo.h) D / cos_o, over 4 (wo.h).
+  const float pdf_spec = c > 0.f ? d / ((1.f + lo) * 4.f * wo.z) : 0.f;
+  *pdf = (1.f - l.glass) * (l.spec * pdf_spec + (1.f - l.spec) * wi.z * kInvPi);
+  return (diffuse + specular) * wi.z;
+}
+
+}  // namespace
+
 Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
+  if (p.anisotropic()) {
+    float pdf = 0.f;
+    return bsdf_eval_pdf(p, bsdf_lobes(p, wo), wo, wi, &pdf);
+  }
   if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
   const float wd = (1.f - p.metallic) * (1.f - p.transmission);
   const Vec3 h_raw = wo + wi;
@@ -406,6 +450,11 @@ Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   if (wo.z <= 0.f || wi.z <= 0.f) return 0.f;
   const BsdfLobes l = bsdf_lobes(p, wo);
+  if (l.anisotropic) {
+    float pdf = 0.f;
+    bsdf_eval_pdf(p, l, wo, wi, &pdf);
+    return pdf;
+  }
   const Vec3 h_raw = wo + wi;
   const float hl = length(h_raw);
   float pdf_spec = 0.f;
@@ -430,6 +479,11 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
 Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, float* pdf) {
   *pdf = 0.f;
   if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
+  if (l.anisotropic) {
+    const Vec3 f = anisotropic_base(p, l, wo, wi, pdf);
+    if (!l.layered) return f;
+    return add_layers(p, l, wo, wi, f, *pdf, pdf);
+  }
   // The same quantities as bsdf_eval_cos and bsdf_pdf, rearranged to need two square roots
   // and two divisions (the functions above are the readable reference the tests hold this
   // one to):
@@ -601,7 +655,9 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
   const float u_rest = l.glass < 1.f ? (u_lobe - l.glass) / (1.f - l.glass) : 0.f;
   Vec3 wi;
   if (u_rest < l.spec) {
-    const Vec3 m = sample_ggx_vndf_from_disk(wo, p.alpha, disks.polar);
+    const Vec3 m = l.anisotropic
+                       ? sample_ggx_vndf_aniso_from_disk(wo, p.alpha_t, p.alpha, disks.polar)
+                       : sample_ggx_vndf_from_disk(wo, p.alpha, disks.polar);
     wi = m * (2.f * dot(wo, m)) - wo;
   } else {
     wi = disks.cosine;

@@ -85,6 +85,11 @@ struct Material {
   // Shading turns them into the BRDF inputs the extension defines (shading.cpp).
   bool specular_glossiness = false;
   float glossiness = 1.f;
+  // KHR_materials_anisotropy: strength (anisotropyStrength), rotation (radians, counter-
+  // clockwise from the tangent) and texture (RG direction in [-1, 1], B strength; linear).
+  float anisotropy = 0.f;
+  float anisotropy_rotation = 0.f;
+  TextureRef anisotropy_tex{};
   AlphaMode alpha_mode = AlphaMode::Opaque;
   float alpha = 1.f;         // baseColorFactor alpha
   float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)
@@ -110,7 +115,7 @@ struct Material {
     const char* name;  // the glTF property
     bool srgb, at_hit;
   };
-  static constexpr int kTextureSlots = 12;
+  static constexpr int kTextureSlots = 13;
   static const TextureSlot (&texture_slots())[kTextureSlots];
   // True if shading reads texture coordinates at the hit point.
   bool reads_uv() const {
@@ -118,11 +123,16 @@ struct Material {
       if (slot.at_hit && (this->*slot.ref).valid()) return true;
     return false;
   }
-  // The tangent-space normal map whose TEXCOORD set gives the hit's tangent (Hit::dpdu): the
-  // base's, else the clear coat's.
+  // The texture whose TEXCOORD set gives the hit's tangent (Hit::dpdu) when the mesh has no
+  // TANGENT: the base's normal map, else the clear coat's, else the anisotropy texture.
   const TextureRef& tangent_map() const {
-    return normal_tex.valid() ? normal_tex : clearcoat_normal_tex;
+    return normal_tex.valid()              ? normal_tex
+           : clearcoat_normal_tex.valid() ? clearcoat_normal_tex
+                                          : anisotropy_tex;
   }
+  // Shading needs a tangent frame: a normal map, or anisotropy (whose direction is given in
+  // the tangent frame; without a texture, from TEXCOORD_0's).
+  bool needs_tangent() const { return tangent_map().valid() || anisotropy > 0.f; }
 };
 
 // Smallest GGX alpha: below it the lobe is too narrow for float precision; such surfaces
@@ -137,6 +147,10 @@ struct BsdfParams {
   Vec3 base{1.f, 1.f, 1.f};
   float metallic = 0.f;
   float alpha = 1.f;  // GGX alpha = roughness^2, clamped to >= kMinAlpha
+  // KHR_materials_anisotropy: GGX alpha along the local x axis (the anisotropy direction),
+  // mix(alpha, 1, strength^2); 0: isotropic (alpha in every direction).
+  float alpha_t = 0.f;
+  bool anisotropic() const { return alpha_t > 0.f; }
   float specular = 0.f;
   Vec3 specular_color{1.f, 1.f, 1.f};  // KHR_materials_specular's colour (scales F0)
   float ior = 1.5f;
@@ -212,6 +226,9 @@ struct BsdfLobes {
   // the sheen lobe (the base gets the rest, base_pick; glass and spec above are then the
   // base's own choices), c F_c(wo), max3(sheenColor) min(1, E(wo.z)) and max(1, E(wo.z)).
   bool layered = false;
+  // An anisotropic GGX lobe (BsdfParams::alpha_t): evaluated by the general formulas, not
+  // the isotropic rearrangement (root_o, pdf_k are unused).
+  bool anisotropic = false;
   float coat = 0.f, sheen = 0.f, base_pick = 1.f;
   float coat_f = 0.f, sheen_e = 0.f, sheen_norm = 1.f;
 };
@@ -290,9 +307,10 @@ class BsdfEvalBatch {
     spec_[lane] = lobes.spec;
     root_o_[lane] = lobes.root_o;
     pdf_k_[lane] = lobes.pdf_k;
-    // A layered BSDF is evaluated by bsdf_eval_pdf itself after the SIMD blocks.
+    // A layered or anisotropic BSDF is evaluated by bsdf_eval_pdf itself after the SIMD
+    // blocks.
     const uint32_t bit = uint32_t(1) << lane;
-    if (lobes.layered) {
+    if (lobes.layered || lobes.anisotropic) {
       layered_ |= bit;
       new (&layered_storage_[lane]) LayeredVertex{p, lobes, wo};
     } else {

@@ -1170,7 +1170,7 @@ void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u
                         t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
   }
   const TriangleMesh::Tangent* tangent = nullptr;
-  if (mat.tangent_map().valid() && (flags & TriangleMesh::kHasTangents)) {
+  if (mat.needs_tangent() && (flags & TriangleMesh::kHasTangents)) {
     // The supplied TANGENT (glTF 3.7.2.1: MikkTSpace only where it is absent), interpolated;
     // the handedness is the first vertex's (glTF: +-1, the same over a triangle).
     const TriangleMesh::Tangent& a = mesh.tangents[vi[0]];
@@ -1182,7 +1182,7 @@ void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u
       tangent = &a;
     }
   }
-  if (!tangent && mat.tangent_map().valid() && has_uv(mesh, prim, set)) {
+  if (!tangent && mat.needs_tangent() && has_uv(mesh, prim, set)) {
     // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
     const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
     const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];

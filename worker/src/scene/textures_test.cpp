@@ -515,5 +515,46 @@ TEST(Textures, SpecularGlossinessTexturesGiveTheExtensionsBrdfInputs) {
   for (int k = 0; k < 3; ++k) EXPECT_NEAR(r2 * sp.params.specular_color[k], f0[k], 1e-3f);
 }
 
+// KHR_materials_anisotropy: the direction in the tangent frame (here TEXCOORD_0's: tangent +x,
+// bitangent +y), turned counter-clockwise by anisotropyRotation, becomes the shading frame's x
+// axis, with alpha mix(alpha, 1, strength^2) along it; the texture's RG give the direction
+// before the rotation and its B scales the strength.
+TEST(Textures, AnisotropyDirectionAndStrengthFromFactorsAndTexture) {
+  const std::string texel = testing::png_data_uri(1, 1, 3, {128, 255, 128});
+  auto shade = [&](const std::string& anisotropy) {
+    const std::string json = quad_scene(
+        R"({"pbrMetallicRoughness": {"metallicFactor": 1, "roughnessFactor": 0.4},
+            "extensions": {"KHR_materials_anisotropy": )" + anisotropy + "}}",
+        R"({"uri": ")" + texel + R"("})", R"("extensionsUsed": ["KHR_materials_anisotropy"],)");
+    std::vector<std::string> warnings;
+    SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+    for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+    desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
+    const Scene scene(std::move(desc), &warnings);
+    Hit hit;
+    EXPECT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
+    return make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  };
+  const float alpha = 0.4f * 0.4f;
+  // Rotation pi/2: from the tangent to the bitangent, +y.
+  ShadingPoint sp = shade(R"({"anisotropyStrength": 0.5, "anisotropyRotation": 1.5707963})");
+  EXPECT_NEAR(sp.tangent.x, 0.f, 1e-5f);
+  EXPECT_NEAR(sp.tangent.y, 1.f, 1e-5f);
+  EXPECT_NEAR(sp.params.alpha_t, alpha * 0.75f + 0.25f, 1e-6f);
+  EXPECT_NEAR(sp.params.alpha, alpha, 1e-6f);
+  // The texture: RG (0.5, 1) is direction (0, 1) (normalized), turned by pi/2 to -x; B 0.5
+  // halves the strength.
+  sp = shade(R"({"anisotropyStrength": 0.8, "anisotropyRotation": 1.5707963,
+                 "anisotropyTexture": {"index": 0}})");
+  const float dx = 2.f * 128.f / 255.f - 1.f;
+  EXPECT_NEAR(sp.tangent.x, -1.f, 1e-4f);
+  EXPECT_NEAR(sp.tangent.y, dx, 1e-3f);
+  const float strength = 0.8f * 128.f / 255.f;
+  EXPECT_NEAR(sp.params.alpha_t, alpha * (1.f - strength * strength) + strength * strength, 1e-4f);
+  // Strength 0: isotropic.
+  sp = shade(R"({"anisotropyStrength": 0})");
+  EXPECT_FALSE(sp.params.anisotropic());
+}
+
 }  // namespace
 }  // namespace rf
