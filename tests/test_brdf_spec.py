@@ -3,7 +3,8 @@
 
 Each render is a flat, untextured ground (normal +Y) of the dielectric materials of MATERIALS
 side by side (two with KHR_materials_specular's weight and colour, two
-KHR_materials_pbrSpecularGlossiness, two KHR_materials_anisotropy), seen by an orthographic
+KHR_materials_pbrSpecularGlossiness, two KHR_materials_anisotropy, two
+KHR_materials_iridescence), seen by an orthographic
 camera from direction V and lit by one directional light (KHR_lights_punctual, intensity I)
 from direction L over a black world. Every sample of a
 pixel then sees the same point of the same BRDF with the same V and L, and the path tracer's
@@ -54,8 +55,11 @@ MATERIALS = [
     ((0.8, 0.2, 0.1), 0.4, SPEC_GLOSS, None, (0.25, 0.25, 0.25)),
     ((0.0, 0.0, 0.0), 0.1, SPEC_GLOSS, None, (1.0, 0.766, 0.336)),
     # KHR_materials_anisotropy (strength, rotation in radians): the ground's TANGENT is +X.
-    ((0.5, 0.5, 0.5), 0.3, 1.5, 1.0, (1.0, 1.0, 1.0), (0.8, 0.0)),
-    ((0.2, 0.4, 0.9), 0.5, 1.5, 1.0, (1.0, 1.0, 1.0), (0.6, 1.0)),
+    ((0.5, 0.5, 0.5), 0.3, 1.5, 1.0, (1.0, 1.0, 1.0), {"anisotropy": (0.8, 0.0)}),
+    ((0.2, 0.4, 0.9), 0.5, 1.5, 1.0, (1.0, 1.0, 1.0), {"anisotropy": (0.6, 1.0)}),
+    # KHR_materials_iridescence (factor, film ior, thickness in nm).
+    ((0.3, 0.3, 0.3), 0.3, 1.5, 1.0, (1.0, 1.0, 1.0), {"iridescence": (1.0, 1.3, 400.0)}),
+    ((0.1, 0.2, 0.6), 0.45, 1.5, 1.0, (1.0, 1.0, 1.0), {"iridescence": (0.5, 1.8, 250.0)}),
 ]
 # Every strip's TANGENT (xyz, handedness): bitangent = cross(normal +Y, +X) = -Z.
 TANGENT = (1.0, 0.0, 0.0, 1.0)
@@ -136,11 +140,19 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
                 "specularFactor": specular,
                 "specularColorFactor": list(specular_colour),
             }
-        if len(entry) > 5:
-            strength, rotation = entry[5]
+        extras = entry[5] if len(entry) > 5 else {}
+        if "anisotropy" in extras:
+            strength, rotation = extras["anisotropy"]
             extensions["KHR_materials_anisotropy"] = {
                 "anisotropyStrength": strength,
                 "anisotropyRotation": rotation,
+            }
+        if "iridescence" in extras:
+            factor, film_ior, thickness = extras["iridescence"]
+            extensions["KHR_materials_iridescence"] = {
+                "iridescenceFactor": factor,
+                "iridescenceIor": film_ior,
+                "iridescenceThicknessMaximum": thickness,
             }
         if extensions:
             material["extensions"] = extensions
@@ -151,7 +163,8 @@ def ground_scene(path: Path, view: np.ndarray, light: np.ndarray) -> None:
     gltf = {
         "asset": {"version": "2.0"},
         "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_ior", "KHR_materials_specular",
-                           "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy"],
+                           "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
+                           "KHR_materials_iridescence"],
         "extensions": {"KHR_lights_punctual": {"lights": [
             {"type": "directional", "color": [1, 1, 1], "intensity": INTENSITY}]}},
         "scene": 0,
@@ -205,8 +218,9 @@ def spec_brdf(
     d = a2 * (nh > 0) / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
     vis = (hl > 0) * (vh > 0) / (2.0 * (abs(nv) * np.sqrt(a2 + (1 - a2) * nl * nl)
                                         + abs(nl) * np.sqrt(a2 + (1 - a2) * nv * nv)))  # fmt: skip
-    if rest:
-        (strength, rotation), alpha = rest[0], roughness**2
+    extras = rest[0] if rest else {}
+    if "anisotropy" in extras:
+        (strength, rotation), alpha = extras["anisotropy"], roughness**2
         t0 = np.asarray(TANGENT[:3])
         b0 = np.cross(n, t0) * TANGENT[3]
         t = np.cos(rotation) * t0 + np.sin(rotation) * b0
@@ -226,8 +240,73 @@ def spec_brdf(
         return (1.0 - fr) * c_diff / np.pi + fr * vis * d
     f0 = np.minimum(((1.0 - ior) / (1.0 + ior)) ** 2 * np.asarray(specular_colour), 1.0)
     fr = f0 + (1.0 - f0) * (1.0 - abs(vh)) ** 5
+    if "iridescence" in extras:
+        factor, film_ior, thickness = extras["iridescence"]
+        fr = (1.0 - factor) * fr + factor * f_iridescence(film_ior, abs(vh), thickness, f0)
     diffuse = np.asarray(colour) / np.pi
     return (1.0 - specular * np.max(fr)) * diffuse + specular * fr * vis * d
+
+
+# CIE XYZ to linear Rec. 709, and the Gaussian fits of the colour matching functions in
+# Fourier space (KHR_materials_iridescence's evalSensitivity).
+XYZ_TO_REC709 = np.array(
+    [
+        [3.2404542, -1.5371385, -0.4985314],
+        [-0.9692660, 1.8760108, 0.0415560],
+        [0.0556434, -0.2040259, 1.0572252],
+    ]
+)
+
+
+def sensitivity(opd: float, shift: np.ndarray) -> np.ndarray:
+    phase = 2.0 * np.pi * opd * 1.0e-9
+    val = np.array([5.4856e-13, 4.4201e-13, 5.2481e-13])
+    pos = np.array([1.6810e06, 1.7953e06, 2.2084e06])
+    var = np.array([4.3278e09, 9.3046e09, 6.6121e09])
+    xyz = val * np.sqrt(2 * np.pi * var) * np.cos(pos * phase + shift) * np.exp(-(phase**2) * var)
+    xyz[0] += (
+        9.7470e-14
+        * np.sqrt(2 * np.pi * 4.5282e09)
+        * np.cos(2.2399e06 * phase + shift[0])
+        * np.exp(-4.5282e09 * phase**2)
+    )
+    return XYZ_TO_REC709 @ (xyz / 1.0685e-7)
+
+
+def f_iridescence(film_ior: float, cos1: float, thickness: float, base_f0) -> np.ndarray:
+    """KHR_materials_iridescence's F_iridescence (its implementation notes) from air, with the
+    paper's optical path difference 2 n d cos(theta2) (Belcour and Barla 2017, which the
+    extension names as its model; its notes write cos(theta1)), base F0 guarded below 1 and
+    the film's index blended to the outside's as the film thins to nothing (Khronos' sample
+    viewer)."""
+
+    def schlick(f0, c):
+        return f0 + (1.0 - f0) * (1.0 - c) ** 5
+
+    outside = 1.0
+    t = min(1.0, max(0.0, thickness / 0.03))
+    film = outside + (film_ior - outside) * t * t * (3.0 - 2.0 * t)
+    sin2_sq = (outside / film) ** 2 * (1.0 - cos1**2)
+    if sin2_sq >= 1.0:
+        return np.ones(3)
+    cos2 = np.sqrt(1.0 - sin2_sq)
+    r12 = schlick(((film - outside) / (film + outside)) ** 2, cos1)
+    t121 = 1.0 - r12
+    phi12 = np.pi if film < outside else 0.0
+    phi21 = np.pi - phi12
+    f0 = np.clip(np.asarray(base_f0, dtype=np.float64), 0.0, 0.9999)
+    base_ior = (1.0 + np.sqrt(f0)) / (1.0 - np.sqrt(f0))
+    r23 = schlick(((base_ior - film) / (base_ior + film)) ** 2, cos2)
+    phi = phi21 + np.where(base_ior < film, np.pi, 0.0)
+    opd = 2.0 * film * thickness * cos2
+    r123 = np.clip(r12 * r23, 1e-5, 0.9999)
+    rs = t121**2 * r23 / (1.0 - r123)
+    intensity = r12 + rs
+    cm = rs - t121
+    for m in (1, 2):
+        cm = cm * np.sqrt(r123)
+        intensity = intensity + cm * 2.0 * sensitivity(m * opd, m * phi)
+    return np.maximum(intensity, 0.0)
 
 
 def strip_pixels(image: np.ndarray) -> list[np.ndarray]:

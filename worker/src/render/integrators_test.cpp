@@ -447,6 +447,7 @@ std::unique_ptr<Scene> varied_cornell_box(float glass_roughness = 0.f) {
   if (glass_roughness > 0.f) {
     desc.materials[1].anisotropy = 0.7f;
     desc.materials[1].anisotropy_rotation = 0.5f;
+    desc.materials[0].iridescence = 0.8f;  // and a thin film on the half metal
   }
   desc.materials[2].absorption = Vec3(0.9f, 2.f, 0.3f);  // KHR_materials_volume
   for (Material& m : desc.materials)  // the light's back face, towards the ceiling, emits too

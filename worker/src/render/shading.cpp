@@ -189,6 +189,22 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
                    texcoord(scene, hit, mat.specular_color_tex), 3, c))
       bp.specular_color = mat.specular_color * Vec3(c[0], c[1], c[2]);
   }
+  if (mat.iridescence > 0.f) {
+    // KHR_materials_iridescence: iridescenceFactor x iridescenceTexture.r; the thickness
+    // between minimum and maximum by iridescenceThicknessTexture.g, else the maximum (linear).
+    bp.iridescence = mat.iridescence;
+    bp.iridescence_ior = mat.iridescence_ior;
+    bp.iridescence_thickness = mat.iridescence_thickness_max;
+    if (mat.iridescence_tex.valid() &&
+        tex.lookup(mat.iridescence_tex.texture, texcoord(scene, hit, mat.iridescence_tex), 3, c))
+      bp.iridescence = std::min(1.f, std::max(0.f, mat.iridescence * c[0]));
+    if (mat.iridescence_thickness_tex.valid() &&
+        tex.lookup(mat.iridescence_thickness_tex.texture,
+                   texcoord(scene, hit, mat.iridescence_thickness_tex), 3, c))
+      bp.iridescence_thickness =
+          mat.iridescence_thickness_min +
+          (mat.iridescence_thickness_max - mat.iridescence_thickness_min) * c[1];
+  }
   bp.transmission = mat.transmission;
   // KHR_materials_transmission: transmissionFactor x transmissionTexture.r (linear).
   if (mat.transmission_tex.valid() && mat.transmission > 0.f &&

@@ -52,6 +52,7 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_unlit",             "EXT_texture_webp",           "EXT_texture_avif",
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
       "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
+      "KHR_materials_iridescence",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
       // the EXR header (server/renderfarm/domain/scenes/metadata.py).
       "KHR_xmp_json_ld"};
@@ -953,6 +954,29 @@ class Loader {
           m.anisotropy_rotation = float(r.GetNumberAsDouble());
         }
         m.anisotropy_tex = texture_ref(an->second, "anisotropyTexture", at_an);
+      }
+      auto ir = gm.extensions.find("KHR_materials_iridescence");
+      if (ir != gm.extensions.end()) {
+        const std::string at_ir =
+            "materials[" + std::to_string(i) + "].extensions.KHR_materials_iridescence";
+        m.iridescence = unit_factor(ir->second, "iridescenceFactor", 0.f, at_ir);
+        auto positive = [&](const char* key, float fallback, float lowest) {
+          if (!ir->second.Has(key)) return fallback;
+          const tinygltf::Value& v = ir->second.Get(key);
+          const double x = v.IsNumber() ? v.GetNumberAsDouble() : -1.0;
+          if (!(x >= lowest) || !std::isfinite(x))
+            fail(at_ir + "." + key + named(gm.name) + ": must be a finite number >= " +
+                 std::to_string(int(lowest)));
+          return float(x);
+        };
+        // The ratified schema's name; drafts (and some exporters) wrote iridescenceIOR.
+        m.iridescence_ior = ir->second.Has("iridescenceIor")
+                                ? positive("iridescenceIor", 1.3f, 1.f)
+                                : positive("iridescenceIOR", 1.3f, 1.f);
+        m.iridescence_thickness_min = positive("iridescenceThicknessMinimum", 100.f, 0.f);
+        m.iridescence_thickness_max = positive("iridescenceThicknessMaximum", 400.f, 0.f);
+        m.iridescence_tex = texture_ref(ir->second, "iridescenceTexture", at_ir);
+        m.iridescence_thickness_tex = texture_ref(ir->second, "iridescenceThicknessTexture", at_ir);
       }
       auto sg = gm.extensions.find("KHR_materials_pbrSpecularGlossiness");
       if (sg != gm.extensions.end()) load_specular_glossiness(sg->second, i, gm.name, &m);

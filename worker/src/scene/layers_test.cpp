@@ -479,8 +479,8 @@ TEST(Layers, LoaderReadsTheExtensions) {
     EXPECT_EQ(e.path(), "materials[0].extensions.KHR_materials_clearcoat.clearcoatFactor");
   }
   try {
-    load(quad_scene("{}", R"("extensionsUsed": ["KHR_materials_iridescence"],
-                             "extensionsRequired": ["KHR_materials_iridescence"],)"),
+    load(quad_scene("{}", R"("extensionsUsed": ["KHR_materials_dispersion"],
+                             "extensionsRequired": ["KHR_materials_dispersion"],)"),
          &warnings);
     ADD_FAILURE() << "an unsupported required extension was accepted";
   } catch (const SceneError& e) {

@@ -90,6 +90,13 @@ struct Material {
   float anisotropy = 0.f;
   float anisotropy_rotation = 0.f;
   TextureRef anisotropy_tex{};
+  // KHR_materials_iridescence: iridescenceFactor (x iridescenceTexture.r), the film's ior and
+  // its thickness in nm, between minimum and maximum by iridescenceThicknessTexture.g (the
+  // maximum without that texture).
+  float iridescence = 0.f;
+  float iridescence_ior = 1.3f;
+  float iridescence_thickness_min = 100.f, iridescence_thickness_max = 400.f;
+  TextureRef iridescence_tex{}, iridescence_thickness_tex{};
   AlphaMode alpha_mode = AlphaMode::Opaque;
   float alpha = 1.f;         // baseColorFactor alpha
   float alpha_cutoff = 0.5f;  // alphaCutoff (MASK)
@@ -115,7 +122,7 @@ struct Material {
     const char* name;  // the glTF property
     bool srgb, at_hit;
   };
-  static constexpr int kTextureSlots = 13;
+  static constexpr int kTextureSlots = 15;
   static const TextureSlot (&texture_slots())[kTextureSlots];
   // True if shading reads texture coordinates at the hit point.
   bool reads_uv() const {
@@ -151,6 +158,11 @@ struct BsdfParams {
   // mix(alpha, 1, strength^2); 0: isotropic (alpha in every direction).
   float alpha_t = 0.f;
   bool anisotropic() const { return alpha_t > 0.f; }
+  // KHR_materials_iridescence: the weight of the thin film's Fresnel (0: none), its ior and
+  // thickness (nm) at this point.
+  float iridescence = 0.f;
+  float iridescence_ior = 1.3f;
+  float iridescence_thickness = 400.f;
   float specular = 0.f;
   Vec3 specular_color{1.f, 1.f, 1.f};  // KHR_materials_specular's colour (scales F0)
   float ior = 1.5f;
@@ -226,8 +238,9 @@ struct BsdfLobes {
   // the sheen lobe (the base gets the rest, base_pick; glass and spec above are then the
   // base's own choices), c F_c(wo), max3(sheenColor) min(1, E(wo.z)) and max(1, E(wo.z)).
   bool layered = false;
-  // An anisotropic GGX lobe (BsdfParams::alpha_t): evaluated by the general formulas, not
-  // the isotropic rearrangement (root_o, pdf_k are unused).
+  // An anisotropic GGX lobe (BsdfParams::alpha_t) or a thin film's Fresnel
+  // (iridescence): evaluated by the general formulas, not the isotropic rearrangement
+  // (root_o, pdf_k are unused).
   bool anisotropic = false;
   float coat = 0.f, sheen = 0.f, base_pick = 1.f;
   float coat_f = 0.f, sheen_e = 0.f, sheen_norm = 1.f;
@@ -419,6 +432,13 @@ float sheen_albedo(float mu, float alpha);
 // Directional albedo E(mu, alpha) of single-scattering GGX with F = 1 (the table behind the
 // metal lobe's multiple-scattering compensation).
 float metal_single_scattering_albedo(float mu, float alpha);
+
+// KHR_materials_iridescence's F_iridescence (the extension's implementation notes, after
+// Belcour and Barla 2017): the reflectance of a thin film of index film_ior and thickness
+// thickness_nm over a base of normal-incidence reflectance base_f0, seen from a medium of
+// index outside_ior at cos1 = V.H, per Rec. 709 channel.
+Vec3 iridescence_fresnel(float outside_ior, float film_ior, float cos1, float thickness_nm,
+                         Vec3 base_f0);
 
 // Unpolarized Fresnel reflectance of a smooth dielectric interface; cos_i > 0 on the side of
 // the normal, eta = n_other / n_this (ior when entering from outside).

@@ -46,13 +46,23 @@ BsdfParams anisotropic(float metallic, float roughness, float strength) {
   return p;
 }
 
+// KHR_materials_iridescence: a thin film (ior 1.3, 400 nm) mixed in with weight k.
+BsdfParams iridescent(float metallic, float k) {
+  BsdfParams p = params({0.7f, 0.5f, 0.3f}, metallic, 0.4f);
+  p.iridescence = k;
+  p.iridescence_ior = 1.3f;
+  p.iridescence_thickness = 400.f;
+  return p;
+}
+
 std::vector<BsdfParams> test_materials() {
   return {params({0.8f, 0.5f, 0.2f}, 0.f, 0.5f),        // plastic
           params({0.9f, 0.6f, 0.3f}, 1.f, 0.3f),        // rough gold-ish metal
           params({1.f, 1.f, 1.f}, 1.f, 0.8f),           // very rough white metal
           params({0.5f, 0.5f, 0.5f}, 0.3f, 0.6f, 0.5f),  // mixture
           params({0.7f, 0.7f, 0.7f}, 0.f, 0.4f, 1.f, 0.5f),  // half glass
-          coloured_specular(), anisotropic(0.f, 0.3f, 0.7f), anisotropic(1.f, 0.2f, 0.9f)};
+          coloured_specular(), anisotropic(0.f, 0.3f, 0.7f), anisotropic(1.f, 0.2f, 0.9f),
+          iridescent(0.f, 1.f), iridescent(1.f, 0.7f)};
 }
 
 const Vec3 kOutgoing[] = {normalize(Vec3(0.3f, 0.1f, 0.9f)), normalize(Vec3(-0.8f, 0.2f, 0.4f))};

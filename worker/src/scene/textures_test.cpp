@@ -139,15 +139,15 @@ TEST(Textures, EmissiveTextureModulatesEmission) {
 TEST(Textures, UnsupportedExtensionsAndBrokenImagesWarnAndStillRender) {
   const std::string json = quad_scene(
       R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0},
-          "extensions": {"KHR_materials_iridescence": {"iridescenceFactor": 1},
+          "extensions": {"KHR_materials_dispersion": {"dispersion": 20},
                          "KHR_materials_clearcoat": {"clearcoatFactor": 1}}})",
       R"({"uri": "data:image/png;base64,AAAA"})",
-      R"("extensionsUsed": ["KHR_materials_iridescence", "KHR_materials_clearcoat"],)");
+      R"("extensionsUsed": ["KHR_materials_dispersion", "KHR_materials_clearcoat"],)");
   std::vector<std::string> warnings;
   auto scene = load_at(json, 0.f, 0.f, &warnings);
   bool named = false, texture = false, clearcoat = false;
   for (const auto& w : warnings) {
-    named = named || w.find("KHR_materials_iridescence") != std::string::npos;
+    named = named || w.find("KHR_materials_dispersion") != std::string::npos;
     texture = texture || w.find("textures[0]") != std::string::npos;
     clearcoat = clearcoat || w.find("KHR_materials_clearcoat") != std::string::npos;
   }
@@ -554,6 +554,36 @@ TEST(Textures, AnisotropyDirectionAndStrengthFromFactorsAndTexture) {
   // Strength 0: isotropic.
   sp = shade(R"({"anisotropyStrength": 0})");
   EXPECT_FALSE(sp.params.anisotropic());
+}
+
+// KHR_materials_iridescence: iridescenceFactor x iridescenceTexture.r, the film's ior, and its
+// thickness mix(minimum, maximum, iridescenceThicknessTexture.g) (the maximum without it).
+TEST(Textures, IridescenceFactorsAndTexturesReachTheBsdf) {
+  const std::string texel = testing::png_data_uri(1, 1, 3, {128, 64, 255});
+  auto shade = [&](const std::string& iridescence) {
+    const std::string json = quad_scene(
+        R"({"pbrMetallicRoughness": {"metallicFactor": 0},
+            "extensions": {"KHR_materials_iridescence": )" + iridescence + "}}",
+        R"({"uri": ")" + texel + R"("})", R"("extensionsUsed": ["KHR_materials_iridescence"],)");
+    std::vector<std::string> warnings;
+    SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+    for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+    const Scene scene(std::move(desc), &warnings);
+    Hit hit;
+    EXPECT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
+    return make_shading_point(scene, hit, {0.f, 0.f, 1.f}).params;
+  };
+  BsdfParams p = shade(R"({"iridescenceFactor": 0.6, "iridescenceIor": 1.42,
+                           "iridescenceThicknessMaximum": 620})");
+  EXPECT_NEAR(p.iridescence, 0.6f, 1e-6f);
+  EXPECT_NEAR(p.iridescence_ior, 1.42f, 1e-6f);
+  EXPECT_NEAR(p.iridescence_thickness, 620.f, 1e-3f);
+  p = shade(R"({"iridescenceFactor": 0.6, "iridescenceTexture": {"index": 0},
+                "iridescenceThicknessMinimum": 100, "iridescenceThicknessMaximum": 500,
+                "iridescenceThicknessTexture": {"index": 0}})");
+  EXPECT_NEAR(p.iridescence, 0.6f * 128.f / 255.f, 1e-3f);
+  EXPECT_NEAR(p.iridescence_ior, 1.3f, 1e-6f);  // the default
+  EXPECT_NEAR(p.iridescence_thickness, 100.f + 400.f * 64.f / 255.f, 0.5f);
 }
 
 }  // namespace
