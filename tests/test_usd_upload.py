@@ -131,8 +131,7 @@ def test_a_usd_bundle_over_rest_renders_and_the_job_names_its_source(apis, usd_s
     (event,) = events
     assert event["data"]["source_sha256"] == hashlib.sha256(data).hexdigest()
     assert event["data"]["source_filename"] == "still-life.zip"
-    # The specular-workflow gold is a metal: the one thing of the scene with a warning of its
-    # own besides the sun's angle.
+    # The sun's angle has a warning of its own.
     assert any(w.startswith("/World/Lights/Sun:") for w in event["data"]["warnings"])
     exr = tmp_path / "usd.exr"
     exr.write_bytes(apis.client.image(job["id"], "exr"))

@@ -356,12 +356,14 @@ def test_preview_surface_factors_opacity_and_workflows(tmp_path):
     assert m["Mask"]["alphaMode"] == "MASK" and m["Mask"]["alphaCutoff"] == pytest.approx(0.5)
     assert m["Veil"]["alphaMode"] == "BLEND"
     assert m["Veil"]["pbrMetallicRoughness"]["baseColorFactor"][3] == pytest.approx(0.3)
-    plastic = m["Plastic"]
-    assert plastic["pbrMetallicRoughness"]["metallicFactor"] == 0.0
-    assert plastic["extensions"]["KHR_materials_specular"]["specularFactor"] == pytest.approx(0.5)
-    gold = m["Gold"]["pbrMetallicRoughness"]
-    assert gold["metallicFactor"] == 1.0
-    assert gold["baseColorFactor"][:3] == pytest.approx([1.0, 0.8, 0.3], rel=1e-6)
+    # The specular workflow's specularColor is F0: KHR_materials_specular's F0 =
+    # min(0.04 x specularColorFactor, 1) must give it back, for a plastic and a metal alike.
+    for name, want in (("Plastic", [0.02] * 3), ("Gold", [1.0, 0.8, 0.3])):
+        mat = m[name]
+        assert mat["pbrMetallicRoughness"]["metallicFactor"] == 0.0
+        colour = mat["extensions"]["KHR_materials_specular"]["specularColorFactor"]
+        assert [min(0.04 * c, 1.0) for c in colour] == pytest.approx(want, rel=1e-6)
+        assert mat["extensions"]["KHR_materials_specular"].get("specularFactor", 1.0) == 1.0
 
 
 @pytest.mark.parametrize(

@@ -37,6 +37,8 @@ class JobImages:
         """The stored scene's asset metadata (KHR_xmp_json_ld) for the EXR header, or None:
         read from a GLB's JSON chunk only (domain/scenes/metadata.py)."""
         head = await self.store.read_scene(sha256, 0, metadata.JSON_CHUNK_OFFSET)
+        if not head:
+            return None
         length = metadata.json_chunk_length(head)
         if length is None:
             info = await self.store.get_scene_info(sha256)

@@ -38,6 +38,11 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
   with intensity x 2^exposure and its turn about the up axis; Conversion.environment).
 What cannot be carried is one warning per prim path (`warnings`), and a stage with nothing to
 render is refused.
+
+It stays one module: the conversion is one walk over the composed stage whose parts (nodes,
+meshes, instances, lights, cameras, animation) share the walk's state and write into one glTF
+document; the materials (usd_materials.py), the asset-path checks (usd_assets.py) and the GLB
+writing (gltf_writer.py) are apart.
 """
 
 from __future__ import annotations

@@ -8,12 +8,12 @@ How each input maps (docs/scenes.md, "USD scenes", says the same for users):
   cutoff; opacity < 1 or an opacity texture without a threshold -> BLEND; else OPAQUE.
 - metallic workflow: metallic, roughness -> metallicFactor, roughnessFactor; textures packed into
   one metallicRoughnessTexture (G roughness, B metallic) when they are separate files.
-- specular workflow (useSpecularWorkflow = 1): the worker has KHR_materials_specular's
-  specularFactor but not its colour, so a specularColor within the dielectric range (its mean at
-  most the F0 that ior gives, times 2) becomes metallic 0 with specularFactor = mean / F0(ior)
-  (at most 1), and a brighter one a metal (metallic 1) whose base colour is the specularColor
-  (the diffuse colour then has no glTF place: warned). A textured specularColor is warned and its
-  mean constant used.
+- specular workflow (useSpecularWorkflow = 1): specularColor is the reflectance at normal
+  incidence (F0; white at grazing angles): metallic 0, the diffuseColor as base colour, and
+  KHR_materials_specular's specularColorFactor = specularColor / F0(ior), so that the
+  extension's F0 = min(F0(ior) x specularColorFactor, 1) is the specularColor (a metal's
+  bright specularColor included: its diffuseColor is usually black). A textured specularColor
+  is warned and its fallback used.
 - clearcoat, clearcoatRoughness -> KHR_materials_clearcoat; ior -> KHR_materials_ior (it also sets
   the dielectric F0 as in UsdPreviewSurface's metallic workflow); emissiveColor ->
   emissiveFactor, with KHR_materials_emissive_strength above 1; normal (a UsdUVTexture with scale
@@ -22,6 +22,10 @@ How each input maps (docs/scenes.md, "USD scenes", says the same for users):
   UsdPrimvarReader_float2 (its varname picks the mesh's TEXCOORD_n) through an optional
   UsdTransform2d -> KHR_texture_transform (with the v flip between USD's st and glTF's uv).
 - occlusion is dropped silently (the path tracer computes occlusion); displacement is warned.
+
+It stays one module: every input above is read through the same shader-graph walk (the
+connected UsdUVTexture, its primvar reader and transform) and packed into one material's
+textures, which splitting by input would only pass around.
 """
 
 from __future__ import annotations
@@ -401,23 +405,13 @@ class MaterialConverter:
             spec = _vec(specular, 3)
             if specular_tex is not None:
                 self.warn(sp, "a textured specularColor is not supported: its fallback is used")
-            mean = sum(spec) / 3.0
-            if mean <= 2.0 * f0:
-                pbr["metallicFactor"] = 0.0
-                factor = min(1.0, mean / f0) if f0 > 0 else 0.0
-                if max(spec) - min(spec) > 1e-3:
-                    self.warn(sp, "a coloured dielectric specularColor is rendered grey (its mean)")
-                if abs(factor - 1.0) > 1e-6:
-                    ext["KHR_materials_specular"] = {"specularFactor": factor}
-            else:
-                pbr["metallicFactor"] = 1.0
-                if shader.GetInput("diffuseColor") and any(c > 0.0 for c in base):
-                    self.warn(
-                        sp,
-                        "specular workflow: a specularColor brighter than a dielectric's is "
-                        "rendered as a metal; its diffuseColor is dropped",
-                    )
-                base, diffuse_tex = list(spec), None
+            pbr["metallicFactor"] = 0.0
+            if f0 > 0.0:
+                colour = [max(0.0, c) / f0 for c in spec]
+                if any(abs(c - 1.0) > 1e-6 for c in colour):
+                    ext["KHR_materials_specular"] = {"specularColorFactor": colour}
+            else:  # ior 1: no dielectric reflection whatever the colour
+                ext["KHR_materials_specular"] = {"specularFactor": 0.0}
             pbr["roughnessFactor"] = float(roughness)
             metallic_tex = None
         else:
