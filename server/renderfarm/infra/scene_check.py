@@ -132,7 +132,7 @@ class SceneChecker:
                 proc.kill()
             await proc.wait()
             raise SceneError(self._too_costly(name, "time")) from None
-        result = _parse(out)
+        result = parse_last_json_line(out)
         if proc.returncode == 0 and result and result.get("ok"):
             return result
         if proc.returncode == 1 and result and not result.get("ok"):
@@ -165,7 +165,8 @@ class SceneChecker:
         )
 
 
-def _parse(out: bytes) -> dict[str, Any] | None:
+def parse_last_json_line(out: bytes) -> dict[str, Any] | None:
+    """A child process's answer: the JSON object on the last line of its output, or None."""
     try:
         value = json.loads(out.decode(errors="replace").strip().splitlines()[-1])
     except (ValueError, IndexError):

@@ -27,10 +27,10 @@ import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from ..domain.scenes.usd_upload import usd_files, usd_kind
 from ..errors import SceneError
+from .scene_check import parse_last_json_line
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ class UsdImporter:
                 proc.kill()
             await proc.wait()
             raise SceneError(self._too_costly(name)) from None
-        result = _parse(stdout)
+        result = parse_last_json_line(stdout)
         if proc.returncode == 0 and result and result.get("ok"):
             return result
         if result and not result.get("ok") and result.get("error"):
@@ -187,14 +187,6 @@ class UsdImporter:
             f"{self.cpu_seconds:g} s of CPU time, {self.memory_mb} MB of memory and "
             f"{self.max_output_bytes} bytes of glTF"
         )
-
-
-def _parse(out: bytes) -> dict[str, Any] | None:
-    try:
-        value = json.loads(out.decode(errors="replace").strip().splitlines()[-1])
-    except (ValueError, IndexError):
-        return None
-    return value if isinstance(value, dict) else None
 
 
 def main(argv: list[str]) -> int:

@@ -64,6 +64,19 @@ void expect_color(Vec3 got, Vec3 want, const char* what) {
   for (int c = 0; c < 3; ++c) EXPECT_NEAR(got[c], want[c], 2e-3f) << what << " channel " << c;
 }
 
+// The shading point of the quad scene `json` at (0.1, 0.2), seen from +z; every warning the
+// load gives is a failure.
+ShadingPoint shade_quad(const std::string& json) {
+  std::vector<std::string> warnings;
+  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
+  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
+  const Scene scene(std::move(desc), &warnings);
+  Hit hit;
+  EXPECT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
+  return make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+}
+
 TEST(Textures, BaseColorTextureIsSampledInGltfUvConvention) {
   const std::string images = R"({"uri": ")" + checker_uri() + R"("})";
   const std::string mat = R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
@@ -181,14 +194,7 @@ TEST(Textures, LayerTexturesAreReadFromTheirChannels) {
   "samplers": [{"magFilter": 9728}],
   "images": [{"uri": ")" + texel + R"("}],
   )" + testing::quad_gltf_buffers_json() + "}";
-  std::vector<std::string> warnings;
-  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
-  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
-  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
-  const Scene scene(std::move(desc), &warnings);
-  Hit hit;
-  ASSERT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
-  const ShadingPoint sp = make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  const ShadingPoint sp = shade_quad(json);
   EXPECT_NEAR(sp.params.clearcoat, 128.f / 255.f, 1e-3f);
   const float rc = 64.f / 255.f;
   EXPECT_NEAR(sp.params.clearcoat_alpha, rc * rc, 1e-3f);
@@ -459,14 +465,7 @@ TEST(Textures, TransmissionTextureScalesTheFactorByItsRedChannel) {
           "extensions": {"KHR_materials_transmission": {"transmissionFactor": 0.8,
                                                         "transmissionTexture": {"index": 0}}}})",
       R"({"uri": ")" + texel + R"("})", R"("extensionsUsed": ["KHR_materials_transmission"],)");
-  std::vector<std::string> warnings;
-  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
-  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
-  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
-  const Scene scene(std::move(desc), &warnings);
-  Hit hit;
-  ASSERT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
-  const ShadingPoint sp = make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  const ShadingPoint sp = shade_quad(json);
   EXPECT_NEAR(sp.params.transmission, 0.8f * 128.f / 255.f, 1e-3f);
   EXPECT_NEAR(sp.params.alpha, 0.4f * 0.4f, 1e-6f);
 }
@@ -492,14 +491,7 @@ TEST(Textures, SpecularGlossinessTexturesGiveTheExtensionsBrdfInputs) {
   "samplers": [{"magFilter": 9728}],
   "images": [{"uri": ")" + texel + R"("}, {"uri": ")" + white + R"("}],
   )" + testing::quad_gltf_buffers_json() + "}";
-  std::vector<std::string> warnings;
-  SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
-  for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
-  desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
-  const Scene scene(std::move(desc), &warnings);
-  Hit hit;
-  ASSERT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
-  const ShadingPoint sp = make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+  const ShadingPoint sp = shade_quad(json);
   const Vec3 f0(srgb_to_linear(128.f / 255.f), srgb_to_linear(64.f / 255.f),
                 0.5f * srgb_to_linear(200.f / 255.f));
   const float rough = 1.f - 0.8f * 51.f / 255.f;
@@ -526,14 +518,7 @@ TEST(Textures, AnisotropyDirectionAndStrengthFromFactorsAndTexture) {
         R"({"pbrMetallicRoughness": {"metallicFactor": 1, "roughnessFactor": 0.4},
             "extensions": {"KHR_materials_anisotropy": )" + anisotropy + "}}",
         R"({"uri": ")" + texel + R"("})", R"("extensionsUsed": ["KHR_materials_anisotropy"],)");
-    std::vector<std::string> warnings;
-    SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
-    for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
-    desc.camera = testing::look_at({0.f, 0.f, 2.f}, {0.f, 0.f, 0.f}, 1e-4f);
-    const Scene scene(std::move(desc), &warnings);
-    Hit hit;
-    EXPECT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
-    return make_shading_point(scene, hit, {0.f, 0.f, 1.f});
+    return shade_quad(json);
   };
   const float alpha = 0.4f * 0.4f;
   // Rotation pi/2: from the tangent to the bitangent, +y.
@@ -565,13 +550,7 @@ TEST(Textures, IridescenceFactorsAndTexturesReachTheBsdf) {
         R"({"pbrMetallicRoughness": {"metallicFactor": 0},
             "extensions": {"KHR_materials_iridescence": )" + iridescence + "}}",
         R"({"uri": ")" + texel + R"("})", R"("extensionsUsed": ["KHR_materials_iridescence"],)");
-    std::vector<std::string> warnings;
-    SceneDescription desc = load_gltf_from_string(json, "", "quad.gltf", &warnings);
-    for (const auto& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
-    const Scene scene(std::move(desc), &warnings);
-    Hit hit;
-    EXPECT_TRUE(scene.intersect({0.1f, 0.2f, 2.f}, {0.f, 0.f, -1.f}, 10.f, &hit, 0, 0));
-    return make_shading_point(scene, hit, {0.f, 0.f, 1.f}).params;
+    return shade_quad(json).params;
   };
   BsdfParams p = shade(R"({"iridescenceFactor": 0.6, "iridescenceIor": 1.42,
                            "iridescenceThicknessMaximum": 620})");
