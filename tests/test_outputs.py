@@ -16,6 +16,7 @@ import pytest
 
 from renderfarm.app.job_images import renderer_version
 from renderfarm.client import ApiError, Client
+from renderfarm.domain.scenes.glb import build_glb
 from renderfarm.infra.images import read_exr
 from renderfarm.v1 import jobs_pb2, jobs_pb2_grpc
 
@@ -161,6 +162,64 @@ def test_exr_header_carries_the_scenes_xmp_metadata(farm, jobs, tmp_path):
         text = inp.spec().getattribute("renderfarm:xmp_json_ld")
         inp.close()
         assert (None if text is None else json.loads(text)) == want
+
+
+def _variants_scene(path) -> None:
+    """A quad filling the view, its unlit material red by default, blue in variant "Blue"
+    (KHR_materials_variants): unlit, the image is the material's colour exactly."""
+    pos = np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], np.float32)
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)
+    blob = pos.tobytes() + idx.tobytes() + b"\0\0\0\0"
+    unlit = {"KHR_materials_unlit": {}}
+    doc = {
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["KHR_materials_unlit", "KHR_materials_variants"],
+        "extensions": {"KHR_materials_variants": {"variants": [{"name": "Blue"}]}},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1]}],
+        "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 0, 3]}],
+        "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.1}}],
+        "materials": [
+            {"pbrMetallicRoughness": {"baseColorFactor": [1, 0, 0, 1]}, "extensions": unlit},
+            {"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 1, 1]}, "extensions": unlit},
+        ],
+        "meshes": [{"primitives": [{
+            "attributes": {"POSITION": 0}, "indices": 1, "material": 0,
+            "extensions": {"KHR_materials_variants": {
+                "mappings": [{"material": 1, "variants": [0]}]}}}]}],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+             "min": [-2, -2, 0], "max": [2, 2, 0]},
+            {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"},
+        ],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48},
+                        {"buffer": 0, "byteOffset": 48, "byteLength": 12}],
+        "buffers": [{"byteLength": len(blob)}],
+    }  # fmt: skip
+    path.write_bytes(build_glb(doc, blob))
+
+
+def test_a_material_variant_reaches_the_workers_and_an_unknown_one_is_a_400(farm, tmp_path):
+    scene = tmp_path / "shoe.glb"
+    _variants_scene(scene)
+    small = {"width": 16, "height": 16, "tile_size": 16, "noise_threshold": 0, "max_spp": 2}
+    means = {}
+    with Client(farm.url, timeout=120) as client:
+        for variant in ("", "Blue", "0"):
+            job = client.submit(scene, settings={**small, "variant": variant}, name="shoe")
+            job = client.wait(job["id"], poll_s=0.2, timeout_s=300)
+            assert job["state"] == "completed", job["error"]
+            assert job["settings"]["variant"] == variant
+            path = tmp_path / f"shoe-{variant or 'default'}.exr"
+            client.save_image(job["id"], path, "exr")
+            means[variant] = _rgb(read_exr(str(path))).reshape(-1, 3).mean(0)
+        with pytest.raises(ApiError) as e:
+            client.submit(scene, settings={**small, "variant": "Purple"}, name="shoe")
+        assert e.value.status == 400 and e.value.field == "settings.variant"
+        assert "'Blue'" in e.value.message
+    np.testing.assert_allclose(means[""], [1, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(means["Blue"], [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(means["0"], [0, 0, 1], atol=1e-6)  # by index
 
 
 CLI = [sys.executable, "-m", "renderfarm"]

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from renderfarm.domain.scenes.pack import pack_gltf
-from renderfarm.domain.scenes.validate import SceneInfo, inspect_scene
-from renderfarm.errors import SceneError
+from renderfarm.domain.scenes.validate import SceneInfo, inspect_scene, resolve_variant
+from renderfarm.errors import SceneError, SettingsError
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = REPO / "examples"
@@ -539,3 +539,29 @@ def test_pack_does_not_modify_the_source(tmp_path):
     path = write_gltf(tmp_path, copy.deepcopy(doc))
     pack_gltf(path)
     assert json.loads(path.read_text()) == doc
+
+
+def _variants_doc(names):
+    doc = triangle_doc(data_uri(TRIANGLE))
+    doc["extensionsUsed"] = ["KHR_materials_variants"]
+    doc["extensions"] = {"KHR_materials_variants": {"variants": [{"name": n} for n in names]}}
+    return doc
+
+
+def test_a_scenes_variants_are_read_and_a_job_names_one_by_name_or_index():
+    data = json.dumps(_variants_doc(["Red", "Blue", "7"])).encode()
+    info = inspect_scene(data, "shoe.gltf")
+    assert info.variants == ("Red", "Blue", "7")
+    assert resolve_variant("", info.variants) == -1  # the default materials
+    assert resolve_variant("Blue", info.variants) == 1
+    assert resolve_variant("0", info.variants) == 0  # an index first
+    assert resolve_variant("7", info.variants) == 2  # not an index here: the name
+    for bad in ("blue", "3x", "Purple"):
+        with pytest.raises(SettingsError) as e:
+            resolve_variant(bad, info.variants)
+        assert e.value.field == "settings.variant"
+        assert "0 'Red', 1 'Blue', 2 '7'" in str(e.value)
+    with pytest.raises(SettingsError, match="it has none"):
+        resolve_variant(
+            "Red", inspect_scene(json.dumps(triangle_doc(data_uri(TRIANGLE))).encode()).variants
+        )

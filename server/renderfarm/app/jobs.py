@@ -35,7 +35,7 @@ from ..domain.jobspec import JobSettings, parse_settings
 from ..domain.merge import TileAccumulator
 from ..domain.records import JobRun
 from ..domain.scenes.environment import inspect_environment
-from ..domain.scenes.validate import inspect_scene
+from ..domain.scenes.validate import inspect_scene, resolve_variant
 from ..domain.scheduler import Scheduler
 from ..domain.states import JobState
 from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge
@@ -252,6 +252,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 settings = await self._usd_environment(settings, raw_settings, usd)
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
             resolve_animations(settings.animation, info.animations)
+            resolve_variant(settings.variant, info.variants)
             if await self.store.get_scene_info(info.sha256) is None:
                 await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
             await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
@@ -267,10 +268,12 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             if stored is None or stored["format"] not in ("glb", "gltf"):
                 raise NotFound(f"no stored scene with sha256 {sha}")
             filename = filename or stored["filename"]
-            if settings.animation:  # names are checked against the stored scene's animations
+            # Names are checked against the stored scene's animations and variants.
+            if settings.animation or settings.variant:
                 data = await self.store.read_scene(sha, 0, stored["size_bytes"])
                 info = inspect_scene(data, filename, max(len(data), 1))
                 resolve_animations(settings.animation, info.animations)
+                resolve_variant(settings.variant, info.variants)
         else:
             raise SettingsError(
                 "scene", "a scene is required: upload a .glb/.gltf or give scene_sha256"

@@ -234,6 +234,9 @@ SETTINGS: tuple[Setting, ...] = (
             "frame's time, OPEN,CLOSE with -1 <= OPEN < CLOSE <= 1 at most 1 apart (0,0.5: a "
             "half-frame shutter); each sample sees the scene at one time between them. Empty: "
             "closed, no motion blur. Needs frames", 24),
+    Setting("variant", str, "",
+            "KHR_materials_variants: the material variant to render, by its name "
+            "(case-sensitive) or index; empty = the scene's default materials", 25),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -307,7 +310,7 @@ def settings_markdown() -> str:
 
 
 # String settings whose case means something (animation names); the others are lowercased.
-KEEP_CASE = frozenset({"animation"})
+KEEP_CASE = frozenset({"animation", "variant"})
 
 
 def _coerce(name: str, kind: type, value: Any, keep_case: bool = False) -> Any:
@@ -479,6 +482,7 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             "split the range into several jobs",
         )
     check_animation_selection(s.animation)
+    _require(len(s.variant) <= 200, "variant", "is longer than 200 characters")
     if parse_shutter(s.shutter) is not None:
         _require(
             bool(s.frames),

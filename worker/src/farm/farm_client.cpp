@@ -67,6 +67,12 @@ struct RunningTask {
 
 // Maps the protocol's settings onto the renderer's; zero/empty fields take the documented
 // defaults (the server normally fills them in).
+// The part of a scene's cache and warnings key that names its material variant ("" for the
+// default materials).
+std::string variant_key(const std::string& variant) {
+  return variant.empty() ? std::string() : " variant=" + variant;
+}
+
 // The task's settings. The server sends every field set (server/renderfarm/domain/jobspec.py holds
 // their defaults, in one place): an unset or unknown one fails the task rather than taking a
 // default of the worker's own. *animation: the glTF animations an animated task's pose uses
@@ -142,12 +148,15 @@ class Worker {
   void render_loop(Session& s);
   void supervise(Session& s, const std::atomic<bool>& stop);
   void run_task(Session& s, const pb::Task& task, const RunningTask& running);
-  std::shared_ptr<const Scene> scene_for(const std::string& sha256);
+  // A still task's scene with the materials of KHR_materials_variants' `variant` ("" for the
+  // default ones).
+  std::shared_ptr<const Scene> scene_for(const std::string& sha256, const std::string& variant);
   // An animated task's scene: sha256 posed at time_s by the animations `animation` selects,
   // moving during the shutter if it is open (motion blur).
   std::shared_ptr<const Scene> posed_scene_for(const std::string& sha256,
                                                const std::string& animation, double time_s,
-                                               const Shutter& shutter);
+                                               const Shutter& shutter,
+                                               const std::string& variant);
   // load(path, fetched) on the cached file of sha256, fetched first if there is none; a cached
   // file whose load fails with a SceneError and whose content no longer matches its name is
   // fetched again and loaded once more.
@@ -367,10 +376,11 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   err = validate_render_request(settings, rect, task.sample_start(), task.sample_count());
   if (!err.empty()) return fail({"task: " + err, false});
   std::shared_ptr<const Scene> scene;
+  const std::string& variant = task.settings().variant();
   try {
-    scene = task.animated()
-                ? posed_scene_for(task.scene_sha256(), animation, task.time_s(), shutter)
-                : scene_for(task.scene_sha256());
+    scene = task.animated() ? posed_scene_for(task.scene_sha256(), animation, task.time_s(),
+                                              shutter, variant)
+                            : scene_for(task.scene_sha256(), variant);
   } catch (const TaskError& e) {
     return fail(e);
   } catch (const AnimationSelectionError& e) {
@@ -423,7 +433,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   r->set_render_seconds(std::chrono::duration<double>(Clock::now() - t0).count());
   r->set_rays(tile.rays);
   const std::string scene_key =
-      task.animated() ? task.scene_sha256() + " " + animation : task.scene_sha256();
+      (task.animated() ? task.scene_sha256() + " " + animation : task.scene_sha256()) +
+      variant_key(variant);
   for (const std::string& w : warnings_to_send(task.job_id(), scene_key)) r->add_warnings(w);
   s.samples += uint64_t(rect.pixel_count()) * task.sample_count();
   s.rays += tile.rays;
@@ -483,16 +494,19 @@ T Worker::load_scene_file(const std::string& sha256,
   }
 }
 
-std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
+std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256,
+                                               const std::string& variant) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
-  return scenes_.get(sha256, [&]() -> std::shared_ptr<const Scene> {
-    const LoadOptions load = farm_load_options(sha256);
+  const std::string key = sha256 + variant_key(variant);
+  return scenes_.get(key, [&]() -> std::shared_ptr<const Scene> {
+    LoadOptions load = farm_load_options(sha256);
+    load.variant = variant;
     return load_scene_file<std::shared_ptr<const Scene>>(
         sha256, [&](const std::string& path) -> std::shared_ptr<const Scene> {
           std::vector<std::string> warnings;
           std::unique_ptr<Scene> scene = load_scene(path, &warnings, load);
           for (const auto& w : warnings) log_line("warning: " + w);
-          remember_warnings(sha256, warnings);
+          remember_warnings(key, warnings);
           log_line("scene " + sha256.substr(0, 12) + ": " +
                    std::to_string(scene->world_triangle_count()) + " triangles, " +
                    format_bytes(scene->memory_bytes()) + " in memory (" +
@@ -503,9 +517,12 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256) {
 }
 
 std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
-                                                     const std::string& animation,
-                                                     double time_s, const Shutter& shutter) {
+                                                     const std::string& animation_selection,
+                                                     double time_s, const Shutter& shutter,
+                                                     const std::string& variant) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
+  // The variant is part of the selection: an AnimatedScene (and its poses) per variant.
+  const std::string animation = animation_selection + variant_key(variant);
   // The exact time (hexadecimal floating point) and the selection as sent: the tasks of one
   // frame of one job share a key.
   char time_key[128];
@@ -520,7 +537,8 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
           std::shared_ptr<const GltfDocument> document = parse_gltf(path, &warnings, load);
           LoadOptions split = load;
           split.animations =
-              resolve_animation_selection(animation, gltf_animation_names(*document));
+              resolve_animation_selection(animation_selection, gltf_animation_names(*document));
+          split.variant = variant;
           auto animated = std::make_shared<const AnimatedScene>(document, split, &warnings);
           for (const auto& w : warnings) log_line("warning: " + w);
           remember_warnings(sha256 + " " + animation, warnings);

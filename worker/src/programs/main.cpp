@@ -51,6 +51,7 @@ const char* kUsage =
     "      --stats-json: the load's and each frame's scene update and render times as JSON\n"
     "      [--shutter OPEN,CLOSE [--fps F]]: motion blur over the shutter, its open and close\n"
     "      times fractions of a frame of 1/F seconds (default 24) after each time\n"
+    "      [--variant NAME|INDEX]: KHR_materials_variants: render that variant's materials\n"
     "  renderfarm-worker pose SCENE.gltf|SCENE.glb [--time T [--animation I]...] [--json]\n"
     "      the posed scene as JSON (indented without --json): every node's world matrix\n"
     "      (column-major), the camera, the world mesh's vertex positions and normals, the\n"
@@ -210,11 +211,12 @@ int cmd_render(const std::vector<std::string>& arguments) {
                             "--sampler", "--integrator", "--max-depth", "--aperture-radius",
                             "--focus-distance", "--environment", "--environment-intensity",
                             "--environment-rotation-deg", "--bvh", "--stats-json", "--shutter",
-                            "--fps"},
+                            "--fps", "--variant"},
                            &positional);
   if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
   if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
   if (!flags.count("--spp")) throw UsageError{"render needs --spp N"};
+  if (flags.count("--variant")) load.variant = flags["--variant"];
   rf::RenderSettings settings;
   const uint32_t spp =
       uint32_t(parse_uint("--spp", flags["--spp"], 1, rf::kMaxSamplesPerPixel));

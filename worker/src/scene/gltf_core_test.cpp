@@ -1235,5 +1235,58 @@ TEST(GpuInstancing, AttributesOfDifferentCountsAreRefusedNamingThem) {
       << message;
 }
 
+// ---- KHR_materials_variants: a variant (by name or index) gives the primitives that map it
+// their mapped material; the others, and a load without a variant, keep their own.
+
+std::string variants_scene(const std::string& mappings = R"([{"material": 1, "variants": [0]},
+                                                           {"material": 2, "variants": [1, 2]}])") {
+  return R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_materials_variants"],
+  "extensions": {"KHR_materials_variants": {"variants": [{"name": "Blue"}, {"name": "Green"},
+                                                        {"name": "Lime"}]}},
+  "scene": 0, "scenes": [{"nodes": [0, 1]}],
+  "nodes": [{"mesh": 0}, {"mesh": 1, "translation": [3, 0, 0]}],
+  "materials": [{"name": "red"}, {"name": "blue"}, {"name": "green"}, {"name": "grey"}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 3, "material": 0,
+                              "extensions": {"KHR_materials_variants": {"mappings": )" +
+         mappings + R"(}}}]},
+             {"primitives": [{"attributes": {"POSITION": 0}, "indices": 3, "material": 3}]}],
+  )" + testing::quad_gltf_buffers_json() + "}";
+}
+
+TEST(MaterialVariants, AVariantGivesThePrimitivesThatMapItTheirMaterial) {
+  auto materials = [](const std::string& variant) {
+    LoadOptions options;
+    options.variant = variant;
+    const SceneDescription desc =
+        load_gltf_from_string(variants_scene(), "", "variants.gltf", nullptr, options);
+    std::vector<std::string> names;
+    for (uint32_t m : desc.world.material) names.push_back(desc.materials[m].name);
+    return names;
+  };
+  using V = std::vector<std::string>;
+  EXPECT_EQ(materials(""), (V{"red", "red", "grey", "grey"}));  // the default materials
+  EXPECT_EQ(materials("Blue"), (V{"blue", "blue", "grey", "grey"}));
+  EXPECT_EQ(materials("1"), (V{"green", "green", "grey", "grey"}));  // by index
+  EXPECT_EQ(materials("Lime"), (V{"green", "green", "grey", "grey"}));
+  std::string message;
+  try {
+    materials("Purple");
+    ADD_FAILURE() << "an unknown variant was accepted";
+  } catch (const SceneError& e) {
+    message = e.what();
+    EXPECT_EQ(e.path(), "extensions.KHR_materials_variants");
+  }
+  EXPECT_NE(message.find("'Purple'"), std::string::npos) << message;
+  EXPECT_NE(message.find("0 'Blue'"), std::string::npos) << message;
+  // Malformed mappings are refused by path, whatever the variant.
+  EXPECT_EQ(refusal(variants_scene(R"([{"material": 9, "variants": [0]}])"), &message),
+            "meshes[0].primitives[0].extensions.KHR_materials_variants.mappings[0].material")
+      << message;
+  EXPECT_EQ(refusal(variants_scene(R"([{"material": 1, "variants": [5]}])"), &message),
+            "meshes[0].primitives[0].extensions.KHR_materials_variants.mappings[0].variants[0]")
+      << message;
+}
+
 }  // namespace
 }  // namespace rf

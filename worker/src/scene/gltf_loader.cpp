@@ -52,7 +52,7 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_unlit",             "EXT_texture_webp",           "EXT_texture_avif",
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
       "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
-      "KHR_materials_iridescence",
+      "KHR_materials_iridescence",       "KHR_materials_variants",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
       // the EXR header (server/renderfarm/domain/scenes/metadata.py).
       "KHR_xmp_json_ld"};
@@ -101,6 +101,7 @@ class Loader {
     const bool pose_only = split_ && split_->pose_only;
     if (!pose_only) load_textures(&desc);  // a pose uses its static part's textures
     load_materials(&desc);
+    variant_ = selected_variant();
     load_lights();
 
     if (model_.nodes.size() > options_.limits.max_nodes)
@@ -815,7 +816,7 @@ class Loader {
       ++end;
     const std::string path = what.substr(0, end);
     return path.find('[') != std::string::npos || path == "nodes" || path == "scenes" ||
-                   path == "scene" || path == "meshes"
+                   path == "scene" || path == "meshes" || path.rfind("extensions.", 0) == 0
                ? path
                : std::string();
   }
@@ -1119,6 +1120,77 @@ class Loader {
                         where + " (instance " + std::to_string(i) + ")"));
     }
     return out;
+  }
+
+  // KHR_materials_variants: the variant options_.variant names (an index, or a name of
+  // extensions.KHR_materials_variants.variants), -1 for the default materials; a variant the
+  // scene does not have is refused, listing those it has.
+  int selected_variant() const {
+    const std::vector<std::string> names = variant_names(model_);
+    const std::string& v = options_.variant;
+    if (v.empty()) return -1;
+    if (std::all_of(v.begin(), v.end(), [](char c) { return c >= '0' && c <= '9'; }) &&
+        v.size() < 10) {
+      const int index = std::stoi(v);
+      if (index < int(names.size())) return index;
+    }
+    for (size_t i = 0; i < names.size(); ++i)
+      if (names[i] == v) return int(i);
+    std::string known;
+    for (size_t i = 0; i < names.size(); ++i)
+      known += (i ? ", " : "") + std::to_string(i) + " '" + names[i] + "'";
+    fail("extensions.KHR_materials_variants: the scene has no variant '" + v.substr(0, 100) +
+         "' (" + (names.empty() ? std::string("it has none") : "its variants: " + known) + ")");
+  }
+
+ public:
+  static std::vector<std::string> variant_names(const tinygltf::Model& model) {
+    std::vector<std::string> names;
+    auto ext = model.extensions.find("KHR_materials_variants");
+    if (ext == model.extensions.end() || !ext->second.Has("variants")) return names;
+    const tinygltf::Value& list = ext->second.Get("variants");
+    for (size_t i = 0; list.IsArray() && i < list.ArrayLen(); ++i) {
+      const tinygltf::Value& v = list.Get(int(i));
+      names.push_back(v.IsObject() && v.Has("name") && v.Get("name").IsString()
+                          ? v.Get("name").Get<std::string>()
+                          : std::string());
+    }
+    return names;
+  }
+
+ private:
+  // The material a primitive's KHR_materials_variants mappings give the selected variant, or
+  // -1 (the primitive's own material). Mappings that name a missing material or variant are
+  // refused with their path.
+  int variant_material(const tinygltf::Primitive& prim, size_t mesh_index, size_t pi) const {
+    auto ext = prim.extensions.find("KHR_materials_variants");
+    if (ext == prim.extensions.end()) return -1;
+    const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
+                              std::to_string(pi) + "].extensions.KHR_materials_variants.mappings";
+    if (!ext->second.Has("mappings") || !ext->second.Get("mappings").IsArray())
+      fail(where + ": must be an array");
+    const tinygltf::Value& mappings = ext->second.Get("mappings");
+    const size_t variants = variant_names(model_).size();
+    int found = -1;
+    for (size_t k = 0; k < mappings.ArrayLen(); ++k) {
+      const std::string at = where + "[" + std::to_string(k) + "]";
+      const tinygltf::Value& m = mappings.Get(int(k));
+      if (!m.IsObject() || !m.Has("material") || !m.Get("material").IsNumber() ||
+          !m.Has("variants") || !m.Get("variants").IsArray())
+        fail(at + ": needs a material index and a variants array");
+      const int material = m.Get("material").GetNumberAsInt();
+      if (material < 0 || material >= int(model_.materials.size()))
+        fail(at + ".material: refers to missing material " + std::to_string(material));
+      const tinygltf::Value& list = m.Get("variants");
+      for (size_t j = 0; j < list.ArrayLen(); ++j) {
+        const int v = list.Get(int(j)).IsNumber() ? list.Get(int(j)).GetNumberAsInt() : -1;
+        if (v < 0 || size_t(v) >= variants)
+          fail(at + ".variants[" + std::to_string(j) + "]: refers to missing variant " +
+               std::to_string(v));
+        if (v == variant_ && found < 0) found = material;
+      }
+    }
+    return found;
   }
 
   // KHR_node_visibility: the node's own `visible` (true when absent).
@@ -2114,6 +2186,8 @@ class Loader {
                std::to_string(prim.material));
         material = uint32_t(prim.material);
       }
+      const int mapped = variant_material(prim, mesh_index, pi);
+      if (mapped >= 0) material = uint32_t(mapped);
       std::vector<uint32_t> indices;
       if (prim.indices >= 0) {
         const View idx = check_accessor(prim.indices, Attribute::Indices, where + " indices");
@@ -2187,6 +2261,7 @@ class Loader {
   std::vector<int> deformed_slots_;
   uint32_t moving_mesh_nodes_ = 0;
   std::set<std::string> warned_material_ext_, warned_texture_ext_;
+  int variant_ = -1;  // KHR_materials_variants: the selected variant, -1 for none
   bool warned_occlusion_ = false, warned_unskinned_ = false;
   bool warned_tangent_ = false;
   bool quantization_ = false;         // KHR_mesh_quantization's attribute types are allowed
@@ -2327,6 +2402,10 @@ std::shared_ptr<const GltfDocument> parse_gltf(const std::string& path,
 SceneDescription describe_gltf(const GltfDocument& document, std::vector<std::string>* warnings,
                                const LoadOptions& options) {
   return Loader(document.model, document.source, warnings, options).run();
+}
+
+std::vector<std::string> gltf_variant_names(const GltfDocument& document) {
+  return Loader::variant_names(document.model);
 }
 
 std::vector<std::string> gltf_animation_names(const GltfDocument& document) {

@@ -73,6 +73,9 @@ struct LoadOptions {
   double time = std::numeric_limits<double>::quiet_NaN();
   // The glTF animations that drive the pose (indices into "animations"); empty: all of them.
   std::vector<int> animations;
+  // KHR_materials_variants: the variant whose materials the primitives that map it use, by
+  // name or index; "" for the default materials (each primitive's own "material").
+  std::string variant;
   // If set, the loader records every node's world matrix and where each mesh node's
   // vertices went (animation.h; the `pose` command).
   PoseReport* pose_report = nullptr;
@@ -588,6 +591,8 @@ SceneDescription describe_gltf(const GltfDocument& document, std::vector<std::st
                                const LoadOptions& options = {});
 // The "name" of each of the document's animations, by index ("" where it has none).
 std::vector<std::string> gltf_animation_names(const GltfDocument& document);
+// KHR_materials_variants: the names of the document's variants, in index order.
+std::vector<std::string> gltf_variant_names(const GltfDocument& document);
 // Bytes the document holds (its buffers and encoded images), for cache budgets.
 size_t gltf_document_bytes(const GltfDocument& document);
 // load_gltf + Scene construction (with options.bvh).

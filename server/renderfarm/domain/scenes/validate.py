@@ -18,7 +18,7 @@ import hashlib
 from dataclasses import dataclass
 from typing import Any
 
-from ...errors import SceneError
+from ...errors import SceneError, SettingsError
 from .glb import (
     DEFAULT_MAX_BYTES,
     GLB_MAGIC,
@@ -51,6 +51,8 @@ class SceneInfo:
     nodes: int
     extensions_required: tuple[str, ...]
     animations: tuple[str, ...] = ()  # the names of its animations in order ("" when unnamed)
+    # KHR_materials_variants: the names of its material variants in order
+    variants: tuple[str, ...] = ()
 
 
 def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_BYTES) -> SceneInfo:
@@ -105,6 +107,35 @@ def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_
             a.get("name", "") if isinstance(a, dict) and isinstance(a.get("name"), str) else ""
             for a in json_list(document, "animations")
         ),
+        variants=variant_names(document),
+    )
+
+
+def variant_names(document: dict) -> tuple[str, ...]:
+    """KHR_materials_variants: the names of the document's variants, in index order."""
+    ext = document.get("extensions")
+    ext = ext.get("KHR_materials_variants") if isinstance(ext, dict) else None
+    variants = ext.get("variants") if isinstance(ext, dict) else None
+    if not isinstance(variants, list):
+        return ()
+    return tuple(
+        v.get("name", "") if isinstance(v, dict) and isinstance(v.get("name"), str) else ""
+        for v in variants
+    )
+
+
+def resolve_variant(text: str, names: tuple[str, ...], field: str = "settings.variant") -> int:
+    """The index of the variant a job names (an index, or a name), checked against the scene's
+    variants; -1 for none (text empty). SettingsError naming the field otherwise."""
+    if not text:
+        return -1
+    if text.isdigit() and int(text) < len(names):
+        return int(text)
+    if text in names:
+        return names.index(text)
+    known = ", ".join(f"{i} {n!r}" for i, n in enumerate(names)) or "it has none"
+    raise SettingsError(
+        field, f"{field}: the scene has no variant {text[:60]!r} (variants: {known})"
     )
 
 
