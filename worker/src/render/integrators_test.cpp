@@ -448,6 +448,10 @@ std::unique_ptr<Scene> varied_cornell_box(float glass_roughness = 0.f) {
     desc.materials[1].anisotropy = 0.7f;
     desc.materials[1].anisotropy_rotation = 0.5f;
     desc.materials[0].iridescence = 0.8f;  // and a thin film on the half metal
+    // which lets a share of its diffuse light through (KHR_materials_diffuse_transmission):
+    // the sky and the lights outside the box reach in through the walls.
+    desc.materials[0].diffuse_transmission = 0.6f;
+    desc.materials[0].diffuse_transmission_color = Vec3(0.9f, 0.5f, 0.3f);
   }
   desc.materials[2].absorption = Vec3(0.9f, 2.f, 0.3f);  // KHR_materials_volume
   for (Material& m : desc.materials)  // the light's back face, towards the ceiling, emits too
@@ -636,7 +640,8 @@ TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceBitForBit) {
 
 // With the glass rough: its lobe sampled through visible normals, and evaluated for the
 // punctual lights on either side (two-sided light selection, shadow rays through the surface
-// in the volume's medium); and the metal anisotropic (its BSDF in a frame of its own).
+// in the volume's medium); the metal anisotropic (its BSDF in a frame of its own); and the
+// half metal with a thin film and a diffuse BTDF.
 TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceWithRoughGlass) {
   expect_packet_tracer_equals_the_scalar_reference(varied_cornell_box(0.4f));
 }

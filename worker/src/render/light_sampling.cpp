@@ -74,10 +74,10 @@ float light_env_pmf(const LightContext& lc, Vec3 o, Vec3 ng, float total, Vec3 d
 
 bool punctual_light_sample(const PunctualLight& light, float p_entry, const ShadingPoint& sp,
                            const Frame& frame, Vec3 wo_local, LightRay* out) {
-  // A light behind the surface is reached only through a rough glass lobe; its shadow ray
-  // then leaves below the surface.
-  const bool rough = has_rough_glass(sp.params);
-  for (int side = 0; side < (rough ? 2 : 1); ++side) {
+  // A light behind the surface is reached only through a rough glass lobe or a diffuse BTDF;
+  // its shadow ray then leaves below the surface.
+  const bool through = has_through_lobe(sp.params);
+  for (int side = 0; side < (through ? 2 : 1); ++side) {
     const Vec3 origin = side == 0 ? sp.above() : sp.below();
     Vec3 wi, Li;
     float tmax;
@@ -100,9 +100,8 @@ bool punctual_light_sample(const PunctualLight& light, float p_entry, const Shad
     if (is_zero(Li)) return false;
     const Vec3 wl = frame.to_local(wi);
     Vec3 f = side == 0 ? bsdf_eval_cos(sp.params, wo_local, wl) : Vec3(0.f, 0.f, 0.f);
-    // The rough glass lobe where the shading frame agrees on the side.
-    if (rough && (wl.z > 0.f) == (side == 0))
-      f += rough_glass_eval_cos(sp.params, wo_local, wl);
+    // The sampled-only lobes where the shading frame agrees on the side.
+    if (through && (wl.z > 0.f) == (side == 0)) f += through_eval_cos(sp.params, wo_local, wl);
     if (is_zero(f)) return false;
     out->origin = origin;
     out->wi = wi;

@@ -35,8 +35,8 @@ LightContext light_context(const Scene& scene, const RenderSettings& settings);
 
 // The entries' weights at a light-sampling origin o with geometric normal ng into
 // w[0, lc.entries()) (not computed when lc.single); their sum (1 when lc.single). two_sided
-// (a vertex with a rough glass lobe, which punctual lights behind the surface reach): a
-// cluster weighs the larger of its importances on either side of ng's plane.
+// (a vertex with a through lobe, has_through_lobe, which punctual lights behind the surface
+// reach): a cluster weighs the larger of its importances on either side of ng's plane.
 float light_weights(const LightContext& lc, Vec3 o, Vec3 ng, float* w, bool two_sided = false);
 // The probability with which light sampling at (o, ng), whose weights summed to total, chose
 // entry e (a cluster, or lc.clusters for the environment): what MIS needs when a BSDF-sampled
@@ -59,15 +59,15 @@ struct LightRay {
   Vec3 origin, wi;
   float tmax = 0.f;
   Vec3 contribution;
-  // Through the surface (a punctual light behind a rough glass lobe): the shadow ray leaves
-  // below it, in the medium a transmission enters.
+  // Through the surface (a punctual light behind a rough glass lobe or a diffuse BTDF): the
+  // shadow ray leaves below it, in the medium a transmission enters.
   bool through = false;
 };
 
 // The sample of punctual light `light` chosen with probability p_entry at sp (the caller's
 // frame and wo in it): false if it contributes nothing whatever the visibility, otherwise
 // *out holds the shadow ray and the unoccluded contribution f cos Li / p_entry, with f the
-// BSDF's value above the surface and the rough glass lobe's on either side.
+// BSDF's value above the surface and the through lobes' (through_eval_cos) on either side.
 bool punctual_light_sample(const PunctualLight& light, float p_entry, const ShadingPoint& sp,
                            const Frame& frame, Vec3 wo_local, LightRay* out);
 

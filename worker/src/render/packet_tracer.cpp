@@ -117,7 +117,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     float w[kMaxLightEntries];
     p.sel_o = sp.above();
     p.sel_ng = sp.ng;
-    p.sel_two_sided = has_rough_glass(sp.params);
+    p.sel_two_sided = has_through_lobe(sp.params);
     p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, w, p.sel_two_sided);
     p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, w, p.sel_total, batch, lb,
                                 lane, &p.light);
@@ -147,7 +147,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   p.next_o = bs.transmitted ? sp.below() : sp.above();
   p.next_d = wi;
   p.bsdf_slot = -1;
-  // Only the glass lobe transmits: the one place the medium changes.
+  // Only the glass lobe and the diffuse BTDF transmit: the one place the medium changes.
   if (bs.transmitted)
     p.next_medium = medium_after(scene.materials()[hit->material], sp.params.front, p.medium);
 }
@@ -159,7 +159,7 @@ void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shado
     shadow->set(lane, p.light.origin, p.light.wi, p.light.tmax);
     p.nee = p.beta * p.light.contribution;
     // The shadow ray leaves on the side of wo, in the medium the path arrived through, or
-    // through a rough glass lobe into the other one.
+    // through a rough glass lobe or a diffuse BTDF into the other one.
     if (!is_zero(p.light_medium)) p.nee *= transmittance(p.light_medium, p.light.tmax);
     ++p.result.rays;
     return;

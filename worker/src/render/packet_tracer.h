@@ -31,7 +31,7 @@ struct PathState {
   // the sum of its light weights): the light pdf of the MIS weight when d finds a light.
   Vec3 sel_o, sel_ng;
   float sel_total = 0.f;
-  bool sel_two_sided = false;  // its weights were two-sided (light_weights: rough glass)
+  bool sel_two_sided = false;  // its weights were two-sided (has_through_lobe)
   BounceSamples u;  // this bounce's sample values
   Vec3 nee;         // this bounce's light sample, added if its shadow ray is not blocked
   // Between the halves of a vertex's shading (shade_vertex_begin, then shade_vertex_end_light

@@ -147,7 +147,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     if (lc.any && bsdf_has_smooth_part(sp.params)) {
       p.sel_o = sp.above();
       p.sel_ng = sp.ng;
-      p.sel_two_sided = has_rough_glass(sp.params);
+      p.sel_two_sided = has_through_lobe(sp.params);
       p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, weights, p.sel_two_sided);
     }
     if (lc.any && bsdf_has_smooth_part(sp.params) &&

@@ -210,6 +210,21 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   if (mat.transmission_tex.valid() && mat.transmission > 0.f &&
       tex.lookup(mat.transmission_tex.texture, texcoord(scene, hit, mat.transmission_tex), 3, c))
     bp.transmission = std::min(1.f, std::max(0.f, mat.transmission * c[0]));
+  if (mat.diffuse_transmission > 0.f) {
+    // KHR_materials_diffuse_transmission: diffuseTransmissionFactor x
+    // diffuseTransmissionTexture.a (linear), diffuseTransmissionColorFactor x
+    // diffuseTransmissionColorTexture.rgb (sRGB, decoded before filtering).
+    bp.diffuse_transmission = mat.diffuse_transmission;
+    bp.diffuse_transmission_color = mat.diffuse_transmission_color;
+    if (mat.diffuse_transmission_tex.valid() &&
+        tex.lookup(mat.diffuse_transmission_tex.texture,
+                   texcoord(scene, hit, mat.diffuse_transmission_tex), 4, c))
+      bp.diffuse_transmission = std::min(1.f, std::max(0.f, mat.diffuse_transmission * c[3]));
+    if (mat.diffuse_transmission_color_tex.valid() &&
+        tex.lookup(mat.diffuse_transmission_color_tex.texture,
+                   texcoord(scene, hit, mat.diffuse_transmission_color_tex), 3, c))
+      bp.diffuse_transmission_color = mat.diffuse_transmission_color * Vec3(c[0], c[1], c[2]);
+  }
   sp.albedo = bp.base;
 
   Vec3 ns = hit.ns;

@@ -57,13 +57,20 @@ SceneDescription sphere_scene(const Material& m, Vec3 eye, float yfov) {
 
 // Uniform environment of radiance 1: an albedo-1 diffuse sphere, a glass sphere (every path
 // ends in the environment with throughput 1: reflection 1, refraction 1/eta^2 in and eta^2
-// out) and a rough white metal sphere (energy-compensated GGX) render 1 everywhere within the
-// reported error.
+// out), a rough white metal sphere (energy-compensated GGX) and white spheres that let all or
+// half of their diffuse light through (KHR_materials_diffuse_transmission: what the BTDF
+// transmits, the BRDF no longer reflects) render 1 everywhere within the reported error.
 TEST(WhiteFurnace, DiffuseGlassAndRoughMetalSpheresRenderOne) {
   const auto env = Environment::constant({1.f, 1.f, 1.f});
+  Material translucent = furnace_material("translucent", 1.f, 0.f, 1.f, 0.f, 0.f);
+  translucent.diffuse_transmission = 1.f;
+  Material half_translucent = translucent;
+  half_translucent.name = "half-translucent";
+  half_translucent.diffuse_transmission = 0.5f;
   for (const Material& m : {furnace_material("white", 1.f, 0.f, 1.f, 0.f, 0.f),
                             furnace_material("glass", 1.f, 0.f, 0.f, 1.f, 1.f),
-                            furnace_material("rough-metal", 1.f, 1.f, 0.7f, 1.f, 0.f)}) {
+                            furnace_material("rough-metal", 1.f, 1.f, 0.7f, 1.f, 0.f),
+                            translucent, half_translucent}) {
     Scene scene(sphere_scene(m, {0.f, 0.3f, 3.f}, 0.75f));
     RenderSettings settings;
     settings.width = settings.height = 8;

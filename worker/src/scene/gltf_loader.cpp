@@ -53,6 +53,7 @@ const std::set<std::string>& supported_extensions() {
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
       "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
       "KHR_materials_iridescence",       "KHR_materials_variants",
+      "KHR_materials_diffuse_transmission",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
       // the EXR header (server/renderfarm/domain/scenes/metadata.py).
       "KHR_xmp_json_ld"};
@@ -339,6 +340,22 @@ class Loader {
     const tinygltf::Value& v = ext.Get(key);
     if (!v.IsNumber()) fail(where + "." + key + " must be a number in [0, 1]");
     return unit_number(v.GetNumberAsDouble(), where + "." + key, "");
+  }
+
+  // An RGB colour of numbers in [0, 1] of a material extension (fallback when absent).
+  Vec3 unit_color(const tinygltf::Value& ext, const char* key, Vec3 fallback,
+                  const std::string& where) {
+    if (!ext.Has(key)) return fallback;
+    const tinygltf::Value& v = ext.Get(key);
+    if (!v.IsArray() || v.ArrayLen() != 3)
+      fail(where + "." + key + " must be an array of 3 numbers in [0, 1]");
+    Vec3 c;
+    for (int k = 0; k < 3; ++k) {
+      const std::string at = where + "." + key + "[" + std::to_string(k) + "]";
+      if (!v.Get(k).IsNumber()) fail(at + " must be a number in [0, 1]");
+      c[k] = unit_number(v.Get(k).GetNumberAsDouble(), at, "");
+    }
+    return c;
   }
 
   // KHR_materials_pbrSpecularGlossiness (archived, still in older assets): it replaces the
@@ -854,6 +871,17 @@ class Loader {
       }
       if (!(m.transmission >= 0.f && m.transmission <= 1.f))
         fail(where + ": KHR_materials_transmission.transmissionFactor must be in [0, 1]");
+      auto dt = gm.extensions.find("KHR_materials_diffuse_transmission");
+      if (dt != gm.extensions.end()) {
+        const std::string at_dt =
+            "materials[" + std::to_string(i) + "].extensions.KHR_materials_diffuse_transmission";
+        m.diffuse_transmission = unit_factor(dt->second, "diffuseTransmissionFactor", 0.f, at_dt);
+        m.diffuse_transmission_color = unit_color(dt->second, "diffuseTransmissionColorFactor",
+                                                  Vec3(1.f, 1.f, 1.f), at_dt);
+        m.diffuse_transmission_tex = texture_ref(dt->second, "diffuseTransmissionTexture", at_dt);
+        m.diffuse_transmission_color_tex =
+            texture_ref(dt->second, "diffuseTransmissionColorTexture", at_dt);
+      }
       auto io = gm.extensions.find("KHR_materials_ior");
       if (io != gm.extensions.end()) m.ior = number_or(io->second, "ior", 1.5f);
       if (!(m.ior >= 1.f && m.ior < 10.f)) {

@@ -235,6 +235,8 @@ const Material::TextureSlot (&Material::texture_slots())[Material::kTextureSlots
       {&Material::normal_tex, "normalTexture", false, true},
       {&Material::emissive_tex, "emissiveTexture", true, false},
       {&Material::transmission_tex, "transmissionTexture", false, true},
+      {&Material::diffuse_transmission_tex, "diffuseTransmissionTexture", false, true},
+      {&Material::diffuse_transmission_color_tex, "diffuseTransmissionColorTexture", true, true},
       {&Material::specular_tex, "specularTexture", false, true},
       {&Material::specular_color_tex, "specularColorTexture", true, true},
       {&Material::anisotropy_tex, "anisotropyTexture", false, true},
@@ -363,13 +365,23 @@ BsdfLobes bsdf_lobes(const BsdfParams& p, Vec3 wo) {
     const float e_avg = t.e_avg(ms_alpha);
     l.ms = metal_ms_fresnel(p, e_avg) * (ms / (kPi * (1.f - e_avg)));
   }
-  const float wdiff = l.wd * (1.f - fd) * std::max(lum, 1e-3f) + ms;
+  // KHR_materials_diffuse_transmission: the diffuse base's share d goes to the BTDF, a
+  // sampled-only lobe after the glass lobe.
+  const float dt = has_diffuse_btdf(p) ? p.diffuse_transmission : 0.f;
+  const float wdiff = l.wd * (1.f - fd) * (1.f - dt) * std::max(lum, 1e-3f) + ms;
+  const float a_dt =
+      l.wd * (1.f - fd) * dt * std::max(luminance(p.diffuse_transmission_color), 1e-3f);
+  const float glass_w = l.glass;
+  if (a_dt > 0.f) {
+    l.diffuse_bt = (1.f - l.glass) * (a_dt / (ws + wdiff + a_dt));
+    l.glass += l.diffuse_bt;
+  }
   l.spec = ws + wdiff > 0.f ? ws / (ws + wdiff) : 1.f;
   const float c2 = wo.z * wo.z;
   l.root_o = std::sqrt(c2 + p.alpha * p.alpha * std::max(0.f, 1.f - c2));
   l.pdf_k = wo.z > 0.f ? 1.f / (2.f * (wo.z + l.root_o)) : 0.f;
-  l.anisotropic = p.anisotropic() || p.iridescence > 0.f;
-  if (p.layered()) layer_lobes(p, wo, l.glass + ws + wdiff, &l);
+  l.general = p.anisotropic() || p.iridescence > 0.f || dt > 0.f;
+  if (p.layered()) layer_lobes(p, wo, glass_w + ws + wdiff + a_dt, &l);
   return l;
 }
 
@@ -466,14 +478,43 @@ float fresnel_dielectric(float cos_i, float eta) {
 
 namespace {
 
-// The base's f cos and pdf with an anisotropic GGX lobe (KHR_materials_anisotropy) or a thin
-// film (KHR_materials_iridescence): the formulas of bsdf_eval_cos and bsdf_pdf with D and
-// Lambda of the anisotropic distribution (alpha_t along x, alpha along y), the spec's
-// BRDF_specularAnisotropicGGX: V = G2 / (4 cos_o cos_i) is its V_GGX_anisotropic, and with
-// the film's Fresnel mixed in. The metal's multiple-scattering term keeps its
+// The dielectric layer's Fresnel at c = wo.h (weighted by specularFactor): Schlick's with
+// KHR_materials_specular's F0, and KHR_materials_iridescence's film mixed in,
+// F = mix(F_schlick, F_iridescence, iridescence), the film over the dielectric's F0 (before
+// specularFactor weighs it).
+Vec3 dielectric_layer_fresnel(const BsdfParams& p, const BsdfLobes& l, float c) {
+  Vec3 fd = dielectric_fresnel(p, l.f0d, schlick_weight(c));
+  if (p.iridescence > 0.f && p.specular > 0.f) {
+    const float k = p.iridescence;
+    const Vec3 f0 = l.f0d * (1.f / p.specular);
+    const Vec3 fi = iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, f0);
+    fd = (fd * (1.f / p.specular) * (1.f - k) + fi * k) * p.specular;
+  }
+  return fd;
+}
+
+// The diffuse BTDF's f |cos_i| for wi below the surface, without the layers over it:
+// (1 - m)(1 - t) d C (1 - max3(F_d)) |cos_i| / pi, F_d at the half vector of wo and the
+// mirror image of wi above the surface (materials.h).
+Vec3 diffuse_btdf_cos(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi) {
+  const Vec3 h_raw = wo + Vec3(wi.x, wi.y, -wi.z);
+  const float hl = length(h_raw);
+  if (!(hl > 0.f) || !(wi.z < 0.f)) return {0.f, 0.f, 0.f};
+  const float c = std::max(0.f, dot(wo, h_raw / hl));
+  const float fd = max3(dielectric_layer_fresnel(p, l, c));
+  return p.diffuse_transmission_color *
+         (l.wd * p.diffuse_transmission * (1.f - fd) * (-wi.z) * kInvPi);
+}
+
+// The base's f cos and pdf with an anisotropic GGX lobe (KHR_materials_anisotropy), a thin
+// film (KHR_materials_iridescence) or a diffuse BTDF (KHR_materials_diffuse_transmission):
+// the formulas of bsdf_eval_cos and bsdf_pdf with D and Lambda of the anisotropic distribution
+// (alpha_t along x, alpha along y), the spec's BRDF_specularAnisotropicGGX: V = G2 / (4 cos_o
+// cos_i) is its V_GGX_anisotropic, with the film's Fresnel mixed in, and the Lambert BRDF
+// weighted by 1 - diffuseTransmission. The metal's multiple-scattering term keeps its
 // isotropic table at alpha sqrt(alpha_t alpha) (the compensation only).
-__attribute__((noinline)) Vec3 anisotropic_base(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
-                                                Vec3 wi, float* pdf) {
+__attribute__((noinline)) Vec3 general_base(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                            Vec3 wi, float* pdf) {
   *pdf = 0.f;
   if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
   const Vec3 h_raw = wo + wi;
@@ -483,25 +524,19 @@ __attribute__((noinline)) Vec3 anisotropic_base(const BsdfParams& p, const BsdfL
   const float c = std::max(0.f, dot(wo, h));
   const float fw = schlick_weight(c);
   const float ax = p.anisotropic() ? p.alpha_t : p.alpha, ay = p.alpha;
-  Vec3 fd = dielectric_fresnel(p, l.f0d, fw);
+  const Vec3 fd = dielectric_layer_fresnel(p, l, c);
   Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
-  if (p.iridescence > 0.f) {
-    // KHR_materials_iridescence: F = mix(F_schlick, F_iridescence, iridescence), the film over
-    // the dielectric's F0 (before specularFactor weighs it) and over the metal's base colour.
+  if (p.iridescence > 0.f && p.metallic > 0.f) {
+    // KHR_materials_iridescence over the metal's base colour.
     const float k = p.iridescence;
-    if (p.specular > 0.f) {
-      const Vec3 f0 = l.f0d * (1.f / p.specular);
-      const Vec3 fi = iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, f0);
-      fd = (fd * (1.f / p.specular) * (1.f - k) + fi * k) * p.specular;
-    }
-    if (p.metallic > 0.f)
-      fm = fm * (1.f - k) +
-           iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, p.base) * k;
+    fm = fm * (1.f - k) +
+         iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, p.base) * k;
   }
   const float d = ggx_d_aniso(h, ax, ay);
   const float lo = ggx_lambda_aniso(wo, ax, ay), li = ggx_lambda_aniso(wi, ax, ay);
   const float spec = d / ((1.f + lo + li) * 4.f * wo.z * wi.z);
-  Vec3 diffuse = p.base * (l.wd * (1.f - max3(fd)) * kInvPi);
+  const float dt = has_diffuse_btdf(p) ? p.diffuse_transmission : 0.f;
+  Vec3 diffuse = p.base * (l.wd * (1.f - dt) * (1.f - max3(fd)) * kInvPi);
   if (p.metallic > 0.f)
     diffuse += l.ms * (1.f - energy_table().e(wi.z, p.anisotropic() ? std::sqrt(ax * ay) : ay));
   Vec3 specular;
@@ -515,7 +550,7 @@ __attribute__((noinline)) Vec3 anisotropic_base(const BsdfParams& p, const BsdfL
 }  // namespace
 
 Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
-  if (p.anisotropic() || p.iridescence > 0.f) {
+  if (p.anisotropic() || p.iridescence > 0.f || has_diffuse_btdf(p)) {
     float pdf = 0.f;
     return bsdf_eval_pdf(p, bsdf_lobes(p, wo), wo, wi, &pdf);
   }
@@ -543,7 +578,7 @@ Vec3 bsdf_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
 float bsdf_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   if (wo.z <= 0.f || wi.z <= 0.f) return 0.f;
   const BsdfLobes l = bsdf_lobes(p, wo);
-  if (l.anisotropic) {
+  if (l.general) {
     float pdf = 0.f;
     bsdf_eval_pdf(p, l, wo, wi, &pdf);
     return pdf;
@@ -572,8 +607,8 @@ Vec3 bsdf_eval_pdf(const BsdfParams& p, Vec3 wo, Vec3 wi, float* pdf) {
 Vec3 bsdf_eval_pdf(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi, float* pdf) {
   *pdf = 0.f;
   if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
-  if (l.anisotropic) {
-    const Vec3 f = anisotropic_base(p, l, wo, wi, pdf);
+  if (l.general) {
+    const Vec3 f = general_base(p, l, wo, wi, pdf);
     if (!l.layered) return f;
     return add_layers(p, l, wo, wi, f, *pdf, pdf);
   }
@@ -721,6 +756,19 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
     if (!sample_layers(p, l, wo, disks, &u_lobe, &glass_scale, &step, out)) return step;
   }
   if (u_lobe < l.glass) {
+    if (u_lobe >= l.glass - l.diffuse_bt) {
+      // The diffuse BTDF: cosine-weighted below the surface, weight f |cos_i| / pdf with
+      // pdf = diffuse_bt |cos_i| / pi (times the base's share under the layers).
+      const Vec3 c = disks.cosine;
+      if (c.z <= 0.f) return BsdfSampleStep::Failed;
+      out->wi = Vec3(c.x, c.y, -c.z);
+      out->weight =
+          diffuse_btdf_cos(p, l, wo, out->wi) * (glass_scale * kPi / (l.diffuse_bt * c.z));
+      out->delta = true;
+      out->pdf = 0.f;
+      out->transmitted = true;
+      return BsdfSampleStep::Done;
+    }
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
     // the indices across the interface in the direction of travel of wi.
     const float eta = p.front ? p.ior : 1.f / p.ior;
@@ -760,8 +808,10 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
   return BsdfSampleStep::NeedsEval;
 }
 
-Vec3 rough_glass_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
-  if (!has_rough_glass(p) || wo.z <= 0.f || wi.z == 0.f) return {0.f, 0.f, 0.f};
+namespace {
+
+// The rough glass lobe's f |cos_i| with its weight (1 - metallic) transmission.
+Vec3 rough_glass_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   const float eta = p.front ? p.ior : 1.f / p.ior;  // n(wi's side) / n(wo's) if transmitted
   const bool reflect = wi.z > 0.f;
   Vec3 h = reflect ? wo + wi : -(wo + wi * eta);
@@ -773,16 +823,30 @@ Vec3 rough_glass_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   if (!(oh > 0.f) || (reflect ? !(ih > 0.f) : !(ih < 0.f))) return {0.f, 0.f, 0.f};
   const float F = fresnel_dielectric(oh, eta);
   const float dg = ggx_d(h, p.alpha) * ggx_g2(wo, wi, p.alpha);
-  float weight = (1.f - p.metallic) * p.transmission;
-  if (p.layered()) {
-    const BsdfLobes l = bsdf_lobes(p, wo);
-    weight *= (1.f - l.coat_f) * (1.f - l.sheen_e);
-  }
+  const float weight = (1.f - p.metallic) * p.transmission;
   if (reflect) return Vec3(1.f, 1.f, 1.f) * (weight * F * dg / (4.f * wo.z));
   // (1 - F) D G2 |wi.h| (wo.h) / (cos_o (wo.h + eta wi.h)^2): Walter's BTDF times |cos_i|,
   // over eta^2 (radiance).
   const float den = oh + eta * ih;
   return p.base * (weight * (1.f - F) * dg * (-ih) * oh / (wo.z * den * den));
+}
+
+}  // namespace
+
+Vec3 through_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
+  if (wo.z <= 0.f || wi.z == 0.f) return {0.f, 0.f, 0.f};
+  const bool rough = has_rough_glass(p), diffuse = has_diffuse_btdf(p) && wi.z < 0.f;
+  if (!rough && !diffuse) return {0.f, 0.f, 0.f};
+  // The layers' weight over the base.
+  float layers = 1.f;
+  BsdfLobes l;
+  if (p.layered() || diffuse) {
+    l = bsdf_lobes(p, wo);
+    if (p.layered()) layers = (1.f - l.coat_f) * (1.f - l.sheen_e);
+  }
+  Vec3 f = diffuse ? diffuse_btdf_cos(p, l, wo, wi) * layers : Vec3(0.f, 0.f, 0.f);
+  if (rough) f += rough_glass_cos(p, wo, wi) * layers;
+  return f;
 }
 
 bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out) {

@@ -61,6 +61,11 @@ struct Material {
   float ior = 1.5f;              // KHR_materials_ior
   float transmission = 0.f;      // KHR_materials_transmission transmissionFactor
   TextureRef transmission_tex{};  // transmissionTexture: its R channel (linear) multiplies
+  // KHR_materials_diffuse_transmission: diffuseTransmissionFactor (x the texture's A, linear)
+  // and diffuseTransmissionColorFactor (x the colour texture's RGB, sRGB).
+  float diffuse_transmission = 0.f;
+  Vec3 diffuse_transmission_color{1.f, 1.f, 1.f};
+  TextureRef diffuse_transmission_tex{}, diffuse_transmission_color_tex{};
   float normal_scale = 1.f;      // normalTexture.scale
   TextureRef base_color_tex{}, metallic_roughness_tex{}, normal_tex{}, emissive_tex{};
   // KHR_materials_clearcoat: clearcoat = clearcoatFactor x clearcoatTexture.r, roughness =
@@ -122,7 +127,7 @@ struct Material {
     const char* name;  // the glTF property
     bool srgb, at_hit;
   };
-  static constexpr int kTextureSlots = 15;
+  static constexpr int kTextureSlots = 17;
   static const TextureSlot (&texture_slots())[kTextureSlots];
   // True if shading reads texture coordinates at the hit point.
   bool reads_uv() const {
@@ -167,6 +172,10 @@ struct BsdfParams {
   Vec3 specular_color{1.f, 1.f, 1.f};  // KHR_materials_specular's colour (scales F0)
   float ior = 1.5f;
   float transmission = 0.f;
+  // KHR_materials_diffuse_transmission: the share of the diffuse base transmitted (0: none)
+  // and the transmitted light's colour.
+  float diffuse_transmission = 0.f;
+  Vec3 diffuse_transmission_color{1.f, 1.f, 1.f};
   bool front = true;  // wo on the front side of the geometric normal (outside the glass)
   // KHR_materials_clearcoat: the coat's weight (0: none), GGX alpha and normal (a unit vector
   // in the local shading frame, on the side of wo).
@@ -208,6 +217,15 @@ struct BsdfSample {
 // (f0 = specular * ((ior - 1)/(ior + 1))^2) and F_m the conductor Schlick Fresnel (f0 = base),
 //   f = (1 - m)(1 - t)((1 - F_d) base / pi + F_d spec) + m (F_m spec + f_ms),
 //   spec = D G2 / (4 |cos_o cos_i|),
+// and with KHR_materials_diffuse_transmission (d = diffuseTransmission, C =
+// diffuseTransmissionColor) the diffuse term becomes the extension's mix of a Lambert BRDF and
+// a Lambert BTDF under the same Fresnel weight:
+//   (1 - F_d) ((1 - d) base / pi  for wi above the surface,  d C / pi  for wi below),
+// with F_d below at the half vector of wo and wi mirrored to the upper side, (wi.x, wi.y,
+// -wi.z) (the extension leaves the BTDF's Fresnel angle open; this choice keeps the lobe
+// reciprocal and makes d = 1 with C = base transmit exactly what d = 0 reflects). The BTDF
+// is sampled (cosine-weighted below the surface), never evaluated, as the rough glass lobe
+// below; punctual lights reach it through through_eval_cos.
 // where (1 - m) t is the weight of the glass lobe (smooth: a delta, reflection with the exact
 // dielectric Fresnel F(wo.n) and refraction tinted by the base colour; rough, alpha above
 // kMinAlpha: KHR_materials_transmission's microfacet BTDF with the reflection it pairs with,
@@ -224,7 +242,10 @@ struct BsdfSample {
 // With them come the wo-dependent terms of the evaluation, so that evaluating several
 // directions at one vertex (light sample, BSDF sample) computes them once.
 struct BsdfLobes {
-  float glass = 0.f;  // probability of the delta glass lobe
+  // Probability of the sampled-only lobes: the glass lobe ((1 - metallic) transmission) and
+  // after it the diffuse BTDF (diffuse_bt of it).
+  float glass = 0.f;
+  float diffuse_bt = 0.f;
   float spec = 0.f;   // probability of GGX among the non-delta lobes
   float wd = 0.f;     // (1 - metallic)(1 - transmission): weight of the dielectric base
   // Dielectric Fresnel at normal incidence per channel, specular x min(1, specularColor x
@@ -238,10 +259,10 @@ struct BsdfLobes {
   // the sheen lobe (the base gets the rest, base_pick; glass and spec above are then the
   // base's own choices), c F_c(wo), max3(sheenColor) min(1, E(wo.z)) and max(1, E(wo.z)).
   bool layered = false;
-  // An anisotropic GGX lobe (BsdfParams::alpha_t) or a thin film's Fresnel
-  // (iridescence): evaluated by the general formulas, not the isotropic rearrangement
+  // An anisotropic GGX lobe (BsdfParams::alpha_t), a thin film's Fresnel (iridescence) or a
+  // diffuse BTDF: evaluated by the general formulas, not the isotropic rearrangement
   // (root_o, pdf_k are unused).
-  bool anisotropic = false;
+  bool general = false;
   float coat = 0.f, sheen = 0.f, base_pick = 1.f;
   float coat_f = 0.f, sheen_e = 0.f, sheen_norm = 1.f;
 };
@@ -323,7 +344,7 @@ class BsdfEvalBatch {
     // A layered or anisotropic BSDF is evaluated by bsdf_eval_pdf itself after the SIMD
     // blocks.
     const uint32_t bit = uint32_t(1) << lane;
-    if (lobes.layered || lobes.anisotropic) {
+    if (lobes.layered || lobes.general) {
       layered_ |= bit;
       new (&layered_storage_[lane]) LayeredVertex{p, lobes, wo};
     } else {
@@ -398,9 +419,21 @@ class BsdfEvalBatch {
 };
 
 // True if the glass lobe is rough (KHR_materials_transmission with roughness): sampled like
-// the smooth one, and evaluated for punctual lights (rough_glass_eval_cos).
+// the smooth one, and evaluated for punctual lights (through_eval_cos).
 inline bool has_rough_glass(const BsdfParams& p) {
   return (1.f - p.metallic) * p.transmission > 0.f && p.alpha > kMinAlpha;
+}
+
+// True if the material has a diffuse BTDF (KHR_materials_diffuse_transmission).
+inline bool has_diffuse_btdf(const BsdfParams& p) {
+  return (1.f - p.metallic) * (1.f - p.transmission) * p.diffuse_transmission > 0.f;
+}
+
+// True if light from behind the surface reaches wo through a lobe that is not a delta: a
+// rough glass lobe or a diffuse BTDF. Light selection is then two-sided, and punctual lights
+// behind the surface are evaluated with through_eval_cos.
+inline bool has_through_lobe(const BsdfParams& p) {
+  return has_rough_glass(p) || has_diffuse_btdf(p);
 }
 
 // True if next-event estimation is useful: the BSDF has a non-delta component, or a rough
@@ -409,13 +442,13 @@ inline bool bsdf_has_smooth_part(const BsdfParams& p) {
   return (1.f - (1.f - p.metallic) * p.transmission) > 0.f || p.layered() || has_rough_glass(p);
 }
 
-// The rough glass lobe's f |cos_i| (materials.h's formulas, radiance: a transmission is
-// divided by eta^2), with its weight (1 - metallic) transmission and the layers' over it
-// ((1 - c F_c(wo)) (1 - max3(sheenColor) E(wo.z))): wi above the surface is its reflection,
-// below its transmission (tinted by the base colour). 0 without a rough glass lobe. Light
+// The sampled-only lobes' f |cos_i| (materials.h's formulas), with their weights and the
+// layers' over them ((1 - c F_c(wo)) (1 - max3(sheenColor) E(wo.z))): the rough glass lobe
+// (wi above the surface: its reflection; below: its transmission, tinted by the base colour
+// and divided by eta^2 for radiance) and the diffuse BTDF (wi below). 0 without either. Light
 // sampling adds it to bsdf_eval_cos for punctual lights, which BSDF sampling never reaches;
-// other lights reach the lobe through BSDF sampling only, as for smooth glass.
-Vec3 rough_glass_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi);
+// other lights reach these lobes through BSDF sampling only, as for smooth glass.
+Vec3 through_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi);
 
 // KHR_materials_clearcoat's layering Fresnel: 0.04 + (1 - 0.04) (1 - |cos_v|)^5.
 float clearcoat_fresnel(float cos_v);

@@ -55,6 +55,14 @@ BsdfParams iridescent(float metallic, float k) {
   return p;
 }
 
+// KHR_materials_diffuse_transmission: share d of the diffuse base transmitted, colour c.
+BsdfParams translucent(Vec3 base, float roughness, float d, Vec3 c, float transmission = 0.f) {
+  BsdfParams p = params(base, 0.f, roughness, 1.f, transmission);
+  p.diffuse_transmission = d;
+  p.diffuse_transmission_color = c;
+  return p;
+}
+
 std::vector<BsdfParams> test_materials() {
   return {params({0.8f, 0.5f, 0.2f}, 0.f, 0.5f),        // plastic
           params({0.9f, 0.6f, 0.3f}, 1.f, 0.3f),        // rough gold-ish metal
@@ -62,7 +70,9 @@ std::vector<BsdfParams> test_materials() {
           params({0.5f, 0.5f, 0.5f}, 0.3f, 0.6f, 0.5f),  // mixture
           params({0.7f, 0.7f, 0.7f}, 0.f, 0.4f, 1.f, 0.5f),  // half glass
           coloured_specular(), anisotropic(0.f, 0.3f, 0.7f), anisotropic(1.f, 0.2f, 0.9f),
-          iridescent(0.f, 1.f), iridescent(1.f, 0.7f)};
+          iridescent(0.f, 1.f), iridescent(1.f, 0.7f),
+          translucent({0.3f, 0.6f, 0.2f}, 0.5f, 0.6f, {0.5f, 0.9f, 0.1f}),
+          translucent({0.8f, 0.8f, 0.8f}, 0.3f, 1.f, {1.f, 0.7f, 0.5f}, 0.4f)};
 }
 
 const Vec3 kOutgoing[] = {normalize(Vec3(0.3f, 0.1f, 0.9f)), normalize(Vec3(-0.8f, 0.2f, 0.4f))};
@@ -205,6 +215,7 @@ TEST(Bsdf, BatchEvaluationEqualsTheScalarOneBitForBit) {
                             uni(rng), uni(rng) < 0.2f ? 0.f : uni(rng),
                             uni(rng) < 0.7f ? 0.f : uni(rng));
       p.ior = 1.f + uni(rng);
+      if (uni(rng) < 0.2f) p.diffuse_transmission = uni(rng);
       const Vec3 wo = direction(0.1f);
       const BsdfLobes lobes = bsdf_lobes(p, wo);
       const Frame frame(direction(0.f));
@@ -309,6 +320,115 @@ TEST(Bsdf, FresnelAndGlass) {
   ASSERT_TRUE(bsdf_sample(glass, wo2, {0.5f, 0.5f}, 0.f, 0.999f, &t));
   EXPECT_TRUE(t.transmitted);
   EXPECT_NEAR(t.weight.x, 1.5f * 1.5f, 1e-4f);
+}
+
+// ---- Diffuse transmission (KHR_materials_diffuse_transmission): the extension's
+// mix(diffuse_brdf(baseColor), diffuse_btdf(C), d) under the dielectric's Fresnel weight.
+
+Vec3 mirrored(Vec3 w) { return Vec3(w.x, w.y, -w.z); }
+
+// What the BTDF transmits is what the diffuse BRDF no longer reflects: with C = baseColor,
+// f(d = 0) - f(d) at wi equals the BTDF at wi mirrored below the surface (the Fresnel angle of
+// the mirrored direction, materials.h); the BTDF is the closed form d C (1 - m)(1 - t)
+// (1 - s max(F)) / pi written here, zero above the surface, and reciprocal. With t > 0 the
+// rough glass lobe is in through_eval_cos too: the BTDF is what d adds to it.
+TEST(DiffuseTransmission, TransmitsWhatTheDiffuseReflectionGivesUp) {
+  int compared = 0;
+  for (float d : {0.25f, 1.f})
+    for (float t : {0.f, 0.5f})
+      for (double zo : {0.05, 0.4, 0.95})
+        for (double zi : {0.1, 0.6, 1.0})
+          for (double phi : {0.0, 1.3, 3.0}) {
+            const Vec3 base(0.7f, 0.4f, 0.2f);
+            BsdfParams opaque = params(base, 0.f, 0.45f, 0.8f, t);
+            opaque.ior = 1.45f;
+            BsdfParams p = opaque;
+            p.diffuse_transmission = d;
+            p.diffuse_transmission_color = base;
+            const auto btdf = [&](Vec3 a, Vec3 b) {
+              return through_eval_cos(p, a, b) - through_eval_cos(opaque, a, b);
+            };
+            const Vec3 wo = spherical(zo, 0.3), wi = spherical(zi, 0.3 + phi);
+            const Vec3 given_up = bsdf_eval_cos(opaque, wo, wi) - bsdf_eval_cos(p, wo, wi);
+            const Vec3 through = btdf(wo, mirrored(wi));
+            // The closed form: F = s (F0 + (1 - F0)(1 - |V.H|)^5), F0 = ((ior-1)/(ior+1))^2,
+            // H = normalize(V + L mirrored), times |cos_i|.
+            const Vec3 h = normalize(wo + wi);
+            const double f0 = std::pow((1.45 - 1.0) / (1.45 + 1.0), 2.0);
+            const double F = 0.8 * (f0 + (1.0 - f0) * std::pow(1.0 - dot(wo, h), 5.0));
+            for (int c = 0; c < 3; ++c) {
+              const double want = d * base[c] * (1.0 - t) * (1.0 - F) / M_PI * zi;
+              ASSERT_NEAR(through[c], want, 1e-5 + 1e-4 * want) << zo << " " << zi << " " << phi;
+              ASSERT_NEAR(given_up[c], want, 1e-5 + 1e-4 * want) << zo << " " << zi << " " << phi;
+            }
+            EXPECT_TRUE(is_zero(btdf(wo, wi)));  // nothing above
+            // Reciprocity: f(wo, wi) = f(-wi, -wo), the same pair seen from the other side.
+            const Vec3 wl = mirrored(wi);
+            const Vec3 a1 = through * float(1.0 / zi);
+            const Vec3 a2 = btdf(-wl, -wo) * float(1.0 / zo);
+            for (int c = 0; c < 3; ++c) ASSERT_NEAR(a1[c], a2[c], 1e-5f + 1e-4f * a1[c]);
+            ++compared;
+          }
+  EXPECT_EQ(compared, 2 * 2 * 3 * 3 * 3);
+}
+
+// The samples' mean weight (BTDF samples marked as transmitted, sampled-only lobes) estimates
+// the material's albedo, reflection and transmission integrated by quadrature; a white,
+// fully translucent Lambert without a specular layer transmits everything (white furnace).
+TEST(DiffuseTransmission, SamplesEstimateTheAlbedoAndAWhiteLambertTransmitsAll) {
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  BsdfParams white = translucent({1.f, 1.f, 1.f}, 1.f, 1.f, {1.f, 1.f, 1.f});
+  white.specular = 0.f;
+  std::vector<BsdfParams> materials = {
+      white, translucent({0.3f, 0.6f, 0.2f}, 0.5f, 0.6f, {0.5f, 0.9f, 0.1f}),
+      translucent({0.8f, 0.8f, 0.8f}, 0.3f, 1.f, {1.f, 0.7f, 0.5f}, 0.4f)};
+  materials[1].clearcoat = 0.7f;  // under a coat
+  materials[1].clearcoat_alpha = 0.1f;
+  for (size_t k = 0; k < materials.size(); ++k)
+    for (Vec3 wo : kOutgoing) {
+      const BsdfParams& p = materials[k];
+      // Quadrature: reflection over the upper hemisphere, the BTDF over the lower one.
+      const int nq = 400;
+      Vec3 want = albedo(p, wo, nq);
+      BsdfParams clear = p;  // the same material without the BTDF (its rough glass lobe)
+      clear.diffuse_transmission = 0.f;
+      for (int i = 0; i < nq; ++i)
+        for (int j = 0; j < nq; ++j) {
+          const double z = (i + 0.5) / nq, phi = (j + 0.5) * 2 * M_PI / nq;
+          const Vec3 wl = mirrored(spherical(z, phi));
+          want += (through_eval_cos(p, wo, wl) - through_eval_cos(clear, wo, wl)) *
+                  float((1.0 / nq) * (2 * M_PI / nq));
+        }
+      // The glass lobe (t = 0.4 in material 2, chosen for u_lobe < t) is left to the glass
+      // tests: u_lobe is drawn from [t, 1), and the mean weight times 1 - t estimates what the
+      // other lobes contribute.
+      const float g = p.transmission;
+      const int n = 200000;
+      Vec3 sum, sum2;
+      int transmitted = 0;
+      for (int s = 0; s < n; ++s) {
+        BsdfSample bs;
+        const float u_lobe = std::min(0.99999994f, g + (1.f - g) * uni(rng));
+        if (!bsdf_sample(p, wo, {uni(rng), uni(rng)}, u_lobe, uni(rng), &bs)) continue;
+        bs.weight = bs.weight * (1.f - g);
+        if (bs.transmitted) {
+          ASSERT_TRUE(bs.delta);
+          ASSERT_LT(bs.wi.z, 0.f);
+          ++transmitted;
+        }
+        sum += bs.weight;
+        sum2 += bs.weight * bs.weight;
+      }
+      EXPECT_GT(transmitted, n / 10);
+      for (int c = 0; c < 3; ++c) {
+        const double mean = sum[c] / n, se = std::sqrt((sum2[c] / n - mean * mean) / n);
+        EXPECT_NEAR(mean, want[c], 4.0 * se + 3e-3) << "material " << k << " wo.z " << wo.z;
+      }
+      if (k == 0) {
+        EXPECT_NEAR(want.x, 1.f, 2e-3f);
+      }
+    }
 }
 
 // ---- Rough glass (KHR_materials_transmission with roughness): Walter et al. 2007's microfacet

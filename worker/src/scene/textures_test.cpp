@@ -565,5 +565,33 @@ TEST(Textures, IridescenceFactorsAndTexturesReachTheBsdf) {
   EXPECT_NEAR(p.iridescence_thickness, 100.f + 400.f * 64.f / 255.f, 0.5f);
 }
 
+// KHR_materials_diffuse_transmission: diffuseTransmissionFactor x diffuseTransmissionTexture.a
+// (linear), diffuseTransmissionColorFactor x diffuseTransmissionColorTexture.rgb (sRGB,
+// decoded: 188 is 0.5029 linear by the sRGB transfer function).
+TEST(Textures, DiffuseTransmissionFactorsAndTexturesReachTheBsdf) {
+  const std::string texel = testing::png_data_uri(1, 1, 4, {188, 255, 0, 51});
+  auto shade = [&](const std::string& dt) {
+    const std::string json = quad_scene(
+        R"({"pbrMetallicRoughness": {"metallicFactor": 0},
+            "extensions": {"KHR_materials_diffuse_transmission": )" + dt + "}}",
+        R"({"uri": ")" + texel + R"("})",
+        R"("extensionsUsed": ["KHR_materials_diffuse_transmission"],)");
+    return shade_quad(json).params;
+  };
+  BsdfParams p = shade(R"({"diffuseTransmissionFactor": 0.6,
+                           "diffuseTransmissionColorFactor": [0.2, 0.4, 0.8]})");
+  EXPECT_NEAR(p.diffuse_transmission, 0.6f, 1e-6f);
+  EXPECT_NEAR(p.diffuse_transmission_color.y, 0.4f, 1e-6f);
+  p = shade(R"({"diffuseTransmissionFactor": 0.6, "diffuseTransmissionTexture": {"index": 0},
+                "diffuseTransmissionColorTexture": {"index": 0}})");
+  EXPECT_NEAR(p.diffuse_transmission, 0.6f * 51.f / 255.f, 1e-3f);
+  const double linear = std::pow((188.0 / 255.0 + 0.055) / 1.055, 2.4);
+  EXPECT_NEAR(p.diffuse_transmission_color.x, linear, 2e-3);
+  EXPECT_NEAR(p.diffuse_transmission_color.y, 1.f, 1e-3f);
+  EXPECT_NEAR(p.diffuse_transmission_color.z, 0.f, 1e-3f);
+  p = shade(R"({})");  // the default factor is 0: no BTDF
+  EXPECT_EQ(p.diffuse_transmission, 0.f);
+}
+
 }  // namespace
 }  // namespace rf
