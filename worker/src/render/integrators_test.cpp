@@ -430,7 +430,8 @@ TEST(PunctualLights, PointSpotAndDirectionalMatchClosedForms) {
               rho / M_PI * 3.0 * std::cos(0.5), 1e-5);
 }
 
-// The Cornell box with a half-metal back wall, a metal left wall, a glass right wall and three
+// The Cornell box with a half-metal back wall, a metal left wall, a dispersive glass right wall
+// (each path that meets it carries a wavelength from there on) and three
 // punctual lights (point, spot, directional) besides its emissive ceiling.
 std::unique_ptr<Scene> varied_cornell_box(float glass_roughness = 0.f) {
   std::vector<std::string> warnings;
@@ -454,6 +455,7 @@ std::unique_ptr<Scene> varied_cornell_box(float glass_roughness = 0.f) {
     desc.materials[0].diffuse_transmission_color = Vec3(0.9f, 0.5f, 0.3f);
   }
   desc.materials[2].absorption = Vec3(0.9f, 2.f, 0.3f);  // KHR_materials_volume
+  desc.materials[2].dispersion = 0.8f;                   // KHR_materials_dispersion
   for (Material& m : desc.materials)  // the light's back face, towards the ceiling, emits too
     if (m.is_emissive()) m.double_sided = true;
   PunctualLight point;

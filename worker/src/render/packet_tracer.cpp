@@ -71,7 +71,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   }
   if (in_medium) p.beta *= transmittance(p.medium, hit->t);
   const Vec3 wo = -d;
-  const ShadingPoint sp = make_shading_point(scene, *hit, wo);
+  ShadingPoint sp = make_shading_point(scene, *hit, wo);
   if (bounce == 0) {
     result.albedo = sp.albedo;
     result.normal = sp.ns;
@@ -109,6 +109,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     if (!(u.get(dim::kRoulette) < q)) return;
     p.beta = p.beta / q;
   }
+  disperse(p, u, &sp.params);
   const Frame frame = sp.frame();
   const Vec3 wo_local = frame.to_local(wo);
   const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);

@@ -10,6 +10,7 @@
 #include "render/light_sampling.h"
 #include "render/shading.h"
 #include "sampling/samplers.h"
+#include "sampling/spectrum.h"
 #include "scene/materials.h"
 #include "scene/scene.h"
 
@@ -23,6 +24,7 @@ struct PathState {
   float tmin = 0.f, tmax = kInfinity;  // the camera ray's range (its clipping planes)
   float time = 0.f;  // motion blur: where in the shutter every ray of the path is, in [0, 1]
   Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
+  float wavelength = 0.f;     // nm, from the first dispersive vertex on (0: none yet)
   float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
   bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
                               // have produced this direction, so emission gets weight 1
@@ -63,6 +65,20 @@ struct TraceContext {
 PathState start_path(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                      const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t index,
                      const float* camera_dims = nullptr);
+
+// KHR_materials_dispersion: at the path's first dispersive vertex, the wavelength it carries
+// from then on (this bounce's dimension kWavelength) and its channel weights multiplied into
+// the throughput (sampling/spectrum.h: their mean is 1); at every dispersive vertex, the
+// material's index of refraction at that wavelength. Called after emission and Russian
+// roulette, before the vertex's lobes.
+inline void disperse(PathState& p, const BounceSamples& u, BsdfParams* params) {
+  if (!(params->dispersion > 0.f)) return;
+  if (p.wavelength == 0.f) {
+    p.wavelength = sample_visible_wavelength(u.get(dim::kWavelength));
+    p.beta *= wavelength_weight(p.wavelength);
+  }
+  params->ior = dispersion_ior(params->ior, params->dispersion, p.wavelength);
+}
 
 // The number of bounces of a path: max_depth, or at most 1 for the direct integrator.
 uint32_t path_max_depth(const RenderSettings& settings);

@@ -109,7 +109,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     }
     const Hit& hit = hits[0];
     if (!is_zero(p.medium)) p.beta *= transmittance(p.medium, hit.t);
-    const ShadingPoint sp = make_shading_point(scene, hit, wo);
+    ShadingPoint sp = make_shading_point(scene, hit, wo);
     if (bounce == 0) {
       result.albedo = sp.albedo;
       result.normal = sp.ns;
@@ -139,6 +139,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       if (!(u.get(dim::kRoulette) < q)) return result;
       p.beta = p.beta / q;
     }
+    disperse(p, u, &sp.params);
     const Frame frame = sp.frame();
     const Vec3 wo_local = frame.to_local(wo);
     const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);

@@ -210,6 +210,9 @@ ShadingPoint make_shading_point(const Scene& scene, const Hit& hit, Vec3 wo) {
   if (mat.transmission_tex.valid() && mat.transmission > 0.f &&
       tex.lookup(mat.transmission_tex.texture, texcoord(scene, hit, mat.transmission_tex), 3, c))
     bp.transmission = std::min(1.f, std::max(0.f, mat.transmission * c[0]));
+  // KHR_materials_dispersion where light goes through: the path tracer picks the wavelength.
+  if (mat.dispersion > 0.f && bp.transmission > 0.f && bp.metallic < 1.f)
+    bp.dispersion = mat.dispersion;
   if (mat.diffuse_transmission > 0.f) {
     // KHR_materials_diffuse_transmission: diffuseTransmissionFactor x
     // diffuseTransmissionTexture.a (linear), diffuseTransmissionColorFactor x

@@ -63,6 +63,7 @@ namespace dim {
 constexpr uint32_t kPixelX = 0, kPixelY = 1, kLensU = 2, kLensV = 3;
 constexpr uint32_t kFirstBounce = 4, kPerBounce = 8;
 constexpr uint32_t kLightU = 0, kLightV = 1, kBsdfU = 2, kBsdfV = 3,
+                   kWavelength = 4,  // read once per path, at its first dispersive vertex
                    kRoulette = 5, kLobe = 6, kFresnel = 7;
 inline uint32_t bounce(uint32_t b, uint32_t k) { return kFirstBounce + kPerBounce * b + k; }
 // Motion blur: the sample's time within the shutter, on the first dimension after those of

@@ -53,7 +53,7 @@ const std::set<std::string>& supported_extensions() {
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
       "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
       "KHR_materials_iridescence",       "KHR_materials_variants",
-      "KHR_materials_diffuse_transmission",
+      "KHR_materials_diffuse_transmission", "KHR_materials_dispersion",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
       // the EXR header (server/renderfarm/domain/scenes/metadata.py).
       "KHR_xmp_json_ld"};
@@ -888,6 +888,18 @@ class Loader {
         warn(where + ": KHR_materials_ior.ior " + std::to_string(m.ior) +
              " outside [1, 10) is not supported; using 1.5");
         m.ior = 1.5f;
+      }
+      auto disp = gm.extensions.find("KHR_materials_dispersion");
+      if (disp != gm.extensions.end() && disp->second.IsObject() &&
+          disp->second.Has("dispersion")) {
+        // 20 / the Abbe number, any value >= 0 (above 1 exaggerates the effect).
+        const tinygltf::Value& v = disp->second.Get("dispersion");
+        const double x = v.IsNumber() ? v.GetNumberAsDouble() : -1.0;
+        if (!(x >= 0.0) || !std::isfinite(x))
+          fail("materials[" + std::to_string(i) +
+               "].extensions.KHR_materials_dispersion.dispersion" + named(gm.name) +
+               ": must be a finite number >= 0");
+        m.dispersion = float(x);
       }
       auto vol = gm.extensions.find("KHR_materials_volume");
       if (vol != gm.extensions.end())

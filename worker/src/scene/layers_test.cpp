@@ -479,8 +479,8 @@ TEST(Layers, LoaderReadsTheExtensions) {
     EXPECT_EQ(e.path(), "materials[0].extensions.KHR_materials_clearcoat.clearcoatFactor");
   }
   try {
-    load(quad_scene("{}", R"("extensionsUsed": ["KHR_materials_dispersion"],
-                             "extensionsRequired": ["KHR_materials_dispersion"],)"),
+    load(quad_scene("{}", R"("extensionsUsed": ["ADOBE_materials_thin_transparency"],
+                             "extensionsRequired": ["ADOBE_materials_thin_transparency"],)"),
          &warnings);
     ADD_FAILURE() << "an unsupported required extension was accepted";
   } catch (const SceneError& e) {

@@ -59,6 +59,7 @@ struct Material {
   TextureRef specular_tex{};        // specularTexture: its A channel (linear) multiplies
   TextureRef specular_color_tex{};  // specularColorTexture: RGB (sRGB) multiply the colour
   float ior = 1.5f;              // KHR_materials_ior
+  float dispersion = 0.f;        // KHR_materials_dispersion: 20 / the Abbe number (0: none)
   float transmission = 0.f;      // KHR_materials_transmission transmissionFactor
   TextureRef transmission_tex{};  // transmissionTexture: its R channel (linear) multiplies
   // KHR_materials_diffuse_transmission: diffuseTransmissionFactor (x the texture's A, linear)
@@ -171,6 +172,9 @@ struct BsdfParams {
   float specular = 0.f;
   Vec3 specular_color{1.f, 1.f, 1.f};  // KHR_materials_specular's colour (scales F0)
   float ior = 1.5f;
+  // KHR_materials_dispersion: 20 / the Abbe number (0: none), on transmissive materials; the
+  // path tracer sets ior to the index at the path's wavelength (sampling/spectrum.h).
+  float dispersion = 0.f;
   float transmission = 0.f;
   // KHR_materials_diffuse_transmission: the share of the diffuse base transmitted (0: none)
   // and the transmitted light's colour.

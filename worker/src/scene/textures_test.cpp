@@ -152,15 +152,15 @@ TEST(Textures, EmissiveTextureModulatesEmission) {
 TEST(Textures, UnsupportedExtensionsAndBrokenImagesWarnAndStillRender) {
   const std::string json = quad_scene(
       R"({"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0},
-          "extensions": {"KHR_materials_dispersion": {"dispersion": 20},
+          "extensions": {"ADOBE_materials_thin_transparency": {"transmissionFactor": 1},
                          "KHR_materials_clearcoat": {"clearcoatFactor": 1}}})",
       R"({"uri": "data:image/png;base64,AAAA"})",
-      R"("extensionsUsed": ["KHR_materials_dispersion", "KHR_materials_clearcoat"],)");
+      R"("extensionsUsed": ["ADOBE_materials_thin_transparency", "KHR_materials_clearcoat"],)");
   std::vector<std::string> warnings;
   auto scene = load_at(json, 0.f, 0.f, &warnings);
   bool named = false, texture = false, clearcoat = false;
   for (const auto& w : warnings) {
-    named = named || w.find("KHR_materials_dispersion") != std::string::npos;
+    named = named || w.find("ADOBE_materials_thin_transparency") != std::string::npos;
     texture = texture || w.find("textures[0]") != std::string::npos;
     clearcoat = clearcoat || w.find("KHR_materials_clearcoat") != std::string::npos;
   }
@@ -591,6 +591,33 @@ TEST(Textures, DiffuseTransmissionFactorsAndTexturesReachTheBsdf) {
   EXPECT_NEAR(p.diffuse_transmission_color.z, 0.f, 1e-3f);
   p = shade(R"({})");  // the default factor is 0: no BTDF
   EXPECT_EQ(p.diffuse_transmission, 0.f);
+}
+
+// KHR_materials_dispersion: the dispersion reaches a transmissive material's BSDF (the path
+// tracer then picks the wavelength), not an opaque one's; a negative value is refused by path.
+TEST(Textures, DispersionReachesTransmissiveMaterials) {
+  const std::string texel = testing::png_data_uri(1, 1, 3, {255, 255, 255});
+  auto material = [](const std::string& transmission, const std::string& dispersion) {
+    return R"({"pbrMetallicRoughness": {"metallicFactor": 0}, "extensions": {
+               "KHR_materials_transmission": {"transmissionFactor": )" + transmission + R"(},
+               "KHR_materials_dispersion": {"dispersion": )" + dispersion + "}}}";
+  };
+  const std::string used =
+      R"("extensionsUsed": ["KHR_materials_transmission", "KHR_materials_dispersion"],)";
+  const std::string images = R"({"uri": ")" + texel + R"("})";
+  BsdfParams p = shade_quad(quad_scene(material("1", "0.36"), images, used)).params;
+  EXPECT_NEAR(p.dispersion, 0.36f, 1e-6f);
+  EXPECT_NEAR(p.ior, 1.5f, 1e-6f);  // n_d: the index at the d line until a path disperses it
+  p = shade_quad(quad_scene(material("0", "0.36"), images, used)).params;
+  EXPECT_EQ(p.dispersion, 0.f);
+  std::vector<std::string> warnings;
+  try {
+    load_gltf_from_string(quad_scene(material("1", "-0.5"), images, used), "", "quad.gltf",
+                          &warnings);
+    ADD_FAILURE() << "a negative dispersion was accepted";
+  } catch (const SceneError& e) {
+    EXPECT_EQ(e.path(), "materials[0].extensions.KHR_materials_dispersion.dispersion");
+  }
 }
 
 }  // namespace
