@@ -3,8 +3,8 @@ farm's renderer ignores of what it exports.
 
 The lists below follow the exporter of Blender 5.0 (io_scene_gltf2: the nodes its material
 export reads, the object and light types it writes) and the glTF features the farm's loader
-implements (worker/src/scene/gltf_loader.cpp). Nothing is refused: the artist is told, and may still
-submit.
+implements (worker/src/scene/gltf_loader.cpp and the gltf_*.cpp beside it). Nothing is refused:
+the artist is told, and may still submit.
 """
 
 from __future__ import annotations

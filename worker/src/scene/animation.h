@@ -1,8 +1,8 @@
 // glTF 2.0 animation, skins and morph targets, evaluated at one time: keyframe samplers (3.11
 // and Appendix C: STEP, LINEAR with slerp for rotations, CUBICSPLINE), the node poses their
 // channels give, the skin matrices of vertices (3.7.3) and morph target sums (3.7.2.2). The
-// glTF loader reads the file's accessors into these types and applies the pose where it
-// flattens the node hierarchy (gltf_loader.cpp); nothing here reads a file.
+// glTF loader reads the file's accessors into these types (gltf_animation.cpp) and applies the
+// pose where it flattens the node hierarchy (gltf_loader.cpp); nothing here reads a file.
 #pragma once
 
 #include <array>
