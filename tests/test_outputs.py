@@ -164,29 +164,28 @@ def test_exr_header_carries_the_scenes_xmp_metadata(farm, jobs, tmp_path):
         assert (None if text is None else json.loads(text)) == want
 
 
-def _variants_scene(path) -> None:
-    """A quad filling the view, its unlit material red by default, blue in variant "Blue"
-    (KHR_materials_variants): unlit, the image is the material's colour exactly."""
+def _variants_scene(path, variants=(("Blue", (0, 0, 1)),)) -> None:
+    """A quad filling the view, its unlit material red by default and each variant's colour in
+    that variant (KHR_materials_variants; `variants`: (name, rgb) in order, () for a scene
+    without any): unlit, the image is the material's colour exactly."""
     pos = np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], np.float32)
     idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)
     blob = pos.tobytes() + idx.tobytes() + b"\0\0\0\0"
     unlit = {"KHR_materials_unlit": {}}
+    colours = [(1, 0, 0)] + [rgb for _, rgb in variants]
+    primitive = {"attributes": {"POSITION": 0}, "indices": 1, "material": 0}
     doc = {
         "asset": {"version": "2.0"},
-        "extensionsUsed": ["KHR_materials_unlit", "KHR_materials_variants"],
-        "extensions": {"KHR_materials_variants": {"variants": [{"name": "Blue"}]}},
+        "extensionsUsed": ["KHR_materials_unlit"],
         "scene": 0,
         "scenes": [{"nodes": [0, 1]}],
         "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0, 0, 3]}],
         "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.1}}],
         "materials": [
-            {"pbrMetallicRoughness": {"baseColorFactor": [1, 0, 0, 1]}, "extensions": unlit},
-            {"pbrMetallicRoughness": {"baseColorFactor": [0, 0, 1, 1]}, "extensions": unlit},
+            {"pbrMetallicRoughness": {"baseColorFactor": [*rgb, 1]}, "extensions": unlit}
+            for rgb in colours
         ],
-        "meshes": [{"primitives": [{
-            "attributes": {"POSITION": 0}, "indices": 1, "material": 0,
-            "extensions": {"KHR_materials_variants": {
-                "mappings": [{"material": 1, "variants": [0]}]}}}]}],
+        "meshes": [{"primitives": [primitive]}],
         "accessors": [
             {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
              "min": [-2, -2, 0], "max": [2, 2, 0]},
@@ -196,6 +195,13 @@ def _variants_scene(path) -> None:
                         {"buffer": 0, "byteOffset": 48, "byteLength": 12}],
         "buffers": [{"byteLength": len(blob)}],
     }  # fmt: skip
+    if variants:
+        doc["extensionsUsed"].append("KHR_materials_variants")
+        doc["extensions"] = {
+            "KHR_materials_variants": {"variants": [{"name": name} for name, _ in variants]}
+        }
+        primitive["extensions"] = {"KHR_materials_variants": {"mappings": [
+            {"material": i + 1, "variants": [i]} for i in range(len(variants))]}}  # fmt: skip
     path.write_bytes(build_glb(doc, blob))
 
 
@@ -222,7 +228,97 @@ def test_a_material_variant_reaches_the_workers_and_an_unknown_one_is_a_400(farm
     np.testing.assert_allclose(means["0"], [0, 0, 1], atol=1e-6)  # by index
 
 
+# Three variants, the last one named "all": settings.variant "all" renders every variant (the
+# keyword wins over the name), and that variant alone is chosen by its index.
+THREE_VARIANTS = (("Green", (0, 1, 0)), ("Dark blue", (0, 0, 0.5)), ("all", (1, 1, 1)))
+
+
+def test_variant_all_renders_one_image_per_variant_named_by_it(farm, tmp_path):
+    scene = tmp_path / "shoe.glb"
+    _variants_scene(scene, THREE_VARIANTS)
+    small = {"width": 16, "height": 16, "tile_size": 8, "noise_threshold": 0, "max_spp": 2}
+    with Client(farm.url, timeout=120) as client:
+        job = client.submit(scene, settings={**small, "variant": "all"}, name="shoe")
+        assert job["settings"]["variant"] == "all"
+        assert (job["progress"]["frames_total"], job["progress"]["tiles_total"]) == (3, 12)
+        alone = client.submit(scene, settings={**small, "variant": "2"}, name="shoe-all-alone")
+        job = client.wait(job["id"], poll_s=0.2, timeout_s=300)
+        alone = client.wait(alone["id"], poll_s=0.2, timeout_s=300)
+        assert job["state"] == alone["state"] == "completed", (job["error"], alone["error"])
+        assert job["progress"]["frames_done"] == 3
+        frames = client.frames(job["id"])
+        assert [(f["frame"], f["variant"], f["state"]) for f in frames] == [
+            (0, "Green", "done"), (1, "Dark blue", "done"), (2, "all", "done")
+        ]  # fmt: skip
+        assert client.frames(alone["id"])[0]["variant"] is None
+        images = {}
+        for index, (name, rgb) in enumerate(THREE_VARIANTS):
+            path = tmp_path / f"shoe-{index}.exr"
+            client.save_image(job["id"], path, "exr", frame=index)
+            images[name] = read_exr(str(path))
+            mean = _rgb(images[name]).reshape(-1, 3).mean(0)
+            np.testing.assert_allclose(mean, rgb, atol=1e-6, err_msg=name)
+            spec = oiio.ImageInput.open(str(path)).spec()
+            assert spec.getattribute("renderfarm:variant") == name
+            assert spec.getattribute("renderfarm:variant_index") == index
+            assert spec.getattribute("renderfarm:frame") is None
+        # Each image is the still of its variant: the same bits as a job of that variant alone.
+        client.save_image(alone["id"], tmp_path / "alone.exr", "exr")
+        assert (
+            _rgb(read_exr(str(tmp_path / "alone.exr"))).tobytes() == _rgb(images["all"]).tobytes()
+        )
+        with pytest.raises(ApiError) as e:
+            client.frame_image(job["id"], 3)
+        assert e.value.status == 404 and "variants 0..2" in e.value.message
+        finished = [e["data"] for e in client.events(job["id"]) if e["kind"] == "frame_finished"]
+        assert sorted((d["frame"], d["variant"]) for d in finished) == [
+            (0, "Green"), (1, "Dark blue"), (2, "all")
+        ]  # fmt: skip
+
+
+def test_variant_all_is_refused_without_variants_and_with_frames(farm, tmp_path):
+    plain = tmp_path / "plain.glb"
+    _variants_scene(plain, ())
+    shoe = tmp_path / "shoe.glb"
+    _variants_scene(shoe, THREE_VARIANTS)
+    small = {"width": 16, "height": 16, "max_spp": 1, "variant": "all"}
+    with Client(farm.url, timeout=120) as client:
+        with pytest.raises(ApiError) as e:
+            client.submit(plain, settings=small, name="plain")
+        assert e.value.status == 400 and e.value.field == "settings.variant"
+        assert "has none" in e.value.message
+        # The same for a stored scene named by its hash.
+        stored = client.submit(plain, settings={**small, "variant": ""}, name="plain")
+        with pytest.raises(ApiError) as e:
+            client.submit(scene_sha256=stored["scene_sha256"], settings=small)
+        assert e.value.status == 400 and e.value.field == "settings.variant"
+        with pytest.raises(ApiError) as e:
+            client.submit(shoe, settings={**small, "frames": "1-2"}, name="shoe")
+        assert e.value.status == 400 and e.value.field == "settings.variant"
+        assert "settings.frames" in e.value.message
+        client.wait(stored["id"], poll_s=0.2, timeout_s=300)
+
+
 CLI = [sys.executable, "-m", "renderfarm"]
+
+
+def test_cli_render_writes_each_variant_under_its_name(farm, tmp_path):
+    scene = tmp_path / "shoe.glb"
+    _variants_scene(scene, THREE_VARIANTS)
+    out = tmp_path / "out" / "shoe.exr"
+    done = _cli(
+        farm, "render", str(scene), "-o", str(out), "--variant", "all", "--width", "16",
+        "--height", "16", "--spp", "1", "--noise-threshold", "0", "--quiet",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    names = ["shoe_Green", "shoe_Dark_blue", "shoe_all"]
+    assert sorted(p.name for p in out.parent.iterdir()) == sorted(
+        f"{n}.{ext}" for n in names for ext in ("exr", "png")
+    )
+    for name, (_, rgb) in zip(names, THREE_VARIANTS, strict=True):
+        mean = _rgb(read_exr(str(out.parent / f"{name}.exr"))).reshape(-1, 3).mean(0)
+        np.testing.assert_allclose(mean, rgb, atol=1e-6, err_msg=name)
+    assert "3 variants of 16x16" in done.stderr and "shoe_*.exr" in done.stdout
 
 
 def _cli(farm, *args: str) -> subprocess.CompletedProcess:

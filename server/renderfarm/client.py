@@ -289,11 +289,14 @@ class Client:
 
     def frames(self, job_id: str) -> list[dict[str, Any]]:
         """Every frame of the job with its progress, in frame order: frame, state (queued,
-        rendering or done), tiles_total, tiles_done, mean_spp, error (a still: one, frame 0)."""
+        rendering or done), tiles_total, tiles_done, mean_spp, error, variant (a still: one,
+        frame 0; a job with settings.variant "all": one per variant, frame its index and
+        variant its name; variant is None for other jobs)."""
         return self._check(self.http.get(f"/api/v1/jobs/{job_id}/frames")).json()
 
     def frame_image(self, job_id: str, frame: int, fmt: str = "png", **options: Any) -> bytes:
-        """One frame of an animation job (image()'s options: layer, max_size, compression)."""
+        """One frame of an animation job, or one variant (by index) of a job of every variant
+        (image()'s options: layer, max_size, compression)."""
         return self.image(job_id, fmt, frame=frame, **options)
 
     def save_image(

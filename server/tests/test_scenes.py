@@ -14,7 +14,12 @@ import numpy as np
 import pytest
 
 from renderfarm.domain.scenes.pack import pack_gltf
-from renderfarm.domain.scenes.validate import SceneInfo, inspect_scene, resolve_variant
+from renderfarm.domain.scenes.validate import (
+    SceneInfo,
+    inspect_scene,
+    job_variants,
+    resolve_variant,
+)
 from renderfarm.errors import SceneError, SettingsError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -565,3 +570,15 @@ def test_a_scenes_variants_are_read_and_a_job_names_one_by_name_or_index():
         resolve_variant(
             "Red", inspect_scene(json.dumps(triangle_doc(data_uri(TRIANGLE))).encode()).variants
         )
+
+
+def test_variant_all_names_every_variant_and_wins_over_a_variant_named_all():
+    names = ("Red", "all", "Blue")
+    assert job_variants("all", names) == names  # every variant, in order
+    assert job_variants("1", names) == () and job_variants("", names) == ()  # one, or none
+    with pytest.raises(SettingsError) as e:
+        job_variants("Purple", names)
+    assert e.value.field == "settings.variant"
+    with pytest.raises(SettingsError) as e:
+        job_variants("all", ())
+    assert e.value.field == "settings.variant" and "has none" in str(e.value)

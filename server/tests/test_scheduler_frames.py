@@ -9,8 +9,20 @@ import numpy as np
 import pytest
 from test_scheduler import FakeClock, render
 
-from renderfarm.domain.frames import frame_slot, job_rects
-from renderfarm.domain.jobspec import JobSettings, Limits, SettingsError, parse_settings
+from renderfarm.domain.frames import (
+    frame_count,
+    frame_slot,
+    job_frames,
+    job_rects,
+    variant_file_names,
+)
+from renderfarm.domain.jobspec import (
+    JobSettings,
+    Limits,
+    SettingsError,
+    check_variant_images,
+    parse_settings,
+)
 from renderfarm.domain.scheduler import Scheduler
 from renderfarm.domain.states import JobState
 from renderfarm.domain.tiling import tile_grid
@@ -154,6 +166,81 @@ def test_a_still_is_one_frame():
     assert job.frames is None and job.frame_count == 1
     assert sched.progress(job).frames_total == 1
     assert sched.frame_progress(job, 0).frame == 0
+
+
+def run_variants(settings, variants, workers=2, seed=5):
+    """A job of every variant (settings.variant "all") through the scheduler, each variant's
+    tiles rendered with the variant's index in the seed (a still of a different scene)."""
+    clock = FakeClock()
+    sched = Scheduler(clock=clock)
+    job = sched.add_job("j", settings, "scene", variants=variants)
+    rng = random.Random(seed)
+    outstanding, events = [], []
+    for w in range(workers):
+        sched.add_worker(f"w{w}", 2)
+    while not job.state.finished:
+        for w in range(workers):
+            outstanding += sched.assign(f"w{w}")
+        cancelled = {t for w in range(workers) for t in sched.take_cancellations(f"w{w}")}
+        outstanding = [lease for lease in outstanding if lease.task_id not in cancelled]
+        events += sched.take_events()
+        assert outstanding, "the scheduler stalled"
+        lease = outstanding.pop(rng.randrange(len(outstanding)))
+        slot = lease.tile_index // job.tiles_per_frame
+        seeded = JobSettings(**{**settings.to_dict(), "seed": 2000 + slot})
+        with np.errstate(over="ignore"):
+            sched.complete(lease.task_id, render(seeded, lease))
+        clock.now += 0.01
+    return sched, job, events + sched.take_events()
+
+
+def test_a_job_of_every_variant_has_an_image_per_variant_as_frames_are():
+    s = JobSettings(width=32, height=16, tile_size=16, noise_threshold=0, max_spp=4, variant="all")
+    names = ("Red", "Blue", "all")
+    assert job_frames(s, names) == (0, 1, 2)
+    assert frame_count(s) == 1 and frame_count(s, names) == 3  # the names come with the job
+    assert len(job_rects(s, names)) == 3 * 2
+    assert frame_slot(s, 2, names) == 2 and frame_slot(s, None, names) == 0
+    with pytest.raises(NotFound, match="variants 0..2"):
+        frame_slot(s, 3, names)
+    sched, job, events = run_variants(s, names)
+    assert job.state == JobState.COMPLETED and job.variants == names
+    p = sched.progress(job)
+    assert (p.frames_total, p.frames_done, p.tiles_total) == (3, 3, 6)
+    assert [(f.frame, f.variant, f.state) for f in map(lambda i: sched.frame_progress(job, i),
+            range(3))] == [(0, "Red", "done"), (1, "Blue", "done"), (2, "all", "done")]  # fmt: skip
+    finished = sorted((e.data["frame"], e.data["variant"]) for e in events
+                      if e.kind == "frame_finished")  # fmt: skip
+    assert finished == [(0, "Red"), (1, "Blue"), (2, "all")]
+    stops = [e.data for e in events if e.kind == "tile_stopped"]
+    assert len(stops) == 6
+    assert all(d["variant"] == names[d["tile"] // 2] == names[d["frame"]] for d in stops)
+    # A still keeps its events as they were: no frame, no variant.
+    still = JobSettings(width=16, height=16, tile_size=16, noise_threshold=0, max_spp=1)
+    _, _, events = run_variants(still, ())
+    assert all("variant" not in e.data and "frame" not in e.data for e in events
+               if e.kind == "tile_stopped")  # fmt: skip
+
+
+def test_variant_all_is_refused_with_frames_and_held_to_the_frames_limits():
+    assert parse_settings({"variant": "all"}).variant == "all"
+    assert parse_settings({"variant": "All"}).variant == "All"  # a name: the keyword is "all"
+    with pytest.raises(SettingsError) as e:
+        parse_settings({"variant": "all", "frames": "1-3"})
+    assert e.value.field == "settings.variant" and "settings.frames" in str(e.value)
+    s = parse_settings({"variant": "all", "width": 256, "height": 256})
+    check_variant_images(s, 3, Limits(max_job_memory_bytes=64 << 20))
+    with pytest.raises(SettingsError) as e:  # every variant's accumulators count
+        check_variant_images(s, 200, Limits(max_job_memory_bytes=64 << 20))
+    assert e.value.field == "settings.variant" and "200 variants" in str(e.value)
+    with pytest.raises(SettingsError) as e:
+        check_variant_images(s, 11, Limits(max_frames=10))
+    assert e.value.field == "settings.variant" and "RENDERFARM_MAX_FRAMES" in str(e.value)
+
+
+def test_variant_file_names_are_safe_and_unique():
+    names = ["Red", "Dark blue", "", "Red", "../x", "ünï"]
+    assert variant_file_names(names) == ["Red", "Dark_blue", "2", "3_Red", "x", "n"]
 
 
 def test_failed_tasks_and_worker_warnings_go_to_the_task_log():

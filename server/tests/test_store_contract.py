@@ -100,6 +100,7 @@ def test_jobs_insert_update_list_and_page(run):
                 f"job{i}", f"n{i}", {"width": 8 + i}, sha("s"), tiles=4,
                 owner="ann" if i % 2 else "bob", state="queued" if i < 4 else "waiting",
                 after=["job0"] if i == 4 else None, require_tags=["gpu"] if i == 3 else None,
+                variants=["Red", "Blue"] if i == 2 else None,
             ))  # fmt: skip
         await store.update_job(
             "job1",
@@ -139,6 +140,7 @@ def test_jobs_insert_update_list_and_page(run):
     rows, done, renamed, first, second, queued, ann, unfinished, waiting, nope = run(body)
     assert rows[4].state == "waiting" and rows[4].after_jobs == ["job0"]
     assert rows[3].require_tags == ["gpu"] and rows[0].tiles_total == 4 and rows[0].error == ""
+    assert rows[2].variants == ["Red", "Blue"] == renamed.variants and rows[0].variants == []
     assert isinstance(rows[0].created_at, datetime) and rows[0].started_at is None
     assert done.state == "completed" and done.started_at.timestamp() == T0
     assert done.finished_at.timestamp() == T0 + 10

@@ -313,6 +313,7 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
                     tiles_done=f.tiles_done,
                     mean_spp=f.mean_spp,
                     error=f.error if f.error is not None else -1.0,
+                    variant=f.variant,
                 )  # fmt: skip
                 for f in frames
             ]
@@ -474,7 +475,9 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             sample_count=lease.sample_count,
         )
         task.settings.CopyFrom(self._settings_proto(job))
-        if job.frames is not None:  # a frame of an animation: posed at its glTF time
+        if job.variants:  # a job of every variant: a still of the tile's variant, by index
+            task.settings.variant = str(lease.tile_index // job.tiles_per_frame)
+        elif job.frames is not None:  # a frame of an animation: posed at its glTF time
             frame = job.frames[lease.tile_index // job.tiles_per_frame]
             task.animated = True
             task.frame = frame

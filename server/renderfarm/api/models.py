@@ -44,7 +44,9 @@ class Progress(BaseModel):
     eta_s: float | None = Field(description="seconds to completion; null when unknown")
     samples_merged: int
     elapsed_s: float
-    frames_total: int = Field(1, description="images the job renders: its frames, 1 for a still")
+    frames_total: int = Field(
+        1, description="images the job renders: its frames (or variants), 1 for a still"
+    )
     frames_done: int = Field(0, description="frames whose every tile has stopped")
 
 
@@ -57,6 +59,11 @@ class Frame(BaseModel):
     tiles_done: int
     mean_spp: float
     error: float | None = Field(description="RMS relative error over its tiles; null before one")
+    variant: str | None = Field(
+        None,
+        description='settings.variant "all": the name of the variant this image renders (its '
+        "index is the frame number); null for other jobs",
+    )
 
 
 class Job(BaseModel):

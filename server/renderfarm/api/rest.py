@@ -414,7 +414,8 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
 
     @app.get(
         "/api/v1/jobs/{job_id}/frames",
-        summary="Every frame of the job with its progress (a still has one, frame 0)",
+        summary="Every frame of the job with its progress (a still has one, frame 0; a job "
+        "with settings.variant all has one per variant, its index the frame, with its name)",
         response_model=list[Frame],
         responses=error_responses(403, 404),
     )
@@ -423,7 +424,8 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
 
     @app.get(
         "/api/v1/jobs/{job_id}/frames/{frame}/image.{fmt}",
-        summary="One frame of an animation (also while rendering), as image.png or image.exr",
+        summary="One frame of an animation, or variant of a job of every variant (by its "
+        "index; also while rendering), as image.png or image.exr",
         response_class=Response,
         responses=image_responses,
     )

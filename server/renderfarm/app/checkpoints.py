@@ -14,10 +14,11 @@ from ..infra.store import TileRow
 
 
 def restore_tiles(
-    settings: JobSettings, rows: list[TileRow]
+    settings: JobSettings, rows: list[TileRow], variants: tuple[str, ...] = ()
 ) -> dict[int, tuple[Rect, TileAccumulator]]:
-    """Checkpointed tiles of a job as accumulators, by tile index."""
-    rects = job_rects(settings)
+    """Checkpointed tiles of a job as accumulators, by tile index (`variants`: those of a job
+    of every variant, as stored with it)."""
+    rects = job_rects(settings, variants)
     restored = {}
     for t in rows:
         rect = rects[t.tile_index]

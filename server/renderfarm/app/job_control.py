@@ -176,7 +176,8 @@ class JobControl:
         tile_rows = await self.store.load_tiles(job_id)
         by_index = {r.tile_index: r for r in tile_rows}
         checkpoint, plans, bases, again = {}, {}, {}, []
-        for index, (_, acc) in checkpoints.restore_tiles(settings, tile_rows).items():
+        variants = tuple(row.variants)
+        for index, (_, acc) in checkpoints.restore_tiles(settings, tile_rows, variants).items():
             t = by_index[index]
             if settings == old:  # a retry: the tiles as they were
                 checkpoint[index] = acc
@@ -201,6 +202,7 @@ class JobControl:
             job_id, settings, row.scene_sha256, checkpoint=checkpoint, plans=plans, bases=bases,
             state=state, elapsed_s=row.elapsed_s, after=tuple(row.after_jobs),
             transition=(old_state, kind, data), require_tags=tuple(row.require_tags),
+            variants=variants,
         )  # fmt: skip
         kept_tiles = [
             (t.index, None if t.stopped else Scheduler.planned_batches(t) or None,

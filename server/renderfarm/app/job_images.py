@@ -65,8 +65,8 @@ class JobImages:
         already unlinked: closing it frees the space). Written one row of tiles at a time
         (images.ImageWriter), from memory while the job is held, else from the database.
 
-        frame: which frame of an animation (None: the first frame, or the still); NotFound
-        when the job does not render it."""
+        frame: which frame of an animation, or the index of a variant of a job of every variant
+        (None: the first, or the still); NotFound when the job does not render it."""
         check_caller(caller)
         if fmt not in ("png", "exr"):
             raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
@@ -88,6 +88,7 @@ class JobImages:
         if row is None:
             raise NotFound(f"no job with id {job_id!r}")
         settings = job.settings if job is not None else JobSettings(**row.settings)
+        variants = tuple(row.variants)
         if layer == "denoised" and fmt == "png" and not settings.denoise:
             raise SettingsError(
                 "layer",
@@ -101,8 +102,8 @@ class JobImages:
                 )  # fmt: skip
         # The EXR's DateTime: when the job finished (when it was submitted while it runs).
         stamp = (row.finished_at or row.created_at).timestamp()
-        slot = frame_slot(settings, frame)
-        rects = job_rects(settings)  # of every frame; this frame's start at `base`
+        slot = frame_slot(settings, frame, variants)
+        rects = job_rects(settings, variants)  # of every frame; this frame's start at `base`
         base = slot * tiles_per_frame(settings)
         cols = math.ceil(settings.width / settings.tile_size)
         rows = tiles_per_frame(settings) // cols
@@ -141,9 +142,13 @@ class JobImages:
             del whole
         attributes = None
         if fmt == "exr":
-            numbers = job_frames(settings)
+            numbers = job_frames(settings, variants)
             source = await self.store.get_scene_source(view.scene_sha256)
-            attributes = exr_attributes(view, None if numbers is None else numbers[slot], source)
+            if variants:  # its variant's index and name rather than a frame number
+                attributes = exr_attributes(view, None, source, (slot, variants[slot]))
+            else:
+                frame_number = None if numbers is None else numbers[slot]
+                attributes = exr_attributes(view, frame_number, source)
             xmp = await self._scene_xmp(view.scene_sha256)
             if xmp is not None:
                 attributes["renderfarm:xmp_json_ld"] = xmp
@@ -173,11 +178,12 @@ class JobImages:
         return f
 
     async def frames(self, job_id: str, caller: Caller) -> list[FrameView]:
-        """Every frame of the job with its progress (one, frame 0, for a still): from memory
-        while the job is held, else from its stored tiles."""
+        """Every frame of the job with its progress (one, frame 0, for a still; a job of every
+        variant has one per variant, numbered by its index and named): from memory while the
+        job is held, else from its stored tiles."""
         view = await self.get(job_id, caller)  # raises NotFound / Forbidden
-        settings = view.settings
-        numbers = job_frames(settings) or (0,)
+        settings, variants = view.settings, view.variants
+        numbers = job_frames(settings, variants) or (0,)
         live = self.scheduler.jobs.get(job_id)
         if live is not None:
             return [
@@ -185,7 +191,7 @@ class JobImages:
                 for slot in range(len(numbers))
             ]
         per_frame = tiles_per_frame(settings)
-        rects = job_rects(settings)
+        rects = job_rects(settings, variants)
         slots: list[list[TileSummary]] = [[] for _ in numbers]
         for t in await self.store.tile_summaries(job_id):
             if 0 <= t.tile_index < len(rects):
@@ -202,6 +208,7 @@ class JobImages:
                 mean_spp=sum(t.samples * rects[t.tile_index].pixels for t in tiles)
                 / (settings.width * settings.height),
                 error=math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None,
+                variant=variants[frame] if variants else None,
             ))  # fmt: skip
         return views
 
@@ -231,7 +238,7 @@ class JobImages:
 def _frame_view(p: FrameProgress) -> FrameView:
     return FrameView(
         frame=p.frame, state=p.state, tiles_total=p.tiles_total, tiles_done=p.tiles_done,
-        mean_spp=p.mean_spp, error=finite_or_none(p.error),
+        mean_spp=p.mean_spp, error=finite_or_none(p.error), variant=p.variant,
     )  # fmt: skip
 
 
@@ -245,11 +252,15 @@ def renderer_version() -> str:
 
 
 def exr_attributes(
-    view: JobView, frame: int | None = None, source: dict[str, Any] | None = None
+    view: JobView,
+    frame: int | None = None,
+    source: dict[str, Any] | None = None,
+    variant: tuple[int, str] | None = None,
 ) -> dict[str, str | float]:
     """The job's record in its EXR header (docs/usage.md, "Outputs"): its settings as JSON, scene,
     renderer version, mean spp and estimated error (absent while unknown), for a frame of an
-    animation its number, and for a scene converted at upload (USD) the source it was converted
+    animation its number, for a variant of a job of every variant its index and name
+    (`variant`), and for a scene converted at upload (USD) the source it was converted
     from (`source`: the store's scene source). No wall-clock time: the EXR stays a function of
     the job."""
     attributes: dict[str, str | float] = {
@@ -262,6 +273,9 @@ def exr_attributes(
         attributes["renderfarm:error"] = float(view.progress.error)
     if frame is not None:
         attributes["renderfarm:frame"] = float(frame)
+    if variant is not None:
+        attributes["renderfarm:variant_index"] = float(variant[0])
+        attributes["renderfarm:variant"] = variant[1]
     if source:
         attributes["renderfarm:scene_source_format"] = str(source["source_format"])
         attributes["renderfarm:scene_source_sha256"] = str(source["source_sha256"])

@@ -31,11 +31,11 @@ from pathlib import Path
 from typing import Any
 
 from ..domain.frames import frame_count, job_rects, resolve_animations
-from ..domain.jobspec import JobSettings, parse_settings
+from ..domain.jobspec import JobSettings, check_variant_images, parse_settings
 from ..domain.merge import TileAccumulator
 from ..domain.records import JobRun
 from ..domain.scenes.environment import inspect_environment
-from ..domain.scenes.validate import inspect_scene, resolve_variant
+from ..domain.scenes.validate import inspect_scene, job_variants
 from ..domain.scheduler import Scheduler
 from ..domain.states import JobState
 from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge
@@ -163,12 +163,14 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             # A chunk of tiles at a time, each put under the tile cache at once: a large job
             # comes back within the cache's RAM (the rest goes to its spill file).
             checkpoint, plans, bases, old_aovs = {}, {}, {}, []
-            tiles = len(job_rects(settings))
+            variants = tuple(row.variants)
+            tiles = len(job_rects(settings, variants))
             tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
             step = max(1, checkpoints.CHECKPOINT_CHUNK_BYTES // tile_bytes)
             for first in range(0, tiles, step):
                 tile_rows = await self.store.load_tiles(row.id, first=first, count=step)
-                for index, (_, acc) in checkpoints.restore_tiles(settings, tile_rows).items():
+                restored = checkpoints.restore_tiles(settings, tile_rows, variants)
+                for index, (_, acc) in restored.items():
                     self.scheduler.cache.register(row.id, acc, settings.tile_size)
                     checkpoint[index] = acc
                 plans.update({t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan})
@@ -185,6 +187,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 elapsed_s=row.elapsed_s,
                 after=tuple(row.after_jobs),
                 require_tags=tuple(row.require_tags),
+                variants=variants,
             )
             self.scheduler.take_events()  # the stops were recorded before the restart
             for index in old_aovs:
@@ -252,7 +255,8 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 settings = await self._usd_environment(settings, raw_settings, usd)
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
             resolve_animations(settings.animation, info.animations)
-            resolve_variant(settings.variant, info.variants)
+            variants = job_variants(settings.variant, info.variants)
+            check_variant_images(settings, len(variants), self.settings.limits())
             if await self.store.get_scene_info(info.sha256) is None:
                 await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
             await self.store.put_scene(info.sha256, info.format, filename or "scene", scene_data)
@@ -268,12 +272,14 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             if stored is None or stored["format"] not in ("glb", "gltf"):
                 raise NotFound(f"no stored scene with sha256 {sha}")
             filename = filename or stored["filename"]
+            variants = ()
             # Names are checked against the stored scene's animations and variants.
             if settings.animation or settings.variant:
                 data = await self.store.read_scene(sha, 0, stored["size_bytes"])
                 info = inspect_scene(data, filename, max(len(data), 1))
                 resolve_animations(settings.animation, info.animations)
-                resolve_variant(settings.variant, info.variants)
+                variants = job_variants(settings.variant, info.variants)
+                check_variant_images(settings, len(variants), self.settings.limits())
         else:
             raise SettingsError(
                 "scene", "a scene is required: upload a .glb/.gltf or give scene_sha256"
@@ -282,19 +288,20 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         if usd is not None:
             name = name or usd.source_filename
         name = (name or filename or "job").strip()[:200]
-        tiles = len(job_rects(settings))
+        tiles = len(job_rects(settings, variants))
         state = JobState.QUEUED if ready else JobState.WAITING
         row = await self.store.insert_job(
             job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner, after=after,
-            state=state.value, require_tags=require_tags,
+            state=state.value, require_tags=require_tags, variants=list(variants),
         )  # fmt: skip
         # Stored and committed: only now does the job exist for the scheduler and the caller.
         self.owners[job_id] = caller.owner
         self.names[job_id] = name
         self.created[job_id] = row.created_at.timestamp()
         self.scheduler.add_job(
-            job_id, settings, sha, state=state, after=tuple(after), require_tags=tuple(require_tags)
-        )
+            job_id, settings, sha, state=state, after=tuple(after),
+            require_tags=tuple(require_tags), variants=variants,
+        )  # fmt: skip
         self._waiting_dirty = True  # a dependency may have completed since it was looked at
         if usd is not None:
             self._pending_events.append((job_id, "scene_converted", _usd_event(usd)))
@@ -524,6 +531,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             owner=self.owners.get(job.job_id, ""),
             after=job.after,
             require_tags=tuple(sorted(job.require_tags)),
+            variants=job.variants,
         )
 
     def _unplaced(self, job: JobRun) -> str:
@@ -551,7 +559,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 eta_s=0.0 if JobState(row.state).finished else None,
                 samples_merged=row.samples_merged,
                 elapsed_s=row.elapsed_s,
-                frames_total=frame_count(settings),
+                frames_total=frame_count(settings, tuple(row.variants)),
                 frames_done=row.frames_done,
             ),
             error=row.error,
@@ -560,6 +568,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             owner=row.owner,
             after=tuple(row.after_jobs),
             require_tags=tuple(row.require_tags),
+            variants=tuple(row.variants),
         )
 
     # -------------------------------------------------------------------------- images

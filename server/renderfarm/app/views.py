@@ -26,7 +26,8 @@ class ProgressView:
 
 @dataclass(frozen=True)
 class FrameView:
-    """One frame of an animation job (GET /api/v1/jobs/{id}/frames)."""
+    """One frame of an animation job, or one variant of a job of every variant (its index as
+    the frame number; GET /api/v1/jobs/{id}/frames)."""
 
     frame: int
     state: str  # "queued" (nothing merged yet), "rendering" or "done"
@@ -34,6 +35,7 @@ class FrameView:
     tiles_done: int
     mean_spp: float
     error: float | None  # RMS of its tiles' relative errors; None before any estimate
+    variant: str | None = None  # the variant's name, for a job of every variant
 
     def to_json(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -55,6 +57,9 @@ class JobView:
     owner: str = ""
     after: tuple[str, ...] = ()  # ids of the jobs it waits for
     require_tags: tuple[str, ...] = ()  # only workers with all these tags render it
+    # settings.variant "all": the scene's variants, one image each (not shown: the frame list
+    # names each image's variant)
+    variants: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         return {

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from ..domain import jobspec
+from ..domain.frames import ALL_VARIANTS, variant_file_names
 from ..domain.jobspec import SETTINGS
 
 log = logging.getLogger("renderfarm.cli")
@@ -308,7 +309,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise CliError("-o must name an .exr file (a .png is written beside it)", EXIT_USAGE)
-    if "#" in out.name and not args.frames:
+    if "#" in out.name and not args.frames and getattr(args, "variant", None) != ALL_VARIANTS:
         raise CliError("-o has a #### frame number but no --frames were given", EXIT_USAGE)
     if args.movie is not None and not args.frames:
         raise CliError("--movie needs --frames (a still has no movie)", EXIT_USAGE)
@@ -333,7 +334,12 @@ def cmd_render(args: argparse.Namespace) -> int:
             job = _submit(client, args)
             if not args.quiet:
                 print(f"job {job['id']} submitted to {url}", file=sys.stderr)
-            sequence = FrameWriter(client, job["id"], out) if job["settings"]["frames"] else None
+            every_variant = job["settings"]["variant"] == ALL_VARIANTS
+            sequence = (
+                FrameWriter(client, job["id"], out, every_variant)
+                if job["settings"]["frames"] or every_variant
+                else None
+            )
             try:
                 job = _watch(client, job["id"], args.quiet, on_update=sequence)
             except KeyboardInterrupt:
@@ -349,7 +355,10 @@ def cmd_render(args: argparse.Namespace) -> int:
             size = f"{job['settings']['width']}x{job['settings']['height']}"
             if sequence is not None:
                 sequence(job)  # the frames that finished with the job
-                what, exr = f"{p['frames_total']} frames of {size}", sequence.template
+                if every_variant:  # shoe_*.exr: one per variant, named by it
+                    what, exr = f"{p['frames_total']} variants of {size}", variant_path(out, "*")
+                else:
+                    what, exr = f"{p['frames_total']} frames of {size}", sequence.template
             else:
                 out.parent.mkdir(parents=True, exist_ok=True)
                 out.write_bytes(client.image(job["id"], "exr"))
@@ -387,26 +396,46 @@ def frame_path(template: Path, frame: int) -> Path:
     return template.with_name(name[: run.start()] + number + name[run.end() :])
 
 
+def variant_path(template: Path, name: str) -> Path:
+    """The file of one variant's image of a job of every variant: the template's run of #
+    replaced by `name` (variant_file_names), else `name` added before the suffix (shoe.exr,
+    variant Red: shoe_Red.exr)."""
+    if "#" in template.name:
+        return template.with_name(re.sub(r"#+", name, template.name, count=1))
+    return template.with_name(f"{template.stem}_{name}{template.suffix}")
+
+
 class FrameWriter:
     """Writes each frame of an animation job (EXR and PNG, from the -o template) as soon as it
-    is done, so a long sequence is on disk frame by frame (called with every job update)."""
+    is done, so a long sequence is on disk frame by frame (called with every job update). For
+    a job of every variant (settings.variant "all") each variant's image is named by the
+    variant (variant_path)."""
 
-    def __init__(self, client, job_id: str, template: Path):
-        if "#" not in template.name:  # shot.exr -> shot_####.exr
+    def __init__(self, client, job_id: str, template: Path, variants: bool = False):
+        self.variants = variants
+        if not variants and "#" not in template.name:  # shot.exr -> shot_####.exr
             template = template.with_name(f"{template.stem}_####{template.suffix}")
         self.client, self.job_id, self.template = client, job_id, template
         self.written: set[int] = set()
         self.done_seen = 0
+        self.names: dict[int, str] = {}  # a variant's index -> its part of the file name
 
     def __call__(self, job: dict[str, Any]) -> None:
         done = job["progress"].get("frames_done", 0)
         if done <= self.done_seen and job["state"] not in FINISHED:
             return
         self.done_seen = done
-        for f in self.client.frames(self.job_id):
+        frames = self.client.frames(self.job_id)
+        if self.variants and not self.names:
+            names = variant_file_names([f.get("variant") or "" for f in frames])
+            self.names = {f["frame"]: n for f, n in zip(frames, names, strict=True)}
+        for f in frames:
             if f["state"] != "done" or f["frame"] in self.written:
                 continue
-            path = frame_path(self.template, f["frame"])
+            if self.variants:
+                path = variant_path(self.template, self.names[f["frame"]])
+            else:
+                path = frame_path(self.template, f["frame"])
             path.parent.mkdir(parents=True, exist_ok=True)
             self.client.save_image(self.job_id, path, "exr", frame=f["frame"])
             self.client.save_image(self.job_id, path.with_suffix(".png"), "png", frame=f["frame"])

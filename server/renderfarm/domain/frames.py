@@ -10,6 +10,11 @@ setting of an animation job.
 The frames of a list are rendered in ascending order, each once, however often the list names
 it. A frame number means what the artist saw in Blender: frame f is glTF time f / fps (the glTF
 exporter's mapping), frame_time() gives it.
+
+A job with `variant` "all" (KHR_materials_variants) has one image per variant of its scene, in
+the scene's order, as an animation has one per frame: its "frames" are the variants' indices
+0 .. n-1 and the functions below take the variants' names (stored with the job) beside its
+settings. A still has one image, frame 0.
 """
 
 from __future__ import annotations
@@ -68,14 +73,21 @@ def _frames_of(text: str) -> tuple[int, ...]:
     return parse_frames(text, 2 * MAX_FRAME + 1)
 
 
-def job_frames(settings: Any) -> tuple[int, ...] | None:
-    """The frames of a job's (validated) settings, ascending; None for a still."""
-    return _frames_of(settings.frames) if settings.frames else None
+ALL_VARIANTS = "all"  # settings.variant: every variant of the scene, one image each
 
 
-def frame_count(settings: Any) -> int:
-    """How many images a job renders: its frames, or 1 for a still."""
-    frames = job_frames(settings)
+def job_frames(settings: Any, variants: tuple[str, ...] = ()) -> tuple[int, ...] | None:
+    """The numbers of a job's images, ascending: the frames of its (validated) settings, the
+    indices of the scene's variants for a job that renders all of them (`variants`: their
+    names, as stored with the job), None for a still."""
+    if settings.frames:
+        return _frames_of(settings.frames)
+    return tuple(range(len(variants))) if variants else None
+
+
+def frame_count(settings: Any, variants: tuple[str, ...] = ()) -> int:
+    """How many images a job renders: its frames or variants, or 1 for a still."""
+    frames = job_frames(settings, variants)
     return 1 if frames is None else len(frames)
 
 
@@ -83,25 +95,44 @@ def tiles_per_frame(settings: Any) -> int:
     return len(tile_grid(settings.width, settings.height, settings.tile_size))
 
 
-def job_rects(settings: Any) -> list[Rect]:
+def job_rects(settings: Any, variants: tuple[str, ...] = ()) -> list[Rect]:
     """The rect of every tile of a job, by tile index: frame slot s (its place in the frame
-    list) holds tiles s * tiles_per_frame ... (s + 1) * tiles_per_frame - 1, each frame's grid
-    in row-major order (workers.proto, Task.tile_index)."""
+    list, or the variant's index) holds tiles s * tiles_per_frame ... (s + 1) * tiles_per_frame
+    - 1, each frame's grid in row-major order (workers.proto, Task.tile_index)."""
     grid = tile_grid(settings.width, settings.height, settings.tile_size)
-    return grid * frame_count(settings)
+    return grid * frame_count(settings, variants)
 
 
-def frame_slot(settings: Any, frame: int | None) -> int:
-    """The slot of a frame number in a job's frame list (None: the still, or the first frame);
-    NotFound when the job does not render that frame."""
-    frames = job_frames(settings)
+def frame_slot(settings: Any, frame: int | None, variants: tuple[str, ...] = ()) -> int:
+    """The slot of a frame number in a job's frame list (None: the still, or the first frame;
+    for a job of every variant, the variant's index); NotFound when the job does not render
+    that frame."""
+    frames = job_frames(settings, variants)
     if frame is None:
         return 0
     slot = bisect.bisect_left(frames, frame) if frames is not None else 0
     if frames is None or slot == len(frames) or frames[slot] != frame:
-        rendered = "it is a still" if frames is None else f"its frames are {settings.frames}"
+        if variants:
+            rendered = f"it renders the variants 0..{len(variants) - 1} of its scene"
+        else:
+            rendered = "it is a still" if frames is None else f"its frames are {settings.frames}"
         raise NotFound(f"the job does not render frame {frame}: {rendered}")
     return slot
+
+
+def variant_file_names(names: tuple[str, ...] | list[str]) -> list[str]:
+    """What to put in the file name of each variant's image, in order: its name with anything
+    but letters, digits, '.', '_' and '-' made '_' ("Red", "Dark_blue"), or its index where
+    that leaves nothing or repeats an earlier one ("2", and "3_Red" for a second "Red")."""
+    out: list[str] = []
+    for index, name in enumerate(names):
+        safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")[:80]
+        if not safe:
+            safe = str(index)
+        while safe in out:
+            safe = f"{index}_{safe}"
+        out.append(safe)
+    return out
 
 
 def check_animation_selection(

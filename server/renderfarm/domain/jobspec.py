@@ -21,7 +21,7 @@ from enum import EnumMeta, StrEnum
 from typing import Any
 
 from ..errors import SettingsError
-from .frames import check_animation_selection, parse_frames, parse_shutter
+from .frames import ALL_VARIANTS, check_animation_selection, parse_frames, parse_shutter
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
 # same rule in worker/src/programs/main.cpp.
@@ -236,7 +236,8 @@ SETTINGS: tuple[Setting, ...] = (
             "closed, no motion blur. Needs frames", 24),
     Setting("variant", str, "",
             "KHR_materials_variants: the material variant to render, by its name "
-            "(case-sensitive) or index; empty = the scene's default materials", 25),
+            "(case-sensitive) or index; empty = the scene's default materials; all = every "
+            "variant of the scene, one image each (as frames; not with frames)", 25),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -483,6 +484,12 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
         )
     check_animation_selection(s.animation)
     _require(len(s.variant) <= 200, "variant", "is longer than 200 characters")
+    _require(
+        not (s.variant == ALL_VARIANTS and s.frames),
+        "variant",
+        f'"{ALL_VARIANTS}" renders every variant of the scene as a still, one image each, '
+        "and cannot be combined with settings.frames: submit one job per variant with frames",
+    )
     if parse_shutter(s.shutter) is not None:
         _require(
             bool(s.frames),
@@ -507,6 +514,30 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             f"server's limit of {limits.max_job_memory_bytes / 2**20:.0f} MB "
             "(RENDERFARM_MAX_JOB_MEMORY_MB); render without it or smaller",
         )
+
+
+def check_variant_images(s: JobSettings, count: int, limits: Limits) -> None:
+    """A job of every variant (settings.variant "all") renders `count` images, each with its
+    own accumulators, as frames do: held to the frames' limits (RENDERFARM_MAX_FRAMES and the
+    job's memory), SettingsError naming settings.variant otherwise. Nothing to check for other
+    jobs (count 0)."""
+    if count == 0:
+        return
+    _require(
+        count <= limits.max_frames,
+        "variant",
+        f'"{ALL_VARIANTS}": the scene has {count} variants, more images than one job may '
+        f"render ({limits.max_frames}, RENDERFARM_MAX_FRAMES); name them one job each",
+    )
+    need = count * job_memory_bytes(s.width, s.height, s.tile_size)
+    _require(
+        need <= limits.max_job_memory_bytes,
+        "variant",
+        f'"{ALL_VARIANTS}": {count} variants of {s.width} x {s.height} need about '
+        f"{need / 2**20:.0f} MB of accumulators in all, more than the server's limit of "
+        f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB); "
+        "name the variants one job each",
+    )
 
 
 # ------------------------------------------------------------------ request fields beside settings

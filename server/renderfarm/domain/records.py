@@ -126,7 +126,10 @@ class JobRun:
     paused_at: float | None = None  # clock when paused: the pause does not count as elapsed
     elapsed_before: float = 0.0  # elapsed seconds of earlier runs (restored, retried, continued)
     require_tags: frozenset[str] = frozenset()  # only workers with all of these take its tasks
-    frames: tuple[int, ...] | None = None  # the frame numbers of an animation; None: a still
+    # The numbers of its images: an animation's frames, the variants' indices for a job of
+    # every variant (settings.variant "all"); None: a still.
+    frames: tuple[int, ...] | None = None
+    variants: tuple[str, ...] = ()  # the variants' names of a job of every variant, by index
     tiles_per_frame: int = 0
     frame_tiles_stopped: list[int] = field(default_factory=list)  # by slot
     # The task log (task_warning events): messages recorded once each, at most TASK_LOG_MAX.
@@ -177,7 +180,7 @@ class WorkerRecord:
 
 @dataclass(frozen=True)
 class FrameProgress:
-    """One frame of an animation job."""
+    """One frame of an animation job (or one variant of a job of every variant)."""
 
     frame: int
     state: str  # "queued" (nothing merged), "rendering" or "done" (every tile stopped)
@@ -185,6 +188,7 @@ class FrameProgress:
     tiles_done: int
     mean_spp: float
     error: float  # RMS over its merged tiles of the tile relative error; inf before any
+    variant: str | None = None  # the variant's name, for a job of every variant
 
 
 @dataclass(frozen=True)

@@ -109,10 +109,12 @@ class Scheduler:
         after: tuple[str, ...] = (),
         transition: tuple[JobState, str, dict] | None = None,
         require_tags: tuple[str, ...] = (),
+        variants: tuple[str, ...] = (),
     ) -> JobRun:
         """Add a job; `checkpoint` resumes tiles from merged accumulators (restart recovery),
         `plans` their planned batch sizes as planned_batches() gave them at that checkpoint,
-        `bases` what their planned batches were planned from (plan_basis()).
+        `bases` what their planned batches were planned from (plan_basis()), `variants` the
+        names of the scene's variants of a job that renders every one (an image each).
 
         transition: (state it was in, event kind, event data) when a finished job comes back
         (retry, continue): checked against the state machine and recorded as that event; the
@@ -127,10 +129,11 @@ class Scheduler:
         tiles = [
             TileState(i, r, TileAccumulator(r.width, r.height, iid, arrays=not cached),
                       slot=i // per_frame)
-            for i, r in enumerate(job_rects(settings))
+            for i, r in enumerate(job_rects(settings, variants))
         ]  # fmt: skip
         job = JobRun(job_id, settings, scene_sha256, tiles, created=now, state=state, after=after)
-        job.frames = job_frames(settings)
+        job.frames = job_frames(settings, variants)
+        job.variants = tuple(variants)
         job.tiles_per_frame = per_frame
         job.frame_tiles_stopped = [0] * job.frame_count
         job.elapsed_before = elapsed_s
@@ -291,6 +294,7 @@ class Scheduler:
             state = "rendering" if errors else "queued"
         return FrameProgress(
             frame=job.frames[slot] if job.frames is not None else 0,
+            variant=job.variants[slot] if job.variants else None,
             state=state,
             tiles_total=len(tiles),
             tiles_done=done,
@@ -718,7 +722,7 @@ class Scheduler:
                     "spp": tile.stop.spp,
                     "error": tile.stop.error,
                     "reason": reason.value,
-                    **({} if job.frames is None else {"frame": job.frames[tile.slot]}),
+                    **self._image_place(job, tile.slot),
                 },
             )
         )
@@ -728,7 +732,11 @@ class Scheduler:
                 Event(
                     "frame_finished",
                     job.job_id,
-                    {"frame": frame.frame, "spp": frame.mean_spp, "error": frame.error},
+                    {
+                        **self._image_place(job, tile.slot),
+                        "spp": frame.mean_spp,
+                        "error": frame.error,
+                    },
                 )
             )
 
@@ -796,11 +804,23 @@ class Scheduler:
             self._check_renderable(job)
 
     @staticmethod
-    def _task_place(job: JobRun, tile_index: int, batch_index: int) -> dict[str, int]:
-        """Where a task was: its tile (and batch), and the frame of an animation."""
-        where = {"tile": tile_index, "batch": batch_index}
-        if job.frames is not None and 0 <= tile_index < len(job.tiles):
-            where["frame"] = job.frames[job.tiles[tile_index].slot]
+    def _image_place(job: JobRun, slot: int) -> dict[str, int | str]:
+        """The image a tile belongs to, as events name it: the frame of an animation, the
+        variant (its index as the frame, and its name) of a job of every variant; {} for a
+        still."""
+        if job.frames is None:
+            return {}
+        if job.variants:
+            return {"frame": slot, "variant": job.variants[slot]}
+        return {"frame": job.frames[slot]}
+
+    @classmethod
+    def _task_place(cls, job: JobRun, tile_index: int, batch_index: int) -> dict[str, int | str]:
+        """Where a task was: its tile (and batch), and the frame of an animation (or the
+        variant)."""
+        where: dict[str, int | str] = {"tile": tile_index, "batch": batch_index}
+        if 0 <= tile_index < len(job.tiles):
+            where.update(cls._image_place(job, job.tiles[tile_index].slot))
         return where
 
     def task_warnings(self, worker_id: str, result: BatchResult) -> None:

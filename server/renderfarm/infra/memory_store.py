@@ -50,6 +50,7 @@ class JobStore(Protocol):
         after: list[str] | None = None,
         state: str = "queued",
         require_tags: list[str] | None = None,
+        variants: list[str] | None = None,
     ) -> JobRow: ...
     async def update_job(self, job_id: str, **fields: Any) -> None: ...
     async def update_job_spec(self, job_id: str, name: str, settings: dict[str, Any]) -> None: ...
@@ -174,6 +175,7 @@ class MemoryStore:
         after: list[str] | None = None,
         state: str = "queued",
         require_tags: list[str] | None = None,
+        variants: list[str] | None = None,
     ) -> JobRow:
         if job_id in self._jobs:
             raise KeyError(f"duplicate job id {job_id!r}")
@@ -185,7 +187,7 @@ class MemoryStore:
             finished_at=None, elapsed_s=0.0, samples_merged=0, mean_spp=0.0,
             error_estimate=None, tiles_total=tiles, tiles_done=0, owner=owner,
             tiles_previewed=0, after_jobs=list(after or []),
-            require_tags=list(require_tags or []),
+            require_tags=list(require_tags or []), variants=list(variants or []),
         )  # fmt: skip
         self._jobs[job_id] = row
         self._tiles[job_id] = {}

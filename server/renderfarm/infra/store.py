@@ -95,6 +95,8 @@ class JobRow:
     after_jobs: list[str] = dataclass_field(default_factory=list)  # ids of the jobs it waits for
     require_tags: list[str] = dataclass_field(default_factory=list)  # worker tags it needs
     frames_done: int = 0  # frames whose every tile has stopped
+    # settings.variant "all": the scene's variants, one image each (domain/frames.py)
+    variants: list[str] = dataclass_field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -139,7 +141,7 @@ class TileSummary:
 _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
     "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner, "
-    "tiles_previewed, after_jobs, require_tags, frames_done"
+    "tiles_previewed, after_jobs, require_tags, frames_done, variants"
 )
 _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
@@ -329,6 +331,7 @@ class Store:
         after: list[str] | None = None,
         state: str = "queued",
         require_tags: list[str] | None = None,
+        variants: list[str] | None = None,
     ) -> JobRow:
         # One statement: the job and its first event are committed together, in one round
         # trip (a burst of submissions holds each pooled connection as briefly as it can).
@@ -337,13 +340,13 @@ class Store:
             await cur.execute(
                 "WITH job AS (INSERT INTO jobs"
                 " (id, name, state, settings, scene_sha256, tiles_total, owner, after_jobs,"
-                " require_tags)"
-                f" VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
+                " require_tags, variants)"
+                f" VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
                 " submitted AS (INSERT INTO events (job_id, kind, data)"
                 " SELECT id, 'job_submitted', %s FROM job)"
                 " SELECT * FROM job",
                 (job_id, name, state, json.dumps(settings), scene_sha256, tiles, owner,
-                 list(after or []), list(require_tags or []),
+                 list(after or []), list(require_tags or []), list(variants or []),
                  json.dumps({"name": name, "state": state, "after": list(after or [])})),
             )  # fmt: skip
             return JobRow(**await cur.fetchone())

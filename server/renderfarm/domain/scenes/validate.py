@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ...errors import SceneError, SettingsError
+from ..frames import ALL_VARIANTS
 from .glb import (
     DEFAULT_MAX_BYTES,
     GLB_MAGIC,
@@ -122,6 +123,25 @@ def variant_names(document: dict) -> tuple[str, ...]:
         v.get("name", "") if isinstance(v, dict) and isinstance(v.get("name"), str) else ""
         for v in variants
     )
+
+
+def job_variants(
+    text: str, names: tuple[str, ...], field: str = "settings.variant"
+) -> tuple[str, ...]:
+    """The variants a job renders one image each: all of the scene's, in order, for "all"
+    (which wins over a variant of that name: give its index to render that one alone); () for
+    a job of one variant or none, checked by resolve_variant. SettingsError naming the field
+    for "all" on a scene without variants."""
+    if text != ALL_VARIANTS:
+        resolve_variant(text, names, field)
+        return ()
+    if not names:
+        raise SettingsError(
+            field,
+            f'{field} "{ALL_VARIANTS}" renders every KHR_materials_variants variant of the '
+            "scene, and it has none",
+        )
+    return tuple(names)
 
 
 def resolve_variant(text: str, names: tuple[str, ...], field: str = "settings.variant") -> int:
