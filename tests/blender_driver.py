@@ -9,8 +9,10 @@ SCENARIO: `render` (settings, submit, follow, fetch, the Combined pass written a
 by the compositor, the .blend saved), `scan` (a scene of things the farm does not render:
 checked, submitted anyway, and exported with two cameras), `animation` (a moving box submitted
 as Animation, followed, fetched as an image sequence read back frame by frame through the
-compositor, and each frame submitted again as a Still) or `animation_scan` (what the animation
-export carries and drops, and its frame times, read from the .glb; no farm).
+compositor, and each frame submitted again as a Still), `animation_scan` (what the animation
+export carries and drops, and its frame times, read from the .glb; no farm) or `variants` (the
+Material variant menu from the glTF exporter's variants, All variants submitted, followed and
+fetched as an image per variant).
 """
 
 from __future__ import annotations
@@ -709,6 +711,76 @@ def scenario_animation_scan() -> dict:
     return out
 
 
+def emissive(name: str, color):
+    """A material that shows its colour exactly: black, emitting `color` at strength 1."""
+    mat = principled(name, (0.0, 0.0, 0.0))
+    bsdf = mat.node_tree.nodes.get("Principled BSDF")
+    bsdf.inputs["Emission Color"].default_value = (*color, 1.0)
+    bsdf.inputs["Emission Strength"].default_value = 1.0
+    return mat
+
+
+def scenario_variants() -> dict:
+    """Material variants made in the glTF exporter's own UI data (its Material Variants
+    preference on): the Material variant menu offers the default materials, each variant a
+    mesh uses and All variants; All variants with Animation is refused; All is submitted,
+    followed and fetched as one image per variant. Then, with the preference off, the menu has
+    the default materials only."""
+    out: dict = {}
+    scene = empty_scene()
+    plane = mesh_object(scene, "Card", "plane", 20.0, (0, 0, 0), emissive("Red", (1, 0, 0)))
+    scene.camera = camera(scene, "Camera", (0.0, 0.0, 3.0), (0, 0, 0))
+    scene.render.resolution_x, scene.render.resolution_y = CONFIG["width"], CONFIG["height"]
+    scene.render.resolution_percentage = 100
+    gltf = bpy.context.preferences.addons["io_scene_gltf2"].preferences
+    gltf.KHR_materials_variants_ui = True
+    listed = bpy.data.scenes[0].gltf2_KHR_materials_variants_variants
+    for i, (name, color) in enumerate(CONFIG["variants"]):
+        variant = listed.add()
+        variant.name, variant.variant_idx = name, i
+        mapping = plane.data.gltf2_variant_mesh_data.add()
+        mapping.material_slot_index = 0
+        mapping.material = emissive(name, color)
+        mapping.variants.add().variant.variant_idx = i
+    unused = listed.add()  # no mesh maps a material to it: the exporter does not write it
+    unused.name, unused.variant_idx = "Unused", len(CONFIG["variants"])
+
+    prefs = bpy.context.preferences.addons[ADDON].preferences
+    prefs.url, prefs.token = CONFIG["url"], CONFIG["token"]
+    rf = scene.renderfarm
+    out["refresh"] = run_op(bpy.ops.renderfarm.refresh_settings)
+    props = module("props")
+    out["menu"] = [[value, label] for value, label, _ in props._variant_items(rf, bpy.context)]
+    out["default_variant"] = rf.variant_menu
+    rf.variant_menu = CONFIG["variants"][1][0]
+    out["one"] = rf.job_settings(scene).get("variant")
+    for name, value in CONFIG["settings"].items():
+        set_setting(rf, name, value)
+    rf.variant_menu = "all"
+    out["chosen"] = [rf.variant_menu, rf.variant]
+    rf.render_mode = "ANIMATION"
+    out["with_animation"] = run_op(bpy.ops.renderfarm.submit)
+    rf.render_mode = "STILL"
+    out["panel"] = draw_panel()
+    rf.job_name = "cards"
+    out["submit"] = run_op(bpy.ops.renderfarm.submit)
+    entry = rf.current_job()
+    out["job_id"] = entry.job_id
+    watch = module("watch")
+    follow(rf, watch, "the job of every variant", CONFIG["timeout_s"], out)
+    out["summary"] = entry.summary()
+    out["fetch"] = run_op(bpy.ops.renderfarm.fetch)
+    out["images"] = {
+        image.name: bpy.path.abspath(image.filepath)
+        for image in bpy.data.images
+        if image.name.startswith("cards - ")
+    }
+    watch.stop_all()
+    gltf.KHR_materials_variants_ui = False
+    out["menu_off"] = [[value, label] for value, label, _ in props._variant_items(rf, None)]
+    return out
+
+
 if __name__ == "__main__":
     install_addon()
     result = {
@@ -716,5 +788,6 @@ if __name__ == "__main__":
         "scan": scenario_scan,
         "animation": scenario_animation,
         "animation_scan": scenario_animation_scan,
+        "variants": scenario_variants,
     }[sys.argv[1]]()
     print("RESULT " + json.dumps(result), flush=True)

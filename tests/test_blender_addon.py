@@ -479,3 +479,52 @@ def test_animation_submit_follow_fetch(token_farm, addon_zip, tmp_path):
         assert centroids[f] == pytest.approx(still_centroids[f], abs=0.25), (f, still_centroids)
     steps = np.diff([centroids[f] for f in frames])
     assert steps.min() > 3.0, centroids
+
+
+VARIANTS = [["Green", [0.0, 1.0, 0.0]], ["Blue", [0.0, 0.0, 1.0]]]
+
+
+def test_material_variants_offered_and_all_rendered_one_image_each(token_farm, addon_zip, tmp_path):
+    result = run_driver(
+        "variants",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "token": TOKEN,
+            "width": 16,
+            "height": 16,
+            "settings": {**SETTINGS, "max_spp": 1},
+            "variants": VARIANTS,
+            "timeout_s": 300,
+        },
+        tmp_path,
+    )
+    # The menu: the default materials, each variant the export carries (not "Unused", which no
+    # mesh maps), All variants; the default first.
+    assert result["refresh"]["result"] == ["FINISHED"]
+    assert result["menu"] == [
+        ["", "Default materials"], ["Green", "Green"], ["Blue", "Blue"], ["all", "All variants"]
+    ]  # fmt: skip
+    assert result["default_variant"] == "" and result["one"] == "Blue"
+    assert result["chosen"] == ["all", "all"]
+    assert result["with_animation"]["result"] == ["CANCELLED"]
+    assert "All variants renders each variant as a still" in result["with_animation"]["error"]
+    assert any("once per material variant: 2 images (Green, Blue)" in t for t in result["panel"])
+    assert result["menu_off"] == [["", "Default materials"]]  # the exporter writes none then
+
+    assert result["submit"]["result"] == ["FINISHED"], result["submit"]
+    assert result["summary"].startswith("completed, variants 2/2")
+    assert result["fetch"]["result"] == ["FINISHED"], result["fetch"]
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        job = client.get(result["job_id"])
+        assert job["state"] == "completed" and job["settings"]["variant"] == "all"
+        frames = client.frames(job["id"])
+    assert [(f["frame"], f["variant"]) for f in frames] == [(0, "Green"), (1, "Blue")]
+    images = result["images"]
+    assert sorted(images) == ["cards - Blue", "cards - Green"]
+    for name, color in VARIANTS:
+        path = Path(images[f"cards - {name}"])
+        assert path.name.endswith(f"_{name}.exr"), path
+        exr = read_exr(str(path))
+        mean = np.stack([exr[c] for c in "RGB"], -1).reshape(-1, 3).mean(0)
+        np.testing.assert_allclose(mean, color, atol=0.02, err_msg=name)

@@ -69,6 +69,29 @@ class ExportError(RuntimeError):
     pass
 
 
+def scene_variants() -> list[str]:
+    """The names of the material variants (KHR_materials_variants) Blender's glTF exporter
+    writes, in its list's order: those of its list (bpy.data.scenes[0]
+    .gltf2_KHR_materials_variants_variants: the exporter reads the first scene's, whichever
+    scene it exports) that some mesh maps a material to (gltf2_variant_mesh_data), when its
+    Material Variants preference is on (off, it writes none, and the list may not exist)."""
+    addon = bpy.context.preferences.addons.get("io_scene_gltf2")
+    prefs = getattr(addon, "preferences", None)
+    if prefs is None or not getattr(prefs, "KHR_materials_variants_ui", False):
+        return []
+    scenes = bpy.data.scenes
+    listed = getattr(scenes[0], "gltf2_KHR_materials_variants_variants", None) if scenes else None
+    if not listed:
+        return []
+    used = {
+        v.variant.variant_idx
+        for mesh in bpy.data.meshes
+        for mapping in getattr(mesh, "gltf2_variant_mesh_data", ())
+        for v in mapping.variants
+    }
+    return [v.name for v in listed if v.variant_idx in used]
+
+
 def frames_to_submit(scene) -> list[int]:
     """The frame a still submission renders: the scene's current frame."""
     return [scene.frame_current]

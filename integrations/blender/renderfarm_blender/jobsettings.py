@@ -21,6 +21,57 @@ RESOLUTION = ("width", "height")
 # the scene's frame range and frame rate (its export holds one animation, so `animation` stays
 # empty: every animation plays).
 SEQUENCE = ("frames", "fps", "animation")
+# Set by the add-on's Material variant menu (variant_choices): the default materials, one of the
+# scene's KHR_materials_variants variants by name, or "all" of them, one image each.
+VARIANT = "variant"
+ALL_VARIANTS = "all"
+
+
+def variant_choices(names: list[str]) -> list[tuple[str, str, str]]:
+    """The Material variant menu as (value of the setting, label, description): the default
+    materials, each variant the export carries by its name (once each), and All variants when
+    there are any. A variant named "all" is rendered only with All variants: the farm reads
+    "all" as every variant, and the add-on names variants rather than indices (the exporter
+    writes only the variants some mesh uses, so Blender's list and the file's indices differ)."""
+    items = [("", "Default materials", "The scene's own materials, no variant")]
+    seen = set()
+    for name in names:
+        if name in seen or name == ALL_VARIANTS:
+            continue
+        seen.add(name)
+        items.append((name, name, f"The materials of the variant {name!r}"))
+    if names:
+        items.append((
+            ALL_VARIANTS,
+            "All variants",
+            f"Every variant, one image each ({len(names)}: {', '.join(names)})",
+        ))  # fmt: skip
+    return items
+
+
+def variant_setting(
+    docs: list[dict[str, Any]], chosen: str, names: list[str], animation: bool
+) -> dict[str, str]:
+    """settings.variant for the menu's choice `chosen` ({} for the default materials); a
+    ValueError says why it cannot be sent: the farm has no such setting, the scene's export no
+    longer carries that variant, or All variants with Animation (the farm renders every
+    variant as stills)."""
+    if not chosen:
+        return {}
+    if VARIANT not in {d["name"] for d in docs}:
+        raise ValueError("this farm does not render material variants: choose Default materials")
+    if chosen not in {value for value, _, _ in variant_choices(names)}:
+        carried = ", ".join(names) or "none"
+        raise ValueError(
+            f"the scene's export has no material variant {chosen!r} (it carries: {carried}); "
+            "choose another in Material variant"
+        )
+    if chosen == ALL_VARIANTS and animation:
+        raise ValueError(
+            "All variants renders each variant as a still: choose Still, or one variant for "
+            "an animation"
+        )
+    return {VARIANT: chosen}
 
 
 def choices(doc: dict[str, Any]) -> list[str]:

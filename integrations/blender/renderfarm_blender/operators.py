@@ -9,7 +9,7 @@ import tempfile
 import bpy
 from bpy.props import StringProperty
 
-from . import export, props, scan, watch
+from . import export, jobsettings, props, scan, watch
 from .client import FarmClient, FarmError
 
 
@@ -168,6 +168,7 @@ class RENDERFARM_OT_submit(bpy.types.Operator):
         entry.frame = first
         entry.frame_last = last if sequence else first
         entry.frames = settings.get("frames", "") if sequence else ""
+        entry.variants = settings.get(jobsettings.VARIANT) == jobsettings.ALL_VARIANTS
         entry.fps = settings.get("fps", 0.0) if sequence else 0.0
         watch.apply_job(entry, job)
         rf.active_job = len(rf.jobs) - 1
@@ -229,6 +230,15 @@ def sequence_path(entry, frame: int, digits: int) -> str:
     return os.path.join(directory, f"{safe}_{frame:0{digits}d}.exr")
 
 
+def variant_path(entry, index: int, name: str) -> str:
+    """Where a material variant's image of a job of every variant is written:
+    renderfarm/NAME-ID/NAME_2_Dark_blue.exr (its index, then its name made safe)."""
+    safe = _safe_name(entry)
+    directory = os.path.join(_results_directory(), f"{safe}-{entry.job_id[:8]}")
+    variant = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
+    return os.path.join(directory, f"{safe}_{index}" + (f"_{variant}" if variant else "") + ".exr")
+
+
 def sequence_user(first: int, last: int) -> dict:
     """The image-user settings (Image Editor sidebar > Image: Frames, Start, Offset) under which
     scene frame f shows the sequence's file of frame f, for files first..last: Blender shows
@@ -281,6 +291,8 @@ class RENDERFARM_OT_fetch(bpy.types.Operator):
         entry = context.scene.renderfarm.current_job()
         if entry.frames:
             return self.fetch_sequence(context, entry)
+        if entry.variants:
+            return self.fetch_variants(context, entry)
         path = result_path(entry)
         try:
             _write(path, _job_client(context, entry).image_exr(entry.job_id))
@@ -345,6 +357,45 @@ class RENDERFARM_OT_fetch(bpy.types.Operator):
             {"INFO"},
             f"Render farm: image sequence '{image.name}', {len(done)} of {len(numbers)} frames "
             f"in {os.path.dirname(first_path)}{partial}",
+        )
+        return {"FINISHED"}
+
+    def fetch_variants(self, context, entry):
+        """A job of every material variant: each finished variant's EXR as an image named
+        after the job and the variant ("shoe - Red")."""
+        client = _job_client(context, entry)
+        path, loaded, paths = "", [], []
+        try:
+            images = [f for f in client.frames(entry.job_id) if f.get("state") == "done"]
+            for f in images:
+                name = str(f.get("variant") or f["frame"])
+                path = variant_path(entry, int(f["frame"]), name)
+                _write(path, client.frame_exr(entry.job_id, int(f["frame"])))
+                image = next(
+                    (i for i in bpy.data.images if bpy.path.abspath(i.filepath) == path), None
+                )
+                if image is not None:
+                    image.reload()
+                else:
+                    image = bpy.data.images.load(path, check_existing=False)
+                    image.name = f"{entry.name} - {name}"
+                loaded.append(image.name)
+                paths.append(path)
+        except FarmError as e:
+            self.report({"ERROR"}, f"Render farm: {e.report()}")
+            return {"CANCELLED"}
+        except OSError as e:
+            self.report({"ERROR"}, f"Render farm: cannot write {path}: {e}")
+            return {"CANCELLED"}
+        if not loaded:
+            self.report({"ERROR"}, "Render farm: no material variant of the job is finished yet")
+            return {"CANCELLED"}
+        entry.image_name, entry.image_path = loaded[0], paths[0]
+        entry.frames_fetched = len(loaded)
+        self.report(
+            {"INFO"},
+            f"Render farm: {len(loaded)} of {entry.frames_total} material variants as images "
+            f"{', '.join(repr(n) for n in loaded)}",
         )
         return {"FINISHED"}
 

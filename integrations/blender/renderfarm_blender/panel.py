@@ -37,8 +37,16 @@ def _draw_setting(layout, item, enabled: bool) -> None:
 
 def describe_submission(scene) -> list[str]:
     """What Submit renders, in the panel's words."""
+    variant = scene.renderfarm.variant
+    if variant == jobsettings.ALL_VARIANTS:
+        names = export.scene_variants()
+        return [
+            f"Renders frame {export.frames_to_submit(scene)[0]} once per material variant: "
+            f"{len(names)} image{'s' * (len(names) != 1)} ({', '.join(names)})"
+        ]
     if scene.renderfarm.render_mode != "ANIMATION":
-        return [f"Renders the current frame only (frame {export.frames_to_submit(scene)[0]})"]
+        what = f" in the variant {variant!r}" if variant else ""
+        return [f"Renders the current frame only (frame {export.frames_to_submit(scene)[0]}){what}"]
     first, last, step = export.frame_range(scene)
     count = export.frame_count(first, last, step)
     every = f", every {step}" if step > 1 else ""
@@ -85,8 +93,8 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
             box.prop(rf, "job_name")
             box.prop(rf, "use_scene_resolution")
             for item in rf.settings:
-                if item.name in jobsettings.SEQUENCE:
-                    continue  # set by Still / Animation below
+                if item.name in jobsettings.SEQUENCE or item.name == jobsettings.VARIANT:
+                    continue  # set by Still / Animation and Material variant below
                 resolution = item.name in jobsettings.RESOLUTION
                 _draw_setting(box, item, not (resolution and rf.use_scene_resolution))
             box.operator("renderfarm.reset_settings", icon="LOOP_BACK")
@@ -109,6 +117,7 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
 
         col = layout.column()
         col.row().prop(rf, "render_mode", expand=True)
+        col.prop(rf, "variant_menu")
         for line in describe_submission(scene):
             col.label(text=line)
         row = layout.row()

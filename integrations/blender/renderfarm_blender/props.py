@@ -106,6 +106,25 @@ def _set_choice(self, index):
         self.str_value = choices[index]
 
 
+def _variant_items(self, context):
+    items = jobsettings.variant_choices(export.scene_variants())
+    key = "\0variant\0" + json.dumps(items)
+    if key not in _enum_items:
+        _enum_items[key] = items
+    return _enum_items[key]
+
+
+def _get_variant(self):
+    values = [value for value, _, _ in jobsettings.variant_choices(export.scene_variants())]
+    return values.index(self.variant) if self.variant in values else 0
+
+
+def _set_variant(self, index):
+    values = [value for value, _, _ in jobsettings.variant_choices(export.scene_variants())]
+    if 0 <= index < len(values):
+        self.variant = values[index]
+
+
 class RenderfarmSetting(bpy.types.PropertyGroup):
     """One job setting, as the farm described it; its value in the field of its type."""
 
@@ -156,6 +175,7 @@ class RenderfarmJob(bpy.types.PropertyGroup):
     farm_url: StringProperty(description="the farm the job was submitted to")
     frame: IntProperty(description="the frame of a still; the first frame of a sequence")
     frames: StringProperty(description="a sequence's frames in the farm's syntax; empty: a still")
+    variants: BoolProperty(description="a job of every material variant: one image each")
     fps: FloatProperty(description="a sequence's frames per second, as sent to the farm")
     frame_last: IntProperty(description="the last frame of a sequence")
     frames_total: IntProperty()
@@ -178,12 +198,16 @@ class RenderfarmJob(bpy.types.PropertyGroup):
             return 1.0
         if self.tiles_total:
             return self.tiles_done / self.tiles_total
-        return self.frames_done / self.frames_total if self.frames and self.frames_total else 0.0
+        if (self.frames or self.variants) and self.frames_total:
+            return self.frames_done / self.frames_total
+        return 0.0
 
     def summary(self) -> str:
         text = f"{self.state}"
         if self.frames and self.frames_total:
             text += f", frames {self.frames_done}/{self.frames_total}"
+        elif self.variants and self.frames_total:
+            text += f", variants {self.frames_done}/{self.frames_total}"
         if self.tiles_total:
             text += f", tiles {self.tiles_done}/{self.tiles_total}, {self.mean_spp:.0f} spp"
         if self.state == "running" and self.eta_s >= 0:
@@ -205,6 +229,19 @@ class RenderfarmSceneSettings(bpy.types.PropertyGroup):
             ),
         ),
         default="STILL",
+    )
+    variant: StringProperty(
+        description="settings.variant as the Material variant menu set it: empty for the "
+        "default materials, a variant's name, or all"
+    )
+    variant_menu: EnumProperty(
+        name="Material variant",
+        description="Which materials render: the scene's own, one of the material variants "
+        "Blender's glTF exporter writes (glTF Material Variants), or all of them, one image "
+        "each",
+        items=_variant_items,
+        get=_get_variant,
+        set=_set_variant,
     )
     url_override: StringProperty(
         name="Farm URL (this scene)",
@@ -262,11 +299,12 @@ class RenderfarmSceneSettings(bpy.types.PropertyGroup):
 
     def job_settings(self, scene) -> dict:
         """What a submission sends: the settings changed from the farm's defaults, the scene's
-        resolution when use_scene_resolution is on, and for an animation the scene's frames and
-        frame rate (ValueError if the farm renders stills only)."""
+        resolution when use_scene_resolution is on, for an animation the scene's frames and
+        frame rate (ValueError if the farm renders stills only), and the Material variant
+        chosen (ValueError when it cannot be sent: jobsettings.variant_setting)."""
         docs = self.docs()
         values = {s.name: s.value() for s in self.settings}
-        for name in jobsettings.SEQUENCE:
+        for name in (*jobsettings.SEQUENCE, jobsettings.VARIANT):
             values.pop(name, None)
         if self.use_scene_resolution:
             for name in jobsettings.RESOLUTION:
@@ -280,6 +318,11 @@ class RenderfarmSceneSettings(bpy.types.PropertyGroup):
         if self.render_mode == "ANIMATION":
             frames = export.farm_frames(*export.frame_range(scene))
             out.update(jobsettings.sequence_overrides(docs, frames, export.exporter_fps(scene)))
+        out.update(
+            jobsettings.variant_setting(
+                docs, self.variant, export.scene_variants(), self.render_mode == "ANIMATION"
+            )
+        )
         return out
 
     def current_job(self):
