@@ -16,6 +16,12 @@ export interface FrameCell {
   label: string;
 }
 
+/** What a frame is called: "Frame 12", or for a job of every material variant (settings.variant
+ * "all", whose frames are the variants' indices) "Variant Red". */
+export function frameName(f: Frame): string {
+  return f.variant != null ? `Variant ${f.variant}` : `Frame ${f.frame}`;
+}
+
 /**
  * The cell of a frame. A finished frame whose error is above a positive noise target (tiles
  * stopped at max_spp or the time limit) is "short"; with noise_threshold 0 there is no target.
@@ -23,14 +29,15 @@ export interface FrameCell {
 export function frameCell(f: Frame, noiseThreshold: number): FrameCell {
   const fill = f.state === "done" ? 1 : f.tiles_total > 0 ? Math.min(1, f.tiles_done / f.tiles_total) : 0;
   const tiles = `${f.tiles_done} of ${f.tiles_total} tiles`;
-  if (f.state === "queued") return { look: "queued", fill, label: `Frame ${f.frame}: queued` };
+  const name = frameName(f);
+  if (f.state === "queued") return { look: "queued", fill, label: `${name}: queued` };
   const error = `error ${percent(f.error)}`;
   if (f.state === "rendering") {
-    return { look: "rendering", fill, label: `Frame ${f.frame}: rendering, ${error}, ${spp(f.mean_spp)} spp, ${tiles}` };
+    return { look: "rendering", fill, label: `${name}: rendering, ${error}, ${spp(f.mean_spp)} spp, ${tiles}` };
   }
   const short = noiseThreshold > 0 && f.error !== null && f.error > noiseThreshold;
   const state = short ? `done above the noise target of ${percent(noiseThreshold)}` : "done";
-  return { look: short ? "short" : "done", fill, label: `Frame ${f.frame}: ${state}, ${error}, ${spp(f.mean_spp)} spp` };
+  return { look: short ? "short" : "done", fill, label: `${name}: ${state}, ${error}, ${spp(f.mean_spp)} spp` };
 }
 
 /**

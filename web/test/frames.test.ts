@@ -19,6 +19,11 @@ const frame = (over: Partial<Frame>): Frame => ({
 });
 
 describe("frameCell", () => {
+  test("a job of every material variant names the variant", () => {
+    const cell = frameCell(frame({ frame: 1, variant: "Dark blue", state: "done", error: 0.01, mean_spp: 4 }), 0.02);
+    assert.equal(cell.label, "Variant Dark blue: done, error 1.00%, 4.0 spp");
+  });
+
   test("a queued frame: nothing merged, nothing filled", () => {
     assert.deepEqual(frameCell(frame({ frame: 5 }), 0.02), { look: "queued", fill: 0, label: "Frame 5: queued" });
   });

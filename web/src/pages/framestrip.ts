@@ -5,7 +5,7 @@
 
 import { type Frame, movieUrl } from "../api";
 import { h, setText } from "../dom";
-import { frameCell, keyTarget, movieSummary } from "../frames";
+import { frameCell, frameName, keyTarget, movieSummary } from "../frames";
 
 export class FrameStrip {
   readonly el: HTMLElement;
@@ -136,7 +136,7 @@ export class FrameStrip {
   private describeCurrent(): void {
     const f = this.frames[this.index];
     if (!f) return;
-    const text = `Frame ${f.frame} (${this.index + 1} of ${this.frames.length}), ${f.state}`;
+    const text = `${frameName(f)} (${this.index + 1} of ${this.frames.length}), ${f.state}`;
     setText(this.output, text);
     this.slider.setAttribute("aria-valuetext", text);
     this.el.dataset.frame = String(f.frame);

@@ -257,7 +257,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       viewer.setFrame(strip.current.frame, finalKey(strip.current));
       frameDownloads(strip.current.frame);
       void serverHas(MOVIE_PATH).then((has) => {
-        movieServed = has;
+        movieServed = has && Boolean(st.frames); // a job of every variant has no movie
         if (has && !disposed) movie?.update(job.progress.frames_done ?? 0, job.progress.frames_total ?? 1);
       });
     }
