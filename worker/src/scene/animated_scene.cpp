@@ -90,6 +90,7 @@ std::shared_ptr<const Scene> AnimatedScene::pose(double time, std::vector<std::s
     load.time = shutter.is_open() ? time + shutter.open_s +
                                         (shutter.close_s - shutter.open_s) * k / (count - 1)
                                   : time;
+    load.visibility_time = time + (shutter.is_open() ? shutter.open_s : 0.0);
     load.layout = &layout;
     // The loader's warnings are the construction's: the same at every time.
     steps.push_back(describe_gltf(*document_, nullptr, load));

@@ -255,6 +255,153 @@ TEST_F(AnimatedSceneTest, LoadAnimatedSceneIsOnePose) {
   EXPECT_EQ(render(*once).rgb, render(*animated.pose(0.6)).rgb);
 }
 
+// ---- KHR_animation_pointer: a material's base colour and emissive strength, a light's
+// intensity, the camera's field of view, a node's visibility and a node's translation, all
+// animated by pointers over t in [0, 2] (LINEAR, the visibility STEP: hidden until t = 1),
+// and a pointer to a property that is not animatable (ignored with a warning).
+std::string pointer_scene_json(const std::string& extra_channel = "",
+                               const std::string& visibility_interpolation = "STEP") {
+  Buffer b;
+  constexpr int kFloat = 5126, kUShort = 5123, kUByte = 5121;
+  const int quad_p = b.add(std::vector<float>{-1, 0, -1, -1, 0, 1, 1, 0, 1, 1, 0, -1}, kFloat, 4,
+                           "VEC3");
+  const int quad_i = b.add(std::vector<uint16_t>{0, 1, 2, 0, 2, 3}, kUShort, 6, "SCALAR");
+  const int times = b.add(std::vector<float>{0, 2}, kFloat, 2, "SCALAR");
+  const int colour = b.add(std::vector<float>{1, 0, 0, 1, 0, 0, 1, 1}, kFloat, 2, "VEC4");
+  const int strength = b.add(std::vector<float>{1, 5}, kFloat, 2, "SCALAR");
+  const int intensity = b.add(std::vector<float>{2, 6}, kFloat, 2, "SCALAR");
+  const int yfov = b.add(std::vector<float>{0.6f, 1.0f}, kFloat, 2, "SCALAR");
+  const int switch_times = b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
+  const int visible = b.add(std::vector<uint8_t>{0, 1}, kUByte, 2, "SCALAR");
+  const int slide = b.add(std::vector<float>{-2, 0.25f, 0, 2, 0.25f, 0}, kFloat, 2, "VEC3");
+  auto pointer = [](int sampler, const std::string& p) {
+    return R"({"sampler": )" + std::to_string(sampler) +
+           R"(, "target": {"path": "pointer", "extensions": {"KHR_animation_pointer": )"
+           R"({"pointer": ")" + p + "\"}}}}";
+  };
+  auto sampler = [](int input, int output, const std::string& interpolation = "LINEAR") {
+    return R"({"input": )" + std::to_string(input) + R"(, "output": )" + std::to_string(output) +
+           R"(, "interpolation": ")" + interpolation + "\"}";
+  };
+  const std::string mesh = R"({"primitives": [{"attributes": {"POSITION": )" +
+                           std::to_string(quad_p) + R"(}, "indices": )" +
+                           std::to_string(quad_i) + R"(, "material": )";
+  return R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_animation_pointer", "KHR_node_visibility", "KHR_lights_punctual",
+                     "KHR_materials_emissive_strength"],
+  "scene": 0, "scenes": [{"nodes": [0, 1, 2, 3, 4]}],
+  "nodes": [{"mesh": 0, "scale": [3, 1, 3]},
+            {"mesh": 1, "translation": [0, 0.5, 0], "scale": [0.5, 1, 0.5],
+             "extensions": {"KHR_node_visibility": {"visible": true}}},
+            {"camera": 0, "translation": [0, 4, 0], "rotation": [-0.7071068, 0, 0, 0.7071068]},
+            {"translation": [0, 2, 0], "extensions": {"KHR_lights_punctual": {"light": 0}}},
+            {"mesh": 1, "translation": [-2, 0.25, 0], "scale": [0.25, 1, 0.25]}],
+  "meshes": [)" + mesh + R"(0}]}, )" + mesh + R"(1}]}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1, 0, 0, 1]},
+                 "emissiveFactor": [1, 1, 1],
+                 "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 1}}},
+                {"pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.5, 0.5, 1]}}],
+  "cameras": [{"type": "perspective", "perspective": {"yfov": 0.6, "znear": 0.01}}],
+  "extensions": {"KHR_lights_punctual": {"lights": [{"type": "point", "intensity": 2}]}},
+  "animations": [{"channels": [)" +
+         pointer(0, "/materials/0/pbrMetallicRoughness/baseColorFactor") + ", " +
+         pointer(1, "/materials/0/extensions/KHR_materials_emissive_strength/emissiveStrength") +
+         ", " + pointer(2, "/extensions/KHR_lights_punctual/lights/0/intensity") + ", " +
+         pointer(3, "/cameras/0/perspective/yfov") + ", " +
+         pointer(4, "/nodes/1/extensions/KHR_node_visibility/visible") + ", " +
+         pointer(5, "/nodes/4/translation") + ", " + pointer(1, "/materials/0/doubleSided") +
+         extra_channel + R"(],
+                  "samplers": [)" +
+         sampler(times, colour) + ", " + sampler(times, strength) + ", " +
+         sampler(times, intensity) + ", " + sampler(times, yfov) + ", " +
+         sampler(switch_times, visible, visibility_interpolation) + ", " +
+         sampler(times, slide) + R"(]}],
+  )" + b.json() + "}";
+}
+
+std::string write_scene(const std::string& name, const std::string& json) {
+  const std::string path = testing::test_path(name);
+  std::ofstream(path) << json;
+  return path;
+}
+
+// The material the ray from (x, 10, z) straight down meets first, or -1.
+int material_below(const Scene& scene, float x, float z) {
+  Hit hit;
+  if (!scene.intersect({x, 10.f, z}, {0.f, -1.f, 0.f}, 100.f, &hit)) return -1;
+  return int(hit.material);
+}
+
+// Each animated value is the glTF spec's interpolation of its keyframes at the pose's time,
+// in a pose of the animated scene and in the loader's flattened scene alike.
+TEST(AnimationPointerScene, MaterialsLightsCamerasVisibilityAndNodesFollowTheirPointers) {
+  const std::string path = write_scene("pointer.gltf", pointer_scene_json());
+  std::vector<std::string> warnings;
+  const AnimatedScene animated(parse_gltf(path, &warnings), LoadOptions{}, &warnings);
+  bool ignored = false;
+  for (const std::string& w : warnings) {
+    if (w.find("/materials/0/doubleSided") != std::string::npos &&
+        w.find("channel ignored") != std::string::npos)
+      ignored = true;
+    else
+      ADD_FAILURE() << "unexpected warning: " << w;
+  }
+  EXPECT_TRUE(ignored);
+  for (double t : {0.5, 1.5}) {
+    const double s = t / 2.0;  // LINEAR from 0 to 2
+    const auto pose = animated.pose(t);
+    const Material& m = pose->materials()[0];
+    EXPECT_NEAR(m.albedo.x, 1.0 - s, 1e-6) << t;
+    EXPECT_NEAR(m.albedo.z, s, 1e-6) << t;
+    EXPECT_NEAR(m.emission.y, 1.0 + 4.0 * s, 1e-5) << t;  // emissiveFactor x strength
+    ASSERT_EQ(pose->lights().punctual().size(), 1u);
+    EXPECT_NEAR(pose->lights().punctual()[0].intensity.x, 2.0 + 4.0 * s, 1e-5) << t;
+    EXPECT_NEAR(pose->camera().yfov, 0.6 + 0.4 * s, 1e-6) << t;
+    // Hidden (STEP 0) before t = 1, shown after: the panel over the floor's centre.
+    EXPECT_EQ(material_below(*pose, 0.f, 0.f), t < 1.0 ? 0 : 1) << t;
+    // The slid node: from x = -2 to x = 2.
+    const float x = float(-2.0 + 4.0 * s);
+    EXPECT_EQ(material_below(*pose, x, 0.f), 1) << t;
+    EXPECT_EQ(material_below(*pose, x + 0.5f, 0.f), 0) << t;
+    // The loader's flattened scene at the same time.
+    LoadOptions at;
+    at.time = t;
+    const Scene flat(load_gltf(path, nullptr, at));
+    EXPECT_NEAR(flat.materials()[0].albedo.z, s, 1e-6) << t;
+    EXPECT_NEAR(flat.camera().yfov, 0.6 + 0.4 * s, 1e-6) << t;
+    EXPECT_EQ(material_below(flat, 0.f, 0.f), t < 1.0 ? 0 : 1) << t;
+  }
+}
+
+// A pointer to what the file does not have, and a bool animated by anything but STEP, make
+// the file invalid: refused naming the channel or sampler.
+TEST(AnimationPointerScene, InvalidPointersAreRefusedByPath) {
+  struct Case {
+    std::string json, path;
+  };
+  const std::string missing = R"(, {"sampler": 1, "target": {"path": "pointer", "extensions":
+      {"KHR_animation_pointer": {"pointer": "/materials/7/emissiveFactor"}}}})";
+  const std::string no_pointer = R"(, {"sampler": 1, "target": {"path": "pointer"}})";
+  const Case cases[] = {
+      {pointer_scene_json(missing),
+       "animations[0].channels[7].target.extensions.KHR_animation_pointer.pointer"},
+      {pointer_scene_json(no_pointer),
+       "animations[0].channels[7].target.extensions.KHR_animation_pointer.pointer"},
+      {pointer_scene_json("", "LINEAR"), "animations[0].samplers[4].interpolation"},
+  };
+  for (const Case& c : cases) {
+    const std::string path = write_scene("invalid.gltf", c.json);
+    LoadOptions at;
+    at.time = 0.5;
+    try {
+      load_gltf(path, nullptr, at);
+      ADD_FAILURE() << "accepted: " << c.path;
+    } catch (const SceneError& e) {
+      EXPECT_EQ(e.path(), c.path) << e.what();
+    }
+  }
+}
+
 // ---- Motion blur: a white (emissive) half-plane whose edge moves at constant speed across
 // the image during the shutter, seen by an orthographic camera. A pixel column [x, x + w) of
 // the image is covered for the part of the shutter the edge e(s) = e0 + (e1 - e0) s spends

@@ -353,12 +353,12 @@ TEST(AnimationLoader, ANodeWithAMatrixCannotBeAnimated) {
 
 TEST(AnimationLoader, UnknownTargetPathsAreIgnoredWithAWarning) {
   std::string json = animated_triangle_json();
-  json.replace(json.find(R"("path": "rotation")"), 18, R"("path": "pointer")");
+  json.replace(json.find(R"("path": "rotation")"), 18, R"("path": "orbit")");
   std::vector<std::string> warnings;
   const SceneDescription d = load(json, 1.0, &warnings);
   expect_vec(d.world.positions[1], {1, 0, 5});  // translated, not rotated
   bool warned = false;
-  for (const std::string& w : warnings) warned = warned || w.find("'pointer'") != std::string::npos;
+  for (const std::string& w : warnings) warned = warned || w.find("'orbit'") != std::string::npos;
   EXPECT_TRUE(warned);
 }
 

@@ -14,8 +14,10 @@
 namespace rf::gltf_detail {
 
 // The animations' pose at options_.time (none without a time): every channel of the chosen
-// animations, checked and evaluated. Channels of paths other than the four of glTF 2.0
-// (KHR_animation_pointer's) are ignored with a warning.
+// animations, checked and evaluated: the four node paths of glTF 2.0, and
+// KHR_animation_pointer's pointers (animation_pointer.h), whose node transforms join the
+// pose and whose materials, lights, cameras and visibility evaluate_pointers writes. A path
+// the renderer does not animate is ignored with a warning.
 void Loader::evaluate_animations() {
   if (!options_.animated()) return;
   std::vector<int> chosen = options_.animations;
@@ -32,7 +34,15 @@ void Loader::evaluate_animations() {
       const tinygltf::AnimationChannel& ch = anim.channels[k];
       const std::string cw = at + ".channels[" + std::to_string(k) + "]";
       ChannelTrack track;
-      if (ch.target_path == "translation") {
+      const bool pointer = ch.target_path == "pointer";
+      int n = ch.target_node;
+      std::string node_at = cw + ".target.node";
+      if (pointer) {
+        // A node's transform or weights continue below; the rest is kept by pointer_channel.
+        if (!pointer_channel(ch, a, cw, &track)) continue;
+        n = track.node;
+        node_at = cw + ".target.extensions.KHR_animation_pointer.pointer";
+      } else if (ch.target_path == "translation") {
         track.path = AnimationPath::Translation;
       } else if (ch.target_path == "rotation") {
         track.path = AnimationPath::Rotation;
@@ -42,15 +52,14 @@ void Loader::evaluate_animations() {
         track.path = AnimationPath::Weights;
       } else {
         warn(cw + ".target.path: '" + ch.target_path +
-             "' is not translation, rotation, scale or weights; channel ignored");
+             "' is not translation, rotation, scale, weights or pointer; channel ignored");
         continue;
       }
-      const int n = ch.target_node;
       if (n < 0 || n >= int(model_.nodes.size()))
-        fail(cw + ".target.node: refers to missing node " + std::to_string(n));
+        fail(node_at + ": refers to missing node " + std::to_string(n));
       const tinygltf::Node& node = model_.nodes[size_t(n)];
       if (!node.matrix.empty())
-        fail(cw + ".target.node: node " + std::to_string(n) +
+        fail(node_at + ": node " + std::to_string(n) +
              " has a 'matrix'; glTF 2.0 (3.11) allows animating only nodes whose transform "
              "is translation, rotation and scale");
       size_t components = track.path == AnimationPath::Rotation ? 4 : 3;
@@ -67,25 +76,145 @@ void Loader::evaluate_animations() {
       if (ch.sampler < 0 || ch.sampler >= int(anim.samplers.size()))
         fail(cw + ".sampler: refers to missing sampler " + std::to_string(ch.sampler));
       track.node = n;
-      track.track = read_sampler(a, ch.sampler, track.path, components);
-      (track.path == AnimationPath::Weights ? weights_animated_ : trs_animated_)
-          .insert(track.node);
+      // A pointer's output may be of any component type (KHR_animation_pointer: floats,
+      // integers as their values, normalized integers dequantized).
+      const bool weights = track.path == AnimationPath::Weights;
+      track.track = pointer ? read_sampler_as(a, ch.sampler, Attribute::AnimationPointer,
+                                              components, weights ? components : 1,
+                                              track.path == AnimationPath::Rotation)
+                            : read_sampler(a, ch.sampler, track.path, components);
+      (weights ? weights_animated_ : trs_animated_).insert(track.node);
       channels.push_back(std::move(track));
     }
   }
   poses_ = evaluate_pose(channels, options_.time);
+  evaluate_pointers(options_.time);
+}
+
+// A KHR_animation_pointer channel: true with *node_track's node and path set if it animates a
+// node's translation, rotation, scale or weights (evaluate_animations reads it as a core
+// channel); otherwise its track is kept for evaluate_pointers (materials, lights, cameras,
+// visibility), or it is ignored with a warning, and false. A pointer to something the file
+// does not have is refused naming the channel (the file is invalid).
+bool Loader::pointer_channel(const tinygltf::AnimationChannel& ch, int a, const std::string& cw,
+                             ChannelTrack* node_track) {
+  const std::string at = cw + ".target.extensions.KHR_animation_pointer.pointer";
+  const auto ext = ch.target_extensions.find("KHR_animation_pointer");
+  if (ext == ch.target_extensions.end() || !ext->second.IsObject() ||
+      !ext->second.Has("pointer") || !ext->second.Get("pointer").IsString())
+    fail(at + ": a channel whose path is 'pointer' needs the pointer, a string");
+  const std::string pointer = ext->second.Get("pointer").Get<std::string>();
+  PointerTrack p;
+  std::string why;
+  bool missing = false;
+  if (!resolve_pointer(model_, pointer, &p.target, &why, &missing)) {
+    if (missing) fail(at + ": '" + pointer + "' " + why);
+    warn(at + ": '" + pointer + "': " + why + "; channel ignored");
+    return false;
+  }
+  using Kind = PointerTarget::Kind;
+  switch (p.target.kind) {
+    case Kind::NodeTranslation:
+    case Kind::NodeRotation:
+    case Kind::NodeScale:
+    case Kind::NodeWeights:
+      node_track->node = p.target.index;
+      node_track->path = p.target.kind == Kind::NodeTranslation ? AnimationPath::Translation
+                         : p.target.kind == Kind::NodeRotation  ? AnimationPath::Rotation
+                         : p.target.kind == Kind::NodeScale     ? AnimationPath::Scale
+                                                                : AnimationPath::Weights;
+      return true;
+    default:
+      break;
+  }
+  const tinygltf::Animation& anim = model_.animations[size_t(a)];
+  if (ch.sampler < 0 || ch.sampler >= int(anim.samplers.size()))
+    fail(cw + ".sampler: refers to missing sampler " + std::to_string(ch.sampler));
+  const Attribute kind = p.target.boolean ? Attribute::AnimationBool : Attribute::AnimationPointer;
+  p.track = read_sampler_as(a, ch.sampler, kind, p.target.components, 1, false);
+  if (p.target.boolean) {
+    // KHR_animation_pointer: samplers of bool properties use STEP.
+    if (p.track.interpolation != Interpolation::Step)
+      fail("animations[" + std::to_string(a) + "].samplers[" + std::to_string(ch.sampler) +
+           "].interpolation: '" + anim.samplers[size_t(ch.sampler)].interpolation +
+           "' animates a bool (" + pointer + "), which KHR_animation_pointer steps: STEP");
+    visibility_animated_.insert(p.target.index);
+    visibility_tracks_.push_back(std::move(p));
+  } else {
+    pointer_tracks_.push_back(std::move(p));
+  }
+  return false;
+}
+
+// The pointer channels' values at `time` written into copies of the materials, lights and
+// cameras they target (later channels over earlier ones), and node visibility at
+// options_.visibility_time if set (a motion-blurred pose's steps share one visibility), else
+// at `time`.
+void Loader::evaluate_pointers(double time) {
+  using Kind = PointerTarget::Kind;
+  const tinygltf::Value* lights = nullptr;
+  const auto lp = model_.extensions.find("KHR_lights_punctual");
+  if (lp != model_.extensions.end() && lp->second.Has("lights") &&
+      lp->second.Get("lights").IsArray())
+    lights = &lp->second.Get("lights");
+  for (const PointerTrack& p : pointer_tracks_) {
+    const std::vector<double> v = evaluate_track(p.track, time);
+    const size_t i = size_t(p.target.index);
+    if (p.target.kind == Kind::Material) {
+      auto it = animated_materials_.try_emplace(int(i), model_.materials[i]).first;
+      apply_pointer(p.target, v.data(), &it->second);
+    } else if (p.target.kind == Kind::Light && lights && i < lights->ArrayLen()) {
+      auto it = animated_lights_.try_emplace(int(i), lights->Get(int(i))).first;
+      apply_pointer(p.target, v.data(), &it->second);
+    } else if (p.target.kind == Kind::Camera) {
+      auto it = animated_cameras_.try_emplace(int(i), model_.cameras[i]).first;
+      apply_pointer(p.target, v.data(), &it->second);
+    }
+  }
+  const double vt = std::isnan(options_.visibility_time) ? time : options_.visibility_time;
+  for (const PointerTrack& p : visibility_tracks_)
+    visible_at_[p.target.index] = evaluate_track(p.track, vt)[0] != 0.0;
+}
+
+const tinygltf::Material& Loader::material_source(size_t i) const {
+  const auto it = animated_materials_.find(int(i));
+  return it == animated_materials_.end() ? model_.materials[i] : it->second;
+}
+
+const tinygltf::Value& Loader::light_source(size_t i, const tinygltf::Value& file) const {
+  const auto it = animated_lights_.find(int(i));
+  return it == animated_lights_.end() ? file : it->second;
+}
+
+const tinygltf::Camera& Loader::camera_source(size_t i) const {
+  const auto it = animated_cameras_.find(int(i));
+  return it == animated_cameras_.end() ? model_.cameras[i] : it->second;
 }
 
 // Sampler j of animation a as keyframes of `components` numbers (glTF 2.0, 3.11): float
 // times that strictly increase, and one output element per keyframe (three with
 // CUBICSPLINE: in-tangent, value, out-tangent), dequantized.
 KeyframeTrack Loader::read_sampler(int a, int j, AnimationPath path, size_t components) {
+  const Attribute kind = path == AnimationPath::Rotation  ? Attribute::AnimationRotation
+                         : path == AnimationPath::Weights ? Attribute::AnimationWeights
+                                                          : Attribute::AnimationVec3;
+  // Weights outputs are scalars, `components` (the morph target count) per element.
+  return read_sampler_as(a, j, kind, components,
+                         path == AnimationPath::Weights ? components : 1,
+                         path == AnimationPath::Rotation);
+}
+
+// read_sampler with the output accessor checked as `kind`, per_element of its elements to a
+// keyframe's value (the morph target count for weights, else 1); `rotation`: the values are
+// unit quaternions (slerp).
+KeyframeTrack Loader::read_sampler_as(int a, int j, Attribute kind, size_t components,
+                                      size_t per_element, bool rotation) {
   const tinygltf::AnimationSampler& s = model_.animations[size_t(a)].samplers[size_t(j)];
   const std::string sw =
       "animations[" + std::to_string(a) + "].samplers[" + std::to_string(j) + "]";
   KeyframeTrack track;
   track.components = components;
-  track.rotation = path == AnimationPath::Rotation;
+  track.rotation = rotation;
   if (!parse_interpolation(s.interpolation, &track.interpolation))
     fail(sw + ".interpolation: '" + s.interpolation + "' is not STEP, LINEAR or CUBICSPLINE");
   const View input = check_accessor(s.input, Attribute::AnimationInput, sw + ".input");
@@ -101,14 +230,12 @@ KeyframeTrack Loader::read_sampler(int a, int j, AnimationPath path, size_t comp
            "); glTF 2.0 (3.11) requires strictly increasing times");
     track.times[k] = t;
   }
-  const Attribute kind = path == AnimationPath::Rotation  ? Attribute::AnimationRotation
-                         : path == AnimationPath::Weights ? Attribute::AnimationWeights
-                                                          : Attribute::AnimationVec3;
   const View output = check_accessor(s.output, kind, sw + ".output");
   const std::string out_at = sw + ".output (accessors[" + std::to_string(s.output) + "])";
+  if (size_t(output.components) * per_element != components)
+    fail(out_at + ": " + std::to_string(output.components) + " numbers per element, the " +
+         "animated property has " + std::to_string(components / per_element));
   const size_t per_key = track.interpolation == Interpolation::CubicSpline ? 3 : 1;
-  // Weights outputs are scalars, `components` (the morph target count) per element.
-  const size_t per_element = path == AnimationPath::Weights ? components : 1;
   const size_t expected = input.count * per_key * per_element;
   if (output.count != expected)
     fail(out_at + ": " + std::to_string(output.count) + " elements, expected " +

@@ -354,10 +354,25 @@ void decode_draco(tinygltf::Model* model, const DracoPrimitive& d, const std::st
 
 }  // namespace
 
-bool prepare_compressed_json(std::string* json, std::map<int, size_t>* fallbacks) {
+bool prepare_json(std::string* json, std::map<int, size_t>* fallbacks) {
   nlohmann::json doc = nlohmann::json::parse(*json, nullptr, /*allow_exceptions=*/false);
   if (doc.is_discarded() || !doc.is_object()) return false;
   bool changed = false;
+  // KHR_animation_pointer's channels have no target node; tinygltf drops such a channel.
+  auto animations = doc.find("animations");
+  if (animations != doc.end() && animations->is_array())
+    for (nlohmann::json& anim : *animations) {
+      if (!anim.is_object() || !anim.contains("channels") || !anim["channels"].is_array())
+        continue;
+      for (nlohmann::json& ch : anim["channels"]) {
+        if (!ch.is_object() || !ch.contains("target") || !ch["target"].is_object()) continue;
+        nlohmann::json& target = ch["target"];
+        if (target.contains("path") && target["path"] == "pointer" && !target.contains("node")) {
+          target["node"] = -1;
+          changed = true;
+        }
+      }
+    }
   auto meshes = doc.find("meshes");
   auto accessors = doc.find("accessors");
   if (meshes != doc.end() && meshes->is_array() && accessors != doc.end() &&
@@ -405,7 +420,7 @@ bool prepare_compressed_json(std::string* json, std::map<int, size_t>* fallbacks
   return changed;
 }
 
-bool prepare_compressed_glb(std::string* glb, std::map<int, size_t>* fallbacks) {
+bool prepare_glb(std::string* glb, std::map<int, size_t>* fallbacks) {
   auto u32 = [&](size_t at) {
     uint32_t v;
     std::memcpy(&v, glb->data() + at, 4);
@@ -416,7 +431,7 @@ bool prepare_compressed_glb(std::string* glb, std::map<int, size_t>* fallbacks) 
   const size_t json_length = u32(12);
   if (json_length > glb->size() - 20) return false;
   std::string json = glb->substr(20, json_length);
-  if (!prepare_compressed_json(&json, fallbacks)) return false;
+  if (!prepare_json(&json, fallbacks)) return false;
   while (json.size() % 4) json += ' ';  // chunks are 4-byte aligned, padded with spaces
   std::string out = glb->substr(0, 12);
   const uint32_t chunk = uint32_t(json.size());

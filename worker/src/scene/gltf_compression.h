@@ -18,7 +18,7 @@ namespace rf {
 
 struct SceneLimits;
 
-// Before tinygltf parses the JSON, two things it would refuse in a valid compressed file are
+// Before tinygltf parses the JSON, three things it would refuse or drop in a valid file are
 // rewritten:
 // - a buffer that exists only to be decoded into (extensions.EXT_meshopt_compression.fallback
 //   = true, no uri) has no data in the file (in a .glb tinygltf would even copy the BIN chunk
@@ -26,14 +26,17 @@ struct SceneLimits;
 //   kept in *fallbacks (by buffer index) for decode_compressed_geometry;
 // - the indices accessor of a Draco primitive has no bufferView (its data is in the Draco
 //   stream), which tinygltf refuses for indices: it is pointed at the primitive's compressed
-//   buffer view until decoding gives it one of its own.
+//   buffer view until decoding gives it one of its own;
+// - a KHR_animation_pointer channel has no target node (the extension forbids one), and
+//   tinygltf drops a channel without one: it gets node -1, which the loader never reads for a
+//   pointer channel (gltf_animation.cpp).
 // Returns false (and leaves *json alone) when there is nothing to change or the JSON does not
 // parse (tinygltf then reports why).
-bool prepare_compressed_json(std::string* json, std::map<int, size_t>* fallbacks);
+bool prepare_json(std::string* json, std::map<int, size_t>* fallbacks);
 
 // The same for a .glb held in *glb: its JSON chunk is rewritten (the BIN chunk copied after
-// it) when prepare_compressed_json changes it.
-bool prepare_compressed_glb(std::string* glb, std::map<int, size_t>* fallbacks);
+// it) when prepare_json changes it.
+bool prepare_glb(std::string* glb, std::map<int, size_t>* fallbacks);
 
 // Decodes every compressed buffer view and primitive of *model in place. `source` prefixes
 // error messages (the file's display name). Throws SceneError naming the glTF path of the bad

@@ -279,6 +279,20 @@ std::string Loader::format_problem(Attribute kind, const tinygltf::Accessor& acc
       ok = float_type || (norm && small_int);
       allowed = "float or a normalized byte, unsigned byte, short or unsigned short";
       break;
+    case Attribute::AnimationPointer:  // read_sampler_as checks the size
+      type_ok = acc.type == TINYGLTF_TYPE_SCALAR || acc.type == TINYGLTF_TYPE_VEC2 ||
+                acc.type == TINYGLTF_TYPE_VEC3 || acc.type == TINYGLTF_TYPE_VEC4;
+      ok = float_type || ct == TINYGLTF_COMPONENT_TYPE_BYTE ||
+           ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE || ct == TINYGLTF_COMPONENT_TYPE_SHORT ||
+           ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_SHORT ||
+           (!norm && ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_INT);
+      allowed = "float or an integer type";
+      break;
+    case Attribute::AnimationBool:
+      type_ok = acc.type == TINYGLTF_TYPE_SCALAR;
+      ok = !norm && ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE;
+      allowed = "unsigned byte (0 is false; KHR_animation_pointer's bool)";
+      break;
     case Attribute::Joints:
       type_ok = acc.type == TINYGLTF_TYPE_VEC4;
       ok = !norm && (ct == TINYGLTF_COMPONENT_TYPE_UNSIGNED_BYTE ||

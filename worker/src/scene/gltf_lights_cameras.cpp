@@ -15,7 +15,7 @@ void Loader::load_lights() {
   if (!root.Has("lights") || !root.Get("lights").IsArray()) return;
   const tinygltf::Value& list = root.Get("lights");
   for (size_t i = 0; i < list.ArrayLen(); ++i) {
-    const tinygltf::Value& l = list.Get(int(i));
+    const tinygltf::Value& l = light_source(i, list.Get(int(i)));  // as animated
     PunctualLight light;
     const std::string where = "extensions.KHR_lights_punctual.lights[" + std::to_string(i) + "]";
     const std::string type = l.Has("type") && l.Get("type").IsString()
@@ -57,7 +57,7 @@ void Loader::take_camera(const tinygltf::Node& node, const Mat4& world, const st
                          SceneDescription* desc) {
   if (node.camera >= int(model_.cameras.size()))
     fail(where + ": 'camera' refers to missing camera " + std::to_string(node.camera));
-  const tinygltf::Camera& gc = model_.cameras[size_t(node.camera)];
+  const tinygltf::Camera& gc = camera_source(size_t(node.camera));  // as animated
   const std::string at = "cameras[" + std::to_string(node.camera) + "]";
   const std::string of = " (camera of " + where + ")";
   Camera cam;

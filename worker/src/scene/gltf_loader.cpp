@@ -65,7 +65,7 @@ const std::set<std::string>& supported_extensions() {
       "KHR_node_visibility",             "EXT_mesh_gpu_instancing",
       "KHR_materials_pbrSpecularGlossiness", "KHR_materials_anisotropy",
       "KHR_materials_iridescence",       "KHR_materials_variants",
-      "KHR_materials_diffuse_transmission", "KHR_materials_dispersion",
+      "KHR_materials_diffuse_transmission", "KHR_materials_dispersion", "KHR_animation_pointer",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
       // the EXR header (server/renderfarm/domain/scenes/metadata.py).
       "KHR_xmp_json_ld"};
@@ -110,17 +110,20 @@ SceneDescription Loader::run() {
       quantization_ = true;
   split_ = options_.layout && options_.animated() ? options_.layout : nullptr;
   const bool pose_only = split_ && split_->pose_only;
-  if (!pose_only) load_textures(&desc);  // a pose uses its static part's textures
-  load_materials(&desc);
-  variant_ = selected_variant();
-  load_lights();
-
   if (model_.nodes.size() > options_.limits.max_nodes)
     fail("nodes: the scene has " + std::to_string(model_.nodes.size()) +
          " nodes, over the limit of " + std::to_string(options_.limits.max_nodes));
   const std::vector<int> parent = check_hierarchy();
   parent_ = parent;
-  evaluate_animations();  // animation.h: the pose at options_.time
+  // animation.h: the pose at options_.time, and the materials, lights, cameras and visibility
+  // KHR_animation_pointer animates, before they are read.
+  evaluate_animations();
+  if (!pose_only) load_textures(&desc);  // a pose uses its static part's textures
+  load_materials(&desc);
+  for (const auto& [index, material] : animated_materials_)
+    desc.animated_materials.push_back(uint32_t(index));
+  variant_ = selected_variant();
+  load_lights();
   if (split_) classify_nodes();
   count_mesh_uses();
   std::vector<int> roots;
@@ -315,8 +318,11 @@ Mat4 Loader::trs(const double* translation, const double* rotation, const double
   return t * r * s;
 }
 
-// KHR_node_visibility: the node's own `visible` (true when absent).
+// KHR_node_visibility: the node's own `visible` (true when absent), as animated by
+// KHR_animation_pointer at the load's time where a channel targets it.
 bool Loader::node_visible(const tinygltf::Node& node, int index) const {
+  const auto animated = visible_at_.find(index);
+  if (animated != visible_at_.end()) return animated->second;
   auto ext = node.extensions.find("KHR_node_visibility");
   if (ext == node.extensions.end() || !ext->second.Has("visible")) return true;
   const tinygltf::Value& v = ext->second.Get("visible");
@@ -342,7 +348,30 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
     take_camera(node, world, where, desc);
     if (options_.pose_report) options_.pose_report->camera_node = index;
   }
-  if (!visible) {
+  // In an animated layout, a hidden node that moves still has its mesh slot (a pose where it
+  // is visible has the same meshes), without an instance.
+  const bool hidden_slot = !visible && split_ && moving_[size_t(index)] && node.mesh >= 0 &&
+                           node.mesh < int(model_.meshes.size());
+  if (!visible && !hidden_slot) {
+    for (int child : node.children) visit(child, world, desc, depth + 1, false);
+    return;
+  }
+  if (hidden_slot) {
+    if (gpu_instancing(node)) {
+      int& slot = mesh_slot_[size_t(node.mesh)];
+      if (slot < 0) {
+        Mesh mesh;
+        mesh.name = model_.meshes[size_t(node.mesh)].name;
+        if (!split_->pose_only) {
+          reserve(mesh_counts(size_t(node.mesh)), &mesh.geometry);
+          add_mesh(size_t(node.mesh), Mat4::identity(), &mesh.geometry);
+        }
+        slot = int(desc->meshes.size());
+        desc->meshes.push_back(std::move(mesh));
+      }
+    } else {
+      visit_split(index, node, world, where, desc, false);
+    }
     for (int child : node.children) visit(child, world, desc, depth + 1, false);
     return;
   }
@@ -428,24 +457,24 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
 // others go where a still puts them. Each mode fills its own meshes only (the numbering is
 // the same in both).
 void Loader::visit_split(int index, const tinygltf::Node& node, const Mat4& world,
-                         const std::string& where, SceneDescription* desc) {
+                         const std::string& where, SceneDescription* desc, bool visible) {
   const bool pose_only = split_->pose_only;
   const size_t mi = size_t(node.mesh);
   if (varying_[size_t(index)]) {
     Mesh mesh;
     mesh.name = model_.meshes[mi].name + " (" + where + ")";
-    if (pose_only) {
+    if (pose_only && visible) {
       const Deformation deformation = deformation_of(index, where);
       add_mesh(mi, world, &mesh.geometry, &deformation);
     }
     const int slot = int(desc->meshes.size());
     desc->meshes.push_back(std::move(mesh));
     deformed_slots_.push_back(slot);
-    desc->instances.push_back({uint32_t(slot), Mat4::identity()});
+    if (visible) desc->instances.push_back({uint32_t(slot), Mat4::identity()});
     return;
   }
   if (moving_[size_t(index)] || (!is_deformed(index) && mesh_uses_[mi] > 1)) {
-    if (moving_[size_t(index)]) ++moving_mesh_nodes_;
+    if (moving_[size_t(index)] && visible) ++moving_mesh_nodes_;
     int& slot = mesh_slot_[mi];
     if (slot < 0) {
       Mesh mesh;
@@ -457,7 +486,7 @@ void Loader::visit_split(int index, const tinygltf::Node& node, const Mat4& worl
       slot = int(desc->meshes.size());
       desc->meshes.push_back(std::move(mesh));
     }
-    desc->instances.push_back({uint32_t(slot), world});
+    if (visible) desc->instances.push_back({uint32_t(slot), world});
     return;
   }
   if (pose_only) return;  // static world triangles: the static part's
@@ -475,8 +504,10 @@ void Loader::classify_nodes() {
   const size_t n = model_.nodes.size();
   moving_.assign(n, 0);
   varying_.assign(n, 0);
-  // A node moves if its TRS is animated or its parent moves (parents first: memoized walk).
-  std::vector<char> known(n, 0);
+  // A node moves if its TRS or its visibility (KHR_animation_pointer) is animated, or its
+  // parent moves (parents first: memoized walk). A node that a pose may hide is placed by an
+  // instance, as a moving one is, so that each pose shows or omits it.
+  std::vector<char> known(n, 0), hideable(n, 0);
   for (size_t i = 0; i < n; ++i) {
     std::vector<int> chain;
     int j = int(i);
@@ -484,10 +515,12 @@ void Loader::classify_nodes() {
       chain.push_back(j);
       j = parent_[size_t(j)];
     }
-    char moves = j >= 0 ? moving_[size_t(j)] : 0;
+    char moves = j >= 0 ? moving_[size_t(j)] : 0, hides = j >= 0 ? hideable[size_t(j)] : 0;
     for (auto it = chain.rbegin(); it != chain.rend(); ++it) {
-      moves = char(moves || trs_animated_.count(*it));
+      hides = char(hides || visibility_animated_.count(*it));
+      moves = char(moves || hides || trs_animated_.count(*it));
       moving_[size_t(*it)] = moves;
+      hideable[size_t(*it)] = hides;
       known[size_t(*it)] = 1;
     }
   }
@@ -496,6 +529,8 @@ void Loader::classify_nodes() {
     if (node.mesh < 0 || node.mesh >= int(model_.meshes.size())) continue;
     bool varies = morph_target_count(node.mesh) > 0 &&
                   (weights_animated_.count(int(i)) || (moving_[i] && is_deformed(int(i))));
+    // A skinned or morphed node a pose may hide: a deformed mesh of its own per pose.
+    if (hideable[i] && is_deformed(int(i))) varies = true;
     if (node.skin >= 0 && node.skin < int(model_.skins.size()))
       for (int j : model_.skins[size_t(node.skin)].joints)
         if (j >= 0 && j < int(n) && moving_[size_t(j)]) varies = true;
@@ -614,9 +649,9 @@ std::shared_ptr<const GltfDocument> parse_gltf(const std::string& path,
   std::map<int, size_t> fallbacks;  // meshopt buffers that only exist to be decoded into
   // (compressed files are rewritten where tinygltf would refuse them: gltf_compression.h)
   if (binary)
-    prepare_compressed_glb(&bytes, &fallbacks);
+    prepare_glb(&bytes, &fallbacks);
   else
-    prepare_compressed_json(&bytes, &fallbacks);
+    prepare_json(&bytes, &fallbacks);
   tinygltf::TinyGLTF gltf;
   configure(&gltf, options);
   tinygltf::Model model;
@@ -668,7 +703,7 @@ SceneDescription load_gltf_from_string(const std::string& json, const std::strin
   std::string err, warn;
   std::string text = json;
   std::map<int, size_t> fallbacks;
-  prepare_compressed_json(&text, &fallbacks);
+  prepare_json(&text, &fallbacks);
   const bool ok = gltf.LoadASCIIFromString(&model, &err, &warn, text.c_str(),
                                            unsigned(text.size()), base_dir);
   return describe_gltf(*parsed(ok, &model, err, warn, name, warnings, options, fallbacks),

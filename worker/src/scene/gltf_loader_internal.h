@@ -24,6 +24,7 @@
 #include <vector>
 
 #include "scene/animation.h"
+#include "scene/animation_pointer.h"
 #include "scene/scene.h"
 
 namespace rf::gltf_detail {
@@ -131,6 +132,9 @@ class Loader {
   enum class Attribute {
     Position, Normal, Texcoord, Color, Indices,
     AnimationInput, AnimationVec3, AnimationRotation, AnimationWeights,
+    // KHR_animation_pointer's outputs: numbers of any component type (SCALAR to VEC4), and
+    // bools (unsigned byte).
+    AnimationPointer, AnimationBool,
     Joints, Weights, InverseBindMatrices, MorphPosition, MorphNormal, Tangent
   };
 
@@ -178,7 +182,7 @@ class Loader {
   void visit(int index, const Mat4& parent, SceneDescription* desc, int depth,
              bool visible = true);
   void visit_split(int index, const tinygltf::Node& node, const Mat4& world,
-                   const std::string& where, SceneDescription* desc);
+                   const std::string& where, SceneDescription* desc, bool visible = true);
   void classify_nodes();
 
   // gltf_materials.cpp: textures, materials and their extensions, variants.
@@ -237,7 +241,17 @@ class Loader {
 
   // gltf_animation.cpp: animations, skins and morph targets.
   void evaluate_animations();
+  bool pointer_channel(const tinygltf::AnimationChannel& ch, int a, const std::string& cw,
+                       ChannelTrack* node_track);
+  void evaluate_pointers(double time);
   KeyframeTrack read_sampler(int a, int j, AnimationPath path, size_t components);
+  KeyframeTrack read_sampler_as(int a, int j, Attribute kind, size_t components,
+                                size_t per_element, bool rotation);
+  // The objects the loader reads, animated by KHR_animation_pointer at the load's time where
+  // a channel targets them, else the file's.
+  const tinygltf::Material& material_source(size_t i) const;
+  const tinygltf::Value& light_source(size_t i, const tinygltf::Value& file) const;
+  const tinygltf::Camera& camera_source(size_t i) const;
   const NodePose* pose_of(int node) const;
   size_t morph_target_count(int mesh) const;
   const std::vector<double>& morph_weights(int index) const;
@@ -256,6 +270,19 @@ class Loader {
   static void reserve(const Counts& c, TriangleMesh* mesh);
   void check_cost(const std::vector<int>& roots, SceneStats* stats) const;
 
+  // KHR_animation_pointer: the channels that animate materials, lights and cameras, and node
+  // visibility; their values at the load's time (visibility at options_.visibility_time if
+  // set) written into copies of the objects they target.
+  struct PointerTrack {
+    PointerTarget target;
+    KeyframeTrack track;
+  };
+  std::vector<PointerTrack> pointer_tracks_, visibility_tracks_;
+  std::set<int> visibility_animated_;
+  std::map<int, bool> visible_at_;
+  std::map<int, tinygltf::Material> animated_materials_;
+  std::map<int, tinygltf::Value> animated_lights_;
+  std::map<int, tinygltf::Camera> animated_cameras_;
   std::vector<std::optional<PunctualLight>> lights_;
   std::vector<int> parent_;                   // per node: its parent, -1 for none
   std::map<int, NodePose> poses_;             // the animated nodes' poses at options_.time

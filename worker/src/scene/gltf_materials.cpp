@@ -320,7 +320,7 @@ void Loader::load_layers(const tinygltf::Material& gm, size_t i, Material* m) {
 
 void Loader::load_materials(SceneDescription* desc) {
   for (size_t i = 0; i < model_.materials.size(); ++i) {
-    const tinygltf::Material& gm = model_.materials[i];
+    const tinygltf::Material& gm = material_source(i);  // as animated at the load's time
     const std::string where = "materials[" + std::to_string(i) + "]" + named(gm.name);
     Material m;
     m.name = gm.name;

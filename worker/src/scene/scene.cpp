@@ -643,7 +643,20 @@ Scene::Scene(std::shared_ptr<const Scene> base, std::vector<SceneDescription> st
         throw SceneError(desc_.source + ": instance refers to missing mesh " +
                          std::to_string(d.instances[i].mesh));
   }
-  desc_.materials = b.desc_.materials;  // with the texture indices the base registered
+  // The base's materials, with the texture indices it registered; those KHR_animation_pointer
+  // animates take their values at this pose's time (at the shutter's opening), keeping the
+  // base's textures and texture coordinate arrays.
+  std::vector<Material> posed_materials = std::move(desc_.materials);
+  desc_.materials = b.desc_.materials;
+  for (uint32_t i : desc_.animated_materials) {
+    if (i >= desc_.materials.size() || i >= posed_materials.size()) continue;
+    Material m = std::move(posed_materials[i]);
+    for (const Material::TextureSlot& slot : Material::texture_slots()) {
+      (m.*slot.ref).texture = (desc_.materials[i].*slot.ref).texture;
+      (m.*slot.ref).texcoord = (desc_.materials[i].*slot.ref).texcoord;
+    }
+    desc_.materials[i] = std::move(m);
+  }
   desc_.textures.clear();
   desc_.limits = b.desc_.limits;
   desc_.stats = b.desc_.stats;

@@ -71,6 +71,9 @@ struct LoadOptions {
   // NaN (the default) for none: the nodes' own translation, rotation, scale, matrix and
   // weights, as without animations. Skins and morph target weights apply either way.
   double time = std::numeric_limits<double>::quiet_NaN();
+  // KHR_animation_pointer's node visibility at this time instead (NaN: at `time`): the time
+  // steps of a motion-blurred pose share the shutter opening's visibility.
+  double visibility_time = std::numeric_limits<double>::quiet_NaN();
   // The glTF animations that drive the pose (indices into "animations"); empty: all of them.
   std::vector<int> animations;
   // KHR_materials_variants: the variant whose materials the primitives that map it use, by
@@ -265,6 +268,9 @@ struct SceneDescription {
   std::vector<Mesh> meshes;         // instanced meshes
   std::vector<Instance> instances;
   std::vector<PunctualLight> punctual_lights;
+  // The materials KHR_animation_pointer animates (indices into materials): a pose of an
+  // animated scene takes them from its own description, the others from its static part.
+  std::vector<uint32_t> animated_materials;
   // Textures referenced by Material::*_tex.texture (indices into this list).
   std::vector<TextureSource> textures;
   SceneLimits limits;  // what Scene construction may still check (texture pixels)
