@@ -164,30 +164,36 @@ size_t element_size(const tinygltf::Accessor& acc) {
   return ncomp > 0 && csize > 0 ? size_t(ncomp) * size_t(csize) : 0;
 }
 
-std::vector<DracoPrimitive> draco_primitives(const tinygltf::Model& model,
+std::vector<DracoPrimitive> draco_primitives(tinygltf::Model* model_ptr,
                                              const std::string& source) {
+  tinygltf::Model& model = *model_ptr;
   std::vector<DracoPrimitive> prims;
   // The accessors Draco primitives decode into, with what fills each: (compressed buffer view,
-  // attribute id; -1 for the indices). Two primitives may share an accessor only if they fill
-  // it from the same data; otherwise which one's values it holds would be a guess.
+  // attribute id; -1 for the indices). Primitives that fill an accessor from the same data
+  // share it, decoded once. An accessor named for different data (two attributes of one
+  // primitive, or two primitives, decoding other Draco attributes into it, as some exporters
+  // write) is copied for each further use, and that attribute refers to its copy: each
+  // attribute gets the data its Draco attribute holds, as viewers decode them.
   std::map<int, std::pair<size_t, int64_t>> claimed;
-  auto claim = [&](int accessor, size_t view, int64_t id, const std::string& path) {
-    if (accessor < 0 || size_t(accessor) >= model.accessors.size())
-      fail(source, path, "refers to missing accessor " + std::to_string(accessor));
-    const auto [it, fresh] = claimed.emplace(accessor, std::make_pair(view, id));
-    if (!fresh && it->second != std::make_pair(view, id))
-      fail(source, path,
-           "accessor " + std::to_string(accessor) +
-               " is decoded by two Draco primitives from different data (buffer views " +
-               std::to_string(it->second.first) + " and " + std::to_string(view) + ")");
-    const tinygltf::Accessor& acc = model.accessors[size_t(accessor)];
-    if (acc.sparse.isSparse) fail(source, path, "a Draco accessor cannot be sparse");
-    if (!element_size(acc)) fail(source, path, "unsupported 'type' or 'componentType'");
-    return fresh;
+  auto claim = [&](int* accessor, size_t view, int64_t id, const std::string& path) {
+    if (*accessor < 0 || size_t(*accessor) >= model.accessors.size())
+      fail(source, path, "refers to missing accessor " + std::to_string(*accessor));
+    {
+      const tinygltf::Accessor& acc = model.accessors[size_t(*accessor)];
+      if (acc.sparse.isSparse) fail(source, path, "a Draco accessor cannot be sparse");
+      if (!element_size(acc)) fail(source, path, "unsupported 'type' or 'componentType'");
+    }
+    const auto [it, fresh] = claimed.emplace(*accessor, std::make_pair(view, id));
+    if (fresh || it->second == std::make_pair(view, id)) return fresh;
+    const tinygltf::Accessor copy = model.accessors[size_t(*accessor)];
+    model.accessors.push_back(copy);
+    *accessor = int(model.accessors.size()) - 1;
+    claimed.emplace(*accessor, std::make_pair(view, id));
+    return true;
   };
   for (size_t m = 0; m < model.meshes.size(); ++m) {
     for (size_t p = 0; p < model.meshes[m].primitives.size(); ++p) {
-      const tinygltf::Primitive& prim = model.meshes[m].primitives[p];
+      tinygltf::Primitive& prim = model.meshes[m].primitives[p];
       auto it = prim.extensions.find(kDraco);
       if (it == prim.extensions.end()) continue;
       DracoPrimitive d;
@@ -223,13 +229,13 @@ std::vector<DracoPrimitive> draco_primitives(const tinygltf::Model& model,
             id.GetNumberAsDouble() != double(uint32_t(id.GetNumberAsDouble())))
           fail(source, where, "must be a Draco attribute id (a non-negative integer)");
         const uint32_t draco_id = uint32_t(id.GetNumberAsDouble());
-        fresh += claim(a->second, view, draco_id, where);
+        fresh += claim(&a->second, view, draco_id, where);
         d.attributes.push_back({a->second, draco_id});
         const tinygltf::Accessor& acc = model.accessors[size_t(a->second)];
         d.bytes += double(acc.count) * double(element_size(acc));
       }
       if (prim.indices >= 0) {
-        fresh += claim(prim.indices, view, -1, prim_path + ".indices");
+        fresh += claim(&prim.indices, view, -1, prim_path + ".indices");
         d.bytes += double(model.accessors[size_t(prim.indices)].count) * 4.0;
       } else {
         fail(source, prim_path, "a Draco primitive needs an 'indices' accessor (the triangles)");
@@ -448,7 +454,7 @@ bool prepare_glb(std::string* glb, std::map<int, size_t>* fallbacks) {
 void decode_compressed_geometry(tinygltf::Model* model, const std::map<int, size_t>& fallbacks,
                                 const SceneLimits& limits, const std::string& source) {
   const std::vector<MeshoptView> views = meshopt_views(*model, source);
-  const std::vector<DracoPrimitive> dracos = draco_primitives(*model, source);
+  const std::vector<DracoPrimitive> dracos = draco_primitives(model, source);
   if (views.empty() && dracos.empty()) return;
   // What decoding will hold, from declared sizes, before anything is allocated: the file's
   // buffers, the fallback buffers at their real size, the Draco primitives' arrays.

@@ -67,8 +67,11 @@ const std::set<std::string>& supported_extensions() {
       "KHR_materials_iridescence",       "KHR_materials_variants",
       "KHR_materials_diffuse_transmission", "KHR_materials_dispersion", "KHR_animation_pointer",
       // Metadata, which the renderer does not read: the server copies the asset's packet into
-      // the EXR header (server/renderfarm/domain/scenes/metadata.py).
-      "KHR_xmp_json_ld"};
+      // the EXR header (server/renderfarm/domain/scenes/metadata.py); KHR_xmp is its draft.
+      "KHR_xmp_json_ld", "KHR_xmp",
+      // The triangles are the mesh; the extension only records which of them made n-gons
+      // (for editors that rebuild the polygons), which changes nothing in the image.
+      "FB_ngon_encoding"};
   return s;
 }
 

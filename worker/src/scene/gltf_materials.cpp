@@ -358,9 +358,11 @@ void Loader::load_materials(SceneDescription* desc) {
     }
     auto io = gm.extensions.find("KHR_materials_ior");
     if (io != gm.extensions.end()) m.ior = number_or(io->second, "ior", 1.5f);
-    if (!(m.ior >= 1.f && m.ior < 10.f)) {
+    // The schema's minimum is 1; any larger index renders as given (a very large one is a
+    // near-perfect mirror: F0 -> 1).
+    if (!(m.ior >= 1.f) || !std::isfinite(m.ior)) {
       warn(where + ": KHR_materials_ior.ior " + std::to_string(m.ior) +
-           " outside [1, 10) is not supported; using 1.5");
+           " is below the extension's minimum of 1; using 1.5");
       m.ior = 1.5f;
     }
     auto disp = gm.extensions.find("KHR_materials_dispersion");

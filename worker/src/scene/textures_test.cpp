@@ -593,6 +593,29 @@ TEST(Textures, DiffuseTransmissionFactorsAndTexturesReachTheBsdf) {
   EXPECT_EQ(p.diffuse_transmission, 0.f);
 }
 
+// KHR_materials_ior: any index from the schema's minimum of 1 up renders as given (a real
+// asset writes 1000 for a near-perfect mirror); below 1 the default 1.5 with a warning.
+TEST(Textures, AnyIorFromOneUpIsTheFilesValue) {
+  const std::string texel = testing::png_data_uri(1, 1, 3, {255, 255, 255});
+  const std::string images = R"({"uri": ")" + texel + R"("})";
+  const std::string used = R"("extensionsUsed": ["KHR_materials_ior"],)";
+  for (float ior : {1.f, 2.4f, 1000.f}) {
+    const BsdfParams p = shade_quad(quad_scene(
+        R"({"extensions": {"KHR_materials_ior": {"ior": )" + std::to_string(ior) + "}}}",
+        images, used)).params;
+    EXPECT_NEAR(p.ior, ior, 1e-3f * ior);
+  }
+  std::vector<std::string> warnings;
+  const SceneDescription d = load_gltf_from_string(
+      quad_scene(R"({"extensions": {"KHR_materials_ior": {"ior": 0.5}}})", images, used), "",
+      "quad.gltf", &warnings);
+  EXPECT_EQ(d.materials[0].ior, 1.5f);
+  bool warned = false;
+  for (const std::string& w : warnings)
+    warned = warned || w.find("materials[0]: KHR_materials_ior.ior") != std::string::npos;
+  EXPECT_TRUE(warned);
+}
+
 // KHR_materials_dispersion: the dispersion reaches a transmissive material's BSDF (the path
 // tracer then picks the wavelength), not an opaque one's; a negative value is refused by path.
 TEST(Textures, DispersionReachesTransmissiveMaterials) {
