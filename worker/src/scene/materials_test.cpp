@@ -372,6 +372,47 @@ TEST(DiffuseTransmission, TransmitsWhatTheDiffuseReflectionGivesUp) {
   EXPECT_EQ(compared, 2 * 2 * 3 * 3 * 3);
 }
 
+// The BTDF's samples: with u_lobe in its share [glass - diffuse_bt, glass) of the sampled-only
+// lobes, every direction lies below the surface with density |cos_i| / pi (chi-square over
+// the lower hemisphere), and its weight times that share is f |cos_i| / (|cos_i| / pi) = d C
+// (1 - t)(1 - s max(F)) with F at the mirrored half vector, the closed form written here.
+TEST(DiffuseTransmission, BtdfSamplesFollowTheCosineDensityWithTheClosedFormWeight) {
+  std::mt19937_64 rng(23);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  const int nz = 12, nphi = 24, n = 100000;
+  for (float t : {0.f, 0.4f})
+    for (Vec3 wo : kOutgoing) {
+      const Vec3 base(0.6f, 0.5f, 0.4f), colour(0.9f, 0.3f, 0.6f);
+      BsdfParams p = translucent(base, 0.5f, 0.7f, colour, t);
+      p.ior = 1.5f;
+      const BsdfLobes l = bsdf_lobes(p, wo);
+      ASSERT_GT(l.diffuse_bt, 0.f);
+      ChiSquareTest chi2(nz, nphi);
+      const double f0 = 0.04;
+      for (int s = 0; s < n; ++s) {
+        BsdfSample bs;
+        const float u_lobe = l.glass - l.diffuse_bt * (1.f - uni(rng)) * 0.9999f;
+        ASSERT_TRUE(bsdf_sample(p, wo, {uni(rng), uni(rng)}, u_lobe, uni(rng), &bs));
+        ASSERT_TRUE(bs.transmitted);
+        ASSERT_TRUE(bs.delta);
+        ASSERT_LT(bs.wi.z, 0.f);
+        const Vec3 h = normalize(wo + mirrored(bs.wi));
+        const double F = p.specular * (f0 + (1.0 - f0) * std::pow(1.0 - dot(wo, h), 5.0));
+        for (int c = 0; c < 3; ++c) {
+          const double want = 0.7 * colour[c] * (1.0 - t) * (1.0 - F);
+          ASSERT_NEAR(bs.weight[c] * l.diffuse_bt, want, 1e-4 + 1e-4 * want);
+        }
+        double phi = std::atan2(bs.wi.y, bs.wi.x);
+        if (phi < 0) phi += 2 * M_PI;
+        chi2.add_sample(-bs.wi.z, phi / (2 * M_PI));
+      }
+      // Density over (x = |cos_i|, y = phi / 2pi): |cos| / pi x dz dphi = x / pi x 2 pi.
+      chi2.integrate([](double x, double) { return 2.0 * x; }, 8, n);
+      const ChiSquareResult result = chi2.run();
+      EXPECT_TRUE(result.passed) << result.message << ", t " << t << " wo.z " << wo.z;
+    }
+}
+
 // The samples' mean weight (BTDF samples marked as transmitted, sampled-only lobes) estimates
 // the material's albedo, reflection and transmission integrated by quadrature; a white,
 // fully translucent Lambert without a specular layer transmits everything (white furnace).
