@@ -10,7 +10,9 @@ by the compositor, the .blend saved), `scan` (a scene of things the farm does no
 checked, submitted anyway, and exported with two cameras), `animation` (a moving box submitted
 as Animation, followed, fetched as an image sequence read back frame by frame through the
 compositor, and each frame submitted again as a Still), `animation_scan` (what the animation
-export carries and drops, and its frame times, read from the .glb; no farm) or `variants` (the
+export carries and drops, and its frame times, read from the .glb; no farm), `pointer` (a
+light's power and the camera's lens keyed, exported as KHR_animation_pointer and submitted as
+Animation) or `variants` (the
 Material variant menu from the glTF exporter's variants, All variants submitted, followed and
 fetched as an image per variant).
 """
@@ -639,10 +641,23 @@ def scenario_animation_scan() -> dict:
     strength.keyframe_insert("default_value", frame=3)
     mesh_object(scene, "Pulsing", "cube", 0.3, (-2, 0, 2), pulse)
 
+    tint = pulse.node_tree.nodes["Principled BSDF"].inputs["Sheen Tint"]  # not carried
+    tint.default_value = (1.0, 1.0, 1.0, 1.0)
+    tint.keyframe_insert("default_value", frame=1)
+    tint.default_value = (1.0, 0.0, 0.0, 1.0)
+    tint.keyframe_insert("default_value", frame=3)
+
+    # Carried as KHR_animation_pointer: lens and power; not carried: f-stop and exposure.
     keyframe(scene.camera.data, "lens", 1, 50.0)
     keyframe(scene.camera.data, "lens", 3, 70.0)
+    scene.camera.data.dof.aperture_fstop = 2.8
+    scene.camera.data.dof.keyframe_insert("aperture_fstop", frame=1)
+    scene.camera.data.dof.aperture_fstop = 5.6
+    scene.camera.data.dof.keyframe_insert("aperture_fstop", frame=3)
     keyframe(bpy.data.objects["Lamp"].data, "energy", 1, 100.0)
     keyframe(bpy.data.objects["Lamp"].data, "energy", 3, 300.0)
+    keyframe(bpy.data.objects["Lamp"].data, "exposure", 1, 0.0)
+    keyframe(bpy.data.objects["Lamp"].data, "exposure", 3, 1.0)
     scene.frame_set(2)
 
     rf.render_mode = "STILL"
@@ -666,15 +681,21 @@ def scenario_animation_scan() -> dict:
         channels = []
         for ch in anim["channels"]:
             sampler = anim["samplers"][ch["sampler"]]
+            pointer = ch["target"].get("extensions", {}).get("KHR_animation_pointer", {})
             channels.append(
                 {
-                    "node": nodes[ch["target"]["node"]].get("name"),
+                    "node": nodes[ch["target"]["node"]].get("name")
+                    if "node" in ch["target"]
+                    else pointer.get("pointer"),
                     "path": ch["target"]["path"],
                     "times": [t[0] for t in accessor(sampler["input"])],
                     "values": accessor(sampler["output"]),
                 }
             )
         out["animations"].append({"name": anim.get("name"), "channels": channels})
+    out["pulse_material"] = next(
+        i for i, m in enumerate(doc["materials"]) if m.get("name") == "Pulse"
+    )
     out["morphed_nodes"] = sorted(
         n["name"]
         for n in nodes
@@ -708,6 +729,76 @@ def scenario_animation_scan() -> dict:
     out["ntsc_times"] = [t[0] for t in accessor(anim["samplers"][ch["sampler"]]["input"])]
     run_op(bpy.ops.renderfarm.check_scene)
     out["ntsc_issues"] = [i.message for i in rf.issues if i.owner == f"Scene '{scene.name}'"]
+    return out
+
+
+def scenario_pointer() -> dict:
+    """Data animation as an artist keys it: a point light's power and the camera's lens, over
+    frames 1-3 (power 100, 400, 400 W; lens 50, 50, 25 mm), above a grey floor with a red
+    emissive square, the camera looking straight down. Checked, exported (its .glb read back),
+    submitted as Animation and followed to completion."""
+    out: dict = {}
+    scene = empty_scene()
+    mesh_object(scene, "Floor", "plane", 12.0, (0, 0, 0), principled("Grey", (0.5, 0.5, 0.5)))
+    square = principled("Square", (0.0, 0.0, 0.0))
+    bsdf = square.node_tree.nodes["Principled BSDF"]
+    bsdf.inputs["Emission Color"].default_value = (1.0, 0.0, 0.0, 1.0)
+    bsdf.inputs["Emission Strength"].default_value = 1.0
+    mesh_object(scene, "Square", "plane", 1.0, (0, 0, 0.01), square)
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    lamp.data.shadow_soft_size = 0.0
+    lamp.location = (0.0, 0.0, 3.0)
+    scene.collection.objects.link(lamp)
+    scene.camera = camera(scene, "Camera", (0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
+    for frame, (power, lens) in CONFIG["keys"].items():
+        keyframe(lamp.data, "energy", int(frame), power)
+        keyframe(scene.camera.data, "lens", int(frame), lens)
+    scene.render.resolution_x, scene.render.resolution_y = CONFIG["width"], CONFIG["height"]
+    scene.render.resolution_percentage = 100
+    scene.frame_start, scene.frame_end, scene.frame_step = 1, len(CONFIG["keys"]), 1
+    scene.render.fps, scene.render.fps_base = 24, 1.0
+    scene.frame_set(1)
+
+    prefs = bpy.context.preferences.addons[ADDON].preferences
+    prefs.url, prefs.token = CONFIG["url"], CONFIG["token"]
+    rf = scene.renderfarm
+    out["refresh"] = run_op(bpy.ops.renderfarm.refresh_settings)
+    for name, value in CONFIG["settings"].items():
+        set_setting(rf, name, value)
+    rf.render_mode = "ANIMATION"
+    rf.job_name = "keyed light and lens"
+    out["check"] = run_op(bpy.ops.renderfarm.check_scene)
+    out["issues"] = [f"{i.owner}: {i.message}" for i in rf.issues]
+
+    doc, accessor = read_glb(module("export").export_animation(scene))
+    out["extensions"] = doc.get("extensionsUsed", [])
+    out["light"] = doc["extensions"]["KHR_lights_punctual"]["lights"][0]
+    out["pointers"] = {}
+    for anim in doc["animations"]:
+        for ch in anim["channels"]:
+            ext = ch["target"].get("extensions", {}).get("KHR_animation_pointer")
+            if ext is not None:
+                sampler = anim["samplers"][ch["sampler"]]
+                out["pointers"][ext["pointer"]] = {
+                    "times": [t[0] for t in accessor(sampler["input"])],
+                    "values": [v[0] for v in accessor(sampler["output"])],
+                }
+    # Blender's own values at every frame: the power, and the vertical field of view of the
+    # image (the horizontal one is the camera's angle: the image is wider than high).
+    out["blender"] = {}
+    for frame in range(1, len(CONFIG["keys"]) + 1):
+        scene.frame_set(frame)
+        cam = scene.camera.data
+        yfov = 2 * math.atan(math.tan(cam.angle / 2) * CONFIG["height"] / CONFIG["width"])
+        out["blender"][frame] = {"energy": lamp.data.energy, "yfov": yfov}
+    scene.frame_set(1)
+
+    out["submit"] = run_op(bpy.ops.renderfarm.submit)
+    entry = rf.current_job()
+    out["job_id"] = entry.job_id
+    watch = module("watch")
+    follow(rf, watch, "the keyed sequence to finish", CONFIG["timeout_s"], out)
+    watch.stop_all()
     return out
 
 
@@ -789,5 +880,6 @@ if __name__ == "__main__":
         "animation": scenario_animation,
         "animation_scan": scenario_animation_scan,
         "variants": scenario_variants,
+        "pointer": scenario_pointer,
     }[sys.argv[1]]()
     print("RESULT " + json.dumps(result), flush=True)

@@ -312,9 +312,11 @@ def test_animation_export_carries_and_lists(token_farm, addon_zip, tmp_path):
     assert listed("Object 'Waver'", "'Ripple' (wave)", "as at frame 0"), issues
     assert listed("Object 'Ticker'", "'Clock' (geometry nodes using the scene time)"), issues
     assert listed("Object 'Blinker'", "visibility"), issues
-    assert listed("Camera 'Camera'", "lens"), issues
-    assert listed("Light 'Lamp'", "energy"), issues
-    assert listed("Material 'Pulse'", "(Principled BSDF: Emission Strength)"), issues
+    # Data animation: what KHR_animation_pointer carries (lens, power, emission strength) is
+    # not listed, what it does not is, by name.
+    assert listed("Camera 'Camera'", "(dof.aperture_fstop)"), issues
+    assert listed("Light 'Lamp'", "(exposure)"), issues
+    assert listed("Material 'Pulse'", "(Principled BSDF: Sheen Tint)"), issues
     assert {i["kind"] for i in result["issues"]} == {"animation"}, issues
     for name in ("Mover", "Follower", "Blob", "Beveled"):  # carried: not listed
         assert not any(o == f"Object '{name}'" for o, _ in issues), (name, issues)
@@ -340,11 +342,19 @@ def test_animation_export_carries_and_lists(token_farm, addon_zip, tmp_path):
     np.testing.assert_allclose(
         [v[0] for v in channels[("Blob", "weights")]["values"]], [0.0, 0.5, 1.0], atol=1e-6
     )
-    # Dropped as listed: Lumpy's mesh has no morph targets; no data animation is written.
+    # Dropped as listed: Lumpy's mesh has no morph targets. Data animation is written as
+    # KHR_animation_pointer channels: the lens as yfov, the power as intensity, the emission
+    # strength; the sheen tint (written wrong by Blender's exporter) is dropped.
     assert result["morphed_nodes"] == ["Blob"]
-    assert "KHR_animation_pointer" not in result["extensions"]
+    assert "KHR_animation_pointer" in result["extensions"]
+    pointers = {c["node"] for c in result["animations"][0]["channels"] if c["path"] == "pointer"}
+    assert pointers == {
+        "/cameras/0/perspective/yfov",
+        "/extensions/KHR_lights_punctual/lights/0/intensity",
+        f"/materials/{result['pulse_material']}/extensions/KHR_materials_emissive_strength/emissiveStrength",
+    }, pointers
     assert {c["path"] for c in result["animations"][0]["channels"]} <= {
-        "translation", "rotation", "scale", "weights"
+        "translation", "rotation", "scale", "weights", "pointer"
     }  # fmt: skip
     assert result["frame_after_export"] == 2
 
@@ -528,3 +538,63 @@ def test_material_variants_offered_and_all_rendered_one_image_each(token_farm, a
         exr = read_exr(str(path))
         mean = np.stack([exr[c] for c in "RGB"], -1).reshape(-1, 3).mean(0)
         np.testing.assert_allclose(mean, color, atol=0.02, err_msg=name)
+
+
+POINTER_KEYS = {1: (100.0, 50.0), 2: (400.0, 50.0), 3: (400.0, 25.0)}  # frame: (W, mm)
+POINTER_WIDTH, POINTER_HEIGHT = 64, 48
+
+
+def test_keyed_light_power_and_lens_render_as_keyed(token_farm, addon_zip, tmp_path):
+    """A point light's power and the camera's lens, keyed, are exported as
+    KHR_animation_pointer channels (the intensity in the still's units, P / 4 pi) and the farm
+    renders them: the floor, lit by the light only, is 4 times as bright at 400 W as at
+    100 W; at 25 mm the emissive square covers a quarter of the image area it covers at
+    50 mm."""
+    result = run_driver(
+        "pointer",
+        {
+            "zip": str(addon_zip),
+            "url": token_farm.url,
+            "token": TOKEN,
+            "keys": POINTER_KEYS,
+            "width": POINTER_WIDTH,
+            "height": POINTER_HEIGHT,
+            "settings": SETTINGS,
+            "timeout_s": 300,
+        },
+        tmp_path,
+    )
+    assert result["check"]["result"] == ["FINISHED"] and result["issues"] == [], result["issues"]
+    assert "KHR_animation_pointer" in result["extensions"]
+    intensity = result["pointers"]["/extensions/KHR_lights_punctual/lights/0/intensity"]
+    yfov = result["pointers"]["/cameras/0/perspective/yfov"]
+    for channel in (intensity, yfov):
+        np.testing.assert_allclose(channel["times"], [f / 24 for f in POINTER_KEYS], rtol=1e-6)
+    blender = {int(f): v for f, v in result["blender"].items()}
+    # In the file's units: the light's static intensity is frame 1's, P / 4 pi (COMPAT).
+    assert result["light"]["intensity"] == pytest.approx(100.0 / (4 * math.pi), rel=1e-6)
+    np.testing.assert_allclose(
+        intensity["values"], [blender[f]["energy"] / (4 * math.pi) for f in POINTER_KEYS], rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        yfov["values"], [blender[f]["yfov"] for f in POINTER_KEYS], rtol=1e-5
+    )
+
+    assert result["submit"]["result"] == ["FINISHED"], result["submit"]
+    images = {}
+    with Client(token_farm.url, token=TOKEN, timeout=30) as client:
+        job = client.get(result["job_id"])
+        assert job["state"] == "completed", job["error"]
+        assert job["settings"]["frames"] == "1-3"
+        for f in POINTER_KEYS:
+            path = tmp_path / f"frame_{f}.exr"
+            path.write_bytes(client.frame_image(job["id"], f, "exr"))
+            images[f] = read_exr(str(path))
+    # The floor is grey and the light white: green is the light on the floor. The square is
+    # black, emitting pure red: red less green is the square alone, summed over the image
+    # its projected area (its radiance is constant).
+    floor = {f: float(images[f]["G"].mean()) for f in POINTER_KEYS}
+    square = {f: float((images[f]["R"] - images[f]["G"]).sum()) for f in POINTER_KEYS}
+    assert floor[2] / floor[1] == pytest.approx(4.0, rel=0.03), floor
+    assert square[2] == pytest.approx(square[1], rel=0.03), square  # the same lens
+    assert square[3] / square[2] == pytest.approx((25.0 / 50.0) ** 2, rel=0.08), square

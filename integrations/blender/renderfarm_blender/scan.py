@@ -268,9 +268,49 @@ def _world_issues(world) -> list[Issue]:
 # without modifiers at every frame, whatever moves them (keys, drivers, constraints, parents,
 # rigid bodies). It writes each mesh once, evaluated at frame 0: a mesh whose modifiers change
 # over time keeps its frame-0 shape, and a mesh with modifiers loses its shape keys (the
-# evaluated mesh has none, so its shape-key animation does not play). Data animation (camera
-# lens, light power, material values) would be KHR_animation_pointer, which the export leaves
-# off and the farm ignores; visibility and camera switches at markers have no glTF form.
+# evaluated mesh has none, so its shape-key animation does not play). Data animation is written
+# as KHR_animation_pointer channels (export.py says which, and what the add-on puts right of
+# them), which the farm renders: what changes is listed below only where the export does not
+# carry it. Visibility and camera switches at markers have no glTF form in the export.
+
+# Camera settings the export samples into perspective yfov (at the scene's aspect ratio),
+# orthographic xmag / ymag and znear / zfar.
+_CAMERA_CARRIED = frozenset(
+    {
+        "lens",
+        "angle",
+        "angle_x",
+        "angle_y",
+        "lens_unit",
+        "sensor_width",
+        "sensor_height",
+        "sensor_fit",
+        "ortho_scale",
+        "clip_start",
+        "clip_end",
+    }
+)
+# Light settings written as intensity, color and the spot cones (cutoff_distance as range, when
+# Custom Distance is on).
+_LIGHT_CARRIED = frozenset({"energy", "color", "spot_size", "spot_blend"})
+# Principled BSDF inputs whose animated value the export writes (unlinked, or fed by a Value
+# node): Alpha only for a material that blends at frame 0 (alpha below 1 there).
+_PRINCIPLED_CARRIED = frozenset(
+    {
+        "Base Color",
+        "Metallic",
+        "Roughness",
+        "IOR",
+        "Transmission Weight",
+        "Coat Weight",
+        "Coat Roughness",
+        "Sheen Roughness",
+        "Specular IOR Level",
+        "Emission Color",
+        "Emission Strength",
+        "Anisotropic",
+    }
+)
 
 # Modifiers that change the mesh from frame to frame by themselves (simulations and caches).
 _TIME_MODIFIERS = {
@@ -322,6 +362,45 @@ def _action_fcurves(action, anim):
     yield from getattr(action, "fcurves", ())
 
 
+def _value_at(idblock, path: str, frame: float):
+    """The animated path's value at `frame` from its F-curve (the first of an array's), or
+    None without one."""
+    anim = getattr(idblock, "animation_data", None)
+    action = anim.action if anim is not None else None
+    if action is None:
+        return None
+    for fc in _action_fcurves(action, anim):
+        if fc.data_path == path:
+            return fc.evaluate(frame)
+    return None
+
+
+def _material_path_carried(tree, path: str) -> bool:
+    """Whether the export writes the animated node-tree path as a KHR_animation_pointer
+    channel: an input of the Principled BSDF it maps (not linked: a linked input's value is
+    unused), or a Value node's output feeding one."""
+    owner, _, prop = path.rpartition(".")
+    try:
+        socket = tree.path_resolve(owner) if owner else None
+    except ValueError:
+        return False
+    if socket is None or not hasattr(socket, "node") or prop != "default_value":
+        return False
+    node = socket.node
+    if node.bl_idname == "ShaderNodeValue":
+        return any(
+            link.to_node.bl_idname == "ShaderNodeBsdfPrincipled"
+            and link.to_socket.name in _PRINCIPLED_CARRIED
+            for link in socket.links
+        )
+    if node.bl_idname != "ShaderNodeBsdfPrincipled" or socket.is_output or socket.is_linked:
+        return False
+    if socket.name == "Alpha":
+        alpha = _value_at(tree, path, 0.0)
+        return alpha is not None and alpha < 1.0
+    return socket.name in _PRINCIPLED_CARRIED
+
+
 def _moves(obj) -> bool:
     """The object's transform can change over the frames (keys, drivers, constraints)."""
     paths = _animated_paths(obj)
@@ -342,11 +421,14 @@ def _tree_uses_time(tree, seen=None) -> bool:
     return bool(_animated_paths(tree))
 
 
-def _socket_paths(tree) -> list[str]:
+def _socket_paths(tree, skip=None) -> list[str]:
     """A node tree's animated paths, a node's input named as the artist sees it
-    (`Principled BSDF: Emission Strength` for nodes["Principled BSDF"].inputs[28].default_value)."""
+    (`Principled BSDF: Emission Strength` for nodes["Principled BSDF"].inputs[28].default_value),
+    but those skip(tree, path) is true of."""
     named = []
     for path in _animated_paths(tree):
+        if skip is not None and skip(tree, path):
+            continue
         owner, _, prop = path.rpartition(".")
         try:
             socket = tree.path_resolve(owner) if owner else None
@@ -418,7 +500,13 @@ def _animation_issues(scene, objects, materials) -> list[Issue]:
                 )
             )
         if obj.type in ("LIGHT", "CAMERA") and (obj.type == "LIGHT" or obj == scene.camera):
-            data_paths = _animated_paths(obj.data)
+            data = obj.data
+            carried = _CAMERA_CARRIED if obj.type == "CAMERA" else _LIGHT_CARRIED
+            if obj.type == "LIGHT" and data.use_custom_distance:
+                carried = carried | {"cutoff_distance"}
+            data_paths = [p for p in _animated_paths(data) if p not in carried]
+            if obj.type == "LIGHT" and getattr(data, "node_tree", None) is not None:
+                data_paths += _socket_paths(data.node_tree)
             if data_paths:
                 what = "light" if obj.type == "LIGHT" else "camera"
                 issues.append(
@@ -430,7 +518,9 @@ def _animation_issues(scene, objects, materials) -> list[Issue]:
                     )
                 )
     for mat in materials:
-        mat_paths = _animated_paths(mat) + (_socket_paths(mat.node_tree) if mat.node_tree else [])
+        mat_paths = _animated_paths(mat) + (
+            _socket_paths(mat.node_tree, _material_path_carried) if mat.node_tree else []
+        )
         if mat_paths:
             issues.append(
                 Issue(
