@@ -90,6 +90,40 @@ TEST(WhiteFurnace, DiffuseGlassAndRoughMetalSpheresRenderOne) {
   }
 }
 
+// A dispersive glass sphere (KHR_materials_dispersion 1: Abbe number 20) in the furnace: each
+// path that meets it carries one wavelength, its throughput 1 whatever the wavelength (smooth
+// glass, base 1), so each channel's expectation is the mean of its wavelength weights, 1. The
+// samples are coloured (their weights differ per channel), so the error is estimated from the
+// spread of the pixels (independent estimates), not from the luminance M2.
+TEST(WhiteFurnace, DispersiveGlassSphereRendersOneInEveryChannel) {
+  Material m = furnace_material("dispersive-glass", 1.f, 0.f, 0.f, 1.f, 1.f);
+  m.dispersion = 1.f;
+  Scene scene(sphere_scene(m, {0.f, 0.3f, 3.f}, 0.75f));
+  RenderSettings settings;
+  settings.width = settings.height = 8;
+  settings.sampler = SamplerType::Independent;
+  settings.max_depth = 64;
+  settings.environment = Environment::constant({1.f, 1.f, 1.f});
+  settings.seed = 5;
+  const uint32_t spp = 512;
+  TileBuffer tile;
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 8, 8}, 0, spp, &tile));
+  EXPECT_EQ(tile.nonfinite_samples, 0u);
+  bool coloured = false;
+  for (int c = 0; c < 3; ++c) {
+    double sum = 0.0, sum2 = 0.0;
+    for (size_t i = 0; i < 64; ++i) {
+      const double v = tile.rgb_sum[3 * i + size_t(c)] / spp;
+      sum += v;
+      sum2 += v * v;
+      coloured = coloured || std::abs(v - 1.0) > 1e-3;
+    }
+    const double mean = sum / 64, se = std::sqrt((sum2 / 64 - mean * mean) / 63);
+    EXPECT_NEAR(mean, 1.0, 4.0 * se + 1e-4) << "channel " << c;
+  }
+  EXPECT_TRUE(coloured);  // the wavelengths were sampled: pixels are not exactly 1
+}
+
 // A rough glass sphere (roughness 0.5, KHR_materials_transmission's microfacet BSDF) in the
 // same furnace: radiance crosses its surface scaled by 1/eta^2 going in and eta^2 coming out,
 // so an energy-conserving BSDF would render 1; single-scattering microfacets lose the light
