@@ -105,7 +105,8 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
               "max_depth": args.max_depth, "threads": args.threads,
               "renders": [*renders, ref], "environment": env,
               "microfacet": args.cycles_microfacet, "textures": args.cycles_textures,
-              "volume": args.cycles_volume}  # fmt: skip
+              "volume": args.cycles_volume,
+              "anisotropy": args.cycles_anisotropy}  # fmt: skip
     config_path = scratch / "cycles.json"
     config_path.write_text(json.dumps(config))
     result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
@@ -331,7 +332,7 @@ def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) 
         "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
                                                    "renders", "threads", "max_depth", "grid",
                                                    "cycles_microfacet", "cycles_textures",
-                                                   "cycles_volume",
+                                                   "cycles_volume", "cycles_anisotropy",
                                                    "lambert_dielectrics")},
         **analyse(cyc, wrk, wrk_t, args, rects),
     }  # fmt: skip
@@ -469,6 +470,15 @@ def main() -> list[dict]:
         help="Cycles' Volume Absorption as Blender's importer maps KHR_materials_volume, or "
         "set to absorb as the extension defines (Beer-Lambert with attenuationColor ^ "
         "(length / attenuationDistance); docs/parity.md)",
+    )
+    parser.add_argument(
+        "--cycles-anisotropy",
+        choices=("as_imported", "gltf"),
+        default="as_imported",
+        help="Cycles' anisotropic Principled BSDFs as Blender's importer maps "
+        "KHR_materials_anisotropy (anisotropyStrength as Anisotropic), or set so that "
+        "Cycles' two GGX alphas are the extension's (mix(r^2, 1, strength^2) along, r^2 "
+        "across; docs/parity.md)",
     )
     parser.add_argument(
         "--lambert-dielectrics",

@@ -6,11 +6,11 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
 "rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx", "textures": "as_imported"
-or "linear", "volume": "as_imported" or "gltf"}. The scene is imported
-once with Blender's own glTF importer (lights in the COMPAT units the exporter of the parity
-scenes and the Blender add-on use), then rendered once per entry of "renders" into a 32-bit
-float linear EXR (R, G, B: the Combined pass of the render result, no view transform, no
-compositor). Prints
+or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "gltf"}.
+The scene is imported once with Blender's own glTF importer (lights in the COMPAT units the
+exporter of the parity scenes and the Blender add-on use), then rendered once per entry of
+"renders" into a 32-bit float linear EXR (R, G, B: the Combined pass of the render result, no
+view transform, no compositor). Prints
 `RESULT {"seconds": [...], "camera": NAME}`: the wall time of each bpy.ops.render.render
 (scene synchronisation, BVH build, sampling and writing the EXR; not Blender's start-up or the
 import).
@@ -102,6 +102,8 @@ def match_settings(scene: bpy.types.Scene) -> None:
         decode_textures_first()
     if CONFIG.get("volume", "as_imported") == "gltf":
         beer_lambert_volumes()
+    if CONFIG.get("anisotropy", "as_imported") == "gltf":
+        gltf_anisotropy()
     for obj in scene.objects:
         # Shadow-terminator fixes move shadow rays off the surface or bend the shading
         # normal's cosine; the farm does neither.
@@ -181,6 +183,29 @@ def beer_lambert_volumes() -> None:
             continue
         node.inputs["Density"].default_value = top
         node.inputs["Color"].default_value = (*(1.0 - s / top for s in sigma), 1.0)
+
+
+def gltf_anisotropy() -> None:
+    """Make every anisotropic Principled BSDF's GGX the one KHR_materials_anisotropy defines.
+
+    The importer sets Anisotropic to anisotropyStrength s as it is; Cycles then takes alphas
+    r^2 / sqrt(1 - 0.9 s) along the tangent and r^2 sqrt(1 - 0.9 s) across it, where the
+    extension has mix(r^2, 1, s^2) along the anisotropy direction and r^2 across it. Here
+    Roughness and Anisotropic are set so that Cycles' two alphas are the extension's: their
+    product gives the roughness, their ratio the anisotropy (Cycles' ratio is at most 10; a
+    larger one is clamped there, keeping the product). Linked sockets are left as imported."""
+    for node in material_nodes("BSDF_PRINCIPLED"):
+        strength_in, rough_in = node.inputs["Anisotropic"], node.inputs["Roughness"]
+        if strength_in.is_linked or rough_in.is_linked:
+            continue
+        s = min(max(float(strength_in.default_value), 0.0), 1.0)
+        if s <= 0.0:
+            continue
+        alpha = float(rough_in.default_value) ** 2
+        along, across = alpha + (1.0 - alpha) * s * s, alpha
+        # Cycles: along / across = 1 / (1 - 0.9 a), along x across = roughness^4.
+        rough_in.default_value = (along * across) ** 0.25
+        strength_in.default_value = min((1.0 - across / along) / 0.9, 1.0)
 
 
 def environment_world(env: dict) -> bpy.types.World:

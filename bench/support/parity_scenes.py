@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import sys
 
 import numpy as np
@@ -64,6 +65,16 @@ SCENES = {
     "two_sided_emitter": "a floor lit only by the back face of a double-sided emissive quad",
     "environment": "a diffuse and a glossy sphere lit only by an environment map with a sun",
     "combined": "all of the above in one scene, under the environment map and two lights",
+    "anisotropy": "two brushed-metal spheres (anisotropy 0.6, rotation 0 and 90 degrees) and a "
+    "black anisotropic dielectric (KHR_materials_anisotropy)",
+    "specular_color": "a black and a white dielectric sphere with an orange specular colour "
+    "(KHR_materials_specular)",
+}
+
+# The extension each feature's scene exists for: build() checks that the exporter wrote it.
+REQUIRED_EXTENSIONS = {
+    "anisotropy": "KHR_materials_anisotropy",
+    "specular_color": "KHR_materials_specular",
 }
 
 
@@ -486,6 +497,53 @@ def combined():
     return sky_map()
 
 
+def anisotropy():
+    """KHR_materials_anisotropy as Blender's exporter writes it from a Principled BSDF:
+    Anisotropic is anisotropyStrength, Anisotropic Rotation (turns) x 2 pi is
+    anisotropyRotation, no texture; the importer sets the two sockets back and leaves Tangent
+    unlinked, so Cycles takes its default tangent (radial about the object's Z axis). The
+    exporter writes no TANGENT (the add-on's options), so the farm takes the tangent of
+    TEXCOORD_0: on a UV sphere about Z both run along the parallels. Left: brushed metal,
+    rotation 0 (roughened along the parallels); middle: the same turned 90 degrees (along the
+    meridians); right: a black dielectric (its specular layer alone), rotation 0."""
+    floor()
+    steel = {"Anisotropic": 0.6}
+    metal = {"color": (0.9, 0.85, 0.75), "roughness": 0.3, "metallic": 1.0}
+    along = principled("BrushedAlong", **metal, **steel)
+    across = principled("BrushedAcross", **metal, **steel, **{"Anisotropic Rotation": 0.25})
+    black = principled("BrushedBlack", (0.0, 0.0, 0.0), 0.3, **steel)
+    for i, mat in enumerate((along, across, black)):
+        sphere(mat.name, mat, (-1.0 + 1.0 * i, 0.0, 0.42), radius=0.42)
+    quad_light()
+    point_light((2.5, -3.5, 3.0), 400.0)  # in front, to the right: a stretched highlight each
+    camera((0.0, -5.0, 1.4), (0.0, 0.0, 0.42), lens=35.0)
+
+
+def specular_color():
+    """KHR_materials_specular's specularColorFactor as Blender's exporter writes it: Specular
+    Tint (Specular IOR Level 0.5, so no specularFactor); the importer sets Specular Tint back,
+    which Cycles applies to F0 (white at grazing angles), as the extension tints F0. Left: a
+    black base (the specular layer alone); right: a white base (the diffuse under a coloured
+    specular layer)."""
+    floor()
+    tint = {"Specular Tint": (1.0, 0.45, 0.1, 1.0)}
+    sphere("TintedBlack", principled("TintedBlack", (0.0, 0.0, 0.0), 0.25, **tint),
+           (-0.75, 0.0, 0.5), radius=0.5)  # fmt: skip
+    sphere("TintedWhite", principled("TintedWhite", (0.8, 0.8, 0.8), 0.25, **tint),
+           (0.75, 0.0, 0.5), radius=0.5)  # fmt: skip
+    quad_light()
+    point_light((-2.5, -3.0, 3.5), 400.0)
+    camera()
+
+
+def glb_document(path: str) -> dict:
+    """The JSON chunk of a GLB file."""
+    with open(path, "rb") as f:
+        data = f.read()
+    (length,) = struct.unpack_from("<I", data, 12)
+    return json.loads(data[20 : 20 + length])
+
+
 def save_hdr(rgb: np.ndarray, path: str) -> None:
     """A Radiance .hdr (flat RGBE scanlines, row 0 of rgb at the top), written here rather than
     through bpy: Blender saves a float image display-encoded, not as linear radiance."""
@@ -507,6 +565,13 @@ def build(name: str, path: str) -> dict:
     env = globals()[name]()
     result = bpy.ops.export_scene.gltf(filepath=path, **EXPORT_OPTIONS)
     assert result == {"FINISHED"}, result
+    if name in REQUIRED_EXTENSIONS:
+        extension = REQUIRED_EXTENSIONS[name]
+        document = glb_document(path)
+        on = [m.get("name") for m in document.get("materials", [])
+              if extension in m.get("extensions", {})]  # fmt: skip
+        if extension not in document.get("extensionsUsed", []) or not on:
+            raise SystemExit(f"{name}: Blender's exporter wrote no {extension}")
     written = {"scene": path, "environment": None}
     if env is not None:
         written["environment"] = os.path.splitext(path)[0] + "-environment.hdr"
