@@ -39,8 +39,10 @@ class RecordingStore:
     async def add_events(self, events):
         pass
 
-    async def get_job(self, job_id):  # what an image reads of the job's row: its times
-        return SimpleNamespace(created_at=datetime(2026, 1, 2, tzinfo=UTC), finished_at=None)
+    async def get_job(self, job_id):  # what an image reads of the job's row: times, variants
+        return SimpleNamespace(
+            created_at=datetime(2026, 1, 2, tzinfo=UTC), finished_at=None, variants=[]
+        )
 
     async def get_scene_source(self, sha256):  # the EXR header: not converted from USD
         return None
