@@ -12,6 +12,7 @@ from test_scheduler import render
 
 from renderfarm.app import checkpoints
 from renderfarm.app.auth import LOCAL_USER
+from renderfarm.app.composition import build_farm_service
 from renderfarm.app.jobs import FarmService
 from renderfarm.domain.jobspec import JobSettings
 from renderfarm.infra.config import Settings
@@ -52,7 +53,7 @@ class RecordingStore:
 
 
 def farm(tmp_path, cache_mb: int, store=None) -> FarmService:
-    service = FarmService(Settings(data_dir=tmp_path, tile_cache_mb=cache_mb), store)
+    service = build_farm_service(Settings(data_dir=tmp_path, tile_cache_mb=cache_mb), store)
     service.scheduler.add_job("j", JOB, "0" * 64)
     return service
 

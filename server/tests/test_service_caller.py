@@ -9,6 +9,7 @@ import inspect
 import pytest
 
 from renderfarm.app.auth import Caller
+from renderfarm.app.composition import build_farm_service
 from renderfarm.app.jobs import FarmService
 from renderfarm.domain.jobspec import JobSettings
 from renderfarm.infra.config import Settings
@@ -24,7 +25,7 @@ class NoStore:
 
 
 def _service(tmp_path) -> FarmService:
-    service = FarmService(Settings(data_dir=tmp_path), NoStore())
+    service = build_farm_service(Settings(data_dir=tmp_path), NoStore())
     service.scheduler.add_job(JOB, JobSettings(width=16, height=16, tile_size=8), "0" * 64)
     service.owners[JOB] = "alice"
     return service

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from renderfarm.app.auth import Caller
-from renderfarm.app.jobs import FarmService
+from renderfarm.app.composition import build_farm_service
 from renderfarm.domain.jobspec import SettingsError
 from renderfarm.domain.scenes.pack import pack_gltf
 from renderfarm.domain.states import JobState
@@ -25,7 +25,7 @@ ANN, BOB, ADMIN = Caller("ann", False), Caller("bob", False), Caller("", True)
 def test_jobs_through_the_service_on_memory(tmp_path):
     async def main():
         store = MemoryStore()
-        service = FarmService(Settings(data_dir=tmp_path), store)
+        service = build_farm_service(Settings(data_dir=tmp_path), store)
         await service.start()
         try:
             settings = {"width": 32, "height": 16, "tile_size": 16, "max_spp": 2}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 
-from renderfarm.app.jobs import FarmService
+from renderfarm.app.composition import build_farm_service
 from renderfarm.domain.jobspec import JobSettings
 from renderfarm.infra.config import Settings
 
@@ -28,7 +28,7 @@ class RecordingStore:
 
 def test_a_job_is_never_stored_finished_before_its_event(tmp_path):
     store = RecordingStore()
-    service = FarmService(Settings(data_dir=tmp_path), store)
+    service = build_farm_service(Settings(data_dir=tmp_path), store)
 
     async def persist(job_id, tiles):  # the job row with its final state
         store.log.append(("job", job_id))
@@ -67,7 +67,7 @@ class StallingStore:
 
 def test_a_checkpoint_cancelled_mid_write_leaves_its_tiles_to_the_next(tmp_path):
     store = StallingStore()
-    service = FarmService(Settings(data_dir=tmp_path), store)
+    service = build_farm_service(Settings(data_dir=tmp_path), store)
     settings = JobSettings(width=16, height=16, tile_size=8, max_spp=4)
     job = service.scheduler.add_job("j", settings, "0" * 64)
     for t in job.tiles[:3]:

@@ -14,7 +14,7 @@ from collections.abc import Awaitable, Callable
 import uvicorn
 
 from ..app.auth import Authenticator, check_exposure, ensure_configured_token
-from ..app.jobs import FarmService
+from ..app.composition import build_farm_service
 from ..infra.config import Settings
 from ..infra.embedded_db import EmbeddedPostgres
 from ..infra.store import Store
@@ -91,7 +91,7 @@ async def serve(
         if refusal:
             raise RuntimeError(refusal)
         auth = Authenticator.for_settings(store, settings)
-        farm = FarmService(settings, store)
+        farm = build_farm_service(settings, store)
         metrics = Metrics(farm)
         farm.metrics = metrics
         await farm.start()

@@ -27,7 +27,6 @@ import threading
 import time
 from collections.abc import AsyncIterator
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 from ..domain.frames import frame_count, job_rects, resolve_animations
@@ -41,13 +40,12 @@ from ..domain.states import JobState
 from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge
 from ..infra import spool
 from ..infra.config import Settings
-from ..infra.scene_check import SceneChecker
-from ..infra.spill import TileCache
-from ..infra.store import JobRow, Store
-from ..infra.usd_import import UsdImport, UsdImporter
-from ..infra.worker_binary import find_worker_binary
+from ..infra.memory_store import JobStore
+from ..infra.store import JobRow
+from ..infra.usd_import import UsdImport
 from . import checkpoints
 from .auth import Caller, check_caller
+from .collaborators import SceneInspector, UsdConverter
 from .history import History
 from .job_control import JobControl
 from .job_images import JobImages
@@ -68,18 +66,23 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
     worker_sessions.py (worker streams), write_behind.py (database writes and checkpoints),
     history.py (convergence, stops)."""
 
-    def __init__(self, settings: Settings, store: Store):
+    def __init__(
+        self,
+        settings: Settings,
+        store: JobStore,
+        *,
+        scheduler: Scheduler,
+        scene_checker: SceneInspector,
+        usd_importer: UsdConverter,
+    ):
+        """Its collaborators are given (app/composition.build_farm_service makes the server's):
+        the scheduler with its tile cache, the judge of uploaded scenes (the workers' own
+        loader) and the converter of USD uploads to glTF."""
         self.settings = settings
         self.store = store
-        # Tiles past the RAM budget wait in DATA_DIR/scratch (infra/spill.py), as do images being
-        # written.
-        cache = TileCache(settings.data_dir / "scratch", settings.tile_cache_mb * 2**20)
-        self.scheduler = Scheduler(
-            clock=time.time,
-            lease_s=settings.lease_s,
-            max_task_failures=settings.max_task_failures,
-            cache=cache,
-        )
+        self.scheduler = scheduler
+        self.scene_checker = scene_checker
+        self.usd_importer = usd_importer
         self._stopping = threading.Event()  # images being written give up when set
         # One image with a denoised layer at a time, from gathering its frame to its last row:
         # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
@@ -111,19 +114,6 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         # Convergence history of live jobs: (elapsed s, relative error or None, mean spp).
         self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
-        # Every new uploaded scene goes through the workers' own loader before it is stored.
-        self.scene_checker = SceneChecker(
-            settings.scene_inspector or find_worker_binary(),
-            settings.scene_limits(),
-            Path(settings.data_dir) / "tmp",
-        )
-        # USD uploads become glTF in a limited child process before that check (usd_import.py).
-        self.usd_importer = UsdImporter(
-            Path(settings.data_dir) / "tmp",
-            cpu_seconds=settings.scene_inspect_cpu_s,
-            memory_mb=settings.max_scene_memory_mb,
-            max_output_bytes=settings.max_upload_bytes,
-        )
 
     # ------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
