@@ -5,9 +5,15 @@ server runs with; tests give fakes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol
 
 from ..infra.usd_import import UsdImport
+
+Clock = Callable[[], float]
+"""Unix time in seconds (time.time). FarmService reads it for checkpoint intervals, the
+database's retry backoff and workers' connect and heartbeat times; the scheduler it is given
+should read the same clock (lease deadlines, time limits, elapsed times)."""
 
 
 class SceneInspector(Protocol):

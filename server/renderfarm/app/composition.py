@@ -16,7 +16,7 @@ from ..infra.scene_check import SceneChecker
 from ..infra.spill import TileCache
 from ..infra.usd_import import UsdImporter
 from ..infra.worker_binary import find_worker_binary
-from .collaborators import SceneInspector, UsdConverter
+from .collaborators import Clock, SceneInspector, UsdConverter
 from .jobs import FarmService
 
 
@@ -24,16 +24,17 @@ def build_farm_service(
     settings: Settings,
     store: JobStore,
     *,
+    clock: Clock = time.time,
     scene_checker: SceneInspector | None = None,
     usd_importer: UsdConverter | None = None,
 ) -> FarmService:
     """A FarmService over `store` with the default collaborators of `settings` (each one given
-    here is used instead of its default)."""
+    here is used instead of its default). The scheduler and the service share `clock`."""
     # Tiles past the RAM budget wait in DATA_DIR/scratch (infra/spill.py), as do images being
     # written.
     cache = TileCache(settings.data_dir / "scratch", settings.tile_cache_mb * 2**20)
     scheduler = Scheduler(
-        clock=time.time,
+        clock=clock,
         lease_s=settings.lease_s,
         max_task_failures=settings.max_task_failures,
         cache=cache,
@@ -59,4 +60,5 @@ def build_farm_service(
         scheduler=scheduler,
         scene_checker=scene_checker,
         usd_importer=usd_importer,
+        clock=clock,
     )

@@ -24,7 +24,6 @@ import dataclasses
 import logging
 import secrets
 import threading
-import time
 from collections.abc import AsyncIterator
 from datetime import datetime
 from typing import Any
@@ -45,7 +44,7 @@ from ..infra.store import JobRow
 from ..infra.usd_import import UsdImport
 from . import checkpoints
 from .auth import Caller, check_caller
-from .collaborators import SceneInspector, UsdConverter
+from .collaborators import Clock, SceneInspector, UsdConverter
 from .history import History
 from .job_control import JobControl
 from .job_images import JobImages
@@ -74,15 +73,18 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         scheduler: Scheduler,
         scene_checker: SceneInspector,
         usd_importer: UsdConverter,
+        clock: Clock,
     ):
         """Its collaborators are given (app/composition.build_farm_service makes the server's):
         the scheduler with its tile cache, the judge of uploaded scenes (the workers' own
-        loader) and the converter of USD uploads to glTF."""
+        loader), the converter of USD uploads to glTF, and the clock (unix time), which the
+        scheduler reads too."""
         self.settings = settings
         self.store = store
         self.scheduler = scheduler
         self.scene_checker = scene_checker
         self.usd_importer = usd_importer
+        self.clock = clock
         self._stopping = threading.Event()  # images being written give up when set
         # One image with a denoised layer at a time, from gathering its frame to its last row:
         # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
@@ -100,7 +102,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self._reactivating: set[str] = set()  # retries and continues under way
         self._changed = asyncio.Condition()
         self._tasks: list[asyncio.Task] = []
-        self._last_checkpoint = time.time()
+        self._last_checkpoint = clock()
         self.metrics = None  # a metrics.Metrics, set by the server
         # Writes that must reach the database but may not block merging: flushed by the
         # background task, retried with backoff while the database is away.

@@ -60,7 +60,11 @@ class WorkerSessions:
             old = self.sessions.pop(worker_id)
             old.outbox.put_nowait(None)
             self.scheduler.remove_worker(worker_id)
-        session = WorkerSession(worker_id, hostname[:200], max(1, cores), version[:50])
+        now = self.clock()
+        session = WorkerSession(
+            worker_id, hostname[:200], max(1, cores), version[:50],
+            connected_unix_s=now, last_heartbeat_unix_s=now,
+        )  # fmt: skip
         session.tags = tuple(tags or ())
         self.sessions[worker_id] = session
         self.scheduler.add_worker(
@@ -93,7 +97,7 @@ class WorkerSessions:
     async def worker_heartbeat(
         self, session: WorkerSession, samples_per_s: float, rays_per_s: float, busy: int
     ) -> None:
-        session.last_heartbeat_unix_s = time.time()
+        session.last_heartbeat_unix_s = self.clock()
         session.samples_per_s, session.rays_per_s, session.busy_threads = (
             samples_per_s,
             rays_per_s,

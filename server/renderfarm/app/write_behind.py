@@ -34,7 +34,7 @@ class WriteBehind:
         """Write pending events, finished jobs and due checkpoints. While the database is away
         this keeps everything in memory and tries again with exponential backoff (0.5 s
         doubling to 10 s); merging and serving workers go on meanwhile. True when all written."""
-        now = time.time()
+        now = self.clock()
         if not force and now < self._db_retry_at:
             return False
         try:
@@ -67,7 +67,7 @@ class WriteBehind:
             self._db_failures += 1
             self.database_ok = False
             delay = min(10.0, 0.5 * 2 ** (self._db_failures - 1))
-            self._db_retry_at = time.time() + delay
+            self._db_retry_at = self.clock() + delay
             log.warning("database write failed (%s); retrying in %.1f s", e, delay)
             return False
         if not self.database_ok:
@@ -98,12 +98,12 @@ class WriteBehind:
         Under very heavy merge load a checkpoint can take a while to serialise; the next one
         then waits at least 4x as long as this one took, so checkpoints never take more than
         about a fifth of the server's time (the interval setting is a target, not a promise)."""
-        started = time.time()
+        started = self.clock()
         for job in list(self.scheduler.jobs.values()):
             if job.state.finished and not force:
                 continue
             await self._persist_job(job.job_id, tiles=True)
-        took = time.time() - started
+        took = self.clock() - started
         self._last_checkpoint = started + max(0.0, 4 * took - self.settings.checkpoint_interval_s)
 
     async def _persist_job(self, job_id: str, tiles: bool) -> None:
