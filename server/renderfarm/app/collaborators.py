@@ -1,6 +1,7 @@
 """What FarmService depends on besides its settings, store and scheduler, as interfaces it is
-given (docs/architecture.md, "Composition"): app/composition.py builds the implementations a
-server runs with; tests give fakes.
+given (docs/architecture.md, "Composition"): the clock, the judge of uploaded scenes, the USD
+converter and job ownership. app/composition.py builds the implementations a server runs with;
+tests give fakes.
 """
 
 from __future__ import annotations
@@ -30,3 +31,58 @@ class UsdConverter(Protocol):
     def is_usd(self, data: bytes | None, filename: str = "") -> bool: ...
 
     async def convert(self, data: bytes, filename: str) -> UsdImport: ...
+
+
+class Ownership(Protocol):
+    """Which jobs this server may render and write. A farm of one server owns every job
+    (SoleOwner); a farm of several (#39) gives each job to one of them by a lease in the
+    database, whose epoch fences the writes of a server that lost it.
+
+    owns and epoch are read on the merge and lease paths and must not wait; acquire, release
+    and heartbeat may ask the database. FarmService acquires a job when it is submitted,
+    resumed at start, retried or continued, releases it once its final state is stored, and
+    calls heartbeat every background round."""
+
+    def owns(self, job_id: str) -> bool:
+        """Whether this server holds the job now: only then are its tasks leased to workers
+        and its checkpoints written."""
+        ...
+
+    def epoch(self, job_id: str) -> int:
+        """The fencing token of this server's hold on the job, for its writes to carry."""
+        ...
+
+    async def acquire(self, job_id: str) -> bool:
+        """Take the job; True when this server holds it now, False when another one does."""
+        ...
+
+    async def release(self, job_id: str) -> None:
+        """Let the job go. Must not raise for a database outage: the hold, no longer
+        renewed, lapses."""
+        ...
+
+    async def heartbeat(self) -> None:
+        """Renew this server's holds (called a few times a second; it may renew less often).
+        Must not raise for a database outage: a hold not renewed lapses, and owns says so."""
+        ...
+
+
+class SoleOwner:
+    """The farm of one server: it owns every job, at one epoch that never changes."""
+
+    EPOCH = 0
+
+    def owns(self, job_id: str) -> bool:
+        return True
+
+    def epoch(self, job_id: str) -> int:
+        return self.EPOCH
+
+    async def acquire(self, job_id: str) -> bool:
+        return True
+
+    async def release(self, job_id: str) -> None:
+        pass
+
+    async def heartbeat(self) -> None:
+        pass

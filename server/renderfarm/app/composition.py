@@ -16,7 +16,7 @@ from ..infra.scene_check import SceneChecker
 from ..infra.spill import TileCache
 from ..infra.usd_import import UsdImporter
 from ..infra.worker_binary import find_worker_binary
-from .collaborators import Clock, SceneInspector, UsdConverter
+from .collaborators import Clock, Ownership, SceneInspector, SoleOwner, UsdConverter
 from .jobs import FarmService
 
 
@@ -25,11 +25,13 @@ def build_farm_service(
     store: JobStore,
     *,
     clock: Clock = time.time,
+    ownership: Ownership | None = None,
     scene_checker: SceneInspector | None = None,
     usd_importer: UsdConverter | None = None,
 ) -> FarmService:
     """A FarmService over `store` with the default collaborators of `settings` (each one given
-    here is used instead of its default). The scheduler and the service share `clock`."""
+    here is used instead of its default). The scheduler and the service share `clock`; a
+    server alone owns every job (SoleOwner)."""
     # Tiles past the RAM budget wait in DATA_DIR/scratch (infra/spill.py), as do images being
     # written.
     cache = TileCache(settings.data_dir / "scratch", settings.tile_cache_mb * 2**20)
@@ -61,4 +63,5 @@ def build_farm_service(
         scene_checker=scene_checker,
         usd_importer=usd_importer,
         clock=clock,
+        ownership=SoleOwner() if ownership is None else ownership,
     )

@@ -192,6 +192,8 @@ class JobControl:
             checkpoint[index] = acc
             plans[index] = kept[0]
             bases[index] = [[b, *kept[1][b]] for b in sorted(kept[1])]
+        if not await self.ownership.acquire(job_id):  # another server brings it back
+            raise self._refused(job_id, old_state, "brought back")
         live = self.scheduler.jobs.get(job_id)
         if live is not None and not (live.state.finished and job_id not in self._pending_finishes):
             raise self._refused(job_id, self._reported_state(live), "brought back")
@@ -220,6 +222,7 @@ class JobControl:
             self.scheduler.jobs.pop(job_id, None)
             self.scheduler.cache.forget_job(job_id)
             self.scheduler.events = [e for e in self.scheduler.events if e.job_id != job_id]
+            await self.ownership.release(job_id)
             raise
         for tile in job.tiles:  # stored just now; the accumulators are those of the checkpoint
             tile.dirty = tile.aovs_dirty = False

@@ -44,7 +44,7 @@ from ..infra.store import JobRow
 from ..infra.usd_import import UsdImport
 from . import checkpoints
 from .auth import Caller, check_caller
-from .collaborators import Clock, SceneInspector, UsdConverter
+from .collaborators import Clock, Ownership, SceneInspector, UsdConverter
 from .history import History
 from .job_control import JobControl
 from .job_images import JobImages
@@ -74,17 +74,19 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         scene_checker: SceneInspector,
         usd_importer: UsdConverter,
         clock: Clock,
+        ownership: Ownership,
     ):
         """Its collaborators are given (app/composition.build_farm_service makes the server's):
         the scheduler with its tile cache, the judge of uploaded scenes (the workers' own
-        loader), the converter of USD uploads to glTF, and the clock (unix time), which the
-        scheduler reads too."""
+        loader), the converter of USD uploads to glTF, the clock (unix time), which the
+        scheduler reads too, and which jobs this server owns (collaborators.Ownership)."""
         self.settings = settings
         self.store = store
         self.scheduler = scheduler
         self.scene_checker = scene_checker
         self.usd_importer = usd_importer
         self.clock = clock
+        self.ownership = ownership
         self._stopping = threading.Event()  # images being written give up when set
         # One image with a denoised layer at a time, from gathering its frame to its last row:
         # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
@@ -151,6 +153,8 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
 
     async def _resume_unfinished(self) -> None:
         for row in await self.store.unfinished_jobs():
+            if not await self.ownership.acquire(row.id):
+                continue  # another server holds it and renders it
             settings = JobSettings(**row.settings)
             # A chunk of tiles at a time, each put under the tile cache at once: a large job
             # comes back within the cache's RAM (the rest goes to its spill file).
@@ -198,6 +202,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         while True:
             await asyncio.sleep(0.25)
             try:
+                await self.ownership.heartbeat()
                 self.scheduler.tick()
                 self._sample_history()
                 await self._after_change()
@@ -287,6 +292,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             state=state.value, require_tags=require_tags, variants=list(variants),
         )  # fmt: skip
         # Stored and committed: only now does the job exist for the scheduler and the caller.
+        await self.ownership.acquire(job_id)  # a new id: no other server can hold it
         self.owners[job_id] = caller.owner
         self.names[job_id] = name
         self.created[job_id] = row.created_at.timestamp()

@@ -57,6 +57,7 @@ class WriteBehind:
                     points = self.history.get(job_id, [])
                     await self.store.add_events([(job_id, "convergence", {"points": points})])
                     self._pending_finishes.pop(0)
+                    await self.ownership.release(job_id)  # its final state is stored
                     self._forget_later(job_id)
                     await self._announce_stored(job_id)
                     self._waiting_dirty = True  # a job waiting for this one may go now
