@@ -202,17 +202,22 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         while True:
             await asyncio.sleep(0.25)
             try:
-                await self.ownership.heartbeat()
-                self.scheduler.tick()
-                self._sample_history()
-                await self._after_change()
-                await self.flush()
-                if self._waiting_dirty:
-                    await self._check_waiting()
+                await self._round()
             except asyncio.CancelledError:
                 raise
             except Exception:  # keep serving; the next round retries
                 log.exception("background round failed")
+
+    async def _round(self) -> None:
+        """One background round: renew ownership, time limits and expired leases, the
+        convergence history, new leases and cancels, due writes, waiting jobs."""
+        await self.ownership.heartbeat()
+        self.scheduler.tick()
+        self._sample_history()
+        await self._after_change()
+        await self.flush()
+        if self._waiting_dirty:
+            await self._check_waiting()
 
     # ---------------------------------------------------------------------------- jobs
     async def submit(
@@ -599,7 +604,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 session.outbox.put_nowait(("cancel", cancels))
             if self.draining:
                 continue
-            for lease in self.scheduler.assign(worker_id):
+            for lease in self.scheduler.assign(worker_id, self.ownership.owns):
                 session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))
         events = self.scheduler.take_events()
         finished = [e.job_id for e in events if e.kind == "job_finished"]

@@ -103,6 +103,8 @@ class WriteBehind:
         for job in list(self.scheduler.jobs.values()):
             if job.state.finished and not force:
                 continue
+            if not self.ownership.owns(job.job_id):
+                continue  # its owner writes it (collaborators.Ownership)
             await self._persist_job(job.job_id, tiles=True)
         took = self.clock() - started
         self._last_checkpoint = started + max(0.0, 4 * took - self.settings.checkpoint_interval_s)

@@ -427,8 +427,9 @@ class Scheduler:
         self.expire_leases()
 
     # ------------------------------------------------------------------------- dispatch
-    def assign(self, worker_id: str) -> list[Lease]:
-        """Lease tasks to the worker up to its credit; returns the new leases."""
+    def assign(self, worker_id: str, owns: Callable[[str], bool] | None = None) -> list[Lease]:
+        """Lease tasks to the worker up to its credit; returns the new leases. owns(job_id):
+        whether this server may lease the job's tasks (None: every job)."""
         slot = self.workers.get(worker_id)
         if slot is None or self.record(worker_id).mode != "active":
             return []  # a draining or disabled worker takes no new task
@@ -436,15 +437,15 @@ class Scheduler:
             return []  # its last lease expired: nothing more until it is heard from
         new: list[Lease] = []
         while len(slot.leases) < slot.credit:
-            lease = self._next_task(slot)
+            lease = self._next_task(slot, owns)
             if lease is None:
                 break
             new.append(lease)
         return new
 
-    def _job_order(self, worker_id: str) -> list[JobRun]:
+    def _job_order(self, worker_id: str, owns: Callable[[str], bool] | None = None) -> list[JobRun]:
         """Priority first, then fair share (fewest leases out), then submission order; only
-        the jobs whose required tags the worker has."""
+        the jobs whose required tags the worker has (and that `owns` accepts, when given)."""
         slot = self.workers.get(worker_id)
         tags = slot.tags if slot is not None else frozenset()
         live = [
@@ -453,11 +454,14 @@ class Scheduler:
             if j.state in (JobState.QUEUED, JobState.RUNNING)  # not paused, waiting, finished
             and worker_id not in j.excluded_workers
             and j.require_tags <= tags
+            and (owns is None or owns(j.job_id))
         ]
         return sorted(live, key=lambda j: (-j.settings.priority, j.leased, j.created))
 
-    def _next_task(self, slot: WorkerSlot) -> Lease | None:
-        for job in self._job_order(slot.worker_id):
+    def _next_task(
+        self, slot: WorkerSlot, owns: Callable[[str], bool] | None = None
+    ) -> Lease | None:
+        for job in self._job_order(slot.worker_id, owns):
             pick = self._pick_tile_batch(job)
             if pick is not None:
                 tile, batch = pick
