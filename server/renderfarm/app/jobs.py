@@ -63,7 +63,54 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
     and the background round. Its other parts, by concern: job_control.py (pause, resume,
     update, retry, continue), job_images.py (images), job_movies.py (preview movies),
     worker_sessions.py (worker streams), write_behind.py (database writes and checkpoints),
-    history.py (convergence, stops)."""
+    history.py (convergence, stops).
+
+    Collaborators, given to __init__ (docs/architecture.md, "Composition") and read by every
+    part: settings, store, scheduler (its jobs, leases, workers and tile cache are the farm's
+    live state), clock, ownership; scene_checker and usd_importer by this module only.
+    `metrics` is set by the server after construction (api.metrics.Metrics reads the service)
+    and read by worker_sessions.py.
+
+    State set in __init__ (parts by module; * marks state shared between parts):
+
+        attribute                 written by                         read by
+        sessions *                worker_sessions                    jobs (_after_change, stop)
+        names, created, owners *  jobs (submit, resume, delete,      jobs (views)
+                                  forget), job_control (update,
+                                  bring back)
+        history *                 history (its points, sampled from  history, write_behind
+                                  jobs' round and _after_change),      (convergence event,
+                                  jobs (delete, forget), job_control   spool)
+                                  (bring back drops it)
+        _pending_events *         jobs (submit, _after_change),      write_behind (flush,
+                                  job_control (update)                 spool)
+        _pending_finishes *       jobs (_after_change), write_behind write_behind
+                                  (flush pops)                         (_reported_state),
+                                                                     job_control (bring back)
+        _changed * (Condition)    notified by jobs, write_behind     waited on by jobs (watch),
+                                                                     write_behind (stored)
+        _waiting_dirty *          jobs, job_control, write_behind    jobs (_round)
+        _generation *             job_control (bring back)           jobs (_forget_later)
+        draining *                write_behind (drain)               jobs (_after_change)
+        _stopping *               jobs (stop)                        job_images (writers stop)
+        db_errors *               write_behind, worker_sessions      (nothing: a count kept)
+        _reactivating             job_control                        job_control
+        _tasks, ready             jobs                               jobs; ready by the API
+        _last_checkpoint,         write_behind (jobs sets the first  write_behind
+          _checkpoint_rate,         checkpoint time)
+          _db_retry_at,
+          _db_failures,
+          database_ok
+        _denoise_turn (Lock)      job_images                         job_images
+        _movie_turn (Lock)        job_movies                         job_movies
+
+    The parts also call one another: each checks access with the facade's get, and a change
+    ends with the facade's _after_change; job_control uses _store_state, _reported_state and
+    _dependency_state; write_behind's flush calls _forget_later; the background round calls
+    history's and write_behind's methods. The write-behind state stays here rather than in a
+    class of its own: the queues are filled by three parts and flushing them needs the
+    scheduler, the history, _forget_later and _changed, so a separate class would take most of
+    the service with it."""
 
     def __init__(
         self,
