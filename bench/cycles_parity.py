@@ -15,6 +15,13 @@ the whole suite (--suite):
    channel (R, G, B): the mean ratio worker / Cycles with its standard error, the MSE of one
    render of each side against the reference, and the efficiency 1 / (MSE x seconds) of the
    worker over Cycles' at equal spp and at equal time (docs/parity.md has the statistics).
+An animated scene is compared at chosen frames (--frame F, repeatable or F,G,...; an animated
+parity scene without --frame: its ANIMATED frames): the worker renders `--time F / fps` (the
+farm's time of frame F, domain/frames.py frame_time), Cycles imports the scene with the same
+frame rate and renders frame F (scene.frame_set); each frame is compared as a scene of its own,
+NAME_fF. For every scene the harness also splits the error at the reference's edges
+(silhouettes, shadow edges) from the rest ("edges" in the JSON): a pose that differs shows as
+the worker's error on the edges above Cycles' (the noise), the rest alike.
 Writes OUT/NAME.json (every figure), OUT/NAME.png (worker | Cycles | ratio heat map) and, for
 more than one scene, OUT/parity.json (the suite also bench/results/cycles_parity.json); prints a
 table. Without a scene it runs the suite.
@@ -22,6 +29,7 @@ table. Without a scene it runs the suite.
     .venv/bin/python bench/cycles_parity.py rough_dielectric [--spp 64] [--reference-spp 4096]
     .venv/bin/python bench/cycles_parity.py --suite --out out/parity
     .venv/bin/python bench/cycles_parity.py my-scene.glb --region 10,10,40,30
+    .venv/bin/python bench/cycles_parity.py animated_shot --frame 1,24,48
 """
 
 from __future__ import annotations
@@ -37,7 +45,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from support.parity_scenes import SCENES
+from support.parity_scenes import ANIMATED, SCENES
 from support.results import write_results
 
 from renderfarm.domain.scenes.glb import build_glb, parse_json, split_glb
@@ -51,6 +59,9 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])
 # (relative to the image's mean) carry no ratio and are drawn black.
 HEAT_STOPS = 1.0
 HEAT_DARK = 1e-3
+# A pixel is on an edge of the reference (a silhouette, a shadow's edge) where its luminance
+# differs from one of its 8 neighbours' by more than this fraction of the image's mean.
+EDGE_CONTRAST = 0.25
 
 
 def blender_python() -> Path:
@@ -93,8 +104,11 @@ def rgb(path: Path) -> np.ndarray:
     return np.stack([ch[c] for c in CHANNELS], axis=-1).astype(np.float64)
 
 
-def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> dict:
-    """K renders at --spp, then the reference; their images and seconds."""
+def render_cycles(
+    scene: Path, env: dict | None, name: str, args, out: Path, frame: dict | None = None
+) -> dict:
+    """K renders at --spp, then the reference; their images and seconds. frame: None, or
+    {"frame": F, "fps": rate} of an animated scene."""
     scratch = out / "renders" / name
     scratch.mkdir(parents=True, exist_ok=True)
     renders = [{"spp": args.spp, "seed": k + 1, "path": str(scratch / f"cycles-{k + 1}.exr")}
@@ -106,7 +120,8 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
               "renders": [*renders, ref], "environment": env,
               "microfacet": args.cycles_microfacet, "textures": args.cycles_textures,
               "volume": args.cycles_volume,
-              "anisotropy": args.cycles_anisotropy}  # fmt: skip
+              "anisotropy": args.cycles_anisotropy,
+              "frame": frame and frame["frame"], "fps": frame and frame["fps"]}  # fmt: skip
     config_path = scratch / "cycles.json"
     config_path.write_text(json.dumps(config))
     result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
@@ -116,6 +131,7 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
         "seconds": result["seconds"][:-1],
         "reference": rgb(Path(ref["path"])),
         "reference_seconds": result["seconds"][-1],
+        "keys": result.get("keys"),
     }
 
 
@@ -123,10 +139,18 @@ WORKER_RATE = re.compile(r"in ([0-9.]+) s: ([0-9.]+) samples/s")
 
 
 def render_worker(
-    scene: Path, env: dict | None, name: str, spp: int, args, out: Path, tag: str
+    scene: Path,
+    env: dict | None,
+    name: str,
+    spp: int,
+    args,
+    out: Path,
+    tag: str,
+    frame: dict | None = None,
 ) -> dict:
     """K renders at spp with the standalone worker; their images and wall-clock seconds (the
-    process: scene load, BVH build, sampling, writing the EXR)."""
+    process: scene load, BVH build, sampling, writing the EXR). frame: None, or {"time": t}
+    of an animated scene (its glTF animations at t seconds)."""
     scratch = out / "renders" / name
     scratch.mkdir(parents=True, exist_ok=True)
     images, seconds, sampling, rates = [], [], [], []
@@ -140,6 +164,8 @@ def render_worker(
             cmd += ["--environment", env["path"], "--environment-intensity",
                     repr(env["intensity"]), "--environment-rotation-deg",
                     repr(env["rotation_deg"])]  # fmt: skip
+        if frame is not None:
+            cmd += ["--time", repr(frame["time"])]
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         seconds.append(time.perf_counter() - start)
@@ -191,6 +217,48 @@ def number(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def edge_mask(reference: np.ndarray) -> np.ndarray:
+    """The pixels on an edge of the reference: its luminance differs from one of its 8
+    neighbours' by more than EDGE_CONTRAST x the image's mean luminance."""
+    y = reference @ LUMA
+    h, w = y.shape
+    pad = np.pad(y, 1, mode="edge")
+    neighbours = np.stack([pad[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                           for dy in (-1, 0, 1) for dx in (-1, 0, 1)])  # fmt: skip
+    return np.abs(neighbours - y).max(axis=0) > EDGE_CONTRAST * max(float(y.mean()), 1e-12)
+
+
+def ratio_or_none(a: float, b: float) -> float | None:
+    return number(a / b) if b else None
+
+
+def edges(cyc: dict, wrk: dict, wrk_t: dict) -> dict:
+    """The luminance error against the reference split at the reference's edges: per side, the
+    MSE of one render on the edge pixels and off them, and the share of its squared error on
+    the edges. Where the two renderers see the same scene, the worker's edge MSE is Cycles'
+    (both noise); where a pose or the camera differs, the worker's excess is on the edges."""
+    ref = cyc["reference"] @ LUMA
+    mask = edge_mask(cyc["reference"])
+
+    def split(images):
+        err = np.mean([((im @ LUMA - ref) ** 2) for im in images], axis=0)
+        on = float(err[mask].mean()) if mask.any() else 0.0
+        off = float(err[~mask].mean()) if (~mask).any() else 0.0
+        return {"mse_edges": on, "mse_elsewhere": off,
+                "edge_share": float(err[mask].sum() / max(err.sum(), 1e-300))}  # fmt: skip
+
+    w, c = split(wrk["images"]), split(cyc["images"])
+    return {
+        "edge_contrast": EDGE_CONTRAST,
+        "edge_fraction": float(mask.mean()),
+        "worker": w,
+        "cycles": c,
+        "worker_equal_time": split(wrk_t["images"]),
+        "worker_over_cycles_edges": ratio_or_none(w["mse_edges"], c["mse_edges"]),
+        "worker_over_cycles_elsewhere": ratio_or_none(w["mse_elsewhere"], c["mse_elsewhere"]),
+    }  # fmt: skip
+
+
 def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
     t_c = float(np.mean(cyc["seconds"]))
     t_w = float(np.mean(wrk["seconds"]))
@@ -240,6 +308,7 @@ def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
         "worker_samples_per_s": wrk["samples_per_s"],
         "equal_time_worker_spp": wrk_t["spp"],
         "equal_time_worker_seconds": wrk_t["seconds"],
+        "edges": edges(cyc, wrk, wrk_t),
         "rows": rows,
     }
 
@@ -311,29 +380,80 @@ def without_dielectric_specular(scene: Path, out: Path) -> tuple[Path, list[str]
     return copy, changed
 
 
-def run_scene(name: str, scene: Path, env: dict | None, args, rects, out: Path) -> dict:
+# --coverage's flat colours, one per material in the file's order (then repeated).
+COVERAGE_COLOURS = ((0.25, 0.25, 0.25), (1.0, 0.1, 0.1), (0.1, 1.0, 0.1), (0.1, 0.1, 1.0),
+                    (1.0, 1.0, 0.1), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0))  # fmt: skip
+
+
+def coverage_copy(scene: Path, out: Path) -> Path:
+    """A copy of the GLB scene in which every material only emits a flat colour of its own
+    (COVERAGE_COLOURS; base colour black, no texture, specularFactor 0, no transmission,
+    coat or sheen, emissive strength 1) and no punctual light is left: each pixel is the
+    average colour of what the camera sees through it, in both renderers the same function of
+    the geometry alone. What differs in this copy is a pose, the camera or the pixel
+    sampling, not shading."""
+    json_chunk, blob = split_glb(scene.read_bytes(), scene.name)
+    document = parse_json(json_chunk, scene.name)
+    for i, material in enumerate(document.get("materials", [])):
+        colour = COVERAGE_COLOURS[i % len(COVERAGE_COLOURS)]
+        material.clear()
+        material.update({
+            "name": f"coverage{i}", "doubleSided": True, "emissiveFactor": list(colour),
+            "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 0.0, 1.0],
+                                     "metallicFactor": 0.0, "roughnessFactor": 1.0},
+            "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}},
+        })  # fmt: skip
+    for node in document.get("nodes", []):
+        node.get("extensions", {}).pop("KHR_lights_punctual", None)
+    document.get("extensions", {}).pop("KHR_lights_punctual", None)
+    used = [e for e in document.get("extensionsUsed", []) if e != "KHR_lights_punctual"]
+    document["extensionsUsed"] = sorted({*used, "KHR_materials_specular"})
+    if "extensionsRequired" in document:
+        document["extensionsRequired"] = [e for e in document["extensionsRequired"]
+                                          if e in document["extensionsUsed"]]  # fmt: skip
+    copy = out / "scenes" / f"{scene.stem}-coverage.glb"
+    copy.parent.mkdir(parents=True, exist_ok=True)
+    copy.write_bytes(build_glb(document, blob or b""))
+    return copy
+
+
+def run_scene(
+    name: str, scene: Path, env: dict | None, args, rects, out: Path, frame: dict | None = None
+) -> dict:
+    """One scene compared, or one frame of an animated scene (frame: {"frame", "fps", "time"};
+    its figures are named NAME_fF)."""
+    description = SCENES.get(name, "")
+    if frame is not None:
+        name = f"{name}_f{frame['frame']}"
+    if args.coverage:
+        name = f"{name}_coverage"
+        scene = coverage_copy(scene, out)
+        print(f"{name}: coverage: every material a flat emitter, no lights", flush=True)
     if args.lambert_dielectrics:
         scene, changed = without_dielectric_specular(scene, out)
         print(f"{name}: specularFactor 0 on {len(changed)} material(s): "
               f"{', '.join(changed) or 'none'}", flush=True)  # fmt: skip
     print(f"{name}: Cycles ({args.renders} x {args.spp} spp + reference "
           f"{args.reference_spp} spp)", flush=True)  # fmt: skip
-    cyc = render_cycles(scene, env, name, args, out)
+    cyc = render_cycles(scene, env, name, args, out, frame)
     print(f"{name}: worker ({args.renders} x {args.spp} spp)", flush=True)
-    wrk = render_worker(scene, env, name, args.spp, args, out, "equal-spp")
+    wrk = render_worker(scene, env, name, args.spp, args, out, "equal-spp", frame)
     spp_t = equal_time_spp(args.spp, float(np.mean(cyc["seconds"])), wrk)
     print(f"{name}: worker at equal time ({args.renders} x {spp_t} spp)", flush=True)
-    wrk_t = render_worker(scene, env, name, spp_t, args, out, "equal-time")
+    wrk_t = render_worker(scene, env, name, spp_t, args, out, "equal-time", frame)
     figures = {
         "scene": name,
         "file": str(scene),
         "environment": env,
-        "description": SCENES.get(name, ""),
+        "description": description,
+        "frame": frame,
+        "cycles_imported_keys": cyc["keys"],
         "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "reference_spp",
                                                    "renders", "threads", "max_depth", "grid",
                                                    "cycles_microfacet", "cycles_textures",
                                                    "cycles_volume", "cycles_anisotropy",
-                                                   "lambert_dielectrics")},
+                                                   "lambert_dielectrics", "coverage",
+                                                   "fps")},
         **analyse(cyc, wrk, wrk_t, args, rects),
     }  # fmt: skip
     (out / f"{name}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -361,6 +481,14 @@ def print_table(all_figures: list[dict]) -> None:
         print(f"{figures['scene']}: Cycles {np.mean(figures['cycles_seconds']):.3f} s/render, "
               f"worker {np.mean(figures['worker_seconds']):.3f} s/render at equal spp, "
               f"{figures['equal_time_worker_spp']} spp at equal time")  # fmt: skip
+    for figures in all_figures:
+        e = figures["edges"]
+        print(f"{figures['scene']}: luminance MSE on the reference's edges ("
+              f"{100 * e['edge_fraction']:.1f} % of the pixels) worker / Cycles "
+              f"{e['worker']['mse_edges']:.3g} / {e['cycles']['mse_edges']:.3g}, elsewhere "
+              f"{e['worker']['mse_elsewhere']:.3g} / {e['cycles']['mse_elsewhere']:.3g}; "
+              f"share on the edges {e['worker']['edge_share']:.2f} / "
+              f"{e['cycles']['edge_share']:.2f}")  # fmt: skip
 
 
 def furthest_block(figures: dict, tolerance: float = 0.005) -> dict | None:
@@ -399,6 +527,28 @@ def rectangle(text: str) -> tuple[int, int, int, int]:
     if not (0 <= x0 < x1 and 0 <= y0 < y1):
         raise argparse.ArgumentTypeError(f"--region {text!r}: need 0 <= X0 < X1, 0 <= Y0 < Y1")
     return x0, y0, x1, y1
+
+
+def frame_list(text: str) -> list[int]:
+    try:
+        frames = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--frame {text!r}: expected F or F,G,...") from None
+    return frames
+
+
+def frames_of(name: str, args, parity: bool) -> list[dict | None]:
+    """The frames to compare of scene name: [None] for a still, else one {"frame", "fps",
+    "time"} per frame (--frame, or an animated parity scene's own frames)."""
+    animated = ANIMATED.get(name) if parity else None
+    frames = [f for group in args.frame for f in group]
+    if not frames and animated is None:
+        return [None]
+    if parity and animated is None:
+        return [None]  # a still parity scene (in the suite): --frame is for the animated ones
+    fps = args.fps or (animated["fps"] if animated else 24.0)
+    frames = frames or list(animated["compare"])
+    return [{"frame": f, "fps": fps, "time": f / fps} for f in frames]
 
 
 def main() -> list[dict]:
@@ -481,6 +631,27 @@ def main() -> list[dict]:
         "across; docs/parity.md)",
     )
     parser.add_argument(
+        "--frame",
+        type=frame_list,
+        action="append",
+        default=[],
+        help="(animated scenes) compare frame F: the worker at --time F / fps, Cycles at "
+        "frame F of the imported animation; repeatable, or F,G,... (an animated parity scene "
+        "without it: its own frames)",
+    )
+    parser.add_argument(
+        "--fps",
+        type=float,
+        help="the frame rate of --frame (default: the parity scene's, else 24)",
+    )
+    parser.add_argument(
+        "--coverage",
+        action="store_true",
+        help="render a copy of each scene in which every material only emits a flat colour "
+        "of its own and no light is left: the images are what the camera sees where, so a "
+        "difference is geometry (a pose, the camera), not shading (docs/parity.md)",
+    )
+    parser.add_argument(
         "--lambert-dielectrics",
         action="store_true",
         help="render a copy of each scene in which every opaque dielectric has "
@@ -501,13 +672,18 @@ def main() -> list[dict]:
                          f"{args.width}x{args.height} image")  # fmt: skip
     if args.suite and args.scene:
         parser.error("give a scene or --suite, not both")
+    if args.scene in SCENES and args.scene not in ANIMATED and args.frame:
+        parser.error(f"--frame: {args.scene} is a still scene (animated: {', '.join(ANIMATED)})")
+    if args.fps is not None and not args.fps > 0:
+        parser.error("--fps must be > 0")
     # Without a scene (as `make bench` runs it): the suite.
     args.suite = args.suite or not args.scene
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     if args.environment is not None and not args.environment.is_file():
         parser.error(f"--environment {args.environment}: no such file")
-    if args.suite or args.scene in SCENES:
+    parity = args.suite or args.scene in SCENES
+    if parity:
         names = list(SCENES) if args.suite else [args.scene]
         scenes = generate_scenes(names, out)
     else:
@@ -516,9 +692,10 @@ def main() -> list[dict]:
             parser.error(f"scene {args.scene!r}: neither a file nor a parity scene "
                          f"({', '.join(SCENES)})")  # fmt: skip
         scenes = {path.stem: {"scene": str(path.resolve()), "environment": None}}
-        if args.lambert_dielectrics and path.read_bytes()[:4] != b"glTF":
-            parser.error(f"--lambert-dielectrics: {args.scene} is not a GLB; it rewrites a "
-                         "self-contained .glb (export the scene as one)")  # fmt: skip
+        rewrites = args.lambert_dielectrics or args.coverage
+        if rewrites and path.read_bytes()[:4] != b"glTF":
+            parser.error(f"--lambert-dielectrics, --coverage: {args.scene} is not a GLB; they "
+                         "rewrite a self-contained .glb (export the scene as one)")  # fmt: skip
     all_figures = []
     for name, files in scenes.items():
         # A parity scene's own map, else --environment; either with --environment-intensity
@@ -528,7 +705,10 @@ def main() -> list[dict]:
         if env_map:
             env = {"path": env_map, "intensity": args.environment_intensity,
                    "rotation_deg": args.environment_rotation_deg}  # fmt: skip
-        all_figures.append(run_scene(name, Path(files["scene"]), env, args, args.region, out))
+        for frame in frames_of(name, args, parity):
+            all_figures.append(
+                run_scene(name, Path(files["scene"]), env, args, args.region, out, frame)
+            )
     print_table(all_figures)
     print()
     print_summary(all_figures)
@@ -536,6 +716,7 @@ def main() -> list[dict]:
         (out / "parity.json").write_text(json.dumps(all_figures, indent=2) + "\n")
     if args.suite:
         name = "cycles_parity_lambert" if args.lambert_dielectrics else "cycles_parity"
+        name = name + "_coverage" if args.coverage else name
         write_results(name, {f["scene"]: f for f in all_figures})
     print(f"wrote {out}")
     return all_figures

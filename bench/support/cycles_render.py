@@ -6,14 +6,19 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
 "rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx", "textures": "as_imported"
-or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "gltf"}.
+or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "gltf",
+"frame": null or the frame F of an animated scene to render, "fps": its frame rate}.
 The scene is imported once with Blender's own glTF importer (lights in the COMPAT units the
 exporter of the parity scenes and the Blender add-on use), then rendered once per entry of
 "renders" into a 32-bit float linear EXR (R, G, B: the Combined pass of the render result, no
-view transform, no compositor). Prints
-`RESULT {"seconds": [...], "camera": NAME}`: the wall time of each bpy.ops.render.render
-(scene synchronisation, BVH build, sampling and writing the EXR; not Blender's start-up or the
-import).
+view transform, no compositor). With a frame, the imported animation is evaluated at frame F
+(scene.frame_set(F)): the importer puts a key at glTF time t on frame t x render.fps x
+render.fps_base (io_scene_gltf2's animation_node.py), which are set to "fps" before the import,
+so F is glTF time F / fps, the farm's time of frame F (domain/frames.py frame_time).
+Prints `RESULT {"seconds": [...], "camera": NAME, "keys": ...}`:
+the wall time of each bpy.ops.render.render (scene synchronisation, BVH build, sampling and
+writing the EXR; not Blender's start-up or the import) and, with a frame, where the imported
+keys lie (imported_keys()).
 """
 
 from __future__ import annotations
@@ -30,6 +35,11 @@ CONFIG = json.loads(open(sys.argv[1]).read())
 
 def import_scene() -> bpy.types.Scene:
     bpy.ops.wm.read_factory_settings(use_empty=True)
+    if CONFIG.get("fps"):
+        # The importer's frame of glTF time t is t x fps x fps_base (render.fps is whole).
+        render = bpy.context.scene.render
+        render.fps = max(1, round(CONFIG["fps"]))
+        render.fps_base = CONFIG["fps"] / render.fps
     result = bpy.ops.import_scene.gltf(
         filepath=CONFIG["scene"], export_import_convert_lighting_mode="COMPAT"
     )
@@ -75,6 +85,9 @@ def match_settings(scene: bpy.types.Scene) -> None:
     # pixels), which the harness's standard errors assume.
     c.sampling_pattern = "TABULATED_SOBOL"
     c.use_animated_seed = False
+    # One instant per image, as the farm renders a frame without --shutter (off by default in
+    # the factory settings; set so that an animated frame cannot be blurred).
+    scene.render.use_motion_blur = False
     scene.render.threads_mode = "FIXED"
     scene.render.threads = CONFIG["threads"]
     scene.render.resolution_x = CONFIG["width"]
@@ -237,9 +250,41 @@ def environment_world(env: dict) -> bpy.types.World:
     return world
 
 
+def fcurves():
+    """Every F-curve of the imported actions (Blender 5.0's layered actions: layers, strips,
+    channel bags)."""
+    for action in bpy.data.actions:
+        for layer in action.layers:
+            for strip in layer.strips:
+                for bag in strip.channelbags:
+                    yield from bag.fcurves
+
+
+def imported_keys(frame: int) -> dict:
+    """Where the importer put the animation's keys: the number of F-curves, the largest
+    distance of any key from a whole frame, and, over the F-curves that interpolate (not
+    CONSTANT, the exporter's STEP channels of what does not move), the largest distance from
+    frame to the curve's nearest key (0: every moving channel has a key on the frame)."""
+    curves, off_whole, off_frame = 0, 0.0, 0.0
+    for curve in fcurves():
+        keys = [k.co[0] for k in curve.keyframe_points]
+        if not keys:
+            continue
+        curves += 1
+        off_whole = max(off_whole, max(abs(k - round(k)) for k in keys))
+        if any(k.interpolation != "CONSTANT" for k in curve.keyframe_points):
+            off_frame = max(off_frame, min(abs(k - frame) for k in keys))
+    return {"fcurves": curves, "largest_offset_from_a_whole_frame": off_whole,
+            "largest_distance_of_frame_from_a_key": off_frame}  # fmt: skip
+
+
 def main() -> dict:
     scene = import_scene()
     match_settings(scene)
+    keys = None
+    if CONFIG.get("frame") is not None:
+        scene.frame_set(CONFIG["frame"])
+        keys = imported_keys(CONFIG["frame"])
     seconds = []
     for render in CONFIG["renders"]:
         scene.cycles.samples = render["spp"]
@@ -248,7 +293,7 @@ def main() -> dict:
         start = time.perf_counter()
         bpy.ops.render.render(write_still=True)
         seconds.append(time.perf_counter() - start)
-    return {"seconds": seconds, "camera": scene.camera.name}
+    return {"seconds": seconds, "camera": scene.camera.name, "keys": keys}
 
 
 if __name__ == "__main__":

@@ -13,6 +13,12 @@ environment map, which glTF cannot hold) and prints
 Imported without bpy (by bench/cycles_parity.py), it only lists the scenes: SCENES maps each
 name to a one-line description.
 
+`animated_shot` is animated (48 frames at 24 fps): it is exported with the Blender add-on's
+animation options (integrations/blender/renderfarm_blender/export.py ANIMATION_OPTIONS: the
+scene's timeline baked into one glTF animation, frame f at glTF time f / fps; see
+export_animated() for the one option left off), and the harness renders chosen frames of it
+(bench/cycles_parity.py --frame).
+
 Every scene but `environment` is lit by an emissive quad (the farm renders Blender's area
 lights not at all, see docs/blender.md, "Not rendered by the farm") and some by a point light
 of radius 0; the world is black.
@@ -69,7 +75,13 @@ SCENES = {
     "black anisotropic dielectric (KHR_materials_anisotropy)",
     "specular_color": "a black and a white dielectric sphere with an orange specular colour "
     "(KHR_materials_specular)",
+    "animated_shot": "48 frames at 24 fps, Bezier-eased: a camera dollying in under a Track To "
+    "constraint, a box turning under a turning parent, a cylinder skinned to two bones",
 }
+
+# The animated scenes: their frame rate, the first and last frame of their timeline, and the
+# frames bench/cycles_parity.py compares when not given --frame.
+ANIMATED = {"animated_shot": {"fps": 24.0, "frames": (1, 48), "compare": (1, 24, 48)}}
 
 # The extension each feature's scene exists for: build() checks that the exporter wrote it.
 REQUIRED_EXTENSIONS = {
@@ -536,6 +548,101 @@ def specular_color():
     camera()
 
 
+def keyed(obj, path: str, first, last, frames=(1, 48)) -> None:
+    """Keys obj.path at the shot's first and last frame (Blender's default Bezier easing)."""
+    setattr(obj, path, first)
+    obj.keyframe_insert(path, frame=frames[0])
+    setattr(obj, path, last)
+    obj.keyframe_insert(path, frame=frames[1])
+
+
+def animated_shot():
+    """The shot of tests/blender_pose_driver.py, lit and given materials: 48 frames at 24 fps
+    with Blender's default Bezier easing. A camera dollies in from (0, -8, 3) to (1, -4.5, 2),
+    aimed by a Track To constraint at an empty; a box turns (20 degrees about X, 180 about Z)
+    and slides under a parent empty turning 40 degrees about Z; a cylinder (12 sides, 7
+    segments) skinned to a two-bone armature whose upper bone bends 70 degrees about X and 30
+    about Z. A grey floor, an emissive quad above and a point light to the front left, so that
+    the moving silhouettes stand against the floor and cast shadows on it."""
+    scene = bpy.context.scene
+    first, last = ANIMATED["animated_shot"]["frames"]
+    scene.render.fps, scene.render.fps_base = int(ANIMATED["animated_shot"]["fps"]), 1.0
+    scene.frame_start, scene.frame_end = first, last
+    # Square, as the harness renders: the exported yfov is the camera's at this aspect.
+    scene.render.resolution_x = scene.render.resolution_y = 512
+    floor(size=12.0)
+
+    bpy.ops.object.empty_add(location=(0.5, 0, 0))
+    pivot = bpy.context.object
+    pivot.name = "Pivot"
+    keyed(pivot, "rotation_euler", (0, 0, 0), (0, 0, math.radians(40)))
+    box = add("cube", "Box", principled("White", (0.8, 0.8, 0.8), 0.5), (0, 0, 0.5), size=1.0)
+    box.parent = pivot
+    keyed(box, "rotation_euler", (0, 0, 0), (math.radians(20), 0, math.pi))
+    keyed(box, "location", (0, 0, 0.5), (1.5, 0.5, 0.8))
+
+    bpy.ops.object.armature_add(location=(-2, 0, 0))
+    rig = bpy.context.object
+    rig.name = "Rig"
+    bpy.ops.object.mode_set(mode="EDIT")
+    lower = rig.data.edit_bones[0]
+    lower.name = "Lower"
+    lower.head, lower.tail = (0, 0, 0), (0, 0, 1)
+    upper = rig.data.edit_bones.new("Upper")
+    upper.head, upper.tail = (0, 0, 1), (0, 0, 2)
+    upper.parent = lower
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.ops.mesh.primitive_cylinder_add(radius=0.2, depth=2, location=(-2, 0, 1), vertices=12)
+    tube = bpy.context.object
+    tube.name = "Tube"
+    tube.data.materials.append(principled("Orange", (0.8, 0.3, 0.08), 0.5))
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.subdivide(number_cuts=6)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.ops.object.select_all(action="DESELECT")
+    tube.select_set(True)
+    rig.select_set(True)
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.parent_set(type="ARMATURE_AUTO")
+    bend = rig.pose.bones["Upper"]
+    bend.rotation_mode = "XYZ"
+    keyed(bend, "rotation_euler", (0, 0, 0), (math.radians(70), 0, math.radians(30)))
+
+    quad_light((0.0, 0.0, 4.0), size=2.0, strength=6.0)
+    point_light((-3.0, -3.0, 4.0), 400.0)
+    bpy.ops.object.empty_add(location=(0, 0, 0.7))
+    aim = bpy.context.object
+    aim.name = "Aim"
+    cam = camera((0, -8, 3), (0, 0, 0.7), lens=28.0)
+    track = cam.constraints.new("TRACK_TO")
+    track.target = aim
+    keyed(cam, "location", (0, -8, 3), (1, -4.5, 2))
+
+
+def export_animated(path: str) -> None:
+    """The scene exported as the Blender add-on exports an animation (export_animation in
+    integrations/blender/renderfarm_blender/export.py, imported from the source tree): its
+    ANIMATION_OPTIONS (the timeline baked at every frame in SCENE mode, frame f at f / fps),
+    the active camera kept; but without KHR_animation_pointer channels. Blender 5.0's exporter
+    fails with them on a mesh that has a modifier and a material (here the skinned
+    cylinder): with export_apply it exports the evaluated mesh's copy of the material, then
+    looks for that copy among bpy.data.materials by id() when it samples material pointers,
+    and does not find it (IndexError in scene_animation.gather_scene_animations). Nothing of
+    this scene's data (camera lens, lights, materials) is animated, so no channel is lost."""
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "integrations",
+                                    "blender"))  # fmt: skip
+    from renderfarm_blender import export
+
+    scene = bpy.context.scene
+    options = {**export.ANIMATION_OPTIONS, "export_pointer_animation": False}
+    result = bpy.ops.export_scene.gltf(filepath=path, **options)
+    assert result == {"FINISHED"}, result
+    with open(path, "rb") as f:
+        glb = export.keep_only_camera(f.read(), scene.camera.name)
+    with open(path, "wb") as f:
+        f.write(glb)
+
+
 def glb_document(path: str) -> dict:
     """The JSON chunk of a GLB file."""
     with open(path, "rb") as f:
@@ -560,11 +667,17 @@ def save_hdr(rgb: np.ndarray, path: str) -> None:
 
 
 def build(name: str, path: str) -> dict:
-    """Export scene name to path; {"scene": path, "environment": its map's path or None}."""
+    """Export scene name to path; {"scene": path, "environment": its map's path or None}.
+    An animated scene is exported with its animation, as the add-on exports one."""
     empty_scene()
     env = globals()[name]()
-    result = bpy.ops.export_scene.gltf(filepath=path, **EXPORT_OPTIONS)
-    assert result == {"FINISHED"}, result
+    if name in ANIMATED:
+        export_animated(path)
+        if not glb_document(path).get("animations"):
+            raise SystemExit(f"{name}: the add-on's export wrote no animation")
+    else:
+        result = bpy.ops.export_scene.gltf(filepath=path, **EXPORT_OPTIONS)
+        assert result == {"FINISHED"}, result
     if name in REQUIRED_EXTENSIONS:
         extension = REQUIRED_EXTENSIONS[name]
         document = glb_document(path)
