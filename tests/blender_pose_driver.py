@@ -3,7 +3,7 @@ tests/test_blender_pose.py: builds an animated shot, exports it with the add-on'
 (renderfarm_blender/export.py, imported from the source tree: no farm, no installation), and
 prints, as one JSON line `RESULT {...}`, where Blender puts everything at each frame.
 
-    python tests/blender_pose_driver.py OUT_DIR
+    python tests/blender_pose_driver.py OUT_DIR [--fallback]
 
 The shot, 48 frames at 24 fps with Blender's default Bezier easing: a camera dollying in, aimed
 by a Track To constraint at an empty; a box turning and sliding under a parent empty that
@@ -22,7 +22,7 @@ import bpy
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "integrations", "blender"))
 from renderfarm_blender import export  # noqa: E402
 
-OUT = sys.argv[1]
+OUT = sys.argv[1]  # then --fallback: the scene the exporter fails on (fallback())
 FRAMES = (1, 12, 24, 36, 48)
 
 
@@ -110,5 +110,28 @@ def main() -> dict:
     return {"glb": path, "fps": export.exporter_fps(scene), "frames": frames}
 
 
+def fallback() -> dict:
+    """A subdivided cube with a material, moving: Blender 5.0's exporter fails on its material
+    animation, and the add-on exports it again without KHR_animation_pointer, saying so."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 48
+    bpy.ops.mesh.primitive_cube_add()
+    cube = bpy.context.object
+    cube.modifiers.new("Subdivision", "SUBSURF")
+    material = bpy.data.materials.new("Paint")
+    material.use_nodes = True
+    cube.data.materials.append(material)
+    keyed(cube, "location", (0, 0, 0), (1, 0, 0))
+    bpy.ops.object.camera_add(location=(0, -6, 2), rotation=(1.2, 0, 0))
+    scene.camera = bpy.context.object
+    glb, notes = export.export_animation_reporting(scene)
+    path = os.path.join(OUT, "fallback.glb")
+    with open(path, "wb") as f:
+        f.write(glb)
+    return {"glb": path, "notes": notes}
+
+
 if __name__ == "__main__":
-    print("RESULT " + json.dumps(main()), flush=True)
+    result = fallback() if "--fallback" in sys.argv else main()
+    print("RESULT " + json.dumps(result), flush=True)

@@ -388,4 +388,25 @@ def export_animation(scene) -> bytes:
     """The scene with its timeline (frame_start..frame_end) baked into one glTF animation, as
     .glb bytes, through the active camera: frame f of the scene at glTF time
     f / exporter_fps(scene). The current frame is left as it was."""
-    return _export(scene, ANIMATION_OPTIONS, None)
+    return export_animation_reporting(scene)[0]
+
+
+# Blender 5.0's exporter fails (an IndexError in gather_scene_animations) when it writes the
+# material animation of a scene in which a mesh has both a modifier and a material: a rigged or
+# subdivided character. Such a scene is exported again without KHR_animation_pointer, and the
+# artist is told what that leaves out.
+POINTER_FALLBACK_NOTE = (
+    "Blender's glTF exporter cannot write this scene's material, light and camera animation "
+    "({error}); exported without it: every frame has those settings as at frame 0"
+)
+
+
+def export_animation_reporting(scene) -> tuple[bytes, list[str]]:
+    """export_animation, and what the export had to leave out (empty: nothing)."""
+    try:
+        return _export(scene, ANIMATION_OPTIONS, None), []
+    except ExportError as first:
+        plain = {**ANIMATION_OPTIONS, "export_pointer_animation": False}
+        glb = _export(scene, plain, None)  # its own failure, if any, is the one to report
+        lines = [line.strip() for line in str(first).splitlines() if line.strip()]
+        return glb, [POINTER_FALLBACK_NOTE.format(error=lines[-1] if lines else "no reason")]

@@ -156,11 +156,17 @@ class RENDERFARM_OT_submit(bpy.types.Operator):
             first = scene.frame_current
             what = described = f"frame {first}"
         name = rf.job_name.strip() or _default_job_name(scene, what)
+        notes: list[str] = []
         try:
-            glb = export.export_animation(scene) if sequence else export.export_frame(scene, first)
+            if sequence:
+                glb, notes = export.export_animation_reporting(scene)
+            else:
+                glb = export.export_frame(scene, first)
             job = client.submit(glb, f"{bpy.path.clean_name(scene.name)}.glb", settings, name)
         except (export.ExportError, FarmError) as e:
             return _fail(self, rf, e)
+        for note in notes:
+            self.report({"WARNING"}, f"Render farm: {note}")
         entry = rf.jobs.add()
         entry.name = str(job.get("name") or name)
         entry.job_id = str(job["id"])
