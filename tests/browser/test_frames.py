@@ -110,17 +110,21 @@ def brightness_column(pixels: list[int]) -> float:
     return total / weight
 
 
-def wait_viewer_frame(page: Page, frame: int, layer: str = "rgb") -> None:
-    """Waits until the viewer shows `frame` of the animation in `layer`."""
+def wait_viewer_frame(page: Page, frame: int, layer: str = "rgb", finished: bool = True) -> None:
+    """Waits until the viewer shows `frame` of the animation in `layer`; `finished`: its final
+    image (the frame done), not a version loaded while it was rendering, which the viewer may
+    still show for a moment after the frame is done on a busy machine."""
     page.wait_for_function(
-        """([frame, layer]) => {
+        """([frame, layer, finished]) => {
           const v = document.querySelector('.viewer');
           const src = document.querySelector('canvas.preview')?.dataset.src || '';
+          const caption = document.querySelector('.viewer-caption')?.textContent || '';
           return v?.dataset.frame === String(frame)
             && (v?.dataset.loaded || '').startsWith(layer + ':')
-            && src.includes(`/frames/${frame}/image.png?layer=${layer}&`);
+            && src.includes(`/frames/${frame}/image.png?layer=${layer}&`)
+            && (!finished || caption.endsWith(', finished'));
         }""",
-        arg=[frame, layer],
+        arg=[frame, layer, finished],
     )
 
 
@@ -152,7 +156,7 @@ def test_the_frame_strip_follows_an_animation_frame_by_frame(
         expect(page.locator('[data-field="movie"]')).to_be_hidden()  # no frame finished yet
         # The first frame is shown by default (its image is all black while queued).
         assert pressed_frame(page) == "1"
-        wait_viewer_frame(page, 1)
+        wait_viewer_frame(page, 1, finished=False)
         screenshot(page, "frames-queued")
     finally:
         for worker_id in ids:
