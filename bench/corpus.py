@@ -67,7 +67,6 @@ RULES: list[tuple[str, str, str]] = [
     ("dropped", r"extension '([^']+)' is not supported; using 'source'", "{0}"),
     ("dropped", r"'([^']+)' is not translation, rotation, scale or weights", "animation path {0}"),
     ("dropped", r"has no mesh with morph targets; weights channel ignored", "weights channel"),
-    ("dropped", r"is points or lines, not triangles", "points/lines primitives"),
     ("dropped", r"missing image; texture ignored", "texture without image"),
     ("dropped", r"could not be loaded \(uri", "texture image unreadable"),
     ("dropped", r"unknown type '([^']+)'; light ignored", "light type {0}"),

@@ -73,6 +73,10 @@ std::string variant_key(const std::string& variant) {
   return variant.empty() ? std::string() : " variant=" + variant;
 }
 
+// The part of a scene's cache key that names the image height its points and lines are one
+// pixel wide at (LoadOptions::image_height).
+std::string height_key(uint32_t height) { return " height=" + std::to_string(height); }
+
 // The task's settings. The server sends every field set (server/renderfarm/domain/jobspec.py holds
 // their defaults, in one place): an unset or unknown one fails the task rather than taking a
 // default of the worker's own. *animation: the glTF animations an animated task's pose uses
@@ -150,13 +154,14 @@ class Worker {
   void run_task(Session& s, const pb::Task& task, const RunningTask& running);
   // A still task's scene with the materials of KHR_materials_variants' `variant` ("" for the
   // default ones).
-  std::shared_ptr<const Scene> scene_for(const std::string& sha256, const std::string& variant);
+  std::shared_ptr<const Scene> scene_for(const std::string& sha256, const std::string& variant,
+                                         uint32_t height);
   // An animated task's scene: sha256 posed at time_s by the animations `animation` selects,
   // moving during the shutter if it is open (motion blur).
   std::shared_ptr<const Scene> posed_scene_for(const std::string& sha256,
                                                const std::string& animation, double time_s,
                                                const Shutter& shutter,
-                                               const std::string& variant);
+                                               const std::string& variant, uint32_t height);
   // load(path, fetched) on the cached file of sha256, fetched first if there is none; a cached
   // file whose load fails with a SceneError and whose content no longer matches its name is
   // fetched again and loaded once more.
@@ -379,8 +384,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   const std::string& variant = task.settings().variant();
   try {
     scene = task.animated() ? posed_scene_for(task.scene_sha256(), animation, task.time_s(),
-                                              shutter, variant)
-                            : scene_for(task.scene_sha256(), variant);
+                                              shutter, variant, settings.height)
+                            : scene_for(task.scene_sha256(), variant, settings.height);
   } catch (const TaskError& e) {
     return fail(e);
   } catch (const AnimationSelectionError& e) {
@@ -495,12 +500,13 @@ T Worker::load_scene_file(const std::string& sha256,
 }
 
 std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256,
-                                               const std::string& variant) {
+                                               const std::string& variant, uint32_t height) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
   const std::string key = sha256 + variant_key(variant);
-  return scenes_.get(key, [&]() -> std::shared_ptr<const Scene> {
+  return scenes_.get(key + height_key(height), [&]() -> std::shared_ptr<const Scene> {
     LoadOptions load = farm_load_options(sha256);
     load.variant = variant;
+    load.image_height = height;
     return load_scene_file<std::shared_ptr<const Scene>>(
         sha256, [&](const std::string& path) -> std::shared_ptr<const Scene> {
           std::vector<std::string> warnings;
@@ -519,7 +525,8 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256,
 std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
                                                      const std::string& animation_selection,
                                                      double time_s, const Shutter& shutter,
-                                                     const std::string& variant) {
+                                                     const std::string& variant,
+                                                     uint32_t height) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
   // The variant is part of the selection: an AnimatedScene (and its poses) per variant.
   const std::string animation = animation_selection + variant_key(variant);
@@ -528,7 +535,8 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
   char time_key[128];
   std::snprintf(time_key, sizeof time_key, "%a [%a %a]", time_s,
                 shutter.is_open() ? shutter.open_s : 0.0, shutter.is_open() ? shutter.close_s : 0.0);
-  const std::string pose_key = std::string(time_key) + " " + animation;
+  // The height sizes points and lines: a scene (and its poses) per height.
+  const std::string pose_key = std::string(time_key) + " " + animation + height_key(height);
   const SceneCache::AnimatedLoader prepare = [&]() -> std::shared_ptr<const AnimatedScene> {
     const LoadOptions load = farm_load_options(sha256);
     return load_scene_file<std::shared_ptr<const AnimatedScene>>(
@@ -539,6 +547,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
           split.animations =
               resolve_animation_selection(animation_selection, gltf_animation_names(*document));
           split.variant = variant;
+          split.image_height = height;
           auto animated = std::make_shared<const AnimatedScene>(document, split, &warnings);
           for (const auto& w : warnings) log_line("warning: " + w);
           remember_warnings(sha256 + " " + animation, warnings);
@@ -575,7 +584,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
     }
     return scene;
   };
-  return scenes_.get_posed(sha256, animation, pose_key, prepare, pose);
+  return scenes_.get_posed(sha256, animation + height_key(height), pose_key, prepare, pose);
 }
 
 std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSettings& settings) {

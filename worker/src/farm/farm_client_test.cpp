@@ -27,6 +27,13 @@ namespace fs = std::filesystem;
 namespace rf {
 namespace {
 
+// Loads at the tasks' image height, which sets the width of the test scene's lines.
+LoadOptions at_height(uint32_t height) {
+  LoadOptions load;
+  load.image_height = height;
+  return load;
+}
+
 struct FakeFarm {
   std::mutex mutex;
   std::condition_variable cv;
@@ -268,7 +275,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   EXPECT_TRUE(fs::exists(cache / (farm.env_sha + ".hdr")));
   for (const auto& m : farm.received) {
     if (!m.has_result() || m.result().task_id() != "env1") continue;
-    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr));
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr, at_height(12)));
     RenderSettings settings;
     settings.width = 16;
     settings.height = 12;
@@ -300,7 +307,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_EQ(r.batch_index(), 2u);
     EXPECT_EQ(r.sample_start(), 8u);
     EXPECT_EQ(r.sample_count(), 8u);
-    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr));
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr, at_height(12)));
     RenderSettings settings;
     settings.width = 16;
     settings.height = 12;
@@ -420,6 +427,7 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
     LoadOptions load;
     load.time = time;
     load.animations = std::move(animations);
+    load.image_height = 12;  // the tasks' (the width of the scene's lines)
     const AnimatedScene animated(parse_gltf(scene_path, nullptr, load), load);
     const std::shared_ptr<const Scene> posed = animated.pose(time, nullptr, shutter);
     const Scene& scene = *posed;
@@ -452,7 +460,9 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
       << bad->failed().error();
   // A still keeps the job's seed and the scene as stored (no animation).
   {
-    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "animated.gltf", nullptr));
+    LoadOptions load;
+    load.image_height = 12;
+    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "animated.gltf", nullptr, load));
     RenderSettings settings;
     settings.width = 16;
     settings.height = 12;

@@ -283,6 +283,7 @@ int cmd_render(const std::vector<std::string>& arguments) {
 
   // An animated scene is split once into its static part and what moves (animated_scene.h);
   // each time is a pose of it, as on a farm worker.
+  load.image_height = settings.height;  // points and lines are one pixel wide
   std::vector<std::string> warnings;
   std::shared_ptr<const rf::Scene> scene;
   std::unique_ptr<rf::AnimatedScene> animated;

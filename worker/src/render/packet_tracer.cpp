@@ -83,7 +83,13 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   if (hit_material.unlit) {
     // KHR_materials_unlit: the base colour as radiance on the faces that would emit, and
     // nothing reflected (the path ends). Not a light of the light set: no MIS weight.
-    if (cos_emit > 0.f) result.radiance += p.beta * sp.albedo;
+    if (cos_emit > 0.f) {
+      result.radiance += p.beta * sp.albedo;
+      // Unlit points and lines add their emission (glTF "Point and Line Materials").
+      if (hit_material.unlit_adds_emission)
+        result.radiance +=
+            p.beta * scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
+    }
     return;
   }
   if (cos_emit > 0.f && hit_material.is_emissive()) {

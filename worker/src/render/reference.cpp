@@ -118,7 +118,11 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     const Material& hit_material = scene.materials()[hit.material];
     const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
     if (hit_material.unlit) {  // as in the packet tracer
-      if (cos_emit > 0.f) result.radiance += p.beta * sp.albedo;
+      if (cos_emit > 0.f) {
+        result.radiance += p.beta * sp.albedo;
+        if (hit_material.unlit_adds_emission)
+          result.radiance += p.beta * scene.emission(hit.slot, hit.prim, hit.b1, hit.b2, cos_emit);
+      }
       return result;
     }
     if (cos_emit > 0.f && hit_material.is_emissive()) {

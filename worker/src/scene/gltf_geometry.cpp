@@ -501,6 +501,75 @@ uint32_t Loader::corner(int mode, const std::vector<uint32_t>& indices, size_t t
   return indices[3 * t + size_t(k)];
 }
 
+// The vertex attributes of a primitive that the renderer reads, checked (TANGENT only for
+// rigid meshes: a deformed one takes its tangents from the texture coordinates).
+Loader::VertexAttributes Loader::read_attributes(const tinygltf::Primitive& prim,
+                                                 const std::string& where, bool deformed) {
+  const auto pos_it = prim.attributes.find("POSITION");
+  if (pos_it == prim.attributes.end()) fail(where + ": missing required attribute POSITION");
+  VertexAttributes attrs;
+  attrs.position = check_accessor(pos_it->second, Attribute::Position, where + " POSITION");
+  const View& pos = attrs.position;
+  for (const auto& [name, accessor] : prim.attributes) {
+    if (name == "POSITION" || !reads_attribute(name)) continue;
+    if (name == "TANGENT") {
+      if (deformed) continue;
+      attrs.tangent = check_accessor(accessor, Attribute::Tangent, where + " TANGENT");
+      if (attrs.tangent->count != pos.count) fail(where + ": TANGENT and POSITION counts differ");
+      continue;
+    }
+    uint32_t array = 0;
+    const bool texcoord = uv_array(name, &array);
+    const Attribute kind = name == "NORMAL"    ? Attribute::Normal
+                           : name == "COLOR_0" ? Attribute::Color
+                                               : Attribute::Texcoord;
+    const View view = check_accessor(accessor, kind, where + " " + name);
+    if (view.count != pos.count) fail(where + ": " + name + " and POSITION counts differ");
+    if (kind == Attribute::Normal) attrs.normal = view;
+    if (kind == Attribute::Color) attrs.color = view;
+    if (texcoord) attrs.uv.push_back({array, view});
+  }
+  std::sort(attrs.uv.begin(), attrs.uv.end(),
+            [](const auto& a, const auto& b) { return a.first < b.first; });
+  return attrs;
+}
+
+// The material of primitive pi of a mesh: its own, the selected variant's, or the default.
+uint32_t Loader::primitive_material(const tinygltf::Primitive& prim, size_t mesh_index,
+                                    size_t pi, const std::string& where) const {
+  uint32_t material = default_material_;
+  if (prim.material >= 0) {
+    if (prim.material >= int(model_.materials.size()))
+      fail(where + ": 'material' refers to missing material " + std::to_string(prim.material));
+    material = uint32_t(prim.material);
+  }
+  const int mapped = variant_material(prim, mesh_index, pi);
+  if (mapped >= 0) material = uint32_t(mapped);
+  return material;
+}
+
+// A primitive's vertex indices (0, 1, 2, ... without an indices accessor), each checked
+// against the vertex count.
+std::vector<uint32_t> Loader::read_indices(const tinygltf::Primitive& prim, size_t vertices,
+                                           const std::string& where) {
+  std::vector<uint32_t> indices;
+  if (prim.indices >= 0) {
+    const View idx = check_accessor(prim.indices, Attribute::Indices, where + " indices");
+    indices.resize(idx.count);
+    for (size_t i = 0; i < idx.count; ++i) {
+      const double v = idx.raw(i, 0);
+      if (v >= double(vertices))
+        fail(where + ": index " + std::to_string(uint64_t(v)) + " out of range (" +
+             std::to_string(vertices) + " vertices)");
+      indices[i] = uint32_t(v);
+    }
+  } else {
+    indices.resize(vertices);
+    for (size_t i = 0; i < vertices; ++i) indices[i] = uint32_t(i);
+  }
+  return indices;
+}
+
 // deform: the node's skin and morph target weights (null: none; world places the mesh).
 void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
                       const Deformation* deform) {
@@ -518,40 +587,9 @@ void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
     const tinygltf::Primitive& prim = mesh.primitives[pi];
     const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
                               std::to_string(pi) + "]" + named(mesh.name);
-    if (!is_triangles(prim.mode)) {
-      warn(where + ": mode " + std::to_string(prim.mode) +
-           " is points or lines, not triangles (4, 5 or 6); primitive skipped");
-      continue;
-    }
-    const auto pos_it = prim.attributes.find("POSITION");
-    if (pos_it == prim.attributes.end()) fail(where + ": missing required attribute POSITION");
-    VertexAttributes attrs;
-    attrs.position = check_accessor(pos_it->second, Attribute::Position, where + " POSITION");
+    if (!is_triangles(prim.mode)) continue;  // points and lines: add_thin
+    const VertexAttributes attrs = read_attributes(prim, where, deform != nullptr);
     const View& pos = attrs.position;
-    for (const auto& [name, accessor] : prim.attributes) {
-      if (name == "POSITION" || !reads_attribute(name)) continue;
-      if (name == "TANGENT") {
-        // Read for rigid meshes; a skinned or morphed one takes its tangents from the
-        // texture coordinates (warned below).
-        if (deform) continue;
-        attrs.tangent = check_accessor(accessor, Attribute::Tangent, where + " TANGENT");
-        if (attrs.tangent->count != pos.count)
-          fail(where + ": TANGENT and POSITION counts differ");
-        continue;
-      }
-      uint32_t array = 0;
-      const bool texcoord = uv_array(name, &array);
-      const Attribute kind = name == "NORMAL"    ? Attribute::Normal
-                             : name == "COLOR_0" ? Attribute::Color
-                                                 : Attribute::Texcoord;
-      const View view = check_accessor(accessor, kind, where + " " + name);
-      if (view.count != pos.count) fail(where + ": " + name + " and POSITION counts differ");
-      if (kind == Attribute::Normal) attrs.normal = view;
-      if (kind == Attribute::Color) attrs.color = view;
-      if (texcoord) attrs.uv.push_back({array, view});
-    }
-    std::sort(attrs.uv.begin(), attrs.uv.end(),
-              [](const auto& a, const auto& b) { return a.first < b.first; });
     const bool has_normals = attrs.normal.has_value();
     if (deform && prim.attributes.count("TANGENT") && !warned_tangent_ &&
         prim.material >= 0 && prim.material < int(model_.materials.size()) &&
@@ -563,30 +601,8 @@ void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
     bool has_uv[2] = {false, false};
     for (const auto& uv : attrs.uv)
       if (uv.first < 2) has_uv[uv.first] = true;
-    uint32_t material = default_material_;
-    if (prim.material >= 0) {
-      if (prim.material >= int(model_.materials.size()))
-        fail(where + ": 'material' refers to missing material " +
-             std::to_string(prim.material));
-      material = uint32_t(prim.material);
-    }
-    const int mapped = variant_material(prim, mesh_index, pi);
-    if (mapped >= 0) material = uint32_t(mapped);
-    std::vector<uint32_t> indices;
-    if (prim.indices >= 0) {
-      const View idx = check_accessor(prim.indices, Attribute::Indices, where + " indices");
-      indices.resize(idx.count);
-      for (size_t i = 0; i < idx.count; ++i) {
-        const double v = idx.raw(i, 0);
-        if (v >= double(pos.count))
-          fail(where + ": index " + std::to_string(uint64_t(v)) + " out of range (" +
-               std::to_string(pos.count) + " vertices)");
-        indices[i] = uint32_t(v);
-      }
-    } else {
-      indices.resize(pos.count);
-      for (size_t i = 0; i < pos.count; ++i) indices[i] = uint32_t(i);
-    }
+    const uint32_t material = primitive_material(prim, mesh_index, pi, where);
+    const std::vector<uint32_t> indices = read_indices(prim, pos.count, where);
     if (prim.mode != TINYGLTF_MODE_TRIANGLE_STRIP && prim.mode != TINYGLTF_MODE_TRIANGLE_FAN &&
         indices.size() % 3 != 0)
       warn(where + ": index count is not a multiple of 3; trailing indices ignored");
@@ -626,6 +642,124 @@ void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
       out->flags.push_back(uint8_t(base_flags | (normals_ok ? TriangleMesh::kHasNormals : 0)));
     }
     // Degenerate triangles are dropped by Scene.
+  }
+}
+
+// glTF 2.0, "Point and Line Materials": points and lines without NORMAL are unlit (base colour
+// plus emission), with NORMAL but no TANGENT lit without normal textures, with both lit as
+// triangles are. Either face of a line or point faces the camera, so each is double-sided.
+// Gives every material a points-and-lines primitive uses, per kind, a variant of its own
+// (appended to desc->materials, in mesh and primitive order so that a static part and its
+// poses number them alike; animated with the material they copy).
+void Loader::derive_thin_materials(SceneDescription* desc) {
+  for (size_t mi = 0; mi < model_.meshes.size(); ++mi) {
+    const tinygltf::Mesh& mesh = model_.meshes[mi];
+    for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
+      const tinygltf::Primitive& prim = mesh.primitives[pi];
+      if (is_triangles(prim.mode) || prim.mode < 0 || prim.mode > TINYGLTF_MODE_LINE_STRIP)
+        continue;
+      const std::string where = "meshes[" + std::to_string(mi) + "].primitives[" +
+                                std::to_string(pi) + "]" + named(mesh.name);
+      has_thin_ = true;
+      const uint32_t base = primitive_material(prim, mi, pi, where);
+      const ThinKind kind = !prim.attributes.count("NORMAL")   ? ThinKind::Unlit
+                            : !prim.attributes.count("TANGENT") ? ThinKind::LitFlat
+                                                                : ThinKind::Lit;
+      const auto [it, fresh] = thin_materials_.try_emplace({base, kind}, 0);
+      if (!fresh) continue;
+      Material m = desc->materials[base];
+      m.double_sided = true;
+      if (kind == ThinKind::Unlit) {
+        m.unlit = true;
+        m.unlit_adds_emission = true;
+      } else if (kind == ThinKind::LitFlat) {
+        m.normal_tex = TextureRef{};
+        m.clearcoat_normal_tex = TextureRef{};
+      }
+      it->second = uint32_t(desc->materials.size());
+      desc->materials.push_back(m);
+      if (animated_materials_.count(int(base)))
+        desc->animated_materials.push_back(it->second);
+    }
+  }
+}
+
+// The points and lines of a mesh (modes 0-3) placed by `world` (deform: the node's skin and
+// morph target weights), appended to *out as elements: a point per index (POINTS), a segment
+// per pair (LINES), between consecutive indices (LINE_STRIP) and back to the first
+// (LINE_LOOP). A segment whose two ends are one vertex is dropped, as the spec says lines
+// should not be degenerate.
+void Loader::add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
+                      const Deformation* deform) {
+  const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
+  for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
+    const tinygltf::Primitive& prim = mesh.primitives[pi];
+    if (is_triangles(prim.mode)) continue;
+    const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
+                              std::to_string(pi) + "]" + named(mesh.name);
+    if (prim.mode < 0 || prim.mode > TINYGLTF_MODE_LINE_STRIP)
+      fail(where + ".mode: " + std::to_string(prim.mode) +
+           " is not a glTF primitive mode (0 POINTS to 6 TRIANGLE_FAN)");
+    const VertexAttributes attrs = read_attributes(prim, where, deform != nullptr);
+    const std::vector<uint32_t> indices = read_indices(prim, attrs.position.count, where);
+    const uint32_t base = primitive_material(prim, mesh_index, pi, where);
+    const ThinKind kind = !prim.attributes.count("NORMAL")   ? ThinKind::Unlit
+                          : !prim.attributes.count("TANGENT") ? ThinKind::LitFlat
+                                                              : ThinKind::Lit;
+    const auto material = thin_materials_.find({base, kind});
+    if (material == thin_materials_.end()) fail(where + ": no material for points or lines");
+    uint32_t first = 0;
+    std::vector<bool> bad_normal;
+    if (deform) {
+      const PosedVertices posed = pose_vertices(prim, attrs, *deform, world, where);
+      append_vertices(attrs, world, &out->vertices, &first, &bad_normal, where, &posed);
+    } else {
+      append_vertices(attrs, world, &out->vertices, &first, &bad_normal, where);
+    }
+    bool has_uv[2] = {false, false};
+    for (const auto& uv : attrs.uv)
+      if (uv.first < 2) has_uv[uv.first] = true;
+    const uint8_t base_flags = uint8_t((has_uv[0] ? TriangleMesh::kHasUv0 : 0) |
+                                       (has_uv[1] ? TriangleMesh::kHasUv1 : 0) |
+                                       (attrs.tangent ? TriangleMesh::kHasTangents : 0));
+    auto add = [&](uint32_t a, uint32_t b) {
+      if (a == b && prim.mode != TINYGLTF_MODE_POINTS) return;
+      const bool normals = attrs.normal && !bad_normal[a] && !bad_normal[b];
+      out->elements.push_back(
+          {first + a, first + b, material->second,
+           uint8_t(base_flags | (normals ? TriangleMesh::kHasNormals : 0))});
+    };
+    const size_t n = indices.size();
+    if (prim.mode == TINYGLTF_MODE_POINTS) {
+      for (size_t i = 0; i < n; ++i) add(indices[i], indices[i]);
+    } else if (prim.mode == TINYGLTF_MODE_LINE) {
+      if (n % 2) warn(where + ": index count of LINES is odd; the last index is ignored");
+      for (size_t i = 0; i + 1 < n; i += 2) add(indices[i], indices[i + 1]);
+    } else {
+      for (size_t i = 0; i + 1 < n; ++i) add(indices[i], indices[i + 1]);
+      if (prim.mode == TINYGLTF_MODE_LINE_LOOP && n > 2) add(indices[n - 1], indices[0]);
+    }
+  }
+}
+
+// The points and lines of a visible mesh node: in world space, for every node that uses the
+// mesh (each element of EXT_mesh_gpu_instancing too), posed if the node is deformed. An
+// animated layout's static part has none: every pose has them all.
+void Loader::visit_thin(int index, const tinygltf::Node& node, const Mat4& world,
+                        const std::string& where, SceneDescription* desc) {
+  if (split_ && !split_->pose_only) return;
+  const size_t mi = size_t(node.mesh);
+  bool any = false;
+  for (const tinygltf::Primitive& prim : model_.meshes[mi].primitives)
+    any = any || !is_triangles(prim.mode);
+  if (!any) return;
+  if (gpu_instancing(node)) {
+    for (const Mat4& local : gpu_instances(node, index)) add_thin(mi, world * local, &desc->thin);
+  } else if (is_deformed(index)) {
+    const Deformation deformation = deformation_of(index, where);
+    add_thin(mi, world, &desc->thin, &deformation);
+  } else {
+    add_thin(mi, world, &desc->thin);
   }
 }
 

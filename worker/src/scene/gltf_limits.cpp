@@ -23,10 +23,19 @@ Loader::Counts Loader::mesh_counts(size_t mesh_index) const {
   Counts c;
   std::set<VertexKey> seen;
   for (const tinygltf::Primitive& prim : model_.meshes[mesh_index].primitives) {
-    if (!is_triangles(prim.mode)) continue;
     const auto pos = prim.attributes.find("POSITION");
     if (pos == prim.attributes.end()) continue;
     const size_t nv = accessor_count(pos->second);
+    if (!is_triangles(prim.mode)) {
+      // Points and lines: an element per point or segment, which the Scene makes two
+      // triangles (ThinGeometry), per use of the mesh.
+      const size_t n = prim.indices >= 0 ? accessor_count(prim.indices) : nv;
+      c.thin += prim.mode == TINYGLTF_MODE_POINTS      ? n
+                : prim.mode == TINYGLTF_MODE_LINE       ? n / 2
+                : prim.mode == TINYGLTF_MODE_LINE_LOOP  ? n
+                                                        : (n > 0 ? n - 1 : 0);
+      continue;
+    }
     if (seen.insert(vertex_key(prim)).second) c.vertices += nv;
     c.triangles +=
         triangle_count(prim.mode, prim.indices >= 0 ? accessor_count(prim.indices) : nv);
@@ -84,6 +93,7 @@ void Loader::check_cost(const std::vector<int>& roots, SceneStats* stats) const 
   for (int r : roots) stack.push_back({r, 1});
   std::vector<uint64_t> uses(model_.meshes.size(), 0), copies(model_.meshes.size(), 0);
   std::vector<uint64_t> mesh_triangles(model_.meshes.size(), UINT64_MAX);
+  std::vector<uint64_t> thin_drawn(model_.meshes.size(), 0);
   uint64_t instances = 0;
   while (!stack.empty()) {
     const auto [i, depth] = stack.back();
@@ -98,13 +108,17 @@ void Loader::check_cost(const std::vector<int>& roots, SceneStats* stats) const 
       if (node.mesh >= int(model_.meshes.size()))
         fail(where + ".mesh: refers to missing mesh " + std::to_string(node.mesh));
       uint64_t& tris = mesh_triangles[size_t(node.mesh)];
-      if (tris == UINT64_MAX) tris = mesh_counts(size_t(node.mesh)).triangles;
+      if (tris == UINT64_MAX) {
+        const Counts c = mesh_counts(size_t(node.mesh));
+        tris = c.triangles + 2 * c.thin;
+      }
       // A skinned or morphed node has its own copy of the mesh; the others share one.
       if (is_deformed(i)) ++copies[size_t(node.mesh)];
       else uses[size_t(node.mesh)] = 1;
       // EXT_mesh_gpu_instancing: the mesh once, drawn once per instance.
       const int64_t gpu = gpu_instance_count(node, i);
       const uint64_t drawn = gpu >= 0 ? uint64_t(gpu) : 1;
+      thin_drawn[size_t(node.mesh)] += drawn;  // points and lines are copied per use
       instances += drawn;
       stats->instanced_triangles += tris * drawn;
       if (stats->instanced_triangles > limits.max_instanced_triangles)
@@ -127,6 +141,11 @@ void Loader::check_cost(const std::vector<int>& roots, SceneStats* stats) const 
     bytes += double(uses[m] + copies[m]) *
              (double(c.vertices) * per_vertex +
               double(c.triangles) * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes));
+    // Points and lines: per use, their vertices and elements, then four vertices and two
+    // triangles each.
+    bytes += double(thin_drawn[m]) * double(c.thin) *
+             (2.0 * per_vertex + 16.0 + 4.0 * per_vertex +
+              2.0 * (12.0 + 4.0 + 1.0 + 12.0 + bvh_bytes));
   }
   bytes += double(instances) * 256.0;
   for (const tinygltf::Buffer& b : model_.buffers) bytes += double(b.data.size());

@@ -126,6 +126,7 @@ SceneDescription Loader::run() {
   for (const auto& [index, material] : animated_materials_)
     desc.animated_materials.push_back(uint32_t(index));
   variant_ = selected_variant();
+  derive_thin_materials(&desc);
   load_lights();
   if (split_) classify_nodes();
   count_mesh_uses();
@@ -149,9 +150,20 @@ SceneDescription Loader::run() {
     reserve(world_counts(roots), &desc.world);
   }
   for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
+  desc.image_height = options_.image_height;
+  if (split_ && has_thin_) {
+    // Points and lines of an animated scene: a mesh that each pose fills in world space with
+    // its own, for its camera (Scene's posing constructor), placed at the identity.
+    desc.thin_mesh = int(desc.meshes.size());
+    Mesh mesh;
+    mesh.name = "points and lines";
+    desc.meshes.push_back(std::move(mesh));
+    desc.instances.push_back({uint32_t(desc.thin_mesh), Mat4::identity()});
+  }
   if (split_) {
     split_->deformed_mesh.assign(desc.meshes.size(), 0);
     for (int slot : deformed_slots_) split_->deformed_mesh[size_t(slot)] = 1;
+    if (desc.thin_mesh >= 0) split_->deformed_mesh[size_t(desc.thin_mesh)] = 1;
     split_->moving_nodes = moving_mesh_nodes_;
     split_->deformed_nodes = uint32_t(deformed_slots_.size());
   }
@@ -452,6 +464,7 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
     }
     if (options_.pose_report) options_.pose_report->ranges.push_back(range);
   }
+  if (node.mesh >= 0) visit_thin(index, node, world, where, desc);
   for (int child : node.children) visit(child, world, desc, depth + 1);
 }
 

@@ -52,11 +52,13 @@ class Loader {
   // invalid count as empty here; add_mesh reports them.
   struct Counts {
     size_t vertices = 0, triangles = 0;
+    size_t thin = 0;  // points and line segments (not in vertices and triangles)
     bool normals = false, colors = false, tangents = false;
     std::set<uint32_t> uv;  // TriangleMesh::uv arrays
     void operator+=(const Counts& o) {
       vertices += o.vertices;
       triangles += o.triangles;
+      thin += o.thin;
       normals = normals || o.normals;
       colors = colors || o.colors;
       tangents = tangents || o.tangents;
@@ -231,6 +233,19 @@ class Loader {
   static uint32_t corner(int mode, const std::vector<uint32_t>& indices, size_t t, int k);
   void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
                 const Deformation* deform = nullptr);
+  VertexAttributes read_attributes(const tinygltf::Primitive& prim, const std::string& where,
+                                   bool deformed);
+  uint32_t primitive_material(const tinygltf::Primitive& prim, size_t mesh_index, size_t pi,
+                              const std::string& where) const;
+  std::vector<uint32_t> read_indices(const tinygltf::Primitive& prim, size_t vertices,
+                                     const std::string& where);
+  // Points and lines (ThinGeometry): their materials' variants, and their elements.
+  enum class ThinKind { Unlit, LitFlat, Lit };
+  void derive_thin_materials(SceneDescription* desc);
+  void add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
+                const Deformation* deform = nullptr);
+  void visit_thin(int index, const tinygltf::Node& node, const Mat4& world,
+                  const std::string& where, SceneDescription* desc);
   // EXT_mesh_gpu_instancing's attributes, in gpu_instance_count's order.
   static constexpr const char* kInstanceAttributes[3] = {"TRANSLATION", "ROTATION", "SCALE"};
 
@@ -300,6 +315,9 @@ class Loader {
   uint32_t moving_mesh_nodes_ = 0;
   std::set<std::string> warned_material_ext_, warned_texture_ext_;
   int variant_ = -1;  // KHR_materials_variants: the selected variant, -1 for none
+  // Points and lines: whether any mesh has them, and the material each (material, kind) uses.
+  bool has_thin_ = false;
+  std::map<std::pair<uint32_t, ThinKind>, uint32_t> thin_materials_;
   bool warned_occlusion_ = false, warned_unskinned_ = false;
   bool warned_tangent_ = false;
   bool quantization_ = false;         // KHR_mesh_quantization's attribute types are allowed

@@ -85,6 +85,10 @@ struct Material {
   // radiance towards any ray that meets its front (either face if double-sided), and reflects
   // and transmits nothing; alpha coverage applies as for any material.
   bool unlit = false;
+  // Points and lines without NORMAL (glTF 2.0, "Point and Line Materials") are unlit and show
+  // "the sum of the base color value and the emissive value": an unlit material whose emission
+  // (factor x texture) is added to that base colour.
+  bool unlit_adds_emission = false;
   // KHR_materials_pbrSpecularGlossiness (archived): specular_color holds specularFactor (F0
   // itself), glossiness glossinessFactor, specular_color_tex specularGlossinessTexture (RGB
   // sRGB: F0; A linear: glossiness), albedo and base_color_tex the diffuse factor and texture.

@@ -296,6 +296,127 @@ const char* bvh_layout_name(BvhLayout layout) {
   return layout == BvhLayout::Compact ? "compact" : "fast";
 }
 
+namespace {
+
+// The camera of a scene without one: it frames the bounding sphere from +Z, looking down -Z
+// with +Y up.
+Camera framing_camera(Vec3 bmin, Vec3 bmax) {
+  Camera camera;
+  const Vec3 center = (bmin + bmax) * 0.5f;
+  const float radius = std::max(1e-3f, 0.5f * length(bmax - bmin));
+  camera.yfov = 0.6911f;  // 39.6 degrees, a common default
+  const float distance = radius / std::sin(0.5f * camera.yfov);
+  camera.position = center + Vec3(0.f, 0.f, distance);
+  return camera;
+}
+
+// Points and lines (desc->thin) as triangles appended to *out, for the description's camera or,
+// without one, the camera that frames bounds grown by their vertices.
+void add_thin_triangles(SceneDescription* desc, Vec3 bmin, Vec3 bmax, TriangleMesh* out) {
+  if (desc->thin.empty()) return;
+  for (const Vec3& p : desc->thin.vertices.positions) {
+    bmin = vmin(bmin, p);
+    bmax = vmax(bmax, p);
+  }
+  const Camera camera = desc->camera ? *desc->camera : framing_camera(bmin, bmax);
+  thin_triangles(desc->thin, camera, desc->image_height, out);
+  desc->thin = ThinGeometry();
+}
+
+}  // namespace
+
+void thin_triangles(const ThinGeometry& thin, const Camera& camera, uint32_t height,
+                    TriangleMesh* out) {
+  if (thin.empty()) return;
+  const TriangleMesh& v = thin.vertices;
+  const float h = float(height ? height : kDefaultThinHeight);
+  // The side of a pixel at p: 2 tan(yfov / 2) / height per unit of depth along the view (a
+  // perspective camera), 2 ymag / height (an orthographic one). A point behind the camera (no
+  // camera ray meets it) takes its distance for the depth.
+  const float per_depth = 2.f * std::tan(0.5f * camera.yfov) / h;
+  auto pixel = [&](Vec3 p) {
+    if (camera.orthographic) return 2.f * camera.ymag / h;
+    float z = dot(p - camera.position, camera.forward);
+    if (!(z > 0.f)) z = length(p - camera.position);
+    return per_depth * z;
+  };
+  auto towards_camera = [&](Vec3 p) {
+    if (camera.orthographic) return -camera.forward;
+    const Vec3 d = camera.position - p;
+    const float len = length(d);
+    return len > 0.f ? d * (1.f / len) : -camera.forward;
+  };
+  // A unit vector across `along` as the camera sees it from `view` (the camera's right where
+  // along is the view direction itself).
+  auto across = [&](Vec3 along, Vec3 view) {
+    Vec3 side = cross(along, view);
+    float len = length(side);
+    if (!(len > 1e-12f * length(along))) {
+      side = cross(camera.up, view);
+      len = length(side);
+      if (!(len > 0.f)) return camera.right;
+    }
+    return side * (1.f / len);
+  };
+  // Every attribute array of out that either side has is written for the new vertices.
+  const size_t first = out->positions.size(), count = 4 * thin.elements.size();
+  out->positions.resize(first + count);
+  if (!v.normals.empty()) out->use_normals(true);
+  if (!v.tangents.empty()) out->use_tangents(true);
+  if (!v.colors.empty()) out->use_colors(true);
+  for (size_t set = 0; set < v.uv.size(); ++set)
+    if (!v.uv[set].empty()) out->use_uv(set, true);
+  if (!out->normals.empty()) out->normals.resize(first + count);
+  if (!out->tangents.empty()) out->tangents.resize(first + count);
+  if (!out->colors.empty()) out->colors.resize(first + count, Rgba{});
+  for (auto& uv : out->uv)
+    if (!uv.empty()) uv.resize(first + count);
+  auto copy_attributes = [&](size_t dst, uint32_t src) {
+    if (!v.normals.empty()) out->normals[dst] = v.normals[src];
+    if (!v.tangents.empty()) out->tangents[dst] = v.tangents[src];
+    if (!v.colors.empty()) out->colors[dst] = v.colors[src];
+    for (size_t set = 0; set < v.uv.size(); ++set)
+      if (!v.uv[set].empty()) out->uv[set][dst] = v.uv[set][src];
+  };
+  out->indices.reserve(out->indices.size() + 6 * thin.elements.size());
+  size_t next = first;
+  for (const ThinGeometry::Element& e : thin.elements) {
+    const Vec3 a = v.positions[e.a], b = v.positions[e.b];
+    Vec3 corner[4];
+    if (e.a == e.b) {
+      // A point: a square of one pixel facing the camera, counter-clockwise seen from it.
+      const Vec3 view = towards_camera(a);
+      const Vec3 right = across(camera.up, view);
+      const Vec3 up = cross(view, right);
+      const float r = 0.5f * pixel(a);
+      corner[0] = a - (right + up) * r;
+      corner[1] = a + (right - up) * r;
+      corner[2] = a + (right + up) * r;
+      corner[3] = a - (right - up) * r;
+    } else {
+      // A segment: a ribbon one pixel wide at each end, in the plane through the segment that
+      // faces the camera at its middle; cross(side, b - a) points to the camera.
+      const Vec3 side = across(b - a, towards_camera((a + b) * 0.5f));
+      const float ra = 0.5f * pixel(a), rb = 0.5f * pixel(b);
+      corner[0] = a - side * ra;
+      corner[1] = a + side * ra;
+      corner[2] = b + side * rb;
+      corner[3] = b - side * rb;
+    }
+    for (int k = 0; k < 4; ++k) {
+      out->positions[next + size_t(k)] = corner[k];
+      copy_attributes(next + size_t(k), k < 2 ? e.a : e.b);
+    }
+    const uint32_t i0 = uint32_t(next);
+    for (uint32_t i : {i0, i0 + 1, i0 + 2, i0, i0 + 2, i0 + 3}) out->indices.push_back(i);
+    for (int t = 0; t < 2; ++t) {
+      out->material.push_back(e.material);
+      out->flags.push_back(e.flags);
+    }
+    next += 4;
+  }
+}
+
 Scene::Scene(SceneDescription desc, std::vector<std::string>* warnings, BvhLayout bvh)
     : desc_(std::move(desc)), embree_(new Embree) {
   build(warnings, bvh);
@@ -314,6 +435,28 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
   static_assert(sizeof(Vec3) == 3 * sizeof(float) && sizeof(Point2) == 2 * sizeof(float),
                 "Embree reads TriangleMesh::positions as packed float triples");
   textures_ = std::make_shared<TextureSet>();
+  if (!desc_.thin.empty()) {
+    // Points and lines become triangles for the camera, which frames the bounds of everything
+    // (these points included) if the scene has none.
+    Vec3 lo(std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
+            std::numeric_limits<float>::max());
+    Vec3 hi = -lo;
+    grow_bounds(desc_.world, &lo, &hi);
+    for (const Instance& inst : desc_.instances) {
+      if (inst.mesh >= desc_.meshes.size()) continue;
+      Vec3 mlo(1e30f, 1e30f, 1e30f), mhi = -mlo;
+      grow_bounds(desc_.meshes[inst.mesh].geometry, &mlo, &mhi);
+      if (!(mlo.x <= mhi.x)) continue;
+      for (int c = 0; c < 8; ++c) {
+        const Vec3 w = inst.to_world.transform_point(Vec3((c & 1) ? mhi.x : mlo.x,
+                                                          (c & 2) ? mhi.y : mlo.y,
+                                                          (c & 4) ? mhi.z : mlo.z));
+        lo = vmin(lo, w);
+        hi = vmax(hi, w);
+      }
+    }
+    add_thin_triangles(&desc_, lo, hi, &desc_.world);
+  }
   if (desc_.world.empty() && desc_.instances.empty() && !static_part_)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
   if (desc_.materials.empty()) desc_.materials.push_back(Material{});
@@ -534,12 +677,7 @@ void Scene::finish_lights_and_camera(std::vector<std::string>* warnings) {
   if (desc_.camera) {
     camera_ = *desc_.camera;
   } else {
-    // Frame the bounding sphere from +Z, looking down -Z with +Y up.
-    const Vec3 center = (bmin_ + bmax_) * 0.5f;
-    const float radius = std::max(1e-3f, 0.5f * length(bmax_ - bmin_));
-    camera_.yfov = 0.6911f;  // 39.6 degrees, a common default
-    const float distance = radius / std::sin(0.5f * camera_.yfov);
-    camera_.position = center + Vec3(0.f, 0.f, distance);
+    camera_ = framing_camera(bmin_, bmax_);
     if (warnings)
       warnings->push_back(desc_.source +
                           ": no camera in the scene; framing its bounds from +Z");
@@ -657,6 +795,10 @@ Scene::Scene(std::shared_ptr<const Scene> base, std::vector<SceneDescription> st
     }
     desc_.materials[i] = std::move(m);
   }
+  // Points and lines: triangles of this pose, for its camera (or, without one, the camera
+  // that frames the static part and these points), in the mesh the loader keeps for them.
+  if (desc_.thin_mesh >= 0 && size_t(desc_.thin_mesh) < desc_.meshes.size())
+    add_thin_triangles(&desc_, b.bmin_, b.bmax_, &desc_.meshes[size_t(desc_.thin_mesh)].geometry);
   desc_.textures.clear();
   desc_.limits = b.desc_.limits;
   desc_.stats = b.desc_.stats;

@@ -76,6 +76,9 @@ struct LoadOptions {
   double visibility_time = std::numeric_limits<double>::quiet_NaN();
   // The glTF animations that drive the pose (indices into "animations"); empty: all of them.
   std::vector<int> animations;
+  // The height in pixels of the images rendered from the scene: points and lines are one
+  // pixel wide at it (0: kDefaultThinHeight, for loads that render nothing).
+  uint32_t image_height = 0;
   // KHR_materials_variants: the variant whose materials the primitives that map it use, by
   // name or index; "" for the default materials (each primitive's own "material").
   std::string variant;
@@ -87,6 +90,9 @@ struct LoadOptions {
   AnimatedLayout* layout = nullptr;
   bool animated() const { return !std::isnan(time); }
 };
+
+// The image height points and lines are sized for when a load does not say (inspect, pose).
+constexpr uint32_t kDefaultThinHeight = 1080;
 
 // Figures of a loaded scene, for `inspect` and the limits.
 struct SceneStats {
@@ -249,6 +255,30 @@ struct Instance {
   Mat4 to_world = Mat4::identity();
 };
 
+// glTF POINTS, LINES, LINE_STRIP and LINE_LOOP primitives (modes 0-3), in world space, as the
+// loader reads them: their vertices with the attributes a triangle mesh has (the triangle
+// arrays of `vertices` stay empty), and one element per point or line segment. They have no
+// area, so the Scene gives them the width the glTF spec recommends, one pixel of the image
+// (see thin_triangles), before it builds its BVH.
+struct ThinGeometry {
+  TriangleMesh vertices;
+  struct Element {
+    uint32_t a = 0, b = 0;  // vertex indices: a segment's ends, a point's vertex twice
+    uint32_t material = 0;  // index into the scene's materials (the loader's thin variant)
+    uint8_t flags = 0;      // TriangleMesh::kHas* bits
+  };
+  std::vector<Element> elements;
+  bool empty() const { return elements.empty(); }
+};
+
+// The triangles that stand for thin geometry in an image of `height` pixels seen by `camera`:
+// a segment becomes a ribbon and a point a square, each facing the camera and one pixel wide
+// where it is (glTF 2.0, "Point and Line Materials": "widths of 1px in viewport space"), with
+// the attributes of its vertices. Appended to *out (world space), front faces towards the
+// camera.
+void thin_triangles(const ThinGeometry& thin, const Camera& camera, uint32_t height,
+                    TriangleMesh* out);
+
 // An image of the scene, by its encoded bytes (embedded) or its file path.
 struct TextureSource {
   std::string name;  // for messages
@@ -268,6 +298,13 @@ struct SceneDescription {
   std::vector<Mesh> meshes;         // instanced meshes
   std::vector<Instance> instances;
   std::vector<PunctualLight> punctual_lights;
+  // Points and lines in world space (the Scene turns them into triangles for its camera; in an
+  // animated scene, poses do, into the mesh thin_mesh, an empty mesh placed at the identity).
+  ThinGeometry thin;
+  int thin_mesh = -1;
+  // The height in pixels of the images the scene is rendered at, which sets the width of
+  // points and lines (0: kDefaultThinHeight).
+  uint32_t image_height = 0;
   // The materials KHR_animation_pointer animates (indices into materials): a pose of an
   // animated scene takes them from its own description, the others from its static part.
   std::vector<uint32_t> animated_materials;

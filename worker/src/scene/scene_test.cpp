@@ -31,16 +31,22 @@ TEST(GltfLoader, SmallSceneHierarchyMaterialsAndCamera) {
   SceneDescription desc = load_gltf_from_string(testing::small_gltf_json(), ".", "small.gltf",
                                                 &warnings);
   EXPECT_TRUE(any_contains(warnings, "EXT_made_up")) << "unsupported extension used";
-  EXPECT_TRUE(any_contains(warnings, "meshes[0].primitives[1] ('floor')")) << "LINES skipped";
+  EXPECT_FALSE(any_contains(warnings, "primitives[1]")) << "LINES are rendered";
   ASSERT_EQ(desc.world.size(), 4u);
+  // The floor's LINES primitive (its four corners, no indices): two segments, unlit (no
+  // NORMAL), which the Scene makes two ribbons of two triangles.
+  ASSERT_EQ(desc.thin.elements.size(), 2u);
+  EXPECT_TRUE(desc.materials[desc.thin.elements[0].material].unlit);
   ASSERT_TRUE(desc.camera.has_value());
   Scene scene(std::move(desc), &warnings);
+  EXPECT_EQ(scene.world().size(), 8u);
   ASSERT_EQ(scene.lights().size(), 2u);
   // Lamp: local unit square in y = 0 facing -y, under translation (0,2,0) and scale (2,1,2).
   float lamp_area = 0.f;
   for (uint32_t i = 0; i < scene.world().size(); ++i) {
     const Triangle t = scene.world().triangle(i);
     const Material& m = scene.material(i);
+    if (m.unlit) continue;  // the lines' ribbons
     if (!m.is_emissive()) {
       EXPECT_NEAR(t.ng.y, 1.f, 1e-6f);
       EXPECT_NEAR(m.albedo.y, 0.6f, 1e-6f);
