@@ -499,7 +499,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             elif kind == "heartbeat":
                 hb = msg.heartbeat
                 await self.farm.worker_heartbeat(
-                    session, hb.samples_per_s, hb.rays_per_s, hb.busy_threads
+                    session, hb.samples_per_s, hb.rays_per_s, hb.busy_threads, hb.max_in_flight
                 )
             elif kind == "failed":
                 f = msg.failed

@@ -95,7 +95,12 @@ class WorkerSessions:
         await self._after_change()
 
     async def worker_heartbeat(
-        self, session: WorkerSession, samples_per_s: float, rays_per_s: float, busy: int
+        self,
+        session: WorkerSession,
+        samples_per_s: float,
+        rays_per_s: float,
+        busy: int,
+        max_in_flight: int = 0,
     ) -> None:
         session.last_heartbeat_unix_s = self.clock()
         session.samples_per_s, session.rays_per_s, session.busy_threads = (
@@ -104,6 +109,12 @@ class WorkerSessions:
             busy,
         )
         self.scheduler.heartbeat(session.worker_id)
+        # A worker that serves several servers says how many tasks it wants from this one now
+        # (workers.proto, Heartbeat.max_in_flight); more credit means more leases at once.
+        if max_in_flight and self.scheduler.set_credit(
+            session.worker_id, max(1, min(max_in_flight, 256))
+        ):
+            await self._after_change()
 
     async def worker_result(self, session: WorkerSession, task_id: str, result: BatchResult) -> str:
         started = time.perf_counter()

@@ -389,6 +389,16 @@ class Scheduler:
             self._check_renderable(job)
         return lost
 
+    def set_credit(self, worker_id: str, credit: int) -> bool:
+        """The number of tasks the worker wants leased at once, from now on; True if it grew
+        (the caller then assigns). Leases over a lowered credit run to their end."""
+        slot = self.workers.get(worker_id)
+        if slot is None or credit == slot.credit:
+            return False
+        grew = credit > slot.credit
+        slot.credit = max(1, credit)
+        return grew
+
     def heartbeat(self, worker_id: str) -> None:
         """A heartbeat extends every lease of the worker."""
         slot = self.workers.get(worker_id)

@@ -1,6 +1,10 @@
 #include "farm/farm_client.h"
 
+#include <arpa/inet.h>
 #include <grpcpp/grpcpp.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -117,21 +121,37 @@ bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std:
   return true;
 }
 
+// One server the worker serves (an address of --server): its channel and stubs, the id this
+// worker gives itself there, and whether it has left the address list (a name that resolves to
+// several addresses no longer gives this one).
+struct Connection {
+  std::string target;  // what gRPC dials: host:port as given, or one resolved address
+  std::string name;    // for messages
+  std::string worker_id;
+  std::shared_ptr<grpc::Channel> channel;
+  std::unique_ptr<pb::WorkerService::Stub> workers;
+  std::unique_ptr<pb::SceneService::Stub> scenes;
+  std::atomic<bool> retired{false};
+  std::atomic<bool> done{false};  // its thread has returned
+};
+
 class Worker {
  public:
-  Worker(const FarmOptions& options, std::shared_ptr<grpc::Channel> channel)
-      : options_(options),
-        channel_(std::move(channel)),
-        worker_stub_(pb::WorkerService::NewStub(channel_)),
-        scene_stub_(pb::SceneService::NewStub(channel_)),
-        scenes_(options.scenes_in_memory, options.scene_memory_budget) {}
+  explicit Worker(const FarmOptions& options)
+      : options_(options), scenes_(options.scenes_in_memory, options.scene_memory_budget) {}
 
-  // One Connect stream from Hello to its end. Returns true if a Welcome was received.
-  bool run_session(const std::atomic<bool>& stop);
+  // One Connect stream to `c` from Hello to its end. Returns true if a Welcome was received.
+  // Sessions with several servers run at once (a thread each); they share this worker's
+  // threads, scene cache and environments.
+  bool run_session(Connection& c, const std::atomic<bool>& stop);
 
  private:
   // State of one stream. Guarded by mutex_ unless atomic.
   struct Session {
+    Connection* conn = nullptr;
+    // Heartbeat.max_in_flight last sent (Hello's at first), and when.
+    uint32_t want_sent = 0;
+    Clock::time_point want_sent_at;
     grpc::ClientContext context;
     std::unique_ptr<grpc::ClientReaderWriter<pb::WorkerMessage, pb::ServerMessage>> stream;
     std::mutex write_mutex;
@@ -154,11 +174,11 @@ class Worker {
   void run_task(Session& s, const pb::Task& task, const RunningTask& running);
   // A still task's scene with the materials of KHR_materials_variants' `variant` ("" for the
   // default ones).
-  std::shared_ptr<const Scene> scene_for(const std::string& sha256, const std::string& variant,
-                                         uint32_t height);
+  std::shared_ptr<const Scene> scene_for(Connection& from, const std::string& sha256,
+                                         const std::string& variant, uint32_t height);
   // An animated task's scene: sha256 posed at time_s by the animations `animation` selects,
   // moving during the shutter if it is open (motion blur).
-  std::shared_ptr<const Scene> posed_scene_for(const std::string& sha256,
+  std::shared_ptr<const Scene> posed_scene_for(Connection& from, const std::string& sha256,
                                                const std::string& animation, double time_s,
                                                const Shutter& shutter,
                                                const std::string& variant, uint32_t height);
@@ -166,17 +186,23 @@ class Worker {
   // file whose load fails with a SceneError and whose content no longer matches its name is
   // fetched again and loaded once more.
   template <typename T>
-  T load_scene_file(const std::string& sha256,
+  T load_scene_file(Connection& from, const std::string& sha256,
                     const std::function<T(const std::string& path)>& load);
   LoadOptions farm_load_options(const std::string& sha256) const;
-  std::shared_ptr<const Environment> environment_for(const pb::RenderSettings& settings);
-  std::string fetch_scene(const std::string& sha256);
+  std::shared_ptr<const Environment> environment_for(Connection& from,
+                                                     const pb::RenderSettings& settings);
+  // Fetches a scene (or environment) file into the cache from the server `from`.
+  std::string fetch_scene(Connection& from, const std::string& sha256);
+
+  // The tasks a session wants leased at once (mutex_ held): the worker's threads plus prefetch,
+  // less what the other sessions hold (queued or rendering), at least 1 so that each server
+  // can still hand over work. With one server: threads plus prefetch, always.
+  uint32_t want(const Session& s) const;
 
   const FarmOptions& options_;
-  std::shared_ptr<grpc::Channel> channel_;
-  std::unique_ptr<pb::WorkerService::Stub> worker_stub_;
-  std::unique_ptr<pb::SceneService::Stub> scene_stub_;
   SceneCache scenes_;
+  std::vector<Session*> sessions_;  // the live sessions (mutex_)
+  uint32_t busy_ = 0;                // tasks rendering over every session (mutex_)
   std::mutex warned_mutex_;
   std::set<std::string> warned_;  // scenes whose loader warnings were logged (posed scenes)
   // The task log (TileResult.warnings): the loader's warnings of each loaded scene, by scene
@@ -196,15 +222,30 @@ class Worker {
   std::condition_variable cv_;
 };
 
-bool Worker::run_session(const std::atomic<bool>& stop) {
+uint32_t Worker::want(const Session& s) const {
+  uint64_t others = 0;
+  for (const Session* o : sessions_)
+    if (o != &s) others += o->queue.size() + o->running.size();
+  const uint64_t capacity = uint64_t(options_.threads) + options_.prefetch;
+  return uint32_t(std::max<uint64_t>(1, capacity > others ? capacity - others : 0));
+}
+
+bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
   Session s;
-  s.stream = worker_stub_->Connect(&s.context);
+  s.conn = &c;
+  s.stream = c.workers->Connect(&s.context);
   pb::WorkerMessage hello_msg;
   pb::Hello* hello = hello_msg.mutable_hello();
-  hello->set_worker_id(options_.worker_id);
+  hello->set_worker_id(c.worker_id);
   hello->set_hostname(options_.hostname);
   hello->set_cores(options_.threads);
-  hello->set_max_in_flight(options_.threads + options_.prefetch);
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    sessions_.push_back(&s);
+    s.want_sent = want(s);
+    s.want_sent_at = Clock::now();
+  }
+  hello->set_max_in_flight(s.want_sent);
   for (const std::string& sha : list_cached_scenes(options_.cache_dir))
     hello->add_cached_scenes(sha);
   hello->set_version(RENDERFARM_VERSION);
@@ -221,7 +262,7 @@ bool Worker::run_session(const std::atomic<bool>& stop) {
     if (s.stream->Read(&msg)) {
       if (msg.has_welcome()) {
         welcomed = true;
-        log_line("connected to " + options_.server + " as '" + msg.welcome().worker_id() +
+        log_line("connected to " + c.name + " as '" + msg.welcome().worker_id() +
                  "' (heartbeat " + std::to_string(msg.welcome().heartbeat_interval_ms()) +
                  " ms, lease " + std::to_string(msg.welcome().lease_ms()) + " ms)");
         {
@@ -265,9 +306,14 @@ bool Worker::run_session(const std::atomic<bool>& stop) {
   cv_.notify_all();
   for (auto& t : renderers) t.join();
   supervisor.join();
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    sessions_.erase(std::find(sessions_.begin(), sessions_.end(), &s));
+  }
+  cv_.notify_all();  // the other sessions may want more now
   const grpc::Status status = s.stream->Finish();
   if (!status.ok() && !stop)
-    log_line("stream to " + options_.server + " ended: " + status.error_message() + " (code " +
+    log_line("stream to " + c.name + " ended: " + status.error_message() + " (code " +
              std::to_string(int(status.error_code())) + ")");
   return welcomed;
 }
@@ -314,7 +360,12 @@ void Worker::supervise(Session& s, const std::atomic<bool>& stop) {
         r.second.cancel->store(true);
       }
     const double elapsed = std::chrono::duration<double>(now - last_beat).count();
-    if (elapsed * 1000.0 < double(s.heartbeat_ms)) continue;
+    // A heartbeat goes out on time, or early (at most every 100 ms) when the tasks this
+    // stream should ask for changed because the other servers' tasks came or went.
+    const uint32_t wanted = want(s);
+    const bool want_changed =
+        wanted != s.want_sent && now - s.want_sent_at >= std::chrono::milliseconds(100);
+    if (elapsed * 1000.0 < double(s.heartbeat_ms) && !want_changed) continue;
     pb::WorkerMessage msg;
     pb::Heartbeat* hb = msg.mutable_heartbeat();
     for (const auto& r : s.running) hb->add_task_ids(r.first);
@@ -323,6 +374,9 @@ void Worker::supervise(Session& s, const std::atomic<bool>& stop) {
     hb->set_samples_per_s(double(samples - last_samples) / elapsed);
     hb->set_rays_per_s(double(rays - last_rays) / elapsed);
     hb->set_busy_threads(uint32_t(s.running.size()));
+    hb->set_max_in_flight(wanted);
+    s.want_sent = wanted;
+    s.want_sent_at = now;
     last_samples = samples;
     last_rays = rays;
     last_beat = now;
@@ -335,14 +389,19 @@ void Worker::supervise(Session& s, const std::atomic<bool>& stop) {
 void Worker::render_loop(Session& s) {
   std::unique_lock<std::mutex> lock(mutex_);
   for (;;) {
-    cv_.wait(lock, [&] { return s.over || s.closing || !s.queue.empty(); });
+    // The worker's threads are shared by its sessions: a task starts when one is free.
+    cv_.wait(lock, [&] {
+      return s.over || s.closing || (!s.queue.empty() && busy_ < options_.threads);
+    });
     if (s.over || s.queue.empty()) return;  // closing with nothing queued: done
     pb::Task task = std::move(s.queue.front());
     s.queue.pop_front();
     const RunningTask running = s.running[task.task_id()];  // shares the flags
+    ++busy_;
     lock.unlock();
     run_task(s, task, running);
     lock.lock();
+    --busy_;
     s.running.erase(task.task_id());
     cv_.notify_all();
   }
@@ -383,9 +442,10 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   std::shared_ptr<const Scene> scene;
   const std::string& variant = task.settings().variant();
   try {
-    scene = task.animated() ? posed_scene_for(task.scene_sha256(), animation, task.time_s(),
+    scene = task.animated() ? posed_scene_for(*s.conn, task.scene_sha256(), animation,
+                                              task.time_s(),
                                               shutter, variant, settings.height)
-                            : scene_for(task.scene_sha256(), variant, settings.height);
+                            : scene_for(*s.conn, task.scene_sha256(), variant, settings.height);
   } catch (const TaskError& e) {
     return fail(e);
   } catch (const AnimationSelectionError& e) {
@@ -396,7 +456,7 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
     return fail({std::string("scene: ") + e.what(), true});
   }
   try {
-    settings.environment = environment_for(task.settings());
+    settings.environment = environment_for(*s.conn, task.settings());
   } catch (const TaskError& e) {
     return fail(e);
   } catch (const std::exception& e) {
@@ -480,12 +540,12 @@ LoadOptions Worker::farm_load_options(const std::string& sha256) const {
 }
 
 template <typename T>
-T Worker::load_scene_file(const std::string& sha256,
+T Worker::load_scene_file(Connection& from, const std::string& sha256,
                           const std::function<T(const std::string& path)>& load) {
   std::string path = find_cached_scene(options_.cache_dir, sha256);
   bool fetched = false;
   if (path.empty()) {
-    path = fetch_scene(sha256);
+    path = fetch_scene(from, sha256);
     fetched = true;
   }
   try {
@@ -495,11 +555,11 @@ T Worker::load_scene_file(const std::string& sha256,
     if (fetched || sha256_file_hex(path) == sha256) throw;
     log_line("cached scene " + path + " is corrupt; fetching it again");
     fs::remove(path);
-    return load(fetch_scene(sha256));
+    return load(fetch_scene(from, sha256));
   }
 }
 
-std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256,
+std::shared_ptr<const Scene> Worker::scene_for(Connection& from, const std::string& sha256,
                                                const std::string& variant, uint32_t height) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
   const std::string key = sha256 + variant_key(variant);
@@ -508,7 +568,7 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256,
     load.variant = variant;
     load.image_height = height;
     return load_scene_file<std::shared_ptr<const Scene>>(
-        sha256, [&](const std::string& path) -> std::shared_ptr<const Scene> {
+        from, sha256, [&](const std::string& path) -> std::shared_ptr<const Scene> {
           std::vector<std::string> warnings;
           std::unique_ptr<Scene> scene = load_scene(path, &warnings, load);
           for (const auto& w : warnings) log_line("warning: " + w);
@@ -522,7 +582,8 @@ std::shared_ptr<const Scene> Worker::scene_for(const std::string& sha256,
   });
 }
 
-std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
+std::shared_ptr<const Scene> Worker::posed_scene_for(Connection& from,
+                                                     const std::string& sha256,
                                                      const std::string& animation_selection,
                                                      double time_s, const Shutter& shutter,
                                                      const std::string& variant,
@@ -540,7 +601,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
   const SceneCache::AnimatedLoader prepare = [&]() -> std::shared_ptr<const AnimatedScene> {
     const LoadOptions load = farm_load_options(sha256);
     return load_scene_file<std::shared_ptr<const AnimatedScene>>(
-        sha256, [&](const std::string& path) -> std::shared_ptr<const AnimatedScene> {
+        from, sha256, [&](const std::string& path) -> std::shared_ptr<const AnimatedScene> {
           std::vector<std::string> warnings;
           std::shared_ptr<const GltfDocument> document = parse_gltf(path, &warnings, load);
           LoadOptions split = load;
@@ -587,7 +648,8 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(const std::string& sha256,
   return scenes_.get_posed(sha256, animation + height_key(height), pose_key, prepare, pose);
 }
 
-std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSettings& settings) {
+std::shared_ptr<const Environment> Worker::environment_for(Connection& from,
+                                                           const pb::RenderSettings& settings) {
   const std::string& sha256 = settings.environment_sha256();
   if (sha256.empty()) return nullptr;
   if (!is_sha256_hex(sha256))
@@ -605,7 +667,7 @@ std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSetti
   if (it != environments_.end()) return it->second;
   std::string path = find_cached_scene(options_.cache_dir, sha256);
   const bool cached = !path.empty();
-  if (!cached) path = fetch_scene(sha256);
+  if (!cached) path = fetch_scene(from, sha256);
   std::shared_ptr<const Environment> env;
   try {
     env = Environment::load(path, intensity, rotation);
@@ -614,7 +676,7 @@ std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSetti
     if (!cached || sha256_file_hex(path) == sha256) throw;
     log_line("cached environment " + path + " is corrupt; fetching it again");
     fs::remove(path);
-    path = fetch_scene(sha256);
+    path = fetch_scene(from, sha256);
     env = Environment::load(path, intensity, rotation);
   }
   if (environments_.size() >= 4) environments_.erase(environments_.begin());
@@ -624,7 +686,7 @@ std::shared_ptr<const Environment> Worker::environment_for(const pb::RenderSetti
   return env;
 }
 
-std::string Worker::fetch_scene(const std::string& sha256) {
+std::string Worker::fetch_scene(Connection& from, const std::string& sha256) {
   std::error_code ec;
   fs::create_directories(options_.cache_dir, ec);
   std::ostringstream tmp_name;
@@ -634,7 +696,7 @@ std::string Worker::fetch_scene(const std::string& sha256) {
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
   pb::FetchSceneRequest request;
   request.set_sha256(sha256);
-  auto reader = scene_stub_->FetchScene(&context, request);
+  auto reader = from.scenes->FetchScene(&context, request);
   std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
   if (!out) throw TaskError{"scene fetch: cannot write to the worker's scene cache", true};
   Sha256 hash;
@@ -688,9 +750,69 @@ std::string Worker::fetch_scene(const std::string& sha256) {
 
 }  // namespace
 
+namespace {
+
+// "host:port" or "[v6]:port" into its parts; false for other gRPC targets (dns:///..., unix:...).
+bool split_host_port(const std::string& target, std::string* host, std::string* port) {
+  if (target.find("://") != std::string::npos || target.rfind("unix:", 0) == 0) return false;
+  const size_t colon = target.rfind(':');
+  if (colon == std::string::npos || colon == 0 || colon + 1 == target.size()) return false;
+  *host = target.substr(0, colon);
+  *port = target.substr(colon + 1);
+  if (host->front() == '[') return false;  // an IPv6 literal: one address
+  return host->find(':') == std::string::npos;
+}
+
+// The IPv4 addresses a host name has now, "a.b.c.d:port", sorted (empty if it has none or
+// cannot be resolved).
+std::vector<std::string> ipv4_addresses(const std::string& host, const std::string& port) {
+  addrinfo hints{};
+  hints.ai_family = AF_INET;
+  hints.ai_socktype = SOCK_STREAM;
+  addrinfo* found = nullptr;
+  std::set<std::string> out;
+  if (getaddrinfo(host.c_str(), port.c_str(), &hints, &found) != 0) return {};
+  for (addrinfo* a = found; a; a = a->ai_next) {
+    char text[INET_ADDRSTRLEN] = {};
+    const auto* in = reinterpret_cast<const sockaddr_in*>(a->ai_addr);
+    if (inet_ntop(AF_INET, &in->sin_addr, text, sizeof text)) out.insert(std::string(text));
+  }
+  freeaddrinfo(found);
+  std::vector<std::string> addresses;
+  for (const std::string& a : out) addresses.push_back(a + ":" + port);
+  return addresses;
+}
+
+// What the worker dials for --server: each comma-separated entry as given, except a host name
+// with several IPv4 addresses (a Kubernetes headless Service, a DNS round robin), which is one
+// server per address, its TLS certificate still checked against the name. Keys: dial targets;
+// values: (name for messages, TLS name to check or "").
+std::map<std::string, std::pair<std::string, std::string>> server_targets(
+    const std::string& servers) {
+  std::map<std::string, std::pair<std::string, std::string>> targets;
+  std::stringstream list(servers);
+  for (std::string entry; std::getline(list, entry, ',');) {
+    entry.erase(0, entry.find_first_not_of(" \t"));
+    entry.erase(entry.find_last_not_of(" \t") + 1);
+    if (entry.empty()) continue;
+    std::string host, port;
+    std::vector<std::string> addresses;
+    if (split_host_port(entry, &host, &port)) addresses = ipv4_addresses(host, port);
+    if (addresses.size() < 2) {
+      targets.emplace(entry, std::make_pair(entry, std::string()));
+      continue;
+    }
+    for (const std::string& a : addresses)
+      targets.emplace(a, std::make_pair(entry + " (" + a + ")", host));
+  }
+  return targets;
+}
+
+}  // namespace
+
 int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
-  grpc::ChannelArguments args;
-  args.SetMaxReceiveMessageSize(64 << 20);
+  grpc::ChannelArguments base_args;
+  base_args.SetMaxReceiveMessageSize(64 << 20);
   std::shared_ptr<grpc::ChannelCredentials> credentials;
   if (options.tls) {
     grpc::SslCredentialsOptions ssl;
@@ -698,14 +820,11 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
     ssl.pem_cert_chain = options.tls_cert_pem;
     ssl.pem_private_key = options.tls_key_pem;
     credentials = grpc::SslCredentials(ssl);
-    if (!options.tls_server_name.empty())
-      args.SetSslTargetNameOverride(options.tls_server_name);
   } else {
     credentials = grpc::InsecureChannelCredentials();
   }
-  auto channel = grpc::CreateCustomChannel(options.server, credentials, args);
-  Worker worker(options, channel);
-  log_line(std::string("connecting to ") + options.server +
+  Worker worker(options);
+  log_line(std::string("serving ") + options.server +
            (options.tls ? " over TLS" + std::string(options.tls_cert_pem.empty() ? "" : " (client "
                                                                                   "certificate)")
                         : " without TLS"));
@@ -715,15 +834,80 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
                 ? " or " + format_bytes(options.scene_memory_budget) + " (--scene-memory-mb)"
                 : std::string()) +
            ", " + bvh_layout_name(options.bvh) + " BVH");
-  double backoff = options.backoff_initial_s;
-  while (!stop) {
-    if (worker.run_session(stop)) backoff = options.backoff_initial_s;
-    if (stop) break;
-    log_line("reconnecting to " + options.server + " in " + std::to_string(backoff) + " s");
-    const auto until = Clock::now() + std::chrono::duration<double>(backoff);
-    while (!stop && Clock::now() < until) std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    backoff = std::min(options.backoff_max_s, 2.0 * backoff);
+  // One thread per server, each reconnecting with its own backoff; the address list is
+  // resolved again every resolve_interval_s, so that servers a name gains are served and those
+  // it loses are left once their stream ends.
+  struct Served {
+    std::unique_ptr<Connection> connection;
+    std::thread thread;
+  };
+  std::map<std::string, Served> served;
+  auto serve = [&](Connection& c) {
+    double backoff = options.backoff_initial_s;
+    while (!stop && !c.retired) {
+      if (worker.run_session(c, stop)) backoff = options.backoff_initial_s;
+      if (stop || c.retired) break;
+      log_line("reconnecting to " + c.name + " in " + std::to_string(backoff) + " s");
+      const auto until = Clock::now() + std::chrono::duration<double>(backoff);
+      while (!stop && !c.retired && Clock::now() < until)
+        std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      backoff = std::min(options.backoff_max_s, 2.0 * backoff);
+    }
+  };
+  const bool several_entries = options.server.find(',') != std::string::npos;
+  for (auto next_resolve = Clock::now(); !stop;
+       std::this_thread::sleep_for(std::chrono::milliseconds(20))) {
+    if (Clock::now() < next_resolve) continue;
+    next_resolve = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                      std::chrono::duration<double>(options.resolve_interval_s));
+    const auto targets = server_targets(options.server);
+    // A server that left and whose stream has ended is forgotten (and served afresh if it
+    // comes back).
+    for (auto it = served.begin(); it != served.end();) {
+      if (it->second.connection->done) {
+        it->second.thread.join();
+        it = served.erase(it);
+      } else {
+        ++it;
+      }
+    }
+    for (auto& [target, entry] : served)
+      if (!targets.count(target) && !entry.connection->retired) {
+        log_line("leaving " + entry.connection->name + ": no longer an address of --server");
+        entry.connection->retired = true;
+      }
+    for (const auto& [target, names] : targets) {
+      if (served.count(target)) {
+        served[target].connection->retired = false;  // back before its stream ended
+        continue;
+      }
+      auto c = std::make_unique<Connection>();
+      c->target = target;
+      c->name = names.first;
+      // Several servers see this process as one worker each: the address tells them apart
+      // (in a farm of replicas they share one table of workers).
+      c->worker_id = several_entries || target != names.first
+                         ? (options.worker_id + "@" + target).substr(0, 100)
+                         : options.worker_id;
+      grpc::ChannelArguments args = base_args;
+      const std::string tls_name =
+          !options.tls_server_name.empty() ? options.tls_server_name : names.second;
+      if (options.tls && !tls_name.empty()) args.SetSslTargetNameOverride(tls_name);
+      c->channel = grpc::CreateCustomChannel(target, credentials, args);
+      c->workers = pb::WorkerService::NewStub(c->channel);
+      c->scenes = pb::SceneService::NewStub(c->channel);
+      log_line("connecting to " + c->name);
+      Served& entry = served[target];
+      entry.connection = std::move(c);
+      Connection* conn = entry.connection.get();
+      entry.thread = std::thread([&serve, conn] {
+        serve(*conn);
+        conn->done = true;
+      });
+    }
   }
+  for (auto& [target, entry] : served)
+    if (entry.thread.joinable()) entry.thread.join();
   log_line("stopped");
   return 0;
 }

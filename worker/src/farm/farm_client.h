@@ -13,7 +13,10 @@
 namespace rf {
 
 struct FarmOptions {
-  std::string server;      // host:port
+  // The servers to serve, comma-separated: host:port (a name with several IPv4 addresses is
+  // one server per address), [v6]:port or any gRPC target. One stream each; the worker's
+  // threads are shared among them.
+  std::string server;
   uint32_t threads = 1;    // render threads (Hello.cores)
   uint32_t prefetch = 2;   // extra tasks leased beyond threads (Hello.max_in_flight)
   std::string cache_dir;   // scene file cache
@@ -34,6 +37,8 @@ struct FarmOptions {
   // Reconnect backoff: initial, doubling up to max; reset after a successful Welcome.
   double backoff_initial_s = 0.5;
   double backoff_max_s = 10.0;
+  // How often the names of `server` are resolved again (servers gained or lost).
+  double resolve_interval_s = 10.0;
 };
 
 // Runs until *stop becomes true (set e.g. by a SIGINT/SIGTERM handler). Then it stops taking

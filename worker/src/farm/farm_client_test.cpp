@@ -45,6 +45,8 @@ struct FakeFarm {
   // Environment maps, stored and served like scenes.
   std::string env_bytes, env_sha;
   int env_fetches = 0;
+  // While true, FetchScene waits (a task that fetches stays in flight).
+  bool hold_fetches = false;
 
   template <typename Pred>
   bool wait_for(Pred pred, int seconds = 60) {
@@ -97,6 +99,10 @@ class FakeSceneService final : public pb::SceneService::Service {
   explicit FakeSceneService(FakeFarm* farm) : farm_(farm) {}
   grpc::Status FetchScene(grpc::ServerContext*, const pb::FetchSceneRequest* request,
                           grpc::ServerWriter<pb::SceneChunk>* writer) override {
+    {
+      std::unique_lock<std::mutex> lock(farm_->mutex);
+      farm_->cv.wait(lock, [&] { return !farm_->hold_fetches; });
+    }
     const bool env = !farm_->env_sha.empty() && request->sha256() == farm_->env_sha;
     if (request->sha256() != farm_->scene_sha && !env)
       return grpc::Status(grpc::StatusCode::NOT_FOUND, "unknown scene");
@@ -327,6 +333,114 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
 
 // The seed of frame f of a job of seed s, written out from docs/architecture.md,
 // "Determinism" (SplitMix64's output function, applied twice), not taken from the worker.
+// A worker given two servers (--server A,B) serves both: a stream each, under an id each, its
+// threads shared (one thread: a task of B waits while A's renders), scenes fetched from the
+// server whose task needs them, and each stream asks for what the other does not hold.
+TEST(FarmClient, ServesSeveralServersWithSharedThreadsAndCredit) {
+  FakeFarm a, b;
+  a.scene_bytes = testing::small_gltf_json();
+  a.scene_sha = sha256_hex(a.scene_bytes);
+  b.scene_bytes = testing::animated_gltf_json();  // another scene: B's own
+  b.scene_sha = sha256_hex(b.scene_bytes);
+  FakeWorkerService a_workers(&a), b_workers(&b);
+  FakeSceneService a_scenes(&a), b_scenes(&b);
+  int a_port = 0, b_port = 0;
+  grpc::ServerBuilder a_builder, b_builder;
+  a_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &a_port);
+  a_builder.RegisterService(&a_workers);
+  a_builder.RegisterService(&a_scenes);
+  b_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &b_port);
+  b_builder.RegisterService(&b_workers);
+  b_builder.RegisterService(&b_scenes);
+  std::unique_ptr<grpc::Server> a_server = a_builder.BuildAndStart();
+  std::unique_ptr<grpc::Server> b_server = b_builder.BuildAndStart();
+  ASSERT_TRUE(a_server && b_server);
+
+  const fs::path cache = fs::path(testing::test_path("rf-farm-two-servers"));
+  fs::remove_all(cache);
+  FarmOptions options;
+  const std::string a_addr = "127.0.0.1:" + std::to_string(a_port);
+  const std::string b_addr = "127.0.0.1:" + std::to_string(b_port);
+  options.server = a_addr + ", " + b_addr;
+  options.threads = 1;
+  options.prefetch = 1;
+  options.cache_dir = cache.string();
+  options.worker_id = "two";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(a.wait_for([&] { return a.stream != nullptr; }));
+  ASSERT_TRUE(b.wait_for([&] { return b.stream != nullptr; }));
+  {
+    std::lock_guard<std::mutex> la(a.mutex), lb(b.mutex);
+    EXPECT_EQ(a.received.at(0).hello().worker_id(), "two@" + a_addr);
+    EXPECT_EQ(b.received.at(0).hello().worker_id(), "two@" + b_addr);
+    EXPECT_EQ(a.received.at(0).hello().max_in_flight(), 2u);
+    EXPECT_EQ(b.received.at(0).hello().max_in_flight(), 2u);
+  }
+  auto assign = [](FakeFarm& farm, const pb::Task& t) {
+    pb::ServerMessage m;
+    *m.mutable_assign()->mutable_task() = t;
+    return farm.send(m);
+  };
+  auto has_result = [](FakeFarm& farm, const std::string& id) {
+    for (const auto& m : farm.received)
+      if (m.has_result() && m.result().task_id() == id) return true;
+    return false;
+  };
+  // The last max_in_flight a farm heard from the worker (Hello's, then its heartbeats').
+  auto wanted = [](FakeFarm& farm) {
+    uint32_t w = 0;
+    for (const auto& m : farm.received) {
+      if (m.has_hello()) w = m.hello().max_in_flight();
+      if (m.has_heartbeat() && m.heartbeat().max_in_flight()) w = m.heartbeat().max_in_flight();
+    }
+    return w;
+  };
+  {
+    std::lock_guard<std::mutex> lock(a.mutex);
+    a.hold_fetches = true;  // A's first task stays in flight, fetching its scene
+  }
+  ASSERT_TRUE(assign(a, make_task("a1", a.scene_sha, 4)));
+  ASSERT_TRUE(assign(a, make_task("a2", a.scene_sha, 4)));
+  // A holds the worker's two slots: B is asked for one task only.
+  ASSERT_TRUE(b.wait_for([&] { return wanted(b) == 1; }, 30));
+  pb::Task b1 = make_task("b1", b.scene_sha, 4);
+  b1.set_job_id("job-b");
+  ASSERT_TRUE(assign(b, b1));
+  // One thread, busy with A's task: B's waits (its heartbeats list it, no result yet).
+  ASSERT_TRUE(b.wait_for([&] {
+    for (const auto& m : b.received)
+      if (m.has_heartbeat())
+        for (const auto& id : m.heartbeat().task_ids())
+          if (id == "b1") return true;
+    return false;
+  }, 30));
+  {
+    std::lock_guard<std::mutex> lock(b.mutex);
+    EXPECT_FALSE(has_result(b, "b1"));
+    EXPECT_EQ(b.fetches, 0);
+  }
+  {
+    std::lock_guard<std::mutex> lock(a.mutex);
+    a.hold_fetches = false;
+  }
+  a.cv.notify_all();
+  ASSERT_TRUE(a.wait_for([&] { return has_result(a, "a1") && has_result(a, "a2"); }));
+  ASSERT_TRUE(b.wait_for([&] { return has_result(b, "b1"); }));
+  // Each scene came from its own server, once; with nothing held, each stream wants two again.
+  ASSERT_TRUE(b.wait_for([&] { return wanted(b) == 2; }, 30));
+  ASSERT_TRUE(a.wait_for([&] { return wanted(a) == 2; }, 30));
+  {
+    std::lock_guard<std::mutex> la(a.mutex), lb(b.mutex);
+    EXPECT_EQ(a.fetches, 1);
+    EXPECT_EQ(b.fetches, 1);
+  }
+  stop = true;
+  client.join();
+  a_server->Shutdown();
+  b_server->Shutdown();
+}
+
 uint64_t spec_splitmix64(uint64_t x) {
   uint64_t z = x + 0x9E3779B97F4A7C15ull;
   z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;

@@ -63,7 +63,8 @@ const char* kUsage =
     "  renderfarm-worker inspect SCENE.gltf|SCENE.glb [--json] [--name NAME]\n"
     "      [--max-nodes N] [--max-depth D] [--max-triangles T] [--max-texture-pixels P]\n"
     "      [--max-memory-mb M] [--bvh fast|compact]\n"
-    "  renderfarm-worker connect --server HOST:PORT [--threads N] [--prefetch P]\n"
+    "  renderfarm-worker connect --server HOST:PORT[,HOST:PORT...] [--threads N]\n"
+    "      [--prefetch P]\n"
     "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
     "      [--scene-memory-mb M] [--task-timeout-s S] [--max-scene-memory-mb M]\n"
     "      [--tls] [--ca-file CA.pem] [--cert CERT.pem --key KEY.pem]\n"
@@ -669,7 +670,7 @@ int cmd_connect(const std::vector<std::string>& args) {
        "--max-texture-pixels"},
       nullptr);
   if (!flags.count("--server") || flags["--server"].empty())
-    throw UsageError{"connect needs --server HOST:PORT"};
+    throw UsageError{"connect needs --server HOST:PORT (several: A:PORT,B:PORT)"};
   rf::FarmOptions options;
   options.server = flags["--server"];
   options.tags = tags;
