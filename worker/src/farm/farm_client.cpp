@@ -763,9 +763,9 @@ bool split_host_port(const std::string& target, std::string* host, std::string* 
   return host->find(':') == std::string::npos;
 }
 
-// The IPv4 addresses a host name has now, "a.b.c.d:port", sorted (empty if it has none or
-// cannot be resolved).
-std::vector<std::string> ipv4_addresses(const std::string& host, const std::string& port) {
+}  // namespace
+
+std::vector<std::string> resolve_ipv4(const std::string& host, const std::string& port) {
   addrinfo hints{};
   hints.ai_family = AF_INET;
   hints.ai_socktype = SOCK_STREAM;
@@ -783,13 +783,9 @@ std::vector<std::string> ipv4_addresses(const std::string& host, const std::stri
   return addresses;
 }
 
-// What the worker dials for --server: each comma-separated entry as given, except a host name
-// with several IPv4 addresses (a Kubernetes headless Service, a DNS round robin), which is one
-// server per address, its TLS certificate still checked against the name. Keys: dial targets;
-// values: (name for messages, TLS name to check or "").
-std::map<std::string, std::pair<std::string, std::string>> server_targets(
-    const std::string& servers) {
-  std::map<std::string, std::pair<std::string, std::string>> targets;
+std::map<std::string, ServerTarget> server_targets(const std::string& servers,
+                                                   const Resolver& resolve) {
+  std::map<std::string, ServerTarget> targets;
   std::stringstream list(servers);
   for (std::string entry; std::getline(list, entry, ',');) {
     entry.erase(0, entry.find_first_not_of(" \t"));
@@ -797,18 +793,18 @@ std::map<std::string, std::pair<std::string, std::string>> server_targets(
     if (entry.empty()) continue;
     std::string host, port;
     std::vector<std::string> addresses;
-    if (split_host_port(entry, &host, &port)) addresses = ipv4_addresses(host, port);
+    if (split_host_port(entry, &host, &port)) addresses = resolve(host, port);
+    std::sort(addresses.begin(), addresses.end());
+    addresses.erase(std::unique(addresses.begin(), addresses.end()), addresses.end());
     if (addresses.size() < 2) {
-      targets.emplace(entry, std::make_pair(entry, std::string()));
+      targets.emplace(entry, ServerTarget{entry, ""});
       continue;
     }
     for (const std::string& a : addresses)
-      targets.emplace(a, std::make_pair(entry + " (" + a + ")", host));
+      targets.emplace(a, ServerTarget{entry + " (" + a + ")", host});
   }
   return targets;
 }
-
-}  // namespace
 
 int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
   grpc::ChannelArguments base_args;
@@ -860,7 +856,7 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
     if (Clock::now() < next_resolve) continue;
     next_resolve = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                       std::chrono::duration<double>(options.resolve_interval_s));
-    const auto targets = server_targets(options.server);
+    const auto targets = server_targets(options.server, resolve_ipv4);
     // A server that left and whose stream has ended is forgotten (and served afresh if it
     // comes back).
     for (auto it = served.begin(); it != served.end();) {
@@ -883,15 +879,15 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
       }
       auto c = std::make_unique<Connection>();
       c->target = target;
-      c->name = names.first;
+      c->name = names.name;
       // Several servers see this process as one worker each: the address tells them apart
       // (in a farm of replicas they share one table of workers).
-      c->worker_id = several_entries || target != names.first
+      c->worker_id = several_entries || target != names.name
                          ? (options.worker_id + "@" + target).substr(0, 100)
                          : options.worker_id;
       grpc::ChannelArguments args = base_args;
       const std::string tls_name =
-          !options.tls_server_name.empty() ? options.tls_server_name : names.second;
+          !options.tls_server_name.empty() ? options.tls_server_name : names.tls_name;
       if (options.tls && !tls_name.empty()) args.SetSslTargetNameOverride(tls_name);
       c->channel = grpc::CreateCustomChannel(target, credentials, args);
       c->workers = pb::WorkerService::NewStub(c->channel);

@@ -5,6 +5,8 @@
 
 #include <atomic>
 #include <cstdint>
+#include <functional>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -40,6 +42,20 @@ struct FarmOptions {
   // How often the names of `server` are resolved again (servers gained or lost).
   double resolve_interval_s = 10.0;
 };
+
+// What the worker dials for FarmOptions::server, by dial target: each comma-separated entry as
+// given, except a host:port whose host `resolve` gives several addresses ("a.b.c.d:port"),
+// which is one server per address, its TLS certificate still checked against the host.
+struct ServerTarget {
+  std::string name;      // for messages: the entry, and the address if it is one of several
+  std::string tls_name;  // the name to check in its certificate ("": the target's)
+};
+using Resolver =
+    std::function<std::vector<std::string>(const std::string& host, const std::string& port)>;
+std::map<std::string, ServerTarget> server_targets(const std::string& servers,
+                                                   const Resolver& resolve);
+// The host's IPv4 addresses now (getaddrinfo), "a.b.c.d:port" each.
+std::vector<std::string> resolve_ipv4(const std::string& host, const std::string& port);
 
 // Runs until *stop becomes true (set e.g. by a SIGINT/SIGTERM handler). Then it stops taking
 // new tasks, finishes the tasks being rendered, sends their results, closes the stream and

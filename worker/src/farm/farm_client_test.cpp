@@ -441,6 +441,29 @@ TEST(FarmClient, ServesSeveralServersWithSharedThreadsAndCredit) {
   b_server->Shutdown();
 }
 
+// --server's entries: as given, except a name with several addresses, one server per address
+// with its certificate checked against the name; other gRPC targets and IP literals as given.
+TEST(FarmClient, ServerTargetsExpandANameWithSeveralAddresses) {
+  const Resolver fake = [](const std::string& host, const std::string& port) {
+    if (host == "farm-headless") return std::vector<std::string>{"10.0.0.3:" + port,
+                                                                 "10.0.0.1:" + port,
+                                                                 "10.0.0.3:" + port};
+    if (host == "one") return std::vector<std::string>{"10.0.0.9:" + port};
+    return std::vector<std::string>{};
+  };
+  const auto t = server_targets(" one:50051 ,farm-headless:50051,,dns:///x:1,[::1]:7", fake);
+  ASSERT_EQ(t.size(), 5u);
+  EXPECT_EQ(t.at("one:50051").name, "one:50051");  // one address: dialed by name
+  EXPECT_EQ(t.at("one:50051").tls_name, "");
+  EXPECT_EQ(t.at("10.0.0.1:50051").name, "farm-headless:50051 (10.0.0.1:50051)");
+  EXPECT_EQ(t.at("10.0.0.1:50051").tls_name, "farm-headless");
+  EXPECT_EQ(t.at("10.0.0.3:50051").tls_name, "farm-headless");
+  EXPECT_TRUE(t.count("dns:///x:1"));
+  EXPECT_TRUE(t.count("[::1]:7"));
+  // The real resolver (/etc/hosts): localhost has one IPv4 address.
+  EXPECT_EQ(resolve_ipv4("localhost", "80"), std::vector<std::string>{"127.0.0.1:80"});
+}
+
 uint64_t spec_splitmix64(uint64_t x) {
   uint64_t z = x + 0x9E3779B97F4A7C15ull;
   z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
