@@ -66,6 +66,19 @@ class Conflict(RuntimeError):
         self.message = message
 
 
+class LeaseLost(Conflict):
+    """A write of a job's owner was refused: the job's lease in the database no longer names
+    this replica at the epoch the write carried (another replica took the job over, #39). The
+    service drops the job from memory (its unsaved merges with it) and leaves it to its new
+    owner; an API request that meets it is answered 409 and may be sent again."""
+
+    def __init__(self, job_ids: list[str] | str, message: str = ""):
+        self.job_ids = [job_ids] if isinstance(job_ids, str) else list(job_ids)
+        super().__init__(
+            message or f"job {', '.join(self.job_ids)} is owned by another server now; try again"
+        )
+
+
 class AuthError(PermissionError):
     """No token, or one that is unknown or revoked (REST 401, gRPC UNAUTHENTICATED)."""
 
@@ -95,6 +108,7 @@ __all__ = [
     "Cancelled",
     "Conflict",
     "Forbidden",
+    "LeaseLost",
     "NotFound",
     "SceneError",
     "SchemaTooNew",

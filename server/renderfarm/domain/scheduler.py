@@ -247,6 +247,20 @@ class Scheduler:
             if self.cache is not None:
                 self.cache.forget_job(job_id)
 
+    def drop_job(self, job_id: str) -> None:
+        """Drop a job in any state, without an event: another server owns it now (#39). The
+        tasks workers hold of it are cancelled; a result of one that still arrives is
+        discarded (unknown job)."""
+        job = self.jobs.pop(job_id, None)
+        if job is None:
+            return
+        for lease in [x for x in self.leases.values() if x.job_id == job_id]:
+            self._release(lease, requeue=False)
+            self.cancellations.setdefault(lease.worker_id, []).append(lease.task_id)
+        self.events = [e for e in self.events if e.job_id != job_id]
+        if self.cache is not None:
+            self.cache.forget_job(job_id)
+
     def _register(self, job: JobRun, tile: TileState) -> None:
         if self.cache is not None:
             self.cache.register(job.job_id, tile.acc, job.settings.tile_size)

@@ -4,7 +4,9 @@ store.Store keeps everything in PostgreSQL; MemoryStore keeps the same rows in d
 for unit tests of the layers above it (the service, the APIs) that need no database. Both are
 held to one contract by server/tests/test_store_contract.py, which runs the same assertions
 against each, so a test that passes on MemoryStore says something true of the real store.
-MemoryStore is not a production store: nothing survives the process.
+MemoryStore is not a production store: nothing survives the process. It has no job leases
+(a server on it owns every job, collaborators.SoleOwner): the fences its writes are given are
+accepted and not checked.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from typing import Any, Protocol
 
-from .store import JobRow, TileRow, TileSummary, TokenRow, _clean, _finite, _ts
+from .store import Fence, JobRow, TileRow, TileSummary, TokenRow, _clean, _finite, _ts
 
 _UNFINISHED = ("waiting", "queued", "running", "paused")
 
@@ -53,7 +55,9 @@ class JobStore(Protocol):
         variants: list[str] | None = None,
     ) -> JobRow: ...
     async def update_job(self, job_id: str, **fields: Any) -> None: ...
-    async def update_job_spec(self, job_id: str, name: str, settings: dict[str, Any]) -> None: ...
+    async def update_job_spec(
+        self, job_id: str, name: str, settings: dict[str, Any], fence: Fence | None = None
+    ) -> None: ...
     async def reactivate_job(self, job_id: str, **fields: Any) -> None: ...
     async def waiting_for(self, job_id: str) -> list[str]: ...
     async def get_job(self, job_id: str) -> JobRow | None: ...
@@ -64,16 +68,24 @@ class JobStore(Protocol):
         after: tuple[datetime, str] | None,
         owner: str | None = None,
     ) -> list[JobRow]: ...
-    async def delete_job(self, job_id: str) -> bool: ...
+    async def delete_job(self, job_id: str, replica_id: str | None = None) -> bool: ...
     async def unfinished_jobs(self) -> list[JobRow]: ...
-    async def save_tiles(self, job_id: str, rows: list[TileRow]) -> None: ...
+    async def save_tiles(
+        self, job_id: str, rows: list[TileRow], fence: Fence | None = None
+    ) -> None: ...
     async def load_tiles(
         self, job_id: str, first: int = 0, count: int | None = None
     ) -> list[TileRow]: ...
     async def tile_summaries(self, job_id: str) -> list[TileSummary]: ...
-    async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None: ...
+    async def add_events(
+        self,
+        events: list[tuple[str | None, str, dict[str, Any]]],
+        fences: dict[str, Fence] | None = None,
+    ) -> None: ...
     async def add_events_once(
-        self, events: list[tuple[str | None, str, dict[str, Any]]]
+        self,
+        events: list[tuple[str | None, str, dict[str, Any]]],
+        fences: dict[str, Fence] | None = None,
     ) -> None: ...
     async def list_events(self, job_id: str, limit: int = 1000) -> list[dict[str, Any]]: ...
     async def worker_connected(
@@ -210,6 +222,7 @@ class MemoryStore:
         tiles_done: int,
         tiles_previewed: int,
         frames_done: int = 0,
+        fence: Fence | None = None,
     ) -> None:
         row = self._jobs.get(job_id)
         if row is None:
@@ -221,7 +234,9 @@ class MemoryStore:
             tiles_previewed=tiles_previewed, frames_done=frames_done,
         )  # fmt: skip
 
-    async def update_job_spec(self, job_id: str, name: str, settings: dict[str, Any]) -> None:
+    async def update_job_spec(
+        self, job_id: str, name: str, settings: dict[str, Any], fence: Fence | None = None
+    ) -> None:
         row = self._jobs.get(job_id)
         if row is not None:
             settings = json.loads(json.dumps(settings))
@@ -236,6 +251,7 @@ class MemoryStore:
         elapsed_s: float,
         render_again: list[int],
         tiles: list[tuple[int, list[int] | None, list[list] | None, Any]],
+        fence: Fence | None = None,
     ) -> None:
         row = self._jobs.get(job_id)
         if row is None:
@@ -281,7 +297,7 @@ class MemoryStore:
         rows.sort(key=lambda r: (r.created_at, r.id), reverse=True)
         return copy.deepcopy(rows[:limit])
 
-    async def delete_job(self, job_id: str) -> bool:
+    async def delete_job(self, job_id: str, replica_id: str | None = None) -> bool:
         row = self._jobs.pop(job_id, None)
         if row is None:
             return False
@@ -299,7 +315,9 @@ class MemoryStore:
         return copy.deepcopy(sorted(rows, key=lambda r: r.created_at))
 
     # ----------------------------------------------------------------------------- tiles
-    async def save_tiles(self, job_id: str, rows: list[TileRow]) -> None:
+    async def save_tiles(
+        self, job_id: str, rows: list[TileRow], fence: Fence | None = None
+    ) -> None:
         stored = self._tiles.get(job_id)
         if stored is None:  # the database refuses a tile of no job (foreign key)
             raise KeyError(f"no job {job_id!r}")
@@ -334,12 +352,20 @@ class MemoryStore:
             "data": json.loads(json.dumps(_clean(data), default=str)), "at": self._now(),
         })  # fmt: skip
 
-    async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
+    async def add_events(
+        self,
+        events: list[tuple[str | None, str, dict[str, Any]]],
+        fences: dict[str, Fence] | None = None,
+    ) -> None:
         for job_id, kind, data in events:
             if job_id in self._jobs:  # events of a job deleted meanwhile are dropped
                 self._add_event(job_id, kind, data)
 
-    async def add_events_once(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
+    async def add_events_once(
+        self,
+        events: list[tuple[str | None, str, dict[str, Any]]],
+        fences: dict[str, Fence] | None = None,
+    ) -> None:
         for job_id, kind, data in events:
             clean = json.loads(json.dumps(_clean(data), default=str))
             seen = any(e["job_id"] == job_id and e["kind"] == kind and e["data"] == clean

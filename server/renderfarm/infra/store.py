@@ -26,9 +26,15 @@ from psycopg.rows import dict_row
 from psycopg.types.json import Jsonb
 from psycopg_pool import AsyncConnectionPool, TooManyRequests
 
-from ..errors import SchemaTooNew
+from ..errors import LeaseLost, SchemaTooNew
 
 _MIGRATION_LOCK = 0x52464D31  # advisory lock key for migrations ("RFM1")
+
+Fence = tuple[str, int]
+"""(replica id, epoch): what a write of a job's owner carries in a farm of several servers
+(#39). A fenced write is made, in its transaction, only while the job's lease row names that
+replica and epoch (locked FOR SHARE, so a takeover waits for it), and raises LeaseLost
+otherwise. None: no condition (a server alone, collaborators.SoleOwner)."""
 
 # Seconds a client is told to wait (Retry-After) when the database is away (a restarted
 # embedded PostgreSQL answers again within about this), and when the queue is full.
@@ -97,6 +103,7 @@ class JobRow:
     frames_done: int = 0  # frames whose every tile has stopped
     # settings.variant "all": the scene's variants, one image each (domain/frames.py)
     variants: list[str] = dataclass_field(default_factory=list)
+    replica: str = ""  # the replica holding the job's lease now; "" when none does (#39)
 
 
 @dataclass(frozen=True)
@@ -142,6 +149,11 @@ _JOB_COLUMNS = (
     "id, name, state, settings, scene_sha256, error, created_at, started_at, finished_at, "
     "elapsed_s, samples_merged, mean_spp, error_estimate, tiles_total, tiles_done, owner, "
     "tiles_previewed, after_jobs, require_tags, frames_done, variants"
+)
+# The replica holding a live lease on the job ("" when none does), read beside its columns.
+_JOB_SELECT = (
+    _JOB_COLUMNS + ", coalesce((SELECT l.replica_id FROM job_leases l WHERE l.job_id = jobs.id"
+    " AND l.expires_at > now()), '') AS replica"
 )
 _TOKEN_COLUMNS = "id, name, sha256, admin, created_at, revoked_at"
 
@@ -366,8 +378,10 @@ class Store:
         tiles_done: int,
         tiles_previewed: int,
         frames_done: int = 0,
+        fence: Fence | None = None,
     ) -> None:
-        async with self._connection(internal=True) as conn:
+        async with self._connection(internal=True) as conn, conn.transaction():
+            await _check_fence(conn, job_id, fence)
             await conn.execute(
                 "UPDATE jobs SET state = %s, error = %s,"
                 " started_at = coalesce(started_at, %s), finished_at = %s, elapsed_s = %s,"
@@ -389,9 +403,12 @@ class Store:
                 ),
             )
 
-    async def update_job_spec(self, job_id: str, name: str, settings: dict[str, Any]) -> None:
+    async def update_job_spec(
+        self, job_id: str, name: str, settings: dict[str, Any], fence: Fence | None = None
+    ) -> None:
         """A job's name and settings after an update or a continue (job control)."""
-        async with self._connection() as conn:
+        async with self._connection() as conn, conn.transaction():
+            await _check_fence(conn, job_id, fence)
             await conn.execute(
                 "UPDATE jobs SET name = %s, settings = %s WHERE id = %s",
                 (name, json.dumps(settings), job_id),
@@ -406,6 +423,7 @@ class Store:
         elapsed_s: float,
         render_again: list[int],
         tiles: list[tuple[int, list[int] | None, list[list] | None, Any]],
+        fence: Fence | None = None,
     ) -> None:
         """A finished job brought back (retry, continue), in one transaction: its new settings
         and state, the checkpoints of the tiles that render again from their first sample
@@ -413,6 +431,7 @@ class Store:
         plan_basis, scheduler.StopRecord or None) as the new settings have them. A crash then
         finds the job either as it was or as it is now, never half way."""
         async with self._connection() as conn, conn.transaction():
+            await _check_fence(conn, job_id, fence)
             await conn.execute(
                 "DELETE FROM tiles WHERE job_id = %s AND tile_index = ANY(%s)",
                 (job_id, render_again),
@@ -455,7 +474,7 @@ class Store:
     async def get_job(self, job_id: str) -> JobRow | None:
         async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
-            await cur.execute(f"SELECT {_JOB_COLUMNS} FROM jobs WHERE id = %s", (job_id,))
+            await cur.execute(f"SELECT {_JOB_SELECT} FROM jobs WHERE id = %s", (job_id,))
             row = await cur.fetchone()
             return JobRow(**row) if row else None
 
@@ -478,7 +497,7 @@ class Store:
         if after:
             where.append("(created_at, id) < (%s, %s)")
             params.extend(after)
-        sql = f"SELECT {_JOB_COLUMNS} FROM jobs"
+        sql = f"SELECT {_JOB_SELECT} FROM jobs"
         if where:
             sql += " WHERE " + " AND ".join(where)
         sql += " ORDER BY created_at DESC, id DESC LIMIT %s"
@@ -488,11 +507,23 @@ class Store:
             await cur.execute(sql, params)
             return [JobRow(**r) for r in await cur.fetchall()]
 
-    async def delete_job(self, job_id: str) -> bool:
+    async def delete_job(self, job_id: str, replica_id: str | None = None) -> bool:
         """Delete a job with its tiles and events; its scene and environment map too when no
-        other job uses them. False when there was no such job."""
+        other job uses them. False when there was no such job. With `replica_id` (a farm of
+        several servers), LeaseLost while another replica holds a live lease on the job (it
+        was brought back meanwhile)."""
         async with self._connection() as conn:
             async with conn.transaction():
+                if replica_id is not None:
+                    # Locked whoever holds it: an acquire racing the delete waits for it.
+                    cur = await conn.execute(
+                        "SELECT replica_id, expires_at > now() FROM job_leases"
+                        " WHERE job_id = %s FOR UPDATE",
+                        (job_id,),
+                    )
+                    lease = await cur.fetchone()
+                    if lease is not None and lease[1] and lease[0] != replica_id:
+                        raise LeaseLost(job_id, f"job {job_id} is held by server {lease[0]}")
                 cur = await conn.execute(
                     "DELETE FROM jobs WHERE id = %s"
                     " RETURNING scene_sha256, settings->>'environment'",
@@ -513,18 +544,21 @@ class Store:
         async with self._connection(internal=True) as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
-                f"SELECT {_JOB_COLUMNS} FROM jobs"
+                f"SELECT {_JOB_SELECT} FROM jobs"
                 " WHERE state IN ('queued', 'running', 'paused', 'waiting')"
                 " ORDER BY created_at"
             )
             return [JobRow(**r) for r in await cur.fetchall()]
 
     # ------------------------------------------------------------------------------ tiles
-    async def save_tiles(self, job_id: str, rows: list[TileRow]) -> None:
+    async def save_tiles(
+        self, job_id: str, rows: list[TileRow], fence: Fence | None = None
+    ) -> None:
         if not rows:
             return
         # One transaction: one commit (one WAL flush) per checkpoint, not one per tile.
         async with self._connection(internal=True) as conn, conn.transaction():
+            await _check_fence(conn, job_id, fence)
             async with conn.cursor() as cur:
                 await cur.executemany(
                     "INSERT INTO tiles (job_id, tile_index, samples, batches, nonfinite, error,"
@@ -601,10 +635,18 @@ class Store:
             return [TileSummary(*r) for r in await cur.fetchall()]
 
     # ----------------------------------------------------------------------------- events
-    async def add_events(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
+    async def add_events(
+        self,
+        events: list[tuple[str | None, str, dict[str, Any]]],
+        fences: dict[str, Fence] | None = None,
+    ) -> None:
+        """Store events in order. `fences` (job id -> Fence): the events of a job named there
+        are written only while its lease matches; the others of the batch are written anyway
+        (one transaction), then LeaseLost names the jobs whose events were refused."""
         if not events:
             return
-        async with self._connection(internal=True) as conn:
+        async with self._connection(internal=True) as conn, conn.transaction():
+            events, lost = await _fenced_events(conn, events, fences)
             async with conn.cursor() as cur:
                 # Events of a job deleted meanwhile are dropped rather than failing the batch.
                 await cur.executemany(
@@ -612,14 +654,21 @@ class Store:
                     " WHERE EXISTS (SELECT 1 FROM jobs WHERE id = %s)",
                     [(j, k, json.dumps(_clean(d), default=str), j) for j, k, d in events],
                 )
+        if lost:
+            raise LeaseLost(lost)
 
-    async def add_events_once(self, events: list[tuple[str | None, str, dict[str, Any]]]) -> None:
+    async def add_events_once(
+        self,
+        events: list[tuple[str | None, str, dict[str, Any]]],
+        fences: dict[str, Fence] | None = None,
+    ) -> None:
         """add_events, leaving out every event already stored with the same job, kind and
         data: replaying a spool a second time (after a crash between its writes and its
         removal) adds nothing."""
         if not events:
             return
-        async with self._connection(internal=True) as conn:
+        async with self._connection(internal=True) as conn, conn.transaction():
+            events, lost = await _fenced_events(conn, events, fences)
             async with conn.cursor() as cur:
                 await cur.executemany(
                     "INSERT INTO events (job_id, kind, data) SELECT %s, %s, %s::jsonb"
@@ -632,6 +681,8 @@ class Store:
                         for text in [json.dumps(_clean(d), default=str)]
                     ],
                 )
+        if lost:
+            raise LeaseLost(lost)
 
     async def list_events(self, job_id: str, limit: int = 1000) -> list[dict[str, Any]]:
         async with self._connection() as conn:
@@ -664,6 +715,143 @@ class Store:
     async def mark_all_workers_disconnected(self) -> None:
         async with self._connection(internal=True) as conn:
             await conn.execute("UPDATE workers SET connected = false WHERE connected")
+
+    # ------------------------------------------------------------------- leases, replicas
+    async def acquire_lease(self, job_id: str, replica_id: str, lease_s: float) -> int | None:
+        """Take the job's lease for lease_s seconds of the database's clock, in one statement:
+        a job without a lease row gets one at epoch 1; a lease that has expired, or that names
+        this replica (a restart under the same id), is taken at its epoch + 1. The epoch now
+        held, or None when another replica holds a live lease."""
+        async with self._connection(internal=True) as conn:
+            cur = await conn.execute(
+                "INSERT INTO job_leases (job_id, replica_id, epoch, expires_at)"
+                " SELECT %s, %s, 1, now() + make_interval(secs => %s)"
+                " WHERE EXISTS (SELECT 1 FROM jobs WHERE id = %s)"
+                " ON CONFLICT (job_id) DO UPDATE SET replica_id = excluded.replica_id,"
+                " epoch = job_leases.epoch + 1, expires_at = excluded.expires_at"
+                " WHERE job_leases.expires_at <= now()"
+                " OR job_leases.replica_id = excluded.replica_id"
+                " RETURNING epoch",
+                (job_id, replica_id, lease_s, job_id),
+            )
+            row = await cur.fetchone()
+            return None if row is None else row[0]
+
+    async def renew_leases(
+        self, replica_id: str, held: dict[str, int], lease_s: float
+    ) -> dict[str, int]:
+        """Extend this replica's leases (job id -> epoch) to lease_s seconds from now; those
+        renewed (a lease taken over since, at a higher epoch, is not). An expired lease that
+        nobody took is renewed: no one else has written the job since."""
+        if not held:
+            return {}
+        ids = sorted(held)
+        async with self._connection(internal=True) as conn:
+            cur = await conn.execute(
+                "UPDATE job_leases l SET expires_at = now() + make_interval(secs => %s)"
+                " FROM unnest(%s::text[], %s::bigint[]) AS h(job_id, epoch)"
+                " WHERE l.job_id = h.job_id AND l.epoch = h.epoch AND l.replica_id = %s"
+                " RETURNING l.job_id, l.epoch",
+                (lease_s, ids, [held[j] for j in ids], replica_id),
+            )
+            return {j: e for j, e in await cur.fetchall()}
+
+    async def release_lease(self, job_id: str, replica_id: str, epoch: int) -> None:
+        """Let a lease go now (it expires; the row and its epoch stay)."""
+        async with self._connection(internal=True) as conn:
+            await conn.execute(
+                "UPDATE job_leases SET expires_at = now() WHERE job_id = %s AND replica_id = %s"
+                " AND epoch = %s AND expires_at > now()",
+                (job_id, replica_id, epoch),
+            )
+
+    async def lease_of(self, job_id: str) -> tuple[str, int, bool] | None:
+        """(replica, epoch, live) of the job's lease row; None when it has none."""
+        async with self._connection() as conn:
+            cur = await conn.execute(
+                "SELECT replica_id, epoch, expires_at > now() FROM job_leases WHERE job_id = %s",
+                (job_id,),
+            )
+            row = await cur.fetchone()
+            return None if row is None else (row[0], row[1], row[2])
+
+    async def unleased_jobs(self, limit: int = 100) -> list[str]:
+        """Ids of unfinished jobs that no replica holds a live lease on, oldest first."""
+        async with self._connection(internal=True) as conn:
+            cur = await conn.execute(
+                "SELECT j.id FROM jobs j LEFT JOIN job_leases l ON l.job_id = j.id"
+                " WHERE j.state IN ('queued', 'running', 'paused', 'waiting')"
+                " AND (l.job_id IS NULL OR l.expires_at <= now())"
+                " ORDER BY j.created_at, j.id LIMIT %s",
+                (limit,),
+            )
+            return [r[0] for r in await cur.fetchall()]
+
+    async def replica_heartbeat(
+        self,
+        replica_id: str,
+        addresses: dict[str, str],
+        started: float,
+        batches_merged: int,
+        merge_rate: float,
+    ) -> None:
+        """Record that the replica is alive (its row made on its first heartbeat)."""
+        async with self._connection(internal=True) as conn:
+            await conn.execute(
+                "INSERT INTO replicas (id, addresses, started_at, heartbeat_at, batches_merged,"
+                " merge_rate) VALUES (%s, %s, %s, now(), %s, %s)"
+                " ON CONFLICT (id) DO UPDATE SET addresses = excluded.addresses,"
+                " started_at = excluded.started_at, heartbeat_at = now(),"
+                " batches_merged = excluded.batches_merged, merge_rate = excluded.merge_rate",
+                (replica_id, Jsonb(addresses), _ts(started), batches_merged, merge_rate),
+            )
+
+    async def list_replicas(self, live_s: float) -> list[dict[str, Any]]:
+        """Every replica recorded, with the jobs it holds live leases on; `live` when its last
+        heartbeat is less than live_s seconds old (the database's clock)."""
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "SELECT r.id, r.addresses, r.started_at, r.heartbeat_at, r.batches_merged,"
+                " r.merge_rate, r.heartbeat_at > now() - make_interval(secs => %s) AS live,"
+                " (SELECT count(*) FROM job_leases l WHERE l.replica_id = r.id"
+                " AND l.expires_at > now()) AS jobs_owned"
+                " FROM replicas r ORDER BY r.id",
+                (live_s,),
+            )
+            return list(await cur.fetchall())
+
+    async def request_control(self, job_id: str, action: str, data: dict[str, Any]) -> int:
+        """Ask the job's owner for a job-control action (job_requests); the request's id."""
+        async with self._connection() as conn:
+            cur = await conn.execute(
+                "INSERT INTO job_requests (job_id, action, data) VALUES (%s, %s, %s) RETURNING id",
+                (job_id, action, Jsonb(data)),
+            )
+            (request_id,) = await cur.fetchone()
+            return request_id
+
+    async def control_pending(self, request_id: int) -> bool:
+        async with self._connection() as conn:
+            cur = await conn.execute("SELECT 1 FROM job_requests WHERE id = %s", (request_id,))
+            return await cur.fetchone() is not None
+
+    async def controls_for(self, replica_id: str) -> list[tuple[int, str, str, dict[str, Any]]]:
+        """(id, job, action, data) of the requests for jobs this replica holds, oldest first."""
+        async with self._connection(internal=True) as conn:
+            cur = await conn.execute(
+                "SELECT r.id, r.job_id, r.action, r.data FROM job_requests r"
+                " JOIN job_leases l ON l.job_id = r.job_id"
+                " WHERE l.replica_id = %s AND l.expires_at > now() ORDER BY r.id",
+                (replica_id,),
+            )
+            return [tuple(r) for r in await cur.fetchall()]
+
+    async def controls_done(self, request_ids: list[int]) -> None:
+        if not request_ids:
+            return
+        async with self._connection(internal=True) as conn:
+            await conn.execute("DELETE FROM job_requests WHERE id = ANY(%s)", (request_ids,))
 
     # ------------------------------------------------------------------------- api tokens
     async def create_token(self, token_id: str, name: str, sha256: str, admin: bool) -> TokenRow:
@@ -730,6 +918,43 @@ class Store:
             return TokenRow(**row) if row else None
 
 
+async def _check_fence(conn: Any, job_id: str, fence: Fence | None) -> None:
+    """Inside a write's transaction: LeaseLost unless the job's lease names fence's replica
+    and epoch. The row is locked FOR SHARE until the commit, so a takeover (which updates it)
+    waits for this write, and its new owner reads what it wrote."""
+    if fence is None:
+        return
+    cur = await conn.execute(
+        "SELECT 1 FROM job_leases WHERE job_id = %s AND replica_id = %s AND epoch = %s FOR SHARE",
+        (job_id, fence[0], fence[1]),
+    )
+    if await cur.fetchone() is None:
+        raise LeaseLost(job_id)
+
+
+async def _fenced_events(
+    conn: Any,
+    events: list[tuple[str | None, str, dict[str, Any]]],
+    fences: dict[str, Fence] | None,
+) -> tuple[list[tuple[str | None, str, dict[str, Any]]], list[str]]:
+    """The events whose job's lease matches its fence (or that have none), in order, and the
+    jobs whose events are refused; the matching lease rows stay locked until the commit."""
+    fenced = {j: fences[j] for j, _, _ in events if fences and j in fences}
+    if not fenced:
+        return events, []
+    ids = sorted(fenced)
+    cur = await conn.execute(
+        "SELECT l.job_id FROM job_leases l"
+        " JOIN unnest(%s::text[], %s::text[], %s::bigint[]) AS f(job_id, replica_id, epoch)"
+        " ON l.job_id = f.job_id AND l.replica_id = f.replica_id AND l.epoch = f.epoch"
+        " ORDER BY l.job_id FOR SHARE OF l",
+        (ids, [fenced[j][0] for j in ids], [fenced[j][1] for j in ids]),
+    )
+    held = {r[0] for r in await cur.fetchall()}
+    lost = [j for j in ids if j not in held]
+    return [e for e in events if e[0] not in lost], lost
+
+
 def _ts(unix: float | None) -> datetime | None:
     return None if unix is None else datetime.fromtimestamp(unix, tz=UTC)
 
@@ -752,6 +977,7 @@ def _clean(value: Any) -> Any:
 __all__ = [
     "DatabaseBusy",
     "DatabaseUnavailable",
+    "Fence",
     "JobRow",
     "Store",
     "TileRow",
