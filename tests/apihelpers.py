@@ -96,6 +96,7 @@ def job_from_proto(job: jobs_pb2.Job) -> dict[str, Any]:
         "owner": job.owner,
         "after": list(job.after),
         "require_tags": list(job.require_tags),
+        "replica": job.replica,
     }
 
 

@@ -29,15 +29,15 @@ class RecordingStore:
         self.saved: list[list] = []
         self.hang = hang
 
-    async def save_tiles(self, job_id, rows):
+    async def save_tiles(self, job_id, rows, fence=None):
         if self.hang:
             await asyncio.Event().wait()
         self.saved.append(rows)
 
-    async def update_job(self, job_id, **fields):
+    async def update_job(self, job_id, fence=None, **fields):
         pass
 
-    async def add_events(self, events):
+    async def add_events(self, events, fences=None):
         pass
 
     async def get_job(self, job_id):  # what an image reads of the job's row: times, variants

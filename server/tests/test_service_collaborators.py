@@ -31,6 +31,9 @@ class FakeClock:
 class FakeOwnership:
     """Owns the jobs in `owned`; counts heartbeats."""
 
+    replica_id = "fake"
+    shared = False
+
     def __init__(self, owned: set[str] | None = None):
         self.owned = set(owned or ())
         self.heartbeats = 0
@@ -40,6 +43,12 @@ class FakeOwnership:
 
     def epoch(self, job_id: str) -> int:
         return 7
+
+    def fence(self, job_id: str):
+        return None
+
+    def take_lost(self) -> list[str]:
+        return []
 
     async def acquire(self, job_id: str) -> bool:
         return job_id in self.owned
@@ -69,13 +78,13 @@ class RecordingStore:
         self.saved: list[tuple[str, list[int]]] = []  # (job, tile indices) per save_tiles
         self.updated: list[str] = []
 
-    async def save_tiles(self, job_id, rows):
+    async def save_tiles(self, job_id, rows, fence=None):
         self.saved.append((job_id, [r.tile_index for r in rows]))
 
-    async def update_job(self, job_id, **fields):
+    async def update_job(self, job_id, fence=None, **fields):
         self.updated.append(job_id)
 
-    async def add_events(self, events):
+    async def add_events(self, events, fences=None):
         pass
 
     async def worker_connected(self, worker_id, hostname, cores, version):

@@ -18,7 +18,7 @@ class RecordingStore:
         self.log: list[tuple[str, object]] = []
         self.during = None
 
-    async def add_events(self, batch):
+    async def add_events(self, batch, fences=None):
         self.log.append(("events", [(job, kind) for job, kind, _ in batch]))
         if self.during:
             hook, self.during = self.during, None
@@ -60,7 +60,7 @@ class StallingStore:
     def __init__(self):
         self.entered = asyncio.Event()
 
-    async def save_tiles(self, job_id, rows):
+    async def save_tiles(self, job_id, rows, fence=None):
         self.entered.set()
         await asyncio.Event().wait()
 

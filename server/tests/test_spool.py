@@ -93,16 +93,16 @@ class RecordingStore:
             raise OSError("database unreachable")
         self.log.append(what)
 
-    async def add_events_once(self, events):
+    async def add_events_once(self, events, fences=None):
         self._write(("events", [(j, k) for j, k, _ in events]))
 
     async def get_job(self, job_id):
         return object() if job_id in self.known else None
 
-    async def save_tiles(self, job_id, rows):
+    async def save_tiles(self, job_id, rows, fence=None):
         self._write(("tiles", job_id, [r.tile_index for r in rows]))
 
-    async def update_job(self, job_id, **fields):
+    async def update_job(self, job_id, fence=None, **fields):
         self._write(("job", job_id, fields["state"]))
 
 

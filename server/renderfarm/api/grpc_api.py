@@ -125,6 +125,7 @@ def job_to_proto(view: JobView) -> jobs_pb2.Job:
         owner=view.owner,
         after=list(view.after),
         require_tags=list(view.require_tags),
+        replica=view.replica,
     )
 
 

@@ -81,6 +81,11 @@ class Job(BaseModel):
     require_tags: list[str] = Field(
         description="only workers announcing all these tags (--tag) render it"
     )
+    replica: str = Field(
+        "",
+        description="the server (RENDERFARM_REPLICA_ID) that owns and renders the job now; "
+        "empty when none does (a finished job)",
+    )
 
 
 class StopRecord(BaseModel):
@@ -129,6 +134,19 @@ class WorkerInfo(BaseModel):
     recent_errors: list[str]
     tags: list[str]
     state: Literal["active", "draining", "drained", "disabled"]
+
+
+class ReplicaInfo(BaseModel):
+    id: str = Field(description="the server's RENDERFARM_REPLICA_ID")
+    addresses: dict[str, str] = Field(description="where it answers: http (REST) and grpc")
+    started_unix_s: float | None
+    heartbeat_unix_s: float = Field(description="its last heartbeat (the database's clock)")
+    live: bool = Field(description="it heartbeat within twice the job lease")
+    jobs_owned: int = Field(description="jobs it holds a live lease on")
+    batches_merged: int = Field(description="batches it merged since it started")
+    merge_rate: float | None = Field(
+        description="batches merged per second between its last two heartbeats"
+    )
 
 
 class SceneInfo(BaseModel):

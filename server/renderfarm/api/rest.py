@@ -45,6 +45,7 @@ from .models import (
     JobDetail,
     JobEvent,
     JobPage,
+    ReplicaInfo,
     SceneInfo,
     SettingDoc,
     WhoAmI,
@@ -475,6 +476,16 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     )
     async def workers(_: Caller = Auth) -> list[dict]:
         return farm.workers()
+
+    @app.get(
+        "/api/v1/replicas",
+        summary="The servers of the farm (several over one database): each one's jobs and "
+        "heartbeat",
+        response_model=list[ReplicaInfo],
+        responses=error_responses(),
+    )
+    async def replicas(_: Caller = Auth) -> list[dict]:
+        return await farm.replicas()
 
     for action, mode, summary in (
         ("drain", "draining", "Drain a worker (admin): it finishes its tasks and takes no more"),

@@ -14,7 +14,7 @@ from collections.abc import Awaitable, Callable
 import uvicorn
 
 from ..app.auth import Authenticator, check_exposure, ensure_configured_token
-from ..app.composition import build_farm_service
+from ..app.composition import addresses, build_farm_service
 from ..infra.config import Settings
 from ..infra.embedded_db import EmbeddedPostgres
 from ..infra.store import Store
@@ -132,6 +132,8 @@ async def serve(
                 )
             await asyncio.sleep(0.02)
         http_port = http.servers[0].sockets[0].getsockname()[1]
+        if hasattr(farm.ownership, "addresses"):  # its row in the replicas table (#39)
+            farm.ownership.addresses = addresses(settings, http_port, grpc_port)
         log.info(
             "renderfarm server ready: %s://%s:%d  gRPC %s:%d%s",
             "https" if tls else "http", settings.http_host, http_port, settings.grpc_host,

@@ -36,12 +36,20 @@ class UsdConverter(Protocol):
 class Ownership(Protocol):
     """Which jobs this server may render and write. A farm of one server owns every job
     (SoleOwner); a farm of several (#39) gives each job to one of them by a lease in the
-    database, whose epoch fences the writes of a server that lost it.
+    database, whose epoch fences the writes of a server that lost it (infra/leases.py,
+    LeaseOwnership).
 
-    owns and epoch are read on the merge and lease paths and must not wait; acquire, release
-    and heartbeat may ask the database. FarmService acquires a job when it is submitted,
-    resumed at start, retried or continued, releases it once its final state is stored, and
-    calls heartbeat every background round."""
+    owns, epoch, fence and take_lost are read on the merge and lease paths and must not wait;
+    acquire, release and heartbeat may ask the database. FarmService acquires a job when it is
+    submitted, resumed at start or taken over, retried or continued, releases it once its final
+    state is stored, and calls heartbeat every background round."""
+
+    replica_id: str
+    """This server's name in the farm (RENDERFARM_REPLICA_ID), shown as a job's `replica`."""
+
+    shared: bool
+    """True when other servers may hold jobs of the same database: the service then looks
+    for jobs nobody holds (takeover) and forwards job control to a job's owner."""
 
     def owns(self, job_id: str) -> bool:
         """Whether this server holds the job now: only then are its tasks leased to workers
@@ -49,7 +57,19 @@ class Ownership(Protocol):
         ...
 
     def epoch(self, job_id: str) -> int:
-        """The fencing token of this server's hold on the job, for its writes to carry."""
+        """The fencing token of this server's hold on the job, for its writes to carry (-1
+        when it holds none)."""
+        ...
+
+    def fence(self, job_id: str) -> tuple[str, int] | None:
+        """What a write of the job by its owner carries to the store: (replica_id, epoch), so
+        that the database refuses it (LeaseLost) once another server holds the job; None
+        when nothing needs fencing (a server alone)."""
+        ...
+
+    def take_lost(self) -> list[str]:
+        """The jobs whose hold heartbeat found taken over since the last call (another server
+        holds them now): the service drops them from memory."""
         ...
 
     async def acquire(self, job_id: str) -> bool:
@@ -68,15 +88,26 @@ class Ownership(Protocol):
 
 
 class SoleOwner:
-    """The farm of one server: it owns every job, at one epoch that never changes."""
+    """The farm of one server: it owns every job, at one epoch that never changes, and its
+    writes need no fence."""
 
     EPOCH = 0
+    shared = False
+
+    def __init__(self, replica_id: str = ""):
+        self.replica_id = replica_id
 
     def owns(self, job_id: str) -> bool:
         return True
 
     def epoch(self, job_id: str) -> int:
         return self.EPOCH
+
+    def fence(self, job_id: str) -> tuple[str, int] | None:
+        return None
+
+    def take_lost(self) -> list[str]:
+        return []
 
     async def acquire(self, job_id: str) -> bool:
         return True

@@ -11,9 +11,11 @@ from pathlib import Path
 
 from ..domain.scheduler import Scheduler
 from ..infra.config import Settings
+from ..infra.leases import LeaseOwnership
 from ..infra.memory_store import JobStore
 from ..infra.scene_check import SceneChecker
 from ..infra.spill import TileCache
+from ..infra.store import Store
 from ..infra.usd_import import UsdImporter
 from ..infra.worker_binary import find_worker_binary
 from .collaborators import Clock, Ownership, SceneInspector, SoleOwner, UsdConverter
@@ -30,8 +32,10 @@ def build_farm_service(
     usd_importer: UsdConverter | None = None,
 ) -> FarmService:
     """A FarmService over `store` with the default collaborators of `settings` (each one given
-    here is used instead of its default). The scheduler and the service share `clock`; a
-    server alone owns every job (SoleOwner)."""
+    here is used instead of its default). The scheduler and the service share `clock`. Over
+    PostgreSQL jobs are owned through leases in the database (LeaseOwnership, so that several
+    servers over one database form one farm, #39); over any other store (MemoryStore) the
+    server owns every job (SoleOwner)."""
     # Tiles past the RAM budget wait in DATA_DIR/scratch (infra/spill.py), as do images being
     # written.
     cache = TileCache(settings.data_dir / "scratch", settings.tile_cache_mb * 2**20)
@@ -56,12 +60,37 @@ def build_farm_service(
             memory_mb=settings.max_scene_memory_mb,
             max_output_bytes=settings.max_upload_bytes,
         )
-    return FarmService(
+    if ownership is None:
+        if isinstance(store, Store):
+            ownership = LeaseOwnership(
+                store,
+                settings.replica_name(),
+                lease_s=settings.job_lease_s,
+                addresses=addresses(settings),
+            )
+        else:
+            ownership = SoleOwner(settings.replica_name())
+    service = FarmService(
         settings,
         store,
         scheduler=scheduler,
         scene_checker=scene_checker,
         usd_importer=usd_importer,
         clock=clock,
-        ownership=SoleOwner() if ownership is None else ownership,
+        ownership=ownership,
     )
+    if isinstance(ownership, LeaseOwnership):
+        ownership.merged = lambda: service.batches_merged  # its row in GET /api/v1/replicas
+    return service
+
+
+def addresses(settings: Settings, http_port: int | None = None, grpc_port: int | None = None):
+    """Where a replica answers, as its row in the replicas table shows it (the bound ports
+    when known: a port setting of 0 picks one)."""
+    scheme = "https" if settings.tls_cert_file else "http"
+    http = http_port if http_port is not None else settings.http_port
+    grpc = grpc_port if grpc_port is not None else settings.grpc_port
+    return {
+        "http": f"{scheme}://{settings.http_host}:{http}",
+        "grpc": f"{settings.grpc_host}:{grpc}",
+    }

@@ -3,11 +3,21 @@
 Each checks the caller's right to the job as cancel does, changes the state through the
 scheduler's state machine (a refused change is 409 Conflict), writes the job's row at once (a
 restart finds it as it is) and answers the job after the change.
+
+In a farm of several servers (#39) a request for an unfinished job that another server owns is
+forwarded through the database: a row in job_requests, which the owner applies in its next
+background round (_apply_controls) and deletes once its writes are stored; the server that
+took the request waits for that and answers the job as stored (docs/architecture.md,
+"Ownership, leases and fencing"). Retry and continue need no forwarding: a finished job is held
+by no one, and the server that takes the request takes the job.
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import logging
+import time
 from typing import Any
 
 from ..domain.continuation import CONTINUE_SETTINGS, continue_plan
@@ -16,9 +26,14 @@ from ..domain.records import JobRun
 from ..domain.scheduler import Scheduler
 from ..domain.states import JobState, check_transition
 from ..errors import Conflict, NotFound, SettingsError, TransitionError
+from ..infra.store import DatabaseUnavailable
 from . import checkpoints
-from .auth import Caller
+from .auth import LOCAL_USER, Caller
 from .views import JobView
+
+log = logging.getLogger(__name__)
+
+FORWARD_POLL_S = 0.1  # how often a forwarded request's row is looked at
 
 
 class JobControl:
@@ -30,12 +45,17 @@ class JobControl:
     async def _live(self, job_id: str, caller: Caller, action: str) -> JobRun:
         view = await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
+        if job is None and self._elsewhere(view):
+            raise _Forward(view)
         if job is None or self._reported_state(job) != job.state or job.state.finished:
             raise self._refused(job_id, view.state, action)
         return job
 
     async def pause(self, job_id: str, caller: Caller) -> JobView:
-        job = await self._live(job_id, caller, "paused")
+        try:
+            job = await self._live(job_id, caller, "paused")
+        except _Forward:
+            return await self._forward(job_id, "pause", {}, caller)
         try:
             self.scheduler.pause_job(job_id)
         except TransitionError:
@@ -45,7 +65,10 @@ class JobControl:
         return await self.get(job_id, caller)
 
     async def resume(self, job_id: str, caller: Caller) -> JobView:
-        job = await self._live(job_id, caller, "resumed")
+        try:
+            job = await self._live(job_id, caller, "resumed")
+        except _Forward:
+            return await self._forward(job_id, "resume", {}, caller)
         if job.state != JobState.PAUSED:
             raise self._refused(job_id, job.state, "resumed")
         self.scheduler.resume_job(job_id)
@@ -67,7 +90,12 @@ class JobControl:
                 raise SettingsError("priority", message) from None
             settings = dataclasses.replace(settings, priority=checked.priority)
         new_name = view.name if name is None else (name.strip()[:200] or view.name)
-        await self.store.update_job_spec(job_id, new_name, settings.to_dict())
+        if job_id not in self.scheduler.jobs and self._elsewhere(view):
+            data = {"priority": priority, "name": name}
+            return await self._forward(job_id, "update", data, caller)
+        # The owner's write is fenced; a finished job's (no one holds it) is not.
+        fence = self.ownership.fence(job_id) if self.ownership.epoch(job_id) >= 0 else None
+        await self.store.update_job_spec(job_id, new_name, settings.to_dict(), fence=fence)
         job = self.scheduler.jobs.get(job_id)
         if job is not None:
             self.names[job_id] = new_name
@@ -215,7 +243,7 @@ class JobControl:
         try:
             await self.store.reactivate_job(
                 job_id, settings=settings.to_dict(), state=state.value, elapsed_s=row.elapsed_s,
-                render_again=again, tiles=kept_tiles,
+                render_again=again, tiles=kept_tiles, fence=self.ownership.fence(job_id),
             )  # fmt: skip
         except BaseException:
             # Not stored: the job stays as the database has it (finished, as it was).
@@ -233,3 +261,66 @@ class JobControl:
         self.history.pop(job_id, None)
         self._waiting_dirty = True
         await self._after_change()
+
+    # ------------------------------------------------------------- forwarded to the owner
+    def _elsewhere(self, view: JobView) -> bool:
+        """An unfinished job this server does not hold, in a farm of several: its owner (or
+        whoever takes it over) applies control requests."""
+        return self.ownership.shared and not view.state.finished
+
+    async def _forward(
+        self, job_id: str, action: str, data: dict[str, Any], caller: Caller
+    ) -> JobView:
+        """Ask the job's owner to apply `action` (the caller's right to the job is checked
+        here) and wait until it has, at most twice the job lease and a few seconds (a dead
+        owner's jobs are taken over within that); then the job as stored."""
+        request_id = await self.store.request_control(job_id, action, data)
+        deadline = time.monotonic() + 2 * self.settings.job_lease_s + 5.0
+        while await self.store.control_pending(request_id):
+            if time.monotonic() > deadline:
+                await self.store.controls_done([request_id])
+                raise DatabaseUnavailable(
+                    f"the server that owns job {job_id} did not apply the request in time"
+                )
+            await asyncio.sleep(FORWARD_POLL_S)
+        return await self.get(job_id, caller)
+
+    async def _apply_controls(self) -> None:
+        """The requests other servers forwarded for jobs this one holds, applied as this
+        server's own requests would be (a refused one leaves the job as it is: the requester
+        answers the job as stored). Their rows are deleted after the round's writes."""
+        for request_id, job_id, action, data in await self.store.controls_for(
+            self.ownership.replica_id
+        ):
+            if request_id in self._controls_applied:
+                continue
+            if job_id not in self.scheduler.jobs:
+                continue  # not resumed here yet
+            try:
+                if action == "cancel":
+                    self.scheduler.cancel_job(job_id)  # its final state: stored by flush
+                    await self._after_change()
+                elif action == "pause":
+                    await self.pause(job_id, LOCAL_USER)
+                elif action == "resume":
+                    await self.resume(job_id, LOCAL_USER)
+                elif action == "update":
+                    await self.update(job_id, LOCAL_USER, data.get("priority"), data.get("name"))
+            except (Conflict, SettingsError, NotFound, TransitionError) as e:
+                log.info("forwarded %s of job %s refused: %s", action, job_id, e)
+            self._controls_applied.append(request_id)
+
+    async def _controls_stored(self) -> None:
+        """The round's writes are stored (a cancel's final state too, by the flush before
+        this): the forwarded requests applied are answered."""
+        if self._controls_applied:
+            await self.store.controls_done(self._controls_applied)
+            self._controls_applied = []
+
+
+class _Forward(Exception):
+    """Raised by _live: the job is owned by another server; the request is forwarded."""
+
+    def __init__(self, view: JobView):
+        super().__init__(view.id)
+        self.view = view

@@ -36,7 +36,7 @@ from ..domain.scenes.environment import inspect_environment
 from ..domain.scenes.validate import inspect_scene, job_variants
 from ..domain.scheduler import Scheduler
 from ..domain.states import JobState
-from ..errors import Conflict, Forbidden, NotFound, SettingsError, TooLarge
+from ..errors import Conflict, Forbidden, LeaseLost, NotFound, SettingsError, TooLarge
 from ..infra import spool
 from ..infra.config import Settings
 from ..infra.memory_store import JobStore
@@ -165,12 +165,19 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         # Convergence history of live jobs: (elapsed s, relative error or None, mean spp).
         self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
+        self.batches_merged = 0  # since start (worker_sessions; this replica's row)
+        # A farm of several servers (ownership.shared): when to look next for jobs nobody
+        # holds (the service's clock), and the forwarded job-control requests applied this
+        # round, deleted once its writes are done (job_control.py).
+        self._next_takeover = -float("inf")
+        self._controls_applied: list[int] = []
 
     # ------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
         await spool.replay(self.store, self.settings.data_dir)
         self.scheduler.cache.clear_directory()
         await self.store.mark_all_workers_disconnected()
+        await self.ownership.heartbeat()  # a replica's row exists before it takes jobs
         await self._resume_unfinished()
         self._tasks.append(asyncio.create_task(self._background(), name="farm-background"))
         self.ready = True
@@ -194,56 +201,89 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             # Whatever is not stored goes to the spool, replayed at the next start; the
             # spilled tiles are read from the cache's files, which close() then removes.
             self._spool_unsaved()
+        else:
+            # Everything is stored: other servers may take the jobs over at once.
+            for job_id in list(self.scheduler.jobs):
+                await self.ownership.release(job_id)
         self.scheduler.cache.close()
         for session in list(self.sessions.values()):
             session.outbox.put_nowait(None)
 
     async def _resume_unfinished(self) -> None:
         for row in await self.store.unfinished_jobs():
+            if row.id in self.scheduler.jobs:
+                continue
             if not await self.ownership.acquire(row.id):
                 continue  # another server holds it and renders it
-            settings = JobSettings(**row.settings)
-            # A chunk of tiles at a time, each put under the tile cache at once: a large job
-            # comes back within the cache's RAM (the rest goes to its spill file).
-            checkpoint, plans, bases, old_aovs = {}, {}, {}, []
-            variants = tuple(row.variants)
-            tiles = len(job_rects(settings, variants))
-            tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
-            step = max(1, checkpoints.CHECKPOINT_CHUNK_BYTES // tile_bytes)
-            for first in range(0, tiles, step):
-                tile_rows = await self.store.load_tiles(row.id, first=first, count=step)
-                restored = checkpoints.restore_tiles(settings, tile_rows, variants)
-                for index, (_, acc) in restored.items():
-                    self.scheduler.cache.register(row.id, acc, settings.tile_size)
-                    checkpoint[index] = acc
-                plans.update({t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan})
-                bases.update({t.tile_index: t.plan_basis for t in tile_rows if t.plan_basis})
-                old_aovs += [t.tile_index for t in tile_rows if t.aovs is None and t.samples > 0]
-            self.scheduler.add_job(
-                row.id,
-                settings,
-                row.scene_sha256,
-                checkpoint=checkpoint,
-                plans=plans,
-                bases=bases,
-                state=JobState(row.state),
-                elapsed_s=row.elapsed_s,
-                after=tuple(row.after_jobs),
-                require_tags=tuple(row.require_tags),
-                variants=variants,
-            )
-            self.scheduler.take_events()  # the stops were recorded before the restart
-            for index in old_aovs:
-                # A checkpoint from before the AOVs were stored apart: the next one writes
-                # them in their own column (later ones leave that column alone).
-                tile = self.scheduler.jobs[row.id].tiles[index]
-                tile.dirty = tile.aovs_dirty = True
-            self.names[row.id] = row.name
-            self.created[row.id] = row.created_at.timestamp()
-            self.owners[row.id] = row.owner
-            merged = sum(acc.batches for acc in checkpoint.values())
-            log.info("resumed job %s from its checkpoint (%d batches merged)", row.id, merged)
+            await self._resume(row)
         await self._after_change()
+
+    async def _take_over(self) -> None:
+        """A farm of several servers: take the unfinished jobs no server holds a live lease on
+        (their owner died, was cut off or stopped) and resume them from their last checkpoint,
+        as a start does. Every job_lease_s / 4 of the service's clock."""
+        now = self.clock()
+        if not self.ownership.shared or now < self._next_takeover:
+            return
+        self._next_takeover = now + self.settings.job_lease_s / 4
+        taken = 0
+        for job_id in await self.store.unleased_jobs():
+            if job_id in self.scheduler.jobs or not await self.ownership.acquire(job_id):
+                continue
+            row = await self.store.get_job(job_id)  # read after the lease: its last checkpoint
+            if row is None or JobState(row.state).finished:
+                await self.ownership.release(job_id)
+                continue
+            await self._resume(row)
+            taken += 1
+        if taken:
+            log.info("took over %d job%s nobody held", taken, "" if taken == 1 else "s")
+            await self._after_change()
+
+    async def _resume(self, row: JobRow) -> None:
+        """Bring an unfinished job this server now holds back from its checkpoint."""
+        settings = JobSettings(**row.settings)
+        # A chunk of tiles at a time, each put under the tile cache at once: a large job
+        # comes back within the cache's RAM (the rest goes to its spill file).
+        checkpoint, plans, bases, old_aovs = {}, {}, {}, []
+        variants = tuple(row.variants)
+        tiles = len(job_rects(settings, variants))
+        tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
+        step = max(1, checkpoints.CHECKPOINT_CHUNK_BYTES // tile_bytes)
+        for first in range(0, tiles, step):
+            tile_rows = await self.store.load_tiles(row.id, first=first, count=step)
+            restored = checkpoints.restore_tiles(settings, tile_rows, variants)
+            for index, (_, acc) in restored.items():
+                self.scheduler.cache.register(row.id, acc, settings.tile_size)
+                checkpoint[index] = acc
+            plans.update({t.tile_index: t.batch_plan for t in tile_rows if t.batch_plan})
+            bases.update({t.tile_index: t.plan_basis for t in tile_rows if t.plan_basis})
+            old_aovs += [t.tile_index for t in tile_rows if t.aovs is None and t.samples > 0]
+        self.scheduler.add_job(
+            row.id,
+            settings,
+            row.scene_sha256,
+            checkpoint=checkpoint,
+            plans=plans,
+            bases=bases,
+            state=JobState(row.state),
+            elapsed_s=row.elapsed_s,
+            after=tuple(row.after_jobs),
+            require_tags=tuple(row.require_tags),
+            variants=variants,
+        )
+        # Its stops were recorded before the restart (or by its previous owner).
+        self.scheduler.events = [e for e in self.scheduler.events if e.job_id != row.id]
+        for index in old_aovs:
+            # A checkpoint from before the AOVs were stored apart: the next one writes
+            # them in their own column (later ones leave that column alone).
+            tile = self.scheduler.jobs[row.id].tiles[index]
+            tile.dirty = tile.aovs_dirty = True
+        self.names[row.id] = row.name
+        self.created[row.id] = row.created_at.timestamp()
+        self.owners[row.id] = row.owner
+        merged = sum(acc.batches for acc in checkpoint.values())
+        log.info("resumed job %s from its checkpoint (%d batches merged)", row.id, merged)
 
     async def _background(self) -> None:
         while True:
@@ -259,10 +299,16 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         """One background round: renew ownership, time limits and expired leases, the
         convergence history, new leases and cancels, due writes, waiting jobs."""
         await self.ownership.heartbeat()
+        for job_id in self.ownership.take_lost():
+            self._drop_lost(job_id)
+        if self.ownership.shared:
+            await self._apply_controls()
+            await self._take_over()
         self.scheduler.tick()
         self._sample_history()
         await self._after_change()
-        await self.flush()
+        if await self.flush():
+            await self._controls_stored()
         if self._waiting_dirty:
             await self._check_waiting()
 
@@ -344,7 +390,11 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             state=state.value, require_tags=require_tags, variants=list(variants),
         )  # fmt: skip
         # Stored and committed: only now does the job exist for the scheduler and the caller.
-        await self.ownership.acquire(job_id)  # a new id: no other server can hold it
+        if not await self.ownership.acquire(job_id):
+            # Another server took it first (it looks for jobs nobody holds), or the lease
+            # could not be written: a server that holds it renders it.
+            log.info("job %s submitted here is rendered by another server", job_id)
+            return await self.get(job_id, caller)
         self.owners[job_id] = caller.owner
         self.names[job_id] = name
         self.created[job_id] = row.created_at.timestamp()
@@ -427,13 +477,19 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 self.scheduler.fail_job(job.job_id, problem)
             elif ready:
                 self.scheduler.release_job(job.job_id)
-                await self._store_state(job.job_id)
+                with contextlib.suppress(LeaseLost):  # dropped: its new owner checks it
+                    await self._store_state(job.job_id)
         await self._after_change()
 
     async def _store_state(self, job_id: str) -> None:
         """Write a live job's row now (its state after a job-control change), so that a
-        restart finds it as it is; the tiles follow with the next checkpoint."""
-        await self._persist_job(job_id, tiles=False)
+        restart finds it as it is; the tiles follow with the next checkpoint. LeaseLost (as
+        409) when another server holds the job now: it is dropped here."""
+        try:
+            await self._persist_job(job_id, tiles=False)
+        except LeaseLost:
+            self._drop_lost(job_id)
+            raise
 
     async def _environment(
         self, settings: JobSettings, data: bytes | None, filename: str
@@ -497,6 +553,8 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
     async def cancel(self, job_id: str, caller: Caller) -> JobView:
         view = await self.get(job_id, caller)  # raises NotFound / Forbidden
         job = self.scheduler.jobs.get(job_id)
+        if job is None and self._elsewhere(view):
+            return await self._forward(job_id, "cancel", {}, caller)
         if job is None:
             return view  # already finished: cancelling is a no-op
         self.scheduler.cancel_job(job_id)
@@ -512,8 +570,10 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         if job is not None and not self._reported_state(job).finished:
             state = self._reported_state(job).value
             raise Conflict(f"job {job_id} is {state}; cancel it before deleting it")
-        if not await self.store.delete_job(job_id):
+        holder = self.ownership.replica_id if self.ownership.shared else None
+        if not await self.store.delete_job(job_id, replica_id=holder):
             raise NotFound(f"no job with id {job_id!r}")
+        await self.ownership.release(job_id)
         self.scheduler.forget_job(job_id)
         self._forget_movies(job_id)
         for table in (self.history, self.names, self.created, self.owners):
@@ -582,6 +642,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             after=job.after,
             require_tags=tuple(sorted(job.require_tags)),
             variants=job.variants,
+            replica=self.ownership.replica_id if self.ownership.owns(job.job_id) else "",
         )
 
     def _unplaced(self, job: JobRun) -> str:
@@ -619,6 +680,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             after=tuple(row.after_jobs),
             require_tags=tuple(row.require_tags),
             variants=tuple(row.variants),
+            replica=row.replica,
         )
 
     # -------------------------------------------------------------------------- images
@@ -641,6 +703,49 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             offset += len(data)
 
     # ------------------------------------------------------------------------- workers
+
+    # ------------------------------------------------------------------------ replicas
+    async def replicas(self) -> list[dict[str, Any]]:
+        """The servers of the farm (GET /api/v1/replicas): each one's id, addresses, start,
+        last heartbeat, jobs it holds and merge rate. A server alone lists itself."""
+        if not self.ownership.shared:
+            return [{
+                "id": self.ownership.replica_id, "addresses": {}, "started_unix_s": None,
+                "heartbeat_unix_s": self.clock(), "live": True,
+                "jobs_owned": sum(not j.state.finished for j in self.scheduler.jobs.values()),
+                "batches_merged": self.batches_merged, "merge_rate": None,
+            }]  # fmt: skip
+        rows = await self.store.list_replicas(live_s=2 * self.settings.job_lease_s)
+        return [
+            {
+                "id": r["id"],
+                "addresses": r["addresses"],
+                "started_unix_s": r["started_at"].timestamp(),
+                "heartbeat_unix_s": r["heartbeat_at"].timestamp(),
+                "live": r["live"],
+                "jobs_owned": r["jobs_owned"],
+                "batches_merged": r["batches_merged"],
+                "merge_rate": r["merge_rate"],
+            }
+            for r in rows
+        ]
+
+    def _drop_lost(self, job_id: str) -> None:
+        """Another server holds the job now (its lease was taken over, or a write was refused
+        by its fence): forget it here, with what was merged since its last checkpoint (the
+        new owner renders that again from the checkpoint, the same batches, so the same
+        bits). Its workers' tasks are cancelled; readers get its row from the database."""
+        self._pending_events = [e for e in self._pending_events if e[0] != job_id]
+        self._pending_finishes = [j for j in self._pending_finishes if j != job_id]
+        if job_id not in self.scheduler.jobs:
+            return
+        log.warning("job %s is owned by another server now; dropped here", job_id)
+        self.scheduler.drop_job(job_id)
+        self._forget_movies(job_id)
+        for table in (self.history, self.names, self.created, self.owners):
+            table.pop(job_id, None)
+        self._generation[job_id] = self._generation.get(job_id, 0) + 1
+        self._waiting_dirty = True
 
     # -------------------------------------------------------------------- after changes
     async def _after_change(self) -> None:

@@ -60,6 +60,8 @@ class JobView:
     # settings.variant "all": the scene's variants, one image each (not shown: the frame list
     # names each image's variant)
     variants: tuple[str, ...] = ()
+    # The server (replica) that owns and renders it now; "" when none does (a finished job)
+    replica: str = ""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -75,6 +77,7 @@ class JobView:
             "owner": self.owner,
             "after": list(self.after),
             "require_tags": list(self.require_tags),
+            "replica": self.replica,
         }
 
 

@@ -126,6 +126,8 @@ class WorkerSessions:
             self.metrics.task_seconds.observe(result.render_seconds)
             if outcome in ("merged", "pending"):
                 self.metrics.samples_merged.inc(result.sample_count * result.rect.pixels)
+        if outcome in ("merged", "pending"):
+            self.batches_merged += 1
         session.tasks_done += 1
         if outcome not in ("merged", "pending"):
             log.debug("result %s of job %s discarded: %s", task_id, result.job_id, outcome)

@@ -2,6 +2,10 @@
 written by FarmService's background task (flush), retried with exponential backoff while the
 database is away; a finished job is reported finished only once stored; what a stopping server
 could not write goes to the spool (infra/spool.py).
+
+In a farm of several servers every write of a job's owner carries its fence (ownership.fence:
+replica and epoch); one the database refuses (LeaseLost: another server holds the job now)
+drops the job here (FarmService._drop_lost) rather than being retried.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from psycopg_pool import PoolTimeout
 
 from ..domain.records import JobRun
 from ..domain.states import JobState
+from ..errors import LeaseLost
 from ..infra import spool
 from ..infra.store import DatabaseUnavailable
 from . import checkpoints
@@ -49,13 +54,28 @@ class WriteBehind:
                 if not batch and not finishes:
                     break
                 if batch:
-                    await self.store.add_events(batch)
+                    lost: list[str] = []
+                    try:
+                        await self.store.add_events(batch, self._event_fences(batch))
+                    except LeaseLost as e:  # the others of the batch are written
+                        lost = e.job_ids
                     del self._pending_events[: len(batch)]
+                    for job_id in lost:
+                        self._drop_lost(job_id)
                 for _ in range(finishes):
+                    if not self._pending_finishes:
+                        break  # dropped: another server owns it now
                     job_id = self._pending_finishes[0]
-                    await self._persist_job(job_id, tiles=True)
-                    points = self.history.get(job_id, [])
-                    await self.store.add_events([(job_id, "convergence", {"points": points})])
+                    try:
+                        await self._persist_job(job_id, tiles=True)
+                        points = self.history.get(job_id, [])
+                        await self.store.add_events(
+                            [(job_id, "convergence", {"points": points})],
+                            self._event_fences([(job_id, "", {})]),
+                        )
+                    except LeaseLost:
+                        self._drop_lost(job_id)
+                        continue
                     self._pending_finishes.pop(0)
                     await self.ownership.release(job_id)  # its final state is stored
                     self._forget_later(job_id)
@@ -105,7 +125,10 @@ class WriteBehind:
                 continue
             if not self.ownership.owns(job.job_id):
                 continue  # its owner writes it (collaborators.Ownership)
-            await self._persist_job(job.job_id, tiles=True)
+            try:
+                await self._persist_job(job.job_id, tiles=True)
+            except LeaseLost:
+                self._drop_lost(job.job_id)
         took = self.clock() - started
         self._last_checkpoint = started + max(0.0, 4 * took - self.settings.checkpoint_interval_s)
 
@@ -130,7 +153,7 @@ class WriteBehind:
                 rows = await asyncio.to_thread(
                     lambda s=snapshots: [checkpoints.tile_row(*x) for x in s]
                 )
-                await self.store.save_tiles(job_id, rows)
+                await self.store.save_tiles(job_id, rows, fence=self.ownership.fence(job_id))
             except BaseException:
                 # Not written (a database error, or the task cancelled mid-checkpoint by
                 # stop(), whose final checkpoint must then write these tiles): write them again.
@@ -141,7 +164,20 @@ class WriteBehind:
             self._checkpoint_rate.add(
                 checkpoints.dirty_bytes(chunk, taken), time.monotonic() - started
             )
-        await self.store.update_job(job_id, **self._job_fields(job))
+        await self.store.update_job(
+            job_id, **self._job_fields(job), fence=self.ownership.fence(job_id)
+        )
+
+    def _event_fences(self, events: list[tuple[str | None, str, Any]]) -> dict[str, Any]:
+        """The fences of the events' jobs that this server holds (an owner's events); the
+        events of other jobs (an update of a finished job, which no one holds) go unfenced."""
+        fences = {}
+        for job_id, _, _ in events:
+            if job_id and job_id not in fences and self.ownership.epoch(job_id) >= 0:
+                fence = self.ownership.fence(job_id)
+                if fence is not None:
+                    fences[job_id] = fence
+        return fences
 
     def _job_fields(self, job: JobRun) -> dict[str, Any]:
         """The job row's columns that change (Store.update_job's arguments)."""
@@ -205,9 +241,12 @@ class WriteBehind:
                 for t in job.tiles
                 if t.dirty
             ]
-            jobs.append(spool.UnsavedJob(job.job_id, self._job_fields(job), tiles))
+            fence = self.ownership.fence(job.job_id)
+            jobs.append(spool.UnsavedJob(job.job_id, self._job_fields(job), tiles, fence))
         try:
-            path = spool.write(spool.spool_dir(self.settings.data_dir), events, jobs)
+            path = spool.write(
+                spool.spool_dir(self.settings.data_dir), events, jobs, self._event_fences(events)
+            )
         except OSError as e:
             log.error(
                 "could not write the last checkpoint, nor the spool (%s); up to the checkpoint "

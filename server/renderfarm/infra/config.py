@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 from pydantic import Field
@@ -56,6 +57,20 @@ class Settings(BaseSettings):
     grpc_port: int = Field(50051, ge=0, le=65535, description="port of the gRPC API")
     lease_s: float = Field(30.0, gt=0, description="lease of a task; heartbeats extend it")
     heartbeat_interval_s: float = Field(2.0, gt=0, description="how often workers heartbeat")
+    replica_id: str = Field(
+        "",
+        max_length=200,
+        description="this server's name in a farm of several servers over one database; "
+        "empty: host name and HTTP port (host:port)",
+    )
+    job_lease_s: float = Field(
+        8.0,
+        ge=1.0,
+        le=300.0,
+        description="lease of a server on a job it renders (several servers over one "
+        "database): renewed every quarter of it; a server that stops renewing loses its jobs "
+        "to the others after it",
+    )
     checkpoint_interval_s: float = Field(
         2.0, gt=0, description="most seconds of merged work a server crash may lose"
     )
@@ -134,6 +149,10 @@ class Settings(BaseSettings):
         gt=0,
         description="seconds between keep-alive comments on a Server-Sent Events stream (watch)",
     )
+
+    def replica_name(self) -> str:
+        """replica_id, or host:port (the host name and the HTTP port) when it is empty."""
+        return self.replica_id or f"{socket.gethostname()}:{self.http_port}"
 
     def tls(self) -> tuple[Path, Path] | None:
         """(certificate, key) when TLS is configured; ValueError when only one is set."""

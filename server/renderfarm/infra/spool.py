@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from .store import Store, TileRow
+from ..errors import LeaseLost
+from .store import Fence, Store, TileRow
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,9 @@ class UnsavedJob:
     job_id: str
     fields: dict[str, Any]  # Store.update_job's keyword arguments
     tiles: list[TileRow] = field(default_factory=list)
+    # The owner's fence when it was written (a farm of several servers): replayed only while
+    # the job's lease still names that replica and epoch. None: written as it is.
+    fence: Fence | None = None
 
 
 def spool_dir(data_dir: Path) -> Path:
@@ -45,7 +49,10 @@ def spool_dir(data_dir: Path) -> Path:
 
 
 def write(
-    directory: Path, events: list[tuple[str | None, str, dict[str, Any]]], jobs: list[UnsavedJob]
+    directory: Path,
+    events: list[tuple[str | None, str, dict[str, Any]]],
+    jobs: list[UnsavedJob],
+    fences: dict[str, Fence] | None = None,
 ) -> Path:
     """Write one spool file; its path. Raises OSError (nothing is left behind then)."""
     directory.mkdir(parents=True, exist_ok=True)
@@ -54,7 +61,13 @@ def write(
     try:
         with open(partial, "wb") as out:
             out.write(MAGIC)
-            _record(out, {"events": [[j, k, d] for j, k, d in events]})
+            _record(
+                out,
+                {
+                    "events": [[j, k, d] for j, k, d in events],
+                    "fences": {j: list(f) for j, f in (fences or {}).items()},
+                },
+            )
             for job in jobs:
                 header, blobs = _job_record(job)
                 _record(out, header, blobs)
@@ -72,16 +85,26 @@ def write(
 
 def read(path: Path) -> tuple[list[tuple[str | None, str, dict[str, Any]]], list[UnsavedJob]]:
     """A spool file's events and jobs; ValueError for a file that is not a whole spool."""
+    events, jobs, _ = read_fenced(path)
+    return events, jobs
+
+
+def read_fenced(
+    path: Path,
+) -> tuple[list[tuple[str | None, str, dict[str, Any]]], list[UnsavedJob], dict[str, Fence]]:
+    """read, with the fences of the events' jobs."""
     events: list[tuple[str | None, str, dict[str, Any]]] = []
     jobs: list[UnsavedJob] = []
+    fences: dict[str, Fence] = {}
     with open(path, "rb") as f:
         if f.readline() != MAGIC:
             raise ValueError(f"{path} is not a renderfarm spool file")
         for header, blobs in _records(f):
             if header.get("end"):
-                return events, jobs
+                return events, jobs, fences
             if "events" in header:
                 events.extend((j, k, d) for j, k, d in header["events"])
+                fences.update({j: (f[0], f[1]) for j, f in header.get("fences", {}).items()})
             else:
                 jobs.append(_job_from(header, blobs))
     raise ValueError(f"{path} ends before its end record")
@@ -98,15 +121,28 @@ async def replay(store: Store, data_dir: Path) -> int:
         partial.unlink()
     done = 0
     for path in sorted(directory.glob(f"*{SUFFIX}")):
-        events, jobs = read(path)
+        events, jobs, fences = read_fenced(path)
         # Events first, as the server writes them: a job is never stored finished before its
-        # job_finished event.
-        await store.add_events_once(events)
+        # job_finished event. A job another server took over meanwhile (its fence refused)
+        # is its new owner's: what was kept of it here is dropped.
+        lost: set[str] = set()
+        try:
+            await store.add_events_once(events, fences)
+        except LeaseLost as e:
+            lost.update(e.job_ids)
         for job in jobs:
-            if await store.get_job(job.job_id) is None:
+            if job.job_id in lost or await store.get_job(job.job_id) is None:
                 continue  # deleted meanwhile by someone else
-            await store.save_tiles(job.job_id, job.tiles)
-            await store.update_job(job.job_id, **job.fields)
+            try:
+                await store.save_tiles(job.job_id, job.tiles, fence=job.fence)
+                await store.update_job(job.job_id, **job.fields, fence=job.fence)
+            except LeaseLost:
+                lost.add(job.job_id)
+        if lost:
+            log.warning(
+                "the spool's jobs %s are owned by another server now; left to it",
+                ", ".join(sorted(lost)),
+            )
         path.unlink()
         _sync_dir(directory)
         log.info(
@@ -131,7 +167,10 @@ def _job_record(job: UnsavedJob) -> tuple[dict[str, Any], list[bytes]]:
             if value is not None:
                 blobs.append(bytes(value))
         tiles.append(entry)
-    return {"job": job.job_id, "fields": job.fields, "tiles": tiles}, blobs
+    header = {"job": job.job_id, "fields": job.fields, "tiles": tiles}
+    if job.fence is not None:
+        header["fence"] = list(job.fence)
+    return header, blobs
 
 
 def _job_from(header: dict[str, Any], blobs: Iterator[bytes]) -> UnsavedJob:
@@ -141,7 +180,10 @@ def _job_from(header: dict[str, Any], blobs: Iterator[bytes]) -> UnsavedJob:
         for name in _TILE_BYTES:
             values[name] = None if entry[name] is None else next(blobs)
         tiles.append(TileRow(**values))
-    return UnsavedJob(header["job"], header["fields"], tiles)
+    fence = header.get("fence")
+    return UnsavedJob(
+        header["job"], header["fields"], tiles, None if fence is None else (fence[0], fence[1])
+    )
 
 
 def _record(out: BinaryIO, header: dict[str, Any], blobs: list[bytes] | None = None) -> None:
