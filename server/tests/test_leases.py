@@ -88,14 +88,16 @@ class Replica:
     """A FarmService named `name` over its own Store, driven by the test (its background task
     is not started: each round is called)."""
 
-    def __init__(self, url: str, data_dir: Path, name: str, monotonic=time.monotonic):
+    def __init__(
+        self, url: str, data_dir: Path, name: str, monotonic=time.monotonic, lease_s=LEASE_S
+    ):
         self.name = name
         self.store = Store(url, max_size=2, internal_size=2)
         settings = Settings(
-            data_dir=data_dir / name, replica_id=name, job_lease_s=LEASE_S,
+            data_dir=data_dir / name, replica_id=name, job_lease_s=lease_s,
             checkpoint_interval_s=3600.0,  # checkpoints when the test says (force)
         )  # fmt: skip
-        self.ownership = LeaseOwnership(self.store, name, lease_s=LEASE_S, monotonic=monotonic)
+        self.ownership = LeaseOwnership(self.store, name, lease_s=lease_s, monotonic=monotonic)
         self.service = build_farm_service(
             settings, self.store, ownership=self.ownership, scene_checker=NoScenes(),
             usd_importer=NoScenes(),
@@ -397,3 +399,35 @@ def test_control_of_a_job_another_replica_owns_is_applied_by_its_owner(db_url, t
         "cancel": ("cancelled", "cancelled", "renamed"),
     }
     assert row.state == "cancelled" and row.settings["priority"] == 5 and not b_has_it
+
+
+def test_owns_turns_false_before_the_lease_expires_unless_the_replica_is_alone(db_url, tmp_path):
+    clock = StoppedClock()
+    lease_s = 30.0  # of the database's clock: it does not expire while this test runs
+
+    async def main():
+        a = await Replica(db_url, tmp_path, "A", monotonic=clock, lease_s=lease_s).open()
+        try:
+            job = await submit(a)
+            alone = (a.ownership.alone, a.ownership.owns(job))
+            clock.now += 10 * lease_s  # no renewal: a server alone keeps its jobs (an outage)
+            alone_later = a.ownership.owns(job)
+            b = await Replica(db_url, tmp_path, "B", lease_s=lease_s).open()
+            a.ownership._next_renewal = -float("inf")  # its next heartbeat now
+            await a.ownership.heartbeat()  # renews at clock.now and sees B
+            margin = lease_s / 4
+            clock.now += lease_s - margin - 0.01
+            before = a.ownership.owns(job)
+            clock.now += 0.02
+            after = a.ownership.owns(job)
+            taken = await b.ownership.acquire(job)  # the database still says A's
+            lease = await b.store.lease_of(job)
+            await b.close()
+            return alone, alone_later, a.ownership.alone, before, after, taken, lease
+        finally:
+            await a.close()
+
+    alone, alone_later, now_alone, before, after, taken, lease = asyncio.run(main())
+    assert alone == (True, True) and alone_later
+    assert not now_alone and before and not after
+    assert taken is False and lease == ("A", 1, True)

@@ -28,6 +28,9 @@ from collections.abc import AsyncIterator
 from datetime import datetime
 from typing import Any
 
+import psycopg
+from psycopg_pool import PoolTimeout
+
 from ..domain.frames import frame_count, job_rects, resolve_animations
 from ..domain.jobspec import JobSettings, check_variant_images, parse_settings
 from ..domain.merge import TileAccumulator
@@ -301,9 +304,13 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         await self.ownership.heartbeat()
         for job_id in self.ownership.take_lost():
             self._drop_lost(job_id)
-        if self.ownership.shared:
-            await self._apply_controls()
-            await self._take_over()
+        if self.ownership.shared and not self.store.unreachable:
+            try:
+                await self._apply_controls()
+                await self._take_over()
+            except (psycopg.Error, PoolTimeout, OSError) as e:  # the round goes on
+                self.db_errors += 1
+                log.warning("could not look for other servers' requests or jobs: %s", e)
         self.scheduler.tick()
         self._sample_history()
         await self._after_change()

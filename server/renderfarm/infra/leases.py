@@ -15,6 +15,12 @@ renewal was *sent*, minus a margin, so it turns false before the database's expi
 counts from when the renewal arrived) lets another replica take the job. That keeps a replica
 from leasing a job's tasks after it may have lost it; correctness does not depend on it (the
 fence does), only wasted work does.
+
+One exception: a replica whose last heartbeat found no other live replica (`alone`, the farm of
+one server) keeps owning its holds while the database is away, so that it goes on rendering
+through an outage as a server alone always did (docs/operations.md, "Reliability"). Were a
+replica to start during the outage and take the jobs once the database is back, the fence
+refuses the first one's writes: its unsaved merges are lost, never the image.
 """
 
 from __future__ import annotations
@@ -68,6 +74,8 @@ class LeaseOwnership:
         self.addresses = dict(addresses or {})
         self.merged: Callable[[], int] = lambda: 0  # batches merged since start (the service's)
         self.renewal_failures = 0
+        # No other live replica at the last heartbeat: holds do not lapse (module docstring).
+        self.alone = False
         self._monotonic = monotonic
         self._started = clock()
         self._holds: dict[str, Hold] = {}
@@ -78,7 +86,7 @@ class LeaseOwnership:
     # ------------------------------------------------------------------ without waiting
     def owns(self, job_id: str) -> bool:
         hold = self._holds.get(job_id)
-        return hold is not None and self._monotonic() < hold.deadline
+        return hold is not None and (self.alone or self._monotonic() < hold.deadline)
 
     def epoch(self, job_id: str) -> int:
         hold = self._holds.get(job_id)
@@ -159,8 +167,9 @@ class LeaseOwnership:
             rate = (merged - self._last_count[1]) / (now - self._last_count[0])
         self._last_count = (now, merged)
         try:
-            await self.store.replica_heartbeat(
-                self.replica_id, self.addresses, self._started, merged, rate
+            others = await self.store.replica_heartbeat(
+                self.replica_id, self.addresses, self._started, merged, rate, 2 * self.lease_s
             )
+            self.alone = others == 0
         except _DATABASE_ERRORS as e:
             log.warning("could not record replica %s: %s", self.replica_id, e)

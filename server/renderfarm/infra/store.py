@@ -794,8 +794,10 @@ class Store:
         started: float,
         batches_merged: int,
         merge_rate: float,
-    ) -> None:
-        """Record that the replica is alive (its row made on its first heartbeat)."""
+        live_s: float = 60.0,
+    ) -> int:
+        """Record that the replica is alive (its row made on its first heartbeat); how many
+        other replicas heartbeat within the last live_s seconds."""
         async with self._connection(internal=True) as conn:
             await conn.execute(
                 "INSERT INTO replicas (id, addresses, started_at, heartbeat_at, batches_merged,"
@@ -805,6 +807,13 @@ class Store:
                 " batches_merged = excluded.batches_merged, merge_rate = excluded.merge_rate",
                 (replica_id, Jsonb(addresses), _ts(started), batches_merged, merge_rate),
             )
+            cur = await conn.execute(
+                "SELECT count(*) FROM replicas WHERE id <> %s"
+                " AND heartbeat_at > now() - make_interval(secs => %s)",
+                (replica_id, live_s),
+            )
+            (others,) = await cur.fetchone()
+            return others
 
     async def list_replicas(self, live_s: float) -> list[dict[str, Any]]:
         """Every replica recorded, with the jobs it holds live leases on; `live` when its last
