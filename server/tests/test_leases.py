@@ -130,11 +130,11 @@ class Replica:
         return sent
 
 
-async def submit(replica: Replica, name: str = "job") -> str:
+async def submit(replica: Replica, name: str = "job", after: list[str] | None = None) -> str:
     await replica.store.put_scene(SCENE_SHA, "glb", "scene.glb", SCENE)
     view = await replica.service.submit(
         scene_data=None, scene_sha256=SCENE_SHA, filename="scene.glb", name=name,
-        raw_settings=dict(JOB), caller=LOCAL_USER,
+        raw_settings=dict(JOB), caller=LOCAL_USER, after=after,
     )  # fmt: skip
     return view.id
 
@@ -149,6 +149,18 @@ async def until(condition, timeout_s: float, what: str):
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         await asyncio.sleep(0.02)
+
+
+async def finish(replica: Replica, job: str) -> None:
+    """Render the job on the replica until its row says completed."""
+
+    async def done():
+        await replica.work(100)
+        await replica.service._round()
+        row = await replica.store.get_job(job)
+        return row.state == "completed"
+
+    await until(done, 60, f"job {job} completed on {replica.name}")
 
 
 async def stored_tiles(store: Store, job_id: str) -> list[tuple]:
@@ -294,15 +306,6 @@ def test_a_replica_that_stops_renewing_loses_the_job_and_its_late_writes_are_ref
 def test_a_job_taken_over_after_its_owner_died_renders_the_bits_of_an_undisturbed_run(
     db_url, tmp_path
 ):
-    async def finish(replica: Replica, job: str) -> None:
-        async def done():
-            await replica.work(100)
-            await replica.service._round()
-            row = await replica.store.get_job(job)
-            return row.state == "completed"
-
-        await until(done, 60, f"job {job} completed on {replica.name}")
-
     async def main():
         alone = await Replica(db_url, tmp_path, "C").open()
         a = await Replica(db_url, tmp_path, "A").open()
@@ -431,3 +434,38 @@ def test_owns_turns_false_before_the_lease_expires_unless_the_replica_is_alone(d
     assert alone == (True, True) and alone_later
     assert not now_alone and before and not after
     assert taken is False and lease == ("A", 1, True)
+
+
+def test_a_job_waits_for_and_is_continued_across_replicas(db_url, tmp_path):
+    async def main():
+        a = await Replica(db_url, tmp_path, "A").open()
+        b = await Replica(db_url, tmp_path, "B").open()
+        try:
+            first = await submit(a, "first")
+            second = await submit(b, "second", after=[first])  # B owns it; it waits
+            await b.service._round()  # B has looked at its dependency: running, on A
+            waiting = (await b.service.get(second, LOCAL_USER)).state.value
+            await finish(a, first)
+
+            async def queued():
+                await b.service._round()  # B looks at its waiting jobs again
+                return (await b.service.get(second, LOCAL_USER)).state != JobState.WAITING
+
+            await until(queued, 10, "the second job released on B")
+            # The first job, completed on A (and still in A's memory), continued on B.
+            continued = await b.service.continue_(first, LOCAL_USER, {"max_spp": 128})
+            seen_by_a = await a.service.get(first, LOCAL_USER)
+            lease = await b.store.lease_of(first)
+            await finish(b, first)
+            row = await b.store.get_job(first)
+            return waiting, continued, seen_by_a, lease, row
+        finally:
+            await a.close()
+            await b.close()
+
+    waiting, continued, seen_by_a, lease, row = asyncio.run(main())
+    assert waiting == "waiting"
+    assert continued.replica == "B" and continued.state == JobState.QUEUED
+    assert seen_by_a.replica == "B" and seen_by_a.state == JobState.QUEUED  # not A's old run
+    assert lease == ("B", 2, True)
+    assert row.mean_spp == 128 and row.settings["max_spp"] == 128

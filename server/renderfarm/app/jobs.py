@@ -229,6 +229,10 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         if not self.ownership.shared or now < self._next_takeover:
             return
         self._next_takeover = now + self.settings.job_lease_s / 4
+        # A dependency may have completed on another server: waiting jobs look again.
+        self._waiting_dirty |= any(
+            j.state == JobState.WAITING for j in self.scheduler.jobs.values()
+        )
         taken = 0
         for job_id in await self.store.unleased_jobs():
             if job_id in self.scheduler.jobs or not await self.ownership.acquire(job_id):
@@ -516,9 +520,18 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 raise NotFound(f"no stored environment map with sha256 {settings.environment}")
         return settings
 
+    def _shown_live(self, job_id: str) -> JobRun | None:
+        """The job as this server holds it in memory, when that is the job as it is: in a farm
+        of several servers, a finished job kept here after its lease was released may have
+        been brought back by another server since, so its row is read instead."""
+        job = self.scheduler.jobs.get(job_id)
+        if job is None or not self.ownership.shared or self.ownership.epoch(job_id) >= 0:
+            return job
+        return None
+
     async def get(self, job_id: str, caller: Caller) -> JobView:
         check_caller(caller)
-        job = self.scheduler.jobs.get(job_id)
+        job = self._shown_live(job_id)
         if job is not None:
             view = self._live_view(job)
         else:
@@ -552,7 +565,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         rows = rows[:page_size]
         views = []
         for row in rows:
-            live = self.scheduler.jobs.get(row.id)
+            live = self._shown_live(row.id)
             views.append(self._live_view(live) if live is not None else self._row_view(row))
         token = f"{rows[-1].created_at.isoformat()}|{rows[-1].id}" if more else ""
         return views, token
