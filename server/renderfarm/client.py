@@ -252,6 +252,11 @@ class Client:
     def workers(self) -> list[dict[str, Any]]:
         return self._check(self.http.get("/api/v1/workers")).json()
 
+    def replicas(self) -> list[dict[str, Any]]:
+        """The servers of the farm (several over one database): id, addresses, heartbeat, the
+        jobs each holds and its merge rate."""
+        return self._check(self.http.get("/api/v1/replicas")).json()
+
     def drain_worker(self, worker_id: str) -> dict[str, Any]:
         """Admin: the worker finishes the tasks it holds and takes no more."""
         return self._worker_action(worker_id, "drain")
