@@ -119,6 +119,11 @@ def test_workers_and_scenes_agree(apis, twin_jobs):
     rpc = apis.rpc("ListWorkers", jobs_pb2.ListWorkersRequest())
     assert sorted(w["id"] for w in rest) == sorted(w.id for w in rpc.workers)
     assert {w["id"]: w["cores"] for w in rest} == {w.id: w.cores for w in rpc.workers}
+    rest = apis.rest("GET", "/api/v1/replicas")
+    rpc = apis.rpc("ListReplicas", jobs_pb2.ListReplicasRequest())
+    assert [r["id"] for r in rest] == [r.id for r in rpc.replicas] and len(rest) == 1
+    assert [r["jobs_owned"] for r in rest] == [r.jobs_owned for r in rpc.replicas]
+    assert rest[0]["addresses"] == dict(rpc.replicas[0].addresses)
     sha = twin_jobs[0]["scene_sha256"]
     scene_rest = apis.rest("GET", f"/api/v1/scenes/{sha}")
     scene_rpc = apis.scene_rpc(sha).scene

@@ -469,3 +469,27 @@ def test_a_job_waits_for_and_is_continued_across_replicas(db_url, tmp_path):
     assert seen_by_a.replica == "B" and seen_by_a.state == JobState.QUEUED  # not A's old run
     assert lease == ("B", 2, True)
     assert row.mean_spp == 128 and row.settings["max_spp"] == 128
+
+
+def test_a_server_stopped_cleanly_hands_its_jobs_over_at_once(db_url, tmp_path):
+    async def main():
+        a = await Replica(db_url, tmp_path, "A", lease_s=30.0).open()
+        b = await Replica(db_url, tmp_path, "B", lease_s=30.0).open()
+        try:
+            job = await submit(a)
+            await a.work(7)
+            await a.service.stop(timeout_s=5)  # SIGTERM: last checkpoint, then release
+            released = await b.store.lease_of(job)
+            checkpoint = await stored_tiles(b.store, job)
+            await b.service._round()  # long before the 30 s lease would have run out
+            resumed = {i: t.acc.batches for i, t in enumerate(b.service.scheduler.jobs[job].tiles)}
+            return released, checkpoint, resumed, await b.store.lease_of(job)
+        finally:
+            await a.close()
+            await b.close()
+
+    released, checkpoint, resumed, lease = asyncio.run(main())
+    assert released[:2] == ("A", 1) and not released[2]
+    assert sum(t[2] for t in checkpoint) == 7  # every merged batch was written
+    assert resumed == {t[0]: t[2] for t in checkpoint}
+    assert lease == ("B", 2, True)

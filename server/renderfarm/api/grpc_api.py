@@ -328,6 +328,25 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
         )
 
     @_maps_errors
+    async def ListReplicas(self, request, context):  # noqa: N802
+        await _caller(self.auth, context)
+        return jobs_pb2.ListReplicasResponse(
+            replicas=[
+                jobs_pb2.ReplicaStatus(
+                    id=r["id"],
+                    addresses=r["addresses"],
+                    started_unix_s=r["started_unix_s"] or 0.0,
+                    heartbeat_unix_s=r["heartbeat_unix_s"],
+                    live=r["live"],
+                    jobs_owned=r["jobs_owned"],
+                    batches_merged=r["batches_merged"],
+                    merge_rate=r["merge_rate"] or 0.0,
+                )  # fmt: skip
+                for r in await self.farm.replicas()
+            ]
+        )
+
+    @_maps_errors
     async def SetWorkerMode(self, request, context):  # noqa: N802
         who = await _caller(self.auth, context)
         modes = {
