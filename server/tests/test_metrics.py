@@ -46,8 +46,9 @@ def farm():
         "w2": SimpleNamespace(worker_id="w2", samples_per_s=250.5, rays_per_s=1e6),
     }
     return SimpleNamespace(
-        scheduler=scheduler, sessions=sessions, store=SimpleNamespace(errors=3), clock=clock
-    )
+        scheduler=scheduler, sessions=sessions, store=SimpleNamespace(errors=3), clock=clock,
+        ownership=SimpleNamespace(owns=lambda job_id: True), jobs_lost=0,
+    )  # fmt: skip
 
 
 def test_an_idle_farm_exposes_every_family_at_zero(farm):
@@ -73,6 +74,8 @@ def test_an_idle_farm_exposes_every_family_at_zero(farm):
         "renderfarm_tile_memory_bytes": "gauge",
         "renderfarm_tile_spill_bytes": "gauge",
         "renderfarm_database_errors": "counter",
+        "renderfarm_jobs_owned": "gauge",
+        "renderfarm_jobs_lost": "counter",
         "renderfarm_jobs_submitted": "counter",
         "renderfarm_tasks_completed": "counter",
         "renderfarm_tasks_assigned": "counter",
@@ -90,6 +93,8 @@ def test_an_idle_farm_exposes_every_family_at_zero(farm):
         assert value(got, f"renderfarm_{name}") == 0.0, name
     assert value(got, "renderfarm_leases_expired", "renderfarm_leases_expired_total") == 0.0
     assert value(got, "renderfarm_database_errors", "renderfarm_database_errors_total") == 0.0
+    assert value(got, "renderfarm_jobs_owned") == 0.0
+    assert value(got, "renderfarm_jobs_lost", "renderfarm_jobs_lost_total") == 0.0
     assert got["renderfarm_worker_samples_per_second"][1] == {}  # no worker, no sample
     # Exposed before the first one: both kinds of failure, and merged results.
     failed = got["renderfarm_tasks_failed"][1]

@@ -69,6 +69,17 @@ class _FarmCollector:
             "Tile accumulator files in the scratch directory",
             value=cache.spill_bytes if cache is not None else 0,
         )
+        owns = farm.ownership.owns
+        yield GaugeMetricFamily(
+            "renderfarm_jobs_owned",
+            "Unfinished jobs this server owns now (several servers over one database)",
+            value=sum(not j.state.finished and owns(j.job_id) for j in sched.jobs.values()),
+        )
+        yield CounterMetricFamily(
+            "renderfarm_jobs_lost",
+            "Jobs this server dropped because another server holds them now",
+            value=farm.jobs_lost,
+        )
         yield CounterMetricFamily(
             "renderfarm_database_errors",
             "Database operations that failed (connection lost, timeout, SQL error)",

@@ -169,6 +169,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self.history: dict[str, list[tuple[float, float | None, float]]] = {}
         self.ready = False
         self.batches_merged = 0  # since start (worker_sessions; this replica's row)
+        self.jobs_lost = 0  # dropped: another server holds them now (metrics)
         # A farm of several servers (ownership.shared): when to look next for jobs nobody
         # holds (the service's clock), and the forwarded job-control requests applied this
         # round, deleted once its writes are done (job_control.py).
@@ -760,6 +761,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         if job_id not in self.scheduler.jobs:
             return
         log.warning("job %s is owned by another server now; dropped here", job_id)
+        self.jobs_lost += 1
         self.scheduler.drop_job(job_id)
         self._forget_movies(job_id)
         for table in (self.history, self.names, self.created, self.owners):
