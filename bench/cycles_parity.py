@@ -24,10 +24,14 @@ NAME_fF. For every scene the harness also splits the error at the reference's ed
 the worker's error on the edges above Cycles' (the noise), the rest alike.
 Writes OUT/NAME.json (every figure), OUT/NAME.png (worker | Cycles | ratio heat map) and, for
 more than one scene, OUT/parity.json (the suite also bench/results/cycles_parity.json); prints a
-table. Without a scene it runs the suite.
+table. Without a scene it runs the suite. --realistic runs the realistic suite instead
+(bench/support/parity_scenes.py REALISTIC: scenes where indirect light, glossy reflections and
+caustics make the noise, as in studios' work; #38) at that issue's settings unless given, and
+writes bench/results/cycles_realistic.json.
 
     .venv/bin/python bench/cycles_parity.py rough_dielectric [--spp 64] [--reference-spp 4096]
     .venv/bin/python bench/cycles_parity.py --suite --out out/parity
+    .venv/bin/python bench/cycles_parity.py --realistic --out out/realistic
     .venv/bin/python bench/cycles_parity.py my-scene.glb --region 10,10,40,30
     .venv/bin/python bench/cycles_parity.py animated_shot --frame 1,24,48
 """
@@ -45,7 +49,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from support.parity_scenes import ANIMATED, SCENES
+from support.parity_scenes import ANIMATED, REALISTIC, SCENES
 from support.results import write_results
 
 from renderfarm.domain.scenes.glb import build_glb, parse_json, split_glb
@@ -559,10 +563,19 @@ def main() -> list[dict]:
     parser.add_argument(
         "--suite", action="store_true", help="every parity scene (the default without a scene)"
     )
+    parser.add_argument(
+        "--realistic",
+        action="store_true",
+        help=f"the realistic suite ({', '.join(REALISTIC)}; not in --suite) at the settings "
+        "of #38's measurement unless given: 320x240, max_depth 13 (12 bounces), 256 spp "
+        "against a 4096-spp reference",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "parity")
-    parser.add_argument("--width", type=int, default=128)
-    parser.add_argument("--height", type=int, default=128)
-    parser.add_argument("--spp", type=int, default=64, help="spp of the compared renders")
+    parser.add_argument("--width", type=int, help="default 128 (--realistic: 320)")
+    parser.add_argument("--height", type=int, help="default 128 (--realistic: 240)")
+    parser.add_argument(
+        "--spp", type=int, help="spp of the compared renders (default 64, --realistic: 256)"
+    )
     parser.add_argument(
         "--reference-spp",
         type=int,
@@ -579,8 +592,7 @@ def main() -> list[dict]:
     parser.add_argument(
         "--max-depth",
         type=int,
-        default=8,
-        help="the farm's max_depth; Cycles gets max_depth - 1 bounces",
+        help="the farm's max_depth; Cycles gets max_depth - 1 bounces (default 8, --realistic: 13)",
     )
     parser.add_argument("--grid", type=int, default=4, help="regions: a grid of N x N blocks")
     parser.add_argument(
@@ -659,6 +671,12 @@ def main() -> list[dict]:
         "leaves of a difference is not the diffuse/specular coupling (docs/parity.md)",
     )
     args = parser.parse_args()
+    defaults = {"width": 128, "height": 128, "spp": 64, "max_depth": 8}
+    if args.realistic:
+        defaults = {"width": 320, "height": 240, "spp": 256, "max_depth": 13}
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     for key in ("width", "height", "spp", "reference_spp", "threads", "max_depth", "grid"):
         if getattr(args, key) < 1:
             parser.error(f"--{key.replace('_', '-')} must be >= 1")
@@ -670,21 +688,24 @@ def main() -> list[dict]:
         if x1 > args.width or y1 > args.height:
             parser.error(f"--region {x0},{y0},{x1},{y1} is outside the "
                          f"{args.width}x{args.height} image")  # fmt: skip
-    if args.suite and args.scene:
-        parser.error("give a scene or --suite, not both")
+    if sum([args.suite, args.realistic, bool(args.scene)]) > 1:
+        parser.error("give a scene, --suite or --realistic, not two of them")
     if args.scene in SCENES and args.scene not in ANIMATED and args.frame:
         parser.error(f"--frame: {args.scene} is a still scene (animated: {', '.join(ANIMATED)})")
     if args.fps is not None and not args.fps > 0:
         parser.error("--fps must be > 0")
     # Without a scene (as `make bench` runs it): the suite.
-    args.suite = args.suite or not args.scene
+    args.suite = args.suite or not (args.scene or args.realistic)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     if args.environment is not None and not args.environment.is_file():
         parser.error(f"--environment {args.environment}: no such file")
-    parity = args.suite or args.scene in SCENES
+    parity = args.suite or args.realistic or args.scene in SCENES
     if parity:
-        names = list(SCENES) if args.suite else [args.scene]
+        if args.suite:
+            names = [n for n in SCENES if n not in REALISTIC]
+        else:
+            names = list(REALISTIC) if args.realistic else [args.scene]
         scenes = generate_scenes(names, out)
     else:
         path = Path(args.scene)
@@ -714,8 +735,9 @@ def main() -> list[dict]:
     print_summary(all_figures)
     if len(all_figures) > 1:
         (out / "parity.json").write_text(json.dumps(all_figures, indent=2) + "\n")
-    if args.suite:
+    if args.suite or args.realistic:
         name = "cycles_parity_lambert" if args.lambert_dielectrics else "cycles_parity"
+        name = "cycles_realistic" if args.realistic else name
         name = name + "_coverage" if args.coverage else name
         write_results(name, {f["scene"]: f for f in all_figures})
     print(f"wrote {out}")

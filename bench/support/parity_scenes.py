@@ -79,6 +79,20 @@ SCENES = {
     "constraint, a box turning under a turning parent, a cylinder skinned to two bones",
 }
 
+# The realistic suite (#38; bench/cycles_parity.py --realistic): scenes like those studios
+# render, where most of the noise is indirect light, glossy reflections and caustics rather
+# than one feature. Not part of --suite.
+REALISTIC = {
+    "realistic_floor": "a textured, normal-mapped checker floor of rough dielectric tiles with "
+    "thin metallic grout, a gold, a red glossy and a glass sphere (KHR_materials_volume), "
+    "instanced prisms, a torus and one emissive panel",
+    "interior_window": "a white room lit through one window by a sun lamp and a sky map "
+    "(indirect-dominated), a wooden floor, a sofa block and a glossy table",
+    "product_hdr": "a product shot on a rough plastic backdrop under a sky map with a small "
+    "bright sun: a glass bottle, a brushed-metal can and rough plastic blocks",
+}
+SCENES.update(REALISTIC)
+
 # The animated scenes: their frame rate, the first and last frame of their timeline, and the
 # frames bench/cycles_parity.py compares when not given --frame.
 ANIMATED = {"animated_shot": {"fps": 24.0, "frames": (1, 48), "compare": (1, 24, 48)}}
@@ -461,7 +475,7 @@ def two_sided_emitter():
     camera()
 
 
-def sky_map(width=512, height=256) -> np.ndarray:
+def sky_map(width=512, height=256, with_sun: bool = True) -> np.ndarray:
     """An equirectangular sky in the farm's convention (docs/settings.md, `environment`: column
     u = 0.5 looks along glTF -Z, u grows towards +X, row 0 is straight up): a blue gradient, a dark
     ground and a small bright sun off to one side, so that a turned or mirrored map shows."""
@@ -474,7 +488,7 @@ def sky_map(width=512, height=256) -> np.ndarray:
     sun = np.array([0.6, 0.55, -0.58])  # glTF axes: high, ahead of the camera, to its right
     sun /= np.linalg.norm(sun)
     disc = (d @ sun) > math.cos(math.radians(4.0))
-    return np.where(disc[..., None], [400.0, 360.0, 300.0], sky)
+    return np.where(disc[..., None], [400.0, 360.0, 300.0], sky) if with_sun else sky
 
 
 def environment():
@@ -506,6 +520,160 @@ def combined():
     quad_light((0.0, -0.5, 4.0), size=2.0, strength=4.0)
     point_light((3.0, -3.0, 3.5), 400.0)
     camera((0.0, -7.5, 3.2), (0.0, 0.0, 0.5), lens=35.0)
+    return sky_map()
+
+
+def tiles_textures(n=512, tiles=8, grout=3):
+    """The realistic floor's textures (row 0 at the top): base colour (warm and cool tiles,
+    each a little different, dark grout), roughness and metallic (0.35 dielectric tiles, 0.25
+    metallic grout lines `grout` pixels wide) and a tangent-space normal map bevelling each
+    tile's edges."""
+    y, x = np.mgrid[0:n, 0:n]
+    size = n // tiles
+    tx, ty = x // size, y // size
+    fx, fy = x % size, y % size
+    line = (fx < grout) | (fy < grout)
+    rng = np.random.default_rng(3)
+    shade = rng.uniform(0.85, 1.1, (tiles, tiles))[ty, tx][..., None]
+    warm = ((tx + ty) % 2 == 0)[..., None]
+    colour = np.where(warm, [0.75, 0.55, 0.4], [0.45, 0.5, 0.55]) * shade
+    colour = np.where(line[..., None], [0.2, 0.2, 0.2], np.clip(colour, 0.0, 1.0))
+    alpha = np.ones((n, n, 1))
+    rough = np.where(line, 0.25, 0.35)
+    metal = np.where(line, 1.0, 0.0)
+    # Bevel: the normal tilts towards the tile's centre within 6 pixels of its edges.
+    bevel = 6.0
+    dx = np.where(fx - grout < bevel, -(1 - (fx - grout) / bevel), 0.0) + np.where(
+        size - fx < bevel, 1 - (size - fx) / bevel, 0.0
+    )
+    dy = np.where(fy - grout < bevel, -(1 - (fy - grout) / bevel), 0.0) + np.where(
+        size - fy < bevel, 1 - (size - fy) / bevel, 0.0
+    )
+    nrm = np.stack([-0.5 * dx, 0.5 * dy, np.ones_like(dx, dtype=float)], -1)
+    nrm = np.where(line[..., None], [0.0, 0.0, 1.0], nrm)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    grey = lambda v: np.concatenate([np.repeat(v[..., None], 3, -1), alpha], -1)  # noqa: E731
+    return (np.concatenate([colour, alpha], -1), grey(rough), grey(metal),
+            np.concatenate([nrm * 0.5 + 0.5, alpha], -1))  # fmt: skip
+
+
+def tiled_floor_material():
+    colour, rough, metal, normal = tiles_textures()
+    mat = principled("Tiles", (1.0, 1.0, 1.0), 0.35)
+    tree = mat.node_tree
+    texture(mat, image("TilesColour", colour), "Base Color")
+    for name, img, socket in (("TilesRoughness", rough, "Roughness"),
+                              ("TilesMetallic", metal, "Metallic")):  # fmt: skip
+        tex = texture(mat, image(name, img, non_color=True), None)
+        sep = tree.nodes.new("ShaderNodeSeparateColor")
+        tree.links.new(tex.outputs["Color"], sep.inputs["Color"])
+        tree.links.new(sep.outputs["Red"], bsdf_of(mat).inputs[socket])
+    ntex = texture(mat, image("TilesNormal", normal, non_color=True), None)
+    nmap = tree.nodes.new("ShaderNodeNormalMap")
+    tree.links.new(ntex.outputs["Color"], nmap.inputs["Color"])
+    tree.links.new(nmap.outputs["Normal"], bsdf_of(mat).inputs["Normal"])
+    return mat
+
+
+def realistic_floor():
+    """The scene of #38's measurement: 12 bounces at 320x240 in the issue (--realistic)."""
+    floor(tiled_floor_material(), size=10.0)
+    sphere("Gold", principled("Gold", (1.0, 0.77, 0.34), 0.2, metallic=1.0), (-1.4, 0.3, 0.6))
+    sphere("RedGloss", principled("RedGloss", (0.7, 0.05, 0.04), 0.08), (0.0, 0.9, 0.6))
+    sphere("GlassBall", glass_material(True), (1.3, -0.2, 0.6))
+    prism_mat = principled("Prism", (0.2, 0.45, 0.8), 0.4)
+    bpy.ops.mesh.primitive_cylinder_add(vertices=3, radius=0.3, depth=0.6,
+                                        location=(-2.2, -1.2, 0.3))  # fmt: skip
+    prism = bpy.context.active_object
+    prism.name = "Prism"
+    prism.data.materials.append(prism_mat)
+    for i, (x, y, turn) in enumerate(((-1.4, -1.6, 0.7), (-0.5, -1.9, 1.9), (0.4, -1.7, 2.6))):
+        twin = prism.copy()  # a linked duplicate: one mesh, exported once, used by each node
+        twin.name = f"Prism{i}"
+        twin.location = (x, y, 0.3)
+        twin.rotation_euler = (0.0, 0.0, turn)
+        bpy.context.scene.collection.objects.link(twin)
+    bpy.ops.mesh.primitive_torus_add(major_radius=0.45, minor_radius=0.15,
+                                     location=(2.4, 1.2, 0.15))  # fmt: skip
+    torus = bpy.context.active_object
+    torus.name = "Torus"
+    torus.data.materials.append(principled("TorusPaint", (0.85, 0.85, 0.8), 0.5))
+    bpy.ops.object.shade_smooth()
+    quad_light((1.5, 2.5, 3.2), size=1.6, strength=12.0, rotation=(math.radians(150), 0, 0))
+    camera((0.0, -6.5, 2.6), (0.0, 0.0, 0.4), lens=35.0)
+
+
+def interior_window():
+    """A 6 x 5 x 3 m room whose -Y wall has a 1.6 x 1.4 m window; a sun lamp shines through it
+    onto the floor and the sky map lights the room through it: nearly everything the camera
+    sees is indirect light."""
+    white = principled("Plaster", (0.8, 0.78, 0.75), 0.9)
+    wood = principled("Wood", (1.0, 1.0, 1.0), 0.45)
+    y, x = np.mgrid[0:256, 0:256]
+    plank = (x // 32) % 2
+    grain = 0.06 * np.sin(y / 3.0 + plank * 2.0)
+    rgb = np.stack([0.45 + grain, 0.28 + grain * 0.7, 0.15 + grain * 0.4], -1)
+    rgb *= np.where(plank[..., None] == 1, 0.9, 1.0)
+    texture(wood, image("Planks", np.concatenate([rgb, np.ones((256, 256, 1))], -1)),
+            "Base Color")  # fmt: skip
+    add("plane", "Floor", wood, (0, 0, 0), size=1.0).scale = (6.0, 5.0, 1.0)
+    ceiling = add("plane", "Ceiling", white, (0, 0, 3.0), size=1.0)
+    ceiling.scale = (6.0, 5.0, 1.0)
+    ceiling.rotation_euler = (math.pi, 0, 0)
+    # Walls: boxes 0.1 m thick (+X, -X, +Y whole; -Y around the window).
+    for name, loc, dims in (("WallE", (3.05, 0, 1.5), (0.1, 5.2, 3.0)),
+                            ("WallW", (-3.05, 0, 1.5), (0.1, 5.2, 3.0)),
+                            ("WallN", (0, 2.55, 1.5), (6.2, 0.1, 3.0)),
+                            ("WallS_left", (-1.95, -2.55, 1.5), (2.3, 0.1, 3.0)),
+                            ("WallS_right", (1.95, -2.55, 1.5), (2.3, 0.1, 3.0)),
+                            ("WallS_below", (0, -2.55, 0.4), (1.6, 0.1, 0.8)),
+                            ("WallS_above", (0, -2.55, 2.6), (1.6, 0.1, 0.8))):  # fmt: skip
+        box = add("cube", name, white, loc, size=1.0)
+        box.scale = dims
+    sofa = add("cube", "Sofa", principled("Fabric", (0.3, 0.35, 0.5), 0.95), (-1.6, 1.6, 0.4),
+               size=1.0)  # fmt: skip
+    sofa.scale = (2.0, 0.9, 0.8)
+    table = add("cube", "Table", principled("Lacquer", (0.05, 0.05, 0.05), 0.12),
+                (0.6, 0.3, 0.37), size=1.0)  # fmt: skip
+    table.scale = (1.2, 0.7, 0.06)
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+    sun.data.energy = 4.0
+    sun.data.angle = 0.0  # the farm's directional light is a delta
+    sun.rotation_euler = (math.radians(55), 0.0, math.radians(15))  # down through the window
+    bpy.context.scene.collection.objects.link(sun)
+    camera((2.4, 1.9, 1.5), (-0.8, -1.0, 0.9), lens=20.0)
+    return sky_map(with_sun=False)
+
+
+def product_hdr():
+    """A glass bottle, a brushed-metal can and two rough plastic blocks on a pale backdrop (a
+    floor and a wall), lit only by the sky map and its small sun."""
+    backdrop = principled("Backdrop", (0.75, 0.75, 0.72), 0.55)
+    add("plane", "Floor", backdrop, (0, 0, 0), size=8.0)
+    wall = add("plane", "Wall", backdrop, (0, 2.0, 2.0), size=8.0)
+    wall.rotation_euler = (math.pi / 2, 0, 0)
+    # Each object stands 1 mm above the floor: a glass bottom on the floor's plane would be
+    # two coincident surfaces, which renderers resolve each their own way.
+    bpy.ops.mesh.primitive_cylinder_add(vertices=64, radius=0.28, depth=1.0,
+                                        location=(-0.6, 0.0, 0.501))  # fmt: skip
+    bottle = bpy.context.active_object
+    bottle.name = "Bottle"
+    bottle.data.materials.append(glass_material(False))
+    # Smooth sides, flat caps (sharp edges past 30 degrees), as a modeller shades a cylinder:
+    # smooth caps bend their normals 45 degrees at the rim.
+    bpy.ops.object.shade_smooth_by_angle(angle=math.radians(30))
+    bpy.ops.mesh.primitive_cylinder_add(vertices=64, radius=0.25, depth=0.6,
+                                        location=(0.35, 0.2, 0.301))  # fmt: skip
+    can = bpy.context.active_object
+    can.name = "Can"
+    can.data.materials.append(principled("Brushed", (0.9, 0.9, 0.92), 0.3, metallic=1.0,
+                                         **{"Anisotropic": 0.7}))  # fmt: skip
+    bpy.ops.object.shade_smooth_by_angle(angle=math.radians(30))
+    for name, loc, colour in (("BlockRed", (1.1, -0.3, 0.201), (0.7, 0.1, 0.08)),
+                              ("BlockTeal", (-1.3, 0.5, 0.201), (0.1, 0.5, 0.5))):  # fmt: skip
+        block = add("cube", name, principled(name, colour, 0.6), loc, size=0.4)
+        block.rotation_euler = (0, 0, 0.4)
+    camera((0.0, -4.2, 1.3), (0.0, 0.0, 0.45), lens=45.0)
     return sky_map()
 
 
