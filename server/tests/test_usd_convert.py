@@ -518,6 +518,26 @@ def test_an_asset_path_outside_the_upload_is_refused_naming_prim_and_attribute(
     assert words in refused.value.message
 
 
+def test_a_dot_dot_path_that_stays_inside_the_upload_is_read(tmp_path):
+    """Packaged assets name files of a sibling folder from a layer in a subfolder
+    (layers/look.usda: ../maps/colour.png, as the USD Working Group's Standard Shader Ball
+    does): a '..' that stays inside the upload is allowed, and the texture is read."""
+    root = tmp_path / "upload"
+    (root / "maps").mkdir(parents=True)
+    (root / "layers").mkdir()
+    _png(root / "maps" / "colour.png", np.full((2, 2, 3), 0.5))
+    png = (root / "maps" / "colour.png").read_bytes()
+    look = Usd.Stage.CreateNew(str(root / "layers" / "look.usda"))
+    _textured(look, "../maps/colour.png")
+    look.GetRootLayer().Save()
+    stage = new_stage(root)
+    stage.GetRootLayer().subLayerPaths.append("./layers/look.usda")
+    _, doc, blob = convert(stage, root)
+    (image,) = doc["images"]
+    view = doc["bufferViews"][image["bufferView"]]
+    assert blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]] == png
+
+
 def test_a_symlink_out_of_the_upload_is_refused(tmp_path):
     root = tmp_path / "upload"
     root.mkdir()

@@ -58,11 +58,14 @@ def check_asset_path(path: str, anchor_dir: Path, root: Path, where: str) -> Pat
             "(or the .usdz itself as the scene) instead",
             _field(where),
         )
-    parts = path.replace("\\", "/").split("/")
-    if ".." in parts:
+    # A '..' may climb to a folder of the upload (layers/shot.usda naming ../maps/wood.png, as
+    # packaged assets do), not above it: checked on the path as written, before any symbolic
+    # link is resolved (then again on the resolved path, below).
+    written = os.path.normpath(os.path.join(anchor_dir, path.replace("\\", "/")))
+    if not Path(written).is_relative_to(root):
         raise SceneError(
-            f"{where}: the asset path {shown!r} climbs with '..'; only files beside or below "
-            "the layer inside the upload are allowed",
+            f"{where}: the asset path {shown!r} climbs out of the upload with '..'; only files "
+            "inside the upload are allowed",
             _field(where),
         )
     if is_udim(path):  # a tile set, not a file: never read (the converter warns)
