@@ -957,3 +957,152 @@ def test_deforming_points_become_morph_targets_played_by_the_animation(tmp_path)
         assert corners == {(0, 0, 0), (1, 0, 0), (1, 1, lift), (0, 1, 0)}, seconds
     world = world_matrices(doc)[node_index]
     assert world[:3, 3] == pytest.approx([5.0, 0.0, 0.0])  # the parent still places it
+
+
+def _morph_weights(doc: dict, blob: bytes, node_index: int, count: int):
+    """(times in seconds, weights per time) of the weights channel of a node."""
+    (channel,) = [c for c in doc["animations"][0]["channels"]
+                  if c["target"] == {"node": node_index, "path": "weights"}]  # fmt: skip
+    sampler = doc["animations"][0]["samplers"][channel["sampler"]]
+    times = accessor(doc, blob, sampler["input"]).reshape(-1).astype(np.float64)
+    weights = accessor(doc, blob, sampler["output"]).astype(np.float64)
+    return times, weights.reshape(len(times), count)
+
+
+def _blend_shape_quad(stage, *, inbetween: bool = False):
+    """A quad bound to a one-joint skeleton with two blend shapes: "lift" raises corner 2 by
+    (0, 0, 2) (sparse: pointIndices [2]), "widen" moves corners 1 and 2 by (1, 0, 0) (dense).
+    The SkelAnimation names them in the other order, ["widen", "lift"], with weights
+    (0, 0) at frame 0 and (0.5, 1) at frame 24, at 24 time codes a second."""
+    from pxr import UsdSkel
+
+    stage.SetTimeCodesPerSecond(24.0)
+    stage.SetStartTimeCode(0.0)
+    UsdSkel.Root.Define(stage, "/Rig")
+    skeleton = UsdSkel.Skeleton.Define(stage, "/Rig/Skel")
+    skeleton.CreateJointsAttr(["root"])
+    skeleton.CreateBindTransformsAttr([Gf.Matrix4d(1)])
+    skeleton.CreateRestTransformsAttr([Gf.Matrix4d(1)])
+    anim = UsdSkel.Animation.Define(stage, "/Rig/Anim")
+    anim.CreateBlendShapesAttr(["widen", "lift"])
+    weights = anim.CreateBlendShapeWeightsAttr()
+    weights.Set([0.0, 0.0], 0.0)
+    weights.Set([0.5, 1.0], 24.0)
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [anim.GetPath()]
+    )
+    quad = UsdGeom.Mesh.Define(stage, "/Rig/Sheet")
+    quad.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    quad.CreateFaceVertexCountsAttr([4])
+    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    quad.CreateSubdivisionSchemeAttr("none")
+    lift = UsdSkel.BlendShape.Define(stage, "/Rig/Sheet/Lift")
+    lift.CreateOffsetsAttr([Gf.Vec3f(0, 0, 2)])
+    lift.CreatePointIndicesAttr([2])
+    if inbetween:
+        lift.CreateInbetween("half").SetOffsets([Gf.Vec3f(0, 0, 1.5)])
+    widen = UsdSkel.BlendShape.Define(stage, "/Rig/Sheet/Widen")
+    widen.CreateOffsetsAttr([Gf.Vec3f(0, 0, 0), Gf.Vec3f(1, 0, 0), Gf.Vec3f(1, 0, 0),
+                             Gf.Vec3f(0, 0, 0)])  # fmt: skip
+    binding = UsdSkel.BindingAPI.Apply(quad.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateBlendShapesAttr(["lift", "widen"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([lift.GetPath(), widen.GetPath()])
+    binding.CreateJointIndicesPrimvar(True, 1).Set([0])
+    binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
+    return quad
+
+
+def test_blend_shapes_become_morph_targets_weighted_by_the_skel_animation(tmp_path):
+    """UsdSkel: points + sum of weight_i x offsets_i, the weights the SkelAnimation's, found by
+    name (the animation's order is not the mesh's). At 0.5 s (frame 12) the weights are half
+    way, widen 0.25 and lift 0.5: corner 1 at (1.25, 0, 0), corner 2 at (1.25, 1, 1); at 1 s
+    corner 2 at (1.5, 1, 2). glTF: POSITION + sum of w_k x target_k, w from the weights
+    channel (LINEAR)."""
+    stage = new_stage(tmp_path)
+    _blend_shape_quad(stage)
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not [w for w in conversion.warnings if "blend" in w], conversion.warnings
+    (node_index,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == "Sheet"]
+    mesh = doc["meshes"][doc["nodes"][node_index]["mesh"]]
+    prim = mesh["primitives"][0]
+    base = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+    targets = [accessor(doc, blob, t["POSITION"]).astype(np.float64) for t in prim["targets"]]
+    assert len(targets) == 2 and mesh["weights"] == [0.0, 0.0]  # at the start time
+    times, weights = _morph_weights(doc, blob, node_index, 2)
+    for seconds, expected in (
+        (0.0, {(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)}),
+        (0.5, {(0, 0, 0), (1.25, 0, 0), (1.25, 1, 1), (0, 1, 0)}),
+        (1.0, {(0, 0, 0), (1.5, 0, 0), (1.5, 1, 2), (0, 1, 0)}),
+    ):
+        w = [np.interp(seconds, times, weights[:, k]) for k in range(2)]
+        posed = base + sum(wk * t for wk, t in zip(w, targets, strict=True))
+        assert {tuple(np.round(p, 6)) for p in posed} == expected, seconds
+
+
+def test_in_between_blend_shapes_are_named_by_prim_path(tmp_path):
+    stage = new_stage(tmp_path)
+    _blend_shape_quad(stage, inbetween=True)
+    conversion, doc, _ = convert(stage, tmp_path)
+    assert any(w.startswith("/Rig/Sheet/Lift: in-between shapes are not converted")
+               for w in conversion.warnings), conversion.warnings  # fmt: skip
+    assert len(doc["meshes"][0]["primitives"][0]["targets"]) == 2  # still converted
+
+
+def test_dual_quaternion_skinning_is_named_by_prim_path(tmp_path):
+    """glTF skins blend matrices linearly; a mesh asking for dual-quaternion skinning is
+    rendered so, with a warning naming it."""
+    from pxr import UsdSkel
+
+    stage = new_stage(tmp_path)
+    quad = _blend_shape_quad(stage)
+    UsdSkel.BindingAPI(quad.GetPrim()).CreateSkinningMethodAttr(UsdSkel.Tokens.dualQuaternion)
+    conversion, doc, _ = convert(stage, tmp_path)
+    assert any(w.startswith("/Rig/Sheet: dual-quaternion skinning is rendered as linear blend")
+               for w in conversion.warnings), conversion.warnings  # fmt: skip
+    assert "skins" in doc
+
+
+def test_normals_that_change_with_the_points_become_normal_morph_targets(tmp_path):
+    """A quad in the XY plane (normal +Z) turned to face +X by frame 24, its authored vertex
+    normals turning with it: at 1 s the shading normal of every corner is +X, at 0.5 s half
+    way (the normalized mean of +Z and +X), as USD interpolates the normals linearly. glTF:
+    NORMAL + sum of w_k x NORMAL target_k, normalized."""
+    stage = new_stage(tmp_path)
+    stage.SetTimeCodesPerSecond(24.0)
+    stage.SetStartTimeCode(0.0)
+    quad = UsdGeom.Mesh.Define(stage, "/Card")
+    quad.CreateFaceVertexCountsAttr([4])
+    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    quad.CreateSubdivisionSchemeAttr("none")
+    points, normals = quad.CreatePointsAttr(), quad.CreateNormalsAttr()
+    quad.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    points.Set([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], 0.0)
+    points.Set([(0, 0, 0), (0, 0, -1), (0, 1, -1), (0, 1, 0)], 24.0)
+    normals.Set([(0, 0, 1)] * 4, 0.0)
+    normals.Set([(1, 0, 0)] * 4, 24.0)
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not [w for w in conversion.warnings if "normal" in w], conversion.warnings
+    (node_index,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == "Card"]
+    prim = doc["meshes"][doc["nodes"][node_index]["mesh"]]["primitives"][0]
+    base = accessor(doc, blob, prim["attributes"]["NORMAL"]).astype(np.float64)
+    targets = [accessor(doc, blob, t["NORMAL"]).astype(np.float64) for t in prim["targets"]]
+    times, weights = _morph_weights(doc, blob, node_index, len(targets))
+    half = np.array([1.0, 0.0, 1.0]) / math.sqrt(2)
+    for seconds, expected in ((0.0, [0, 0, 1]), (0.5, half), (1.0, [1, 0, 0])):
+        w = [np.interp(seconds, times, weights[:, k]) for k in range(len(targets))]
+        n = base + sum(wk * t for wk, t in zip(w, targets, strict=True))
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        assert n == pytest.approx(np.tile(expected, (len(n), 1)), abs=1e-6), seconds
+
+
+def test_normals_that_change_over_still_points_are_named_by_prim_path(tmp_path):
+    stage = new_stage(tmp_path)
+    mesh = unit_cube(stage, "/Cube")
+    normals = mesh.CreateNormalsAttr()
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.constant)
+    normals.Set([(0, 0, 1)], 0.0)
+    normals.Set([(1, 0, 0)], 24.0)
+    conversion, _, _ = convert(stage, tmp_path)
+    assert any(w.startswith("/Cube: normals that change over time on points that do not")
+               for w in conversion.warnings), conversion.warnings  # fmt: skip

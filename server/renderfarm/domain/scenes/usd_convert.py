@@ -23,7 +23,11 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
   shared mesh once and instances it).
 - Skinning: a UsdSkel Skeleton's joints as nodes under its node (animated by its bound
   SkelAnimation), a glTF skin per skinned mesh (four influences a point), inverse bind
-  matrices (geomBindTransform x bindTransform^-1)^T.
+  matrices (geomBindTransform x bindTransform^-1)^T; dual-quaternion skinning is rendered as
+  linear blend skinning (warned). Blend shapes are morph targets weighted by the
+  SkelAnimation's blendShapeWeights (in-betweens and normal offsets warned).
+- Deformation: points with time samples are a morph target per sample played by a weights
+  channel; normals with time samples too are each target's NORMAL offsets.
 - Cameras: UsdGeomCamera to a glTF camera (yfov = 2 atan(verticalAperture / (2 focalLength)),
   clipping range to znear/zfar); one camera: the stage's render settings' camera, else the
   first met. Depth of field (fStop, focusDistance) is reported for the job's aperture_radius
@@ -186,7 +190,7 @@ class _StageConverter:
         self.animation: dict[str, Any] = {"name": "usd", "samplers": []}
         self.channels: list[dict[str, Any]] = []
         self.time_accessors: dict[bytes, int] = {}  # sample times -> their accessor
-        self.mesh_morphs: dict[str, tuple[np.ndarray, int]] = {}  # mesh -> (times, targets)
+        self.mesh_morphs: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # (times, weights)
         self.skel_cache = UsdSkel.Cache()
         self.joint_nodes: dict[str, list[int]] = {}  # skeleton path -> joint nodes, its order
         self.mesh_skins: dict[str, tuple[str, np.ndarray]] = {}  # mesh -> (skeleton, IBMs)
@@ -413,8 +417,6 @@ class _StageConverter:
         parents = list(query.GetTopology().GetParentIndices())
         anim = query.GetAnimQuery()
         authored = list(anim.GetJointTransformTimeSamples()) if anim else []
-        if anim and anim.GetBlendShapeOrder():
-            self.warn(path, "blend shapes are not converted")
         nodes: list[dict[str, Any]] = []
         indices: list[int] = []
         channels_of: list[list[dict] | None] = []
@@ -459,8 +461,9 @@ class _StageConverter:
         if not query:
             self.warn(path, "bound to no skeleton UsdSkel can read: rendered in its bind pose")
             return None
-        if skinning.HasBlendShapes():
-            self.warn(path, "blend shapes are not converted")
+        if skinning.GetSkinningMethod() == UsdSkel.Tokens.dualQuaternion:
+            self.warn(path, "dual-quaternion skinning is rendered as linear blend skinning "
+                      "(glTF's only skinning): joints that twist lose volume")  # fmt: skip
         joint_ids, weights = skinning.ComputeVaryingJointInfluences(n_points, self.time)
         width = skinning.GetNumInfluencesPerComponent()
         joint_ids = np.array(joint_ids, dtype=np.int64).reshape(n_points, width)
@@ -747,7 +750,27 @@ class _StageConverter:
                 length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]
             )
         morph = self.morph_samples(mesh, len(points))
-        if morph is not None:  # welded apart by point, so each vertex follows its own point
+        weights = None  # (times, weights per time) of the morph targets
+        if morph is not None:
+            skinning = self.skel_cache.GetSkinningQuery(prim)
+            if skinning and skinning.HasBlendShapes():
+                self.warn(path, "blend shapes on points that have time samples are not "
+                          "converted: the points' samples are")  # fmt: skip
+            times, frames = morph
+            displacements = [frame - points for frame in frames]
+            weights = (times, np.eye(len(times)))
+            normal_frames = self.morph_normals(prim, mesh, times, counts, indices, len(points))
+            if normal_frames is not None and "NORMAL" in attributes:
+                # Per corner, so part of the weld: corners apart at any time stay apart.
+                for k, frame in enumerate(normal_frames):
+                    attributes[f"_NORMAL_TARGET{k:06d}"] = frame - attributes["NORMAL"]
+        else:
+            if self._normals_vary(prim, mesh):
+                self.warn(path, "normals that change over time on points that do not: the "
+                          "first time's normals are kept")  # fmt: skip
+            shapes = self.blend_shapes(prim, len(points))
+            displacements, weights = shapes if shapes is not None else (None, None)
+        if displacements is not None:  # welded apart by point: each vertex follows its point
             attributes["_POINT"] = indices.astype(np.float64)
         skin = self.skin_attributes(prim, indices, len(points))
         if skin is not None:
@@ -833,14 +856,17 @@ class _StageConverter:
                 )
                 if colors is not None:
                     attrs["COLOR_0"] = colors[corner_ids]
-            primitives.append(self._primitive(attrs, tris, material_index, morph))
+            primitives.append(self._primitive(attrs, tris, material_index, displacements))
         if not primitives:
             self.warn(path, "no faces to render")
             return None
         gltf_mesh: dict[str, Any] = {"name": path, "primitives": primitives}
-        if morph is not None:
-            gltf_mesh["weights"] = [0.0] * len(morph[0])
-            self.mesh_morphs[path] = (morph[0], len(morph[0]))
+        if weights is not None:
+            times, values = weights
+            at = int(np.argmin(np.abs(times - float(self.time.GetValue()))))
+            gltf_mesh["weights"] = [float(w) for w in values[at]]
+            if len(times) >= 2:
+                self.mesh_morphs[path] = (times, values)
         index = self.writer.add("meshes", gltf_mesh)
         self.meshes[key] = index
         self.renderables += 1
@@ -874,16 +900,137 @@ class _StageConverter:
             frames.append(np.array(points, dtype=np.float64).reshape(-1, 3) * self.mpu)
         return times, frames
 
-    def morph_channel(self, times: np.ndarray, count: int) -> dict[str, Any]:
-        """A weights channel (its node left to the caller) that shows morph target k alone at
-        time k: LINEAR between neighbours blends two samples' points linearly, as USD
-        interpolates points."""
+    def _normals_source(self, prim, mesh):
+        """(the attribute holding the mesh's normals, its interpolation): primvars:normals
+        before normals, as _primvar and mesh() read them; (None, None) without normals."""
+        from pxr import UsdGeom
+
+        primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
+        if primvar and primvar.HasAuthoredValue():
+            return primvar, str(primvar.GetInterpolation())
+        attr = mesh.GetNormalsAttr()
+        if attr and attr.HasAuthoredValue():
+            return attr, str(mesh.GetNormalsInterpolation())
+        return None, None
+
+    def _normals_vary(self, prim, mesh) -> bool:
+        source, _ = self._normals_source(prim, mesh)
+        attr = source.GetAttr() if hasattr(source, "GetAttr") else source
+        return attr is not None and len(attr.GetTimeSamples()) >= 2
+
+    def morph_normals(self, prim, mesh, times, counts, indices, n_points):
+        """The unit normal of each face corner at each time of a deforming mesh whose normals
+        have time samples too (a NORMAL morph target per time, so the shading follows the
+        deformation as USD's normals do), or None when its normals do not change."""
+        from pxr import UsdGeom
+
+        path = str(prim.GetPath())
+        if not self._normals_vary(prim, mesh):
+            return None
+        source, interp = self._normals_source(prim, mesh)
+        frames = []
+        for t in times:
+            if isinstance(source, UsdGeom.Primvar):
+                values = source.ComputeFlattened(float(t))
+            else:
+                values = source.Get(float(t))
+            if values is None or not len(values):
+                self.warn(path, "normals missing at a time: the first time's are kept")
+                return None
+            try:
+                n = self._per_corner(np.array(values, dtype=np.float64), interp, counts,
+                                     indices, n_points, f"{path}.normals", 3)  # fmt: skip
+            except SceneError:
+                self.warn(path, "normals whose count changes over time: the first time's are kept")
+                return None
+            length = np.linalg.norm(n, axis=1, keepdims=True)
+            frames.append(np.where(length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]))
+        return frames
+
+    def blend_shapes(self, prim, n_points: int):
+        """UsdSkel blend shapes of a mesh as morph targets: (per-point offsets in metres for
+        each of the mesh's skel:blendShapes, (time codes, the weights at each)), the weights
+        of its skeleton's SkelAnimation remapped to the mesh's order (at every authored time
+        and every whole time code between; one time, the stage's start, when they are not
+        animated); None without blend shapes. In-between shapes and normal offsets are warned
+        (the shape goes linearly to its full offsets; the normals stay)."""
+        from pxr import UsdSkel
+
+        path = str(prim.GetPath())
+        skinning = self.skel_cache.GetSkinningQuery(prim)
+        if not skinning or not skinning.HasBlendShapes():
+            return None
+        binding = UsdSkel.BindingAPI(prim)
+        names = list(binding.GetBlendShapesAttr().Get() or [])
+        targets = binding.GetBlendShapeTargetsRel().GetForwardedTargets()
+        if not names or len(names) != len(targets):
+            self.warn(path, "skel:blendShapes and skel:blendShapeTargets differ in length: "
+                      "blend shapes are not converted")  # fmt: skip
+            return None
+        offsets = []
+        for target in targets:
+            shape = UsdSkel.BlendShape(self.stage.GetPrimAtPath(target))
+            full = np.zeros((n_points, 3))
+            if not shape:
+                self.warn(path, f"blend shape target {target} is not a BlendShape: left at rest")
+                offsets.append(full)
+                continue
+            where = str(target)
+            values = np.array(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
+            points = shape.GetPointIndicesAttr().Get()
+            if points is not None and len(points):
+                points = np.array(points, dtype=np.int64)
+                if len(points) != len(values) or points.min() < 0 or points.max() >= n_points:
+                    self.warn(where, "pointIndices do not match offsets or the mesh: left at rest")
+                else:
+                    full[points] = values
+            elif len(values) == n_points:
+                full = values.copy()
+            else:
+                self.warn(where, f"{len(values)} offsets for {n_points} points: left at rest")
+            if shape.GetInbetweens():
+                self.warn(where, "in-between shapes are not converted: the shape goes "
+                          "linearly to its full offsets")  # fmt: skip
+            normal_offsets = shape.GetNormalOffsetsAttr()
+            if normal_offsets and normal_offsets.HasAuthoredValue():
+                self.warn(where, "normalOffsets are not converted: the normals stay at rest")
+            offsets.append(full * self.mpu)
+        skeleton = binding.GetInheritedSkeleton()
+        query = self.skel_cache.GetSkelQuery(skeleton) if skeleton else None
+        anim = query.GetAnimQuery() if query else None
+        start = float(self.time.GetValue())
+        if not anim or not anim.GetBlendShapeOrder():
+            return offsets, (np.array([start]), np.zeros((1, len(offsets))))
+        mapper = skinning.GetBlendShapeMapper()
+
+        def weights_at(t: float) -> np.ndarray:
+            source = anim.ComputeBlendShapeWeights(t)
+            values = mapper.Remap(source) if mapper and not mapper.IsIdentity() else source
+            values = np.array(values if values is not None else [], dtype=np.float64)
+            return np.resize(values, len(offsets)) if len(values) else np.zeros(len(offsets))
+
+        authored = sorted(set(anim.GetBlendShapeWeightTimeSamples()))
+        if len(authored) < 2:
+            return offsets, (np.array([start]), weights_at(start)[None, :])
+        whole = np.arange(math.ceil(authored[0]), math.floor(authored[-1]) + 1)
+        times = np.unique(np.concatenate([np.array(authored), whole.astype(np.float64)]))
+        if len(times) > MAX_ANIMATION_SAMPLES:
+            self.warn(path, f"more than {MAX_ANIMATION_SAMPLES} blend shape samples: thinned")
+            times = times[:: math.ceil(len(times) / MAX_ANIMATION_SAMPLES)]
+        return offsets, (times, np.stack([weights_at(float(t)) for t in times]))
+
+    def morph_channel(self, times: np.ndarray, values: np.ndarray) -> dict[str, Any]:
+        """A weights channel (its node left to the caller) of the morph weights `values[k]` at
+        time code `times[k]`, LINEAR. For deforming points the identity: target k alone at
+        time k, so that LINEAR between neighbours blends two samples' points linearly, as USD
+        interpolates points; for blend shapes the SkelAnimation's weights, which USD
+        interpolates linearly too."""
         key = times.tobytes()
         seconds = self.time_accessors.get(key)
         if seconds is None:
             seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
             self.time_accessors[key] = seconds
-        output = self.writer.accessor(np.eye(count).reshape(-1))
+        output = self.writer.accessor(np.asarray(values, dtype=np.float64).reshape(-1))
         samplers = self.animation["samplers"]
         samplers.append({"input": seconds, "output": output, "interpolation": "LINEAR"})
         return {"sampler": len(samplers) - 1, "target": {"path": "weights"}}
@@ -924,11 +1071,16 @@ class _StageConverter:
         return material, np.concatenate([rgb, a], axis=1)
 
     def _primitive(
-        self, attrs: dict[str, np.ndarray], tris: np.ndarray, material: int | None, morph=None
+        self,
+        attrs: dict[str, np.ndarray],
+        tris: np.ndarray,
+        material: int | None,
+        displacements: list[np.ndarray] | None = None,
     ) -> dict[str, Any]:
-        """Weld identical corners, then one glTF primitive (with a POSITION morph target per
-        sample of `morph`, (times, points per time), whose `_POINT` attribute says which
-        point each corner is)."""
+        """Weld identical corners, then one glTF primitive: with `displacements` (one array of
+        per-point offsets in metres per morph target), a POSITION morph target for each (the
+        `_POINT` attribute says which point each corner is), and a NORMAL one where the
+        attributes carry its per-corner normal offsets (`_NORMAL_TARGETk`)."""
         names = sorted(attrs)
         table = np.concatenate([attrs[n].reshape(len(attrs[n]), -1) for n in names], axis=1)
         unique, inverse = np.unique(table, axis=0, return_inverse=True)
@@ -949,13 +1101,16 @@ class _StageConverter:
             "attributes": out_attrs,
             "indices": self.writer.accessor(inverse[tris], indices=True),
         }
-        if morph is not None:
+        if displacements is not None:
             point = columns["_POINT"][:, 0].astype(np.int64)
-            base = columns["POSITION"]
-            primitive["targets"] = [
-                {"POSITION": self.writer.accessor(frame[point] - base, bounds=True)}
-                for frame in morph[1]
-            ]
+            targets = []
+            for k, offsets in enumerate(displacements):
+                target = {"POSITION": self.writer.accessor(offsets[point], bounds=True)}
+                normal = columns.get(f"_NORMAL_TARGET{k:06d}")
+                if normal is not None:
+                    target["NORMAL"] = self.writer.accessor(normal)
+                targets.append(target)
+            primitive["targets"] = targets
         if material is not None:
             primitive["material"] = material
         return primitive
