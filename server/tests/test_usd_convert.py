@@ -1106,3 +1106,51 @@ def test_normals_that_change_over_still_points_are_named_by_prim_path(tmp_path):
     conversion, _, _ = convert(stage, tmp_path)
     assert any(w.startswith("/Cube: normals that change over time on points that do not")
                for w in conversion.warnings), conversion.warnings  # fmt: skip
+
+
+# ------------------------------------------------------------------ intrinsic shapes
+
+
+@pytest.mark.parametrize(
+    ("kind", "axis", "attrs", "extent", "area"),
+    [
+        # Cylinder r = 0.5, h = 2 along X: side 2 pi r h, caps 2 pi r^2.
+        ("Cylinder", "X", {"radius": 0.5, "height": 2.0}, [2.0, 1.0, 1.0],
+         2 * math.pi * 0.5 * 2.0 + 2 * math.pi * 0.25),
+        # Cone r = 1, h = 2 along Y: side pi r sqrt(r^2 + h^2), base pi r^2.
+        ("Cone", "Y", {"radius": 1.0, "height": 2.0}, [2.0, 2.0, 2.0],
+         math.pi * math.sqrt(5.0) + math.pi),
+        # Capsule r = 0.5, spine 1 along Z: a sphere 4 pi r^2 and a tube 2 pi r h.
+        ("Capsule", "Z", {"radius": 0.5, "height": 1.0}, [1.0, 1.0, 2.0],
+         4 * math.pi * 0.25 + 2 * math.pi * 0.5),
+        # Cylinder_1 from r 1 (bottom) to 0.5 (top), h 1 along Z: a frustum and two caps.
+        ("Cylinder_1", "Z", {"radiusBottom": 1.0, "radiusTop": 0.5, "height": 1.0},
+         [2.0, 2.0, 1.0], math.pi * 1.5 * math.hypot(0.5, 1.0) + math.pi * 1.25),
+        # Plane 3 x 2 facing +X: width along z, length along y.
+        ("Plane", "X", {"width": 3.0, "length": 2.0}, [0.0, 2.0, 3.0], 6.0),
+    ],
+)  # fmt: skip
+def test_intrinsic_shapes_are_tessellated_as_usdgeom_defines_them(
+    tmp_path, kind, axis, attrs, extent, area
+):
+    """Each shape's bounds (its extent along its axis, in metres from centimetres) and surface
+    area, within the tessellation's error (48 facets around: the inscribed polygon's
+    perimeter is 0.3 % short of the circle's), every triangle facing outward (from the
+    centre; the plane along +axis)."""
+    stage = new_stage(tmp_path, meters_per_unit=0.01)
+    prim = stage.DefinePrim("/Shape", kind)
+    prim.GetAttribute("axis").Set(axis)
+    for name, value in attrs.items():
+        prim.GetAttribute(name).Set(value * 100.0)  # centimetres
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not conversion.warnings, conversion.warnings
+    triangles = np.array(world_triangles(doc, blob, "Shape"))
+    points = triangles.reshape(-1, 3)
+    assert points.max(axis=0) - points.min(axis=0) == pytest.approx(extent, rel=0.01, abs=1e-9)
+    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    assert np.linalg.norm(cross, axis=1).sum() / 2 == pytest.approx(area, rel=0.01)
+    if kind == "Plane":
+        assert (cross[:, 0] > 0).all()  # facing +X
+    else:
+        outward = (cross * (triangles.mean(axis=1) - points.mean(axis=0))).sum(axis=1)
+        assert (outward > 0).all()

@@ -15,8 +15,9 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
 - Meshes: faces fan-triangulated (holes dropped), leftHanded orientation reversed, normals
   (primvars:normals or normals, any interpolation), every st-like primvar a material reads as
   TEXCOORD_n (v flipped), displayColor/displayOpacity as COLOR_0 where no material is bound;
-  UsdGeomSubsets of the materialBind family as primitives of their own material. Cube and
-  Sphere gprims are tessellated. Subdivision surfaces render as their control cage (warned).
+  UsdGeomSubsets of the materialBind family as primitives of their own material. Cube,
+  Sphere, Cylinder, Cone, Capsule and Plane gprims are tessellated. Subdivision surfaces
+  render as their control cage (warned).
 - Materials: usd_materials.py (UsdPreviewSurface).
 - Instancing: an instanceable prim's prototype and a PointInstancer's prototypes are converted
   once; each instance is a node of its own using the same glTF meshes (the worker builds a
@@ -64,6 +65,8 @@ from .gltf_writer import GltfWriter
 from .usd_assets import check_layers, read_inside
 from .usd_materials import MaterialConverter, _set_emission
 
+# The intrinsic shapes tessellated (gprim), by UsdGeom class name.
+SHAPES = ("Cube", "Sphere", "Cylinder", "Cylinder_1", "Cone", "Capsule", "Plane")
 MAX_NODES = 2_000_000
 MAX_ANIMATION_SAMPLES = 100_000
 MAX_MORPH_VALUES = 8_000_000  # points over every sample of a deforming mesh (96 MB of targets)
@@ -304,7 +307,7 @@ class _StageConverter:
                     animation = (animation or []) + [self.morph_channel(*self.mesh_morphs[path])]
                 if path in self.mesh_skins:
                     self.pending_skins.append((node, *self.mesh_skins[path], path))
-        elif prim.IsA(UsdGeom.Cube) or prim.IsA(UsdGeom.Sphere):
+        elif any(prim.IsA(getattr(UsdGeom, kind, UsdGeom.Cube)) for kind in SHAPES):
             node["mesh"] = self.gprim(prim)
         elif prim.IsA(UsdGeom.Camera):
             if self.camera_prim is not None and prim.GetPath() == self.camera_prim.GetPath():
@@ -1116,7 +1119,11 @@ class _StageConverter:
         return primitive
 
     def gprim(self, prim) -> int:
-        """A Cube (size) or Sphere (radius) tessellated, with normals."""
+        """An intrinsic shape tessellated, with normals, as UsdGeom defines it: a Cube (size),
+        Sphere (radius), Cylinder and Cone (radius, height, centred on the origin along its
+        axis, the cone's apex at +height/2, capped), Cylinder_1 (radiusBottom at -height/2,
+        radiusTop at +height/2), Capsule (a cylinder of height and radius with a half sphere at
+        each end) and Plane (width x length facing +axis)."""
         from pxr import UsdGeom
 
         t = self.time
@@ -1124,12 +1131,31 @@ class _StageConverter:
         key = ("gprim", path)
         if key in self.meshes:
             return self.meshes[key]
+
+        def get(name: str, default: float) -> float:
+            attr = prim.GetAttribute(name)
+            value = attr.Get(t) if attr else None
+            return float(value if value is not None else default) * self.mpu
+
+        axis = prim.GetAttribute("axis").Get(t) if prim.GetAttribute("axis") else None
         if prim.IsA(UsdGeom.Cube):
-            size = float(UsdGeom.Cube(prim).GetSizeAttr().Get(t)) * self.mpu
-            pos, nrm, tris = _box(size / 2.0)
+            pos, nrm, tris = _box(get("size", 2.0) / 2.0)
+        elif prim.IsA(UsdGeom.Sphere):
+            pos, nrm, tris = _uv_sphere(get("radius", 1.0), 48, 24)
+        elif prim.IsA(UsdGeom.Plane):
+            pos, nrm, tris = _plane(get("width", 2.0), get("length", 2.0), axis or "Z")
+        elif prim.IsA(UsdGeom.Capsule):
+            radius, height = get("radius", 0.5), get("height", 1.0)
+            pos, nrm, tris = _on_axis(_capsule(radius, height), axis or "Z")
         else:
-            radius = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(t)) * self.mpu
-            pos, nrm, tris = _uv_sphere(radius, 48, 24)
+            height = get("height", 2.0)
+            if prim.IsA(UsdGeom.Cylinder_1):
+                bottom, top = get("radiusBottom", 1.0), get("radiusTop", 1.0)
+            elif prim.IsA(UsdGeom.Cone):
+                bottom, top = get("radius", 1.0), 0.0
+            else:
+                bottom = top = get("radius", 1.0)
+            pos, nrm, tris = _on_axis(_frustum(bottom, top, height), axis or "Z")
         double_sided = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(t))
         material = self._material_for(prim, double_sided)
         attrs = {"POSITION": pos, "NORMAL": nrm}
@@ -1137,7 +1163,7 @@ class _StageConverter:
             if material.uv_sets:
                 self.warn(
                     path,
-                    "a textured material on a Cube or Sphere gprim, which has no st: "
+                    f"a textured material on a {prim.GetTypeName()} gprim, which has no st: "
                     "texture coordinates are 0",
                 )
                 for i, _name in enumerate(material.uv_sets):
@@ -1470,6 +1496,107 @@ def _uv_sphere(radius: float, slices: int, stacks: int):
             if i != stacks - 1:
                 tris.append([a + 1, b, b + 1])
     return pos, nrm, np.array(tris)
+
+
+SLICES = 48  # facets around a cylinder, cone or capsule
+
+
+def _ring(radius: float, z: float, normal_r: float, normal_z: float):
+    """SLICES + 1 points of a circle about Z (the first repeated) and their normals."""
+    phi = np.linspace(0.0, 2.0 * math.pi, SLICES + 1)
+    pos = np.stack([radius * np.cos(phi), radius * np.sin(phi), np.full_like(phi, z)], axis=1)
+    nrm = np.stack([normal_r * np.cos(phi), normal_r * np.sin(phi), np.full_like(phi, normal_z)], 1)
+    return pos, nrm
+
+
+def _join(rings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles between consecutive rings of (points, normals), zero-area ones left out, each
+    wound counter-clockwise seen from the side its vertex normals point to (outward)."""
+    pos = np.concatenate([p for p, _ in rings])
+    nrm = np.concatenate([n for _, n in rings])
+    tris = []
+    for k in range(len(rings) - 1):
+        a, b = k * (SLICES + 1), (k + 1) * (SLICES + 1)
+        for j in range(SLICES):
+            tris += [[a + j, a + j + 1, b + j + 1], [a + j, b + j + 1, b + j]]
+    tris = np.array(tris)
+    corners = pos[tris]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    keep = np.linalg.norm(cross, axis=1) > 1e-12 * max(float(np.abs(pos).max()), 1e-30) ** 2
+    tris, cross = tris[keep], cross[keep]
+    inward = (cross * nrm[tris].sum(axis=1)).sum(axis=1) < 0
+    tris[inward] = tris[inward][:, [0, 2, 1]]
+    return pos, nrm, tris
+
+
+def _merge(*parts):
+    pos, nrm, tris, offset = [], [], [], 0
+    for p, n, t in parts:
+        pos.append(p)
+        nrm.append(n)
+        tris.append(t + offset)
+        offset += len(p)
+    return np.concatenate(pos), np.concatenate(nrm), np.concatenate(tris)
+
+
+def _cap(radius: float, z: float, up: float):
+    """A disk of radius at height z facing +Z (up 1) or -Z (up -1)."""
+    return _join([_ring(0.0, z, 0.0, up), _ring(radius, z, 0.0, up)])
+
+
+def _frustum(bottom: float, top: float, height: float):
+    """A capped cone frustum about Z: radius bottom at -height/2, top at +height/2."""
+    h = height / 2.0
+    slope = math.hypot(height, bottom - top) or 1.0
+    nr, nz = height / slope, (bottom - top) / slope
+    parts = [_join([_ring(bottom, -h, nr, nz), _ring(top, h, nr, nz)])]
+    if bottom > 0:
+        parts.append(_cap(bottom, -h, -1.0))
+    if top > 0:
+        parts.append(_cap(top, h, 1.0))
+    return _merge(*parts)
+
+
+def _capsule(radius: float, height: float, stacks: int = 12):
+    """A cylinder of radius and height about Z with a half sphere on each end."""
+    h = height / 2.0
+    rings = []
+    for k in range(stacks + 1):  # the bottom pole to the equator, then the top's
+        theta = -math.pi / 2 + (math.pi / 2) * k / stacks
+        rings.append(_ring(radius * math.cos(theta), -h + radius * math.sin(theta),
+                           math.cos(theta), math.sin(theta)))  # fmt: skip
+    for k in range(stacks + 1):
+        theta = (math.pi / 2) * k / stacks
+        rings.append(_ring(radius * math.cos(theta), h + radius * math.sin(theta),
+                           math.cos(theta), math.sin(theta)))  # fmt: skip
+    return _join(rings)
+
+
+def _on_axis(shape, axis: str):
+    """A shape built about Z turned so that Z is `axis` (a cyclic permutation: a rotation)."""
+    pos, nrm, tris = shape
+    order = {"X": [2, 0, 1], "Y": [1, 2, 0]}.get(str(axis))
+    if order is None:
+        return pos, nrm, tris
+    # Z goes to the axis: new[axis] = old z, and the others follow cyclically.
+    return pos[:, order], nrm[:, order], tris
+
+
+def _plane(width: float, length: float, axis: str):
+    """A width x length rectangle facing +axis (UsdGeomPlane: width along x for axis Z or Y,
+    along z for X; length along y for Z or X, along z for Y)."""
+    u, v = {"X": (2, 1), "Y": (0, 2)}.get(str(axis), (0, 1))
+    n = 3 - u - v
+    pos = np.zeros((4, 3))
+    for i, (su, sv) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
+        pos[i, u], pos[i, v] = su * width / 2.0, sv * length / 2.0
+    nrm = np.zeros((4, 3))
+    nrm[:, n] = 1.0
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    cross = np.cross(pos[1] - pos[0], pos[2] - pos[0])
+    if cross[n] < 0:
+        tris = tris[:, [0, 2, 1]]
+    return pos, nrm, tris
 
 
 def _box(h: float):
