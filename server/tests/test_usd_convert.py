@@ -1108,6 +1108,53 @@ def test_normals_that_change_over_still_points_are_named_by_prim_path(tmp_path):
                for w in conversion.warnings), conversion.warnings  # fmt: skip
 
 
+def test_a_diffuse_color_read_from_a_primvar_is_the_vertex_colour(tmp_path):
+    """A UsdPreviewSurface whose diffuseColor is a UsdPrimvarReader_float3 of displayColor (as
+    the USD Working Group's Teapot binds one material to differently coloured teapots): each
+    mesh's own primvar as COLOR_0 with a base colour factor of 1 (glTF multiplies them), per
+    point where the primvar varies, and the reader's fallback on a mesh without it."""
+    stage = new_stage(tmp_path)
+    material = _material(stage, "/Looks/Painted", roughness=0.4)
+    reader = UsdShade.Shader.Define(stage, "/Looks/Painted/Colour")
+    reader.CreateIdAttr("UsdPrimvarReader_float3")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("displayColor")
+    reader.CreateInput("fallback", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(0.1, 0.2, 0.3))
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/Looks/Painted/Surface"))
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        reader.ConnectableAPI(), "result"
+    )
+    plain = unit_cube(stage, "/Plain")
+    plain.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([(0.9, 0.5, 0.1)])
+    ramp = unit_cube(stage, "/Ramp")
+    ramp.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(
+        [(i / 7.0, 0.0, 1.0 - i / 7.0) for i in range(8)]
+    )
+    bare = unit_cube(stage, "/Bare")
+    for mesh in (plain, ramp, bare):
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not conversion.warnings, conversion.warnings
+
+    def colours(name):
+        (node,) = [n for n in doc["nodes"] if n.get("name") == name]
+        prim = doc["meshes"][node["mesh"]]["primitives"][0]
+        pbr = doc["materials"][prim["material"]]["pbrMetallicRoughness"]
+        assert pbr["baseColorFactor"][:3] == [1.0, 1.0, 1.0]
+        pos = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+        col = accessor(doc, blob, prim["attributes"]["COLOR_0"]).astype(np.float64)
+        return pos, col[:, :3]
+
+    _, plain_col = colours("Plain")
+    assert plain_col == pytest.approx(np.tile([0.9, 0.5, 0.1], (len(plain_col), 1)), abs=1e-6)
+    _, bare_col = colours("Bare")
+    assert bare_col == pytest.approx(np.tile([0.1, 0.2, 0.3], (len(bare_col), 1)), abs=1e-6)
+    pos, ramp_col = colours("Ramp")
+    for p, c in zip(pos, ramp_col, strict=True):
+        # unit_cube's point i is (x, y, z) with x = i & 1, y = i >> 1 & 1, z = i >> 2 (+-0.5)
+        i = int(p[0] > 0) + 2 * int(p[1] > 0) + 4 * int(p[2] > 0)
+        assert c == pytest.approx([i / 7.0, 0.0, 1.0 - i / 7.0], abs=1e-6)
+
+
 # ------------------------------------------------------------------ intrinsic shapes
 
 

@@ -844,6 +844,10 @@ class _StageConverter:
                     attrs[f"TEXCOORD_{i}"] = np.stack(
                         [uv_corner[:, 0], 1.0 - uv_corner[:, 1]], axis=1
                     )
+                if material.color_primvar is not None:
+                    attrs["COLOR_0"] = self._primvar_colors(
+                        prim, material, counts, indices, len(points)
+                    )[corner_ids]
                 material_index = material.index
             else:
                 material_index, colors = self._display_material(
@@ -1038,6 +1042,19 @@ class _StageConverter:
         samplers.append({"input": seconds, "output": output, "interpolation": "LINEAR"})
         return {"sampler": len(samplers) - 1, "target": {"path": "weights"}}
 
+    def _primvar_colors(self, prim, material, counts, indices, n_points) -> np.ndarray:
+        """RGBA per face corner of the primvar a material's diffuseColor reads (its reader's
+        fallback where the prim lacks it), for COLOR_0."""
+        name = material.color_primvar
+        values, interp = self._primvar(prim, name) if name else (None, None)
+        if values is None:
+            values, interp = np.array([material.color_fallback], dtype=np.float64), "constant"
+        rgb = self._per_corner(values, interp, counts, indices, n_points,
+                               f"{prim.GetPath()}.primvars:{name}", 3)[:, :3]  # fmt: skip
+        if rgb.shape[1] < 3:
+            rgb = np.repeat(rgb[:, :1], 3, axis=1)
+        return np.concatenate([rgb, np.ones((len(rgb), 1))], axis=1)
+
     def _display_material(
         self, path, display, d_interp, opacity, o_interp, counts, indices, n_points, double_sided
     ):
@@ -1168,6 +1185,9 @@ class _StageConverter:
                 )
                 for i, _name in enumerate(material.uv_sets):
                     attrs[f"TEXCOORD_{i}"] = np.zeros((len(pos), 2))
+            if material.color_primvar is not None:  # a shape's primvar is one value
+                one = self._primvar_colors(prim, material, np.array([1]), np.array([0]), 1)
+                attrs["COLOR_0"] = np.repeat(one[:1], len(pos), axis=0)
             material_index = material.index
         else:
             display, _ = self._primvar(prim, "displayColor")

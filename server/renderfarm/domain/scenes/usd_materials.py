@@ -65,6 +65,10 @@ class TextureRef:
 class MaterialResult:
     index: int
     uv_sets: list[str] = field(default_factory=list)  # TEXCOORD_n is uv_sets[n]
+    # diffuseColor read from a primvar (a UsdPrimvarReader): its name and the reader's
+    # fallback; the mesh carries it as COLOR_0, which glTF multiplies into the base colour.
+    color_primvar: str | None = None
+    color_fallback: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def _vec(value: Any, n: int) -> tuple[float, ...]:
@@ -369,7 +373,11 @@ class MaterialConverter:
                 return _fallback(src_prim, output, default), None
             return default, ref
 
-        diffuse, diffuse_tex = read("diffuseColor", (0.18, 0.18, 0.18))
+        color_primvar, color_fallback = self._color_primvar(shader, sp)
+        if color_primvar is not None:
+            diffuse, diffuse_tex = (1.0, 1.0, 1.0), None
+        else:
+            diffuse, diffuse_tex = read("diffuseColor", (0.18, 0.18, 0.18))
         opacity, opacity_tex = read("opacity", 1.0)
         threshold, _ = read("opacityThreshold", 0.0)
         emissive, emissive_tex = read("emissiveColor", (0.0, 0.0, 0.0))
@@ -493,7 +501,25 @@ class MaterialConverter:
             gltf.setdefault("extensions", {})[name] = value
             self.writer.use_extension(name)
         index = self.writer.add("materials", gltf)
-        return MaterialResult(index=index, uv_sets=uv_sets)
+        return MaterialResult(index=index, uv_sets=uv_sets, color_primvar=color_primvar,
+                              color_fallback=color_fallback)  # fmt: skip
+
+    def _color_primvar(self, shader, where: str) -> tuple[str | None, tuple[float, ...]]:
+        """(the primvar a UsdPrimvarReader_float3 (or _float4) feeding diffuseColor reads, the
+        reader's fallback) or (None, ()) when diffuseColor comes from elsewhere."""
+        inp = shader.GetInput("diffuseColor")
+        if not inp:
+            return None, ()
+        kind, *rest = _source(inp)
+        if kind != "output":
+            return None, ()
+        reader = rest[0]
+        if _shader_id(reader) not in ("UsdPrimvarReader_float3", "UsdPrimvarReader_float4"):
+            return None, ()
+        name = str(_input_value(reader, "varname", "") or "")
+        if not name:
+            self.warn(str(reader.GetPath()), "a primvar reader without varname: its fallback")
+        return name or "", _vec(_input_value(reader, "fallback", (0.0, 0.0, 0.0)), 3)
 
     def _bias_warning(self, ref: TextureRef) -> None:
         if any(abs(b) > 1e-6 for b in ref.bias):
