@@ -615,6 +615,27 @@ def test_a_textured_dome_is_the_environment_turned_as_the_dome_is(tmp_path):
     assert (-math.sin(r), -math.cos(r)) == pytest.approx((1.0, 0.0), abs=1e-6)
 
 
+def test_an_8_bit_dome_texture_is_decoded_from_srgb_into_an_exr(tmp_path):
+    """An 8-bit PNG dome texture (the USD Working Group's McUsd has one): its texels decoded
+    from sRGB, as USD's "auto" colour space reads an 8-bit image, into the EXR the workers
+    read; 128 / 255 is ((128 / 255 + 0.055) / 1.055)^2.4 = 0.2158 linear."""
+    import OpenImageIO as oiio
+
+    _png(tmp_path / "sky.png", np.full((4, 8, 3), 128 / 255))
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateTextureFileAttr("./sky.png")
+    dome.CreateIntensityAttr(2.0)
+    conversion, _, _ = convert(stage, tmp_path)
+    env = conversion.environment
+    assert env["filename"] == "sky.exr" and env["intensity"] == pytest.approx(2.0)
+    (tmp_path / "out.exr").write_bytes(env["data"])
+    pixels = oiio.ImageBuf(str(tmp_path / "out.exr")).get_pixels(oiio.FLOAT)
+    expected = ((128 / 255 + 0.055) / 1.055) ** 2.4
+    assert np.asarray(pixels) == pytest.approx(np.full((4, 8, 3), expected), rel=1e-5)
+
+
 def test_a_dome_without_a_texture_is_a_constant_map_of_its_radiance(tmp_path):
     import OpenImageIO as oiio
 

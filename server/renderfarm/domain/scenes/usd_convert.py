@@ -181,6 +181,7 @@ class _StageConverter:
             self.time = Usd.TimeCode.EarliestTime()
         self.writer = GltfWriter("renderfarm usd_convert (usd-core)")
         self.warnings: dict[str, list[str]] = {}
+        self.work = work  # scratch files (a re-encoded dome texture)
         self.materials = MaterialConverter(self.writer, root, work, self.warn)
         self.meshes: dict[tuple, int] = {}
         self.plain_materials: dict[tuple, int] = {}
@@ -1379,14 +1380,14 @@ class _StageConverter:
         environment: dict[str, Any] = {"prim": path}
         if asset is not None and asset.path:
             suffix = Path(asset.path).suffix.lower()
-            if suffix not in (".hdr", ".exr"):
-                self.warn(
-                    path, f"a dome texture must be .hdr or .exr ({asset.path!r}): no environment"
-                )
-                return
             where = f"{path}.inputs:texture:file"
-            environment["data"] = read_inside(asset.resolvedPath, self.root, where)
-            environment["filename"] = Path(asset.path).name
+            data = read_inside(asset.resolvedPath, self.root, where)
+            if suffix in (".hdr", ".exr"):
+                environment["data"] = data
+                environment["filename"] = Path(asset.path).name
+            else:  # an 8-bit image (PNG, JPEG...): decoded to linear radiance as an EXR
+                environment["data"] = self._linear_exr(asset.resolvedPath, where)
+                environment["filename"] = Path(asset.path).stem + ".exr"
             if np.ptp(radiance / max(scale, 1e-30)) > 1e-6:
                 self.warn(
                     path, "a dome's colour or colour temperature is not applied to its texture"
@@ -1403,11 +1404,39 @@ class _StageConverter:
         if environment["intensity"] <= 0.0:
             self.warn(path, "the dome light emits nothing")
             return
-        environment["rotation_deg"] = self._dome_rotation(prim, dome, is_1)
+        # A constant map looks the same turned any way: nothing to warn about its turn.
+        textured = asset is not None and bool(asset.path)
+        environment["rotation_deg"] = self._dome_rotation(prim, dome, is_1, warn=textured)
         self.environment = environment
         self.renderables += 1
 
-    def _dome_rotation(self, prim, dome, is_1: bool) -> float:
+    def _linear_exr(self, resolved: str, where: str) -> bytes:
+        """A low-dynamic-range dome texture as a float EXR the workers read as an environment
+        map: its values decoded from sRGB (USD's "auto" colour space of an 8-bit image, as
+        Blender's importer reads it too); a single channel repeated, alpha dropped."""
+        import OpenImageIO as oiio
+
+        buf = oiio.ImageBuf(resolved)
+        if buf.has_error or not buf.initialized:
+            raise SceneError(f"{where}: {Path(resolved).name} cannot be read as an image",
+                             f"scene:{where}")  # fmt: skip
+        pixels = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float64)
+        if pixels.ndim == 2:
+            pixels = pixels[:, :, None]
+        rgb = pixels[:, :, [0, 0, 0]] if pixels.shape[2] < 3 else pixels[:, :, :3]
+        if buf.spec().format.basetype in (oiio.UINT8, oiio.UINT16):
+            rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+        out = self.work / "dome-texture.exr"
+        image = oiio.ImageBuf(oiio.ImageSpec(rgb.shape[1], rgb.shape[0], 3, oiio.FLOAT))
+        image.set_pixels(oiio.ROI(0, rgb.shape[1], 0, rgb.shape[0], 0, 1, 0, 3),
+                         rgb.astype(np.float32))  # fmt: skip
+        if not image.write(str(out)):
+            raise SceneError(f"{where}: the dome texture could not be re-encoded", f"scene:{where}")
+        data = out.read_bytes()
+        out.unlink()
+        return data
+
+    def _dome_rotation(self, prim, dome, is_1: bool, warn: bool = True) -> float:
         """The farm's environment_rotation_deg for a dome: the farm's map centre looks along
         glTF -Z at 0 and turns about +Y; a USD dome's (OpenEXR latitude-longitude) looks along
         the dome's +Z with its pole on its +Y (DomeLight_1: on poleAxis; "scene", the stage's
@@ -1429,10 +1458,10 @@ class _StageConverter:
         if self.up == "Z":  # (x, y, z) -> (x, z, -y), as the root node turns the stage
             to_gltf = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
         m = to_gltf @ rotation @ align
-        if np.linalg.det(m) < 0:
+        if np.linalg.det(m) < 0 and warn:
             self.warn(path, "a mirrored dome is rendered unmirrored")
         up = m @ np.array([0.0, 1.0, 0.0])
-        if up[1] < 1.0 - 1e-4:
+        if up[1] < 1.0 - 1e-4 and warn:
             self.warn(path, "the dome's pole does not point up: it is rendered with its pole up")
         d = m @ np.array([0.0, 0.0, 1.0])
         return math.degrees(math.atan2(-d[0], -d[2]))
