@@ -109,10 +109,17 @@ def rgb(path: Path) -> np.ndarray:
 
 
 def render_cycles(
-    scene: Path, env: dict | None, name: str, args, out: Path, frame: dict | None = None
+    scene: Path,
+    env: dict | None,
+    name: str,
+    args,
+    out: Path,
+    frame: dict | None = None,
+    extra: dict | None = None,
 ) -> dict:
     """K renders at --spp, then the reference; their images and seconds. frame: None, or
-    {"frame": F, "fps": rate} of an animated scene."""
+    {"frame": F, "fps": rate} of an animated scene. extra: further keys of cycles_render.py's
+    CONFIG (bench/usd_parity.py: the USD importer, the camera, the imported world)."""
     scratch = out / "renders" / name
     scratch.mkdir(parents=True, exist_ok=True)
     renders = [{"spp": args.spp, "seed": k + 1, "path": str(scratch / f"cycles-{k + 1}.exr")}
@@ -125,7 +132,8 @@ def render_cycles(
               "microfacet": args.cycles_microfacet, "textures": args.cycles_textures,
               "volume": args.cycles_volume,
               "anisotropy": args.cycles_anisotropy,
-              "frame": frame and frame["frame"], "fps": frame and frame["fps"]}  # fmt: skip
+              "frame": frame and frame["frame"], "fps": frame and frame["fps"],
+              **(extra or {})}  # fmt: skip
     config_path = scratch / "cycles.json"
     config_path.write_text(json.dumps(config))
     result = run_blender(SUPPORT / "cycles_render.py", [str(config_path)], out,
@@ -136,6 +144,7 @@ def render_cycles(
         "reference": rgb(Path(ref["path"])),
         "reference_seconds": result["seconds"][-1],
         "keys": result.get("keys"),
+        "lights": result.get("lights"),
     }
 
 
@@ -151,10 +160,12 @@ def render_worker(
     out: Path,
     tag: str,
     frame: dict | None = None,
+    extra_args: tuple[str, ...] = (),
 ) -> dict:
     """K renders at spp with the standalone worker; their images and wall-clock seconds (the
     process: scene load, BVH build, sampling, writing the EXR). frame: None, or {"time": t}
-    of an animated scene (its glTF animations at t seconds)."""
+    of an animated scene (its glTF animations at t seconds). extra_args: further flags of
+    `render` (a USD camera's --aperture-radius and --focus-distance)."""
     scratch = out / "renders" / name
     scratch.mkdir(parents=True, exist_ok=True)
     images, seconds, sampling, rates = [], [], [], []
@@ -170,6 +181,7 @@ def render_worker(
                     repr(env["rotation_deg"])]  # fmt: skip
         if frame is not None:
             cmd += ["--time", repr(frame["time"])]
+        cmd += list(extra_args)
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         seconds.append(time.perf_counter() - start)

@@ -7,18 +7,23 @@ CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
 "rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx", "textures": "as_imported"
 or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "gltf",
-"frame": null or the frame F of an animated scene to render, "fps": its frame rate}.
+"frame": null or the frame F of an animated scene to render, "fps": its frame rate,
+"importer": "gltf" (default) or "usd", "camera": the camera object's name (default: the first),
+"world": "as_imported" to keep a world the USD importer made of a dome light, "lights":
+"usd" to undo the USD importer's departures from UsdLux (usd_lights())}.
 The scene is imported once with Blender's own glTF importer (lights in the COMPAT units the
-exporter of the parity scenes and the Blender add-on use), then rendered once per entry of
+exporter of the parity scenes and the Blender add-on use) or USD importer (bench/usd_parity.py:
+bpy.ops.wm.usd_import, subdivision off), then rendered once per entry of
 "renders" into a 32-bit float linear EXR (R, G, B: the Combined pass of the render result, no
 view transform, no compositor). With a frame, the imported animation is evaluated at frame F
 (scene.frame_set(F)): the importer puts a key at glTF time t on frame t x render.fps x
 render.fps_base (io_scene_gltf2's animation_node.py), which are set to "fps" before the import,
 so F is glTF time F / fps, the farm's time of frame F (domain/frames.py frame_time).
-Prints `RESULT {"seconds": [...], "camera": NAME, "keys": ...}`:
+Prints `RESULT {"seconds": [...], "camera": NAME, "keys": ..., "lights": ...}`:
 the wall time of each bpy.ops.render.render (scene synchronisation, BVH build, sampling and
-writing the EXR; not Blender's start-up or the import) and, with a frame, where the imported
-keys lie (imported_keys()).
+writing the EXR; not Blender's start-up or the import), with a frame, where the imported
+keys lie (imported_keys()), and for a USD stage what the importer made of its lights
+(lights_as_imported()).
 """
 
 from __future__ import annotations
@@ -40,18 +45,58 @@ def import_scene() -> bpy.types.Scene:
         render = bpy.context.scene.render
         render.fps = max(1, round(CONFIG["fps"]))
         render.fps_base = CONFIG["fps"] / render.fps
-    result = bpy.ops.import_scene.gltf(
-        filepath=CONFIG["scene"], export_import_convert_lighting_mode="COMPAT"
-    )
-    assert result == {"FINISHED"}, result
+    if CONFIG.get("importer", "gltf") == "usd":
+        import_usd()
+    else:
+        result = bpy.ops.import_scene.gltf(
+            filepath=CONFIG["scene"], export_import_convert_lighting_mode="COMPAT"
+        )
+        assert result == {"FINISHED"}, result
     scene = bpy.context.scene
     cameras = [o for o in scene.objects if o.type == "CAMERA"]
     if not cameras:
         raise SystemExit(f"{CONFIG['scene']}: no camera (the parity harness needs one)")
     # The farm renders through the first camera of the scene's node tree; the importer makes
-    # objects in that order.
-    scene.camera = cameras[0]
+    # objects in that order. A USD stage names the camera the farm chose (its prim's name).
+    named = [o for o in cameras if o.name == CONFIG.get("camera")]
+    scene.camera = (named or cameras)[0]
     return scene
+
+
+def import_usd() -> None:
+    """The stage through Blender's own USD importer (bpy.ops.wm.usd_import) with its defaults,
+    except: subdivision not applied (the farm renders the control cage), and a world to receive
+    a dome light (create_world_material writes into the scene's world, which the empty factory
+    scene lacks)."""
+    scene = bpy.context.scene
+    scene.world = bpy.data.worlds.new("World")
+    scene.world.use_nodes = True
+    scene.world.node_tree.nodes.clear()  # a Background node only if a dome light makes one
+    result = bpy.ops.wm.usd_import(filepath=CONFIG["scene"], import_subdivision=False)
+    assert result == {"FINISHED"}, result
+    # The dome light's world, kept by match_settings (CONFIG "world": "as_imported").
+    CONFIG["imported_world"] = scene.world
+    if CONFIG.get("lights") == "usd":
+        usd_lights(scene)
+
+
+def usd_lights(scene: bpy.types.Scene) -> None:
+    """Undo what Blender 5.0's importer does to lights otherwise than UsdLux says
+    (docs/parity.md, "USD stages"), so that what remains is the renderers' own: a
+    DistantLight's strength is imported as 4 x intensity ("approximately matches Karma", its
+    source says) and its angle doubled; a SphereLight's radius stays in scene units while its
+    object takes the stage's metersPerUnit scale, which Cycles does not apply to a point
+    light's radius."""
+    for obj in scene.objects:
+        if obj.type != "LIGHT":
+            continue
+        light = obj.data
+        if light.type == "SUN":
+            light.energy /= 4.0
+            light.angle /= 2.0
+        elif light.type in ("POINT", "SPOT"):
+            s = obj.matrix_world.to_scale()
+            light.shadow_soft_size *= (abs(s[0]) + abs(s[1]) + abs(s[2])) / 3.0
 
 
 def match_settings(scene: bpy.types.Scene) -> None:
@@ -105,6 +150,8 @@ def match_settings(scene: bpy.types.Scene) -> None:
     scene.world = None
     if CONFIG.get("environment"):
         scene.world = environment_world(CONFIG["environment"])
+    elif CONFIG.get("world") == "as_imported" and imported_world_lights():
+        scene.world = CONFIG["imported_world"]
     # The importer's Principled BSDFs use multiple-scattering GGX (energy that single
     # scattering loses is put back); glTF's BRDF (Appendix B) is single-scattering GGX.
     # "ggx" makes Cycles compute the spec's model, so what remains is the renderers' own.
@@ -133,6 +180,52 @@ def match_settings(scene: bpy.types.Scene) -> None:
     settings.color_depth = "32"
     settings.color_mode = "RGB"
     settings.exr_codec = "ZIP"
+
+
+def imported_world_lights() -> bool:
+    """Whether the USD importer made the world from a dome light (a Background node reached
+    from the world output), rather than leaving the empty world made for it."""
+    world = CONFIG.get("imported_world")
+    if world is None or not world.use_nodes or world.node_tree is None:
+        return False
+    return any(n.type == "BACKGROUND" for n in world.node_tree.nodes)
+
+
+def lights_as_imported() -> list[dict]:
+    """What the importer made of each light: its type, power (W; a sun's strength, W/m^2),
+    colour, size and world scale, so that a difference in light can be traced to the
+    importer's conversion (docs/parity.md, "USD stages")."""
+    out = []
+    for obj in bpy.context.scene.objects:
+        if obj.type != "LIGHT":
+            continue
+        light = obj.data
+        entry = {
+            "name": obj.name,
+            "type": light.type,
+            "energy": light.energy,
+            "color": list(light.color),
+            "scale": list(obj.matrix_world.to_scale()),
+        }
+        if light.type == "AREA":
+            entry.update(shape=light.shape, size=light.size, size_y=light.size_y)
+        elif light.type in ("POINT", "SPOT"):
+            entry["radius"] = light.shadow_soft_size
+        elif light.type == "SUN":
+            entry["angle"] = light.angle
+        out.append(entry)
+    world = CONFIG.get("imported_world")
+    if world is not None and imported_world_lights():
+        for node in world.node_tree.nodes:
+            if node.type == "BACKGROUND":
+                colour = node.inputs["Color"]
+                out.append({
+                    "name": "world",
+                    "type": "WORLD",
+                    "strength": node.inputs["Strength"].default_value,
+                    "color": None if colour.is_linked else list(colour.default_value),
+                })  # fmt: skip
+    return out
 
 
 def material_nodes(kind: str):
@@ -293,7 +386,8 @@ def main() -> dict:
         start = time.perf_counter()
         bpy.ops.render.render(write_still=True)
         seconds.append(time.perf_counter() - start)
-    return {"seconds": seconds, "camera": scene.camera.name, "keys": keys}
+    lights = lights_as_imported() if CONFIG.get("importer") == "usd" else None
+    return {"seconds": seconds, "camera": scene.camera.name, "keys": keys, "lights": lights}
 
 
 if __name__ == "__main__":
