@@ -1176,6 +1176,54 @@ def test_a_diffuse_color_read_from_a_primvar_is_the_vertex_colour(tmp_path):
         assert c == pytest.approx([i / 7.0, 0.0, 1.0 - i / 7.0], abs=1e-6)
 
 
+@pytest.mark.parametrize(
+    ("scale", "bias", "expected"),
+    [
+        # glTF's own encoding: the file as it is.
+        ((2, 2, 2, 1), (-1, -1, -1, 0), None),
+        # A flipped green channel (DirectX): n = (2r - 1, 1 - 2g, 2b - 1).
+        ((2, -2, 2, 1), (-1, 1, -1, 0), (0.5, 0.75, 1.0)),
+        # x reversed, z unbiased: n = (1 - 2r, 2g - 1, b).
+        ((-2, 2, 1, 1), (1, -1, 0, 0), (0.5, 0.25, 1.0)),
+    ],
+)
+def test_a_normal_map_of_another_encoding_is_re_encoded_for_gltf(tmp_path, scale, bias, expected):
+    """The USD Working Group's NormalsTextureBiasAndScale: three encodings of one normal map
+    that should shade alike. USD's normal is texel x scale + bias; glTF's 2t' - 1, so the
+    converter writes t' = (texel x scale + bias + 1) / 2. The texel (0.5, 0.25, 1) gives
+    n = (0, 0.5, 1) with a flipped green, t' = (0.5, 0.75, 1); with x reversed and z
+    unbiased n = (0, -0.5, 1), t' = (0.5, 0.25, 1)."""
+    import OpenImageIO as oiio
+
+    _png(tmp_path / "n.png", np.tile([0.5, 0.25, 1.0], (2, 2, 1)))
+    stage = new_stage(tmp_path)
+    mesh = unit_cube(stage, "/Cube")
+    material = _material(stage, "/Looks/Bumpy")
+    texture = UsdShade.Shader.Define(stage, "/Looks/Bumpy/Normal")
+    texture.CreateIdAttr("UsdUVTexture")
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./n.png")
+    texture.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+    texture.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*scale))
+    texture.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/Looks/Bumpy/Surface"))
+    surface.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
+        texture.ConnectableAPI(), "rgb"
+    )
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not [w for w in conversion.warnings if "normal" in w], conversion.warnings
+    normal = doc["materials"][0]["normalTexture"]
+    image = doc["images"][doc["textures"][normal["index"]]["source"]]
+    view = doc["bufferViews"][image["bufferView"]]
+    data = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+    if expected is None:
+        assert data == (tmp_path / "n.png").read_bytes()
+        return
+    (tmp_path / "out.png").write_bytes(data)
+    texels = np.asarray(oiio.ImageBuf(str(tmp_path / "out.png")).get_pixels(oiio.FLOAT))
+    assert texels[..., :3] == pytest.approx(np.tile(expected, (2, 2, 1)), abs=1 / 255)
+
+
 # ------------------------------------------------------------------ intrinsic shapes
 
 

@@ -17,7 +17,8 @@ How each input maps (docs/scenes.md, "USD scenes", says the same for users):
 - clearcoat, clearcoatRoughness -> KHR_materials_clearcoat; ior -> KHR_materials_ior (it also sets
   the dielectric F0 as in UsdPreviewSurface's metallic workflow); emissiveColor ->
   emissiveFactor, with KHR_materials_emissive_strength above 1; normal (a UsdUVTexture with scale
-  2 and bias -1, as the UsdPreviewSurface specification asks) -> normalTexture.
+  2 and bias -1, as the UsdPreviewSurface specification asks) -> normalTexture; another scale
+  and bias (a flipped green channel) is re-encoded into the texels (2t' - 1 = t scale + bias).
 - UsdUVTexture: wrapS/wrapT -> sampler (black -> clamp, warned), scale -> the factor, st from a
   UsdPrimvarReader_float2 (its varname picks the mesh's TEXCOORD_n) through an optional
   UsdTransform2d -> KHR_texture_transform (with the v flip between USD's st and glTF's uv).
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,9 @@ class TextureRef:
     bias: tuple[float, float, float, float]
     shader: str  # the UsdUVTexture prim path, for messages
     color_space: str
+    # A normal map's (scale, bias) per channel other than glTF's 2t - 1: the texels are
+    # re-encoded so that 2t' - 1 = t x scale + bias.
+    remap: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
 
 @dataclass
@@ -206,6 +210,8 @@ class MaterialConverter:
         import OpenImageIO as oiio
 
         first = next(s for s in sources if s is not None)
+        if any(s is not None and s.remap is not None for s in sources):
+            return False
         spec = oiio.ImageInput.open(first.file)
         if spec is None:
             return False
@@ -261,6 +267,9 @@ class MaterialConverter:
                 values = pixels[:, :, [0, 0, 0]] if n < 3 else pixels[:, :, :3]
                 if srgb and Path(s.file).suffix.lower() in (".exr", ".hdr"):
                     values = _to_srgb(values)
+                if s.remap is not None:
+                    scale, bias = (np.array(v, np.float32) for v in s.remap)
+                    values = np.clip((values * scale + bias + 1.0) / 2.0, 0.0, 1.0)
                 return values
             pick = {"r": 0, "g": 1, "b": 2, "a": 3}[s.channels]
             if pick >= n:  # a grey image's only channel, or no alpha: opaque
@@ -301,7 +310,7 @@ class MaterialConverter:
                     f"packed with {first.shader} into one glTF texture: it takes that one's "
                     "st, transform and wrap",
                 )
-        key = (tuple((s.file, s.channels) if s else None for s in sources), layout, srgb)
+        key = (tuple((s.file, s.channels, s.remap) if s else None for s in sources), layout, srgb)
         image = self.images.get(key)
         if image is None:
             data, mime = self._image_bytes(sources, layout, srgb)
@@ -451,14 +460,12 @@ class MaterialConverter:
         gltf["pbrMetallicRoughness"] = pbr
 
         if normal_tex is not None:
-            if any(abs(s - 2.0) > 1e-3 for s in normal_tex.scale[:2]) or any(
-                abs(b + 1.0) > 1e-3 for b in normal_tex.bias[:2]
+            if any(abs(s - 2.0) > 1e-3 for s in normal_tex.scale[:3]) or any(
+                abs(b + 1.0) > 1e-3 for b in normal_tex.bias[:3]
             ):
-                self.warn(
-                    normal_tex.shader,
-                    "a normal map should have scale (2, 2, 2, 1) and bias (-1, -1, -1, 0); "
-                    "it is read as a glTF normal map",
-                )
+                # Another encoding (a flipped green channel, an unbiased z): the texels are
+                # re-encoded so that glTF's 2t' - 1 is USD's t x scale + bias.
+                normal_tex = replace(normal_tex, remap=(normal_tex.scale[:3], normal_tex.bias[:3]))
             gltf["normalTexture"] = self.texture([normal_tex], "rgb", False, uv_sets)
 
         emit = list(_vec(emissive, 3))
