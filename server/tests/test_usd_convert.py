@@ -371,9 +371,13 @@ def test_preview_surface_factors_opacity_and_workflows(tmp_path):
     [((2.0, 2.0), 0.0, (0.0, 0.0)), ((1.0, 3.0), 30.0, (0.25, -0.5)), ((0.5, 0.5), -90.0, (1, 1))],
 )
 def test_texture_transform_maps_every_point_as_usd_does(scale, rotation, translation):
-    """UsdTransform2d: st' = R(rotation) (scale * st) + translation, st with v up; glTF reads
-    uv = (s, 1 - t). The extension's GLSL (translation * rotation * scale, rotation matrix
-    mat3(cos, sin, 0, -sin, cos, 0, 0, 0, 1) column-major) must give uv' = (s', 1 - t')."""
+    """UsdTransform2d: st' = R(rotation) (scale * st) + translation, st with v up, R
+    counter-clockwise; glTF reads uv = (s, 1 - t). KHR_texture_transform (translation *
+    rotation * scale) must give uv' = (s', 1 - t'), its rotation r turning uv as
+    u' = u cos r + v sin r, v' = -u sin r + v cos r: the reading under which Khronos'
+    TextureTransformTest asset shows its arrow on the green marker, as the workers render it
+    (and the USD Working Group's conversion of that asset shows its arrow on the green marker
+    in usdview and Blender: bench/usd_parity.py, docs/parity.md)."""
     ext = texture_transform(scale[0], scale[1], rotation, translation[0], translation[1])
     off = ext.get("offset", [0.0, 0.0])
     rot = ext.get("rotation", 0.0)
@@ -384,9 +388,23 @@ def test_texture_transform_maps_every_point_as_usd_does(scale, rotation, transla
         t2 = math.sin(a) * scale[0] * s + math.cos(a) * scale[1] * t + translation[1]
         u, v = s, 1.0 - t
         u, v = sc[0] * u, sc[1] * v
-        u, v = math.cos(rot) * u - math.sin(rot) * v, math.sin(rot) * u + math.cos(rot) * v
+        u, v = math.cos(rot) * u + math.sin(rot) * v, -math.sin(rot) * u + math.cos(rot) * v
         u, v = u + off[0], v + off[1]
         assert (u, v) == pytest.approx((s2, 1.0 - t2), abs=1e-9)
+
+
+def test_the_working_groups_texture_transform_test_gives_khronos_transforms():
+    """The USD Working Group's TextureTransformTest is Khronos' glTF TextureTransformTest
+    converted: its UsdTransform2d inputs must come back as the glTF asset's own
+    KHR_texture_transform values (Rotation: 0.392699 rad; All: offset (-0.2, -0.1), rotation
+    0.3, scale 1.5)."""
+    rotation = texture_transform(1.0, 1.0, 22.5, 0.38268343, 0.076120496)
+    assert rotation["rotation"] == pytest.approx(0.392699, abs=1e-6)
+    assert rotation.get("offset", [0.0, 0.0]) == pytest.approx([0.0, 0.0], abs=1e-6)
+    everything = texture_transform(1.5, 1.5, 17.188734, 0.24328034, -0.33300462)
+    assert everything["rotation"] == pytest.approx(0.3, abs=1e-6)
+    assert everything["offset"] == pytest.approx([-0.2, -0.1], abs=1e-6)
+    assert everything["scale"] == pytest.approx([1.5, 1.5], abs=1e-6)
 
 
 def test_textures_st_and_transform_reach_the_gltf(tmp_path):

@@ -569,9 +569,12 @@ def texture_transform(
     sx: float, sy: float, rotation_deg: float, tx: float, ty: float
 ) -> dict[str, Any]:
     """KHR_texture_transform equal to a UsdTransform2d (st' = R(rotation) S st + t, in USD's st
-    space, v up) in glTF's uv space, where uv = (s, 1 - t): the affine map F A F with
-    F(x, y) = (x, 1 - y), decomposed into the extension's T R S (R counter-clockwise as the
-    extension's GLSL writes it). Empty for the identity."""
+    space, v up, R counter-clockwise) in glTF's uv space, where uv = (s, 1 - t): the affine
+    map F A F with F(x, y) = (x, 1 - y), decomposed into the extension's T R S. The
+    extension's rotation r turns uv as u' = u cos r + v sin r, v' = -u sin r + v cos r: what
+    Khronos' TextureTransformTest asset takes as correct (its arrow on the green marker) and
+    the workers do (worker/src/scene/textures_test.cpp), so r is minus the angle of F A F's
+    rotation. Empty for the identity."""
     a = math.radians(rotation_deg)
     rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     lin_usd = rot @ np.diag([sx, sy])
@@ -589,7 +592,7 @@ def texture_transform(
     if abs(offset[0]) > 1e-9 or abs(offset[1]) > 1e-9:
         out["offset"] = [float(offset[0]), float(offset[1])]
     if abs(theta) > 1e-9:
-        out["rotation"] = float(theta)
+        out["rotation"] = float(-theta)
     if abs(scale_x - 1) > 1e-9 or abs(scale_y - 1) > 1e-9:
         out["scale"] = [float(scale_x), float(scale_y)]
     return out
