@@ -1242,6 +1242,49 @@ def test_a_normal_map_of_another_encoding_is_re_encoded_for_gltf(tmp_path, scale
     assert texels[..., :3] == pytest.approx(np.tile(expected, (2, 2, 1)), abs=1 / 255)
 
 
+def test_a_textures_source_colour_space_is_honoured(tmp_path):
+    """UsdUVTexture's sourceColorSpace says how the file's values are encoded: "raw" on a
+    diffuse texture is read as it is, where glTF's baseColorTexture decodes sRGB, so the
+    texel is sRGB-encoded for glTF (0.2 raw -> 0.4845); "sRGB" on a roughness texture is
+    decoded, where glTF reads metallic-roughness linearly (0.8 -> 0.6038; the USD Working
+    Group's RoughnessTest authors its roughness this way)."""
+    import OpenImageIO as oiio
+
+    _png(tmp_path / "colour.png", np.full((2, 2, 3), 0.2))
+    _png(tmp_path / "rough.png", np.full((2, 2, 3), 0.8))
+    stage = new_stage(tmp_path)
+    mesh = unit_cube(stage, "/Cube")
+    material = _material(stage, "/Looks/Flagged")
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/Looks/Flagged/Surface"))
+    for name, file, space, output, kind in (
+        ("diffuseColor", "colour.png", "raw", "rgb", Sdf.ValueTypeNames.Color3f),
+        ("roughness", "rough.png", "sRGB", "g", Sdf.ValueTypeNames.Float),
+    ):
+        texture = UsdShade.Shader.Define(stage, f"/Looks/Flagged/{name}Tex")
+        texture.CreateIdAttr("UsdUVTexture")
+        texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(f"./{file}")
+        texture.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(space)
+        surface.CreateInput(name, kind).ConnectToSource(texture.ConnectableAPI(), output)
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    _, doc, blob = convert(stage, tmp_path)
+    pbr = doc["materials"][0]["pbrMetallicRoughness"]
+
+    def texels(info):
+        image = doc["images"][doc["textures"][info["index"]]["source"]]
+        view = doc["bufferViews"][image["bufferView"]]
+        (tmp_path / "out.png").write_bytes(
+            blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+        )
+        return np.asarray(oiio.ImageBuf(str(tmp_path / "out.png")).get_pixels(oiio.FLOAT))
+
+    raw = round(0.2 * 255) / 255
+    encoded = 1.055 * raw ** (1 / 2.4) - 0.055
+    assert texels(pbr["baseColorTexture"])[..., :3] == pytest.approx(encoded, abs=1 / 255)
+    srgb = round(0.8 * 255) / 255
+    decoded = ((srgb + 0.055) / 1.055) ** 2.4
+    assert texels(pbr["metallicRoughnessTexture"])[..., 1] == pytest.approx(decoded, abs=1 / 255)
+
+
 # ------------------------------------------------------------------ intrinsic shapes
 
 

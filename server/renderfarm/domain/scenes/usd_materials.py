@@ -202,7 +202,13 @@ class MaterialConverter:
         first = next(s for s in sources if s is not None)
         files = {s.file for s in sources if s is not None}
         suffix = Path(first.file).suffix.lower()
-        if len(files) == 1 and suffix in DIRECT_IMAGES and self._direct(sources, layout):
+        transfer = any(s is not None and _transfer(s, srgb) for s in sources)
+        if (
+            len(files) == 1
+            and suffix in DIRECT_IMAGES
+            and not transfer
+            and self._direct(sources, layout)
+        ):
             return read_inside(first.file, self.root, first.shader), DIRECT_IMAGES[suffix]
         return self._pack(sources, layout, srgb), "image/png"
 
@@ -267,6 +273,7 @@ class MaterialConverter:
                 values = pixels[:, :, [0, 0, 0]] if n < 3 else pixels[:, :, :3]
                 if srgb and Path(s.file).suffix.lower() in (".exr", ".hdr"):
                     values = _to_srgb(values)
+                values = _apply_transfer(values, _transfer(s, srgb))
                 if s.remap is not None:
                     scale, bias = (np.array(v, np.float32) for v in s.remap)
                     values = np.clip((values * scale + bias + 1.0) / 2.0, 0.0, 1.0)
@@ -275,8 +282,10 @@ class MaterialConverter:
             if pick >= n:  # a grey image's only channel, or no alpha: opaque
                 if s.channels == "a":  # no alpha channel: opaque, as UsdUVTexture reads it
                     return np.ones((height, width, 1), np.float32)
-                return pixels[:, :, :1]  # a grey image's one channel
-            return pixels[:, :, pick : pick + 1]
+                return _apply_transfer(pixels[:, :, :1], _transfer(s, srgb))  # grey's one channel
+            if s.channels == "a":  # alpha is linear in every colour space
+                return pixels[:, :, 3:4]
+            return _apply_transfer(pixels[:, :, pick : pick + 1], _transfer(s, srgb))
 
         if layout == "rgb":
             out = channel_values(sources[0])  # type: ignore[arg-type]
@@ -310,7 +319,11 @@ class MaterialConverter:
                     f"packed with {first.shader} into one glTF texture: it takes that one's "
                     "st, transform and wrap",
                 )
-        key = (tuple((s.file, s.channels, s.remap) if s else None for s in sources), layout, srgb)
+        key = (
+            tuple((s.file, s.channels, s.remap, s.color_space) if s else None for s in sources),
+            layout,
+            srgb,
+        )
         image = self.images.get(key)
         if image is None:
             data, mime = self._image_bytes(sources, layout, srgb)
@@ -604,6 +617,29 @@ def _resize(pixels: np.ndarray, height: int, width: int) -> np.ndarray:
     rows = (np.arange(height) * pixels.shape[0] // height).clip(0, pixels.shape[0] - 1)
     cols = (np.arange(width) * pixels.shape[1] // width).clip(0, pixels.shape[1] - 1)
     return pixels[rows][:, cols]
+
+
+def _transfer(ref: TextureRef, srgb: bool) -> str | None:
+    """What an 8- or 16-bit texture's values need so that glTF reads them as USD does: its
+    sourceColorSpace says "sRGB" where glTF reads the slot linearly (roughness, metallic,
+    opacity, normal...): "decode"; "raw" where glTF decodes sRGB (base and emissive colour):
+    "encode"; None otherwise ("auto" is glTF's own reading)."""
+    if Path(ref.file).suffix.lower() in (".exr", ".hdr"):
+        return None
+    if ref.color_space == "sRGB" and not srgb:
+        return "decode"
+    if ref.color_space == "raw" and srgb:
+        return "encode"
+    return None
+
+
+def _apply_transfer(values: np.ndarray, transfer: str | None) -> np.ndarray:
+    if transfer == "decode":
+        v = np.clip(values, 0.0, 1.0)
+        return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    if transfer == "encode":
+        return _to_srgb(values).astype(np.float32)
+    return values
 
 
 def _to_srgb(linear: np.ndarray) -> np.ndarray:
