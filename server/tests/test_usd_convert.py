@@ -154,6 +154,26 @@ def test_a_unit_cube_lands_where_its_transform_units_and_up_axis_put_it(tmp_path
         assert np.dot(normal, t.mean(axis=0) - centre) > 0
 
 
+def test_a_subdivision_cage_without_normals_is_smooth_shaded(tmp_path):
+    """A Catmull-Clark cube without normals renders as its cage (warned), each corner's
+    normal the mean of its three faces' outward normals, (+-1, +-1, +-1) / sqrt(3), as a
+    smooth surface is shaded; a cube with subdivisionScheme none gets no NORMAL (glTF's flat
+    normals)."""
+    stage = new_stage(tmp_path)
+    smooth = unit_cube(stage, "/Smooth")
+    smooth.CreateSubdivisionSchemeAttr("catmullClark")
+    unit_cube(stage, "/Flat")
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert any(w.startswith("/Smooth: subdivision (catmullClark) is not applied")
+               for w in conversion.warnings)  # fmt: skip
+    meshes = {n["name"]: doc["meshes"][n["mesh"]] for n in doc["nodes"] if "mesh" in n}
+    prim = meshes["Smooth"]["primitives"][0]
+    pos = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+    nrm = accessor(doc, blob, prim["attributes"]["NORMAL"]).astype(np.float64)
+    assert nrm == pytest.approx(np.sign(pos) / math.sqrt(3.0), abs=1e-6)
+    assert "NORMAL" not in meshes["Flat"]["primitives"][0]["attributes"]
+
+
 def test_a_left_handed_mesh_keeps_its_outward_faces(tmp_path):
     stage = new_stage(tmp_path)
     mesh = unit_cube(stage, "/Cube")

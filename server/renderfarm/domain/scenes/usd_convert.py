@@ -167,6 +167,24 @@ def _fan(counts: np.ndarray) -> np.ndarray:
     return np.stack([s, s + k, s + k + 1], axis=1)
 
 
+def _point_normals(points, counts, indices, left: bool) -> np.ndarray:
+    """Each point's unit normal: the sum of the area-weighted normals of the faces it is a
+    corner of (a face's normal the sum of its fan triangles' cross products, counted once
+    per corner), outward for the mesh's orientation."""
+    fan = _fan(counts)
+    corners = points[indices[fan]]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    face_of_corner = np.repeat(np.arange(len(counts)), counts)
+    faces = np.zeros((len(counts), 3))
+    np.add.at(faces, face_of_corner[fan[:, 0]], cross)
+    if left:
+        faces = -faces
+    sums = np.zeros_like(points)
+    np.add.at(sums, indices, faces[face_of_corner])
+    length = np.linalg.norm(sums, axis=1, keepdims=True)
+    return np.where(length > 0, sums / np.maximum(length, 1e-30), [0.0, 0.0, 1.0])
+
+
 class _StageConverter:
     def __init__(self, stage, root: Path, work: Path):
         from pxr import Usd, UsdGeom, UsdSkel
@@ -724,7 +742,8 @@ class _StageConverter:
             )
         scheme = mesh.GetSubdivisionSchemeAttr().Get(t)
         if scheme and scheme != "none":
-            self.warn(path, f"subdivision ({scheme}) is not applied: the control cage is rendered")
+            self.warn(path, f"subdivision ({scheme}) is not applied: the control cage is "
+                      "rendered, smooth-shaded")  # fmt: skip
         if (counts < 3).any():
             self.warn(path, "faces with fewer than 3 corners are skipped")
         face_keep = counts >= 3
@@ -753,6 +772,11 @@ class _StageConverter:
             attributes["NORMAL"] = np.where(
                 length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]
             )
+        elif scheme and scheme != "none":
+            # A subdivision surface is smooth (USD computes its normals from the limit
+            # surface): its cage is shaded with each point's area-weighted face normals, as
+            # Blender's importer and Storm shade an unsubdivided cage, not flat as glTF would.
+            attributes["NORMAL"] = _point_normals(points, counts, indices, left)[indices]
         morph = self.morph_samples(mesh, len(points))
         weights = None  # (times, weights per time) of the morph targets
         if morph is not None:
