@@ -19,10 +19,8 @@ import time
 from pathlib import Path
 
 import httpx
-import psycopg
-import pytest
-from psycopg.conninfo import make_conninfo
 from test_scheduler import render
+from test_service_collaborators import NoScenes
 
 from renderfarm.api.rest import create_app
 from renderfarm.app.auth import LOCAL_USER, Authenticator
@@ -30,7 +28,6 @@ from renderfarm.app.composition import build_farm_service
 from renderfarm.domain.states import JobState
 from renderfarm.errors import LeaseLost
 from renderfarm.infra.config import Settings
-from renderfarm.infra.embedded_db import EmbeddedPostgres
 from renderfarm.infra.leases import LeaseOwnership
 from renderfarm.infra.store import Store
 
@@ -39,39 +36,6 @@ JOB = {"width": 16, "height": 16, "tile_size": 8, "max_spp": 64, "noise_threshol
 TASKS = 4 * 7  # 4 tiles x batches of 1, 1, 2, 4, 8, 16, 32 samples
 SCENE = b"glTF\x02\x00\x00\x00" + bytes(range(256)) * 4
 SCENE_SHA = hashlib.sha256(SCENE).hexdigest()
-
-
-@pytest.fixture(scope="module")
-def postgres(tmp_path_factory):
-    db = EmbeddedPostgres(tmp_path_factory.mktemp("leases-pg"))
-    url = db.start()
-    try:
-        yield url
-    finally:
-        db.stop()
-
-
-@pytest.fixture()
-def db_url(postgres, request):
-    """A fresh, empty database for one test; dropped after it."""
-    name = "l_" + hashlib.sha256(request.node.nodeid.encode()).hexdigest()[:16]
-    with psycopg.connect(postgres, autocommit=True) as conn:
-        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-        conn.execute(f'CREATE DATABASE "{name}"')
-    yield make_conninfo(postgres, dbname=name)
-    with psycopg.connect(postgres, autocommit=True) as conn:
-        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-
-
-class NoScenes:
-    async def check(self, data, filename, sha256):
-        raise AssertionError("no scene is checked in these tests")
-
-    def is_usd(self, data, filename=""):
-        return False
-
-    async def convert(self, data, filename):
-        raise AssertionError("no scene is converted in these tests")
 
 
 class StoppedClock:

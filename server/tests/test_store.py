@@ -16,11 +16,9 @@ from datetime import UTC, datetime
 
 import psycopg
 import pytest
-from psycopg.conninfo import make_conninfo
 
 from renderfarm.domain.scheduler import StopRecord
 from renderfarm.domain.states import StopReason
-from renderfarm.infra.embedded_db import EmbeddedPostgres
 from renderfarm.infra.store import (
     RETRY_AFTER_S,
     DatabaseUnavailable,
@@ -33,30 +31,6 @@ from renderfarm.infra.store import (
 # 2027-01-15 08:00:00 UTC and an hour later, as Unix times.
 T0 = 1_800_000_000.0
 T1 = T0 + 3600.0
-
-
-@pytest.fixture(scope="module")
-def postgres(tmp_path_factory):
-    """The server's URL (database `postgres`); the cluster is stopped after the module."""
-    db = EmbeddedPostgres(tmp_path_factory.mktemp("store-pg"))
-    url = db.start()
-    try:
-        yield url
-    finally:
-        db.stop()
-    assert not (db.pgdata / "postmaster.pid").exists(), "the test's PostgreSQL still runs"
-
-
-@pytest.fixture()
-def db_url(postgres, request):
-    """A fresh, empty database for one test; dropped after it."""
-    name = "t_" + hashlib.sha256(request.node.nodeid.encode()).hexdigest()[:16]
-    with psycopg.connect(postgres, autocommit=True) as conn:
-        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-        conn.execute(f'CREATE DATABASE "{name}"')
-    yield make_conninfo(postgres, dbname=name)
-    with psycopg.connect(postgres, autocommit=True) as conn:
-        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
 
 
 def with_store(url: str, body, **options):

@@ -15,21 +15,10 @@ from psycopg.conninfo import make_conninfo
 
 from renderfarm.domain.scheduler import StopRecord
 from renderfarm.domain.states import StopReason
-from renderfarm.infra.embedded_db import EmbeddedPostgres
 from renderfarm.infra.memory_store import JobStore, MemoryStore
 from renderfarm.infra.store import Store, TileRow
 
 T0 = 1_800_000_000.0  # 2027-01-15 08:00 UTC
-
-
-@pytest.fixture(scope="module")
-def postgres(tmp_path_factory):
-    db = EmbeddedPostgres(tmp_path_factory.mktemp("contract-pg"))
-    url = db.start()
-    try:
-        yield url
-    finally:
-        db.stop()
 
 
 @pytest.fixture(params=["postgres", "memory"])
