@@ -157,6 +157,26 @@ def texture(mat, img, socket: str | None, alpha_socket: str | None = None):
     return node
 
 
+def normal_map(mat, rgba: np.ndarray, name: str) -> None:
+    """A tangent-space normal map (RGB in [0, 1]) on the material's BSDF, through a Normal Map
+    node, as Blender's exporter reads it into normalTexture."""
+    tree = mat.node_tree
+    tex = texture(mat, image(name, rgba, non_color=True), None)
+    nmap = tree.nodes.new("ShaderNodeNormalMap")
+    tree.links.new(tex.outputs["Color"], nmap.inputs["Color"])
+    tree.links.new(nmap.outputs["Normal"], bsdf_of(mat).inputs["Normal"])
+
+
+def channel_map(mat, rgba: np.ndarray, name: str, channel: str, socket: str) -> None:
+    """One channel (Red, Green, Blue) of a linear texture feeding a BSDF socket (Roughness,
+    Metallic), which the exporter packs into metallicRoughnessTexture."""
+    tree = mat.node_tree
+    tex = texture(mat, image(name, rgba, non_color=True), None)
+    sep = tree.nodes.new("ShaderNodeSeparateColor")
+    tree.links.new(tex.outputs["Color"], sep.inputs["Color"])
+    tree.links.new(sep.outputs[channel], bsdf_of(mat).inputs[socket])
+
+
 def add(kind: str, name: str, material, location=(0, 0, 0), smooth=False, **kwargs):
     ops = {
         "plane": bpy.ops.mesh.primitive_plane_add,
@@ -347,16 +367,9 @@ def grooved_material():
     rough = np.where((y * n % 32) < 2, 0.05, 0.6)
     rough_img = np.concatenate([np.repeat(rough[..., None], 3, -1), np.ones((n, n, 1))], -1)
     mat = principled("Grooved", (0.6, 0.6, 0.65), 0.6)
-    tree = mat.node_tree
-    tex = texture(mat, image("GroovesNormal", normal, non_color=True), None)
-    nmap = tree.nodes.new("ShaderNodeNormalMap")
-    tree.links.new(tex.outputs["Color"], nmap.inputs["Color"])
-    tree.links.new(nmap.outputs["Normal"], bsdf_of(mat).inputs["Normal"])
-    rtex = texture(mat, image("Lines", rough_img, non_color=True), None)
+    normal_map(mat, normal, "GroovesNormal")
     # Roughness from the green channel, as glTF's metallicRoughnessTexture holds it.
-    sep = tree.nodes.new("ShaderNodeSeparateColor")
-    tree.links.new(rtex.outputs["Color"], sep.inputs["Color"])
-    tree.links.new(sep.outputs["Green"], bsdf_of(mat).inputs["Roughness"])
+    channel_map(mat, rough_img, "Lines", "Green", "Roughness")
     return mat
 
 
@@ -560,18 +573,10 @@ def tiles_textures(n=512, tiles=8, grout=3):
 def tiled_floor_material():
     colour, rough, metal, normal = tiles_textures()
     mat = principled("Tiles", (1.0, 1.0, 1.0), 0.35)
-    tree = mat.node_tree
     texture(mat, image("TilesColour", colour), "Base Color")
-    for name, img, socket in (("TilesRoughness", rough, "Roughness"),
-                              ("TilesMetallic", metal, "Metallic")):  # fmt: skip
-        tex = texture(mat, image(name, img, non_color=True), None)
-        sep = tree.nodes.new("ShaderNodeSeparateColor")
-        tree.links.new(tex.outputs["Color"], sep.inputs["Color"])
-        tree.links.new(sep.outputs["Red"], bsdf_of(mat).inputs[socket])
-    ntex = texture(mat, image("TilesNormal", normal, non_color=True), None)
-    nmap = tree.nodes.new("ShaderNodeNormalMap")
-    tree.links.new(ntex.outputs["Color"], nmap.inputs["Color"])
-    tree.links.new(nmap.outputs["Normal"], bsdf_of(mat).inputs["Normal"])
+    channel_map(mat, rough, "TilesRoughness", "Red", "Roughness")
+    channel_map(mat, metal, "TilesMetallic", "Red", "Metallic")
+    normal_map(mat, normal, "TilesNormal")
     return mat
 
 

@@ -125,11 +125,9 @@ bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std:
 // worker gives itself there, and whether it has left the address list (a name that resolves to
 // several addresses no longer gives this one).
 struct Connection {
-  std::string target;  // what gRPC dials: host:port as given, or one resolved address
-  std::string name;    // for messages
+  std::string name;  // for messages
   std::string worker_id;
-  std::shared_ptr<grpc::Channel> channel;
-  std::unique_ptr<pb::WorkerService::Stub> workers;
+  std::unique_ptr<pb::WorkerService::Stub> workers;  // both on one channel to the server
   std::unique_ptr<pb::SceneService::Stub> scenes;
   std::atomic<bool> retired{false};
   std::atomic<bool> done{false};  // its thread has returned
@@ -563,7 +561,7 @@ std::shared_ptr<const Scene> Worker::scene_for(Connection& from, const std::stri
                                                const std::string& variant, uint32_t height) {
   if (!is_sha256_hex(sha256)) throw TaskError{"scene: invalid sha256 '" + sha256 + "'", false};
   const std::string key = sha256 + variant_key(variant);
-  return scenes_.get(key + height_key(height), [&]() -> std::shared_ptr<const Scene> {
+  const auto loader = [&]() -> std::shared_ptr<const Scene> {
     LoadOptions load = farm_load_options(sha256);
     load.variant = variant;
     load.image_height = height;
@@ -579,7 +577,12 @@ std::shared_ptr<const Scene> Worker::scene_for(Connection& from, const std::stri
                    bvh_layout_name(options_.bvh) + " BVH)");
           return scene;
         });
-  });
+  };
+  // Loaded once for every image height, unless it has points and lines, which are made for
+  // one height (Scene::thin_height): another height then has a copy of its own.
+  std::shared_ptr<const Scene> scene = scenes_.get(key, loader);
+  if (scene->thin_height() == 0 || scene->thin_height() == height) return scene;
+  return scenes_.get(key + height_key(height), loader);
 }
 
 std::shared_ptr<const Scene> Worker::posed_scene_for(Connection& from,
@@ -596,7 +599,8 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(Connection& from,
   char time_key[128];
   std::snprintf(time_key, sizeof time_key, "%a [%a %a]", time_s,
                 shutter.is_open() ? shutter.open_s : 0.0, shutter.is_open() ? shutter.close_s : 0.0);
-  // The height sizes points and lines: a scene (and its poses) per height.
+  // The height sizes a pose's points and lines: a pose per height (the animated scene, its
+  // static part, is the same for every height).
   const std::string pose_key = std::string(time_key) + " " + animation + height_key(height);
   const SceneCache::AnimatedLoader prepare = [&]() -> std::shared_ptr<const AnimatedScene> {
     const LoadOptions load = farm_load_options(sha256);
@@ -608,7 +612,6 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(Connection& from,
           split.animations =
               resolve_animation_selection(animation_selection, gltf_animation_names(*document));
           split.variant = variant;
-          split.image_height = height;
           auto animated = std::make_shared<const AnimatedScene>(document, split, &warnings);
           for (const auto& w : warnings) log_line("warning: " + w);
           remember_warnings(sha256 + " " + animation, warnings);
@@ -625,7 +628,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(Connection& from,
   const SceneCache::Poser pose = [&](const AnimatedScene& animated) -> std::shared_ptr<const Scene> {
     std::vector<std::string> warnings;
     const auto start = Clock::now();
-    std::shared_ptr<const Scene> scene = animated.pose(time_s, &warnings, shutter);
+    std::shared_ptr<const Scene> scene = animated.pose(time_s, &warnings, shutter, height);
     const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
     // The loader warns of the same things at every time: once per scene and selection.
     bool first;
@@ -645,7 +648,7 @@ std::shared_ptr<const Scene> Worker::posed_scene_for(Connection& from,
     }
     return scene;
   };
-  return scenes_.get_posed(sha256, animation + height_key(height), pose_key, prepare, pose);
+  return scenes_.get_posed(sha256, animation, pose_key, prepare, pose);
 }
 
 std::shared_ptr<const Environment> Worker::environment_for(Connection& from,
@@ -878,7 +881,6 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
         continue;
       }
       auto c = std::make_unique<Connection>();
-      c->target = target;
       c->name = names.name;
       // Several servers see this process as one worker each: the address tells them apart
       // (in a farm of replicas they share one table of workers).
@@ -889,9 +891,9 @@ int run_farm_client(const FarmOptions& options, const std::atomic<bool>& stop) {
       const std::string tls_name =
           !options.tls_server_name.empty() ? options.tls_server_name : names.tls_name;
       if (options.tls && !tls_name.empty()) args.SetSslTargetNameOverride(tls_name);
-      c->channel = grpc::CreateCustomChannel(target, credentials, args);
-      c->workers = pb::WorkerService::NewStub(c->channel);
-      c->scenes = pb::SceneService::NewStub(c->channel);
+      const auto channel = grpc::CreateCustomChannel(target, credentials, args);
+      c->workers = pb::WorkerService::NewStub(channel);
+      c->scenes = pb::SceneService::NewStub(channel);
       log_line("connecting to " + c->name);
       Served& entry = served[target];
       entry.connection = std::move(c);

@@ -57,6 +57,25 @@ struct FakeFarm {
     std::lock_guard<std::mutex> lock(mutex);
     return stream && stream->Write(m);
   }
+  bool assign(const pb::Task& t) {
+    pb::ServerMessage m;
+    *m.mutable_assign()->mutable_task() = t;
+    return send(m);
+  }
+  // With mutex held (wait_for's predicates): whether a heartbeat listed task `id` in flight,
+  // and whether its result came.
+  bool in_heartbeat(const std::string& id) const {
+    for (const auto& m : received)
+      if (m.has_heartbeat())
+        for (const auto& t : m.heartbeat().task_ids())
+          if (t == id) return true;
+    return false;
+  }
+  bool has_result(const std::string& id) const {
+    for (const auto& m : received)
+      if (m.has_result() && m.result().task_id() == id) return true;
+    return false;
+  }
 };
 
 class FakeWorkerService final : public pb::WorkerService::Service {
@@ -208,11 +227,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_EQ(hello.max_in_flight(), 3u);
   }
   // A long task that we cancel, a good one, and one with an unknown sampler.
-  auto assign = [&](const pb::Task& t) {
-    pb::ServerMessage m;
-    *m.mutable_assign()->mutable_task() = t;
-    ASSERT_TRUE(farm.send(m));
-  };
+  auto assign = [&](const pb::Task& t) { ASSERT_TRUE(farm.assign(t)); };
   assign(make_task("long", farm.scene_sha, 1u << 20));
   assign(make_task("good", farm.scene_sha, 8));
   assign(make_task("bad", farm.scene_sha, 8, pb::Sampler(99)));  // a number the enum lacks
@@ -225,13 +240,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   };
   ASSERT_TRUE(farm.wait_for([&] { return has("good", true) && has("bad", false); }));
   // The long task is in flight now (or queued): heartbeats list it; cancel it.
-  ASSERT_TRUE(farm.wait_for([&] {
-    for (const auto& m : farm.received)
-      if (m.has_heartbeat())
-        for (const auto& id : m.heartbeat().task_ids())
-          if (id == "long") return true;
-    return false;
-  }));
+  ASSERT_TRUE(farm.wait_for([&] { return farm.in_heartbeat("long"); }));
   pb::ServerMessage cancel;
   cancel.mutable_cancel()->add_task_ids("long");
   cancel.mutable_cancel()->set_reason("test");
@@ -377,16 +386,6 @@ TEST(FarmClient, ServesSeveralServersWithSharedThreadsAndCredit) {
     EXPECT_EQ(a.received.at(0).hello().max_in_flight(), 2u);
     EXPECT_EQ(b.received.at(0).hello().max_in_flight(), 2u);
   }
-  auto assign = [](FakeFarm& farm, const pb::Task& t) {
-    pb::ServerMessage m;
-    *m.mutable_assign()->mutable_task() = t;
-    return farm.send(m);
-  };
-  auto has_result = [](FakeFarm& farm, const std::string& id) {
-    for (const auto& m : farm.received)
-      if (m.has_result() && m.result().task_id() == id) return true;
-    return false;
-  };
   // The last max_in_flight a farm heard from the worker (Hello's, then its heartbeats').
   auto wanted = [](FakeFarm& farm) {
     uint32_t w = 0;
@@ -400,24 +399,18 @@ TEST(FarmClient, ServesSeveralServersWithSharedThreadsAndCredit) {
     std::lock_guard<std::mutex> lock(a.mutex);
     a.hold_fetches = true;  // A's first task stays in flight, fetching its scene
   }
-  ASSERT_TRUE(assign(a, make_task("a1", a.scene_sha, 4)));
-  ASSERT_TRUE(assign(a, make_task("a2", a.scene_sha, 4)));
+  ASSERT_TRUE(a.assign(make_task("a1", a.scene_sha, 4)));
+  ASSERT_TRUE(a.assign(make_task("a2", a.scene_sha, 4)));
   // A holds the worker's two slots: B is asked for one task only.
   ASSERT_TRUE(b.wait_for([&] { return wanted(b) == 1; }, 30));
   pb::Task b1 = make_task("b1", b.scene_sha, 4);
   b1.set_job_id("job-b");
-  ASSERT_TRUE(assign(b, b1));
+  ASSERT_TRUE(b.assign(b1));
   // One thread, busy with A's task: B's waits (its heartbeats list it, no result yet).
-  ASSERT_TRUE(b.wait_for([&] {
-    for (const auto& m : b.received)
-      if (m.has_heartbeat())
-        for (const auto& id : m.heartbeat().task_ids())
-          if (id == "b1") return true;
-    return false;
-  }, 30));
+  ASSERT_TRUE(b.wait_for([&] { return b.in_heartbeat("b1"); }, 30));
   {
     std::lock_guard<std::mutex> lock(b.mutex);
-    EXPECT_FALSE(has_result(b, "b1"));
+    EXPECT_FALSE(b.has_result("b1"));
     EXPECT_EQ(b.fetches, 0);
   }
   {
@@ -425,8 +418,8 @@ TEST(FarmClient, ServesSeveralServersWithSharedThreadsAndCredit) {
     a.hold_fetches = false;
   }
   a.cv.notify_all();
-  ASSERT_TRUE(a.wait_for([&] { return has_result(a, "a1") && has_result(a, "a2"); }));
-  ASSERT_TRUE(b.wait_for([&] { return has_result(b, "b1"); }));
+  ASSERT_TRUE(a.wait_for([&] { return a.has_result("a1") && a.has_result("a2"); }));
+  ASSERT_TRUE(b.wait_for([&] { return b.has_result("b1"); }));
   // Each scene came from its own server, once; with nothing held, each stream wants two again.
   ASSERT_TRUE(b.wait_for([&] { return wanted(b) == 2; }, 30));
   ASSERT_TRUE(a.wait_for([&] { return wanted(a) == 2; }, 30));

@@ -77,7 +77,8 @@ bool parse_shutter(const std::string& text, double fps, Shutter* out, std::strin
 }
 
 std::shared_ptr<const Scene> AnimatedScene::pose(double time, std::vector<std::string>* warnings,
-                                                 const Shutter& shutter) const {
+                                                 const Shutter& shutter,
+                                                 uint32_t image_height) const {
   if (!std::isfinite(time))
     throw SceneError(base_->source() + ": animation: the time is not finite");
   // One description per time step: the frame's time, or the shutter's steps.
@@ -91,6 +92,7 @@ std::shared_ptr<const Scene> AnimatedScene::pose(double time, std::vector<std::s
                                         (shutter.close_s - shutter.open_s) * k / (count - 1)
                                   : time;
     load.visibility_time = time + (shutter.is_open() ? shutter.open_s : 0.0);
+    if (image_height) load.image_height = image_height;
     load.layout = &layout;
     // The loader's warnings are the construction's: the same at every time.
     steps.push_back(describe_gltf(*document_, nullptr, load));

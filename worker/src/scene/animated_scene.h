@@ -60,9 +60,11 @@ class AnimatedScene {
   // The scene at time t (seconds, finite). Thread-safe. *warnings gets the pose's own
   // (a missing camera); the load's were given at construction. With an open shutter the
   // scene is posed at kShutterSteps times from t + open_s to t + close_s and moves between
-  // them during the shutter (motion blur: Scene's posing constructor).
+  // them during the shutter (motion blur: Scene's posing constructor). image_height sizes the
+  // pose's points and lines (LoadOptions::image_height; 0: the construction's options').
   std::shared_ptr<const Scene> pose(double time, std::vector<std::string>* warnings = nullptr,
-                                    const Shutter& shutter = {}) const;
+                                    const Shutter& shutter = {},
+                                    uint32_t image_height = 0) const;
 
   const Scene& static_part() const { return *base_; }
   // Bytes the document and the static part hold (a pose's own: Scene::memory_bytes).

@@ -645,6 +645,12 @@ void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
   }
 }
 
+// How a points-and-lines primitive is shaded, from the attributes it has (below).
+Loader::ThinKind Loader::thin_kind(const tinygltf::Primitive& prim) {
+  if (!prim.attributes.count("NORMAL")) return ThinKind::Unlit;
+  return prim.attributes.count("TANGENT") ? ThinKind::Lit : ThinKind::LitFlat;
+}
+
 // glTF 2.0, "Point and Line Materials": points and lines without NORMAL are unlit (base colour
 // plus emission), with NORMAL but no TANGENT lit without normal textures, with both lit as
 // triangles are. Either face of a line or point faces the camera, so each is double-sided.
@@ -662,9 +668,7 @@ void Loader::derive_thin_materials(SceneDescription* desc) {
                                 std::to_string(pi) + "]" + named(mesh.name);
       has_thin_ = true;
       const uint32_t base = primitive_material(prim, mi, pi, where);
-      const ThinKind kind = !prim.attributes.count("NORMAL")   ? ThinKind::Unlit
-                            : !prim.attributes.count("TANGENT") ? ThinKind::LitFlat
-                                                                : ThinKind::Lit;
+      const ThinKind kind = thin_kind(prim);
       const auto [it, fresh] = thin_materials_.try_emplace({base, kind}, 0);
       if (!fresh) continue;
       Material m = desc->materials[base];
@@ -703,10 +707,7 @@ void Loader::add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
     const VertexAttributes attrs = read_attributes(prim, where, deform != nullptr);
     const std::vector<uint32_t> indices = read_indices(prim, attrs.position.count, where);
     const uint32_t base = primitive_material(prim, mesh_index, pi, where);
-    const ThinKind kind = !prim.attributes.count("NORMAL")   ? ThinKind::Unlit
-                          : !prim.attributes.count("TANGENT") ? ThinKind::LitFlat
-                                                              : ThinKind::Lit;
-    const auto material = thin_materials_.find({base, kind});
+    const auto material = thin_materials_.find({base, thin_kind(prim)});
     if (material == thin_materials_.end()) fail(where + ": no material for points or lines");
     uint32_t first = 0;
     std::vector<bool> bad_normal;

@@ -241,6 +241,7 @@ class Loader {
                                      const std::string& where);
   // Points and lines (ThinGeometry): their materials' variants, and their elements.
   enum class ThinKind { Unlit, LitFlat, Lit };
+  static ThinKind thin_kind(const tinygltf::Primitive& prim);
   void derive_thin_materials(SceneDescription* desc);
   void add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
                 const Deformation* deform = nullptr);

@@ -310,10 +310,43 @@ Camera framing_camera(Vec3 bmin, Vec3 bmax) {
   return camera;
 }
 
+// The bounds of a description's world triangles and of each instance's mesh box, transformed
+// (an instance of a missing mesh is left to the caller's checks); *mesh_bounds, if given, gets
+// each mesh's own box. Returns whether an instance places a mesh that has triangles.
+bool description_bounds(const SceneDescription& d, Vec3* lo, Vec3* hi,
+                        std::vector<std::pair<Vec3, Vec3>>* mesh_bounds) {
+  *lo = Vec3(std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
+             std::numeric_limits<float>::max());
+  *hi = -*lo;
+  grow_bounds(d.world, lo, hi);
+  std::vector<std::pair<Vec3, Vec3>> boxes;
+  for (const Mesh& mesh : d.meshes) {
+    Vec3 mlo(1e30f, 1e30f, 1e30f), mhi = -mlo;
+    grow_bounds(mesh.geometry, &mlo, &mhi);
+    boxes.push_back({mlo, mhi});
+  }
+  bool any_instance = false;
+  for (const Instance& inst : d.instances) {
+    if (inst.mesh >= d.meshes.size() || d.meshes[inst.mesh].geometry.empty()) continue;
+    any_instance = true;
+    const auto& b = boxes[inst.mesh];
+    for (int c = 0; c < 8; ++c) {
+      const Vec3 corner((c & 1) ? b.second.x : b.first.x, (c & 2) ? b.second.y : b.first.y,
+                        (c & 4) ? b.second.z : b.first.z);
+      const Vec3 w = inst.to_world.transform_point(corner);
+      *lo = vmin(*lo, w);
+      *hi = vmax(*hi, w);
+    }
+  }
+  if (mesh_bounds) *mesh_bounds = std::move(boxes);
+  return any_instance;
+}
+
 // Points and lines (desc->thin) as triangles appended to *out, for the description's camera or,
 // without one, the camera that frames bounds grown by their vertices.
-void add_thin_triangles(SceneDescription* desc, Vec3 bmin, Vec3 bmax, TriangleMesh* out) {
-  if (desc->thin.empty()) return;
+// Returns the height they were sized for (0: there are none).
+uint32_t add_thin_triangles(SceneDescription* desc, Vec3 bmin, Vec3 bmax, TriangleMesh* out) {
+  if (desc->thin.empty()) return 0;
   for (const Vec3& p : desc->thin.vertices.positions) {
     bmin = vmin(bmin, p);
     bmax = vmax(bmax, p);
@@ -321,6 +354,7 @@ void add_thin_triangles(SceneDescription* desc, Vec3 bmin, Vec3 bmax, TriangleMe
   const Camera camera = desc->camera ? *desc->camera : framing_camera(bmin, bmax);
   thin_triangles(desc->thin, camera, desc->image_height, out);
   desc->thin = ThinGeometry();
+  return desc->image_height ? desc->image_height : kDefaultThinHeight;
 }
 
 }  // namespace
@@ -438,24 +472,9 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
   if (!desc_.thin.empty()) {
     // Points and lines become triangles for the camera, which frames the bounds of everything
     // (these points included) if the scene has none.
-    Vec3 lo(std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
-            std::numeric_limits<float>::max());
-    Vec3 hi = -lo;
-    grow_bounds(desc_.world, &lo, &hi);
-    for (const Instance& inst : desc_.instances) {
-      if (inst.mesh >= desc_.meshes.size()) continue;
-      Vec3 mlo(1e30f, 1e30f, 1e30f), mhi = -mlo;
-      grow_bounds(desc_.meshes[inst.mesh].geometry, &mlo, &mhi);
-      if (!(mlo.x <= mhi.x)) continue;
-      for (int c = 0; c < 8; ++c) {
-        const Vec3 w = inst.to_world.transform_point(Vec3((c & 1) ? mhi.x : mlo.x,
-                                                          (c & 2) ? mhi.y : mlo.y,
-                                                          (c & 4) ? mhi.z : mlo.z));
-        lo = vmin(lo, w);
-        hi = vmax(hi, w);
-      }
-    }
-    add_thin_triangles(&desc_, lo, hi, &desc_.world);
+    Vec3 lo, hi;
+    description_bounds(desc_, &lo, &hi, nullptr);
+    thin_height_ = add_thin_triangles(&desc_, lo, hi, &desc_.world);
   }
   if (desc_.world.empty() && desc_.instances.empty() && !static_part_)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
@@ -482,31 +501,9 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
       throw SceneError(desc_.source + ": instance refers to missing mesh " +
                        std::to_string(inst.mesh));
 
-  // Bounds: world triangles, and the transformed corners of each instanced mesh's box.
-  bmin_ = Vec3(std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
-               std::numeric_limits<float>::max());
-  bmax_ = -bmin_;
-  grow_bounds(desc_.world, &bmin_, &bmax_);
   std::vector<std::pair<Vec3, Vec3>> mesh_bounds;
-  for (const Mesh& mesh : desc_.meshes) {
-    Vec3 lo(1e30f, 1e30f, 1e30f), hi = -lo;
-    grow_bounds(mesh.geometry, &lo, &hi);
-    mesh_bounds.push_back({lo, hi});
-  }
+  const bool any_instance = description_bounds(desc_, &bmin_, &bmax_, &mesh_bounds);
   if (static_part_) mesh_bounds_ = mesh_bounds;
-  bool any_instance = false;
-  for (const Instance& inst : desc_.instances) {
-    const auto& b = mesh_bounds[inst.mesh];
-    if (desc_.meshes[inst.mesh].geometry.empty()) continue;
-    any_instance = true;
-    for (int c = 0; c < 8; ++c) {
-      const Vec3 corner((c & 1) ? b.second.x : b.first.x, (c & 2) ? b.second.y : b.first.y,
-                        (c & 4) ? b.second.z : b.first.z);
-      const Vec3 w = inst.to_world.transform_point(corner);
-      bmin_ = vmin(bmin_, w);
-      bmax_ = vmax(bmax_, w);
-    }
-  }
   if (desc_.world.empty() && !any_instance && !static_part_)
     throw SceneError(desc_.source + ": the scene contains no (non-degenerate) triangles");
 
@@ -798,7 +795,8 @@ Scene::Scene(std::shared_ptr<const Scene> base, std::vector<SceneDescription> st
   // Points and lines: triangles of this pose, for its camera (or, without one, the camera
   // that frames the static part and these points), in the mesh the loader keeps for them.
   if (desc_.thin_mesh >= 0 && size_t(desc_.thin_mesh) < desc_.meshes.size())
-    add_thin_triangles(&desc_, b.bmin_, b.bmax_, &desc_.meshes[size_t(desc_.thin_mesh)].geometry);
+    thin_height_ = add_thin_triangles(&desc_, b.bmin_, b.bmax_,
+                                      &desc_.meshes[size_t(desc_.thin_mesh)].geometry);
   desc_.textures.clear();
   desc_.limits = b.desc_.limits;
   desc_.stats = b.desc_.stats;

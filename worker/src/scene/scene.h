@@ -523,6 +523,9 @@ class Scene {
   // A pose's deformed meshes (null for other scenes).
   const DeformedMeshes* deformed_meshes() const { return deformed_.get(); }
   const Camera& camera() const { return camera_; }
+  // The image height the scene's points and lines are one pixel wide at; 0 if it has none (it
+  // renders the same at any height).
+  uint32_t thin_height() const { return thin_height_; }
   // Motion blur (the posing constructor with several steps): whether anything moves during
   // the shutter, so that rays need a time; whether the camera does; the camera at time t in
   // [0, 1] (positions and every other parameter interpolated linearly between the steps, the
@@ -548,6 +551,7 @@ class Scene {
   size_t static_embree_bytes_ = 0;  // StaticPart: Embree's bytes once it was built
   size_t pose_bvh_bytes_ = 0;       // a pose: the estimate of its own BVHs
   bool static_part_ = false;
+  uint32_t thin_height_ = 0;
   // The lights, the camera (framing the bounds if the description has none) and their
   // warnings: the end of every constructor.
   void finish_lights_and_camera(std::vector<std::string>* warnings);

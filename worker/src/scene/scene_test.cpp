@@ -40,6 +40,18 @@ TEST(GltfLoader, SmallSceneHierarchyMaterialsAndCamera) {
   ASSERT_TRUE(desc.camera.has_value());
   Scene scene(std::move(desc), &warnings);
   EXPECT_EQ(scene.world().size(), 8u);
+  // Its lines are sized for an image height: the default one here, the load's otherwise; a
+  // scene without points and lines is the same at any height (the farm worker shares it).
+  EXPECT_EQ(scene.thin_height(), kDefaultThinHeight);
+  LoadOptions at_48;
+  at_48.image_height = 48;
+  EXPECT_EQ(Scene(load_gltf_from_string(testing::small_gltf_json(), ".", "small.gltf", nullptr,
+                                        at_48))
+                .thin_height(),
+            48u);
+  EXPECT_EQ(Scene(testing::plane_under_emitter(0.5f, 1.f, 1.f, 1.f, 1.f, Vec3(0.f, 0.f, 3.f), 0.8f))
+                .thin_height(),
+            0u);
   ASSERT_EQ(scene.lights().size(), 2u);
   // Lamp: local unit square in y = 0 facing -y, under translation (0,2,0) and scale (2,1,2).
   float lamp_area = 0.f;

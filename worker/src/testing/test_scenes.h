@@ -20,7 +20,7 @@ SceneDescription plane_under_emitter(float rho, float L, float a, float b, float
 
 // A small glTF 2.0 scene as JSON text with its buffer as a base64 data: URI: an indexed
 // (uint16) floor quad, a non-indexed emissive quad (emissiveStrength 4) under a translated and
-// scaled parent node, a camera on a rotated node, and a LINES primitive that must be skipped.
+// scaled parent node, a camera on a rotated node, and an unlit LINES primitive on the floor.
 std::string small_gltf_json();
 // small_gltf_json's scene with two LINEAR animations over t in [0, 2]: 0 "slide" moves the
 // light's parent from (0, 2, 0) to (1.5, 2, 0), 1 "shrink" scales the floor from 1 to
