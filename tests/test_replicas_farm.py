@@ -8,13 +8,15 @@ run of the same job, bit for bit. One worker serves both servers (`renderfarm-wo
 from __future__ import annotations
 
 import signal
+import threading
 import time
 
+import httpx
 import psycopg
 import pytest
 
 from renderfarm.cli.localfarm import LocalFarm, spawn_workers, stop_processes
-from renderfarm.client import Client
+from renderfarm.client import ApiError, Client
 from renderfarm.infra.embedded_db import EmbeddedPostgres
 
 from .conftest import CORNELL
@@ -52,6 +54,18 @@ def tiles(url: str, job_id: str) -> list[tuple]:
 
 def checkpointed(url: str, job_id: str) -> int:
     return sum(t[1] for t in tiles(url, job_id)) * 16 * 16
+
+
+def epochs(url: str, job_ids: list[str]) -> list[int]:
+    """The lease epoch of each job: 1 while one server has held it, +1 per move."""
+    with psycopg.connect(url) as conn:
+        rows = dict(conn.execute("SELECT job_id, epoch FROM job_leases").fetchall())
+    return [rows[j] for j in job_ids]
+
+
+def metric(farm: LocalFarm, name: str) -> float:
+    text = httpx.get(f"{farm.url}/metrics", timeout=10).text
+    return float(next(x.split()[1] for x in text.splitlines() if x.startswith(name + " ")))
 
 
 def test_kill_9_of_one_of_two_servers_moves_its_job_to_the_other(tmp_path, database):
@@ -92,3 +106,139 @@ def _kill_a_mid_job(database: str, a: LocalFarm, at_a: Client, at_b: Client) -> 
     again = at_b.submit(CORNELL, settings=SETTINGS, name="undisturbed")["id"]
     at_b.wait(again, poll_s=0.2, timeout_s=300)
     return job, took, done, replicas, again
+
+
+# Long enough to be mid-render through a server joining or a rolling restart on a busy machine
+# (about 15 s of one render thread each here), short enough for CI.
+LONG = SETTINGS | {"width": 96, "height": 96, "max_spp": 2048}
+LONG_TOTAL = 96 * 96 * 2048
+# A rolling restart takes two server starts and drains: twice as long (about 30 s each here).
+ROLLING = LONG | {"max_spp": 4096}
+ROLLING_TOTAL = 2 * LONG_TOTAL
+
+
+def test_a_server_that_joins_takes_its_share_of_the_jobs_with_their_bits(tmp_path, database):
+    """Two jobs rendering on A; B starts: A hands the newer one over (checkpointed, released)
+    and B takes it, mid-render, while A keeps the older. Both end with the same tiles (same
+    scene, settings and seed): the moved job's bits are those of the one never moved."""
+    env = {"RENDERFARM_DATABASE_URL": database, **FAST}
+    a = LocalFarm(workers=0, data_dir=tmp_path / "a", env={**env, "RENDERFARM_REPLICA_ID": "A"})
+    b = LocalFarm(workers=0, data_dir=tmp_path / "b", env={**env, "RENDERFARM_REPLICA_ID": "B"})
+    workers = []
+    try:
+        with a, Client(a.url) as at_a:
+            workers += spawn_workers(1, a.grpc_address, threads=1, log_dir=tmp_path)
+            jobs = [at_a.submit(CORNELL, settings=LONG, name=f"job {i}")["id"] for i in (0, 1)]
+            wait_until(
+                lambda: all(checkpointed(database, j) > 0 for j in jobs), 300, "two checkpoints"
+            )
+            with b, Client(b.url) as at_b:
+                workers += spawn_workers(
+                    1, b.grpc_address, threads=1, log_dir=tmp_path, first_index=1
+                )
+                wait_until(lambda: at_b.get(jobs[1])["replica"] == "B", 60, "B to take job 1")
+                moved_at = checkpointed(database, jobs[1])
+                assert at_b.get(jobs[0])["replica"] == "A"
+                done = [at_b.wait(j, poll_s=0.2, timeout_s=600) for j in jobs]
+                handed, lost = (
+                    metric(a, "renderfarm_jobs_handed_off_total"),
+                    metric(a, "renderfarm_jobs_lost_total"),
+                )
+    finally:
+        stop_processes(workers)
+    assert 0 < moved_at < LONG_TOTAL, "job 1 moved mid-render"
+    assert [d["state"] for d in done] == ["completed"] * 2
+    assert [d["progress"]["samples_merged"] for d in done] == [LONG_TOTAL] * 2
+    assert epochs(database, jobs) == [1, 2], "each job moved at most once: no ping-pong"
+    assert (handed, lost) == (1, 0)
+    assert tiles(database, jobs[0]) == tiles(database, jobs[1])
+
+
+class Poller:
+    """A client of the farm behind a load balancer: asks the servers in `rotation` (the
+    balancer's healthy set, which a server leaves before it is stopped) for the jobs and the
+    job list in turn, following Retry-After (the client does); every failure is kept."""
+
+    def __init__(self, urls: list[str], job_ids: list[str]):
+        self.rotation = list(urls)
+        self.job_ids = job_ids
+        self.lock = threading.Lock()
+        self.failures: list[str] = []
+        self.answers = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        clients: dict[str, Client] = {}
+        turn = 0
+        while not self.stop.is_set():
+            with self.lock:  # a server leaves the rotation between two rounds, never in one
+                url = self.rotation[turn % len(self.rotation)]
+                turn += 1
+                client = clients.setdefault(url, Client(url, timeout=30))
+                try:
+                    for job_id in self.job_ids:
+                        client.get(job_id)
+                    client.list()
+                    self.answers += 1
+                except (ApiError, httpx.HTTPError) as e:
+                    self.failures.append(f"{url}: {e!r}")
+            self.stop.wait(0.05)
+        for client in clients.values():
+            client.close()
+
+    def leave(self, url: str) -> None:
+        """Once the round in progress (which may be asking `url`) has ended."""
+        with self.lock:
+            self.rotation.remove(url)
+
+    def join(self, url: str) -> None:
+        with self.lock:
+            self.rotation.append(url)
+
+
+def test_a_rolling_restart_of_every_server_fails_no_request_and_keeps_the_bits(tmp_path, database):
+    """Two servers, two jobs (shared between them), one worker serving both. Each server in
+    turn leaves the balancer, is stopped with SIGTERM (it checkpoints and hands its jobs over)
+    and started again. No request of a client polling the farm meanwhile fails, the jobs
+    complete with every sample merged once, and their tiles are those of an undisturbed run."""
+    env = {"RENDERFARM_DATABASE_URL": database, **FAST}
+    a = LocalFarm(workers=0, data_dir=tmp_path / "a", env={**env, "RENDERFARM_REPLICA_ID": "A"})
+    b = LocalFarm(workers=0, data_dir=tmp_path / "b", env={**env, "RENDERFARM_REPLICA_ID": "B"})
+    with a, b, Client(a.url) as at_a:
+        worker = spawn_workers(1, f"{a.grpc_address},{b.grpc_address}", threads=1,
+                               log_dir=tmp_path)  # fmt: skip
+        try:
+            jobs = [at_a.submit(CORNELL, settings=ROLLING, name=f"job {i}")["id"] for i in (0, 1)]
+            wait_until(lambda: {at_a.get(j)["replica"] for j in jobs} == {"A", "B"}, 60, "a share")
+            poller = Poller([a.url, b.url], jobs)
+            poller.thread.start()
+            try:
+                for farm in (a, b):
+                    before = [checkpointed(database, j) for j in jobs]
+                    wait_until(
+                        lambda b=before: all(checkpointed(database, j) > n for j, n in
+                                             zip(jobs, b, strict=True)),
+                        120, "both jobs to progress",
+                    )  # fmt: skip
+                    poller.leave(farm.url)
+                    farm.server.send_signal(signal.SIGTERM)
+                    assert farm.server.wait(timeout=60) == 0
+                    now = [checkpointed(database, j) for j in jobs]
+                    assert max(now) < ROLLING_TOTAL, f"a job ended before the restart: {now}"
+                    farm.start_server()
+                    poller.join(farm.url)
+                done = [at_a.wait(j, poll_s=0.2, timeout_s=600) for j in jobs]
+            finally:
+                poller.stop.set()
+                poller.thread.join(timeout=60)
+            again = at_a.submit(CORNELL, settings=ROLLING, name="undisturbed")["id"]
+            at_a.wait(again, poll_s=0.2, timeout_s=600)
+        finally:
+            stop_processes(worker)
+    assert poller.failures == [], poller.failures[:5]
+    assert poller.answers > 20
+    assert [d["state"] for d in done] == ["completed"] * 2
+    assert [d["progress"]["samples_merged"] for d in done] == [ROLLING_TOTAL] * 2
+    assert tiles(database, jobs[0]) == tiles(database, again)
+    assert tiles(database, jobs[1]) == tiles(database, again)

@@ -9,6 +9,10 @@ open("out.png", "wb").write(c.image(job["id"], "png"))
 
 Errors the server answers with raise ApiError (status, message, field). An https URL is checked
 against the system's certificates, or against RENDERFARM_CA_FILE / ca_file when given.
+
+A 503 or 429 that carries Retry-After (the database is away, the server is busy, a server of
+several is restarting: nothing was done) is sent again after the time it names, up to
+RETRY_ATTEMPTS times within RETRY_BUDGET_S in all; then ApiError.
 """
 
 from __future__ import annotations
@@ -63,6 +67,61 @@ def _timeout_s() -> float:
     return value
 
 
+RETRY_ATTEMPTS = 8
+RETRY_BUDGET_S = 60.0
+_RETRY_STATUSES = (429, 503)
+
+
+def _retry_after_s(response: httpx.Response) -> float | None:
+    """The delay a 503/429 asks for (Retry-After in seconds; an HTTP date is not sent by
+    this server), None when the response asks for no retry."""
+    if response.status_code not in _RETRY_STATUSES:
+        return None
+    try:
+        value = float(response.headers.get("retry-after", ""))
+    except ValueError:
+        return None
+    return value if 0 <= value < float("inf") else None
+
+
+class RetryAfterTransport(httpx.BaseTransport):
+    """Sends a request again when the server answers 503/429 with Retry-After, after the delay
+    it asks for (at least 0.1 s, at most what is left of the budget): the server documents that
+    nothing was done for such an answer, so any method may be sent again. Bounded by
+    `attempts` sends and `budget_s` seconds of waiting; the last answer is returned as it is."""
+
+    def __init__(
+        self,
+        inner: httpx.BaseTransport,
+        attempts: int = RETRY_ATTEMPTS,
+        budget_s: float = RETRY_BUDGET_S,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
+        self.inner = inner
+        self.attempts = attempts
+        self.budget_s = budget_s
+        self.sleep = sleep
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        waited = 0.0
+        for attempt in range(1, self.attempts + 1):
+            response = self.inner.handle_request(request)
+            delay = _retry_after_s(response)
+            if delay is None or attempt == self.attempts:
+                return response
+            delay = max(0.1, delay)
+            if waited + delay > self.budget_s:
+                return response
+            response.read()
+            response.close()
+            self.sleep(delay)
+            waited += delay
+        raise AssertionError("unreachable")
+
+    def close(self) -> None:
+        self.inner.close()
+
+
 class Client:
     def __init__(
         self,
@@ -77,8 +136,9 @@ class Client:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         ca_file = ca_file or os.environ.get("RENDERFARM_CA_FILE")
         verify = ssl.create_default_context(cafile=ca_file) if ca_file else True
+        transport = RetryAfterTransport(httpx.HTTPTransport(verify=verify))
         self.http = httpx.Client(
-            base_url=self.url, headers=headers, timeout=self.timeout, verify=verify
+            base_url=self.url, headers=headers, timeout=self.timeout, transport=transport
         )
 
     def close(self) -> None:

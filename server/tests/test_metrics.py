@@ -47,7 +47,7 @@ def farm():
     }
     return SimpleNamespace(
         scheduler=scheduler, sessions=sessions, store=SimpleNamespace(errors=3), clock=clock,
-        ownership=SimpleNamespace(owns=lambda job_id: True), jobs_lost=0,
+        ownership=SimpleNamespace(owns=lambda job_id: True), jobs_lost=0, jobs_handed_off=0,
     )  # fmt: skip
 
 
@@ -76,6 +76,7 @@ def test_an_idle_farm_exposes_every_family_at_zero(farm):
         "renderfarm_database_errors": "counter",
         "renderfarm_jobs_owned": "gauge",
         "renderfarm_jobs_lost": "counter",
+        "renderfarm_jobs_handed_off": "counter",
         "renderfarm_jobs_submitted": "counter",
         "renderfarm_tasks_completed": "counter",
         "renderfarm_tasks_assigned": "counter",
@@ -95,6 +96,7 @@ def test_an_idle_farm_exposes_every_family_at_zero(farm):
     assert value(got, "renderfarm_database_errors", "renderfarm_database_errors_total") == 0.0
     assert value(got, "renderfarm_jobs_owned") == 0.0
     assert value(got, "renderfarm_jobs_lost", "renderfarm_jobs_lost_total") == 0.0
+    assert value(got, "renderfarm_jobs_handed_off", "renderfarm_jobs_handed_off_total") == 0.0
     assert got["renderfarm_worker_samples_per_second"][1] == {}  # no worker, no sample
     # Exposed before the first one: both kinds of failure, and merged results.
     failed = got["renderfarm_tasks_failed"][1]

@@ -59,6 +59,9 @@ class FakeOwnership:
     async def heartbeat(self) -> None:
         self.heartbeats += 1
 
+    async def leave(self) -> None:
+        self.left = True
+
 
 class NoScenes:
     """Nothing is uploaded here: the scene checker and USD importer are never asked."""

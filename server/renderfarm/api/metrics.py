@@ -81,6 +81,11 @@ class _FarmCollector:
             value=farm.jobs_lost,
         )
         yield CounterMetricFamily(
+            "renderfarm_jobs_handed_off",
+            "Jobs this server checkpointed and released for a server below its share to take",
+            value=farm.jobs_handed_off,
+        )
+        yield CounterMetricFamily(
             "renderfarm_database_errors",
             "Database operations that failed (connection lost, timeout, SQL error)",
             value=farm.store.errors,

@@ -81,6 +81,11 @@ class Ownership(Protocol):
         renewed, lapses."""
         ...
 
+    async def leave(self) -> None:
+        """This server stops (its jobs released): the others stop counting it. Must not raise
+        for a database outage."""
+        ...
+
     async def heartbeat(self) -> None:
         """Renew this server's holds (called a few times a second; it may renew less often).
         Must not raise for a database outage: a hold not renewed lapses, and owns says so."""
@@ -116,4 +121,7 @@ class SoleOwner:
         pass
 
     async def heartbeat(self) -> None:
+        pass
+
+    async def leave(self) -> None:
         pass

@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import math
 import secrets
 import threading
 from collections.abc import AsyncIterator
@@ -175,6 +176,10 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         # round, deleted once its writes are done (job_control.py).
         self._next_takeover = -float("inf")
         self._controls_applied: list[int] = []
+        # Jobs this server hands to others to share the farm's jobs evenly: job id -> the
+        # service's clock by which it lets go even with tasks still in flight.
+        self._handing_off: dict[str, float] = {}
+        self.jobs_handed_off = 0  # since start (metrics)
 
     # ------------------------------------------------------------------------- lifecycle
     async def start(self) -> None:
@@ -209,14 +214,22 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             # Everything is stored: other servers may take the jobs over at once.
             for job_id in list(self.scheduler.jobs):
                 await self.ownership.release(job_id)
+        await self.ownership.leave()
         self.scheduler.cache.close()
         for session in list(self.sessions.values()):
             session.outbox.put_nowait(None)
 
     async def _resume_unfinished(self) -> None:
+        """At start: every unfinished job (a server alone), or in a farm of several servers
+        those whose lease names this one (it crashed, or was restarted within the lease);
+        the others' jobs and those nobody holds are shared out by _take_over."""
         for row in await self.store.unfinished_jobs():
             if row.id in self.scheduler.jobs:
                 continue
+            if self.ownership.shared:
+                lease = await self.store.lease_of(row.id)
+                if lease is None or lease[0] != self.ownership.replica_id:
+                    continue
             if not await self.ownership.acquire(row.id):
                 continue  # another server holds it and renders it
             await self._resume(row)
@@ -234,9 +247,13 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self._waiting_dirty |= any(
             j.state == JobState.WAITING for j in self.scheduler.jobs.values()
         )
+        unheld = [j for j in await self.store.unleased_jobs() if j not in self.scheduler.jobs]
+        fair, mine = await self._fair_share(len(unheld))
         taken = 0
-        for job_id in await self.store.unleased_jobs():
-            if job_id in self.scheduler.jobs or not await self.ownership.acquire(job_id):
+        for job_id in unheld:
+            if mine + taken >= fair:
+                break  # the others' share: each live server takes up to its own
+            if not await self.ownership.acquire(job_id):
                 continue
             row = await self.store.get_job(job_id)  # read after the lease: its last checkpoint
             if row is None or JobState(row.state).finished:
@@ -247,6 +264,80 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         if taken:
             log.info("took over %d job%s nobody held", taken, "" if taken == 1 else "s")
             await self._after_change()
+        self._choose_hand_offs(mine + taken - fair)
+
+    async def _fair_share(self, unheld: int) -> tuple[int, int]:
+        """(this server's fair share of the farm's unfinished jobs, the jobs it holds and
+        keeps): the jobs held by live servers and those nobody holds, shared evenly among
+        the live servers, rounded up. A server counts as live while its last heartbeat is
+        younger than three quarters of the job lease (it renews every quarter), so the jobs
+        of a server that died are shared among the others as soon as their leases expire."""
+        me = self.ownership.replica_id
+        rows = await self.store.list_replicas(live_s=0.75 * self.settings.job_lease_s)
+        others = [r for r in rows if r["live"] and r["id"] != me]
+        mine = sum(
+            not j.state.finished and self.ownership.owns(j.job_id) and j.job_id not in
+            self._handing_off for j in self.scheduler.jobs.values()
+        )  # fmt: skip
+        total = sum(r["jobs_owned"] for r in others) + mine + len(self._handing_off) + unheld
+        return math.ceil(total / (len(others) + 1)), mine
+
+    def _choose_hand_offs(self, excess: int) -> None:
+        """Hand the newest of this server's jobs beyond its fair share to the others: no new
+        tasks of them are leased, and once those in flight are merged (or a half job lease
+        has passed) each is checkpointed and released (_hand_off), for a server below its
+        share to take it over from that checkpoint, the same bits."""
+        if excess <= 0:
+            return
+        candidates = sorted(
+            (
+                j.job_id for j in self.scheduler.jobs.values()
+                if not j.state.finished and self.ownership.owns(j.job_id)
+                and j.job_id not in self._handing_off
+            ),
+            key=lambda job_id: (self.created.get(job_id, 0.0), job_id),
+            reverse=True,
+        )  # fmt: skip
+        deadline = self.clock() + self.settings.job_lease_s / 2
+        for job_id in candidates[:excess]:
+            self._handing_off[job_id] = deadline
+            log.info("handing job %s to another server (more than this one's share)", job_id)
+
+    def _may_lease(self, job_id: str) -> bool:
+        """Tasks of the job may be leased here: this server owns it and keeps it."""
+        return self.ownership.owns(job_id) and job_id not in self._handing_off
+
+    async def _hand_off(self) -> None:
+        """Let go of the jobs chosen by _choose_hand_offs whose tasks have come back (or whose
+        time is up): their events and tiles are written, fenced, then the lease released."""
+        for job_id, deadline in list(self._handing_off.items()):
+            job = self.scheduler.jobs.get(job_id)
+            if job is None or job.state.finished or not self.ownership.owns(job_id):
+                del self._handing_off[job_id]  # finished, or no longer this server's anyway
+                continue
+            busy = any(lease.job_id == job_id for lease in self.scheduler.leases.values())
+            if busy and self.clock() < deadline:
+                continue
+            events = [e for e in self._pending_events if e[0] == job_id]
+            try:
+                if events:
+                    await self.store.add_events(events, self._event_fences(events))
+                    written = set(map(id, events))
+                    self._pending_events = [e for e in self._pending_events if id(e) not in written]
+                await self._persist_job(job_id, tiles=True)
+            except LeaseLost:
+                del self._handing_off[job_id]
+                self._drop_lost(job_id)
+                continue
+            except (psycopg.Error, PoolTimeout, OSError) as e:  # kept; chosen again later
+                del self._handing_off[job_id]
+                log.warning("could not hand job %s over: %s", job_id, e)
+                continue
+            del self._handing_off[job_id]
+            await self.ownership.release(job_id)
+            self._forget_here(job_id)
+            self.jobs_handed_off += 1
+            log.info("handed job %s over (checkpointed and released)", job_id)
 
     async def _resume(self, row: JobRow) -> None:
         """Bring an unfinished job this server now holds back from its checkpoint."""
@@ -321,6 +412,9 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         await self._after_change()
         if await self.flush():
             await self._controls_stored()
+        if self._handing_off and not self.store.unreachable:
+            await self._hand_off()
+            await self._after_change()
         if self._waiting_dirty:
             await self._check_waiting()
 
@@ -762,6 +856,12 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             return
         log.warning("job %s is owned by another server now; dropped here", job_id)
         self.jobs_lost += 1
+        self._forget_here(job_id)
+
+    def _forget_here(self, job_id: str) -> None:
+        """Forget a job another server holds now (lost, or handed over): its tasks on the
+        workers are cancelled; readers get its row from the database."""
+        self._handing_off.pop(job_id, None)
         self.scheduler.drop_job(job_id)
         self._forget_movies(job_id)
         for table in (self.history, self.names, self.created, self.owners):
@@ -778,7 +878,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 session.outbox.put_nowait(("cancel", cancels))
             if self.draining:
                 continue
-            for lease in self.scheduler.assign(worker_id, self.ownership.owns):
+            for lease in self.scheduler.assign(worker_id, self._may_lease):
                 session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))
         events = self.scheduler.take_events()
         finished = [e.job_id for e in events if e.kind == "job_finished"]

@@ -129,6 +129,14 @@ class LeaseOwnership:
         except _DATABASE_ERRORS as e:  # not renewed, it lapses
             log.warning("could not release the lease of job %s: %s", job_id, e)
 
+    async def leave(self) -> None:
+        """This replica stops: its row goes (the others no longer count it when they share
+        the jobs). Its holds are released by the service before."""
+        try:
+            await self.store.remove_replica(self.replica_id)
+        except _DATABASE_ERRORS as e:  # its heartbeat ages out instead
+            log.warning("could not remove replica %s: %s", self.replica_id, e)
+
     async def heartbeat(self) -> None:
         """Renew the holds (at most every lease_s / 4) and this replica's row. A hold the
         database no longer has at its epoch is dropped and reported by take_lost; while the

@@ -815,6 +815,12 @@ class Store:
             (others,) = await cur.fetchone()
             return others
 
+    async def remove_replica(self, replica_id: str) -> None:
+        """The replica stopped cleanly (its jobs released): it is no longer one of the farm's
+        servers, so the others share its jobs among themselves at once."""
+        async with self._connection(internal=True) as conn:
+            await conn.execute("DELETE FROM replicas WHERE id = %s", (replica_id,))
+
     async def list_replicas(self, live_s: float) -> list[dict[str, Any]]:
         """Every replica recorded, with the jobs it holds live leases on; `live` when its last
         heartbeat is less than live_s seconds old (the database's clock)."""
