@@ -228,6 +228,29 @@ def test_worker_disconnect_requeues_its_batches():
     )
 
 
+def test_only_workers_with_room_for_a_lease_are_offered_tasks():
+    """free_workers(): the workers whose leases are fewer than their credit, so that a change
+    asks only them (FarmService._after_change); a full worker leaves it, and comes back when a
+    result, a lost lease or a larger credit makes room; a worker that left is not in it."""
+    s = JobSettings(width=32, height=32, tile_size=8, noise_threshold=0, max_spp=64)
+    sched = Scheduler(clock=FakeClock())
+    sched.add_job("j", s, "scene")
+    sched.add_worker("a", 2)
+    sched.add_worker("b", 3)
+    assert sched.free_workers() == ["a", "b"]
+    first = sched.assign("a")
+    assert len(first) == 2 and sched.free_workers() == ["b"]
+    assert len(sched.assign("b")) == 3 and sched.free_workers() == []
+    assert sched.complete(first[0].task_id, render(s, first[0])) == "merged"
+    assert sched.free_workers() == ["a"]
+    assert len(sched.assign("a")) == 1 and sched.free_workers() == []
+    assert sched.set_credit("b", 5) and sched.free_workers() == ["b"]
+    sched.remove_worker("b")
+    assert sched.free_workers() == []
+    sched.set_worker_mode("a", "disabled")  # its leases handed back: room, but not active
+    assert sched.free_workers() == ["a"] and sched.assign("a") == []
+
+
 def test_converged_tile_cancels_its_speculative_batches():
     s = JobSettings(width=8, height=8, tile_size=8, noise_threshold=0.5, min_spp=1, max_spp=4096)
     sched = Scheduler(clock=FakeClock())

@@ -872,11 +872,16 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
     # -------------------------------------------------------------------- after changes
     async def _after_change(self) -> None:
         """Send cancellations and new leases, store events, finish jobs, wake watchers."""
-        for worker_id, session in self.sessions.items():
-            cancels = self.scheduler.take_cancellations(worker_id)
+        # Only the workers with cancellations, then only those with room for a lease: a
+        # result's change costs the same with ten workers connected or ten thousand.
+        for worker_id in list(self.scheduler.cancellations):
+            session = self.sessions.get(worker_id)
+            cancels = self.scheduler.take_cancellations(worker_id) if session else []
             if cancels:
                 session.outbox.put_nowait(("cancel", cancels))
-            if self.draining:
+        for worker_id in [] if self.draining else self.scheduler.free_workers():
+            session = self.sessions.get(worker_id)
+            if session is None:
                 continue
             for lease in self.scheduler.assign(worker_id, self._may_lease):
                 session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))

@@ -92,6 +92,9 @@ class Scheduler:
         self.events: list[Event] = []
         self.cancellations: dict[str, list[str]] = {}  # worker -> task ids to cancel
         self.records: dict[str, WorkerRecord] = {}  # worker id -> mode and counts (kept)
+        # Workers with fewer leases than their credit (an ordered set): only they can take a
+        # task, so a change asks them alone rather than every connected worker.
+        self._free: dict[str, None] = {}
         self.leases_expired = 0  # since start (renderfarm_leases_expired_total)
         self._task_ids = itertools.count(1)
 
@@ -363,6 +366,18 @@ class Scheduler:
             self.remove_worker(worker_id)
         self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit), tags=frozenset(tags))
         self.records.setdefault(worker_id, WorkerRecord())
+        self._free[worker_id] = None
+
+    def free_workers(self) -> list[str]:
+        """The workers with room for another lease (their credit not used up), in the order
+        they had room; assign() may still give them nothing (no task, or not active)."""
+        return list(self._free)
+
+    def _room_changed(self, slot: WorkerSlot) -> None:
+        if len(slot.leases) < slot.credit:
+            self._free.setdefault(slot.worker_id, None)
+        else:
+            self._free.pop(slot.worker_id, None)
 
     def record(self, worker_id: str) -> WorkerRecord:
         return self.records.setdefault(worker_id, WorkerRecord())
@@ -393,6 +408,7 @@ class Scheduler:
     def remove_worker(self, worker_id: str) -> list[Lease]:
         """A worker left (stream closed): hand its leases back to their tiles."""
         slot = self.workers.pop(worker_id, None)
+        self._free.pop(worker_id, None)
         if slot is None:
             return []
         lost = list(slot.leases.values())
@@ -411,6 +427,7 @@ class Scheduler:
             return False
         grew = credit > slot.credit
         slot.credit = max(1, credit)
+        self._room_changed(slot)
         return grew
 
     def heartbeat(self, worker_id: str) -> None:
@@ -599,6 +616,7 @@ class Scheduler:
         tile.next_batch = max(tile.next_batch, batch + 1)
         tile.in_flight[batch] = lease.task_id
         slot.leases[lease.task_id] = lease
+        self._room_changed(slot)
         self.leases[lease.task_id] = lease
         job.leased += 1
         self._touch(job, tile)
@@ -612,6 +630,7 @@ class Scheduler:
         slot = self.workers.get(lease.worker_id)
         if slot is not None:
             slot.leases.pop(lease.task_id, None)
+            self._room_changed(slot)
         job = self.jobs.get(lease.job_id)
         if job is None:
             return
