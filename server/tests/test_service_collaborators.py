@@ -171,3 +171,32 @@ def test_the_clock_given_drives_lease_expiry_and_checkpoints(tmp_path):
     assert steps["before deadline"] == (0, [])
     expired, messages = steps["past deadline"]
     assert expired == 4 and [m[0] for m in messages] == ["cancel"] and len(messages[0][1]) == 4
+
+
+def test_idle_workers_cost_one_try_and_a_tagged_worker_still_gets_its_job(tmp_path):
+    """Work runs short: 50 workers without tags want more than the job's tiles allow, so most
+    are idle. A change tries the first idle one and skips the others (their tags are a subset
+    of its own: they would get nothing either), but still offers a worker tagged `gpu` the job
+    that requires that tag."""
+    clock, ownership = FakeClock(), FakeOwnership({"j", "gpu-job"})
+    service, _ = farm(tmp_path, ownership, clock)
+    tries: list[str] = []
+    assign = service.scheduler.assign
+    service.scheduler.assign = lambda w, owns=None: tries.append(w) or assign(w, owns)
+
+    async def main():
+        plain = [await service.worker_hello(f"w{i}", "h", 1, 8, "t", token="") for i in range(50)]
+        busy = {w for w, s in service.scheduler.workers.items() if s.leases}
+        tries.clear()
+        service.scheduler.add_job("gpu-job", JOB, "0" * 64, require_tags=("gpu",))
+        gpu = await service.worker_hello("g", "h", 1, 2, "t", token="", tags=["gpu"])
+        return plain, busy, list(tries), sent(gpu)
+
+    plain, busy, tried, gpu_messages = asyncio.run(main())
+    idle = [f"w{i}" for i in range(50) if f"w{i}" not in busy]
+    assert len(idle) > 20  # the job's 4 tiles cannot keep 50 workers of 8 tasks busy
+    assert len(service.scheduler.jobs["j"].tiles) == 4
+    # The gpu worker's hello: one idle plain worker tried, the rest skipped, the gpu one served.
+    assert tried.count("g") == 1 and len([w for w in tried if w in idle]) == 1
+    assert [m[0] for m in gpu_messages] == ["assign"] * 2
+    assert {m[1].job_id for m in gpu_messages} == {"gpu-job"}

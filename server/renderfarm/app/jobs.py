@@ -189,6 +189,8 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         await self.ownership.heartbeat()  # a replica's row exists before it takes jobs
         await self._resume_unfinished()
         self._tasks.append(asyncio.create_task(self._background(), name="farm-background"))
+        if self.ownership.shared:
+            self._tasks.append(asyncio.create_task(self._keep_leases(), name="farm-leases"))
         self.ready = True
 
     async def stop(self, timeout_s: float | None = None) -> None:
@@ -393,6 +395,19 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
                 raise
             except Exception:  # keep serving; the next round retries
                 log.exception("background round failed")
+
+    async def _keep_leases(self) -> None:
+        """Renew the job leases on their own schedule too (heartbeat renews at most every
+        quarter lease, whoever asks): a background round busy with a large checkpoint under a
+        flood of results must not let them lapse, or the jobs would move for nothing."""
+        while True:
+            await asyncio.sleep(0.25)
+            try:
+                await self.ownership.heartbeat()
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # the next turn tries again
+                log.exception("renewing the job leases failed")
 
     async def _round(self) -> None:
         """One background round: renew ownership, time limits and expired leases, the
@@ -879,12 +894,11 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
             cancels = self.scheduler.take_cancellations(worker_id) if session else []
             if cancels:
                 session.outbox.put_nowait(("cancel", cancels))
-        for worker_id in [] if self.draining else self.scheduler.free_workers():
-            session = self.sessions.get(worker_id)
-            if session is None:
-                continue
-            for lease in self.scheduler.assign(worker_id, self._may_lease):
-                session.outbox.put_nowait(("assign", lease, self.scheduler.jobs[lease.job_id]))
+        if not self.draining:
+            for lease in self.scheduler.assign_free(self._may_lease, self.sessions.__contains__):
+                self.sessions[lease.worker_id].outbox.put_nowait(
+                    ("assign", lease, self.scheduler.jobs[lease.job_id])
+                )
         events = self.scheduler.take_events()
         finished = [e.job_id for e in events if e.kind == "job_finished"]
         for job_id in finished:  # readers see the final point at once

@@ -92,9 +92,10 @@ class Scheduler:
         self.events: list[Event] = []
         self.cancellations: dict[str, list[str]] = {}  # worker -> task ids to cancel
         self.records: dict[str, WorkerRecord] = {}  # worker id -> mode and counts (kept)
-        # Workers with fewer leases than their credit (an ordered set): only they can take a
-        # task, so a change asks them alone rather than every connected worker.
-        self._free: dict[str, None] = {}
+        # Workers with fewer leases than their credit, by their tags (ordered sets): only they
+        # can take a task, so a change asks them alone rather than every connected worker,
+        # and of each group only until one is left with room (assign_free).
+        self._free: dict[frozenset[str], dict[str, None]] = {}
         self.leases_expired = 0  # since start (renderfarm_leases_expired_total)
         self._task_ids = itertools.count(1)
 
@@ -364,23 +365,77 @@ class Scheduler:
     def add_worker(self, worker_id: str, credit: int, tags: tuple[str, ...] = ()) -> None:
         if worker_id in self.workers:
             self.remove_worker(worker_id)
-        self.workers[worker_id] = WorkerSlot(worker_id, max(1, credit), tags=frozenset(tags))
+        slot = WorkerSlot(worker_id, max(1, credit), tags=frozenset(tags))
+        self.workers[worker_id] = slot
         self.records.setdefault(worker_id, WorkerRecord())
-        self._free[worker_id] = None
+        self._room_changed(slot)
 
     def free_workers(self) -> list[str]:
-        """The workers with room for another lease (their credit not used up), in the order
-        they had room; assign() may still give them nothing (no task, or not active)."""
-        return list(self._free)
+        """The workers with room for another lease (their credit not used up), by tags, each
+        group in the order they had room; assign() may still give them nothing."""
+        return [worker_id for group in self._free.values() for worker_id in group]
 
-    def _room_changed(self, slot: WorkerSlot) -> None:
-        if len(slot.leases) < slot.credit:
-            self._free.setdefault(slot.worker_id, None)
-        else:
-            self._free.pop(slot.worker_id, None)
+    def _room_changed(self, slot: WorkerSlot, gone: bool = False) -> None:
+        group = self._free.get(slot.tags)
+        if not gone and len(slot.leases) < slot.credit:
+            if group is None:
+                group = self._free[slot.tags] = {}
+            group.setdefault(slot.worker_id, None)
+        elif group is not None:
+            group.pop(slot.worker_id, None)
+            if not group:
+                del self._free[slot.tags]
+
+    def assign_free(
+        self,
+        owns: Callable[[str], bool] | None = None,
+        reachable: Callable[[str], bool] | None = None,
+    ) -> list[Lease]:
+        """Lease tasks to the workers with room for them (and that `reachable` accepts: the
+        server has their stream); the new leases. Within a group of workers with the same
+        tags, once one is left with room the work it may take has run out, and so it has for
+        the rest of the group and for every group whose tags are a subset of these: they are
+        not asked (a worker that is not active, unresponsive or kept off a job is no such
+        evidence, and is passed over). So a result costs a few tries, not one per idle
+        worker, when the work runs short."""
+        new: list[Lease] = []
+        dry: list[frozenset[str]] = []
+        for tags in list(self._free):
+            if any(tags <= d for d in dry):
+                continue
+            passed = 0  # workers at the group's head that tell nothing (see above)
+            while (group := self._free.get(tags)) is not None:
+                head = next(itertools.islice(group, passed, None), None)
+                if head is None:
+                    break
+                if reachable is not None and not reachable(head):
+                    passed += 1
+                    continue
+                new += self.assign(head, owns)
+                if head in group:  # room left: no task it may take
+                    if self.eligible_tags(head) is not None:
+                        dry.append(tags)
+                        break
+                    passed += 1
+        return new
 
     def record(self, worker_id: str) -> WorkerRecord:
-        return self.records.setdefault(worker_id, WorkerRecord())
+        record = self.records.get(worker_id)  # asked per assignment: no record made for naught
+        if record is None:
+            record = self.records[worker_id] = WorkerRecord()
+        return record
+
+    def eligible_tags(self, worker_id: str) -> frozenset[str] | None:
+        """The worker's tags when they alone decide which jobs it may render (it is active,
+        responsive and no job keeps it off), else None. A worker with these tags that was
+        assigned nothing tells that any worker whose tags are a subset of them would be
+        assigned nothing either, until the next change."""
+        slot = self.workers.get(worker_id)
+        if slot is None or slot.unresponsive or self.record(worker_id).mode != "active":
+            return None
+        if any(worker_id in j.excluded_workers for j in self.jobs.values()):
+            return None
+        return slot.tags
 
     def worker_state(self, worker_id: str) -> str:
         """active, draining, drained (draining with no task left) or disabled."""
@@ -408,9 +463,9 @@ class Scheduler:
     def remove_worker(self, worker_id: str) -> list[Lease]:
         """A worker left (stream closed): hand its leases back to their tiles."""
         slot = self.workers.pop(worker_id, None)
-        self._free.pop(worker_id, None)
         if slot is None:
             return []
+        self._room_changed(slot, gone=True)
         lost = list(slot.leases.values())
         for lease in lost:
             self._release(lease, requeue=True)

@@ -203,6 +203,13 @@ class Store:
         self.internal = AsyncConnectionPool(
             url, min_size=1, max_size=internal_size, timeout=5.0, name="internal", **common
         )
+        # One connection for renewing job leases and the replica's row alone, opened on first
+        # use (a farm of several servers): a renewal never waits behind checkpoints or a
+        # thousand workers connecting at once, which would let the leases lapse under load.
+        self.lease_pool = AsyncConnectionPool(
+            url, min_size=1, max_size=1, timeout=5.0, name="leases", **common
+        )
+        self._lease_pool_open = False
         # Failed database operations since start (renderfarm_database_errors_total).
         self.errors = 0
 
@@ -214,15 +221,22 @@ class Store:
 
     @contextlib.asynccontextmanager
     async def _connection(
-        self, timeout: float | None = None, internal: bool = False
+        self, timeout: float | None = None, internal: bool = False, leases: bool = False
     ) -> AsyncIterator[Any]:
-        """A pooled connection. Every database failure inside is counted; a full queue is
+        """A pooled connection (of the API's pool, the internal one, or with `leases` the
+        lease renewals' own). Every database failure inside is counted; a full queue is
         raised as DatabaseBusy, a database out of reach (or no connection within the wait) as
         DatabaseUnavailable, anything else as it is."""
         if self.unreachable:
             timeout = min(timeout or self.wait_s, UNREACHABLE_WAIT_S)
+        pool = self.internal if internal else self.pool
+        if leases:
+            if not self._lease_pool_open:
+                self._lease_pool_open = True
+                await self.lease_pool.open(wait=False)
+            pool = self.lease_pool
         try:
-            async with (self.internal if internal else self.pool).connection(timeout) as conn:
+            async with pool.connection(timeout) as conn:
                 yield conn
         except TooManyRequests as e:
             self.errors += 1
@@ -242,6 +256,8 @@ class Store:
     async def close(self) -> None:
         await self.pool.close()
         await self.internal.close()
+        if self._lease_pool_open:
+            await self.lease_pool.close()
 
     async def reconnect(self) -> None:
         """Replace the connections a database restart broke now rather than on their next
@@ -249,6 +265,8 @@ class Store:
         self.unreachable = False
         await self.internal.check()
         await self.pool.check()
+        if self._lease_pool_open:
+            await self.lease_pool.check()
 
     async def migrate(self) -> int:
         """Apply pending migrations; return the schema version."""
@@ -746,7 +764,7 @@ class Store:
         if not held:
             return {}
         ids = sorted(held)
-        async with self._connection(internal=True) as conn:
+        async with self._connection(leases=True) as conn:
             cur = await conn.execute(
                 "UPDATE job_leases l SET expires_at = now() + make_interval(secs => %s)"
                 " FROM unnest(%s::text[], %s::bigint[]) AS h(job_id, epoch)"
@@ -798,7 +816,7 @@ class Store:
     ) -> int:
         """Record that the replica is alive (its row made on its first heartbeat); how many
         other replicas heartbeat within the last live_s seconds."""
-        async with self._connection(internal=True) as conn:
+        async with self._connection(leases=True) as conn:
             await conn.execute(
                 "INSERT INTO replicas (id, addresses, started_at, heartbeat_at, batches_merged,"
                 " merge_rate) VALUES (%s, %s, %s, now(), %s, %s)"
