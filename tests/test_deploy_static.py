@@ -305,7 +305,9 @@ def compose_config() -> dict:
 
 def test_compose_file_passes_docker_compose_config(compose_config):
     services = compose_config["services"]
-    assert set(services) == {"postgres", "certs", "server", "worker", "prometheus", "grafana"}
+    assert set(services) == {
+        "postgres", "certs", "server", "server-2", "worker", "prometheus", "grafana"
+    }  # fmt: skip
     for name, svc in services.items():
         if name == "certs":  # one-shot: makes the certificates before the server starts, exits
             assert svc.get("restart") == "no" and "healthcheck" not in svc
@@ -317,9 +319,20 @@ def test_compose_file_passes_docker_compose_config(compose_config):
     # `up --scale worker=N`: nothing in the worker that only one container can have.
     worker = services["worker"]
     assert "container_name" not in worker and "ports" not in worker
-    assert worker["environment"]["RENDERFARM_SERVER"] == "server:50051"
+    # Two replicas of one farm: the workers serve both (one stream to each).
+    assert worker["environment"]["RENDERFARM_SERVER"] == "server:50051,server-2:50051"
     assert worker["depends_on"]["server"]["condition"] == "service_healthy"
-    server = services["server"]
+    assert worker["depends_on"]["server-2"]["condition"] == "service_healthy"
+    server, second = services["server"], services["server-2"]
+    assert server["environment"]["RENDERFARM_REPLICA_ID"] == "server"
+    assert second["environment"]["RENDERFARM_REPLICA_ID"] == "server-2"
+    # The same server otherwise: image, database, tokens, TLS, health check, mounts.
+    same = {k: v for k, v in second["environment"].items() if k != "RENDERFARM_REPLICA_ID"}
+    assert same == {k: v for k, v in server["environment"].items() if k != "RENDERFARM_REPLICA_ID"}
+    for key in ("image", "build", "volumes", "healthcheck", "depends_on", "stop_grace_period"):
+        assert second[key] == server[key], key
+    assert not second.get("ports"), "server-2 is reached inside the compose network only"
+    assert set(services["prometheus"]["depends_on"]) >= {"server", "server-2"}
     assert server["depends_on"]["postgres"]["condition"] == "service_healthy"
     env = server["environment"]
     assert (
@@ -370,6 +383,8 @@ def test_compose_settings_are_environment_variables_documented_in_the_docs(compo
     for key, value in env.items():
         field = key.removeprefix("RENDERFARM_").lower()
         if field in ("database_url", "http_host", "grpc_host", "worker_token", "admin_token"):
+            continue
+        if field == "replica_id":  # each server's own name (the test above)
             continue
         if field.startswith("tls_"):  # TLS: on in the deployment, checked on its own below
             continue
@@ -447,11 +462,13 @@ def test_compose_runs_worker_traffic_over_tls_by_default(compose_config, compose
         assert file.is_file(), f"the certs service made no {what} ({file})"
     assert oct(path["server key"].stat().st_mode & 0o777) == "0o600"
     assert oct(path["worker key"].stat().st_mode & 0o777) == "0o600"
-    # The workers connect with TLS to the host of RENDERFARM_SERVER, which the server's
-    # certificate names; it is signed by the CA they check it against.
+    # The workers connect with TLS to each host of RENDERFARM_SERVER (both servers share the
+    # certificate), which the certificate names; it is signed by the CA they check it against.
     assert wenv["RENDERFARM_WORKER_TLS"] == "1"
-    host = wenv["RENDERFARM_SERVER"].rsplit(":", 1)[0]
-    _openssl_verify(path["worker CA"], path["server cert"], "sslserver", host)
+    hosts = [entry.rsplit(":", 1)[0] for entry in wenv["RENDERFARM_SERVER"].split(",")]
+    assert hosts == ["server", "server-2"]
+    for host in hosts:
+        _openssl_verify(path["worker CA"], path["server cert"], "sslserver", host)
     _openssl_verify(path["worker CA"], path["server cert"], "sslserver", "127.0.0.1")
     _openssl_verify(path["client CA"], path["worker cert"], "sslclient")
     # Prometheus scrapes https://server:8080 checking the certificate against a mounted CA.
@@ -459,8 +476,9 @@ def test_compose_runs_worker_traffic_over_tls_by_default(compose_config, compose
     job = next(j for j in prom["scrape_configs"] if j["job_name"] == "renderfarm-server")
     assert job["scheme"] == "https"
     ca_source, ca_name = _in_mount(_mounts(services["prometheus"]), job["tls_config"]["ca_file"])
-    target_host = job["static_configs"][0]["targets"][0].rsplit(":", 1)[0]
-    _openssl_verify(dirs[ca_source] / ca_name, path["server cert"], "sslserver", target_host)
+    for target in job["static_configs"][0]["targets"]:
+        host = target.rsplit(":", 1)[0]
+        _openssl_verify(dirs[ca_source] / ca_name, path["server cert"], "sslserver", host)
     # Once made, never again: a second run keeps the files (and an operator's own).
     before = {k: p.read_bytes() for k, p in path.items()}
     again = _run([str(MAKE_CERTS), *compose_certs["args"]])
@@ -606,7 +624,10 @@ def test_prometheus_scrapes_the_server_and_grafana_is_provisioned(compose_config
     jobs = {j["job_name"]: j for j in prom["scrape_configs"]}
     server = jobs["renderfarm-server"]
     assert server["metrics_path"] == "/metrics"
-    assert server["static_configs"][0]["targets"] == ["server:8080"]
+    # Every server of the farm: each exports the figures of the jobs it owns.
+    assert server["static_configs"][0]["targets"] == [
+        f"{name}:8080" for name in compose_config["services"] if name.startswith("server")
+    ]
     datasources = yaml.safe_load(
         (DEPLOY / "grafana/provisioning/datasources/prometheus.yaml").read_text()
     )["datasources"]
@@ -812,8 +833,18 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     else:
         assert decoded["RENDERFARM_DATABASE_URL"].startswith("postgresql://")
 
-    # The server: one replica, never two at once; probes on gRPC health, /healthz, /readyz.
-    assert server["replicas"] == 1 and server["strategy"]["type"] == "Recreate"
+    # The servers: three replicas of one farm, replaced one at a time (each hands its jobs
+    # over on SIGTERM), at most one away for a voluntary disruption; each named by its pod.
+    assert server["replicas"] == 3 and server["strategy"]["type"] == "RollingUpdate"
+    assert server["strategy"]["rollingUpdate"] == {"maxUnavailable": 1, "maxSurge": 0}
+    assert server_env["RENDERFARM_REPLICA_ID"]["valueFrom"]["fieldRef"]["fieldPath"] == (
+        "metadata.name"
+    )
+    spdb = by[("PodDisruptionBudget", "renderfarm-server")]["spec"]
+    slabels = server["template"]["metadata"]["labels"]
+    assert spdb["maxUnavailable"] == 1
+    assert all(slabels.get(k) == v for k, v in spdb["selector"]["matchLabels"].items())
+    assert server["selector"]["matchLabels"] == spdb["selector"]["matchLabels"]
     c = server["template"]["spec"]["containers"][0]
     ports = {p["name"]: p["containerPort"] for p in c["ports"]}
     # Probes over HTTPS (the server serves TLS only; the kubelet's gRPC probes cannot).
@@ -843,7 +874,12 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     assert "kill -TERM 1" in " ".join(wc["lifecycle"]["preStop"]["exec"]["command"])
     assert w["terminationGracePeriodSeconds"] >= 60
     wenv = {e["name"]: e for e in wc["env"]}
-    assert wenv["RENDERFARM_SERVER"]["value"] == f"renderfarm-server:{ports['grpc']}"
+    # The workers serve every server: a headless Service resolves to each ready server pod.
+    assert wenv["RENDERFARM_SERVER"]["value"] == f"renderfarm-server-workers:{ports['grpc']}"
+    headless = by[("Service", "renderfarm-server-workers")]["spec"]
+    assert headless["clusterIP"] == "None" and not headless.get("publishNotReadyAddresses")
+    assert headless["selector"] == service["selector"]
+    assert [(p["port"], p["targetPort"]) for p in headless["ports"]] == [(ports["grpc"], "grpc")]
     pdb = by[("PodDisruptionBudget", "renderfarm-worker")]["spec"]
     wlabels = worker["template"]["metadata"]["labels"]
     assert all(wlabels.get(k) == v for k, v in pdb["selector"]["matchLabels"].items())

@@ -8,6 +8,8 @@ run of the same job, bit for bit. One worker serves both servers (`renderfarm-wo
 from __future__ import annotations
 
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -140,6 +142,10 @@ def test_a_server_that_joins_takes_its_share_of_the_jobs_with_their_bits(tmp_pat
                 moved_at = checkpointed(database, jobs[1])
                 assert at_b.get(jobs[0])["replica"] == "A"
                 done = [at_b.wait(j, poll_s=0.2, timeout_s=600) for j in jobs]
+                listing = subprocess.run(
+                    [sys.executable, "-m", "renderfarm", "replicas", "--url", b.url],
+                    capture_output=True, text=True, timeout=60,
+                )  # fmt: skip
                 handed, lost = (
                     metric(a, "renderfarm_jobs_handed_off_total"),
                     metric(a, "renderfarm_jobs_lost_total"),
@@ -152,6 +158,9 @@ def test_a_server_that_joins_takes_its_share_of_the_jobs_with_their_bits(tmp_pat
     assert epochs(database, jobs) == [1, 2], "each job moved at most once: no ping-pong"
     assert (handed, lost) == (1, 0)
     assert tiles(database, jobs[0]) == tiles(database, jobs[1])
+    # The CLI lists both servers, live.
+    rows = [line.split() for line in listing.stdout.splitlines()[1:]]
+    assert listing.returncode == 0 and [r[:2] for r in rows] == [["A", "yes"], ["B", "yes"]]
 
 
 class Poller:

@@ -717,3 +717,23 @@ def cmd_workers(args: argparse.Namespace) -> int:
             for error in w["recent_errors"]:
                 print(f"    error: {error}")
     return 0
+
+
+def cmd_replicas(args: argparse.Namespace) -> int:
+    """The servers of the farm (several over one database, or this one alone)."""
+    with _client(args) as client:
+        replicas = client.replicas()
+    if args.json:
+        _print_json(replicas)
+        return 0
+    now = time.time()
+    print(f"{'ID':32}  {'LIVE':4}  {'JOBS':>4}  {'MERGED':>9}  {'BATCHES/S':>9}  {'SEEN':>7}")
+    for r in replicas:
+        seen = now - r["heartbeat_unix_s"] if r["heartbeat_unix_s"] is not None else None
+        rate = r["merge_rate"]
+        print(
+            f"{r['id']:32}  {'yes' if r['live'] else 'no':4}  {r['jobs_owned']:4}  "
+            f"{r['batches_merged']:9}  {'-' if rate is None else f'{rate:,.1f}':>9}  "
+            f"{'-' if seen is None else f'{seen:,.0f} s ago':>7}"
+        )
+    return 0

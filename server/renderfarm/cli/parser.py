@@ -18,6 +18,7 @@ from .commands import (
     cmd_ls,
     cmd_pause,
     cmd_render,
+    cmd_replicas,
     cmd_resume,
     cmd_retry,
     cmd_rm,
@@ -143,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("continue", cmd_continue, "carry a completed job on to more samples or less noise"),
         ("rm", cmd_rm, "delete finished jobs with their stored data"),
         ("workers", cmd_workers, "list connected workers, or drain, disable or enable one"),
+        ("replicas", cmd_replicas, "list the farm's servers, the jobs each owns, their merge rate"),
     ):
         q = sub.add_parser(name, help=help_text)
         if name in ("get", "cancel", "watch", "pause", "resume", "retry", "update", "continue"):
@@ -184,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_submit)
     client_commands = (
         "submit", "ls", "get", "watch", "cancel", "pause", "resume", "retry", "update",
-        "continue", "rm", "workers",
+        "continue", "rm", "workers", "replicas",
     )  # fmt: skip
     for action in sub.choices.values():
         if action.prog.split()[-1] in client_commands:
