@@ -2,13 +2,17 @@
 and two workers each on their own host (network namespace) on one LAN of veth links, configured
 by environment variables only, render the Cornell box with the workers' traffic over TLS (the
 server's gRPC port refuses plaintext); then one worker's link is cut in the middle of a job, and
-the job still completes, with the same image.
+the job still completes, with the same image. With two servers of one farm on hosts of their own,
+one server is cut off from PostgreSQL alone while it renders a job: it stops leasing the job's
+tasks, the other takes the job over and ends it, and once the route is back the first learns it
+lost the job and overwrites nothing: the stored image is that of an undisturbed run.
 
 Everything runs inside namespaces this test creates, on a private /24 that exists only there;
 they are deleted at the end, also when the test fails."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
@@ -16,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
@@ -77,9 +82,9 @@ def _workers(client: Client) -> dict[str, dict]:
     return {w["id"]: w for w in client.workers()}
 
 
-@pytest.fixture()
-def netns_farm(monkeypatch):
-    """Start the four hosts; always tear them down (namespaces, links, processes)."""
+@contextlib.contextmanager
+def _running_farm(monkeypatch, **settings: str):
+    """Start the hosts; always tear them down (namespaces, links, processes)."""
     _farm("sweep")  # leftovers of a test process that was killed before its clean-up
     state_dir = Path(tempfile.mkdtemp(prefix="netfarm-", dir="/tmp"))
     env = {
@@ -89,13 +94,15 @@ def netns_farm(monkeypatch):
         "RENDERFARM_LEASE_S": "3",
         "RENDERFARM_HEARTBEAT_INTERVAL_S": "1",
         "RENDERFARM_CHECKPOINT_INTERVAL_S": "1",
+        **settings,
     }
     try:
         _farm("up", str(state_dir), env=env)
         state = _state(state_dir)
         # The LAN is only reachable directly: never through a proxy from the environment.
-        monkeypatch.setenv("NO_PROXY", f"{state['SUBNET']}.0/24,{state['SUBNET']}.3")
-        monkeypatch.setenv("no_proxy", f"{state['SUBNET']}.0/24,{state['SUBNET']}.3")
+        hosts = ",".join(u.split("//")[1].split(":")[0] for u in state["URLS"].split())
+        monkeypatch.setenv("NO_PROXY", f"{state['SUBNET']}.0/24,{hosts}")
+        monkeypatch.setenv("no_proxy", f"{state['SUBNET']}.0/24,{hosts}")
         yield state_dir, state
     finally:
         try:
@@ -105,6 +112,25 @@ def netns_farm(monkeypatch):
             namespaces = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True)
             shutil.rmtree(state_dir, ignore_errors=True)
             assert not prefix or f"{prefix}-" not in namespaces.stdout, "namespaces left behind"
+
+
+@pytest.fixture()
+def netns_farm(monkeypatch):
+    """PostgreSQL, the server and two workers."""
+    with _running_farm(monkeypatch) as farm:
+        yield farm
+
+
+@pytest.fixture()
+def two_server_farm(monkeypatch):
+    """PostgreSQL, two servers of one farm and a worker serving both."""
+    with _running_farm(
+        monkeypatch,
+        NETFARM_SERVERS="2",
+        NETFARM_WORKERS="1",
+        RENDERFARM_CHECKPOINT_INTERVAL_S="0.5",
+    ) as farm:
+        yield farm
 
 
 @pytest.fixture(scope="module")
@@ -219,3 +245,65 @@ def test_cut_worker_link_job_completes_with_the_same_image(netns_farm, standalon
     np.testing.assert_array_equal(cut_rgb, undisturbed)
     np.testing.assert_allclose(cut_rgb, standalone_rgb, rtol=8e-7, atol=1e-7)
     print(f"job with worker1 cut off completed {elapsed:.1f} s after the cut")
+
+
+LONG = SETTINGS | {"max_spp": 1024}
+LONG_SAMPLES = 128 * 128 * 1024
+
+
+def _metric(url: str, state: dict[str, str], name: str) -> float:
+    text = httpx.get(
+        f"{url}/metrics",
+        headers={"Authorization": f"Bearer {state['ADMIN_TOKEN']}"},
+        verify=state["CA_FILE"],
+        timeout=10,
+    ).text
+    return float(next(x.split()[1] for x in text.splitlines() if x.startswith(name + " ")))
+
+
+def test_a_server_cut_off_from_the_database_stops_leasing_and_writing(two_server_farm, tmp_path):
+    state_dir, state = two_server_farm
+    url1, url2 = state["URLS"].split()
+    assert url1 == state["URL"]
+    kwargs = {"token": state["ADMIN_TOKEN"], "timeout": 30, "ca_file": state["CA_FILE"]}
+    with Client(url1, **kwargs) as one, Client(url2, **kwargs) as two:
+        wait_until(lambda: len(one.workers()) == len(two.workers()) == 1, 60, "the worker")
+        assert {r["id"] for r in two.replicas()} == {"server", "server2"}
+        reference = two.wait(two.submit(CORNELL, settings=LONG, name="undisturbed")["id"],
+                             poll_s=0.2, timeout_s=600)  # fmt: skip
+        assert reference["progress"]["samples_merged"] == LONG_SAMPLES
+        undisturbed = _rgb_of(two.image(reference["id"], "exr"), tmp_path, "undisturbed.exr")
+
+        job = one.submit(CORNELL, settings=LONG, name="cut off")["id"]
+        wait_until(lambda: two.get(job)["replica"] == "server", 30, "server to hold the job")
+        wait_until(
+            lambda: two.get(job)["progress"]["samples_merged"] > LONG_SAMPLES // 10,
+            120, "a checkpoint of a tenth",
+        )  # fmt: skip
+        _farm("cut-db", str(state_dir), "server")
+        cut_at = time.monotonic()
+        wait_until(lambda: two.get(job)["replica"] == "server2", 60, "server2 to take the job")
+        took = time.monotonic() - cut_at
+        # Cut off, `server` can no longer be sure it holds the job: it stopped leasing its
+        # tasks before server2 could take it (its hold lapses a quarter lease early).
+        assigned = _metric(url1, state, "renderfarm_tasks_assigned_total")
+        at_takeover = two.get(job)["progress"]["samples_merged"]
+        wait_until(
+            lambda: two.get(job)["progress"]["samples_merged"] > at_takeover,
+            120, "server2 to render the job",
+        )  # fmt: skip
+        assert _metric(url1, state, "renderfarm_tasks_assigned_total") == assigned
+        done = two.wait(job, poll_s=0.2, timeout_s=600)
+        # The route comes back: the server's stalled writes and renewals arrive, are refused
+        # by the lease's epoch, and it drops the job.
+        _farm("restore-db", str(state_dir), "server")
+        wait_until(
+            lambda: _metric(url1, state, "renderfarm_jobs_lost_total") >= 1,
+            180, "server to learn that it lost the job", poll_s=0.5,
+        )  # fmt: skip
+        assert one.get(job)["replica"] == ""  # finished: nobody holds it
+        stored = _rgb_of(one.image(job, "exr"), tmp_path, "cut-off.exr")
+    assert done["state"] == "completed" and done["progress"]["samples_merged"] == LONG_SAMPLES
+    assert took <= 15, f"server2 took the job {took:.1f} s after the cut"
+    np.testing.assert_array_equal(stored, undisturbed)
+    print(f"server2 took the job {took:.1f} s after server was cut off from the database")

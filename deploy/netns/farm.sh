@@ -12,17 +12,23 @@
 #   deploy/netns/farm.sh down STATE_DIR      stop every process, delete namespaces and links
 #   deploy/netns/farm.sh cut STATE_DIR HOST  take HOST's link down (worker1, server, db, ...)
 #   deploy/netns/farm.sh restore STATE_DIR HOST
+#   deploy/netns/farm.sh cut-db STATE_DIR HOST    HOST's packets to the database vanish (a
+#                                                 partition between it and PostgreSQL only)
+#   deploy/netns/farm.sh restore-db STATE_DIR HOST
 #   deploy/netns/farm.sh sweep               `down` for the farms of processes no longer alive
 #
 # Environment (read by `up`):
-#   NETFARM_WORKERS (2), NETFARM_WORKER_THREADS (1), NETFARM_SUBNET (10.213.<pid % 250>: the
+#   NETFARM_WORKERS (2), NETFARM_WORKER_THREADS (1), NETFARM_SERVERS (1; up to 7: servers of one
+#   farm over the database, each with RENDERFARM_REPLICA_ID its host name, the workers
+#   serving all of them), NETFARM_SUBNET (10.213.<pid % 250>: the
 #   first three octets of the LAN, a /24 used only inside these namespaces), NETFARM_OWNER_PID
 #   (the process the farm belongs to, for `sweep`; default: the caller), NETFARM_PG_USER
 #   (renderfarm-pg: the unprivileged user PostgreSQL runs as, created if missing),
 #   NETFARM_MUTUAL_TLS (0; 1: the server requires the workers' client certificates), and every
 #   RENDERFARM_* server setting (docs/settings.md, "Server settings"), passed to the server as it is.
 #
-# Hosts and addresses: operator .1 (this machine), db .2, server .3, worker<i> .(10+i).
+# Hosts and addresses: operator .1 (this machine), db .2, server .3, server<i> .(2+i) for the
+# second server on, worker<i> .(10+i).
 # Certificates: STATE_DIR/server/tls (the server's tls.crt, tls.key, ca.crt) and STATE_DIR/tls
 # (the workers' ca.crt, tls.crt, tls.key; ca.crt is the CA for clients on the operator's host).
 set -euo pipefail
@@ -86,7 +92,7 @@ cmd_sweep() {
 
 link_of() {
   case "$1" in
-    db | server | worker*) echo "h-$1" ;;
+    db | server | server[2-7] | worker*) echo "h-$1" ;;
     *) die "unknown host $1" ;;
   esac
 }
@@ -102,6 +108,23 @@ cmd_restore() {
   ip -n "$(ns lan)" link set "$(link_of "$2")" up
   echo "restored the link of $2"
 }
+
+# A blackhole route to the database's address in HOST's namespace: its packets to PostgreSQL
+# are dropped (connections hang, as in a partition), everything else still flows.
+cmd_cut_db() {
+  load_state "$1"
+  link_of "$2" > /dev/null
+  ip -n "$(ns "$2")" route add blackhole "$SUBNET.2/32"
+  echo "cut $2 off from the database"
+}
+
+cmd_restore_db() {
+  load_state "$1"
+  ip -n "$(ns "$2")" route del blackhole "$SUBNET.2/32"
+  echo "restored the route of $2 to the database"
+}
+
+server_name() { if [ "$1" = 1 ]; then echo server; else echo "server$1"; fi; }
 
 add_host() {  # add_host NAME ADDRESS: a namespace with eth0 on the LAN bridge
   local name=$1 addr=$2 n
@@ -130,6 +153,8 @@ cmd_up() {
   chmod 755 "$STATE"
   [ ! -f "$STATE/netfarm.env" ] || die "$STATE already holds a farm; run down first"
   local workers=${NETFARM_WORKERS:-2} threads=${NETFARM_WORKER_THREADS:-1}
+  local servers=${NETFARM_SERVERS:-1}
+  case "$servers" in [1-7]) ;; *) die "NETFARM_SERVERS must be 1 to 7, not '$servers'" ;; esac
   local owner=${NETFARM_OWNER_PID:-$PPID}
   local subnet=${NETFARM_SUBNET:-} octet
   if [ -z "$subnet" ]; then  # a /24 no other farm on this machine uses right now
@@ -156,7 +181,8 @@ cmd_up() {
   OP_LINK="${PREFIX}op"
   local hosts_stop="" i
   for i in $(seq 1 "$workers"); do hosts_stop="$hosts_stop worker$i"; done
-  hosts_stop="$hosts_stop server db"
+  for i in $(seq "$servers" -1 1); do hosts_stop="$hosts_stop $(server_name "$i")"; done
+  hosts_stop="$hosts_stop db"
   cat > "$STATE/netfarm.env" <<STATE_EOF
 PREFIX=$PREFIX
 OWNER_PID=$owner
@@ -179,7 +205,7 @@ STATE_EOF
   ip addr add "$subnet.1/24" dev "$OP_LINK"
   ip link set "$OP_LINK" up
   add_host db "$subnet.2"
-  add_host server "$subnet.3"
+  for i in $(seq 1 "$servers"); do add_host "$(server_name "$i")" "$subnet.$((2 + i))"; done
   for i in $(seq 1 "$workers"); do add_host "worker$i" "$subnet.$((10 + i))"; done
 
   # Database host: a real PostgreSQL on TCP, password authentication from the LAN only.
@@ -214,32 +240,44 @@ PG_EOF
   local admin_token=${RENDERFARM_ADMIN_TOKEN:-$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')}
   local worker_token=${RENDERFARM_WORKER_TOKEN:-$(head -c 16 /dev/urandom | od -An -tx1 | tr -d ' \n')}
 
-  # TLS: a private CA, the server's certificate for its LAN address, the workers' client one.
+  # TLS: a private CA, the servers' certificate for their LAN addresses, the workers' client
+  # one.
+  local names="$subnet.3" grpc_all="$subnet.3:$GRPC_PORT" urls="https://$subnet.3:$HTTP_PORT"
+  for i in $(seq 2 "$servers"); do
+    names="$names,$subnet.$((2 + i))"
+    grpc_all="$grpc_all,$subnet.$((2 + i)):$GRPC_PORT"
+    urls="$urls https://$subnet.$((2 + i)):$HTTP_PORT"
+  done
   mkdir -p "$STATE/server"
-  "$ROOT/deploy/docker/make-certs.sh" "$STATE/server/tls" "$STATE/tls" "$subnet.3" \
+  "$ROOT/deploy/docker/make-certs.sh" "$STATE/server/tls" "$STATE/tls" "$names" \
     > "$STATE/certs.log" 2>&1 || { cat "$STATE/certs.log" >&2; die "could not make the certificates"; }
   local client_ca=""
   [ "$mutual_tls" = 0 ] || client_ca=$STATE/server/tls/ca.crt
 
-  # Server host: `renderfarm server` configured by the environment alone.
-  ip netns exec "$(ns server)" env \
-    RENDERFARM_ADMIN_TOKEN="$admin_token" RENDERFARM_WORKER_TOKEN="$worker_token" \
-    RENDERFARM_DATABASE_URL="$database_url" \
-    RENDERFARM_DATA_DIR="$STATE/server" \
-    RENDERFARM_HTTP_HOST=0.0.0.0 RENDERFARM_HTTP_PORT=$HTTP_PORT \
-    RENDERFARM_GRPC_HOST=0.0.0.0 RENDERFARM_GRPC_PORT=$GRPC_PORT \
-    RENDERFARM_TLS_CERT_FILE="$STATE/server/tls/tls.crt" \
-    RENDERFARM_TLS_KEY_FILE="$STATE/server/tls/tls.key" \
-    RENDERFARM_TLS_CLIENT_CA_FILE="$client_ca" \
-    "$ROOT/.venv/bin/renderfarm" server > "$STATE/server/server.log" 2>&1 &
-  wait_for 120 "the server" curl -sf --noproxy "*" --cacert "$STATE/tls/ca.crt" \
-    "https://$subnet.3:$HTTP_PORT/readyz"
+  # Server hosts: `renderfarm server` configured by the environment alone.
+  local name address
+  for i in $(seq 1 "$servers"); do
+    name=$(server_name "$i") address=$subnet.$((2 + i))
+    mkdir -p "$STATE/$name"
+    ip netns exec "$(ns "$name")" env \
+      RENDERFARM_ADMIN_TOKEN="$admin_token" RENDERFARM_WORKER_TOKEN="$worker_token" \
+      RENDERFARM_DATABASE_URL="$database_url" RENDERFARM_REPLICA_ID="$name" \
+      RENDERFARM_DATA_DIR="$STATE/$name" \
+      RENDERFARM_HTTP_HOST=0.0.0.0 RENDERFARM_HTTP_PORT=$HTTP_PORT \
+      RENDERFARM_GRPC_HOST=0.0.0.0 RENDERFARM_GRPC_PORT=$GRPC_PORT \
+      RENDERFARM_TLS_CERT_FILE="$STATE/server/tls/tls.crt" \
+      RENDERFARM_TLS_KEY_FILE="$STATE/server/tls/tls.key" \
+      RENDERFARM_TLS_CLIENT_CA_FILE="$client_ca" \
+      "$ROOT/.venv/bin/renderfarm" server > "$STATE/$name/server.log" 2>&1 &
+    wait_for 120 "the server $name" curl -sf --noproxy "*" --cacert "$STATE/tls/ca.crt" \
+      "https://$address:$HTTP_PORT/readyz"
+  done
 
   # Worker hosts: the worker image's entrypoint, configured by the environment alone.
   for i in $(seq 1 "$workers"); do
     mkdir -p "$STATE/worker$i"
     ip netns exec "$(ns "worker$i")" env \
-      RENDERFARM_SERVER="$subnet.3:$GRPC_PORT" \
+      RENDERFARM_SERVER="$grpc_all" \
       RENDERFARM_WORKER_TOKEN="$worker_token" \
       RENDERFARM_WORKER_ID="worker$i" \
       RENDERFARM_WORKER_THREADS="$threads" \
@@ -255,6 +293,7 @@ PG_EOF
   {
     echo "URL=https://$subnet.3:$HTTP_PORT"
     echo "GRPC=$subnet.3:$GRPC_PORT"
+    echo "URLS=\"$urls\""
     echo "CA_FILE=$STATE/tls/ca.crt"
     echo "MUTUAL_TLS=$mutual_tls"
     echo "ADMIN_TOKEN=$admin_token"
@@ -268,6 +307,9 @@ case "${1:-}" in
   down) [ -n "${2:-}" ] || die "usage: farm.sh down STATE_DIR"; cmd_down "$2" ;;
   cut) [ -n "${3:-}" ] || die "usage: farm.sh cut STATE_DIR HOST"; cmd_cut "$2" "$3" ;;
   restore) [ -n "${3:-}" ] || die "usage: farm.sh restore STATE_DIR HOST"; cmd_restore "$2" "$3" ;;
+  cut-db) [ -n "${3:-}" ] || die "usage: farm.sh cut-db STATE_DIR HOST"; cmd_cut_db "$2" "$3" ;;
+  restore-db) [ -n "${3:-}" ] || die "usage: farm.sh restore-db STATE_DIR HOST"
+    cmd_restore_db "$2" "$3" ;;
   sweep) cmd_sweep ;;
-  *) sed -n '2,27p' "$0" >&2; exit 2 ;;
+  *) sed -n '2,33p' "$0" >&2; exit 2 ;;
 esac
