@@ -78,9 +78,13 @@ def test_kill_9_of_one_of_two_servers_moves_its_job_to_the_other(tmp_path, datab
         worker = spawn_workers(1, f"{a.grpc_address},{b.grpc_address}", threads=1,
                                log_dir=tmp_path)  # fmt: skip
         try:
-            moved, took, done, replicas, again = _kill_a_mid_job(database, a, at_a, at_b)
+            moved, took, done, replicas, again, poller = _kill_a_mid_job(database, a, at_a, at_b)
         finally:
             stop_processes(worker)
+    # Meanwhile B, the survivor, answered every request about the job and the job list (2xx,
+    # or a 503/429 with Retry-After that the client followed).
+    assert poller.failures == [], poller.failures[:5]
+    assert poller.answers > 10
     assert took <= TAKEOVER_S, f"B took the job {took:.1f} s after A was killed"
     assert done["state"] == "completed" and done["progress"]["samples_merged"] == TOTAL
     assert tiles(database, moved) == tiles(database, again)
@@ -96,18 +100,24 @@ def _kill_a_mid_job(database: str, a: LocalFarm, at_a: Client, at_b: Client) -> 
     job = at_a.submit(CORNELL, settings=SETTINGS, name="moved")["id"]
     assert at_b.get(job)["replica"] == "A"  # B answers for it: A owns it
     wait_until(lambda: checkpointed(database, job) > 0.2 * TOTAL, 300, "a checkpoint of 20%")
-    a.server.send_signal(signal.SIGKILL)
-    killed = time.monotonic()
-    a.server.wait(timeout=30)
-    assert checkpointed(database, job) < TOTAL, "the job ended before A was killed"
-    wait_until(lambda: at_b.get(job)["replica"] == "B", 2 * TAKEOVER_S, "B to take the job")
-    took = time.monotonic() - killed
-    done = at_b.wait(job, poll_s=0.2, timeout_s=300)
+    poller = Poller([at_b.url], [job])
+    poller.thread.start()
+    try:
+        a.server.send_signal(signal.SIGKILL)
+        killed = time.monotonic()
+        a.server.wait(timeout=30)
+        assert checkpointed(database, job) < TOTAL, "the job ended before A was killed"
+        wait_until(lambda: at_b.get(job)["replica"] == "B", 2 * TAKEOVER_S, "B to take the job")
+        took = time.monotonic() - killed
+        done = at_b.wait(job, poll_s=0.2, timeout_s=300)
+    finally:
+        poller.stop.set()
+        poller.thread.join(timeout=60)
     replicas = {r["id"]: r for r in at_b.replicas()}
     # The same job, undisturbed, on B alone.
     again = at_b.submit(CORNELL, settings=SETTINGS, name="undisturbed")["id"]
     at_b.wait(again, poll_s=0.2, timeout_s=300)
-    return job, took, done, replicas, again
+    return job, took, done, replicas, again, poller
 
 
 # Long enough to be mid-render through a server joining or a rolling restart on a busy machine
