@@ -326,12 +326,20 @@ def test_compose_file_passes_docker_compose_config(compose_config):
     server, second = services["server"], services["server-2"]
     assert server["environment"]["RENDERFARM_REPLICA_ID"] == "server"
     assert second["environment"]["RENDERFARM_REPLICA_ID"] == "server-2"
+    # One farm: the same database (the compose PostgreSQL), each server under its own name.
+    replicas = [s["environment"]["RENDERFARM_REPLICA_ID"] for s in (server, second)]
+    assert len(set(replicas)) == 2
+    urls = {s["environment"]["RENDERFARM_DATABASE_URL"] for s in (server, second)}
+    assert len(urls) == 1 and "@postgres:5432/" in urls.pop()
     # The same server otherwise: image, database, tokens, TLS, health check, mounts.
     same = {k: v for k, v in second["environment"].items() if k != "RENDERFARM_REPLICA_ID"}
     assert same == {k: v for k, v in server["environment"].items() if k != "RENDERFARM_REPLICA_ID"}
     for key in ("image", "build", "volumes", "healthcheck", "depends_on", "stop_grace_period"):
         assert second[key] == server[key], key
-    assert not second.get("ports"), "server-2 is reached inside the compose network only"
+    # server-2 publishes its gRPC port alone (for remote workers), on a host port of its own.
+    assert {p.rsplit(":", 1)[-1].split("/")[0] for p in second["ports"]} == {"50051"}
+    host_ports = [p.rsplit(":", 1)[0] for p in server["ports"] + second["ports"]]
+    assert len(set(host_ports)) == len(host_ports) == 3, host_ports
     assert set(services["prometheus"]["depends_on"]) >= {"server", "server-2"}
     assert server["depends_on"]["postgres"]["condition"] == "service_healthy"
     env = server["environment"]
@@ -350,6 +358,60 @@ def test_compose_file_passes_docker_compose_config(compose_config):
     mounts = " ".join(services["prometheus"]["volumes"] + services["grafana"]["volumes"])
     assert str(DEPLOY / "prometheus" / "prometheus.yml") in mounts
     assert str(DEPLOY / "grafana" / "provisioning") in mounts
+
+
+def _image_commands(dockerfile: Path) -> dict[str, Path]:
+    """Commands the image's final stage copies into /usr/local/bin: name -> repository file."""
+    return {
+        dest.removeprefix("/usr/local/bin/"): ROOT / src
+        for op, rest in _stages(dockerfile)[-1]
+        if op == "COPY" and not rest.startswith("--from")
+        for src, dest in [rest.split()]
+        if dest.startswith("/usr/local/bin/")
+    }
+
+
+def test_compose_worker_health_check_passes_while_either_server_accepts(compose_config, tmp_path):
+    """The workers' health check (compose's, and the worker image's own) tries every server of
+    RENDERFARM_SERVER: healthy while one accepts, so a server restarting leaves them healthy;
+    unhealthy when none does. Run here with each server host replaced by a loopback port."""
+    import json
+    import socket
+
+    worker = compose_config["services"]["worker"]
+    check = worker["healthcheck"]["test"]
+    assert check[0] == "CMD", check
+    commands = _image_commands(DOCKER / "worker.Dockerfile")
+    image = next(r for op, r in _stages(DOCKER / "worker.Dockerfile")[-1] if op == "HEALTHCHECK")
+    assert json.loads(image[image.index("CMD ") + 4 :]) == check[1:], "the image's own check"
+    script = commands[check[1]]
+    assert script.is_file() and os.access(script, os.X_OK), script
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    (bindir / check[1]).symlink_to(script)
+    entries = worker["environment"]["RENDERFARM_SERVER"].split(",")
+    assert len(entries) == 2
+    listening = [socket.create_server(("127.0.0.1", 0)) for _ in entries]
+    closed = []
+    for _ in entries:
+        with socket.create_server(("127.0.0.1", 0)) as s:
+            closed.append(s.getsockname()[1])
+    try:
+
+        def health(ports: list[int]) -> int:
+            env = {"PATH": f"{bindir}:{os.environ['PATH']}",
+                   "RENDERFARM_SERVER": ",".join(f"127.0.0.1:{p}" for p in ports)}  # fmt: skip
+            return _run(check[1:], env=env).returncode
+
+        up = [s.getsockname()[1] for s in listening]
+        assert health(up) == 0
+        assert health([closed[0], up[1]]) == 0, "the first server away: still healthy"
+        assert health([up[0], closed[1]]) == 0, "the second server away: still healthy"
+        assert health(closed) != 0, "no server reachable: unhealthy"
+        assert health(up[:1]) == 0 and health(closed[:1]) != 0, "one server, as with docker run"
+    finally:
+        for s in listening:
+            s.close()
 
 
 def test_compose_refuses_missing_passwords_and_invalid_files(tmp_path):
@@ -389,6 +451,13 @@ def test_compose_settings_are_environment_variables_documented_in_the_docs(compo
         if field.startswith("tls_"):  # TLS: on in the deployment, checked on its own below
             continue
         assert float(value) == float(getattr(defaults, field)), key
+    # A stopped server checkpoints, hands its jobs over and exits before Docker's SIGKILL.
+    for name in ("server", "server-2"):
+        svc = compose_config["services"][name]
+        drain = svc["environment"].get("RENDERFARM_DRAIN_TIMEOUT_S", defaults.drain_timeout_s)
+        drain = float(drain)
+        grace = re.fullmatch(r"(\d+)s", svc["stop_grace_period"])
+        assert grace and drain <= int(grace.group(1)), (name, svc["stop_grace_period"])
 
 
 def _mounts(service: dict) -> dict[str, str]:
@@ -644,6 +713,10 @@ def test_prometheus_scrapes_the_server_and_grafana_is_provisioned(compose_config
         assert needed in titles, needed
     for panel in dash["panels"]:
         assert panel["datasource"]["uid"] == datasources[0]["uid"]
+    # Several servers: each exports its own jobs' figures (summed), but a worker serving every
+    # server is connected to each, so a sum of the connected workers counts it once per server.
+    for query in _dashboard_queries():
+        assert not re.search(r"sum\b[^;]*renderfarm_workers_connected", query), query
 
 
 def test_dashboard_and_autoscaling_use_metrics_the_server_exports(farm):
@@ -788,7 +861,8 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     expected = {
         "Namespace/renderfarm", "Deployment/renderfarm-server", "Service/renderfarm-server",
         "Deployment/renderfarm-worker", "PodDisruptionBudget/renderfarm-worker",
-        "ScaledObject/renderfarm-worker",
+        "ScaledObject/renderfarm-worker", "Service/renderfarm-server-workers",
+        "PodDisruptionBudget/renderfarm-server",
     }  # fmt: skip
     assert expected <= set(kinds), kinds
     assert any(k.startswith("ConfigMap/renderfarm-config-") for k in kinds)
@@ -840,6 +914,13 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     assert server_env["RENDERFARM_REPLICA_ID"]["valueFrom"]["fieldRef"]["fieldPath"] == (
         "metadata.name"
     )
+    # On SIGTERM a server drains (checkpoint, release its jobs, exit) before the kubelet's
+    # SIGKILL: the drain timeout (set, or the server's default) fits the grace period.
+    from renderfarm.infra.config import Settings
+
+    drain = server_env.get("RENDERFARM_DRAIN_TIMEOUT_S", {}).get("value")
+    drain = float(drain) if drain is not None else Settings().drain_timeout_s
+    assert drain <= server["template"]["spec"]["terminationGracePeriodSeconds"]
     spdb = by[("PodDisruptionBudget", "renderfarm-server")]["spec"]
     slabels = server["template"]["metadata"]["labels"]
     assert spdb["maxUnavailable"] == 1
@@ -863,8 +944,7 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     labels = server["template"]["metadata"]["labels"]
     assert all(labels.get(k) == v for k, v in service["selector"].items())
     assert {p["targetPort"] for p in service["ports"]} == {"http", "grpc"}
-    from renderfarm.infra.config import Settings
-
+    assert service.get("clusterIP") != "None", "clients use one address, any replica answers"
     Settings(**{k.removeprefix("RENDERFARM_").lower(): v for k, v in config.items()})
 
     # The workers: resource requests, a preStop drain, the server's Service as their server.
@@ -877,13 +957,19 @@ def test_kubernetes_manifests_build_and_validate_offline(k8s_tree, overlay):
     # The workers serve every server: a headless Service resolves to each ready server pod.
     assert wenv["RENDERFARM_SERVER"]["value"] == f"renderfarm-server-workers:{ports['grpc']}"
     headless = by[("Service", "renderfarm-server-workers")]["spec"]
-    assert headless["clusterIP"] == "None" and not headless.get("publishNotReadyAddresses")
+    assert headless["clusterIP"] == "None" and headless["publishNotReadyAddresses"] is False
     assert headless["selector"] == service["selector"]
+    assert all(slabels.get(k) == v for k, v in headless["selector"].items())
+    worker_labels = worker["template"]["metadata"]["labels"]
+    assert not all(worker_labels.get(k) == v for k, v in headless["selector"].items()), (
+        "the headless Service selects the server pods only"
+    )
     assert [(p["port"], p["targetPort"]) for p in headless["ports"]] == [(ports["grpc"], "grpc")]
     pdb = by[("PodDisruptionBudget", "renderfarm-worker")]["spec"]
     wlabels = worker["template"]["metadata"]["labels"]
     assert all(wlabels.get(k) == v for k, v in pdb["selector"]["matchLabels"].items())
-    assert "renderfarm_queue_depth" in _scaledobject_queries()[0]
+    # Each server exports the queue depth of the jobs it owns: the farm's is their sum.
+    assert re.match(r"sum\(renderfarm_queue_depth\b", _scaledobject_queries()[0])
     _check_kubernetes_tls(docs, config)
 
 
@@ -917,6 +1003,14 @@ def _check_kubernetes_tls(docs: list[dict], config: dict) -> None:
     assert wenv["RENDERFARM_WORKER_TLS"] == "1"
     host = wenv["RENDERFARM_SERVER"].rsplit(":", 1)[0]
     assert host in server_cert["dnsNames"], "the workers' server name is not in the certificate"
+    # Every form of both Services' names (the workers' headless one, the clients' one): a
+    # worker or client in another namespace, or with the cluster domain, checks it too.
+    namespace = by[("Deployment", "renderfarm-server")]["metadata"]["namespace"]
+    for name in (host, "renderfarm-server"):
+        forms = [name, f"{name}.{namespace}", f"{name}.{namespace}.svc"]
+        forms.append(f"{name}.{namespace}.svc.cluster.local")
+        missing = set(forms) - set(server_cert["dnsNames"])
+        assert not missing, f"not in the server certificate: {missing}"
     assert any(
         d["kind"] == "Service" and d["metadata"]["name"] == host for d in docs
     ), "the workers connect to the server's Service"  # fmt: skip

@@ -34,12 +34,14 @@ RUN /usr/local/share/renderfarm/scripts/install-deps.sh --runtime worker \
       --shell /usr/sbin/nologin renderfarm
 COPY --from=build /src/build/worker/renderfarm-worker /usr/local/bin/renderfarm-worker
 COPY deploy/docker/worker-entrypoint.sh /usr/local/bin/worker-entrypoint
+COPY deploy/docker/worker-healthcheck.sh /usr/local/bin/worker-healthcheck
 ENV RENDERFARM_WORKER_CACHE_DIR=/var/lib/renderfarm/scenes
 USER 10001:10001
 WORKDIR /var/lib/renderfarm
-# Healthy while the server's gRPC port accepts connections from here (the worker reconnects
-# with backoff on its own; this makes an unreachable server visible in `docker compose ps`).
+# Healthy while the gRPC port of a server of RENDERFARM_SERVER (one, or every server of the
+# farm, comma-separated) accepts connections from here (the worker reconnects with backoff on
+# its own; this makes a worker that reaches no server visible in `docker compose ps`).
 HEALTHCHECK --interval=15s --timeout=3s --start-period=10s --retries=3 \
-  CMD ["bash", "-c", "exec 3<>/dev/tcp/${RENDERFARM_SERVER%:*}/${RENDERFARM_SERVER##*:}"]
+  CMD ["worker-healthcheck"]
 STOPSIGNAL SIGTERM
 ENTRYPOINT ["worker-entrypoint"]
