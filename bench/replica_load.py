@@ -79,8 +79,9 @@ def database_writes(url: str) -> tuple[int, int]:
     return int(row[0]), int(row[1])
 
 
-def fleet(addresses: list[str], workers: int, seconds: float, sent) -> None:
+def fleet(addresses: list[str], workers: int, seconds: float, sent, cpus: set[int]) -> None:
     """The load generator: `workers` synthetic workers, each with a stream to every server."""
+    os.sched_setaffinity(0, cpus)
     stop_at = time.monotonic() + seconds
 
     async def run():
@@ -113,6 +114,10 @@ def measure(replicas: int, workers: int, seconds: float, cache_mb: int, data: Pa
         cores = os.cpu_count() or 1
         for i, farm in enumerate(farms):
             pin_process(farm.server.pid, {i % cores})
+        # The fleet and PostgreSQL get the cores no server has (all of them when none is left).
+        spare = set(range(replicas, cores)) or set(range(cores))
+        for pid in postgres_pids(db.pgdata):
+            pin_process(pid, spare)
         settings = {"width": 2048, "height": 2048, "tile_size": TILE, "noise_threshold": 0}
         settings["max_spp"] = 1 << 20
         with Client(farms[0].url) as client:
@@ -127,7 +132,7 @@ def measure(replicas: int, workers: int, seconds: float, cache_mb: int, data: Pa
         sent = Value("q", 0)
         gen = Process(
             target=fleet,
-            args=([f.grpc_address for f in farms], workers, seconds + 5, sent),
+            args=([f.grpc_address for f in farms], workers, seconds + 5, sent, spare),
         )
         gen.start()
         time.sleep(5)  # warm-up: streams connected, first leases out

@@ -56,19 +56,51 @@ static inline double load(const void *data, int itemsize, Py_ssize_t i) {
 
 PyDoc_STRVAR(merge_doc,
              "merge(pixels, n_a, n_b, rgb_sum, lum_mean, m2_within, m2_between, batch_rgb,\n"
-             "      batch_m2, out_rgb_sum, out_lum_mean, out_m2_within, out_m2_between)\n"
+             "      batch_m2, out_rgb_sum, out_lum_mean, out_m2_within, out_m2_between,\n"
+             "      error_terms=0, k=0.0, floor=0.0) -> float\n"
              "--\n\n"
              "Merge one batch of n_b samples per pixel into statistics of n_a samples (Chan et\n"
-             "al.), writing the merged statistics to the out_ arrays (which may be the inputs).");
+             "al.), writing the merged statistics to the out_ arrays (which may be the inputs).\n"
+             "In the same pass, the sum over pixels of the squared relative error of the merged\n"
+             "statistics (squared_relative_error's), with the variance of the mean\n"
+             "(m2_within + m2_between) * k for error_terms 1, m2_between * k for 2, m2_within * k\n"
+             "for 3; error_terms 0 returns inf (no estimate yet).");
+
+/* The error terms of merge(): which M2 arrays make the variance of the mean. */
+enum { kErrorNone = 0, kErrorBoth = 1, kErrorBetween = 2, kErrorWithin = 3 };
+
+/* One pixel of merge(): the merged statistics, and its squared relative error (or 0). */
+#define MERGE_PIXEL(r, g, bl, batch_m2_value)                                                   \
+    do {                                                                                      \
+        const double delta = (kLumR * (r) + kLumG * (g) + kLumB * (bl)) * inv_b - mean[p];   \
+        const double nb = has_between ? between[p] + delta * delta * gain : between[p];       \
+        const double nm = mean[p] + delta * step;                                            \
+        const double nw = within[p] + (batch_m2_value);                                      \
+        out_between[p] = nb;                                                                  \
+        out_mean[p] = nm;                                                                     \
+        out_within[p] = nw;                                                                   \
+        out_rgb[3 * p] = rgb[3 * p] + (r);                                                    \
+        out_rgb[3 * p + 1] = rgb[3 * p + 1] + (g);                                            \
+        out_rgb[3 * p + 2] = rgb[3 * p + 2] + (bl);                                           \
+        if (terms != kErrorNone) {                                                            \
+            const double v = (terms == kErrorBoth ? nw + nb : terms == kErrorBetween ? nb : nw) \
+                             * k;                                                             \
+            const double s = sqrt(v);                                                         \
+            const double bound = nm - s;                                                      \
+            const double rel = s / (bound > floor_value ? bound : floor_value);               \
+            total += rel * rel;                                                               \
+        }                                                                                     \
+    } while (0)
 
 static PyObject *merge(PyObject *self, PyObject *args) {
     (void)self;
     Py_ssize_t pixels;
-    double n_a, n_b;
+    double n_a, n_b, k = 0.0, floor_value = 0.0;
+    int terms = kErrorNone;
     PyObject *objs[10];
-    if (!PyArg_ParseTuple(args, "nddOOOOOOOOOO", &pixels, &n_a, &n_b, &objs[0], &objs[1],
+    if (!PyArg_ParseTuple(args, "nddOOOOOOOOOO|idd", &pixels, &n_a, &n_b, &objs[0], &objs[1],
                           &objs[2], &objs[3], &objs[4], &objs[5], &objs[6], &objs[7], &objs[8],
-                          &objs[9])) {
+                          &objs[9], &terms, &k, &floor_value)) {
         return NULL;
     }
     static const char *names[10] = {"rgb_sum",      "lum_mean",      "m2_within",
@@ -77,6 +109,10 @@ static PyObject *merge(PyObject *self, PyObject *args) {
                                     "out_m2_between"};
     if (pixels <= 0 || !(n_b > 0) || !(n_a >= 0)) {
         PyErr_SetString(PyExc_ValueError, "merge: pixels > 0, n_a >= 0 and n_b > 0 are required");
+        return NULL;
+    }
+    if (terms < kErrorNone || terms > kErrorWithin) {
+        PyErr_SetString(PyExc_ValueError, "merge: error_terms is 0, 1, 2 or 3");
         return NULL;
     }
     Buffer b[10];
@@ -113,19 +149,74 @@ static PyObject *merge(PyObject *self, PyObject *args) {
     const double inv_b = 1.0 / n_b, n = n_a + n_b;
     const double gain = n_a * n_b / n, step = n_b / n;
     const int has_between = n_a > 0;
-    for (Py_ssize_t p = 0; p < pixels; ++p) {
-        const double r = load(batch_rgb, rgb_size, 3 * p), g = load(batch_rgb, rgb_size, 3 * p + 1),
-                     bl = load(batch_rgb, rgb_size, 3 * p + 2);
-        const double delta = (kLumR * r + kLumG * g + kLumB * bl) * inv_b - mean[p];
-        out_between[p] = has_between ? between[p] + delta * delta * gain : between[p];
-        out_mean[p] = mean[p] + delta * step;
-        out_within[p] = within[p] + load(batch_m2, m2_size, p);
-        out_rgb[3 * p] = rgb[3 * p] + r;
-        out_rgb[3 * p + 1] = rgb[3 * p + 1] + g;
-        out_rgb[3 * p + 2] = rgb[3 * p + 2] + bl;
+    double total = 0.0;
+    if (rgb_size == 4 && m2_size == 4) {  /* what workers send: a loop of its own */
+        const float *in = batch_rgb, *in_m2 = batch_m2;
+        for (Py_ssize_t p = 0; p < pixels; ++p) {
+            MERGE_PIXEL((double)in[3 * p], (double)in[3 * p + 1], (double)in[3 * p + 2],
+                        (double)in_m2[p]);
+        }
+    } else {
+        for (Py_ssize_t p = 0; p < pixels; ++p) {
+            MERGE_PIXEL(load(batch_rgb, rgb_size, 3 * p), load(batch_rgb, rgb_size, 3 * p + 1),
+                        load(batch_rgb, rgb_size, 3 * p + 2), load(batch_m2, m2_size, p));
+        }
     }
     release(b, 10);
-    Py_RETURN_NONE;
+    return PyFloat_FromDouble(terms == kErrorNone ? INFINITY : total);
+}
+
+#undef MERGE_PIXEL
+
+PyDoc_STRVAR(all_finite_doc,
+             "all_finite(values) -> bool\n"
+             "--\n\n"
+             "Whether every value of a float32 or float64 array is finite; one pass, no\n"
+             "temporaries.");
+
+static PyObject *all_finite(PyObject *self, PyObject *arg) {
+    (void)self;
+    Buffer b;
+    memset(&b, 0, sizeof b);
+    if (PyObject_GetBuffer(arg, &b.view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) != 0) {
+        PyErr_SetString(PyExc_TypeError, "all_finite: a C-contiguous buffer is required");
+        return NULL;
+    }
+    b.held = 1;
+    const Py_ssize_t itemsize = b.view.itemsize;
+    const char *format = b.view.format ? b.view.format : "B";
+    if (format[0] == '<' || format[0] == '=') ++format;
+    if (!((itemsize == 4 && strcmp(format, "f") == 0) ||
+          (itemsize == 8 && strcmp(format, "d") == 0))) {
+        release(&b, 1);
+        PyErr_SetString(PyExc_TypeError, "all_finite: float32 or float64 values are required");
+        return NULL;
+    }
+    int finite = 1;
+    const Py_ssize_t count = b.view.len / itemsize;
+    /* A value is finite when its exponent bits are not all ones: an integer test the
+     * compiler vectorises, OR-reduced so that the loop has no early exit. */
+    if (itemsize == 4) {
+        const uint32_t *bits = b.view.buf;
+        uint32_t bad = 0;
+        for (Py_ssize_t i = 0; i < count; ++i) {
+            uint32_t v;
+            memcpy(&v, bits + i, 4);
+            bad |= (uint32_t)((v & 0x7f800000u) == 0x7f800000u);
+        }
+        finite = !bad;
+    } else {
+        const uint64_t *bits = b.view.buf;
+        uint64_t bad = 0;
+        for (Py_ssize_t i = 0; i < count; ++i) {
+            uint64_t v;
+            memcpy(&v, bits + i, 8);
+            bad |= (uint64_t)((v & 0x7ff0000000000000ull) == 0x7ff0000000000000ull);
+        }
+        finite = !bad;
+    }
+    release(&b, 1);
+    return PyBool_FromLong(finite);
 }
 
 PyDoc_STRVAR(squared_relative_error_doc,
@@ -336,6 +427,7 @@ static PyObject *exr_tile(PyObject *self, PyObject *args) {
 
 static PyMethodDef methods[] = {
     {"merge", merge, METH_VARARGS, merge_doc},
+    {"all_finite", all_finite, METH_O, all_finite_doc},
     {"squared_relative_error", squared_relative_error, METH_VARARGS, squared_relative_error_doc},
     {"block_means", block_means, METH_VARARGS, block_means_doc},
     {"exr_tile", exr_tile, METH_VARARGS, exr_tile_doc},

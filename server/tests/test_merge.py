@@ -153,21 +153,45 @@ def test_checkpoint_round_trip():
         TileAccumulator.from_bytes(W, H, acc.to_bytes(), 1, 1, aovs=b"\0" * 8)
 
 
+@pytest.mark.parametrize("wire", [np.float64, np.float32])
 @pytest.mark.parametrize("iid", [False, True])
 @pytest.mark.parametrize("max_spp", [1, 2, 40])
-def test_tile_error_is_the_rms_of_the_pixel_errors(iid, max_spp):
-    """tile_error() is the RMS of relative_error(), the per-pixel definition, at every stage
+def test_tile_error_is_the_rms_of_the_pixel_errors(iid, max_spp, wire):
+    """tile_error(), and merge_batch()'s return (the same error computed in the merge's own
+    pass), are the RMS of relative_error(), the per-pixel definition in numpy, at every stage
     (inf while no estimate exists)."""
     rng = np.random.default_rng(11)
     acc = TileAccumulator(W, H, iid=iid)
     for samples in _batches(rng, max_spp):
-        acc.merge_batch(*_batch_payload(samples))
+        rgb, m2, count = _batch_payload(samples)
+        returned = acc.merge_batch(rgb.astype(wire), m2.astype(wire), count)
         rel = acc.relative_error()
         expected = float(np.sqrt(np.mean(rel * rel)))
         if np.isinf(expected):
-            assert acc.tile_error() == float("inf")
+            assert acc.tile_error() == float("inf") and returned == float("inf")
         else:
             assert acc.tile_error() == pytest.approx(expected, rel=1e-12)
+            assert returned == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, ">f4", np.int32])
+def test_all_finite_finds_every_nan_and_infinity(dtype):
+    """all_finite() (one C pass for what results carry) agrees with numpy's isfinite at every
+    position of a tile-sized array, for NaN, +inf and -inf, and for the largest finite value."""
+    from renderfarm.domain.merge import all_finite
+
+    values = np.linspace(-3.0, 3.0, 64 * 64 * 3).astype(dtype)
+    assert all_finite(values)
+    if np.dtype(dtype).kind != "f":
+        return
+    big = values.copy()
+    big[17] = np.finfo(big.dtype).max
+    assert all_finite(big)
+    for bad in (np.nan, np.inf, -np.inf):
+        for at in (0, 1, 4095, values.size - 1):
+            broken = values.copy()
+            broken[at] = bad
+            assert not all_finite(broken) and not np.isfinite(broken).all()
 
 
 def test_float32_batches_merge_as_their_float64_values():

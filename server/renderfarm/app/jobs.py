@@ -48,6 +48,7 @@ from ..infra.store import JobRow
 from ..infra.usd_import import UsdImport
 from . import checkpoints
 from .auth import Caller, check_caller
+from .broadcast import Broadcast
 from .collaborators import Clock, Ownership, SceneInspector, UsdConverter
 from .history import History
 from .job_control import JobControl
@@ -91,7 +92,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         _pending_finishes *       jobs (_after_change), write_behind write_behind
                                   (flush pops)                         (_reported_state),
                                                                      job_control (bring back)
-        _changed * (Condition)    notified by jobs, write_behind     waited on by jobs (watch),
+        _changed * (Broadcast)    notified by jobs, write_behind     waited on by jobs (watch),
                                                                      write_behind (stored)
         _waiting_dirty *          jobs, job_control, write_behind    jobs (_round)
         _generation *             job_control (bring back)           jobs (_forget_later)
@@ -145,6 +146,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self._movie_turn = asyncio.Lock()  # one preview movie encoded at a time (job_movies.py)
         self._checkpoint_rate = CheckpointRate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
+        self._completed: dict[str, Any] = {}  # worker_sessions: tasks_completed by outcome
         self.names: dict[str, str] = {}  # job id -> name for live jobs
         self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
         self.owners: dict[str, str] = {}  # job id -> owner (token name) for live jobs
@@ -153,7 +155,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self._generation: dict[str, int] = {}
         self._waiting_dirty = True  # waiting jobs' dependencies to be checked again
         self._reactivating: set[str] = set()  # retries and continues under way
-        self._changed = asyncio.Condition()
+        self._changed = Broadcast()
         self._tasks: list[asyncio.Task] = []
         self._last_checkpoint = clock()
         self.metrics = None  # a metrics.Metrics, set by the server
@@ -720,17 +722,14 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         while not view.state.finished:
             job = self.scheduler.jobs.get(job_id)
             version = job.version if job else None
-            async with self._changed:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(
-                        self._changed.wait_for(
-                            lambda seen=version: (
-                                (self.scheduler.jobs.get(job_id) is None)
-                                or self.scheduler.jobs[job_id].version != seen
-                            )
-                        ),
-                        timeout=5.0,
-                    )
+            with contextlib.suppress(TimeoutError):
+                await self._changed.wait_for(
+                    lambda seen=version: (
+                        (self.scheduler.jobs.get(job_id) is None)
+                        or self.scheduler.jobs[job_id].version != seen
+                    ),
+                    timeout=5.0,
+                )
             view = await self.get(job_id, caller)
             if view != last:
                 yield view
@@ -907,8 +906,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         # up a merge or a worker stream.
         self._pending_events.extend((e.job_id, e.kind, e.data) for e in events)
         self._pending_finishes.extend(finished)
-        async with self._changed:
-            self._changed.notify_all()
+        self._changed.notify()
 
     def _forget_later(self, job_id: str) -> None:
         """Keep a finished job in memory for a minute (fast image requests), then drop it.

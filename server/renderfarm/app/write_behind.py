@@ -208,23 +208,20 @@ class WriteBehind:
         job = self.scheduler.jobs.get(job_id)
         if job is not None:
             job.version += 1
-        async with self._changed:
-            self._changed.notify_all()
+        self._changed.notify()
 
     async def _until_stored(self, job_id: str) -> None:
         """Wait for the background writer to store a finished job's final state; while the
         database does not take it the caller is told to retry (DatabaseUnavailable)."""
-        async with self._changed:
-            try:
-                await asyncio.wait_for(
-                    self._changed.wait_for(lambda: job_id not in self._pending_finishes),
-                    timeout=STORED_WAIT_S,
-                )
-            except TimeoutError:
-                raise DatabaseUnavailable(
-                    f"database unavailable: job {job_id} is stopped, but its final state is "
-                    "not stored yet"
-                ) from None
+        try:
+            await self._changed.wait_for(
+                lambda: job_id not in self._pending_finishes, timeout=STORED_WAIT_S
+            )
+        except TimeoutError:
+            raise DatabaseUnavailable(
+                f"database unavailable: job {job_id} is stopped, but its final state is "
+                "not stored yet"
+            ) from None
 
     def _spool_unsaved(self) -> None:
         """The final flush failed: keep whatever is not stored in the spool, replayed at the

@@ -32,8 +32,9 @@ pixel (s / mean = e small) it changes the error only by a factor 1 / (1 - e).
 Relative error of a tile: root mean square of its pixels' relative errors.
 
 The per-pixel loops of merge_batch() and tile_error() are fused in C (_kernels.c, built with
-the package): one pass over a tile's arrays instead of a dozen numpy passes, which matters on
-a server merging thousands of results a second (bench/server_merge.py). The arithmetic is the
+the package; merge_batch() computes the merged tile's error in its own pass): one pass over a
+tile's arrays instead of a dozen numpy passes, which matters on a server merging thousands of
+results a second (bench/server_merge.py). The arithmetic is the
 same; relative_error() states it in numpy, and the tests hold the C loops to it and to the
 statistics of all samples computed at once.
 
@@ -51,6 +52,14 @@ from .. import _kernels
 from .tiling import AOV_SAMPLES, carries_aovs
 
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
+
+
+def all_finite(values) -> bool:
+    """Whether every value is finite: one pass in C for float32/float64 (what results carry)."""
+    a = np.ascontiguousarray(values)
+    if a.dtype in (np.float32, np.float64):
+        return _kernels.all_finite(a)
+    return bool(np.isfinite(a).all())
 
 
 def _batch_array(values) -> np.ndarray:
@@ -140,9 +149,10 @@ class TileAccumulator:
         normal_sum: np.ndarray | None = None,
         nonfinite: int = 0,
         coverage_sum: np.ndarray | None = None,
-    ) -> None:
+    ) -> float:
         """Merge one batch of `sample_count` samples per pixel (Chan et al. 1979). A batch
-        without coverage_sum adds no coverage (its samples count as misses in the alpha)."""
+        without coverage_sum adds no coverage (its samples count as misses in the alpha).
+        Returns the merged tile's tile_error(), computed in the same pass."""
         if sample_count <= 0:
             raise ValueError("a batch has at least one sample")
         shape = (self.height, self.width)
@@ -153,10 +163,12 @@ class TileAccumulator:
         out = tuple(
             np.empty_like(a) for a in (self.rgb_sum, self.lum_mean, self.m2_within, self.m2_between)
         )
+        terms, k = self._error_terms(self.samples + sample_count, self.batches + 1)
         # One fused pass (_kernels.c): the luminance of the batch's mean, delta to the running
         # mean, m2_between += delta^2 n_a n_b / n (none for a first batch), the running mean,
-        # m2_within and the RGB sum; float32 or float64 input, float64 arithmetic.
-        _kernels.merge(
+        # m2_within and the RGB sum, and the merged statistics' squared relative errors; float32
+        # or float64 input, float64 arithmetic.
+        total = _kernels.merge(
             self.height * self.width,
             n_a,
             float(sample_count),
@@ -167,6 +179,9 @@ class TileAccumulator:
             _batch_array(rgb_sum),
             _batch_array(luminance_m2),
             *out,
+            terms,
+            k,
+            DARK_FLOOR,
         )
         self.rgb_sum, self.lum_mean, self.m2_within, self.m2_between = out
         if coverage_sum is not None:  # a new array (copy on write, as above)
@@ -182,6 +197,7 @@ class TileAccumulator:
         self.samples += sample_count
         self.batches += 1
         self.nonfinite += nonfinite
+        return math.sqrt(total / (self.height * self.width)) if terms else math.inf
 
     def mean_rgb(self) -> np.ndarray:
         if self.samples == 0:
@@ -203,18 +219,32 @@ class TileAccumulator:
     def mean_normal(self) -> np.ndarray:
         return self.normal_sum / max(1, self.aov_samples)
 
-    def _variance_terms(self) -> tuple[tuple[np.ndarray, ...], float] | None:
-        """(M2 arrays, k) with variance of the mean = sum(M2 arrays) * k per pixel; None while
-        unknown."""
-        n = self.samples
+    # _error_terms()' kinds, as _kernels.merge() takes them: which M2 arrays sum to the
+    # variance of the mean (times k).
+    _TERMS_NONE, _TERMS_BOTH, _TERMS_BETWEEN, _TERMS_WITHIN = 0, 1, 2, 3
+
+    def _error_terms(self, n: int, batches: int) -> tuple[int, float]:
+        """(kind, k) of the variance of the mean with n samples in `batches` batches."""
         if self.iid and n >= 2:
             # Independent samples: the pooled M2 over every sample is exact and has N - 1
             # degrees of freedom instead of B - 1, so its estimate is far less noisy.
-            return (self.m2_within, self.m2_between), 1.0 / ((n - 1) * n)
-        if self.batches >= 2:
-            return (self.m2_between,), 1.0 / ((self.batches - 1) * n)
+            return self._TERMS_BOTH, 1.0 / ((n - 1) * n)
+        if batches >= 2:
+            return self._TERMS_BETWEEN, 1.0 / ((batches - 1) * n)
         if n >= 2:
-            return (self.m2_within,), 1.0 / ((n - 1) * n)
+            return self._TERMS_WITHIN, 1.0 / ((n - 1) * n)
+        return self._TERMS_NONE, 0.0
+
+    def _variance_terms(self) -> tuple[tuple[np.ndarray, ...], float] | None:
+        """(M2 arrays, k) with variance of the mean = sum(M2 arrays) * k per pixel; None while
+        unknown."""
+        terms, k = self._error_terms(self.samples, self.batches)
+        if terms == self._TERMS_BOTH:
+            return (self.m2_within, self.m2_between), k
+        if terms == self._TERMS_BETWEEN:
+            return (self.m2_between,), k
+        if terms == self._TERMS_WITHIN:
+            return (self.m2_within,), k
         return None
 
     def variance_of_mean(self) -> np.ndarray:

@@ -29,11 +29,9 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-import numpy as np
-
 from .frames import job_frames, job_rects, tiles_per_frame
 from .jobspec import JobSettings
-from .merge import TileAccumulator
+from .merge import TileAccumulator, all_finite
 from .records import (
     TASK_LOG_MAX,
     WORKER_MODES,
@@ -750,13 +748,12 @@ class Scheduler:
             self._use(tile)
             r = tile.pending.pop(tile.merged)
             tile.aovs_dirty |= carries_aovs(r.sample_start)
-            tile.acc.merge_batch(
+            tile.error = tile.acc.merge_batch(
                 r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite,
                 r.coverage_sum,
             )  # fmt: skip
             job.samples_merged += r.sample_count * tile.rect.pixels
             self._record_merge(job)
-            tile.error = tile.acc.tile_error()
             tile.dirty = True
             outcome = "merged" if r is result or outcome == "merged" else outcome
             self._decide_stop(job, tile)
@@ -786,7 +783,7 @@ class Scheduler:
             return "array sizes"
         # A NaN or infinity would poison the tile's sums for good (workers count non-finite
         # samples and send zeros in their place).
-        if not (np.isfinite(r.rgb_sum).all() and np.isfinite(r.luminance_m2).all()):
+        if not (all_finite(r.rgb_sum) and all_finite(r.luminance_m2)):
             return "non-finite values"
         return ""
 
