@@ -614,6 +614,90 @@ def test_a_composition_arc_outside_the_upload_is_refused_before_it_is_opened(tmp
     assert refused.value.field == field
 
 
+_MTLX = """<?xml version="1.0"?>
+<materialx version="1.38">
+  <standard_surface name="SR_red" type="surfaceshader">
+    <input name="base_color" type="color3" value="1, 0, 0" />
+  </standard_surface>
+  <surfacematerial name="Red" type="material">
+    <input name="surfaceshader" type="surfaceshader" nodename="SR_red" />
+  </surfacematerial>
+</materialx>
+"""
+
+
+def _node_material(doc: dict, name: str) -> dict:
+    node = next(n for n in doc["nodes"] if n.get("name") == name and "mesh" in n)
+    return doc["materials"][doc["meshes"][node["mesh"]]["primitives"][0]["material"]]
+
+
+@pytest.mark.parametrize("arc", ["reference", "payload", "sublayer", "variant"])
+def test_a_materialx_document_composed_as_a_layer_is_dropped_with_one_warning(tmp_path, arc):
+    """A stage composing a .mtlx document as a layer (as the USD Working Group's MaterialX
+    assets and Houdini's exports do) converts without it: one warning names the prim (the
+    layer for a sublayer) and the document, a mesh bound to one of its materials gets the
+    default material (0.18 grey: no displayColor), a mesh bound to a UsdPreviewSurface keeps
+    its own, and neither the .mtlx (not even XML here) nor the layer's file is read or
+    changed."""
+    root = tmp_path / "upload"
+    (root / "looks").mkdir(parents=True)
+    (root / "looks" / "red.mtlx").write_text("not XML: a MaterialX document never opened")
+    stage = new_stage(root)
+    unit_cube(stage, "/Plain")
+    unit_cube(stage, "/Blue").AddTranslateOp().Set(Gf.Vec3d(3, 0, 0))
+    blue = _material(stage, "/Looks/Blue", diffuseColor=(0.0, 0.0, 1.0))
+    UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath("/Blue")).Bind(blue)
+    holder = stage.DefinePrim("/MaterialX", "Scope")
+    if arc == "reference":
+        holder.GetReferences().AddReference("./looks/red.mtlx", "/MaterialX")
+        warned = "/MaterialX: the reference to the MaterialX document ./looks/red.mtlx is dropped"
+    elif arc == "payload":
+        holder.GetPayloads().AddPayload("./looks/red.mtlx", "/MaterialX")
+        warned = "/MaterialX: the payload to the MaterialX document ./looks/red.mtlx is dropped"
+    elif arc == "sublayer":
+        stage.GetRootLayer().subLayerPaths.append("looks/red.mtlx")
+        warned = "scene.usda: the sublayer to the MaterialX document looks/red.mtlx is dropped"
+    else:
+        looks = holder.GetVariantSets().AddVariantSet("look")
+        looks.AddVariant("mtlx")
+        looks.SetVariantSelection("mtlx")
+        with looks.GetVariantEditContext():
+            holder.GetReferences().AddReference("./looks/red.mtlx", "/MaterialX")
+        warned = ("/MaterialX: the reference to the MaterialX document ./looks/red.mtlx (in "
+                  "variant look=mtlx) is dropped")  # fmt: skip
+    plain = UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath("/Plain"))
+    plain.GetDirectBindingRel().SetTargets([Sdf.Path("/MaterialX/Materials/Red")])
+    stage.GetRootLayer().Save()
+    before = (root / "scene.usda").read_bytes()
+    conversion = convert_stage(root / "scene.usda", root, tmp_path)
+    doc, _ = read_glb(conversion.glb)
+    dropped = [w for w in conversion.warnings if "red.mtlx" in w and "is dropped" in w]
+    assert len(dropped) == 1, conversion.warnings
+    assert dropped[0].startswith(warned)
+    if arc != "sublayer":
+        assert any(w.startswith("/MaterialX/Materials/Red: a material of the dropped MaterialX")
+                   for w in conversion.warnings), conversion.warnings  # fmt: skip
+    default = _node_material(doc, "Plain")["pbrMetallicRoughness"]["baseColorFactor"]
+    assert default == pytest.approx([0.18, 0.18, 0.18, 1.0])
+    own = _node_material(doc, "Blue")["pbrMetallicRoughness"]["baseColorFactor"]
+    assert own == pytest.approx([0.0, 0.0, 1.0, 1.0])
+    assert (root / "scene.usda").read_bytes() == before
+
+
+def test_a_materialx_document_outside_the_upload_is_still_refused(tmp_path):
+    root = tmp_path / "upload"
+    root.mkdir()
+    (tmp_path / "red.mtlx").write_text(_MTLX)
+    stage = new_stage(root)
+    unit_cube(stage, "/Cube")
+    stage.DefinePrim("/MaterialX", "Scope").GetReferences().AddReference("../red.mtlx")
+    stage.GetRootLayer().Save()
+    with pytest.raises(SceneError) as refused:
+        convert_stage(root / "scene.usda", root, root)
+    assert refused.value.field == "scene:/MaterialX.references"
+    assert "climbs out of the upload" in refused.value.message
+
+
 def test_a_stage_with_nothing_to_render_is_refused_with_what_was_dropped(tmp_path):
     stage = new_stage(tmp_path)
     curves = UsdGeom.BasisCurves.Define(stage, "/Hair")

@@ -12,6 +12,13 @@ whose field names the layer's prim and attribute as USD writes a property path
 (`scene:/World/Looks/Wood/Texture.inputs:file`). Layers the checked arcs name are checked in
 turn, before anything opens them; only then may Usd.Stage.Open compose the stage.
 
+A sublayer, reference or payload naming a MaterialX document (`.mtlx`, as the USD Working
+Group's assets and Houdini's exports compose their materials) is checked like any asset path,
+then dropped from its layer in memory (never opened: usd-core has no MaterialX file format, and
+the converter reads UsdPreviewSurface only) and listed in `CheckedLayers.dropped`, which the
+converter warns about, one warning an arc. The edited layers stay open in `CheckedLayers.layers`
+so that the stage composes them, not the files.
+
 The converter reads texture bytes through `read_inside`, which checks the resolved path again,
 so that a path the checks missed can still read nothing outside the upload.
 """
@@ -20,11 +27,32 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ...errors import SceneError
 
 USD_LAYER_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+MATERIALX_SUFFIX = ".mtlx"
+
+
+@dataclass
+class DroppedArc:
+    """A composition arc to a MaterialX document, dropped before the stage is composed."""
+
+    where: str  # the prim path (variant selections stripped), or a layer's name for a sublayer
+    kind: str  # "reference", "payload" or "sublayer"
+    asset: str  # the asset path as written
+    variant: str = ""  # "set=selection" when the arc is authored inside a variant
+
+
+@dataclass
+class CheckedLayers:
+    files: list[Path]
+    dropped: list[DroppedArc] = field(default_factory=list)
+    layers: list[Any] = field(default_factory=list, repr=False)  # open Sdf layers, edits kept
+
 
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*:")
 
@@ -96,16 +124,20 @@ def read_inside(path: str, root: Path, where: str) -> bytes:
     return target.read_bytes()
 
 
-def _arc_paths(list_op) -> list[str]:
-    items = []
+def _arc_items(list_op) -> list[Any]:
+    """The references or payloads a list op adds (not those it deletes), each once."""
+    items: list[Any] = []
     for attr in ("explicitItems", "addedItems", "prependedItems", "appendedItems"):
-        items += list(getattr(list_op, attr, []) or [])
-    return [item.assetPath for item in items if getattr(item, "assetPath", "")]
+        for item in list(getattr(list_op, attr, []) or []):
+            if getattr(item, "assetPath", "") and item not in items:
+                items.append(item)
+    return items
 
 
-def check_layers(root_layer: Path, root: Path, limit: int = 1000) -> list[Path]:
+def check_layers(root_layer: Path, root: Path, limit: int = 1000) -> CheckedLayers:
     """Check the root layer and every layer it names (recursively) without composing them;
-    return the layers' files. SceneError names the first asset path that is refused."""
+    return the layers' files, the MaterialX arcs dropped and the open layers. SceneError names
+    the first asset path that is refused."""
     from pxr import Sdf  # imported here: only the conversion's child process needs usd-core
 
     root = Path(os.path.realpath(root))
@@ -113,6 +145,7 @@ def check_layers(root_layer: Path, root: Path, limit: int = 1000) -> list[Path]:
     if not first.is_relative_to(root):
         raise SceneError("the root layer is outside the upload")
     todo, seen = [first], set()
+    checked = CheckedLayers(files=[])
     while todo:
         path = todo.pop()
         if path in seen:
@@ -129,25 +162,38 @@ def check_layers(root_layer: Path, root: Path, limit: int = 1000) -> list[Path]:
         layer = Sdf.Layer.FindOrOpen(str(path))
         if layer is None:
             raise SceneError(f"{path.relative_to(root)} is not a readable USD layer")
-        todo += _checked_arcs(layer, path, root)
-    return sorted(seen)
+        arcs, dropped = _checked_arcs(layer, path, root)
+        todo += arcs
+        if dropped:
+            checked.dropped += dropped
+            checked.layers.append(layer)  # edited in memory: kept open for the composition
+    checked.files = sorted(seen)
+    return checked
 
 
-def _checked_arcs(layer, path: Path, root: Path) -> list[Path]:
-    """Check every asset path of one layer; return the layers its arcs name."""
+def _checked_arcs(layer, path: Path, root: Path) -> tuple[list[Path], list[DroppedArc]]:
+    """Check every asset path of one layer; return the layers its arcs name, and the arcs to
+    MaterialX documents, which are removed from the layer (in memory)."""
     from pxr import Sdf
 
     anchor = path.parent
     name = str(path.relative_to(root))
     arcs: list[Path] = []
+    dropped: list[DroppedArc] = []
+    removals: list[tuple[Any, str, Any]] = []  # (spec path, "references"/"payload", item)
 
-    def visit(where: str, asset: str, composed: bool) -> None:
+    def visit(where: str, asset: str, composed: bool, arc: tuple | None = None) -> None:
         target = check_asset_path(asset, anchor, root, where)
-        if composed and target is not None:
+        if not composed or target is None:
+            return
+        if arc is not None and target.suffix.lower() == MATERIALX_SUFFIX:
+            removals.append(arc[2:])
+            dropped.append(DroppedArc(arc[0], arc[1], asset, _variant_of(arc[2])))
+        else:
             arcs.append(target)
 
     for i, sub in enumerate(layer.subLayerPaths):
-        visit(f"{name}.subLayers[{i}]", sub, True)
+        visit(f"{name}.subLayers[{i}]", sub, True, (name, "sublayer", None, "subLayers", sub))
     problems: list[SceneError] = []
 
     def spec(sdf_path) -> None:
@@ -161,7 +207,24 @@ def _checked_arcs(layer, path: Path, root: Path) -> list[Path]:
     layer.Traverse(Sdf.Path.absoluteRootPath, spec)
     if problems:
         raise problems[0]
-    return arcs
+    for spec_path, kind, item in removals:
+        if kind == "subLayers":
+            layer.subLayerPaths.remove(item)
+            continue
+        prim = layer.GetPrimAtPath(spec_path)
+        (prim.referenceList if kind == "references" else prim.payloadList).RemoveItemEdits(item)
+    return arcs, dropped
+
+
+def _variant_of(spec_path) -> str:
+    """ "set=selection" of the innermost variant a prim spec path lies in ("" for none)."""
+    if spec_path is None:
+        return ""
+    for prefix in reversed(spec_path.GetPrefixes()):
+        if prefix.IsPrimVariantSelectionPath():
+            variant_set, selection = prefix.GetVariantSelection()
+            return f"{variant_set}={selection}"
+    return ""
 
 
 def _check_spec(layer, sdf_path, visit) -> None:
@@ -172,10 +235,12 @@ def _check_spec(layer, sdf_path, visit) -> None:
         if prim is None:
             return
         where = str(sdf_path.StripAllVariantSelections())
-        for asset in _arc_paths(prim.referenceList):
-            visit(f"{where}.references", asset, True)
-        for asset in _arc_paths(prim.payloadList):
-            visit(f"{where}.payload", asset, True)
+        for item in _arc_items(prim.referenceList):
+            arc = (where, "reference", sdf_path, "references", item)
+            visit(f"{where}.references", item.assetPath, True, arc)
+        for item in _arc_items(prim.payloadList):
+            arc = (where, "payload", sdf_path, "payload", item)
+            visit(f"{where}.payload", item.assetPath, True, arc)
         clips = prim.GetInfo("clips") if prim.HasInfo("clips") else {}
         for clip_set, value in dict(clips).items():
             for key in ("assetPaths", "manifestAssetPath"):
@@ -207,4 +272,12 @@ def _asset_text(value) -> str:
     return value.path if hasattr(value, "path") else str(value)
 
 
-__all__ = ["USD_LAYER_SUFFIXES", "check_asset_path", "check_layers", "is_udim", "read_inside"]
+__all__ = [
+    "USD_LAYER_SUFFIXES",
+    "CheckedLayers",
+    "DroppedArc",
+    "check_asset_path",
+    "check_layers",
+    "is_udim",
+    "read_inside",
+]

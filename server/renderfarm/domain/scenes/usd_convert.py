@@ -62,7 +62,7 @@ import numpy as np
 
 from ...errors import SceneError
 from .gltf_writer import GltfWriter
-from .usd_assets import check_layers, read_inside
+from .usd_assets import DroppedArc, check_layers, read_inside
 from .usd_materials import MaterialConverter, _set_emission
 
 # The intrinsic shapes tessellated (gprim), by UsdGeom class name.
@@ -217,6 +217,18 @@ class _StageConverter:
         self.joint_nodes: dict[str, list[int]] = {}  # skeleton path -> joint nodes, its order
         self.mesh_skins: dict[str, tuple[str, np.ndarray]] = {}  # mesh -> (skeleton, IBMs)
         self.pending_skins: list[tuple[dict, str, np.ndarray, str]] = []
+        self.materialx_prims: list[tuple[str, str]] = []  # (prim, .mtlx) of dropped arcs
+
+    def dropped_materialx(self, arcs: list[DroppedArc]) -> None:
+        """Warn once per MaterialX arc check_layers dropped, and remember where, so that a
+        binding to one of the document's materials says why it finds none."""
+        for arc in arcs:
+            variant = f" (in variant {arc.variant})" if arc.variant else ""
+            self.warn(arc.where, f"the {arc.kind} to the MaterialX document {arc.asset}{variant} "
+                      "is dropped (MaterialX is not converted): prims bound to its materials "
+                      "get the default material")  # fmt: skip
+            if arc.kind != "sublayer":
+                self.materialx_prims.append((arc.where, arc.asset))
 
     def warn(self, path: str, text: str) -> None:
         texts = self.warnings.setdefault(path, [])
@@ -635,10 +647,23 @@ class _StageConverter:
     def _material_for(self, prim, double_sided: bool):
         from pxr import UsdShade
 
-        material, _rel = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+        material, rel = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
         if not material:
+            targets = rel.GetTargets() if rel else []
+            if targets:  # bound to a prim that is no material (or not on the stage)
+                self._warn_unbound(str(targets[0]))
             return None
         return self.materials.convert(material, double_sided)
+
+    def _warn_unbound(self, target: str) -> None:
+        assets = [a for w, a in self.materialx_prims if target == w or target.startswith(w + "/")]
+        if assets:  # under a prim whose MaterialX arcs were dropped: from one of them
+            named = " or ".join(dict.fromkeys(assets))
+            self.warn(target, f"a material of the dropped MaterialX document {named}: not "
+                      "converted, the prims bound to it get the default material")  # fmt: skip
+            return
+        self.warn(target, "bound as a material but not a Material on the stage: the prims "
+                  "bound to it get the default material")  # fmt: skip
 
     def _plain_material(
         self, color, opacity: float, double_sided: bool, vertex_colors: bool
@@ -1697,11 +1722,13 @@ def convert_stage(root_layer: Path, root: Path, work: Path) -> Conversion:
     from pxr import Usd
 
     root = Path(os.path.realpath(root))
-    check_layers(root_layer, root)
+    checked = check_layers(root_layer, root)  # its edited layers stay open until composed
     stage = Usd.Stage.Open(str(root_layer), Usd.Stage.LoadAll)
     if stage is None:
         raise SceneError(f"{root_layer.name} cannot be opened as a USD stage")
-    return _StageConverter(stage, root, work).convert()
+    converter = _StageConverter(stage, root, work)
+    converter.dropped_materialx(checked.dropped)
+    return converter.convert()
 
 
 __all__ = ["Conversion", "convert_stage", "light_radiance"]
