@@ -2,7 +2,9 @@
 over REST, a .usdz over gRPC and through the Python client (the CLI's path), each converted by
 the server in its limited child process, accepted by the workers' loader and rendered; and a
 stage naming a file outside the upload refused with 400 naming the prim and attribute, over
-both APIs, before anything is read.
+both APIs, before anything is read. Conversions whose glTF only the worker can judge (a spot
+light) go through the acceptance path (`renderfarm-worker inspect`) and are rendered by
+`renderfarm-worker render`, against analytic images.
 
 The scene is the example generator's (examples/make_usd_scene.py). What the conversion must
 produce is checked analytically in server/tests/test_usd_convert.py; here the path a user takes.
@@ -13,6 +15,9 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import io
+import json
+import math
+import subprocess
 import zipfile
 from pathlib import Path
 
@@ -22,6 +27,7 @@ import pytest
 
 pytest.importorskip("pxr")
 
+from renderfarm.domain.scenes.usd_convert import convert_stage  # noqa: E402
 from renderfarm.infra.images import read_exr  # noqa: E402
 
 from .apihelpers import TINY, Apis, Error  # noqa: E402
@@ -184,3 +190,119 @@ def test_a_bundle_with_two_root_layers_is_refused_by_name(apis):
     answer = apis.submit_rest(archive.getvalue(), "two.zip", SETTINGS, "two")
     assert isinstance(answer, Error) and answer.kind == "invalid", answer
     assert "a.usda, b.usda" in answer.message
+
+
+# ---------------------------------------------------------------- the worker, directly
+
+
+def _worker_inspect(worker_binary: str, scene: Path) -> dict:
+    run = subprocess.run([worker_binary, "inspect", "--json", str(scene)], capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout)
+
+
+def _worker_render(worker_binary: str, scene: Path, out: Path, size: int, spp: int, *extra):
+    args = [worker_binary, "render", str(scene), "-o", str(out), "--spp", str(spp), "--width",
+            str(size), "--height", str(size), "--threads", "1", "--seed", "5", *extra]  # fmt: skip
+    run = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    ch = read_exr(str(out))
+    return np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
+
+
+def _floor_stage(folder: Path, half_width: float):
+    """A stage (metres, Y up) with a 10 x 10 m Lambertian floor at y = 0 (diffuseColor 0.8,
+    specular workflow with specularColor 0: glTF's specular factor 0) seen straight down by an
+    orthographic camera 3 m above it whose square view is 2 half_width wide."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
+
+    stage = Usd.Stage.CreateNew(str(folder / "scene.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    floor = UsdGeom.Mesh.Define(stage, "/Floor")
+    floor.CreatePointsAttr([(-5, 0, 5), (5, 0, 5), (5, 0, -5), (-5, 0, -5)])
+    floor.CreateFaceVertexCountsAttr([4])
+    floor.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    floor.CreateSubdivisionSchemeAttr("none")
+    material = UsdShade.Material.Define(stage, "/Looks/Lambert")
+    shader = UsdShade.Shader.Define(stage, "/Looks/Lambert/Surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.8, 0.8, 0.8))
+    shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(1.0)
+    shader.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    shader.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0, 0, 0))
+    material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(floor.GetPrim()).Bind(material)
+    camera = UsdGeom.Camera.Define(stage, "/Camera")
+    camera.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
+    camera.CreateHorizontalApertureAttr(20.0 * half_width)  # tenths of a unit
+    camera.CreateVerticalApertureAttr(20.0 * half_width)
+    camera.CreateClippingRangeAttr(Gf.Vec2f(0.01, 100.0))
+    camera.AddTranslateOp().Set(Gf.Vec3d(0, 3, 0))
+    camera.AddRotateXOp().Set(-90.0)  # looking down
+    return stage
+
+
+def _pixel_radii(size: int, half_width: float, sub: int = 8) -> np.ndarray:
+    """(size, size, sub * sub) distances from the view's centre of sub x sub points spread
+    evenly over each pixel (the box filter's average is their mean)."""
+    offsets = (np.arange(sub) + 0.5) / sub
+    edges = np.arange(size)[:, None] + offsets[None, :]  # (size, sub)
+    coord = (edges / size * 2.0 - 1.0) * half_width
+    x = coord[None, :, None, :]
+    z = coord[:, None, :, None]
+    return np.sqrt(x * x + z * z).reshape(size, size, sub * sub)
+
+
+def test_a_spot_light_is_accepted_and_lights_the_floor_by_gltfs_formula(worker_binary, tmp_path):
+    """A treatAsPoint sphere light 2 m above the floor, shaped by a cone of 30 degrees with
+    softness 0.5, converted and accepted by the workers' loader as a KHR_lights_punctual spot,
+    renders the floor's radiance 0.8 E / pi, E the spot's irradiance by glTF's specification
+    (intensity x ((cos a - cos outer) / (cos inner - cos outer))^2 clamped, x cos i / d^2);
+    where UsdLux's cone is at full intensity that is UsdLux's own L pi r^2 cos i / d^2, and
+    beyond the cone the floor is black."""
+    from pxr import Gf, UsdLux
+
+    half = 2.0
+    stage = _floor_stage(tmp_path, half)
+    light = UsdLux.SphereLight.Define(stage, "/Spot")
+    light.CreateRadiusAttr(0.05)
+    light.CreateTreatAsPointAttr(True)
+    light.CreateIntensityAttr(1000.0)
+    light.AddTranslateOp().Set(Gf.Vec3d(0, 2, 0))
+    light.AddRotateXOp().Set(-90.0)
+    shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
+    shaping.CreateShapingConeAngleAttr(30.0)
+    shaping.CreateShapingConeSoftnessAttr(0.5)
+    stage.GetRootLayer().Save()
+    conversion = convert_stage(tmp_path / "scene.usda", tmp_path, tmp_path)
+    glb = tmp_path / "spot.glb"
+    glb.write_bytes(conversion.glb)
+    report = _worker_inspect(worker_binary, glb)
+    assert report["ok"] and report["warnings"] == [], report
+    assert "KHR_lights_punctual" in report["extensions_used"]
+    json_len = int.from_bytes(conversion.glb[12:16], "little")
+    doc = json.loads(conversion.glb[20 : 20 + json_len])
+    (spot,) = doc["extensions"]["KHR_lights_punctual"]["lights"]
+    assert spot["type"] == "spot"
+    size = 64
+    image = _worker_render(worker_binary, glb, tmp_path / "spot.exr", size, 64,
+                           "--integrator", "direct")  # fmt: skip
+    rho = _pixel_radii(size, half)
+    d2 = 4.0 + rho**2
+    cos_a = 2.0 / np.sqrt(d2)  # the angle off the spot's axis, and the floor's incidence
+    cos_outer = math.cos(spot["spot"]["outerConeAngle"])
+    cos_inner = math.cos(spot["spot"]["innerConeAngle"])
+    ramp = np.clip((cos_a - cos_outer) / (cos_inner - cos_outer), 0.0, 1.0) ** 2
+    irradiance = spot["intensity"] * ramp * cos_a / d2
+    expected = (0.8 * irradiance / math.pi).mean(axis=2)
+    full = (np.arccos(cos_a) <= math.radians(15.0)).all(axis=2)  # UsdLux's full intensity
+    usd = (0.8 * 1000.0 * math.pi * 0.05**2 * cos_a / d2 / math.pi).mean(axis=2)
+    dark = (np.arccos(cos_a) > math.radians(30.0)).all(axis=2)
+    assert full.sum() > 100 and dark.sum() > 100
+    for c in range(3):
+        assert image[..., c][dark].max() < 1e-6 * expected.max()
+        assert image[..., c][full] == pytest.approx(usd[full], rel=1e-3)
+        assert np.abs(image[..., c] - expected).max() < 5e-3 * expected.max()
+        assert image[..., c].sum() == pytest.approx(expected.sum(), rel=1e-3)

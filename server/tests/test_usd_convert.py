@@ -303,6 +303,136 @@ def test_a_distant_light_is_a_directional_light_of_its_illuminance(tmp_path):
     assert lights["/Lamp"]["intensity"] == pytest.approx(7.0)
 
 
+def _gltf_spot_falloff(cos_angle, light: dict) -> np.ndarray:
+    """KHR_lights_punctual's spot attenuation, as its specification writes it (without the
+    max(0.001, ...) guard, which no cone here reaches)."""
+    spot = light["spot"]
+    cos_outer = math.cos(spot.get("outerConeAngle", math.pi / 4))
+    cos_inner = math.cos(spot.get("innerConeAngle", 0.0))
+    scale = 1.0 / (cos_inner - cos_outer)
+    return np.clip(cos_angle * scale - cos_outer * scale, 0.0, 1.0) ** 2
+
+
+def _usdlux_cone(angle, cone_deg: float, softness: float) -> np.ndarray:
+    """UsdLuxShapingAPI's cone: 1 - smoothstep(c (1 - softness), c, angle), 0 beyond c."""
+    c = math.radians(cone_deg)
+    start = c * (1.0 - softness)
+    x = np.clip((angle - start) / max(c - start, 1e-300), 0.0, 1.0)
+    return np.where(angle > c, 0.0, 1.0 - x * x * (3.0 - 2.0 * x))
+
+
+def _lights(doc: dict) -> dict[str, dict]:
+    return {li["name"]: li for li in doc["extensions"]["KHR_lights_punctual"]["lights"]}
+
+
+@pytest.mark.parametrize("softness", [0.0, 0.25, 0.5, 0.75, 1.0])
+def test_a_sphere_light_with_a_cone_is_a_spot_of_usdluxs_irradiance(tmp_path, softness):
+    """A treatAsPoint sphere light of radius r and radiance L, shaped by a 30-degree cone, is
+    a spot of intensity L pi r^2 along its -Z. The irradiance it gives a floor 2 m below,
+    from glTF's spot formula on the converted light, against UsdLux's (the same intensity
+    times 1 - smoothstep over the cone's soft band): the same where UsdLux is at full
+    intensity and beyond the cone (0), one half at UsdLux's half-intensity angle, and within
+    0.21 of the axis's between (glTF's curve is quadratic in the cosine)."""
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    light = UsdLux.SphereLight.Define(stage, "/Spot")
+    light.CreateRadiusAttr(0.05)
+    light.CreateTreatAsPointAttr(True)
+    light.CreateIntensityAttr(1000.0)
+    light.CreateColorAttr(Gf.Vec3f(1.0, 0.5, 0.25))
+    light.AddTranslateOp().Set(Gf.Vec3d(0, 2, 0))
+    light.AddRotateXOp().Set(-90.0)  # -Z turns to -Y: the cone looks down
+    shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
+    shaping.CreateShapingConeAngleAttr(30.0)
+    shaping.CreateShapingConeSoftnessAttr(softness)
+    conversion, doc, _ = convert(stage, tmp_path)
+    assert not [w for w in conversion.warnings if w.startswith("/Spot")], conversion.warnings
+    spot = _lights(doc)["/Spot"]
+    assert spot["type"] == "spot"
+    intensity = np.array(spot["color"]) * spot["intensity"]
+    assert intensity == pytest.approx(1000.0 * math.pi * 0.05**2 * np.array([1, 0.5, 0.25]))
+    node = next(n for n in doc["nodes"] if n.get("name") == "Spot")
+    world = world_matrices(doc)[doc["nodes"].index(node)]
+    assert world[:3, 3] == pytest.approx([0, 2, 0], abs=1e-9)
+    assert world[:3, :3] @ [0, 0, -1] == pytest.approx([0, -1, 0], abs=1e-9)  # glTF's spot axis
+    # The floor y = 0: a point at distance rho from the foot of the light.
+    rho = np.linspace(0.0, 2.0, 2001)
+    d2 = 4.0 + rho**2
+    angle = np.arctan2(rho, 2.0)
+    incidence = 2.0 / np.sqrt(d2)
+    gltf = spot["intensity"] * _gltf_spot_falloff(np.cos(angle), spot) * incidence / d2
+    usd = 1000.0 * math.pi * 0.05**2 * _usdlux_cone(angle, 30.0, softness) * incidence / d2
+    axis = 1000.0 * math.pi * 0.05**2 / 4.0
+    full = angle <= math.radians(30.0) * (1.0 - softness)
+    outside = angle > math.radians(30.0)
+    assert gltf[outside] == pytest.approx(0.0, abs=1e-12)
+    if softness == 0.0:  # a hard edge: glTF's band is 0.1 % of the angle
+        full = angle <= math.radians(30.0) * 0.999
+        assert gltf[full] == pytest.approx(usd[full], rel=1e-6)
+        assert gltf[~full & ~outside].max() <= usd[~full & ~outside].max()
+        return
+    assert gltf[full] == pytest.approx(usd[full], rel=1e-6)
+    assert np.max(np.abs(gltf - usd)) < 0.21 * axis
+    half = math.radians(30.0) * (1.0 - softness / 2.0)
+    if softness < 1.0:
+        assert _gltf_spot_falloff(np.cos(half), spot) == pytest.approx(0.5, abs=1e-9)
+    else:  # glTF's inner angle cannot go below 0: a falloff from the axis, as UsdLux's
+        assert spot["spot"]["innerConeAngle"] == 0.0
+
+
+def test_a_shaped_sphere_with_a_radius_is_a_spot_with_the_spheres_power(tmp_path):
+    """Normalized, a sphere of radius r has L = intensity / (4 pi r^2); from afar it is a
+    source of intensity L pi r^2 = intensity / 4 in every direction, which the spot keeps in
+    its cone (warned: glTF's spots are points)."""
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    light = UsdLux.SphereLight.Define(stage, "/Ball")
+    light.CreateRadiusAttr(0.3)
+    light.CreateIntensityAttr(8.0)
+    light.CreateNormalizeAttr(True)
+    UsdLux.ShapingAPI.Apply(light.GetPrim()).CreateShapingConeAngleAttr(45.0)
+    conversion, doc, _ = convert(stage, tmp_path)
+    spot = _lights(doc)["/Ball"]
+    assert spot["type"] == "spot" and spot["intensity"] == pytest.approx(2.0)
+    assert spot["spot"]["outerConeAngle"] == pytest.approx(math.pi / 4)
+    assert any(w.startswith("/Ball: a shaped sphere light of radius 0.3 is a spot light")
+               for w in conversion.warnings)  # fmt: skip
+    assert not [n for n in doc["nodes"] if n.get("name") == "Ball" and "mesh" in n]
+
+
+def test_shaping_that_cannot_be_carried_is_one_warning_each_by_prim_path(tmp_path):
+    """IES profiles, focus, a cone on a rect light and a cone wider than glTF's 90 degrees are
+    warned; a cone of 180 degrees on a distant light (as the Working Group's assets author
+    it) shapes nothing and is not."""
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    (tmp_path / "lamp.ies").write_text("IESNA:LM-63-2002\n")
+    rect = UsdLux.RectLight.Define(stage, "/Rect")
+    rect_shaping = UsdLux.ShapingAPI.Apply(rect.GetPrim())
+    rect_shaping.CreateShapingConeAngleAttr(40.0)
+    rect_shaping.CreateShapingIesFileAttr(Sdf.AssetPath("./lamp.ies"))
+    wide = UsdLux.SphereLight.Define(stage, "/Wide")
+    wide.CreateTreatAsPointAttr(True)
+    wide_shaping = UsdLux.ShapingAPI.Apply(wide.GetPrim())
+    wide_shaping.CreateShapingConeAngleAttr(120.0)
+    wide_shaping.CreateShapingFocusAttr(2.0)
+    sun = UsdLux.DistantLight.Define(stage, "/Sun")
+    sun.CreateAngleAttr(0.0)
+    sun.CreateNormalizeAttr(True)
+    UsdLux.ShapingAPI.Apply(sun.GetPrim()).CreateShapingConeAngleAttr(180.0)
+    conversion, doc, _ = convert(stage, tmp_path)
+    warned = {p: [w for w in conversion.warnings if w.startswith(p + ":")]
+              for p in ("/Rect", "/Wide", "/Sun")}  # fmt: skip
+    assert len(warned["/Rect"]) == 2, warned
+    assert any("IES profile (./lamp.ies)" in w for w in warned["/Rect"])
+    assert any("light shaping (cone, focus) on a RectLight" in w for w in warned["/Rect"])
+    assert len(warned["/Wide"]) == 2, warned
+    assert any("shaping:focus" in w for w in warned["/Wide"])
+    assert any("a cone of 120 degrees" in w for w in warned["/Wide"])
+    assert warned["/Sun"] == []
+    assert _lights(doc)["/Wide"]["spot"]["outerConeAngle"] == pytest.approx(math.pi / 2)
+
+
 # ------------------------------------------------------------------ materials
 
 

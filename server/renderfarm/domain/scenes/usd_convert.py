@@ -38,9 +38,11 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
   lights become emissive meshes of that radiance (emitting along -Z for rect and disk, one-sided;
   outward for a sphere); a distant light a KHR_lights_punctual directional light of illuminance
   L x solid angle of its disk (normalized: intensity x 2^exposure is the illuminance); a
-  treatAsPoint sphere light a point light of intensity L x pi r^2; a dome light the job's
-  environment (its .hdr/.exr latitude-longitude texture, or a constant map of its colour,
-  with intensity x 2^exposure and its turn about the up axis; Conversion.environment).
+  treatAsPoint sphere light a point light of intensity L x pi r^2, a spot light when its
+  ShapingAPI cone is authored (_shaping: the cone's cutoff and half-intensity angle kept); a
+  dome light the job's environment (its .hdr/.exr latitude-longitude texture, or a constant
+  map of its colour, with intensity x 2^exposure and its turn about the up axis;
+  Conversion.environment).
 What cannot be carried is one warning per prim path (`warnings`), and a stage with nothing to
 render is refused.
 
@@ -1333,6 +1335,57 @@ class _StageConverter:
         m = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(self.time)).reshape(4, 4)
         return tuple(float(np.linalg.norm(m[i, :3])) for i in range(3))  # type: ignore[return-value]
 
+    def _shaping(self, prim, path: str) -> tuple[float, float] | None:
+        """A light's UsdLuxShapingAPI. A sphere light whose shaping:cone:angle is authored below
+        180 degrees is a glTF spot light: (innerConeAngle, outerConeAngle) in radians. outer is
+        the cone angle c (at most 90 degrees, glTF's limit: wider is warned and made 90), where
+        UsdLux's emission ends. UsdLux's falloff, 1 - smoothstep(c (1 - s), c, angle) with the
+        softness s clamped to [0, 1], is one half at h = c (1 - s / 2); glTF's,
+        ((cos angle - cos outer) / (cos inner - cos outer))^2, is one half where that ratio is
+        1 / sqrt 2, so cos inner = cos c + sqrt 2 (cos h - cos c) gives the spot UsdLux's
+        half-intensity angle as well as its cutoff (the curves between differ: docs/scenes.md).
+        A hard cone (s = 0) keeps a band of 0.1 % of its angle (glTF's inner angle must be below
+        the outer). None for any other light or shaping. What cannot be
+        carried is one warning each: shaping:focus, an IES profile, a cone or focus on any
+        other light. A cone of 180 degrees or more, without focus or IES, shapes nothing and is
+        not warned."""
+        from pxr import UsdLux
+
+        if not prim.HasAPI(UsdLux.ShapingAPI):
+            return None
+        t = self.time
+        shaping = UsdLux.ShapingAPI(prim)
+        sphere = prim.IsA(UsdLux.SphereLight)
+        angle_attr = shaping.GetShapingConeAngleAttr()
+        angle = float(angle_attr.Get(t)) if angle_attr.HasAuthoredValue() else 180.0
+        cone = sphere and angle < 180.0
+        softness = float(shaping.GetShapingConeSoftnessAttr().Get(t) or 0.0)
+        focus = float(shaping.GetShapingFocusAttr().Get(t) or 0.0)
+        ies = shaping.GetShapingIesFileAttr().Get(t)
+        shaped_by = "shaped by its cone only" if cone else "unshaped"
+        if ies is not None and ies.path:
+            self.warn(path, f"an IES profile ({ies.path}) is not converted: the light is "
+                      f"{shaped_by}")  # fmt: skip
+        if not sphere:
+            if angle < 180.0 or focus > 0.0:
+                self.warn(path, f"light shaping (cone, focus) on a {prim.GetTypeName()} is not "
+                          "converted: the light is unshaped")  # fmt: skip
+            return None
+        if focus > 0.0:
+            self.warn(path, f"shaping:focus (a cosine-power falloff) is not converted: the "
+                      f"light is {shaped_by}")  # fmt: skip
+        if not cone:
+            return None
+        if angle > 90.0:
+            self.warn(path, f"a cone of {angle:g} degrees is wider than glTF's spot lights "
+                      "(90 degrees at most): rendered as a 90-degree cone")  # fmt: skip
+            angle = 90.0
+        outer = math.radians(max(angle, 0.0))
+        half = outer * (1.0 - min(max(softness, 0.0), 1.0) / 2.0)  # UsdLux's half intensity
+        cos_inner = math.cos(outer) + math.sqrt(2.0) * (math.cos(half) - math.cos(outer))
+        inner = math.acos(min(cos_inner, 1.0))
+        return min(inner, outer * (1.0 - 1e-3)), outer
+
     def light(self, prim, node: dict[str, Any]) -> None:
         from pxr import UsdLux
 
@@ -1342,10 +1395,7 @@ class _StageConverter:
         for name, attr in (("diffuse", api.GetDiffuseAttr()), ("specular", api.GetSpecularAttr())):
             if float(attr.Get(t)) != 1.0:
                 self.warn(path, f"inputs:{name} (a per-response multiplier) is not supported")
-        if prim.HasAPI(UsdLux.ShapingAPI):
-            self.warn(
-                path, "light shaping (cone, focus, IES) is not supported: the light is unshaped"
-            )
+        cone = self._shaping(prim, path)
         link = api.GetLightLinkCollectionAPI()
         if link and (link.GetIncludesRel().GetTargets() or link.GetExcludesRel().GetTargets()):
             self.warn(path, "light linking is not supported: the light lights everything")
@@ -1367,7 +1417,24 @@ class _StageConverter:
             sphere = UsdLux.SphereLight(prim)
             radius = float(sphere.GetRadiusAttr().Get(t))
             scale = (sx * sy * sz) ** (1.0 / 3.0)
-            if sphere.GetTreatAsPointAttr().Get(t) or radius <= 0.0:
+            point = sphere.GetTreatAsPointAttr().Get(t) or radius <= 0.0
+            if cone is not None:  # a spot: glTF's spots are points
+                area = None if point else 4.0 * math.pi * (radius * scale) ** 2
+                radiance = light_radiance(prim, t, area)
+                r_m = radius * scale * self.mpu
+                intensity = radiance * math.pi * r_m * r_m  # candela: L x projected area
+                if not point:
+                    self.warn(path, f"a shaped sphere light of radius {radius:g} is a spot light "
+                              "at its centre (glTF's spot lights are points): its intensity in "
+                              "the cone is the sphere's, its shadows are hard and the sphere is "
+                              "not seen")  # fmt: skip
+                if radius <= 0.0:
+                    self.warn(path, "a sphere light of radius 0 emits nothing")
+                elif cone[1] <= 0.0:
+                    self.warn(path, "a cone of angle 0 emits nothing")
+                else:
+                    self._punctual(node, "spot", intensity, path, cone)
+            elif point:
                 radiance = light_radiance(prim, t, None)
                 r_m = radius * scale * self.mpu
                 intensity = radiance * math.pi * r_m * r_m  # candela: L x projected area
@@ -1521,7 +1588,14 @@ class _StageConverter:
         self.renderables += 1
         return self.writer.add("meshes", {"name": path, "primitives": [primitive]})
 
-    def _punctual(self, node: dict[str, Any], kind: str, value: np.ndarray, path: str) -> None:
+    def _punctual(
+        self,
+        node: dict[str, Any],
+        kind: str,
+        value: np.ndarray,
+        path: str,
+        cone: tuple[float, float] | None = None,
+    ) -> None:
         peak = float(np.max(value))
         if peak <= 0.0:
             self.warn(path, "the light emits nothing")
@@ -1529,14 +1603,15 @@ class _StageConverter:
         lights = self.writer.doc.setdefault("extensions", {}).setdefault(
             "KHR_lights_punctual", {"lights": []}
         )["lights"]
-        lights.append(
-            {
-                "name": path,
-                "type": kind,
-                "color": [float(c) / peak for c in value],
-                "intensity": peak,
-            }
-        )
+        light: dict[str, Any] = {
+            "name": path,
+            "type": kind,
+            "color": [float(c) / peak for c in value],
+            "intensity": peak,
+        }
+        if cone is not None:
+            light["spot"] = {"innerConeAngle": cone[0], "outerConeAngle": cone[1]}
+        lights.append(light)
         node.setdefault("extensions", {})["KHR_lights_punctual"] = {"light": len(lights) - 1}
         self.writer.use_extension("KHR_lights_punctual")
         self.renderables += 1
