@@ -284,6 +284,47 @@ def test_an_unnormalized_disk_light_emits_intensity_times_two_to_the_exposure(tm
     assert area == pytest.approx(32 * math.sin(2 * math.pi / 64) * 0.25**2, rel=1e-6)
 
 
+@pytest.mark.parametrize(
+    ("normalize", "meters_per_unit", "scale"), [(False, 1.0, 1.0), (True, 0.01, 3.0)]
+)
+def test_a_sphere_lights_facets_emit_the_spheres_power(tmp_path, normalize, meters_per_unit, scale):
+    """A Lambertian emitter of radiance L and area A gives off pi L A. The sphere light of
+    radius r (world radius R = r x scale x metersPerUnit) gives off pi L 4 pi R^2, with L =
+    intensity x 2^exposure (/ (4 pi (r scale)^2) in scene units when normalized): its facets
+    must too, within 1e-3, and so, being convex, have the sphere's mean projected area pi R^2
+    (area / 4); seen from any direction (their projected area, the sum of the facets' areas
+    times their positive cosines), within 1 % of it."""
+    stage = new_stage(tmp_path, meters_per_unit=meters_per_unit)
+    unit_cube(stage, "/Cube")
+    light = UsdLux.SphereLight.Define(stage, "/Bulb")
+    radius = 0.2 / meters_per_unit
+    light.CreateRadiusAttr(radius)
+    light.CreateIntensityAttr(30.0)
+    light.CreateExposureAttr(1.0)
+    light.CreateNormalizeAttr(normalize)
+    light.AddScaleOp().Set(Gf.Vec3f(scale, scale, scale))
+    _, doc, blob = convert(stage, tmp_path)
+    radiance, triangles, _ = _emitter(doc, blob, "Bulb")
+    world_r = radius * scale * meters_per_unit
+    expected_l = 30.0 * 2.0
+    if normalize:
+        expected_l /= 4.0 * math.pi * (radius * scale) ** 2
+    assert radiance == pytest.approx([expected_l] * 3, rel=1e-6)
+    tris = np.array(triangles)
+    cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    area = np.linalg.norm(cross, axis=1) / 2.0
+    power = math.pi * radiance[0] * area.sum()
+    assert power == pytest.approx(math.pi * expected_l * 4.0 * math.pi * world_r**2, rel=1e-3)
+    centre = tris.reshape(-1, 3).mean(axis=0)
+    outward = ((tris.mean(axis=1) - centre) * cross).sum(axis=1) > 0
+    assert outward.all()  # emitting outward (glTF's front faces)
+    normals = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+    directions = np.random.default_rng(7).normal(size=(500, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    projected = (area[None, :] * np.clip(directions @ normals.T, 0.0, None)).sum(axis=1)
+    assert projected == pytest.approx(np.full(500, math.pi * world_r**2), rel=0.01)
+
+
 def test_a_distant_light_is_a_directional_light_of_its_illuminance(tmp_path):
     """Unnormalized, a distant light is a disk of radiance L filling the cone of its angle:
     illuminance L x 2 pi (1 - cos(angle / 2)). Normalized, intensity is the illuminance."""

@@ -1443,7 +1443,7 @@ class _StageConverter:
                     self.warn(path, "a sphere light of radius 0 emits nothing")
             else:
                 radiance = light_radiance(prim, t, 4.0 * math.pi * (radius * scale) ** 2)
-                pos, nrm, tris = _uv_sphere(radius * self.mpu, 32, 16)
+                pos, nrm, tris = _sphere_light(radius * self.mpu)
                 node["mesh"] = self._light_mesh(path, pos, nrm, tris, radiance)
         elif prim.IsA(UsdLux.DistantLight):
             distant = UsdLux.DistantLight(prim)
@@ -1650,6 +1650,21 @@ def _disk(radius: float, segments: int):
     # counter-clockwise seen from -Z: centre, next, this
     tris = np.stack([np.zeros(segments, dtype=np.int64), 1 + (i + 1) % segments, 1 + i], axis=1)
     return pos, nrm, tris
+
+
+def _sphere_light(radius: float, slices: int = 32, stacks: int = 16):
+    """A sphere light's emitter: the faceted sphere (_uv_sphere) scaled about its centre so
+    that its surface area is the sphere's, 4 pi r^2. An emitter of radiance L gives off
+    pi L x its area, and a convex body's projected area averaged over directions is its
+    area / 4 (Cauchy), so the facets then emit the sphere's power, pi L 4 pi r^2, and from
+    afar its mean intensity L pi r^2, while a camera that sees the light sees UsdLux's radiance
+    L on a silhouette that straddles the sphere's (the inscribed facets alone have 0.8 % less
+    area and look smaller; raising L instead would keep them small and show a brighter L)."""
+    pos, nrm, tris = _uv_sphere(1.0, slices, stacks)
+    corners = pos[tris]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                          axis=1).sum() / 2.0  # fmt: skip
+    return pos * (radius * math.sqrt(4.0 * math.pi / area)), nrm, tris
 
 
 def _uv_sphere(radius: float, slices: int, stacks: int):
