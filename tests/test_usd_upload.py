@@ -306,3 +306,50 @@ def test_a_spot_light_is_accepted_and_lights_the_floor_by_gltfs_formula(worker_b
         assert image[..., c][full] == pytest.approx(usd[full], rel=1e-3)
         assert np.abs(image[..., c] - expected).max() < 5e-3 * expected.max()
         assert image[..., c].sum() == pytest.approx(expected.sum(), rel=1e-3)
+
+
+def test_a_mesh_whose_topology_changes_renders_each_shape_at_its_frames(worker_binary, tmp_path):
+    """A triangle of area 1/2 at time code 1 and a square of area 1.44 from time code 10 (24
+    per second), an emitter of radiance 1 on black seen straight down by an orthographic
+    camera: rendered as farm frames 1 and 10 render them (`--time` = frame / fps, with fps =
+    timeCodesPerSecond: docs/scenes.md), each image's ink, its pixel sum times a pixel's area
+    (the box filter averages coverage), is that frame's shape's area."""
+    from pxr import Gf, Sdf, UsdGeom, UsdShade
+
+    half = 1.5
+    stage = _floor_stage(tmp_path, half)
+    stage.RemovePrim("/Floor")
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(10)
+    stage.SetTimeCodesPerSecond(24)
+    mesh = UsdGeom.Mesh.Define(stage, "/Shape")
+    mesh.CreateSubdivisionSchemeAttr("none")
+    mesh.CreateDoubleSidedAttr(True)
+    shapes = {1.0: [(0, 0), (1, 0), (0, 1)], 10.0: [(-0.6, -0.6), (0.6, -0.6), (0.6, 0.6),
+                                                    (-0.6, 0.6)]}  # fmt: skip
+    for t, corners in shapes.items():
+        mesh.GetPointsAttr().Set([(x, 0.0, z) for x, z in corners], t)
+        mesh.GetFaceVertexCountsAttr().Set([len(corners)], t)
+        mesh.GetFaceVertexIndicesAttr().Set(list(range(len(corners))), t)
+    glow = UsdShade.Material.Define(stage, "/Looks/Glow")
+    shader = UsdShade.Shader.Define(stage, "/Looks/Glow/Surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0, 0, 0))
+    shader.CreateInput("emissiveColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(1, 1, 1))
+    glow.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(glow)
+    stage.GetRootLayer().Save()
+    conversion = convert_stage(tmp_path / "scene.usda", tmp_path, tmp_path)
+    assert not [w for w in conversion.warnings if w.startswith("/Shape")], conversion.warnings
+    glb = tmp_path / "shape.glb"
+    glb.write_bytes(conversion.glb)
+    report = _worker_inspect(worker_binary, glb)
+    assert report["ok"] and report["warnings"] == [], report
+    size = 96
+    pixel_area = (2.0 * half / size) ** 2
+    for frame, area in ((1, 0.5), (5, 0.5), (10, 1.44)):
+        image = _worker_render(worker_binary, glb, tmp_path / f"f{frame}.exr", size, 64,
+                               "--time", repr(frame / 24.0))  # fmt: skip
+        assert image.max() == pytest.approx(1.0, rel=1e-4)  # the emitter, where fully covered
+        for c in range(3):
+            assert image[..., c].sum() * pixel_area == pytest.approx(area, rel=1e-3)

@@ -27,7 +27,7 @@ from renderfarm.errors import SceneError  # noqa: E402
 
 # ------------------------------------------------------------------ a glTF reader (spec-only)
 
-_COMPONENTS = {5126: ("<f4", 4), 5125: ("<u4", 4), 5123: ("<u2", 2)}
+_COMPONENTS = {5126: ("<f4", 4), 5125: ("<u4", 4), 5123: ("<u2", 2), 5121: ("<u1", 1)}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 
 
@@ -1233,6 +1233,92 @@ def test_point_instancer_positions_over_time_animate_each_instance(tmp_path):
         (index,) = [i for i, n in enumerate(doc["nodes"]) if n.get("name") == name]
         xs.append(float(_world_at(doc, blob, 0.5)[index][0, 3]))
     assert xs == pytest.approx([2.0, 4.0], abs=1e-6)
+
+
+def _changing_topology(stage: Usd.Stage, path: str, shapes: dict[float, list]) -> UsdGeom.Mesh:
+    """A mesh of one polygon (in the y = 0 plane) that is shapes[t] from time code t on."""
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreateSubdivisionSchemeAttr("none")
+    for t, corners in shapes.items():
+        mesh.GetPointsAttr().Set([(x, 0.0, z) for x, z in corners], t)
+        mesh.GetFaceVertexCountsAttr().Set([len(corners)], t)
+        mesh.GetFaceVertexIndicesAttr().Set(list(range(len(corners))), t)
+    return mesh
+
+
+def _visible_at(doc: dict, blob: bytes, node: int, seconds: float) -> bool:
+    """KHR_node_visibility's `visible` of a node at a time, by KHR_animation_pointer's rules:
+    the channel that points at it, STEP (the last key at or before the time; the first key's
+    value before it), else the node's own value."""
+    pointer = f"/nodes/{node}/extensions/KHR_node_visibility/visible"
+    for animation in doc.get("animations", []):
+        for channel in animation["channels"]:
+            ext = channel["target"].get("extensions", {}).get("KHR_animation_pointer", {})
+            if channel["target"]["path"] != "pointer" or ext.get("pointer") != pointer:
+                continue
+            sampler = animation["samplers"][channel["sampler"]]
+            assert sampler["interpolation"] == "STEP"
+            keys = accessor(doc, blob, sampler["input"])
+            values = accessor(doc, blob, sampler["output"])
+            assert doc["accessors"][sampler["output"]]["componentType"] == 5121
+            k = max(int(np.searchsorted(keys, seconds, side="right")) - 1, 0)
+            return bool(values[k])
+    own = doc["nodes"][node].get("extensions", {}).get("KHR_node_visibility", {})
+    return own.get("visible", True)
+
+
+def test_a_topology_that_changes_is_a_mesh_per_topology_switched_by_visibility(tmp_path):
+    """A triangle from time code 1, a quad from 10 (24 per second): two meshes under the
+    prim's node, the triangle's area 1/2 and the quad's 1.2^2, each visible (by glTF's rules,
+    evaluated here) during its own span alone: the triangle at 0 s, 1/24 s and 9.9/24 s,
+    the quad at 10/24 s and after; a still shows the triangle (the start time, 1)."""
+    stage = new_stage(tmp_path)
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(10)
+    stage.SetTimeCodesPerSecond(24)
+    quad = [(-0.6, -0.6), (0.6, -0.6), (0.6, 0.6), (-0.6, 0.6)]
+    _changing_topology(stage, "/Shape", {1.0: [(0, 0), (1, 0), (0, 1)], 10.0: quad})
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert not [w for w in conversion.warnings if w.startswith("/Shape")], conversion.warnings
+    assert {"KHR_node_visibility", "KHR_animation_pointer"} <= set(doc["extensionsRequired"])
+    (parent,) = [n for n in doc["nodes"] if n.get("name") == "Shape"]
+    children = parent["children"]
+    assert [doc["nodes"][c]["name"] for c in children] == ["Shape@1", "Shape@10"]
+    areas = []
+    for c in children:
+        tris = np.array(world_triangles(doc, blob, doc["nodes"][c]["name"]))
+        cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        areas.append(np.linalg.norm(cross, axis=1).sum() / 2.0)
+    assert areas == pytest.approx([0.5, 1.44], rel=1e-6)
+    triangle, square = children
+    for seconds, shown in ((0.0, triangle), (1 / 24, triangle), (9.9 / 24, triangle),
+                           (10 / 24, square), (2.0, square)):  # fmt: skip
+        assert _visible_at(doc, blob, shown, seconds)
+        other = square if shown == triangle else triangle
+        assert not _visible_at(doc, blob, other, seconds)
+    assert doc["nodes"][triangle]["extensions"]["KHR_node_visibility"]["visible"] is True
+    assert doc["nodes"][square]["extensions"]["KHR_node_visibility"]["visible"] is False
+
+
+def test_more_topologies_than_the_cap_are_thinned_with_a_warning(tmp_path):
+    """70 topologies (a polygon of 3 + k % 5 corners, growing, at each time code k): 64
+    meshes kept, the first and the last among them, one shown at any time."""
+    stage = new_stage(tmp_path)
+    shapes = {}
+    for k in range(70):
+        n = 3 + k % 5
+        a = 2 * np.pi * np.arange(n) / n
+        shapes[float(k)] = [(float((1 + k) * np.cos(x)), float((1 + k) * np.sin(x))) for x in a]
+    _changing_topology(stage, "/Blob", shapes)
+    conversion, doc, blob = convert(stage, tmp_path)
+    assert any(w.startswith("/Blob: 70 topologies over time: thinned to 64")
+               for w in conversion.warnings)  # fmt: skip
+    (parent,) = [n for n in doc["nodes"] if n.get("name") == "Blob"]
+    names = [doc["nodes"][c]["name"] for c in parent["children"]]
+    assert len(names) == 64 and names[0] == "Blob@0" and names[-1] == "Blob@69"
+    for seconds in (0.0, 10 / 24, 33.5 / 24, 69 / 24, 80 / 24):
+        shown = [c for c in parent["children"] if _visible_at(doc, blob, c, seconds)]
+        assert len(shown) == 1
 
 
 def test_deforming_points_become_morph_targets_played_by_the_animation(tmp_path):

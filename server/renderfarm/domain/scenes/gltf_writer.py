@@ -97,6 +97,16 @@ class GltfWriter:
             accessor["max"] = [float(v) for v in array.max(axis=0)]
         return self.add("accessors", accessor)
 
+    def bool_accessor(self, values) -> int:
+        """A SCALAR unsigned-byte accessor of booleans (0 false, 1 true): the output of a
+        KHR_animation_pointer sampler of a bool property, such as KHR_node_visibility's."""
+        array = np.ascontiguousarray(np.asarray(values, dtype=bool), dtype=np.uint8)
+        view = self._view(array.tobytes())
+        return self.add(
+            "accessors",
+            {"bufferView": view, "componentType": 5121, "count": int(array.size), "type": "SCALAR"},
+        )
+
     def image(self, data: bytes, mime: str, name: str = "") -> int:
         view = self._view(data)
         image: dict[str, Any] = {"bufferView": view, "mimeType": mime}

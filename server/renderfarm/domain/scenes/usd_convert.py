@@ -28,7 +28,9 @@ What converts (docs/scenes.md, "USD scenes", is the users' version):
   linear blend skinning (warned). Blend shapes are morph targets weighted by the
   SkelAnimation's blendShapeWeights (in-betweens and normal offsets warned).
 - Deformation: points with time samples are a morph target per sample played by a weights
-  channel; normals with time samples too are each target's NORMAL offsets.
+  channel; normals with time samples too are each target's NORMAL offsets. A topology that
+  changes over time is a mesh per topology, each shown during its span by KHR_node_visibility
+  animated through KHR_animation_pointer (topology_meshes).
 - Cameras: UsdGeomCamera to a glTF camera (yfov = 2 atan(verticalAperture / (2 focalLength)),
   clipping range to znear/zfar); one camera: the stage's render settings' camera, else the
   first met. Depth of field (fStop, focusDistance) is reported for the job's aperture_radius
@@ -72,6 +74,7 @@ SHAPES = ("Cube", "Sphere", "Cylinder", "Cylinder_1", "Cone", "Capsule", "Plane"
 MAX_NODES = 2_000_000
 MAX_ANIMATION_SAMPLES = 100_000
 MAX_MORPH_VALUES = 8_000_000  # points over every sample of a deforming mesh (96 MB of targets)
+MAX_TOPOLOGIES = 64  # meshes of one prim whose topology changes over time (thinned beyond)
 
 
 @dataclass
@@ -332,7 +335,10 @@ class _StageConverter:
             self.skel_cache.Populate(UsdSkel.Root(prim), Usd.PrimDefaultPredicate)
         children: list[int] = []
         walk_children = True
-        if prim.IsA(UsdGeom.Mesh):
+        spans = self.topology_spans(prim) if prim.IsA(UsdGeom.Mesh) else None
+        if spans is not None:
+            children += self.topology_meshes(prim, spans)
+        elif prim.IsA(UsdGeom.Mesh):
             mesh = self.mesh(prim)
             if mesh is not None:
                 node["mesh"] = mesh
@@ -736,13 +742,27 @@ class _StageConverter:
             return values[:corners]
         raise SceneError(f"{where}: unknown interpolation {interp!r}", f"scene:{where}")
 
-    def mesh(self, prim) -> int | None:
+    def mesh(self, prim, at: float | None = None) -> int | None:
+        """The glTF mesh of a UsdGeom.Mesh at the stage's start time (deforming points as
+        morph targets), or with `at`, its topology and points at that time code, unmoving (one
+        of the meshes of a topology that changes: topology_meshes)."""
+        from pxr import Usd
+
+        key = ("mesh", str(prim.GetPath())) if at is None else ("mesh", str(prim.GetPath()), at)
+        if key in self.meshes:
+            return self.meshes[key]
+        if at is None:
+            return self._mesh(prim, key, fixed=False)
+        start, self.time = self.time, Usd.TimeCode(at)
+        try:
+            return self._mesh(prim, key, fixed=True)
+        finally:
+            self.time = start
+
+    def _mesh(self, prim, key: tuple, fixed: bool) -> int | None:
         from pxr import UsdGeom, UsdShade
 
         path = str(prim.GetPath())
-        key = ("mesh", path)
-        if key in self.meshes:
-            return self.meshes[key]
         mesh = UsdGeom.Mesh(prim)
         t = self.time
         points = mesh.GetPointsAttr().Get(t)
@@ -804,7 +824,7 @@ class _StageConverter:
             # surface): its cage is shaded with each point's area-weighted face normals, as
             # Blender's importer and Storm shade an unsubdivided cage, not flat as glTF would.
             attributes["NORMAL"] = _point_normals(points, counts, indices, left)[indices]
-        morph = self.morph_samples(mesh, len(points))
+        morph = None if fixed else self.morph_samples(mesh, len(points))
         weights = None  # (times, weights per time) of the morph targets
         if morph is not None:
             skinning = self.skel_cache.GetSkinningQuery(prim)
@@ -820,7 +840,7 @@ class _StageConverter:
                 for k, frame in enumerate(normal_frames):
                     attributes[f"_NORMAL_TARGET{k:06d}"] = frame - attributes["NORMAL"]
         else:
-            if self._normals_vary(prim, mesh):
+            if not fixed and self._normals_vary(prim, mesh):
                 self.warn(path, "normals that change over time on points that do not: the "
                           "first time's normals are kept")  # fmt: skip
             shapes = self.blend_shapes(prim, len(points))
@@ -930,6 +950,96 @@ class _StageConverter:
         self.meshes[key] = index
         self.renderables += 1
         return index
+
+    def topology_spans(self, prim) -> list[float] | None:
+        """The time codes at which a mesh's topology (its point count, faceVertexCounts or
+        faceVertexIndices) changes, the first of its samples included: each starts a span
+        that lasts until the next (USD holds an array whose size or integers change until its
+        next sample); None when the topology is one over time."""
+        import hashlib
+
+        from pxr import UsdGeom
+
+        mesh = UsdGeom.Mesh(prim)
+        attrs = (mesh.GetPointsAttr(), mesh.GetFaceVertexCountsAttr(),
+                 mesh.GetFaceVertexIndicesAttr())  # fmt: skip
+        if not attrs[1].ValueMightBeTimeVarying() and not attrs[2].ValueMightBeTimeVarying():
+            if not attrs[0].ValueMightBeTimeVarying():
+                return None
+        times = sorted({t for a in attrs for t in a.GetTimeSamples()})
+        if len(times) < 2:
+            return None
+        starts: list[float] = []
+        last = None
+        for t in times:
+            points, counts, indices = (a.Get(t) for a in attrs)
+            digest = hashlib.sha256()
+            digest.update(str(len(points) if points is not None else -1).encode())
+            for values in (counts, indices):
+                digest.update(b"|" + np.asarray(values if values is not None else [],
+                                                 dtype=np.int64).tobytes())  # fmt: skip
+            if digest.digest() != last:
+                starts.append(float(t))
+                last = digest.digest()
+        return starts if len(starts) >= 2 else None
+
+    def topology_meshes(self, prim, starts: list[float]) -> list[int]:
+        """A mesh whose topology changes over time as one glTF mesh per span of one topology
+        (at most MAX_TOPOLOGIES, thinned evenly beyond: each kept span lasts until the next
+        kept one), each converted at its span's first time code and unmoving, on a child node
+        of its own that KHR_node_visibility shows during its span alone: a STEP channel of
+        KHR_animation_pointer per node over the spans' start times (glTF seconds = time code /
+        timeCodesPerSecond), visible at its own start, hidden at the others'. Before the first
+        sample the first span shows, after the last the last (USD holds its first and last
+        samples); a still shows the span at the stage's start time."""
+        path = str(prim.GetPath())
+        moving = [t for t in prim.GetAttribute("points").GetTimeSamples() if t not in starts]
+        if any(t > starts[0] for t in moving):
+            self.warn(path, "points that move while the topology holds are not animated: each "
+                      "topology is converted at the first time it holds")  # fmt: skip
+        if len(starts) > MAX_TOPOLOGIES:
+            self.warn(path, f"{len(starts)} topologies over time: thinned to {MAX_TOPOLOGIES}, "
+                      "each shown until the next kept one")  # fmt: skip
+            keep = np.linspace(0, len(starts) - 1, MAX_TOPOLOGIES).round().astype(int)
+            starts = [starts[int(k)] for k in np.unique(keep)]
+        start = float(self.time.GetValue()) if self.time.IsNumeric() else starts[0]
+        shown = max([k for k, t in enumerate(starts) if t <= start] or [0])
+        times = np.array(starts, dtype=np.float64)
+        key = times.tobytes()
+        seconds = self.time_accessors.get(key)
+        if seconds is None:
+            seconds = self.writer.accessor(times / self.time_codes_per_second, bounds=True)
+            self.time_accessors[key] = seconds
+        nodes = []
+        for k, t in enumerate(starts):
+            mesh = self.mesh(prim, at=t)
+            if mesh is None:
+                continue
+            node: dict[str, Any] = {
+                "name": f"{prim.GetName()}@{t:g}",
+                "mesh": mesh,
+                "extensions": {"KHR_node_visibility": {"visible": k == shown}},
+            }
+            index = self.writer.add("nodes", node)
+            if path in self.mesh_skins:
+                self.pending_skins.append((node, *self.mesh_skins[path], path))
+            samplers = self.animation["samplers"]
+            output = self.writer.bool_accessor(np.arange(len(starts)) == k)
+            samplers.append({"input": seconds, "output": output, "interpolation": "STEP"})
+            pointer = f"/nodes/{index}/extensions/KHR_node_visibility/visible"
+            self.channels.append({
+                "sampler": len(samplers) - 1,
+                "target": {"path": "pointer",
+                           "extensions": {"KHR_animation_pointer": {"pointer": pointer}}},
+            })  # fmt: skip
+            nodes.append(index)
+        if nodes:
+            for name in ("KHR_node_visibility", "KHR_animation_pointer"):
+                self.writer.use_extension(name)
+                required = self.writer.doc.setdefault("extensionsRequired", [])
+                if name not in required:
+                    required.append(name)
+        return nodes
 
     def morph_samples(self, mesh, n_points: int):
         """(time codes, the points at each in metres) of a mesh whose points have time samples
