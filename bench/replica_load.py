@@ -1,8 +1,13 @@
 """A simulated fleet against a farm of 1 and of 2 servers over one PostgreSQL (#39).
 
-Each synthetic worker (bench/server_merge.py's, answering every Assign at once with a
-pre-built 64x64 result shaped like the C++ worker's) opens one stream to every server, as
-`renderfarm-worker connect --server A,B` does, with 16 tasks in flight on each. One job per
+Each synthetic worker (bench/server_merge.py's: a pre-built 64x64 result shaped like the C++
+worker's for every task, ready after a render time drawn from 0.5 to 1.5 x --render-s, 0.25 s by
+default: a 64-spp Cornell box tile on one core of this machine) opens one stream to every
+server, as `renderfarm-worker connect --server A,B` does, with 16 tasks in flight on each.
+Results leave as the C++ worker's ResultPacker sends them: each message takes every result
+ready when the stream can take it (--no-pack: one message per result, as workers did before
+packed messages). The fleet offers far more results than a server merges, so the figures are
+the servers' capacity. One job per
 server (the servers share the jobs, so each owns one). Over the measured window it prints, per
 farm size: results merged per second (all servers), the servers' CPU per result (user + system
 time of every server process over the results they merged), and PostgreSQL's cost per result
@@ -12,6 +17,7 @@ alone depends on what else shares this machine's cores (here the load generator 
 PostgreSQL do). Writes bench/results/replica_load.json.
 
     .venv/bin/python bench/replica_load.py [--workers 1000] [--replicas 1,2] [--seconds 10]
+        [--render-s 0.25] [--no-pack]
 """
 
 from __future__ import annotations
@@ -79,24 +85,42 @@ def database_writes(url: str) -> tuple[int, int]:
     return int(row[0]), int(row[1])
 
 
-def fleet(addresses: list[str], workers: int, seconds: float, sent, cpus: set[int]) -> None:
+def fleet(
+    addresses: list[str],
+    workers: int,
+    seconds: float,
+    sent,
+    messages,
+    cpus: set[int],
+    packed: bool,
+    render_s: float,
+) -> None:
     """The load generator: `workers` synthetic workers, each with a stream to every server."""
     os.sched_setaffinity(0, cpus)
     stop_at = time.monotonic() + seconds
 
     async def run():
         streams = [
-            synthetic_worker(address, f"fleet-{i}@{address}", 16, stop_at)
+            synthetic_worker(address, f"fleet-{i}@{address}", 16, stop_at, packed, render_s)
             for i in range(workers)
             for address in addresses
         ]
         counts = await asyncio.gather(*streams)
         sent.value = sum(c[0] for c in counts)
+        messages.value = sum(c[2] for c in counts)
 
     asyncio.run(run())
 
 
-def measure(replicas: int, workers: int, seconds: float, cache_mb: int, data: Path) -> dict:
+def measure(
+    replicas: int,
+    workers: int,
+    seconds: float,
+    cache_mb: int,
+    data: Path,
+    packed: bool,
+    render_s: float,
+) -> dict:
     db = EmbeddedPostgres(data / "db")
     url = db.start()
     farms: list[LocalFarm] = []
@@ -129,10 +153,19 @@ def measure(replicas: int, workers: int, seconds: float, cache_mb: int, data: Pa
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"the servers did not share the jobs: {client.replicas()}")
                 time.sleep(0.2)
-        sent = Value("q", 0)
+        sent, messages = Value("q", 0), Value("q", 0)
         gen = Process(
             target=fleet,
-            args=([f.grpc_address for f in farms], workers, seconds + 5, sent, spare),
+            args=(
+                [f.grpc_address for f in farms],
+                workers,
+                seconds + 5,
+                sent,
+                messages,
+                spare,
+                packed,
+                render_s,
+            ),
         )
         gen.start()
         time.sleep(5)  # warm-up: streams connected, first leases out
@@ -166,6 +199,10 @@ def measure(replicas: int, workers: int, seconds: float, cache_mb: int, data: Pa
         "replicas": replicas,
         "workers": workers,
         "streams": workers * replicas,
+        "packed": packed,
+        "render_s": render_s,
+        # Over the whole run (warm-up included): how full the fleet's messages were.
+        "results_per_message": sent.value / max(1, messages.value),
         "seconds": t1 - t0,
         "results_per_s": results / (t1 - t0),
         "results_per_s_per_replica": [m / (t1 - t0) for m in merged],
@@ -184,11 +221,16 @@ def main() -> dict:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--tile-cache-mb", type=int, default=2048,
                         help="each server's RENDERFARM_TILE_CACHE_MB")  # fmt: skip
+    parser.add_argument("--render-s", type=float, default=0.25,
+                        help="mean render time of a synthetic task (0: at once)")  # fmt: skip
+    parser.add_argument("--no-pack", action="store_true",
+                        help="one result a message (as workers before packing)")  # fmt: skip
     args = parser.parse_args()
     runs = []
     for replicas in (int(x) for x in args.replicas.split(",")):
         with tempfile.TemporaryDirectory(prefix="rf-load-") as data:
-            run = measure(replicas, args.workers, args.seconds, args.tile_cache_mb, Path(data))
+            run = measure(replicas, args.workers, args.seconds, args.tile_cache_mb, Path(data),
+                          not args.no_pack, args.render_s)  # fmt: skip
         runs.append(run)
         for key, value in run.items():
             if isinstance(value, list):

@@ -3,10 +3,10 @@
 A server runs pinned to one CPU core (every thread of it: asyncio, gRPC's poller and event
 engine, the checkpoint thread); a load generator and the embedded PostgreSQL are pinned to the
 other core. The generator opens several WorkerService streams that answer every Assign at once
-with a pre-built 64x64 TileResult shaped like the C++ worker's: float32 sums, and albedo/normal
-sums only when the task does not say skip_aovs (the first 16 samples of a pixel). The figures
-come from the server's own Prometheus metrics: results/s merged, MB/s of result payload, and
-merge latency p50/p99 (interpolated within the histogram buckets). Writes
+with a pre-built 64x64 TileResult shaped like the C++ worker's: float32 sums and hit counts, and
+albedo/normal sums only when the task does not say skip_aovs (the first 16 samples of a pixel).
+The figures come from the server's own Prometheus metrics: results/s merged, MB/s of result
+payload, and merge latency p50/p99 (interpolated within the histogram buckets). Writes
 bench/results/server_merge.json (key `results_per_s`).
 
     .venv/bin/python bench/server_merge.py [--seconds 10] [--streams 4]
@@ -18,6 +18,7 @@ import argparse
 import asyncio
 import contextlib
 import os
+import random
 import re
 import sys
 import tempfile
@@ -45,6 +46,8 @@ def payload(count: int, aovs: bool) -> bytes:
     result = workers_pb2.TileResult(
         rgb_sum=(rng.random(TILE * TILE * 3) * count).astype("<f4").tobytes(),
         luminance_m2=(rng.random(TILE * TILE) * count).astype("<f4").tobytes(),
+        # Every batch carries its camera rays' hit counts (the alpha), as the C++ worker sends.
+        coverage_sum=rng.integers(0, count + 1, TILE * TILE).astype("<f4").tobytes(),
     )
     if aovs:
         result.albedo_sum = np.full(TILE * TILE * 3, 0.5 * count, "<f4").tobytes()
@@ -62,15 +65,81 @@ def varint(n: int) -> bytes:
 
 
 RESULT_TAG = b"\x12"  # WorkerMessage.result: field 2, length-delimited
+RESULTS_TAG = b"\x2a"  # WorkerMessage.results: field 5, length-delimited
+PACKED_TAG = b"\x0a"  # TileResults.results: field 1, length-delimited
 
 
 async def synthetic_worker(
-    address: str, name: str, in_flight: int, stop_at: float
-) -> tuple[int, int]:
-    """One worker stream answering each Assign at once. Messages are framed by hand from a
-    pre-serialised payload so that the load generator costs little CPU per result."""
+    address: str,
+    name: str,
+    in_flight: int,
+    stop_at: float,
+    packed: bool = True,
+    render_s: float = 0.0,
+) -> tuple[int, int, int]:
+    """One worker stream rendering its tasks in no time (render_s 0: a result is ready when
+    its Assign comes) or in a time drawn uniformly from 0.5 to 1.5 x render_s; returns
+    (results, bytes, messages). Messages are framed by hand from a pre-serialised payload so
+    that the load generator costs little CPU per result.
+
+    Results leave as the C++ worker's ResultPacker sends them: when the stream takes the next
+    message, every result ready by then goes in it (one TileResults message, if the worker
+    is packed and the server's Welcome says packed too), so a server that reads slowly gets
+    fuller messages; unpacked, one message per result."""
     payloads: dict[tuple[int, bool], bytes] = {}
-    sent = sent_bytes = 0
+    sent = sent_bytes = messages = 0
+    loop = asyncio.get_running_loop()
+    rng = random.Random(name)
+    ready: list[bytes] = []  # results waiting for the stream
+    wake = asyncio.Event()
+    pack = False
+
+    def result(task) -> bytes:
+        key = (task.sample_count, not task.skip_aovs)
+        arrays = payloads.get(key)
+        if arrays is None:
+            arrays = payloads[key] = payload(*key)
+        header = workers_pb2.TileResult(
+            task_id=task.task_id,
+            job_id=task.job_id,
+            tile_index=task.tile_index,
+            batch_index=task.batch_index,
+            sample_start=task.sample_start,
+            sample_count=task.sample_count,
+            rect=task.rect,
+            render_seconds=0.01,
+        ).SerializeToString()
+        return header + arrays
+
+    def finish(task) -> None:
+        ready.append(result(task))
+        wake.set()
+
+    hello = workers_pb2.Hello(worker_id=name, hostname="bench", cores=in_flight)
+    hello.max_in_flight = in_flight
+    hello.packed = packed
+
+    async def requests():
+        nonlocal sent, sent_bytes, messages
+        yield workers_pb2.WorkerMessage(hello=hello).SerializeToString()
+        while True:
+            await wake.wait()
+            wake.clear()
+            if time.monotonic() > stop_at:
+                return
+            inners = ready[:]
+            ready.clear()
+            sent += len(inners)
+            sent_bytes += sum(len(i) for i in inners)
+            if pack and len(inners) > 1:
+                body = b"".join(PACKED_TAG + varint(len(i)) + i for i in inners)
+                messages += 1
+                yield RESULTS_TAG + varint(len(body)) + body
+            else:
+                for inner in inners:
+                    messages += 1
+                    yield RESULT_TAG + varint(len(inner)) + inner
+
     async with grpc.aio.insecure_channel(
         address, options=[("grpc.max_send_message_length", 64 << 20)]
     ) as channel:
@@ -79,58 +148,40 @@ async def synthetic_worker(
             request_serializer=lambda raw: raw,
             response_deserializer=workers_pb2.ServerMessage.FromString,
         )
-        outbox: asyncio.Queue = asyncio.Queue()
-        hello = workers_pb2.Hello(worker_id=name, hostname="bench", cores=in_flight)
-        hello.max_in_flight = in_flight
-        await outbox.put(workers_pb2.WorkerMessage(hello=hello).SerializeToString())
-
-        async def requests():
-            while True:
-                msg = await outbox.get()
-                if msg is None:
-                    return
-                yield msg
-
         call = connect(requests())
         async for msg in call:
             if time.monotonic() > stop_at:
                 break
-            if msg.WhichOneof("msg") != "assign":
+            kind = msg.WhichOneof("msg")
+            if kind == "welcome":
+                pack = packed and msg.welcome.packed
                 continue
-            task = msg.assign.task
-            key = (task.sample_count, not task.skip_aovs)
-            arrays = payloads.get(key)
-            if arrays is None:
-                arrays = payloads[key] = payload(*key)
-            header = workers_pb2.TileResult(
-                task_id=task.task_id,
-                job_id=task.job_id,
-                tile_index=task.tile_index,
-                batch_index=task.batch_index,
-                sample_start=task.sample_start,
-                sample_count=task.sample_count,
-                rect=task.rect,
-                render_seconds=0.01,
-            ).SerializeToString()
-            inner = header + arrays
-            await outbox.put(RESULT_TAG + varint(len(inner)) + inner)
-            sent += 1
-            sent_bytes += len(inner)
-        await outbox.put(None)
+            tasks = [msg.assign.task] if kind == "assign" else []
+            if kind == "assigns":
+                tasks = [a.task for a in msg.assigns.assigns]
+            for task in tasks:
+                if render_s > 0:
+                    loop.call_later(rng.uniform(0.5, 1.5) * render_s, finish, task)
+                else:
+                    finish(task)
+        wake.set()
         call.cancel()
-    return sent, sent_bytes
+    return sent, sent_bytes, messages
 
 
-def load_generator(address: str, streams: int, seconds: float, mean_bytes) -> None:
+def load_generator(
+    address: str, streams: int, seconds: float, mean_bytes, packed: bool = True
+) -> None:
     os.sched_setaffinity(0, {1 % os.cpu_count()})
     stop_at = time.monotonic() + seconds
 
     async def run():
         counts = await asyncio.gather(
-            *(synthetic_worker(address, f"bench-{i}", 16, stop_at) for i in range(streams))
+            *(synthetic_worker(address, f"bench-{i}", 16, stop_at, packed) for i in range(streams))
         )
         sent, sent_bytes = sum(c[0] for c in counts), sum(c[1] for c in counts)
-        print(f"load generator sent {sent} results", file=sys.stderr)
+        messages = sum(c[2] for c in counts)
+        print(f"load generator sent {sent} results in {messages} messages", file=sys.stderr)
         mean_bytes.value = sent_bytes / max(1, sent)
 
     asyncio.run(run())
@@ -197,6 +248,8 @@ def main() -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--streams", type=int, default=4)
+    parser.add_argument("--no-pack", action="store_true",
+                        help="one result a message (as workers before packing)")  # fmt: skip
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
         farm = LocalFarm(workers=0, data_dir=Path(data), env=EXTRA_ENV)
@@ -219,7 +272,13 @@ def main() -> dict:
             mean_bytes = Value("d", 0.0)
             gen = Process(
                 target=load_generator,
-                args=(farm.grpc_address, args.streams, args.seconds + 3, mean_bytes),
+                args=(
+                    farm.grpc_address,
+                    args.streams,
+                    args.seconds + 3,
+                    mean_bytes,
+                    not args.no_pack,
+                ),  # fmt: skip
             )
             gen.start()
             time.sleep(3)  # warm-up: streams connected, first leases out
@@ -257,6 +316,7 @@ def main() -> dict:
         "target_results_per_s": TARGET,
         "tile": TILE,
         "streams": args.streams,
+        "packed": not args.no_pack,
         "seconds": elapsed,
         "server_cores": 1,
     }

@@ -56,6 +56,9 @@ from .sessions import bearer
 log = logging.getLogger(__name__)
 
 MAX_MESSAGE_BYTES = 512 * 2**20
+# Leases sent in one ServerMessage.assigns at most (a worker's credit is at most 256).
+MAX_PACKED_ASSIGNS = 64
+_NOTHING = object()  # Connect's outbox loop: no message held back
 
 
 def _enum_prefix(setting) -> str:
@@ -440,15 +443,19 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                 worker_id=session.worker_id,
                 heartbeat_interval_ms=int(settings.heartbeat_interval_s * 1000),
                 lease_ms=int(settings.lease_s * 1000),
+                packed=True,
             )
         )
         reader = asyncio.create_task(self._read(session, request_iterator))
+        outbox, held = session.outbox, _NOTHING  # held: taken from the outbox, not sent yet
         try:
             while True:
-                if not session.outbox.empty():  # no waiting task needed for queued messages
-                    item = session.outbox.get_nowait()
+                if held is not _NOTHING:
+                    item, held = held, _NOTHING
+                elif not outbox.empty():  # no waiting task needed for queued messages
+                    item = outbox.get_nowait()
                 else:
-                    getter = asyncio.create_task(session.outbox.get())
+                    getter = asyncio.create_task(outbox.get())
                     done, _ = await asyncio.wait(
                         {getter, reader}, return_when=asyncio.FIRST_COMPLETED
                     )
@@ -458,7 +465,18 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                     item = getter.result()
                 if item is None:
                     break  # replaced by a newer connection, or the server is stopping
-                yield self._message(item)
+                if item[0] != "assign" or not hello.packed or outbox.empty():
+                    yield self._message(item)
+                    continue
+                # A worker that reads packed messages gets the leases queued together in one.
+                assigns = [self._assign(item)]
+                while len(assigns) < MAX_PACKED_ASSIGNS and not outbox.empty():
+                    item = outbox.get_nowait()
+                    if item is None or item[0] != "assign":
+                        held = item  # sent next, after these
+                        break
+                    assigns.append(self._assign(item))
+                yield workers_pb2.ServerMessage(assigns=workers_pb2.Assigns(assigns=assigns))
         finally:
             reader.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -475,9 +493,11 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
         return cached
 
     def _message(self, item) -> workers_pb2.ServerMessage:
-        kind = item[0]
-        if kind == "cancel":
+        if item[0] == "cancel":
             return workers_pb2.ServerMessage(cancel=workers_pb2.Cancel(task_ids=item[1]))
+        return workers_pb2.ServerMessage(assign=self._assign(item))
+
+    def _assign(self, item) -> workers_pb2.Assign:
         _, lease, job = item
         if self.farm.metrics is not None:
             self.farm.metrics.tasks_assigned.inc()
@@ -502,9 +522,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             task.animated = True
             task.frame = frame
             task.time_s = frame_time(frame, job.settings.fps)
-        return workers_pb2.ServerMessage(
-            assign=workers_pb2.Assign(task=task, lease_deadline_unix_ms=int(lease.deadline * 1000))
-        )
+        return workers_pb2.Assign(task=task, lease_deadline_unix_ms=int(lease.deadline * 1000))
 
     async def _read(self, session: WorkerSession, request_iterator) -> None:
         async for msg in request_iterator:
@@ -516,6 +534,14 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                     log.warning("malformed result from %s: %s", session.worker_id, e)
                     continue
                 await self.farm.worker_result(session, msg.result.task_id, result)
+            elif kind == "results":  # several at once (workers.proto, TileResults)
+                results = []
+                for one in msg.results.results:
+                    try:
+                        results.append((one.task_id, decode_result(one)))
+                    except ValueError as e:
+                        log.warning("malformed result from %s: %s", session.worker_id, e)
+                await self.farm.worker_results(session, results)
             elif kind == "heartbeat":
                 hb = msg.heartbeat
                 await self.farm.worker_heartbeat(

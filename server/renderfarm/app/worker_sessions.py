@@ -117,6 +117,20 @@ class WorkerSessions:
             await self._after_change()
 
     async def worker_result(self, session: WorkerSession, task_id: str, result: BatchResult) -> str:
+        outcome = self._take_result(session, task_id, result)
+        await self._after_change()
+        return outcome
+
+    async def worker_results(
+        self, session: WorkerSession, results: list[tuple[str, BatchResult]]
+    ) -> list[str]:
+        """Several results of one message (workers.proto, TileResults), each taken as if it
+        had come alone, in order; the farm changes (new leases, events, wake-ups) once."""
+        outcomes = [self._take_result(session, task_id, result) for task_id, result in results]
+        await self._after_change()
+        return outcomes
+
+    def _take_result(self, session: WorkerSession, task_id: str, result: BatchResult) -> str:
         started = time.perf_counter()
         self.scheduler.task_warnings(session.worker_id, result)  # whatever becomes of the result
         outcome = self.scheduler.complete(task_id, result)
@@ -135,7 +149,6 @@ class WorkerSessions:
         session.tasks_done += 1
         if outcome not in ("merged", "pending"):
             log.debug("result %s of job %s discarded: %s", task_id, result.job_id, outcome)
-        await self._after_change()
         return outcome
 
     async def worker_failed(

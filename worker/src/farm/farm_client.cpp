@@ -29,6 +29,7 @@
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
 #include "farm/frames.h"
+#include "farm/result_packer.h"
 #include "farm/scene_cache.h"
 #include "util/sha256.h"
 
@@ -159,14 +160,21 @@ class Worker {
     bool over = false;         // stream ended: render threads and supervisor exit
     bool reader_done = false;
     bool welcomed = false;
+    bool packed = false;       // the server's Welcome said packed: results may share a message
     uint32_t heartbeat_ms = 5000;
     std::atomic<uint64_t> samples{0}, rays{0};
+    // Results on their way (send_result), made once Welcome has said whether packed (before
+    // the render threads start).
+    std::unique_ptr<ResultPacker> packer;
   };
 
   bool write(Session& s, const pb::WorkerMessage& message) {
     std::lock_guard<std::mutex> lock(s.write_mutex);
     return s.stream->Write(message);
   }
+  // Sends a result through the session's ResultPacker: results ready together share a message
+  // to a server whose Welcome said packed.
+  void send_result(Session& s, pb::TileResult result);
   void render_loop(Session& s);
   void supervise(Session& s, const std::atomic<bool>& stop);
   void run_task(Session& s, const pb::Task& task, const RunningTask& running);
@@ -248,6 +256,7 @@ bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
     hello->add_cached_scenes(sha);
   hello->set_version(RENDERFARM_VERSION);
   hello->set_token(options_.token);
+  hello->set_packed(true);  // reads ServerMessage.assigns
   for (const std::string& tag : options_.tags) hello->add_tags(tag);
 
   // The supervisor runs from the start so that a stop request also interrupts the wait for
@@ -266,6 +275,9 @@ bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
         {
           std::lock_guard<std::mutex> lock(mutex_);
           s.welcomed = true;
+          s.packed = msg.welcome().packed();
+          s.packer = std::make_unique<ResultPacker>(
+              s.packed, [&s, this](const pb::WorkerMessage& m) { return write(s, m); });
           if (msg.welcome().heartbeat_interval_ms())
             s.heartbeat_ms = msg.welcome().heartbeat_interval_ms();
         }
@@ -276,6 +288,9 @@ bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
           std::lock_guard<std::mutex> lock(mutex_);
           if (msg.has_assign()) {
             if (!s.closing) s.queue.push_back(msg.assign().task());
+          } else if (msg.has_assigns()) {
+            if (!s.closing)
+              for (const pb::Assign& a : msg.assigns().assigns()) s.queue.push_back(a.task());
           } else if (msg.has_cancel()) {
             for (const std::string& id : msg.cancel().task_ids()) {
               for (auto it = s.queue.begin(); it != s.queue.end();)
@@ -475,8 +490,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
                  false});
   }
   if (!rendered || cancel) return;  // cancelled: send nothing
-  pb::WorkerMessage msg;
-  pb::TileResult* r = msg.mutable_result();
+  pb::TileResult result;
+  pb::TileResult* r = &result;
   r->set_task_id(task.task_id());
   r->set_job_id(task.job_id());
   r->set_tile_index(task.tile_index());
@@ -501,7 +516,11 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   for (const std::string& w : warnings_to_send(task.job_id(), scene_key)) r->add_warnings(w);
   s.samples += uint64_t(rect.pixel_count()) * task.sample_count();
   s.rays += tile.rays;
-  write(s, msg);
+  send_result(s, std::move(result));
+}
+
+void Worker::send_result(Session& s, pb::TileResult result) {
+  s.packer->send(std::move(result));
 }
 
 void Worker::remember_warnings(const std::string& scene_key,
