@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import struct
 from pathlib import Path
 
@@ -1692,3 +1693,256 @@ def test_intrinsic_shapes_are_tessellated_as_usdgeom_defines_them(
     else:
         outward = (cross * (triangles.mean(axis=1) - points.mean(axis=0))).sum(axis=1)
         assert (outward > 0).all()
+
+
+# ------------------------------------------------------------------ containment: clip templates,
+# nested packages and the composed stage's layers
+
+_CLIPPED = """#usda 1.0
+(
+    startTimeCode = 1
+    endTimeCode = 1
+)
+def Mesh "Thing" (
+    clips = {
+        dictionary default = {
+            string templateAssetPath = "TEMPLATE"
+            double templateStartTime = START
+            double templateEndTime = END
+            double templateStride = STRIDE
+            string primPath = "/Geo"
+        }
+    }
+)
+{
+    uniform token subdivisionScheme = "none"
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points
+}
+"""
+
+_CLIP = """#usda 1.0
+def Mesh "Geo"
+{
+    point3f[] points.timeSamples = { 1: [(0, 0, 0), (SIZE, 0, 0), (0, SIZE, 0)] }
+}
+"""
+
+
+def _clipped(root: Path, template: str, start=1, end=1, stride=1) -> Path:
+    text = _CLIPPED.replace("TEMPLATE", template).replace("STRIDE", str(stride))
+    layer = root / "shot.usda"
+    layer.write_text(text.replace("START", str(start)).replace("END", str(end)))
+    return layer
+
+
+@pytest.mark.parametrize("kind", ["dot-dot", "absolute"])
+def test_a_value_clip_template_outside_the_upload_is_refused(tmp_path, kind):
+    """clips.templateAssetPath names clip layers as assetPaths do: a template that leads out of
+    the upload (USD would compose ../outside/clip.1.usda's points) is refused, naming it."""
+    root = tmp_path / "upload"
+    root.mkdir()
+    (tmp_path / "outside").mkdir()
+    (tmp_path / "outside" / "clip.1.usda").write_text(_CLIP.replace("SIZE", "7"))
+    template = {
+        "dot-dot": "../outside/clip.#.usda",
+        "absolute": str(tmp_path / "outside" / "clip.#.usda"),
+    }[kind]
+    layer = _clipped(root, template)
+    with pytest.raises(SceneError) as refused:
+        convert_stage(layer, root, root)
+    assert refused.value.field == "scene:/Thing.clips[default].templateAssetPath"
+    assert ("'..'" if kind == "dot-dot" else "absolute") in refused.value.message
+
+
+def test_a_value_clip_template_inside_the_upload_names_the_clips_usd_names(tmp_path):
+    """USD's rule (UsdClipsAPI): the hash groups of the file name take the time's integer part,
+    zero-padded to their width, and its fraction to as many digits: start 1, end 2, stride 0.5
+    name clip.001.00, clip.001.50 and clip.002.00. Each clip layer is checked as any layer, and
+    the clip's points (a triangle of legs 5 cm) are the mesh's."""
+    root = tmp_path / "upload"
+    (root / "clips").mkdir(parents=True)
+    names = ["clips/clip.001.00.usda", "clips/clip.001.50.usda", "clips/clip.002.00.usda"]
+    for name in names:
+        (root / name).write_text(_CLIP.replace("SIZE", "5"))
+    layer = _clipped(root, "clips/clip.###.##.usda", 1, 2, 0.5)
+    stage = Usd.Stage.Open(str(layer))
+    usd_says = [Path(a.resolvedPath) for a in Usd.ClipsAPI(stage.GetPrimAtPath("/Thing"))
+                .ComputeClipAssetPaths("default")]  # fmt: skip
+    assert usd_says == [root / n for n in names]
+    from renderfarm.domain.scenes.usd_assets import template_clip_paths
+
+    assert template_clip_paths("clips/clip.###.##.usda", 1.0, 2.0, 0.5) == names
+    _, doc, blob = convert(stage, root)
+    (tri,) = world_triangles(doc, blob, "Thing")
+    assert sorted(map(tuple, np.round(tri, 6))) == [(0, 0, 0), (0, 0.05, 0), (0.05, 0, 0)]
+
+    # A clip layer the template names is a layer of the stage: its asset paths are checked.
+    other = tmp_path / "other"
+    shutil.copytree(root, other)
+    bad = 'def "X"\n{\n    asset a = @/etc/hostname@\n}\n'
+    (other / names[1]).write_text(_CLIP.replace("SIZE", "5") + bad)
+    with pytest.raises(SceneError) as refused:
+        convert_stage(other / "shot.usda", other, other)
+    assert refused.value.field == "scene:/X.a" and "absolute" in refused.value.message
+
+
+def test_a_value_clip_template_over_too_many_times_is_refused(tmp_path):
+    root = tmp_path / "upload"
+    root.mkdir()
+    layer = _clipped(root, "clip.#.usda", 0, 10_000_000, 1)
+    with pytest.raises(SceneError) as refused:
+        convert_stage(layer, root, root)
+    assert refused.value.field == "scene:/Thing.clips[default].templateAssetPath"
+    assert "clips" in refused.value.message
+
+
+_ASSET = """#usda 1.0
+(
+    defaultPrim = "Asset"
+)
+def "Asset" (
+    references = @./parts/sub.usda@</Part>
+)
+{
+}
+"""
+
+_PART = """#usda 1.0
+def "Part" (
+    references = @REF@</Tri>
+)
+{
+}
+"""
+
+_TRI = """#usda 1.0
+def Mesh "Tri"
+{
+    uniform token subdivisionScheme = "none"
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points = [(0, 0, 0), (SIZE, 0, 0), (0, SIZE, 0)]
+    float2[] primvars:st = [(0, 0), (1, 0), (0, 1)] (
+        interpolation = "vertex"
+    )
+    rel material:binding = </Tri/Looks/M>
+    def Scope "Looks"
+    {
+        def Material "M"
+        {
+            token outputs:surface.connect = </Tri/Looks/M/Surface.outputs:surface>
+            def Shader "Surface"
+            {
+                uniform token info:id = "UsdPreviewSurface"
+                color3f inputs:diffuseColor.connect = </Tri/Looks/M/Tex.outputs:rgb>
+                token outputs:surface
+            }
+            def Shader "Tex"
+            {
+                uniform token info:id = "UsdUVTexture"
+                asset inputs:file = @../maps/wood.png@
+                float3 outputs:rgb
+            }
+        }
+    }
+}
+"""
+
+_CARD = """#usda 1.0
+def Mesh "Tri"
+{
+    uniform token subdivisionScheme = "none"
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points = [(0, 0, 0), (SIZE, 0, 0), (0, SIZE, 0)]
+}
+"""
+
+_SHOT = """#usda 1.0
+def "Prop" (
+    references = @./inner.usdz@
+)
+{
+}
+"""
+
+
+def nested_package(tmp_path: Path, ref: str, size: int = 3) -> bytes:
+    """inner.usdz: asset.usda (its root layer) -> parts/sub.usda -> `ref` (a triangle with a
+    texture of the package, maps/wood.png, named from parts/tri.usda as ../maps/wood.png),
+    written by usd-core's own package writer."""
+    src = tmp_path / "package-src"
+    (src / "parts").mkdir(parents=True)
+    (src / "maps").mkdir()
+    (src / "asset.usda").write_text(_ASSET)
+    (src / "parts" / "sub.usda").write_text(_PART.replace("REF", ref))
+    (src / "parts" / "tri.usda").write_text(_TRI.replace("SIZE", str(size)))
+    _png(src / "maps" / "wood.png", np.full((2, 2, 3), 0.25))
+    out = tmp_path / "inner.usdz"
+    writer = Sdf.ZipFileWriter.CreateNew(str(out))
+    for name in ("asset.usda", "parts/sub.usda", "parts/tri.usda", "maps/wood.png"):
+        writer.AddFile(str(src / name), name)
+    writer.Save()
+    return out.read_bytes()
+
+
+def test_a_multi_layer_package_inside_a_bundle_converts_from_its_own_files(tmp_path):
+    """A bundle's layer referencing a .usdz whose root layer names parts/sub.usda inside the
+    package (as USD anchors it: inner.usdz[parts/sub.usda]), which names parts/tri.usda, whose
+    texture is maps/wood.png in the package: all read from the package, nothing beside it."""
+    root = tmp_path / "upload"
+    root.mkdir()
+    data = nested_package(tmp_path, "./tri.usda")
+    (root / "inner.usdz").write_bytes(data)
+    (root / "shot.usda").write_text(_SHOT)
+    conversion = convert_stage(root / "shot.usda", root, tmp_path)
+    doc, blob = read_glb(conversion.glb)
+    (tri,) = world_triangles(doc, blob, "Prop")
+    assert sorted(map(tuple, np.round(tri, 6))) == [(0, 0, 0), (0, 0.03, 0), (0.03, 0, 0)]
+    (image,) = doc["images"]
+    view = doc["bufferViews"][image["bufferView"]]
+    png = (tmp_path / "package-src" / "maps" / "wood.png").read_bytes()
+    assert blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]] == png
+
+
+@pytest.mark.parametrize("ref", ["absolute", "../../outside.usda", "./missing.usda"])
+def test_a_layer_inside_a_nested_package_is_checked_inside_the_package(tmp_path, ref):
+    """The package's layers are checked where USD reads them, inside the package: an absolute
+    path there (which USD would compose), a path climbing out of the package, or one naming no
+    file of the package is refused, even with a same-named loose file beside the package."""
+    root = tmp_path / "upload"
+    (root / "parts").mkdir(parents=True)
+    (tmp_path / "outside.usda").write_text(_CARD.replace("SIZE", "9"))
+    written = str(tmp_path / "outside.usda") if ref == "absolute" else ref
+    (root / "inner.usdz").write_bytes(nested_package(tmp_path, written))
+    (root / "shot.usda").write_text(_SHOT)
+    (root / "parts" / "sub.usda").write_text(_PART.replace("REF", "./tri.usda"))  # decoys
+    (root / "parts" / "tri.usda").write_text(_TRI.replace("SIZE", "1"))
+    (root / "missing.usda").write_text(_TRI.replace("SIZE", "1"))
+    (root / "outside.usda").write_text(_TRI.replace("SIZE", "1"))
+    (root / "maps").mkdir()
+    _png(root / "maps" / "wood.png", np.full((2, 2, 3), 0.5))
+    with pytest.raises(SceneError) as refused:
+        convert_stage(root / "shot.usda", root, tmp_path)
+    assert refused.value.field == "scene:/Part.references"
+    assert "inner.usdz[parts/sub.usda]" in refused.value.message
+    words = {"absolute": "absolute", "./missing.usda": "names no file of the package"}
+    assert words.get(ref, "climbs out of the package") in refused.value.message
+
+
+def test_a_composed_layer_outside_the_upload_is_refused_after_composition(tmp_path):
+    """The defence behind the checks: a stage whose composition used a layer outside the upload
+    (composed here without the checks) is refused, naming the layer."""
+    from renderfarm.domain.scenes.usd_assets import check_used_layers
+
+    root = tmp_path / "upload"
+    root.mkdir()
+    (tmp_path / "outside.usda").write_text(_CARD.replace("SIZE", "9"))
+    (root / "shot.usda").write_text(_PART.replace("REF", str(tmp_path / "outside.usda")))
+    stage = Usd.Stage.Open(str(root / "shot.usda"))
+    with pytest.raises(SceneError) as refused:
+        check_used_layers(stage, root)
+    assert str(tmp_path / "outside.usda") in refused.value.message
+    check_used_layers(Usd.Stage.Open(str(root / "shot.usda")), tmp_path)  # inside: no error

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import zipfile
 
 import pytest
 
 pytest.importorskip("pxr")
+from pxr import Sdf  # noqa: E402
 
 from renderfarm.errors import SceneError  # noqa: E402
 from renderfarm.infra import usd_import  # noqa: E402
@@ -67,3 +69,108 @@ def test_the_servers_usd_search_path_is_not_searched(tmp_path, monkeypatch):
         asyncio.run(UsdImporter(tmp_path / "work").convert(archive.getvalue(), "shot.zip"))
     assert refused.value.field == "scene:/Prop.references"
     assert "names no file of the upload" in refused.value.message
+
+
+_CLIPPED = """#usda 1.0
+(
+    startTimeCode = 1
+    endTimeCode = 1
+)
+def Mesh "Thing" (
+    clips = {
+        dictionary default = {
+            string templateAssetPath = "../../../outside/clip.#.usda"
+            double templateStartTime = 1
+            double templateEndTime = 1
+            double templateStride = 1
+            string primPath = "/Geo"
+        }
+    }
+)
+{
+    uniform token subdivisionScheme = "none"
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points
+}
+"""
+
+_TRIANGLE = """#usda 1.0
+def Mesh "Tri"
+{
+    uniform token subdivisionScheme = "none"
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points = [(0, 0, 0), (9, 0, 0), (0, 9, 0)]
+}
+"""
+
+
+def _zip(files: dict[str, bytes | str]) -> bytes:
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as z:
+        for name, content in files.items():
+            z.writestr(name, content)
+    return archive.getvalue()
+
+
+def test_a_value_clip_template_climbing_out_of_the_upload_is_refused(tmp_path):
+    """The child lays the upload out in WORK/usd-*/upload: ../../../outside is tmp_path/outside,
+    where a clip layer waits with a triangle that USD would compose into the mesh."""
+    (tmp_path / "outside").mkdir()
+    clip = '#usda 1.0\ndef Mesh "Geo"\n{\n    point3f[] points.timeSamples = {\n'
+    clip += "        1: [(0, 0, 0), (7, 0, 0), (0, 7, 0)],\n    }\n}\n"
+    (tmp_path / "outside" / "clip.1.usda").write_text(clip)
+    with pytest.raises(SceneError) as refused:
+        asyncio.run(
+            UsdImporter(tmp_path / "work").convert(_zip({"shot.usda": _CLIPPED}), "shot.zip")
+        )
+    assert refused.value.field == "scene:/Thing.clips[default].templateAssetPath"
+    assert "'..'" in refused.value.message
+
+
+def _package(tmp_path, sub: str) -> bytes:
+    """A .usdz (usd-core's writer): root.usda referencing sub.usda inside the package."""
+    src = tmp_path / "src"
+    src.mkdir(exist_ok=True)
+    root = '#usda 1.0\n(\n    defaultPrim = "Asset"\n)\n'
+    root += 'def "Asset" (\n    references = @./sub.usda@</Part>\n)\n{\n}\n'
+    (src / "root.usda").write_text(root)
+    (src / "sub.usda").write_text(sub)
+    writer = Sdf.ZipFileWriter.CreateNew(str(tmp_path / "inner.usdz"))
+    writer.AddFile(str(src / "root.usda"), "root.usda")
+    writer.AddFile(str(src / "sub.usda"), "sub.usda")
+    writer.Save()
+    return (tmp_path / "inner.usdz").read_bytes()
+
+
+_SHOT = '#usda 1.0\ndef "Prop" (\n    references = @./inner.usdz@\n)\n{\n}\n'
+
+
+def test_an_absolute_path_inside_a_nested_package_is_refused(tmp_path):
+    """inner.usdz[sub.usda] references an absolute path outside the upload (a same-named
+    sub.usda beside the package as a decoy): refused, naming the packaged layer."""
+    (tmp_path / "outside.usda").write_text(_TRIANGLE)
+    sub = f'#usda 1.0\ndef "Part" (\n    references = @{tmp_path / "outside.usda"}@</Tri>\n)\n'
+    sub += "{\n}\n"
+    decoy = '#usda 1.0\ndef "Part"\n{\n}\n'
+    shot = _SHOT.replace("./inner.usdz", "./assets/inner.usdz")
+    package = _package(tmp_path, sub)
+    bundle = _zip({"shot.usda": shot, "assets/inner.usdz": package, "assets/sub.usda": decoy})
+    with pytest.raises(SceneError) as refused:
+        asyncio.run(UsdImporter(tmp_path / "work").convert(bundle, "shot.zip"))
+    assert refused.value.field == "scene:/Part.references"
+    assert "assets/inner.usdz[sub.usda]" in refused.value.message
+    assert "absolute" in refused.value.message
+
+
+def test_a_multi_layer_nested_package_converts(tmp_path):
+    """The same package whose sub.usda holds the triangle itself, with nothing beside it, at
+    the bundle's top beside the shot's layer (which is the root layer)."""
+    sub = _TRIANGLE.replace('def Mesh "Tri"', 'def Mesh "Part"')
+    bundle = _zip({"shot.usda": _SHOT, "inner.usdz": _package(tmp_path, sub)})
+    result = asyncio.run(UsdImporter(tmp_path / "work").convert(bundle, "shot.zip"))
+    json_len = int.from_bytes(result.glb[12:16], "little")
+    doc = json.loads(result.glb[20 : 20 + json_len])
+    (position,) = [a for a in doc["accessors"] if a["type"] == "VEC3"]
+    assert position["max"] == pytest.approx([0.09, 0.09, 0.0])  # 9 cm, USD's default unit

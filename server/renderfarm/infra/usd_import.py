@@ -7,8 +7,11 @@ directory (domain/scenes/usd_upload.py), then runs this module as a child proces
 address-space, file-size and open-file limits, its working directory and HOME that directory,
 and an environment without any PXR_* variable (so no plug-in or search path of the server's
 applies). The child checks every asset path of every layer before the stage is composed
-(domain/scenes/usd_assets.py: nothing outside the directory is opened or read), converts
-(domain/scenes/usd_convert.py), writes the GLB and prints one JSON line. The GLB then goes
+(domain/scenes/usd_assets.py: no layer outside the directory is opened, no texture outside it
+read), composes, refuses the stage if it used any layer outside the directory nonetheless (after
+composition and after the conversion), converts (domain/scenes/usd_convert.py), writes the GLB
+and prints one JSON line. These are the child's own checks: the operating system does not
+confine its reads (the limits are CPU, memory, file size and open files). The GLB then goes
 through the ordinary acceptance (the workers' loader), like any other upload.
 """
 

@@ -66,7 +66,7 @@ import numpy as np
 
 from ...errors import SceneError
 from .gltf_writer import GltfWriter
-from .usd_assets import DroppedArc, check_layers, read_inside
+from .usd_assets import DroppedArc, check_layers, check_used_layers, packaged_copy, read_inside
 from .usd_materials import MaterialConverter, _set_emission
 
 # The intrinsic shapes tessellated (gprim), by UsdGeom class name.
@@ -1607,12 +1607,13 @@ class _StageConverter:
         if asset is not None and asset.path:
             suffix = Path(asset.path).suffix.lower()
             where = f"{path}.inputs:texture:file"
-            data = read_inside(asset.resolvedPath, self.root, where)
+            resolved = packaged_copy(asset.resolvedPath, self.root, self.work, where)
+            data = read_inside(resolved, (self.root, self.work / "packaged"), where)
             if suffix in (".hdr", ".exr"):
                 environment["data"] = data
                 environment["filename"] = Path(asset.path).name
             else:  # an 8-bit image (PNG, JPEG...): decoded to linear radiance as an EXR
-                environment["data"] = self._linear_exr(asset.resolvedPath, where)
+                environment["data"] = self._linear_exr(resolved, where)
                 environment["filename"] = Path(asset.path).stem + ".exr"
             if np.ptp(radiance / max(scale, 1e-30)) > 1e-6:
                 self.warn(
@@ -1926,9 +1927,12 @@ def convert_stage(root_layer: Path, root: Path, work: Path) -> Conversion:
     stage = Usd.Stage.Open(str(root_layer), Usd.Stage.LoadAll)
     if stage is None:
         raise SceneError(f"{root_layer.name} cannot be opened as a USD stage")
+    check_used_layers(stage, root)  # the defence behind check_layers
     converter = _StageConverter(stage, root, work)
     converter.dropped_materialx(checked.dropped)
-    return converter.convert()
+    conversion = converter.convert()
+    check_used_layers(stage, root)  # value clips' layers open as their values are read
+    return conversion
 
 
 __all__ = ["Conversion", "convert_stage", "light_radiance"]

@@ -41,7 +41,7 @@ import numpy as np
 
 from ...errors import SceneError
 from .gltf_writer import GltfWriter
-from .usd_assets import is_udim, read_inside
+from .usd_assets import is_udim, packaged_copy, read_inside
 
 WRAP = {"repeat": 10497, "mirror": 33648, "clamp": 33071, "black": 33071, "useMetadata": 10497}
 DIRECT_IMAGES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
@@ -123,6 +123,7 @@ class MaterialConverter:
         self.writer = writer
         self.root = root
         self.work = work
+        self.readable = (root, work / "packaged")  # the upload, and packaged_copy's copies
         self.warn = warn
         self.cache: dict[tuple[str, bool], MaterialResult] = {}
         self.images: dict[tuple, int] = {}
@@ -152,6 +153,8 @@ class MaterialConverter:
                 f"{path}.inputs:file: the texture {asset.path!r} is not a file of the upload",
                 f"scene:{path}.inputs:file",
             )
+        # A texture inside a .usdz of the upload: its entry copied out (checked) to be read.
+        resolved = packaged_copy(resolved, self.root, self.work, f"{path}.inputs:file")
         del file_input
         channels = {"rgb": "rgb", "rgba": "rgb", "r": "r", "g": "g", "b": "b", "a": "a"}.get(output)
         if channels is None:
@@ -209,7 +212,7 @@ class MaterialConverter:
             and not transfer
             and self._direct(sources, layout)
         ):
-            return read_inside(first.file, self.root, first.shader), DIRECT_IMAGES[suffix]
+            return read_inside(first.file, self.readable, first.shader), DIRECT_IMAGES[suffix]
         return self._pack(sources, layout, srgb), "image/png"
 
     def _direct(self, sources: list[TextureRef | None], layout: str) -> bool:
@@ -252,7 +255,7 @@ class MaterialConverter:
         bufs = {}
         for s in sources:
             if s is not None and s.file not in bufs:
-                read_inside(s.file, self.root, s.shader)  # the check; OpenImageIO reads it
+                read_inside(s.file, self.readable, s.shader)  # the check; OpenImageIO reads it
                 buf = oiio.ImageBuf(s.file)
                 if buf.has_error or not buf.initialized:
                     raise SceneError(

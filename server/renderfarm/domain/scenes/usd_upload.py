@@ -4,7 +4,8 @@ An upload is USD when it is a crate file (`PXR-USDC`), a text layer (`#usda`), a
 (a zip whose first entry is a USD layer, as the USDZ specification requires) or a .zip/.tar
 bundle holding USD layers and no .gltf. The files come from bundles.read_bundle, with its checks
 (relative paths only, no links, entry count and size limits); the root layer is the package's
-first layer, or the one USD layer nearest the bundle's top.
+first layer, or the one USD layer nearest the bundle's top (a .usd/.usda/.usdc layer before the
+.usdz packages beside it).
 """
 
 from __future__ import annotations
@@ -79,6 +80,8 @@ def usd_files(data: bytes, filename: str, kind: str, limit: int) -> tuple[dict[s
         raise SceneError(f"{name} holds no USD layer (.usd, .usda, .usdc or .usdz)")
     depth = min(p.count("/") for p in layers)
     top = sorted(p for p in layers if p.count("/") == depth)
+    if len(top) > 1:  # a shot's layer beside the packages it references is the root layer
+        top = [p for p in top if not p.lower().endswith(".usdz")] or top
     if len(top) != 1:
         raise SceneError(
             f"{name} must hold one USD layer nearest its top, the stage's root layer "
