@@ -353,3 +353,38 @@ def test_a_mesh_whose_topology_changes_renders_each_shape_at_its_frames(worker_b
         assert image.max() == pytest.approx(1.0, rel=1e-4)  # the emitter, where fully covered
         for c in range(3):
             assert image[..., c].sum() * pixel_area == pytest.approx(area, rel=1e-3)
+
+
+TAKE = """#usda 1.0
+(
+    doc = "TAKE"
+    upAxis = "Y"
+)
+
+def Mesh "Card"
+{
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
+    uniform token subdivisionScheme = "none"
+}
+"""
+
+
+def test_two_uploads_converting_to_one_scene_each_name_their_own_source(apis, tmp_path):
+    """Two .usda files that differ only in their documentation string convert to one GLB (one
+    stored scene); each job's EXR names the upload it was submitted with, not the first."""
+    takes = [TAKE.replace("TAKE", t).encode() for t in ("take one", "take two")]
+    names = ["take-1.usda", "take-2.usda"]
+    jobs = [apis.submit_rest(d, n, SETTINGS, "") for d, n in zip(takes, names, strict=True)]
+    assert not any(isinstance(j, Error) for j in jobs), jobs
+    assert jobs[0]["scene_sha256"] == jobs[1]["scene_sha256"]  # one scene, two sources
+    for job, data, name in zip(jobs, takes, names, strict=True):
+        _finished(apis, job)
+        exr = tmp_path / f"{job['id']}.exr"
+        exr.write_bytes(apis.client.image(job["id"], "exr"))
+        spec = oiio.ImageInput.open(str(exr)).spec()
+        assert (
+            spec.getattribute("renderfarm:scene_source_sha256") == hashlib.sha256(data).hexdigest()
+        )
+        assert spec.getattribute("renderfarm:scene_source_filename") == name

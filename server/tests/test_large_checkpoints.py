@@ -45,6 +45,9 @@ class RecordingStore:
             created_at=datetime(2026, 1, 2, tzinfo=UTC), finished_at=None, variants=[]
         )
 
+    async def get_job_scene_source(self, job_id):  # the EXR header: not converted from USD
+        return None
+
     async def get_scene_source(self, sha256):  # the EXR header: not converted from USD
         return None
 

@@ -259,6 +259,31 @@ def test_a_scene_remembers_its_source_once_and_loses_it_with_the_scene(run):
     assert info == {"sha256": sha("glb"), "format": "glb", "filename": "shot.glb", "size_bytes": 1}
 
 
+def test_a_job_keeps_the_source_it_was_submitted_with_and_loses_it_with_the_job(run):
+    """Two uploads converted to one scene: each job names its own upload, whatever the scene's
+    record (the first upload's) says; a job given no source has none; deleting a job drops
+    its source and leaves the other's."""
+    first = {"source_format": "usd", "source_sha256": sha("take 1"), "source_filename": "a.usda"}
+    second = {"source_format": "usd", "source_sha256": sha("take 2"), "source_filename": "b.usda"}
+
+    async def body(store):
+        await store.put_scene(sha("glb"), "glb", "shot.glb", b"x")
+        await store.put_scene_source(sha("glb"), "usd", sha("take 1"), "a.usda")
+        await store.put_scene_source(sha("glb"), "usd", sha("take 2"), "b.usda")  # kept first
+        await store.insert_job("one", "one", {}, sha("glb"), tiles=1, scene_source=first)
+        await store.insert_job("two", "two", {}, sha("glb"), tiles=1, scene_source=second)
+        await store.insert_job("bare", "bare", {}, sha("glb"), tiles=1)
+        sources = [await store.get_job_scene_source(j) for j in ("one", "two", "bare")]
+        await store.delete_job("one")
+        after = [await store.get_job_scene_source(j) for j in ("one", "two")]
+        return sources, after, await store.get_scene_source(sha("glb"))
+
+    sources, after, scene = run(body)
+    assert sources == [first, second, None]
+    assert after == [None, second]
+    assert scene == first  # the scene's own record: the first upload's
+
+
 def test_a_job_needs_its_scene_stored(run):
     async def body(store):
         with pytest.raises(Exception) as refused:

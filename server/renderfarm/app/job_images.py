@@ -143,7 +143,10 @@ class JobImages:
         attributes = None
         if fmt == "exr":
             numbers = job_frames(settings, variants)
-            source = await self.store.get_scene_source(view.scene_sha256)
+            # The upload submitted with this job; else (submitted by scene_sha256) the scene's.
+            source = await self.store.get_job_scene_source(view.id)
+            if source is None:
+                source = await self.store.get_scene_source(view.scene_sha256)
             if variants:  # its variant's index and name rather than a frame number
                 attributes = exr_attributes(view, None, source, (slot, variants[slot]))
             else:

@@ -511,6 +511,8 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         row = await self.store.insert_job(
             job_id, name, settings.to_dict(), sha, tiles, owner=caller.owner, after=after,
             state=state.value, require_tags=require_tags, variants=list(variants),
+            scene_source=None if usd is None else {"source_format": "usd",
+                "source_sha256": usd.source_sha256, "source_filename": usd.source_filename},
         )  # fmt: skip
         # Stored and committed: only now does the job exist for the scheduler and the caller.
         if not await self.ownership.acquire(job_id):

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 from .store import Fence, JobRow, TileRow, TileSummary, TokenRow, _clean, _finite, _ts
 
 _UNFINISHED = ("waiting", "queued", "running", "paused")
+_SOURCE_KEYS = ("source_format", "source_sha256", "source_filename")
 
 
 class JobStore(Protocol):
@@ -40,6 +41,7 @@ class JobStore(Protocol):
         self, sha256: str, source_format: str, source_sha256: str, source_filename: str
     ) -> None: ...
     async def get_scene_source(self, sha256: str) -> dict[str, Any] | None: ...
+    async def get_job_scene_source(self, job_id: str) -> dict[str, Any] | None: ...
     async def read_scene(self, sha256: str, offset: int, length: int) -> bytes: ...
     async def insert_job(
         self,
@@ -53,6 +55,7 @@ class JobStore(Protocol):
         state: str = "queued",
         require_tags: list[str] | None = None,
         variants: list[str] | None = None,
+        scene_source: dict[str, str] | None = None,
     ) -> JobRow: ...
     async def update_job(self, job_id: str, **fields: Any) -> None: ...
     async def update_job_spec(
@@ -112,6 +115,7 @@ class MemoryStore:
         self.unreachable = False
         self._scenes: dict[str, dict[str, Any]] = {}
         self._jobs: dict[str, JobRow] = {}
+        self._job_sources: dict[str, dict[str, str]] = {}  # job id -> its USD source
         self._tiles: dict[str, dict[int, TileRow]] = {}
         self._events: list[dict[str, Any]] = []
         self._event_ids = itertools.count(1)
@@ -165,6 +169,10 @@ class MemoryStore:
         row = self._scenes.get(sha256)
         return None if row is None or "source" not in row else dict(row["source"])
 
+    async def get_job_scene_source(self, job_id: str) -> dict[str, Any] | None:
+        source = self._job_sources.get(job_id)
+        return None if source is None else dict(source)
+
     async def get_scene_info(self, sha256: str) -> dict[str, Any] | None:
         row = self._scenes.get(sha256)
         return (
@@ -188,6 +196,7 @@ class MemoryStore:
         state: str = "queued",
         require_tags: list[str] | None = None,
         variants: list[str] | None = None,
+        scene_source: dict[str, str] | None = None,
     ) -> JobRow:
         if job_id in self._jobs:
             raise KeyError(f"duplicate job id {job_id!r}")
@@ -203,6 +212,8 @@ class MemoryStore:
         )  # fmt: skip
         self._jobs[job_id] = row
         self._tiles[job_id] = {}
+        if scene_source is not None:
+            self._job_sources[job_id] = {k: str(scene_source[k]) for k in _SOURCE_KEYS}
         self._add_event(job_id, "job_submitted", {"name": name, "state": state,
                                                   "after": list(after or [])})  # fmt: skip
         return copy.deepcopy(row)
@@ -302,6 +313,7 @@ class MemoryStore:
         if row is None:
             return False
         self._tiles.pop(job_id, None)
+        self._job_sources.pop(job_id, None)
         self._events = [e for e in self._events if e["job_id"] != job_id]
         for sha in {row.scene_sha256, row.settings.get("environment")} - {None, ""}:
             used = any(r.scene_sha256 == sha or r.settings.get("environment") == sha

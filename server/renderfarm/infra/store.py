@@ -331,6 +331,18 @@ class Store:
             )
             return await cur.fetchone()
 
+    async def get_job_scene_source(self, job_id: str) -> dict[str, Any] | None:
+        """What a job's scene was converted from, as submitted with the job (None: no
+        converted upload was submitted with it)."""
+        async with self._connection() as conn:
+            cur = conn.cursor(row_factory=dict_row)
+            await cur.execute(
+                "SELECT source_format, source_sha256, source_filename FROM job_scene_sources"
+                " WHERE job_id = %s",
+                (job_id,),
+            )
+            return await cur.fetchone()
+
     async def get_scene_info(self, sha256: str) -> dict[str, Any] | None:
         async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
@@ -362,9 +374,15 @@ class Store:
         state: str = "queued",
         require_tags: list[str] | None = None,
         variants: list[str] | None = None,
+        scene_source: dict[str, str] | None = None,
     ) -> JobRow:
-        # One statement: the job and its first event are committed together, in one round
-        # trip (a burst of submissions holds each pooled connection as briefly as it can).
+        """Insert a job with its first event and, for a converted upload, its source (the
+        USD upload's format, sha256 and file name: the job's own, whoever else's upload
+        converted to the same scene)."""
+        # One statement: the job, its first event and its source are committed together, in
+        # one round trip (a burst of submissions holds each pooled connection as briefly as it
+        # can).
+        source = scene_source or {}
         async with self._connection() as conn:
             cur = conn.cursor(row_factory=dict_row)
             await cur.execute(
@@ -373,11 +391,16 @@ class Store:
                 " require_tags, variants)"
                 f" VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s) RETURNING {_JOB_COLUMNS}),"
                 " submitted AS (INSERT INTO events (job_id, kind, data)"
-                " SELECT id, 'job_submitted', %s FROM job)"
+                " SELECT id, 'job_submitted', %s FROM job),"
+                " source AS (INSERT INTO job_scene_sources"
+                " (job_id, source_format, source_sha256, source_filename)"
+                " SELECT id, %s, %s, %s FROM job WHERE %s)"
                 " SELECT * FROM job",
                 (job_id, name, state, json.dumps(settings), scene_sha256, tiles, owner,
                  list(after or []), list(require_tags or []), list(variants or []),
-                 json.dumps({"name": name, "state": state, "after": list(after or [])})),
+                 json.dumps({"name": name, "state": state, "after": list(after or [])}),
+                 str(source.get("source_format", "")), str(source.get("source_sha256", "")),
+                 str(source.get("source_filename", "")), scene_source is not None),
             )  # fmt: skip
             return JobRow(**await cur.fetchone())
 
