@@ -1946,3 +1946,110 @@ def test_a_composed_layer_outside_the_upload_is_refused_after_composition(tmp_pa
         check_used_layers(stage, root)
     assert str(tmp_path / "outside.usda") in refused.value.message
     check_used_layers(Usd.Stage.Open(str(root / "shot.usda")), tmp_path)  # inside: no error
+
+
+# ------------------------------------------------------------------ displayOpacity and warnings
+
+
+def test_display_opacity_is_the_base_colours_alpha(tmp_path):
+    """UsdGeomGprim: displayOpacity is the companion of displayColor, the opacity the viewport
+    draws a prim with no material; glTF carries opacity as the base colour's alpha, which only
+    alphaMode BLEND applies (OPAQUE ignores it). Constant: baseColorFactor (0.2, 0.4, 0.6, 0.25);
+    per vertex: COLOR_0's alpha at each corner the vertex's opacity, the factor's alpha 1."""
+    stage = new_stage(tmp_path)
+    flat = unit_cube(stage, "/Flat")
+    flat.CreateDisplayColorAttr([(0.2, 0.4, 0.6)])
+    flat.CreateDisplayOpacityAttr([0.25])
+    varying = unit_cube(stage, "/Varying")
+    opacities = [0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875]  # one per corner point
+    varying.CreateDisplayOpacityPrimvar(UsdGeom.Tokens.vertex).Set(opacities)
+    _, doc, blob = convert(stage, tmp_path)
+    meshes = {n["name"]: doc["meshes"][n["mesh"]] for n in doc["nodes"] if "mesh" in n}
+    (prim,) = meshes["Flat"]["primitives"]
+    material = doc["materials"][prim["material"]]
+    assert material["pbrMetallicRoughness"]["baseColorFactor"] == pytest.approx(
+        [0.2, 0.4, 0.6, 0.25], abs=1e-6
+    )
+    assert material["alphaMode"] == "BLEND"
+    (prim,) = meshes["Varying"]["primitives"]
+    material = doc["materials"][prim["material"]]
+    assert material["alphaMode"] == "BLEND"
+    assert material["pbrMetallicRoughness"].get("baseColorFactor", [1, 1, 1, 1])[3] == 1.0
+    pos = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)
+    colour = accessor(doc, blob, prim["attributes"]["COLOR_0"]).astype(np.float64)
+    kind = doc["accessors"][prim["attributes"]["COLOR_0"]]["componentType"]
+    colour /= {5126: 1.0, 5121: 255.0, 5123: 65535.0}[kind]  # glTF: normalized integers
+    assert colour.shape[1] == 4
+    # The cube's points in unit_cube's order: x fastest, then y, then z, each -0.5 or 0.5.
+    index = (pos[:, 0] > 0) * 1 + (pos[:, 1] > 0) * 2 + (pos[:, 2] > 0) * 4
+    assert colour[:, 3] == pytest.approx(np.array(opacities)[index], abs=1 / 255)
+
+
+def test_an_mdl_surface_is_one_warning_and_the_default_material(tmp_path):
+    """An Omniverse material: outputs:mdl:surface from a shader whose module, OmniPBR.mdl,
+    comes from the renderer's search path (not uploaded, never read): one warning naming the
+    material, and the cube gets the default material (0.18 grey)."""
+    stage = new_stage(tmp_path)
+    cube = unit_cube(stage, "/Cube")
+    material = UsdShade.Material.Define(stage, "/Looks/Omni")
+    shader = UsdShade.Shader.Define(stage, "/Looks/Omni/Shader")
+    shader.SetSourceAsset(Sdf.AssetPath("OmniPBR.mdl"), "mdl")
+    shader.SetSourceAssetSubIdentifier("OmniPBR", "mdl")
+    material.CreateSurfaceOutput("mdl").ConnectToSource(shader.ConnectableAPI(), "out")
+    UsdShade.MaterialBindingAPI.Apply(cube.GetPrim()).Bind(material)
+    conversion, doc, _ = convert(stage, tmp_path)
+    mine = [w for w in conversion.warnings if w.startswith("/Looks/Omni:")]
+    assert len(mine) == 1 and "MDL" in mine[0], conversion.warnings
+    (node,) = [n for n in doc["nodes"] if n.get("name") == "Cube"]
+    (prim,) = doc["meshes"][node["mesh"]]["primitives"]
+    base = doc["materials"][prim["material"]]["pbrMetallicRoughness"]["baseColorFactor"]
+    assert base[:3] == pytest.approx([0.18, 0.18, 0.18], abs=1e-6)
+
+
+def test_a_volume_is_one_warning_by_prim_path(tmp_path):
+    from pxr import UsdVol
+
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    (tmp_path / "smoke.vdb").write_bytes(b"")  # named, never read
+    volume = UsdVol.Volume.Define(stage, "/Smoke")
+    field = UsdVol.OpenVDBAsset.Define(stage, "/Smoke/density")
+    field.CreateFilePathAttr(Sdf.AssetPath("smoke.vdb"))
+    field.CreateFieldNameAttr("density")
+    volume.CreateFieldRelationship("density", field.GetPath())
+    conversion, doc, _ = convert(stage, tmp_path)
+    mine = [w for w in conversion.warnings if w.startswith("/Smoke:")]
+    assert len(mine) == 1 and "not converted" in mine[0], conversion.warnings
+    assert not any(n.get("name") == "Smoke" and "mesh" in n for n in doc["nodes"])
+
+
+@pytest.mark.parametrize("collection", ["lightLink", "shadowLink"])
+@pytest.mark.parametrize("how", ["includes", "excludes", "includeRoot false"])
+def test_light_and_shadow_linking_are_one_warning_each(tmp_path, collection, how):
+    """UsdLuxLightAPI's collections: a link that names prims to include or exclude, or whose
+    includeRoot is false (then the light reaches its includes alone), is not carried: one
+    warning on the light's path. A collection authored to include everything is no warning."""
+    stage = new_stage(tmp_path)
+    unit_cube(stage, "/Cube")
+    light = UsdLux.SphereLight.Define(stage, "/Light")
+    plain = UsdLux.SphereLight.Define(stage, "/Plain")
+    api = UsdLux.LightAPI(light)
+    link = (
+        api.GetLightLinkCollectionAPI()
+        if collection == "lightLink"
+        else api.GetShadowLinkCollectionAPI()
+    )
+    if how == "includes":
+        link.CreateIncludeRootAttr(False)
+        link.CreateIncludesRel().AddTarget("/Cube")
+    elif how == "excludes":
+        link.CreateExcludesRel().AddTarget("/Cube")
+    else:
+        link.CreateIncludeRootAttr(False)
+    UsdLux.LightAPI(plain).GetLightLinkCollectionAPI().CreateIncludeRootAttr(True)
+    UsdLux.LightAPI(plain).GetShadowLinkCollectionAPI().CreateIncludeRootAttr(True)
+    conversion, _, _ = convert(stage, tmp_path)
+    mine = [w for w in conversion.warnings if w.startswith("/Light:")]
+    word = "light linking" if collection == "lightLink" else "shadow linking"
+    assert len(mine) == 1 and word in mine[0], conversion.warnings
+    assert not [w for w in conversion.warnings if w.startswith("/Plain:")]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import sys
 import zipfile
 
 import pytest
@@ -174,3 +175,17 @@ def test_a_multi_layer_nested_package_converts(tmp_path):
     doc = json.loads(result.glb[20 : 20 + json_len])
     (position,) = [a for a in doc["accessors"] if a["type"] == "VEC3"]
     assert position["max"] == pytest.approx([0.09, 0.09, 0.0])  # 9 cm, USD's default unit
+
+
+def test_a_child_that_spins_past_its_cpu_time_is_refused_naming_the_limits(tmp_path):
+    """The importer's limits applied to a child that only burns CPU (given as the importer's
+    Python): prlimit's CPU-time limit of 1 s ends it (SIGXCPU), and the upload is refused
+    naming the limits, not a server error."""
+    spin = tmp_path / "spin.py"
+    spin.write_text(f"#!{sys.executable}\nwhile True:\n    pass\n")
+    spin.chmod(0o755)
+    importer = UsdImporter(tmp_path / "work", cpu_seconds=1, python=str(spin))
+    with pytest.raises(SceneError) as refused:
+        asyncio.run(importer.convert(CARD.encode(), "card.usda"))
+    assert "cannot be converted within the server's limits" in refused.value.message
+    assert "1 s of CPU time" in refused.value.message and refused.value.field == "scene"

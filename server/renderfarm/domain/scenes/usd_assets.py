@@ -69,6 +69,7 @@ class CheckedLayers:
     layers: list[Any] = field(default_factory=list, repr=False)  # open Sdf layers, edits kept
 
 
+_SOURCE_ASSET = re.compile(r"^info:([^:]+:)?sourceAsset$")
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*:")
 
 
@@ -463,12 +464,15 @@ def _check_spec(layer, sdf_path, visit) -> None:
     if attr.typeName not in (Sdf.ValueTypeNames.Asset, Sdf.ValueTypeNames.AssetArray):
         return
     where = str(sdf_path.StripAllVariantSelections())
+    # A shader's source module (info:mdl:sourceAsset = @OmniPBR.mdl@, from the renderer's
+    # search path) is never read: it must stay inside the upload but need not be in it.
+    never_read = _SOURCE_ASSET.match(attr.name) is not None
     values = [attr.default] if attr.HasDefaultValue() else []
     values += [layer.QueryTimeSample(sdf_path, t) for t in layer.ListTimeSamplesForPath(sdf_path)]
     for value in values:
         single = value is None or isinstance(value, str) or hasattr(value, "path")
         for item in [value] if single else list(value):
-            visit(where, _asset_text(item), False)
+            visit(where, _asset_text(item), False, optional=never_read)
 
 
 def _check_template(where: str, clips: dict, visit) -> None:

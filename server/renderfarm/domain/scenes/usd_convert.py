@@ -1506,9 +1506,10 @@ class _StageConverter:
             if float(attr.Get(t)) != 1.0:
                 self.warn(path, f"inputs:{name} (a per-response multiplier) is not supported")
         cone = self._shaping(prim, path)
-        link = api.GetLightLinkCollectionAPI()
-        if link and (link.GetIncludesRel().GetTargets() or link.GetExcludesRel().GetTargets()):
+        if _links(api.GetLightLinkCollectionAPI()):
             self.warn(path, "light linking is not supported: the light lights everything")
+        if _links(api.GetShadowLinkCollectionAPI()):
+            self.warn(path, "shadow linking is not supported: everything casts the light's shadows")
         sx, sy, sz = self._world_scale(prim)
         if prim.IsA(UsdLux.RectLight):
             rect = UsdLux.RectLight(prim)
@@ -1726,6 +1727,18 @@ class _StageConverter:
         node.setdefault("extensions", {})["KHR_lights_punctual"] = {"light": len(lights) - 1}
         self.writer.use_extension("KHR_lights_punctual")
         self.renderables += 1
+
+
+def _links(collection) -> bool:
+    """Whether a light's light- or shadow-link collection leaves anything out: it names prims to
+    include or exclude, or its includeRoot is authored false (then it holds its includes
+    alone, nothing when there are none)."""
+    if not collection:
+        return False
+    if collection.GetIncludesRel().GetTargets() or collection.GetExcludesRel().GetTargets():
+        return True
+    root = collection.GetIncludeRootAttr()
+    return bool(root and root.HasAuthoredValue() and not root.Get())
 
 
 def constant_hdr(rgb: np.ndarray, width: int = 8, height: int = 4) -> bytes:
