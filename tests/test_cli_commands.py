@@ -15,7 +15,7 @@ import pytest
 from renderfarm.cli.localfarm import LocalFarm, spawn_workers
 from renderfarm.client import Client
 
-from .conftest import CORNELL
+from .conftest import CORNELL, ROOT
 
 CLI = [sys.executable, "-m", "renderfarm"]
 TINY = ["--width", "32", "--height", "32", "--tile-size", "16", "--spp", "4"]
@@ -139,3 +139,32 @@ def test_watchers_follow_a_job_queued_longer_than_their_read_timeout(tmp_path, w
             assert proc.returncode == 0, stderr.decode()
             assert "Traceback" not in stderr.decode() and "completed" in stderr.decode()
         assert stdout.decode().splitlines()[0] == f"EXR: {out}" and out.is_file()
+
+
+def test_submit_takes_the_example_usd_scene_as_a_user_makes_it(farm, tmp_path):
+    """examples/make_usd_scene.py writes the .usdz; `renderfarm submit` sends it as it is; the
+    server converts it and the job renders, its EXR naming the package as its source."""
+    import hashlib
+
+    import OpenImageIO as oiio
+
+    package = tmp_path / "still-life.usdz"
+    made = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "make_usd_scene.py"), "-o", str(package)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    submitted = _run(farm, "submit", str(package), "--json", *TINY)
+    assert submitted.returncode == 0, submitted.stderr
+    job = json.loads(submitted.stdout)
+    assert job["name"] == "still-life"  # the CLI's default: the file's stem
+    watched = _run(farm, "watch", job["id"], "--json")
+    assert watched.returncode == 0, watched.stderr
+    assert json.loads(watched.stdout.splitlines()[-1])["state"] == "completed"
+    exr = tmp_path / "still-life.exr"
+    got = _run(farm, "get", job["id"], "-o", str(exr))
+    assert got.returncode == 0, got.stderr
+    spec = oiio.ImageInput.open(str(exr)).spec()
+    source = hashlib.sha256(package.read_bytes()).hexdigest()
+    assert spec.getattribute("renderfarm:scene_source_sha256") == source
+    assert spec.getattribute("renderfarm:scene_source_filename") == "still-life.usdz"

@@ -189,3 +189,50 @@ def test_a_child_that_spins_past_its_cpu_time_is_refused_naming_the_limits(tmp_p
         asyncio.run(importer.convert(CARD.encode(), "card.usda"))
     assert "cannot be converted within the server's limits" in refused.value.message
     assert "1 s of CPU time" in refused.value.message and refused.value.field == "scene"
+
+
+_TEXTURED = """#usda 1.0
+def Mesh "Card" (
+    prepend apiSchemas = ["MaterialBindingAPI"]
+)
+{
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
+    rel material:binding = </Card/M>
+    def Material "M"
+    {
+        token outputs:surface.connect = </Card/M/Surface.outputs:surface>
+        def Shader "Surface"
+        {
+            uniform token info:id = "UsdPreviewSurface"
+            color3f inputs:diffuseColor.connect = </Card/M/Tex.outputs:rgb>
+            token outputs:surface
+        }
+        def Shader "Tex"
+        {
+            uniform token info:id = "UsdUVTexture"
+            asset inputs:file = @textures/wood.png@
+            float3 outputs:rgb
+        }
+    }
+}
+"""
+
+
+def test_a_layer_uploaded_without_its_textures_is_told_to_come_as_a_bundle(tmp_path):
+    """A .usda naming textures/wood.png uploaded alone: the 400 names the texture's prim and
+    attribute and says to upload a .zip bundle; the same layer in a bundle with other files but
+    not that one is refused without the advice."""
+    importer = UsdImporter(tmp_path / "work")
+    with pytest.raises(SceneError) as alone:
+        asyncio.run(importer.convert(_TEXTURED.encode(), "card.usda"))
+    assert alone.value.field == "scene:/Card/M/Tex.inputs:file"
+    assert "names no file of the upload" in alone.value.message
+    assert ".zip bundle" in alone.value.message
+    bundle = _zip({"card.usda": _TEXTURED, "textures/other.png": b"\x89PNG\r\n\x1a\n"})
+    with pytest.raises(SceneError) as bundled:
+        asyncio.run(importer.convert(bundle, "card.zip"))
+    assert bundled.value.field == "scene:/Card/M/Tex.inputs:file"
+    assert "names no file of the upload" in bundled.value.message
+    assert ".zip" not in bundled.value.message

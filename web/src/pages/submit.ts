@@ -4,6 +4,7 @@
 
 import { ApiError, type SettingDoc, settings as fetchSettings, submitJob } from "../api";
 import { h, replace, setText } from "../dom";
+import { fieldHead, fieldSetting } from "../fields";
 import { bytes, label } from "../format";
 
 const GROUPS: [string, string[]][] = [
@@ -99,7 +100,7 @@ export function mountSubmit(root: HTMLElement): () => void {
 
   /** Puts the server's message beside the field it names; returns the element to focus. */
   const showError = (field: string, message: string): HTMLElement | null => {
-    const head = field.split(/[.[]/)[0];
+    const head = fieldHead(field); // "scene" for a USD refusal's "scene:/World/Tex.inputs:file"
     if (head === "scene" || head === "scene_sha256") {
       setText(sceneError, message);
       drop.classList.add("invalid");
@@ -110,7 +111,7 @@ export function mountSubmit(root: HTMLElement): () => void {
       nameInput.setAttribute("aria-invalid", "true");
       return nameInput;
     }
-    const setting = head === "settings" ? field.slice("settings.".length).split(/[.[]/)[0] : head;
+    const setting = head === "settings" ? fieldSetting(field) : head;
     const f = fields.get(setting);
     if (f) {
       setText(f.message, message);

@@ -108,10 +108,26 @@ def check_asset_path(
     if not target.is_file():
         if not need_file:
             return None
+        hint = (
+            "; the layer was uploaded alone: upload it with the files it names as a .zip "
+            "bundle (the layer at the bundle's top, its files at the paths it names)"
+            if _lone_file(root)
+            else ""
+        )
         raise SceneError(
-            f"{where}: the asset path {shown!r} names no file of the upload", _field(where)
+            f"{where}: the asset path {shown!r} names no file of the upload{hint}", _field(where)
         )
     return target
+
+
+def _lone_file(root: Path) -> bool:
+    """Whether the upload is one file (a layer uploaded alone, without the files it names)."""
+    entries = []
+    for entry in root.iterdir():
+        entries.append(entry)
+        if len(entries) > 1:
+            return False
+    return len(entries) == 1 and entries[0].is_file()
 
 
 def _shown(path: str) -> str:
