@@ -2053,3 +2053,33 @@ def test_light_and_shadow_linking_are_one_warning_each(tmp_path, collection, how
     word = "light linking" if collection == "lightLink" else "shadow linking"
     assert len(mine) == 1 and word in mine[0], conversion.warnings
     assert not [w for w in conversion.warnings if w.startswith("/Plain:")]
+
+
+def test_a_texture_path_with_windows_separators_is_read_from_the_upload(tmp_path):
+    """layers\\look.usda names ..\\maps\\colour.png, as exporters on Windows write it: USD's
+    resolver on Linux finds no such file, so the path is read with '\\' as '/' from the
+    authoring layer's folder (maps/colour.png), checked as any asset path, and embedded; one
+    climbing out of the upload that way is refused as any '..' is."""
+    root = tmp_path / "upload"
+    (root / "maps").mkdir(parents=True)
+    (root / "layers").mkdir()
+    _png(root / "maps" / "colour.png", np.full((2, 2, 3), 0.5))
+    png = (root / "maps" / "colour.png").read_bytes()
+    look = Usd.Stage.CreateNew(str(root / "layers" / "look.usda"))
+    _textured(look, "..\\maps\\colour.png")
+    look.GetRootLayer().Save()
+    stage = new_stage(root)
+    stage.GetRootLayer().subLayerPaths.append("./layers/look.usda")
+    _, doc, blob = convert(stage, root)
+    (image,) = doc["images"]
+    view = doc["bufferViews"][image["bufferView"]]
+    assert blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]] == png
+
+    other = tmp_path / "other"
+    other.mkdir()
+    escaping = new_stage(other)
+    _textured(escaping, "..\\upload\\maps\\colour.png")
+    with pytest.raises(SceneError) as refused:
+        convert(escaping, other)
+    assert refused.value.field == "scene:/World/Looks/M/Tex.inputs:file"
+    assert "'..'" in refused.value.message

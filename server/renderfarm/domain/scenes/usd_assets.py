@@ -175,6 +175,23 @@ def read_inside(path: str, root: Path | tuple[Path, ...], where: str) -> bytes:
     return target.read_bytes()
 
 
+def backslashed_path(shader_input, path: str, root: Path, where: str) -> str:
+    """The file a relative asset path written with Windows separators (`textures\\wood.png`, as
+    exporters on Windows write them) names, which USD's resolver on Linux does not find: the path
+    anchored at the folder of the layer that authors the value (check_asset_path, which reads
+    '\\' as '/'), or "" (a layer inside a package, or nothing authored)."""
+    for attr in shader_input.GetValueProducingAttributes() or []:
+        for spec in attr.GetPropertyStack():
+            if not (spec.HasDefaultValue() or spec.layer.ListTimeSamplesForPath(spec.path)):
+                continue
+            real = spec.layer.realPath
+            if not real or "[" in real:
+                return ""
+            target = check_asset_path(path, Path(os.path.realpath(real)).parent, root, where)
+            return "" if target is None else str(target)
+    return ""
+
+
 def packaged_copy(resolved: str, root: Path, work: Path, where: str) -> str:
     """A resolved asset path as a file the converter can read: itself, or for a file inside a
     .usdz of the upload (`/upload/props.usdz[maps/wood.png]`, which check_layers checked), a
@@ -521,6 +538,7 @@ def _asset_text(value) -> str:
 
 __all__ = [
     "USD_LAYER_SUFFIXES",
+    "backslashed_path",
     "CheckedLayers",
     "DroppedArc",
     "check_asset_path",

@@ -41,7 +41,7 @@ import numpy as np
 
 from ...errors import SceneError
 from .gltf_writer import GltfWriter
-from .usd_assets import is_udim, packaged_copy, read_inside
+from .usd_assets import backslashed_path, is_udim, packaged_copy, read_inside
 
 WRAP = {"repeat": 10497, "mirror": 33648, "clamp": 33071, "black": 33071, "useMetadata": 10497}
 DIRECT_IMAGES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
@@ -148,6 +148,8 @@ class MaterialConverter:
             self.warn(path, "UDIM texture sets are not supported: the texture's fallback is used")
             return None
         resolved = asset.resolvedPath
+        if not resolved and "\\" in asset.path:  # Windows separators, which USD keeps as written
+            resolved = backslashed_path(file_input, asset.path, self.root, f"{path}.inputs:file")
         if not resolved:
             raise SceneError(
                 f"{path}.inputs:file: the texture {asset.path!r} is not a file of the upload",
