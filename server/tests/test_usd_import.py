@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import subprocess
 import sys
 import zipfile
 
@@ -20,7 +21,7 @@ pytest.importorskip("pxr")
 from pxr import Sdf  # noqa: E402
 
 from renderfarm.errors import SceneError  # noqa: E402
-from renderfarm.infra import usd_import  # noqa: E402
+from renderfarm.infra import landlock, usd_import  # noqa: E402
 from renderfarm.infra.usd_import import UsdImporter  # noqa: E402
 
 CARD = """#usda 1.0
@@ -236,3 +237,62 @@ def test_a_layer_uploaded_without_its_textures_is_told_to_come_as_a_bundle(tmp_p
     assert bundled.value.field == "scene:/Card/M/Tex.inputs:file"
     assert "names no file of the upload" in bundled.value.message
     assert ".zip" not in bundled.value.message
+
+
+def test_the_child_confines_itself_where_the_kernel_can(tmp_path):
+    result = asyncio.run(UsdImporter(tmp_path / "work").convert(CARD.encode(), "card.usda"))
+    if landlock.abi_version() > 0:
+        assert result.confinement.startswith("enforced (Landlock ABI"), result.confinement
+    else:
+        assert result.confinement.startswith("unavailable:"), result.confinement
+
+
+_CONFINED = """
+import json, sys
+from pathlib import Path
+from renderfarm.infra.landlock import confine
+from renderfarm.infra.usd_import import readable_paths
+upload, out, secret = (Path(a) for a in sys.argv[1:4])
+status = confine(readable_paths(upload), [out])
+seen = {}
+for name, path, mode in [("upload", upload / "card.usda", "r"), ("secret", secret, "r"),
+                         ("write out", out / "scene.glb", "w"),
+                         ("write upload", upload / "new.usda", "w")]:
+    try:
+        open(path, mode).close()
+        seen[name] = "allowed"
+    except PermissionError:
+        seen[name] = "denied"
+print(json.dumps({"status": status, "seen": seen}))
+"""
+
+
+def test_the_confined_child_reads_the_upload_and_nothing_else(tmp_path):
+    """The child's own rule set (readable_paths) applied by a process that then tries what a
+    stage might: the upload is readable, a file outside it is not (a file of the same user, in
+    the same temporary folder), the output folder is writable and the upload is not."""
+    if landlock.abi_version() == 0:
+        pytest.skip("the kernel has no Landlock")
+    upload, out = tmp_path / "upload", tmp_path / "out"
+    upload.mkdir()
+    out.mkdir()
+    (upload / "card.usda").write_text(CARD)
+    (tmp_path / "secret.txt").write_text("the server's")
+    done = subprocess.run(
+        [sys.executable, "-c", _CONFINED, str(upload), str(out), str(tmp_path / "secret.txt")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    answer = json.loads(done.stdout.strip().splitlines()[-1])
+    assert answer["status"].startswith("enforced"), answer
+    assert answer["seen"] == {
+        "upload": "allowed", "secret": "denied", "write out": "allowed", "write upload": "denied",
+    }  # fmt: skip
+
+
+def test_without_landlock_confine_changes_nothing_and_says_why(tmp_path, monkeypatch):
+    monkeypatch.setattr(landlock, "abi_version", lambda: 0)
+    (tmp_path / "anywhere.txt").write_text("x")
+    status = landlock.confine([str(tmp_path / "nothing")], [])
+    assert status.startswith("unavailable:") and "Landlock" in status
+    assert (tmp_path / "anywhere.txt").read_text() == "x"  # still readable: nothing applied

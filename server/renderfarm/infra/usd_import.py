@@ -10,9 +10,11 @@ applies). The child checks every asset path of every layer before the stage is c
 (domain/scenes/usd_assets.py: no layer outside the directory is opened, no texture outside it
 read), composes, refuses the stage if it used any layer outside the directory nonetheless (after
 composition and after the conversion), converts (domain/scenes/usd_convert.py), writes the GLB
-and prints one JSON line. These are the child's own checks: the operating system does not
-confine its reads (the limits are CPU, memory, file size and open files). The GLB then goes
-through the ordinary acceptance (the workers' loader), like any other upload.
+and prints one JSON line. Before it opens the upload, the child confines itself with Landlock
+where the kernel has it (infra/landlock.py: read only the upload, Python, its packages and the
+system's libraries; write only its output folder, work/out), so that what the checks might miss
+the kernel denies; without Landlock it converts anyway and the server logs a notice once. The
+GLB then goes through the ordinary acceptance (the workers' loader), like any other upload.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from pathlib import Path
 
 from ..domain.scenes.usd_upload import usd_files, usd_kind
 from ..errors import SceneError
+from .landlock import confine
 from .scene_check import parse_last_json_line
 
 log = logging.getLogger(__name__)
@@ -57,6 +60,9 @@ class UsdImport:
     environment_data: bytes | None = None
     environment_filename: str = ""
     environment: dict[str, float] = field(default_factory=dict)
+    # How the child's file-system access was confined: "enforced (Landlock ABI n)" or
+    # "unavailable: why" (then its own checks alone kept it to the upload).
+    confinement: str = ""
 
 
 class UsdImporter:
@@ -82,6 +88,7 @@ class UsdImporter:
         self.max_output_bytes = max_output_bytes
         self.python = python
         self._slots = asyncio.Semaphore(max(1, concurrency))
+        self._told = False  # the notice that Landlock is unavailable, logged once
 
     @staticmethod
     def is_usd(data: bytes | None, filename: str = "") -> bool:
@@ -96,18 +103,24 @@ class UsdImporter:
             root_layer, source_sha256 = await asyncio.to_thread(
                 self._lay_out, data, filename, work / "upload"
             )
-            out = work / "scene.glb"
+            out = work / "out" / "scene.glb"  # the only folder the child may write in
+            out.parent.mkdir()
             async with self._slots:
                 result = await self._run(
-                    work / "upload", root_layer, out, work, filename or root_layer
+                    work / "upload", root_layer, out, out.parent, filename or root_layer
                 )
             env = dict(result.get("environment") or {})
             glb, env_data = await asyncio.to_thread(
                 lambda: (
                     out.read_bytes(),
-                    (work / "environment").read_bytes() if env else None,
+                    (out.parent / "environment").read_bytes() if env else None,
                 )
             )
+            confinement = str(result.get("confinement") or "")
+            if not confinement.startswith("enforced") and not self._told:
+                self._told = True
+                log.warning("USD conversions are not confined by the kernel (%s): the "
+                            "child's own checks keep them to the upload", confinement)  # fmt: skip
         finally:
             await asyncio.to_thread(shutil.rmtree, work, True)
         stem = posixpath.splitext(posixpath.basename((filename or root_layer).replace("\\", "/")))
@@ -126,6 +139,7 @@ class UsdImporter:
             }
             if env
             else {},
+            confinement=confinement,
         )
 
     def _lay_out(self, data: bytes, filename: str, upload: Path) -> tuple[str, str]:
@@ -192,6 +206,31 @@ class UsdImporter:
         )
 
 
+def readable_paths(upload: Path) -> list[str]:
+    """What the child may read once confined: the upload, Python and its packages (every
+    sys.path entry, the prefixes, this package's folder), the system's libraries and the
+    dynamic loader's cache. Not /etc, /home, /tmp or the server's data."""
+    import renderfarm
+
+    paths = [str(upload), str(Path(renderfarm.__file__).resolve().parents[1])]
+    paths += [p for p in sys.path if p and os.path.isabs(p)]
+    paths += [sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix]
+    paths += ["/usr/lib", "/usr/lib64", "/usr/local/lib", "/lib", "/lib64", "/etc/ld.so.cache"]
+    paths += ["/sys/devices/system/cpu"]  # the CPUs a thread pool sizes itself by
+    return list(dict.fromkeys(os.path.realpath(p) for p in paths))
+
+
+def _preload() -> None:
+    """Load what the conversion uses before the child confines itself (the libraries are
+    readable afterwards too; this only keeps their first use out of the confined part)."""
+    import OpenImageIO  # noqa: F401
+    from pxr import Ar, Plug, Sdf, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol  # noqa: F401
+
+    Plug.Registry()
+    for extension in ("usda", "usdc", "usdz"):
+        Sdf.FileFormat.FindByExtension(extension)
+
+
 def main(argv: list[str]) -> int:
     """The child: convert DIR/ROOT into OUT; print {"ok", "warnings", "camera"} or
     {"ok": false, "error", "field"} as the last line of stdout."""
@@ -201,6 +240,8 @@ def main(argv: list[str]) -> int:
     try:
         from ..domain.scenes.usd_convert import convert_stage
 
+        _preload()
+        confinement = confine(readable_paths(upload), [out.parent])
         root = Path(os.path.realpath(upload))
         conversion = convert_stage(root / root_layer, root, Path(os.path.realpath(out.parent)))
         out.write_bytes(conversion.glb)
@@ -213,7 +254,7 @@ def main(argv: list[str]) -> int:
         print(json.dumps({"ok": False, "error": e.message, "field": e.field}))
         return 1
     answer = {"ok": True, "warnings": conversion.warnings, "camera": conversion.camera}
-    print(json.dumps({**answer, "environment": environment}))
+    print(json.dumps({**answer, "environment": environment, "confinement": confinement}))
     return 0
 
 
