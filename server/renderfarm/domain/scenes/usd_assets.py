@@ -28,6 +28,9 @@ the converter reads UsdPreviewSurface only) and listed in `CheckedLayers.dropped
 converter warns about, one warning an arc. The edited layers stay open in `CheckedLayers.layers`
 so that the stage composes them, not the files.
 
+One module although over 500 lines: the checks of layers, of packages and of the composed stage
+are one confinement rule, and a reviewer should read where an asset path may lead in one place.
+
 The converter reads texture bytes through `read_inside`, which checks the resolved path again,
 so that a path the checks missed can still read nothing outside the upload; a texture inside a
 .usdz of the upload is first copied out of the package by `packaged_copy`.
