@@ -515,6 +515,39 @@ def test_geom_subsets_bind_their_own_materials(tmp_path):
     assert by_colour[(0.0, 0.0, 1.0)] == pytest.approx(1.5)  # the right quad, x in [1, 2]
 
 
+def test_a_full_purpose_binding_wins_over_the_all_purpose_one(tmp_path):
+    """UsdShade's binding purposes: a final render uses material:binding:full where one is
+    authored and the all-purpose material:binding otherwise (the Standard Shader Ball binds its
+    walls with :full only)."""
+    stage = new_stage(tmp_path)
+    red = _material(stage, "/Looks/Red", diffuseColor=(1.0, 0.0, 0.0))
+    blue = _material(stage, "/Looks/Blue", diffuseColor=(0.0, 0.0, 1.0))
+    only_full = unit_cube(stage, "/OnlyFull")
+    UsdShade.MaterialBindingAPI.Apply(only_full.GetPrim()).Bind(
+        red, materialPurpose=UsdShade.Tokens.full
+    )
+    both = unit_cube(stage, "/Both")
+    both.AddTranslateOp().Set(Gf.Vec3d(3, 0, 0))
+    binding = UsdShade.MaterialBindingAPI.Apply(both.GetPrim())
+    binding.Bind(blue)
+    binding.Bind(red, materialPurpose=UsdShade.Tokens.full)
+    only_all = unit_cube(stage, "/OnlyAll")
+    only_all.AddTranslateOp().Set(Gf.Vec3d(6, 0, 0))
+    UsdShade.MaterialBindingAPI.Apply(only_all.GetPrim()).Bind(blue)
+    _, doc, _ = convert(stage, tmp_path)
+    colours = {}
+    for node in doc["nodes"]:
+        if "mesh" in node:
+            (prim,) = doc["meshes"][node["mesh"]]["primitives"]
+            factor = doc["materials"][prim["material"]]["pbrMetallicRoughness"]
+            colours[node["name"]] = tuple(factor["baseColorFactor"][:3])
+    assert colours == {
+        "OnlyFull": (1.0, 0.0, 0.0),
+        "Both": (1.0, 0.0, 0.0),
+        "OnlyAll": (0.0, 0.0, 1.0),
+    }, colours
+
+
 def test_preview_surface_factors_opacity_and_workflows(tmp_path):
     stage = new_stage(tmp_path)
     cases = {

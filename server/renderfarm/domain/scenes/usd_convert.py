@@ -655,7 +655,9 @@ class _StageConverter:
     def _material_for(self, prim, double_sided: bool):
         from pxr import UsdShade
 
-        material, rel = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+        # The binding for a final render: the full-purpose one, else the all-purpose one.
+        binding = UsdShade.MaterialBindingAPI(prim)
+        material, rel = binding.ComputeBoundMaterial(UsdShade.Tokens.full)
         if not material:
             targets = rel.GetTargets() if rel else []
             if targets:  # bound to a prim that is no material (or not on the stage)
