@@ -527,21 +527,15 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
     async def _read(self, session: WorkerSession, request_iterator) -> None:
         async for msg in request_iterator:
             kind = msg.WhichOneof("msg")
-            if kind == "result":
-                try:
-                    result = decode_result(msg.result)
-                except ValueError as e:
-                    log.warning("malformed result from %s: %s", session.worker_id, e)
-                    continue
-                await self.farm.worker_result(session, msg.result.task_id, result)
-            elif kind == "results":  # several at once (workers.proto, TileResults)
+            if kind in ("result", "results"):  # one, or several (workers.proto, TileResults)
                 results = []
-                for one in msg.results.results:
+                for one in [msg.result] if kind == "result" else msg.results.results:
                     try:
                         results.append((one.task_id, decode_result(one)))
                     except ValueError as e:
                         log.warning("malformed result from %s: %s", session.worker_id, e)
-                await self.farm.worker_results(session, results)
+                if results:
+                    await self.farm.worker_results(session, results)
             elif kind == "heartbeat":
                 hb = msg.heartbeat
                 await self.farm.worker_heartbeat(

@@ -116,7 +116,8 @@ class Metrics:
         )
         for retryable in ("true", "false"):  # exposed at 0 before the first failure
             self.tasks_failed.labels(retryable)
-        self.tasks_completed.labels("merged")
+        # A result's outcome counter, looked up once per outcome (labels() locks and hashes).
+        self._completed = {"merged": self.tasks_completed.labels("merged")}
         self.samples_merged = Counter(
             "renderfarm_samples_merged", "Pixel samples merged", registry=self.registry
         )
@@ -132,6 +133,14 @@ class Metrics:
             buckets=(1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1),
             registry=self.registry,
         )
+
+    def task_completed(self, outcome: str) -> None:
+        """Count a result by its outcome's kind ("mismatch: ..." counts as "mismatch")."""
+        kind = outcome.split(":")[0]
+        counter = self._completed.get(kind)
+        if counter is None:
+            counter = self._completed[kind] = self.tasks_completed.labels(kind)
+        counter.inc()
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

@@ -146,7 +146,6 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         self._movie_turn = asyncio.Lock()  # one preview movie encoded at a time (job_movies.py)
         self._checkpoint_rate = CheckpointRate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
-        self._completed: dict[str, Any] = {}  # worker_sessions: tasks_completed by outcome
         self.names: dict[str, str] = {}  # job id -> name for live jobs
         self.created: dict[str, float] = {}  # job id -> created unix time for live jobs
         self.owners: dict[str, str] = {}  # job id -> owner (token name) for live jobs

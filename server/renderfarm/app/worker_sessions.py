@@ -136,11 +136,7 @@ class WorkerSessions:
         outcome = self.scheduler.complete(task_id, result)
         if self.metrics is not None:
             self.metrics.merge_seconds.observe(time.perf_counter() - started)
-            kind = outcome.split(":")[0]
-            counter = self._completed.get(kind)
-            if counter is None:  # a labelled child, looked up once per outcome
-                counter = self._completed[kind] = self.metrics.tasks_completed.labels(kind)
-            counter.inc()
+            self.metrics.task_completed(outcome)
             self.metrics.task_seconds.observe(result.render_seconds)
             if outcome in ("merged", "pending"):
                 self.metrics.samples_merged.inc(result.sample_count * result.rect.pixels)

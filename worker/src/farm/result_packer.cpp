@@ -14,9 +14,12 @@ void ResultPacker::send(pb::TileResult result) {
   writing_ = true;
   while (!waiting_.empty()) {
     size_t count = 0, bytes = 0;
-    while (count < waiting_.size() && count < kMaxResults &&
-           (count == 0 || bytes + waiting_[count].ByteSizeLong() <= kMaxBytes))
-      bytes += waiting_[count++].ByteSizeLong();
+    while (count < waiting_.size() && count < kMaxResults) {
+      const size_t size = waiting_[count].ByteSizeLong();
+      if (count > 0 && bytes + size > kMaxBytes) break;
+      bytes += size;
+      ++count;
+    }
     const auto end = waiting_.begin() + std::ptrdiff_t(count);
     std::vector<pb::TileResult> ready(std::make_move_iterator(waiting_.begin()),
                                       std::make_move_iterator(end));
