@@ -3,12 +3,13 @@
 Each synthetic worker (bench/server_merge.py's: a pre-built 64x64 result shaped like the C++
 worker's for every task, ready after a render time drawn from 0.5 to 1.5 x --render-s, 0.25 s by
 default: a 64-spp Cornell box tile on one core of this machine) opens one stream to every
-server, as `renderfarm-worker connect --server A,B` does, with 16 tasks in flight on each.
-Results leave as the C++ worker's ResultPacker sends them: each message takes every result
-ready when the stream can take it (--no-pack: one message per result, as workers did before
-packed messages). The fleet offers far more results than a server merges, so the figures are
-the servers' capacity. One job per
-server (the servers share the jobs, so each owns one). Over the measured window it prints, per
+server, as `renderfarm-worker connect --server A,B` does, with --cores tasks in flight on each
+(64 by default: a node of 64 cores). Results leave as the C++ worker's ResultPacker sends
+them: a message at most every --result-interval-ms (50 by default, the worker's default; sooner
+when 64 results fill it) with every result ready by then (--no-pack: one message per result,
+as workers did before packed messages). The fleet offers far more results than a server
+merges, so the figures are the servers' capacity. One job per server (the servers share the
+jobs, so each owns one). Over the measured window it prints, per
 farm size: results merged per second (all servers), the servers' CPU per result (user + system
 time of every server process over the results they merged), and PostgreSQL's cost per result
 (transactions committed and rows written, from pg_stat_database, and the CPU of its
@@ -17,7 +18,7 @@ alone depends on what else shares this machine's cores (here the load generator 
 PostgreSQL do). Writes bench/results/replica_load.json.
 
     .venv/bin/python bench/replica_load.py [--workers 1000] [--replicas 1,2] [--seconds 10]
-        [--render-s 0.25] [--no-pack]
+        [--render-s 0.25] [--cores 64] [--result-interval-ms 50] [--no-pack]
 """
 
 from __future__ import annotations
@@ -94,6 +95,8 @@ def fleet(
     cpus: set[int],
     packed: bool,
     render_s: float,
+    cores: int,
+    interval_s: float,
 ) -> None:
     """The load generator: `workers` synthetic workers, each with a stream to every server."""
     os.sched_setaffinity(0, cpus)
@@ -101,7 +104,9 @@ def fleet(
 
     async def run():
         streams = [
-            synthetic_worker(address, f"fleet-{i}@{address}", 16, stop_at, packed, render_s)
+            synthetic_worker(
+                address, f"fleet-{i}@{address}", cores, stop_at, packed, render_s, interval_s
+            )  # fmt: skip
             for i in range(workers)
             for address in addresses
         ]
@@ -120,6 +125,8 @@ def measure(
     data: Path,
     packed: bool,
     render_s: float,
+    cores: int,
+    interval_s: float,
 ) -> dict:
     db = EmbeddedPostgres(data / "db")
     url = db.start()
@@ -135,11 +142,11 @@ def measure(
                              env={**env, "RENDERFARM_REPLICA_ID": f"server-{i}"})  # fmt: skip
             farm.start()
             farms.append(farm)
-        cores = os.cpu_count() or 1
+        cpus = os.cpu_count() or 1
         for i, farm in enumerate(farms):
-            pin_process(farm.server.pid, {i % cores})
+            pin_process(farm.server.pid, {i % cpus})
         # The fleet and PostgreSQL get the cores no server has (all of them when none is left).
-        spare = set(range(replicas, cores)) or set(range(cores))
+        spare = set(range(replicas, cpus)) or set(range(cpus))
         for pid in postgres_pids(db.pgdata):
             pin_process(pid, spare)
         settings = {"width": 2048, "height": 2048, "tile_size": TILE, "noise_threshold": 0}
@@ -165,6 +172,8 @@ def measure(
                 spare,
                 packed,
                 render_s,
+                cores,
+                interval_s,
             ),
         )
         gen.start()
@@ -201,6 +210,8 @@ def measure(
         "streams": workers * replicas,
         "packed": packed,
         "render_s": render_s,
+        "cores": cores,
+        "result_interval_ms": interval_s * 1e3,
         # Over the whole run (warm-up included): how full the fleet's messages were.
         "results_per_message": sent.value / max(1, messages.value),
         "seconds": t1 - t0,
@@ -223,6 +234,10 @@ def main() -> dict:
                         help="each server's RENDERFARM_TILE_CACHE_MB")  # fmt: skip
     parser.add_argument("--render-s", type=float, default=0.25,
                         help="mean render time of a synthetic task (0: at once)")  # fmt: skip
+    parser.add_argument("--cores", type=int, default=64,
+                        help="tasks in flight on each synthetic worker's stream")  # fmt: skip
+    parser.add_argument("--result-interval-ms", type=float, default=50.0,
+                        help="least time between a worker's result messages")  # fmt: skip
     parser.add_argument("--no-pack", action="store_true",
                         help="one result a message (as workers before packing)")  # fmt: skip
     args = parser.parse_args()
@@ -230,7 +245,8 @@ def main() -> dict:
     for replicas in (int(x) for x in args.replicas.split(",")):
         with tempfile.TemporaryDirectory(prefix="rf-load-") as data:
             run = measure(replicas, args.workers, args.seconds, args.tile_cache_mb, Path(data),
-                          not args.no_pack, args.render_s)  # fmt: skip
+                          not args.no_pack, args.render_s, args.cores,
+                          args.result_interval_ms / 1e3)  # fmt: skip
         runs.append(run)
         for key, value in run.items():
             if isinstance(value, list):

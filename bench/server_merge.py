@@ -67,6 +67,7 @@ def varint(n: int) -> bytes:
 RESULT_TAG = b"\x12"  # WorkerMessage.result: field 2, length-delimited
 RESULTS_TAG = b"\x2a"  # WorkerMessage.results: field 5, length-delimited
 PACKED_TAG = b"\x0a"  # TileResults.results: field 1, length-delimited
+MAX_PACKED = 64  # results in one message at most (the C++ ResultPacker's kMaxResults)
 
 
 async def synthetic_worker(
@@ -76,16 +77,18 @@ async def synthetic_worker(
     stop_at: float,
     packed: bool = True,
     render_s: float = 0.0,
+    interval_s: float = 0.0,
 ) -> tuple[int, int, int]:
     """One worker stream rendering its tasks in no time (render_s 0: a result is ready when
     its Assign comes) or in a time drawn uniformly from 0.5 to 1.5 x render_s; returns
     (results, bytes, messages). Messages are framed by hand from a pre-serialised payload so
     that the load generator costs little CPU per result.
 
-    Results leave as the C++ worker's ResultPacker sends them: when the stream takes the next
-    message, every result ready by then goes in it (one TileResults message, if the worker
-    is packed and the server's Welcome says packed too), so a server that reads slowly gets
-    fuller messages; unpacked, one message per result."""
+    Results leave as the C++ worker's ResultPacker sends them: a message goes when the stream
+    takes it and interval_s (`--result-interval-ms`) has passed since the last one, or at once
+    when 64 results fill it, with every result ready by then, at most 64 (one TileResults
+    message, if the worker is packed and the server's Welcome says packed too), so a server
+    that reads slowly gets fuller messages; unpacked, one message per result."""
     payloads: dict[tuple[int, bool], bytes] = {}
     sent = sent_bytes = messages = 0
     loop = asyncio.get_running_loop()
@@ -122,13 +125,20 @@ async def synthetic_worker(
     async def requests():
         nonlocal sent, sent_bytes, messages
         yield workers_pb2.WorkerMessage(hello=hello).SerializeToString()
+        last = -float("inf")
         while True:
             await wake.wait()
             wake.clear()
             if time.monotonic() > stop_at:
                 return
-            inners = ready[:]
-            ready.clear()
+            wait = last + interval_s - time.monotonic()
+            if wait > 0 and len(ready) < MAX_PACKED:
+                await asyncio.sleep(wait)  # more results may come meanwhile
+            last = time.monotonic()
+            inners = ready[:MAX_PACKED]
+            del ready[:MAX_PACKED]
+            if ready:
+                wake.set()
             sent += len(inners)
             sent_bytes += sum(len(i) for i in inners)
             if pack and len(inners) > 1:

@@ -208,6 +208,7 @@ def test_worker_entrypoint_maps_environment_to_flags_and_execs(tmp_path):
         "RENDERFARM_WORKER_THREADS": "6",
         "RENDERFARM_WORKER_TOKEN": "s3cret with spaces",
         "RENDERFARM_WORKER_ID": "w-7",
+        "RENDERFARM_WORKER_RESULT_INTERVAL_MS": "20",
     }
     # `exec`: the worker replaces the shell, so it is PID 1 in a container and gets SIGTERM.
     out = _run(["sh", "-c", f'echo "pid=$$"; exec {ENTRYPOINT} --prefetch 2'], env=env).stdout
@@ -215,7 +216,7 @@ def test_worker_entrypoint_maps_environment_to_flags_and_execs(tmp_path):
     assert lines[0] == lines[1], "the entrypoint must exec the worker"
     args = [line[4:] for line in lines if line.startswith("arg=")]
     assert args == [
-        "connect", "--server", "server:50051", "--threads", "6",
+        "connect", "--server", "server:50051", "--threads", "6", "--result-interval-ms", "20",
         "--token", "s3cret with spaces", "--id", "w-7", "--prefetch", "2",
     ]  # fmt: skip
     tls = {

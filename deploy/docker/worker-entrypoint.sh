@@ -7,6 +7,8 @@
 #   RENDERFARM_SERVER            host:port of the server's gRPC API (required)
 #   RENDERFARM_WORKER_THREADS    render threads (default: every core)           --threads
 #   RENDERFARM_WORKER_PREFETCH   tasks leased beyond the threads (default 1)    --prefetch
+#   RENDERFARM_WORKER_RESULT_INTERVAL_MS  least time between result messages
+#                                (default 50)                                   --result-interval-ms
 #   RENDERFARM_WORKER_TOKEN      the server's RENDERFARM_WORKER_TOKEN, if set   --token
 #   RENDERFARM_WORKER_ID         worker id (default: the host name)             --id
 #   RENDERFARM_WORKER_CACHE_DIR  scene cache directory                          --cache-dir
@@ -46,6 +48,7 @@ esac
 set -- connect --server "$RENDERFARM_SERVER" \
   ${RENDERFARM_WORKER_THREADS:+--threads "$RENDERFARM_WORKER_THREADS"} \
   ${RENDERFARM_WORKER_PREFETCH:+--prefetch "$RENDERFARM_WORKER_PREFETCH"} \
+  ${RENDERFARM_WORKER_RESULT_INTERVAL_MS:+--result-interval-ms "$RENDERFARM_WORKER_RESULT_INTERVAL_MS"} \
   ${RENDERFARM_WORKER_TOKEN:+--token "$RENDERFARM_WORKER_TOKEN"} \
   ${RENDERFARM_WORKER_ID:+--id "$RENDERFARM_WORKER_ID"} \
   ${RENDERFARM_WORKER_CACHE_DIR:+--cache-dir "$RENDERFARM_WORKER_CACHE_DIR"} \

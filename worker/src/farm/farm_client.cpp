@@ -232,7 +232,11 @@ uint32_t Worker::want(const Session& s) const {
   uint64_t others = 0;
   for (const Session* o : sessions_)
     if (o != &s) others += o->queue.size() + o->running.size();
-  const uint64_t capacity = uint64_t(options_.threads) + options_.prefetch;
+  // Results waiting for their message (--result-interval-ms) still hold their leases: ask for
+  // as many more as a message has lately carried beyond one, so threads never run dry.
+  const uint64_t waiting =
+      s.packer ? uint64_t(std::max(0.0, s.packer->results_per_message() - 0.5)) : 0;
+  const uint64_t capacity = uint64_t(options_.threads) + options_.prefetch + waiting;
   return uint32_t(std::max<uint64_t>(1, capacity > others ? capacity - others : 0));
 }
 
@@ -277,7 +281,8 @@ bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
           s.welcomed = true;
           s.packed = msg.welcome().packed();
           s.packer = std::make_unique<ResultPacker>(
-              s.packed, [&s, this](const pb::WorkerMessage& m) { return write(s, m); });
+              s.packed, [&s, this](const pb::WorkerMessage& m) { return write(s, m); },
+              std::chrono::milliseconds(options_.result_interval_ms));
           if (msg.welcome().heartbeat_interval_ms())
             s.heartbeat_ms = msg.welcome().heartbeat_interval_ms();
         }
@@ -319,6 +324,8 @@ bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
   cv_.notify_all();
   for (auto& t : renderers) t.join();
   supervisor.join();
+  // Results still waiting can no longer go (a graceful end drained them before WritesDone).
+  s.packer.reset();
   {
     std::lock_guard<std::mutex> lock(mutex_);
     sessions_.erase(std::find(sessions_.begin(), sessions_.end(), &s));
@@ -352,6 +359,7 @@ void Worker::supervise(Session& s, const std::atomic<bool>& stop) {
       while (!s.running.empty() && !s.over) cv_.wait(lock);
       if (s.over) return;
       lock.unlock();
+      s.packer->drain();  // the last results, without waiting for --result-interval-ms
       {
         std::lock_guard<std::mutex> wlock(s.write_mutex);
         s.stream->WritesDone();

@@ -21,6 +21,9 @@ struct FarmOptions {
   std::string server;
   uint32_t threads = 1;    // render threads (Hello.cores)
   uint32_t prefetch = 2;   // extra tasks leased beyond threads (Hello.max_in_flight)
+  // The least time between two result messages of a stream (ResultPacker): results that come
+  // sooner share the next message. 0: each message as soon as the stream takes it.
+  uint32_t result_interval_ms = 50;
   std::string cache_dir;   // scene file cache
   std::string token;       // shared worker token ("" if the server needs none)
   std::string worker_id;   // Hello.worker_id

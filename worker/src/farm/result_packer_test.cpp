@@ -1,15 +1,18 @@
-// ResultPacker: results ready while a message is being written share the next message.
+// ResultPacker: results ready while a message is being written, or within the interval after
+// it, share the next message; render threads never write.
 #include "farm/result_packer.h"
 
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <condition_variable>
+#include <memory>
 #include <mutex>
 #include <string>
-#include <thread>
 #include <vector>
 
 namespace pb = renderfarm::v1;
+using namespace std::chrono_literals;
 
 namespace rf {
 namespace {
@@ -31,46 +34,65 @@ std::vector<std::string> ids(const pb::WorkerMessage& m) {
   return out;
 }
 
-// A stream whose first write blocks until released: the results sent meanwhile are ready
-// together when it returns.
-struct HeldStream {
+// A stream whose first write blocks until released (held: the results sent meanwhile are
+// ready together when it returns), and that records what it was given.
+struct Stream {
   std::mutex mutex;
   std::condition_variable cv;
-  bool entered = false, released = false;
+  bool hold_first = true, entered = false, released = false;
   Written written;
   std::vector<bool> was_packed;
 
   bool write(const pb::WorkerMessage& m) {
     std::unique_lock<std::mutex> lock(mutex);
-    if (!entered) {
+    if (hold_first && !entered) {
       entered = true;
       cv.notify_all();
       cv.wait(lock, [&] { return released; });
     }
     written.push_back(ids(m));
     was_packed.push_back(m.has_results());
+    cv.notify_all();
     return true;
+  }
+  // Waits (at most 60 s) until `messages` messages are written.
+  void wait_for(size_t messages) {
+    std::unique_lock<std::mutex> lock(mutex);
+    ASSERT_TRUE(cv.wait_for(lock, 60s, [&] { return written.size() >= messages; }))
+        << written.size() << " of " << messages << " messages written";
+  }
+  void wait_entered() {
+    std::unique_lock<std::mutex> lock(mutex);
+    ASSERT_TRUE(cv.wait_for(lock, 60s, [&] { return entered; }));
+  }
+  void release() {
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      released = true;
+    }
+    cv.notify_all();
+  }
+  Written snapshot() {
+    std::lock_guard<std::mutex> lock(mutex);
+    return written;
   }
 };
 
+ResultPacker::Write writer(Stream& stream) {
+  return [&stream](const pb::WorkerMessage& m) { return stream.write(m); };
+}
+
 Written send_while_held(bool packed, const std::vector<std::string>& later,
                         std::vector<bool>* was_packed) {
-  HeldStream stream;
-  ResultPacker packer(packed, [&](const pb::WorkerMessage& m) { return stream.write(m); });
-  std::thread first([&] { packer.send(result("first")); });
-  {
-    std::unique_lock<std::mutex> lock(stream.mutex);
-    stream.cv.wait(lock, [&] { return stream.entered; });
-  }
-  // The first message is being written: these return at once, their results waiting.
+  Stream stream;
+  ResultPacker packer(packed, writer(stream));
+  packer.send(result("first"));
+  stream.wait_entered();
+  // The first message is being written: these wait for the next one.
   for (const std::string& id : later) packer.send(result(id));
-  {
-    std::lock_guard<std::mutex> lock(stream.mutex);
-    EXPECT_EQ(stream.written.size(), 0u);
-    stream.released = true;
-  }
-  stream.cv.notify_all();
-  first.join();
+  EXPECT_EQ(stream.snapshot().size(), 0u);
+  stream.release();
+  packer.drain();
   *was_packed = stream.was_packed;
   return stream.written;
 }
@@ -101,23 +123,62 @@ TEST(ResultPacker, AMessageHoldsAtMostItsCountAndBytes) {
   EXPECT_EQ(written[2].back(), "r69");
 
   // Results of 20 MB: two would pass the byte limit, so each goes alone.
-  HeldStream stream;
-  ResultPacker packer(true, [&](const pb::WorkerMessage& m) { return stream.write(m); });
-  std::thread first([&] { packer.send(result("first")); });
-  {
-    std::unique_lock<std::mutex> lock(stream.mutex);
-    stream.cv.wait(lock, [&] { return stream.entered; });
-  }
+  Stream stream;
+  ResultPacker packer(true, writer(stream));
+  packer.send(result("first"));
+  stream.wait_entered();
   packer.send(result("big1", 20u << 20));
   packer.send(result("big2", 20u << 20));
   packer.send(result("small"));
-  {
-    std::lock_guard<std::mutex> lock(stream.mutex);
-    stream.released = true;
-  }
-  stream.cv.notify_all();
-  first.join();
+  stream.release();
+  packer.drain();
   EXPECT_EQ(stream.written, (Written{{"first"}, {"big1"}, {"big2", "small"}}));
+}
+
+TEST(ResultPacker, ResultsWithinTheIntervalWaitForTheNextMessage) {
+  Stream stream;
+  stream.hold_first = false;
+  ResultPacker packer(true, writer(stream), std::chrono::hours(1));
+  // The first message goes at once: no message went before it.
+  packer.send(result("a"));
+  stream.wait_for(1);
+  // These come within the hour after it: they wait, however long the stream is free.
+  packer.send(result("b"));
+  packer.send(result("c"));
+  EXPECT_EQ(stream.snapshot(), (Written{{"a"}}));
+  // A drain (a graceful end) sends them at once, together.
+  packer.drain();
+  EXPECT_EQ(stream.snapshot(), (Written{{"a"}, {"b", "c"}}));
+  // Messages of 1 and 2 results, averaged from 1 with weight 0.2 each.
+  EXPECT_NEAR(packer.results_per_message(), 0.8 * 1.0 + 0.2 * 2.0, 1e-9);
+}
+
+TEST(ResultPacker, AFullMessageDoesNotWaitForTheInterval) {
+  Stream stream;
+  stream.hold_first = false;
+  ResultPacker packer(true, writer(stream), std::chrono::hours(1));
+  packer.send(result("a"));
+  stream.wait_for(1);
+  for (size_t i = 0; i <= ResultPacker::kMaxResults; ++i)
+    packer.send(result("r" + std::to_string(i)));
+  // kMaxResults fill a message, which goes within the hour; the one after them waits.
+  stream.wait_for(2);
+  const Written written = stream.snapshot();
+  ASSERT_EQ(written.size(), 2u);
+  EXPECT_EQ(written[1].size(), ResultPacker::kMaxResults);
+  EXPECT_EQ(written[1].front(), "r0");
+}
+
+TEST(ResultPacker, ResultsStillWaitingWhenTheStreamEndsAreDropped) {
+  Stream stream;
+  stream.hold_first = false;
+  {
+    ResultPacker packer(true, writer(stream), std::chrono::hours(1));
+    packer.send(result("a"));
+    stream.wait_for(1);
+    packer.send(result("b"));
+  }  // the stream is over (no drain): b is not written to it
+  EXPECT_EQ(stream.written, (Written{{"a"}}));
 }
 
 }  // namespace

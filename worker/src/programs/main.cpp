@@ -64,7 +64,7 @@ const char* kUsage =
     "      [--max-nodes N] [--max-depth D] [--max-triangles T] [--max-texture-pixels P]\n"
     "      [--max-memory-mb M] [--bvh fast|compact]\n"
     "  renderfarm-worker connect --server HOST:PORT[,HOST:PORT...] [--threads N]\n"
-    "      [--prefetch P]\n"
+    "      [--prefetch P] [--result-interval-ms MS]\n"
     "      [--cache-dir DIR] [--token TOKEN] [--id ID] [--bvh fast|compact]\n"
     "      [--scene-memory-mb M] [--task-timeout-s S] [--max-scene-memory-mb M]\n"
     "      [--tls] [--ca-file CA.pem] [--cert CERT.pem --key KEY.pem]\n"
@@ -664,10 +664,10 @@ int cmd_connect(const std::vector<std::string>& args) {
   }
   auto flags = parse_flags(
       rest,
-      {"--server", "--threads", "--prefetch", "--cache-dir", "--token", "--id", "--bvh",
-       "--scene-memory-mb", "--task-timeout-s", "--max-scene-memory-mb", "--ca-file", "--cert",
-       "--key", "--tls-server-name", "--max-nodes", "--max-depth", "--max-triangles",
-       "--max-texture-pixels"},
+      {"--server", "--threads", "--prefetch", "--result-interval-ms", "--cache-dir", "--token",
+       "--id", "--bvh", "--scene-memory-mb", "--task-timeout-s", "--max-scene-memory-mb",
+       "--ca-file", "--cert", "--key", "--tls-server-name", "--max-nodes", "--max-depth",
+       "--max-triangles", "--max-texture-pixels"},
       nullptr);
   if (!flags.count("--server") || flags["--server"].empty())
     throw UsageError{"connect needs --server HOST:PORT (several: A:PORT,B:PORT)"};
@@ -679,6 +679,9 @@ int cmd_connect(const std::vector<std::string>& args) {
     options.threads = uint32_t(parse_uint("--threads", flags["--threads"], 1, 4096));
   if (flags.count("--prefetch"))
     options.prefetch = uint32_t(parse_uint("--prefetch", flags["--prefetch"], 0, 4096));
+  if (flags.count("--result-interval-ms"))
+    options.result_interval_ms =
+        uint32_t(parse_uint("--result-interval-ms", flags["--result-interval-ms"], 0, 10000));
   options.cache_dir =
       flags.count("--cache-dir") ? flags["--cache-dir"] : rf::default_scene_cache_dir();
   if (flags.count("--token")) options.token = flags["--token"];
