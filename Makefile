@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 BUILD := build/worker
 JOBS ?= 2
 
-.PHONY: all deps build proto worker web blender-addon blender-deps test test-cpp test-py test-web test-deploy lint demo stop bench clean settings-doc openapi
+.PHONY: all deps build proto worker web blender-addon blender-deps test test-cpp test-py test-web test-deploy lint demo stop bench clean settings-doc openapi channels
 
 all: build
 
@@ -45,6 +45,10 @@ openapi: proto
 # docs/settings.md's table, from server/renderfarm/domain/jobspec.py SETTINGS (a test fails while stale).
 settings-doc: proto
 	$(VENV)/bin/python scripts/settings_doc.py
+
+# docs/usage.md's layers table, from server/renderfarm/domain/channels.py (a test fails while stale).
+channels: proto
+	$(VENV)/bin/python scripts/channel_table.py
 
 lint: deps
 	$(VENV)/bin/ruff check server tests bench examples integrations

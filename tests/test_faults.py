@@ -23,6 +23,7 @@ import pytest
 
 from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
+from renderfarm.domain import channels
 from renderfarm.infra.embedded_db import EmbeddedPostgres, pg_ctl
 from renderfarm.infra.images import read_exr
 
@@ -295,8 +296,11 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
                 assert rows and all(aov is not None for _, _, aov in rows)
                 pixels = 16 * 16
                 for index, stats, aov in rows:
-                    # The float64 statistics without the float32 coverage that now ends them.
-                    old_stats = bytes(stats)[: pixels * 6 * 8]
+                    # The float64 statistics without the float32 coverage that now ends them,
+                    # and without the blobs' headers (channels.blob_header).
+                    stats = bytes(stats)[channels.read_header(stats, "stats")[3] :]
+                    aov = bytes(aov)[channels.read_header(aov, "aovs")[3] :]
+                    old_stats = stats[: pixels * 6 * 8]
                     legacy = old_stats + np.frombuffer(aov, "<f4").astype("<f8").tobytes()
                     conn.execute(
                         "UPDATE tiles SET accumulators = %s, aovs = NULL"
@@ -313,13 +317,19 @@ def test_checkpoints_from_before_the_aov_split_resume_and_are_rewritten(
             farm_exr = tmp_path / f"{job['id']}.exr"  # written by farm_image
             url = f"postgresql://postgres:@/postgres?host={data / 'pg'}"
             with psycopg.connect(url) as conn:
-                lengths = conn.execute(
-                    "SELECT length(accumulators), length(aovs) FROM tiles WHERE job_id = %s",
-                    (job["id"],),
+                blobs = conn.execute(
+                    "SELECT accumulators, aovs FROM tiles WHERE job_id = %s", (job["id"],)
                 ).fetchall()
+    # Written again in today's format: blobs with a header naming their arrays, the statistics
+    # and coverage (6 float64 and 1 float32 a pixel) apart from the AOVs (6 float32).
     pixels = 16 * 16
-    new_format = (pixels * (6 * 8 + 4), pixels * 6 * 4)  # statistics and coverage; AOVs
-    assert lengths and all(lengths_ == new_format for lengths_ in lengths)
+    assert blobs
+    for stats, aovs in blobs:
+        for blob, names, per_pixel in ((stats, channels.STATS_ARRAYS, 6 * 8 + 4),
+                                       (aovs, channels.WINDOWED_ARRAYS, 6 * 4)):  # fmt: skip
+            _, arrays, blob_pixels, offset = channels.read_header(blob, "tile")
+            assert tuple(a.name for a in arrays) == names and blob_pixels == pixels
+            assert len(blob) - offset == pixels * per_pixel
     assert_aovs_of_the_first_16_samples(farm_exr, worker_binary, tmp_path)
 
 

@@ -363,6 +363,13 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         },
         **error_responses(403, 404),
     }
+    # The layers are the channel table's (domain/channels.py): listed as the parameter's enum
+    # in the OpenAPI document, whence the dashboard's layer type (web/src/pages/viewer.ts).
+    layer_query = Query(
+        "rgb",
+        description="PNG only: the layer (docs/usage.md, Outputs)",
+        json_schema_extra={"enum": list(LAYERS)},
+    )
     max_size_query = Query(
         0,
         description="PNG only: downscale (box filter) until neither side exceeds this; "
@@ -406,7 +413,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     async def image(
         job_id: str,
         fmt: Literal["png", "exr"],
-        layer: str = "rgb",
+        layer: str = layer_query,
         max_size: int = max_size_query,
         compression: str = compression_query,
         who: Caller = Auth,
@@ -434,7 +441,7 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         job_id: str,
         frame: int,
         fmt: Literal["png", "exr"],
-        layer: str = "rgb",
+        layer: str = layer_query,
         max_size: int = max_size_query,
         compression: str = compression_query,
         who: Caller = Auth,

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..domain import jobspec
+from ..domain import channels, jobspec
 from ..domain.frames import ALL_VARIANTS, variant_file_names
 from ..domain.jobspec import SETTINGS
 
@@ -473,16 +473,8 @@ def cmd_ls(args: argparse.Namespace) -> int:
     return 0
 
 
-# The EXR channels of each layer (infra/images.py), for `get -o out.exr --layer NAME`.
-EXR_LAYER_CHANNELS = {
-    "rgb": ("R", "G", "B"),
-    "variance": ("variance.Y",),
-    "spp": ("spp",),
-    "error": ("error",),
-    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
-    "normal": ("normal.X", "normal.Y", "normal.Z"),
-    "denoised": ("denoised.R", "denoised.G", "denoised.B"),
-}
+# The EXR channels of each layer (the channel table's), for `get -o out.exr --layer NAME`.
+EXR_LAYER_CHANNELS = {name: layer.exr for name, layer in channels.layers().items()}
 
 
 def _image_format(output: str) -> str:

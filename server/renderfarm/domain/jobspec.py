@@ -21,6 +21,7 @@ from enum import EnumMeta, StrEnum
 from typing import Any
 
 from ..errors import SettingsError
+from . import channels
 from .frames import ALL_VARIANTS, check_animation_selection, parse_frames, parse_shutter
 
 # Worker tags (renderfarm-worker connect --tag) and a job's require_tags: the worker checks the
@@ -63,11 +64,12 @@ class Limits:
     max_job_memory_bytes: int = 1 << 62  # estimated accumulator memory (job_memory_bytes)
 
 
-# What a job's tile accumulators take (merge.TileAccumulator): float64 RGB sum, mean luminance
-# and two M2 sums, float32 coverage, albedo and normal sums (76 bytes a pixel), and the
-# bookkeeping of each tile (its accumulator objects, scheduling state and dispatch entries:
-# under 4 KB, measured with tracemalloc in server/tests/test_jobspec.py).
-ACCUMULATOR_BYTES_PER_PIXEL = 76
+# What a job's tile accumulators take (merge.TileAccumulator): the arrays of the channel table
+# (channels.py; 76 bytes a pixel: float64 RGB sum, mean luminance and two M2 sums, float32
+# coverage, albedo and normal sums), and the bookkeeping of each tile (its accumulator objects,
+# scheduling state and dispatch entries: under 4 KB, measured with tracemalloc in
+# server/tests/test_jobspec.py).
+ACCUMULATOR_BYTES_PER_PIXEL = channels.bytes_per_pixel()
 TILE_OVERHEAD_BYTES = 4096
 
 

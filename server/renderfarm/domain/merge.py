@@ -38,8 +38,11 @@ results a second (bench/server_merge.py). The arithmetic is the
 same; relative_error() states it in numpy, and the tests hold the C loops to it and to the
 statistics of all samples computed at once.
 
-Albedo and normal sums cover each pixel's first AOV_SAMPLES samples only (tiling.py): batches
-merged after that point do not add to them, whatever they carry.
+The arrays, their types and their order come from the channel table (channels.py): the
+radiance and its luminance statistics are merged by the fused kernel, every other row that
+accumulates (a sum or a count) batch by batch in batch order, within its window: albedo and
+normal sums cover each pixel's first AOV_SAMPLES samples only (tiling.py), so batches merged
+after that point do not add to them, whatever they carry.
 """
 
 from __future__ import annotations
@@ -49,7 +52,9 @@ import math
 import numpy as np
 
 from .. import _kernels
-from .tiling import AOV_SAMPLES, carries_aovs
+from . import channels
+from .channels import Accumulate
+from .tiling import AOV_SAMPLES
 
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
 
@@ -68,19 +73,24 @@ def _batch_array(values) -> np.ndarray:
     return a if a.dtype in (np.float32, np.float64) else a.astype(np.float64)
 
 
+class Snapshot(tuple):
+    """The arrays of a TileAccumulator.snapshot() in RAM, with their names (as spill.SpillRef,
+    the snapshot of an evicted tile, has them)."""
+
+    def __new__(cls, names: tuple, arrays):
+        self = super().__new__(cls, arrays)
+        self.names = names
+        return self
+
+
 class TileAccumulator:
     """Merged statistics of one tile. No I/O; merge order is the caller's job."""
 
+    # The per-pixel arrays are the channel table's (channels.ARRAYS), one attribute each.
     __slots__ = (
+        *channels.ARRAYS,
         "height",
         "width",
-        "rgb_sum",
-        "lum_mean",
-        "m2_within",
-        "m2_between",
-        "coverage_sum",
-        "albedo_sum",
-        "normal_sum",
         "samples",
         "batches",
         "nonfinite",
@@ -88,11 +98,17 @@ class TileAccumulator:
         "spill",
     )
 
-    # Bytes of the per-pixel arrays: float64 RGB sum (24), mean luminance and the two M2 (24);
-    # float32 coverage count (4; whole numbers, exact to 2^24 samples) and albedo and normal
-    # sums (24).
-    BYTES_PER_PIXEL = 76
-    AOV_BYTES_PER_PIXEL = 24
+    # Bytes of the per-pixel arrays (76 today: float64 RGB sum, mean luminance and two M2;
+    # float32 coverage count, albedo and normal sums), and of the windowed ones among them.
+    BYTES_PER_PIXEL = channels.bytes_per_pixel()
+    AOV_BYTES_PER_PIXEL = channels.bytes_per_pixel(windowed=True)
+    # The rows merged here batch by batch (the fused kernel merges rgb and luminance):
+    # (wire field, array, window, float32 sum).
+    _SUMMED = tuple(
+        (c.wire, c.store[0].name, c.window)
+        for c in channels.CHANNELS
+        if c.accumulate in (Accumulate.SUM, Accumulate.COUNT) and c.name != "rgb"
+    )
 
     def __init__(self, width: int, height: int, iid: bool = False, arrays: bool = True):
         """arrays=False leaves the per-pixel arrays None (a tile cache fills them on demand)."""
@@ -112,18 +128,11 @@ class TileAccumulator:
         self.nonfinite = 0
 
     def zero_arrays(self) -> None:
-        """Fresh zero arrays: the statistics of no samples."""
-        height, width = self.height, self.width
-        self.rgb_sum = np.zeros((height, width, 3))
-        self.lum_mean = np.zeros((height, width))
-        self.m2_within = np.zeros((height, width))
-        self.m2_between = np.zeros((height, width))
-        # Samples whose camera ray hit geometry (the alpha's numerator): a count, exact in
-        # float32 up to 2^24 samples (the max_spp limit is below it).
-        self.coverage_sum = np.zeros((height, width), np.float32)
-        # Sums over at most AOV_SAMPLES samples: float32 holds them to its rounding.
-        self.albedo_sum = np.zeros((height, width, 3), np.float32)
-        self.normal_sum = np.zeros((height, width, 3), np.float32)
+        """Fresh zero arrays: the statistics of no samples. (The coverage is a count, exact in
+        float32 up to 2^24 samples, above the max_spp limit; albedo and normal are sums over
+        at most AOV_SAMPLES samples, which float32 holds to its rounding.)"""
+        for a in channels.stored():
+            setattr(self, a.name, np.zeros(a.shape(self.width, self.height), a.dtype))
 
     def drop_arrays(self) -> None:
         """Let go of the per-pixel arrays (evicted; spill.TileCache restores them)."""
@@ -155,7 +164,6 @@ class TileAccumulator:
         Returns the merged tile's tile_error(), computed in the same pass."""
         if sample_count <= 0:
             raise ValueError("a batch has at least one sample")
-        shape = (self.height, self.width)
         n_a = float(self.samples)
         # Copy on write: every merge writes new arrays instead of updating in place, so a
         # checkpoint can hold on to the arrays of a snapshot() and serialise them in another
@@ -184,16 +192,16 @@ class TileAccumulator:
             DARK_FLOOR,
         )
         self.rgb_sum, self.lum_mean, self.m2_within, self.m2_between = out
-        if coverage_sum is not None:  # a new array (copy on write, as above)
-            hits = np.asarray(coverage_sum).reshape(shape)
-            self.coverage_sum = np.add(self.coverage_sum, hits, dtype=np.float32)
-        if carries_aovs(self.samples):  # in-order merges: self.samples is the batch's start
-            if albedo_sum is not None:
-                aov = np.asarray(albedo_sum).reshape(*shape, 3)
-                self.albedo_sum = np.add(self.albedo_sum, aov, dtype=np.float32)
-            if normal_sum is not None:
-                aov = np.asarray(normal_sum).reshape(*shape, 3)
-                self.normal_sum = np.add(self.normal_sum, aov, dtype=np.float32)
+        # The other rows: a new array each (copy on write, as above), for a row with a window
+        # only while the batch is in it (in-order merges: self.samples is the batch's start).
+        batch = {"albedo_sum": albedo_sum, "normal_sum": normal_sum, "coverage_sum": coverage_sum}
+        for wire, name, window in self._SUMMED:
+            values = batch[wire]
+            if values is None or (window and self.samples >= window):
+                continue
+            stored = getattr(self, name)
+            values = np.asarray(values).reshape(stored.shape)
+            setattr(self, name, np.add(stored, values, dtype=stored.dtype))
         self.samples += sample_count
         self.batches += 1
         self.nonfinite += nonfinite
@@ -273,13 +281,15 @@ class TileAccumulator:
         total = _kernels.squared_relative_error(pixels, self.lum_mean, m2[0], extra, k, DARK_FLOOR)
         return math.sqrt(total / pixels)
 
-    # Checkpoints: the accumulator as bytes, and back (little-endian, fixed order, each array
-    # in its own dtype: statistics float64, coverage and AOVs float32). The statistics change
-    # with every merge; the AOVs only during the first AOV_SAMPLES samples, so they are stored
-    # apart and written only while they change.
-    _ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between", "coverage_sum")
+    # Checkpoints: the accumulator as blobs with a header naming their arrays
+    # (channels.blob_header), and back. The arrays of rows over every sample change with every
+    # merge; those of windowed rows (albedo, normal) only during their window, so they are
+    # stored apart and written only while they change.
+    _ARRAYS = channels.STATS_ARRAYS
+    _AOV_ARRAYS = channels.WINDOWED_ARRAYS
+    # Blobs of servers from before the header, recognised by their length (read, never written).
     _LEGACY_ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")  # before coverage
-    _AOV_ARRAYS = ("albedo_sum", "normal_sum")
+    _LEGACY_AOV_ARRAYS = ("albedo_sum", "normal_sum")
 
     def snapshot(self, names: tuple | None = None) -> tuple:
         """An immutable view of the statistics (cheap: arrays are replaced, never mutated), or
@@ -288,7 +298,7 @@ class TileAccumulator:
         names = self._ARRAYS if names is None else names
         if not self.resident:
             return self.spill.reference(names)
-        return tuple(getattr(self, a) for a in names)
+        return Snapshot(names, (getattr(self, a) for a in names))
 
     def aov_snapshot(self) -> tuple:
         """The same for the albedo and normal sums."""
@@ -301,11 +311,16 @@ class TileAccumulator:
 
     @staticmethod
     def snapshot_bytes(snapshot) -> bytearray:
-        """Serialise a snapshot() or aov_snapshot() with one copy, each array little-endian
-        in its own dtype; safe to call from another thread."""
+        """Serialise a snapshot() or aov_snapshot() as a checkpoint blob with one copy: the
+        header naming its arrays, then each array little-endian in its own dtype; safe to call
+        from another thread."""
+        arrays = tuple(channels.ARRAYS[n] for n in snapshot.names)
         snapshot = TileAccumulator.snapshot_arrays(snapshot)
-        out = bytearray(sum(a.nbytes for a in snapshot))
-        offset = 0
+        pixels = snapshot[0].shape[0] * snapshot[0].shape[1] if snapshot else 0
+        header = channels.blob_header(arrays, pixels)
+        out = bytearray(len(header) + sum(a.nbytes for a in snapshot))
+        out[: len(header)] = header
+        offset = len(header)
         for a in snapshot:
             dtype = a.dtype.newbyteorder("<")
             view = np.frombuffer(out, dtype=dtype, count=a.size, offset=offset)
@@ -318,6 +333,29 @@ class TileAccumulator:
 
     def aovs_to_bytes(self) -> bytearray:
         return self.snapshot_bytes(self.aov_snapshot())
+
+    def _load_blob(self, data: bytes, what: str) -> None:
+        """Fill the arrays a blob with a header names (the others keep their values)."""
+        _, arrays, pixels, offset = channels.read_header(data, what)
+        if pixels != self.width * self.height:
+            raise ValueError(
+                f"checkpoint {what} holds {pixels} pixels, the tile has {self.width * self.height}"
+            )
+        for a in arrays:
+            known = channels.ARRAYS.get(a.name)
+            if known != a:
+                raise ValueError(
+                    f"checkpoint {what}: array {a.name} ({a.dtype} x {a.components}) is not "
+                    "one of this server's channel table"
+                )
+        expected = offset + sum(a.bytes_per_pixel * pixels for a in arrays)
+        if len(data) != expected:
+            raise ValueError(f"checkpoint {what} has {len(data)} bytes, expected {expected}")
+        for a in arrays:
+            target = getattr(self, a.name)
+            chunk = np.frombuffer(data, dtype=a.dtype, count=target.size, offset=offset)
+            target[...] = chunk.reshape(target.shape)
+            offset += target.size * chunk.itemsize
 
     def _load(self, names: tuple, data: bytes, what: str, dtype: str | None = None) -> None:
         """Fill the arrays named from data, each in its own dtype (or all in `dtype`, as
@@ -347,21 +385,28 @@ class TileAccumulator:
         iid: bool = False,
         aovs: bytes | None = None,
     ) -> TileAccumulator:
-        """Restore to_bytes() (with aovs_to_bytes(), or zero AOVs when None). Checkpoints
-        written before the AOVs were split off hold both in `data`, and load as well; those
+        """Restore to_bytes() (with aovs_to_bytes(), or zero windowed arrays when None): the
+        arrays each blob's header names. Blobs of servers from before the header load by their
+        length: those written before the AOVs were split off hold both in `data`, and those
         written before the coverage existed restore as fully covered (alpha 1)."""
         acc = cls(width, height, iid)
         pixels = width * height
-        if aovs is None and len(data) == 8 * pixels * 12:  # float64 statistics and AOVs
-            acc._load(cls._LEGACY_ARRAYS + cls._AOV_ARRAYS, data, "accumulators", "<f8")
+        if channels.has_header(data):
+            acc._load_blob(data, "accumulators")
+        elif aovs is None and len(data) == 8 * pixels * 12:  # float64 statistics and AOVs
+            acc._load(cls._LEGACY_ARRAYS + cls._LEGACY_AOV_ARRAYS, data, "accumulators", "<f8")
             acc.coverage_sum[...] = samples
         elif len(data) == 8 * pixels * 6:  # the statistics without the coverage
             acc._load(cls._LEGACY_ARRAYS, data, "accumulators")
             acc.coverage_sum[...] = samples
         else:
-            acc._load(cls._ARRAYS, data, "accumulators")
+            acc._load(("rgb_sum", "lum_mean", "m2_within", "m2_between", "coverage_sum"), data,
+                      "accumulators")  # fmt: skip
         if aovs is not None:
-            acc._load(cls._AOV_ARRAYS, aovs, "aovs")
+            if channels.has_header(aovs):
+                acc._load_blob(aovs, "aovs")
+            else:
+                acc._load(cls._LEGACY_AOV_ARRAYS, aovs, "aovs")
         acc.samples, acc.batches, acc.nonfinite = samples, batches, nonfinite
         return acc
 

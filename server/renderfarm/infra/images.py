@@ -1,16 +1,13 @@
 """Images of a job, written with OpenImageIO one row of tiles at a time.
 
-EXR channels (32-bit float):
-  R, G, B                 mean radiance
-  variance.Y              estimated variance of the mean luminance (inf where unknown)
-  spp                     samples merged per pixel
-  error                   relative error: sqrt(variance.Y) / max(Y, DARK_FLOOR)
-  albedo.R/G/B            mean first-hit albedo
-  normal.X/Y/Z            mean first-hit shading normal (world space)
-  A                       alpha: the share of the pixel's samples whose camera ray hit
-                          geometry (0 where only the background or environment is seen)
-  denoised.R/G/B          with settings.denoise only: Open Image Denoise of R, G, B with the
-                          albedo and normal as guides (denoise_frame)
+EXR channels (32-bit float) and layers are the channel table's (domain/channels.py): R, G, B
+(mean radiance), variance.Y (estimated variance of the mean luminance, inf where unknown), spp
+(samples merged per pixel), error (sqrt(variance.Y) / max(Y - sqrt(variance.Y), DARK_FLOOR)),
+albedo.R/G/B and normal.X/Y/Z (mean first-hit albedo and world-space shading normal), A (the
+share of the pixel's samples whose camera ray hit geometry) and, with settings.denoise,
+denoised.R/G/B (Open Image Denoise of R, G, B with the albedo and normal as guides,
+denoise_frame). _exr_band computes them in one C pass (_kernels.exr_tile) in that order, which
+server/tests/test_channel_table.py holds to the table.
 PNG: one layer, clamped to [0, 1], 8 bits; rgb, albedo, normal and denoised sRGB-encoded, the
 variance (as a standard error), spp and error layers grey, normalised to their maximum (recorded in
 the PNG's tEXt chunk renderfarm:scale_max, beside renderfarm:scale_min 0). A PNG may be
@@ -46,20 +43,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import _kernels
+from ..domain import channels
+from ..domain.channels import Display
 from ..domain.merge import DARK_FLOOR, TileAccumulator
 from ..domain.tiling import Rect
 from ..errors import Cancelled
 
-EXR_CHANNELS = (
-    "R", "G", "B", "variance.Y", "spp", "error",
-    "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z", "A",
-)  # fmt: skip
-LAYERS = ("rgb", "variance", "spp", "error", "albedo", "normal", "denoised")
+EXR_CHANNELS = channels.exr_channels()
+LAYERS = tuple(channels.layers())
 # The EXR of a job with settings.denoise: its channels, then the denoised RGB.
-DENOISED_CHANNELS = ("denoised.R", "denoised.G", "denoised.B")
+DENOISED_CHANNELS = channels.exr_channels(denoise=True)[len(EXR_CHANNELS) :]
 # zip (deflate level 1): what every EXR reader reads; none: faster, 2.5 times larger.
 EXR_COMPRESSIONS = ("zip", "none")
-GREY_LAYERS = ("variance", "spp", "error")  # normalised to the image's maximum
+# Layers normalised to the image's maximum in a PNG.
+GREY_LAYERS = tuple(n for n, layer in channels.layers().items() if layer.display is Display.GREY)
 
 # A band of tiles and what each one holds: None for a tile with no merged samples.
 Band = list[tuple[Rect, TileAccumulator | None]]
@@ -69,13 +66,7 @@ def arrays_needed(fmt: str, layer: str) -> tuple[str, ...]:
     """The accumulator arrays an image reads (a spilled tile reads only these)."""
     if fmt == "exr":
         return TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
-    return {
-        "rgb": ("rgb_sum",),
-        "albedo": ("albedo_sum",),
-        "normal": ("normal_sum",),
-        "spp": (),
-        "denoised": ("rgb_sum", "albedo_sum", "normal_sum"),
-    }.get(layer, ("lum_mean", "m2_within", "m2_between"))
+    return channels.layer_arrays(layer)
 
 
 @dataclass(frozen=True)

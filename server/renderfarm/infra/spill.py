@@ -1,13 +1,13 @@
 """Merged tile statistics under a RAM budget: the rest waits in files, read back on demand.
 
-A tile's accumulators take 76 bytes a pixel (TileAccumulator.BYTES_PER_PIXEL), so an 8192x8192
-job holds 5.1 GB of them. TileCache keeps the most recently used tiles of every job in RAM up to
-its budget (RENDERFARM_TILE_CACHE_MB); when a tile is needed past it, the least recently used
-ones are written to their job's file in the scratch directory (DATA_DIR/scratch/JOB.tiles) and
-their arrays let go. A merge of an evicted tile reads it back first (TileCache.use); a
-checkpoint or an image reads an evicted tile from its file in another thread (SpillRef) without
-bringing it back into RAM. The files are scratch: the database stays the only durable store, so
-they are removed when the job is forgotten and at start.
+A tile's accumulators take 76 bytes a pixel (TileAccumulator.BYTES_PER_PIXEL, from the channel
+table), so an 8192x8192 job holds 5.1 GB of them. TileCache keeps the most recently used tiles
+of every job in RAM up to its budget (RENDERFARM_TILE_CACHE_MB); when a tile is needed past it,
+the least recently used ones are written to their job's file in the scratch directory
+(DATA_DIR/scratch/JOB.tiles) and their arrays let go. A merge of an evicted tile reads it back
+first (TileCache.use); a checkpoint or an image reads an evicted tile from its file in another
+thread (SpillRef) without bringing it back into RAM. The files are scratch: the database stays
+the only durable store, so they are removed when the job is forgotten and at start.
 
 Nothing here changes a value: the arrays are written and read back bit for bit, so a spilled
 job merges to exactly the image it would have in RAM.
@@ -30,22 +30,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ..domain.merge import TileAccumulator
+from ..domain import channels
+from ..domain.merge import Snapshot, TileAccumulator
 
 _STATS = TileAccumulator._ARRAYS
 _AOVS = TileAccumulator._AOV_ARRAYS
 
 
-def _shapes(width: int, height: int) -> dict[str, tuple[tuple[int, ...], type]]:
-    """Shape and dtype of each array of a width x height tile, in file order."""
+def _shapes(width: int, height: int) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shape and dtype of each array of a width x height tile, in file order (the channel
+    table's)."""
     return {
-        "rgb_sum": ((height, width, 3), np.float64),
-        "lum_mean": ((height, width), np.float64),
-        "m2_within": ((height, width), np.float64),
-        "m2_between": ((height, width), np.float64),
-        "coverage_sum": ((height, width), np.float32),
-        "albedo_sum": ((height, width, 3), np.float32),
-        "normal_sum": ((height, width, 3), np.float32),
+        name: (channels.ARRAYS[name].shape(width, height), np.dtype(channels.ARRAYS[name].dtype))
+        for name in _STATS + _AOVS
     }
 
 
@@ -338,12 +335,12 @@ class _Handle:
         self.cache, self.home = cache, home
         self.width, self.height = acc.width, acc.height
 
-    def reference(self, names: tuple) -> SpillRef | tuple:
+    def reference(self, names: tuple) -> SpillRef | Snapshot:
         """A snapshot of the evicted arrays named (TileAccumulator.snapshot on an evicted
         tile)."""
         home = self.home
         if home.slot is None:  # never merged: zeros (read by nobody but images)
             shapes = _shapes(self.width, self.height)
-            return tuple(np.zeros(*shapes[name]) for name in names)
+            return Snapshot(names, (np.zeros(*shapes[name]) for name in names))
         file = self.cache._files[home.job_id]
         return SpillRef(file, home.slot, names, self.width, self.height)

@@ -5,14 +5,21 @@
 // longer change, are kept decoded so that scrubbing back over them fetches nothing.
 
 import { frameImageUrl, imageUrl } from "../api";
+import type { operations } from "../generated/openapi";
 import { applyColourMap, applyExposure, type ColourMap, cssGradient } from "../colormap";
 import { h, s, setText } from "../dom";
 import { BudgetCache } from "../frames";
 import { layerScale, pngText, type Scale, scaleValue } from "../outputs";
 import { Throttled } from "../throttle";
 
+/** A layer of a job's images: one of the server's channel table (domain/channels.py), as the
+ * REST API's `layer` parameter lists them. */
+export type LayerName = NonNullable<
+  NonNullable<operations["image_api_v1_jobs__job_id__image__fmt__get"]["parameters"]["query"]>["layer"]
+>;
+
 interface Layer {
-  id: string;
+  id: LayerName;
   label: string;
   colourMap?: ColourMap;
   legend?: string;
@@ -21,16 +28,20 @@ interface Layer {
 // Longest side of the preview images (`max_size` of image.png): beyond a 4K screen's width.
 const PREVIEW_MAX_SIZE = 2048;
 
-export const LAYERS: Layer[] = [
-  { id: "rgb", label: "Image" },
-  { id: "error", label: "Relative error", colourMap: "inferno", legend: "per-pixel relative error" },
-  { id: "spp", label: "Samples / pixel", colourMap: "viridis", legend: "samples per pixel" },
-  { id: "variance", label: "Std. error", colourMap: "inferno", legend: "standard error of the mean" },
-  { id: "albedo", label: "Albedo" },
-  { id: "normal", label: "Normal" },
+// How each layer is shown, in the switch's order: an entry for every layer of the table and no
+// other (the type check fails otherwise, so a layer added on the server must be added here).
+const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
+  rgb: { label: "Image" },
+  error: { label: "Relative error", colourMap: "inferno", legend: "per-pixel relative error" },
+  spp: { label: "Samples / pixel", colourMap: "viridis", legend: "samples per pixel" },
+  variance: { label: "Std. error", colourMap: "inferno", legend: "standard error of the mean" },
+  albedo: { label: "Albedo" },
+  normal: { label: "Normal" },
   // Jobs with settings.denoise only (the server refuses the layer of the others).
-  { id: "denoised", label: "Denoised" },
-];
+  denoised: { label: "Denoised" },
+};
+
+export const LAYERS: Layer[] = (Object.keys(LAYER_VIEWS) as LayerName[]).map((id) => ({ id, ...LAYER_VIEWS[id] }));
 
 /** Layers shown with exposure: the radiance ones. */
 const RADIANCE = new Set(["rgb", "denoised"]);

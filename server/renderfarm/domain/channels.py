@@ -1,0 +1,356 @@
+"""The per-pixel channels of a job: one table from which everything per pixel derives (#40).
+
+A row (Channel) is one per-pixel quantity: what the workers accumulate for it, how batches of
+it are merged, the arrays the server keeps for it (in RAM, in spill files and in checkpoints,
+in this order), the layers of the images it gives and their EXR channel names, and what turns it
+on. What derives from the table:
+
+- the accumulator's arrays and their bytes a pixel (merge.TileAccumulator, jobspec's memory
+  estimate, spill slots, the tile cache's budget);
+- checkpoint blobs, which carry a header naming their arrays (checkpoint_bytes / read_blob:
+  nothing is recognised by its length but blobs of servers from before the header);
+- the EXR's channels and the layers of images.png (infra/images.py), the CLI's `--layer`
+  (cli/commands.py), the REST API's `layer` values and through them the dashboard's layer
+  switch (web/openapi.json), and the outputs table of docs/usage.md (layers_markdown).
+
+server/tests/test_channel_table.py fails when any of them disagrees with the table.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+# Bump when a row's arrays change meaning or layout: stored in every checkpoint blob's header.
+TABLE_VERSION = 1
+
+
+class Accumulate(StrEnum):
+    """How a row's batches are merged on the server."""
+
+    # A sum over the row's window of samples, added batch by batch in batch order.
+    SUM = "sum"
+    # The luminance statistics of the radiance (`rgb`): its running mean and the within- and
+    # between-batch M2 (merge.py, Chan et al.), merged by the fused kernel with the RGB sum.
+    MOMENTS = "moments"
+    # A count of samples (coverage: those whose camera ray hit geometry).
+    COUNT = "count"
+    # Nothing accumulated: computed at output from other rows (the denoised image).
+    DERIVED = "derived"
+
+
+class Display(StrEnum):
+    """How a layer is shown in a PNG (images.py) and the dashboard."""
+
+    COLOUR = "colour"  # linear RGB, sRGB-encoded and clamped to [0, 1]
+    SIGNED = "signed"  # a unit vector, x * 0.5 + 0.5
+    GREY = "grey"  # one value, normalised to the image's largest finite value
+
+
+@dataclass(frozen=True)
+class Array:
+    """One per-pixel array the server keeps: name, dtype (little-endian numpy) and components."""
+
+    name: str
+    dtype: str
+    components: int = 1
+
+    @property
+    def bytes_per_pixel(self) -> int:
+        return np.dtype(self.dtype).itemsize * self.components
+
+    def shape(self, width: int, height: int) -> tuple[int, ...]:
+        return (height, width) if self.components == 1 else (height, width, self.components)
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One layer of a job's images: `images.png?layer=NAME`, `renderfarm get --layer NAME`, the
+    dashboard's switch (name None: EXR channels only)."""
+
+    name: str | None
+    exr: tuple[str, ...]
+    label: str
+    help: str
+    display: Display = Display.COLOUR
+    # The arrays an image of the layer reads (None: its row's own).
+    reads: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class Channel:
+    name: str
+    help: str
+    accumulate: Accumulate
+    # The worker's TileResult field the server merges it from ("": none).
+    wire: str
+    store: tuple[Array, ...]
+    layers: tuple[Layer, ...]
+    # 0: every sample; else only each pixel's first `window` samples (a batch boundary of the
+    # schedule, tiling.py), and its arrays are checkpointed apart, only while they change.
+    window: int = 0
+    # The job setting that turns the row on ("": always on).
+    setting: str = ""
+    notes: tuple[str, ...] = field(default=())
+
+
+AOV_SAMPLES = 16  # albedo and normal cover a pixel's first 16 samples (tiling.AOV_SAMPLES)
+
+CHANNELS: tuple[Channel, ...] = (
+    Channel(
+        "rgb",
+        "the radiance: a sum over samples, float64",
+        Accumulate.SUM,
+        "rgb_sum",
+        (Array("rgb_sum", "<f8", 3),),
+        (Layer("rgb", ("R", "G", "B"), "Image", "mean radiance: the unbiased estimate"),),
+    ),
+    Channel(
+        "luminance",
+        "the luminance statistics of the radiance, float64",
+        Accumulate.MOMENTS,
+        "luminance_m2",
+        (Array("lum_mean", "<f8"), Array("m2_within", "<f8"), Array("m2_between", "<f8")),
+        (
+            Layer(
+                "variance",
+                ("variance.Y",),
+                "Std. error",
+                "estimated variance of the mean luminance (inf where unknown; the PNG and "
+                "the dashboard show its square root, the standard error)",
+                Display.GREY,
+            ),
+            Layer(
+                "spp",
+                ("spp",),
+                "Samples / pixel",
+                "samples merged per pixel",
+                Display.GREY,
+                reads=(),
+            ),
+            Layer(
+                "error",
+                ("error",),
+                "Relative error",
+                "per-pixel relative error: sqrt(variance.Y) / max(Y - sqrt(variance.Y), 0.01), "
+                "Y the mean luminance",
+                Display.GREY,
+            ),
+        ),
+    ),
+    Channel(
+        "albedo",
+        "the first hit's base colour, a sum over each pixel's first 16 samples, float32",
+        Accumulate.SUM,
+        "albedo_sum",
+        (Array("albedo_sum", "<f4", 3),),
+        (
+            Layer(
+                "albedo",
+                ("albedo.R", "albedo.G", "albedo.B"),
+                "Albedo",
+                "mean first-hit albedo (of the first 16 samples)",
+            ),
+        ),
+        window=AOV_SAMPLES,
+    ),
+    Channel(
+        "normal",
+        "the first hit's shading normal in world space, a sum over each pixel's first 16 "
+        "samples, float32",
+        Accumulate.SUM,
+        "normal_sum",
+        (Array("normal_sum", "<f4", 3),),
+        (
+            Layer(
+                "normal",
+                ("normal.X", "normal.Y", "normal.Z"),
+                "Normal",
+                "mean first-hit shading normal, world space (of the first 16 samples)",
+                Display.SIGNED,
+            ),
+        ),
+        window=AOV_SAMPLES,
+    ),
+    Channel(
+        "coverage",
+        "samples whose camera ray hit geometry: a count, float32 (exact to 2^24 samples)",
+        Accumulate.COUNT,
+        "coverage_sum",
+        (Array("coverage_sum", "<f4"),),
+        (
+            Layer(
+                None,
+                ("A",),
+                "Alpha",
+                "alpha: the share of the pixel's samples whose camera ray hit geometry (0 "
+                "where only the background or the environment is seen, fractional along "
+                "silhouettes), over every sample like the colour; the EXR's alpha channel. The "
+                "colour is not premultiplied by it: `R,G,B` are the pixel's full estimate, "
+                "background or environment included",
+                Display.GREY,
+            ),
+        ),
+    ),
+    Channel(
+        "denoised",
+        "Open Image Denoise of the radiance with the albedo and normal as guides, at output",
+        Accumulate.DERIVED,
+        "",
+        (),
+        (
+            Layer(
+                "denoised",
+                ("denoised.R", "denoised.G", "denoised.B"),
+                "Denoised",
+                "Intel Open Image Denoise (RT filter, HDR, high quality) of `rgb` guided by "
+                "`albedo` and `normal`",
+                reads=("rgb_sum", "albedo_sum", "normal_sum"),
+            ),
+        ),
+        setting="denoise",
+    ),
+)
+
+BY_NAME = {c.name: c for c in CHANNELS}
+
+
+def _check_table() -> None:
+    names = [c.name for c in CHANNELS]
+    arrays = [a.name for c in CHANNELS for a in c.store]
+    exr = [e for c in CHANNELS for layer in c.layers for e in layer.exr]
+    layers = [layer.name for c in CHANNELS for layer in c.layers if layer.name]
+    for what, values in (("row", names), ("array", arrays), ("EXR channel", exr),
+                         ("layer", layers)):  # fmt: skip
+        dupes = {v for v in values if values.count(v) > 1}
+        if dupes:
+            raise AssertionError(f"channel table: {what} named twice: {sorted(dupes)}")
+    for c in CHANNELS:
+        # A window ends on a batch boundary of the schedule (a power of two up to 64).
+        if c.window and (c.window > 64 or c.window & (c.window - 1)):
+            raise AssertionError(f"channel {c.name}: window {c.window} is no batch boundary")
+        if (c.accumulate is Accumulate.DERIVED) != (not c.store):
+            raise AssertionError(f"channel {c.name}: only derived rows store nothing")
+
+
+_check_table()
+
+
+# ----------------------------------------------------------------------------- the layout
+def stored(windowed: bool | None = None) -> tuple[Array, ...]:
+    """The server's per-pixel arrays in table order: of every row (None), of rows over every
+    sample (False: checkpointed with each checkpoint) or of windowed rows (True)."""
+    return tuple(
+        a for c in CHANNELS if windowed is None or bool(c.window) == windowed for a in c.store
+    )
+
+
+STATS_ARRAYS = tuple(a.name for a in stored(False))
+WINDOWED_ARRAYS = tuple(a.name for a in stored(True))
+ARRAYS = {a.name: a for a in stored()}
+
+
+def bytes_per_pixel(windowed: bool | None = None) -> int:
+    """Bytes a pixel of the arrays of stored(windowed)."""
+    return sum(a.bytes_per_pixel for a in stored(windowed))
+
+
+def exr_channels(denoise: bool = False) -> tuple[str, ...]:
+    """The EXR's channels in order: every row's layers' channels in table order (a row a
+    setting turns on only with that setting)."""
+    return tuple(
+        e
+        for c in CHANNELS
+        if not c.setting or (c.setting == "denoise" and denoise)
+        for layer in c.layers
+        for e in layer.exr
+    )
+
+
+def layers() -> dict[str, Layer]:
+    """The named layers in table order."""
+    return {layer.name: layer for c in CHANNELS for layer in c.layers if layer.name}
+
+
+def layer_channel(layer: str) -> Channel:
+    """The row a layer belongs to."""
+    for c in CHANNELS:
+        if any(x.name == layer for x in c.layers):
+            return c
+    raise KeyError(layer)
+
+
+def layer_arrays(layer: str) -> tuple[str, ...]:
+    """The arrays an image of a layer reads."""
+    reads = layers()[layer].reads
+    return tuple(a.name for a in layer_channel(layer).store) if reads is None else reads
+
+
+def layers_markdown() -> str:
+    """The outputs table of docs/usage.md."""
+    lines = [
+        "| layer | EXR channels | what it holds | turned on by |",
+        "|---|---|---|---|",
+    ]
+    for c in CHANNELS:
+        for layer in c.layers:
+            name = f"`{layer.name}`" if layer.name else "(EXR only)"
+            exr = ", ".join(f"`{e}`" for e in layer.exr)
+            on = f"`{c.setting}`" if c.setting else "always"
+            lines.append(f"| {name} | {exr} | {layer.help} | {on} |")
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------ checkpoint blobs
+# A blob: MAGIC, then u16 TABLE_VERSION, u16 array count, u32 pixels, then per array u8 name
+# length, the name (ASCII), u8 dtype code, u16 components; then the arrays back to back,
+# little-endian, in the order listed. MAGIC reads as a NaN in float32 and in float64, and a
+# blob from before the header begins with a finite value (results with NaN or inf are refused,
+# scheduler.py), so the two can never be confused.
+MAGIC = bytes.fromhex("0000c07f5246f87f")
+_DTYPES = {"<f4": 1, "<f8": 2, "<u4": 3}
+_DTYPE_OF = {v: k for k, v in _DTYPES.items()}
+
+
+def blob_header(arrays: tuple[Array, ...], pixels: int) -> bytes:
+    out = bytearray(MAGIC)
+    out += struct.pack("<HHI", TABLE_VERSION, len(arrays), pixels)
+    for a in arrays:
+        name = a.name.encode("ascii")
+        out += struct.pack("<B", len(name)) + name + struct.pack("<BH", _DTYPES[a.dtype],
+                                                                 a.components)  # fmt: skip
+    return bytes(out)
+
+
+def has_header(data: bytes) -> bool:
+    return bytes(data[: len(MAGIC)]) == MAGIC
+
+
+def read_header(data: bytes, what: str) -> tuple[int, list[Array], int, int]:
+    """(table version, arrays, pixels, offset of the payload) of a blob with a header; a
+    ValueError naming `what` for a malformed one."""
+    try:
+        offset = len(MAGIC)
+        version, count, pixels = struct.unpack_from("<HHI", data, offset)
+        offset += 8
+        arrays = []
+        for _ in range(count):
+            (length,) = struct.unpack_from("<B", data, offset)
+            name = bytes(data[offset + 1 : offset + 1 + length]).decode("ascii")
+            offset += 1 + length
+            code, components = struct.unpack_from("<BH", data, offset)
+            offset += 3
+            if code not in _DTYPE_OF:
+                raise ValueError(f"array {name}: unknown type {code}")
+            arrays.append(Array(name, _DTYPE_OF[code], components))
+    except (struct.error, UnicodeDecodeError) as e:
+        raise ValueError(f"checkpoint {what}: malformed header ({e})") from None
+    if version > TABLE_VERSION:
+        raise ValueError(
+            f"checkpoint {what}: channel table version {version} is newer than this server's "
+            f"({TABLE_VERSION}); run a server as new as the one that wrote it"
+        )
+    return version, arrays, pixels, offset

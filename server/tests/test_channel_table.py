@@ -1,0 +1,247 @@
+"""Everything per pixel derives from the channel table (domain/channels.py, #40): each test here
+fails when one of the places that used to be written by hand disagrees with it."""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from renderfarm.cli.commands import EXR_LAYER_CHANNELS
+from renderfarm.cli.parser import build_parser
+from renderfarm.domain import channels, jobspec
+from renderfarm.domain.channels import Accumulate
+from renderfarm.domain.merge import TileAccumulator
+from renderfarm.domain.tiling import Rect
+from renderfarm.infra import images
+from renderfarm.infra.images import ImageWriter, read_exr
+from renderfarm.infra.spill import TileCache
+
+ROOT = Path(__file__).resolve().parents[2]
+W, H = 7, 5
+
+
+def merged(seed: int = 0, batches=(1, 1, 2, 4, 8, 16)) -> TileAccumulator:
+    """A tile of W x H merged from batches of random values, past the 16-sample window."""
+    rng = np.random.default_rng(seed)
+    acc = TileAccumulator(W, H)
+    for n in batches:
+        acc.merge_batch(
+            (rng.random((H, W, 3)) * n).astype(np.float32),
+            (rng.random((H, W)) * n).astype(np.float32), n,
+            (rng.random((H, W, 3)) * n).astype(np.float32),
+            rng.standard_normal((H, W, 3)).astype(np.float32), 0,
+            rng.integers(0, n + 1, (H, W)).astype(np.float32),
+        )  # fmt: skip
+    return acc
+
+
+def test_the_accumulator_keeps_the_tables_arrays_and_the_memory_estimate_counts_them():
+    acc = TileAccumulator(W, H)
+    for a in channels.stored():
+        array = getattr(acc, a.name)
+        assert array.dtype == np.dtype(a.dtype), a.name
+        assert array.shape == a.shape(W, H), a.name
+    total = sum(getattr(acc, a.name).nbytes for a in channels.stored())
+    assert total == acc.nbytes == TileAccumulator.BYTES_PER_PIXEL * W * H
+    assert jobspec.ACCUMULATOR_BYTES_PER_PIXEL == TileAccumulator.BYTES_PER_PIXEL
+    assert jobspec.job_memory_bytes(64, 64, 64) == (
+        TileAccumulator.BYTES_PER_PIXEL * 64 * 64 + jobspec.TILE_OVERHEAD_BYTES
+    )
+    # What docs/usage.md tells a user ("76 bytes a pixel" and the estimate's formula).
+    usage = (ROOT / "docs" / "usage.md").read_text()
+    said = re.search(r"tile accumulators take (\d+) bytes a pixel", usage)
+    assert said and int(said.group(1)) == TileAccumulator.BYTES_PER_PIXEL
+    assert f"`{TileAccumulator.BYTES_PER_PIXEL} x width x height" in usage
+
+
+def test_merging_sums_each_row_within_its_window():
+    """A batch adds to a windowed row only while the pixel's samples are below the window;
+    independent answer: numpy sums of the batches' values in float32, in batch order."""
+    rng = np.random.default_rng(3)
+    acc = TileAccumulator(W, H)
+    want = {a.name: np.zeros(a.shape(W, H), np.float32) for a in channels.stored()
+            if a.dtype == "<f4"}  # fmt: skip
+    start = 0
+    for n in (1, 1, 2, 4, 8, 16, 32):
+        batch = {
+            "albedo_sum": (rng.random((H, W, 3)) * n).astype(np.float32),
+            "normal_sum": rng.standard_normal((H, W, 3)).astype(np.float32),
+            "coverage_sum": rng.integers(0, n + 1, (H, W)).astype(np.float32),
+        }
+        rgb, m2 = np.ones((H, W, 3), np.float32) * n, np.zeros((H, W), np.float32)
+        acc.merge_batch(rgb, m2, n, batch["albedo_sum"], batch["normal_sum"], 0,
+                        batch["coverage_sum"])  # fmt: skip
+        for c in channels.CHANNELS:
+            if c.accumulate in (Accumulate.SUM, Accumulate.COUNT) and c.wire in batch:
+                if not c.window or start < c.window:
+                    want[c.store[0].name] += batch[c.wire]
+        start += n
+    for name, values in want.items():
+        assert np.array_equal(getattr(acc, name), values), name
+    # The window is 16 samples: albedo stopped after the batch of 8 (samples 8..15).
+    assert channels.BY_NAME["albedo"].window == 16
+
+
+def test_checkpoint_blobs_name_their_arrays_and_round_trip_bit_for_bit():
+    acc = merged()
+    for blob, names in ((acc.to_bytes(), channels.STATS_ARRAYS),
+                        (acc.aovs_to_bytes(), channels.WINDOWED_ARRAYS)):  # fmt: skip
+        assert channels.has_header(blob)
+        version, arrays, pixels, offset = channels.read_header(blob, "test")
+        assert version == channels.TABLE_VERSION and pixels == W * H
+        assert tuple(a.name for a in arrays) == names
+        assert all(a == channels.ARRAYS[a.name] for a in arrays)
+        # The payload: each array little-endian in the table's dtype, in the listed order.
+        payload = b"".join(np.ascontiguousarray(getattr(acc, n), channels.ARRAYS[n].dtype)
+                           .tobytes() for n in names)  # fmt: skip
+        assert bytes(blob[offset:]) == payload
+        # The magic reads as NaN in both float widths: no blob from before the header (which
+        # begins with a finite value) can look like one.
+        assert np.isnan(np.frombuffer(blob[:4], "<f4")[0])
+        assert np.isnan(np.frombuffer(blob[:8], "<f8")[0])
+    back = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches,
+                                      aovs=acc.aovs_to_bytes())  # fmt: skip
+    for a in channels.stored():
+        assert getattr(back, a.name).tobytes() == getattr(acc, a.name).tobytes(), a.name
+
+
+def _blob(arrays: list[channels.Array], pixels: int, version: int = channels.TABLE_VERSION):
+    header = bytearray(channels.MAGIC) + struct.pack("<HHI", version, len(arrays), pixels)
+    for a in arrays:
+        codes = {"<f4": 1, "<f8": 2, "<u4": 3}
+        header += (
+            struct.pack("<B", len(a.name))
+            + a.name.encode()
+            + struct.pack("<BH", codes[a.dtype], a.components)
+        )
+    return bytes(header) + bytes(sum(a.bytes_per_pixel for a in arrays) * pixels)
+
+
+def test_a_checkpoint_blob_the_table_cannot_read_is_refused_naming_why():
+    ok = [channels.ARRAYS[n] for n in channels.STATS_ARRAYS]
+    TileAccumulator.from_bytes(W, H, _blob(ok, W * H), 1, 1)  # well formed: loads
+    with pytest.raises(ValueError, match="array depth_sum .* is not one of"):
+        TileAccumulator.from_bytes(W, H, _blob([*ok, channels.Array("depth_sum", "<f4")], W * H),
+                                   1, 1)  # fmt: skip
+    with pytest.raises(ValueError, match="array rgb_sum .* is not one of"):
+        TileAccumulator.from_bytes(W, H, _blob([channels.Array("rgb_sum", "<f4", 3)], W * H), 1, 1)
+    with pytest.raises(ValueError, match="holds 6 pixels, the tile has 35"):
+        TileAccumulator.from_bytes(W, H, _blob(ok, 6), 1, 1)
+    with pytest.raises(ValueError, match="version 2 is newer than this server's"):
+        TileAccumulator.from_bytes(W, H, _blob(ok, W * H, version=2), 1, 1)
+    with pytest.raises(ValueError, match="has .* bytes, expected"):
+        TileAccumulator.from_bytes(W, H, _blob(ok, W * H)[:-4], 1, 1)
+    with pytest.raises(ValueError, match="malformed header"):
+        TileAccumulator.from_bytes(W, H, channels.MAGIC + b"\x01", 1, 1)
+
+
+def test_a_spill_slot_holds_the_tables_arrays(tmp_path):
+    cache = TileCache(tmp_path, budget_bytes=1)
+    acc = merged()
+    want = {a.name: getattr(acc, a.name).copy() for a in channels.stored()}
+    cache.register("j", acc, 8)
+    assert acc.spill.home.slot_bytes == TileAccumulator.BYTES_PER_PIXEL * 8 * 8
+    cache.register("j", merged(1), 8)  # evicts the first
+    assert not acc.resident
+    cache.use(acc)
+    for name, values in want.items():
+        assert getattr(acc, name).tobytes() == values.tobytes(), name
+
+
+def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
+    """Each EXR channel from the accumulator's arrays in numpy, per the table's row."""
+    n = acc.samples
+    window = min(n, channels.AOV_SAMPLES)
+    rows = {
+        "R": acc.rgb_sum[..., 0] / n, "G": acc.rgb_sum[..., 1] / n, "B": acc.rgb_sum[..., 2] / n,
+        "variance.Y": acc.variance_of_mean(), "spp": np.full((H, W), float(n)),
+        "error": acc.relative_error(), "A": acc.coverage_sum.astype(np.float64) / n,
+    }  # fmt: skip
+    for i, axis in enumerate("RGB"):
+        rows[f"albedo.{axis}"] = acc.albedo_sum[..., i] / np.float32(window)
+    for i, axis in enumerate("XYZ"):
+        rows[f"normal.{axis}"] = acc.normal_sum[..., i] / np.float32(window)
+    return rows[name].astype(np.float32)
+
+
+def test_the_exr_has_the_tables_channels_in_its_order_with_their_values(tmp_path):
+    acc = merged()
+    band = [(Rect(0, 0, W, H), acc)]
+    path = tmp_path / "a.exr"
+    writer = ImageWriter(str(path), "exr", W, H)
+    writer.write_band(H, band, True)
+    writer.close()
+    import OpenImageIO as oiio
+
+    # (OpenEXR stores channels by name, and OpenImageIO reads R, G, B, A first: the names are
+    # compared as a set, and each one's values below tie the writer's order to the table's.)
+    names = oiio.ImageInput.open(str(path)).spec().channelnames
+    assert sorted(names) == sorted(channels.exr_channels())
+    values = read_exr(str(path))
+    for name in channels.exr_channels():
+        np.testing.assert_array_equal(values[name], _expected_channel(name, acc), err_msg=name)
+    # With settings.denoise, the denoised layer's channels follow.
+    path = tmp_path / "d.exr"
+    writer = ImageWriter(str(path), "exr", W, H, denoised=np.zeros((H, W, 3), np.float32))
+    writer.write_band(H, band, True)
+    writer.close()
+    names = oiio.ImageInput.open(str(path)).spec().channelnames
+    assert sorted(names) == sorted(channels.exr_channels(denoise=True))
+
+
+@pytest.mark.parametrize("layer", [n for n in channels.layers() if n != "denoised"])
+def test_every_layer_has_a_png(tmp_path, layer):
+    acc = merged()
+    band = [(Rect(0, 0, W, H), acc)]
+    top = images.layer_maximum(layer, band) if layer in images.GREY_LAYERS else 1.0
+    path = tmp_path / f"{layer}.png"
+    names = images.arrays_needed("png", layer)
+    assert set(names) <= set(channels.ARRAYS)
+    writer = ImageWriter(str(path), "png", W, H, layer, top=top)
+    writer.write_band(H, band, True)
+    writer.close()
+    assert path.stat().st_size > 0
+
+
+def test_the_layers_of_images_the_cli_and_the_rest_api_are_the_tables():
+    layers = channels.layers()
+    assert images.LAYERS == tuple(layers)
+    assert EXR_LAYER_CHANNELS == {name: layer.exr for name, layer in layers.items()}
+    assert set(images.GREY_LAYERS) == {"variance", "spp", "error"}
+    get = next(a for a in build_parser()._subparsers._group_actions[0].choices["get"]._actions
+               if "--layer" in a.option_strings)  # fmt: skip
+    assert all(name in get.help for name in layers)
+    # The REST API's `layer` (web/openapi.json, whence the dashboard's LayerName type: its
+    # switch must name every layer and no other, or `make test-web` fails to type check).
+    document = json.loads((ROOT / "web" / "openapi.json").read_text())
+    for path in ("/api/v1/jobs/{job_id}/image.{fmt}",
+                 "/api/v1/jobs/{job_id}/frames/{frame}/image.{fmt}"):  # fmt: skip
+        params = document["paths"][path]["get"]["parameters"]
+        layer = next(p for p in params if p["name"] == "layer")
+        assert layer["schema"]["enum"] == list(layers), f"stale {path}: run `make openapi`"
+    viewer = (ROOT / "web" / "src" / "pages" / "viewer.ts").read_text()
+    assert "Record<LayerName," in viewer
+
+
+def test_usage_md_has_the_generated_layers_table():
+    """docs/usage.md's outputs table is layers_markdown(): regenerate it with `make channels`."""
+    text = (ROOT / "docs" / "usage.md").read_text()
+    found = re.search(
+        r"<!-- layers table: generated.*?-->\n(.*?)<!-- end of layers table -->", text, re.S
+    )
+    assert found, "docs/usage.md has no generated layers table"
+    assert found.group(1) == channels.layers_markdown(), "stale: run `make channels`"
+
+
+def test_the_table_refuses_what_would_break_the_merge():
+    # Windows end on a batch boundary of the schedule; names are unique.
+    for c in channels.CHANNELS:
+        assert c.window in (0, 1, 2, 4, 8, 16, 32, 64), c.name
+    exr = channels.exr_channels(denoise=True)
+    assert len(exr) == len(set(exr))
+    assert channels.exr_channels()[:3] == ("R", "G", "B") and "A" in channels.exr_channels()
