@@ -245,3 +245,65 @@ def test_the_table_refuses_what_would_break_the_merge():
     exr = channels.exr_channels(denoise=True)
     assert len(exr) == len(set(exr))
     assert channels.exr_channels()[:3] == ("R", "G", "B") and "A" in channels.exr_channels()
+
+
+def test_the_workers_header_is_the_generated_one():
+    """worker/src/render/channel_table.h is cpp_header(): regenerate it with `make channels`."""
+    header = ROOT / "worker" / "src" / "render" / "channel_table.h"
+    assert header.read_text() == channels.cpp_header(), "stale: run `make channels`"
+    # Every row a result carries is in it, by name, with its components and window.
+    for c in channels.WIRE:
+        assert f'"{c.name}", {c.wire_components}, Type::F32, {c.window}}}' in header.read_text()
+
+
+def _result(rows, start: int = 0, **change):
+    """A TileResult of a 4 x 2 rect carrying `rows` (name -> values) as ChannelBlocks."""
+    from renderfarm.v1 import workers_pb2
+
+    msg = workers_pb2.TileResult(
+        task_id="t", job_id="j", sample_start=start, sample_count=4,
+        rect=workers_pb2.TileRect(x0=0, y0=0, width=4, height=2),
+        table_version=change.pop("table_version", channels.TABLE_VERSION),
+    )  # fmt: skip
+    for name, values in rows.items():
+        row = channels.BY_NAME.get(name)
+        block = msg.channels.add(name=name, type=1, components=row.wire_components if row else 1)
+        block.data = np.asarray(values, "<f4").tobytes()
+    for name, fields in change.items():
+        block = next(b for b in msg.channels if b.name == name)
+        for key, value in fields.items():
+            setattr(block, key, value)
+    return msg
+
+
+def _values(name: str, pixels: int = 8) -> np.ndarray:
+    return np.arange(pixels * channels.BY_NAME[name].wire_components, dtype="<f4") + len(name)
+
+
+def test_results_decode_by_their_blocks_and_the_table_refuses_the_rest():
+    from renderfarm.api.grpc_decode import decode_result
+
+    every = {c.name: _values(c.name) for c in channels.wire_rows_for(0)}
+    r = decode_result(_result(every))
+    for c in channels.wire_rows_for(0):
+        assert np.array_equal(getattr(r, c.wire), every[c.name]), c.name
+    # Past the window of albedo and normal, a result carries the others only.
+    later = {c.name: _values(c.name) for c in channels.wire_rows_for(16)}
+    assert set(later) == {"rgb", "luminance", "coverage"}
+    r = decode_result(_result(later, start=16))
+    assert r.albedo_sum is None and r.normal_sum is None
+    refusals = [
+        (_result({**every, "depth": np.zeros(8)}), "channel 'depth' is not one a result carries"),
+        (_result({k: v for k, v in every.items() if k != "coverage"}), "coverage: missing"),
+        (_result(every, albedo={"type": 2}), "channel albedo: type 2 x 3, expected 1 x 3"),
+        (_result(every, rgb={"components": 4}), "channel rgb: type 1 x 4, expected 1 x 3"),
+        (_result(every, normal={"data": b"\0" * 95}), "channel normal: 95 bytes, expected 96"),
+        (_result(every, table_version=2), "channel table version 2, this server's is 1"),
+    ]
+    for msg, reason in refusals:
+        with pytest.raises(ValueError, match=re.escape(reason)):
+            decode_result(msg)
+    twice = _result(every)
+    twice.channels.add(name="rgb", type=1, components=3, data=every["rgb"].tobytes())
+    with pytest.raises(ValueError, match="channel rgb: sent twice"):
+        decode_result(twice)

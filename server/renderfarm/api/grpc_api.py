@@ -32,6 +32,7 @@ from ..app.auth import Authenticator, Caller
 from ..app.jobs import FarmService
 from ..app.views import JobView
 from ..app.worker_sessions import WorkerSession
+from ..domain import channels
 from ..domain.frames import frame_time
 from ..domain.jobspec import SETTINGS, check_tags
 from ..domain.states import JobState
@@ -59,6 +60,19 @@ MAX_MESSAGE_BYTES = 512 * 2**20
 # Leases sent in one ServerMessage.assigns at most (a worker's credit is at most 256).
 MAX_PACKED_ASSIGNS = 64
 _NOTHING = object()  # Connect's outbox loop: no message held back
+# Past the last window's end, every batch carries the same channels.
+_WINDOW_END = max(c.window for c in channels.CHANNELS)
+
+
+@functools.cache
+def _task_channels(sample_start_in_window: int) -> tuple[str, ...]:
+    return tuple(c.name for c in channels.wire_rows_for(sample_start_in_window))
+
+
+def _task_channels_for(sample_start: int) -> tuple[str, ...]:
+    """Task.channels of a batch: the channel table's rows whose window holds it (cached by
+    the only thing that matters, whether the batch starts inside each window)."""
+    return _task_channels(min(sample_start, _WINDOW_END))
 
 
 def _enum_prefix(setting) -> str:
@@ -513,6 +527,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             sample_start=lease.sample_start,
             skip_aovs=not carries_aovs(lease.sample_start),
             sample_count=lease.sample_count,
+            channels=_task_channels_for(lease.sample_start),
         )
         task.settings.CopyFrom(self._settings_proto(job))
         if job.variants:  # a job of every variant: a still of the tile's variant, by index

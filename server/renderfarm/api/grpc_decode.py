@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..domain import channels
 from ..domain.records import BatchResult
 from ..domain.tiling import Rect
 
@@ -12,10 +13,62 @@ MAX_WARNINGS = 50
 MAX_WARNING_CHARS = 1000
 
 
+_TYPES = {"<f4": 1, "<f8": 2, "<u4": 3}  # workers.proto ValueType
+
+
+def _blocks(msg, rect: Rect) -> dict[str, np.ndarray]:
+    """The ChannelBlocks of a result by the BatchResult field of their row, checked against
+    the channel table: a ValueError naming the block for any mismatch."""
+    if msg.table_version != channels.TABLE_VERSION:
+        raise ValueError(
+            f"channel table version {msg.table_version}, this server's is {channels.TABLE_VERSION}"
+        )
+    arrays: dict[str, np.ndarray] = {}
+    for block in msg.channels:
+        row = channels.BY_NAME.get(block.name)
+        if row is None or not row.wire_components:
+            raise ValueError(f"channel {block.name[:40]!r} is not one a result carries")
+        if row.wire in arrays:
+            raise ValueError(f"channel {block.name}: sent twice")
+        if block.type != _TYPES[row.wire_type] or block.components != row.wire_components:
+            raise ValueError(
+                f"channel {block.name}: type {block.type} x {block.components}, expected "
+                f"{_TYPES[row.wire_type]} x {row.wire_components}"
+            )
+        data = block.data  # each read of a bytes field copies it: read once
+        size = np.dtype(row.wire_type).itemsize * row.wire_components * rect.pixels
+        if len(data) != size:
+            raise ValueError(f"channel {block.name}: {len(data)} bytes, expected {size}")
+        arrays[row.wire] = np.frombuffer(data, dtype=row.wire_type)
+    for row in channels.wire_rows_for(msg.sample_start):
+        if row.wire not in arrays:
+            raise ValueError(f"channel {row.name}: missing")
+    return arrays
+
+
 def decode_result(msg) -> BatchResult:
-    """A TileResult protobuf message as numpy arrays (little-endian, row-major)."""
+    """A TileResult protobuf message as numpy arrays (little-endian, row-major): its
+    ChannelBlocks (checked against the channel table), or the fields of a worker from before
+    the table."""
     rect = Rect(msg.rect.x0, msg.rect.y0, msg.rect.width, msg.rect.height)
+    if msg.channels:
+        arrays = _blocks(msg, rect)
+        return BatchResult(
+            job_id=msg.job_id,
+            tile_index=msg.tile_index,
+            batch_index=msg.batch_index,
+            sample_start=msg.sample_start,
+            sample_count=msg.sample_count,
+            rect=rect,
+            nonfinite=msg.nonfinite_samples,
+            render_seconds=msg.render_seconds,
+            rays=msg.rays,
+            warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
+            **arrays,
+        )
     n = rect.pixels
+    # A worker from before the channel table (no ChannelBlocks): its fields, recognised by
+    # their length as it sent them.
     # Each read of a bytes field copies it out of the message: read each once.
     rgb_raw, m2_raw = msg.rgb_sum, msg.luminance_m2
     albedo_raw, normal_raw = msg.albedo_sum, msg.normal_sum

@@ -25,6 +25,7 @@
 #include <thread>
 #include <vector>
 
+#include "render/channels.h"
 #include "render/integrators.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
@@ -486,9 +487,28 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
                               "environment " + task.settings().environment_sha256().substr(0, 12)),
                  false});
   }
+  // The rows of the channel table the result carries (Task.channels, in its order); a server
+  // from before the table names none and reads the TileResult's own fields.
+  std::vector<channels::Id> wanted;
+  uint32_t rows = channels::kAll;
+  if (task.channels_size() > 0) {
+    rows = 0;
+    for (const std::string& name : task.channels()) {
+      const channels::Spec* found = nullptr;
+      for (const channels::Spec& row : channels::kSpecs)
+        if (name == row.name) found = &row;
+      if (!found)
+        return fail({"task: channel '" + name.substr(0, 40) + "' is not one this worker " +
+                         "renders (channel table version " +
+                         std::to_string(channels::kTableVersion) + "): upgrade the worker",
+                     false});
+      wanted.push_back(found->id);
+      rows |= channels::bit(found->id);
+    }
+  }
   TileBuffer tile;
   const bool rendered = !cancel && render_rect(*scene, settings, rect, task.sample_start(),
-                                               task.sample_count(), &tile, &cancel);
+                                               task.sample_count(), &tile, &cancel, rows);
   if (running.timed_out->load()) {
     char budget[32];
     std::snprintf(budget, sizeof budget, "%g", options_.task_timeout_s);
@@ -507,14 +527,32 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   r->set_sample_start(task.sample_start());
   r->set_sample_count(task.sample_count());
   *r->mutable_rect() = task.rect();
-  // float32 on the wire: a batch sum (at most 64 samples, summed in double) rounded once.
-  r->set_rgb_sum(pack_f64_as_f32_le(tile.rgb_sum));
-  r->set_luminance_m2(pack_f64_as_f32_le(tile.luminance_m2));
-  if (!task.skip_aovs()) {
-    r->set_albedo_sum(pack_f32_le(tile.albedo_sum));
-    r->set_normal_sum(pack_f32_le(tile.normal_sum));
+  // float32 on the wire: the radiance's batch sums (at most 64 samples, summed in double)
+  // rounded once; the other rows as render_rect summed them.
+  if (!wanted.empty()) {
+    r->set_table_version(channels::kTableVersion);
+    for (const channels::Id id : wanted) {
+      const channels::Spec& row = channels::spec(id);
+      pb::ChannelBlock* block = r->add_channels();
+      block->set_name(row.name);
+      block->set_type(pb::ValueType(int(row.type)));
+      block->set_components(row.components);
+      if (id == channels::Id::Rgb)
+        block->set_data(pack_f64_as_f32_le(tile.rgb_sum));
+      else if (id == channels::Id::Luminance)
+        block->set_data(pack_f64_as_f32_le(tile.luminance_m2));
+      else
+        block->set_data(pack_f32_le(tile.sum(id)));
+    }
+  } else {  // a server from before the channel table
+    r->set_rgb_sum(pack_f64_as_f32_le(tile.rgb_sum));
+    r->set_luminance_m2(pack_f64_as_f32_le(tile.luminance_m2));
+    if (!task.skip_aovs()) {
+      r->set_albedo_sum(pack_f32_le(tile.sum(channels::Id::Albedo)));
+      r->set_normal_sum(pack_f32_le(tile.sum(channels::Id::Normal)));
+    }
+    r->set_coverage_sum(pack_f32_le(tile.sum(channels::Id::Coverage)));
   }
-  r->set_coverage_sum(pack_f32_le(tile.coverage_sum));
   r->set_nonfinite_samples(tile.nonfinite_samples);
   r->set_render_seconds(std::chrono::duration<double>(Clock::now() - t0).count());
   r->set_rays(tile.rays);

@@ -248,6 +248,55 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   // After the cancel, a later task still gets rendered.
   assign(make_task("after", farm.scene_sha, 4, pb::SAMPLER_INDEPENDENT));
   ASSERT_TRUE(farm.wait_for([&] { return has("after", true); }));
+  // Tasks that name their channels (the channel table's rows): the result carries one
+  // ChannelBlock each, in the task's order, and none of the old fields; a channel the worker
+  // does not know fails the task for good, naming it.
+  pb::Task blocks = make_task("blocks", farm.scene_sha, 8);
+  for (const char* name : {"coverage", "rgb", "luminance", "albedo"}) blocks.add_channels(name);
+  assign(blocks);
+  pb::Task unknown = make_task("unknown", farm.scene_sha, 4);
+  unknown.add_channels("rgb");
+  unknown.add_channels("no-such-row");
+  assign(unknown);
+  ASSERT_TRUE(farm.wait_for([&] { return has("blocks", true) && has("unknown", false); }));
+  {
+    std::lock_guard<std::mutex> lock(farm.mutex);
+    for (const auto& m : farm.received) {
+      if (m.has_failed() && m.failed().task_id() == "unknown") {
+        EXPECT_NE(m.failed().error().find("channel 'no-such-row'"), std::string::npos)
+            << m.failed().error();
+        EXPECT_FALSE(m.failed().retryable());
+      }
+      if (!m.has_result() || m.result().task_id() != "blocks") continue;
+      const pb::TileResult& r = m.result();
+      EXPECT_TRUE(r.rgb_sum().empty() && r.coverage_sum().empty() && r.albedo_sum().empty());
+      EXPECT_EQ(r.table_version(), channels::kTableVersion);
+      ASSERT_EQ(r.channels_size(), 4);
+      Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr,
+                                        at_height(12)));
+      RenderSettings settings;
+      settings.width = 16;
+      settings.height = 12;
+      settings.seed = 77;
+      settings.max_depth = 4;
+      TileBuffer local;
+      const pb::Task& t = blocks;
+      ASSERT_TRUE(render_rect(scene, settings, {t.rect().x0(), t.rect().y0(), t.rect().width(),
+                                                t.rect().height()},
+                              t.sample_start(), t.sample_count(), &local));
+      const std::vector<std::vector<float>> want = {
+          local.sum(channels::Id::Coverage), as_floats(local.rgb_sum),
+          as_floats(local.luminance_m2), local.sum(channels::Id::Albedo)};
+      const uint32_t components[] = {1, 3, 1, 3};
+      for (int k = 0; k < 4; ++k) {
+        const pb::ChannelBlock& b = r.channels(k);
+        EXPECT_EQ(b.name(), blocks.channels(k));
+        EXPECT_EQ(b.type(), pb::VALUE_TYPE_F32);
+        EXPECT_EQ(b.components(), components[k]);
+        EXPECT_EQ(unpack_f32_le(b.data()), want[size_t(k)]) << b.name();
+      }
+    }
+  }
   // Two tasks with the environment map, a thin lens and the new samplers: the map is
   // fetched once (cached by hash as <sha>.hdr) and the results equal local renders.
   auto env_task = [&](const std::string& id, pb::Sampler sampler) {
@@ -278,7 +327,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   std::lock_guard<std::mutex> lock(farm.mutex);
   EXPECT_FALSE(has("long", true)) << "a cancelled task must send nothing";
   for (const auto& m : farm.received)
-    if (m.has_result()) {
+    if (m.has_result() && m.result().task_id() != "blocks") {  // the old fields
       const bool skipped = m.result().task_id() == "late";
       EXPECT_EQ(m.result().albedo_sum().empty(), skipped) << m.result().task_id();
       EXPECT_EQ(m.result().normal_sum().empty(), skipped) << m.result().task_id();
@@ -309,7 +358,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_GT(total, 0.0);
   }
   for (const auto& m : farm.received) {
-    if (m.has_failed()) {
+    if (m.has_failed() && m.failed().task_id() != "unknown") {
       EXPECT_EQ(m.failed().task_id(), "bad");
       EXPECT_FALSE(m.failed().retryable());
       EXPECT_NE(m.failed().error().find("unknown sampler 99"), std::string::npos);
@@ -333,8 +382,8 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     // float32 on the wire: the double batch sums rounded once.
     EXPECT_EQ(unpack_f32_le(r.rgb_sum()), as_floats(local.rgb_sum));
     EXPECT_EQ(unpack_f32_le(r.luminance_m2()), as_floats(local.luminance_m2));
-    EXPECT_EQ(unpack_f32_le(r.albedo_sum()), local.albedo_sum);
-    EXPECT_EQ(unpack_f32_le(r.normal_sum()), local.normal_sum);
+    EXPECT_EQ(unpack_f32_le(r.albedo_sum()), local.sum(channels::Id::Albedo));
+    EXPECT_EQ(unpack_f32_le(r.normal_sum()), local.sum(channels::Id::Normal));
     EXPECT_EQ(r.rays(), local.rays);
     EXPECT_GT(r.render_seconds(), 0.0);
   }

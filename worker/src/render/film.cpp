@@ -8,17 +8,23 @@
 
 namespace rf {
 
-void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count) {
+void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count, uint32_t which) {
   rect = r;
   sample_start = start;
   sample_count = count;
+  rows = which;
   const size_t n = r.pixel_count();
   rgb_sum.assign(3 * n, 0.0);
   luminance_m2.assign(n, 0.0);
-  albedo_sum.assign(3 * n, 0.f);
-  normal_sum.assign(3 * n, 0.f);
+  for (const channels::Spec& s : channels::kSpecs) {
+    std::vector<float>& plane = sums[size_t(s.id)];
+    const bool wanted = (which >> uint32_t(s.id)) & 1u;
+    if (wanted && s.id != channels::Id::Rgb && s.id != channels::Id::Luminance)
+      plane.assign(s.components * n, 0.f);
+    else
+      plane.clear();
+  }
   depth_sum.assign(n, 0.f);
-  coverage_sum.assign(n, 0.f);
   nonfinite_samples = 0;
   rays = 0;
 }
@@ -76,13 +82,15 @@ void Image::set_from_tile(const TileBuffer& tile) {
     for (uint32_t x = 0; x < tile.rect.width; ++x) {
       const size_t src = size_t(y) * tile.rect.width + x;
       const size_t dst = size_t(tile.rect.y0 + y) * width + (tile.rect.x0 + x);
+      const std::vector<float>& albedo_sum = tile.sum(channels::Id::Albedo);
+      const std::vector<float>& normal_sum = tile.sum(channels::Id::Normal);
       for (int c = 0; c < 3; ++c) {
         rgb[3 * dst + size_t(c)] = float(tile.rgb_sum[3 * src + size_t(c)] * inv);
-        albedo[3 * dst + size_t(c)] = float(tile.albedo_sum[3 * src + size_t(c)] * inv);
-        normal[3 * dst + size_t(c)] = float(tile.normal_sum[3 * src + size_t(c)] * inv);
+        albedo[3 * dst + size_t(c)] = float(albedo_sum[3 * src + size_t(c)] * inv);
+        normal[3 * dst + size_t(c)] = float(normal_sum[3 * src + size_t(c)] * inv);
       }
       depth[dst] = float(double(tile.depth_sum[src]) * inv);
-      alpha[dst] = float(double(tile.coverage_sum[src]) * inv);
+      alpha[dst] = float(double(tile.sum(channels::Id::Coverage)[src]) * inv);
     }
 }
 

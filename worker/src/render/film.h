@@ -2,9 +2,12 @@
 // TileResult), the standalone image it is resolved into, and OpenEXR output.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <vector>
+
+#include "render/channel_table.h"
 
 namespace rf {
 
@@ -14,24 +17,29 @@ struct PixelRect {
   size_t pixel_count() const { return size_t(width) * size_t(height); }
 };
 
-// Sums over samples [sample_start, sample_start + sample_count) of every pixel of rect.
+// Sums over samples [sample_start, sample_start + sample_count) of every pixel of rect, for the
+// rows of the channel table (channel_table.h) asked for (`rows`, a channels::Set).
 // Arrays are row-major over the rect: index = y * rect.width + x, relative to the rect.
 struct TileBuffer {
   PixelRect rect;
   uint64_t sample_start = 0;
   uint32_t sample_count = 0;
+  uint32_t rows = 0;                 // channels::Set of the rows accumulated
   std::vector<double> rgb_sum;       // 3 per pixel, radiance summed in sample-index order
   std::vector<double> luminance_m2;  // 1 per pixel, Welford M2 of Y over the batch
-  std::vector<float> albedo_sum;     // 3 per pixel, first-hit base color (0 on miss)
-  std::vector<float> normal_sum;     // 3 per pixel, first-hit shading normal (0 on miss)
+  // The other rows, by channels::Id, summed in float32 (channels::sample_values), their
+  // components per pixel (empty when not asked for): albedo (first-hit base colour, 0 on a
+  // miss), normal (first-hit shading normal), coverage (samples whose camera ray hit
+  // geometry: an integer count, exact in float32; the alpha).
+  std::array<std::vector<float>, channels::kCount> sums;
   std::vector<float> depth_sum;      // 1 per pixel, first-hit distance (0 on miss); not part
                                      // of the farm's TileResult (standalone EXR only)
-  std::vector<float> coverage_sum;   // 1 per pixel, samples whose camera ray hit geometry
-                                     // (an integer count, exact in float32): the alpha
   uint64_t nonfinite_samples = 0;    // samples whose radiance was NaN/Inf, recorded as 0
   uint64_t rays = 0;                 // closest-hit plus shadow rays
 
-  void reset(PixelRect r, uint64_t start, uint32_t count);
+  void reset(PixelRect r, uint64_t start, uint32_t count, uint32_t rows);
+  std::vector<float>& sum(channels::Id id) { return sums[size_t(id)]; }
+  const std::vector<float>& sum(channels::Id id) const { return sums[size_t(id)]; }
 };
 
 // Little-endian IEEE packing, as the protocol's bytes fields require.

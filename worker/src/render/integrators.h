@@ -61,12 +61,15 @@ SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
 std::string validate_render_request(const RenderSettings& settings, PixelRect rect,
                                     uint64_t start, uint64_t count);
 
-// Renders samples [start, start + count) of every pixel of rect into *out (reset first).
-// Per pixel, samples are accumulated in sample-index order (radiance sums in double, Welford
-// M2 of luminance). Checks *cancel (if given) between rows and returns false as soon as it is
-// set; *out is then incomplete. The request must pass validate_render_request.
+// Renders samples [start, start + count) of every pixel of rect into *out (reset first), for
+// the rows of the channel table in `rows` (a channels::Set; every row by default). Per pixel,
+// samples are accumulated in sample-index order (radiance sums in double, Welford M2 of
+// luminance, the other rows' values in float32). Checks *cancel (if given) between rows and
+// returns false as soon as it is set; *out is then incomplete. The request must pass
+// validate_render_request.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
-                 const std::atomic<bool>* cancel = nullptr);
+                 const std::atomic<bool>* cancel = nullptr,
+                 uint32_t rows = (uint32_t(1) << channels::kCount) - 1);
 
 }  // namespace rf

@@ -189,7 +189,8 @@ TEST(PathIntegrator, EmitterSeenDirectlyHasFullWeightAndIsOneSided) {
   for (size_t i = 0; i < 16; ++i) {
     EXPECT_DOUBLE_EQ(tile.rgb_sum[3 * i], 16.0 * L);
     EXPECT_NEAR(tile.luminance_m2[i], 0.0, 1e-9);
-    EXPECT_NEAR(tile.normal_sum[3 * i + 2], -16.f, 1e-3f);  // shading normal faces down
+    // The shading normal faces down.
+    EXPECT_NEAR(tile.sum(channels::Id::Normal)[3 * i + 2], -16.f, 1e-3f);
   }
   // From above, the back of the emitter is black (its albedo is 0 and it emits downwards).
   Scene above(testing::plane_under_emitter(0.5f, L, 1.f, 1.f, 1.f, {0.f, 0.01f, 3.f}, 0.2f));
@@ -255,11 +256,12 @@ TEST(Coverage, IsTheShareOfThePixelTheGeometryCovers) {
   ASSERT_TRUE(render_rect(scene, settings, {0, 0, 16, 16}, 0, spp, &tile));
   for (uint32_t y = 0; y < 16; ++y) {
     for (uint32_t x = 0; x < 16; ++x) {
-      const float alpha = tile.coverage_sum[y * 16 + x] / float(spp);
+      const float alpha = tile.sum(channels::Id::Coverage)[y * 16 + x] / float(spp);
       const float want = x < 8 ? 1.f : x == 8 ? 0.25f : 0.f;
       // Owen-scrambled Sobol' points stratify the pixel: far under 1/spp of error per axis.
       EXPECT_NEAR(alpha, want, 2.f / float(spp)) << x << ", " << y;
-      EXPECT_EQ(tile.coverage_sum[y * 16 + x], std::floor(tile.coverage_sum[y * 16 + x]));
+      const float hits = tile.sum(channels::Id::Coverage)[y * 16 + x];
+      EXPECT_EQ(hits, std::floor(hits));
     }
   }
 }
@@ -280,7 +282,7 @@ TEST(AoIntegrator, OpenPlaneIsUnoccludedAndMissesAreBlack) {
   const size_t center = 8 * 16 + 8, corner = 0;
   EXPECT_DOUBLE_EQ(tile.rgb_sum[3 * center], 8.0);
   EXPECT_DOUBLE_EQ(tile.rgb_sum[3 * corner], 0.0);
-  EXPECT_EQ(tile.albedo_sum[3 * corner], 0.f);
+  EXPECT_EQ(tile.sum(channels::Id::Albedo)[3 * corner], 0.f);
 }
 
 TEST(AoIntegrator, BoxInteriorIsPartlyOccluded) {
@@ -622,8 +624,8 @@ void expect_packet_tracer_equals_the_scalar_reference(const std::unique_ptr<Scen
         for (int ch = 0; ch < 3; ++ch) {
           ASSERT_EQ(double_bits(tile.rgb_sum[3 * i + ch]), double_bits(sum[ch]))
               << "pixel " << x << "," << y << " channel " << ch;
-          ASSERT_EQ(tile.albedo_sum[3 * i + ch], albedo[ch]);
-          ASSERT_EQ(tile.normal_sum[3 * i + ch], normal[ch]);
+          ASSERT_EQ(tile.sum(channels::Id::Albedo)[3 * i + ch], albedo[ch]);
+          ASSERT_EQ(tile.sum(channels::Id::Normal)[3 * i + ch], normal[ch]);
         }
         ASSERT_EQ(double_bits(tile.luminance_m2[i]), double_bits(luminance.m2));
         ASSERT_EQ(tile.depth_sum[i], depth);

@@ -2,16 +2,28 @@
 #include <algorithm>
 
 #include "math/estimators.h"
+#include "render/channels.h"
 #include "render/packet_tracer.h"
 
 namespace rf {
 
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
-                 const std::atomic<bool>* cancel) {
-  out->reset(rect, start, count);
+                 const std::atomic<bool>* cancel, uint32_t rows) {
+  out->reset(rect, start, count, rows);
   const Sampler sampler(settings.sampler, settings.seed);
   const TraceContext ctx(scene, settings);
+  // The rows summed in float32 (channels::sample_values) and where each one's sums start in a
+  // pixel's accumulator.
+  channels::Id summed[channels::kCount];
+  uint32_t offset[channels::kCount + 1] = {0};
+  uint32_t n_summed = 0;
+  for (const channels::Spec& s : channels::kSpecs)
+    if ((rows & channels::bit(s.id)) && channels::summed_in_float(s.id)) {
+      summed[n_summed] = s.id;
+      offset[n_summed + 1] = offset[n_summed] + s.components;
+      ++n_summed;
+    }
   for (uint32_t ty = 0; ty < rect.height; ++ty) {
     for (uint32_t tx = 0; tx < rect.width; ++tx) {
       // Checked every pixel, so that a cancel (or the worker's time budget) stops even a
@@ -20,8 +32,8 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       const size_t i = size_t(ty) * rect.width + tx;
       double sum[3] = {0.0, 0.0, 0.0};
       RunningStats luminance_stats;
-      float albedo[3] = {0.f, 0.f, 0.f}, normal[3] = {0.f, 0.f, 0.f};
-      float depth = 0.f, coverage = 0.f;
+      float acc[channels::kCount * channels::kMaxComponents] = {};
+      float depth = 0.f;
       const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
                                                     (rect.x0 + tx));
       SampleResult results[kPacketSize];
@@ -38,25 +50,24 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
           L = Vec3(0.f, 0.f, 0.f);  // counted, recorded as zero radiance
           ++out->nonfinite_samples;
         }
-        for (int c = 0; c < 3; ++c) {
-          sum[c] += double(L[c]);
-          albedo[c] += r.albedo[c];
-          normal[c] += r.normal[c];
+        for (int c = 0; c < 3; ++c) sum[c] += double(L[c]);
+        for (uint32_t j = 0; j < n_summed; ++j) {
+          float v[channels::kMaxComponents];
+          channels::sample_values(summed[j], r, v);
+          for (uint32_t c = 0; c < offset[j + 1] - offset[j]; ++c) acc[offset[j] + c] += v[c];
         }
         depth += r.depth;
-        // Every integrator sets depth to the camera ray's hit distance (> 0), 0 on a miss.
-        if (r.depth > 0.f) coverage += 1.f;
         // Welford's update of the luminance mean and M2.
         luminance_stats.add(0.2126 * double(L.x) + 0.7152 * double(L.y) + 0.0722 * double(L.z));
       }
-      for (int c = 0; c < 3; ++c) {
-        out->rgb_sum[3 * i + size_t(c)] = sum[c];
-        out->albedo_sum[3 * i + size_t(c)] = albedo[c];
-        out->normal_sum[3 * i + size_t(c)] = normal[c];
+      for (int c = 0; c < 3; ++c) out->rgb_sum[3 * i + size_t(c)] = sum[c];
+      for (uint32_t j = 0; j < n_summed; ++j) {
+        const uint32_t components = offset[j + 1] - offset[j];
+        float* plane = out->sum(summed[j]).data() + components * i;
+        for (uint32_t c = 0; c < components; ++c) plane[c] = acc[offset[j] + c];
       }
       out->luminance_m2[i] = luminance_stats.m2;
       out->depth_sum[i] = depth;
-      out->coverage_sum[i] = coverage;
     }
   }
   return true;

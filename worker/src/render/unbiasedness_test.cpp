@@ -286,7 +286,8 @@ TEST(WhiteFurnace, RoughMetalSphereRendersItsDirectionalAlbedoOfOne) {
     settings.environment = Environment::constant({1.f, 1.f, 1.f});
     TileBuffer tile;
     ASSERT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 4096, &tile));
-    const Vec3 n(tile.normal_sum[0] / 4096, tile.normal_sum[1] / 4096, tile.normal_sum[2] / 4096);
+    const std::vector<float>& sums = tile.sum(channels::Id::Normal);
+    const Vec3 n(sums[0] / 4096, sums[1] / 4096, sums[2] / 4096);
     const Vec3 wo = normalize(eye - target);
     const float mu = dot(normalize(n), wo);
     const Vec3 wo_local(std::sqrt(std::max(0.f, 1.f - mu * mu)), 0.f, mu);

@@ -384,7 +384,8 @@ Vec3 albedo_at(const std::string& json, float x, float y) {
   settings.integrator = IntegratorType::AmbientOcclusion;
   TileBuffer tile;
   EXPECT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 4, &tile));
-  return Vec3(tile.albedo_sum[0], tile.albedo_sum[1], tile.albedo_sum[2]) / 4.f;
+  const std::vector<float>& albedo = tile.sum(channels::Id::Albedo);
+  return Vec3(albedo[0], albedo[1], albedo[2]) / 4.f;
 }
 
 void expect_near(Vec3 got, Vec3 want, float tolerance, const std::string& what) {
@@ -1007,7 +1008,7 @@ std::vector<double> albedo_image(const std::vector<unsigned char>& texels, uint3
   TileBuffer tile;
   EXPECT_TRUE(render_rect(scene, settings, {0, 0, 8, 8}, 0, spp, &tile));
   std::vector<double> out(64);
-  for (size_t i = 0; i < 64; ++i) out[i] = double(tile.albedo_sum[3 * i]) / spp;
+  for (size_t i = 0; i < 64; ++i) out[i] = double(tile.sum(channels::Id::Albedo)[3 * i]) / spp;
   return out;
 }
 

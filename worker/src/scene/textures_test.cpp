@@ -40,8 +40,10 @@ void probe(const Scene& scene, Vec3* albedo, Vec3* normal) {
   settings.integrator = IntegratorType::AmbientOcclusion;
   TileBuffer tile;
   EXPECT_TRUE(render_rect(scene, settings, {0, 0, 1, 1}, 0, 4, &tile));
-  *albedo = Vec3(tile.albedo_sum[0], tile.albedo_sum[1], tile.albedo_sum[2]) / 4.f;
-  *normal = Vec3(tile.normal_sum[0], tile.normal_sum[1], tile.normal_sum[2]) / 4.f;
+  const std::vector<float>& a = tile.sum(channels::Id::Albedo);
+  const std::vector<float>& n = tile.sum(channels::Id::Normal);
+  *albedo = Vec3(a[0], a[1], a[2]) / 4.f;
+  *normal = Vec3(n[0], n[1], n[2]) / 4.f;
 }
 
 std::unique_ptr<Scene> load_at(const std::string& json, float x, float y,

@@ -1,0 +1,51 @@
+// What a worker computes for each row of the channel table (channel_table.h, generated from
+// server/renderfarm/domain/channels.py): a row's per-sample values. Adding a row to the table
+// adds an enumerator, and the switch below (no default) fails to compile until it has a case.
+#pragma once
+
+#include <cstdint>
+
+#include "render/channel_table.h"
+#include "render/integrators.h"
+
+namespace rf::channels {
+
+// A set of rows, one bit per Id.
+using Set = uint32_t;
+constexpr Set kAll = (Set(1) << kCount) - 1;
+constexpr Set bit(Id id) { return Set(1) << uint32_t(id); }
+constexpr const Spec& spec(Id id) { return kSpecs[uint32_t(id)]; }
+// The largest number of components of a row.
+constexpr uint32_t kMaxComponents = 4;
+
+// Writes the sample's values of a row render_rect sums in float32, spec(id).components of
+// them: every row but the radiance and its luminance M2, which render_rect sums in double
+// (the fused path of the radiance's statistics).
+inline void sample_values(Id id, const SampleResult& r, float* out) {
+  switch (id) {
+    case Id::Rgb:
+    case Id::Luminance:
+      return;  // summed in double by render_rect
+    case Id::Albedo:
+      for (int c = 0; c < 3; ++c) out[c] = r.albedo[c];
+      return;
+    case Id::Normal:
+      for (int c = 0; c < 3; ++c) out[c] = r.normal[c];
+      return;
+    case Id::Coverage:
+      // Every integrator sets depth to the camera ray's hit distance (> 0), 0 on a miss.
+      out[0] = r.depth > 0.f ? 1.f : 0.f;
+      return;
+  }
+}
+
+// Whether render_rect sums the row in float32 through sample_values.
+constexpr bool summed_in_float(Id id) { return id != Id::Rgb && id != Id::Luminance; }
+
+static_assert([] {
+  for (const Spec& s : kSpecs)
+    if (s.components > kMaxComponents) return false;
+  return true;
+}(), "a row of the channel table has more components than kMaxComponents");
+
+}  // namespace rf::channels
