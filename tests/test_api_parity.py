@@ -106,6 +106,22 @@ def test_images_are_identical_through_both_apis_and_both_submissions(apis, twin_
             assert images[0] == images[1]
 
 
+def test_frame_cameras_agree(apis, twin_jobs):
+    """camera.json and GetFrameCamera: the same camera, the matrices row by row, a still's
+    camera being frame 0 (and the first image when GetFrameCamera names no frame)."""
+    for job in twin_jobs:
+        rest = apis.rest("GET", f"/api/v1/jobs/{job['id']}/frames/0/camera.json")
+        rpc = apis.rpc("GetFrameCamera", jobs_pb2.GetFrameCameraRequest(job_id=job["id"]))
+        c = rpc.camera
+        assert (c.frame, c.projection, c.width, c.height) == (
+            rest["frame"], rest["projection"], rest["width"], rest["height"])  # fmt: skip
+        assert [c.fx, c.fy, c.cx, c.cy, c.near] == [rest[k] for k in ("fx", "fy", "cx", "cy",
+                                                                      "near")]  # fmt: skip
+        assert list(c.world_to_camera) == [v for row in rest["world_to_camera"] for v in row]
+        assert c.HasField("yfov") and c.yfov == rest["yfov"] and not c.HasField("time_s")
+        assert rest["time_s"] is None and rest["node"] == c.node
+
+
 def test_watch_streams_end_in_the_same_final_state(apis, twin_jobs):
     job = twin_jobs[0]
     with_sse = list(apis.client.watch(job["id"], timeout_s=60))
@@ -227,6 +243,9 @@ def test_invalid_lookups_are_refused_alike(apis, twin_jobs):
          ""),
         (apis.rest("GET", "/api/v1/scenes/" + "0" * 64), apis.scene_rpc("0" * 64), "not_found",
          ""),
+        (apis.rest("GET", f"/api/v1/jobs/{done}/frames/5/camera.json"),
+         apis.rpc("GetFrameCamera", jobs_pb2.GetFrameCameraRequest(job_id=done, frame=5)),
+         "not_found", "frame"),
     ]  # fmt: skip
     for rest, rpc, kind, field in pairs:
         assert isinstance(rest, Error) and isinstance(rpc, Error), (rest, rpc)

@@ -359,6 +359,13 @@ class Client:
         variant its name; variant is None for other jobs)."""
         return self._check(self.http.get(f"/api/v1/jobs/{job_id}/frames")).json()
 
+    def frame_camera(self, job_id: str, frame: int = 0) -> dict[str, Any]:
+        """The camera the frame was rendered through (camera.json; docs/usage.md, "Camera
+        data"): fx, fy, cx, cy in pixels, world_to_camera and camera_to_world (4x4, row-major),
+        near, far, ... A still's is frame 0."""
+        url = f"/api/v1/jobs/{job_id}/frames/{frame}/camera.json"
+        return self._check(self.http.get(url)).json()
+
     def frame_image(self, job_id: str, frame: int, fmt: str = "png", **options: Any) -> bytes:
         """One frame of an animation job, or one variant (by index) of a job of every variant
         (image()'s options: layer, max_size, compression)."""

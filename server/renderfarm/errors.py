@@ -42,9 +42,13 @@ class SceneError(ValueError):
 
 
 class NotFound(LookupError):
-    def __init__(self, what: str):
+    """Something the request names does not exist; `field` names the part of the request
+    when it is not the job itself (e.g. "frame": a frame the job does not render)."""
+
+    def __init__(self, what: str, field: str = ""):
         super().__init__(what)
         self.message = what
+        self.field = field
 
 
 class TooLarge(ValueError):

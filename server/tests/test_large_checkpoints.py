@@ -51,6 +51,9 @@ class RecordingStore:
     async def get_scene_source(self, sha256):  # the EXR header: not converted from USD
         return None
 
+    async def get_scene_info(self, sha256):  # the EXR header's camera: no scene stored
+        return None
+
     async def read_scene(self, sha256, offset, length):  # the EXR header's metadata: none
         return b""
 

@@ -43,6 +43,7 @@ CALLS = {
     "watch": ((JOB,), {}),
     "events": ((JOB,), {}),
     "frames": ((JOB,), {}),
+    "frame_camera": ((JOB, 0), {}),
     "image": ((JOB, "png", "rgb"), {}),
     "image_file": ((JOB, "png", "rgb"), {}),
     "movie_file": ((JOB,), {}),

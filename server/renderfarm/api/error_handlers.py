@@ -40,7 +40,7 @@ def add_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(NotFound)
     async def _not_found(_: Request, e: NotFound):
-        return error_response(404, "", e.message)
+        return error_response(404, e.field, e.message)
 
     @app.exception_handler(DatabaseUnavailable)
     async def _unavailable(_: Request, e: DatabaseUnavailable):

@@ -153,7 +153,7 @@ def _status(e: Exception) -> tuple[grpc.StatusCode, str, str] | None:
     if isinstance(e, TooLarge):
         return grpc.StatusCode.RESOURCE_EXHAUSTED, f"{e.field}: {e.message}", e.field
     if isinstance(e, NotFound):
-        return grpc.StatusCode.NOT_FOUND, e.message, ""
+        return grpc.StatusCode.NOT_FOUND, e.message, e.field
     if isinstance(e, Conflict):
         return grpc.StatusCode.FAILED_PRECONDITION, e.message, ""
     if isinstance(e, AuthError):
@@ -336,6 +336,16 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
                 for f in frames
             ]
         )
+
+    @_maps_errors
+    async def GetFrameCamera(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        c = await self.farm.frame_camera(
+            apicommon.job_id(request.job_id),
+            request.frame if request.HasField("frame") else None,
+            who,
+        )
+        return jobs_pb2.GetFrameCameraResponse(camera=frame_camera_to_proto(c))
 
     @_maps_errors
     async def ListWorkers(self, request, context):  # noqa: N802
@@ -561,6 +571,20 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                 if self.farm.metrics is not None:
                     self.farm.metrics.tasks_failed.labels(str(bool(f.retryable)).lower()).inc()
                 await self.farm.worker_failed(session, f.task_id, f.error, f.retryable)
+
+
+def frame_camera_to_proto(c: dict) -> jobs_pb2.FrameCamera:
+    """camera.json (domain/camera.py) as its message: matrices flattened row by row, the
+    nulls unset."""
+    flat = {k: [v for row in c[k] for v in row] for k in ("world_to_camera", "camera_to_world")}
+    same = ("frame", "projection", "width", "height", "fx", "fy", "cx", "cy", "convention", "near")
+    optional = ("time_s", "yfov", "xmag", "ymag", "far", "node")
+    return jobs_pb2.FrameCamera(
+        **{k: c[k] for k in same},
+        **{k: c[k] for k in optional if c[k] is not None},
+        shutter_s=c["shutter_s"] or [],
+        **flat,
+    )
 
 
 async def start_grpc(

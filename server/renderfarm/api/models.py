@@ -66,6 +66,45 @@ class Frame(BaseModel):
     )
 
 
+Matrix4 = list[list[float]]
+
+
+class FrameCamera(BaseModel):
+    """The camera an image was rendered through (docs/usage.md, "Camera data")."""
+
+    frame: int = Field(description="the frame number (0 for a still; a variant's index)")
+    time_s: float | None = Field(
+        description="the glTF time the camera is posed at, frame / fps; null for a still "
+        "(the scene as stored, no animation)"
+    )
+    shutter_s: list[float] | None = Field(
+        description="motion blur: the glTF times the shutter opens and closes (the camera data "
+        "is that of time_s even when the camera moves during the shutter); null without"
+    )
+    projection: Literal["perspective", "orthographic"]
+    width: int = Field(description="image width in pixels")
+    height: int = Field(description="image height in pixels")
+    fx: float = Field(
+        description="perspective: focal length in pixels; orthographic: pixels per unit of "
+        "camera-space x, W / (2 xmag)"
+    )
+    fy: float = Field(description="as fx, vertically: (H / 2) / tan(yfov / 2), or H / (2 ymag)")
+    cx: float = Field(description="principal point, pixels from the left edge: W / 2")
+    cy: float = Field(description="principal point, pixels from the top edge: H / 2")
+    yfov: float | None = Field(description="vertical field of view, radians; null: orthographic")
+    xmag: float | None = Field(description="orthographic half width; null: perspective")
+    ymag: float | None = Field(description="orthographic half height; null: perspective")
+    world_to_camera: Matrix4 = Field(description="4x4, row-major, column vectors: p_c = M p_w")
+    camera_to_world: Matrix4 = Field(description="4x4, row-major: its inverse")
+    convention: str = Field(description="the camera space and pixel convention, in words")
+    near: float = Field(description="znear: nothing nearer along the view axis is seen")
+    far: float | None = Field(description="zfar; null: infinite")
+    node: int | None = Field(
+        description="the glTF node of the camera; null: the scene has none and the renderer "
+        "framed its bounds"
+    )
+
+
 class Job(BaseModel):
     id: str
     name: str
@@ -182,7 +221,7 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         400: "invalid request (the field is named)",
         401: "no API token, or an unknown or revoked one",
         403: "the job belongs to another owner",
-        404: "no such job or scene",
+        404: "no such job or scene, or a frame the job does not render",
         409: "the job's state does not allow this",
         413: "upload too large",
         429: "too many requests wait for the database; retry after Retry-After seconds",

@@ -41,6 +41,7 @@ from .models import (
     UPDATE_BODY,
     ConvergencePoint,
     Frame,
+    FrameCamera,
     Job,
     JobDetail,
     JobEvent,
@@ -447,6 +448,16 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         who: Caller = Auth,
     ) -> Response:
         return await image_response(job_id, fmt, layer, max_size, compression, who, frame)
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/frames/{frame}/camera.json",
+        summary="The camera the frame was rendered through: intrinsics in pixels, world-to-camera "
+        "matrix, near and far (a still's is frame 0; a job of every variant's, each variant's)",
+        response_model=FrameCamera,
+        responses=error_responses(403, 404),
+    )
+    async def frame_camera(job_id: str, frame: int, who: Caller = Auth) -> dict[str, Any]:
+        return await farm.frame_camera(apicommon.job_id(job_id), frame, who)
 
     @app.get(
         "/api/v1/jobs/{job_id}/movie.mp4",

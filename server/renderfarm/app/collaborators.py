@@ -24,6 +24,20 @@ class SceneInspector(Protocol):
         """The loader's description of the scene, or SceneError naming the fault."""
         ...
 
+    async def cameras(
+        self,
+        data: bytes,
+        filename: str,
+        times: list[float] | None,
+        animation: str = "",
+        shutter: str = "",
+        fps: float = 24.0,
+    ) -> list[dict[str, Any]]:
+        """The camera the renderer sees each image through: the still's (times None) or the
+        camera at each glTF time, posed by the animations `animation` selects (app/
+        job_cameras.py asks it; domain/camera.py reads its answer)."""
+        ...
+
 
 class UsdConverter(Protocol):
     """USD uploads to glTF before they are inspected (infra/usd_import.UsdImporter)."""

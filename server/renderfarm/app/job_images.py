@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import importlib.metadata
 import json
+import logging
 import math
 import os
 import tempfile
@@ -17,12 +18,14 @@ from ..domain.frames import frame_slot, job_frames, job_rects, tiles_per_frame
 from ..domain.jobspec import JobSettings
 from ..domain.records import FrameProgress
 from ..domain.scenes import metadata
-from ..errors import NotFound, SettingsError, TooLarge
+from ..errors import NotFound, SceneError, SettingsError, TooLarge
 from ..infra import images
 from ..infra.store import TileSummary
 from . import checkpoints
 from .auth import Caller, check_caller
 from .views import FrameView, JobView, finite_or_none
+
+log = logging.getLogger(__name__)
 
 MAX_IMAGE_SIZE = 1 << 16  # largest max_size of a PNG preview
 # A .gltf scene (JSON throughout, its buffers as data: URIs) larger than this is not parsed for
@@ -140,7 +143,7 @@ class JobImages:
                 await asyncio.to_thread(whole.add_band, rects[r * cols].height, await band(r))
             denoised = await asyncio.to_thread(whole.denoise)
             del whole
-        attributes = None
+        attributes: dict[str, Any] | None = None
         if fmt == "exr":
             numbers = job_frames(settings, variants)
             # The upload submitted with this job; else (submitted by scene_sha256) the scene's.
@@ -155,6 +158,11 @@ class JobImages:
             xmp = await self._scene_xmp(view.scene_sha256)
             if xmp is not None:
                 attributes["renderfarm:xmp_json_ld"] = xmp
+            try:  # worldToCamera, worldToNDC and renderfarm:camera (job_cameras.py)
+                attributes.update(await self.exr_camera_attributes(view, slot))
+            except (SceneError, NotFound) as e:  # the loader refused the scene now, or it is
+                # gone: the image without them
+                log.warning("job %s: no camera data in its EXR: %s", job_id, e.message)
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
@@ -260,7 +268,8 @@ def exr_attributes(
     source: dict[str, Any] | None = None,
     variant: tuple[int, str] | None = None,
 ) -> dict[str, str | float]:
-    """The job's record in its EXR header (docs/usage.md, "Outputs"): its settings as JSON, scene,
+    """The job's record in its EXR header (docs/usage.md, "Outputs"; its camera is added by
+    job_cameras.py, exr_camera_attributes): its settings as JSON, scene,
     renderer version, mean spp and estimated error (absent while unknown), for a frame of an
     animation its number, for a variant of a job of every variant its index and name
     (`variant`), and for a scene converted at upload (USD) the source it was converted

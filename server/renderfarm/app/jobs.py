@@ -25,6 +25,7 @@ import logging
 import math
 import secrets
 import threading
+from collections import OrderedDict
 from collections.abc import AsyncIterator
 from datetime import datetime
 from typing import Any
@@ -51,6 +52,7 @@ from .auth import Caller, check_caller
 from .broadcast import Broadcast
 from .collaborators import Clock, Ownership, SceneInspector, UsdConverter
 from .history import History
+from .job_cameras import JobCameras
 from .job_control import JobControl
 from .job_images import JobImages
 from .job_movies import JobMovies
@@ -63,16 +65,19 @@ log = logging.getLogger(__name__)
 SCENE_CHUNK_BYTES = 1 << 20
 
 
-class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind, History):
+class FarmService(
+    JobControl, JobImages, JobCameras, JobMovies, WorkerSessions, WriteBehind, History
+):
     """The job API facade: submit, read, list, cancel and delete jobs, watch them, serve scenes,
     and the background round. Its other parts, by concern: job_control.py (pause, resume,
-    update, retry, continue), job_images.py (images), job_movies.py (preview movies),
-    worker_sessions.py (worker streams), write_behind.py (database writes and checkpoints),
-    history.py (convergence, stops).
+    update, retry, continue), job_images.py (images), job_cameras.py (camera data),
+    job_movies.py (preview movies), worker_sessions.py (worker streams), write_behind.py
+    (database writes and checkpoints), history.py (convergence, stops).
 
     Collaborators, given to __init__ (docs/architecture.md, "Composition") and read by every
     part: settings, store, scheduler (its jobs, leases, workers and tile cache are the farm's
-    live state), clock, ownership; scene_checker and usd_importer by this module only.
+    live state), clock, ownership; scene_checker by this module (uploads) and job_cameras.py,
+    usd_importer by this module only.
     `metrics` is set by the server after construction (api.metrics.Metrics reads the service)
     and read by worker_sessions.py.
 
@@ -108,6 +113,7 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
           database_ok
         _denoise_turn (Lock)      job_images                         job_images
         _movie_turn (Lock)        job_movies                         job_movies
+        _cameras, _camera_runs    job_cameras                        job_cameras
 
     The parts also call one another: each checks access with the facade's get, and a change
     ends with the facade's _after_change; job_control uses _store_state, _reported_state and
@@ -144,6 +150,10 @@ class FarmService(JobControl, JobImages, JobMovies, WorkerSessions, WriteBehind,
         # the memory checked at submission (jobspec.denoise_memory_bytes) is that of one.
         self._denoise_turn = asyncio.Lock()
         self._movie_turn = asyncio.Lock()  # one preview movie encoded at a time (job_movies.py)
+        # Camera data (job_cameras.py): the loader's camera per (job, frame), least recently
+        # used first, and the loader runs under way.
+        self._cameras: OrderedDict[tuple[str, int | None], dict[str, Any]] = OrderedDict()
+        self._camera_runs: dict[tuple[str, int | None], asyncio.Future] = {}
         self._checkpoint_rate = CheckpointRate(50e6)  # bytes/s; measured by every large checkpoint
         self.sessions: dict[str, WorkerSession] = {}
         self.names: dict[str, str] = {}  # job id -> name for live jobs

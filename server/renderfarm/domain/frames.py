@@ -105,18 +105,21 @@ def job_rects(settings: Any, variants: tuple[str, ...] = ()) -> list[Rect]:
 
 def frame_slot(settings: Any, frame: int | None, variants: tuple[str, ...] = ()) -> int:
     """The slot of a frame number in a job's frame list (None: the still, or the first frame;
-    for a job of every variant, the variant's index); NotFound when the job does not render
-    that frame."""
+    a still's one image is also frame 0, as ListFrames numbers it; for a job of every variant,
+    the variant's index); NotFound naming the field `frame` when the job does not render that
+    frame."""
     frames = job_frames(settings, variants)
-    if frame is None:
+    if frame is None or (frames is None and frame == 0):  # a still's one image is frame 0
         return 0
     slot = bisect.bisect_left(frames, frame) if frames is not None else 0
     if frames is None or slot == len(frames) or frames[slot] != frame:
         if variants:
             rendered = f"it renders the variants 0..{len(variants) - 1} of its scene"
         else:
-            rendered = "it is a still" if frames is None else f"its frames are {settings.frames}"
-        raise NotFound(f"the job does not render frame {frame}: {rendered}")
+            rendered = (
+                "it is a still, frame 0" if frames is None else f"its frames are {settings.frames}"
+            )
+        raise NotFound(f"the job does not render frame {frame}: {rendered}", "frame")
     return slot
 
 

@@ -381,7 +381,7 @@ class ImageWriter:
         compression: str = "zip",
         date_time: float | None = None,
         denoised: np.ndarray | None = None,
-        attributes: dict[str, str | int | float] | None = None,
+        attributes: dict[str, str | int | float | tuple[float, ...]] | None = None,
     ):
         import OpenImageIO as oiio  # heavy import, only where images are written
 
@@ -393,9 +393,13 @@ class ImageWriter:
             spec = oiio.ImageSpec(width, height, len(channels), oiio.FLOAT)
             spec.channelnames = channels
             spec.alpha_channel = channels.index("A")
-            # The job's record (renderfarm:settings, ...): string, int or float attributes.
+            # The job's record (renderfarm:settings, ...): string, int or float attributes,
+            # and 16 floats as a matrix (Imath M44f: worldToCamera, worldToNDC).
             for name, value in (attributes or {}).items():
-                spec.attribute(name, value)
+                if isinstance(value, tuple) and len(value) == 16:
+                    spec.attribute(name, oiio.TypeMatrix44, value)
+                else:
+                    spec.attribute(name, value)
             # zip at zlib level 1 (deflate's fastest): 15-30% less CPU than OpenEXR's default
             # level 4 for files under 1% larger, and still the zip every EXR reader reads.
             spec.attribute("compression", "zip:1" if compression == "zip" else compression)

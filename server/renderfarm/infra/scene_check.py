@@ -13,6 +13,10 @@ than `max_scene_depth` or with more than `max_scene_nodes` nodes, mesh uses addi
 than `max_scene_triangles` triangles, images over `max_texture_pixels` in all, an estimated
 memory over `max_scene_memory_mb`, an `extensionsRequired` entry it does not implement,
 out-of-range indices and accessors, degenerate cameras and every other malformed part.
+
+The same child process, under the same limits, says which camera a job's images are rendered
+through (`renderfarm-worker camera`, SceneChecker.cameras): the workers' own loader and poses,
+so the camera data the server publishes (domain/camera.py) is the renderer's.
 """
 
 from __future__ import annotations
@@ -95,27 +99,72 @@ class SceneChecker:
         return info
 
     async def _inspect(self, data: bytes, filename: str) -> dict[str, Any]:
+        name = filename or "scene"
+        inspect = ["inspect", "--json", "--name", name, *self.limits.flags()]
+        code, result, err = await self._run(data, inspect, name)
+        if code == 0 and result and result.get("ok"):
+            return result
+        raise self._refusal(code, result, err, name)
+
+    async def cameras(
+        self,
+        data: bytes,
+        filename: str,
+        times: list[float] | None,
+        animation: str = "",
+        shutter: str = "",
+        fps: float = 24.0,
+    ) -> list[dict[str, Any]]:
+        """The camera each image is rendered through (`renderfarm-worker camera`): the still's
+        (times None: the scene as stored) or the camera at each of `times` (glTF seconds),
+        posed by the animations `animation` selects (settings.animation); `shutter` and `fps`
+        (settings) pose a scene without a camera as the renderer does. One dict per image:
+        position, right, up, forward, projection, yfov, xmag, ymag, znear, zfar (None:
+        infinite), node (None: the camera that frames a scene without one). SceneError when
+        the loader refuses the scene or the limits stop it."""
+        name = filename or "scene"
+        args = ["camera", "--json"]
+        if times is not None:
+            args += ["--times", ",".join(repr(float(t)) for t in times)]
+            if animation:
+                args += ["--animations", animation]
+            if shutter:
+                args += ["--shutter", shutter, "--fps", repr(float(fps))]
+        async with self._slots:  # each time may cost a load: the CPU limit is per time
+            code, result, err = await self._run(data, args, name, len(times or [None]))
+        if code == 0 and result and result.get("ok"):
+            return list(result["cameras"])
+        raise self._refusal(code, result, err, name)
+
+    async def _run(
+        self, data: bytes, command: list[str], name: str, loads: int = 1
+    ) -> tuple[int | None, dict[str, Any] | None, bytes]:
+        """The worker binary's `command` on `data` (a temporary copy, removed after) under the
+        limits (`loads` times the CPU time of one): its exit status, the JSON object its
+        output ends with, and its stderr."""
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
         suffix = ".glb" if data[:4] == b"glTF" else ".gltf"
         fd, path = tempfile.mkstemp(prefix="inspect-", suffix=suffix, dir=self.tmp_dir)
         try:
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
-            return await self._run(path, filename or "scene", len(data))
+            return await self._run_file(path, command, name, len(data), loads)
         finally:
             with contextlib.suppress(OSError):
                 os.unlink(path)
 
-    async def _run(self, path: str, name: str, size: int) -> dict[str, Any]:
+    async def _run_file(
+        self, path: str, command: list[str], name: str, size: int, loads: int
+    ) -> tuple[int | None, dict[str, Any] | None, bytes]:
         limits = self.limits
-        cpu = max(1, int(limits.cpu_seconds + 0.999))
+        cpu = max(1, int(loads * limits.cpu_seconds + 0.999))
         address_space = BASE_ADDRESS_SPACE + 2 * size + int(1.5 * limits.max_memory_mb * 10**6)
 
         # prlimit (util-linux) sets the limits between fork and exec; a preexec_fn would run
         # Python in a child forked from a process with gRPC's threads, which is not safe.
         args = [
             self.prlimit, f"--cpu={cpu}:{cpu + 1}", f"--as={address_space}", "--core=0", "--",
-            self.binary, "inspect", "--json", "--name", name, *limits.flags(), path,
+            self.binary, *command, path,
         ]  # fmt: skip
         proc = await asyncio.create_subprocess_exec(
             *args,
@@ -132,25 +181,28 @@ class SceneChecker:
                 proc.kill()
             await proc.wait()
             raise SceneError(self._too_costly(name, "time")) from None
-        result = parse_last_json_line(out)
-        if proc.returncode == 0 and result and result.get("ok"):
-            return result
-        if proc.returncode == 1 and result and not result.get("ok"):
+        return proc.returncode, parse_last_json_line(out), err
+
+    def _refusal(
+        self, code: int | None, result: dict[str, Any] | None, err: bytes, name: str
+    ) -> SceneError:
+        """Why the loader did not answer ok: its own verdict, or the limits at work."""
+        if code == 1 and result and not result.get("ok"):
             path_in_gltf = str(result.get("path") or "")
             field = f"scene.{path_in_gltf}" if path_in_gltf else "scene"
-            raise SceneError(str(result.get("error") or f"{name}: refused"), field)
-        if proc.returncode in (-signal.SIGXCPU, -signal.SIGKILL):
-            raise SceneError(self._too_costly(name, "time"))
+            return SceneError(str(result.get("error") or f"{name}: refused"), field)
+        if code in (-signal.SIGXCPU, -signal.SIGKILL):
+            return SceneError(self._too_costly(name, "time"))
         # Anything else is the limits at work (an allocation refused under RLIMIT_AS ends in
         # std::bad_alloc or an abort inside a library), or a loader crash: either way the
         # workers could not load this scene.
         log.warning(
-            "scene inspection of %s ended with status %s: %s",
+            "renderfarm-worker on %s ended with status %s: %s",
             name,
-            proc.returncode,
+            code,
             err.decode(errors="replace")[-2000:],
         )
-        raise SceneError(self._too_costly(name, "memory"))
+        return SceneError(self._too_costly(name, "memory"))
 
     def _too_costly(self, name: str, what: str) -> str:
         if what == "time":

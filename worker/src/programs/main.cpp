@@ -2,6 +2,7 @@
 // Exit codes: 0 success, 1 runtime error (unreadable scene, write failure), 2 usage error.
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cerrno>
 #include <chrono>
@@ -24,6 +25,7 @@
 #include "scene/animated_scene.h"
 #include "scene/animation.h"
 #include "farm/farm_client.h"
+#include "farm/frames.h"
 #include "render/film.h"
 #include "render/integrators.h"
 #include "render/render.h"
@@ -57,6 +59,12 @@ const char* kUsage =
     "      (column-major), the camera, the world mesh's vertex positions and normals, the\n"
     "      shared meshes and their instances, and per mesh node the range of its vertices\n"
     "      ({node, mesh, first_vertex, count, instance, mesh_slot, skinned, morphed})\n"
+    "  renderfarm-worker camera SCENE.gltf|SCENE.glb [--times T0,T1,... [--animations SEL]\n"
+    "      [--shutter OPEN,CLOSE [--fps F]]] [--json]\n"
+    "      the camera each image is rendered through, as JSON: without --times the still's,\n"
+    "      with them the camera at each time, posed by the animations SEL names (a job's\n"
+    "      settings.animation: indices or names; default every one); a scene without a camera\n"
+    "      gets the camera that frames its bounds (\"framing\": true)\n"
     "  renderfarm-worker bench --cornell SCENE.gltf [--json OUT.json] [--width W]\n"
     "      [--height H] [--spp N] [--triangles T] [--threads 1,2]\n"
     "      [--scenes cornell,mesh,instanced]\n"
@@ -570,6 +578,112 @@ int cmd_pose(const std::vector<std::string>& arguments) {
   return out["ok"].get<bool>() ? 0 : kExitRuntime;
 }
 
+// The camera every image of a job is rendered through, as the farm worker builds it: a still's
+// from the scene as stored (load_scene), a frame's from the scene posed at its time by the
+// animations the selection names (the farm worker's posed_scene_for); a scene without a camera
+// gets the one that frames its bounds (Scene's), posed as the renderer poses it (with the
+// shutter's steps). The server publishes it (camera.json, the EXR's worldToCamera). Exit 0, or 1
+// if the scene is refused ({"ok": false, "error": ..., "path": ...}).
+int cmd_camera(const std::vector<std::string>& arguments) {
+  std::vector<std::string> args, positional;
+  bool json = false;
+  for (const std::string& a : arguments) {
+    if (a == "--json") json = true;
+    else args.push_back(a);
+  }
+  auto flags = parse_flags(args, {"--times", "--animations", "--shutter", "--fps"}, &positional);
+  if (positional.size() != 1) throw UsageError{"camera expects exactly one scene file"};
+  std::vector<double> times;
+  if (flags.count("--times"))
+    for (const std::string& item : split_commas(flags["--times"]))
+      times.push_back(parse_double("--times", item));
+  if (times.empty() && (flags.count("--animations") || flags.count("--shutter")))
+    throw UsageError{"--animations and --shutter need --times"};
+  rf::Shutter shutter;
+  if (flags.count("--shutter") || flags.count("--fps")) {
+    const double fps = flags.count("--fps") ? parse_double("--fps", flags["--fps"]) : 24.0;
+    std::string err;
+    if (!rf::parse_shutter(flags.count("--shutter") ? flags["--shutter"] : "", fps, &shutter,
+                           &err))
+      throw UsageError{err};
+  }
+  rf::LoadOptions load;
+  load.allow_external_files = false;  // an upload, as the farm worker loads it
+  load.display_name = std::filesystem::path(positional[0]).filename().string();
+  std::vector<std::string> warnings;
+  auto vec3 = [](rf::Vec3 v) { return nlohmann::json::array({v.x, v.y, v.z}); };
+  auto describe = [&](const rf::Camera& c, int node, bool framing, nlohmann::json time) {
+    return nlohmann::json{
+        {"time", time},
+        {"node", node >= 0 ? nlohmann::json(node) : nlohmann::json()},
+        {"framing", framing},
+        {"projection", c.orthographic ? "orthographic" : "perspective"},
+        {"position", vec3(c.position)},
+        {"right", vec3(c.right)},
+        {"up", vec3(c.up)},
+        {"forward", vec3(c.forward)},
+        {"yfov", c.yfov},
+        {"xmag", c.xmag},
+        {"ymag", c.ymag},
+        {"znear", c.znear},
+        {"zfar", std::isfinite(c.zfar) ? nlohmann::json(c.zfar) : nlohmann::json()}};
+  };
+  nlohmann::json out;
+  try {
+    nlohmann::json cameras = nlohmann::json::array();
+    if (times.empty()) {
+      rf::PoseReport report;
+      rf::LoadOptions options = load;
+      options.pose_report = &report;
+      const rf::SceneDescription desc = rf::load_gltf(positional[0], &warnings, options);
+      if (desc.camera) {
+        cameras.push_back(describe(*desc.camera, report.camera_node, false, nullptr));
+      } else {  // the camera Scene frames the scene's bounds with
+        const std::unique_ptr<rf::Scene> scene = rf::load_scene(positional[0], &warnings, load);
+        cameras.push_back(describe(scene->camera(), -1, true, nullptr));
+      }
+    } else {
+      std::shared_ptr<const rf::GltfDocument> document =
+          rf::parse_gltf(positional[0], &warnings, load);
+      try {
+        load.animations = rf::resolve_animation_selection(
+            flags.count("--animations") ? flags["--animations"] : "",
+            rf::gltf_animation_names(*document));
+      } catch (const rf::AnimationSelectionError& e) {
+        throw UsageError{e.what()};
+      }
+      std::unique_ptr<rf::AnimatedScene> animated;  // built for a scene without a camera only
+      for (double t : times) {
+        rf::PoseReport report;
+        rf::LoadOptions options = load;
+        options.time = t;
+        options.pose_report = &report;
+        const rf::SceneDescription desc = rf::describe_gltf(*document, &warnings, options);
+        if (desc.camera) {
+          cameras.push_back(describe(*desc.camera, report.camera_node, false, t));
+          continue;
+        }
+        if (!animated) {
+          options.pose_report = nullptr;
+          animated = std::make_unique<rf::AnimatedScene>(document, options, &warnings);
+        }
+        const std::shared_ptr<const rf::Scene> scene = animated->pose(t, &warnings, shutter);
+        cameras.push_back(describe(scene->camera(), -1, true, t));
+      }
+    }
+    out = {{"ok", true}, {"cameras", cameras}};
+  } catch (const rf::SceneError& e) {
+    out = {{"ok", false}, {"error", e.what()}, {"path", e.path()}};
+  }
+  // Each time's load repeats the scene's warnings: each once.
+  std::vector<std::string> once;
+  for (const std::string& w : warnings)
+    if (std::find(once.begin(), once.end(), w) == once.end()) once.push_back(w);
+  out["warnings"] = once;
+  std::cout << (json ? out.dump() : out.dump(2)) << "\n";
+  return out["ok"].get<bool>() ? 0 : kExitRuntime;
+}
+
 int cmd_bench(const std::vector<std::string>& args) {
   auto flags = parse_flags(args,
                            {"--cornell", "--json", "--width", "--height", "--spp", "--triangles",
@@ -760,6 +874,7 @@ int main(int argc, char** argv) {
     if (cmd == "bench") return cmd_bench(args);
     if (cmd == "inspect") return cmd_inspect(args);
     if (cmd == "pose") return cmd_pose(args);
+    if (cmd == "camera") return cmd_camera(args);
     throw UsageError{"unknown command '" + cmd + "'"};
   } catch (const UsageError& e) {
     std::cerr << "renderfarm-worker: " << e.message << " (see renderfarm-worker --help)\n";
