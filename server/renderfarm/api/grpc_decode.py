@@ -51,24 +51,26 @@ def decode_result(msg) -> BatchResult:
     ChannelBlocks (checked against the channel table), or the fields of a worker from before
     the table."""
     rect = Rect(msg.rect.x0, msg.rect.y0, msg.rect.width, msg.rect.height)
-    if msg.channels:
-        arrays = _blocks(msg, rect)
-        return BatchResult(
-            job_id=msg.job_id,
-            tile_index=msg.tile_index,
-            batch_index=msg.batch_index,
-            sample_start=msg.sample_start,
-            sample_count=msg.sample_count,
-            rect=rect,
-            nonfinite=msg.nonfinite_samples,
-            render_seconds=msg.render_seconds,
-            rays=msg.rays,
-            warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
-            **arrays,
-        )
+    arrays = _blocks(msg, rect) if msg.channels else _legacy_fields(msg, rect)
+    return BatchResult(
+        job_id=msg.job_id,
+        tile_index=msg.tile_index,
+        batch_index=msg.batch_index,
+        sample_start=msg.sample_start,
+        sample_count=msg.sample_count,
+        rect=rect,
+        nonfinite=msg.nonfinite_samples,
+        render_seconds=msg.render_seconds,
+        rays=msg.rays,
+        warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
+        **arrays,
+    )
+
+
+def _legacy_fields(msg, rect: Rect) -> dict[str, np.ndarray | None]:
+    """The arrays of a worker from before the channel table (no ChannelBlocks): its fields,
+    recognised by their length as it sent them."""
     n = rect.pixels
-    # A worker from before the channel table (no ChannelBlocks): its fields, recognised by
-    # their length as it sent them.
     # Each read of a bytes field copies it out of the message: read each once.
     rgb_raw, m2_raw = msg.rgb_sum, msg.luminance_m2
     albedo_raw, normal_raw = msg.albedo_sum, msg.normal_sum
@@ -80,20 +82,10 @@ def decode_result(msg) -> BatchResult:
     normal = np.frombuffer(normal_raw, dtype="<f4") if len(normal_raw) == 12 * n else None
     coverage_raw = msg.coverage_sum  # float32 counts; absent or of the wrong size: left out
     coverage = np.frombuffer(coverage_raw, dtype="<f4") if len(coverage_raw) == 4 * n else None
-    return BatchResult(
-        job_id=msg.job_id,
-        tile_index=msg.tile_index,
-        batch_index=msg.batch_index,
-        sample_start=msg.sample_start,
-        sample_count=msg.sample_count,
-        rect=rect,
-        rgb_sum=rgb,
-        luminance_m2=m2,
-        albedo_sum=albedo,
-        normal_sum=normal,
-        nonfinite=msg.nonfinite_samples,
-        render_seconds=msg.render_seconds,
-        rays=msg.rays,
-        coverage_sum=coverage,
-        warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
-    )
+    return {
+        "rgb_sum": rgb,
+        "luminance_m2": m2,
+        "albedo_sum": albedo,
+        "normal_sum": normal,
+        "coverage_sum": coverage,
+    }

@@ -176,6 +176,22 @@ pb::Task make_task(const std::string& id, const std::string& sha, uint32_t spp,
   return t;
 }
 
+// The task's rect and samples of the small scene rendered here, with make_task's settings
+// (what the worker's result must equal).
+TileBuffer render_locally(const std::string& scene_bytes, const pb::Task& t) {
+  Scene scene(load_gltf_from_string(scene_bytes, ".", "small.gltf", nullptr, at_height(12)));
+  RenderSettings settings;
+  settings.width = 16;
+  settings.height = 12;
+  settings.seed = 77;
+  settings.max_depth = 4;
+  TileBuffer local;
+  EXPECT_TRUE(render_rect(scene, settings,
+                          {t.rect().x0(), t.rect().y0(), t.rect().width(), t.rect().height()},
+                          t.sample_start(), t.sample_count(), &local));
+  return local;
+}
+
 TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   FakeFarm farm;
   farm.scene_bytes = testing::small_gltf_json();
@@ -272,18 +288,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
       EXPECT_TRUE(r.rgb_sum().empty() && r.coverage_sum().empty() && r.albedo_sum().empty());
       EXPECT_EQ(r.table_version(), channels::kTableVersion);
       ASSERT_EQ(r.channels_size(), 4);
-      Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr,
-                                        at_height(12)));
-      RenderSettings settings;
-      settings.width = 16;
-      settings.height = 12;
-      settings.seed = 77;
-      settings.max_depth = 4;
-      TileBuffer local;
-      const pb::Task& t = blocks;
-      ASSERT_TRUE(render_rect(scene, settings, {t.rect().x0(), t.rect().y0(), t.rect().width(),
-                                                t.rect().height()},
-                              t.sample_start(), t.sample_count(), &local));
+      const TileBuffer local = render_locally(farm.scene_bytes, blocks);
       const std::vector<std::vector<float>> want = {
           local.sum(channels::Id::Coverage), as_floats(local.rgb_sum),
           as_floats(local.luminance_m2), local.sum(channels::Id::Albedo)};
@@ -371,14 +376,7 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_EQ(r.batch_index(), 2u);
     EXPECT_EQ(r.sample_start(), 8u);
     EXPECT_EQ(r.sample_count(), 8u);
-    Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr, at_height(12)));
-    RenderSettings settings;
-    settings.width = 16;
-    settings.height = 12;
-    settings.seed = 77;
-    settings.max_depth = 4;
-    TileBuffer local;
-    ASSERT_TRUE(render_rect(scene, settings, {8, 0, 8, 6}, 8, 8, &local));
+    const TileBuffer local = render_locally(farm.scene_bytes, make_task("good", "", 8));
     // float32 on the wire: the double batch sums rounded once.
     EXPECT_EQ(unpack_f32_le(r.rgb_sum()), as_floats(local.rgb_sum));
     EXPECT_EQ(unpack_f32_le(r.luminance_m2()), as_floats(local.luminance_m2));
