@@ -25,10 +25,25 @@ ROOT = Path(__file__).resolve().parents[2]
 W, H = 7, 5
 
 
-def merged(seed: int = 0, batches=(1, 1, 2, 4, 8, 16)) -> TileAccumulator:
-    """A tile of W x H merged from batches of random values, past the 16-sample window."""
+EVERY = channels.layout_for(channels.AOV_NAMES)  # a job with every output of `aovs`
+
+
+def _outputs(rng, layout: channels.Layout, start: int) -> dict[str, np.ndarray]:
+    """Random sums of the layout's output rows a batch starting at `start` carries."""
+    return {
+        c.wire: (rng.random((H, W, c.wire_components)) * 10 - 3).astype(np.float32)
+        for c in layout.wire_rows_for(start)
+        if c.name not in channels.DEFAULT.names
+    }
+
+
+def merged(
+    seed: int = 0, batches=(1, 1, 2, 4, 8, 16), layout: channels.Layout = channels.DEFAULT
+) -> TileAccumulator:
+    """A tile of W x H of a job with this layout merged from batches of random values, past
+    the 16-sample window."""
     rng = np.random.default_rng(seed)
-    acc = TileAccumulator(W, H)
+    acc = TileAccumulator(W, H, layout=layout)
     for n in batches:
         acc.merge_batch(
             (rng.random((H, W, 3)) * n).astype(np.float32),
@@ -36,6 +51,7 @@ def merged(seed: int = 0, batches=(1, 1, 2, 4, 8, 16)) -> TileAccumulator:
             (rng.random((H, W, 3)) * n).astype(np.float32),
             rng.standard_normal((H, W, 3)).astype(np.float32), 0,
             rng.integers(0, n + 1, (H, W)).astype(np.float32),
+            _outputs(rng, layout, acc.samples),
         )  # fmt: skip
     return acc
 
@@ -166,6 +182,12 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
         rows[f"albedo.{axis}"] = acc.albedo_sum[..., i] / np.float32(window)
     for i, axis in enumerate("XYZ"):
         rows[f"normal.{axis}"] = acc.normal_sum[..., i] / np.float32(window)
+    # First-sample rows: the first batch's values, as they were merged.
+    if acc.depth is not None:
+        rows["depth.Z"] = acc.depth
+    if acc.position is not None:
+        for i, axis in enumerate("XYZ"):
+            rows[f"position.{axis}"] = acc.position[..., i]
     return rows[name].astype(np.float32)
 
 
@@ -192,17 +214,29 @@ def test_the_exr_has_the_tables_channels_in_its_order_with_their_values(tmp_path
     writer.close()
     names = oiio.ImageInput.open(str(path)).spec().channelnames
     assert sorted(names) == sorted(channels.exr_channels(denoise=True))
+    # A job with every output: the layout's channels, each with its values.
+    acc = merged(layout=EVERY)
+    path = tmp_path / "o.exr"
+    writer = ImageWriter(str(path), "exr", W, H, layout=EVERY)
+    writer.write_band(H, [(Rect(0, 0, W, H), acc)], True)
+    writer.close()
+    names = oiio.ImageInput.open(str(path)).spec().channelnames
+    assert sorted(names) == sorted(EVERY.exr_channels())
+    assert {"depth.Z", "position.X", "position.Y", "position.Z"} <= set(names)
+    values = read_exr(str(path))
+    for name in EVERY.exr_channels():
+        np.testing.assert_array_equal(values[name], _expected_channel(name, acc), err_msg=name)
 
 
 @pytest.mark.parametrize("layer", [n for n in channels.layers() if n != "denoised"])
 def test_every_layer_has_a_png(tmp_path, layer):
-    acc = merged()
+    acc = merged(layout=EVERY)
     band = [(Rect(0, 0, W, H), acc)]
-    top = images.layer_maximum(layer, band) if layer in images.GREY_LAYERS else 1.0
+    top = images.layer_maximum(layer, band) if layer in images.SCALED_LAYERS else 1.0
     path = tmp_path / f"{layer}.png"
-    names = images.arrays_needed("png", layer)
-    assert set(names) <= set(channels.ARRAYS)
-    writer = ImageWriter(str(path), "png", W, H, layer, top=top)
+    names = images.arrays_needed("png", layer, EVERY)
+    assert set(names) <= set(EVERY.array_names())
+    writer = ImageWriter(str(path), "png", W, H, layer, top=top, layout=EVERY)
     writer.write_band(H, band, True)
     writer.close()
     assert path.stat().st_size > 0
@@ -212,7 +246,7 @@ def test_the_layers_of_images_the_cli_and_the_rest_api_are_the_tables():
     layers = channels.layers()
     assert images.LAYERS == tuple(layers)
     assert EXR_LAYER_CHANNELS == {name: layer.exr for name, layer in layers.items()}
-    assert set(images.GREY_LAYERS) == {"variance", "spp", "error"}
+    assert set(images.GREY_LAYERS) == {"variance", "spp", "error", "depth"}
     get = next(a for a in build_parser()._subparsers._group_actions[0].choices["get"]._actions
                if "--layer" in a.option_strings)  # fmt: skip
     assert all(name in get.help for name in layers)
@@ -293,7 +327,7 @@ def test_results_decode_by_their_blocks_and_the_table_refuses_the_rest():
     r = decode_result(_result(later, start=16))
     assert r.albedo_sum is None and r.normal_sum is None
     refusals = [
-        (_result({**every, "depth": np.zeros(8)}), "channel 'depth' is not one a result carries"),
+        (_result({**every, "bogus": np.zeros(8)}), "channel 'bogus' is not one a result carries"),
         (_result({k: v for k, v in every.items() if k != "coverage"}), "coverage: missing"),
         (_result(every, albedo={"type": 2}), "channel albedo: type 2 x 3, expected 1 x 3"),
         (_result(every, rgb={"components": 4}), "channel rgb: type 1 x 4, expected 1 x 3"),
@@ -307,3 +341,133 @@ def test_results_decode_by_their_blocks_and_the_table_refuses_the_rest():
     twice.channels.add(name="rgb", type=1, components=3, data=every["rgb"].tobytes())
     with pytest.raises(ValueError, match="channel rgb: sent twice"):
         decode_result(twice)
+
+
+# ------------------------------------------------------------- a job's layout (settings.aovs)
+def test_aovs_name_the_outputs_a_job_turns_on():
+    from renderfarm.domain.jobspec import parse_settings
+    from renderfarm.errors import SettingsError
+
+    assert parse_settings({"aovs": ["position", "depth"]}).aovs == "depth,position"
+    assert parse_settings({"aovs": " Depth, depth "}).aovs == "depth"
+    assert parse_settings({}).aovs == ""
+    refusals = [
+        (["depth", "zz"], "unknown output 'zz'; known: depth, position"),
+        (7, "must be a list of names"),
+        ([1], "must be a list of names"),
+    ]
+    for bad, said in refusals:
+        with pytest.raises(SettingsError, match=re.escape(said)) as e:
+            parse_settings({"aovs": bad})
+        assert e.value.field == "settings.aovs"
+    layout = channels.job_layout(parse_settings({"aovs": "position"}))
+    assert "position" in layout.names and "depth" not in layout.names
+    assert channels.job_layout(parse_settings({})) == channels.DEFAULT
+    assert "denoised" in channels.layout_for((), denoise=True).layers()
+
+
+def test_outputs_add_their_arrays_to_the_memory_estimate_and_the_limit_counts_them():
+    from renderfarm.domain.jobspec import Limits, parse_settings
+    from renderfarm.errors import SettingsError
+
+    acc = TileAccumulator(W, H, layout=EVERY)
+    assert acc.depth.dtype == np.float32 and acc.depth.shape == (H, W)
+    assert acc.position.dtype == np.float32 and acc.position.shape == (H, W, 3)
+    # 76 bytes of the rows every job has, a float32 depth and three float32 position values.
+    assert acc.nbytes == (76 + 4 + 12) * W * H
+    assert TileAccumulator(W, H).depth is None
+    assert jobspec.job_memory_bytes(64, 64, 64, "depth,position") == 92 * 64 * 64 + 4096
+    assert jobspec.job_memory_bytes(64, 64, 64, "depth") == 80 * 64 * 64 + 4096
+    # 1024 x 1024 in 256 tiles: 80.7 MB without outputs, 97.5 MB with both; the limit between.
+    limits = Limits(max_job_memory_bytes=85 * 2**20)
+    parse_settings({"width": 1024, "height": 1024}, limits)
+    with pytest.raises(SettingsError, match="92 bytes a pixel") as e:
+        parse_settings({"width": 1024, "height": 1024, "aovs": "depth,position"}, limits)
+    assert e.value.field == "settings.width"
+
+
+def test_first_sample_rows_keep_the_first_batchs_values_only():
+    """Depth and position are the first sample's (window 1): a later batch that carried them
+    would not change them."""
+    rng = np.random.default_rng(5)
+    acc = TileAccumulator(W, H, layout=EVERY)
+    first = {"depth": rng.random((H, W)).astype(np.float32) + 1,
+             "position": rng.standard_normal((H, W, 3)).astype(np.float32)}  # fmt: skip
+    ones = np.ones((H, W, 3), np.float32)
+    acc.merge_batch(ones, np.zeros((H, W), np.float32), 1, extra=first)
+    later = {k: v + 5 for k, v in first.items()}
+    acc.merge_batch(ones, np.zeros((H, W), np.float32), 1, extra=later)
+    assert np.array_equal(acc.depth, first["depth"])
+    assert np.array_equal(acc.position, first["position"])
+    assert np.array_equal(acc.mean_of(channels.BY_NAME["depth"]), first["depth"])
+
+
+def test_checkpoints_of_a_job_with_outputs_round_trip_and_refuse_another_layout():
+    acc = merged(layout=EVERY)
+    aovs = acc.aovs_to_bytes()
+    _, arrays, _, _ = channels.read_header(aovs, "test")
+    assert [a.name for a in arrays] == ["albedo_sum", "normal_sum", "depth", "position"]
+    back = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches,
+                                      aovs=aovs, layout=EVERY)  # fmt: skip
+    for name in EVERY.array_names():
+        assert getattr(back, name).tobytes() == getattr(acc, name).tobytes(), name
+    with pytest.raises(ValueError, match="array depth belongs to no row the job's settings"):
+        TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches, aovs=aovs)
+
+
+def test_a_spill_slot_of_a_job_with_outputs_holds_them(tmp_path):
+    cache = TileCache(tmp_path, budget_bytes=1)
+    acc = merged(layout=EVERY)
+    want = {name: getattr(acc, name).copy() for name in EVERY.array_names()}
+    cache.register("j", acc, 8)
+    assert acc.spill.home.slot_bytes == 92 * 8 * 8
+    cache.register("j", merged(1, layout=EVERY), 8)  # evicts the first
+    assert not acc.resident
+    ref = acc.snapshot(("depth", "position"))
+    depth, position = TileAccumulator.snapshot_arrays(ref)
+    assert depth.tobytes() == want["depth"].tobytes()
+    assert position.tobytes() == want["position"].tobytes()
+    cache.use(acc)
+    for name, values in want.items():
+        assert getattr(acc, name).tobytes() == values.tobytes(), name
+
+
+def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
+    from renderfarm.api.grpc_api import _task_channels_for
+    from renderfarm.api.grpc_decode import decode_result
+    from renderfarm.domain.jobspec import JobSettings
+    from renderfarm.domain.scheduler import Scheduler
+
+    settings = JobSettings(width=4, height=2, tile_size=8, max_spp=4, aovs="depth,position")
+    assert _task_channels_for(settings, 0) == (
+        "rgb", "luminance", "albedo", "normal", "coverage", "depth", "position",
+    )  # fmt: skip
+    assert _task_channels_for(settings, 1) == ("rgb", "luminance", "albedo", "normal", "coverage")
+    assert "depth" not in _task_channels_for(JobSettings(), 0)
+    every = {c.name: _values(c.name) for c in EVERY.wire_rows_for(0)}
+    r = decode_result(_result(every))
+    assert set(r.extra) == {"depth", "position"}
+    assert np.array_equal(r.extra["position"], every["position"])
+    # The scheduler merges them, and refuses a first batch without one (or with a NaN).
+    sched = Scheduler()
+    sched.add_job("j", settings, "scene")
+    sched.add_worker("w", 1)
+    (lease,) = sched.assign("w")
+    assert lease.sample_start == 0
+    nan = np.full(8, np.nan, "<f4")
+    refused = [
+        ({"depth": r.extra["depth"]}, "channel position missing"),
+        ({**r.extra, "depth": nan}, "channel depth: non-finite values"),
+    ]
+    for extra, outcome in refused:
+        fields = {**r.__dict__, "job_id": "j", "tile_index": lease.tile_index,
+                  "batch_index": lease.batch_index, "sample_count": lease.sample_count,
+                  "extra": extra}  # fmt: skip
+        assert sched.complete(lease.task_id, type(r)(**fields)) == f"mismatch: {outcome}"
+        (lease,) = sched.assign("w")
+    fields = {**r.__dict__, "job_id": "j", "tile_index": lease.tile_index,
+              "batch_index": lease.batch_index, "sample_count": lease.sample_count}  # fmt: skip
+    assert sched.complete(lease.task_id, type(r)(**fields)) == "merged"
+    acc = sched.jobs["j"].tiles[0].acc
+    assert np.array_equal(acc.depth.reshape(-1), every["depth"])
+    assert np.array_equal(acc.position.reshape(-1), every["position"])

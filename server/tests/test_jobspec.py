@@ -2,6 +2,7 @@
 
 import pytest
 
+from renderfarm.domain import channels
 from renderfarm.domain.jobspec import JobSettings, Limits, parse_settings
 from renderfarm.errors import SettingsError
 
@@ -92,7 +93,7 @@ def test_the_estimate_covers_what_a_job_really_holds():
     from renderfarm.domain.scheduler import Scheduler
 
     acc = TileAccumulator(5, 3)
-    arrays = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
+    arrays = channels.DEFAULT.array_names()
     assert sum(getattr(acc, a).nbytes for a in arrays) == ACCUMULATOR_BYTES_PER_PIXEL * 15
 
     settings = JobSettings(width=256, height=128, tile_size=8, max_spp=4, min_spp=4)

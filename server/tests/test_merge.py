@@ -5,6 +5,7 @@ import itertools
 import numpy as np
 import pytest
 
+from renderfarm.domain import channels
 from renderfarm.domain.merge import DARK_FLOOR, TileAccumulator
 from renderfarm.domain.tiling import AOV_SAMPLES, batch_count, batch_range
 
@@ -203,7 +204,7 @@ def test_float32_batches_merge_as_their_float64_values():
         rgb32, m232 = rgb.astype(np.float32), m2.astype(np.float32)
         a.merge_batch(rgb32, m232, count)
         b.merge_batch(rgb32.astype(np.float64), m232.astype(np.float64), count)
-    for name in TileAccumulator._ARRAYS:
+    for name in channels.STATS_ARRAYS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert a.rgb_sum.dtype == np.float64
 
@@ -261,7 +262,7 @@ def test_merge_takes_any_array_layout_and_keeps_snapshots():
     copies = [x.copy() for x in kept]
     a.merge_batch(rgb, m2, 4)
     b.merge_batch(np.ascontiguousarray(rgb, np.float64), np.ascontiguousarray(m2), 4)
-    for name in TileAccumulator._ARRAYS:
+    for name in channels.STATS_ARRAYS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     for x, y in zip(kept, copies, strict=True):
         np.testing.assert_array_equal(x, y)

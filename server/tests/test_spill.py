@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from test_scheduler import FakeClock, render
 
+from renderfarm.domain import channels
 from renderfarm.domain.jobspec import JobSettings
 from renderfarm.domain.merge import TileAccumulator
 from renderfarm.domain.scheduler import Scheduler
 from renderfarm.infra.spill import TileCache
 
-ARRAYS = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
+ARRAYS = channels.STATS_ARRAYS + channels.WINDOWED_ARRAYS
 SETTINGS = JobSettings(
     width=72, height=40, tile_size=16, noise_threshold=0.01, min_spp=4, max_spp=128
 )

@@ -65,14 +65,15 @@ _WINDOW_END = max(c.window for c in channels.CHANNELS)
 
 
 @functools.cache
-def _task_channels(sample_start_in_window: int) -> tuple[str, ...]:
-    return tuple(c.name for c in channels.wire_rows_for(sample_start_in_window))
+def _task_channels(layout: channels.Layout, sample_start_in_window: int) -> tuple[str, ...]:
+    return tuple(c.name for c in layout.wire_rows_for(sample_start_in_window))
 
 
-def _task_channels_for(sample_start: int) -> tuple[str, ...]:
-    """Task.channels of a batch: the channel table's rows whose window holds it (cached by
-    the only thing that matters, whether the batch starts inside each window)."""
-    return _task_channels(min(sample_start, _WINDOW_END))
+def _task_channels_for(settings, sample_start: int) -> tuple[str, ...]:
+    """Task.channels of a batch: the rows of the job's layout whose window holds it (cached
+    by the only things that matter, the layout and whether the batch starts inside each
+    window)."""
+    return _task_channels(channels.job_layout(settings), min(sample_start, _WINDOW_END))
 
 
 def _enum_prefix(setting) -> str:
@@ -537,7 +538,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             sample_start=lease.sample_start,
             skip_aovs=not carries_aovs(lease.sample_start),
             sample_count=lease.sample_count,
-            channels=_task_channels_for(lease.sample_start),
+            channels=_task_channels_for(job.settings, lease.sample_start),
         )
         task.settings.CopyFrom(self._settings_proto(job))
         if job.variants:  # a job of every variant: a still of the tile's variant, by index

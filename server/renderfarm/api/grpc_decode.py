@@ -14,11 +14,14 @@ MAX_WARNING_CHARS = 1000
 
 
 _TYPES = {"<f4": 1, "<f8": 2, "<u4": 3}  # workers.proto ValueType
+# The rows BatchResult has a field for; the others go to its `extra`.
+_FIELDS = frozenset(c.wire for c in channels.DEFAULT.rows)
 
 
 def _blocks(msg, rect: Rect) -> dict[str, np.ndarray]:
-    """The ChannelBlocks of a result by the BatchResult field of their row, checked against
-    the channel table: a ValueError naming the block for any mismatch."""
+    """The ChannelBlocks of a result by the wire name of their row, checked against the
+    channel table: a ValueError naming the block for any mismatch, or for a missing row that
+    every job has (the scheduler checks those the job's settings turn on)."""
     if msg.table_version != channels.TABLE_VERSION:
         raise ValueError(
             f"channel table version {msg.table_version}, this server's is {channels.TABLE_VERSION}"
@@ -52,6 +55,7 @@ def decode_result(msg) -> BatchResult:
     the table."""
     rect = Rect(msg.rect.x0, msg.rect.y0, msg.rect.width, msg.rect.height)
     arrays = _blocks(msg, rect) if msg.channels else _legacy_fields(msg, rect)
+    extra = {k: arrays.pop(k) for k in list(arrays) if k not in _FIELDS}
     return BatchResult(
         job_id=msg.job_id,
         tile_index=msg.tile_index,
@@ -63,6 +67,7 @@ def decode_result(msg) -> BatchResult:
         render_seconds=msg.render_seconds,
         rays=msg.rays,
         warnings=tuple(w[:MAX_WARNING_CHARS] for w in msg.warnings[:MAX_WARNINGS]),
+        extra=extra,
         **arrays,
     )
 

@@ -4,6 +4,7 @@ a thread) in chunks of about CHECKPOINT_CHUNK_BYTES, and rows back to accumulato
 
 from __future__ import annotations
 
+from ..domain.channels import job_layout
 from ..domain.frames import job_rects
 from ..domain.jobspec import JobSettings
 from ..domain.merge import TileAccumulator
@@ -31,6 +32,7 @@ def restore_tiles(
             t.nonfinite,
             iid=settings.sampler == "independent",
             aovs=t.aovs,
+            layout=job_layout(settings),
         )
         restored[t.tile_index] = (rect, acc)
     return restored
@@ -54,10 +56,8 @@ def chunks(tiles: list) -> list[list]:
 def dirty_bytes(tiles, taken=None) -> int:
     """Bytes a checkpoint writes for these tiles (statistics, and AOVs where they changed)."""
     aovs = [a for _, a in taken] if taken is not None else [t.aovs_dirty for t in tiles]
-    per_pixel = TileAccumulator.BYTES_PER_PIXEL
-    stats = per_pixel - TileAccumulator.AOV_BYTES_PER_PIXEL
     return sum(
-        t.rect.pixels * (per_pixel if with_aovs else stats)
+        t.rect.pixels * t.acc.layout.bytes_per_pixel(None if with_aovs else False)
         for t, with_aovs in zip(tiles, aovs, strict=True)
     )
 
@@ -97,6 +97,7 @@ def band_from_rows(
     """A row of tiles from their checkpoints (a tile without one has no samples)."""
     by_index = {t.tile_index: t for t in rows}
     iid = settings.sampler == "independent"
+    layout = job_layout(settings)
     band: images.Band = []
     for index in range(first, first + count):
         rect, t = rects[index], by_index.get(index)
@@ -104,7 +105,7 @@ def band_from_rows(
         if t is not None and t.samples > 0:
             acc = TileAccumulator.from_bytes(
                 rect.width, rect.height, t.accumulators, t.samples, t.batches, t.nonfinite,
-                iid=iid, aovs=t.aovs,
+                iid=iid, aovs=t.aovs, layout=layout,
             )  # fmt: skip
         band.append((rect, acc))
     return band

@@ -14,6 +14,8 @@ import os
 import tempfile
 from typing import Any, BinaryIO
 
+from ..domain import channels
+from ..domain.channels import job_layout
 from ..domain.frames import frame_slot, job_frames, job_rects, tiles_per_frame
 from ..domain.jobspec import JobSettings
 from ..domain.records import FrameProgress
@@ -92,10 +94,13 @@ class JobImages:
             raise NotFound(f"no job with id {job_id!r}")
         settings = job.settings if job is not None else JobSettings(**row.settings)
         variants = tuple(row.variants)
-        if layer == "denoised" and fmt == "png" and not settings.denoise:
+        layout = job_layout(settings)
+        if fmt == "png" and layer not in layout.layers():
+            row = channels.layer_channel(layer)
+            turned_on = f"settings.aovs naming {row.aov}" if row.aov else f"settings.{row.setting}"
             raise SettingsError(
                 "layer",
-                f"job {job_id} was submitted without settings.denoise: it has no denoised layer",
+                f"job {job_id} was submitted without {turned_on}: it has no {layer} layer",
             )
         if settings.denoise and (fmt == "exr" or layer == "denoised") and not _denoise_turn_held:
             async with self._denoise_turn:
@@ -110,7 +115,7 @@ class JobImages:
         base = slot * tiles_per_frame(settings)
         cols = math.ceil(settings.width / settings.tile_size)
         rows = tiles_per_frame(settings) // cols
-        names = images.arrays_needed(fmt, layer)
+        names = images.arrays_needed(fmt, layer, layout)
 
         async def band(r: int) -> images.Band:
             """Row r of tiles with their arrays (read in a thread: from RAM, a spill file or
@@ -131,7 +136,7 @@ class JobImages:
             )
 
         top = 1.0
-        if fmt == "png" and layer in images.GREY_LAYERS:  # normalised: a pass for the maximum
+        if fmt == "png" and layer in images.SCALED_LAYERS:  # a pass for the maximum
             top = -math.inf
             for r in range(rows):
                 top = max(top, await asyncio.to_thread(images.layer_maximum, layer, await band(r)))
@@ -171,7 +176,7 @@ class JobImages:
         try:
             writer = await asyncio.to_thread(
                 images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
-                top, self._stopping, compression, stamp, denoised, attributes,
+                top, self._stopping, compression, stamp, denoised, attributes, layout,
             )  # fmt: skip
             for r in range(rows):
                 tiles = await band(r)

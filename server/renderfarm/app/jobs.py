@@ -33,9 +33,9 @@ from typing import Any
 import psycopg
 from psycopg_pool import PoolTimeout
 
+from ..domain.channels import job_layout
 from ..domain.frames import frame_count, job_rects, resolve_animations
 from ..domain.jobspec import JobSettings, check_variant_images, parse_settings
-from ..domain.merge import TileAccumulator
 from ..domain.records import JobRun
 from ..domain.scenes.environment import inspect_environment
 from ..domain.scenes.validate import inspect_scene, job_variants
@@ -360,7 +360,7 @@ class FarmService(
         checkpoint, plans, bases, old_aovs = {}, {}, {}, []
         variants = tuple(row.variants)
         tiles = len(job_rects(settings, variants))
-        tile_bytes = TileAccumulator.BYTES_PER_PIXEL * settings.tile_size**2
+        tile_bytes = job_layout(settings).bytes_per_pixel() * settings.tile_size**2
         step = max(1, checkpoints.CHECKPOINT_CHUNK_BYTES // tile_bytes)
         for first in range(0, tiles, step):
             tile_rows = await self.store.load_tiles(row.id, first=first, count=step)

@@ -516,10 +516,9 @@ def _save_image(client, job_id: str, output: str, layer: str | None) -> None:
         wanted = EXR_LAYER_CHANNELS[layer]
         present = source.spec().channelnames
         if not all(c in present for c in wanted):
-            raise CliError(
-                f"job {job_id} has no {layer} layer"
-                + (" (it was submitted without --denoise)" if layer == "denoised" else "")
-            )
+            row = channels.layer_channel(layer)
+            flag = f"--aovs naming {row.aov}" if row.aov else f"--{row.setting}"
+            raise CliError(f"job {job_id} has no {layer} layer (it was submitted without {flag})")
         part = oiio.ImageBufAlgo.channels(source, tuple(wanted))
         target = Path(scratch) / "layer.exr"
         if part.has_error or not part.write(str(target)):

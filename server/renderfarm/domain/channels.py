@@ -14,10 +14,15 @@ on. What derives from the table:
   switch (web/openapi.json), and the outputs table of docs/usage.md (layers_markdown).
 
 server/tests/test_channel_table.py fails when any of them disagrees with the table.
+
+One module although over 500 lines: the rows, the layouts they make for a job, what is generated
+from them and the checkpoint blobs' header are one format, versioned together (TABLE_VERSION);
+most of the length is the rows themselves, whose help texts are the docs'.
 """
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 from enum import StrEnum
@@ -38,6 +43,10 @@ class Accumulate(StrEnum):
     MOMENTS = "moments"
     # A count of samples (coverage: those whose camera ray hit geometry).
     COUNT = "count"
+    # The value of each pixel's first sample only (a first-hit quantity such as depth, as
+    # Blender's data passes take it): a sum over a window of one sample, which the schedule's
+    # first batch is (tiling.py).
+    FIRST = "first"
     # Nothing accumulated: computed at output from other rows (the denoised image).
     DERIVED = "derived"
 
@@ -48,6 +57,12 @@ class Display(StrEnum):
     COLOUR = "colour"  # linear RGB, sRGB-encoded and clamped to [0, 1]
     SIGNED = "signed"  # a unit vector, x * 0.5 + 0.5
     GREY = "grey"  # one value, normalised to the image's largest finite value
+    # One value, normalised to the image's largest value below BACKGROUND_DEPTH (a depth: what
+    # the camera ray missed shows white).
+    DEPTH = "depth"
+    # Each component normalised to its range over the pixels the camera ray hit (a position);
+    # black where it missed.
+    RANGE = "range"
 
 
 @dataclass(frozen=True)
@@ -93,8 +108,10 @@ class Channel:
     # 0: every sample; else only each pixel's first `window` samples (a batch boundary of the
     # schedule, tiling.py), and its arrays are checkpointed apart, only while they change.
     window: int = 0
-    # The job setting that turns the row on ("": always on).
+    # The job setting that turns the row on ("": always on), and for `aovs` the name in its
+    # list that does.
     setting: str = ""
+    aov: str = ""
     # What a result carries of it (a ChannelBlock): components per pixel and their type; 0
     # components: nothing (a row the server derives).
     wire_components: int = 0
@@ -102,6 +119,8 @@ class Channel:
 
 
 AOV_SAMPLES = 16  # albedo and normal cover a pixel's first 16 samples (tiling.AOV_SAMPLES)
+# The depth where the first sample's camera ray hit nothing, as Blender's Depth pass has it.
+BACKGROUND_DEPTH = 1e10
 
 CHANNELS: tuple[Channel, ...] = (
     Channel(
@@ -205,6 +224,50 @@ CHANNELS: tuple[Channel, ...] = (
         wire_components=1,
     ),
     Channel(
+        "depth",
+        "the first sample's depth along the camera's viewing axis, float32",
+        Accumulate.FIRST,
+        "depth",
+        (Array("depth", "<f4"),),
+        (
+            Layer(
+                "depth",
+                ("depth.Z",),
+                "Depth",
+                "depth of the first hit of each pixel's first sample: its distance from the "
+                "camera along the viewing axis (planar, not along the ray), in scene units, "
+                "1e10 where the ray hit nothing; the values of Blender's Depth pass",
+                Display.DEPTH,
+            ),
+        ),
+        window=1,
+        setting="aovs",
+        aov="depth",
+        wire_components=1,
+    ),
+    Channel(
+        "position",
+        "the first sample's first hit in world space, float32",
+        Accumulate.FIRST,
+        "position",
+        (Array("position", "<f4", 3),),
+        (
+            Layer(
+                "position",
+                ("position.X", "position.Y", "position.Z"),
+                "Position",
+                "world-space position (glTF axes, scene units) of the first hit of each "
+                "pixel's first sample, 0 where the ray hit nothing; the values of Blender's "
+                "Position pass in glTF's axes (Blender's X, Z, -Y)",
+                Display.RANGE,
+            ),
+        ),
+        window=1,
+        setting="aovs",
+        aov="position",
+        wire_components=3,
+    ),
+    Channel(
         "denoised",
         "Open Image Denoise of the radiance with the albedo and normal as guides, at output",
         Accumulate.DERIVED,
@@ -245,54 +308,127 @@ def _check_table() -> None:
             raise AssertionError(f"channel {c.name}: only derived rows store nothing")
         if (c.accumulate is Accumulate.DERIVED) != (not c.wire_components):
             raise AssertionError(f"channel {c.name}: every accumulated row is on the wire")
+        if (c.accumulate is Accumulate.FIRST) != (c.window == 1):
+            raise AssertionError(f"channel {c.name}: first-sample rows have a window of 1")
+        if bool(c.aov) != (c.setting == "aovs"):
+            raise AssertionError(f"channel {c.name}: a row of `aovs` has its name there")
 
 
 _check_table()
 
 
 # ----------------------------------------------------------------------------- the layout
+# The names the job setting `aovs` takes, in table order.
+AOV_NAMES = tuple(c.aov for c in CHANNELS if c.aov)
+ARRAYS = {a.name: a for c in CHANNELS for a in c.store}  # every array the table knows
+WIRE = tuple(c for c in CHANNELS if c.wire_components)  # the rows results can carry
+
+
+def parse_aovs(value: str) -> tuple[str, ...]:
+    """The outputs a job's `aovs` setting names (a comma list), in table order, each once; a
+    ValueError naming an unknown one."""
+    names = {n.strip() for n in value.split(",") if n.strip()}
+    unknown = sorted(names - set(AOV_NAMES))
+    if unknown:
+        raise ValueError(f"unknown output {unknown[0]!r}; known: {', '.join(AOV_NAMES)}")
+    return tuple(n for n in AOV_NAMES if n in names)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The rows of one job (layout_for): what its accumulators keep, what its results carry,
+    what its images hold and what it costs in memory."""
+
+    rows: tuple[Channel, ...]
+
+    def stored(self, windowed: bool | None = None) -> tuple[Array, ...]:
+        """The arrays the server keeps in table order: of every row (None), of rows over every
+        sample (False: checkpointed with each checkpoint) or of windowed rows (True)."""
+        return tuple(
+            a for c in self.rows if windowed is None or bool(c.window) == windowed
+            for a in c.store
+        )  # fmt: skip
+
+    def array_names(self, windowed: bool | None = None) -> tuple[str, ...]:
+        return tuple(a.name for a in self.stored(windowed))
+
+    def bytes_per_pixel(self, windowed: bool | None = None) -> int:
+        """Bytes a pixel of the arrays of stored(windowed)."""
+        return sum(a.bytes_per_pixel for a in self.stored(windowed))
+
+    def wire_rows_for(self, sample_start: int) -> tuple[Channel, ...]:
+        """The rows a result of the batch starting at sample_start carries: those whose window
+        holds it (Task.channels)."""
+        return tuple(
+            c for c in self.rows if c.wire_components and (not c.window or sample_start < c.window)
+        )
+
+    def exr_channels(self) -> tuple[str, ...]:
+        """The EXR's channels in order: every row's layers' channels in table order."""
+        return tuple(e for c in self.rows for layer in c.layers for e in layer.exr)
+
+    def layers(self) -> dict[str, Layer]:
+        """The named layers in table order."""
+        return {layer.name: layer for c in self.rows for layer in c.layers if layer.name}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.rows)
+
+
+@functools.cache
+def _layout(aovs: tuple[str, ...], denoise: bool) -> Layout:
+    return Layout(
+        tuple(
+            c for c in CHANNELS
+            if not c.setting or (c.setting == "denoise" and denoise) or c.aov in aovs
+        )
+    )  # fmt: skip
+
+
+def layout_for(aovs: str | tuple[str, ...] = (), denoise: bool = False) -> Layout:
+    """The layout of a job with these settings: the rows always on, and those its `aovs` (a
+    comma list or the names) and `denoise` turn on."""
+    names = parse_aovs(aovs) if isinstance(aovs, str) else parse_aovs(",".join(aovs))
+    return _layout(names, bool(denoise))
+
+
+def job_layout(settings) -> Layout:
+    """The layout of a job's settings (jobspec.JobSettings)."""
+    return layout_for(settings.aovs, settings.denoise)
+
+
+EVERY = Layout(CHANNELS)  # every row at once (a job with every output on)
+DEFAULT = layout_for()  # a job that turns nothing on
+
+
 def stored(windowed: bool | None = None) -> tuple[Array, ...]:
-    """The server's per-pixel arrays in table order: of every row (None), of rows over every
-    sample (False: checkpointed with each checkpoint) or of windowed rows (True)."""
-    return tuple(
-        a for c in CHANNELS if windowed is None or bool(c.window) == windowed for a in c.store
-    )
+    """DEFAULT.stored(windowed)."""
+    return DEFAULT.stored(windowed)
 
 
-STATS_ARRAYS = tuple(a.name for a in stored(False))
-WINDOWED_ARRAYS = tuple(a.name for a in stored(True))
-ARRAYS = {a.name: a for a in stored()}
-
-
-WIRE = tuple(c for c in CHANNELS if c.wire_components)  # the rows results carry
+STATS_ARRAYS = DEFAULT.array_names(False)
+WINDOWED_ARRAYS = DEFAULT.array_names(True)
 
 
 def wire_rows_for(sample_start: int) -> tuple[Channel, ...]:
-    """The rows a result of the batch starting at sample_start carries: those whose window
-    holds it (Task.channels)."""
-    return tuple(c for c in WIRE if not c.window or sample_start < c.window)
+    """DEFAULT.wire_rows_for(sample_start)."""
+    return DEFAULT.wire_rows_for(sample_start)
 
 
 def bytes_per_pixel(windowed: bool | None = None) -> int:
-    """Bytes a pixel of the arrays of stored(windowed)."""
-    return sum(a.bytes_per_pixel for a in stored(windowed))
+    """DEFAULT.bytes_per_pixel(windowed)."""
+    return DEFAULT.bytes_per_pixel(windowed)
 
 
 def exr_channels(denoise: bool = False) -> tuple[str, ...]:
-    """The EXR's channels in order: every row's layers' channels in table order (a row a
-    setting turns on only with that setting)."""
-    return tuple(
-        e
-        for c in CHANNELS
-        if not c.setting or (c.setting == "denoise" and denoise)
-        for layer in c.layers
-        for e in layer.exr
-    )
+    """The EXR's channels of a job with nothing but `denoise` turned on."""
+    return layout_for((), denoise).exr_channels()
 
 
 def layers() -> dict[str, Layer]:
-    """The named layers in table order."""
-    return {layer.name: layer for c in CHANNELS for layer in c.layers if layer.name}
+    """Every named layer of the table in table order (a job has those of its layout)."""
+    return EVERY.layers()
 
 
 def layer_channel(layer: str) -> Channel:
@@ -320,6 +456,8 @@ def layers_markdown() -> str:
             name = f"`{layer.name}`" if layer.name else "(EXR only)"
             exr = ", ".join(f"`{e}`" for e in layer.exr)
             on = f"`{c.setting}`" if c.setting else "always"
+            if c.aov:
+                on = f"`aovs` with `{c.aov}`"
             lines.append(f"| {name} | {exr} | {layer.help} | {on} |")
     return "\n".join(lines) + "\n"
 

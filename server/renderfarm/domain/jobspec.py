@@ -64,11 +64,11 @@ class Limits:
     max_job_memory_bytes: int = 1 << 62  # estimated accumulator memory (job_memory_bytes)
 
 
-# What a job's tile accumulators take (merge.TileAccumulator): the arrays of the channel table
-# (channels.py; 76 bytes a pixel: float64 RGB sum, mean luminance and two M2 sums, float32
-# coverage, albedo and normal sums), and the bookkeeping of each tile (its accumulator objects,
-# scheduling state and dispatch entries: under 4 KB, measured with tracemalloc in
-# server/tests/test_jobspec.py).
+# What a job's tile accumulators take (merge.TileAccumulator): the arrays of its rows of the
+# channel table (channels.py; 76 bytes a pixel without `aovs`: float64 RGB sum, mean luminance
+# and two M2 sums, float32 coverage, albedo and normal sums; depth adds 4, position 12), and
+# the bookkeeping of each tile (its accumulator objects, scheduling state and dispatch entries:
+# under 4 KB, measured with tracemalloc in server/tests/test_jobspec.py).
 ACCUMULATOR_BYTES_PER_PIXEL = channels.bytes_per_pixel()
 TILE_OVERHEAD_BYTES = 4096
 
@@ -81,11 +81,12 @@ CHUNK_PIXELS = 128 * 128
 CHUNK_MAX_SIDE = 512
 
 
-def job_memory_bytes(width: int, height: int, tile_size: int) -> int:
+def job_memory_bytes(width: int, height: int, tile_size: int, aovs: str = "") -> int:
     """Estimated memory of a job's accumulators, whether in RAM or spilled to the scratch
-    directory (infra/spill.py), from its size and tile size."""
+    directory (infra/spill.py), from its size, tile size and the outputs its `aovs` turns on."""
     tiles = math.ceil(width / tile_size) * math.ceil(height / tile_size)
-    return ACCUMULATOR_BYTES_PER_PIXEL * width * height + TILE_OVERHEAD_BYTES * tiles
+    per_pixel = channels.layout_for(aovs).bytes_per_pixel()
+    return per_pixel * width * height + TILE_OVERHEAD_BYTES * tiles
 
 
 # What denoising a frame takes (images.denoise_frame): float32 colour, albedo, normal and output
@@ -240,6 +241,10 @@ SETTINGS: tuple[Setting, ...] = (
             "KHR_materials_variants: the material variant to render, by its name "
             "(case-sensitive) or index; empty = the scene's default materials; all = every "
             "variant of the scene, one image each (as frames; not with frames)", 25),
+    Setting("aovs", str, "",
+            "outputs beside the image, each a layer of the EXR and a PNG layer: a list (or "
+            "comma list) of " + ", ".join(channels.AOV_NAMES) + " (docs/usage.md, Outputs); "
+            "each adds to the job's memory", 26, worker=False),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -345,6 +350,15 @@ def _coerce(name: str, kind: type, value: Any, keep_case: bool = False) -> Any:
         if not math.isfinite(number):
             raise SettingsError(field, f"{field} must be finite, got {value!r}")
         return number
+    if name == "aovs":  # a list (JSON) or a comma list, kept as the names in table order
+        if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+            value = ",".join(value)
+        if not isinstance(value, str):
+            raise SettingsError(field, f"{field} must be a list of names, got {value!r}")
+        try:
+            return ",".join(channels.parse_aovs(value.lower()))
+        except ValueError as e:
+            raise SettingsError(field, f"{field}: {e}") from None
     if not isinstance(value, str):
         raise SettingsError(field, f"{field} must be a string, got {value!r}")
     return value.strip() if keep_case else value.strip().lower()
@@ -451,12 +465,13 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
                 f"width x height must be at most {limits.max_pixels} pixels",
             )
         if setting.name == "tile_size":
-            need = job_memory_bytes(s.width, s.height, s.tile_size)
+            need = job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
             _require(
                 need <= limits.max_job_memory_bytes,
                 "width",
                 f"x settings.height = {s.width} x {s.height} needs about {need / 2**20:.0f} MB "
-                f"of accumulators ({ACCUMULATOR_BYTES_PER_PIXEL} bytes a pixel and "
+                f"of accumulators ({channels.layout_for(s.aovs).bytes_per_pixel()} bytes a "
+                "pixel with the outputs of settings.aovs, and "
                 f"{TILE_OVERHEAD_BYTES} a tile), more than the server's limit of "
                 f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB)",
             )
@@ -475,7 +490,7 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
     )
     if s.frames:
         frame_count = len(parse_frames(s.frames, limits.max_frames))
-        need = frame_count * job_memory_bytes(s.width, s.height, s.tile_size)
+        need = frame_count * job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
         _require(
             need <= limits.max_job_memory_bytes,
             "frames",
@@ -506,7 +521,7 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
     )
     if s.denoise:  # the whole frame beside the accumulators (images.DenoiseFrame)
         frame = denoise_memory_bytes(s.width, s.height)
-        need = frame + job_memory_bytes(s.width, s.height, s.tile_size)
+        need = frame + job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
         _require(
             need <= limits.max_job_memory_bytes,
             "denoise",
@@ -531,7 +546,7 @@ def check_variant_images(s: JobSettings, count: int, limits: Limits) -> None:
         f'"{ALL_VARIANTS}": the scene has {count} variants, more images than one job may '
         f"render ({limits.max_frames}, RENDERFARM_MAX_FRAMES); name them one job each",
     )
-    need = count * job_memory_bytes(s.width, s.height, s.tile_size)
+    need = count * job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
     _require(
         need <= limits.max_job_memory_bytes,
         "variant",

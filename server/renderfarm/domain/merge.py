@@ -38,15 +38,17 @@ results a second (bench/server_merge.py). The arithmetic is the
 same; relative_error() states it in numpy, and the tests hold the C loops to it and to the
 statistics of all samples computed at once.
 
-The arrays, their types and their order come from the channel table (channels.py): the
-radiance and its luminance statistics are merged by the fused kernel, every other row that
-accumulates (a sum or a count) batch by batch in batch order, within its window: albedo and
-normal sums cover each pixel's first AOV_SAMPLES samples only (tiling.py), so batches merged
-after that point do not add to them, whatever they carry.
+The arrays, their types and their order come from the channel table (channels.py), as a
+job's layout has them (the rows always on and those its settings turn on): the radiance and its
+luminance statistics are merged by the fused kernel, every other row that accumulates (a sum, a
+count, a first sample) batch by batch in batch order, within its window: albedo and normal sums
+cover each pixel's first AOV_SAMPLES samples only, depth and position its first sample
+(tiling.py), so batches merged after that point do not add to them, whatever they carry.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -86,9 +88,11 @@ class Snapshot(tuple):
 class TileAccumulator:
     """Merged statistics of one tile. No I/O; merge order is the caller's job."""
 
-    # The per-pixel arrays are the channel table's (channels.ARRAYS), one attribute each.
+    # The per-pixel arrays are the channel table's (channels.ARRAYS), one attribute each (None
+    # for the rows the job's layout leaves out).
     __slots__ = (
         *channels.ARRAYS,
+        "layout",
         "height",
         "width",
         "samples",
@@ -98,22 +102,26 @@ class TileAccumulator:
         "spill",
     )
 
-    # Bytes of the per-pixel arrays (76 today: float64 RGB sum, mean luminance and two M2;
-    # float32 coverage count, albedo and normal sums), and of the windowed ones among them.
+    # Bytes a pixel of the per-pixel arrays of a job that turns nothing on (76: float64 RGB
+    # sum, mean luminance and two M2; float32 coverage count, albedo and normal sums); a job's
+    # own are its layout's (nbytes).
     BYTES_PER_PIXEL = channels.bytes_per_pixel()
-    AOV_BYTES_PER_PIXEL = channels.bytes_per_pixel(windowed=True)
-    # The rows merged here batch by batch (the fused kernel merges rgb and luminance):
-    # (wire field, array, window, float32 sum).
-    _SUMMED = tuple(
-        (c.wire, c.store[0].name, c.window)
-        for c in channels.CHANNELS
-        if c.accumulate in (Accumulate.SUM, Accumulate.COUNT) and c.name != "rgb"
-    )
 
-    def __init__(self, width: int, height: int, iid: bool = False, arrays: bool = True):
-        """arrays=False leaves the per-pixel arrays None (a tile cache fills them on demand)."""
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        iid: bool = False,
+        arrays: bool = True,
+        layout: channels.Layout = channels.DEFAULT,
+    ):
+        """arrays=False leaves the per-pixel arrays None (a tile cache fills them on demand).
+        layout: the job's rows (channels.job_layout)."""
         # iid: the samples are independent (the `independent` sampler); see variance_of_mean.
         self.iid = iid
+        self.layout = layout
+        for name in channels.ARRAYS:  # the table's arrays the layout leaves out stay None
+            setattr(self, name, None)
         self.width = width
         self.height = height
         # Where the arrays are kept while they are out of RAM (spill.TileCache); None when
@@ -131,13 +139,28 @@ class TileAccumulator:
         """Fresh zero arrays: the statistics of no samples. (The coverage is a count, exact in
         float32 up to 2^24 samples, above the max_spp limit; albedo and normal are sums over
         at most AOV_SAMPLES samples, which float32 holds to its rounding.)"""
-        for a in channels.stored():
+        for a in self.layout.stored():
             setattr(self, a.name, np.zeros(a.shape(self.width, self.height), a.dtype))
 
     def drop_arrays(self) -> None:
         """Let go of the per-pixel arrays (evicted; spill.TileCache restores them)."""
-        for name in self._ARRAYS + self._AOV_ARRAYS:
+        for name in self.layout.array_names():
             setattr(self, name, None)
+
+    @property
+    def arrays(self) -> tuple[str, ...]:
+        """The names of the per-pixel arrays the job's layout keeps, in table order."""
+        return self.layout.array_names()
+
+    @property
+    def stats_arrays(self) -> tuple[str, ...]:
+        """Those of rows over every sample (checkpointed with each checkpoint)."""
+        return self.layout.array_names(False)
+
+    @property
+    def aov_arrays(self) -> tuple[str, ...]:
+        """Those of windowed rows (checkpointed apart, while they change)."""
+        return self.layout.array_names(True)
 
     @property
     def resident(self) -> bool:
@@ -147,7 +170,7 @@ class TileAccumulator:
     @property
     def nbytes(self) -> int:
         """Bytes of the per-pixel arrays."""
-        return self.BYTES_PER_PIXEL * self.width * self.height
+        return self.layout.bytes_per_pixel() * self.width * self.height
 
     def merge_batch(
         self,
@@ -158,9 +181,11 @@ class TileAccumulator:
         normal_sum: np.ndarray | None = None,
         nonfinite: int = 0,
         coverage_sum: np.ndarray | None = None,
+        extra: dict[str, np.ndarray] | None = None,
     ) -> float:
         """Merge one batch of `sample_count` samples per pixel (Chan et al. 1979). A batch
-        without coverage_sum adds no coverage (its samples count as misses in the alpha).
+        without coverage_sum adds no coverage (its samples count as misses in the alpha);
+        `extra` holds the sums of the layout's other rows by their wire name (BatchResult.extra).
         Returns the merged tile's tile_error(), computed in the same pass."""
         if sample_count <= 0:
             raise ValueError("a batch has at least one sample")
@@ -195,8 +220,10 @@ class TileAccumulator:
         # The other rows: a new array each (copy on write, as above), for a row with a window
         # only while the batch is in it (in-order merges: self.samples is the batch's start).
         batch = {"albedo_sum": albedo_sum, "normal_sum": normal_sum, "coverage_sum": coverage_sum}
-        for wire, name, window in self._SUMMED:
-            values = batch[wire]
+        if extra:
+            batch.update(extra)
+        for wire, name, window in _summed(self.layout):
+            values = batch.get(wire)
             if values is None or (window and self.samples >= window):
                 continue
             stored = getattr(self, name)
@@ -226,6 +253,12 @@ class TileAccumulator:
 
     def mean_normal(self) -> np.ndarray:
         return self.normal_sum / max(1, self.aov_samples)
+
+    def mean_of(self, row: channels.Channel) -> np.ndarray:
+        """The per-pixel mean of a summed row over the samples in its window, float64 (a
+        first-sample row: its value); zeros before any sample."""
+        n = min(self.samples, row.window) if row.window else self.samples
+        return getattr(self, row.store[0].name) / float(max(1, n))
 
     # _error_terms()' kinds, as _kernels.merge() takes them: which M2 arrays sum to the
     # variance of the mean (times k).
@@ -283,10 +316,8 @@ class TileAccumulator:
 
     # Checkpoints: the accumulator as blobs with a header naming their arrays
     # (channels.blob_header), and back. The arrays of rows over every sample change with every
-    # merge; those of windowed rows (albedo, normal) only during their window, so they are
-    # stored apart and written only while they change.
-    _ARRAYS = channels.STATS_ARRAYS
-    _AOV_ARRAYS = channels.WINDOWED_ARRAYS
+    # merge; those of windowed rows (albedo, normal, depth, position) only during their window,
+    # so they are stored apart and written only while they change.
     # Blobs of servers from before the header, recognised by their length (read, never written).
     _LEGACY_ARRAYS = ("rgb_sum", "lum_mean", "m2_within", "m2_between")  # before coverage
     _LEGACY_AOV_ARRAYS = ("albedo_sum", "normal_sum")
@@ -295,14 +326,14 @@ class TileAccumulator:
         """An immutable view of the statistics (cheap: arrays are replaced, never mutated), or
         of the arrays named. Of an evicted accumulator: a reference to its copy out of RAM
         (spill.SpillRef), read by snapshot_arrays()."""
-        names = self._ARRAYS if names is None else names
+        names = self.stats_arrays if names is None else names
         if not self.resident:
             return self.spill.reference(names)
         return Snapshot(names, (getattr(self, a) for a in names))
 
     def aov_snapshot(self) -> tuple:
         """The same for the albedo and normal sums."""
-        return self.snapshot(self._AOV_ARRAYS)
+        return self.snapshot(self.aov_arrays)
 
     @staticmethod
     def snapshot_arrays(snapshot) -> tuple:
@@ -348,6 +379,11 @@ class TileAccumulator:
                     f"checkpoint {what}: array {a.name} ({a.dtype} x {a.components}) is not "
                     "one of this server's channel table"
                 )
+            if a.name not in self.arrays:
+                raise ValueError(
+                    f"checkpoint {what}: array {a.name} belongs to no row the job's settings "
+                    f"turn on ({', '.join(self.layout.names)})"
+                )
         expected = offset + sum(a.bytes_per_pixel * pixels for a in arrays)
         if len(data) != expected:
             raise ValueError(f"checkpoint {what} has {len(data)} bytes, expected {expected}")
@@ -384,12 +420,13 @@ class TileAccumulator:
         nonfinite: int = 0,
         iid: bool = False,
         aovs: bytes | None = None,
+        layout: channels.Layout = channels.DEFAULT,
     ) -> TileAccumulator:
         """Restore to_bytes() (with aovs_to_bytes(), or zero windowed arrays when None): the
         arrays each blob's header names. Blobs of servers from before the header load by their
         length: those written before the AOVs were split off hold both in `data`, and those
         written before the coverage existed restore as fully covered (alpha 1)."""
-        acc = cls(width, height, iid)
+        acc = cls(width, height, iid, layout=layout)
         pixels = width * height
         if channels.has_header(data):
             acc._load_blob(data, "accumulators")
@@ -420,11 +457,23 @@ class TileAccumulator:
         samples: int,
         batches: int,
         iid: bool = False,
+        layout: channels.Layout = channels.DEFAULT,
     ) -> TileAccumulator:
         """A read-only accumulator over the arrays of a snapshot(names) (no copy of arrays in
         RAM; the others None), for images written in another thread."""
-        acc = cls(width, height, iid, arrays=False)
+        acc = cls(width, height, iid, arrays=False, layout=layout)
         for name, a in zip(names, cls.snapshot_arrays(snapshot), strict=True):
             setattr(acc, name, a)
         acc.samples, acc.batches = samples, batches
         return acc
+
+
+@functools.cache
+def _summed(layout: channels.Layout) -> tuple[tuple[str, str, int], ...]:
+    """The rows of a layout merged batch by batch (the fused kernel merges rgb and luminance):
+    (wire name, array, window)."""
+    return tuple(
+        (c.wire, c.store[0].name, c.window)
+        for c in layout.rows
+        if c.accumulate in (Accumulate.SUM, Accumulate.COUNT, Accumulate.FIRST) and c.name != "rgb"
+    )

@@ -36,6 +36,9 @@ class BatchResult:
     rays: int = 0
     warnings: tuple[str, ...] = ()  # the worker's messages about the task (its scene's loader)
     coverage_sum: np.ndarray | None = None  # per pixel, samples whose camera ray hit geometry
+    # The sums of the other rows of the channel table the task named (depth, position, ...), by
+    # their wire name (channels.Channel.wire).
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass

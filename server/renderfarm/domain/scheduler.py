@@ -29,6 +29,8 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
+from . import channels
+from .channels import job_layout
 from .frames import job_frames, job_rects, tiles_per_frame
 from .jobspec import JobSettings
 from .merge import TileAccumulator, all_finite
@@ -48,6 +50,9 @@ from .records import (
 )
 from .states import JobState, StopReason, check_transition
 from .tiling import PLANNED_FROM, batch_range, batch_start, carries_aovs, plan_batch
+
+# The rows every job has: every result carries them (grpc_decode checks that it does).
+_EVERY_RESULT = frozenset(channels.DEFAULT.names)
 
 # How many batches of one tile may be leased or waiting beyond the merged ones when every tile
 # already has work: speculation keeps workers busy on small images at the risk of rendering a
@@ -128,8 +133,9 @@ class Scheduler:
         iid = settings.sampler == "independent"
         cached = self.cache is not None  # then arrays are made when a tile is first used
         per_frame = tiles_per_frame(settings)
+        layout = job_layout(settings)
         tiles = [
-            TileState(i, r, TileAccumulator(r.width, r.height, iid, arrays=not cached),
+            TileState(i, r, TileAccumulator(r.width, r.height, iid, not cached, layout),
                       slot=i // per_frame)
             for i, r in enumerate(job_rects(settings, variants))
         ]  # fmt: skip
@@ -750,7 +756,7 @@ class Scheduler:
             tile.aovs_dirty |= carries_aovs(r.sample_start)
             tile.error = tile.acc.merge_batch(
                 r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite,
-                r.coverage_sum,
+                r.coverage_sum, r.extra,
             )  # fmt: skip
             job.samples_merged += r.sample_count * tile.rect.pixels
             self._record_merge(job)
@@ -785,6 +791,18 @@ class Scheduler:
         # samples and send zeros in their place).
         if not (all_finite(r.rgb_sum) and all_finite(r.luminance_m2)):
             return "non-finite values"
+        # The rows the job turned on beyond those every result carries (grpc_decode checks
+        # those): present, of the tile's size and finite.
+        for row in tile.acc.layout.wire_rows_for(r.sample_start):
+            if row.name in _EVERY_RESULT:
+                continue
+            values = r.extra.get(row.wire)
+            if values is None:
+                return f"channel {row.name} missing"
+            if values.size != tile.rect.pixels * row.wire_components:
+                return f"channel {row.name}: array size"
+            if not all_finite(values):
+                return f"channel {row.name}: non-finite values"
         return ""
 
     def _decide_stop(self, job: JobRun, tile: TileState) -> None:

@@ -4,13 +4,16 @@ EXR channels (32-bit float) and layers are the channel table's (domain/channels.
 (mean radiance), variance.Y (estimated variance of the mean luminance, inf where unknown), spp
 (samples merged per pixel), error (sqrt(variance.Y) / max(Y - sqrt(variance.Y), DARK_FLOOR)),
 albedo.R/G/B and normal.X/Y/Z (mean first-hit albedo and world-space shading normal), A (the
-share of the pixel's samples whose camera ray hit geometry) and, with settings.denoise,
-denoised.R/G/B (Open Image Denoise of R, G, B with the albedo and normal as guides,
-denoise_frame). _exr_band computes them in one C pass (_kernels.exr_tile) in that order, which
-server/tests/test_channel_table.py holds to the table.
+share of the pixel's samples whose camera ray hit geometry), then the outputs the job's
+settings.aovs turns on (depth.Z, position.X/Y/Z) and, with settings.denoise, denoised.R/G/B
+(Open Image Denoise of R, G, B with the albedo and normal as guides, denoise_frame): the
+channels of the job's layout (channels.job_layout). _exr_band computes the first 13 in one C
+pass (_kernels.exr_tile) in that order, which server/tests/test_channel_table.py holds to the
+table, and the outputs' means row by row (TileAccumulator.mean_of).
 PNG: one layer, clamped to [0, 1], 8 bits; rgb, albedo, normal and denoised sRGB-encoded, the
-variance (as a standard error), spp and error layers grey, normalised to their maximum (recorded in
-the PNG's tEXt chunk renderfarm:scale_max, beside renderfarm:scale_min 0). A PNG may be
+variance (as a standard error), spp, error and depth layers grey, normalised to their maximum
+(recorded in the PNG's tEXt chunk renderfarm:scale_max, beside renderfarm:scale_min 0; a depth's
+background, 1e10, is white), position as v / (2 max |v|) + 0.5 per component. A PNG may be
 downscaled (max_size): each output pixel is the mean of a square of f x f pixels (f the smallest
 integer that brings both sides within max_size) in linear values, encoded after.
 
@@ -49,23 +52,40 @@ from ..domain.merge import DARK_FLOOR, TileAccumulator
 from ..domain.tiling import Rect
 from ..errors import Cancelled
 
+# The channels of every EXR, computed by the fused kernel (those of a job without outputs).
 EXR_CHANNELS = channels.exr_channels()
 LAYERS = tuple(channels.layers())
 # The EXR of a job with settings.denoise: its channels, then the denoised RGB.
 DENOISED_CHANNELS = channels.exr_channels(denoise=True)[len(EXR_CHANNELS) :]
 # zip (deflate level 1): what every EXR reader reads; none: faster, 2.5 times larger.
 EXR_COMPRESSIONS = ("zip", "none")
-# Layers normalised to the image's maximum in a PNG.
-GREY_LAYERS = tuple(n for n, layer in channels.layers().items() if layer.display is Display.GREY)
+# Layers normalised to the image's maximum in a PNG (grey), and every layer scaled by a
+# maximum over the image (layer_maximum).
+_DISPLAY = {n: layer.display for n, layer in channels.layers().items()}
+GREY_LAYERS = tuple(n for n, d in _DISPLAY.items() if d in (Display.GREY, Display.DEPTH))
+SCALED_LAYERS = GREY_LAYERS + tuple(n for n, d in _DISPLAY.items() if d is Display.RANGE)
+# The rows of a layout beyond those of every job, summed or first-sample, written after the
+# fused kernel's channels (their means, row by row).
+_OWN_ROWS = frozenset(channels.DEFAULT.names)
+
+
+def output_rows(layout: channels.Layout) -> tuple[channels.Channel, ...]:
+    """The rows of a job's layout whose EXR channels follow the fused kernel's (the outputs
+    of settings.aovs), in table order."""
+    return tuple(c for c in layout.rows if c.name not in _OWN_ROWS and c.store)
+
 
 # A band of tiles and what each one holds: None for a tile with no merged samples.
 Band = list[tuple[Rect, TileAccumulator | None]]
 
 
-def arrays_needed(fmt: str, layer: str) -> tuple[str, ...]:
-    """The accumulator arrays an image reads (a spilled tile reads only these)."""
+def arrays_needed(
+    fmt: str, layer: str, layout: channels.Layout = channels.DEFAULT
+) -> tuple[str, ...]:
+    """The accumulator arrays an image of a job with this layout reads (a spilled tile reads
+    only these)."""
     if fmt == "exr":
-        return TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
+        return layout.array_names()
     return channels.layer_arrays(layer)
 
 
@@ -80,17 +100,18 @@ class TileView:
     iid: bool
     names: tuple
     snapshot: object
+    layout: channels.Layout = channels.DEFAULT
 
     @classmethod
     def of(cls, rect: Rect, acc: TileAccumulator, names: tuple) -> TileView | None:
         if acc.samples == 0:
             return None
-        return cls(rect, acc.samples, acc.batches, acc.iid, names, acc.snapshot(names))
+        return cls(rect, acc.samples, acc.batches, acc.iid, names, acc.snapshot(names), acc.layout)
 
     def accumulator(self) -> TileAccumulator:
         return TileAccumulator.from_snapshot(
             self.rect.width, self.rect.height, self.names, self.snapshot, self.samples,
-            self.batches, self.iid,
+            self.batches, self.iid, self.layout,
         )  # fmt: skip
 
 
@@ -102,8 +123,24 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
+def _outputs_band(width: int, height: int, tiles: Band, rows: tuple) -> np.ndarray:
+    """The EXR channels of the output rows (output_rows) of a band, float32 (height, width,
+    their components): each row's mean over its window (zeros where nothing is merged)."""
+    out = np.zeros((height, width, sum(r.wire_components for r in rows)), np.float32)
+    for rect, acc in tiles:
+        if acc is None:
+            continue
+        t = out[:, rect.x0 : rect.x0 + rect.width]
+        c = 0
+        for row in rows:
+            mean = acc.mean_of(row).reshape(rect.height, rect.width, row.wire_components)
+            t[..., c : c + row.wire_components] = mean
+            c += row.wire_components
+    return out
+
+
 def _exr_band(width: int, height: int, tiles: Band) -> np.ndarray:
-    """The EXR channels of a band, float32 (height, width, 13)."""
+    """The fused kernel's EXR channels of a band, float32 (height, width, 13)."""
     out = np.empty((height, width, len(EXR_CHANNELS)), np.float32)
     for rect, acc in tiles:
         if acc is None:  # nothing merged: zeros, and variance and error unknown
@@ -124,15 +161,23 @@ def _exr_band(width: int, height: int, tiles: Band) -> np.ndarray:
 
 
 def _grey_values(layer: str, acc: TileAccumulator) -> np.ndarray:
+    """The values a scaled layer is normalised by (inf: shown white, left out of the
+    maximum)."""
     if layer == "variance":
         return np.sqrt(acc.variance_of_mean())
     if layer == "spp":
         return np.full((acc.height, acc.width), float(acc.samples))
-    return acc.relative_error()
+    if layer == "error":
+        return acc.relative_error()
+    values = acc.mean_of(channels.layer_channel(layer))
+    if _DISPLAY[layer] is Display.DEPTH:  # where the ray hit nothing: white
+        return np.where(values < channels.BACKGROUND_DEPTH, values, np.inf)
+    return np.abs(values)  # RANGE: scaled by the largest magnitude
 
 
 def layer_maximum(layer: str, tiles: Band) -> float:
-    """The largest finite value of a grey layer in a band (-inf when there is none)."""
+    """The largest finite value of a scaled layer (SCALED_LAYERS) in a band (-inf when there
+    is none)."""
     top = -math.inf
     for _, acc in tiles:
         if acc is None:
@@ -156,6 +201,8 @@ def _display_tile(layer: str, acc: TileAccumulator | None, top: float, h: int, w
         values = _grey_values(layer, acc)
         grey = np.where(np.isfinite(values), values / top, 1.0)
         return np.repeat(grey[..., None], 3, axis=-1)
+    if _DISPLAY[layer] is Display.RANGE:
+        return acc.mean_of(channels.layer_channel(layer)) / (2.0 * top) + 0.5
     if layer == "rgb":
         return acc.rgb_sum / acc.samples
     if layer == "albedo":
@@ -347,16 +394,16 @@ EXR_CHUNK_BYTES = 64 << 20
 
 def _rows_of(tiles: Band, y0: int, y1: int) -> Band:
     """Rows y0..y1 of a band's tiles: accumulators over views of their arrays (no copies)."""
-    names = TileAccumulator._ARRAYS + TileAccumulator._AOV_ARRAYS
     part: Band = []
     for rect, acc in tiles:
         rows = Rect(rect.x0, rect.y0 + y0, rect.width, y1 - y0)
         if acc is not None:
-            present = tuple(n for n in names if getattr(acc, n) is not None)
+            present = tuple(n for n in acc.arrays if getattr(acc, n) is not None)
             arrays = tuple(getattr(acc, n)[y0:y1] for n in present)
             acc = TileAccumulator.from_snapshot(
-                rect.width, y1 - y0, present, arrays, acc.samples, acc.batches, acc.iid
-            )
+                rect.width, y1 - y0, present, arrays, acc.samples, acc.batches, acc.iid,
+                acc.layout,
+            )  # fmt: skip
         part.append((rows, acc))
     return part
 
@@ -382,14 +429,21 @@ class ImageWriter:
         date_time: float | None = None,
         denoised: np.ndarray | None = None,
         attributes: dict[str, str | int | float | tuple[float, ...]] | None = None,
+        layout: channels.Layout = channels.DEFAULT,
     ):
+        """layout: the job's (channels.job_layout): the EXR's channels are its own."""
         import OpenImageIO as oiio  # heavy import, only where images are written
 
         self.fmt, self.layer, self.width, self.height = fmt, layer, width, height
+        self.outputs = output_rows(layout)
         self.top = top if math.isfinite(top) and top > 0 else 1.0
         self.cancelled = cancelled
         if fmt == "exr":
-            channels = EXR_CHANNELS + (DENOISED_CHANNELS if denoised is not None else ())
+            channels = (
+                EXR_CHANNELS
+                + tuple(e for row in self.outputs for layer in row.layers for e in layer.exr)
+                + (DENOISED_CHANNELS if denoised is not None else ())
+            )
             spec = oiio.ImageSpec(width, height, len(channels), oiio.FLOAT)
             spec.channelnames = channels
             spec.alpha_channel = channels.index("A")
@@ -462,8 +516,13 @@ class ImageWriter:
         self.rows_in += band_height
         if self.fmt == "exr":
             pixels = _exr_band(self.width, band_height, tiles)
+            parts = [pixels]
+            if self.outputs:
+                parts.append(_outputs_band(self.width, band_height, tiles, self.outputs))
             if self.denoised is not None:
-                pixels = np.concatenate([pixels, self.denoised[y_in : y_in + band_height]], 2)
+                parts.append(self.denoised[y_in : y_in + band_height])
+            if len(parts) > 1:
+                pixels = np.concatenate(parts, 2)
         elif self.layer == "denoised":
             linear = self.denoised[y_in : y_in + band_height].astype(np.float64)
             if self.scale is not None:

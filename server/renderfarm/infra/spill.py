@@ -1,10 +1,11 @@
 """Merged tile statistics under a RAM budget: the rest waits in files, read back on demand.
 
 A tile's accumulators take 76 bytes a pixel (TileAccumulator.BYTES_PER_PIXEL, from the channel
-table), so an 8192x8192 job holds 5.1 GB of them. TileCache keeps the most recently used tiles
-of every job in RAM up to its budget (RENDERFARM_TILE_CACHE_MB); when a tile is needed past it,
-the least recently used ones are written to their job's file in the scratch directory
-(DATA_DIR/scratch/JOB.tiles) and their arrays let go. A merge of an evicted tile reads it back
+table; more with the outputs a job's `aovs` turns on), so an 8192x8192 job holds 5.1 GB of
+them. TileCache keeps the most recently used tiles of every job in RAM up to its budget
+(RENDERFARM_TILE_CACHE_MB); when a tile is needed past it, the least recently used ones are
+written to their job's file in the scratch directory (DATA_DIR/scratch/JOB.tiles) and their
+arrays let go. A merge of an evicted tile reads it back
 first (TileCache.use); a checkpoint or an image reads an evicted tile from its file in another
 thread (SpillRef) without bringing it back into RAM. The files are scratch: the database stays
 the only durable store, so they are removed when the job is forgotten and at start.
@@ -33,17 +34,13 @@ import numpy as np
 from ..domain import channels
 from ..domain.merge import Snapshot, TileAccumulator
 
-_STATS = TileAccumulator._ARRAYS
-_AOVS = TileAccumulator._AOV_ARRAYS
 
-
-def _shapes(width: int, height: int) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-    """Shape and dtype of each array of a width x height tile, in file order (the channel
-    table's)."""
-    return {
-        name: (channels.ARRAYS[name].shape(width, height), np.dtype(channels.ARRAYS[name].dtype))
-        for name in _STATS + _AOVS
-    }
+def _shapes(
+    width: int, height: int, layout: channels.Layout
+) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shape and dtype of each array of a width x height tile of a job's layout, in file
+    order (the channel table's)."""
+    return {a.name: (a.shape(width, height), np.dtype(a.dtype)) for a in layout.stored()}
 
 
 class SpillFile:
@@ -139,24 +136,24 @@ class SpillFile:
 class SpillRef:
     """A snapshot of an evicted tile's statistics or AOVs: its slot, held until read once."""
 
-    __slots__ = ("file", "slot", "names", "width", "height")
+    __slots__ = ("file", "slot", "names", "width", "height", "layout")
 
-    def __init__(self, file: SpillFile, slot: int, names: tuple, width: int, height: int):
+    def __init__(self, file: SpillFile, slot: int, names: tuple, width: int, height: int, layout):
         file.retain(slot)
         self.file, self.slot, self.names = file, slot, names
-        self.width, self.height = width, height
+        self.width, self.height, self.layout = width, height, layout
 
     def read(self) -> tuple:
         """The arrays, read from the file (in any thread); the slot is released after."""
         if self.slot is None:
             raise RuntimeError("a spilled snapshot is read once")
-        shapes = _shapes(self.width, self.height)
+        shapes = _shapes(self.width, self.height, self.layout)
         arrays = {name: np.empty(*shapes[name]) for name in self.names}
         try:
-            # The slot holds the six arrays in file order: one read for each run of wanted ones
-            # (an image of one layer reads a third of the tile or less).
+            # The slot holds the layout's arrays in file order: one read for each run of wanted
+            # ones (an image of one layer reads a third of the tile or less).
             offset, run, start = 0, [], 0
-            for name in _STATS + _AOVS:
+            for name in shapes:
                 if name in arrays:
                     if not run:
                         start = offset
@@ -226,7 +223,7 @@ class TileCache:
         without keeps no arrays until it is used."""
         if acc.spill is not None:
             return
-        slot_bytes = TileAccumulator.BYTES_PER_PIXEL * tile_size * tile_size
+        slot_bytes = acc.layout.bytes_per_pixel() * tile_size * tile_size
         acc.spill = _Handle(self, acc, _Home(job_id, slot_bytes))
         if acc.batches == 0:
             if acc.resident:
@@ -249,10 +246,10 @@ class TileCache:
         home = handle.home
         if home.slot is not None and home.slot_batches == acc.batches:
             file = self._files[home.job_id]
-            shapes = _shapes(acc.width, acc.height)
-            arrays = [np.empty(*shapes[name]) for name in _STATS + _AOVS]
+            shapes = _shapes(acc.width, acc.height, acc.layout)
+            arrays = [np.empty(*shape) for shape in shapes.values()]
             file.read(home.slot, arrays)
-            for name, a in zip(_STATS + _AOVS, arrays, strict=True):
+            for name, a in zip(shapes, arrays, strict=True):
                 setattr(acc, name, a)
         elif acc.batches == 0:
             acc.zero_arrays()
@@ -281,7 +278,7 @@ class TileCache:
             if home.slot is not None:
                 file.disown(home.slot)  # free for reuse unless a reader still holds it
             home.slot = file.allocate()
-            file.write(home.slot, [getattr(acc, name) for name in _STATS + _AOVS])
+            file.write(home.slot, [getattr(acc, name) for name in acc.arrays])
             home.slot_batches = acc.batches
         del self._lru[acc]
         self.resident_bytes -= acc.nbytes
@@ -329,18 +326,18 @@ class TileCache:
 class _Handle:
     """acc.spill of a cached accumulator: what its snapshots need while it is evicted."""
 
-    __slots__ = ("cache", "home", "width", "height")
+    __slots__ = ("cache", "home", "width", "height", "layout")
 
     def __init__(self, cache: TileCache, acc: TileAccumulator, home: _Home):
         self.cache, self.home = cache, home
-        self.width, self.height = acc.width, acc.height
+        self.width, self.height, self.layout = acc.width, acc.height, acc.layout
 
     def reference(self, names: tuple) -> SpillRef | Snapshot:
         """A snapshot of the evicted arrays named (TileAccumulator.snapshot on an evicted
         tile)."""
         home = self.home
         if home.slot is None:  # never merged: zeros (read by nobody but images)
-            shapes = _shapes(self.width, self.height)
+            shapes = _shapes(self.width, self.height, self.layout)
             return Snapshot(names, (np.zeros(*shapes[name]) for name in names))
         file = self.cache._files[home.job_id]
-        return SpillRef(file, home.slot, names, self.width, self.height)
+        return SpillRef(file, home.slot, names, self.width, self.height, self.layout)

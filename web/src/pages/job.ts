@@ -215,7 +215,10 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
       stat("Samples merged", merged, "samples"),
     );
 
-    const viewer = new Viewer(jobId, st.width, st.height, st.tile_size, st.denoise === true);
+    const viewer = new Viewer(jobId, st.width, st.height, st.tile_size, {
+      denoise: st.denoise === true,
+      aovs: typeof st.aovs === "string" ? st.aovs : "",
+    });
     cleanups.push(() => viewer.stop());
 
     // An animation: the strip of its frames, the frame shown, the preview movie.

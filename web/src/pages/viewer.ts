@@ -23,6 +23,15 @@ interface Layer {
   label: string;
   colourMap?: ColourMap;
   legend?: string;
+  // What a job needs for the layer (the server refuses it otherwise): settings.denoise, or
+  // settings.aovs naming an output.
+  needs?: { denoise: true } | { aov: string };
+}
+
+/** The settings that decide which layers a job has. */
+export interface LayerSettings {
+  denoise?: boolean;
+  aovs?: string;
 }
 
 // Longest side of the preview images (`max_size` of image.png): beyond a 4K screen's width.
@@ -37,11 +46,21 @@ const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
   variance: { label: "Std. error", colourMap: "inferno", legend: "standard error of the mean" },
   albedo: { label: "Albedo" },
   normal: { label: "Normal" },
-  // Jobs with settings.denoise only (the server refuses the layer of the others).
-  denoised: { label: "Denoised" },
+  depth: { label: "Depth", colourMap: "viridis", legend: "depth along the viewing axis", needs: { aov: "depth" } },
+  position: { label: "Position", needs: { aov: "position" } },
+  denoised: { label: "Denoised", needs: { denoise: true } },
 };
 
 export const LAYERS: Layer[] = (Object.keys(LAYER_VIEWS) as LayerName[]).map((id) => ({ id, ...LAYER_VIEWS[id] }));
+
+/** The layers a job with these settings has, in the switch's order. */
+export function jobLayers(settings: LayerSettings): Layer[] {
+  const aovs = new Set((settings.aovs ?? "").split(",").map((a) => a.trim()));
+  return LAYERS.filter((l) => {
+    if (!l.needs) return true;
+    return "denoise" in l.needs ? settings.denoise === true : aovs.has(l.needs.aov);
+  });
+}
 
 /** Layers shown with exposure: the radiance ones. */
 const RADIANCE = new Set(["rgb", "denoised"]);
@@ -86,7 +105,7 @@ export class Viewer {
     width: number,
     height: number,
     tileSize: number,
-    denoise = false,
+    settings: LayerSettings = {},
   ) {
     this.tiles = { width, height, size: tileSize };
     this.canvas = h("canvas", { width, height, class: "preview", "aria-label": "Preview of the render", role: "img" });
@@ -100,7 +119,7 @@ export class Viewer {
     this.stage.style.aspectRatio = `${width} / ${height}`;
     this.stage.style.maxWidth = `calc(68vh * ${width / height})`;
 
-    const radios = LAYERS.filter((l) => l.id !== "denoised" || denoise).map((l) =>
+    const radios = jobLayers(settings).map((l) =>
       h(
         "label",
         { class: "seg-option" },

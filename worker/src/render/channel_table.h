@@ -15,8 +15,10 @@ enum class Id : uint8_t {
   Albedo = 2,
   Normal = 3,
   Coverage = 4,
+  Depth = 5,
+  Position = 6,
 };
-constexpr uint32_t kCount = 5;
+constexpr uint32_t kCount = 7;
 
 // The type of a row's values in a result (workers.proto, ValueType).
 enum class Type : uint8_t { F32 = 1, F64 = 2, U32 = 3 };
@@ -35,6 +37,8 @@ constexpr Spec kSpecs[kCount] = {
     {Id::Albedo, "albedo", 3, Type::F32, 16},
     {Id::Normal, "normal", 3, Type::F32, 16},
     {Id::Coverage, "coverage", 1, Type::F32, 0},
+    {Id::Depth, "depth", 1, Type::F32, 1},
+    {Id::Position, "position", 3, Type::F32, 1},
 };
 
 }  // namespace rf::channels
