@@ -387,6 +387,92 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   }
 }
 
+// The batch at sample 0 (one sample long) carries every row whose window holds it, the
+// first-sample rows depth and position among them: one ChannelBlock each, float32, of one and
+// three components a pixel, equal to the local render's rows. Where the first sample hit the
+// floor, its depth is the hit's distance from the camera along the viewing axis (the small
+// scene's camera: at (0, 1, 5), turned 0.2 rad down about x); where it missed, 1e10 and 0.
+TEST(FarmClient, SendsTheFirstSampleDepthAndPositionRows) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::small_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "first-sample";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  // The whole image: the floor below the horizon, nothing above it.
+  pb::Task first = make_task("first", farm.scene_sha, 1);
+  first.set_sample_start(0);
+  first.mutable_rect()->set_x0(0);
+  first.mutable_rect()->set_width(16);
+  first.mutable_rect()->set_height(12);
+  const char* const names[] = {"rgb", "luminance", "albedo", "normal", "coverage", "depth",
+                               "position"};
+  for (const char* name : names) first.add_channels(name);
+  ASSERT_TRUE(farm.assign(first));
+  ASSERT_TRUE(farm.wait_for([&] { return farm.has_result("first"); }));
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  const pb::TileResult* r = nullptr;
+  for (const auto& m : farm.received)
+    if (m.has_result() && m.result().task_id() == "first") r = &m.result();
+  ASSERT_NE(r, nullptr);
+  ASSERT_EQ(r->channels_size(), 7);
+  const size_t pixels = 16 * 12;
+  const uint32_t components[] = {3, 1, 3, 3, 1, 1, 3};
+  for (int k = 0; k < 7; ++k) {
+    const pb::ChannelBlock& b = r->channels(k);
+    EXPECT_EQ(b.name(), names[k]);
+    EXPECT_EQ(b.type(), pb::VALUE_TYPE_F32) << b.name();
+    EXPECT_EQ(b.components(), components[k]) << b.name();
+    EXPECT_EQ(b.data().size(), 4 * components[k] * pixels) << b.name();
+  }
+  const std::vector<float> coverage = unpack_f32_le(r->channels(4).data());
+  const std::vector<float> depth = unpack_f32_le(r->channels(5).data());
+  const std::vector<float> position = unpack_f32_le(r->channels(6).data());
+  ASSERT_EQ(depth.size(), pixels);
+  ASSERT_EQ(position.size(), 3 * pixels);
+  const TileBuffer local = render_locally(farm.scene_bytes, first);
+  EXPECT_EQ(depth, local.sum(channels::Id::Depth));
+  EXPECT_EQ(position, local.sum(channels::Id::Position));
+  const Vec3 eye(0.f, 1.f, 5.f), forward(0.f, -std::sin(0.2f), -std::cos(0.2f));
+  int hits = 0, misses = 0;
+  for (size_t i = 0; i < pixels; ++i) {
+    const Vec3 p(position[3 * i], position[3 * i + 1], position[3 * i + 2]);
+    if (coverage[i] == 0.f) {
+      ++misses;
+      EXPECT_EQ(depth[i], 1e10f) << "pixel " << i;
+      EXPECT_TRUE(p.x == 0.f && p.y == 0.f && p.z == 0.f) << "pixel " << i;
+      continue;
+    }
+    ++hits;
+    EXPECT_NEAR(depth[i], dot(p - eye, forward), 1e-5f * depth[i]) << "pixel " << i;
+    // On the floor (|x|, |z| <= 1 at y = 0), give or take its lines' width.
+    EXPECT_LE(std::fabs(p.x), 1.2f) << "pixel " << i;
+    EXPECT_LE(std::fabs(p.y), 0.2f) << "pixel " << i;
+    EXPECT_LE(std::fabs(p.z), 1.2f) << "pixel " << i;
+  }
+  EXPECT_GT(hits, 10);
+  EXPECT_GT(misses, 10);
+}
+
 // The seed of frame f of a job of seed s, written out from docs/architecture.md,
 // "Determinism" (SplitMix64's output function, applied twice), not taken from the worker.
 // A worker given two servers (--server A,B) serves both: a stream each, under an id each, its

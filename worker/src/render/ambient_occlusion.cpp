@@ -5,19 +5,18 @@
 
 namespace rf {
 
-SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float time,
-                      float tmin, float tmax) {
+SampleResult trace_ao(const Scene& scene, const PathState& camera) {
+  const SampleStream& s = camera.s;
+  const float time = camera.time;
   SampleResult result;
   Hit hit;
   ++result.rays;
   const uint64_t seed = s.sampler->seed(), pixel = s.sampler->pixel();
-  if (!scene.intersect(o, d, tmax, &hit, ray_query(seed, pixel, 0, RayKind::Path), s.index,
-                       tmin, time))
+  if (!scene.intersect(camera.o, camera.d, camera.tmax, &hit,
+                       ray_query(seed, pixel, 0, RayKind::Path), s.index, camera.tmin, time))
     return result;  // background = 0
-  const ShadingPoint sp = make_shading_point(scene, hit, -d);
-  result.albedo = sp.albedo;
-  result.normal = sp.ns;
-  result.depth = hit.t;
+  const ShadingPoint sp = make_shading_point(scene, hit, -camera.d);
+  record_first_hit(sp, hit, camera.per_axial, &result);
   const Vec3 local = sample_cosine_hemisphere(s.get2(dim::bounce(0, dim::kBsdfU)));
   const Vec3 wi = normalize(sp.frame().to_world(local));
   if (dot(wi, sp.ng) <= 0.f) return result;  // below the surface: blocked by it

@@ -17,6 +17,9 @@ constexpr Set bit(Id id) { return Set(1) << uint32_t(id); }
 constexpr const Spec& spec(Id id) { return kSpecs[uint32_t(id)]; }
 // The largest number of components of a row.
 constexpr uint32_t kMaxComponents = 4;
+// The Depth row's value where the camera ray hit nothing: Blender's Depth pass has 1e10 there
+// (the server's BACKGROUND_DEPTH, server/renderfarm/domain/channels.py).
+constexpr float kBackgroundDepth = 1e10f;
 
 // Writes the sample's values of a row render_rect sums in float32, spec(id).components of
 // them: every row but the radiance and its luminance M2, which render_rect sums in double
@@ -35,6 +38,14 @@ inline void sample_values(Id id, const SampleResult& r, float* out) {
     case Id::Coverage:
       // Every integrator sets depth to the camera ray's hit distance (> 0), 0 on a miss.
       out[0] = r.depth > 0.f ? 1.f : 0.f;
+      return;
+    // The first-hit rows of a window of one sample: the server asks for them only in the
+    // batch that starts at sample 0, one sample long, so their sum is the first sample's value.
+    case Id::Depth:
+      out[0] = r.depth > 0.f ? r.z : kBackgroundDepth;
+      return;
+    case Id::Position:
+      for (int c = 0; c < 3; ++c) out[c] = r.depth > 0.f ? r.position[c] : 0.f;
       return;
   }
 }

@@ -30,10 +30,14 @@ struct TileBuffer {
   // The other rows, by channels::Id, summed in float32 (channels::sample_values), their
   // components per pixel (empty when not asked for): albedo (first-hit base colour, 0 on a
   // miss), normal (first-hit shading normal), coverage (samples whose camera ray hit
-  // geometry: an integer count, exact in float32; the alpha).
+  // geometry: an integer count, exact in float32; the alpha), depth (first-hit planar depth
+  // along the viewing axis, channels::kBackgroundDepth on a miss) and position (first-hit
+  // world position, 0 on a miss). Depth and position have a window of one sample: asked for
+  // over the one-sample batch at sample 0, their sum is the first sample's value.
   std::array<std::vector<float>, channels::kCount> sums;
-  std::vector<float> depth_sum;      // 1 per pixel, first-hit distance (0 on miss); not part
-                                     // of the farm's TileResult (standalone EXR only)
+  std::vector<float> depth_sum;      // 1 per pixel, first-hit distance along the camera ray
+                                     // (0 on miss); not the Depth row, and not part of the
+                                     // farm's TileResult (standalone EXR only)
   uint64_t nonfinite_samples = 0;    // samples whose radiance was NaN/Inf, recorded as 0
   uint64_t rays = 0;                 // closest-hit plus shadow rays
 

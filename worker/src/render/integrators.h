@@ -41,11 +41,21 @@ struct RenderSettings {
   std::shared_ptr<const Environment> environment;
 };
 
+// One sample's radiance and what its camera ray hit first (every integrator sets the first-hit
+// fields through record_first_hit, packet_tracer.h).
 struct SampleResult {
   Vec3 radiance;  // may be non-finite; the caller records that as 0
   Vec3 albedo;    // first-hit base color, 0 on a miss
   Vec3 normal;    // first-hit shading normal (world space, unit), 0 on a miss
-  float depth = 0.f;  // distance from the camera (lens point) to the first hit, 0 on a miss
+  // First-hit position in world space (glTF axes), 0 on a miss: the Position row.
+  Vec3 position;
+  // Distance from the camera (lens point) to the first hit along the camera ray, 0 on a miss:
+  // whether the camera ray hit anything (depth > 0), and the standalone EXR's depth.
+  float depth = 0.f;
+  // Planar depth of the first hit: its distance from the camera along the viewing axis (not
+  // along the ray; t dot(d, forward) for the camera ray o + t d), as Blender's Depth pass has
+  // it; 0 on a miss (the Depth row writes channels::kBackgroundDepth there).
+  float z = 0.f;
   uint32_t rays = 0;
 };
 
@@ -64,9 +74,10 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // Renders samples [start, start + count) of every pixel of rect into *out (reset first), for
 // the rows of the channel table in `rows` (a channels::Set; every row by default). Per pixel,
 // samples are accumulated in sample-index order (radiance sums in double, Welford M2 of
-// luminance, the other rows' values in float32). Checks *cancel (if given) between rows and
-// returns false as soon as it is set; *out is then incomplete. The request must pass
-// validate_render_request.
+// luminance, the other rows' values in float32; the first-sample rows depth and position too,
+// which over the one-sample batch at sample 0 are that sample's values). Checks *cancel (if
+// given) between rows and returns false as soon as it is set; *out is then incomplete. The
+// request must pass validate_render_request.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel = nullptr,

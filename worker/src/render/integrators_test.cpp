@@ -555,8 +555,8 @@ uint64_t double_bits(double x) {
 // render_rect (sixteen samples of a pixel traced together, their BSDF values, light-sample
 // geometry and MIS weights computed four lanes at a time) gives exactly the sums of
 // trace_sample_reference (one path at a time, scalar code), for every sampler and integrator,
-// with an environment map and a thin lens: every radiance sum, luminance M2, AOV sum and ray
-// count equal to the last bit.
+// with an environment map and a thin lens: every radiance sum, luminance M2, AOV sum (the
+// first-hit depth and position too) and ray count equal to the last bit.
 void expect_packet_tracer_equals_the_scalar_reference(const std::unique_ptr<Scene>& scene) {
   // A sky brighter towards +y with a small hot spot, so that environment sampling matters.
   const uint32_t w = 32, h = 16;
@@ -605,6 +605,9 @@ void expect_packet_tracer_equals_the_scalar_reference(const std::unique_ptr<Scen
         const PixelSampler pixel(sampler, uint64_t(y) * settings.width + x);
         double sum[3] = {0.0, 0.0, 0.0};
         float albedo[3] = {0.f, 0.f, 0.f}, normal[3] = {0.f, 0.f, 0.f}, depth = 0.f;
+        // The Depth and Position rows (their window aside: render_rect sums what it is asked
+        // for): the planar depth, 1e10 on a miss, and the position, 0 on a miss.
+        float planar = 0.f, position[3] = {0.f, 0.f, 0.f};
         RunningStats luminance;
         for (uint32_t k = 0; k < count; ++k) {
           const SampleResult r =
@@ -615,8 +618,10 @@ void expect_packet_tracer_equals_the_scalar_reference(const std::unique_ptr<Scen
             sum[ch] += double(r.radiance[ch]);
             albedo[ch] += r.albedo[ch];
             normal[ch] += r.normal[ch];
+            position[ch] += r.depth > 0.f ? r.position[ch] : 0.f;
           }
           depth += r.depth;
+          planar += r.depth > 0.f ? r.z : 1e10f;
           luminance.add(0.2126 * double(r.radiance.x) + 0.7152 * double(r.radiance.y) +
                         0.0722 * double(r.radiance.z));
         }
@@ -626,7 +631,9 @@ void expect_packet_tracer_equals_the_scalar_reference(const std::unique_ptr<Scen
               << "pixel " << x << "," << y << " channel " << ch;
           ASSERT_EQ(tile.sum(channels::Id::Albedo)[3 * i + ch], albedo[ch]);
           ASSERT_EQ(tile.sum(channels::Id::Normal)[3 * i + ch], normal[ch]);
+          ASSERT_EQ(tile.sum(channels::Id::Position)[3 * i + ch], position[ch]);
         }
+        ASSERT_EQ(tile.sum(channels::Id::Depth)[i], planar);
         ASSERT_EQ(double_bits(tile.luminance_m2[i]), double_bits(luminance.m2));
         ASSERT_EQ(tile.depth_sum[i], depth);
       }

@@ -72,11 +72,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   if (in_medium) p.beta *= transmittance(p.medium, hit->t);
   const Vec3 wo = -d;
   ShadingPoint sp = make_shading_point(scene, *hit, wo);
-  if (bounce == 0) {
-    result.albedo = sp.albedo;
-    result.normal = sp.ns;
-    result.depth = hit->t;
-  }
+  if (bounce == 0) record_first_hit(sp, *hit, p.per_axial, &result);
   // Emission: the front (counter-clockwise) face emits, and the back of a double-sided one.
   const Material& hit_material = scene.materials()[hit->material];
   const float cos_emit = emitting_cosine(hit_material, hit->ng, wo);
@@ -343,7 +339,8 @@ inline __attribute__((always_inline)) void camera_ray(const Camera& cam,
     p.d = normalize(p_focus - p.o);
     per_axial = 1.f / dot(p.d, cam.forward);
   }
-  // The clipping planes are distances along the viewing axis.
+  // The clipping planes are distances along the viewing axis, and so is the first hit's depth.
+  p.per_axial = per_axial;
   p.tmin = cam.znear * per_axial;
   p.tmax = cam.zfar * per_axial;
   p.alive = true;
@@ -389,7 +386,7 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
   if (settings.integrator == IntegratorType::AmbientOcclusion) {
     for (uint32_t k = 0; k < n; ++k) {
       const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
-      out[k] = trace_ao(scene, p.s, p.o, p.d, p.time, p.tmin, p.tmax);
+      out[k] = trace_ao(scene, p);
     }
     return;
   }

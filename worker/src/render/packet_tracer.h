@@ -22,6 +22,10 @@ struct PathState {
   SampleResult result;  // radiance accumulates here
   Vec3 o, d;            // the ray of the next bounce
   float tmin = 0.f, tmax = kInfinity;  // the camera ray's range (its clipping planes)
+  // The camera ray's distance per unit distance along the camera's viewing axis
+  // (1 / dot(d, forward); 1 for an orthographic camera): the first hit's planar depth is its
+  // distance divided by this.
+  float per_axial = 1.f;
   float time = 0.f;  // motion blur: where in the shutter every ray of the path is, in [0, 1]
   Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
   float wavelength = 0.f;     // nm, from the first dispersive vertex on (0: none yet)
@@ -80,15 +84,24 @@ inline void disperse(PathState& p, const BounceSamples& u, BsdfParams* params) {
   params->ior = dispersion_ior(params->ior, params->dispersion, p.wavelength);
 }
 
+// The first hit of a sample (its camera ray's, bounce 0) into *r, for every integrator alike:
+// the albedo and normal, the hit distance, and the planar depth and world position of the Depth
+// and Position rows. per_axial: PathState::per_axial of the camera ray.
+inline void record_first_hit(const ShadingPoint& sp, const Hit& hit, float per_axial,
+                             SampleResult* r) {
+  r->albedo = sp.albedo;
+  r->normal = sp.ns;
+  r->depth = hit.t;
+  r->z = hit.t / per_axial;
+  r->position = hit.p;
+}
+
 // The number of bounces of a path: max_depth, or at most 1 for the direct integrator.
 uint32_t path_max_depth(const RenderSettings& settings);
 
-// Ambient occlusion of one sample whose camera ray is o + t d, t in (tmin, tmax), at time
-// `time` in the shutter
-// (src/render/ambient_occlusion.cpp).
-SampleResult trace_ao(const Scene& scene, const SampleStream& s, Vec3 o, Vec3 d, float time,
-                      float tmin,
-                      float tmax);
+// Ambient occlusion of one sample whose path start_path made: its camera ray o + t d, t in
+// (tmin, tmax), at its time in the shutter (src/render/ambient_occlusion.cpp).
+SampleResult trace_ao(const Scene& scene, const PathState& camera);
 
 // Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,

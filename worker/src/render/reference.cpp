@@ -73,7 +73,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
   const TraceContext ctx(scene, settings);
   PathState p = start_path(ctx, scene, settings, sampler, x, y, index);
   if (settings.integrator == IntegratorType::AmbientOcclusion)
-    return trace_ao(scene, p.s, p.o, p.d, p.time, p.tmin, p.tmax);
+    return trace_ao(scene, p);
   const LightContext& lc = ctx.lights;
   const uint32_t max_depth = path_max_depth(settings);
   SampleResult& result = p.result;
@@ -110,11 +110,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     const Hit& hit = hits[0];
     if (!is_zero(p.medium)) p.beta *= transmittance(p.medium, hit.t);
     ShadingPoint sp = make_shading_point(scene, hit, wo);
-    if (bounce == 0) {
-      result.albedo = sp.albedo;
-      result.normal = sp.ns;
-      result.depth = hit.t;
-    }
+    if (bounce == 0) record_first_hit(sp, hit, p.per_axial, &result);
     const Material& hit_material = scene.materials()[hit.material];
     const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
     if (hit_material.unlit) {  // as in the packet tracer
