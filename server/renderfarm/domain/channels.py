@@ -63,6 +63,8 @@ class Display(StrEnum):
     # Each component normalised to its range over the pixels the camera ray hit (a position);
     # black where it missed.
     RANGE = "range"
+    # An integer label: a colour of its own for each value (a hash of it), black for 0.
+    LABEL = "label"
 
 
 @dataclass(frozen=True)
@@ -268,6 +270,55 @@ CHANNELS: tuple[Channel, ...] = (
         wire_components=3,
     ),
     Channel(
+        "instance",
+        "the glTF node of the first sample's first hit, plus one (0: none), uint32",
+        Accumulate.FIRST,
+        "instance",
+        (Array("instance_id", "<u4"),),
+        (
+            Layer(
+                "instance",
+                ("instance.id",),
+                "Instance",
+                "instance segmentation: the index in the glTF's `nodes` of the node whose mesh "
+                "(or points or lines) the first hit of each pixel's first sample is on, plus "
+                "one; 0 where the ray hit nothing. An integer, exact in the EXR's float32 "
+                "(indices below 2^24)",
+                Display.LABEL,
+            ),
+        ),
+        window=1,
+        setting="aovs",
+        aov="ids",
+        wire_components=1,
+        wire_type="<u4",
+    ),
+    Channel(
+        "material",
+        "the glTF material of the first sample's first hit, plus one (0: none), uint32",
+        Accumulate.FIRST,
+        "material",
+        (Array("material_id", "<u4"),),
+        (
+            Layer(
+                "material",
+                ("material.id",),
+                "Material",
+                "material segmentation: the index in the glTF's `materials` of the material "
+                "the first hit of each pixel's first sample is rendered with (the selected "
+                "variant's, KHR_materials_variants), plus one; 0 where the ray hit nothing or "
+                "the primitive has no material (glTF's default material). An integer, exact "
+                "in the EXR's float32",
+                Display.LABEL,
+            ),
+        ),
+        window=1,
+        setting="aovs",
+        aov="ids",
+        wire_components=1,
+        wire_type="<u4",
+    ),
+    Channel(
         "denoised",
         "Open Image Denoise of the radiance with the albedo and normal as guides, at output",
         Accumulate.DERIVED,
@@ -318,8 +369,9 @@ _check_table()
 
 
 # ----------------------------------------------------------------------------- the layout
-# The names the job setting `aovs` takes, in table order.
-AOV_NAMES = tuple(c.aov for c in CHANNELS if c.aov)
+# The names the job setting `aovs` takes, in table order (a name may turn on several rows:
+# `ids` the instance and the material rows).
+AOV_NAMES = tuple(dict.fromkeys(c.aov for c in CHANNELS if c.aov))
 ARRAYS = {a.name: a for c in CHANNELS for a in c.store}  # every array the table knows
 WIRE = tuple(c for c in CHANNELS if c.wire_components)  # the rows results can carry
 

@@ -17,8 +17,10 @@ enum class Id : uint8_t {
   Coverage = 4,
   Depth = 5,
   Position = 6,
+  Instance = 7,
+  Material = 8,
 };
-constexpr uint32_t kCount = 7;
+constexpr uint32_t kCount = 9;
 
 // The type of a row's values in a result (workers.proto, ValueType).
 enum class Type : uint8_t { F32 = 1, F64 = 2, U32 = 3 };
@@ -39,6 +41,8 @@ constexpr Spec kSpecs[kCount] = {
     {Id::Coverage, "coverage", 1, Type::F32, 0},
     {Id::Depth, "depth", 1, Type::F32, 1},
     {Id::Position, "position", 3, Type::F32, 1},
+    {Id::Instance, "instance", 1, Type::U32, 1},
+    {Id::Material, "material", 1, Type::U32, 1},
 };
 
 }  // namespace rf::channels
