@@ -31,7 +31,11 @@ EVERY = channels.layout_for(channels.AOV_NAMES)  # a job with every output of `a
 def _outputs(rng, layout: channels.Layout, start: int) -> dict[str, np.ndarray]:
     """Random sums of the layout's output rows a batch starting at `start` carries."""
     return {
-        c.wire: (rng.random((H, W, c.wire_components)) * 10 - 3).astype(np.float32)
+        c.wire: (
+            rng.integers(0, 2**24, (H, W, c.wire_components), dtype=np.uint32)
+            if c.wire_type == "<u4"
+            else (rng.random((H, W, c.wire_components)) * 10 - 3).astype(np.float32)
+        )
         for c in layout.wire_rows_for(start)
         if c.name not in channels.DEFAULT.names
     }
@@ -188,6 +192,11 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
     if acc.position is not None:
         for i, axis in enumerate("XYZ"):
             rows[f"position.{axis}"] = acc.position[..., i]
+    # Labels: the integers, exact in float32 below 2^24.
+    if acc.instance_id is not None:
+        rows["instance.id"] = acc.instance_id
+    if acc.material_id is not None:
+        rows["material.id"] = acc.material_id
     return rows[name].astype(np.float32)
 
 
@@ -286,8 +295,10 @@ def test_the_workers_header_is_the_generated_one():
     header = ROOT / "worker" / "src" / "render" / "channel_table.h"
     assert header.read_text() == channels.cpp_header(), "stale: run `make channels`"
     # Every row a result carries is in it, by name, with its components and window.
+    types = {"<f4": "F32", "<u4": "U32"}
     for c in channels.WIRE:
-        assert f'"{c.name}", {c.wire_components}, Type::F32, {c.window}}}' in header.read_text()
+        row = f'"{c.name}", {c.wire_components}, Type::{types[c.wire_type]}, {c.window}}}'
+        assert row in header.read_text()
 
 
 def _result(rows, start: int = 0, **change):
@@ -301,8 +312,10 @@ def _result(rows, start: int = 0, **change):
     )  # fmt: skip
     for name, values in rows.items():
         row = channels.BY_NAME.get(name)
-        block = msg.channels.add(name=name, type=1, components=row.wire_components if row else 1)
-        block.data = np.asarray(values, "<f4").tobytes()
+        dtype = row.wire_type if row else "<f4"
+        block = msg.channels.add(name=name, type={"<f4": 1, "<u4": 3}[dtype],
+                                 components=row.wire_components if row else 1)  # fmt: skip
+        block.data = np.asarray(values, dtype).tobytes()
     for name, fields in change.items():
         block = next(b for b in msg.channels if b.name == name)
         for key, value in fields.items():
@@ -311,7 +324,8 @@ def _result(rows, start: int = 0, **change):
 
 
 def _values(name: str, pixels: int = 8) -> np.ndarray:
-    return np.arange(pixels * channels.BY_NAME[name].wire_components, dtype="<f4") + len(name)
+    row = channels.BY_NAME[name]
+    return np.arange(pixels * row.wire_components, dtype=row.wire_type) + len(name)
 
 
 def test_results_decode_by_their_blocks_and_the_table_refuses_the_rest():
@@ -352,7 +366,7 @@ def test_aovs_name_the_outputs_a_job_turns_on():
     assert parse_settings({"aovs": " Depth, depth "}).aovs == "depth"
     assert parse_settings({}).aovs == ""
     refusals = [
-        (["depth", "zz"], "unknown output 'zz'; known: depth, position"),
+        (["depth", "zz"], "unknown output 'zz'; known: depth, position, ids"),
         (7, "must be a list of names"),
         ([1], "must be a list of names"),
     ]
@@ -363,6 +377,10 @@ def test_aovs_name_the_outputs_a_job_turns_on():
     layout = channels.job_layout(parse_settings({"aovs": "position"}))
     assert "position" in layout.names and "depth" not in layout.names
     assert channels.job_layout(parse_settings({})) == channels.DEFAULT
+    # One name may turn on several rows: `ids` the instance and the material labels.
+    layout = channels.job_layout(parse_settings({"aovs": ["ids"]}))
+    assert {"instance", "material"} <= set(layout.names) and "depth" not in layout.names
+    assert set(layout.layers()) >= {"instance", "material"}
     assert "denoised" in channels.layout_for((), denoise=True).layers()
 
 
@@ -373,11 +391,14 @@ def test_outputs_add_their_arrays_to_the_memory_estimate_and_the_limit_counts_th
     acc = TileAccumulator(W, H, layout=EVERY)
     assert acc.depth.dtype == np.float32 and acc.depth.shape == (H, W)
     assert acc.position.dtype == np.float32 and acc.position.shape == (H, W, 3)
-    # 76 bytes of the rows every job has, a float32 depth and three float32 position values.
-    assert acc.nbytes == (76 + 4 + 12) * W * H
+    assert acc.instance_id.dtype == np.uint32 and acc.material_id.shape == (H, W)
+    # 76 bytes of the rows every job has, a float32 depth, three float32 position values and
+    # two uint32 labels.
+    assert acc.nbytes == (76 + 4 + 12 + 4 + 4) * W * H
     assert TileAccumulator(W, H).depth is None
     assert jobspec.job_memory_bytes(64, 64, 64, "depth,position") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "depth") == 80 * 64 * 64 + 4096
+    assert jobspec.job_memory_bytes(64, 64, 64, "ids") == 84 * 64 * 64 + 4096
     # 1024 x 1024 in 256 tiles: 80.7 MB without outputs, 97.5 MB with both; the limit between.
     limits = Limits(max_job_memory_bytes=85 * 2**20)
     parse_settings({"width": 1024, "height": 1024}, limits)
@@ -406,7 +427,10 @@ def test_checkpoints_of_a_job_with_outputs_round_trip_and_refuse_another_layout(
     acc = merged(layout=EVERY)
     aovs = acc.aovs_to_bytes()
     _, arrays, _, _ = channels.read_header(aovs, "test")
-    assert [a.name for a in arrays] == ["albedo_sum", "normal_sum", "depth", "position"]
+    assert [a.name for a in arrays] == [
+        "albedo_sum", "normal_sum", "depth", "position", "instance_id", "material_id",
+    ]  # fmt: skip
+    assert [a.dtype for a in arrays][-2:] == ["<u4", "<u4"]
     back = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches,
                                       aovs=aovs, layout=EVERY)  # fmt: skip
     for name in EVERY.array_names():
@@ -420,7 +444,7 @@ def test_a_spill_slot_of_a_job_with_outputs_holds_them(tmp_path):
     acc = merged(layout=EVERY)
     want = {name: getattr(acc, name).copy() for name in EVERY.array_names()}
     cache.register("j", acc, 8)
-    assert acc.spill.home.slot_bytes == 92 * 8 * 8
+    assert acc.spill.home.slot_bytes == 100 * 8 * 8
     cache.register("j", merged(1, layout=EVERY), 8)  # evicts the first
     assert not acc.resident
     ref = acc.snapshot(("depth", "position"))
@@ -446,7 +470,8 @@ def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
     assert "depth" not in _task_channels_for(JobSettings(), 0)
     every = {c.name: _values(c.name) for c in EVERY.wire_rows_for(0)}
     r = decode_result(_result(every))
-    assert set(r.extra) == {"depth", "position"}
+    assert set(r.extra) == {"depth", "position", "instance", "material"}
+    assert r.extra["instance"].dtype == np.dtype("<u4")
     assert np.array_equal(r.extra["position"], every["position"])
     # The scheduler merges them, and refuses a first batch without one (or with a NaN).
     sched = Scheduler()

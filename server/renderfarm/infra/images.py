@@ -123,6 +123,19 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
+def label_colours(labels: np.ndarray) -> np.ndarray:
+    """Linear RGB (..., 3) float64 of integer labels: black for 0, else a colour of the label's
+    own (its hue the fractional part of label x the golden ratio, so that neighbouring labels
+    differ most; saturation 0.65, value 0.95 after sRGB encoding)."""
+    hue = np.mod(labels.astype(np.float64) * 0.6180339887498949, 1.0) * 6.0
+    # HSV to RGB: each channel's distance to its sector, clipped.
+    k = np.mod(np.array([5.0, 3.0, 1.0]) + hue[..., None], 6.0)
+    f = 0.95 - 0.95 * 0.65 * np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
+    # Decode sRGB (IEC 61966-2-1), so that the PNG's encoding gives back f.
+    linear = np.where(f <= 0.04045, f / 12.92, ((f + 0.055) / 1.055) ** 2.4)
+    return np.where(labels[..., None] > 0, linear, 0.0)
+
+
 def _outputs_band(width: int, height: int, tiles: Band, rows: tuple) -> np.ndarray:
     """The EXR channels of the output rows (output_rows) of a band, float32 (height, width,
     their components): each row's mean over its window (zeros where nothing is merged)."""
@@ -203,6 +216,8 @@ def _display_tile(layer: str, acc: TileAccumulator | None, top: float, h: int, w
         return np.repeat(grey[..., None], 3, axis=-1)
     if _DISPLAY[layer] is Display.RANGE:
         return acc.mean_of(channels.layer_channel(layer)) / (2.0 * top) + 0.5
+    if _DISPLAY[layer] is Display.LABEL:
+        return label_colours(getattr(acc, channels.layer_channel(layer).store[0].name))
     if layer == "rgb":
         return acc.rgb_sum / acc.samples
     if layer == "albedo":

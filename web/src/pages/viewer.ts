@@ -48,6 +48,8 @@ const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
   normal: { label: "Normal" },
   depth: { label: "Depth", colourMap: "viridis", legend: "depth along the viewing axis", needs: { aov: "depth" } },
   position: { label: "Position", needs: { aov: "position" } },
+  instance: { label: "Instance", needs: { aov: "ids" } },
+  material: { label: "Material", needs: { aov: "ids" } },
   denoised: { label: "Denoised", needs: { denoise: true } },
 };
 
