@@ -366,6 +366,13 @@ class Client:
         url = f"/api/v1/jobs/{job_id}/frames/{frame}/camera.json"
         return self._check(self.http.get(url)).json()
 
+    def pixel_mattes(self, job_id: str, x: int, y: int, frame: int = 0) -> dict[str, Any]:
+        """What pixel (x, y) of an image's Cryptomatte holds (a job with settings.aovs naming
+        cryptomatte; docs/usage.md, "Outputs"): objects, materials and assets, each a list of
+        {name, id, coverage} by coverage, and the pixel's samples. A still's is frame 0."""
+        url = f"/api/v1/jobs/{job_id}/frames/{frame}/mattes"
+        return self._check(self.http.get(url, params={"x": x, "y": y})).json()
+
     def frame_image(self, job_id: str, frame: int, fmt: str = "png", **options: Any) -> bytes:
         """One frame of an animation job, or one variant (by index) of a job of every variant
         (image()'s options: layer, max_size, compression)."""

@@ -13,7 +13,7 @@ import pytest
 
 from renderfarm.cli.commands import EXR_LAYER_CHANNELS
 from renderfarm.cli.parser import build_parser
-from renderfarm.domain import channels, jobspec
+from renderfarm.domain import channels, cryptomatte, jobspec
 from renderfarm.domain.channels import Accumulate
 from renderfarm.domain.merge import TileAccumulator
 from renderfarm.domain.tiling import Rect
@@ -32,13 +32,29 @@ def _outputs(rng, layout: channels.Layout, start: int) -> dict[str, np.ndarray]:
     """Random sums of the layout's output rows a batch starting at `start` carries."""
     return {
         c.wire: (
-            rng.integers(0, 2**24, (H, W, c.wire_components), dtype=np.uint32)
+            _ranked(rng, c.wire_components // 2)
+            if c.accumulate is Accumulate.RANKED
+            else rng.integers(0, 2**24, (H, W, c.wire_components), dtype=np.uint32)
             if c.wire_type == "<u4"
             else (rng.random((H, W, c.wire_components)) * 10 - 3).astype(np.float32)
         )
         for c in layout.wire_rows_for(start)
         if c.name not in channels.DEFAULT.names
     }
+
+
+def _ranked(rng, ranks: int) -> np.ndarray:
+    """Ranked (label, count) pairs as a worker sends them: distinct labels 1..5 (1..3 of
+    them a pixel), random counts, by count descending (then label), empty slots (0, 0)."""
+    out = np.zeros((H, W, 2 * ranks), np.uint32)
+    for j in range(H):
+        for i in range(W):
+            labels = rng.choice(np.arange(1, 6), rng.integers(1, 4), replace=False)
+            pairs = sorted(((int(rng.integers(1, 9)), int(k)) for k in labels),
+                           key=lambda p: (-p[0], p[1]))  # fmt: skip
+            for r, (count, label) in enumerate(pairs):
+                out[j, i, 2 * r : 2 * r + 2] = (label, count)
+    return out
 
 
 def merged(
@@ -197,7 +213,59 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
         rows["instance.id"] = acc.instance_id
     if acc.material_id is not None:
         rows["material.id"] = acc.material_id
+    if name.startswith("Crypto"):
+        return _expected_crypto(name, acc)
     return rows[name].astype(np.float32)
+
+
+# The document of the Cryptomatte names in these tests: nodes 0..4 (labels 1..5), node 1 the
+# parent of nodes 2 and 3 (one asset), node 4 unnamed; materials 0..4, material 3 unnamed.
+CRYPTO_DOC = {
+    "nodes": [{"name": "a"}, {"name": "b", "children": [2, 3]}, {"name": "c"}, {"name": "d"},
+              {}],
+    "materials": [{"name": "m0"}, {"name": "m1"}, {"name": "m2"}, {}, {"name": "m4"}],
+}  # fmt: skip
+
+
+def _murmur_id(name: str) -> float:
+    """The Cryptomatte specification's uint32_to_float32 of MurmurHash3_32 (mmh3), written out
+    as its sample code does: the exponent clamped to 1..254."""
+    import mmh3
+
+    h = mmh3.hash(name, 0, signed=False)
+    exponent = min(max((h >> 23) & 255, 1), 254)
+    bits = (h & (1 << 31)) | (exponent << 23) | (h & ((1 << 23) - 1))
+    return struct.unpack("<f", struct.pack("<I", bits))[0]
+
+
+def _expected_crypto(name: str, acc: TileAccumulator) -> np.ndarray:
+    """A Cryptomatte channel per pixel in plain Python: the row's pairs (CryptoAsset: summed by
+    root node), ranked by coverage, each label's name hashed."""
+    kind, level, channel = name[:-4], int(name[-4:-2]), name[-1]
+    rank = 2 * level + (channel in "BA")
+    nodes, materials = CRYPTO_DOC["nodes"], CRYPTO_DOC["materials"]
+    node_names = [n.get("name", f"nodes[{i}]") for i, n in enumerate(nodes)]
+    root = {1: 1, 2: 1, 3: 1}  # node -> root node (nodes 2 and 3 are node 1's children)
+    pairs = acc.crypto_material if kind == "CryptoMaterial" else acc.crypto_object
+    out = np.zeros((H, W), np.float32)
+    for j in range(H):
+        for i in range(W):
+            counts: dict[int, int] = {}  # by index (of the root node, for CryptoAsset)
+            for r in range(channels.CRYPTO_RANKS):
+                label, count = (int(v) for v in pairs[j, i, 2 * r : 2 * r + 2])
+                if label:
+                    index = root.get(label - 1, label - 1) if kind == "CryptoAsset" else label - 1
+                    counts[index] = counts.get(index, 0) + count
+            # Ranked by count, ties by index (the farm's order).
+            ranked = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+            if rank < len(ranked):
+                index, count = ranked[rank]
+                key = (
+                    materials[index].get("name", f"materials[{index}]")
+                    if kind == "CryptoMaterial" else node_names[index]
+                )  # fmt: skip
+                out[j, i] = _murmur_id(key) if channel in "RB" else count / acc.samples
+    return out
 
 
 def test_the_exr_has_the_tables_channels_in_its_order_with_their_values(tmp_path):
@@ -226,7 +294,8 @@ def test_the_exr_has_the_tables_channels_in_its_order_with_their_values(tmp_path
     # A job with every output: the layout's channels, each with its values.
     acc = merged(layout=EVERY)
     path = tmp_path / "o.exr"
-    writer = ImageWriter(str(path), "exr", W, H, layout=EVERY)
+    crypto = cryptomatte.Names.of(CRYPTO_DOC)
+    writer = ImageWriter(str(path), "exr", W, H, layout=EVERY, crypto=crypto)
     writer.write_band(H, [(Rect(0, 0, W, H), acc)], True)
     writer.close()
     names = oiio.ImageInput.open(str(path)).spec().channelnames
@@ -297,7 +366,8 @@ def test_the_workers_header_is_the_generated_one():
     # Every row a result carries is in it, by name, with its components and window.
     types = {"<f4": "F32", "<u4": "U32"}
     for c in channels.WIRE:
-        row = f'"{c.name}", {c.wire_components}, Type::{types[c.wire_type]}, {c.window}}}'
+        ranked = "true" if c.accumulate is Accumulate.RANKED else "false"
+        row = f'"{c.name}", {c.wire_components}, Type::{types[c.wire_type]}, {c.window}, {ranked}}}'
         assert row in header.read_text()
 
 
@@ -392,13 +462,15 @@ def test_outputs_add_their_arrays_to_the_memory_estimate_and_the_limit_counts_th
     assert acc.depth.dtype == np.float32 and acc.depth.shape == (H, W)
     assert acc.position.dtype == np.float32 and acc.position.shape == (H, W, 3)
     assert acc.instance_id.dtype == np.uint32 and acc.material_id.shape == (H, W)
-    # 76 bytes of the rows every job has, a float32 depth, three float32 position values and
-    # two uint32 labels.
-    assert acc.nbytes == (76 + 4 + 12 + 4 + 4) * W * H
+    assert acc.crypto_object.dtype == np.uint32 and acc.crypto_object.shape == (H, W, 12)
+    # 76 bytes of the rows every job has, a float32 depth, three float32 position values, two
+    # uint32 labels and two Cryptomatte rows of six (label, count) uint32 pairs.
+    assert acc.nbytes == (76 + 4 + 12 + 4 + 4 + 2 * 48) * W * H
     assert TileAccumulator(W, H).depth is None
     assert jobspec.job_memory_bytes(64, 64, 64, "depth,position") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "depth") == 80 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "ids") == 84 * 64 * 64 + 4096
+    assert jobspec.job_memory_bytes(64, 64, 64, "cryptomatte") == 172 * 64 * 64 + 4096
     # 1024 x 1024 in 256 tiles: 80.7 MB without outputs, 97.5 MB with both; the limit between.
     limits = Limits(max_job_memory_bytes=85 * 2**20)
     parse_settings({"width": 1024, "height": 1024}, limits)
@@ -435,7 +507,7 @@ def test_checkpoints_of_a_job_with_outputs_round_trip_and_refuse_another_layout(
                                       aovs=aovs, layout=EVERY)  # fmt: skip
     for name in EVERY.array_names():
         assert getattr(back, name).tobytes() == getattr(acc, name).tobytes(), name
-    with pytest.raises(ValueError, match="array depth belongs to no row the job's settings"):
+    with pytest.raises(ValueError, match="array [a-z_]+ belongs to no row the job's settings"):
         TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches, aovs=aovs)
 
 
@@ -444,7 +516,7 @@ def test_a_spill_slot_of_a_job_with_outputs_holds_them(tmp_path):
     acc = merged(layout=EVERY)
     want = {name: getattr(acc, name).copy() for name in EVERY.array_names()}
     cache.register("j", acc, 8)
-    assert acc.spill.home.slot_bytes == 100 * 8 * 8
+    assert acc.spill.home.slot_bytes == 196 * 8 * 8
     cache.register("j", merged(1, layout=EVERY), 8)  # evicts the first
     assert not acc.resident
     ref = acc.snapshot(("depth", "position"))
@@ -470,7 +542,9 @@ def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
     assert "depth" not in _task_channels_for(JobSettings(), 0)
     every = {c.name: _values(c.name) for c in EVERY.wire_rows_for(0)}
     r = decode_result(_result(every))
-    assert set(r.extra) == {"depth", "position", "instance", "material"}
+    assert set(r.extra) == {
+        "depth", "position", "instance", "material", "crypto_object", "crypto_material",
+    }  # fmt: skip
     assert r.extra["instance"].dtype == np.dtype("<u4")
     assert np.array_equal(r.extra["position"], every["position"])
     # The scheduler merges them, and refuses a first batch without one (or with a NaN).

@@ -117,6 +117,10 @@ export const workers = () => request<Worker[]>(`${BASE}/workers`);
 export const controlWorker = (id: string, action: "drain" | "disable" | "enable") =>
   request<Worker>(`${BASE}/workers/${encodeURIComponent(id)}/${action}`, { method: "POST" });
 export const listFrames = (id: string) => request<Frame[]>(`${BASE}/jobs/${encodeURIComponent(id)}/frames`);
+/** What pixel (x, y) of an image's Cryptomatte holds (a still's image is frame 0). */
+export type PixelMattes = Schemas["PixelMattes"];
+export const pixelMattes = (id: string, frame: number, x: number, y: number) =>
+  request<PixelMattes>(`${BASE}/jobs/${encodeURIComponent(id)}/frames/${frame}/mattes?x=${x}&y=${y}`);
 export const convergence = (id: string) =>
   request<ConvergencePoint[]>(`${BASE}/jobs/${encodeURIComponent(id)}/convergence`);
 

@@ -75,3 +75,21 @@ export function noiseTargetShortfall(job: Outcome, stops: { reason: string | nul
   const error = job.progress.error === null ? "" : `; image error ${percent(job.progress.error)}`;
   return `Completed without reaching the noise target of ${percent(target)}: ${total - converged} of ${total} tiles stopped before it, ${parts.join(", ")}${error}.`;
 }
+
+/** One ranked name of a pixel's Cryptomatte (`GET .../frames/{n}/mattes`). */
+export interface MatteEntry {
+  name: string;
+  coverage: number;
+}
+
+/** A pixel's Cryptomatte as the viewer's pointer line says it: the node covering most of it
+ *  with its share of the samples, any others of the pixel, then its material and root node
+ *  ("nothing" where no sample hit anything). */
+export function matteText(m: { objects: MatteEntry[]; materials: MatteEntry[]; assets: MatteEntry[] }): string {
+  const share = (e: MatteEntry) => `${e.name} (${Math.round(e.coverage * 100)}%)`;
+  if (m.objects.length === 0) return "nothing";
+  const parts = [`object ${m.objects.map(share).join(", ")}`];
+  if (m.materials.length) parts.push(`material ${share(m.materials[0])}`);
+  if (m.assets.length && m.assets[0].name !== m.objects[0].name) parts.push(`asset ${share(m.assets[0])}`);
+  return parts.join(" · ");
+}

@@ -4,7 +4,7 @@
 import assert from "node:assert/strict";
 import { describe, test } from "node:test";
 
-import { layerScale, noiseTargetShortfall, pngText, scaleValue } from "../src/outputs";
+import { layerScale, matteText, noiseTargetShortfall, pngText, scaleValue } from "../src/outputs";
 
 function chunk(type: string, data: number[]): number[] {
   const n = data.length;
@@ -80,5 +80,21 @@ describe("noiseTargetShortfall", () => {
     assert.equal(noiseTargetShortfall(job("completed", 0), stops(0, 16, 0)), null);
     assert.equal(noiseTargetShortfall(job("running", 0.02), stops(3, 1, 0)), null);
     assert.equal(noiseTargetShortfall(job("cancelled", 0.02), stops(3, 1, 0)), null);
+  });
+});
+
+describe("matteText", () => {
+  test("the node covering most of the pixel first, its material and root node", () => {
+    const m = {
+      objects: [{ name: "wheel", coverage: 0.625 }, { name: "road", coverage: 0.25 }],
+      materials: [{ name: "rubber", coverage: 0.625 }],
+      assets: [{ name: "car", coverage: 0.625 }],
+    };
+    assert.equal(matteText(m), "object wheel (63%), road (25%) · material rubber (63%) · asset car (63%)");
+  });
+  test("a node that is its own root is not named twice; nothing hit", () => {
+    const lamp = [{ name: "lamp", coverage: 1 }];
+    assert.equal(matteText({ objects: lamp, materials: [], assets: lamp }), "object lamp (100%)");
+    assert.equal(matteText({ objects: [], materials: [], assets: [] }), "nothing");
   });
 });

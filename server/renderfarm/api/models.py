@@ -105,6 +105,23 @@ class FrameCamera(BaseModel):
     )
 
 
+class Matte(BaseModel):
+    name: str = Field(description="the glTF node's, material's or root node's name")
+    id: str = Field(description="its Cryptomatte ID: 8 hex digits of the float's bits")
+    coverage: float = Field(description="the share of the pixel's samples whose first hit it is")
+
+
+class PixelMattes(BaseModel):
+    """What a pixel of a job's Cryptomatte holds (docs/usage.md, "Cryptomatte")."""
+
+    x: int
+    y: int
+    samples: int = Field(description="samples merged into the pixel so far")
+    objects: list[Matte] = Field(description="CryptoObject: glTF nodes, by coverage")
+    materials: list[Matte] = Field(description="CryptoMaterial: glTF materials, by coverage")
+    assets: list[Matte] = Field(description="CryptoAsset: root nodes, by coverage")
+
+
 class Job(BaseModel):
     id: str
     name: str

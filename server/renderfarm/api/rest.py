@@ -46,6 +46,7 @@ from .models import (
     JobDetail,
     JobEvent,
     JobPage,
+    PixelMattes,
     ReplicaInfo,
     SceneInfo,
     SettingDoc,
@@ -458,6 +459,23 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
     )
     async def frame_camera(job_id: str, frame: int, who: Caller = Auth) -> dict[str, Any]:
         return await farm.frame_camera(apicommon.job_id(job_id), frame, who)
+
+    @app.get(
+        "/api/v1/jobs/{job_id}/frames/{frame}/mattes",
+        summary="What a pixel of the image's Cryptomatte holds: the names of the nodes, "
+        "materials and root nodes its samples hit, with their coverage (settings.aovs naming "
+        "cryptomatte; a still's image is frame 0)",
+        response_model=PixelMattes,
+        responses=error_responses(400, 403, 404),
+    )
+    async def pixel_mattes(
+        job_id: str,
+        frame: int,
+        x: int = Query(description="pixel column, from the left"),
+        y: int = Query(description="pixel row, from the top"),
+        who: Caller = Auth,
+    ) -> dict[str, Any]:
+        return await farm.pixel_mattes(apicommon.job_id(job_id), x, y, frame, who)
 
     @app.get(
         "/api/v1/jobs/{job_id}/movie.mp4",

@@ -14,7 +14,7 @@ import os
 import tempfile
 from typing import Any, BinaryIO
 
-from ..domain import channels
+from ..domain import channels, cryptomatte
 from ..domain.channels import job_layout
 from ..domain.frames import frame_slot, job_frames, job_rects, tiles_per_frame
 from ..domain.jobspec import JobSettings
@@ -38,9 +38,9 @@ MAX_METADATA_GLTF_BYTES = 64 << 20
 class JobImages:
     """Part of FarmService (jobs.py), whose __init__ sets the attributes used here."""
 
-    async def _scene_xmp(self, sha256: str) -> str | None:
-        """The stored scene's asset metadata (KHR_xmp_json_ld) for the EXR header, or None:
-        read from a GLB's JSON chunk only (domain/scenes/metadata.py)."""
+    async def _scene_json(self, sha256: str, max_gltf_bytes: int) -> bytes | None:
+        """The stored scene's glTF JSON: a GLB's JSON chunk, or a .gltf of at most
+        max_gltf_bytes whole; None if there is none (or it is larger)."""
         head = await self.store.read_scene(sha256, 0, metadata.JSON_CHUNK_OFFSET)
         if not head:
             return None
@@ -48,12 +48,25 @@ class JobImages:
         if length is None:
             info = await self.store.get_scene_info(sha256)
             size = int(info["size_bytes"]) if info else 0
-            if not 0 < size <= MAX_METADATA_GLTF_BYTES:
+            if not 0 < size <= max_gltf_bytes:
                 return None
-            raw = await self.store.read_scene(sha256, 0, size)
-        else:
-            raw = await self.store.read_scene(sha256, metadata.JSON_CHUNK_OFFSET, length)
-        return await asyncio.to_thread(metadata.xmp_attribute, raw)
+            return await self.store.read_scene(sha256, 0, size)
+        return await self.store.read_scene(sha256, metadata.JSON_CHUNK_OFFSET, length)
+
+    async def _scene_xmp(self, sha256: str) -> str | None:
+        """The stored scene's asset metadata (KHR_xmp_json_ld) for the EXR header, or None
+        (domain/scenes/metadata.py)."""
+        raw = await self._scene_json(sha256, MAX_METADATA_GLTF_BYTES)
+        return None if raw is None else await asyncio.to_thread(metadata.xmp_attribute, raw)
+
+    async def _crypto_names(self, sha256: str) -> cryptomatte.Names:
+        """The scene's Cryptomatte names (domain/cryptomatte.py): its nodes' and materials'.
+        A .gltf is read whole whatever its size (the upload limits bound it): the IDs are
+        hashes of the names, so they cannot do without them."""
+        raw = await self._scene_json(sha256, 1 << 62)
+        if raw is None:
+            raise NotFound(f"scene {sha256} is gone: its Cryptomatte names are unknown")
+        return await asyncio.to_thread(cryptomatte.names_of_json, raw)
 
     async def image_file(
         self,
@@ -168,6 +181,10 @@ class JobImages:
             except (SceneError, NotFound) as e:  # the loader refused the scene now, or it is
                 # gone: the image without them
                 log.warning("job %s: no camera data in its EXR: %s", job_id, e.message)
+        crypto = None
+        ranked = [c for c in layout.rows if c.accumulate is channels.Accumulate.RANKED]
+        if ranked and (fmt == "exr" or any(layer == la.name for c in ranked for la in c.layers)):
+            crypto = await self._crypto_names(view.scene_sha256)
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)
@@ -176,7 +193,7 @@ class JobImages:
         try:
             writer = await asyncio.to_thread(
                 images.ImageWriter, path, fmt, settings.width, settings.height, layer, max_size,
-                top, self._stopping, compression, stamp, denoised, attributes, layout,
+                top, self._stopping, compression, stamp, denoised, attributes, layout, crypto,
             )  # fmt: skip
             for r in range(rows):
                 tiles = await band(r)

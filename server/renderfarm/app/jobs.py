@@ -55,6 +55,7 @@ from .history import History
 from .job_cameras import JobCameras
 from .job_control import JobControl
 from .job_images import JobImages
+from .job_mattes import JobMattes
 from .job_movies import JobMovies
 from .views import JobView, ProgressView, finite_or_none
 from .worker_sessions import WorkerSession, WorkerSessions
@@ -66,7 +67,7 @@ SCENE_CHUNK_BYTES = 1 << 20
 
 
 class FarmService(
-    JobControl, JobImages, JobCameras, JobMovies, WorkerSessions, WriteBehind, History
+    JobControl, JobImages, JobMattes, JobCameras, JobMovies, WorkerSessions, WriteBehind, History
 ):
     """The job API facade: submit, read, list, cancel and delete jobs, watch them, serve scenes,
     and the background round. Its other parts, by concern: job_control.py (pause, resume,

@@ -47,6 +47,10 @@ class Accumulate(StrEnum):
     # Blender's data passes take it): a sum over a window of one sample, which the schedule's
     # first batch is (tiling.py).
     FIRST = "first"
+    # Ranked ID coverage (Cryptomatte, domain/cryptomatte.py): per pixel the labels the most
+    # samples' first hits had, with their counts, as (label, count) uint32 pairs; merged by
+    # adding the counts of equal labels and keeping the largest (cryptomatte.merge_ranked).
+    RANKED = "ranked"
     # Nothing accumulated: computed at output from other rows (the denoised image).
     DERIVED = "derived"
 
@@ -65,6 +69,8 @@ class Display(StrEnum):
     RANGE = "range"
     # An integer label: a colour of its own for each value (a hash of it), black for 0.
     LABEL = "label"
+    # Ranked labels (Cryptomatte): each label's colour (as LABEL) weighted by its coverage.
+    MATTE = "matte"
 
 
 @dataclass(frozen=True)
@@ -121,6 +127,17 @@ class Channel:
 
 
 AOV_SAMPLES = 16  # albedo and normal cover a pixel's first 16 samples (tiling.AOV_SAMPLES)
+CRYPTO_RANKS = 6  # (label, count) pairs a Cryptomatte row keeps per pixel (cryptomatte.RANKS)
+
+
+def _crypto_channels(type_name: str) -> tuple[str, ...]:
+    """A Cryptomatte type's EXR channels: {type}00.R (rank 0's ID), .G (its coverage), .B, .A
+    (rank 1's), then {type}01 and {type}02."""
+    return tuple(
+        f"{type_name}{level:02d}.{c}" for level in range(CRYPTO_RANKS // 2) for c in "RGBA"
+    )
+
+
 # The depth where the first sample's camera ray hit nothing, as Blender's Depth pass has it.
 BACKGROUND_DEPTH = 1e10
 
@@ -319,6 +336,60 @@ CHANNELS: tuple[Channel, ...] = (
         wire_type="<u4",
     ),
     Channel(
+        "crypto_object",
+        "Cryptomatte of the glTF nodes: per pixel the 6 nodes the most samples' first hits were "
+        "on, with their counts, as (label, count) pairs, uint32",
+        Accumulate.RANKED,
+        "crypto_object",
+        (Array("crypto_object", "<u4", 2 * CRYPTO_RANKS),),
+        (
+            Layer(
+                "crypto_object",
+                _crypto_channels("CryptoObject"),
+                "Cryptomatte object",
+                "Cryptomatte by glTF node name (CryptoObject): the IDs of the 6 nodes covering "
+                "most of the pixel and their coverage (the share of its samples whose camera "
+                "ray's first hit is on the node), over every sample",
+                Display.MATTE,
+            ),
+            Layer(
+                "crypto_asset",
+                _crypto_channels("CryptoAsset"),
+                "Cryptomatte asset",
+                "Cryptomatte by the name of each node's root node (CryptoAsset): a model's "
+                "parts as one matte",
+                Display.MATTE,
+                reads=("crypto_object",),
+            ),
+        ),
+        setting="aovs",
+        aov="cryptomatte",
+        wire_components=2 * CRYPTO_RANKS,
+        wire_type="<u4",
+    ),
+    Channel(
+        "crypto_material",
+        "Cryptomatte of the glTF materials: per pixel the 6 materials the most samples' first "
+        "hits had, with their counts, as (label, count) pairs, uint32",
+        Accumulate.RANKED,
+        "crypto_material",
+        (Array("crypto_material", "<u4", 2 * CRYPTO_RANKS),),
+        (
+            Layer(
+                "crypto_material",
+                _crypto_channels("CryptoMaterial"),
+                "Cryptomatte material",
+                "Cryptomatte by glTF material name (CryptoMaterial; the selected variant's "
+                "material), over every sample",
+                Display.MATTE,
+            ),
+        ),
+        setting="aovs",
+        aov="cryptomatte",
+        wire_components=2 * CRYPTO_RANKS,
+        wire_type="<u4",
+    ),
+    Channel(
         "denoised",
         "Open Image Denoise of the radiance with the albedo and normal as guides, at output",
         Accumulate.DERIVED,
@@ -361,6 +432,8 @@ def _check_table() -> None:
             raise AssertionError(f"channel {c.name}: every accumulated row is on the wire")
         if (c.accumulate is Accumulate.FIRST) != (c.window == 1):
             raise AssertionError(f"channel {c.name}: first-sample rows have a window of 1")
+        if c.accumulate is Accumulate.RANKED and (c.window or c.wire_type != "<u4"):
+            raise AssertionError(f"channel {c.name}: ranked rows are uint32 over every sample")
         if bool(c.aov) != (c.setting == "aovs"):
             raise AssertionError(f"channel {c.name}: a row of `aovs` has its name there")
 
@@ -546,12 +619,16 @@ def cpp_header() -> str:
         "  uint32_t components;    // values per pixel",
         "  Type type;",
         "  uint32_t window;        // 0: every sample; else a pixel's first `window` samples",
+        "  // Ranked ID coverage (Cryptomatte): components / 2 (label, count) pairs of uint32, the",
+        "  // labels the most samples had with their counts, by count descending then label",
+        "  bool ranked;",
         "};",
         "",
         "constexpr Spec kSpecs[kCount] = {",
         *(
             f'    {{Id::{ident[c.name]}, "{c.name}", {c.wire_components}, '
-            f"Type::{types[c.wire_type]}, {c.window}}},"
+            f"Type::{types[c.wire_type]}, {c.window}, "
+            f"{'true' if c.accumulate is Accumulate.RANKED else 'false'}}},"
             for c in rows
         ),
         "};",

@@ -54,7 +54,7 @@ import math
 import numpy as np
 
 from .. import _kernels
-from . import channels
+from . import channels, cryptomatte
 from .channels import Accumulate
 from .tiling import AOV_SAMPLES
 
@@ -229,6 +229,11 @@ class TileAccumulator:
             stored = getattr(self, name)
             values = np.asarray(values).reshape(stored.shape)
             setattr(self, name, np.add(stored, values, dtype=stored.dtype))
+        # Ranked rows (Cryptomatte): counts of equal labels added, the largest kept.
+        for wire, name in _ranked(self.layout):
+            values = batch.get(wire)
+            if values is not None:
+                setattr(self, name, cryptomatte.merge_ranked(getattr(self, name), values))
         self.samples += sample_count
         self.batches += 1
         self.nonfinite += nonfinite
@@ -466,6 +471,14 @@ class TileAccumulator:
             setattr(acc, name, a)
         acc.samples, acc.batches = samples, batches
         return acc
+
+
+@functools.cache
+def _ranked(layout: channels.Layout) -> tuple[tuple[str, str], ...]:
+    """The ranked rows of a layout (Cryptomatte): (wire name, array)."""
+    return tuple(
+        (c.wire, c.store[0].name) for c in layout.rows if c.accumulate is Accumulate.RANKED
+    )
 
 
 @functools.cache

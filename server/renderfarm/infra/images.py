@@ -46,8 +46,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import _kernels
-from ..domain import channels
-from ..domain.channels import Display
+from ..domain import channels, cryptomatte
+from ..domain.channels import Accumulate, Display
 from ..domain.merge import DARK_FLOOR, TileAccumulator
 from ..domain.tiling import Rect
 from ..errors import Cancelled
@@ -136,16 +136,44 @@ def label_colours(labels: np.ndarray) -> np.ndarray:
     return np.where(labels[..., None] > 0, linear, 0.0)
 
 
-def _outputs_band(width: int, height: int, tiles: Band, rows: tuple) -> np.ndarray:
+def crypto_type(layer: channels.Layer) -> str:
+    """The Cryptomatte type of a ranked row's layer (CryptoObject, ...): its channels' prefix."""
+    return layer.exr[0].split(".")[0][:-2]
+
+
+def _ranked_pairs(
+    layer: channels.Layer, row: channels.Channel, acc: TileAccumulator, names: cryptomatte.Names
+) -> np.ndarray:
+    """A Cryptomatte layer's ranked (label, count) pairs of a tile, (h, w, 2 RANKS) uint32:
+    its row's, or for CryptoAsset the nodes' regrouped by their root node."""
+    pairs = getattr(acc, row.store[0].name).reshape(acc.height, acc.width, -1)
+    if crypto_type(layer) == "CryptoAsset":
+        return cryptomatte.regroup(pairs, names.roots)
+    return pairs
+
+
+def _outputs_band(
+    width: int, height: int, tiles: Band, rows: tuple, names: cryptomatte.Names | None = None
+) -> np.ndarray:
     """The EXR channels of the output rows (output_rows) of a band, float32 (height, width,
-    their components): each row's mean over its window (zeros where nothing is merged)."""
-    out = np.zeros((height, width, sum(r.wire_components for r in rows)), np.float32)
+    their layers' channels): each summed row's mean over its window (zeros where nothing is
+    merged), each ranked row's Cryptomatte layers (IDs of `names` and coverages)."""
+    names = names or cryptomatte.Names.of({})
+    ids = {t: names.id_table(t) for t in cryptomatte.TYPES}
+    out = np.zeros((height, width, sum(len(la.exr) for r in rows for la in r.layers)), np.float32)
     for rect, acc in tiles:
         if acc is None:
             continue
         t = out[:, rect.x0 : rect.x0 + rect.width]
         c = 0
         for row in rows:
+            if row.accumulate is Accumulate.RANKED:
+                for layer in row.layers:
+                    pairs = _ranked_pairs(layer, row, acc, names)
+                    values = cryptomatte.exr_values(pairs, acc.samples, ids[crypto_type(layer)])
+                    t[..., c : c + len(layer.exr)] = values
+                    c += len(layer.exr)
+                continue
             mean = acc.mean_of(row).reshape(rect.height, rect.width, row.wire_components)
             t[..., c : c + row.wire_components] = mean
             c += row.wire_components
@@ -204,7 +232,14 @@ def layer_maximum(layer: str, tiles: Band) -> float:
     return top
 
 
-def _display_tile(layer: str, acc: TileAccumulator | None, top: float, h: int, w: int):
+def _display_tile(
+    layer: str,
+    acc: TileAccumulator | None,
+    top: float,
+    h: int,
+    w: int,
+    names: cryptomatte.Names | None = None,
+):
     """A tile of the PNG layer in linear display values, float64 (h, w, 3): before sRGB
     encoding (rgb, albedo, normal) or the 0..1 grey scale."""
     if acc is None:  # nothing merged: black, a normal of 0 (grey), white where unknown
@@ -218,6 +253,11 @@ def _display_tile(layer: str, acc: TileAccumulator | None, top: float, h: int, w
         return acc.mean_of(channels.layer_channel(layer)) / (2.0 * top) + 0.5
     if _DISPLAY[layer] is Display.LABEL:
         return label_colours(getattr(acc, channels.layer_channel(layer).store[0].name))
+    if _DISPLAY[layer] is Display.MATTE:  # each label's colour weighted by its coverage
+        row = channels.layer_channel(layer)
+        pairs = _ranked_pairs(channels.layers()[layer], row, acc, names or cryptomatte.Names.of({}))
+        coverage = pairs[..., 1::2] / float(acc.samples)
+        return (label_colours(pairs[..., 0::2]) * coverage[..., None]).sum(-2)
     if layer == "rgb":
         return acc.rgb_sum / acc.samples
     if layer == "albedo":
@@ -225,7 +265,14 @@ def _display_tile(layer: str, acc: TileAccumulator | None, top: float, h: int, w
     return acc.mean_normal().astype(np.float64) * 0.5 + 0.5
 
 
-def _display_band(layer: str, width: int, height: int, tiles: Band, top: float) -> np.ndarray:
+def _display_band(
+    layer: str,
+    width: int,
+    height: int,
+    tiles: Band,
+    top: float,
+    names: cryptomatte.Names | None = None,
+) -> np.ndarray:
     """A band of the PNG layer in display values (see _display_tile), (height, width, 3)."""
     out = np.empty((height, width, 3))
     for rect, acc in tiles:
@@ -233,7 +280,7 @@ def _display_band(layer: str, width: int, height: int, tiles: Band, top: float) 
         if layer == "rgb" and acc is not None:
             np.divide(acc.rgb_sum, acc.samples, out=t)  # no temporary
         else:
-            t[...] = _display_tile(layer, acc, top, rect.height, rect.width)
+            t[...] = _display_tile(layer, acc, top, rect.height, rect.width, names)
     return out
 
 
@@ -247,7 +294,13 @@ def _block_means(values: np.ndarray, f: int, divisor: float = 1.0) -> np.ndarray
 
 
 def _display_blocks(
-    layer: str, width: int, height: int, tiles: Band, top: float, f: int
+    layer: str,
+    width: int,
+    height: int,
+    tiles: Band,
+    top: float,
+    f: int,
+    names: cryptomatte.Names | None = None,
 ) -> np.ndarray:
     """A band of the PNG layer downscaled by f, tile by tile: f divides every tile's offset and
     the band's height (but at the bottom), so no block spans two tiles."""
@@ -257,7 +310,8 @@ def _display_blocks(
         if layer == "rgb" and acc is not None:  # the mean of the block's sums, over n
             out[:, xs] = _block_means(acc.rgb_sum, f, acc.samples)
         else:
-            out[:, xs] = _block_means(_display_tile(layer, acc, top, rect.height, rect.width), f)
+            tile = _display_tile(layer, acc, top, rect.height, rect.width, names)
+            out[:, xs] = _block_means(tile, f)
     return out
 
 
@@ -445,12 +499,15 @@ class ImageWriter:
         denoised: np.ndarray | None = None,
         attributes: dict[str, str | int | float | tuple[float, ...]] | None = None,
         layout: channels.Layout = channels.DEFAULT,
+        crypto: cryptomatte.Names | None = None,
     ):
-        """layout: the job's (channels.job_layout): the EXR's channels are its own."""
+        """layout: the job's (channels.job_layout): the EXR's channels are its own. crypto: the
+        scene's Cryptomatte names (a layout with Cryptomatte rows: its IDs and manifests)."""
         import OpenImageIO as oiio  # heavy import, only where images are written
 
         self.fmt, self.layer, self.width, self.height = fmt, layer, width, height
         self.outputs = output_rows(layout)
+        self.crypto = crypto or cryptomatte.Names.of({})
         self.top = top if math.isfinite(top) and top > 0 else 1.0
         self.cancelled = cancelled
         if fmt == "exr":
@@ -469,6 +526,11 @@ class ImageWriter:
                     spec.attribute(name, oiio.TypeMatrix44, value)
                 else:
                     spec.attribute(name, value)
+            # Cryptomatte's attributes (cryptomatte/{key}/name, hash, conversion, manifest).
+            for row in self.outputs:
+                for layer in row.layers if row.accumulate is Accumulate.RANKED else ():
+                    for name, value in self.crypto.header(crypto_type(layer)).items():
+                        spec.attribute(name, value)
             # zip at zlib level 1 (deflate's fastest): 15-30% less CPU than OpenEXR's default
             # level 4 for files under 1% larger, and still the zip every EXR reader reads.
             spec.attribute("compression", "zip:1" if compression == "zip" else compression)
@@ -533,7 +595,9 @@ class ImageWriter:
             pixels = _exr_band(self.width, band_height, tiles)
             parts = [pixels]
             if self.outputs:
-                parts.append(_outputs_band(self.width, band_height, tiles, self.outputs))
+                parts.append(
+                    _outputs_band(self.width, band_height, tiles, self.outputs, self.crypto)
+                )
             if self.denoised is not None:
                 parts.append(self.denoised[y_in : y_in + band_height])
             if len(parts) > 1:
@@ -544,10 +608,13 @@ class ImageWriter:
                 linear = self.scale.add(linear, final)
         elif self.scale is not None and self.scale.aligned(band_height, tiles, final):
             linear = _display_blocks(
-                self.layer, self.width, band_height, tiles, self.top, self.scale.factor
-            )
+                self.layer, self.width, band_height, tiles, self.top, self.scale.factor,
+                self.crypto,
+            )  # fmt: skip
         else:
-            linear = _display_band(self.layer, self.width, band_height, tiles, self.top)
+            linear = _display_band(
+                self.layer, self.width, band_height, tiles, self.top, self.crypto
+            )
             if self.scale is not None:
                 linear = self.scale.add(linear, final)
         if self.fmt == "png":

@@ -4,12 +4,12 @@
 // animation it shows one frame at a time (setFrame); the images of finished frames, which no
 // longer change, are kept decoded so that scrubbing back over them fetches nothing.
 
-import { frameImageUrl, imageUrl } from "../api";
+import { frameImageUrl, imageUrl, pixelMattes } from "../api";
 import type { operations } from "../generated/openapi";
 import { applyColourMap, applyExposure, type ColourMap, cssGradient } from "../colormap";
 import { h, s, setText } from "../dom";
 import { BudgetCache } from "../frames";
-import { layerScale, pngText, type Scale, scaleValue } from "../outputs";
+import { layerScale, matteText, pngText, type Scale, scaleValue } from "../outputs";
 import { Throttled } from "../throttle";
 
 /** A layer of a job's images: one of the server's channel table (domain/channels.py), as the
@@ -50,6 +50,9 @@ const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
   position: { label: "Position", needs: { aov: "position" } },
   instance: { label: "Instance", needs: { aov: "ids" } },
   material: { label: "Material", needs: { aov: "ids" } },
+  crypto_object: { label: "Crypto object", needs: { aov: "cryptomatte" } },
+  crypto_material: { label: "Crypto material", needs: { aov: "cryptomatte" } },
+  crypto_asset: { label: "Crypto asset", needs: { aov: "cryptomatte" } },
   denoised: { label: "Denoised", needs: { denoise: true } },
 };
 
@@ -62,6 +65,12 @@ export function jobLayers(settings: LayerSettings): Layer[] {
     if (!l.needs) return true;
     return "denoise" in l.needs ? settings.denoise === true : aovs.has(l.needs.aov);
   });
+}
+
+/** Whether a job's settings turn Cryptomatte on (the viewer then names what is under the
+ *  pointer). */
+export function hasCryptomatte(settings: LayerSettings): boolean {
+  return (settings.aovs ?? "").split(",").some((a) => a.trim() === "cryptomatte");
 }
 
 /** Layers shown with exposure: the radiance ones. */
@@ -88,6 +97,10 @@ export class Viewer {
   private exposureOut: HTMLOutputElement;
   private gridToggle: HTMLInputElement;
   private caption: HTMLParagraphElement;
+  // With Cryptomatte (settings.aovs naming cryptomatte): what is under the pointer.
+  private pointerLine: HTMLParagraphElement | null = null;
+  private pointerAt: { x: number; y: number } | null = null;
+  private pointerBusy = false;
   private layer = "rgb";
   private raw: ImageData | null = null;
   private rawLayer = "";
@@ -164,6 +177,14 @@ export class Viewer {
     this.gridToggle = h("input", { type: "checkbox", id: "tile-grid", onchange: () => this.drawOverlay() });
     this.legend = h("div", { class: "legend-bar", hidden: true });
     this.caption = h("p", { class: "muted small viewer-caption", "aria-live": "off" });
+    if (hasCryptomatte(settings)) {
+      this.pointerLine = h("p", { class: "small mono viewer-pointer", "aria-live": "polite" });
+      this.canvas.addEventListener("pointermove", (e) => this.pointerMoved(e));
+      this.canvas.addEventListener("pointerleave", () => {
+        this.pointerAt = null;
+        setText(this.pointerLine!, "");
+      });
+    }
 
     this.el = h(
       "section",
@@ -179,10 +200,38 @@ export class Viewer {
       ),
       h("div", { class: "stage-wrap" }, this.stage),
       h("div", { class: "viewer-foot" }, this.legend, this.caption),
+      ...(this.pointerLine ? [this.pointerLine] : []),
       h("p", { class: "muted small", id: "exposure-note" },
         "Exposure scales the linear radiance of the sRGB preview (clamped to 1 by the server); the EXR keeps the full range."),
     );
     this.loader = new Throttled(() => this.load(), 500);
+  }
+
+  /** The pixel under the pointer, named from the job's Cryptomatte: one request in flight,
+   *  the latest position asked for when it returns. */
+  private pointerMoved(e: PointerEvent): void {
+    const r = this.canvas.getBoundingClientRect();
+    const x = Math.floor(((e.clientX - r.left) / r.width) * this.tiles.width);
+    const y = Math.floor(((e.clientY - r.top) / r.height) * this.tiles.height);
+    if (x < 0 || y < 0 || x >= this.tiles.width || y >= this.tiles.height) return;
+    this.pointerAt = { x, y };
+    if (!this.pointerBusy) void this.askPointer();
+  }
+
+  private async askPointer(): Promise<void> {
+    const at = this.pointerAt;
+    if (!at || !this.pointerLine) return;
+    this.pointerBusy = true;
+    try {
+      const m = await pixelMattes(this.jobId, this.frame ?? 0, at.x, at.y);
+      if (this.pointerAt) setText(this.pointerLine, `(${m.x}, ${m.y}) ${matteText(m)}`);
+    } catch {
+      // no samples yet, or the job went away: say nothing
+    } finally {
+      this.pointerBusy = false;
+    }
+    const now = this.pointerAt;
+    if (now && (now.x !== at.x || now.y !== at.y)) void this.askPointer();
   }
 
   /** New samples were merged: fetch the preview again (throttled). */

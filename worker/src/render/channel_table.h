@@ -19,8 +19,10 @@ enum class Id : uint8_t {
   Position = 6,
   Instance = 7,
   Material = 8,
+  CryptoObject = 9,
+  CryptoMaterial = 10,
 };
-constexpr uint32_t kCount = 9;
+constexpr uint32_t kCount = 11;
 
 // The type of a row's values in a result (workers.proto, ValueType).
 enum class Type : uint8_t { F32 = 1, F64 = 2, U32 = 3 };
@@ -31,18 +33,23 @@ struct Spec {
   uint32_t components;    // values per pixel
   Type type;
   uint32_t window;        // 0: every sample; else a pixel's first `window` samples
+  // Ranked ID coverage (Cryptomatte): components / 2 (label, count) pairs of uint32, the
+  // labels the most samples had with their counts, by count descending then label
+  bool ranked;
 };
 
 constexpr Spec kSpecs[kCount] = {
-    {Id::Rgb, "rgb", 3, Type::F32, 0},
-    {Id::Luminance, "luminance", 1, Type::F32, 0},
-    {Id::Albedo, "albedo", 3, Type::F32, 16},
-    {Id::Normal, "normal", 3, Type::F32, 16},
-    {Id::Coverage, "coverage", 1, Type::F32, 0},
-    {Id::Depth, "depth", 1, Type::F32, 1},
-    {Id::Position, "position", 3, Type::F32, 1},
-    {Id::Instance, "instance", 1, Type::U32, 1},
-    {Id::Material, "material", 1, Type::U32, 1},
+    {Id::Rgb, "rgb", 3, Type::F32, 0, false},
+    {Id::Luminance, "luminance", 1, Type::F32, 0, false},
+    {Id::Albedo, "albedo", 3, Type::F32, 16, false},
+    {Id::Normal, "normal", 3, Type::F32, 16, false},
+    {Id::Coverage, "coverage", 1, Type::F32, 0, false},
+    {Id::Depth, "depth", 1, Type::F32, 1, false},
+    {Id::Position, "position", 3, Type::F32, 1, false},
+    {Id::Instance, "instance", 1, Type::U32, 1, false},
+    {Id::Material, "material", 1, Type::U32, 1, false},
+    {Id::CryptoObject, "crypto_object", 12, Type::U32, 0, true},
+    {Id::CryptoMaterial, "crypto_material", 12, Type::U32, 0, true},
 };
 
 }  // namespace rf::channels
