@@ -200,3 +200,32 @@ def test_idle_workers_cost_one_try_and_a_tagged_worker_still_gets_its_job(tmp_pa
     assert tried.count("g") == 1 and len([w for w in tried if w in idle]) == 1
     assert [m[0] for m in gpu_messages] == ["assign"] * 2
     assert {m[1].job_id for m in gpu_messages} == {"gpu-job"}
+
+
+def test_a_job_with_outputs_goes_only_to_workers_that_render_them(tmp_path):
+    """Hello.channels: a worker that does not name the rows a job's settings.aovs turn on (an
+    older worker names none) is never leased its tasks, and the job says why it waits."""
+    clock, ownership = FakeClock(), FakeOwnership({"j", "depth-job"})
+    service, _ = farm(tmp_path, ownership, clock)
+    depth_job = JobSettings(width=16, height=16, tile_size=8, max_spp=64, noise_threshold=0,
+                            aovs="depth")  # fmt: skip
+
+    async def main():
+        old = await service.worker_hello("old", "h", 1, 64, "t", token="", renders=[])
+        service.scheduler.add_job("depth-job", depth_job, "0" * 64)
+        await service._after_change()
+        waiting = service._unplaced(service.scheduler.jobs["depth-job"])
+        new = await service.worker_hello("new", "h", 1, 64, "t", token="",
+                                         renders=["rgb", "luminance", "depth"])  # fmt: skip
+        return sent(old), sent(new), waiting
+
+    old_messages, new_messages, waiting = asyncio.run(main())
+    assert {m[1].job_id for m in old_messages if m[0] == "assign"} == {"j"}
+    depth_tasks = [m[1] for m in new_messages if m[0] == "assign" and m[1].job_id == "depth-job"]
+    assert {t.tile_index for t in depth_tasks} == {0, 1, 2, 3}  # every tile of it
+    assert waiting == (
+        "waiting for a worker that renders depth (settings.aovs; workers older than the server "
+        "do not: upgrade them)"
+    )
+    # Once a worker that renders it is there, nothing is said.
+    assert service._unplaced(service.scheduler.jobs["depth-job"]) == ""

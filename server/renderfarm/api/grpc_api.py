@@ -457,6 +457,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
                 hello.version,
                 hello.token,
                 check_tags("tags", list(hello.tags)),
+                [name[:64] for name in hello.channels[:64]],
             )
         except Unauthenticated as e:
             await context.abort(grpc.StatusCode.UNAUTHENTICATED, str(e))

@@ -33,7 +33,7 @@ from typing import Any
 import psycopg
 from psycopg_pool import PoolTimeout
 
-from ..domain.channels import job_layout
+from ..domain.channels import CAPABILITY_PREFIX, job_layout
 from ..domain.frames import frame_count, job_rects, resolve_animations
 from ..domain.jobspec import JobSettings, check_variant_images, parse_settings
 from ..domain.records import JobRun
@@ -787,11 +787,19 @@ class FarmService(
         )
 
     def _unplaced(self, job: JobRun) -> str:
-        """Why a queued job with required tags waits: no connected worker has them all."""
-        if job.state != JobState.QUEUED or not job.require_tags:
+        """Why a queued job with required tags or outputs waits: no connected worker has the
+        tags, or renders the outputs (a worker older than the outputs does not)."""
+        if job.state != JobState.QUEUED or not job.requires:
             return ""
-        if any(job.require_tags <= slot.tags for slot in self.scheduler.workers.values()):
+        if any(job.requires <= slot.tags for slot in self.scheduler.workers.values()):
             return ""
+        rows = sorted(t.removeprefix(CAPABILITY_PREFIX) for t in job.requires - job.require_tags)
+        tagged = any(job.require_tags <= slot.tags for slot in self.scheduler.workers.values())
+        if rows and (tagged or not job.require_tags):
+            return (
+                "waiting for a worker that renders " + ", ".join(rows) + " (settings.aovs; "
+                "workers older than the server do not: upgrade them)"
+            )
         return "waiting for a worker with the tags " + ", ".join(sorted(job.require_tags))
 
     def _row_view(self, row: JobRow) -> JobView:

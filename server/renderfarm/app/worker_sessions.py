@@ -35,6 +35,8 @@ class WorkerSession:
     rays_per_s: float = 0.0
     busy_threads: int = 0
     tags: tuple[str, ...] = ()  # announced in its Hello (--tag)
+    # The rows of the channel table it renders (Hello.channels; None: every row).
+    renders: tuple[str, ...] | None = None
     tasks_done: int = 0
 
 
@@ -50,7 +52,11 @@ class WorkerSessions:
         version: str,
         token: str,
         tags: list[str] | None = None,
+        renders: list[str] | None = None,
     ) -> WorkerSession:
+        """A worker connects: its session. renders: the rows of the channel table it renders
+        (Hello.channels; an empty list: those every job has, as workers from before the field
+        render; None: every row, for callers inside the server)."""
         if self.settings.worker_token and not secrets.compare_digest(
             token.encode(), self.settings.worker_token.encode()
         ):
@@ -67,9 +73,11 @@ class WorkerSessions:
         )  # fmt: skip
         session.tags = tuple(tags or ())
         self.sessions[worker_id] = session
+        session.renders = None if renders is None else tuple(renders)
         self.scheduler.add_worker(
-            worker_id, max(1, min(max_in_flight or cores + 2, 256)), tags=session.tags
-        )
+            worker_id, max(1, min(max_in_flight or cores + 2, 256)), tags=session.tags,
+            renders=session.renders,
+        )  # fmt: skip
         try:  # the worker table is informational: a database outage must not keep workers out
             await self.store.worker_connected(
                 worker_id, session.hostname, session.cores, session.version

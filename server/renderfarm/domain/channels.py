@@ -524,6 +524,23 @@ def job_layout(settings) -> Layout:
 
 
 EVERY = Layout(CHANNELS)  # every row at once (a job with every output on)
+
+# Which workers may render a job: a worker says in its Hello the rows it renders
+# (workers.proto, Hello.channels), and the scheduler matches them as tags, this prefix and the
+# row's name, which user tags (letters, digits, '.', '_', '-') can never be.
+CAPABILITY_PREFIX = "channel:"
+
+
+def capability_tags(rows) -> frozenset[str]:
+    """The capability tags of the rows named (or given) beyond those every job has: a worker's,
+    from its Hello, or a job's, from its layout (None: every row of the table)."""
+    names = [c.name for c in CHANNELS] if rows is None else [getattr(r, "name", r) for r in rows]
+    return frozenset(
+        CAPABILITY_PREFIX + n for n in names if n in BY_NAME and n not in DEFAULT.names
+        and BY_NAME[n].wire_components
+    )  # fmt: skip
+
+
 DEFAULT = layout_for()  # a job that turns nothing on
 
 

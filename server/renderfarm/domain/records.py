@@ -129,6 +129,9 @@ class JobRun:
     paused_at: float | None = None  # clock when paused: the pause does not count as elapsed
     elapsed_before: float = 0.0  # elapsed seconds of earlier runs (restored, retried, continued)
     require_tags: frozenset[str] = frozenset()  # only workers with all of these take its tasks
+    # What a worker must have to take its tasks: require_tags and the capability tags of the
+    # rows of its layout beyond every job's (channels.capability_tags).
+    requires: frozenset[str] = frozenset()
     # The numbers of its images: an animation's frames, the variants' indices for a job of
     # every variant (settings.variant "all"); None: a still.
     frames: tuple[int, ...] | None = None

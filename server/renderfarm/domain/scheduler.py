@@ -146,6 +146,7 @@ class Scheduler:
         job.frame_tiles_stopped = [0] * job.frame_count
         job.elapsed_before = elapsed_s
         job.require_tags = frozenset(require_tags)
+        job.requires = job.require_tags | channels.capability_tags(layout.rows)
         if state in (JobState.RUNNING, JobState.PAUSED):
             job.started = now - elapsed_s
         if state == JobState.PAUSED:
@@ -366,10 +367,19 @@ class Scheduler:
         return eta
 
     # -------------------------------------------------------------------------- workers
-    def add_worker(self, worker_id: str, credit: int, tags: tuple[str, ...] = ()) -> None:
+    def add_worker(
+        self,
+        worker_id: str,
+        credit: int,
+        tags: tuple[str, ...] = (),
+        renders: tuple[str, ...] | None = None,
+    ) -> None:
+        """A worker with its tags and the rows of the channel table it renders (None: every
+        row), which decide the jobs it may take (_job_order)."""
         if worker_id in self.workers:
             self.remove_worker(worker_id)
-        slot = WorkerSlot(worker_id, max(1, credit), tags=frozenset(tags))
+        matched = frozenset(tags) | channels.capability_tags(renders)
+        slot = WorkerSlot(worker_id, max(1, credit), tags=matched)
         self.workers[worker_id] = slot
         self.records.setdefault(worker_id, WorkerRecord())
         self._room_changed(slot)
@@ -553,7 +563,7 @@ class Scheduler:
             for j in self.jobs.values()
             if j.state in (JobState.QUEUED, JobState.RUNNING)  # not paused, waiting, finished
             and worker_id not in j.excluded_workers
-            and j.require_tags <= tags
+            and j.requires <= tags
             and (owns is None or owns(j.job_id))
         ]
         return sorted(live, key=lambda j: (-j.settings.priority, j.leased, j.created))
