@@ -157,6 +157,30 @@ def combined_pass_to_exr(image, width: int, height: int, path: str) -> None:
     bpy.ops.render.render(write_still=True)
 
 
+def compositor_matte(width: int, height: int, path: str) -> dict:
+    """The add-on's "Load passes into compositor" on a scene without a compositor, then the
+    CryptoObject node it made picking the object Box, its Matte rendered into a plain EXR."""
+    scene = bpy.context.scene
+    scene.compositing_node_group = None
+    out = {"op": run_op(bpy.ops.renderfarm.compositor)}
+    tree = scene.compositing_node_group
+    out["nodes"] = sorted(n.label or n.bl_idname for n in tree.nodes)
+    crypto = next(n for n in tree.nodes if n.bl_idname == "CompositorNodeCryptomatteV2"
+                  and n.layer_name == "CryptoObject")  # fmt: skip
+    crypto.matte_id = "Box"
+    output = next(n for n in tree.nodes if n.bl_idname == "NodeGroupOutput")
+    out["output_was"] = [link.from_socket.name for link in output.inputs[0].links]
+    tree.links.new(crypto.outputs["Matte"], output.inputs[0])
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.filepath = path
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    settings.color_mode = "RGB"
+    bpy.ops.render.render(write_still=True)
+    return out
+
+
 class CheckedLayout:
     """Stands in for bpy.types.UILayout when drawing the panel without a window: checks that
     every property drawn exists on its data, every operator is registered and every icon is
@@ -286,6 +310,9 @@ def scenario_render() -> dict:
     combined_pass_to_exr(image, CONFIG["width"], CONFIG["height"], CONFIG["combined_exr"])
     out["image"]["type"] = image.type  # known once Blender has read the file
     out["panel_after"] = draw_panel()
+    if CONFIG.get("matte_exr"):
+        out["compositor"] = compositor_matte(CONFIG["width"], CONFIG["height"],
+                                             CONFIG["matte_exr"])  # fmt: skip
 
     # Uncompressed, so the test can search the bytes for the token.
     bpy.ops.wm.save_as_mainfile(filepath=CONFIG["blend"], compress=False)

@@ -21,6 +21,7 @@ from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
 from renderfarm.infra.images import read_exr
 
+from .mattes import matte
 from .tools import require_tool
 from .waiting import wait_until
 
@@ -35,6 +36,7 @@ SETTINGS = {
     "noise_threshold": 0.0,
     "sampler": "independent",
     "seed": 3,
+    "aovs": "cryptomatte",
 }
 
 
@@ -127,6 +129,7 @@ def test_submit_follow_fetch(token_farm, addon_zip, tmp_path):
             "job_name": "blender box",
             "timeout_s": 300,
             "combined_exr": str(combined),
+            "matte_exr": str(tmp_path / "matte.exr"),
             "blend": str(blend),
         },
         tmp_path,
@@ -210,6 +213,20 @@ def test_submit_follow_fetch(token_farm, addon_zip, tmp_path):
         np.testing.assert_array_equal(seen[c], farm[c])
     rgb = np.stack([farm[c] for c in "RGB"], axis=-1)
     assert rgb.max() > 0.05, "the farm rendered a black image"
+
+    # "Load passes into compositor": an Image node with the passes and a Cryptomatte node per
+    # type, the colour at the empty compositor's output; the CryptoObject node picking Box gives
+    # Box's coverage as the farm's EXR holds it (decoded here by numpy).
+    compositor = result["compositor"]
+    assert compositor["op"]["result"] == ["FINISHED"], compositor["op"]
+    assert compositor["nodes"] == sorted(["CryptoAsset", "CryptoMaterial", "CryptoObject",
+                                          "CompositorNodeImage", "NodeGroupOutput",
+                                          "Render farm: blender box"])  # fmt: skip
+    assert compositor["output_was"] == ["Combined"]
+    assert any("Load passes into compositor" in t for t in result["panel_after"])
+    box = matte(farm, "CryptoObject", "Box")
+    assert box.max() == 1.0 and 0 < box.mean() < 0.5  # the box covers part of the image
+    np.testing.assert_allclose(read_exr(str(tmp_path / "matte.exr"))["R"], box, atol=1e-6)
 
     # The token is in the preferences, never in the saved .blend.
     assert result["token_in_prefs"] is True

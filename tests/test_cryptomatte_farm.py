@@ -16,7 +16,6 @@ import base64
 import json
 import math
 import os
-import struct
 import subprocess
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import pytest
 from renderfarm.client import ApiError, Client
 from renderfarm.infra.images import read_exr
 
+from .mattes import id_hex, matte
 from .test_blender_addon import blender_python
 from .waiting import wait_until
 
@@ -149,29 +149,6 @@ def scene() -> dict:
     }  # fmt: skip
 
 
-# ------------------------------------------------------------------ reading the EXR by hand
-def murmur_id(name: str) -> float:
-    """The Cryptomatte specification's ID of a name (MurmurHash3_32 by mmh3, the exponent
-    clamped to 1..254), written out here from the specification's sample code."""
-    import mmh3
-
-    h = mmh3.hash(name, 0, signed=False)
-    exponent = min(max((h >> 23) & 255, 1), 254)
-    bits = (h & 0x80000000) | (exponent << 23) | (h & 0x7FFFFF)
-    return struct.unpack("<f", struct.pack("<I", bits))[0]
-
-
-def matte(exr: dict[str, np.ndarray], type_name: str, name: str) -> np.ndarray:
-    """A name's coverage per pixel: the coverage of every rank whose ID is the name's."""
-    want = np.float32(murmur_id(name))
-    out = np.zeros((H, W))
-    for level in range(3):
-        for id_channel, coverage_channel in (("R", "G"), ("B", "A")):
-            ids = exr[f"{type_name}{level:02d}.{id_channel}"]
-            out += np.where(ids == want, exr[f"{type_name}{level:02d}.{coverage_channel}"], 0)
-    return out
-
-
 def within_noise(got: np.ndarray, exact: np.ndarray, what: str) -> None:
     """The farm's coverage against the exact one: within 4 binomial standard errors of SPP
     samples per pixel (and one sample's worth), and unbiased over the edge pixels."""
@@ -247,8 +224,7 @@ def test_the_header_names_the_types_and_their_manifests(rendered):
         manifest = json.loads(spec.getattribute(f"{key}/manifest"))
         assert set(manifest) == names, type_name
         for name, hex_id in manifest.items():
-            bits = struct.unpack("<I", struct.pack("<f", murmur_id(name)))[0]
-            assert hex_id == f"{bits:08x}", name
+            assert hex_id == id_hex(name), name
 
 
 def test_a_pixel_names_what_covers_it(rendered):
@@ -257,8 +233,7 @@ def test_a_pixel_names_what_covers_it(rendered):
     assert wheel["samples"] == SPP
     assert [(m["name"], m["coverage"]) for m in wheel["objects"]] == [("wheel", 1.0)]
     assert wheel["materials"][0]["name"] == "rubber" and wheel["assets"][0]["name"] == "car"
-    bits = struct.unpack("<I", struct.pack("<f", murmur_id("wheel")))[0]
-    assert wheel["objects"][0]["id"] == f"{bits:08x}"
+    assert wheel["objects"][0]["id"] == id_hex("wheel")
     assert [m["name"] for m in pick["lamp"]["assets"]] == ["lamp"]
     assert pick["nothing"]["objects"] == [] and pick["nothing"]["samples"] == SPP
     assert outside.status == 400 and outside.field == "x"

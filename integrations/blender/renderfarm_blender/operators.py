@@ -406,6 +406,87 @@ class RENDERFARM_OT_fetch(bpy.types.Operator):
         return {"FINISHED"}
 
 
+# The Cryptomatte types the farm writes with settings.aovs naming cryptomatte (docs/usage.md,
+# "Outputs"): layers {type}00 .. {type}02 of its EXR.
+CRYPTO_TYPES = ("CryptoObject", "CryptoMaterial", "CryptoAsset")
+
+
+def compositor_tree(scene):
+    """The scene's compositor node group (Blender 5.0: scene.compositing_node_group); a new one
+    with an Image output if the scene has none."""
+    tree = getattr(scene, "compositing_node_group", None)
+    if tree is None:
+        tree = bpy.data.node_groups.new(f"{scene.name} compositing", "CompositorNodeTree")
+        tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+        scene.compositing_node_group = tree
+    return tree
+
+
+def load_passes(scene, image) -> dict:
+    """The fetched EXR's passes in the scene's compositor, in a frame named after the image: an
+    Image node with every pass as an output, and a Cryptomatte node (source Image) per type the
+    EXR has, fed the colour. An empty compositor gets the colour at its output; one in use is
+    left as it is. What was made: {"frame", "passes", "cryptomatte"}."""
+    tree = compositor_tree(scene)
+    frame = tree.nodes.new("NodeFrame")
+    frame.label = f"Render farm: {image.name}"
+    source = tree.nodes.new("CompositorNodeImage")
+    source.image = image
+    source.parent = frame
+    source.location = (0, 0)
+    passes = [o.name for o in source.outputs if o.enabled]
+    made = []
+    for i, type_name in enumerate(t for t in CRYPTO_TYPES if f"{t}00" in passes):
+        node = tree.nodes.new("CompositorNodeCryptomatteV2")
+        node.source = "IMAGE"
+        node.image = image
+        node.layer_name = type_name
+        node.label = type_name
+        node.parent = frame
+        node.location = (320, -260 * i)
+        tree.links.new(source.outputs[0], node.inputs["Image"])
+        made.append(type_name)
+    outputs = [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]
+    if not outputs:
+        output = tree.nodes.new("NodeGroupOutput")
+        output.location = (700, 0)
+        outputs = [output]
+    sockets = [s for s in outputs[0].inputs if s.type != "CUSTOM"]
+    if sockets and not sockets[0].is_linked:
+        tree.links.new(source.outputs[0], sockets[0])
+    return {"frame": frame.name, "passes": passes, "cryptomatte": made}
+
+
+class RENDERFARM_OT_compositor(bpy.types.Operator):
+    bl_idname = "renderfarm.compositor"
+    bl_label = "Load passes into compositor"
+    bl_description = (
+        "Add the fetched image's passes to the scene's compositor: an Image node with every "
+        "pass (colour, albedo, normal, depth, ...), and a Cryptomatte node per Cryptomatte type "
+        "the job rendered (settings.aovs naming cryptomatte), ready to pick mattes"
+    )
+
+    @classmethod
+    def poll(cls, context):
+        entry = context.scene.renderfarm.current_job()
+        return entry is not None and bool(entry.image_name) and not entry.frames
+
+    def execute(self, context):
+        entry = context.scene.renderfarm.current_job()
+        image = bpy.data.images.get(entry.image_name)
+        if image is None:
+            self.report({"ERROR"}, f"Render farm: image '{entry.image_name}' is gone; fetch again")
+            return {"CANCELLED"}
+        made = load_passes(context.scene, image)
+        crypto = f", Cryptomatte {', '.join(made['cryptomatte'])}" if made["cryptomatte"] else ""
+        self.report(
+            {"INFO"},
+            f"Render farm: {len(made['passes'])} passes of '{image.name}' in the compositor"
+            f"{crypto}",
+        )
+        return {"FINISHED"}
+
+
 CLASSES = (
     RENDERFARM_OT_refresh_settings,
     RENDERFARM_OT_reset_settings,
@@ -414,4 +495,5 @@ CLASSES = (
     RENDERFARM_OT_submit,
     RENDERFARM_OT_cancel,
     RENDERFARM_OT_fetch,
+    RENDERFARM_OT_compositor,
 )

@@ -150,6 +150,7 @@ class RENDER_PT_renderfarm(bpy.types.Panel):
                 )
             elif entry.image_name:
                 box.label(text=f"Image '{entry.image_name}'", icon="IMAGE")
+                box.operator("renderfarm.compositor", icon="NODE_COMPOSITING")
         if rf.status:
             layout.label(text=rf.status)
 
