@@ -528,7 +528,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   r->set_sample_count(task.sample_count());
   *r->mutable_rect() = task.rect();
   // float32 on the wire: the radiance's batch sums (at most 64 samples, summed in double)
-  // rounded once; the other rows as render_rect summed them.
+  // rounded once; the other rows as render_rect summed them, those of type U32 (ids) as the
+  // integers their sums hold.
   if (!wanted.empty()) {
     r->set_table_version(channels::kTableVersion);
     for (const channels::Id id : wanted) {
@@ -541,6 +542,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
         block->set_data(pack_f64_as_f32_le(tile.rgb_sum));
       else if (id == channels::Id::Luminance)
         block->set_data(pack_f64_as_f32_le(tile.luminance_m2));
+      else if (row.type == channels::Type::U32)
+        block->set_data(pack_f32_as_u32_le(tile.sum(id)));  // ids, exact in the float sums
       else
         block->set_data(pack_f32_le(tile.sum(id)));
     }

@@ -473,6 +473,93 @@ TEST(FarmClient, SendsTheFirstSampleDepthAndPositionRows) {
   EXPECT_GT(misses, 10);
 }
 
+// The first-sample rows instance and material travel as ChannelBlocks of type U32: one
+// component, four bytes a pixel, little-endian uint32, each pixel's first sample's glTF node
+// and glTF material plus one. In the inner pixels of testing::ids_gltf_json's cells they are
+// the cells' (the scene's construction), 0 wherever the camera ray hit nothing (coverage 0),
+// and everywhere the local render's float32 sums as integers.
+TEST(FarmClient, SendsTheInstanceAndMaterialRowsAsU32) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::ids_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "ids";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  pb::Task first = make_task("ids", farm.scene_sha, 1);
+  first.set_sample_start(0);
+  first.mutable_rect()->set_x0(0);
+  first.mutable_rect()->set_width(16);
+  first.mutable_rect()->set_height(12);
+  const char* const names[] = {"rgb", "luminance", "coverage", "depth", "instance", "material"};
+  for (const char* name : names) first.add_channels(name);
+  ASSERT_TRUE(farm.assign(first));
+  ASSERT_TRUE(farm.wait_for([&] { return farm.has_result("ids"); }));
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  const pb::TileResult* r = nullptr;
+  for (const auto& m : farm.received)
+    if (m.has_result() && m.result().task_id() == "ids") r = &m.result();
+  ASSERT_NE(r, nullptr);
+  ASSERT_EQ(r->channels_size(), 6);
+  const size_t pixels = 16 * 12;
+  for (int k = 0; k < 6; ++k) EXPECT_EQ(r->channels(k).name(), names[k]);
+  EXPECT_EQ(r->channels(3).type(), pb::VALUE_TYPE_F32);
+  for (int k : {4, 5}) {
+    const pb::ChannelBlock& b = r->channels(k);
+    EXPECT_EQ(b.type(), pb::VALUE_TYPE_U32) << b.name();
+    EXPECT_EQ(b.components(), 1u) << b.name();
+    ASSERT_EQ(b.data().size(), 4 * pixels) << b.name();
+  }
+  // Pixel (1, 1), in the cell of nodes[7] and materials[0]: 8 and 1, little-endian.
+  const std::string& instance_bytes = r->channels(4).data();
+  const std::string& material_bytes = r->channels(5).data();
+  const size_t at = 4 * (16 + 1);
+  EXPECT_EQ(instance_bytes.substr(at, 4), std::string("\x08\0\0\0", 4));
+  EXPECT_EQ(material_bytes.substr(at, 4), std::string("\x01\0\0\0", 4));
+  const std::vector<float> coverage = unpack_f32_le(r->channels(2).data());
+  const std::vector<uint32_t> instance = unpack_u32_le(instance_bytes);
+  const std::vector<uint32_t> material = unpack_u32_le(material_bytes);
+  int checked = 0;
+  for (const testing::IdCell& cell : testing::ids_gltf_cells())
+    for (uint32_t y = cell.y0 + 1; y <= cell.y0 + 2; ++y)
+      for (uint32_t x = cell.x0 + 1; x <= cell.x0 + 2; ++x) {
+        const size_t i = size_t(y) * 16 + x;
+        EXPECT_EQ(instance[i], cell.instance) << x << ", " << y << ": " << cell.what;
+        EXPECT_EQ(material[i], cell.material) << x << ", " << y << ": " << cell.what;
+        ++checked;
+      }
+  EXPECT_EQ(checked, 48);
+  const TileBuffer local = render_locally(farm.scene_bytes, first);
+  int misses = 0;
+  for (size_t i = 0; i < pixels; ++i) {
+    EXPECT_EQ(float(instance[i]), local.sum(channels::Id::Instance)[i]) << "pixel " << i;
+    EXPECT_EQ(float(material[i]), local.sum(channels::Id::Material)[i]) << "pixel " << i;
+    if (coverage[i] != 0.f) continue;
+    ++misses;
+    EXPECT_EQ(instance[i], 0u) << "pixel " << i;
+    EXPECT_EQ(material[i], 0u) << "pixel " << i;
+  }
+  EXPECT_GT(misses, 8);
+}
+
 // The seed of frame f of a job of seed s, written out from docs/architecture.md,
 // "Determinism" (SplitMix64's output function, applied twice), not taken from the worker.
 // A worker given two servers (--server A,B) serves both: a stream each, under an id each, its

@@ -16,7 +16,7 @@ SampleResult trace_ao(const Scene& scene, const PathState& camera) {
                        ray_query(seed, pixel, 0, RayKind::Path), s.index, camera.tmin, time))
     return result;  // background = 0
   const ShadingPoint sp = make_shading_point(scene, hit, -camera.d);
-  record_first_hit(sp, hit, camera.per_axial, &result);
+  record_first_hit(scene, sp, hit, camera.per_axial, &result);
   const Vec3 local = sample_cosine_hemisphere(s.get2(dim::bounce(0, dim::kBsdfU)));
   const Vec3 wi = normalize(sp.frame().to_world(local));
   if (dot(wi, sp.ng) <= 0.f) return result;  // below the surface: blocked by it

@@ -47,6 +47,15 @@ inline void sample_values(Id id, const SampleResult& r, float* out) {
     case Id::Position:
       for (int c = 0; c < 3; ++c) out[c] = r.depth > 0.f ? r.position[c] : 0.f;
       return;
+    // First-sample rows of type U32, summed in float32 like the others: the sum over the
+    // one-sample batch is the id itself, exact below 2^24, which a result sends as uint32
+    // (pack_f32_as_u32_le, film.h).
+    case Id::Instance:
+      out[0] = r.depth > 0.f ? float(r.instance_id) : 0.f;
+      return;
+    case Id::Material:
+      out[0] = r.depth > 0.f ? float(r.material_id) : 0.f;
+      return;
   }
 }
 

@@ -2,6 +2,7 @@
 
 #include <OpenImageIO/imageio.h>
 
+#include <cmath>
 #include <cstring>
 #include <memory>
 #include <stdexcept>
@@ -64,8 +65,18 @@ std::string pack_f32_le(const std::vector<float>& v) { return pack_le<float, uin
 std::string pack_f64_as_f32_le(const std::vector<double>& v) {
   return pack_le<float, uint32_t>(std::vector<float>(v.begin(), v.end()));
 }
+std::string pack_u32_le(const std::vector<uint32_t>& v) { return pack_le<uint32_t, uint32_t>(v); }
+std::string pack_f32_as_u32_le(const std::vector<float>& sums) {
+  std::vector<uint32_t> ids(sums.size());
+  for (size_t i = 0; i < sums.size(); ++i)
+    ids[i] = sums[i] >= 0.f && sums[i] < 4294967296.f ? uint32_t(std::nearbyint(sums[i])) : 0u;
+  return pack_u32_le(ids);
+}
 std::vector<double> unpack_f64_le(const std::string& b) { return unpack_le<double, uint64_t>(b); }
 std::vector<float> unpack_f32_le(const std::string& b) { return unpack_le<float, uint32_t>(b); }
+std::vector<uint32_t> unpack_u32_le(const std::string& b) {
+  return unpack_le<uint32_t, uint32_t>(b);
+}
 
 Image::Image(uint32_t w, uint32_t h)
     : width(w),

@@ -32,8 +32,11 @@ struct TileBuffer {
   // miss), normal (first-hit shading normal), coverage (samples whose camera ray hit
   // geometry: an integer count, exact in float32; the alpha), depth (first-hit planar depth
   // along the viewing axis, channels::kBackgroundDepth on a miss) and position (first-hit
-  // world position, 0 on a miss). Depth and position have a window of one sample: asked for
-  // over the one-sample batch at sample 0, their sum is the first sample's value.
+  // world position, 0 on a miss), instance and material (the first hit's glTF node and
+  // material plus one, 0 on a miss or where there is none: integers, the row's type U32,
+  // exact in float32 below 2^24). The first-hit rows depth to material have a window of one
+  // sample: asked for over the one-sample batch at sample 0, their sum is the first sample's
+  // value.
   std::array<std::vector<float>, channels::kCount> sums;
   std::vector<float> depth_sum;      // 1 per pixel, first-hit distance along the camera ray
                                      // (0 on miss); not the Depth row, and not part of the
@@ -51,6 +54,12 @@ std::string pack_f64_le(const std::vector<double>& values);
 std::string pack_f32_le(const std::vector<float>& values);
 // Doubles rounded to the nearest float, packed as float32.
 std::string pack_f64_as_f32_le(const std::vector<double>& values);
+std::string pack_u32_le(const std::vector<uint32_t>& values);
+// The float32 sums of a row of type U32 (channels::Type::U32: over the one-sample batch at 0,
+// the sample's id, an integer exact in float32 below 2^24) as the integers they hold, packed
+// as uint32: each rounded to the nearest integer, 0 for anything not in [0, 2^32).
+std::string pack_f32_as_u32_le(const std::vector<float>& sums);
+std::vector<uint32_t> unpack_u32_le(const std::string& bytes);
 std::vector<double> unpack_f64_le(const std::string& bytes);
 std::vector<float> unpack_f32_le(const std::string& bytes);
 

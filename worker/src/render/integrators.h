@@ -56,6 +56,10 @@ struct SampleResult {
   // along the ray; t dot(d, forward) for the camera ray o + t d), as Blender's Depth pass has
   // it; 0 on a miss (the Depth row writes channels::kBackgroundDepth there).
   float z = 0.f;
+  // The Instance and Material rows: the first hit's glTF node (Scene::node) and glTF material
+  // (Material::gltf_index), each plus one; 0 on a miss and where the scene has none.
+  uint32_t instance_id = 0;
+  uint32_t material_id = 0;
   uint32_t rays = 0;
 };
 
@@ -74,10 +78,10 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // Renders samples [start, start + count) of every pixel of rect into *out (reset first), for
 // the rows of the channel table in `rows` (a channels::Set; every row by default). Per pixel,
 // samples are accumulated in sample-index order (radiance sums in double, Welford M2 of
-// luminance, the other rows' values in float32; the first-sample rows depth and position too,
-// which over the one-sample batch at sample 0 are that sample's values). Checks *cancel (if
-// given) between rows and returns false as soon as it is set; *out is then incomplete. The
-// request must pass validate_render_request.
+// luminance, the other rows' values in float32; the first-sample rows depth, position,
+// instance and material too, which over the one-sample batch at sample 0 are that sample's
+// values). Checks *cancel (if given) between rows and returns false as soon as it is set;
+// *out is then incomplete. The request must pass validate_render_request.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel = nullptr,

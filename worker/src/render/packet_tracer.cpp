@@ -72,7 +72,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   if (in_medium) p.beta *= transmittance(p.medium, hit->t);
   const Vec3 wo = -d;
   ShadingPoint sp = make_shading_point(scene, *hit, wo);
-  if (bounce == 0) record_first_hit(sp, *hit, p.per_axial, &result);
+  if (bounce == 0) record_first_hit(scene, sp, *hit, p.per_axial, &result);
   // Emission: the front (counter-clockwise) face emits, and the back of a double-sided one.
   const Material& hit_material = scene.materials()[hit->material];
   const float cos_emit = emitting_cosine(hit_material, hit->ng, wo);

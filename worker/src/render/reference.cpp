@@ -110,7 +110,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     const Hit& hit = hits[0];
     if (!is_zero(p.medium)) p.beta *= transmittance(p.medium, hit.t);
     ShadingPoint sp = make_shading_point(scene, hit, wo);
-    if (bounce == 0) record_first_hit(sp, hit, p.per_axial, &result);
+    if (bounce == 0) record_first_hit(scene, sp, hit, p.per_axial, &result);
     const Material& hit_material = scene.materials()[hit.material];
     const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
     if (hit_material.unlit) {  // as in the packet tracer

@@ -571,9 +571,12 @@ std::vector<uint32_t> Loader::read_indices(const tinygltf::Primitive& prim, size
 }
 
 // deform: the node's skin and morph target weights (null: none; world places the mesh).
+// node: the glTF node the triangles belong to (TriangleMesh::node: the world's), kNoNode for a
+// mesh placed by instances.
 void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
-                      const Deformation* deform) {
+                      const Deformation* deform, uint32_t node) {
   const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
+  const bool nodes = out->use_nodes(node != kNoNode);
   const bool mirror = world.det3() < 0.0;
   // Vertices already appended for this mesh by an earlier primitive with the same
   // attribute accessors: their first index, and which of them lost their normal.
@@ -640,6 +643,7 @@ void Loader::add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
       }
       out->material.push_back(material);
       out->flags.push_back(uint8_t(base_flags | (normals_ok ? TriangleMesh::kHasNormals : 0)));
+      if (nodes) out->node.push_back(node);
     }
     // Degenerate triangles are dropped by Scene.
   }
@@ -691,9 +695,9 @@ void Loader::derive_thin_materials(SceneDescription* desc) {
 // The points and lines of a mesh (modes 0-3) placed by `world` (deform: the node's skin and
 // morph target weights), appended to *out as elements: a point per index (POINTS), a segment
 // per pair (LINES), between consecutive indices (LINE_STRIP) and back to the first
-// (LINE_LOOP). A segment whose two ends are one vertex is dropped, as the spec says lines
-// should not be degenerate.
-void Loader::add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
+// (LINE_LOOP), each of the glTF node `node`. A segment whose two ends are one vertex is
+// dropped, as the spec says lines should not be degenerate.
+void Loader::add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out, uint32_t node,
                       const Deformation* deform) {
   const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
   for (size_t pi = 0; pi < mesh.primitives.size(); ++pi) {
@@ -728,7 +732,7 @@ void Loader::add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
       const bool normals = attrs.normal && !bad_normal[a] && !bad_normal[b];
       out->elements.push_back(
           {first + a, first + b, material->second,
-           uint8_t(base_flags | (normals ? TriangleMesh::kHasNormals : 0))});
+           uint8_t(base_flags | (normals ? TriangleMesh::kHasNormals : 0)), node});
     };
     const size_t n = indices.size();
     if (prim.mode == TINYGLTF_MODE_POINTS) {
@@ -754,13 +758,15 @@ void Loader::visit_thin(int index, const tinygltf::Node& node, const Mat4& world
   for (const tinygltf::Primitive& prim : model_.meshes[mi].primitives)
     any = any || !is_triangles(prim.mode);
   if (!any) return;
+  const uint32_t id = uint32_t(index);
   if (gpu_instancing(node)) {
-    for (const Mat4& local : gpu_instances(node, index)) add_thin(mi, world * local, &desc->thin);
+    for (const Mat4& local : gpu_instances(node, index))
+      add_thin(mi, world * local, &desc->thin, id);
   } else if (is_deformed(index)) {
     const Deformation deformation = deformation_of(index, where);
-    add_thin(mi, world, &desc->thin, &deformation);
+    add_thin(mi, world, &desc->thin, id, &deformation);
   } else {
-    add_thin(mi, world, &desc->thin);
+    add_thin(mi, world, &desc->thin, id);
   }
 }
 

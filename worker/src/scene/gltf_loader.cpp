@@ -148,6 +148,7 @@ SceneDescription Loader::run() {
   if (!pose_only) {
     check_cost(roots, &desc.stats);
     reserve(world_counts(roots), &desc.world);
+    desc.world.node.reserve(desc.world.material.capacity());  // every world triangle has one
   }
   for (int root : roots) visit(root, Mat4::identity(), &desc, 0);
   desc.image_height = options_.image_height;
@@ -158,7 +159,8 @@ SceneDescription Loader::run() {
     Mesh mesh;
     mesh.name = "points and lines";
     desc.meshes.push_back(std::move(mesh));
-    desc.instances.push_back({uint32_t(desc.thin_mesh), Mat4::identity()});
+    // Its triangles carry their nodes (TriangleMesh::node), the instance none.
+    desc.instances.push_back({uint32_t(desc.thin_mesh), kNoNode, Mat4::identity()});
   }
   if (split_) {
     split_->deformed_mesh.assign(desc.meshes.size(), 0);
@@ -423,7 +425,7 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
     }
     if (split_ && moving_[size_t(index)]) ++moving_mesh_nodes_;
     for (const Mat4& local : gpu_instances(node, index))
-      desc->instances.push_back({uint32_t(slot), world * local});
+      desc->instances.push_back({uint32_t(slot), uint32_t(index), world * local});
   } else if (node.mesh >= 0 && split_) {
     if (node.mesh >= int(model_.meshes.size()))
       fail(where + ": 'mesh' refers to missing mesh " + std::to_string(node.mesh));
@@ -440,7 +442,7 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
       range.first_vertex = uint32_t(desc->world.positions.size());
       range.skinned = deformation.skin >= 0;
       range.morphed = !deformation.weights.empty();
-      add_mesh(size_t(node.mesh), world, &desc->world, &deformation);
+      add_mesh(size_t(node.mesh), world, &desc->world, &deformation, uint32_t(index));
       range.count = uint32_t(desc->world.positions.size()) - range.first_vertex;
     } else if (mesh_uses_[size_t(node.mesh)] > 1) {
       // Shared mesh: built once in its own space, placed by an instance.
@@ -456,10 +458,10 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
       range.instance = int(desc->instances.size());
       range.mesh_slot = slot;
       range.count = uint32_t(desc->meshes[size_t(slot)].geometry.positions.size());
-      desc->instances.push_back({uint32_t(slot), world});
+      desc->instances.push_back({uint32_t(slot), uint32_t(index), world});
     } else {
       range.first_vertex = uint32_t(desc->world.positions.size());
-      add_mesh(size_t(node.mesh), world, &desc->world);
+      add_mesh(size_t(node.mesh), world, &desc->world, nullptr, uint32_t(index));
       range.count = uint32_t(desc->world.positions.size()) - range.first_vertex;
     }
     if (options_.pose_report) options_.pose_report->ranges.push_back(range);
@@ -486,7 +488,7 @@ void Loader::visit_split(int index, const tinygltf::Node& node, const Mat4& worl
     const int slot = int(desc->meshes.size());
     desc->meshes.push_back(std::move(mesh));
     deformed_slots_.push_back(slot);
-    if (visible) desc->instances.push_back({uint32_t(slot), Mat4::identity()});
+    if (visible) desc->instances.push_back({uint32_t(slot), uint32_t(index), Mat4::identity()});
     return;
   }
   if (moving_[size_t(index)] || (!is_deformed(index) && mesh_uses_[mi] > 1)) {
@@ -502,15 +504,15 @@ void Loader::visit_split(int index, const tinygltf::Node& node, const Mat4& worl
       slot = int(desc->meshes.size());
       desc->meshes.push_back(std::move(mesh));
     }
-    if (visible) desc->instances.push_back({uint32_t(slot), world});
+    if (visible) desc->instances.push_back({uint32_t(slot), uint32_t(index), world});
     return;
   }
   if (pose_only) return;  // static world triangles: the static part's
   if (is_deformed(index)) {
     const Deformation deformation = deformation_of(index, where);
-    add_mesh(mi, world, &desc->world, &deformation);
+    add_mesh(mi, world, &desc->world, &deformation, uint32_t(index));
   } else {
-    add_mesh(mi, world, &desc->world);
+    add_mesh(mi, world, &desc->world, nullptr, uint32_t(index));
   }
 }
 

@@ -232,7 +232,7 @@ class Loader {
   static size_t triangle_count(int mode, size_t indices);
   static uint32_t corner(int mode, const std::vector<uint32_t>& indices, size_t t, int k);
   void add_mesh(size_t mesh_index, const Mat4& world, TriangleMesh* out,
-                const Deformation* deform = nullptr);
+                const Deformation* deform = nullptr, uint32_t node = kNoNode);
   VertexAttributes read_attributes(const tinygltf::Primitive& prim, const std::string& where,
                                    bool deformed);
   uint32_t primitive_material(const tinygltf::Primitive& prim, size_t mesh_index, size_t pi,
@@ -243,7 +243,7 @@ class Loader {
   enum class ThinKind { Unlit, LitFlat, Lit };
   static ThinKind thin_kind(const tinygltf::Primitive& prim);
   void derive_thin_materials(SceneDescription* desc);
-  void add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out,
+  void add_thin(size_t mesh_index, const Mat4& world, ThinGeometry* out, uint32_t node,
                 const Deformation* deform = nullptr);
   void visit_thin(int index, const tinygltf::Node& node, const Mat4& world,
                   const std::string& where, SceneDescription* desc);

@@ -324,6 +324,7 @@ void Loader::load_materials(SceneDescription* desc) {
     const std::string where = "materials[" + std::to_string(i) + "]" + named(gm.name);
     Material m;
     m.name = gm.name;
+    m.gltf_index = int32_t(i);
     // glTF defaults: metallic = roughness = 1, a dielectric specular layer of ior 1.5.
     const std::string at_pmr = "materials[" + std::to_string(i) + "].pbrMetallicRoughness";
     m.metallic = unit_number(gm.pbrMetallicRoughness.metallicFactor,

@@ -118,6 +118,10 @@ struct Material {
   // glTF doubleSided: the back face is lit as the front with the normal reversed (3.9.5), and
   // so an emissive back face emits like the front; otherwise only the front face emits.
   bool double_sided = false;
+  // Its index in the glTF's "materials", set by the loader (a points-and-lines variant keeps
+  // that of the material it copies), -1 for none (the default material of primitives without
+  // one, and materials not from a glTF file): the Material row is this plus one.
+  int32_t gltf_index = -1;
   bool has_volume() const { return !is_zero(absorption); }
   // An unlit material's emission is never used (it shows its base colour instead).
   bool is_emissive() const { return !unlit && !is_zero(emission); }

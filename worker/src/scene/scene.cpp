@@ -147,6 +147,8 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
     throw SceneError(where + ": triangle mesh has COLOR_0 for some vertices only");
   if (!mesh->tangents.empty() && mesh->tangents.size() != nv)
     throw SceneError(where + ": triangle mesh has TANGENT for some vertices only");
+  if (!mesh->node.empty() && mesh->node.size() != n)
+    throw SceneError(where + ": triangle mesh has a node for some triangles only");
   size_t kept = 0;
   mesh->face_normals.assign(n, Vec3());
   for (size_t i = 0; i < n; ++i) {
@@ -169,6 +171,7 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
     if (kept != i) {
       for (int k = 0; k < 3; ++k) mesh->indices[3 * kept + size_t(k)] = v[k];
       mesh->material[kept] = mesh->material[i];
+      if (!mesh->node.empty()) mesh->node[kept] = mesh->node[i];
     }
     mesh->flags[kept] = flags;
     ++kept;
@@ -176,6 +179,7 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
   mesh->indices.resize(3 * kept);
   mesh->material.resize(kept);
   mesh->flags.resize(kept);
+  if (!mesh->node.empty()) mesh->node.resize(kept);
   mesh->face_normals.resize(kept);
   // No growth slack is kept for the scene's lifetime (a description built by push_back may
   // hold up to twice its size). Positions keep room for one more vertex: Embree reads the
@@ -188,6 +192,7 @@ size_t clean_mesh(TriangleMesh* mesh, size_t material_count, const std::string& 
   fit(&mesh->indices, 0);
   fit(&mesh->material, 0);
   fit(&mesh->flags, 0);
+  fit(&mesh->node, 0);
   fit(&mesh->face_normals, 0);
   return n - kept;
 }
@@ -204,7 +209,7 @@ uint32_t partition_transparent(TriangleMesh* mesh, const std::vector<Material>& 
   size_t opaque = 0;
   while (opaque < n && materials[mesh->material[order[opaque]]].is_opaque()) ++opaque;
   if (opaque == n || opaque == 0) return uint32_t(opaque);  // nothing moves
-  std::vector<uint32_t> indices(3 * n), material(n);
+  std::vector<uint32_t> indices(3 * n), material(n), node(mesh->node.size());
   std::vector<uint8_t> flags(n);
   std::vector<Vec3> face_normals(n);
   for (size_t k = 0; k < n; ++k) {
@@ -213,11 +218,13 @@ uint32_t partition_transparent(TriangleMesh* mesh, const std::vector<Material>& 
     material[k] = mesh->material[i];
     flags[k] = mesh->flags[i];
     face_normals[k] = mesh->face_normals[i];
+    if (!node.empty()) node[k] = mesh->node[i];
   }
   mesh->indices.swap(indices);
   mesh->material.swap(material);
   mesh->flags.swap(flags);
   mesh->face_normals.swap(face_normals);
+  mesh->node.swap(node);
   return uint32_t(opaque);
 }
 
@@ -413,6 +420,12 @@ void thin_triangles(const ThinGeometry& thin, const Camera& camera, uint32_t hei
       if (!v.uv[set].empty()) out->uv[set][dst] = v.uv[set][src];
   };
   out->indices.reserve(out->indices.size() + 6 * thin.elements.size());
+  bool nodes = !out->node.empty();
+  for (const ThinGeometry::Element& e : thin.elements) nodes = nodes || e.node != kNoNode;
+  if (nodes) {
+    out->use_nodes(true);
+    out->node.reserve(out->node.size() + 2 * thin.elements.size());
+  }
   size_t next = first;
   for (const ThinGeometry::Element& e : thin.elements) {
     const Vec3 a = v.positions[e.a], b = v.positions[e.b];
@@ -446,6 +459,7 @@ void thin_triangles(const ThinGeometry& thin, const Camera& camera, uint32_t hei
     for (int t = 0; t < 2; ++t) {
       out->material.push_back(e.material);
       out->flags.push_back(e.flags);
+      if (nodes) out->node.push_back(e.node);
     }
     next += 4;
   }
@@ -715,7 +729,8 @@ namespace {
 
 bool same_triangles(const TriangleMesh& a, const TriangleMesh& b) {
   return a.positions.size() == b.positions.size() && a.normals.size() == b.normals.size() &&
-         a.indices == b.indices && a.material == b.material && a.flags == b.flags;
+         a.indices == b.indices && a.material == b.material && a.flags == b.flags &&
+         a.node == b.node;
 }
 
 bool all_finite(const std::vector<Vec3>& points) {
@@ -1492,8 +1507,8 @@ size_t TriangleMesh::memory_bytes() const {
   for (const std::vector<Point2>& set : uv) uv_bytes += set.capacity() * sizeof(Point2);
   return positions.capacity() * sizeof(Vec3) + normals.capacity() * sizeof(Vec3) + uv_bytes +
          colors.capacity() * sizeof(Rgba) + tangents.capacity() * sizeof(Tangent) +
-         (indices.capacity() + material.capacity()) * sizeof(uint32_t) + flags.capacity() +
-         face_normals.capacity() * sizeof(Vec3);
+         (indices.capacity() + material.capacity() + node.capacity()) * sizeof(uint32_t) +
+         flags.capacity() + face_normals.capacity() * sizeof(Vec3);
 }
 
 std::string format_bytes(size_t bytes) {
@@ -1528,6 +1543,7 @@ size_t Scene::memory_bytes() const {
 void TriangleMesh::add(const Triangle& t) {
   const bool write_normals = use_normals(t.has_normals);
   const bool write_uv[2] = {use_uv(0, t.has_uv[0]), use_uv(1, t.has_uv[1])};
+  if (use_nodes(t.node != kNoNode)) node.push_back(t.node);
   const uint32_t first = uint32_t(positions.size());
   for (int k = 0; k < 3; ++k) {
     positions.push_back(t.p[k]);
@@ -1549,6 +1565,7 @@ Triangle TriangleMesh::triangle(size_t i) const {
   Triangle t;
   const uint32_t* vi = &indices[3 * i];
   t.material = material[i];
+  t.node = node.empty() ? kNoNode : node[i];
   t.has_normals = (flags[i] & kHasNormals) != 0;
   for (int set = 0; set < 2; ++set) t.has_uv[set] = (flags[i] & (kHasUv0 << set)) != 0;
   for (int k = 0; k < 3; ++k) {

@@ -156,6 +156,10 @@ struct Camera {
   Raster raster(uint32_t width, uint32_t height) const;
 };
 
+// The glTF node of a triangle or instance where the description does not say (a scene built
+// by hand, a mesh shared by several nodes): the Instance row reads 0 there.
+constexpr uint32_t kNoNode = ~0u;
+
 // One triangle with its attributes, by value: how tests and generated scenes describe
 // geometry (TriangleMesh::add) and what TriangleMesh::triangle gathers back.
 struct Triangle {
@@ -166,6 +170,7 @@ struct Triangle {
   bool has_normals = false;
   bool has_uv[2] = {false, false};
   uint32_t material = 0;    // index into the scene's materials
+  uint32_t node = kNoNode;  // the glTF node (TriangleMesh::node)
   // Filled by TriangleMesh::triangle (ignored by add): the unit geometric normal
   // normalize(cross(p1 - p0, p2 - p0)), whose side is the front face, and the area.
   Vec3 ng;
@@ -180,11 +185,12 @@ struct Rgba {
 // Indexed triangles in glTF's own layout: each vertex is stored once and shared by the
 // triangles that use it, and Embree reads the positions and indices in place (shared
 // buffers, not copies). About 45 bytes per triangle for a typical closed mesh with normals
-// and one uv set, against 144 for a Triangle. Each per-vertex attribute array is either
-// empty or as long as positions; a triangle's flags say which of normals, TEXCOORD_0 and
-// TEXCOORD_1 it has (a mesh merges primitives with and without them). Vertices of a primitive
-// without a texture coordinate set above 1 that another primitive has read (0, 0) there, and
-// vertices without COLOR_0 in a mesh that has it read white.
+// and one uv set (49 with the node of a world triangle), against 148 for a Triangle. Each
+// per-vertex attribute array is either empty or as long as positions; a triangle's flags say
+// which of normals, TEXCOORD_0 and TEXCOORD_1 it has (a mesh merges primitives with and
+// without them). Vertices of a primitive without a texture coordinate set above 1 that
+// another primitive has read (0, 0) there, and vertices without COLOR_0 in a mesh that has it
+// read white.
 struct TriangleMesh {
   enum : uint8_t { kHasNormals = 1, kHasUv0 = 2, kHasUv1 = 4, kHasTangents = 8 };
   std::vector<Vec3> positions;
@@ -203,6 +209,12 @@ struct TriangleMesh {
   std::vector<uint32_t> indices;   // 3 per triangle, counter-clockwise = front face
   std::vector<uint32_t> material;  // per triangle: index into the scene's materials
   std::vector<uint8_t> flags;      // per triangle: kHas* bits
+  // Per triangle, or empty: the index in the glTF's "nodes" of the node it belongs to
+  // (kNoNode: none), for the Instance row. The world's triangles (meshes used by one node,
+  // merged) and the points and lines of an animated scene's poses have it; a mesh placed by
+  // instances leaves it empty, its node being the Instance's. Read for a camera ray's first
+  // hit only (Scene::node), never while tracing: 4 bytes a world triangle.
+  std::vector<uint32_t> node;
   // Per triangle: the unit geometric normal normalize(cross(p1 - p0, p2 - p0)). Computed by
   // Scene (which drops the triangles that have none); descriptions leave it empty. Kept
   // rather than recomputed per hit (a square root and a division): 12 bytes a triangle save
@@ -243,6 +255,12 @@ struct TriangleMesh {
     if (needed) tangents.resize(positions.size());
     return needed || !tangents.empty();
   }
+  // The same for the per-triangle node, before a triangle is appended (earlier triangles get
+  // kNoNode).
+  bool use_nodes(bool needed) {
+    if (needed) node.resize(size(), kNoNode);
+    return needed || !node.empty();
+  }
 };
 
 // A mesh shared by several nodes, in its own local space.
@@ -252,6 +270,10 @@ struct Mesh {
 };
 struct Instance {
   uint32_t mesh = 0;  // index into SceneDescription::meshes
+  // The glTF node it places (EXT_mesh_gpu_instancing: each of the node's instances), kNoNode
+  // for none; the mesh's own per-triangle nodes, where it has them, take precedence
+  // (Scene::node). In the padding before to_world: an Instance is no larger for it.
+  uint32_t node = kNoNode;
   Mat4 to_world = Mat4::identity();
 };
 
@@ -266,6 +288,7 @@ struct ThinGeometry {
     uint32_t a = 0, b = 0;  // vertex indices: a segment's ends, a point's vertex twice
     uint32_t material = 0;  // index into the scene's materials (the loader's thin variant)
     uint8_t flags = 0;      // TriangleMesh::kHas* bits
+    uint32_t node = kNoNode;  // the glTF node whose mesh has it
   };
   std::vector<Element> elements;
   bool empty() const { return elements.empty(); }
@@ -275,7 +298,7 @@ struct ThinGeometry {
 // a segment becomes a ribbon and a point a square, each facing the camera and one pixel wide
 // where it is (glTF 2.0, "Point and Line Materials": "widths of 1px in viewport space"), with
 // the attributes of its vertices. Appended to *out (world space), front faces towards the
-// camera.
+// camera, each with its element's material and node.
 void thin_triangles(const ThinGeometry& thin, const Camera& camera, uint32_t height,
                     TriangleMesh* out);
 
@@ -483,6 +506,15 @@ class Scene {
   }
   // The material of triangle prim of slot's mesh.
   const Material& material(uint32_t slot, uint32_t prim) const;
+  // The glTF node of triangle prim of slot (its index in the file's "nodes"), kNoNode where the
+  // description gives none: the slot mesh's per-triangle node if it has them (the world, the
+  // points and lines of a pose), else the slot's Instance's. Read for a camera ray's first hit
+  // (the Instance row), not while tracing.
+  uint32_t node(uint32_t slot, uint32_t prim) const {
+    const TriangleMesh& mesh = *slot_mesh_[slot];
+    if (!mesh.node.empty()) return mesh.node[prim];
+    return slot == kWorldSlot ? kNoNode : desc_.instances[slot - 1].node;
+  }
   const std::vector<Material>& materials() const { return desc_.materials; }
   const TextureSet& textures() const { return *textures_; }
   // The triangles of a geometry slot (the world, or instance slot - 1's mesh), in that slot's

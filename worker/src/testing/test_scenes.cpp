@@ -190,6 +190,141 @@ std::string small_gltf_json() { return small_gltf(false); }
 
 std::string animated_gltf_json() { return small_gltf(true); }
 
+std::string ids_gltf_json(bool animated) {
+  std::vector<unsigned char> buf;
+  put_floats(&buf, {-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0});  // [0, 48): the quad
+  // [48, 144) and [144, 240): four segments each, along x at the heights of pixel rows 9 and
+  // 10 (y in [-2.5, -1.5]) and a quarter of a pixel apart: their ribbons, one pixel wide, cover
+  // y in [-2.625, -1.375]; x in [0.25, 1.75] and in [2.25, 3.75].
+  for (float x0 : {0.25f, 2.25f})
+    for (float y : {-1.625f, -1.875f, -2.125f, -2.375f})
+      put_floats(&buf, {x0, y, 0, x0 + 1.5f, y, 0});
+  put_floats(&buf, {-1, 0, 0, 1, 0, 0});                      // [240, 264): crowd's instances
+  put_floats(&buf, {0, 0, 0.25f, 0, 0, 0.25f, 0, 0, 0.25f, 0, 0, 0.25f});  // [264, 312): target
+  put_floats(&buf, {0, 1});                                   // [312, 320): keyframe times
+  put_floats(&buf, {1, 2, 0, 1, 2, -0.5f});                   // [320, 344): node 2's slide
+  put_floats(&buf, {0, 1});                                   // [344, 352): node 4's weight
+  // [352, 364): the quad's indices; [364, 382): a degenerate triangle, then the quad's.
+  for (uint16_t i : {0, 1, 2, 0, 2, 3, 0, 0, 1, 0, 1, 2, 0, 2, 3}) {
+    buf.push_back(uint8_t(i & 0xff));
+    buf.push_back(uint8_t(i >> 8));
+  }
+  buf.resize(384, 0);
+  const std::string quad = R"("attributes": {"POSITION": 0}, "indices": 8)";
+  const std::string variant = R"(, "extensions": {"KHR_materials_variants": {"mappings": [)";
+  return R"({
+  "asset": {"version": "2.0"},
+  "extensionsUsed": ["EXT_mesh_gpu_instancing", "KHR_materials_variants"],
+  "extensions": {"KHR_materials_variants": {"variants": [{"name": "v0"}]}},
+  "scene": 0,
+  "scenes": [{"nodes": [6, 8, 11, 3, 0, 1, 4, 7, 9, 10]}],
+  "nodes": [
+    {"name": "group", "children": [5, 2]},
+    {"name": "camera", "camera": 0, "translation": [0, 0, 10]},
+    {"name": "shared-2", "mesh": 1, "translation": [1, 2, 0]},
+    {"name": "lines", "mesh": 7, "translation": [0, 0, 0.5]},
+    {"name": "back", "mesh": 4, "translation": [-2, 0, 0], "scale": [2, 1, 1]},
+    {"name": "shared-1", "mesh": 1, "translation": [-1, 2, 0]},
+    {"name": "mask", "mesh": 3, "translation": [-3, 0, 1]},
+    {"name": "single", "mesh": 2, "translation": [-3, 2, 0]},
+    {"name": "glass", "mesh": 5, "translation": [-1, 0, 1]},
+    {"name": "plain", "mesh": 0, "translation": [3, 2, 0]},
+    {"name": "crowd", "mesh": 8, "translation": [-2, -2, 0],
+     "extensions": {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": 3}}}},
+    {"name": "hole", "mesh": 6, "translation": [3, 0, 1]}
+  ],
+  "cameras": [{"type": "orthographic",
+               "orthographic": {"xmag": 4, "ymag": 3, "znear": 0.01, "zfar": 100}}],
+  "materials": [
+    {"name": "red", "pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.2, 0.2, 1]}},
+    {"name": "green", "pbrMetallicRoughness": {"baseColorFactor": [0.2, 0.8, 0.2, 1]}},
+    {"name": "blue", "pbrMetallicRoughness": {"baseColorFactor": [0.2, 0.2, 0.8, 1]}},
+    {"name": "mask-solid", "alphaMode": "MASK", "alphaCutoff": 0.5,
+     "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.8]}},
+    {"name": "glass", "alphaMode": "BLEND",
+     "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0]}},
+    {"name": "ink", "pbrMetallicRoughness": {"baseColorFactor": [0.1, 0.1, 0.1, 1]}},
+    {"name": "mask-hole", "alphaMode": "MASK", "alphaCutoff": 0.5,
+     "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.2]}}
+  ],
+  "meshes": [
+    {"name": "plain", "primitives": [{)" + quad + variant +
+         R"({"material": 0, "variants": [0]}]}}}]},
+    {"name": "shared", "primitives": [{)" + quad + R"(, "material": 1)" + variant +
+         R"({"material": 2, "variants": [0]}]}}}]},
+    {"name": "single", "primitives": [{"attributes": {"POSITION": 0}, "indices": 9,
+                                       "material": 0}]},
+    {"name": "mask", "primitives": [{)" + quad + R"(, "material": 3}]},
+    {"name": "back", "primitives": [{)" + quad + R"(, "material": 2,
+                                     "targets": [{"POSITION": 4}]}], "weights": [0.5]},
+    {"name": "glass", "primitives": [{)" + quad + R"(, "material": 4}]},
+    {"name": "hole", "primitives": [{)" + quad + R"(, "material": 6}]},
+    {"name": "lines", "primitives": [{"attributes": {"POSITION": 1}, "mode": 1, "material": 5},
+                                     {"attributes": {"POSITION": 2}, "mode": 1}]},
+    {"name": "crowd", "primitives": [{)" + quad + R"(, "material": 1}]}
+  ],
+  "accessors": [
+    {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+     "min": [-1, -1, 0], "max": [1, 1, 0]},
+    {"bufferView": 1, "componentType": 5126, "count": 8, "type": "VEC3",
+     "min": [0.25, -2.375, 0], "max": [1.75, -1.625, 0]},
+    {"bufferView": 2, "componentType": 5126, "count": 8, "type": "VEC3",
+     "min": [2.25, -2.375, 0], "max": [3.75, -1.625, 0]},
+    {"bufferView": 3, "componentType": 5126, "count": 2, "type": "VEC3"},
+    {"bufferView": 4, "componentType": 5126, "count": 4, "type": "VEC3",
+     "min": [0, 0, 0.25], "max": [0, 0, 0.25]},
+    {"bufferView": 5, "componentType": 5126, "count": 2, "type": "SCALAR", "min": [0],
+     "max": [1]},
+    {"bufferView": 6, "componentType": 5126, "count": 2, "type": "VEC3"},
+    {"bufferView": 7, "componentType": 5126, "count": 2, "type": "SCALAR"},
+    {"bufferView": 8, "componentType": 5123, "count": 6, "type": "SCALAR"},
+    {"bufferView": 9, "componentType": 5123, "count": 9, "type": "SCALAR"}
+  ],
+  "bufferViews": [
+    {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 48, "byteLength": 96},
+    {"buffer": 0, "byteOffset": 144, "byteLength": 96},
+    {"buffer": 0, "byteOffset": 240, "byteLength": 24},
+    {"buffer": 0, "byteOffset": 264, "byteLength": 48},
+    {"buffer": 0, "byteOffset": 312, "byteLength": 8},
+    {"buffer": 0, "byteOffset": 320, "byteLength": 24},
+    {"buffer": 0, "byteOffset": 344, "byteLength": 8},
+    {"buffer": 0, "byteOffset": 352, "byteLength": 12},
+    {"buffer": 0, "byteOffset": 364, "byteLength": 18}
+  ],
+  "buffers": [{"byteLength": 384, "uri": "data:application/octet-stream;base64,)" +
+         base64(buf) + R"("}])" +
+         std::string(animated ? R"(,
+  "animations": [{"name": "move",
+    "channels": [{"sampler": 0, "target": {"node": 2, "path": "translation"}},
+                 {"sampler": 1, "target": {"node": 4, "path": "weights"}}],
+    "samplers": [{"input": 5, "output": 6}, {"input": 5, "output": 7}]}])"
+                             : "") +
+         R"(
+})";
+}
+
+const std::vector<IdCell>& ids_gltf_cells() {
+  // Cell (column c, row r) is the quad centred at (2c - 3, 2 - 2r): pixels x in [4c, 4c + 4),
+  // y in [4r, 4r + 4). Instance: node + 1; material: material + 1 (0: none).
+  static const std::vector<IdCell> cells = {
+      {0, 0, "nodes[7] 'single' (world, after a degenerate triangle), red", 8, 1, 1},
+      {4, 0, "nodes[5] 'shared-1' (an instance), green (v0: blue)", 6, 2, 3},
+      {8, 0, "nodes[2] 'shared-2' (an instance), green (v0: blue)", 3, 2, 3},
+      {12, 0, "nodes[9] 'plain' without a material (v0: red)", 10, 0, 1},
+      {0, 4, "nodes[6] 'mask' (MASK, alpha over the cutoff) in front of 'back'", 7, 4, 4},
+      {4, 4, "nodes[4] 'back' (morphed) behind nodes[8] 'glass' (BLEND, alpha 0), blue", 5, 3,
+       3},
+      {8, 4, "nothing", 0, 0, 0},
+      {12, 4, "nothing behind nodes[11] 'hole' (MASK, alpha under the cutoff)", 0, 0, 0},
+      {0, 8, "nodes[10] 'crowd' (EXT_mesh_gpu_instancing's first), green", 11, 2, 2},
+      {4, 8, "nodes[10] 'crowd' (EXT_mesh_gpu_instancing's second), green", 11, 2, 2},
+      {8, 8, "nodes[3] 'lines' (rows 9 and 10), ink's points-and-lines variant", 4, 6, 6},
+      {12, 8, "nodes[3] 'lines' (rows 9 and 10), without a material", 4, 0, 0},
+  };
+  return cells;
+}
+
 std::string quad_gltf_buffers_json() {
   std::vector<unsigned char> buf;
   put_floats(&buf, {-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0});       // [0, 48) positions

@@ -27,6 +27,33 @@ std::string small_gltf_json();
 // (0.5, 1, 0.5).
 std::string animated_gltf_json();
 
+// A glTF scene whose camera rays' first hits are on known glTF nodes and materials (the
+// Instance and Material rows), seen by an orthographic camera looking down -z at a 16 x 12
+// image whose pixels are 0.5 x 0.5 units: a grid of 4 x 3 cells of 4 x 4 pixels, each cell a
+// 2 x 2 quad (facing +z, its edges on pixel edges) or nothing, as ids_gltf_cells lists them.
+// It has a mesh used by one node (merged into the world triangles, after a degenerate
+// triangle the Scene drops), a mesh shared by two nodes (instances), a node whose mesh
+// EXT_mesh_gpu_instancing draws twice, a morphed (flattened) mesh, a MASK quad that stops the
+// camera rays in front of it, a BLEND quad of alpha 0 and a MASK one below its cutoff that let
+// them through, a primitive without a material, two LINES primitives of one node (one
+// without a material), KHR_materials_variants mappings (variant 0, "v0") and a node without a
+// mesh whose children come earlier in "nodes"; nodes, meshes and the scene's roots are in
+// different orders. The lines are one pixel wide at an image height of 12 (load it with
+// LoadOptions::image_height = 12). animated: node 2 (an instance of the shared mesh) slides
+// along z and node 4's morph weight goes from 0 to 1 over t in [0, 1] ("move"), which change
+// no pixel's first hit (an animated layout with one moving node and one deformed node).
+std::string ids_gltf_json(bool animated = false);
+// A cell of ids_gltf_json's image: its top-left pixel (x0, y0), what its 4 x 4 pixels' camera
+// rays hit first, and the Instance and Material rows there (the glTF node and material plus
+// one, 0 for none), and the Material row with variant "v0" selected. Its 2 x 2 inner pixels
+// see nothing else whatever the position of a sample inside them.
+struct IdCell {
+  uint32_t x0, y0;
+  const char* what;
+  uint32_t instance, material, variant_material;
+};
+const std::vector<IdCell>& ids_gltf_cells();
+
 // JSON members "accessors", "bufferViews" and "buffers" (no surrounding braces) of a unit
 // quad: z = 0, x and y in [-1, 1], facing +z, as accessors 0 POSITION, 1 NORMAL,
 // 2 TEXCOORD_0 = ((x + 1) / 2, (1 - y) / 2) (glTF's v points down the image) and 3 uint16
