@@ -3,12 +3,16 @@ maps' colour bars, and the notice of a job that completed short of its noise tar
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 from playwright.sync_api import Page, expect
 
 from renderfarm.infra.images import read_exr
 
 from ..conftest import CORNELL
+from ..test_cryptomatte_farm import SETTINGS as CRYPTO_SETTINGS
+from ..test_cryptomatte_farm import H, W, scene
 from ..waiting import wait_until
 from .conftest import canvas_pixels, mean_abs_diff, screenshot
 
@@ -102,3 +106,38 @@ def test_denoise_is_a_checkbox_of_the_submit_form(page: Page, scene_glb):
     assert posted.value.json()["settings"]["denoise"] is True
     page.wait_for_url(f"**/#/jobs/{posted.value.json()['id']}")
     expect(page.get_by_role("radio", name="Denoised")).to_be_visible()
+
+
+def test_the_viewer_names_the_object_under_the_pointer(page: Page, client, tmp_path):
+    """With Cryptomatte on, moving the pointer over the image names the glTF node, material and
+    root node under it (GET .../mattes), from the scene of tests/test_cryptomatte_farm.py: the
+    wheel (material rubber, under the root car) at pixel (12, 24), the lamp at (8, 5)."""
+    path = tmp_path / "car.gltf"
+    path.write_text(json.dumps(scene()))
+    job = client.submit(str(path), settings={**CRYPTO_SETTINGS, "max_spp": 4},
+                        name="cryptomatte")  # fmt: skip
+    job = wait_until(
+        lambda: (j := client.get(job["id"]))["state"] in ("completed", "failed") and j,
+        300, "the job to finish",
+    )  # fmt: skip
+    assert job["state"] == "completed", job["error"]
+    page.goto(f"/#/jobs/{job['id']}")
+    wait_layer(page, "rgb")
+    expect(page.locator('.viewer input[value="crypto_object"]')).to_have_count(1)
+    box = page.locator("canvas.preview").bounding_box()
+    pointer = page.locator(".viewer-pointer")
+
+    def hover(x: int, y: int) -> None:
+        page.mouse.move(box["x"] + (x + 0.5) / W * box["width"],
+                        box["y"] + (y + 0.5) / H * box["height"])  # fmt: skip
+
+    hover(12, 24)
+    expect(pointer).to_have_text("(12, 24) object wheel (100%) · material rubber (100%) · "
+                                 "asset car (100%)")  # fmt: skip
+    hover(8, 5)
+    expect(pointer).to_have_text("(8, 5) object lamp (100%) · material paint (100%)")
+    hover(40, 2)
+    expect(pointer).to_have_text("(40, 2) nothing")
+    screenshot(page, "cryptomatte-pointer")
+    page.mouse.move(box["x"] - 20, box["y"] - 20)  # off the image: the line empties
+    expect(pointer).to_have_text("")
