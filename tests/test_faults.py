@@ -28,6 +28,7 @@ from renderfarm.infra.embedded_db import EmbeddedPostgres, pg_ctl
 from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
+from .mattes import matte
 from .waiting import wait_until
 
 # Long enough (about 9.4M samples) that a fault injected a second after a fraction of the job
@@ -37,6 +38,8 @@ SPP = 1024
 TOTAL = 96 * 96 * SPP
 SETTINGS = {"width": 96, "height": 96, "tile_size": 16, "max_spp": SPP, "noise_threshold": 0}
 SETTINGS |= {"seed": 21}
+# The outputs the server-kill test's job renders beside the image (settings.aovs).
+OUTPUTS = ["depth", "ids", "cryptomatte"]
 FAST_LEASES = {
     "RENDERFARM_LEASE_S": "2",
     "RENDERFARM_HEARTBEAT_INTERVAL_S": "0.5",
@@ -128,11 +131,11 @@ def merged_fraction(client: Client, job_id: str) -> float:
     return p["samples_merged"] / TOTAL
 
 
-def submit_when_two_workers(client: Client, until_merged: float) -> dict:
-    """Wait for both workers, submit the SETTINGS job, and wait until that fraction of its
-    samples is merged."""
+def submit_when_two_workers(client: Client, until_merged: float, **more) -> dict:
+    """Wait for both workers, submit the SETTINGS job (with `more` settings), and wait until
+    that fraction of its samples is merged."""
     wait_until(lambda: len(client.workers()) == 2, 30, "two workers")
-    job = client.submit(CORNELL, settings=SETTINGS)
+    job = client.submit(CORNELL, settings={**SETTINGS, **more})
     wait_until(
         lambda: merged_fraction(client, job["id"]) > until_merged,
         300,
@@ -175,7 +178,7 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
     checkpointed are rendered again (counted by the restarted server's own metrics)."""
     with LocalFarm(workers=2, data_dir=tmp_path / "farm", threads=1, env=FAST_LEASES) as farm:
         with Client(farm.url) as client:
-            job = submit_when_two_workers(client, until_merged=0.4)
+            job = submit_when_two_workers(client, until_merged=0.4, aovs=OUTPUTS)
             merged = client.get(job["id"])["progress"]["samples_merged"]
             # Checkpoints come every 0.5 s: wait for one holding what is merged by now.
             wait_until(
@@ -219,6 +222,20 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             # The albedo and normal layers (each pixel's first 16 samples, checkpointed apart
             # from the statistics) survived the crash: they equal a standalone 16-spp render's.
             farm_exr = tmp_path / f"{job['id']}.exr"  # written by farm_image
+            # Every output layer (first-sample depth and labels, Cryptomatte's ranked counts
+            # over every sample) survived it too: the same bits as the same job undisturbed.
+            twin = client.submit(CORNELL, settings={**SETTINGS, "aovs": OUTPUTS})
+            twin = client.wait(twin["id"], poll_s=0.2, timeout_s=600)
+            assert twin["state"] == "completed"
+            twin_exr = tmp_path / "twin.exr"
+            client.save_image(twin["id"], twin_exr, "exr")
+            crashed, calm = read_exr(str(farm_exr)), read_exr(str(twin_exr))
+            outputs = [c for c in calm if c.startswith(("depth", "instance", "material",
+                                                         "Crypto"))]  # fmt: skip
+            assert len(outputs) == 1 + 2 + 3 * 3 * 4
+            for c in outputs:
+                assert np.array_equal(crashed[c], calm[c]), c
+            assert matte(calm, "CryptoObject", "red").max() == 1.0  # the red wall: not vacuous
     # The restarted server stopped the embedded PostgreSQL that outlived the killed one.
     assert not (tmp_path / "farm" / "pg" / "postmaster.pid").exists()
     assert_aovs_of_the_first_16_samples(farm_exr, worker_binary, tmp_path)
