@@ -153,13 +153,19 @@ def _ranked_pairs(
 
 
 def _outputs_band(
-    width: int, height: int, tiles: Band, rows: tuple, names: cryptomatte.Names | None = None
+    width: int,
+    height: int,
+    tiles: Band,
+    rows: tuple,
+    names: cryptomatte.Names | None = None,
+    ids: dict[str, dict[int, float]] | None = None,
 ) -> np.ndarray:
     """The EXR channels of the output rows (output_rows) of a band, float32 (height, width,
     their layers' channels): each summed row's mean over its window (zeros where nothing is
     merged), each ranked row's Cryptomatte layers (IDs of `names` and coverages)."""
     names = names or cryptomatte.Names.of({})
-    ids = {t: names.id_table(t) for t in cryptomatte.TYPES}
+    if ids is None and any(r.accumulate is Accumulate.RANKED for r in rows):
+        ids = {t: names.id_table(t) for t in cryptomatte.TYPES}
     out = np.zeros((height, width, sum(len(la.exr) for r in rows for la in r.layers)), np.float32)
     for rect, acc in tiles:
         if acc is None:
@@ -508,6 +514,8 @@ class ImageWriter:
         self.fmt, self.layer, self.width, self.height = fmt, layer, width, height
         self.outputs = output_rows(layout)
         self.crypto = crypto or cryptomatte.Names.of({})
+        # Each type's IDs by label, hashed once for the whole image.
+        self.crypto_ids = {t: self.crypto.id_table(t) for t in cryptomatte.TYPES}
         self.top = top if math.isfinite(top) and top > 0 else 1.0
         self.cancelled = cancelled
         if fmt == "exr":
@@ -596,7 +604,9 @@ class ImageWriter:
             parts = [pixels]
             if self.outputs:
                 parts.append(
-                    _outputs_band(self.width, band_height, tiles, self.outputs, self.crypto)
+                    _outputs_band(
+                        self.width, band_height, tiles, self.outputs, self.crypto, self.crypto_ids
+                    )
                 )
             if self.denoised is not None:
                 parts.append(self.denoised[y_in : y_in + band_height])
