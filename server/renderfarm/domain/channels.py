@@ -597,6 +597,9 @@ def layers_markdown() -> str:
         for layer in c.layers:
             name = f"`{layer.name}`" if layer.name else "(EXR only)"
             exr = ", ".join(f"`{e}`" for e in layer.exr)
+            if len(layer.exr) > 4:  # Cryptomatte's 12: the layers' names
+                levels = dict.fromkeys(e.split(".")[0] for e in layer.exr)
+                exr = ", ".join(f"`{n}.R/G/B/A`" for n in levels)
             on = f"`{c.setting}`" if c.setting else "always"
             if c.aov:
                 on = f"`aovs` with `{c.aov}`"
