@@ -44,6 +44,7 @@ CALLS = {
     "events": ((JOB,), {}),
     "frames": ((JOB,), {}),
     "frame_camera": ((JOB, 0), {}),
+    "pixel_mattes": ((JOB, 0, 0, 0), {}),
     "image": ((JOB, "png", "rgb"), {}),
     "image_file": ((JOB, "png", "rgb"), {}),
     "movie_file": ((JOB,), {}),
