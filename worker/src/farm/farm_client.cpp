@@ -262,6 +262,8 @@ bool Worker::run_session(Connection& c, const std::atomic<bool>& stop) {
   hello->set_version(RENDERFARM_VERSION);
   hello->set_token(options_.token);
   hello->set_packed(true);  // reads ServerMessage.assigns
+  // Every row of the channel table it renders: the server leases it tasks that name them.
+  for (const channels::Spec& row : channels::kSpecs) hello->add_channels(row.name);
   for (const std::string& tag : options_.tags) hello->add_tags(tag);
 
   // The supervisor runs from the start so that a stop request also interrupts the wait for
@@ -488,9 +490,10 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
                  false});
   }
   // The rows of the channel table the result carries (Task.channels, in its order); a server
-  // from before the table names none and reads the TileResult's own fields.
+  // from before the table names none and reads the TileResult's own fields (no ranked rows:
+  // their labels are not counted).
   std::vector<channels::Id> wanted;
-  uint32_t rows = channels::kAll;
+  uint32_t rows = channels::kAll & ~channels::kRanked;
   if (task.channels_size() > 0) {
     rows = 0;
     for (const std::string& name : task.channels()) {
@@ -529,7 +532,7 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   *r->mutable_rect() = task.rect();
   // float32 on the wire: the radiance's batch sums (at most 64 samples, summed in double)
   // rounded once; the other rows as render_rect summed them, those of type U32 (ids) as the
-  // integers their sums hold.
+  // integers their sums hold; the ranked rows as their (label, count) pairs, uint32.
   if (!wanted.empty()) {
     r->set_table_version(channels::kTableVersion);
     for (const channels::Id id : wanted) {
@@ -542,6 +545,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
         block->set_data(pack_f64_as_f32_le(tile.rgb_sum));
       else if (id == channels::Id::Luminance)
         block->set_data(pack_f64_as_f32_le(tile.luminance_m2));
+      else if (row.ranked)
+        block->set_data(pack_u32_le(tile.ranked(id)));  // (label, count) pairs
       else if (row.type == channels::Type::U32)
         block->set_data(pack_f32_as_u32_le(tile.sum(id)));  // ids, exact in the float sums
       else

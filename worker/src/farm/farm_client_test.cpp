@@ -4,14 +4,18 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <string>
 #include <thread>
+#include <vector>
 
+#include "render/channel_table.h"
 #include "render/integrators.h"
 #include "scene/animated_scene.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
@@ -241,6 +245,15 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_EQ(hello.worker_id(), "test-worker");
     EXPECT_EQ(hello.cores(), 2u);
     EXPECT_EQ(hello.max_in_flight(), 3u);
+    // Every row of the channel table, each once: the server leases a task naming a row only
+    // to a worker that lists it (the Cryptomatte rows among them).
+    const std::vector<std::string> listed(hello.channels().begin(), hello.channels().end());
+    EXPECT_EQ(listed.size(), size_t(channels::kCount));
+    for (const channels::Spec& row : channels::kSpecs)
+      EXPECT_EQ(std::count(listed.begin(), listed.end(), row.name), 1) << row.name;
+    for (const char* name : {"rgb", "coverage", "depth", "instance", "material",
+                             "crypto_object", "crypto_material"})
+      EXPECT_EQ(std::count(listed.begin(), listed.end(), name), 1) << name;
   }
   // A long task that we cancel, a good one, and one with an unknown sampler.
   auto assign = [&](const pb::Task& t) { ASSERT_TRUE(farm.assign(t)); };
@@ -558,6 +571,115 @@ TEST(FarmClient, SendsTheInstanceAndMaterialRowsAsU32) {
     EXPECT_EQ(material[i], 0u) << "pixel " << i;
   }
   EXPECT_GT(misses, 8);
+}
+
+// The ranked rows crypto_object and crypto_material travel as ChannelBlocks of type U32: 12
+// components, 48 bytes a pixel, little-endian uint32 (label, count) pairs, largest count first,
+// (0, 0) in the slots no label fills. In the inner pixels of testing::ids_gltf_json's cells,
+// a task of 8 samples from sample 4 gives one pair: the cell's node plus one (its material
+// plus one, or 0xFFFFFFFF for the primitive without a material) and 8; nothing where no
+// sample hit anything; everywhere counts adding up to the coverage and the local render's
+// pairs.
+TEST(FarmClient, SendsTheCryptomatteRowsAsRankedU32Pairs) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::ids_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "crypto";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  pb::Task task = make_task("crypto", farm.scene_sha, 8);
+  task.set_sample_start(4);
+  task.mutable_rect()->set_x0(0);
+  task.mutable_rect()->set_width(16);
+  task.mutable_rect()->set_height(12);
+  const char* const names[] = {"rgb", "luminance", "coverage", "crypto_object",
+                               "crypto_material"};
+  for (const char* name : names) task.add_channels(name);
+  ASSERT_TRUE(farm.assign(task));
+  ASSERT_TRUE(farm.wait_for([&] { return farm.has_result("crypto"); }));
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  const pb::TileResult* r = nullptr;
+  for (const auto& m : farm.received)
+    if (m.has_result() && m.result().task_id() == "crypto") r = &m.result();
+  ASSERT_NE(r, nullptr);
+  ASSERT_EQ(r->channels_size(), 5);
+  const size_t pixels = 16 * 12;
+  for (int k = 0; k < 5; ++k) EXPECT_EQ(r->channels(k).name(), names[k]);
+  for (int k : {3, 4}) {
+    const pb::ChannelBlock& b = r->channels(k);
+    EXPECT_EQ(b.type(), pb::VALUE_TYPE_U32) << b.name();
+    EXPECT_EQ(b.components(), 12u) << b.name();
+    ASSERT_EQ(b.data().size(), 48 * pixels) << b.name();
+  }
+  const std::string& object_bytes = r->channels(3).data();
+  const std::string& material_bytes = r->channels(4).data();
+  // Pixel (1, 1), in the cell of nodes[7] and materials[0]: (8, 8) and (1, 8), then zeros.
+  const size_t at = 48 * (16 + 1);
+  EXPECT_EQ(object_bytes.substr(at, 48), std::string("\x08\0\0\0\x08\0\0\0", 8) +
+                                              std::string(40, '\0'));
+  EXPECT_EQ(material_bytes.substr(at, 48), std::string("\x01\0\0\0\x08\0\0\0", 8) +
+                                                std::string(40, '\0'));
+  // Pixel (13, 1), nodes[9] without a material: (10, 8) and (0xFFFFFFFF, 8).
+  const size_t plain = 48 * (16 + 13);
+  EXPECT_EQ(object_bytes.substr(plain, 8), std::string("\x0a\0\0\0\x08\0\0\0", 8));
+  EXPECT_EQ(material_bytes.substr(plain, 8), std::string("\xff\xff\xff\xff\x08\0\0\0", 8));
+  // Pixel (9, 5), in the cell of nothing: every slot (0, 0).
+  EXPECT_EQ(object_bytes.substr(48 * (5 * 16 + 9), 48), std::string(48, '\0'));
+  EXPECT_EQ(material_bytes.substr(48 * (5 * 16 + 9), 48), std::string(48, '\0'));
+
+  const std::vector<float> coverage = unpack_f32_le(r->channels(2).data());
+  const std::vector<uint32_t> object = unpack_u32_le(object_bytes);
+  const std::vector<uint32_t> material = unpack_u32_le(material_bytes);
+  int checked = 0;
+  for (const testing::IdCell& cell : testing::ids_gltf_cells())
+    for (uint32_t y = cell.y0 + 1; y <= cell.y0 + 2; ++y)
+      for (uint32_t x = cell.x0 + 1; x <= cell.x0 + 2; ++x) {
+        const size_t i = size_t(y) * 16 + x;
+        std::vector<uint32_t> want_object(12, 0u), want_material(12, 0u);
+        if (cell.instance != 0) {
+          want_object[0] = cell.instance;
+          want_material[0] = cell.material ? cell.material : 0xFFFFFFFFu;
+          want_object[1] = want_material[1] = 8;
+        }
+        EXPECT_EQ(std::vector<uint32_t>(object.begin() + 12 * i, object.begin() + 12 * i + 12),
+                  want_object) << x << ", " << y << ": " << cell.what;
+        EXPECT_EQ(
+            std::vector<uint32_t>(material.begin() + 12 * i, material.begin() + 12 * i + 12),
+            want_material) << x << ", " << y << ": " << cell.what;
+        ++checked;
+      }
+  EXPECT_EQ(checked, 48);
+  const TileBuffer local = render_locally(farm.scene_bytes, task);
+  EXPECT_EQ(object, local.ranked(channels::Id::CryptoObject));
+  EXPECT_EQ(material, local.ranked(channels::Id::CryptoMaterial));
+  for (size_t i = 0; i < pixels; ++i) {
+    uint32_t objects = 0, materials = 0;
+    for (size_t k = 0; k < 6; ++k) {
+      objects += object[12 * i + 2 * k + 1];
+      materials += material[12 * i + 2 * k + 1];
+    }
+    EXPECT_EQ(float(objects), coverage[i]) << "pixel " << i;
+    EXPECT_EQ(float(materials), coverage[i]) << "pixel " << i;
+  }
 }
 
 // The seed of frame f of a job of seed s, written out from docs/architecture.md,

@@ -7,6 +7,7 @@
 
 #include "render/channel_table.h"
 #include "render/integrators.h"
+#include "render/ranked.h"
 
 namespace rf::channels {
 
@@ -15,8 +16,20 @@ using Set = uint32_t;
 constexpr Set kAll = (Set(1) << kCount) - 1;
 constexpr Set bit(Id id) { return Set(1) << uint32_t(id); }
 constexpr const Spec& spec(Id id) { return kSpecs[uint32_t(id)]; }
-// The largest number of components of a row.
+// The largest number of components of a row render_rect sums (not the ranked rows, which
+// render_rect counts per pixel in a RankedCounts, ranked.h).
 constexpr uint32_t kMaxComponents = 4;
+// The ranked rows (Cryptomatte): their labels are counted, not summed.
+constexpr Set kRanked = [] {
+  Set s = 0;
+  for (const Spec& row : kSpecs)
+    if (row.ranked) s |= bit(row.id);
+  return s;
+}();
+// The crypto_material row's label of a hit on a primitive without a material (glTF's default
+// material, Material::gltf_index -1): the server's cryptomatte.DEFAULT_MATERIAL_LABEL, which
+// it names "default material" (the Material row has 0 there).
+constexpr uint32_t kDefaultMaterialLabel = 0xFFFFFFFFu;
 // The Depth row's value where the camera ray hit nothing: Blender's Depth pass has 1e10 there
 // (the server's BACKGROUND_DEPTH, server/renderfarm/domain/channels.py).
 constexpr float kBackgroundDepth = 1e10f;
@@ -56,16 +69,46 @@ inline void sample_values(Id id, const SampleResult& r, float* out) {
     case Id::Material:
       out[0] = r.depth > 0.f ? float(r.material_id) : 0.f;
       return;
+    case Id::CryptoObject:
+    case Id::CryptoMaterial:
+      return;  // ranked: counted by render_rect through sample_label
   }
 }
 
+// The sample's label of a ranked row (Spec::ranked), 0 for none (not counted: the camera ray
+// hit nothing, or hit geometry without a glTF node); 0 for every other row.
+inline uint32_t sample_label(Id id, const SampleResult& r) {
+  switch (id) {
+    case Id::CryptoObject:  // the first hit's glTF node plus one, as the Instance row
+      return r.depth > 0.f ? r.instance_id : 0u;
+    case Id::CryptoMaterial:  // its glTF material plus one, or the default material's label
+      return r.depth > 0.f ? (r.material_id ? r.material_id : kDefaultMaterialLabel) : 0u;
+    case Id::Rgb:
+    case Id::Luminance:
+    case Id::Albedo:
+    case Id::Normal:
+    case Id::Coverage:
+    case Id::Depth:
+    case Id::Position:
+    case Id::Instance:
+    case Id::Material:
+      return 0u;  // not ranked
+  }
+  return 0u;
+}
+
 // Whether render_rect sums the row in float32 through sample_values.
-constexpr bool summed_in_float(Id id) { return id != Id::Rgb && id != Id::Luminance; }
+constexpr bool summed_in_float(Id id) {
+  return id != Id::Rgb && id != Id::Luminance && !spec(id).ranked;
+}
 
 static_assert([] {
   for (const Spec& s : kSpecs)
-    if (s.components > kMaxComponents) return false;
+    if (s.ranked ? s.components != 2 * kRanks || s.type != Type::U32
+                 : s.components > kMaxComponents)
+      return false;
   return true;
-}(), "a row of the channel table has more components than kMaxComponents");
+}(), "a summed row has more components than kMaxComponents, or a ranked row is not "
+     "kRanks (label, count) pairs of uint32");
 
 }  // namespace rf::channels

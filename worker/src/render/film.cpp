@@ -19,11 +19,16 @@ void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count, uint32_t whi
   luminance_m2.assign(n, 0.0);
   for (const channels::Spec& s : channels::kSpecs) {
     std::vector<float>& plane = sums[size_t(s.id)];
+    std::vector<uint32_t>& pairs = ranks[size_t(s.id)];
     const bool wanted = (which >> uint32_t(s.id)) & 1u;
-    if (wanted && s.id != channels::Id::Rgb && s.id != channels::Id::Luminance)
+    if (wanted && !s.ranked && s.id != channels::Id::Rgb && s.id != channels::Id::Luminance)
       plane.assign(s.components * n, 0.f);
     else
       plane.clear();
+    if (wanted && s.ranked)
+      pairs.assign(s.components * n, 0u);
+    else
+      pairs.clear();
   }
   depth_sum.assign(n, 0.f);
   nonfinite_samples = 0;

@@ -27,17 +27,21 @@ struct TileBuffer {
   uint32_t rows = 0;                 // channels::Set of the rows accumulated
   std::vector<double> rgb_sum;       // 3 per pixel, radiance summed in sample-index order
   std::vector<double> luminance_m2;  // 1 per pixel, Welford M2 of Y over the batch
-  // The other rows, by channels::Id, summed in float32 (channels::sample_values), their
-  // components per pixel (empty when not asked for): albedo (first-hit base colour, 0 on a
-  // miss), normal (first-hit shading normal), coverage (samples whose camera ray hit
-  // geometry: an integer count, exact in float32; the alpha), depth (first-hit planar depth
-  // along the viewing axis, channels::kBackgroundDepth on a miss) and position (first-hit
-  // world position, 0 on a miss), instance and material (the first hit's glTF node and
-  // material plus one, 0 on a miss or where there is none: integers, the row's type U32,
-  // exact in float32 below 2^24). The first-hit rows depth to material have a window of one
-  // sample: asked for over the one-sample batch at sample 0, their sum is the first sample's
-  // value.
+  // The other rows but the ranked ones, by channels::Id, summed in float32
+  // (channels::sample_values), their components per pixel (empty when not asked for): albedo
+  // (first-hit base colour, 0 on a miss), normal (first-hit shading normal), coverage
+  // (samples whose camera ray hit geometry: an integer count, exact in float32; the alpha),
+  // depth (first-hit planar depth along the viewing axis, channels::kBackgroundDepth on a
+  // miss) and position (first-hit world position, 0 on a miss), instance and material (the
+  // first hit's glTF node and material plus one, 0 on a miss or where there is none:
+  // integers, the row's type U32, exact in float32 below 2^24). The first-hit rows depth to
+  // material have a window of one sample: asked for over the one-sample batch at sample 0,
+  // their sum is the first sample's value.
   std::array<std::vector<float>, channels::kCount> sums;
+  // The ranked rows (Spec::ranked: crypto_object, crypto_material), by channels::Id, their
+  // components per pixel (empty when not asked for, and for every other row): each pixel's
+  // (label, count) pairs of the task's samples, largest count first (channels::RankedCounts).
+  std::array<std::vector<uint32_t>, channels::kCount> ranks;
   std::vector<float> depth_sum;      // 1 per pixel, first-hit distance along the camera ray
                                      // (0 on miss); not the Depth row, and not part of the
                                      // farm's TileResult (standalone EXR only)
@@ -47,6 +51,8 @@ struct TileBuffer {
   void reset(PixelRect r, uint64_t start, uint32_t count, uint32_t rows);
   std::vector<float>& sum(channels::Id id) { return sums[size_t(id)]; }
   const std::vector<float>& sum(channels::Id id) const { return sums[size_t(id)]; }
+  std::vector<uint32_t>& ranked(channels::Id id) { return ranks[size_t(id)]; }
+  const std::vector<uint32_t>& ranked(channels::Id id) const { return ranks[size_t(id)]; }
 };
 
 // Little-endian IEEE packing, as the protocol's bytes fields require.

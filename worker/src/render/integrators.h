@@ -80,8 +80,9 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // samples are accumulated in sample-index order (radiance sums in double, Welford M2 of
 // luminance, the other rows' values in float32; the first-sample rows depth, position,
 // instance and material too, which over the one-sample batch at sample 0 are that sample's
-// values). Checks *cancel (if given) between rows and returns false as soon as it is set;
-// *out is then incomplete. The request must pass validate_render_request.
+// values; the ranked rows' labels counted, channels::RankedCounts). Checks *cancel (if given)
+// between rows and returns false as soon as it is set; *out is then incomplete. The request
+// must pass validate_render_request.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel = nullptr,

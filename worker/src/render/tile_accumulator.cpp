@@ -24,6 +24,19 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       offset[n_summed + 1] = offset[n_summed] + s.components;
       ++n_summed;
     }
+  // The ranked rows asked for (Cryptomatte): each pixel's labels counted in a RankedCounts on
+  // the stack (132 bytes a row, reused pixel after pixel), in sample order, then its largest
+  // counts written out. When none is asked for, a sample costs one comparison of
+  // n_ranked = 0 more.
+  constexpr uint32_t kMaxRanked = [] {
+    uint32_t n = 0;
+    for (const channels::Spec& s : channels::kSpecs) n += s.ranked ? 1u : 0u;
+    return n;
+  }();
+  channels::Id ranked[kMaxRanked > 0 ? kMaxRanked : 1];
+  uint32_t n_ranked = 0;
+  for (const channels::Spec& s : channels::kSpecs)
+    if ((rows & channels::bit(s.id)) && s.ranked) ranked[n_ranked++] = s.id;
   for (uint32_t ty = 0; ty < rect.height; ++ty) {
     for (uint32_t tx = 0; tx < rect.width; ++tx) {
       // Checked every pixel, so that a cancel (or the worker's time budget) stops even a
@@ -34,6 +47,7 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       RunningStats luminance_stats;
       float acc[channels::kCount * channels::kMaxComponents] = {};
       float depth = 0.f;
+      channels::RankedCounts counts[kMaxRanked > 0 ? kMaxRanked : 1];  // empty
       const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
                                                     (rect.x0 + tx));
       SampleResult results[kPacketSize];
@@ -56,6 +70,8 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
           channels::sample_values(summed[j], r, v);
           for (uint32_t c = 0; c < offset[j + 1] - offset[j]; ++c) acc[offset[j] + c] += v[c];
         }
+        for (uint32_t j = 0; j < n_ranked; ++j)
+          counts[j].add(channels::sample_label(ranked[j], r));
         depth += r.depth;
         // Welford's update of the luminance mean and M2.
         luminance_stats.add(0.2126 * double(L.x) + 0.7152 * double(L.y) + 0.0722 * double(L.z));
@@ -66,6 +82,8 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
         float* plane = out->sum(summed[j]).data() + components * i;
         for (uint32_t c = 0; c < components; ++c) plane[c] = acc[offset[j] + c];
       }
+      for (uint32_t j = 0; j < n_ranked; ++j)
+        counts[j].emit(out->ranked(ranked[j]).data() + 2 * channels::kRanks * i);
       out->luminance_m2[i] = luminance_stats.m2;
       out->depth_sum[i] = depth;
     }
