@@ -287,6 +287,32 @@ CHANNELS: tuple[Channel, ...] = (
         wire_components=3,
     ),
     Channel(
+        "motion",
+        "the first sample's first hit's screen-space motion from the previous and to the next "
+        "frame, float32",
+        Accumulate.FIRST,
+        "motion",
+        (Array("motion", "<f4", 4),),
+        (
+            Layer(
+                "motion",
+                ("motion.X", "motion.Y", "motion.Z", "motion.W"),
+                "Motion",
+                "screen-space motion of the surface point of the first hit of each pixel's first "
+                "sample, in pixels, y up, as Blender's Vector pass has it: X, Y its position in "
+                "the previous frame minus its position now, Z, W its position now minus its "
+                "position in the next frame (so its motion to the next frame in image "
+                "coordinates, x right and y down, is (-Z, W)); frames are 1 / fps apart, "
+                "cameras included; 0 for a still and where the ray hit nothing",
+                Display.RANGE,
+            ),
+        ),
+        window=1,
+        setting="aovs",
+        aov="motion",
+        wire_components=4,
+    ),
+    Channel(
         "instance",
         "the glTF node of the first sample's first hit, plus one (0: none), uint32",
         Accumulate.FIRST,

@@ -17,12 +17,13 @@ enum class Id : uint8_t {
   Coverage = 4,
   Depth = 5,
   Position = 6,
-  Instance = 7,
-  Material = 8,
-  CryptoObject = 9,
-  CryptoMaterial = 10,
+  Motion = 7,
+  Instance = 8,
+  Material = 9,
+  CryptoObject = 10,
+  CryptoMaterial = 11,
 };
-constexpr uint32_t kCount = 11;
+constexpr uint32_t kCount = 12;
 
 // The type of a row's values in a result (workers.proto, ValueType).
 enum class Type : uint8_t { F32 = 1, F64 = 2, U32 = 3 };
@@ -46,6 +47,7 @@ constexpr Spec kSpecs[kCount] = {
     {Id::Coverage, "coverage", 1, Type::F32, 0, false},
     {Id::Depth, "depth", 1, Type::F32, 1, false},
     {Id::Position, "position", 3, Type::F32, 1, false},
+    {Id::Motion, "motion", 4, Type::F32, 1, false},
     {Id::Instance, "instance", 1, Type::U32, 1, false},
     {Id::Material, "material", 1, Type::U32, 1, false},
     {Id::CryptoObject, "crypto_object", 12, Type::U32, 0, true},
