@@ -208,6 +208,9 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
     if acc.position is not None:
         for i, axis in enumerate("XYZ"):
             rows[f"position.{axis}"] = acc.position[..., i]
+    if acc.motion is not None:
+        for i, axis in enumerate("XYZW"):
+            rows[f"motion.{axis}"] = acc.motion[..., i]
     # Labels: the integers, exact in float32 below 2^24.
     if acc.instance_id is not None:
         rows["instance.id"] = acc.instance_id
@@ -436,7 +439,7 @@ def test_aovs_name_the_outputs_a_job_turns_on():
     assert parse_settings({"aovs": " Depth, depth "}).aovs == "depth"
     assert parse_settings({}).aovs == ""
     refusals = [
-        (["depth", "zz"], "unknown output 'zz'; known: depth, position, ids"),
+        (["depth", "zz"], "unknown output 'zz'; known: depth, position, motion, ids, cryptomatte"),
         (7, "must be a list of names"),
         ([1], "must be a list of names"),
     ]
@@ -463,13 +466,15 @@ def test_outputs_add_their_arrays_to_the_memory_estimate_and_the_limit_counts_th
     assert acc.position.dtype == np.float32 and acc.position.shape == (H, W, 3)
     assert acc.instance_id.dtype == np.uint32 and acc.material_id.shape == (H, W)
     assert acc.crypto_object.dtype == np.uint32 and acc.crypto_object.shape == (H, W, 12)
-    # 76 bytes of the rows every job has, a float32 depth, three float32 position values, two
-    # uint32 labels and two Cryptomatte rows of six (label, count) uint32 pairs.
-    assert acc.nbytes == (76 + 4 + 12 + 4 + 4 + 2 * 48) * W * H
+    # 76 bytes of the rows every job has, a float32 depth, three float32 position values, four
+    # float32 motion values, two uint32 labels and two Cryptomatte rows of six (label, count)
+    # uint32 pairs.
+    assert acc.nbytes == (76 + 4 + 12 + 16 + 4 + 4 + 2 * 48) * W * H
     assert TileAccumulator(W, H).depth is None
     assert jobspec.job_memory_bytes(64, 64, 64, "depth,position") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "depth") == 80 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "ids") == 84 * 64 * 64 + 4096
+    assert jobspec.job_memory_bytes(64, 64, 64, "motion") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "cryptomatte") == 172 * 64 * 64 + 4096
     # 1024 x 1024 in 256 tiles: 80.7 MB without outputs, 97.5 MB with both; the limit between.
     limits = Limits(max_job_memory_bytes=85 * 2**20)
@@ -500,7 +505,7 @@ def test_checkpoints_of_a_job_with_outputs_round_trip_and_refuse_another_layout(
     aovs = acc.aovs_to_bytes()
     _, arrays, _, _ = channels.read_header(aovs, "test")
     assert [a.name for a in arrays] == [
-        "albedo_sum", "normal_sum", "depth", "position", "instance_id", "material_id",
+        "albedo_sum", "normal_sum", "depth", "position", "motion", "instance_id", "material_id",
     ]  # fmt: skip
     assert [a.dtype for a in arrays][-2:] == ["<u4", "<u4"]
     back = TileAccumulator.from_bytes(W, H, acc.to_bytes(), acc.samples, acc.batches,
@@ -516,7 +521,7 @@ def test_a_spill_slot_of_a_job_with_outputs_holds_them(tmp_path):
     acc = merged(layout=EVERY)
     want = {name: getattr(acc, name).copy() for name in EVERY.array_names()}
     cache.register("j", acc, 8)
-    assert acc.spill.home.slot_bytes == 196 * 8 * 8
+    assert acc.spill.home.slot_bytes == 212 * 8 * 8
     cache.register("j", merged(1, layout=EVERY), 8)  # evicts the first
     assert not acc.resident
     ref = acc.snapshot(("depth", "position"))
@@ -543,7 +548,8 @@ def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
     every = {c.name: _values(c.name) for c in EVERY.wire_rows_for(0)}
     r = decode_result(_result(every))
     assert set(r.extra) == {
-        "depth", "position", "instance", "material", "crypto_object", "crypto_material",
+        "depth", "position", "motion", "instance", "material", "crypto_object",
+        "crypto_material",
     }  # fmt: skip
     assert r.extra["instance"].dtype == np.dtype("<u4")
     assert np.array_equal(r.extra["position"], every["position"])

@@ -67,6 +67,9 @@ class Display(StrEnum):
     # Each component normalised to its range over the pixels the camera ray hit (a position);
     # black where it missed.
     RANGE = "range"
+    # A motion (Blender's Vector): the motion to the next frame in image coordinates, (-Z, W),
+    # as red (x) and green (y, down) around grey, normalised to its largest magnitude.
+    FLOW = "flow"
     # An integer label: a colour of its own for each value (a hash of it), black for 0.
     LABEL = "label"
     # Ranked labels (Cryptomatte): each label's colour (as LABEL) weighted by its coverage.
@@ -304,7 +307,7 @@ CHANNELS: tuple[Channel, ...] = (
                 "position in the next frame (so its motion to the next frame in image "
                 "coordinates, x right and y down, is (-Z, W)); frames are 1 / fps apart, "
                 "cameras included; 0 for a still and where the ray hit nothing",
-                Display.RANGE,
+                Display.FLOW,
             ),
         ),
         window=1,

@@ -63,7 +63,9 @@ EXR_COMPRESSIONS = ("zip", "none")
 # maximum over the image (layer_maximum).
 _DISPLAY = {n: layer.display for n, layer in channels.layers().items()}
 GREY_LAYERS = tuple(n for n, d in _DISPLAY.items() if d in (Display.GREY, Display.DEPTH))
-SCALED_LAYERS = GREY_LAYERS + tuple(n for n, d in _DISPLAY.items() if d is Display.RANGE)
+SCALED_LAYERS = GREY_LAYERS + tuple(
+    n for n, d in _DISPLAY.items() if d in (Display.RANGE, Display.FLOW)
+)
 # The rows of a layout beyond those of every job, summed or first-sample, written after the
 # fused kernel's channels (their means, row by row).
 _OWN_ROWS = frozenset(channels.DEFAULT.names)
@@ -121,6 +123,12 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     # nan_to_num and clip would, in two passes instead of six.
     x = np.fmin(np.fmax(linear, 0.0), 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def _next_frame_motion(vector: np.ndarray) -> np.ndarray:
+    """A motion row's (..., 4) values (Blender's Vector: previous - current, current - next,
+    y up) as the motion to the next frame in image coordinates, x right and y down: (-Z, W)."""
+    return np.stack([-vector[..., 2], vector[..., 3]], -1)
 
 
 def label_colours(labels: np.ndarray) -> np.ndarray:
@@ -219,6 +227,8 @@ def _grey_values(layer: str, acc: TileAccumulator) -> np.ndarray:
     values = acc.mean_of(channels.layer_channel(layer))
     if _DISPLAY[layer] is Display.DEPTH:  # where the ray hit nothing: white
         return np.where(values < channels.BACKGROUND_DEPTH, values, np.inf)
+    if _DISPLAY[layer] is Display.FLOW:
+        return np.abs(_next_frame_motion(values))
     return np.abs(values)  # RANGE: scaled by the largest magnitude
 
 
@@ -255,6 +265,9 @@ def _display_tile(
         values = _grey_values(layer, acc)
         grey = np.where(np.isfinite(values), values / top, 1.0)
         return np.repeat(grey[..., None], 3, axis=-1)
+    if _DISPLAY[layer] is Display.FLOW:
+        flow = _next_frame_motion(acc.mean_of(channels.layer_channel(layer))) / (2.0 * top)
+        return np.concatenate([flow + 0.5, np.full(flow.shape[:-1] + (1,), 0.5)], -1)
     if _DISPLAY[layer] is Display.RANGE:
         return acc.mean_of(channels.layer_channel(layer)) / (2.0 * top) + 0.5
     if _DISPLAY[layer] is Display.LABEL:

@@ -48,6 +48,7 @@ const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
   normal: { label: "Normal" },
   depth: { label: "Depth", colourMap: "viridis", legend: "depth along the viewing axis", needs: { aov: "depth" } },
   position: { label: "Position", needs: { aov: "position" } },
+  motion: { label: "Motion", needs: { aov: "motion" } },
   instance: { label: "Instance", needs: { aov: "ids" } },
   material: { label: "Material", needs: { aov: "ids" } },
   crypto_object: { label: "Crypto object", needs: { aov: "cryptomatte" } },
