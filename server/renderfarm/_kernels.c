@@ -425,12 +425,96 @@ static PyObject *exr_tile(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+PyDoc_STRVAR(merge_ranked_doc,
+"merge_ranked(stored, batch, out, pixels, ranks)\n\n"
+"Cryptomatte's ranked rows (domain/cryptomatte.py): per pixel, `ranks` (label, count) uint32\n"
+"pairs of `stored` and of `batch` (label 0: an empty slot; each set holds a label at most\n"
+"once) merged into `out`: the counts of equal labels added (saturating at 2^32 - 1), the\n"
+"`ranks` largest kept, by count descending then label ascending, empty slots (0, 0) last.");
+
+#define MAX_RANKS 16
+
+static PyObject *merge_ranked(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *stored_obj, *batch_obj, *out_obj;
+    Py_ssize_t pixels, ranks;
+    if (!PyArg_ParseTuple(args, "OOOnn", &stored_obj, &batch_obj, &out_obj, &pixels, &ranks)) {
+        return NULL;
+    }
+    if (pixels < 0 || ranks <= 0 || ranks > MAX_RANKS) {
+        PyErr_SetString(PyExc_ValueError, "merge_ranked: 0 < ranks <= 16 and pixels >= 0");
+        return NULL;
+    }
+    Buffer b[3];
+    memset(b, 0, sizeof b);
+    if (get_buffer(stored_obj, &b[0], 0, "stored") != 0 ||
+        get_buffer(batch_obj, &b[1], 0, "batch") != 0 ||
+        get_buffer(out_obj, &b[2], 1, "out") != 0) {
+        release(b, 3);
+        return NULL;
+    }
+    const Py_ssize_t bytes = 4 * 2 * ranks * pixels;
+    if (b[0].view.len != bytes || b[1].view.len != bytes || b[2].view.len != bytes) {
+        PyErr_SetString(PyExc_ValueError, "merge_ranked: array sizes do not match the shape");
+        release(b, 3);
+        return NULL;
+    }
+    const uint32_t *stored = b[0].view.buf, *batch = b[1].view.buf;
+    uint32_t *out = b[2].view.buf;
+    for (Py_ssize_t p = 0; p < pixels; ++p) {
+        const uint32_t *s = stored + 2 * ranks * p, *t = batch + 2 * ranks * p;
+        uint32_t label[2 * MAX_RANKS];
+        uint64_t count[2 * MAX_RANKS];
+        int n = 0;
+        for (Py_ssize_t r = 0; r < ranks; ++r) {
+            if (s[2 * r] == 0) continue;
+            label[n] = s[2 * r];
+            count[n++] = s[2 * r + 1];
+        }
+        const int stored_n = n;
+        for (Py_ssize_t r = 0; r < ranks; ++r) {
+            const uint32_t l = t[2 * r];
+            if (l == 0) continue;
+            int i = 0;
+            while (i < stored_n && label[i] != l) ++i;
+            if (i < stored_n) {
+                count[i] += t[2 * r + 1];
+            } else {
+                label[n] = l;
+                count[n++] = t[2 * r + 1];
+            }
+        }
+        /* Insertion sort (n <= 2 ranks): count descending, then label ascending. */
+        for (int i = 1; i < n; ++i) {
+            const uint32_t l = label[i];
+            const uint64_t c = count[i];
+            int j = i - 1;
+            while (j >= 0 && (count[j] < c || (count[j] == c && label[j] > l))) {
+                label[j + 1] = label[j];
+                count[j + 1] = count[j];
+                --j;
+            }
+            label[j + 1] = l;
+            count[j + 1] = c;
+        }
+        uint32_t *o = out + 2 * ranks * p;
+        for (Py_ssize_t r = 0; r < ranks; ++r) {
+            const int kept = r < n;
+            o[2 * r] = kept ? label[r] : 0;
+            o[2 * r + 1] = kept ? (count[r] > UINT32_MAX ? UINT32_MAX : (uint32_t)count[r]) : 0;
+        }
+    }
+    release(b, 3);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"merge", merge, METH_VARARGS, merge_doc},
     {"all_finite", all_finite, METH_O, all_finite_doc},
     {"squared_relative_error", squared_relative_error, METH_VARARGS, squared_relative_error_doc},
     {"block_means", block_means, METH_VARARGS, block_means_doc},
     {"exr_tile", exr_tile, METH_VARARGS, exr_tile_doc},
+    {"merge_ranked", merge_ranked, METH_VARARGS, merge_ranked_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -33,6 +33,7 @@ from typing import Any
 import mmh3
 import numpy as np
 
+from .. import _kernels
 from .scenes.glb import parse_json
 
 RANKS = 6  # ranks kept per pixel and type: the specification's suggested 6 levels (3 layers)
@@ -74,27 +75,30 @@ def _combine(labels: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.nda
         counts[:, k] += np.where(same, counts[:, k - 1], 0)
         counts[:, k - 1] = np.where(same, 0, counts[:, k - 1])
         labels[:, k - 1] = np.where(same, 0, labels[:, k - 1])
-    counts = np.where(labels != 0, counts, 0)
-    # Rank: count descending, then label ascending; (0, 0) last (every real count is >= 1).
-    key = ((np.uint64(0xFFFFFFFF) - counts) << np.uint64(32)) | labels.astype(np.uint64)
-    key = np.where(labels != 0, key, np.uint64(0xFFFFFFFFFFFFFFFF))
-    order = np.argsort(key, axis=1, kind="stable")
-    labels = np.take_along_axis(labels, order, 1)
-    counts = np.take_along_axis(counts, order, 1)
-    return labels, np.minimum(counts, 0xFFFFFFFF).astype(np.uint32)
+    return _ranked_order(labels, counts)
 
 
 def merge_ranked(stored: np.ndarray, batch: np.ndarray) -> np.ndarray:
     """Two sets of ranked pairs (..., 2 RANKS) uint32 merged: counts of equal labels added, the
-    RANKS largest kept (the stored array's shape)."""
-    shape = stored.shape
-    a = np.asarray(stored, np.uint32).reshape(-1, RANKS, 2)
-    b = np.asarray(batch, np.uint32).reshape(-1, RANKS, 2)
-    labels, counts = _combine(
-        np.concatenate([a[..., 0], b[..., 0]], 1), np.concatenate([a[..., 1], b[..., 1]], 1)
-    )
-    out = np.stack([labels[:, :RANKS], counts[:, :RANKS]], -1)
-    return np.ascontiguousarray(out.reshape(shape))
+    RANKS largest kept (the stored array's shape). Each set holds a label at most once. One
+    pass in C (_kernels.merge_ranked): under a millisecond for a 64x64 tile."""
+    a = np.ascontiguousarray(stored, np.uint32)
+    b = np.ascontiguousarray(batch, np.uint32).reshape(a.shape)
+    out = np.empty_like(a)
+    _kernels.merge_ranked(a, b, out, a.size // (2 * RANKS), RANKS)
+    return out
+
+
+def _ranked_order(labels: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, k) distinct labels and their counts ranked by count descending, then label
+    ascending; empty slots (label 0) last, as (0, 0)."""
+    counts = np.where(labels != 0, counts, 0).astype(np.uint64)
+    key = ((np.uint64(0xFFFFFFFF) - counts) << np.uint64(32)) | labels.astype(np.uint64)
+    key = np.where(labels != 0, key, np.uint64(0xFFFFFFFFFFFFFFFF))
+    order = np.argsort(key, axis=1)  # keys are distinct but for empty slots, all (0, 0)
+    labels = np.take_along_axis(labels, order, 1)
+    counts = np.take_along_axis(counts, order, 1)
+    return labels, np.minimum(counts, 0xFFFFFFFF).astype(np.uint32)
 
 
 def regroup(pairs: np.ndarray, mapping: np.ndarray) -> np.ndarray:
