@@ -20,6 +20,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <sstream>
 #include <thread>
@@ -27,6 +28,7 @@
 
 #include "render/channels.h"
 #include "render/integrators.h"
+#include "render/motion.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
 #include "farm/frames.h"
@@ -493,7 +495,7 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   // from before the table names none and reads the TileResult's own fields (no ranked rows:
   // their labels are not counted).
   std::vector<channels::Id> wanted;
-  uint32_t rows = channels::kAll & ~channels::kRanked;
+  uint32_t rows = channels::kAll & ~channels::kRanked & ~channels::bit(channels::Id::Motion);
   if (task.channels_size() > 0) {
     rows = 0;
     for (const std::string& name : task.channels()) {
@@ -509,9 +511,36 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
       rows |= channels::bit(found->id);
     }
   }
+  // The Motion row of an animated task: the scene posed (plain, no shutter) at the frames
+  // before and after, t -+ 1 / fps, through the pose cache like the frame's own pose; only
+  // for a task that asks for the row (the first-sample batch), so no other task poses more.
+  // A still has no motion: its row is 0 (no poses).
+  std::shared_ptr<const Scene> previous, next;
+  std::optional<MotionPoses> motion;
+  if ((rows & channels::bit(channels::Id::Motion)) && task.animated()) {
+    const double fps = task.settings().fps();
+    if (!(fps > 0.0) || !std::isfinite(fps))
+      return fail({"task: the motion row needs fps > 0 (frames 1 / fps apart)", false});
+    try {
+      previous = posed_scene_for(*s.conn, task.scene_sha256(), animation,
+                                 task.time_s() - 1.0 / fps, Shutter{}, variant,
+                                 settings.height);
+      next = posed_scene_for(*s.conn, task.scene_sha256(), animation,
+                             task.time_s() + 1.0 / fps, Shutter{}, variant, settings.height);
+    } catch (const TaskError& e) {
+      return fail(e);
+    } catch (const SceneError& e) {
+      return fail({std::string("scene load: ") + e.what(), false});
+    } catch (const std::exception& e) {
+      return fail({std::string("scene: ") + e.what(), true});
+    }
+    motion.emplace(*scene, frame_shutter_time(shutter), *previous, *next, settings.width,
+                   settings.height);
+  }
   TileBuffer tile;
-  const bool rendered = !cancel && render_rect(*scene, settings, rect, task.sample_start(),
-                                               task.sample_count(), &tile, &cancel, rows);
+  const bool rendered =
+      !cancel && render_rect(*scene, settings, rect, task.sample_start(), task.sample_count(),
+                             &tile, &cancel, rows, motion ? &*motion : nullptr);
   if (running.timed_out->load()) {
     char budget[32];
     std::snprintf(budget, sizeof budget, "%g", options_.task_timeout_s);

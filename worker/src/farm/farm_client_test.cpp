@@ -16,7 +16,9 @@
 #include <vector>
 
 #include "render/channel_table.h"
+#include "render/channels.h"
 #include "render/integrators.h"
+#include "render/motion.h"
 #include "scene/animated_scene.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
@@ -972,6 +974,121 @@ TEST(FarmClient, RendersAnimatedFramesPosedAndSeededByTheirFrame) {
       << unknown->failed().error();
   EXPECT_NE(unknown->failed().error().find("\"Slide\""), std::string::npos)
       << unknown->failed().error();
+}
+
+// The Motion row (a first-sample row of 4 float32 components): a batch-0 task of an animated
+// job that asks for it gets a ChannelBlock "motion", F32, 4 components, 16 bytes a pixel,
+// equal to the local render of the frame's pose with the poses of the frames before and after
+// (t -+ 1 / fps, testing::animated_gltf_json's "shrink" scaling the floor towards its centre
+// at 2 fps: its points off the centre move), 0 where the camera ray hit nothing; a task that
+// does not ask gets no such block, and a still's row is 0 everywhere.
+TEST(FarmClient, SendsTheMotionRowOnlyWhenAskedFor) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::animated_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "motion-worker";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  auto task = [&](const std::string& id, bool animated, bool motion) {
+    pb::Task t = make_task(id, farm.scene_sha, 1);
+    t.set_sample_start(0);
+    t.mutable_rect()->set_x0(0);
+    t.mutable_rect()->set_width(16);
+    t.mutable_rect()->set_height(12);
+    if (animated) {
+      t.set_animated(true);
+      t.set_frame(2);
+      t.set_time_s(1.0);
+      t.mutable_settings()->set_animation("shrink");
+      t.mutable_settings()->set_fps(2.0);
+    }
+    for (const char* name : {"rgb", "coverage"}) t.add_channels(name);
+    if (motion) t.add_channels("motion");
+    return t;
+  };
+  for (const pb::Task& t : {task("moving", true, true), task("without", true, false),
+                            task("still", false, true)}) {
+    ASSERT_TRUE(farm.assign(t));
+    ASSERT_TRUE(farm.wait_for([&] { return farm.has_result(t.task_id()); }));
+  }
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  auto result = [&](const std::string& id) -> const pb::TileResult* {
+    for (const auto& m : farm.received)
+      if (m.has_result() && m.result().task_id() == id) return &m.result();
+    return nullptr;
+  };
+  const size_t pixels = 16 * 12;
+  auto motion_of = [&](const pb::TileResult* r) -> std::vector<float> {
+    EXPECT_EQ(r->channels_size(), 3);
+    if (r->channels_size() != 3) return {};
+    const pb::ChannelBlock& b = r->channels(2);
+    EXPECT_EQ(b.name(), "motion");
+    EXPECT_EQ(b.type(), pb::VALUE_TYPE_F32);
+    EXPECT_EQ(b.components(), 4u);
+    EXPECT_EQ(b.data().size(), 16 * pixels);
+    return unpack_f32_le(b.data());
+  };
+  const pb::TileResult* moving = result("moving");
+  const pb::TileResult* without = result("without");
+  const pb::TileResult* still = result("still");
+  ASSERT_TRUE(moving && without && still);
+  ASSERT_EQ(without->channels_size(), 2);
+  for (const pb::ChannelBlock& b : without->channels()) EXPECT_NE(b.name(), "motion");
+  const std::vector<float> still_motion = motion_of(still);
+  ASSERT_EQ(still_motion.size(), 4 * pixels);
+  for (float v : still_motion) EXPECT_EQ(v, 0.f);
+  const std::vector<float> motion = motion_of(moving);
+  ASSERT_EQ(motion.size(), 4 * pixels);
+  const std::vector<float> coverage = unpack_f32_le(moving->channels(1).data());
+  // The local render: the frame's pose and its neighbours', with the frame's seed.
+  const std::string scene_path = testing::test_path("rf-farm-motion.gltf");
+  {
+    std::ofstream out(scene_path);
+    out << farm.scene_bytes;
+  }
+  LoadOptions load;
+  load.animations = {1};
+  load.image_height = 12;
+  const AnimatedScene animated(parse_gltf(scene_path, nullptr, load), load);
+  const auto previous = animated.pose(0.5), current = animated.pose(1.0),
+             next = animated.pose(1.5);
+  const MotionPoses poses(*current, 0.f, *previous, *next, 16, 12);
+  RenderSettings settings;
+  settings.width = 16;
+  settings.height = 12;
+  settings.seed = spec_frame_seed(77, 2);
+  settings.max_depth = 4;
+  TileBuffer local;
+  ASSERT_TRUE(render_rect(*current, settings, {0, 0, 16, 12}, 0, 1, &local, nullptr,
+                          channels::bit(channels::Id::Motion), &poses));
+  EXPECT_EQ(motion, local.sum(channels::Id::Motion));
+  int moved = 0;
+  for (size_t i = 0; i < pixels; ++i) {
+    if (coverage[i] == 0.f) {
+      for (int c = 0; c < 4; ++c) EXPECT_EQ(motion[4 * i + size_t(c)], 0.f) << "pixel " << i;
+    }
+    moved += motion[4 * i] != 0.f;
+  }
+  EXPECT_GT(moved, 10);  // the floor's pixels
 }
 
 }  // namespace

@@ -7,6 +7,7 @@
 
 #include "render/channel_table.h"
 #include "render/integrators.h"
+#include "render/motion.h"
 #include "render/ranked.h"
 
 namespace rf::channels {
@@ -36,8 +37,10 @@ constexpr float kBackgroundDepth = 1e10f;
 
 // Writes the sample's values of a row render_rect sums in float32, spec(id).components of
 // them: every row but the radiance and its luminance M2, which render_rect sums in double
-// (the fused path of the radiance's statistics).
-inline void sample_values(Id id, const SampleResult& r, float* out) {
+// (the fused path of the radiance's statistics). motion: the Motion row's other poses (null:
+// a still, its Motion row 0).
+inline void sample_values(Id id, const SampleResult& r, float* out,
+                          const MotionPoses* motion = nullptr) {
   switch (id) {
     case Id::Rgb:
     case Id::Luminance:
@@ -59,6 +62,9 @@ inline void sample_values(Id id, const SampleResult& r, float* out) {
       return;
     case Id::Position:
       for (int c = 0; c < 3; ++c) out[c] = r.depth > 0.f ? r.position[c] : 0.f;
+      return;
+    case Id::Motion:  // 0 on a miss and for a still (render/motion.h)
+      motion_values(motion, r, out);
       return;
     // First-sample rows of type U32, summed in float32 like the others: the sum over the
     // one-sample batch is the id itself, exact below 2^24, which a result sends as uint32
@@ -90,6 +96,7 @@ inline uint32_t sample_label(Id id, const SampleResult& r) {
     case Id::Coverage:
     case Id::Depth:
     case Id::Position:
+    case Id::Motion:
     case Id::Instance:
     case Id::Material:
       return 0u;  // not ranked

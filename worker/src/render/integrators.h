@@ -61,7 +61,14 @@ struct SampleResult {
   uint32_t instance_id = 0;
   uint32_t material_id = 0;
   uint32_t rays = 0;
+  // The first hit's surface point (Hit::slot, prim, b1, b2; meaningful where depth > 0): the
+  // Motion row finds it in the scene posed at the previous and the next frame's times.
+  uint32_t slot = 0, prim = 0;
+  float b1 = 0.f, b2 = 0.f;
 };
+
+// The Motion row's context (render/motion.h): the poses of the frame before and after.
+struct MotionPoses;
 
 // One sample of pixel (x, y) with global sample index `index`.
 SampleResult trace_sample(const Scene& scene, const RenderSettings& settings,
@@ -79,13 +86,15 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // the rows of the channel table in `rows` (a channels::Set; every row by default). Per pixel,
 // samples are accumulated in sample-index order (radiance sums in double, Welford M2 of
 // luminance, the other rows' values in float32; the first-sample rows depth, position,
-// instance and material too, which over the one-sample batch at sample 0 are that sample's
-// values; the ranked rows' labels counted, channels::RankedCounts). Checks *cancel (if given)
-// between rows and returns false as soon as it is set; *out is then incomplete. The request
-// must pass validate_render_request.
+// motion, instance and material too, which over the one-sample batch at sample 0 are that
+// sample's values; the ranked rows' labels counted, channels::RankedCounts). Checks *cancel
+// (if given) between rows and returns false as soon as it is set; *out is then incomplete.
+// The request must pass validate_render_request. motion: the Motion row's other poses
+// (render/motion.h); null: a still, whose Motion row is 0.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel = nullptr,
-                 uint32_t rows = (uint32_t(1) << channels::kCount) - 1);
+                 uint32_t rows = (uint32_t(1) << channels::kCount) - 1,
+                 const MotionPoses* motion = nullptr);
 
 }  // namespace rf

@@ -86,9 +86,10 @@ inline void disperse(PathState& p, const BounceSamples& u, BsdfParams* params) {
 
 // The first hit of a sample (its camera ray's, bounce 0) into *r, for every integrator alike:
 // the albedo and normal, the hit distance, the planar depth and world position of the Depth
-// and Position rows, and the glTF node and material of the Instance and Material rows (plus
-// one; kNoNode + 1 and -1 + 1 are 0). per_axial: PathState::per_axial of the camera ray. The
-// ids are looked up here, once a sample, rather than by every ray query's hit record.
+// and Position rows, the glTF node and material of the Instance and Material rows (plus
+// one; kNoNode + 1 and -1 + 1 are 0), and the surface point the Motion row follows.
+// per_axial: PathState::per_axial of the camera ray. The ids are looked up here, once a
+// sample, rather than by every ray query's hit record.
 inline void record_first_hit(const Scene& scene, const ShadingPoint& sp, const Hit& hit,
                              float per_axial, SampleResult* r) {
   static_assert(kNoNode + 1 == 0, "a hit without a node is the Instance row's 0");
@@ -99,6 +100,10 @@ inline void record_first_hit(const Scene& scene, const ShadingPoint& sp, const H
   r->position = hit.p;
   r->instance_id = scene.node(hit.slot, hit.prim) + 1;
   r->material_id = uint32_t(scene.materials()[hit.material].gltf_index + 1);
+  r->slot = hit.slot;
+  r->prim = hit.prim;
+  r->b1 = hit.b1;
+  r->b2 = hit.b2;
 }
 
 // The number of bounces of a path: max_depth, or at most 1 for the direct integrator.

@@ -9,7 +9,8 @@ namespace rf {
 
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
-                 const std::atomic<bool>* cancel, uint32_t rows) {
+                 const std::atomic<bool>* cancel, uint32_t rows,
+                 const MotionPoses* motion) {
   out->reset(rect, start, count, rows);
   const Sampler sampler(settings.sampler, settings.seed);
   const TraceContext ctx(scene, settings);
@@ -67,7 +68,7 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
         for (int c = 0; c < 3; ++c) sum[c] += double(L[c]);
         for (uint32_t j = 0; j < n_summed; ++j) {
           float v[channels::kMaxComponents];
-          channels::sample_values(summed[j], r, v);
+          channels::sample_values(summed[j], r, v, motion);
           for (uint32_t c = 0; c < offset[j + 1] - offset[j]; ++c) acc[offset[j] + c] += v[c];
         }
         for (uint32_t j = 0; j < n_ranked; ++j)

@@ -1253,6 +1253,41 @@ void Scene::occluded(const RayPacket& rays, bool* blocked, uint64_t query) const
       occluded_lanes<kPacketSize / 2, RTCRay8>(rays, first, blocked, query);
 }
 
+bool Scene::surface_point(uint32_t slot, uint32_t prim, float b1, float b2, float time,
+                          Vec3* out) const {
+  if (slot >= slot_mesh_.size()) return false;
+  const TriangleMesh& mesh = *slot_mesh_[slot];
+  if (prim >= mesh.size()) return false;
+  const uint32_t* vi = &mesh.indices[3 * size_t(prim)];
+  Vec3 p0 = mesh.positions[vi[0]], p1 = mesh.positions[vi[1]], p2 = mesh.positions[vi[2]];
+  // As complete_hit_at: a deformed mesh under motion blur where it is at `time`, a moving
+  // instance by its transform at `time`.
+  const DeformedMeshes::Part* moving = motion_steps_ > 1 ? slot_motion_[slot] : nullptr;
+  if (moving) {
+    uint32_t step;
+    float frac;
+    time_segment(time, motion_steps_, &step, &frac);
+    const std::vector<Vec3>& pa = step == 0 ? mesh.positions : moving->step_positions[step - 1];
+    const std::vector<Vec3>& pb = moving->step_positions[step];
+    p0 = pa[vi[0]] + (pb[vi[0]] - pa[vi[0]]) * frac;
+    p1 = pa[vi[1]] + (pb[vi[1]] - pa[vi[1]]) * frac;
+    p2 = pa[vi[2]] + (pb[vi[2]] - pa[vi[2]]) * frac;
+  }
+  const Vec3 p = p0 * (1.f - b1 - b2) + p1 * b1 + p2 * b2;
+  if (slot == kWorldSlot) {
+    *out = p;
+  } else if (motion_steps_ > 1 && !instance_motion_[slot - 1].empty()) {
+    const std::vector<Mat4>& xfs = instance_motion_[slot - 1];
+    uint32_t k;
+    float f;
+    time_segment(time, uint32_t(xfs.size()), &k, &f);
+    *out = Affine3f::from(lerp_matrix(xfs[k], xfs[k + 1], double(f))).point(p);
+  } else {
+    *out = instance_xf_[slot - 1].point(p);
+  }
+  return true;
+}
+
 void Scene::complete_hit(unsigned geom, unsigned inst, unsigned prim, float u, float v, float t,
                          Hit* hit, float time) const {
   // A scene without motion runs the code without a thought of it.

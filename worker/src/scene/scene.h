@@ -154,6 +154,24 @@ struct Camera {
     }
   };
   Raster raster(uint32_t width, uint32_t height) const;
+  // The inverse of Raster::direction and origin through the lens centre (the pinhole; the
+  // thin lens's depth of field aside): the continuous image position (*px, *py) in pixels (x
+  // right from the left edge, y down from the top) where world point p projects. False, and
+  // nothing written, where p is behind the camera or on the plane through its position
+  // perpendicular to forward.
+  static bool project(const Raster& r, Vec3 p, float* px, float* py) {
+    const Vec3 v = p - r.position;
+    const float z = dot(v, r.forward);
+    if (!(z > 0.f)) return false;
+    float sx = dot(v, r.right), sy = dot(v, r.up);
+    if (!r.orthographic) {
+      sx /= z;
+      sy /= z;
+    }
+    *px = (sx - r.bx) / r.kx;
+    *py = (sy - r.by) / r.ky;
+    return true;
+  }
 };
 
 // The glTF node of a triangle or instance where the description does not say (a scene built
@@ -515,6 +533,15 @@ class Scene {
     if (!mesh.node.empty()) return mesh.node[prim];
     return slot == kWorldSlot ? kNoNode : desc_.instances[slot - 1].node;
   }
+  // The world position of the point at barycentrics (b1, b2) of triangle prim of slot (a
+  // Hit's slot, prim, b1, b2), where complete_hit puts a hit there: the world triangle's, or
+  // the instance's mesh's placed by its transform, or the pose's deformed vertices; with
+  // motion blur at shutter time `time` in [0, 1] (as a ray of that time sees it). The poses of
+  // one AnimatedScene number their slots and triangles alike, so a pose at another time finds
+  // the same surface point where it is then (the Motion row). False where the scene has no
+  // such slot or triangle.
+  bool surface_point(uint32_t slot, uint32_t prim, float b1, float b2, float time,
+                     Vec3* p) const;
   const std::vector<Material>& materials() const { return desc_.materials; }
   const TextureSet& textures() const { return *textures_; }
   // The triangles of a geometry slot (the world, or instance slot - 1's mesh), in that slot's
