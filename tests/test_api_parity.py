@@ -3,6 +3,8 @@ the same images, and for each invalid input the same error class naming the same
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from renderfarm.v1 import jobs_pb2
@@ -17,6 +19,8 @@ from .apihelpers import (
     job_from_proto,
     settings_message,
 )
+from .test_cryptomatte_farm import SETTINGS as CRYPTO_SETTINGS
+from .test_cryptomatte_farm import scene as crypto_scene
 from .waiting import wait_until
 
 
@@ -120,6 +124,31 @@ def test_frame_cameras_agree(apis, twin_jobs):
         assert list(c.world_to_camera) == [v for row in rest["world_to_camera"] for v in row]
         assert c.HasField("yfov") and c.yfov == rest["yfov"] and not c.HasField("time_s")
         assert rest["time_s"] is None and rest["node"] == c.node
+
+
+def test_pixel_mattes_agree(apis, tmp_path):
+    """GET .../mattes and GetPixelMattes name the same nodes, materials and root nodes with the
+    same coverage (the scene of tests/test_cryptomatte_farm.py: the wheel, the lamp, nothing),
+    and refuse a pixel outside the image alike."""
+    path = tmp_path / "car.gltf"
+    path.write_text(json.dumps(crypto_scene()))
+    job = apis.client.submit(str(path), settings={**CRYPTO_SETTINGS, "max_spp": 4})
+    assert apis.client.wait(job["id"], poll_s=0.2, timeout_s=300)["state"] == "completed"
+    for x, y, first in ((12, 24, "wheel"), (8, 5, "lamp"), (40, 2, None)):
+        rest = apis.rest("GET", f"/api/v1/jobs/{job['id']}/frames/0/mattes",
+                         params={"x": x, "y": y})  # fmt: skip
+        rpc = apis.rpc("GetPixelMattes", jobs_pb2.GetPixelMattesRequest(job_id=job["id"], x=x,
+                                                                         y=y))  # fmt: skip
+        assert (rpc.x, rpc.y, rpc.samples) == (rest["x"], rest["y"], rest["samples"]) == (x, y, 4)
+        for key in ("objects", "materials", "assets"):
+            got = [{"name": m.name, "id": m.id, "coverage": m.coverage} for m in getattr(rpc, key)]
+            assert got == rest[key], key
+        assert [m["name"] for m in rest["objects"]][:1] == ([first] if first else [])
+    outside = (apis.rest("GET", f"/api/v1/jobs/{job['id']}/frames/0/mattes",
+                         params={"x": 0, "y": 999}),
+               apis.rpc("GetPixelMattes", jobs_pb2.GetPixelMattesRequest(job_id=job["id"], x=0,
+                                                                         y=999)))  # fmt: skip
+    assert all(isinstance(e, Error) and (e.kind, e.field) == ("invalid", "y") for e in outside)
 
 
 def test_watch_streams_end_in_the_same_final_state(apis, twin_jobs):
@@ -246,6 +275,10 @@ def test_invalid_lookups_are_refused_alike(apis, twin_jobs):
         (apis.rest("GET", f"/api/v1/jobs/{done}/frames/5/camera.json"),
          apis.rpc("GetFrameCamera", jobs_pb2.GetFrameCameraRequest(job_id=done, frame=5)),
          "not_found", "frame"),
+        # A job without settings.aovs naming cryptomatte has no mattes.
+        (apis.rest("GET", f"/api/v1/jobs/{done}/frames/0/mattes", params={"x": 0, "y": 0}),
+         apis.rpc("GetPixelMattes", jobs_pb2.GetPixelMattesRequest(job_id=done, x=0, y=0)),
+         "invalid", "layer"),
     ]  # fmt: skip
     for rest, rpc, kind, field in pairs:
         assert isinstance(rest, Error) and isinstance(rpc, Error), (rest, rpc)

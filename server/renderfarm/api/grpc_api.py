@@ -349,6 +349,19 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
         return jobs_pb2.GetFrameCameraResponse(camera=frame_camera_to_proto(c))
 
     @_maps_errors
+    async def GetPixelMattes(self, request, context):  # noqa: N802
+        who = await _caller(self.auth, context)
+        m = await self.farm.pixel_mattes(
+            apicommon.job_id(request.job_id), request.x, request.y,
+            request.frame if request.HasField("frame") else None, who,
+        )  # fmt: skip
+        return jobs_pb2.GetPixelMattesResponse(
+            x=m["x"], y=m["y"], samples=m["samples"],
+            **{key: [jobs_pb2.Matte(**e) for e in m[key]]
+               for key in ("objects", "materials", "assets")},
+        )  # fmt: skip
+
+    @_maps_errors
     async def ListWorkers(self, request, context):  # noqa: N802
         await _caller(self.auth, context)
         return jobs_pb2.ListWorkersResponse(
