@@ -5,8 +5,14 @@
 // one AnimatedScene place the same instances in the same order over the same static world,
 // so a slot and triangle name the same surface in every pose (a static world triangle stays
 // put, an instance's triangle moves with that pose's transform, a deformed mesh's vertices
-// are that pose's). Each of the three world positions is projected by the camera as posed at
-// its own time (Camera::project: the lens centre, depth of field aside).
+// are that pose's). A deformed mesh has all its triangles in every pose, in the same order:
+// the Scene keeps a pose's triangles of zero area (a bone scaled to 0, a morph target that
+// collapses a part) with a zero face normal instead of dropping them (clean_mesh's drop
+// false), and the transparent ones move after the opaque ones by alphaMode, which does not
+// animate. A triangle collapsed in the pose before or after is found there, its point where
+// its vertices are (their collapse point), and the triangles after it keep their indices
+// (motion_row_test: MotionRowDeformed). Each of the three world positions is projected by the
+// camera as posed at its own time (Camera::project: the lens centre, depth of field aside).
 //
 // The poses before and after are built (or taken from the worker's pose cache) only for a
 // task that asks for the row, the first-sample batch of a tile of an animated job; every

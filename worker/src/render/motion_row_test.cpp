@@ -336,6 +336,94 @@ INSTANTIATE_TEST_SUITE_P(Cameras, MotionRow, ::testing::Values(false, true),
                            return std::string(param.param ? "Orthographic" : "Perspective");
                          });
 
+// An orthographic view (3 pixels a unit) of one morphed mesh of two 2 x 2 quads at z = 0, in
+// this order: P (triangles 0 and 1) centred at (-4, 0) and Q (triangles 2 and 3) centred at
+// (-1, 0); and a static wall (the world's triangles) x in [-8, -6], y in [-6, 6] at z = -5.
+// Morph target 0 moves P's four vertices onto P's centre (zero area), target 1 moves Q by
+// (2, 0, 0) a unit of weight. Over t = 0, 1, 1.25, 2 (LINEAR) the weights are (0, 0), (0, 1),
+// (1, 1.25), (1, 2): at t = 1 P is whole and Q centred at (1, 0); Q moves +2 units/s in x
+// throughout, and P, whole at the previous frame (0.75 s) and at t, is collapsed onto its
+// centre at the next (1.25 s).
+std::string collapsing_gltf_json() {
+  Buffer b;
+  const int quads_p = b.add({-5, -1, 0, -3, -1, 0, -3, 1, 0, -5, 1, 0,
+                             -2, -1, 0, 0, -1, 0, 0, 1, 0, -2, 1, 0},
+                            8, "VEC3");
+  const int quads_i = b.add_indices({0, 1, 2, 0, 2, 3, 4, 5, 6, 4, 6, 7});
+  const int collapse = b.add({1, 1, 0, -1, 1, 0, -1, -1, 0, 1, -1, 0,
+                              0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0},
+                             8, "VEC3");
+  const int shift = b.add({0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+                           2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 0, 0},
+                          8, "VEC3");
+  const int wall_p = b.add({-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0}, 4, "VEC3");
+  const int wall_i = b.add_indices({0, 1, 2, 0, 2, 3});
+  const int times = b.add({0, 1, 1.25, 2}, 4, "SCALAR");
+  const int weights = b.add({0, 0, 0, 1, 1, 1.25, 1, 2}, 8, "SCALAR");
+  return R"({"asset": {"version": "2.0"}, "scene": 0,
+  "scenes": [{"nodes": [0, 1, 2]}],
+  "cameras": [{"type": "orthographic", "orthographic": {"xmag": 8, "ymag": 6, "znear": 0.01,
+               "zfar": 100}}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1]},
+                 "emissiveFactor": [1, 1, 1]}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": )" + std::to_string(quads_p) +
+         R"(}, "indices": )" + std::to_string(quads_i) + R"(, "material": 0,
+               "targets": [{"POSITION": )" + std::to_string(collapse) + R"(},
+                           {"POSITION": )" + std::to_string(shift) + R"(}]}],
+              "weights": [0, 0]},
+             {"primitives": [{"attributes": {"POSITION": )" + std::to_string(wall_p) +
+         R"(}, "indices": )" + std::to_string(wall_i) + R"(, "material": 0}]}],
+  "nodes": [{"name": "camera", "camera": 0, "translation": [0, 0, 10]},
+            {"name": "PQ", "mesh": 0},
+            {"name": "wall", "mesh": 1, "translation": [-7, 0, -5], "scale": [1, 6, 1]}],
+  "animations": [{"name": "morph",
+     "channels": [{"sampler": 0, "target": {"node": 1, "path": "weights"}}],
+     "samplers": [{"input": )" + std::to_string(times) + R"(, "output": )" +
+         std::to_string(weights) + R"(}]}],
+  )" + b.json() + "}";
+}
+
+// The poses name a deformed mesh's triangles alike even where one is degenerate in a pose
+// (the Scene keeps a pose's degenerate triangles, with a zero face normal, instead of dropping
+// them: clean_mesh with drop false), so the Motion row follows each triangle by its index:
+// Q, after P in the mesh, has its analytic motion (+0.5 units = 1.5 pixels right a frame: X =
+// Z = -1.5, Y = W = 0) although P collapses at the next frame; P's points follow P's vertices,
+// so each goes to P's centre at the next frame (raster (12, 18)): X = Y = 0, Z = cur.x - 12,
+// W = -(cur.y - 18), cur somewhere in the pixel (one jittered sample). Were P's triangles
+// dropped from the next pose, Q would be its triangles 0 and 1 there and Q's pixels 0.
+TEST(MotionRowDeformed, ATriangleCollapsedInAnotherPoseKeepsTheOthersInPlace) {
+  const Poses p = pose_scene(collapsing_gltf_json(), {});
+  for (const Scene* s : {p.previous.get(), p.current.get(), p.next.get()}) {
+    ASSERT_EQ(s->slot_mesh(1).size(), 4u);
+  }
+  const TriangleMesh& collapsed = p.next->slot_mesh(1);
+  EXPECT_EQ(length(collapsed.face_normals[0]), 0.f);
+  EXPECT_EQ(length(collapsed.face_normals[1]), 0.f);
+  EXPECT_GT(length(collapsed.face_normals[2]), 0.5f);
+  const MotionPoses poses(*p.current, 0.f, *p.previous, *p.next, kWidth, kHeight);
+  const Rows rows = render_motion(*p.current, settings_for(IntegratorType::Path), &poses);
+  const Region q{"Q", 0, 2, -1, 1, 10, {-1.5f, 0.f, -1.5f, 0.f}};
+  const Region wall{"wall", -8, -6, -6, 6, 15, {0.f, 0.f, 0.f, 0.f}};
+  const std::vector<int> counts = check_rows(rows, {q, wall}, true, 0.0, 0.0, "collapse");
+  EXPECT_GE(counts[0], 16);
+  EXPECT_GE(counts[1], 16);
+  const Region p_region{"P", -5, -3, -1, 1, 10, {}};
+  int p_pixels = 0;
+  for (uint32_t y = 0; y < kHeight; ++y)
+    for (uint32_t x = 0; x < kWidth; ++x) {
+      if (!pixel_inside(p_region, true, 0.0, x, y, 0.0)) continue;
+      ++p_pixels;
+      const float* m = &rows.motion[4 * (size_t(y) * kWidth + x)];
+      EXPECT_NEAR(m[0], 0.f, 1e-3f) << "P pixel " << x << "," << y;
+      EXPECT_NEAR(m[1], 0.f, 1e-3f) << "P pixel " << x << "," << y;
+      EXPECT_GE(m[2], float(x) - 12.f - 1e-3f) << "P pixel " << x << "," << y;
+      EXPECT_LE(m[2], float(x) + 1.f - 12.f + 1e-3f) << "P pixel " << x << "," << y;
+      EXPECT_GE(m[3], 18.f - float(y) - 1.f - 1e-3f) << "P pixel " << x << "," << y;
+      EXPECT_LE(m[3], 18.f - float(y) + 1e-3f) << "P pixel " << x << "," << y;
+    }
+  EXPECT_EQ(p_pixels, 36);
+}
+
 // Camera::project inverts the raster: the point at distance s along the ray through (px, py)
 // projects back to (px, py); a point behind the camera (or behind its plane) does not project.
 TEST(CameraProject, InvertsTheRasterAndRefusesPointsBehind) {
