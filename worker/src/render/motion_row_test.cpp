@@ -424,6 +424,102 @@ TEST(MotionRowDeformed, ATriangleCollapsedInAnotherPoseKeepsTheOthersInPlace) {
   EXPECT_EQ(p_pixels, 36);
 }
 
+// KHR_node_visibility animated: over t in [0, 2], with the orthographic camera at (0, 0, 10),
+//   H (node 1): a 2 x 2 quad centred at (-4, 2), visible until t = 1.1 (STEP), so visible at
+//     the previous frame and at t = 1 but hidden at the next (1.25 s): in that pose it has no
+//     instance, and M's instance, after it, takes its slot;
+//   M (node 2): the same quad sliding from (-3, -2) to (1, -2): +2 units/s in x;
+//   HL (node 3): a LINES segment from (-7, -4.5) to (-5, -4.5), hidden as H is;
+//   ML (node 4): a LINES segment, x in [-2, 2] at t = 1, y = 4.5 (pixel row 4), sliding as M.
+std::string hiding_gltf_json() {
+  Buffer b;
+  const int quad_p = b.add({-1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0}, 4, "VEC3");
+  const int quad_i = b.add_indices({0, 1, 2, 0, 2, 3});
+  const int line_p = b.add({-1, 0, 0, 1, 0, 0}, 2, "VEC3");
+  const int times = b.add({0, 2}, 2, "SCALAR");
+  const int m_moves = b.add({-3, -2, 0, 1, -2, 0}, 2, "VEC3");
+  const int ml_moves = b.add({-2, 4.5f, 0, 2, 4.5f, 0}, 2, "VEC3");
+  const int switch_times = b.add({0, 1.1f}, 2, "SCALAR");
+  const size_t offset = b.bytes.size();
+  b.bytes.push_back(1);
+  b.bytes.push_back(0);
+  const int visible = b.view(offset, 2, 5121, 2, "SCALAR");
+  while (b.bytes.size() % 4) b.bytes.push_back(0);
+  auto sampler = [](int input, int output, const char* interpolation) {
+    return R"({"input": )" + std::to_string(input) + R"(, "output": )" +
+           std::to_string(output) + R"(, "interpolation": ")" + interpolation + "\"}";
+  };
+  auto hide = [](int sampler_index, int node) {
+    return R"({"sampler": )" + std::to_string(sampler_index) +
+           R"(, "target": {"path": "pointer", "extensions": {"KHR_animation_pointer": )"
+           R"({"pointer": "/nodes/)" + std::to_string(node) +
+           R"(/extensions/KHR_node_visibility/visible"}}}})";
+  };
+  const std::string shown = R"("extensions": {"KHR_node_visibility": {"visible": true}})";
+  return R"({"asset": {"version": "2.0"}, "scene": 0,
+  "extensionsUsed": ["KHR_animation_pointer", "KHR_node_visibility"],
+  "scenes": [{"nodes": [0, 1, 2, 3, 4]}],
+  "cameras": [{"type": "orthographic", "orthographic": {"xmag": 8, "ymag": 6, "znear": 0.01,
+               "zfar": 100}}],
+  "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1]},
+                 "emissiveFactor": [1, 1, 1]}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": )" + std::to_string(quad_p) +
+         R"(}, "indices": )" + std::to_string(quad_i) + R"(, "material": 0}]},
+             {"primitives": [{"attributes": {"POSITION": )" + std::to_string(line_p) +
+         R"(}, "mode": 1, "material": 0}]}],
+  "nodes": [{"name": "camera", "camera": 0, "translation": [0, 0, 10]},
+            {"name": "H", "mesh": 0, "translation": [-4, 2, 0], )" + shown + R"(},
+            {"name": "M", "mesh": 0, "translation": [-1, -2, 0]},
+            {"name": "HL", "mesh": 1, "translation": [-6, -4.5, 0], )" + shown + R"(},
+            {"name": "ML", "mesh": 1, "translation": [0, 4.5, 0], "scale": [2, 1, 1]}],
+  "animations": [{"name": "hide and slide",
+     "channels": [{"sampler": 0, "target": {"node": 2, "path": "translation"}},
+                  {"sampler": 1, "target": {"node": 4, "path": "translation"}}, )" +
+         hide(2, 1) + ", " + hide(2, 3) + R"(],
+     "samplers": [)" + sampler(times, m_moves, "LINEAR") + ", " +
+         sampler(times, ml_moves, "LINEAR") + ", " + sampler(switch_times, visible, "STEP") +
+         R"(]}],
+  )" + b.json() + "}";
+}
+
+// A node hidden in the pose after (or before) shifts the later instances' slots and thin
+// triangles down in that pose; the Motion row maps them by node and occurrence (MotionPoses),
+// so M and ML, after H and HL, have their analytic motion (+0.5 units = 1.5 pixels right a
+// frame: X = Z = -1.5, Y = W = 0). H and HL, absent from the next pose, have motion 0 (the
+// documented rule). Read by slot, M would be looked for at a slot the next pose has not (0)
+// and H at M's (H's pixels M's motion plus the distance between them), and ML at thin
+// triangles the next pose has not.
+TEST(MotionRowVisibility, ANodeHiddenInAnotherPoseKeepsTheLaterOnesInPlace) {
+  const Poses p = pose_scene(hiding_gltf_json(), {});
+  ASSERT_EQ(p.previous->instance_count(), p.current->instance_count());
+  // H and HL (an empty mesh of its own: lines only) have no instance in the next pose.
+  ASSERT_EQ(p.next->instance_count() + 2, p.current->instance_count());
+  const MotionPoses poses(*p.current, 0.f, *p.previous, *p.next, kWidth, kHeight);
+  const Rows rows = render_motion(*p.current, settings_for(IntegratorType::Path), &poses);
+  const Region m{"M", -2, 0, -3, -1, 10, {-1.5f, 0.f, -1.5f, 0.f}};
+  const Region h{"H", -5, -3, 1, 3, 10, {0.f, 0.f, 0.f, 0.f}};
+  const std::vector<int> counts = check_rows(rows, {m, h}, true, 0.0, 0.0, "hidden");
+  EXPECT_EQ(counts[0], 36);
+  EXPECT_EQ(counts[1], 36);
+  // The lines: pixel rows 4 (ML, columns 18 to 29) and 31 (HL, columns 3 to 8), where hit.
+  auto check_line = [&](const char* name, uint32_t row, uint32_t x0, uint32_t x1, float x) {
+    int hits = 0;
+    for (uint32_t col = x0 + 1; col < x1; ++col) {
+      const size_t i = size_t(row) * kWidth + col;
+      if (rows.depth[i] == 1e10f) continue;
+      ++hits;
+      const float expected[4] = {x, 0.f, x, 0.f};
+      for (int c = 0; c < 4; ++c) {
+        EXPECT_NEAR(rows.motion[4 * i + size_t(c)], expected[c], 1e-3f)
+            << name << " pixel " << col << "," << row << " component " << c;
+      }
+    }
+    EXPECT_GE(hits, 4) << name;
+  };
+  check_line("ML", 4, 18, 29, -1.5f);
+  check_line("HL", 31, 3, 8, 0.f);
+}
+
 // Camera::project inverts the raster: the point at distance s along the ray through (px, py)
 // projects back to (px, py); a point behind the camera (or behind its plane) does not project.
 TEST(CameraProject, InvertsTheRasterAndRefusesPointsBehind) {

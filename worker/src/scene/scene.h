@@ -537,9 +537,10 @@ class Scene {
   // Hit's slot, prim, b1, b2), where complete_hit puts a hit there: the world triangle's, or
   // the instance's mesh's placed by its transform, or the pose's deformed vertices; with
   // motion blur at shutter time `time` in [0, 1] (as a ray of that time sees it). The poses of
-  // one AnimatedScene number their slots and triangles alike, so a pose at another time finds
-  // the same surface point where it is then (the Motion row). False where the scene has no
-  // such slot or triangle.
+  // one AnimatedScene number their meshes' triangles alike, but not always their slots (a node
+  // hidden by KHR_node_visibility has no instance in a pose): the Motion row maps a slot and
+  // triangle to another pose's first (MotionPoses). False where the scene has no such slot or
+  // triangle.
   bool surface_point(uint32_t slot, uint32_t prim, float b1, float b2, float time,
                      Vec3* p) const;
   const std::vector<Material>& materials() const { return desc_.materials; }
@@ -568,6 +569,11 @@ class Scene {
   // mesh has no vertex colours.
   bool vertex_color(const Hit& hit, Vec3* rgb) const;
   size_t instance_count() const { return desc_.instances.size(); }
+  // Instance i (geometry slot 1 + i): its mesh slot, glTF node and transform.
+  const Instance& instance(size_t i) const { return desc_.instances[i]; }
+  // The mesh slot of an animated scene's points and lines (SceneDescription::thin_mesh), -1
+  // for none.
+  int thin_mesh() const { return desc_.thin_mesh; }
   size_t mesh_count() const { return base_ ? base_->mesh_count() : desc_.meshes.size(); }
   // Triangles in the world after instancing (world triangles + sum over instances).
   uint64_t world_triangle_count() const;
