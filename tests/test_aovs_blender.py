@@ -12,15 +12,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from .test_aovs_farm import CAMERA_AT, NEAR_PLANE, TILT, H, W, ray, scene, to_camera
-from .test_blender_addon import blender_python
+from .test_blender_addon import run_blender_script
 
 SCRIPT = Path(__file__).with_name("blender_aovs.py")
 CHANNELS = {"ViewLayer.Depth.Z", "ViewLayer.Position.X", "ViewLayer.Position.Y",
@@ -49,23 +47,10 @@ def read_layers(path: Path) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def blender(tmp_path_factory) -> dict[str, np.ndarray]:
-    python = blender_python()
     out = tmp_path_factory.mktemp("aovs-blender")
     gltf = out / "planes.gltf"
     gltf.write_text(json.dumps(scene()))
-    env = {"BLENDER_USER_RESOURCES": str(out / "blender-user"), "PATH": "/usr/bin:/bin"}
-    if "TMPDIR" in os.environ:
-        env["TMPDIR"] = os.environ["TMPDIR"]
-    proc = subprocess.run(
-        [python, str(SCRIPT), str(gltf), str(out / "planes.exr")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-    )
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-    assert proc.returncode == 0 and lines, proc.stdout[-2000:] + proc.stderr[-4000:]
-    result = json.loads(lines[-1][len("RESULT ") :])
+    result = run_blender_script(SCRIPT, [str(gltf), str(out / "planes.exr")], out)
     channels = read_layers(Path(result["exr"]))
     assert CHANNELS <= set(channels), sorted(channels)
     return channels

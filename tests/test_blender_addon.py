@@ -89,6 +89,21 @@ def run_driver(scenario: str, config: dict, tmp_path: Path) -> dict:
     return json.loads(lines[-1][len("RESULT ") :])
 
 
+def run_blender_script(script: Path, args: list[str], tmp_path: Path) -> dict:
+    """Runs a script in Blender's Python (bpy) with a user directory of its own, and returns
+    the JSON of its last `RESULT {...}` line (the script failing, or printing none, fails)."""
+    env = {"BLENDER_USER_RESOURCES": str(tmp_path / "blender-user"), "PATH": "/usr/bin:/bin"}
+    if "TMPDIR" in os.environ:
+        env["TMPDIR"] = os.environ["TMPDIR"]
+    proc = subprocess.run(
+        [blender_python(), str(script), *args], capture_output=True, text=True, timeout=300,
+        env=env,
+    )  # fmt: skip
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, proc.stdout[-2000:] + proc.stderr[-4000:]
+    return json.loads(lines[-1][len("RESULT ") :])
+
+
 def test_addon_zip_is_a_valid_extension(addon_zip):
     """Blender's own extension tool accepts the zip's manifest."""
     python = blender_python()

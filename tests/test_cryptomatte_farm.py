@@ -15,8 +15,6 @@ from __future__ import annotations
 import base64
 import json
 import math
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +24,7 @@ from renderfarm.client import ApiError, Client
 from renderfarm.infra.images import read_exr
 
 from .mattes import id_hex, matte
-from .test_blender_addon import blender_python
+from .test_blender_addon import run_blender_script
 from .waiting import wait_until
 
 W, H = 48, 32
@@ -242,19 +240,10 @@ def test_a_pixel_names_what_covers_it(rendered):
 
 def test_blenders_cryptomatte_node_extracts_the_same_mattes(rendered):
     _, exr, out, _, _, _ = rendered
-    python = blender_python()
-    env = {"BLENDER_USER_RESOURCES": str(out / "blender-user"), "PATH": "/usr/bin:/bin"}
-    if "TMPDIR" in os.environ:
-        env["TMPDIR"] = os.environ["TMPDIR"]
     wanted = ["CryptoObject=wheel", "CryptoObject=body", "CryptoAsset=car",
               "CryptoMaterial=paint"]  # fmt: skip
-    proc = subprocess.run(
-        [python, str(SCRIPT), str(out / "car.exr"), str(W), str(H), str(out), *wanted],
-        capture_output=True, text=True, timeout=300, env=env,
-    )  # fmt: skip
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-    assert proc.returncode == 0 and lines, proc.stdout[-2000:] + proc.stderr[-4000:]
-    written = json.loads(lines[-1][len("RESULT ") :])
+    args = [str(out / "car.exr"), str(W), str(H), str(out), *wanted]
+    written = run_blender_script(SCRIPT, args, out)
     exact = exact_coverage()
     expected = {
         "CryptoObject=wheel": exact["wheel"],

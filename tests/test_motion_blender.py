@@ -8,14 +8,12 @@ position minus the current one, Z, W the current minus the next, in pixels, y up
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
 from .test_aovs_blender import read_layers
-from .test_blender_addon import blender_python
+from .test_blender_addon import run_blender_script
 from .test_motion_farm import FPS, FRAME, H, W, inside, pixel_motion, quad_at, scene
 
 SCRIPT = Path(__file__).with_name("blender_motion.py")
@@ -24,17 +22,8 @@ SCRIPT = Path(__file__).with_name("blender_motion.py")
 def test_blenders_vector_pass_is_the_documented_convention(tmp_path):
     gltf = tmp_path / "mover.gltf"
     gltf.write_text(json.dumps(scene()))
-    env = {"BLENDER_USER_RESOURCES": str(tmp_path / "blender-user"), "PATH": "/usr/bin:/bin"}
-    if "TMPDIR" in os.environ:
-        env["TMPDIR"] = os.environ["TMPDIR"]
-    args = [str(W), str(H), str(int(FPS)), str(FRAME)]
-    proc = subprocess.run(
-        [blender_python(), str(SCRIPT), str(gltf), str(tmp_path / "mover.exr"), *args],
-        capture_output=True, text=True, timeout=300, env=env,
-    )  # fmt: skip
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-    assert proc.returncode == 0 and lines, proc.stdout[-2000:] + proc.stderr[-4000:]
-    channels = read_layers(Path(json.loads(lines[-1][len("RESULT ") :])["exr"]))
+    args = [str(gltf), str(tmp_path / "mover.exr"), str(W), str(H), str(int(FPS)), str(FRAME)]
+    channels = read_layers(Path(run_blender_script(SCRIPT, args, tmp_path)["exr"]))
     vector = np.stack([channels[f"ViewLayer.Vector.{a}"] for a in "XYZW"], -1)
     d, e = pixel_motion()  # right and down, per frame
     quad = inside(quad_at(FRAME / FPS))

@@ -184,7 +184,7 @@ class JobImages:
         crypto = None
         ranked = [c for c in layout.rows if c.accumulate is channels.Accumulate.RANKED]
         if ranked and (fmt == "exr" or any(layer == la.name for c in ranked for la in c.layers)):
-            crypto = await self._crypto_names(view.scene_sha256)
+            crypto = await self.cached_crypto_names(view.scene_sha256)
         scratch = self.scheduler.cache.directory
         scratch.mkdir(parents=True, exist_ok=True)
         fd, path = tempfile.mkstemp(suffix=f".{fmt}", dir=scratch)

@@ -32,6 +32,7 @@ class JobMattes:
     _names_cache: OrderedDict[str, cryptomatte.Names] | None = None
 
     async def cached_crypto_names(self, sha256: str) -> cryptomatte.Names:
+        """The scene's Cryptomatte names, parsed once per scene for every image and query."""
         if self._names_cache is None:
             self._names_cache = OrderedDict()
         names = self._names_cache.get(sha256)

@@ -34,9 +34,12 @@ import mmh3
 import numpy as np
 
 from .. import _kernels
+from . import channels
 from .scenes.glb import parse_json
 
-RANKS = 6  # ranks kept per pixel and type: the specification's suggested 6 levels (3 layers)
+# Ranks kept per pixel and type: the specification's suggested 6 levels (3 layers), the
+# channel table's.
+RANKS = channels.CRYPTO_RANKS
 LEVELS = RANKS // 2  # layers {type}00 ... {type}02
 # The label of a sample that hit a primitive without a material (glTF's default material) in
 # the material row: glTF material labels are their index plus one, 0 an empty slot.
