@@ -22,8 +22,16 @@ enum class Id : uint8_t {
   Material = 9,
   CryptoObject = 10,
   CryptoMaterial = 11,
+  DiffuseDirect = 12,
+  DiffuseIndirect = 13,
+  GlossyDirect = 14,
+  GlossyIndirect = 15,
+  TransmissionDirect = 16,
+  TransmissionIndirect = 17,
+  Emission = 18,
+  Background = 19,
 };
-constexpr uint32_t kCount = 12;
+constexpr uint32_t kCount = 20;
 
 // The type of a row's values in a result (workers.proto, ValueType).
 enum class Type : uint8_t { F32 = 1, F64 = 2, U32 = 3 };
@@ -52,6 +60,14 @@ constexpr Spec kSpecs[kCount] = {
     {Id::Material, "material", 1, Type::U32, 1, false},
     {Id::CryptoObject, "crypto_object", 12, Type::U32, 0, true},
     {Id::CryptoMaterial, "crypto_material", 12, Type::U32, 0, true},
+    {Id::DiffuseDirect, "diffuse_direct", 3, Type::F32, 0, false},
+    {Id::DiffuseIndirect, "diffuse_indirect", 3, Type::F32, 0, false},
+    {Id::GlossyDirect, "glossy_direct", 3, Type::F32, 0, false},
+    {Id::GlossyIndirect, "glossy_indirect", 3, Type::F32, 0, false},
+    {Id::TransmissionDirect, "transmission_direct", 3, Type::F32, 0, false},
+    {Id::TransmissionIndirect, "transmission_indirect", 3, Type::F32, 0, false},
+    {Id::Emission, "emission", 3, Type::F32, 0, false},
+    {Id::Background, "background", 3, Type::F32, 0, false},
 };
 
 }  // namespace rf::channels
