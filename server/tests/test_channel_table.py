@@ -216,6 +216,12 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
         rows["instance.id"] = acc.instance_id
     if acc.material_id is not None:
         rows["material.id"] = acc.material_id
+    # The lobes: means over every sample, like the radiance.
+    for lobe, *_ in channels.LOBES:
+        values = getattr(acc, f"{lobe}_sum", None)
+        if values is not None:
+            for i, axis in enumerate("RGB"):
+                rows[f"{lobe}.{axis}"] = values[..., i] / n
     if name.startswith("Crypto"):
         return _expected_crypto(name, acc)
     return rows[name].astype(np.float32)
@@ -439,7 +445,10 @@ def test_aovs_name_the_outputs_a_job_turns_on():
     assert parse_settings({"aovs": " Depth, depth "}).aovs == "depth"
     assert parse_settings({}).aovs == ""
     refusals = [
-        (["depth", "zz"], "unknown output 'zz'; known: depth, position, motion, ids, cryptomatte"),
+        (
+            ["depth", "zz"],
+            "unknown output 'zz'; known: depth, position, motion, ids, cryptomatte, lobes",
+        ),
         (7, "must be a list of names"),
         ([1], "must be a list of names"),
     ]
@@ -447,6 +456,11 @@ def test_aovs_name_the_outputs_a_job_turns_on():
         with pytest.raises(SettingsError, match=re.escape(said)) as e:
             parse_settings({"aovs": bad})
         assert e.value.field == "settings.aovs"
+    # The lobes split what a first hit scatters: the ao integrator scatters nothing.
+    with pytest.raises(SettingsError, match="ao integrator has none") as e:
+        parse_settings({"aovs": ["lobes"], "integrator": "ao"})
+    assert e.value.field == "settings.aovs"
+    assert parse_settings({"aovs": ["lobes"], "integrator": "direct"}).aovs == "lobes"
     layout = channels.job_layout(parse_settings({"aovs": "position"}))
     assert "position" in layout.names and "depth" not in layout.names
     assert channels.job_layout(parse_settings({})) == channels.DEFAULT
@@ -468,14 +482,16 @@ def test_outputs_add_their_arrays_to_the_memory_estimate_and_the_limit_counts_th
     assert acc.crypto_object.dtype == np.uint32 and acc.crypto_object.shape == (H, W, 12)
     # 76 bytes of the rows every job has, a float32 depth, three float32 position values, four
     # float32 motion values, two uint32 labels and two Cryptomatte rows of six (label, count)
-    # uint32 pairs.
-    assert acc.nbytes == (76 + 4 + 12 + 16 + 4 + 4 + 2 * 48) * W * H
+    # uint32 pairs, and eight lobes of three float64 sums.
+    assert acc.diffuse_direct_sum.dtype == np.float64
+    assert acc.nbytes == (76 + 4 + 12 + 16 + 4 + 4 + 2 * 48 + 8 * 24) * W * H
     assert TileAccumulator(W, H).depth is None
     assert jobspec.job_memory_bytes(64, 64, 64, "depth,position") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "depth") == 80 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "ids") == 84 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "motion") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "cryptomatte") == 172 * 64 * 64 + 4096
+    assert jobspec.job_memory_bytes(64, 64, 64, "lobes") == (76 + 192) * 64 * 64 + 4096
     # 1024 x 1024 in 256 tiles: 80.7 MB without outputs, 97.5 MB with both; the limit between.
     limits = Limits(max_job_memory_bytes=85 * 2**20)
     parse_settings({"width": 1024, "height": 1024}, limits)
@@ -521,7 +537,7 @@ def test_a_spill_slot_of_a_job_with_outputs_holds_them(tmp_path):
     acc = merged(layout=EVERY)
     want = {name: getattr(acc, name).copy() for name in EVERY.array_names()}
     cache.register("j", acc, 8)
-    assert acc.spill.home.slot_bytes == 212 * 8 * 8
+    assert acc.spill.home.slot_bytes == (212 + 8 * 24) * 8 * 8
     cache.register("j", merged(1, layout=EVERY), 8)  # evicts the first
     assert not acc.resident
     ref = acc.snapshot(("depth", "position"))
@@ -549,7 +565,7 @@ def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
     r = decode_result(_result(every))
     assert set(r.extra) == {
         "depth", "position", "motion", "instance", "material", "crypto_object",
-        "crypto_material",
+        "crypto_material", *(lobe for lobe, *_ in channels.LOBES),
     }  # fmt: skip
     assert r.extra["instance"].dtype == np.dtype("<u4")
     assert np.array_equal(r.extra["position"], every["position"])

@@ -144,29 +144,49 @@ def _crypto_channels(type_name: str) -> tuple[str, ...]:
 # The `lobes` rows (#40): the radiance split by what the path did at its first scattering
 # vertex, each summing with the others to the `rgb` row's radiance (name, label, help).
 LOBES: tuple[tuple[str, str, str], ...] = (
-    ("diffuse_direct", "Diffuse direct",
-     "light sources reached from the first hit through its diffuse lobes (Lambert base, "
-     "diffuse transmission, sheen), one bounce: Blender's DiffDir without the colour factor"),
-    ("diffuse_indirect", "Diffuse indirect",
-     "everything else the first hit's diffuse lobes bring (two bounces and more): Blender's "
-     "DiffInd without the colour factor"),
-    ("glossy_direct", "Glossy direct",
-     "light sources reached through the first hit's reflective specular lobes (dielectric and "
-     "metal GGX, clear coat, the glass's reflection): Blender's GlossDir without the colour "
-     "factor"),
-    ("glossy_indirect", "Glossy indirect",
-     "everything else the first hit's reflective specular lobes bring: Blender's GlossInd "
-     "without the colour factor"),
-    ("transmission_direct", "Transmission direct",
-     "light sources seen through the first hit's glass (KHR_materials_transmission, smooth "
-     "or rough), one bounce: Blender's TransDir without the colour factor"),
-    ("transmission_indirect", "Transmission indirect",
-     "everything else seen through the first hit's glass: Blender's TransInd without the "
-     "colour factor"),
-    ("emission", "Emission",
-     "what the first hit emits (emissive and unlit materials): Blender's Emit"),
-    ("background", "Background",
-     "the environment where the camera ray hit nothing: Blender's Env"),
+    (
+        "diffuse_direct",
+        "Diffuse direct",
+        "light sources reached from the first hit through its diffuse lobes (Lambert base, "
+        "diffuse transmission, sheen), one bounce: Blender's DiffDir without the colour factor",
+    ),
+    (
+        "diffuse_indirect",
+        "Diffuse indirect",
+        "everything else the first hit's diffuse lobes bring (two bounces and more): Blender's "
+        "DiffInd without the colour factor",
+    ),
+    (
+        "glossy_direct",
+        "Glossy direct",
+        "light sources reached through the first hit's reflective specular lobes (dielectric and "
+        "metal GGX, clear coat, the glass's reflection): Blender's GlossDir without the colour "
+        "factor",
+    ),
+    (
+        "glossy_indirect",
+        "Glossy indirect",
+        "everything else the first hit's reflective specular lobes bring: Blender's GlossInd "
+        "without the colour factor",
+    ),
+    (
+        "transmission_direct",
+        "Transmission direct",
+        "light sources seen through the first hit's glass (KHR_materials_transmission, smooth "
+        "or rough), one bounce: Blender's TransDir without the colour factor",
+    ),
+    (
+        "transmission_indirect",
+        "Transmission indirect",
+        "everything else seen through the first hit's glass: Blender's TransInd without the "
+        "colour factor",
+    ),
+    (
+        "emission",
+        "Emission",
+        "what the first hit emits (emissive and unlit materials): Blender's Emit",
+    ),
+    ("background", "Background", "the environment where the camera ray hit nothing: Blender's Env"),
 )
 
 
@@ -177,8 +197,14 @@ def _lobe_channel(name: str, label: str, help_text: str) -> Channel:
         Accumulate.SUM,
         name,
         (Array(f"{name}_sum", "<f8", 3),),
-        (Layer(name, (f"{name}.R", f"{name}.G", f"{name}.B"), label,
-               f"{help_text}; the lobe rows sum to `rgb`"),),  # fmt: skip
+        (
+            Layer(
+                name,
+                (f"{name}.R", f"{name}.G", f"{name}.B"),
+                label,
+                f"{help_text}; the lobe rows sum to `rgb`",
+            ),
+        ),  # fmt: skip
         setting="aovs",
         aov="lobes",
         wire_components=3,

@@ -515,6 +515,12 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             "(leave shutter empty, or render frames)",
         )
     _require(
+        not (s.integrator == Integrator.AO and "lobes" in s.aovs.split(",")),
+        "aovs",
+        "names lobes, which split the radiance by the lobes of the first hit, and the ao "
+        "integrator has none: use integrator path or direct, or leave lobes out",
+    )
+    _require(
         s.aperture_radius == 0.0 or s.focus_distance > 0.0,
         "focus_distance",
         "must be positive when aperture_radius is set",

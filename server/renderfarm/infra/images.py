@@ -281,7 +281,9 @@ def _display_tile(
         return acc.rgb_sum / acc.samples
     if layer == "albedo":
         return acc.mean_albedo().astype(np.float64)
-    return acc.mean_normal().astype(np.float64) * 0.5 + 0.5
+    if layer == "normal":
+        return acc.mean_normal().astype(np.float64) * 0.5 + 0.5
+    return acc.mean_of(channels.layer_channel(layer))  # a radiance (the lobes)
 
 
 def _display_band(

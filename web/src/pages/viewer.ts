@@ -54,6 +54,14 @@ const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
   crypto_object: { label: "Crypto object", needs: { aov: "cryptomatte" } },
   crypto_material: { label: "Crypto material", needs: { aov: "cryptomatte" } },
   crypto_asset: { label: "Crypto asset", needs: { aov: "cryptomatte" } },
+  diffuse_direct: { label: "Diffuse direct", needs: { aov: "lobes" } },
+  diffuse_indirect: { label: "Diffuse indirect", needs: { aov: "lobes" } },
+  glossy_direct: { label: "Glossy direct", needs: { aov: "lobes" } },
+  glossy_indirect: { label: "Glossy indirect", needs: { aov: "lobes" } },
+  transmission_direct: { label: "Transmission direct", needs: { aov: "lobes" } },
+  transmission_indirect: { label: "Transmission indirect", needs: { aov: "lobes" } },
+  emission: { label: "Emission", needs: { aov: "lobes" } },
+  background: { label: "Background", needs: { aov: "lobes" } },
   denoised: { label: "Denoised", needs: { denoise: true } },
 };
 
