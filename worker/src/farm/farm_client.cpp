@@ -493,9 +493,10 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   }
   // The rows of the channel table the result carries (Task.channels, in its order); a server
   // from before the table names none and reads the TileResult's own fields (no ranked rows:
-  // their labels are not counted).
+  // their labels are not counted, nor the lobe rows traced).
   std::vector<channels::Id> wanted;
-  uint32_t rows = channels::kAll & ~channels::kRanked & ~channels::bit(channels::Id::Motion);
+  uint32_t rows = channels::kAll & ~channels::kRanked & ~channels::bit(channels::Id::Motion) &
+                  ~channels::kLobes;
   if (task.channels_size() > 0) {
     rows = 0;
     for (const std::string& name : task.channels()) {

@@ -254,7 +254,10 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     for (const channels::Spec& row : channels::kSpecs)
       EXPECT_EQ(std::count(listed.begin(), listed.end(), row.name), 1) << row.name;
     for (const char* name : {"rgb", "coverage", "depth", "instance", "material",
-                             "crypto_object", "crypto_material"})
+                             "crypto_object", "crypto_material", "diffuse_direct",
+                             "diffuse_indirect", "glossy_direct", "glossy_indirect",
+                             "transmission_direct", "transmission_indirect", "emission",
+                             "background"})
       EXPECT_EQ(std::count(listed.begin(), listed.end(), name), 1) << name;
   }
   // A long task that we cancel, a good one, and one with an unknown sampler.
@@ -682,6 +685,88 @@ TEST(FarmClient, SendsTheCryptomatteRowsAsRankedU32Pairs) {
     EXPECT_EQ(float(objects), coverage[i]) << "pixel " << i;
     EXPECT_EQ(float(materials), coverage[i]) << "pixel " << i;
   }
+}
+
+// The lobe rows (aovs `lobes`) travel as ChannelBlocks of three float32 components a pixel,
+// over every sample of the batch like the radiance: equal to the local render's sums, and per
+// pixel summing to the radiance (the rgb block, the double sums rounded once to float32).
+// The small scene's emitter and unlit lines are seen directly (emission), and the emitter
+// lights the floor, a metal (glTF's default metallicFactor 1: glossy).
+TEST(FarmClient, SendsTheLobeRows) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::small_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "lobes";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  pb::Task task = make_task("lobes", farm.scene_sha, 8);
+  task.set_sample_start(4);
+  task.mutable_rect()->set_x0(0);
+  task.mutable_rect()->set_width(16);
+  task.mutable_rect()->set_height(12);
+  const char* const names[] = {"rgb",           "luminance",        "coverage",
+                               "diffuse_direct", "diffuse_indirect", "glossy_direct",
+                               "glossy_indirect", "transmission_direct",
+                               "transmission_indirect", "emission", "background"};
+  constexpr int kBlocks = 11;
+  for (const char* name : names) task.add_channels(name);
+  ASSERT_TRUE(farm.assign(task));
+  ASSERT_TRUE(farm.wait_for([&] { return farm.has_result("lobes"); }));
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  const pb::TileResult* r = nullptr;
+  for (const auto& m : farm.received)
+    if (m.has_result() && m.result().task_id() == "lobes") r = &m.result();
+  ASSERT_NE(r, nullptr);
+  ASSERT_EQ(r->channels_size(), kBlocks);
+  const size_t pixels = 16 * 12;
+  const TileBuffer local = render_locally(farm.scene_bytes, task);
+  std::vector<std::vector<float>> lobes;
+  for (int k = 3; k < kBlocks; ++k) {
+    const pb::ChannelBlock& b = r->channels(k);
+    EXPECT_EQ(b.name(), names[k]);
+    EXPECT_EQ(b.type(), pb::VALUE_TYPE_F32) << b.name();
+    EXPECT_EQ(b.components(), 3u) << b.name();
+    ASSERT_EQ(b.data().size(), 12 * pixels) << b.name();
+    lobes.push_back(unpack_f32_le(b.data()));
+    for (const channels::Spec& row : channels::kSpecs) {
+      if (b.name() == row.name) {
+        EXPECT_EQ(lobes.back(), local.sum(row.id)) << b.name();
+      }
+    }
+  }
+  const std::vector<float> rgb = unpack_f32_le(r->channels(0).data());
+  double emission = 0.0, glossy = 0.0;
+  for (size_t i = 0; i < 3 * pixels; ++i) {
+    double sum = 0.0, magnitude = std::abs(double(rgb[i]));
+    for (const std::vector<float>& v : lobes) {
+      sum += v[i];
+      magnitude += std::abs(double(v[i]));
+    }
+    EXPECT_NEAR(sum, rgb[i], 1e-5 * magnitude + 1e-5) << "value " << i;
+    glossy += lobes[2][i];
+    emission += lobes[6][i];
+  }
+  EXPECT_GT(emission, 0.0);
+  EXPECT_GT(glossy, 0.0);
 }
 
 // The seed of frame f of a job of seed s, written out from docs/architecture.md,

@@ -27,6 +27,20 @@ constexpr Set kRanked = [] {
     if (row.ranked) s |= bit(row.id);
   return s;
 }();
+// The lobe rows (aovs `lobes`): the radiance split by the first scattering vertex's lobes
+// (LobeValues, integrators.h; render/packet_tracer.h, PathLobes), traced only when render_rect
+// is asked for one of them. They are contiguous in the table, in LobeValues' order.
+constexpr Set kLobes = bit(Id::DiffuseDirect) | bit(Id::DiffuseIndirect) |
+                       bit(Id::GlossyDirect) | bit(Id::GlossyIndirect) |
+                       bit(Id::TransmissionDirect) | bit(Id::TransmissionIndirect) |
+                       bit(Id::Emission) | bit(Id::Background);
+static_assert(uint32_t(Id::Background) - uint32_t(Id::DiffuseDirect) + 1 == kLobeRows &&
+                  uint32_t(Id::GlossyDirect) - uint32_t(Id::DiffuseDirect) == 2 &&
+                  uint32_t(Id::TransmissionDirect) - uint32_t(Id::DiffuseDirect) == 4 &&
+                  uint32_t(Id::Emission) - uint32_t(Id::DiffuseDirect) == 6,
+              "the lobe rows are not the table's eight contiguous rows in LobeValues' order");
+// A lobe row's place in LobeValues.
+constexpr uint32_t lobe_index(Id id) { return uint32_t(id) - uint32_t(Id::DiffuseDirect); }
 // The crypto_material row's label of a hit on a primitive without a material (glTF's default
 // material, Material::gltf_index -1): the server's cryptomatte.DEFAULT_MATERIAL_LABEL, which
 // it names "default material" (the Material row has 0 there).
@@ -38,9 +52,11 @@ constexpr float kBackgroundDepth = 1e10f;
 // Writes the sample's values of a row render_rect sums in float32, spec(id).components of
 // them: every row but the radiance and its luminance M2, which render_rect sums in double
 // (the fused path of the radiance's statistics). motion: the Motion row's other poses (null:
-// a still, its Motion row 0).
+// a still, its Motion row 0). lobes: the sample's lobe rows (null: 0, as for a sample whose
+// radiance is not finite, which render_rect records as 0).
 inline void sample_values(Id id, const SampleResult& r, float* out,
-                          const MotionPoses* motion = nullptr) {
+                          const MotionPoses* motion = nullptr,
+                          const LobeValues* lobes = nullptr) {
   switch (id) {
     case Id::Rgb:
     case Id::Luminance:
@@ -78,6 +94,16 @@ inline void sample_values(Id id, const SampleResult& r, float* out,
     case Id::CryptoObject:
     case Id::CryptoMaterial:
       return;  // ranked: counted by render_rect through sample_label
+    case Id::DiffuseDirect:
+    case Id::DiffuseIndirect:
+    case Id::GlossyDirect:
+    case Id::GlossyIndirect:
+    case Id::TransmissionDirect:
+    case Id::TransmissionIndirect:
+    case Id::Emission:
+    case Id::Background:
+      for (int c = 0; c < 3; ++c) out[c] = lobes ? lobes->row[lobe_index(id)][c] : 0.f;
+      return;
   }
 }
 
@@ -99,6 +125,14 @@ inline uint32_t sample_label(Id id, const SampleResult& r) {
     case Id::Motion:
     case Id::Instance:
     case Id::Material:
+    case Id::DiffuseDirect:
+    case Id::DiffuseIndirect:
+    case Id::GlossyDirect:
+    case Id::GlossyIndirect:
+    case Id::TransmissionDirect:
+    case Id::TransmissionIndirect:
+    case Id::Emission:
+    case Id::Background:
       return 0u;  // not ranked
   }
   return 0u;

@@ -34,7 +34,9 @@ struct TileBuffer {
   // depth (first-hit planar depth along the viewing axis, channels::kBackgroundDepth on a
   // miss) and position (first-hit world position, 0 on a miss), instance and material (the
   // first hit's glTF node and material plus one, 0 on a miss or where there is none:
-  // integers, the row's type U32, exact in float32 below 2^24). The first-hit rows depth to
+  // integers, the row's type U32, exact in float32 below 2^24), and the eight lobe rows (3
+  // each: the radiance split by the first hit's lobes, render/packet_tracer.h, PathLobes; over
+  // every sample, summing to rgb_sum up to float rounding). The first-hit rows depth to
   // material have a window of one sample: asked for over the one-sample batch at sample 0,
   // their sum is the first sample's value.
   std::array<std::vector<float>, channels::kCount> sums;

@@ -67,6 +67,16 @@ struct SampleResult {
   float b1 = 0.f, b2 = 0.f;
 };
 
+// The `lobes` rows of one sample (channels::kLobes, render/channels.h), in the channel table's
+// order: diffuse, glossy and transmission, each direct then indirect, then emission and
+// background. Per sample they sum to its radiance (up to float rounding), each an unbiased
+// estimate of its own part of the pixel's integral (render/packet_tracer.h, PathLobes). Not
+// part of SampleResult: render_rect asks for them only when the task names a lobe row.
+constexpr uint32_t kLobeRows = 8;
+struct LobeValues {
+  Vec3 row[kLobeRows];
+};
+
 // The Motion row's context (render/motion.h): the poses of the frame before and after.
 struct MotionPoses;
 
@@ -87,7 +97,8 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // samples are accumulated in sample-index order (radiance sums in double, Welford M2 of
 // luminance, the other rows' values in float32; the first-sample rows depth, position,
 // motion, instance and material too, which over the one-sample batch at sample 0 are that
-// sample's values; the ranked rows' labels counted, channels::RankedCounts). Checks *cancel
+// sample's values; the ranked rows' labels counted, channels::RankedCounts; the lobe rows
+// traced only when one of them is asked for). Checks *cancel
 // (if given) between rows and returns false as soon as it is set; *out is then incomplete.
 // The request must pass validate_render_request. motion: the Motion row's other poses
 // (render/motion.h); null: a still, whose Motion row is 0.

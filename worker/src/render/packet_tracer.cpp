@@ -43,11 +43,11 @@ struct DiskBatch {
 // emission, Russian roulette, the light sample and the BSDF sample's direction. The BSDF values
 // both samples need are queued in *batch (one evaluation for a packet's lanes together);
 // shade_vertex_end_light and shade_vertex_end_bsdf finish the vertex once the batch has been
-// evaluated.
+// evaluated. lobes: the path's lobe rows (null: off), which keep the first vertex.
 void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
                         const Hit* hit, uint32_t bounce, uint32_t max_depth,
                         const DiskBatch& disks, BsdfEvalBatch* batch, LightBatch* lb,
-                        int lane) {
+                        int lane, PathLobes* lobes) {
   const Vec3 d = p.d;
   SampleResult& result = p.result;
   p.alive = false;
@@ -64,8 +64,9 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
                                          light_env_pmf(lc, p.sel_o, p.sel_ng, p.sel_total, d,
                                                        p.sel_two_sided) *
                                              lc.env->pdf(d));
-      result.radiance +=
-          (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w;
+      add_radiance(p, lobes,
+                   (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w,
+                   bounce, RadianceSource::Environment);
     }
     return;
   }
@@ -80,18 +81,19 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     // KHR_materials_unlit: the base colour as radiance on the faces that would emit, and
     // nothing reflected (the path ends). Not a light of the light set: no MIS weight.
     if (cos_emit > 0.f) {
-      result.radiance += p.beta * sp.albedo;
+      add_radiance(p, lobes, p.beta * sp.albedo, bounce, RadianceSource::Surface);
       // Unlit points and lines add their emission (glTF "Point and Line Materials").
       if (hit_material.unlit_adds_emission)
-        result.radiance +=
-            p.beta * scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
+        add_radiance(p, lobes,
+                     p.beta * scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit),
+                     bounce, RadianceSource::Surface);
     }
     return;
   }
   if (cos_emit > 0.f && hit_material.is_emissive()) {
     const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
     if (p.prev_delta) {
-      result.radiance += p.beta * Le;
+      add_radiance(p, lobes, p.beta * Le, bounce, RadianceSource::Surface);
     } else {
       // The same point could have come from light sampling at the previous vertex: convert
       // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
@@ -99,7 +101,8 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
           light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit->slot, hit->prim, d,
                          p.sel_two_sided) *
           hit->t * hit->t / cos_emit;
-      result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
+      add_radiance(p, lobes, p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light), bounce,
+                   RadianceSource::Surface);
     }
   }
   if (bounce >= max_depth) return;
@@ -114,8 +117,14 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   disperse(p, u, &sp.params);
   const Frame frame = sp.frame();
   const Vec3 wo_local = frame.to_local(wo);
-  const BsdfLobes lobes = bsdf_lobes(sp.params, wo_local);
-  batch->set_vertex(lane, sp.params, lobes, wo_local, frame);
+  const BsdfLobes bsdf = bsdf_lobes(sp.params, wo_local);
+  batch->set_vertex(lane, sp.params, bsdf, wo_local, frame);
+  if (lobes && bounce == 0) {
+    lobes->params = sp.params;
+    lobes->lobes = bsdf;
+    lobes->wo = wo_local;
+    lobes->frame = frame;
+  }
   if (lc.any && bsdf_has_smooth_part(sp.params)) {
     float w[kMaxLightEntries];
     p.sel_o = sp.above();
@@ -133,10 +142,10 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
 
   BsdfSample& bs = p.bs;
   const BsdfSampleStep step =
-      bsdf_sample_direction(sp.params, lobes, wo_local, disks.get(lane), u.get(dim::kLobe),
+      bsdf_sample_direction(sp.params, bsdf, wo_local, disks.get(lane), u.get(dim::kLobe),
                             // Read only by the glass lobe: skipped (any value would do) without
                             // one.
-                            lobes.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
+                            bsdf.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
   if (step == BsdfSampleStep::Failed) return;
   p.ng = sp.ng;
   if (step == BsdfSampleStep::NeedsEval) {
@@ -197,14 +206,66 @@ void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
   p.alive = true;
 }
 
+// The lobe rows' shares at the first vertex (bounce 0), once its batch has been evaluated:
+// of its light sample, for the lanes `shadowed` whose shadow ray is set (the direction it
+// was evaluated at, and for a punctual light the through lobes on the side it is sampled
+// from, as punctual_light_sample evaluates them), and of what the path brings after it, for
+// the lanes of `live` that go on (shade_vertex_end_bsdf made them alive): the sampled-only
+// lobe the BSDF sample came from, or the evaluated lobes' parts at the sampled direction.
+// Scalar, outside the batch: only with the lobe rows on.
+void first_vertex_shares(const PathState* paths, const LightBatch& lights, uint32_t live,
+                         uint32_t shadowed, PathLobes* lobes) {
+  Vec3 f[kLobeCategories];
+  for (uint32_t m = shadowed; m; m &= m - 1) {
+    const int i = __builtin_ctz(m);
+    const PathState& p = paths[i];
+    PathLobes& l = lobes[i];
+    if (p.light_kind == LightSampleKind::Delta) {
+      const Vec3 wl = l.frame.to_local(p.light.wi);
+      const bool above = !p.light.through;
+      if (above) {
+        bsdf_eval_lobes(l.params, l.lobes, l.wo, wl, f);
+      } else {
+        for (Vec3& v : f) v = Vec3(0.f, 0.f, 0.f);
+      }
+      if (has_through_lobe(l.params) && (wl.z > 0.f) == above)
+        through_eval_lobes(l.params, l.wo, wl, f);
+    } else {
+      const Vec3 wi(lights.wi[0][i], lights.wi[1][i], lights.wi[2][i]);
+      bsdf_eval_lobes(l.params, l.lobes, l.wo, l.frame.to_local(wi), f);
+    }
+    PathLobes::shares(f, l.light_share);
+  }
+  for (uint32_t m = live; m; m &= m - 1) {
+    const int i = __builtin_ctz(m);
+    const PathState& p = paths[i];
+    if (!p.alive) continue;
+    PathLobes& l = lobes[i];
+    for (Vec3& v : f) v = Vec3(0.f, 0.f, 0.f);
+    switch (p.bs.lobe) {
+      case SampledLobe::Evaluated:  // bs.wi: the direction before the batch normalized it
+        bsdf_eval_lobes(l.params, l.lobes, l.wo, normalize(p.bs.wi), f);
+        break;
+      case SampledLobe::Glass:
+        f[p.bs.transmitted ? kTransmissionLobes : kGlossyLobes] = Vec3(1.f, 1.f, 1.f);
+        break;
+      case SampledLobe::DiffuseBtdf:
+        f[kDiffuseLobes] = Vec3(1.f, 1.f, 1.f);
+        break;
+    }
+    PathLobes::shares(f, l.path_share);
+  }
+}
+
 // Traces the live paths of paths[0, kPacketSize) together, bounce by bounce: the rays of a
 // bounce go to Embree as one packet query and their shadow rays as another, and the BSDF
 // evaluations of the bounce's vertices are computed together. Each path computes exactly what
 // it would alone (the same sample values, the same sums in the same order); the packets only
 // let Embree share traversal between similar rays (a pixel's camera rays, shadow rays towards
-// the same light) and let the shading of independent paths overlap.
+// the same light) and let the shading of independent paths overlap. lobes: the paths' lobe
+// rows (kPacketSize of them), or null when they are off.
 void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
-                 uint32_t max_depth) {
+                 uint32_t max_depth, PathLobes* lobes) {
   constexpr int kFewLanes = 3;
   static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
   static_assert(PixelSampler::kLanes16 == kPacketSize, "a sampler lane per packet lane");
@@ -283,7 +344,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     for (uint32_t m = live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
       shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
-                         disks, &batch, &lights, i);
+                         disks, &batch, &lights, i, lobes ? lobes + i : nullptr);
     }
     lights.finish_geometry(&batch);
     batch.evaluate();
@@ -301,6 +362,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       shade_vertex_end_bsdf(paths[__builtin_ctz(m)], batch);
     uint32_t shadowed = 0;
     for (int i = 0; i < kPacketSize; ++i) shadowed |= uint32_t(shadow.active[i]) << i;
+    if (lobes && bounce == 0) first_vertex_shares(paths, lights, live, shadowed, lobes);
     if (!shadowed) continue;
     scene.occluded(shadow, blocked,
                    scene.has_transparency()
@@ -308,7 +370,9 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
                        : 0);
     for (; shadowed; shadowed &= shadowed - 1) {
       PathState& p = paths[__builtin_ctz(shadowed)];
-      if (!blocked[__builtin_ctz(shadowed)]) p.result.radiance += p.nee;
+      if (!blocked[__builtin_ctz(shadowed)])
+        add_radiance(p, lobes ? lobes + __builtin_ctz(shadowed) : nullptr, p.nee, bounce,
+                     RadianceSource::LightSample);
     }
   }
 }
@@ -379,14 +443,46 @@ uint32_t path_max_depth(const RenderSettings& settings) {
                                                        : settings.max_depth;
 }
 
+void PathLobes::shares(const Vec3 f[kLobeCategories], Vec3 share[kLobeCategories]) {
+  const Vec3 sum = f[0] + f[1] + f[2];
+  float all = 0.f, all_k[kLobeCategories];
+  for (int k = 0; k < kLobeCategories; ++k) {
+    all_k[k] = f[k].x + f[k].y + f[k].z;
+    all += all_k[k];
+  }
+  const bool all_ok = all > 0.f && std::isfinite(all);
+  for (int c = 0; c < 3; ++c) {
+    const bool ok = sum[c] > 0.f && std::isfinite(sum[c]);
+    for (int k = 0; k < kLobeCategories; ++k)
+      share[k][c] = ok       ? f[k][c] / sum[c]
+                    : all_ok ? all_k[k] / all
+                             : (k == kDiffuseLobes ? 1.f : 0.f);
+  }
+}
+
+namespace {
+
+// trace_paths with the lobe rows on: the paths' PathLobes on this function's stack (not on
+// trace_samples', whose frame stays as small as without them).
+__attribute__((noinline)) void trace_paths_with_lobes(const Scene& scene, const LightContext& lc,
+                                                      PathState* paths, uint32_t max_depth,
+                                                      uint32_t n, LobeValues* out) {
+  PathLobes lobes[kPacketSize];
+  trace_paths(scene, lc, paths, max_depth, lobes);
+  for (uint32_t k = 0; k < n; ++k) out[k] = lobes[k].values;
+}
+
+}  // namespace
+
 // Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                    const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
-                   uint32_t n, SampleResult* out) {
+                   uint32_t n, SampleResult* out, LobeValues* lobes) {
   if (settings.integrator == IntegratorType::AmbientOcclusion) {
     for (uint32_t k = 0; k < n; ++k) {
       const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
       out[k] = trace_ao(scene, p);
+      if (lobes) lobes[k] = LobeValues{};  // ao attributes nothing to the lobes
     }
     return;
   }
@@ -402,7 +498,10 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
     paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k,
                           batched ? camera_dims : nullptr);
   }
-  trace_paths(scene, ctx.lights, paths, path_max_depth(settings));
+  if (lobes)
+    trace_paths_with_lobes(scene, ctx.lights, paths, path_max_depth(settings), n, lobes);
+  else
+    trace_paths(scene, ctx.lights, paths, path_max_depth(settings), nullptr);
   for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
 }
 

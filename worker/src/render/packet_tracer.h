@@ -55,6 +55,72 @@ struct PathState {
   Vec3 medium, next_medium;
 };
 
+// Where a contribution to a sample's radiance comes from: the environment a ray escaped to,
+// what the surface a ray hit emits (emission, or an unlit surface's colour), or the light
+// sample (next-event estimate) of the vertex a ray left. Every contribution goes through
+// add_radiance with it, which is where an output attributing the radiance to its sources
+// (the `lobes` rows; light groups would be another) learns of it.
+enum class RadianceSource : uint8_t { Environment, Surface, LightSample };
+
+// The `lobes` rows of a path being traced (LobeValues, integrators.h), kept beside its
+// PathState only when a lobe row is asked for. A contribution is attributed by the path's
+// first scattering vertex (its camera ray's hit, bounce 0):
+// - found by the camera ray itself: the environment to `background`, the hit's emission (or
+//   unlit colour) to `emission`;
+// - otherwise it is shared among the first vertex's diffuse, glossy and transmission lobes
+//   (LobeCategory, scene/materials.h), to their `direct` rows if it is light reached in one
+//   bounce from the first vertex (its light sample, or found by the ray leaving it, bounce 1),
+//   to their `indirect` rows otherwise (light samples of later vertices, anything found from
+//   bounce 2 on).
+// The shares make each row an unbiased estimate of its own integral: the first vertex's light
+// sample f(wl) L / pdf is shared by f_k(wl) / f(wl), the parts of f by category at its
+// direction (bsdf_eval_lobes, and through_eval_lobes for a punctual light); a path whose
+// first BSDF sample came from a sampled-only lobe (the glass lobe: reflected glossy,
+// transmitted transmission; the diffuse BTDF: diffuse) gives everything it brings later to that
+// category; one from the evaluated lobes is shared by f_k(wi) / f(wi) at the sampled wi, so
+// that the expected share of category k is the integral of f_k L. The shares of a channel sum
+// to 1 (up to rounding), so the rows sum to the radiance.
+struct PathLobes {
+  LobeValues values;
+  // The shares (per channel, by LobeCategory) of what the path brings after its first vertex,
+  // and of that vertex's light sample.
+  Vec3 path_share[kLobeCategories];
+  Vec3 light_share[kLobeCategories];
+  // The first vertex, for its shares: its BSDF (after dispersion), lobes, wo and frame.
+  BsdfParams params;
+  BsdfLobes lobes;
+  Vec3 wo;
+  Frame frame{Vec3(0.f, 0.f, 1.f)};
+
+  void add(Vec3 c, uint32_t bounce, RadianceSource source) {
+    if (bounce == 0 && source != RadianceSource::LightSample) {
+      values.row[source == RadianceSource::Environment ? kBackgroundRow : kEmissionRow] += c;
+      return;
+    }
+    const bool light_sample = source == RadianceSource::LightSample;
+    const bool direct = light_sample ? bounce == 0 : bounce == 1;
+    const Vec3* share = light_sample && bounce == 0 ? light_share : path_share;
+    for (int k = 0; k < kLobeCategories; ++k)
+      values.row[2 * k + (direct ? 0 : 1)] += c * share[k];
+  }
+  // The first vertex's shares of the category parts f[k] (out: share[k] = f[k] / their sum,
+  // per channel). Where a channel's parts sum to 0 (or are not finite) the sums over channels
+  // share it, and failing those the diffuse lobes take it all: the shares always sum to 1.
+  static void shares(const Vec3 f[kLobeCategories], Vec3 share[kLobeCategories]);
+
+ private:
+  // Rows by their place in LobeValues: category k's direct row is 2k, its indirect 2k + 1.
+  static constexpr int kEmissionRow = 6, kBackgroundRow = 7;
+};
+
+// Adds contribution c to the path's radiance (its only way there), and with the lobe rows on
+// (lobes not null) to them; bounce: the vertex whose ray found it, or whose light sample it is.
+inline void add_radiance(PathState& p, PathLobes* lobes, Vec3 c, uint32_t bounce,
+                         RadianceSource source) {
+  p.result.radiance += c;
+  if (lobes) lobes->add(c, bounce, source);
+}
+
 // What every sample of a render shares: computed once per render_rect.
 struct TraceContext {
   LightContext lights;
@@ -113,9 +179,11 @@ uint32_t path_max_depth(const RenderSettings& settings);
 // (tmin, tmax), at its time in the shutter (src/render/ambient_occlusion.cpp).
 SampleResult trace_ao(const Scene& scene, const PathState& camera);
 
-// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
+// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n), and their lobe
+// rows into lobes[0, n) unless lobes is null (the rows are off; the radiance and everything
+// else is the same bit for bit either way). The ao integrator's lobe rows are 0.
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                    const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
-                   uint32_t n, SampleResult* out);
+                   uint32_t n, SampleResult* out, LobeValues* lobes = nullptr);
 
 }  // namespace rf

@@ -103,7 +103,8 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
                                                lc.env->pdf(p.d));
         const Vec3 beta =
             is_zero(p.medium) ? p.beta : p.beta * transmittance(p.medium, kInfinity);
-        result.radiance += beta * lc.env->eval(p.d) * w;
+        add_radiance(p, nullptr, beta * lc.env->eval(p.d) * w, bounce,
+                     RadianceSource::Environment);
       }
       return result;
     }
@@ -115,22 +116,25 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     const float cos_emit = emitting_cosine(hit_material, hit.ng, wo);
     if (hit_material.unlit) {  // as in the packet tracer
       if (cos_emit > 0.f) {
-        result.radiance += p.beta * sp.albedo;
+        add_radiance(p, nullptr, p.beta * sp.albedo, bounce, RadianceSource::Surface);
         if (hit_material.unlit_adds_emission)
-          result.radiance += p.beta * scene.emission(hit.slot, hit.prim, hit.b1, hit.b2, cos_emit);
+          add_radiance(p, nullptr,
+                       p.beta * scene.emission(hit.slot, hit.prim, hit.b1, hit.b2, cos_emit),
+                       bounce, RadianceSource::Surface);
       }
       return result;
     }
     if (cos_emit > 0.f && hit_material.is_emissive()) {
       const Vec3 Le = scene.emission(hit.slot, hit.prim, hit.b1, hit.b2, cos_emit);
       if (p.prev_delta) {
-        result.radiance += p.beta * Le;
+        add_radiance(p, nullptr, p.beta * Le, bounce, RadianceSource::Surface);
       } else {
         const float pdf_light =
             light_pdf_area(lc, p.sel_o, p.sel_ng, p.sel_total, hit.slot, hit.prim, p.d,
                            p.sel_two_sided) *
             hit.t * hit.t / cos_emit;
-        result.radiance += p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light);
+        add_radiance(p, nullptr, p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light),
+                     bounce, RadianceSource::Surface);
       }
     }
     if (bounce >= max_depth) return result;
@@ -163,7 +167,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
       shadow.set(0, light.origin, light.wi, light.tmax);
       ++result.rays;
       scene.occluded(shadow, blocked, ray_query(seed, pixel, bounce, RayKind::Shadow));
-      if (!blocked[0]) result.radiance += nee;
+      if (!blocked[0]) add_radiance(p, nullptr, nee, bounce, RadianceSource::LightSample);
     }
     BsdfSample bs;
     if (!bsdf_sample(sp.params, lobes, wo_local, u.get2(dim::kBsdfU), u.get(dim::kLobe),

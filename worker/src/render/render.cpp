@@ -13,7 +13,8 @@ namespace rf {
 namespace {
 
 // The rows an Image keeps (Image::set_from_tile): not the first-sample rows (depth, position,
-// motion, instance, material), which only the farm's results carry.
+// motion, instance, material), the ranked rows nor the lobe rows, which only the farm's
+// results carry.
 constexpr channels::Set kImageRows =
     channels::bit(channels::Id::Rgb) | channels::bit(channels::Id::Luminance) |
     channels::bit(channels::Id::Albedo) | channels::bit(channels::Id::Normal) |

@@ -38,6 +38,10 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
   uint32_t n_ranked = 0;
   for (const channels::Spec& s : channels::kSpecs)
     if ((rows & channels::bit(s.id)) && s.ranked) ranked[n_ranked++] = s.id;
+  // The lobe rows: traced (PathLobes, packet_tracer.h) only when one of them is asked for; the
+  // samples' values land here, kPacketSize at a time like the results.
+  const bool lobes = (rows & channels::kLobes) != 0;
+  LobeValues lobe_values[kPacketSize];
   for (uint32_t ty = 0; ty < rect.height; ++ty) {
     for (uint32_t tx = 0; tx < rect.width; ++tx) {
       // Checked every pixel, so that a cancel (or the worker's time budget) stops even a
@@ -57,18 +61,21 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
         const uint32_t lane = k % kPacketSize;
         if (lane == 0)
           trace_samples(ctx, scene, settings, pixel_sampler, rect.x0 + tx, rect.y0 + ty,
-                        uint32_t(start + k), std::min<uint32_t>(kPacketSize, count - k), results);
+                        uint32_t(start + k), std::min<uint32_t>(kPacketSize, count - k), results,
+                        lobes ? lobe_values : nullptr);
         const SampleResult& r = results[lane];
         out->rays += r.rays;
         Vec3 L = r.radiance;
+        const LobeValues* lobe = lobes ? &lobe_values[lane] : nullptr;
         if (!is_finite(L)) {
           L = Vec3(0.f, 0.f, 0.f);  // counted, recorded as zero radiance
+          lobe = nullptr;           // and zero in every lobe row, which sum to it
           ++out->nonfinite_samples;
         }
         for (int c = 0; c < 3; ++c) sum[c] += double(L[c]);
         for (uint32_t j = 0; j < n_summed; ++j) {
           float v[channels::kMaxComponents];
-          channels::sample_values(summed[j], r, v, motion);
+          channels::sample_values(summed[j], r, v, motion, lobe);
           for (uint32_t c = 0; c < offset[j + 1] - offset[j]; ++c) acc[offset[j] + c] += v[c];
         }
         for (uint32_t j = 0; j < n_ranked; ++j)

@@ -749,6 +749,7 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
                                      const BsdfDisks& disks, float u_lobe, float u_fresnel,
                                      BsdfSample* out) {
   if (wo.z <= 0.f) return BsdfSampleStep::Failed;
+  out->lobe = SampledLobe::Evaluated;
   float glass_scale = 1.f;
   if (l.layered) {
     // The layers first, then the base with u_lobe rescaled to its share.
@@ -767,8 +768,10 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
       out->delta = true;
       out->pdf = 0.f;
       out->transmitted = true;
+      out->lobe = SampledLobe::DiffuseBtdf;
       return BsdfSampleStep::Done;
     }
+    out->lobe = SampledLobe::Glass;
     // Smooth dielectric: reflect with probability F, otherwise refract. eta is the ratio of
     // the indices across the interface in the direction of travel of wi.
     const float eta = p.front ? p.ior : 1.f / p.ior;
@@ -847,6 +850,80 @@ Vec3 through_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi) {
   Vec3 f = diffuse ? diffuse_btdf_cos(p, l, wo, wi) * layers : Vec3(0.f, 0.f, 0.f);
   if (rough) f += rough_glass_cos(p, wo, wi) * layers;
   return f;
+}
+
+void through_eval_lobes(const BsdfParams& p, Vec3 wo, Vec3 wi, Vec3 out[kLobeCategories]) {
+  // through_eval_cos's terms, each to its category.
+  if (wo.z <= 0.f || wi.z == 0.f) return;
+  const bool rough = has_rough_glass(p), diffuse = has_diffuse_btdf(p) && wi.z < 0.f;
+  if (!rough && !diffuse) return;
+  float layers = 1.f;
+  BsdfLobes l;
+  if (p.layered() || diffuse) {
+    l = bsdf_lobes(p, wo);
+    if (p.layered()) layers = (1.f - l.coat_f) * (1.f - l.sheen_e);
+  }
+  if (diffuse) out[kDiffuseLobes] += diffuse_btdf_cos(p, l, wo, wi) * layers;
+  if (rough)
+    out[wi.z > 0.f ? kGlossyLobes : kTransmissionLobes] += rough_glass_cos(p, wo, wi) * layers;
+}
+
+void bsdf_eval_lobes(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi,
+                     Vec3 out[kLobeCategories]) {
+  for (int k = 0; k < kLobeCategories; ++k) out[k] = Vec3(0.f, 0.f, 0.f);
+  if (wo.z <= 0.f || wi.z <= 0.f) return;
+  const Vec3 h_raw = wo + wi;
+  const float hl = length(h_raw);
+  if (!(hl > 0.f)) return;
+  // The base (general_base's formulas; for an isotropic lobe without a film they are
+  // bsdf_eval_cos's): the Lambert lobe is diffuse, the GGX lobes and the metal's multiple
+  // scattering glossy.
+  const Vec3 h = h_raw / hl;
+  const float c = std::max(0.f, dot(wo, h));
+  const float fw = schlick_weight(c);
+  const float ax = p.anisotropic() ? p.alpha_t : p.alpha, ay = p.alpha;
+  const Vec3 fd = dielectric_layer_fresnel(p, l, c);
+  Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
+  if (p.iridescence > 0.f && p.metallic > 0.f) {
+    const float k = p.iridescence;
+    fm = fm * (1.f - k) +
+         iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, p.base) * k;
+  }
+  const float spec = ggx_d_aniso(h, ax, ay) /
+                     ((1.f + ggx_lambda_aniso(wo, ax, ay) + ggx_lambda_aniso(wi, ax, ay)) *
+                      4.f * wo.z * wi.z);
+  const float dt = has_diffuse_btdf(p) ? p.diffuse_transmission : 0.f;
+  Vec3 diffuse = p.base * (l.wd * (1.f - dt) * (1.f - max3(fd)) * kInvPi * wi.z);
+  Vec3 glossy = (fd * l.wd + fm * p.metallic) * (spec * wi.z);
+  if (p.metallic > 0.f) {
+    // The metal's multiple scattering (at the isotropic alpha of the same area).
+    const float ms_alpha = p.anisotropic() ? std::sqrt(p.alpha_t * p.alpha) : p.alpha;
+    glossy += l.ms * ((1.f - energy_table().e(wi.z, ms_alpha)) * wi.z);
+  }
+  // The layers (add_layers): the sheen scales the base and adds its own diffuse lobe, the coat
+  // scales everything under it and adds its glossy lobe.
+  if (!is_zero(p.sheen)) {
+    const float e_i = sheen_albedo(wi.z, p.sheen_alpha);
+    const float scale = std::min(1.f - l.sheen_e, 1.f - max3(p.sheen) * std::min(1.f, e_i));
+    diffuse = diffuse * scale +
+              p.sheen * (sheen_lobe_cos(wo, wi, p.sheen_alpha) / std::max(l.sheen_norm, e_i));
+    glossy = glossy * scale;
+  }
+  if (p.clearcoat > 0.f) {
+    diffuse = diffuse * (1.f - l.coat_f);
+    glossy = glossy * (1.f - l.coat_f);
+    const CoatFrame cf(p.clearcoat_n);
+    const Vec3 wo_c = cf.to_local(wo), wi_c = cf.to_local(wi);
+    const Vec3 hc_raw = wo_c + wi_c;
+    const float hcl = length(hc_raw);
+    if (wo_c.z > 0.f && wi_c.z > 0.f && hcl > 0.f) {
+      const float a = p.clearcoat_alpha;
+      const float coat = ggx_d(hc_raw / hcl, a) * ggx_g2(wo_c, wi_c, a) / (4.f * wo_c.z);
+      glossy += Vec3(1.f, 1.f, 1.f) * (l.coat_f * coat);
+    }
+  }
+  out[kDiffuseLobes] = diffuse;
+  out[kGlossyLobes] = glossy;
 }
 
 bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out) {

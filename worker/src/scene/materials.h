@@ -200,12 +200,19 @@ struct BsdfParams {
   bool layered() const { return clearcoat > 0.f || !is_zero(sheen); }
 };
 
+// The lobe a BSDF sample came from: the evaluated lobes (the mixture bsdf_eval_pdf evaluates
+// and bsdf_pdf is the density of), or one of the sampled-only lobes, the glass lobe (smooth
+// or rough; reflected or transmitted) and the diffuse BTDF. The `lobes` rows share out what a
+// path brings by it (render/packet_tracer.h, PathLobes).
+enum class SampledLobe : uint8_t { Evaluated, Glass, DiffuseBtdf };
+
 struct BsdfSample {
   Vec3 wi;             // local frame
   Vec3 weight;         // f cos / pdf (for delta lobes: the lobe's reflectance / probability)
   float pdf = 0.f;     // solid-angle density of wi among the non-delta lobes; 0 if delta
   bool delta = false;  // chosen from the glass (specular) lobe
   bool transmitted = false;
+  SampledLobe lobe = SampledLobe::Evaluated;
 };
 
 // The layers (glTF extension texts, implementation sections), on the base f_base below:
@@ -430,6 +437,23 @@ class BsdfEvalBatch {
   alignas(64) float f_[3][kSlots] = {}, pdf_[kSlots] = {}, world_[3][kLanes] = {};
 };
 
+// The categories of lobes the `lobes` rows split the radiance by (Cycles' passes): diffuse
+// (the Lambert base, the diffuse BTDF, the sheen), glossy (the dielectric and metal GGX with
+// the metal's multiple scattering and the thin film, the clear coat, the glass's reflection)
+// and transmission (the glass's refraction).
+enum LobeCategory : int { kDiffuseLobes = 0, kGlossyLobes = 1, kTransmissionLobes = 2 };
+constexpr int kLobeCategories = 3;
+
+// bsdf_eval_pdf's f |cos_i| (the evaluated lobes) split by category into out[kDiffuseLobes],
+// out[kGlossyLobes] and out[kTransmissionLobes] (always 0: no evaluated lobe transmits),
+// whose sum is bsdf_eval_pdf's value up to rounding: the base's Lambert lobe (weighted by
+// 1 - diffuseTransmission) and the sheen are diffuse, its GGX lobes (dielectric and metal,
+// the metal's multiple-scattering term, iridescence) and the clear coat glossy, each under the
+// layers' weights. Computed by the readable formulas (the general ones of anisotropic GGX),
+// for the `lobes` rows only; lobes = bsdf_lobes(p, wo).
+void bsdf_eval_lobes(const BsdfParams& p, const BsdfLobes& lobes, Vec3 wo, Vec3 wi,
+                     Vec3 out[kLobeCategories]);
+
 // True if the glass lobe is rough (KHR_materials_transmission with roughness): sampled like
 // the smooth one, and evaluated for punctual lights (through_eval_cos).
 inline bool has_rough_glass(const BsdfParams& p) {
@@ -461,6 +485,10 @@ inline bool bsdf_has_smooth_part(const BsdfParams& p) {
 // sampling adds it to bsdf_eval_cos for punctual lights, which BSDF sampling never reaches;
 // other lights reach these lobes through BSDF sampling only, as for smooth glass.
 Vec3 through_eval_cos(const BsdfParams& p, Vec3 wo, Vec3 wi);
+// through_eval_cos split by category and added to out: the diffuse BTDF's part to
+// out[kDiffuseLobes], the rough glass lobe's reflection (wi above) to out[kGlossyLobes] and
+// its transmission (wi below) to out[kTransmissionLobes].
+void through_eval_lobes(const BsdfParams& p, Vec3 wo, Vec3 wi, Vec3 out[kLobeCategories]);
 
 // KHR_materials_clearcoat's layering Fresnel: 0.04 + (1 - 0.04) (1 - |cos_v|)^5.
 float clearcoat_fresnel(float cos_v);
