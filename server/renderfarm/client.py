@@ -341,10 +341,14 @@ class Client:
         max_size: int = 0,
         compression: str = "zip",
         frame: int | None = None,
+        group: str = "",
     ) -> bytes:
         """An image of the job: a PNG layer (max_size > 0: downscaled to fit) or the EXR
-        (compression zip or none); of an animation, its first frame unless `frame` is given."""
+        (compression zip or none); of an animation, its first frame unless `frame` is given.
+        group: the light group a PNG of layer light_group shows (empty: the first)."""
         params = {"layer": layer, "max_size": max_size, "compression": compression}
+        if group:
+            params["group"] = group
         response = self.http.get(f"{self._image_base(job_id, frame)}/image.{fmt}", params=params)
         return self._check(response).content
 
@@ -375,7 +379,7 @@ class Client:
 
     def frame_image(self, job_id: str, frame: int, fmt: str = "png", **options: Any) -> bytes:
         """One frame of an animation job, or one variant (by index) of a job of every variant
-        (image()'s options: layer, max_size, compression)."""
+        (image()'s options: layer, max_size, compression, group)."""
         return self.image(job_id, fmt, frame=frame, **options)
 
     def save_image(
@@ -385,10 +389,13 @@ class Client:
         fmt: str = "png",
         layer: str = "rgb",
         frame: int | None = None,
+        group: str = "",
     ) -> None:
         """An image of the job (as image(), or frame_image() for a frame) streamed into a
         file, never whole in memory."""
         params = {"layer": layer} if fmt == "png" else {}
+        if group:
+            params["group"] = group
         self._download(f"{self._image_base(job_id, frame)}/image.{fmt}", params, path)
 
     def save_movie(self, job_id: str, path: str | os.PathLike, max_size: int = 1920) -> None:

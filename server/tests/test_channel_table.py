@@ -222,6 +222,10 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
         if values is not None:
             for i, axis in enumerate("RGB"):
                 rows[f"{lobe}.{axis}"] = values[..., i] / n
+    # The light groups: a block of three a group, in the layout's order.
+    for k, group in enumerate(acc.layout.groups):
+        for i, axis in enumerate("RGB"):
+            rows[f"light_group.{group}.{axis}"] = acc.light_groups_sum[..., 3 * k + i] / n
     if name.startswith("Crypto"):
         return _expected_crypto(name, acc)
     return rows[name].astype(np.float32)
@@ -376,7 +380,11 @@ def test_the_workers_header_is_the_generated_one():
     types = {"<f4": "F32", "<u4": "U32"}
     for c in channels.WIRE:
         ranked = "true" if c.accumulate is Accumulate.RANKED else "false"
-        row = f'"{c.name}", {c.wire_components}, Type::{types[c.wire_type]}, {c.window}, {ranked}}}'
+        per_group = "true" if c.name == "light_groups" else "false"
+        row = (
+            f'"{c.name}", {c.wire_components}, Type::{types[c.wire_type]}, {c.window}, {ranked}, '
+            f"{per_group}}}"
+        )
         assert row in header.read_text()
 
 
@@ -482,9 +490,10 @@ def test_outputs_add_their_arrays_to_the_memory_estimate_and_the_limit_counts_th
     assert acc.crypto_object.dtype == np.uint32 and acc.crypto_object.shape == (H, W, 12)
     # 76 bytes of the rows every job has, a float32 depth, three float32 position values, four
     # float32 motion values, two uint32 labels and two Cryptomatte rows of six (label, count)
-    # uint32 pairs, and eight lobes of three float64 sums.
+    # uint32 pairs, eight lobes of three float64 sums and one light group's three (EVERY's:
+    # the environment's).
     assert acc.diffuse_direct_sum.dtype == np.float64
-    assert acc.nbytes == (76 + 4 + 12 + 16 + 4 + 4 + 2 * 48 + 8 * 24) * W * H
+    assert acc.nbytes == (76 + 4 + 12 + 16 + 4 + 4 + 2 * 48 + 8 * 24 + 24) * W * H
     assert TileAccumulator(W, H).depth is None
     assert jobspec.job_memory_bytes(64, 64, 64, "depth,position") == 92 * 64 * 64 + 4096
     assert jobspec.job_memory_bytes(64, 64, 64, "depth") == 80 * 64 * 64 + 4096
@@ -537,7 +546,7 @@ def test_a_spill_slot_of_a_job_with_outputs_holds_them(tmp_path):
     acc = merged(layout=EVERY)
     want = {name: getattr(acc, name).copy() for name in EVERY.array_names()}
     cache.register("j", acc, 8)
-    assert acc.spill.home.slot_bytes == (212 + 8 * 24) * 8 * 8
+    assert acc.spill.home.slot_bytes == (212 + 8 * 24 + 24) * 8 * 8
     cache.register("j", merged(1, layout=EVERY), 8)  # evicts the first
     assert not acc.resident
     ref = acc.snapshot(("depth", "position"))
@@ -565,7 +574,7 @@ def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
     r = decode_result(_result(every))
     assert set(r.extra) == {
         "depth", "position", "motion", "instance", "material", "crypto_object",
-        "crypto_material", *(lobe for lobe, *_ in channels.LOBES),
+        "crypto_material", *(lobe for lobe, *_ in channels.LOBES), "light_groups",
     }  # fmt: skip
     assert r.extra["instance"].dtype == np.dtype("<u4")
     assert np.array_equal(r.extra["position"], every["position"])
@@ -592,3 +601,58 @@ def test_tasks_name_the_jobs_rows_and_results_must_carry_them():
     acc = sched.jobs["j"].tiles[0].acc
     assert np.array_equal(acc.depth.reshape(-1), every["depth"])
     assert np.array_equal(acc.position.reshape(-1), every["position"])
+
+
+GROUPS = ("key", "fill", "environment")
+
+
+def test_a_job_of_light_groups_has_a_block_and_a_layer_per_group(tmp_path):
+    """The light_groups row is resolved per job: three float64 components a group in its
+    arrays, its results and its checkpoints, and one EXR layer a group, in the job's order."""
+    from renderfarm.api.grpc_decode import decode_result
+    from renderfarm.domain.jobspec import JobSettings, job_memory_bytes
+
+    layout = channels.layout_for("light_groups", groups=GROUPS)
+    assert layout.groups == GROUPS
+    (row,) = [c for c in layout.rows if c.name == "light_groups"]
+    assert row.wire_components == 9 and row.store[0].components == 9
+    assert [x.name for x in row.layers] == ["light_group.key", "light_group.fill",
+                                            "light_group.environment"]  # fmt: skip
+    assert layout.exr_channels()[-9:] == tuple(
+        f"light_group.{g}.{c}" for g in GROUPS for c in "RGB"
+    )
+    assert job_memory_bytes(64, 64, 64, "light_groups", GROUPS) == (76 + 72) * 64 * 64 + 4096
+    settings = JobSettings(aovs="light_groups", light_groups='{"key":[1],"fill":[2,4],'
+                           '"environment":[]}')  # fmt: skip
+    assert channels.job_layout(settings) == layout
+    # Checkpoints name the array with its 9 components and read back into the job's layout.
+    acc = TileAccumulator(W, H, layout=layout)
+    values = np.arange(W * H * 9, dtype=np.float32).reshape(H, W, 9)
+    acc.merge_batch(np.ones((H, W, 3), np.float32), np.zeros((H, W), np.float32), 1,
+                    extra={"light_groups": values})  # fmt: skip
+    blob = acc.to_bytes()
+    _, arrays, _, _ = channels.read_header(blob, "test")
+    assert channels.Array("light_groups_sum", "<f8", 9) in arrays
+    back = TileAccumulator.from_bytes(W, H, blob, acc.samples, acc.batches, layout=layout)
+    assert np.array_equal(back.light_groups_sum, values.astype(np.float64))
+    other = channels.layout_for("light_groups", groups=("key", "environment"))
+    with pytest.raises(ValueError, match="light_groups_sum .* is not one of"):
+        TileAccumulator.from_bytes(W, H, blob, acc.samples, acc.batches, layout=other)
+    # A PNG of one group shows its block.
+    tile = TileAccumulator(W, H, layout=layout)
+    tile.merge_batch(np.ones((H, W, 3), np.float32), np.zeros((H, W), np.float32), 1,
+                     extra={"light_groups": values})  # fmt: skip
+    from renderfarm.infra.images import _display_tile
+
+    fill = _display_tile("light_group.fill", tile, 1.0, H, W)
+    assert np.array_equal(fill, values[..., 3:6].astype(np.float64))
+    # On the wire: a multiple of three components a pixel, checked against the job's groups
+    # by the scheduler; anything else is refused by the decoder.
+    every = {c.name: _values(c.name) for c in channels.DEFAULT.wire_rows_for(0)}
+    nine = {**every, "light_groups": np.zeros(8 * 9, "<f4")}
+    r = decode_result(_result(nine, light_groups={"components": 9}))
+    assert r.extra["light_groups"].size == 8 * 9
+    for components in (4, 0, 3 * 33):
+        bad = _result(nine, light_groups={"components": components})
+        with pytest.raises(ValueError, match="channel light_groups: type 1 x"):
+            decode_result(bad)

@@ -151,6 +151,8 @@ def test_packing_the_cornell_box_keeps_the_vertex_data():
         meshes=4,
         nodes=5,
         extensions_required=(),
+        # The emissive quad is node 3, "light": a light group, and the environment another.
+        light_groups={"light": [3], "environment": []},
     )
 
     original = json.loads(CORNELL_GLTF.read_text())

@@ -310,6 +310,7 @@ class JobServicer(jobs_pb2_grpc.JobServiceServicer):
                 max_size=request.max_size, max_bytes=MAX_MESSAGE_BYTES - (1 << 20),
                 compression=request.compression or "zip",
                 frame=request.frame if request.HasField("frame") else None,
+                group=request.group,
             )  # fmt: skip
         except Cancelled:
             await context.abort(grpc.StatusCode.UNAVAILABLE, "the server is stopping")

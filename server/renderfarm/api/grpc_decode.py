@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..domain import channels
+from ..domain.light_groups import MAX_GROUPS
 from ..domain.records import BatchResult
 from ..domain.tiling import Rect
 
@@ -33,13 +34,21 @@ def _blocks(msg, rect: Rect) -> dict[str, np.ndarray]:
             raise ValueError(f"channel {block.name[:40]!r} is not one a result carries")
         if row.wire in arrays:
             raise ValueError(f"channel {block.name}: sent twice")
-        if block.type != _TYPES[row.wire_type] or block.components != row.wire_components:
+        # A per-group row (light groups) has its components per group: the scheduler checks
+        # the count against the job's groups.
+        groups = block.components // row.wire_components if row.per_group else 1
+        if (
+            block.type != _TYPES[row.wire_type]
+            or block.components != row.wire_components * groups
+            or not 1 <= groups <= MAX_GROUPS
+        ):
+            expected = f"{row.wire_components}{' x groups' if row.per_group else ''}"
             raise ValueError(
                 f"channel {block.name}: type {block.type} x {block.components}, expected "
-                f"{_TYPES[row.wire_type]} x {row.wire_components}"
+                f"{_TYPES[row.wire_type]} x {expected}"
             )
         data = block.data  # each read of a bytes field copies it: read once
-        size = np.dtype(row.wire_type).itemsize * row.wire_components * rect.pixels
+        size = np.dtype(row.wire_type).itemsize * block.components * rect.pixels
         if len(data) != size:
             raise ValueError(f"channel {block.name}: {len(data)} bytes, expected {size}")
         arrays[row.wire] = np.frombuffer(data, dtype=row.wire_type)

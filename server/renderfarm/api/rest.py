@@ -378,10 +378,15 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         "0 = full resolution",
     )
     compression_query = Query("zip", description="EXR only: zip, or none (faster, larger)")
+    group_query = Query(
+        "",
+        description="PNG of layer light_group only: the light group (settings.light_groups; "
+        "empty: the first)",
+    )
 
     async def image_response(
         job_id: str, fmt: str, layer: str, max_size: int, compression: str, who: Caller,
-        frame: int | None,
+        frame: int | None, group: str = "",
     ) -> Response:  # fmt: skip
         if layer not in LAYERS:
             raise SettingsError(
@@ -389,7 +394,14 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
             )
         try:
             file = await farm.image_file(
-                apicommon.job_id(job_id), fmt, layer, who, max_size, compression, frame
+                apicommon.job_id(job_id),
+                fmt,
+                layer,
+                who,
+                max_size,
+                compression,
+                frame,
+                group=group,
             )
         except Cancelled:
             return error_response(503, "", "the server is stopping")
@@ -418,9 +430,10 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         layer: str = layer_query,
         max_size: int = max_size_query,
         compression: str = compression_query,
+        group: str = group_query,
         who: Caller = Auth,
     ) -> Response:
-        return await image_response(job_id, fmt, layer, max_size, compression, who, None)
+        return await image_response(job_id, fmt, layer, max_size, compression, who, None, group)
 
     @app.get(
         "/api/v1/jobs/{job_id}/frames",
@@ -446,9 +459,10 @@ def create_app(farm: FarmService, metrics: Metrics, auth: Authenticator | None =
         layer: str = layer_query,
         max_size: int = max_size_query,
         compression: str = compression_query,
+        group: str = group_query,
         who: Caller = Auth,
     ) -> Response:
-        return await image_response(job_id, fmt, layer, max_size, compression, who, frame)
+        return await image_response(job_id, fmt, layer, max_size, compression, who, frame, group)
 
     @app.get(
         "/api/v1/jobs/{job_id}/frames/{frame}/camera.json",

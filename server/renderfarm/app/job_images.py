@@ -78,13 +78,15 @@ class JobImages:
         compression: str = "zip",
         frame: int | None = None,
         _denoise_turn_held: bool = False,
+        group: str = "",
     ) -> BinaryIO:
         """The image written to a scratch file, returned open for reading (the file is
         already unlinked: closing it frees the space). Written one row of tiles at a time
         (images.ImageWriter), from memory while the job is held, else from the database.
 
         frame: which frame of an animation, or the index of a variant of a job of every variant
-        (None: the first, or the still); NotFound when the job does not render it."""
+        (None: the first, or the still); NotFound when the job does not render it.
+        group: the light group a PNG of the light_group layer shows (empty: the first)."""
         check_caller(caller)
         if fmt not in ("png", "exr"):
             raise SettingsError("format", f"unknown image format {fmt!r}; use png or exr")
@@ -108,6 +110,17 @@ class JobImages:
         settings = job.settings if job is not None else JobSettings(**row.settings)
         variants = tuple(row.variants)
         layout = job_layout(settings)
+        if group and (fmt != "png" or layer != channels.LIGHT_GROUP_LAYER):
+            raise SettingsError("group", "group picks a light group of a PNG of light_group")
+        if fmt == "png" and layer == channels.LIGHT_GROUP_LAYER and layout.groups:
+            group = group or layout.groups[0]
+            if group not in layout.groups:
+                raise SettingsError(
+                    "group",
+                    f"job {job_id} has no light group {group[:60]!r}; its groups: "
+                    f"{', '.join(layout.groups)}",
+                )
+            layer = channels.group_layer(group)
         if fmt == "png" and layer not in layout.layers():
             row = channels.layer_channel(layer)
             turned_on = f"settings.aovs naming {row.aov}" if row.aov else f"settings.{row.setting}"
@@ -119,7 +132,7 @@ class JobImages:
             async with self._denoise_turn:
                 return await self.image_file(
                     job_id, fmt, layer, caller, max_size, compression, frame,
-                    _denoise_turn_held=True,
+                    _denoise_turn_held=True, group=group,
                 )  # fmt: skip
         # The EXR's DateTime: when the job finished (when it was submitted while it runs).
         stamp = (row.finished_at or row.created_at).timestamp()
@@ -255,9 +268,12 @@ class JobImages:
         max_bytes: int | None = None,
         compression: str = "zip",
         frame: int | None = None,
+        group: str = "",
     ) -> bytes:
         """The image as bytes (for gRPC's one message); TooLarge past max_bytes."""
-        with await self.image_file(job_id, fmt, layer, caller, max_size, compression, frame) as f:
+        with await self.image_file(
+            job_id, fmt, layer, caller, max_size, compression, frame, group=group
+        ) as f:
             size = os.fstat(f.fileno()).st_size
             if max_bytes is not None and size > max_bytes:
                 raise TooLarge(

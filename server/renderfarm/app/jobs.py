@@ -33,6 +33,7 @@ from typing import Any
 import psycopg
 from psycopg_pool import PoolTimeout
 
+from ..domain import light_groups
 from ..domain.channels import CAPABILITY_PREFIX, job_layout
 from ..domain.frames import frame_count, job_rects, resolve_animations
 from ..domain.jobspec import JobSettings, check_variant_images, parse_settings
@@ -62,6 +63,11 @@ from .worker_sessions import WorkerSession, WorkerSessions
 from .write_behind import CheckpointRate, WriteBehind
 
 log = logging.getLogger(__name__)
+
+
+def _wants_light_groups(settings: JobSettings) -> bool:
+    return "light_groups" in settings.aovs.split(",")
+
 
 SCENE_CHUNK_BYTES = 1 << 20
 
@@ -484,6 +490,7 @@ class FarmService(
             info = inspect_scene(scene_data, filename or "scene", self.settings.max_upload_bytes)
             resolve_animations(settings.animation, info.animations)
             variants = job_variants(settings.variant, info.variants)
+            settings = self._with_light_groups(settings, info.light_groups)
             check_variant_images(settings, len(variants), self.settings.limits())
             if await self.store.get_scene_info(info.sha256) is None:
                 await self.scene_checker.check(scene_data, filename or "scene", info.sha256)
@@ -501,12 +508,14 @@ class FarmService(
                 raise NotFound(f"no stored scene with sha256 {sha}")
             filename = filename or stored["filename"]
             variants = ()
-            # Names are checked against the stored scene's animations and variants.
-            if settings.animation or settings.variant:
+            # Names are checked against the stored scene's animations and variants, and its
+            # light groups found.
+            if settings.animation or settings.variant or _wants_light_groups(settings):
                 data = await self.store.read_scene(sha, 0, stored["size_bytes"])
                 info = inspect_scene(data, filename, max(len(data), 1))
                 resolve_animations(settings.animation, info.animations)
                 variants = job_variants(settings.variant, info.variants)
+                settings = self._with_light_groups(settings, info.light_groups)
                 check_variant_images(settings, len(variants), self.settings.limits())
         else:
             raise SettingsError(
@@ -542,6 +551,18 @@ class FarmService(
             self._pending_events.append((job_id, "scene_converted", _usd_event(usd)))
         await self._after_change()
         return await self.get(job_id, caller)
+
+    def _with_light_groups(
+        self, settings: JobSettings, groups: dict[str, list[int]]
+    ) -> JobSettings:
+        """A job asking for light groups gets the scene's (domain/light_groups.py) in its
+        settings, replacing any given, and is checked again with them (their memory):
+        SettingsError naming settings.aovs for too many."""
+        if not _wants_light_groups(settings):
+            return settings
+        light_groups.check_count(groups)
+        raw = {**settings.to_dict(), "light_groups": light_groups.encode(groups)}
+        return parse_settings(raw, self.settings.limits())
 
     async def _usd_environment(
         self, settings: JobSettings, raw: dict[str, Any] | None, usd: UsdImport

@@ -486,13 +486,20 @@ def _image_format(output: str) -> str:
     return fmt
 
 
-def _save_image(client, job_id: str, output: str, layer: str | None) -> None:
+def _save_image(
+    client, job_id: str, output: str, layer: str | None, group: str | None = None
+) -> None:
     """The job's image into `output`: a PNG of one layer (rgb by default), the whole EXR, or
-    an EXR of one layer's channels (taken from the whole EXR, header attributes kept)."""
+    an EXR of one layer's channels (taken from the whole EXR, header attributes kept). group:
+    of the light_group layer, one light group (None: the PNG the first, the EXR every one)."""
     fmt = _image_format(output)
     if layer is not None and layer not in EXR_LAYER_CHANNELS:
         raise CliError(
             f"--layer {layer}: unknown layer; one of {', '.join(EXR_LAYER_CHANNELS)}", EXIT_USAGE
+        )
+    if group is not None and layer != channels.LIGHT_GROUP_LAYER:
+        raise CliError(
+            f"--group picks a light group of --layer {channels.LIGHT_GROUP_LAYER}", EXIT_USAGE
         )
     out = Path(output)
     if not out.parent.is_dir():
@@ -500,7 +507,7 @@ def _save_image(client, job_id: str, output: str, layer: str | None) -> None:
     if fmt == "png" or layer is None:
         partial = out.with_name(f".{out.name}.part")
         try:
-            client.save_image(job_id, partial, fmt, layer or "rgb")
+            client.save_image(job_id, partial, fmt, layer or "rgb", group=group or "")
             partial.replace(out)  # a failed download leaves no half file under the name
         finally:
             partial.unlink(missing_ok=True)
@@ -515,6 +522,16 @@ def _save_image(client, job_id: str, output: str, layer: str | None) -> None:
         source = oiio.ImageBuf(str(whole))
         wanted = EXR_LAYER_CHANNELS[layer]
         present = source.spec().channelnames
+        if layer == channels.LIGHT_GROUP_LAYER:  # the job's groups: every one, or the one named
+            groups = list(dict.fromkeys(c.split(".")[1] for c in present
+                                        if c.startswith(layer + ".")))  # fmt: skip
+            if group is not None and groups and group not in groups:
+                raise CliError(
+                    f"job {job_id} has no light group {group!r}; its groups: {', '.join(groups)}"
+                )
+            if groups:
+                prefix = channels.group_layer(group) + "." if group else layer + "."
+                wanted = tuple(c for c in present if c.startswith(prefix))
         if not all(c in present for c in wanted):
             row = channels.layer_channel(layer)
             flag = f"--aovs naming {row.aov}" if row.aov else f"--{row.setting}"
@@ -538,14 +555,14 @@ def cmd_get(args: argparse.Namespace) -> int:
                 print(Path(args.movie).resolve())
             return 0
         if args.output is not None:
-            _save_image(client, args.job_id, args.output, args.layer)
+            _save_image(client, args.job_id, args.output, args.layer, args.group)
             if not args.json:
                 print(Path(args.output).resolve())
             else:
                 _print_json({"id": args.job_id, "output": str(Path(args.output).resolve())})
             return 0
-        if args.layer is not None:
-            raise CliError("--layer needs -o FILE (the image to write)", EXIT_USAGE)
+        if args.layer is not None or args.group is not None:
+            raise CliError("--layer and --group need -o FILE (the image to write)", EXIT_USAGE)
         job = client.get(args.job_id)
         if args.json:
             _print_json(job)

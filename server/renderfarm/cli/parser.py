@@ -159,6 +159,11 @@ def build_parser() -> argparse.ArgumentParser:
                 help="with -o: only this layer (" + ", ".join(EXR_LAYER_CHANNELS) + ")",
             )  # fmt: skip
             q.add_argument(
+                "--group", default=None, metavar="NAME",
+                help="with --layer light_group: only this light group (the PNG: the first "
+                "without it; the EXR: every group)",
+            )  # fmt: skip
+            q.add_argument(
                 "--movie", default=None, metavar="FILE.mp4",
                 help="download the preview movie of an animation's finished frames",
             )  # fmt: skip

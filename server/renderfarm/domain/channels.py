@@ -22,7 +22,9 @@ most of the length is the rows themselves, whose help texts are the docs'.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import json
 import struct
 from dataclasses import dataclass
 from enum import StrEnum
@@ -127,6 +129,10 @@ class Channel:
     # components: nothing (a row the server derives).
     wire_components: int = 0
     wire_type: str = "<f4"
+    # A row of one block per light group of the job (Layout.groups): its array's and the
+    # wire's components are these times the group count, and its layer is one per group
+    # (light_group_layers); the table's row is the template a job's layout resolves.
+    per_group: bool = False
 
 
 AOV_SAMPLES = 16  # albedo and normal cover a pixel's first 16 samples (tiling.AOV_SAMPLES)
@@ -210,6 +216,10 @@ def _lobe_channel(name: str, label: str, help_text: str) -> Channel:
         wire_components=3,
     )
 
+
+# The template layer of the light_groups row: a job's layout has one per group, named
+# light_group.<group> (the PNG layer `light_group` with `group`).
+LIGHT_GROUP_LAYER = "light_group"
 
 # The depth where the first sample's camera ray hit nothing, as Blender's Depth pass has it.
 BACKGROUND_DEPTH = 1e10
@@ -490,6 +500,29 @@ CHANNELS: tuple[Channel, ...] = (
     ),
     *(_lobe_channel(*lobe) for lobe in LOBES),
     Channel(
+        "light_groups",
+        "the radiance of each light group of the job: RGB sums over samples, float64, one "
+        "block of three per group",
+        Accumulate.SUM,
+        "light_groups",
+        (Array("light_groups_sum", "<f8", 3),),
+        (
+            Layer(
+                LIGHT_GROUP_LAYER,
+                ("light_group.{group}.R", "light_group.{group}.G", "light_group.{group}.B"),
+                "Light group",
+                "the radiance that came from the lights of one light group (a "
+                "KHR_lights_punctual light or emissive node, by its name or its "
+                "`extras.light_group`, or the environment), one layer per group; the groups "
+                "sum to `rgb`",
+            ),
+        ),
+        setting="aovs",
+        aov="light_groups",
+        wire_components=3,
+        per_group=True,
+    ),
+    Channel(
         "denoised",
         "Open Image Denoise of the radiance with the albedo and normal as guides, at output",
         Accumulate.DERIVED,
@@ -565,6 +598,9 @@ class Layout:
     what its images hold and what it costs in memory."""
 
     rows: tuple[Channel, ...]
+    # The job's light groups in layer order (settings.light_groups), which a per-group row's
+    # blocks follow: () when it has none.
+    groups: tuple[str, ...] = ()
 
     def stored(self, windowed: bool | None = None) -> tuple[Array, ...]:
         """The arrays the server keeps in table order: of every row (None), of rows over every
@@ -601,29 +637,68 @@ class Layout:
         return tuple(c.name for c in self.rows)
 
 
+def group_layer(group: str) -> str:
+    """The layer of one light group in a job's layout (its EXR channels are this plus .R, .G
+    and .B)."""
+    return f"{LIGHT_GROUP_LAYER}.{group}"
+
+
+def _resolve(c: Channel, groups: tuple[str, ...]) -> Channel:
+    """A per-group row for a job's groups: its arrays and wire blocks repeated per group, one
+    layer each."""
+    if not c.per_group:
+        return c
+    (template,) = c.layers
+    n = len(groups)
+    return dataclasses.replace(
+        c,
+        store=tuple(Array(a.name, a.dtype, a.components * n) for a in c.store),
+        layers=tuple(
+            dataclasses.replace(
+                template,
+                name=group_layer(g),
+                exr=tuple(e.replace("{group}", g) for e in template.exr),
+                label=f"{template.label} {g}",
+            )
+            for g in groups
+        ),
+        wire_components=c.wire_components * n,
+    )
+
+
 @functools.cache
-def _layout(aovs: tuple[str, ...], denoise: bool) -> Layout:
-    return Layout(
-        tuple(
-            c for c in CHANNELS
-            if not c.setting or (c.setting == "denoise" and denoise) or c.aov in aovs
-        )
+def _layout(aovs: tuple[str, ...], denoise: bool, groups: tuple[str, ...]) -> Layout:
+    rows = tuple(
+        _resolve(c, groups) for c in CHANNELS
+        if not c.setting or (c.setting == "denoise" and denoise) or c.aov in aovs
     )  # fmt: skip
+    on = any(c.per_group for c in rows)
+    return Layout(rows, groups if on else ())
 
 
-def layout_for(aovs: str | tuple[str, ...] = (), denoise: bool = False) -> Layout:
+def layout_for(
+    aovs: str | tuple[str, ...] = (), denoise: bool = False, groups: tuple[str, ...] = ()
+) -> Layout:
     """The layout of a job with these settings: the rows always on, and those its `aovs` (a
-    comma list or the names) and `denoise` turn on."""
+    comma list or the names) and `denoise` turn on; `groups`: its light groups in order (of
+    settings.light_groups; a job with light_groups has at least the environment's, which
+    stands in for them while they are not known)."""
     names = parse_aovs(aovs) if isinstance(aovs, str) else parse_aovs(",".join(aovs))
-    return _layout(names, bool(denoise))
+    if "light_groups" in names and not groups:
+        groups = (ENVIRONMENT_GROUP,)
+    return _layout(names, bool(denoise), tuple(groups))
 
 
 def job_layout(settings) -> Layout:
     """The layout of a job's settings (jobspec.JobSettings)."""
-    return layout_for(settings.aovs, settings.denoise)
+    groups = tuple(json.loads(settings.light_groups)) if settings.light_groups else ()
+    return layout_for(settings.aovs, settings.denoise, groups)
 
 
-EVERY = Layout(CHANNELS)  # every row at once (a job with every output on)
+# The light group of the environment (domain/light_groups.py), always a job's last.
+ENVIRONMENT_GROUP = "environment"
+# Every row at once (a job with every output on, one light group: the environment).
+EVERY = layout_for(AOV_NAMES, True)
 
 # Which workers may render a job: a worker says in its Hello the rows it renders
 # (workers.proto, Hello.channels), and the scheduler matches them as tags, this prefix and the
@@ -669,12 +744,15 @@ def exr_channels(denoise: bool = False) -> tuple[str, ...]:
 
 
 def layers() -> dict[str, Layer]:
-    """Every named layer of the table in table order (a job has those of its layout)."""
-    return EVERY.layers()
+    """Every named layer of the table in table order (a job has those of its layout; a
+    per-group row's template stands for its groups' layers)."""
+    return {layer.name: layer for c in CHANNELS for layer in c.layers if layer.name}
 
 
 def layer_channel(layer: str) -> Channel:
-    """The row a layer belongs to."""
+    """The row a layer belongs to (a light group's layer: the template row's)."""
+    if layer.startswith(LIGHT_GROUP_LAYER + "."):
+        layer = LIGHT_GROUP_LAYER
     for c in CHANNELS:
         if any(x.name == layer for x in c.layers):
             return c
@@ -683,8 +761,9 @@ def layer_channel(layer: str) -> Channel:
 
 def layer_arrays(layer: str) -> tuple[str, ...]:
     """The arrays an image of a layer reads."""
-    reads = layers()[layer].reads
-    return tuple(a.name for a in layer_channel(layer).store) if reads is None else reads
+    row = layer_channel(layer)
+    reads = row.layers[0].reads if row.per_group else layers()[layer].reads
+    return tuple(a.name for a in row.store) if reads is None else reads
 
 
 def layers_markdown() -> str:
@@ -742,13 +821,17 @@ def cpp_header() -> str:
         "  // Ranked ID coverage (Cryptomatte): components / 2 (label, count) pairs of uint32, the",
         "  // labels the most samples had with their counts, by count descending then label",
         "  bool ranked;",
+        "  // One block of `components` per light group of the task (settings.light_groups): the",
+        "  // result carries components x the group count a pixel",
+        "  bool per_group;",
         "};",
         "",
         "constexpr Spec kSpecs[kCount] = {",
         *(
             f'    {{Id::{ident[c.name]}, "{c.name}", {c.wire_components}, '
             f"Type::{types[c.wire_type]}, {c.window}, "
-            f"{'true' if c.accumulate is Accumulate.RANKED else 'false'}}},"
+            f"{'true' if c.accumulate is Accumulate.RANKED else 'false'}, "
+            f"{'true' if c.per_group else 'false'}}},"
             for c in rows
         ),
         "};",

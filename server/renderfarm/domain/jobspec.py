@@ -81,12 +81,22 @@ CHUNK_PIXELS = 128 * 128
 CHUNK_MAX_SIDE = 512
 
 
-def job_memory_bytes(width: int, height: int, tile_size: int, aovs: str = "") -> int:
+def job_memory_bytes(
+    width: int, height: int, tile_size: int, aovs: str = "", groups: tuple[str, ...] = ()
+) -> int:
     """Estimated memory of a job's accumulators, whether in RAM or spilled to the scratch
-    directory (infra/spill.py), from its size, tile size and the outputs its `aovs` turns on."""
+    directory (infra/spill.py), from its size, tile size, the outputs its `aovs` turns on and
+    its light groups (with light_groups: at least the environment's)."""
     tiles = math.ceil(width / tile_size) * math.ceil(height / tile_size)
-    per_pixel = channels.layout_for(aovs).bytes_per_pixel()
+    per_pixel = channels.layout_for(aovs, groups=groups).bytes_per_pixel()
     return per_pixel * width * height + TILE_OVERHEAD_BYTES * tiles
+
+
+def settings_memory_bytes(s: JobSettings) -> int:
+    """job_memory_bytes of a job's settings (one image)."""
+    return channels.job_layout(s).bytes_per_pixel() * s.width * s.height + (
+        TILE_OVERHEAD_BYTES * math.ceil(s.width / s.tile_size) * math.ceil(s.height / s.tile_size)
+    )
 
 
 # What denoising a frame takes (images.denoise_frame): float32 colour, albedo, normal and output
@@ -245,6 +255,11 @@ SETTINGS: tuple[Setting, ...] = (
             "outputs beside the image, each a layer of the EXR and a PNG layer: a list (or "
             "comma list) of " + ", ".join(channels.AOV_NAMES) + " (docs/usage.md, Outputs); "
             "each adds to the job's memory", 26, worker=False),
+    Setting("light_groups", str, "",
+            "the job's light groups when aovs names light_groups: filled in by the server from "
+            "the scene (a value given is replaced), a JSON object of group name -> the glTF "
+            "node indices in it, in the order of their layers, the environment last "
+            "(docs/usage.md, Outputs)", 27),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -318,7 +333,7 @@ def settings_markdown() -> str:
 
 
 # String settings whose case means something (animation names); the others are lowercased.
-KEEP_CASE = frozenset({"animation", "variant"})
+KEEP_CASE = frozenset({"animation", "variant", "light_groups"})
 
 
 def _coerce(name: str, kind: type, value: Any, keep_case: bool = False) -> Any:
@@ -350,6 +365,8 @@ def _coerce(name: str, kind: type, value: Any, keep_case: bool = False) -> Any:
         if not math.isfinite(number):
             raise SettingsError(field, f"{field} must be finite, got {value!r}")
         return number
+    if name == "light_groups":  # a JSON object (or its text), kept as compact JSON
+        return _light_groups_value(field, value)
     if name == "aovs":  # a list (JSON) or a comma list, kept as the names in table order
         if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
             value = ",".join(value)
@@ -392,6 +409,9 @@ def parse_settings(raw: dict[str, Any] | None, limits: Limits = Limits()) -> Job
                 f"settings.{alias} is short for settings.{ALIASES[alias]}; they disagree",
             )
         values[name] = coerced
+    # Light groups belong to jobs that ask for them (the server fills them in from the scene).
+    if "light_groups" not in str(values.get("aovs", "")).split(","):
+        values.pop("light_groups", None)
     # An unspecified min_spp never exceeds the requested max_spp (so `--spp 4` just works).
     if "min_spp" not in values and "max_spp" in values:
         values["min_spp"] = max(1, min(JobSettings.min_spp, values["max_spp"]))
@@ -423,6 +443,27 @@ def parse_settings(raw: dict[str, Any] | None, limits: Limits = Limits()) -> Job
 def _require(ok: bool, name: str, message: str) -> None:
     if not ok:
         raise SettingsError(f"settings.{name}", f"settings.{name} {message}")
+
+
+def _light_groups_value(field: str, value: Any) -> str:
+    """settings.light_groups as compact JSON: an object of group name -> node indices."""
+    if isinstance(value, str):
+        if not value:
+            return ""
+        try:
+            value = json.loads(value)
+        except ValueError:
+            raise SettingsError(field, f"{field} must be a JSON object") from None
+    ok = isinstance(value, dict) and all(
+        isinstance(k, str) and isinstance(v, list)
+        and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in v)
+        for k, v in value.items()
+    )  # fmt: skip
+    if not ok:
+        raise SettingsError(
+            field, f"{field} must be an object of group name -> a list of glTF node indices"
+        )
+    return json.dumps(value, separators=(",", ":"))
 
 
 def _number(v: float) -> str:
@@ -465,12 +506,12 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
                 f"width x height must be at most {limits.max_pixels} pixels",
             )
         if setting.name == "tile_size":
-            need = job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
+            need = settings_memory_bytes(s)
             _require(
                 need <= limits.max_job_memory_bytes,
                 "width",
                 f"x settings.height = {s.width} x {s.height} needs about {need / 2**20:.0f} MB "
-                f"of accumulators ({channels.layout_for(s.aovs).bytes_per_pixel()} bytes a "
+                f"of accumulators ({channels.job_layout(s).bytes_per_pixel()} bytes a "
                 "pixel with the outputs of settings.aovs, and "
                 f"{TILE_OVERHEAD_BYTES} a tile), more than the server's limit of "
                 f"{limits.max_job_memory_bytes / 2**20:.0f} MB (RENDERFARM_MAX_JOB_MEMORY_MB)",
@@ -490,7 +531,7 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
     )
     if s.frames:
         frame_count = len(parse_frames(s.frames, limits.max_frames))
-        need = frame_count * job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
+        need = frame_count * settings_memory_bytes(s)
         _require(
             need <= limits.max_job_memory_bytes,
             "frames",
@@ -527,7 +568,7 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
     )
     if s.denoise:  # the whole frame beside the accumulators (images.DenoiseFrame)
         frame = denoise_memory_bytes(s.width, s.height)
-        need = frame + job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
+        need = frame + settings_memory_bytes(s)
         _require(
             need <= limits.max_job_memory_bytes,
             "denoise",
@@ -552,7 +593,7 @@ def check_variant_images(s: JobSettings, count: int, limits: Limits) -> None:
         f'"{ALL_VARIANTS}": the scene has {count} variants, more images than one job may '
         f"render ({limits.max_frames}, RENDERFARM_MAX_FRAMES); name them one job each",
     )
-    need = count * job_memory_bytes(s.width, s.height, s.tile_size, s.aovs)
+    need = count * settings_memory_bytes(s)
     _require(
         need <= limits.max_job_memory_bytes,
         "variant",

@@ -350,8 +350,13 @@ class TileAccumulator:
         """Serialise a snapshot() or aov_snapshot() as a checkpoint blob with one copy: the
         header naming its arrays, then each array little-endian in its own dtype; safe to call
         from another thread."""
-        arrays = tuple(channels.ARRAYS[n] for n in snapshot.names)
+        snapshot_names = snapshot.names
         snapshot = TileAccumulator.snapshot_arrays(snapshot)
+        # Components as the arrays have them (a per-group row's: its groups' times the table's).
+        arrays = tuple(
+            channels.Array(n, channels.ARRAYS[n].dtype, a.shape[2] if a.ndim == 3 else 1)
+            for n, a in zip(snapshot_names, snapshot, strict=True)
+        )
         pixels = snapshot[0].shape[0] * snapshot[0].shape[1] if snapshot else 0
         header = channels.blob_header(arrays, pixels)
         out = bytearray(len(header) + sum(a.nbytes for a in snapshot))
@@ -377,8 +382,9 @@ class TileAccumulator:
             raise ValueError(
                 f"checkpoint {what} holds {pixels} pixels, the tile has {self.width * self.height}"
             )
+        stored = {x.name: x for x in self.layout.stored()}
         for a in arrays:
-            known = channels.ARRAYS.get(a.name)
+            known = stored.get(a.name, channels.ARRAYS.get(a.name))
             if known != a:
                 raise ValueError(
                     f"checkpoint {what}: array {a.name} ({a.dtype} x {a.components}) is not "

@@ -62,6 +62,15 @@ EXR_COMPRESSIONS = ("zip", "none")
 # Layers normalised to the image's maximum in a PNG (grey), and every layer scaled by a
 # maximum over the image (layer_maximum).
 _DISPLAY = {n: layer.display for n, layer in channels.layers().items()}
+
+
+def _display(layer: str) -> Display:
+    """How a layer is shown (a light group's layer: as its row's template)."""
+    if layer.startswith(channels.LIGHT_GROUP_LAYER + "."):
+        layer = channels.LIGHT_GROUP_LAYER
+    return _DISPLAY[layer]
+
+
 GREY_LAYERS = tuple(n for n, d in _DISPLAY.items() if d in (Display.GREY, Display.DEPTH))
 SCALED_LAYERS = GREY_LAYERS + tuple(
     n for n, d in _DISPLAY.items() if d in (Display.RANGE, Display.FLOW)
@@ -225,9 +234,9 @@ def _grey_values(layer: str, acc: TileAccumulator) -> np.ndarray:
     if layer == "error":
         return acc.relative_error()
     values = acc.mean_of(channels.layer_channel(layer))
-    if _DISPLAY[layer] is Display.DEPTH:  # where the ray hit nothing: white
+    if _display(layer) is Display.DEPTH:  # where the ray hit nothing: white
         return np.where(values < channels.BACKGROUND_DEPTH, values, np.inf)
-    if _DISPLAY[layer] is Display.FLOW:
+    if _display(layer) is Display.FLOW:
         return np.abs(_next_frame_motion(values))
     return np.abs(values)  # RANGE: scaled by the largest magnitude
 
@@ -265,14 +274,14 @@ def _display_tile(
         values = _grey_values(layer, acc)
         grey = np.where(np.isfinite(values), values / top, 1.0)
         return np.repeat(grey[..., None], 3, axis=-1)
-    if _DISPLAY[layer] is Display.FLOW:
+    if _display(layer) is Display.FLOW:
         flow = _next_frame_motion(acc.mean_of(channels.layer_channel(layer))) / (2.0 * top)
         return np.concatenate([flow + 0.5, np.full(flow.shape[:-1] + (1,), 0.5)], -1)
-    if _DISPLAY[layer] is Display.RANGE:
+    if _display(layer) is Display.RANGE:
         return acc.mean_of(channels.layer_channel(layer)) / (2.0 * top) + 0.5
-    if _DISPLAY[layer] is Display.LABEL:
+    if _display(layer) is Display.LABEL:
         return label_colours(getattr(acc, channels.layer_channel(layer).store[0].name))
-    if _DISPLAY[layer] is Display.MATTE:  # each label's colour weighted by its coverage
+    if _display(layer) is Display.MATTE:  # each label's colour weighted by its coverage
         row = channels.layer_channel(layer)
         pairs = _ranked_pairs(channels.layers()[layer], row, acc, names or cryptomatte.Names.of({}))
         coverage = pairs[..., 1::2] / float(acc.samples)
@@ -283,7 +292,11 @@ def _display_tile(
         return acc.mean_albedo().astype(np.float64)
     if layer == "normal":
         return acc.mean_normal().astype(np.float64) * 0.5 + 0.5
-    return acc.mean_of(channels.layer_channel(layer))  # a radiance (the lobes)
+    values = acc.mean_of(channels.layer_channel(layer))  # a radiance (lobes, light groups)
+    if layer.startswith(channels.LIGHT_GROUP_LAYER + "."):  # the group's block of three
+        k = acc.layout.groups.index(layer.split(".", 1)[1])
+        values = values[..., 3 * k : 3 * k + 3]
+    return values
 
 
 def _display_band(

@@ -19,7 +19,9 @@ export type LayerName = NonNullable<
 >;
 
 interface Layer {
-  id: LayerName;
+  // The layer's name, or for one light group `light_group.<group>` (the PNG of layer
+  // light_group with that group).
+  id: string;
   label: string;
   colourMap?: ColourMap;
   legend?: string;
@@ -32,6 +34,8 @@ interface Layer {
 export interface LayerSettings {
   denoise?: boolean;
   aovs?: string;
+  // The job's light groups (settings.light_groups): a JSON object of group name -> nodes.
+  light_groups?: string;
 }
 
 // Longest side of the preview images (`max_size` of image.png): beyond a 4K screen's width.
@@ -62,18 +66,53 @@ const LAYER_VIEWS: Record<LayerName, Omit<Layer, "id">> = {
   transmission_indirect: { label: "Transmission indirect", needs: { aov: "lobes" } },
   emission: { label: "Emission", needs: { aov: "lobes" } },
   background: { label: "Background", needs: { aov: "lobes" } },
+  light_group: { label: "Light group", needs: { aov: "light_groups" } },
   denoised: { label: "Denoised", needs: { denoise: true } },
 };
 
 export const LAYERS: Layer[] = (Object.keys(LAYER_VIEWS) as LayerName[]).map((id) => ({ id, ...LAYER_VIEWS[id] }));
 
-/** The layers a job with these settings has, in the switch's order. */
+const GROUP_PREFIX = "light_group.";
+
+/** The light groups of a job's settings, in their layers' order. */
+function lightGroups(settings: LayerSettings): string[] {
+  try {
+    return Object.keys(JSON.parse(settings.light_groups || "{}") as Record<string, number[]>);
+  } catch {
+    return [];
+  }
+}
+
+/** The layers a job with these settings has, in the switch's order: the light_group layer is
+ *  one entry per group. */
 export function jobLayers(settings: LayerSettings): Layer[] {
   const aovs = new Set((settings.aovs ?? "").split(",").map((a) => a.trim()));
   return LAYERS.filter((l) => {
     if (!l.needs) return true;
     return "denoise" in l.needs ? settings.denoise === true : aovs.has(l.needs.aov);
-  });
+  }).flatMap((l) =>
+    l.id === "light_group"
+      ? lightGroups(settings).map((g) => ({ ...l, id: GROUP_PREFIX + g, label: `Light ${g}` }))
+      : [l],
+  );
+}
+
+/** The label of a light group's layer (null for others). */
+function jobLayerLabel(id: string): string | null {
+  return id.startsWith(GROUP_PREFIX) ? `light ${id.slice(GROUP_PREFIX.length)}` : null;
+}
+
+/** How a layer of the switch is shown (a light group's: as the light_group layer). */
+function layerView(id: string): Layer {
+  const base = id.startsWith(GROUP_PREFIX) ? "light_group" : id;
+  return LAYERS.find((l) => l.id === base)!;
+}
+
+/** The query of a layer of the switch: `layer=...`, and a light group's `group=...`. */
+export function layerQuery(id: string): { layer: string; group: string } {
+  return id.startsWith(GROUP_PREFIX)
+    ? { layer: "light_group", group: id.slice(GROUP_PREFIX.length) }
+    : { layer: id, group: "" };
 }
 
 /** Whether a job's settings turn Cryptomatte on (the viewer then names what is under the
@@ -82,8 +121,12 @@ export function hasCryptomatte(settings: LayerSettings): boolean {
   return (settings.aovs ?? "").split(",").some((a) => a.trim() === "cryptomatte");
 }
 
-/** Layers shown with exposure: the radiance ones. */
-const RADIANCE = new Set(["rgb", "denoised"]);
+/** Layers shown with exposure: the radiance ones (the image, its lobes and light groups). */
+const RADIANCE = new Set([
+  "rgb", "denoised", "diffuse_direct", "diffuse_indirect", "glossy_direct", "glossy_indirect",
+  "transmission_direct", "transmission_indirect", "emission", "background", "light_group",
+]);
+const isRadiance = (id: string) => RADIANCE.has(layerQuery(id).layer);
 
 /** Decoded images of finished frames kept for scrubbing: at most this many bytes of RGBA. */
 const FRAME_CACHE_BYTES = 192 << 20;
@@ -283,8 +326,8 @@ export class Viewer {
   private setLayer(id: string): void {
     this.layer = id;
     this.el.dataset.layer = id;
-    const layer = LAYERS.find((l) => l.id === id)!;
-    this.exposureBox.hidden = !RADIANCE.has(id);
+    const layer = layerView(id);
+    this.exposureBox.hidden = !isRadiance(id);
     this.legend.hidden = !layer.colourMap;
     this.drawLegend(null);
     if (this.fromCache()) return;
@@ -310,7 +353,7 @@ export class Viewer {
   /** The colour bar of a heat map with the values of its ends: the scale the server recorded
    *  in the PNG (black 0, white the layer's maximum), "max" until one is loaded. */
   private drawLegend(scale: Scale | null): void {
-    const layer = LAYERS.find((l) => l.id === this.layer)!;
+    const layer = layerView(this.layer);
     if (!layer.colourMap) return;
     const low = scale ? scaleValue(layer.id, scale.min) : "0";
     const high = scale ? scaleValue(layer.id, scale.max) : "max";
@@ -342,7 +385,10 @@ export class Viewer {
     if (key === this.loadedKey) return;
     // A preview no larger than the screen shows: a large render's full-resolution PNG takes
     // the server seconds to encode (the Download buttons still fetch it).
-    const base = frame === null ? imageUrl(this.jobId, "png", layer) : frameImageUrl(this.jobId, frame, "png", layer);
+    const query = layerQuery(layer);
+    const base =
+      (frame === null ? imageUrl(this.jobId, "png", query.layer) : frameImageUrl(this.jobId, frame, "png", query.layer)) +
+      (query.group ? `&group=${encodeURIComponent(query.group)}` : "");
     const url = `${base}&max_size=${PREVIEW_MAX_SIZE}&v=${encodeURIComponent(finalKey ?? version)}`;
     const response = await fetch(url);
     if (!response.ok) return; // e.g. no samples merged yet; the next update tries again
@@ -356,7 +402,7 @@ export class Viewer {
     const ctx = work.getContext("2d", { willReadFrequently: true })!;
     ctx.drawImage(bitmap, 0, 0);
     bitmap.close();
-    const name = LAYERS.find((l) => l.id === layer)!.label.toLowerCase();
+    const name = (jobLayerLabel(layer) ?? layerView(layer).label).toLowerCase();
     const size = `${work.width}×${work.height}`;
     const loaded: Loaded = {
       url,
@@ -392,10 +438,10 @@ export class Viewer {
 
   private paint(): void {
     if (!this.raw) return;
-    const layer = LAYERS.find((l) => l.id === this.rawLayer)!;
+    const layer = layerView(this.rawLayer);
     let img = this.raw;
     if (layer.colourMap) img = applyColourMap(img, layer.colourMap);
-    else if (RADIANCE.has(layer.id) && Number(this.exposure.value) !== 0) img = applyExposure(img, Number(this.exposure.value));
+    else if (isRadiance(this.rawLayer) && Number(this.exposure.value) !== 0) img = applyExposure(img, Number(this.exposure.value));
     if (this.canvas.width !== img.width || this.canvas.height !== img.height) {
       this.canvas.width = img.width;
       this.canvas.height = img.height;

@@ -30,8 +30,9 @@ enum class Id : uint8_t {
   TransmissionIndirect = 17,
   Emission = 18,
   Background = 19,
+  LightGroups = 20,
 };
-constexpr uint32_t kCount = 20;
+constexpr uint32_t kCount = 21;
 
 // The type of a row's values in a result (workers.proto, ValueType).
 enum class Type : uint8_t { F32 = 1, F64 = 2, U32 = 3 };
@@ -45,29 +46,33 @@ struct Spec {
   // Ranked ID coverage (Cryptomatte): components / 2 (label, count) pairs of uint32, the
   // labels the most samples had with their counts, by count descending then label
   bool ranked;
+  // One block of `components` per light group of the task (settings.light_groups): the
+  // result carries components x the group count a pixel
+  bool per_group;
 };
 
 constexpr Spec kSpecs[kCount] = {
-    {Id::Rgb, "rgb", 3, Type::F32, 0, false},
-    {Id::Luminance, "luminance", 1, Type::F32, 0, false},
-    {Id::Albedo, "albedo", 3, Type::F32, 16, false},
-    {Id::Normal, "normal", 3, Type::F32, 16, false},
-    {Id::Coverage, "coverage", 1, Type::F32, 0, false},
-    {Id::Depth, "depth", 1, Type::F32, 1, false},
-    {Id::Position, "position", 3, Type::F32, 1, false},
-    {Id::Motion, "motion", 4, Type::F32, 1, false},
-    {Id::Instance, "instance", 1, Type::U32, 1, false},
-    {Id::Material, "material", 1, Type::U32, 1, false},
-    {Id::CryptoObject, "crypto_object", 12, Type::U32, 0, true},
-    {Id::CryptoMaterial, "crypto_material", 12, Type::U32, 0, true},
-    {Id::DiffuseDirect, "diffuse_direct", 3, Type::F32, 0, false},
-    {Id::DiffuseIndirect, "diffuse_indirect", 3, Type::F32, 0, false},
-    {Id::GlossyDirect, "glossy_direct", 3, Type::F32, 0, false},
-    {Id::GlossyIndirect, "glossy_indirect", 3, Type::F32, 0, false},
-    {Id::TransmissionDirect, "transmission_direct", 3, Type::F32, 0, false},
-    {Id::TransmissionIndirect, "transmission_indirect", 3, Type::F32, 0, false},
-    {Id::Emission, "emission", 3, Type::F32, 0, false},
-    {Id::Background, "background", 3, Type::F32, 0, false},
+    {Id::Rgb, "rgb", 3, Type::F32, 0, false, false},
+    {Id::Luminance, "luminance", 1, Type::F32, 0, false, false},
+    {Id::Albedo, "albedo", 3, Type::F32, 16, false, false},
+    {Id::Normal, "normal", 3, Type::F32, 16, false, false},
+    {Id::Coverage, "coverage", 1, Type::F32, 0, false, false},
+    {Id::Depth, "depth", 1, Type::F32, 1, false, false},
+    {Id::Position, "position", 3, Type::F32, 1, false, false},
+    {Id::Motion, "motion", 4, Type::F32, 1, false, false},
+    {Id::Instance, "instance", 1, Type::U32, 1, false, false},
+    {Id::Material, "material", 1, Type::U32, 1, false, false},
+    {Id::CryptoObject, "crypto_object", 12, Type::U32, 0, true, false},
+    {Id::CryptoMaterial, "crypto_material", 12, Type::U32, 0, true, false},
+    {Id::DiffuseDirect, "diffuse_direct", 3, Type::F32, 0, false, false},
+    {Id::DiffuseIndirect, "diffuse_indirect", 3, Type::F32, 0, false, false},
+    {Id::GlossyDirect, "glossy_direct", 3, Type::F32, 0, false, false},
+    {Id::GlossyIndirect, "glossy_indirect", 3, Type::F32, 0, false, false},
+    {Id::TransmissionDirect, "transmission_direct", 3, Type::F32, 0, false, false},
+    {Id::TransmissionIndirect, "transmission_indirect", 3, Type::F32, 0, false, false},
+    {Id::Emission, "emission", 3, Type::F32, 0, false, false},
+    {Id::Background, "background", 3, Type::F32, 0, false, false},
+    {Id::LightGroups, "light_groups", 3, Type::F32, 0, false, true},
 };
 
 }  // namespace rf::channels

@@ -15,11 +15,12 @@ multi-file scene should be uploaded in.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from ...errors import SceneError, SettingsError
 from ..frames import ALL_VARIANTS
+from ..light_groups import scene_groups
 from .glb import (
     DEFAULT_MAX_BYTES,
     GLB_MAGIC,
@@ -54,6 +55,9 @@ class SceneInfo:
     animations: tuple[str, ...] = ()  # the names of its animations in order ("" when unnamed)
     # KHR_materials_variants: the names of its material variants in order
     variants: tuple[str, ...] = ()
+    # Its light groups (domain/light_groups.py): group name -> node indices, the environment
+    # last.
+    light_groups: dict[str, list[int]] = field(default_factory=dict)
 
 
 def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_BYTES) -> SceneInfo:
@@ -109,6 +113,7 @@ def inspect_scene(data: bytes, filename: str = "", max_bytes: int = DEFAULT_MAX_
             for a in json_list(document, "animations")
         ),
         variants=variant_names(document),
+        light_groups=scene_groups(document),
     )
 
 
