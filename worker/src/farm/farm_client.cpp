@@ -28,6 +28,7 @@
 
 #include "render/channels.h"
 #include "render/integrators.h"
+#include "render/light_groups.h"
 #include "render/motion.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
@@ -493,10 +494,10 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   }
   // The rows of the channel table the result carries (Task.channels, in its order); a server
   // from before the table names none and reads the TileResult's own fields (no ranked rows:
-  // their labels are not counted, nor the lobe rows traced).
+  // their labels are not counted, nor the lobe rows or light groups traced).
   std::vector<channels::Id> wanted;
   uint32_t rows = channels::kAll & ~channels::kRanked & ~channels::bit(channels::Id::Motion) &
-                  ~channels::kLobes;
+                  ~channels::kLobes & ~channels::bit(channels::Id::LightGroups);
   if (task.channels_size() > 0) {
     rows = 0;
     for (const std::string& name : task.channels()) {
@@ -511,6 +512,17 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
       wanted.push_back(found->id);
       rows |= channels::bit(found->id);
     }
+  }
+  // The light groups (settings.light_groups), read only for a task that asks for their row;
+  // a value that is not a JSON object of group name -> node indices, or has no group, and a
+  // scene with an emitting node in no group are refused (the groups would not sum to the
+  // image).
+  if (rows & channels::bit(channels::Id::LightGroups)) {
+    auto groups = std::make_shared<LightGroups>();
+    err = parse_light_groups(task.settings().light_groups(), groups.get());
+    if (err.empty()) err = check_light_groups(*scene, *groups);
+    if (!err.empty()) return fail({err, false});
+    settings.light_groups = std::move(groups);
   }
   // The Motion row of an animated task: the scene posed (plain, no shutter) at the frames
   // before and after, t -+ 1 / fps, through the pose cache like the frame's own pose; only
@@ -570,7 +582,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
       pb::ChannelBlock* block = r->add_channels();
       block->set_name(row.name);
       block->set_type(pb::ValueType(int(row.type)));
-      block->set_components(row.components);
+      // The per-group row: 3 components per light group of the task.
+      block->set_components(channels::components(id, tile.groups));
       if (id == channels::Id::Rgb)
         block->set_data(pack_f64_as_f32_le(tile.rgb_sum));
       else if (id == channels::Id::Luminance)

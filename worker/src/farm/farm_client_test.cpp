@@ -18,6 +18,7 @@
 #include "render/channel_table.h"
 #include "render/channels.h"
 #include "render/integrators.h"
+#include "render/light_groups.h"
 #include "render/motion.h"
 #include "scene/animated_scene.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
@@ -767,6 +768,192 @@ TEST(FarmClient, SendsTheLobeRows) {
   }
   EXPECT_GT(emission, 0.0);
   EXPECT_GT(glossy, 0.0);
+}
+
+// The light groups (aovs `light_groups`) travel as one ChannelBlock of 3 float32 components
+// per group a pixel (the groups in settings.light_groups' order), over every sample of the
+// batch: equal to a local render with the same groups, and per pixel summing to the radiance.
+// The small scene's emitter (node 2) lights the floor; the floor's node (0) has unlit lines.
+TEST(FarmClient, SendsTheLightGroupsRow) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::small_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "groups";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  {
+    std::lock_guard<std::mutex> lock(farm.mutex);
+    const auto& listed = farm.received.at(0).hello().channels();
+    EXPECT_EQ(std::count(listed.begin(), listed.end(), "light_groups"), 1);
+  }
+  const std::string json = R"({"light":[2],"floor":[0],"environment":[]})";
+  pb::Task task = make_task("groups", farm.scene_sha, 8);
+  task.set_sample_start(4);
+  task.mutable_rect()->set_x0(0);
+  task.mutable_rect()->set_width(16);
+  task.mutable_rect()->set_height(12);
+  task.mutable_settings()->set_light_groups(json);
+  for (const char* name : {"rgb", "luminance", "coverage", "light_groups"})
+    task.add_channels(name);
+  ASSERT_TRUE(farm.assign(task));
+  ASSERT_TRUE(farm.wait_for([&] { return farm.has_result("groups"); }));
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  const pb::TileResult* r = nullptr;
+  for (const auto& m : farm.received)
+    if (m.has_result() && m.result().task_id() == "groups") r = &m.result();
+  ASSERT_NE(r, nullptr);
+  ASSERT_EQ(r->channels_size(), 4);
+  const pb::ChannelBlock& b = r->channels(3);
+  EXPECT_EQ(b.name(), "light_groups");
+  EXPECT_EQ(b.type(), pb::VALUE_TYPE_F32);
+  constexpr uint32_t kGroups = 3;
+  EXPECT_EQ(b.components(), 3 * kGroups);
+  const size_t pixels = 16 * 12;
+  ASSERT_EQ(b.data().size(), 4 * 3 * kGroups * pixels);
+  const std::vector<float> groups = unpack_f32_le(b.data());
+  // The same render here.
+  Scene scene(load_gltf_from_string(farm.scene_bytes, ".", "small.gltf", nullptr, at_height(12)));
+  RenderSettings settings;
+  settings.width = 16;
+  settings.height = 12;
+  settings.seed = 77;
+  settings.max_depth = 4;
+  auto parsed = std::make_shared<LightGroups>();
+  ASSERT_EQ(parse_light_groups(json, parsed.get()), "");
+  settings.light_groups = parsed;
+  TileBuffer local;
+  ASSERT_TRUE(render_rect(scene, settings, {0, 0, 16, 12}, 4, 8, &local, nullptr,
+                          channels::bit(channels::Id::Rgb) |
+                              channels::bit(channels::Id::LightGroups)));
+  EXPECT_EQ(groups, local.sum(channels::Id::LightGroups));
+  const std::vector<float> rgb = unpack_f32_le(r->channels(0).data());
+  double total[kGroups] = {0.0, 0.0, 0.0};
+  for (size_t i = 0; i < pixels; ++i)
+    for (size_t c = 0; c < 3; ++c) {
+      double sum = 0.0, magnitude = std::abs(double(rgb[3 * i + c]));
+      for (size_t g = 0; g < kGroups; ++g) {
+        const double v = groups[3 * (kGroups * i + g) + c];
+        sum += v;
+        magnitude += std::abs(v);
+        total[g] += v;
+      }
+      EXPECT_NEAR(sum, rgb[3 * i + c], 1e-5 * magnitude + 1e-5) << "pixel " << i;
+    }
+  EXPECT_GT(total[0], 0.0);    // the emitter
+  EXPECT_GT(total[1], 0.0);    // the lines
+  EXPECT_EQ(total[2], 0.0);    // no environment
+}
+
+// A task whose light groups cannot sum to its image fails, not retryable, with a message that
+// says why: settings.light_groups without an emitting node of the scene (the floor's lines),
+// not a JSON object, empty. A task that does not ask for the row ignores the setting, as does
+// one of a server from before the channel table (no Task.channels), which never traces it.
+TEST(FarmClient, RefusesLightGroupsThatCannotSumToTheImage) {
+  FakeFarm farm;
+  farm.scene_bytes = testing::small_gltf_json();
+  farm.scene_sha = sha256_hex(farm.scene_bytes);
+  FakeWorkerService worker_service(&farm);
+  FakeSceneService scene_service(&farm);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&worker_service);
+  builder.RegisterService(&scene_service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_TRUE(server);
+  FarmOptions options;
+  options.server = "127.0.0.1:" + std::to_string(port);
+  options.threads = 1;
+  options.prefetch = 0;
+  options.cache_dir = testing::test_path("cache");
+  options.worker_id = "refusals";
+  std::atomic<bool> stop{false};
+  std::thread client([&] { run_farm_client(options, stop); });
+  ASSERT_TRUE(farm.wait_for([&] { return farm.stream != nullptr; }));
+  struct Case {
+    const char* id;
+    const char* light_groups;
+    bool row;       // the task names the light_groups row
+    bool channels;  // the task names rows at all
+    const char* error;  // "": it renders
+  };
+  const Case cases[] = {
+      {"missing", R"({"light":[2],"environment":[]})", true, true,
+       "settings.light_groups: node 0 (\"floor\") emits light but is in no light group"},
+      {"array", "[0, 2]", true, true,
+       "settings.light_groups: not a JSON object: it must be a JSON object of group name -> "
+       "a list of glTF node indices"},
+      {"empty", "", true, true,
+       "settings.light_groups: empty, while the task asks for the light_groups row"},
+      {"unasked", "[0, 2]", false, true, ""},
+      {"old-server", "[0, 2]", false, false, ""},
+  };
+  for (const Case& c : cases) {
+    pb::Task task = make_task(c.id, farm.scene_sha, 2);
+    task.mutable_settings()->set_light_groups(c.light_groups);
+    if (c.channels)
+      for (const char* name : {"rgb", "luminance", "coverage"}) task.add_channels(name);
+    if (c.row) task.add_channels("light_groups");
+    ASSERT_TRUE(farm.assign(task));
+  }
+  for (const Case& c : cases) {
+    const std::string id = c.id;
+    ASSERT_TRUE(farm.wait_for([&] {
+      for (const auto& m : farm.received)
+        if ((m.has_result() && m.result().task_id() == id) ||
+            (m.has_failed() && m.failed().task_id() == id))
+          return true;
+      return false;
+    })) << id;
+  }
+  stop = true;
+  client.join();
+  server->Shutdown();
+
+  std::lock_guard<std::mutex> lock(farm.mutex);
+  for (const Case& c : cases) {
+    SCOPED_TRACE(c.id);
+    const pb::TaskFailed* failed = nullptr;
+    const pb::TileResult* result = nullptr;
+    for (const auto& m : farm.received) {
+      if (m.has_failed() && m.failed().task_id() == c.id) failed = &m.failed();
+      if (m.has_result() && m.result().task_id() == c.id) result = &m.result();
+    }
+    const std::string error = c.error;
+    if (error.empty()) {
+      ASSERT_NE(result, nullptr) << (failed ? failed->error() : "");
+      EXPECT_EQ(failed, nullptr);
+      for (const pb::ChannelBlock& b : result->channels()) EXPECT_NE(b.name(), "light_groups");
+      if (!c.channels) {
+        EXPECT_EQ(result->channels_size(), 0);
+        EXPECT_FALSE(result->rgb_sum().empty());
+      }
+    } else {
+      ASSERT_NE(failed, nullptr);
+      EXPECT_EQ(result, nullptr);
+      EXPECT_EQ(failed->error().substr(0, error.size()), error) << failed->error();
+      EXPECT_FALSE(failed->retryable());
+    }
+  }
 }
 
 // The seed of frame f of a job of seed s, written out from docs/architecture.md,

@@ -104,6 +104,8 @@ inline void sample_values(Id id, const SampleResult& r, float* out,
     case Id::Background:
       for (int c = 0; c < 3; ++c) out[c] = lobes ? lobes->row[lobe_index(id)][c] : 0.f;
       return;
+    case Id::LightGroups:
+      return;  // per group: summed by render_rect (render/light_groups.h), not through here
   }
 }
 
@@ -133,14 +135,21 @@ inline uint32_t sample_label(Id id, const SampleResult& r) {
     case Id::TransmissionIndirect:
     case Id::Emission:
     case Id::Background:
+    case Id::LightGroups:
       return 0u;  // not ranked
   }
   return 0u;
 }
 
-// Whether render_rect sums the row in float32 through sample_values.
+// Whether render_rect sums the row in float32 through sample_values (not the per-group row,
+// which it sums per light group itself).
 constexpr bool summed_in_float(Id id) {
-  return id != Id::Rgb && id != Id::Luminance && !spec(id).ranked;
+  return id != Id::Rgb && id != Id::Luminance && !spec(id).ranked && !spec(id).per_group;
+}
+// The components a pixel of row `id` has in a result of a task with `groups` light groups:
+// the table's, times the groups for the per-group row.
+constexpr uint32_t components(Id id, uint32_t groups) {
+  return spec(id).per_group ? spec(id).components * groups : spec(id).components;
 }
 
 static_assert([] {

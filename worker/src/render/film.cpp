@@ -9,11 +9,13 @@
 
 namespace rf {
 
-void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count, uint32_t which) {
+void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count, uint32_t which,
+                       uint32_t light_groups) {
   rect = r;
   sample_start = start;
   sample_count = count;
   rows = which;
+  groups = light_groups;
   const size_t n = r.pixel_count();
   rgb_sum.assign(3 * n, 0.0);
   luminance_m2.assign(n, 0.0);
@@ -22,7 +24,7 @@ void TileBuffer::reset(PixelRect r, uint64_t start, uint32_t count, uint32_t whi
     std::vector<uint32_t>& pairs = ranks[size_t(s.id)];
     const bool wanted = (which >> uint32_t(s.id)) & 1u;
     if (wanted && !s.ranked && s.id != channels::Id::Rgb && s.id != channels::Id::Luminance)
-      plane.assign(s.components * n, 0.f);
+      plane.assign((s.per_group ? s.components * light_groups : s.components) * n, 0.f);
     else
       plane.clear();
     if (wanted && s.ranked)

@@ -25,6 +25,7 @@ struct TileBuffer {
   uint64_t sample_start = 0;
   uint32_t sample_count = 0;
   uint32_t rows = 0;                 // channels::Set of the rows accumulated
+  uint32_t groups = 0;               // light groups of the per-group row (Spec::per_group)
   std::vector<double> rgb_sum;       // 3 per pixel, radiance summed in sample-index order
   std::vector<double> luminance_m2;  // 1 per pixel, Welford M2 of Y over the batch
   // The other rows but the ranked ones, by channels::Id, summed in float32
@@ -38,7 +39,10 @@ struct TileBuffer {
   // each: the radiance split by the first hit's lobes, render/packet_tracer.h, PathLobes; over
   // every sample, summing to rgb_sum up to float rounding). The first-hit rows depth to
   // material have a window of one sample: asked for over the one-sample batch at sample 0,
-  // their sum is the first sample's value.
+  // their sum is the first sample's value. The per-group row (light_groups) has its
+  // components per light group, `groups` blocks of 3 a pixel in the groups' order (each
+  // group's radiance, render/light_groups.h; together summing to rgb_sum up to float
+  // rounding).
   std::array<std::vector<float>, channels::kCount> sums;
   // The ranked rows (Spec::ranked: crypto_object, crypto_material), by channels::Id, their
   // components per pixel (empty when not asked for, and for every other row): each pixel's
@@ -50,7 +54,8 @@ struct TileBuffer {
   uint64_t nonfinite_samples = 0;    // samples whose radiance was NaN/Inf, recorded as 0
   uint64_t rays = 0;                 // closest-hit plus shadow rays
 
-  void reset(PixelRect r, uint64_t start, uint32_t count, uint32_t rows);
+  // groups: the light groups of the per-group row (0: it stays empty).
+  void reset(PixelRect r, uint64_t start, uint32_t count, uint32_t rows, uint32_t groups = 0);
   std::vector<float>& sum(channels::Id id) { return sums[size_t(id)]; }
   const std::vector<float>& sum(channels::Id id) const { return sums[size_t(id)]; }
   std::vector<uint32_t>& ranked(channels::Id id) { return ranks[size_t(id)]; }

@@ -15,6 +15,8 @@
 
 namespace rf {
 
+struct LightGroups;  // render/light_groups.h
+
 // path: unidirectional path tracing, NEE + MIS (power heuristic), Russian roulette after
 //       bounce 3, at most max_depth bounces.
 // direct: the same estimator stopped after one bounce (emission seen directly, plus light
@@ -39,6 +41,9 @@ struct RenderSettings {
   // Environment light (intensity and rotation are applied by the Environment itself); null =
   // black background.
   std::shared_ptr<const Environment> environment;
+  // The task's light groups (settings.light_groups, render/light_groups.h), which the
+  // LightGroups row splits the radiance by; null: none (that row is then not rendered).
+  std::shared_ptr<const LightGroups> light_groups;
 };
 
 // One sample's radiance and what its camera ray hit first (every integrator sets the first-hit
@@ -98,9 +103,11 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // luminance, the other rows' values in float32; the first-sample rows depth, position,
 // motion, instance and material too, which over the one-sample batch at sample 0 are that
 // sample's values; the ranked rows' labels counted, channels::RankedCounts; the lobe rows
-// traced only when one of them is asked for). Checks *cancel
+// traced only when one of them is asked for, and the LightGroups row only when it is and
+// settings.light_groups is set: without groups it is not rendered). Checks *cancel
 // (if given) between rows and returns false as soon as it is set; *out is then incomplete.
-// The request must pass validate_render_request. motion: the Motion row's other poses
+// The request must pass validate_render_request, and with the LightGroups row
+// check_light_groups (render/light_groups.h). motion: the Motion row's other poses
 // (render/motion.h); null: a still, whose Motion row is 0.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,

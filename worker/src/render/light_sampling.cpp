@@ -194,7 +194,7 @@ void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
 LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                              const Frame& frame, Vec3 wo_local, const BounceSamples& s,
                              const float* w, float total, BsdfEvalBatch* batch, LightBatch* lb,
-                             int lane, LightRay* out) {
+                             int lane, LightRay* out, LightSampleSource* source) {
   uint32_t entry = 0;
   float p_entry = 0.f, u_sel = 0.f;
   // The light position's first coordinate also chooses the light (rescaled at each choice),
@@ -223,10 +223,12 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
     lb->ok[lane] = -1;
     lb->waiting |= bit;
     batch->add_light(lane, frame.to_local(wi));
+    if (source) *source = LightSampleSource{true, -1, 0, 0};
     return LightSampleKind::Waiting;
   }
   const LightSet& lights = scene.lights();
   const LightSample ls = lights.sample_in(entry, u.x, u.y);
+  if (source) *source = LightSampleSource{false, ls.punctual, ls.slot, ls.prim};
   if (ls.punctual >= 0) {
     // The selection probability only: a delta light.
     return punctual_light_sample(lights.punctual()[size_t(ls.punctual)], ls.pdf_area * p_entry,

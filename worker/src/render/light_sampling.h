@@ -112,12 +112,22 @@ enum class LightSampleKind {
 bool choose_light(const LightContext& lc, const float* w, float total, float u_select,
                   uint32_t* entry, float* pmf, float* u_rest);
 
+// Which light a light sample is of, for the light groups (render/light_groups.h): the
+// environment, punctual light `punctual` of the scene's LightSet, or else the emissive
+// triangle prim of geometry slot `slot`.
+struct LightSampleSource {
+  bool environment = false;
+  int punctual = -1;
+  uint32_t slot = 0, prim = 0;
+};
+
 // Next-event estimation: one light (or the environment) chosen by the weights w at sp.above()
 // (light_weights, summing to total), its contribution f cos L / pdf, MIS-weighted against
-// BSDF sampling with the power heuristic unless the light is a delta light.
+// BSDF sampling with the power heuristic unless the light is a delta light. source (null:
+// not wanted): which light it chose, set whenever the result is not None.
 LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                              const Frame& frame, Vec3 wo_local, const BounceSamples& s,
                              const float* w, float total, BsdfEvalBatch* batch, LightBatch* lb,
-                             int lane, LightRay* out);
+                             int lane, LightRay* out, LightSampleSource* source = nullptr);
 
 }  // namespace rf

@@ -43,11 +43,12 @@ struct DiskBatch {
 // emission, Russian roulette, the light sample and the BSDF sample's direction. The BSDF values
 // both samples need are queued in *batch (one evaluation for a packet's lanes together);
 // shade_vertex_end_light and shade_vertex_end_bsdf finish the vertex once the batch has been
-// evaluated. lobes: the path's lobe rows (null: off), which keep the first vertex.
+// evaluated. lobes: the path's lobe rows (null: off), which keep the first vertex; groups:
+// its light groups (null: off).
 void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
                         const Hit* hit, uint32_t bounce, uint32_t max_depth,
                         const DiskBatch& disks, BsdfEvalBatch* batch, LightBatch* lb,
-                        int lane, PathLobes* lobes) {
+                        int lane, PathLobes* lobes, PathGroups* groups) {
   const Vec3 d = p.d;
   SampleResult& result = p.result;
   p.alive = false;
@@ -66,7 +67,8 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
                                              lc.env->pdf(d));
       add_radiance(p, lobes,
                    (in_medium ? p.beta * transmittance(p.medium, kInfinity) : p.beta) * L * w,
-                   bounce, RadianceSource::Environment);
+                   bounce, RadianceSource::Environment, groups,
+                   groups ? groups->map->environment() : 0u);
     }
     return;
   }
@@ -81,19 +83,21 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     // KHR_materials_unlit: the base colour as radiance on the faces that would emit, and
     // nothing reflected (the path ends). Not a light of the light set: no MIS weight.
     if (cos_emit > 0.f) {
-      add_radiance(p, lobes, p.beta * sp.albedo, bounce, RadianceSource::Surface);
+      const uint32_t group = groups ? groups->map->surface(scene, hit->slot, hit->prim) : 0u;
+      add_radiance(p, lobes, p.beta * sp.albedo, bounce, RadianceSource::Surface, groups, group);
       // Unlit points and lines add their emission (glTF "Point and Line Materials").
       if (hit_material.unlit_adds_emission)
         add_radiance(p, lobes,
                      p.beta * scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit),
-                     bounce, RadianceSource::Surface);
+                     bounce, RadianceSource::Surface, groups, group);
     }
     return;
   }
   if (cos_emit > 0.f && hit_material.is_emissive()) {
     const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
+    const uint32_t group = groups ? groups->map->surface(scene, hit->slot, hit->prim) : 0u;
     if (p.prev_delta) {
-      add_radiance(p, lobes, p.beta * Le, bounce, RadianceSource::Surface);
+      add_radiance(p, lobes, p.beta * Le, bounce, RadianceSource::Surface, groups, group);
     } else {
       // The same point could have come from light sampling at the previous vertex: convert
       // its area pdf to solid angle (pdf_A d^2 / |cos|) and weight by the power heuristic.
@@ -102,7 +106,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
                          p.sel_two_sided) *
           hit->t * hit->t / cos_emit;
       add_radiance(p, lobes, p.beta * Le * power_heuristic(p.prev_bsdf_pdf, pdf_light), bounce,
-                   RadianceSource::Surface);
+                   RadianceSource::Surface, groups, group);
     }
   }
   if (bounce >= max_depth) return;
@@ -131,8 +135,11 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     p.sel_ng = sp.ng;
     p.sel_two_sided = has_through_lobe(sp.params);
     p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, w, p.sel_two_sided);
+    LightSampleSource source;
     p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, w, p.sel_total, batch, lb,
-                                lane, &p.light);
+                                lane, &p.light, groups ? &source : nullptr);
+    if (groups && p.light_kind != LightSampleKind::None)
+      groups->light_group = groups->map->light(scene, source);
     // A punctual light's shadow ray through the surface travels in the medium a transmission
     // enters.
     if (p.light_kind == LightSampleKind::Delta)
@@ -263,9 +270,9 @@ void first_vertex_shares(const PathState* paths, const LightBatch& lights, uint3
 // it would alone (the same sample values, the same sums in the same order); the packets only
 // let Embree share traversal between similar rays (a pixel's camera rays, shadow rays towards
 // the same light) and let the shading of independent paths overlap. lobes: the paths' lobe
-// rows (kPacketSize of them), or null when they are off.
+// rows (kPacketSize of them), or null when they are off; groups: their light groups likewise.
 void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
-                 uint32_t max_depth, PathLobes* lobes) {
+                 uint32_t max_depth, PathLobes* lobes, PathGroups* groups) {
   constexpr int kFewLanes = 3;
   static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
   static_assert(PixelSampler::kLanes16 == kPacketSize, "a sampler lane per packet lane");
@@ -344,7 +351,8 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     for (uint32_t m = live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
       shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
-                         disks, &batch, &lights, i, lobes ? lobes + i : nullptr);
+                         disks, &batch, &lights, i, lobes ? lobes + i : nullptr,
+                         groups ? groups + i : nullptr);
     }
     lights.finish_geometry(&batch);
     batch.evaluate();
@@ -369,10 +377,11 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
                        ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Shadow)
                        : 0);
     for (; shadowed; shadowed &= shadowed - 1) {
-      PathState& p = paths[__builtin_ctz(shadowed)];
-      if (!blocked[__builtin_ctz(shadowed)])
-        add_radiance(p, lobes ? lobes + __builtin_ctz(shadowed) : nullptr, p.nee, bounce,
-                     RadianceSource::LightSample);
+      const int i = __builtin_ctz(shadowed);
+      PathState& p = paths[i];
+      if (!blocked[i])
+        add_radiance(p, lobes ? lobes + i : nullptr, p.nee, bounce, RadianceSource::LightSample,
+                     groups ? groups + i : nullptr, groups ? groups[i].light_group : 0u);
     }
   }
 }
@@ -462,14 +471,27 @@ void PathLobes::shares(const Vec3 f[kLobeCategories], Vec3 share[kLobeCategories
 
 namespace {
 
-// trace_paths with the lobe rows on: the paths' PathLobes on this function's stack (not on
-// trace_samples', whose frame stays as small as without them).
-__attribute__((noinline)) void trace_paths_with_lobes(const Scene& scene, const LightContext& lc,
-                                                      PathState* paths, uint32_t max_depth,
-                                                      uint32_t n, LobeValues* out) {
+// trace_paths with the lobe rows or the light groups on (lobes_out, groups not null): the
+// paths' PathLobes and PathGroups on this function's stack (not on trace_samples', whose
+// frame stays as small as without them); the groups' values in group_values, lane k's from
+// k * groups->count().
+__attribute__((noinline)) void trace_paths_with_outputs(const Scene& scene,
+                                                        const LightContext& lc,
+                                                        PathState* paths, uint32_t max_depth,
+                                                        uint32_t n, LobeValues* lobes_out,
+                                                        const LightGroupMap* groups,
+                                                        Vec3* group_values) {
   PathLobes lobes[kPacketSize];
-  trace_paths(scene, lc, paths, max_depth, lobes);
-  for (uint32_t k = 0; k < n; ++k) out[k] = lobes[k].values;
+  PathGroups path_groups[kPacketSize];
+  if (groups) {
+    const uint32_t count = groups->count();
+    std::fill(group_values, group_values + size_t(count) * n, Vec3(0.f, 0.f, 0.f));
+    for (uint32_t k = 0; k < n; ++k) path_groups[k] = {groups, group_values + k * count, 0u};
+  }
+  trace_paths(scene, lc, paths, max_depth, lobes_out ? lobes : nullptr,
+              groups ? path_groups : nullptr);
+  if (lobes_out)
+    for (uint32_t k = 0; k < n; ++k) lobes_out[k] = lobes[k].values;
 }
 
 }  // namespace
@@ -477,13 +499,17 @@ __attribute__((noinline)) void trace_paths_with_lobes(const Scene& scene, const 
 // Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n).
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                    const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
-                   uint32_t n, SampleResult* out, LobeValues* lobes) {
+                   uint32_t n, SampleResult* out, LobeValues* lobes,
+                   const LightGroupMap* groups, Vec3* group_values) {
   if (settings.integrator == IntegratorType::AmbientOcclusion) {
     for (uint32_t k = 0; k < n; ++k) {
       const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
       out[k] = trace_ao(scene, p);
       if (lobes) lobes[k] = LobeValues{};  // ao attributes nothing to the lobes
     }
+    // Nor to the light groups: its value is not light.
+    if (groups)
+      std::fill(group_values, group_values + size_t(groups->count()) * n, Vec3(0.f, 0.f, 0.f));
     return;
   }
   // The camera dimensions of all lanes at once where the sampler can (sobol).
@@ -498,10 +524,11 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
     paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k,
                           batched ? camera_dims : nullptr);
   }
-  if (lobes)
-    trace_paths_with_lobes(scene, ctx.lights, paths, path_max_depth(settings), n, lobes);
+  if (lobes || groups)
+    trace_paths_with_outputs(scene, ctx.lights, paths, path_max_depth(settings), n, lobes,
+                             groups, group_values);
   else
-    trace_paths(scene, ctx.lights, paths, path_max_depth(settings), nullptr);
+    trace_paths(scene, ctx.lights, paths, path_max_depth(settings), nullptr, nullptr);
   for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
 }
 

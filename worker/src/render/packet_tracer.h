@@ -7,6 +7,7 @@
 #include <cstdint>
 
 #include "render/integrators.h"
+#include "render/light_groups.h"
 #include "render/light_sampling.h"
 #include "render/shading.h"
 #include "sampling/samplers.h"
@@ -59,7 +60,7 @@ struct PathState {
 // what the surface a ray hit emits (emission, or an unlit surface's colour), or the light
 // sample (next-event estimate) of the vertex a ray left. Every contribution goes through
 // add_radiance with it, which is where an output attributing the radiance to its sources
-// (the `lobes` rows; light groups would be another) learns of it.
+// (the `lobes` rows, the light groups) learns of it.
 enum class RadianceSource : uint8_t { Environment, Surface, LightSample };
 
 // The `lobes` rows of a path being traced (LobeValues, integrators.h), kept beside its
@@ -113,12 +114,26 @@ struct PathLobes {
   static constexpr int kEmissionRow = 6, kBackgroundRow = 7;
 };
 
+// The light groups of a path being traced (render/light_groups.h), kept beside its PathState
+// only when the LightGroups row is asked for: its radiance by group, and the group of the
+// light its current vertex sampled (LightGroupMap::light), which the light sample's
+// contribution goes to once its shadow ray is known to be clear.
+struct PathGroups {
+  const LightGroupMap* map = nullptr;
+  Vec3* values = nullptr;  // map->count() of them
+  uint32_t light_group = 0;
+};
+
 // Adds contribution c to the path's radiance (its only way there), and with the lobe rows on
 // (lobes not null) to them; bounce: the vertex whose ray found it, or whose light sample it is.
+// With the light groups on (groups not null), c goes to group `group` (the group of its
+// source, which the caller finds only then).
 inline void add_radiance(PathState& p, PathLobes* lobes, Vec3 c, uint32_t bounce,
-                         RadianceSource source) {
+                         RadianceSource source, PathGroups* groups = nullptr,
+                         uint32_t group = 0) {
   p.result.radiance += c;
   if (lobes) lobes->add(c, bounce, source);
+  if (groups) groups->values[group] += c;
 }
 
 // What every sample of a render shares: computed once per render_rect.
@@ -179,11 +194,14 @@ uint32_t path_max_depth(const RenderSettings& settings);
 // (tmin, tmax), at its time in the shutter (src/render/ambient_occlusion.cpp).
 SampleResult trace_ao(const Scene& scene, const PathState& camera);
 
-// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n), and their lobe
-// rows into lobes[0, n) unless lobes is null (the rows are off; the radiance and everything
-// else is the same bit for bit either way). The ao integrator's lobe rows are 0.
+// Samples [first, first + n) of pixel (x, y), n <= kPacketSize, into out[0, n), their lobe
+// rows into lobes[0, n) unless lobes is null, and their radiance by light group into
+// group_values[k * groups->count() + g] (sample first + k, group g) unless groups is null (the
+// rows are off; the radiance and everything else is the same bit for bit either way). The ao
+// integrator's lobe rows and light groups are 0.
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                    const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
-                   uint32_t n, SampleResult* out, LobeValues* lobes = nullptr);
+                   uint32_t n, SampleResult* out, LobeValues* lobes = nullptr,
+                   const LightGroupMap* groups = nullptr, Vec3* group_values = nullptr);
 
 }  // namespace rf

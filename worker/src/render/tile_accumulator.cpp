@@ -1,8 +1,11 @@
 // render_rect: a tile's samples traced pixel by pixel and accumulated into a TileBuffer.
 #include <algorithm>
+#include <optional>
+#include <vector>
 
 #include "math/estimators.h"
 #include "render/channels.h"
+#include "render/light_groups.h"
 #include "render/packet_tracer.h"
 
 namespace rf {
@@ -11,7 +14,20 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel, uint32_t rows,
                  const MotionPoses* motion) {
-  out->reset(rect, start, count, rows);
+  // The light groups: traced (PathGroups, packet_tracer.h) only when their row is asked for
+  // and the settings have groups (without them the row is not rendered); each sample's
+  // radiance by group lands here, kPacketSize samples at a time like the results, and is
+  // summed per pixel in float32 in sample order like the other rows.
+  std::optional<LightGroupMap> groups;
+  if ((rows & channels::bit(channels::Id::LightGroups)) && settings.light_groups &&
+      settings.light_groups->count() > 0)
+    groups.emplace(scene, *settings.light_groups);
+  else
+    rows &= ~channels::bit(channels::Id::LightGroups);
+  const uint32_t n_groups = groups ? groups->count() : 0u;
+  std::vector<Vec3> group_values(size_t(kPacketSize) * n_groups);
+  std::vector<float> group_acc(3 * size_t(n_groups));
+  out->reset(rect, start, count, rows, n_groups);
   const Sampler sampler(settings.sampler, settings.seed);
   const TraceContext ctx(scene, settings);
   // The rows summed in float32 (channels::sample_values) and where each one's sums start in a
@@ -56,22 +72,29 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       const PixelSampler pixel_sampler(sampler, uint64_t(rect.y0 + ty) * settings.width +
                                                     (rect.x0 + tx));
       SampleResult results[kPacketSize];
+      std::fill(group_acc.begin(), group_acc.end(), 0.f);
       for (uint32_t k = 0; k < count; ++k) {
         // The pixel's samples go through the path tracer kPacketSize at a time.
         const uint32_t lane = k % kPacketSize;
         if (lane == 0)
           trace_samples(ctx, scene, settings, pixel_sampler, rect.x0 + tx, rect.y0 + ty,
                         uint32_t(start + k), std::min<uint32_t>(kPacketSize, count - k), results,
-                        lobes ? lobe_values : nullptr);
+                        lobes ? lobe_values : nullptr, groups ? &*groups : nullptr,
+                        group_values.data());
         const SampleResult& r = results[lane];
         out->rays += r.rays;
         Vec3 L = r.radiance;
         const LobeValues* lobe = lobes ? &lobe_values[lane] : nullptr;
+        const Vec3* by_group = groups ? &group_values[size_t(lane) * n_groups] : nullptr;
         if (!is_finite(L)) {
           L = Vec3(0.f, 0.f, 0.f);  // counted, recorded as zero radiance
           lobe = nullptr;           // and zero in every lobe row, which sum to it
+          by_group = nullptr;       // and in every light group
           ++out->nonfinite_samples;
         }
+        if (by_group)
+          for (uint32_t g = 0; g < n_groups; ++g)
+            for (int c = 0; c < 3; ++c) group_acc[3 * g + uint32_t(c)] += by_group[g][c];
         for (int c = 0; c < 3; ++c) sum[c] += double(L[c]);
         for (uint32_t j = 0; j < n_summed; ++j) {
           float v[channels::kMaxComponents];
@@ -92,6 +115,9 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       }
       for (uint32_t j = 0; j < n_ranked; ++j)
         counts[j].emit(out->ranked(ranked[j]).data() + 2 * channels::kRanks * i);
+      if (groups)
+        std::copy(group_acc.begin(), group_acc.end(),
+                  out->sum(channels::Id::LightGroups).begin() + group_acc.size() * i);
       out->luminance_m2[i] = luminance_stats.m2;
       out->depth_sum[i] = depth;
     }

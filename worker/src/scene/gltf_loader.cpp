@@ -349,6 +349,29 @@ bool Loader::node_visible(const tinygltf::Node& node, int index) const {
   return v.Get<bool>();
 }
 
+// Whether a mesh may emit light: it has points or lines (unlit without normals), or a triangle
+// primitive whose material (the selected variant's) emits or is unlit.
+bool Loader::mesh_may_emit(size_t mesh_index, const SceneDescription& desc) {
+  if (mesh_emits_.empty()) mesh_emits_.assign(model_.meshes.size(), -1);
+  int8_t& known = mesh_emits_[mesh_index];
+  if (known >= 0) return known != 0;
+  known = 0;
+  const tinygltf::Mesh& mesh = model_.meshes[mesh_index];
+  for (size_t pi = 0; pi < mesh.primitives.size() && !known; ++pi) {
+    const tinygltf::Primitive& prim = mesh.primitives[pi];
+    if (!is_triangles(prim.mode)) {
+      known = 1;
+      continue;
+    }
+    const std::string where = "meshes[" + std::to_string(mesh_index) + "].primitives[" +
+                              std::to_string(pi) + "]" + named(mesh.name);
+    const uint32_t m = primitive_material(prim, mesh_index, pi, where);
+    if (m < desc.materials.size() && (desc.materials[m].is_emissive() || desc.materials[m].unlit))
+      known = 1;
+  }
+  return known != 0;
+}
+
 // `visible`: no ancestor is hidden by KHR_node_visibility. A hidden node and everything
 // below it render nothing (meshes, lights), "even any nodes below that have a value of
 // true"; cameras are not affected (the extension's text), so the walk goes on for them.
@@ -393,7 +416,14 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
     return;
   }
   auto light_ext = node.extensions.find("KHR_lights_punctual");
-  if (light_ext != node.extensions.end() && light_ext->second.Has("light")) {
+  const bool has_light =
+      light_ext != node.extensions.end() && light_ext->second.Has("light");
+  // The name of a node that may emit light, for the light groups' messages.
+  if (!node.name.empty() &&
+      (has_light || (node.mesh >= 0 && node.mesh < int(model_.meshes.size()) &&
+                     mesh_may_emit(size_t(node.mesh), *desc))))
+    desc->node_names.emplace(uint32_t(index), node.name);
+  if (has_light) {
     const int li = light_ext->second.Get("light").GetNumberAsInt();
     if (li < 0 || li >= int(lights_.size()))
       fail(where + ": KHR_lights_punctual.light refers to missing light " + std::to_string(li));
@@ -403,6 +433,7 @@ void Loader::visit(int index, const Mat4& parent, SceneDescription* desc, int de
       const Vec3 dir = world.transform_vector({0.f, 0.f, -1.f});
       if (!(length(dir) > 0.f)) fail(where + ": light transform is singular");
       light.direction = normalize(dir);
+      light.node = uint32_t(index);
       desc->punctual_lights.push_back(light);
     }
   }

@@ -186,6 +186,7 @@ class Loader {
   void visit_split(int index, const tinygltf::Node& node, const Mat4& world,
                    const std::string& where, SceneDescription* desc, bool visible = true);
   void classify_nodes();
+  bool mesh_may_emit(size_t mesh_index, const SceneDescription& desc);
 
   // gltf_materials.cpp: textures, materials and their extensions, variants.
   void load_textures(SceneDescription* desc);
@@ -306,6 +307,7 @@ class Loader {
   std::map<int, std::vector<Mat4>> joint_matrices_;  // per skin
   std::vector<int> mesh_uses_;
   std::vector<int> mesh_slot_;
+  std::vector<int8_t> mesh_emits_;  // per mesh: mesh_may_emit's answer, -1 not known yet
   // The animated layout (AnimatedLayout), if the options ask for one: the nodes whose TRS or
   // weights a chosen channel animates, per node whether it moves and whether its deformation
   // varies, and the meshes of varying deformed nodes.

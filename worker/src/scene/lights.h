@@ -61,6 +61,9 @@ struct PunctualLight {
   Vec3 direction{0.f, 0.f, -1.f};  // unit direction the light travels (node's local -Z)
   Vec3 intensity{1.f, 1.f, 1.f};
   float cos_inner = 1.f, cos_outer = 0.f;  // spot cone (glTF innerConeAngle/outerConeAngle)
+  // The glTF node that carries it (its index in "nodes"; ~0u, kNoNode, for none): the light
+  // groups attribute its light samples to that node's group (render/light_groups.h).
+  uint32_t node = ~0u;
   // Spot falloff, glTF's recommended implementation:
   // clamp((cos - cos_outer) / (cos_inner - cos_outer), 0, 1)^2; 1 for other types.
   float spot_falloff(float cos_angle) const;

@@ -653,10 +653,22 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
 }
 
 void Scene::finish_lights_and_camera(std::vector<std::string>* warnings) {
-  // Lights: emissive world triangles and emissive triangles of every instance.
+  // Lights: emissive world triangles and emissive triangles of every instance. The nodes of
+  // the triangles that emit or are unlit (emitting_nodes_), each noted once per run of
+  // triangles of one node.
+  std::vector<char> shows(desc_.materials.size(), 0);
+  for (size_t m = 0; m < shows.size(); ++m)
+    shows[m] = desc_.materials[m].is_emissive() || desc_.materials[m].unlit;
+  emitting_nodes_.clear();
+  const auto note = [this](uint32_t node) {
+    if (emitting_nodes_.empty() || emitting_nodes_.back() != node)
+      emitting_nodes_.push_back(node);
+  };
   std::vector<Emitter> emitters;
   const TriangleMesh& world = *slot_mesh_[kWorldSlot];
   for (uint32_t i = 0; i < world.size(); ++i) {
+    if (!shows[world.material[i]]) continue;
+    note(node(kWorldSlot, i));
     if (!desc_.materials[world.material[i]].is_emissive()) continue;
     const Triangle tri = world.triangle(i);
     emitters.push_back({{tri.p[0], tri.p[1], tri.p[2]}, tri.ng, tri.area, kWorldSlot, i,
@@ -666,6 +678,8 @@ void Scene::finish_lights_and_camera(std::vector<std::string>* warnings) {
     const Instance& inst = desc_.instances[k];
     const TriangleMesh& mesh = *slot_mesh_[1 + k];
     for (uint32_t i = 0; i < mesh.size(); ++i) {
+      if (!shows[mesh.material[i]]) continue;
+      note(node(1 + k, i));
       if (!desc_.materials[mesh.material[i]].is_emissive()) continue;
       const Triangle tri = mesh.triangle(i);
       Emitter e;
@@ -684,6 +698,11 @@ void Scene::finish_lights_and_camera(std::vector<std::string>* warnings) {
   }
   lights_ = LightSet(std::move(emitters), desc_.materials, desc_.punctual_lights,
                      std::max(1e-3f, 0.5f * length(bmax_ - bmin_)));
+  for (const PunctualLight& light : lights_.punctual()) emitting_nodes_.push_back(light.node);
+  std::sort(emitting_nodes_.begin(), emitting_nodes_.end());
+  emitting_nodes_.erase(std::unique(emitting_nodes_.begin(), emitting_nodes_.end()),
+                        emitting_nodes_.end());
+  emitting_nodes_.shrink_to_fit();
 
   if (desc_.camera) {
     camera_ = *desc_.camera;
@@ -1556,6 +1575,14 @@ std::string format_bytes(size_t bytes) {
   else
     std::snprintf(text, sizeof text, "%.2f GB", b * 1e-9);
   return text;
+}
+
+const std::string& Scene::node_name(uint32_t node) const {
+  static const std::string kNone;
+  const auto it = desc_.node_names.find(node);
+  if (it != desc_.node_names.end()) return it->second;
+  if (base_) return base_->node_name(node);
+  return kNone;
 }
 
 size_t Scene::memory_bytes() const {

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <map>
 #include <memory>
 #include <optional>
 #include <stdexcept>
@@ -351,6 +352,10 @@ struct SceneDescription {
   std::vector<uint32_t> animated_materials;
   // Textures referenced by Material::*_tex.texture (indices into this list).
   std::vector<TextureSource> textures;
+  // The names of the glTF nodes that may emit light (a punctual light's node, a mesh's with
+  // points, lines or an emissive or unlit material), by node index, those that have one: for
+  // the light groups' messages (Scene::node_name).
+  std::map<uint32_t, std::string> node_names;
   SceneLimits limits;  // what Scene construction may still check (texture pixels)
   SceneStats stats;
 };
@@ -600,6 +605,14 @@ class Scene {
   Camera camera_at(float t) const;
   bool has_file_camera() const { return desc_.camera.has_value(); }
   const LightSet& lights() const { return lights_; }
+  // The glTF nodes whose light can reach the image: the node of every triangle whose material
+  // emits or is unlit, and of every punctual light of lights(); sorted, each once (kNoNode,
+  // last, if such a triangle or light has no node). The light groups must hold each of them
+  // (render/light_groups.h). Found with the lights, when the scene is built.
+  const std::vector<uint32_t>& emitting_nodes() const { return emitting_nodes_; }
+  // A node's "name" in the glTF file, for messages: known for the nodes that may emit light
+  // (SceneDescription::node_names), "" for the others and for nodes without one.
+  const std::string& node_name(uint32_t node) const;
   Vec3 bounds_min() const { return bmin_; }
   Vec3 bounds_max() const { return bmax_; }
   float diagonal() const { return length(bmax_ - bmin_); }
@@ -608,6 +621,7 @@ class Scene {
   SceneDescription desc_;
   Camera camera_;
   LightSet lights_;
+  std::vector<uint32_t> emitting_nodes_;
   Vec3 bmin_, bmax_;
   std::shared_ptr<TextureSet> textures_;  // shared by a StaticPart scene with its poses
   std::shared_ptr<const Scene> base_;     // a pose's StaticPart scene, else null
