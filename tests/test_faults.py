@@ -39,7 +39,7 @@ TOTAL = 96 * 96 * SPP
 SETTINGS = {"width": 96, "height": 96, "tile_size": 16, "max_spp": SPP, "noise_threshold": 0}
 SETTINGS |= {"seed": 21}
 # The outputs the server-kill test's job renders beside the image (settings.aovs).
-OUTPUTS = ["depth", "ids", "cryptomatte", "lobes"]
+OUTPUTS = ["depth", "ids", "cryptomatte", "lobes", "light_groups"]
 FAST_LEASES = {
     "RENDERFARM_LEASE_S": "2",
     "RENDERFARM_HEARTBEAT_INTERVAL_S": "0.5",
@@ -223,8 +223,8 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             # from the statistics) survived the crash: they equal a standalone 16-spp render's.
             farm_exr = tmp_path / f"{job['id']}.exr"  # written by farm_image
             # Every output layer (first-sample depth and labels, Cryptomatte's ranked counts
-            # and the lobes' sums over every sample) survived it too: the same bits as the same
-            # job undisturbed.
+            # and the lobes' and light groups' sums over every sample) survived it too: the same
+            # bits as the same job undisturbed.
             twin = client.submit(CORNELL, settings={**SETTINGS, "aovs": OUTPUTS})
             twin = client.wait(twin["id"], poll_s=0.2, timeout_s=600)
             assert twin["state"] == "completed"
@@ -233,8 +233,10 @@ def test_kill_9_server_resumes_from_checkpoint_without_rendering_it_again(
             crashed, calm = read_exr(str(farm_exr)), read_exr(str(twin_exr))
             lobes = tuple(f"{lobe}." for lobe, *_ in channels.LOBES)
             outputs = [c for c in calm if c.startswith(("depth", "instance", "material",
-                                                         "Crypto", *lobes))]  # fmt: skip
-            assert len(outputs) == 1 + 2 + 3 * 3 * 4 + 8 * 3
+                                                         "Crypto", "light_group_",
+                                                         *lobes))]  # fmt: skip
+            # The Cornell box's light groups: its emissive quad `light`, and the environment.
+            assert len(outputs) == 1 + 2 + 3 * 3 * 4 + 8 * 3 + 2 * 3
             for c in outputs:
                 assert np.array_equal(crashed[c], calm[c]), c
             assert matte(calm, "CryptoObject", "red").max() == 1.0  # the red wall: not vacuous

@@ -363,7 +363,7 @@ def test_cli_get_downloads_the_image_or_one_layer(farm, jobs, tmp_path):
         (["get", noisy["id"], "-o", str(tmp_path / "x.exr"), "--layer", "bogus"], 2,
          "unknown layer"),
         (["get", noisy["id"], "-o", str(tmp_path / "nowhere" / "x.exr")], 2, "no such directory"),
-        (["get", noisy["id"], "--layer", "rgb"], 2, "needs -o"),
+        (["get", noisy["id"], "--layer", "rgb"], 2, "need -o"),
     ]  # fmt: skip
     for args, code, words in cases:
         done = _cli(farm, *args)

@@ -225,7 +225,7 @@ def _expected_channel(name: str, acc: TileAccumulator) -> np.ndarray:
     # The light groups: a block of three a group, in the layout's order.
     for k, group in enumerate(acc.layout.groups):
         for i, axis in enumerate("RGB"):
-            rows[f"light_group.{group}.{axis}"] = acc.light_groups_sum[..., 3 * k + i] / n
+            rows[f"light_group_{group}.{axis}"] = acc.light_groups_sum[..., 3 * k + i] / n
     if name.startswith("Crypto"):
         return _expected_crypto(name, acc)
     return rows[name].astype(np.float32)
@@ -465,9 +465,10 @@ def test_aovs_name_the_outputs_a_job_turns_on():
             parse_settings({"aovs": bad})
         assert e.value.field == "settings.aovs"
     # The lobes split what a first hit scatters: the ao integrator scatters nothing.
-    with pytest.raises(SettingsError, match="ao integrator has none") as e:
-        parse_settings({"aovs": ["lobes"], "integrator": "ao"})
-    assert e.value.field == "settings.aovs"
+    for split in ("lobes", "light_groups"):
+        with pytest.raises(SettingsError, match=f"names {split}, .* ao integrator") as e:
+            parse_settings({"aovs": [split], "integrator": "ao"})
+        assert e.value.field == "settings.aovs"
     assert parse_settings({"aovs": ["lobes"], "integrator": "direct"}).aovs == "lobes"
     layout = channels.job_layout(parse_settings({"aovs": "position"}))
     assert "position" in layout.names and "depth" not in layout.names
@@ -619,7 +620,7 @@ def test_a_job_of_light_groups_has_a_block_and_a_layer_per_group(tmp_path):
     assert [x.name for x in row.layers] == ["light_group.key", "light_group.fill",
                                             "light_group.environment"]  # fmt: skip
     assert layout.exr_channels()[-9:] == tuple(
-        f"light_group.{g}.{c}" for g in GROUPS for c in "RGB"
+        f"light_group_{g}.{c}" for g in GROUPS for c in "RGB"
     )
     assert job_memory_bytes(64, 64, 64, "light_groups", GROUPS) == (76 + 72) * 64 * 64 + 4096
     settings = JobSettings(aovs="light_groups", light_groups='{"key":[1],"fill":[2,4],'

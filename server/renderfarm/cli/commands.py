@@ -523,14 +523,17 @@ def _save_image(
         wanted = EXR_LAYER_CHANNELS[layer]
         present = source.spec().channelnames
         if layer == channels.LIGHT_GROUP_LAYER:  # the job's groups: every one, or the one named
-            groups = list(dict.fromkeys(c.split(".")[1] for c in present
-                                        if c.startswith(layer + ".")))  # fmt: skip
+            start = layer + "_"  # light_group_<group>.R
+            # The groups in their layers' order: the job's settings in the header (OpenEXR
+            # keeps channels sorted by name).
+            recorded = json.loads(source.spec().getattribute("renderfarm:settings") or "{}")
+            groups = list(json.loads(recorded.get("light_groups") or "{}"))
             if group is not None and groups and group not in groups:
                 raise CliError(
                     f"job {job_id} has no light group {group!r}; its groups: {', '.join(groups)}"
                 )
             if groups:
-                prefix = channels.group_layer(group) + "." if group else layer + "."
+                prefix = f"{start}{group}." if group else start
                 wanted = tuple(c for c in present if c.startswith(prefix))
         if not all(c in present for c in wanted):
             row = channels.layer_channel(layer)

@@ -218,7 +218,10 @@ def _lobe_channel(name: str, label: str, help_text: str) -> Channel:
 
 
 # The template layer of the light_groups row: a job's layout has one per group, named
-# light_group.<group> (the PNG layer `light_group` with `group`).
+# light_group.<group> (the PNG layer `light_group` with `group`), whose EXR channels are
+# light_group_<group>.R, .G and .B: one level of layer, which Blender's and Nuke's EXR readers
+# take as a pass of the image's layer like the others (Blender reads a second dot as a view
+# layer of its own).
 LIGHT_GROUP_LAYER = "light_group"
 
 # The depth where the first sample's camera ray hit nothing, as Blender's Depth pass has it.
@@ -509,7 +512,7 @@ CHANNELS: tuple[Channel, ...] = (
         (
             Layer(
                 LIGHT_GROUP_LAYER,
-                ("light_group.{group}.R", "light_group.{group}.G", "light_group.{group}.B"),
+                ("light_group_{group}.R", "light_group_{group}.G", "light_group_{group}.B"),
                 "Light group",
                 "the radiance that came from the lights of one light group (a "
                 "KHR_lights_punctual light or emissive node, by its name or its "
@@ -638,8 +641,8 @@ class Layout:
 
 
 def group_layer(group: str) -> str:
-    """The layer of one light group in a job's layout (its EXR channels are this plus .R, .G
-    and .B)."""
+    """The layer of one light group in a job's layout (its EXR channels: light_group_<group>.R,
+    .G and .B)."""
     return f"{LIGHT_GROUP_LAYER}.{group}"
 
 

@@ -555,12 +555,13 @@ def _check_ranges(s: JobSettings, limits: Limits) -> None:
             "needs settings.frames: a still is the scene as stored, with nothing that moves "
             "(leave shutter empty, or render frames)",
         )
-    _require(
-        not (s.integrator == Integrator.AO and "lobes" in s.aovs.split(",")),
-        "aovs",
-        "names lobes, which split the radiance by the lobes of the first hit, and the ao "
-        "integrator has none: use integrator path or direct, or leave lobes out",
-    )
+    for split, by in (("lobes", "the lobes of the first hit"), ("light_groups", "light source")):
+        _require(
+            not (s.integrator == Integrator.AO and split in s.aovs.split(",")),
+            "aovs",
+            f"names {split}, which split the radiance by {by}, and the ao integrator renders "
+            f"no radiance: use integrator path or direct, or leave {split} out",
+        )
     _require(
         s.aperture_radius == 0.0 or s.focus_distance > 0.0,
         "focus_distance",
