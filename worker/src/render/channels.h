@@ -41,6 +41,11 @@ static_assert(uint32_t(Id::Background) - uint32_t(Id::DiffuseDirect) + 1 == kLob
               "the lobe rows are not the table's eight contiguous rows in LobeValues' order");
 // A lobe row's place in LobeValues.
 constexpr uint32_t lobe_index(Id id) { return uint32_t(id) - uint32_t(Id::DiffuseDirect); }
+// The rows a standalone image keeps (Image::set_from_tile, render_image) and the bench
+// traces: not the first-sample rows (depth, position, motion, instance, material), the ranked
+// rows, the lobe rows nor the light groups, which only the farm's results carry.
+constexpr Set kImageRows = bit(Id::Rgb) | bit(Id::Luminance) | bit(Id::Albedo) |
+                           bit(Id::Normal) | bit(Id::Coverage);
 // The crypto_material row's label of a hit on a primitive without a material (glTF's default
 // material, Material::gltf_index -1): the server's cryptomatte.DEFAULT_MATERIAL_LABEL, which
 // it names "default material" (the Material row has 0 there).

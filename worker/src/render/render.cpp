@@ -10,18 +10,6 @@
 
 namespace rf {
 
-namespace {
-
-// The rows an Image keeps (Image::set_from_tile): not the first-sample rows (depth, position,
-// motion, instance, material), the ranked rows nor the lobe rows, which only the farm's
-// results carry.
-constexpr channels::Set kImageRows =
-    channels::bit(channels::Id::Rgb) | channels::bit(channels::Id::Luminance) |
-    channels::bit(channels::Id::Albedo) | channels::bit(channels::Id::Normal) |
-    channels::bit(channels::Id::Coverage);
-
-}  // namespace
-
 Image render_image(const Scene& scene, const RenderSettings& settings, uint32_t spp,
                    uint32_t threads, RenderStats* stats,
                    const std::function<void(size_t, size_t)>& progress) {
@@ -41,7 +29,7 @@ Image render_image(const Scene& scene, const RenderSettings& settings, uint32_t 
     for (;;) {
       const size_t t = next.fetch_add(1);
       if (t >= tiles.size()) return;
-      render_rect(scene, settings, tiles[t], 0, spp, &buffer, nullptr, kImageRows);
+      render_rect(scene, settings, tiles[t], 0, spp, &buffer, nullptr, channels::kImageRows);
       image.set_from_tile(buffer);  // tiles are disjoint: no lock needed
       rays += buffer.rays;
       nonfinite += buffer.nonfinite_samples;
