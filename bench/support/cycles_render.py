@@ -10,7 +10,8 @@ or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "
 "frame": null or the frame F of an animated scene to render, "fps": its frame rate,
 "importer": "gltf" (default) or "usd", "camera": the camera object's name (default: the first),
 "world": "as_imported" to keep a world the USD importer made of a dome light, "lights":
-"usd" to undo the USD importer's departures from UsdLux (usd_lights())}.
+"usd" to undo the USD importer's departures from UsdLux (usd_lights()), "passes": true for the
+lobe passes and light groups in a multilayer EXR (enable_passes(), bench/passes_parity.py)}.
 The scene is imported once with Blender's own glTF importer (lights in the COMPAT units the
 exporter of the parity scenes and the Blender add-on use) or USD importer (bench/usd_parity.py:
 bpy.ops.wm.usd_import, subdivision off), then rendered once per entry of
@@ -371,9 +372,60 @@ def imported_keys(frame: int) -> dict:
             "largest_distance_of_frame_from_a_key": off_frame}  # fmt: skip
 
 
+# Cycles' passes a farm job's `lobes` rows correspond to (bench/passes_parity.py): each row is
+# Cycles' direct or indirect pass times its colour pass (Cycles keeps the colour apart), or a
+# pass as it is.
+LOBE_PASSES = ("diffuse_direct", "diffuse_indirect", "diffuse_color", "glossy_direct",
+               "glossy_indirect", "glossy_color", "transmission_direct",
+               "transmission_indirect", "transmission_color", "emit", "environment")  # fmt: skip
+
+
+def light_group_name(name: str) -> str:
+    """The farm's light group of a node name (server/renderfarm/domain/light_groups.py)."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_-]", "_", name.strip()) or "unnamed"
+
+
+def enable_passes(scene: bpy.types.Scene) -> dict:
+    """CONFIG "passes": the lobe passes and one light group per light and emissive object
+    (named as the farm names the glTF node's group) and the world's, into a multilayer EXR.
+    Returns {light group: [objects]}."""
+    layer = scene.view_layers[0]
+    for name in LOBE_PASSES:
+        setattr(layer, f"use_pass_{name}", True)
+    groups: dict[str, list[str]] = {}
+    for obj in scene.objects:
+        emits = obj.type == "LIGHT" or any(
+            slot.material and any(
+                n.type == "EMISSION" or (n.type == "BSDF_PRINCIPLED"
+                                         and n.inputs["Emission Strength"].default_value > 0
+                                         and any(n.inputs["Emission Color"].default_value[:3]))
+                for n in (slot.material.node_tree.nodes if slot.material.node_tree else ())
+            )
+            for slot in obj.material_slots
+        )  # fmt: skip
+        if emits:
+            name = light_group_name(obj.name)
+            if name not in layer.lightgroups:
+                layer.lightgroups.add(name=name)
+            obj.lightgroup = name
+            groups.setdefault(name, []).append(obj.name)
+    if scene.world is not None:
+        layer.lightgroups.add(name="environment")
+        scene.world.lightgroup = "environment"
+        groups["environment"] = []
+    settings = scene.render.image_settings
+    settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5.0: then OpenEXR MultiLayer only
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+    return groups
+
+
 def main() -> dict:
     scene = import_scene()
     match_settings(scene)
+    groups = enable_passes(scene) if CONFIG.get("passes") else None
     keys = None
     if CONFIG.get("frame") is not None:
         scene.frame_set(CONFIG["frame"])
@@ -387,7 +439,8 @@ def main() -> dict:
         bpy.ops.render.render(write_still=True)
         seconds.append(time.perf_counter() - start)
     lights = lights_as_imported() if CONFIG.get("importer") == "usd" else None
-    return {"seconds": seconds, "camera": scene.camera.name, "keys": keys, "lights": lights}
+    return {"seconds": seconds, "camera": scene.camera.name, "keys": keys, "lights": lights,
+            "light_groups": groups}  # fmt: skip
 
 
 if __name__ == "__main__":
