@@ -393,6 +393,7 @@ def scenario_scan() -> dict:
 
     rf = scene.renderfarm
     rf.load_docs(json.loads(CONFIG["settings_docs"]), CONFIG["url"])
+    out["setting_fields"] = [s.name for s in rf.settings]
     for name, value in CONFIG["settings"].items():
         set_setting(rf, name, value)
     out["submit"] = run_op(bpy.ops.renderfarm.submit)

@@ -156,9 +156,10 @@ def test_submit_follow_fetch(token_farm, addon_zip, tmp_path):
         assert "HTTP 401" in result["wrong_token"]["error"]
         assert "API token" in result["wrong_token"]["error"]
 
-        # The settings fields are the farm's list: every setting, type, default, help and the
-        # choices of the enumerated ones.
-        docs = client.http.get("/api/v1/settings").json()
+        # The settings fields are the farm's list: every setting the user chooses (not those
+        # the farm fills in from the scene, light_groups), type, default, help and the choices
+        # of the enumerated ones.
+        docs = [d for d in client.http.get("/api/v1/settings").json() if not d["derived"]]
         assert result["refresh"]["result"] == ["FINISHED"]
         keys = ("name", "type", "default", "help")
         assert [{k: s[k] for k in keys} for s in result["settings"]] == [
@@ -291,6 +292,9 @@ def test_unsupported_features_listed_and_submission_allowed(token_farm, addon_zi
     assert result["submit"]["result"] == ["FINISHED"], result["submit"]
     assert result["job_id"]
     assert result["issues_after_submit"] == len(issues)
+    # A field per setting the user chooses; none for those the farm fills in (light_groups).
+    assert "aovs" in result["setting_fields"], result["setting_fields"]
+    assert "light_groups" not in result["setting_fields"]
     with Client(token_farm.url, token=TOKEN, timeout=30) as client:
         job = client.get(result["job_id"])
     assert job["name"] == "untitled Scene frame 1"

@@ -109,3 +109,10 @@ def test_the_setting_keeps_its_names_and_belongs_to_jobs_that_ask_for_groups():
         with pytest.raises(SettingsError) as e:
             parse_settings({"aovs": "light_groups", "light_groups": bad})
         assert e.value.field == "settings.light_groups"
+
+
+def test_the_setting_is_the_servers_and_forms_leave_it_out():
+    from renderfarm.domain.jobspec import setting_docs
+
+    derived = [d["name"] for d in setting_docs() if d["derived"]]
+    assert derived == ["light_groups"]

@@ -114,6 +114,8 @@ def check_docs(docs: Any) -> list[dict[str, Any]]:
         served = d.get("choices")
         if isinstance(served, list) and all(isinstance(c, str) for c in served):
             entry["choices"] = list(served)
+        if d.get("derived") is True:  # filled in by the farm (from the scene), not chosen
+            entry["derived"] = True
         out.append(entry)
     return out
 

@@ -277,6 +277,8 @@ class RenderfarmSceneSettings(bpy.types.PropertyGroup):
         kept = {s.name: (s.kind, s.value()) for s in self.settings}
         self.settings.clear()
         for d in docs:
+            if d.get("derived"):  # filled in by the farm (from the scene), not chosen
+                continue
             item = self.settings.add()
             item.name = d["name"]
             item.kind = d["type"]

@@ -222,6 +222,9 @@ class SettingDoc(BaseModel):
     exclusive_minimum: bool = False
     maximum: float | None = Field(None, description="highest value (this server's limit)")
     unit: str = Field("", description="px, s, m, deg or empty")
+    derived: bool = Field(
+        False, description="filled in by the server (from the scene), not chosen: forms omit it"
+    )
 
 
 class WhoAmI(BaseModel):

@@ -146,7 +146,8 @@ class Setting:
     named otherwise). minimum/maximum: the range (open at the bottom when exclusive_minimum);
     limit: a Limits attribute that bounds it instead of `maximum` (the server's configuration).
     bounded_by: another setting that bounds it above instead (checked after that one).
-    worker: whether workers read it (else the server alone acts on it)."""
+    worker: whether workers read it (else the server alone acts on it).
+    derived: filled in by the server (from the scene), not chosen: forms leave it out."""
 
     name: str
     kind: type
@@ -161,6 +162,7 @@ class Setting:
     bounded_by: str = ""  # another setting that bounds it above (min_spp <= max_spp)
     unit: str = ""
     worker: bool = True
+    derived: bool = False
 
     @property
     def field(self) -> str:
@@ -259,7 +261,7 @@ SETTINGS: tuple[Setting, ...] = (
             "the job's light groups when aovs names light_groups: filled in by the server from "
             "the scene (a value given is replaced), a JSON object of group name -> the glTF "
             "node indices in it, in the order of their layers, the environment last "
-            "(docs/usage.md, Outputs)", 27),
+            "(docs/usage.md, Outputs)", 27, derived=True),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}
@@ -297,6 +299,7 @@ def setting_docs(limits: Limits = Limits()) -> list[dict[str, Any]]:
             "name": s.name, "type": s.type_name, "default": s.default, "help": s.help,
             "choices": list(s.choices), "minimum": s.minimum,
             "exclusive_minimum": s.exclusive_minimum, "maximum": top, "unit": s.unit,
+            "derived": s.derived,
         })  # fmt: skip
     return docs
 

@@ -124,7 +124,9 @@ export function mountSubmit(root: HTMLElement): () => void {
     return null;
   };
 
-  const buildFields = (docs: SettingDoc[]) => {
+  const buildFields = (all: SettingDoc[]) => {
+    // Settings the server fills in itself (from the scene) are not the user's to choose.
+    const docs = all.filter((d) => !d.derived);
     const known = new Set(GROUPS.flatMap(([, names]) => names));
     const byName = new Map(docs.map((d) => [d.name, d]));
     const groupList: [string, SettingDoc[]][] = GROUPS.map(([title, names]) => [
