@@ -141,3 +141,22 @@ def test_the_viewer_names_the_object_under_the_pointer(page: Page, client, tmp_p
     screenshot(page, "cryptomatte-pointer")
     page.mouse.move(box["x"] - 20, box["y"] - 20)  # off the image: the line empties
     expect(pointer).to_have_text("")
+
+
+def test_the_layer_switch_has_the_lobes_and_a_layer_per_light_group(page: Page, client):
+    settings = {**SHORT, "denoise": False, "noise_threshold": 0, "aovs": ["lobes", "light_groups"]}
+    job = client.submit(CORNELL, settings=settings, name="passes")
+    wait_until(lambda: client.get(job["id"])["state"] == "completed", 300, "the job to complete")
+    page.goto(f"/#/jobs/{job['id']}")
+    wait_layer(page, "rgb")
+    for name in ("Diffuse direct", "Diffuse indirect", "Emission", "Background"):
+        expect(page.get_by_role("radio", name=name)).to_be_visible()
+    # The Cornell box's groups: its emissive quad (node `light`) and the environment (black).
+    page.get_by_role("radio", name="Light light").check()
+    wait_layer(page, "light_group.light")
+    lit = canvas_pixels(page)
+    expect(page.locator("#exposure")).to_be_visible()  # a radiance: exposure applies
+    page.get_by_role("radio", name="Light environment").check()
+    wait_layer(page, "light_group.environment")
+    dark = canvas_pixels(page)
+    assert np.mean(lit) > 20 and max(dark) == 0

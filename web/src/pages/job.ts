@@ -218,6 +218,7 @@ export function mountJob(root: HTMLElement, jobId: string, frame: number | null 
     const viewer = new Viewer(jobId, st.width, st.height, st.tile_size, {
       denoise: st.denoise === true,
       aovs: typeof st.aovs === "string" ? st.aovs : "",
+      light_groups: typeof st.light_groups === "string" ? st.light_groups : "",
     });
     cleanups.push(() => viewer.stop());
 
