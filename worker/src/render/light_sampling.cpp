@@ -191,10 +191,21 @@ void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
   }
 }
 
+LightSampleSource light_sample_source(const Scene& scene, const LightContext& lc,
+                                      const BounceSamples& s, const float* w, float total) {
+  uint32_t entry = 0;
+  float p_entry = 0.f, u_sel = 0.f;
+  const Point2 u_light = s.get2(dim::kLightU);  // sample_light's choice, made again
+  if (!choose_light(lc, w, total, u_light.x, &entry, &p_entry, &u_sel)) return {};
+  if (entry == lc.clusters) return {true, -1, 0, 0};
+  const LightSample ls = scene.lights().sample_in(entry, u_sel, u_light.y);
+  return {false, ls.punctual, ls.slot, ls.prim};
+}
+
 LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                              const Frame& frame, Vec3 wo_local, const BounceSamples& s,
                              const float* w, float total, BsdfEvalBatch* batch, LightBatch* lb,
-                             int lane, LightRay* out, LightSampleSource* source) {
+                             int lane, LightRay* out) {
   uint32_t entry = 0;
   float p_entry = 0.f, u_sel = 0.f;
   // The light position's first coordinate also chooses the light (rescaled at each choice),
@@ -223,12 +234,10 @@ LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const S
     lb->ok[lane] = -1;
     lb->waiting |= bit;
     batch->add_light(lane, frame.to_local(wi));
-    if (source) *source = LightSampleSource{true, -1, 0, 0};
     return LightSampleKind::Waiting;
   }
   const LightSet& lights = scene.lights();
   const LightSample ls = lights.sample_in(entry, u.x, u.y);
-  if (source) *source = LightSampleSource{false, ls.punctual, ls.slot, ls.prim};
   if (ls.punctual >= 0) {
     // The selection probability only: a delta light.
     return punctual_light_sample(lights.punctual()[size_t(ls.punctual)], ls.pdf_area * p_entry,

@@ -123,11 +123,16 @@ struct LightSampleSource {
 
 // Next-event estimation: one light (or the environment) chosen by the weights w at sp.above()
 // (light_weights, summing to total), its contribution f cos L / pdf, MIS-weighted against
-// BSDF sampling with the power heuristic unless the light is a delta light. source (null:
-// not wanted): which light it chose, set whenever the result is not None.
+// BSDF sampling with the power heuristic unless the light is a delta light.
 LightSampleKind sample_light(const Scene& scene, const LightContext& lc, const ShadingPoint& sp,
                              const Frame& frame, Vec3 wo_local, const BounceSamples& s,
                              const float* w, float total, BsdfEvalBatch* batch, LightBatch* lb,
-                             int lane, LightRay* out, LightSampleSource* source = nullptr);
+                             int lane, LightRay* out);
+// Which light sample_light chose with the same s, w and total (valid where it did not return
+// None): its choice made again, for the light groups only. Apart from sample_light so that
+// the tracer without light groups keeps it as it was (reporting the choice from inside made
+// the link-time optimiser stop inlining it: 2% of the Cornell box's samples per second).
+LightSampleSource light_sample_source(const Scene& scene, const LightContext& lc,
+                                      const BounceSamples& s, const float* w, float total);
 
 }  // namespace rf

@@ -39,23 +39,30 @@ struct DiskBatch {
   }
 };
 
+// The light group of what a hit's triangle emits, and of the light a vertex's light sample
+// chose: out of line, called only with the light groups on, so that the tracer without them
+// keeps the size it had.
+__attribute__((noinline)) uint32_t surface_group(const PathGroups& groups, const Scene& scene,
+                                                 const Hit& hit) {
+  return groups.map->surface(scene, hit.slot, hit.prim);
+}
+__attribute__((noinline)) uint32_t light_sample_group(const PathGroups& groups,
+                                                      const Scene& scene, const LightContext& lc,
+                                                      const BounceSamples& u, const float* w,
+                                                      float total) {
+  return groups.map->light(scene, light_sample_source(scene, lc, u, w, total));
+}
+
 // The first half of what a path does at the vertex its ray found (hit null: the ray escaped):
 // emission, Russian roulette, the light sample and the BSDF sample's direction. The BSDF values
 // both samples need are queued in *batch (one evaluation for a packet's lanes together);
 // shade_vertex_end_light and shade_vertex_end_bsdf finish the vertex once the batch has been
 // evaluated. lobes: the path's lobe rows (null: off), which keep the first vertex; groups:
-// its light groups (null: off). kOutputs false: both are off, and this instance of the
-// function has no trace of them (the tracer's speed without outputs is the same as before
-// them; a test of `if (lobes)` per contribution cost measurably).
-template <bool kOutputs>
+// its light groups (null: off).
 void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
                         const Hit* hit, uint32_t bounce, uint32_t max_depth,
                         const DiskBatch& disks, BsdfEvalBatch* batch, LightBatch* lb,
                         int lane, PathLobes* lobes, PathGroups* groups) {
-  if constexpr (!kOutputs) {
-    lobes = nullptr;
-    groups = nullptr;
-  }
   const Vec3 d = p.d;
   SampleResult& result = p.result;
   p.alive = false;
@@ -90,7 +97,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     // KHR_materials_unlit: the base colour as radiance on the faces that would emit, and
     // nothing reflected (the path ends). Not a light of the light set: no MIS weight.
     if (cos_emit > 0.f) {
-      const uint32_t group = groups ? groups->map->surface(scene, hit->slot, hit->prim) : 0u;
+      const uint32_t group = groups ? surface_group(*groups, scene, *hit) : 0u;
       add_radiance(p, lobes, p.beta * sp.albedo, bounce, RadianceSource::Surface, groups, group);
       // Unlit points and lines add their emission (glTF "Point and Line Materials").
       if (hit_material.unlit_adds_emission)
@@ -102,7 +109,7 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   }
   if (cos_emit > 0.f && hit_material.is_emissive()) {
     const Vec3 Le = scene.emission(hit->slot, hit->prim, hit->b1, hit->b2, cos_emit);
-    const uint32_t group = groups ? groups->map->surface(scene, hit->slot, hit->prim) : 0u;
+    const uint32_t group = groups ? surface_group(*groups, scene, *hit) : 0u;
     if (p.prev_delta) {
       add_radiance(p, lobes, p.beta * Le, bounce, RadianceSource::Surface, groups, group);
     } else {
@@ -142,11 +149,10 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     p.sel_ng = sp.ng;
     p.sel_two_sided = has_through_lobe(sp.params);
     p.sel_total = light_weights(lc, p.sel_o, p.sel_ng, w, p.sel_two_sided);
-    LightSampleSource source;
     p.light_kind = sample_light(scene, lc, sp, frame, wo_local, u, w, p.sel_total, batch, lb,
-                                lane, &p.light, groups ? &source : nullptr);
+                                lane, &p.light);
     if (groups && p.light_kind != LightSampleKind::None)
-      groups->light_group = groups->map->light(scene, source);
+      groups->light_group = light_sample_group(*groups, scene, lc, u, w, p.sel_total);
     // A punctual light's shadow ray through the surface travels in the medium a transmission
     // enters.
     if (p.light_kind == LightSampleKind::Delta)
@@ -278,14 +284,8 @@ void first_vertex_shares(const PathState* paths, const LightBatch& lights, uint3
 // let Embree share traversal between similar rays (a pixel's camera rays, shadow rays towards
 // the same light) and let the shading of independent paths overlap. lobes: the paths' lobe
 // rows (kPacketSize of them), or null when they are off; groups: their light groups likewise.
-// kOutputs false: both are off (shade_vertex_begin).
-template <bool kOutputs>
 void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
                  uint32_t max_depth, PathLobes* lobes, PathGroups* groups) {
-  if constexpr (!kOutputs) {
-    lobes = nullptr;
-    groups = nullptr;
-  }
   constexpr int kFewLanes = 3;
   static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
   static_assert(PixelSampler::kLanes16 == kPacketSize, "a sampler lane per packet lane");
@@ -363,8 +363,7 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
     lights.clear();
     for (uint32_t m = live; m; m &= m - 1) {
       const int i = __builtin_ctz(m);
-      shade_vertex_begin<kOutputs>(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce,
-                                   max_depth,
+      shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
                          disks, &batch, &lights, i, lobes ? lobes + i : nullptr,
                          groups ? groups + i : nullptr);
     }
@@ -502,8 +501,8 @@ __attribute__((noinline)) void trace_paths_with_outputs(const Scene& scene,
     std::fill(group_values, group_values + size_t(count) * n, Vec3(0.f, 0.f, 0.f));
     for (uint32_t k = 0; k < n; ++k) path_groups[k] = {groups, group_values + k * count, 0u};
   }
-  trace_paths<true>(scene, lc, paths, max_depth, lobes_out ? lobes : nullptr,
-                    groups ? path_groups : nullptr);
+  trace_paths(scene, lc, paths, max_depth, lobes_out ? lobes : nullptr,
+              groups ? path_groups : nullptr);
   if (lobes_out)
     for (uint32_t k = 0; k < n; ++k) lobes_out[k] = lobes[k].values;
 }
@@ -542,7 +541,7 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
     trace_paths_with_outputs(scene, ctx.lights, paths, path_max_depth(settings), n, lobes,
                              groups, group_values);
   else
-    trace_paths<false>(scene, ctx.lights, paths, path_max_depth(settings), nullptr, nullptr);
+    trace_paths(scene, ctx.lights, paths, path_max_depth(settings), nullptr, nullptr);
   for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
 }
 

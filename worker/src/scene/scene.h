@@ -352,12 +352,12 @@ struct SceneDescription {
   std::vector<uint32_t> animated_materials;
   // Textures referenced by Material::*_tex.texture (indices into this list).
   std::vector<TextureSource> textures;
-  // The names of the glTF nodes that may emit light (a punctual light's node, a mesh's with
-  // points, lines or an emissive or unlit material), by node index, those that have one: for
-  // the light groups' messages (Scene::node_name).
-  std::map<uint32_t, std::string> node_names;
   SceneLimits limits;  // what Scene construction may still check (texture pixels)
   SceneStats stats;
+  // The names of the glTF nodes that may emit light (a punctual light's node, a mesh's with
+  // points, lines or an emissive or unlit material), by node index, those that have one: for
+  // the light groups' messages (Scene::node_name). Last: read only for messages.
+  std::map<uint32_t, std::string> node_names;
 };
 
 // Up to kPacketSize rays queried together; lanes with active false are skipped. Each active
@@ -621,7 +621,6 @@ class Scene {
   SceneDescription desc_;
   Camera camera_;
   LightSet lights_;
-  std::vector<uint32_t> emitting_nodes_;
   Vec3 bmin_, bmax_;
   std::shared_ptr<TextureSet> textures_;  // shared by a StaticPart scene with its poses
   std::shared_ptr<const Scene> base_;     // a pose's StaticPart scene, else null
@@ -677,6 +676,8 @@ class Scene {
   struct Embree;
   std::unique_ptr<Embree> embree_;
   int packet_query_width_ = 8;
+  // emitting_nodes(); last, as it is read only when a task is checked.
+  std::vector<uint32_t> emitting_nodes_;
 };
 
 // "812.5 kB", "12.3 MB" or "1.23 GB" (powers of 10), for messages about memory_bytes.
