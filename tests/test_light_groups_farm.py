@@ -25,6 +25,7 @@ import pytest
 from renderfarm.client import ApiError, Client
 from renderfarm.infra.images import read_exr
 
+from .test_lobes_farm import uniform_hdr
 from .waiting import wait_until
 
 W, H = 48, 32
@@ -135,21 +136,12 @@ def regions() -> dict[str, np.ndarray]:
     }
 
 
-def uniform_hdr(path) -> None:
-    import OpenImageIO as oiio
-
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), oiio.ImageSpec(16, 8, 3, oiio.FLOAT))
-    out.write_image(np.full((8, 16, 3), E, dtype=np.float32))  # 0.25 is exact in RGBE
-    out.close()
-
-
 @pytest.fixture(scope="module")
 def grouped(farm, tmp_path_factory):
     out = tmp_path_factory.mktemp("light_groups")
     path = out / "lights.gltf"
     path.write_text(json.dumps(scene()))
-    uniform_hdr(out / "sky.hdr")
+    uniform_hdr(out / "sky.hdr", E)
     with Client(farm.url, timeout=120) as client:
         wait_until(lambda: len(client.workers()) >= 1, 30, "a worker connected")
         # A value given is replaced by the scene's groups.

@@ -102,13 +102,13 @@ def region(x0: float, y0: float, x1: float, y1: float, margin: float = 1.0) -> n
     return (i >= u0 + margin) & (i + 1 <= u1 - margin) & (j >= v0 + margin) & (j + 1 <= v1 - margin)
 
 
-def uniform_hdr(path) -> None:
+def uniform_hdr(path, radiance: float) -> None:
+    """An environment map of one radiance everywhere (a power of two: exact in RGBE)."""
     import OpenImageIO as oiio
 
-    spec = oiio.ImageSpec(16, 8, 3, oiio.FLOAT)
     out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec)
-    out.write_image(np.full((8, 16, 3), E, dtype=np.float32))  # 0.5 is exact in RGBE
+    assert out.open(str(path), oiio.ImageSpec(16, 8, 3, oiio.FLOAT))
+    out.write_image(np.full((8, 16, 3), radiance, dtype=np.float32))
     out.close()
 
 
@@ -117,7 +117,7 @@ def lobes(farm, tmp_path_factory):
     out = tmp_path_factory.mktemp("lobes")
     path = out / "quads.gltf"
     path.write_text(json.dumps(scene()))
-    uniform_hdr(out / "sky.hdr")
+    uniform_hdr(out / "sky.hdr", E)
     with Client(farm.url, timeout=120) as client:
         wait_until(lambda: len(client.workers()) >= 1, 30, "a worker connected")
         job = client.submit(str(path), name="lobes",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from renderfarm.domain import light_groups
+from renderfarm.domain import channels, light_groups
 from renderfarm.domain.jobspec import parse_settings
 from renderfarm.errors import SettingsError
 
@@ -54,7 +54,7 @@ def test_lights_and_emissive_meshes_are_groups_by_name_and_the_environment_last(
     groups = light_groups.scene_groups(doc(nodes, meshes, MATERIALS))
     assert groups == {"key": [0], "panel": [2], "nodes_3_": [3], "sign": [4],
                       "Rim_Light_001": [6], "environment": []}  # fmt: skip
-    assert light_groups.names(light_groups.encode(groups))[-1] == "environment"
+    assert channels.group_names(light_groups.encode(groups))[-1] == "environment"
 
 
 def test_extras_light_group_names_a_group_nodes_share():

@@ -692,10 +692,16 @@ def layout_for(
     return _layout(names, bool(denoise), tuple(groups))
 
 
+@functools.lru_cache(maxsize=256)
+def group_names(light_groups: str) -> tuple[str, ...]:
+    """The light groups of a job's settings.light_groups (domain/light_groups.py), in layer
+    order: () for none. Parsed once per value (a job's layout is asked for every task)."""
+    return tuple(json.loads(light_groups)) if light_groups else ()
+
+
 def job_layout(settings) -> Layout:
     """The layout of a job's settings (jobspec.JobSettings)."""
-    groups = tuple(json.loads(settings.light_groups)) if settings.light_groups else ()
-    return layout_for(settings.aovs, settings.denoise, groups)
+    return layout_for(settings.aovs, settings.denoise, group_names(settings.light_groups))
 
 
 # The light group of the environment (domain/light_groups.py), always a job's last.

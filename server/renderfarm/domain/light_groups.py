@@ -26,8 +26,9 @@ import re
 from typing import Any
 
 from ..errors import SettingsError
+from .channels import ENVIRONMENT_GROUP
 
-ENVIRONMENT = "environment"
+ENVIRONMENT = ENVIRONMENT_GROUP
 # Groups a job may have, the environment's included: each adds 24 bytes a pixel (float64 RGB)
 # on the server and 12 to every result; more are refused naming settings.aovs.
 MAX_GROUPS = 32
@@ -130,11 +131,6 @@ def scene_groups(document: dict[str, Any]) -> dict[str, list[int]]:
 def encode(groups: dict[str, list[int]]) -> str:
     """The settings value of a job's groups: compact JSON, in layer order."""
     return json.dumps(groups, separators=(",", ":"))
-
-
-def names(value: str) -> tuple[str, ...]:
-    """The group names of a settings value, in layer order (() for none)."""
-    return tuple(json.loads(value)) if value else ()
 
 
 def check_count(groups: dict[str, list[int]]) -> None:

@@ -513,32 +513,53 @@ Vec3 diffuse_btdf_cos(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi)
 // cos_i) is its V_GGX_anisotropic, with the film's Fresnel mixed in, and the Lambert BRDF
 // weighted by 1 - diffuseTransmission. The metal's multiple-scattering term keeps its
 // isotropic table at alpha sqrt(alpha_t alpha) (the compensation only).
-__attribute__((noinline)) Vec3 general_base(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
-                                            Vec3 wi, float* pdf) {
-  *pdf = 0.f;
-  if (wo.z <= 0.f || wi.z <= 0.f) return {0.f, 0.f, 0.f};
+// The terms of the base at (wo, wi) that general_base and bsdf_eval_lobes (its parts by lobe
+// category) share: false where the base is 0 (wo or wi below the surface, or no half vector).
+struct BaseTerms {
+  float c = 0.f;         // wo . h
+  float d = 0.f;         // D(h)
+  float lo = 0.f;        // Lambda(wo)
+  float spec = 0.f;      // D G2 / (4 cos_o cos_i)
+  float ms_alpha = 0.f;  // the isotropic alpha of the metal's compensation
+  Vec3 fd, fm;           // the dielectric layer's and the metal's Fresnel
+};
+inline bool base_terms(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi,
+                       BaseTerms* t) {
+  if (wo.z <= 0.f || wi.z <= 0.f) return false;
   const Vec3 h_raw = wo + wi;
   const float hl = length(h_raw);
-  if (!(hl > 0.f)) return {0.f, 0.f, 0.f};
+  if (!(hl > 0.f)) return false;
   const Vec3 h = h_raw / hl;
-  const float c = std::max(0.f, dot(wo, h));
-  const float fw = schlick_weight(c);
+  t->c = std::max(0.f, dot(wo, h));
+  const float fw = schlick_weight(t->c);
   const float ax = p.anisotropic() ? p.alpha_t : p.alpha, ay = p.alpha;
-  const Vec3 fd = dielectric_layer_fresnel(p, l, c);
-  Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
+  t->fd = dielectric_layer_fresnel(p, l, t->c);
+  t->fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
   if (p.iridescence > 0.f && p.metallic > 0.f) {
     // KHR_materials_iridescence over the metal's base colour.
     const float k = p.iridescence;
-    fm = fm * (1.f - k) +
-         iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, p.base) * k;
+    t->fm = t->fm * (1.f - k) +
+            iridescence_fresnel(1.f, p.iridescence_ior, t->c, p.iridescence_thickness, p.base) *
+                k;
   }
-  const float d = ggx_d_aniso(h, ax, ay);
-  const float lo = ggx_lambda_aniso(wo, ax, ay), li = ggx_lambda_aniso(wi, ax, ay);
-  const float spec = d / ((1.f + lo + li) * 4.f * wo.z * wi.z);
+  t->d = ggx_d_aniso(h, ax, ay);
+  t->lo = ggx_lambda_aniso(wo, ax, ay);
+  const float li = ggx_lambda_aniso(wi, ax, ay);
+  t->spec = t->d / ((1.f + t->lo + li) * 4.f * wo.z * wi.z);
+  t->ms_alpha = p.anisotropic() ? std::sqrt(ax * ay) : ay;
+  return true;
+}
+
+__attribute__((noinline)) Vec3 general_base(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
+                                            Vec3 wi, float* pdf) {
+  *pdf = 0.f;
+  BaseTerms t;
+  if (!base_terms(p, l, wo, wi, &t)) return {0.f, 0.f, 0.f};
+  const Vec3 fd = t.fd, fm = t.fm;
+  const float c = t.c, d = t.d, lo = t.lo, spec = t.spec;
   const float dt = has_diffuse_btdf(p) ? p.diffuse_transmission : 0.f;
   Vec3 diffuse = p.base * (l.wd * (1.f - dt) * (1.f - max3(fd)) * kInvPi);
-  if (p.metallic > 0.f)
-    diffuse += l.ms * (1.f - energy_table().e(wi.z, p.anisotropic() ? std::sqrt(ax * ay) : ay));
+  if (p.metallic > 0.f) diffuse += l.ms * (1.f - energy_table().e(wi.z, t.ms_alpha));
   Vec3 specular;
   for (int ch = 0; ch < 3; ++ch) specular[ch] = (l.wd * fd[ch] + fm[ch] * p.metallic) * spec;
   // The GGX sample's density: visible normals, G1(wo) (wo.h) D / cos_o, over 4 (wo.h).
@@ -871,35 +892,18 @@ void through_eval_lobes(const BsdfParams& p, Vec3 wo, Vec3 wi, Vec3 out[kLobeCat
 void bsdf_eval_lobes(const BsdfParams& p, const BsdfLobes& l, Vec3 wo, Vec3 wi,
                      Vec3 out[kLobeCategories]) {
   for (int k = 0; k < kLobeCategories; ++k) out[k] = Vec3(0.f, 0.f, 0.f);
-  if (wo.z <= 0.f || wi.z <= 0.f) return;
-  const Vec3 h_raw = wo + wi;
-  const float hl = length(h_raw);
-  if (!(hl > 0.f)) return;
-  // The base (general_base's formulas; for an isotropic lobe without a film they are
+  // The base (general_base's terms; for an isotropic lobe without a film they are
   // bsdf_eval_cos's): the Lambert lobe is diffuse, the GGX lobes and the metal's multiple
   // scattering glossy.
-  const Vec3 h = h_raw / hl;
-  const float c = std::max(0.f, dot(wo, h));
-  const float fw = schlick_weight(c);
-  const float ax = p.anisotropic() ? p.alpha_t : p.alpha, ay = p.alpha;
-  const Vec3 fd = dielectric_layer_fresnel(p, l, c);
-  Vec3 fm = p.base + (Vec3(1.f, 1.f, 1.f) - p.base) * fw;
-  if (p.iridescence > 0.f && p.metallic > 0.f) {
-    const float k = p.iridescence;
-    fm = fm * (1.f - k) +
-         iridescence_fresnel(1.f, p.iridescence_ior, c, p.iridescence_thickness, p.base) * k;
-  }
-  const float spec = ggx_d_aniso(h, ax, ay) /
-                     ((1.f + ggx_lambda_aniso(wo, ax, ay) + ggx_lambda_aniso(wi, ax, ay)) *
-                      4.f * wo.z * wi.z);
+  BaseTerms t;
+  if (!base_terms(p, l, wo, wi, &t)) return;
+  const Vec3 fd = t.fd, fm = t.fm;
+  const float spec = t.spec;
   const float dt = has_diffuse_btdf(p) ? p.diffuse_transmission : 0.f;
   Vec3 diffuse = p.base * (l.wd * (1.f - dt) * (1.f - max3(fd)) * kInvPi * wi.z);
   Vec3 glossy = (fd * l.wd + fm * p.metallic) * (spec * wi.z);
-  if (p.metallic > 0.f) {
-    // The metal's multiple scattering (at the isotropic alpha of the same area).
-    const float ms_alpha = p.anisotropic() ? std::sqrt(p.alpha_t * p.alpha) : p.alpha;
-    glossy += l.ms * ((1.f - energy_table().e(wi.z, ms_alpha)) * wi.z);
-  }
+  if (p.metallic > 0.f)  // the metal's multiple scattering
+    glossy += l.ms * ((1.f - energy_table().e(wi.z, t.ms_alpha)) * wi.z);
   // The layers (add_layers): the sheen scales the base and adds its own diffuse lobe, the coat
   // scales everything under it and adds its glossy lobe.
   if (!is_zero(p.sheen)) {
