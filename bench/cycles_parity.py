@@ -181,6 +181,8 @@ def render_worker(
                     repr(env["rotation_deg"])]  # fmt: skip
         if frame is not None:
             cmd += ["--time", repr(frame["time"])]
+        if getattr(args, "guiding", False):
+            cmd += ["--guiding", "on"]
         cmd += list(extra_args)
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -227,6 +229,15 @@ def mse(images: list[np.ndarray], reference: np.ndarray) -> np.ndarray:
     """Per channel: the mean squared error of one render against the reference (averaged over
     the K renders and the region's pixels)."""
     return np.mean([((im - reference) ** 2).mean(axis=(0, 1)) for im in images], axis=0)
+
+
+def variance(images: list[np.ndarray]) -> np.ndarray:
+    """Per channel: the variance of one render, from the K renders' spread (the unbiased
+    per-pixel variance across them, averaged over the region's pixels). Unlike the MSE against
+    Cycles' reference it leaves out the bias a model difference between the renderers adds
+    (docs/parity.md), which no amount of sampling removes: 1 / (variance x seconds) is the
+    efficiency of the estimator itself. Needs K >= 2."""
+    return np.stack(images).var(axis=0, ddof=1).mean(axis=(0, 1))
 
 
 def number(x: float) -> float | None:
@@ -295,6 +306,8 @@ def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
         mse_c = mse(crop(cyc["images"]), ref)
         mse_wt = mse(crop(wrk_t["images"]), ref)
         noise_ref = ref_var[y0:y1, x0:x1].mean(axis=(0, 1))
+        var_w, var_c = variance(crop(wrk["images"])), variance(crop(cyc["images"]))
+        var_wt = variance(crop(wrk_t["images"]))
         for i, ch in enumerate(CHANNELS):
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = w_mean[i] / c_mean[i]
@@ -302,6 +315,9 @@ def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
                 se = math.hypot(w_se[i] / c_mean[i], w_mean[i] * c_se[i] / c_mean[i] ** 2)
                 eff_w, eff_c = 1.0 / (mse_w[i] * t_w), 1.0 / (mse_c[i] * t_c)
                 eff_wt = 1.0 / (mse_wt[i] * t_wt)
+                # The same by the variance of one render (the estimator's own efficiency).
+                veff_w, veff_c = 1.0 / (var_w[i] * t_w), 1.0 / (var_c[i] * t_c)
+                veff_wt = 1.0 / (var_wt[i] * t_wt)
                 rows.append({
                     "region": name, "rect": [x0, y0, x1, y1], "channel": ch,
                     "worker_mean": number(w_mean[i]), "worker_se": number(w_se[i]),
@@ -315,6 +331,10 @@ def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
                     "worker_efficiency_equal_time": number(eff_wt),
                     "efficiency_ratio_equal_spp": number(eff_w / eff_c),
                     "efficiency_ratio_equal_time": number(eff_wt / eff_c),
+                    "worker_variance": number(var_w[i]), "cycles_variance": number(var_c[i]),
+                    "worker_variance_equal_time": number(var_wt[i]),
+                    "variance_efficiency_ratio_equal_spp": number(veff_w / veff_c),
+                    "variance_efficiency_ratio_equal_time": number(veff_wt / veff_c),
                 })  # fmt: skip
     return {
         "cycles_seconds": cyc["seconds"],
@@ -469,7 +489,7 @@ def run_scene(
                                                    "cycles_microfacet", "cycles_textures",
                                                    "cycles_volume", "cycles_anisotropy",
                                                    "lambert_dielectrics", "coverage",
-                                                   "fps")},
+                                                   "fps", "guiding")},
         **analyse(cyc, wrk, wrk_t, args, rects),
     }  # fmt: skip
     (out / f"{name}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -518,8 +538,9 @@ def furthest_block(figures: dict, tolerance: float = 0.005) -> dict | None:
 def print_summary(all_figures: list[dict]) -> None:
     """One Markdown row per scene, as docs/parity.md's results table has them."""
     print("| scene | ratio R / G / B (± SE), whole image | furthest block from 1 "
-          "| MSE worker / Cycles (G) | efficiency, equal spp / equal time (G) |")  # fmt: skip
-    print("|---|---|---|---|---|")
+          "| MSE worker / Cycles (G) | efficiency, equal spp / equal time (G) "
+          "| by variance, equal spp / equal time (G) |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
     for figures in all_figures:
         image = {r["channel"]: r for r in figures["rows"] if r["region"] == "image"}
         se = max(image[c]["ratio_se"] or 0.0 for c in CHANNELS)
@@ -532,7 +553,9 @@ def print_summary(all_figures: list[dict]) -> None:
         print(f"| `{figures['scene']}` | {ratios} (± {se:.4f}) | {far} "
               f"| {fmt(g['worker_mse'], '.3g')} / {fmt(g['cycles_mse'], '.3g')} "
               f"| {fmt(g['efficiency_ratio_equal_spp'], '.2f')} / "
-              f"{fmt(g['efficiency_ratio_equal_time'], '.2f')} |")  # fmt: skip
+              f"{fmt(g['efficiency_ratio_equal_time'], '.2f')} "
+              f"| {fmt(g.get('variance_efficiency_ratio_equal_spp'), '.2f')} / "
+              f"{fmt(g.get('variance_efficiency_ratio_equal_time'), '.2f')} |")  # fmt: skip
 
 
 def rectangle(text: str) -> tuple[int, int, int, int]:
@@ -583,6 +606,12 @@ def main() -> list[dict]:
         "against a 4096-spp reference",
     )
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "parity")
+    parser.add_argument(
+        "--guiding",
+        action="store_true",
+        help="the worker renders with path guiding (`render --guiding on`; #38); its training "
+        "is part of each render's seconds",
+    )
     parser.add_argument("--width", type=int, help="default 128 (--realistic: 320)")
     parser.add_argument("--height", type=int, help="default 128 (--realistic: 240)")
     parser.add_argument(

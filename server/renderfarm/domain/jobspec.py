@@ -262,6 +262,12 @@ SETTINGS: tuple[Setting, ...] = (
             "the scene (a value given is replaced), a JSON object of group name -> the glTF "
             "node indices in it, in the order of their layers, the environment last "
             "(docs/usage.md, Outputs)", 27, derived=True),
+    Setting("guiding", bool, False,
+            "path guiding: each worker first learns where the light comes from (a fixed set of "
+            "training paths, the same on every worker) and then samples those directions beside "
+            "the BSDF at diffuse surfaces; the image converges to the same mean, with less noise "
+            "where indirect light comes from a small part of the sphere (docs/usage.md, Path "
+            "guiding)", 28),
 )  # fmt: skip
 SETTING_NAMES = tuple(s.name for s in SETTINGS)
 SETTING_BY_NAME = {s.name: s for s in SETTINGS}

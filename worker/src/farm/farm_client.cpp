@@ -27,12 +27,14 @@
 #include <vector>
 
 #include "render/channels.h"
+#include "render/guiding.h"
 #include "render/integrators.h"
 #include "render/light_groups.h"
 #include "render/motion.h"
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
 #include "farm/frames.h"
+#include "farm/guide_cache.h"
 #include "farm/result_packer.h"
 #include "farm/scene_cache.h"
 #include "util/sha256.h"
@@ -120,6 +122,7 @@ bool settings_from_proto(const pb::RenderSettings& in, RenderSettings* out, std:
              " (expected path, direct or ao)";
       return false;
   }
+  out->guiding = in.guiding();
   out->aperture_radius = float(in.aperture_radius());
   out->focus_distance = float(in.focus_distance());
   *animation = in.animation();
@@ -225,6 +228,8 @@ class Worker {
   std::mutex warnings_mutex_;
   std::map<std::string, std::vector<std::string>> scene_warnings_;
   std::set<std::string> warnings_sent_;
+  // Path guiding's fields by job and frame (settings.guiding).
+  GuideCache guides_;
   // Loaded environment maps by (sha256, intensity, rotation); a handful at most.
   std::mutex env_mutex_;
   std::map<std::string, std::shared_ptr<const Environment>> environments_;
@@ -523,6 +528,32 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
     if (err.empty()) err = check_light_groups(*scene, *groups);
     if (!err.empty()) return fail({err, false});
     settings.light_groups = std::move(groups);
+  }
+  // Path guiding: the field of the task's frame, trained by the first task that needs it
+  // (with all of the worker's threads) and shared by the frame's other tasks. Its key names
+  // everything it is learned from that a job's tasks can differ in: the frame (scene pose,
+  // seed) and the variant.
+  if (settings.guiding) {
+    char time[32];
+    std::snprintf(time, sizeof time, "%.17g", task.animated() ? task.time_s() : 0.0);
+    const std::string key = task.job_id() + "/" + task.scene_sha256() + "/" +
+                            std::to_string(task.frame()) + "/" + time + "/" + variant + "/" +
+                            std::to_string(settings.seed);
+    try {
+      settings.guide = guides_.get(key, [&] {
+        GuideStats stats;
+        auto field = train_guide(*scene, settings, options_.threads, &stats);
+        char line[160];
+        std::snprintf(line, sizeof line,
+                      " frame %u: path guiding trained in %.2f s (%llu paths, %u regions)",
+                      task.frame(), stats.seconds, static_cast<unsigned long long>(stats.paths),
+                      stats.distributions);
+        log_line("job " + task.job_id() + line);
+        return field;
+      });
+    } catch (const std::exception& e) {
+      return fail({std::string("path guiding: ") + e.what(), true});
+    }
   }
   // The Motion row of an animated task: the scene posed (plain, no shutter) at the frames
   // before and after, t -+ 1 / fps, through the pose cache like the frame's own pose; only

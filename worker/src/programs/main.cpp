@@ -54,6 +54,8 @@ const char* kUsage =
     "      [--shutter OPEN,CLOSE [--fps F]]: motion blur over the shutter, its open and close\n"
     "      times fractions of a frame of 1/F seconds (default 24) after each time\n"
     "      [--variant NAME|INDEX]: KHR_materials_variants: render that variant's materials\n"
+    "      [--guiding on|off]: path guiding (default off here, the farm's setting `guiding`):\n"
+    "      learn the incident light first, then sample it beside the BSDF\n"
     "  renderfarm-worker pose SCENE.gltf|SCENE.glb [--time T [--animation I]...] [--json]\n"
     "      the posed scene as JSON (indented without --json): every node's world matrix\n"
     "      (column-major), the camera, the world mesh's vertex positions and normals, the\n"
@@ -220,7 +222,7 @@ int cmd_render(const std::vector<std::string>& arguments) {
                             "--sampler", "--integrator", "--max-depth", "--aperture-radius",
                             "--focus-distance", "--environment", "--environment-intensity",
                             "--environment-rotation-deg", "--bvh", "--stats-json", "--shutter",
-                            "--fps", "--variant"},
+                            "--fps", "--variant", "--guiding"},
                            &positional);
   if (positional.size() != 1) throw UsageError{"render expects exactly one scene file"};
   if (!flags.count("-o")) throw UsageError{"render needs -o OUT.exr"};
@@ -244,6 +246,12 @@ int cmd_render(const std::vector<std::string>& arguments) {
       !rf::parse_integrator_type(flags["--integrator"], &settings.integrator))
     throw UsageError{"unknown integrator '" + flags["--integrator"] +
                      "' (expected path, direct or ao)"};
+  if (flags.count("--guiding")) {
+    const std::string& g = flags["--guiding"];
+    if (g != "on" && g != "off")
+      throw UsageError{"--guiding must be on or off, not '" + g + "'"};
+    settings.guiding = g == "on";
+  }
   if (flags.count("--aperture-radius"))
     settings.aperture_radius = float(parse_double("--aperture-radius", flags["--aperture-radius"]));
   if (flags.count("--focus-distance"))
@@ -381,6 +389,10 @@ int cmd_render(const std::vector<std::string>& arguments) {
                  stats.seconds, double(stats.samples) / stats.seconds,
                  double(stats.rays) / stats.seconds * 1e-6);
     if (animated) std::fprintf(stderr, " (scene update %.4f s)", update_seconds);
+    if (settings.guiding)
+      std::fprintf(stderr, " (guide: %.3f s of it training on %llu paths, %u distributions)",
+                   stats.guide.seconds, static_cast<unsigned long long>(stats.guide.paths),
+                   stats.guide.distributions);
     if (stats.nonfinite_samples)
       std::fprintf(stderr, " (%llu non-finite samples recorded as 0)",
                    static_cast<unsigned long long>(stats.nonfinite_samples));
@@ -391,6 +403,7 @@ int cmd_render(const std::vector<std::string>& arguments) {
                             {"render_s", stats.seconds},
                             {"samples", stats.samples},
                             {"rays", stats.rays},
+                            {"guide_s", stats.guide.seconds},
                             {"triangles", scene->world_triangle_count()}};
     if (load.animated()) frame["time"] = times[i];
     if (const rf::DeformedMeshes* d = scene->deformed_meshes()) {

@@ -16,6 +16,7 @@
 namespace rf {
 
 struct LightGroups;  // render/light_groups.h
+class GuideField;    // render/guiding.h
 
 // path: unidirectional path tracing, NEE + MIS (power heuristic), Russian roulette after
 //       bounce 3, at most max_depth bounces.
@@ -44,6 +45,11 @@ struct RenderSettings {
   // The task's light groups (settings.light_groups, render/light_groups.h), which the
   // LightGroups row splits the radiance by; null: none (that row is then not rendered).
   std::shared_ptr<const LightGroups> light_groups;
+  // Path guiding (settings.guiding, render/guiding.h): whether the render asks for it, and
+  // the field train_guide learned for it, which the tracer samples beside the BSDF; null: no
+  // guiding (render_image trains it when guiding is set; the farm worker once per job's frame).
+  bool guiding = false;
+  std::shared_ptr<const GuideField> guide;
 };
 
 // One sample's radiance and what its camera ray hit first (every integrator sets the first-hit

@@ -180,7 +180,12 @@ void LightBatch::finish_contributions(const BsdfEvalBatch& batch) {
     F32x4 f[3];
     for (int c = 0; c < 3; ++c) f[c] = load4(batch.light_f(c) + i);
     // power_heuristic(pdf_light, pdf_bsdf).
-    const F32x4 pdf = load4(&pdf_light[i]), pdf_bsdf = load4(batch.light_pdf() + i);
+    const F32x4 pdf = load4(&pdf_light[i]);
+    F32x4 pdf_bsdf = load4(batch.light_pdf() + i);
+    if ((guided >> i) & 0xfu) {  // alpha p_guide + (1 - alpha) p_bsdf; alpha = 0 elsewhere
+      const F32x4 frac = load4(&guide_frac[i]);
+      pdf_bsdf = frac * load4(&guide_pdf[i]) + (one - frac) * pdf_bsdf;
+    }
     const F32x4 a = pdf * pdf, b = pdf_bsdf * pdf_bsdf;
     const F32x4 w = select4(a == zero, zero, select4(a == inf, one, a / (a + b)));
     const F32x4 factor = w / pdf;

@@ -91,8 +91,13 @@ struct LightBatch {
   alignas(16) float wi[3][kLanes] = {}, tmax[kLanes] = {};
   alignas(16) int32_t ok[kLanes] = {};
   alignas(16) float contribution[3][kLanes] = {};
+  // Path guiding: the lanes whose vertex is guided, with the guide's share alpha and its
+  // density of wi: their MIS weight uses the density alpha p_guide + (1 - alpha) p_bsdf with
+  // which the vertex samples directions (render/guiding.h).
+  uint32_t guided = 0;
+  alignas(16) float guide_frac[kLanes] = {}, guide_pdf[kLanes] = {};
 
-  void clear() { area = waiting = 0; }
+  void clear() { area = waiting = guided = 0; }
   // The area-light lanes' shadow rays, pdfs and tests, and their directions queued in *batch.
   void finish_geometry(BsdfEvalBatch* batch);
   // After batch->evaluate(): the waiting lanes' contributions, and ok cleared where f = 0.

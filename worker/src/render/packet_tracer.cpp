@@ -62,10 +62,12 @@ __attribute__((noinline)) uint32_t light_sample_group(const PathGroups& groups,
 void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p,
                         const Hit* hit, uint32_t bounce, uint32_t max_depth,
                         const DiskBatch& disks, BsdfEvalBatch* batch, LightBatch* lb,
-                        int lane, PathLobes* lobes, PathGroups* groups) {
+                        int lane, PathLobes* lobes, PathGroups* groups,
+                        const GuideField* guide, PathGuide* pg) {
   const Vec3 d = p.d;
   SampleResult& result = p.result;
   p.alive = false;
+  if (pg) pg->frac = 0.f;
   p.light_kind = LightSampleKind::None;
   p.bsdf_slot = -2;
   p.next_medium = p.medium;
@@ -161,8 +163,40 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   }
 
   BsdfSample& bs = p.bs;
+  BsdfDisks disk = disks.get(lane);
+  if (pg) {
+    // Path guiding: the direction from the guide with probability alpha, else from the BSDF
+    // (render/guiding.h). The choice splits the direction pair's first coordinate at alpha,
+    // each side rescaled to [0, 1): the pair's stratification is shared by both strategies
+    // rather than dealt to them at random.
+    const float part = guide_fraction(bsdf);
+    const uint32_t dist = part > 0.f ? guide->distribution_at(sp.above()) : GuideField::kNone;
+    if (dist != GuideField::kNone) {
+      const float alpha = part * guide->share(dist);
+      *pg = {alpha, dist, -1.f, 0.f};
+      Point2 uv = u.get2(dim::kBsdfU);
+      if (uv.x < alpha) {
+        uv.x = std::min(uv.x / alpha, 0x1.fffffep-1f);
+        float pdf = 0.f;
+        const Vec3 wi = guide->sample(dist, uv, &pdf);
+        const Vec3 wi_local = frame.to_local(wi);
+        // Below the surface every lobe a guided BSDF has is 0 (no transmission): the
+        // sample's estimate is 0.
+        if (!(wi_local.z > 0.f) || !(pdf > 0.f)) return;
+        pg->pdf = pdf;
+        bs.wi = wi_local;
+        bs.lobe = SampledLobe::Evaluated;
+        p.ng = sp.ng;
+        p.next_o = sp.above();
+        p.bsdf_slot = batch->add_sampled(lane, wi_local);
+        return;
+      }
+      uv.x = std::min((uv.x - alpha) / (1.f - alpha), 0x1.fffffep-1f);
+      disk = bsdf_disks(uv);
+    }
+  }
   const BsdfSampleStep step =
-      bsdf_sample_direction(sp.params, bsdf, wo_local, disks.get(lane), u.get(dim::kLobe),
+      bsdf_sample_direction(sp.params, bsdf, wo_local, disk, u.get(dim::kLobe),
                             // Read only by the glass lobe: skipped (any value would do) without
                             // one.
                             bsdf.glass > 0.f ? u.get(dim::kFresnel) : 0.f, &bs);
@@ -174,6 +208,9 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     p.bsdf_slot = batch->add_sampled(lane, bs.wi);
     return;
   }
+  // A lobe sampled whole (never guided: a guided BSDF has none) was chosen with
+  // probability 1 - alpha of what the BSDF alone gives it.
+  if (pg && pg->frac > 0.f) bs.weight = bs.weight / (1.f - pg->frac);
   const Vec3 wi = normalize(frame.to_world(bs.wi));
   if (wrong_side(wi, sp.ng, bs.transmitted)) return;
   p.next_o = bs.transmitted ? sp.below() : sp.above();
@@ -208,13 +245,20 @@ void shade_vertex_end_light(PathState& p, const LightBatch& lb, RayPacket* shado
 // ... then, if p.bsdf_slot != -2, the BSDF sample gives the next ray (p.alive) unless the path
 // ends here. It runs after the light part, whose throughput is the one before this vertex's
 // BSDF.
-void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch) {
+// A guided vertex's density is the mixture alpha p_guide + (1 - alpha) p_bsdf.
+void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch, const GuideField* guide,
+                           PathGuide* pg) {
   BsdfSample& bs = p.bs;
   if (p.bsdf_slot >= 0) {
     p.next_d = batch.world(p.bsdf_slot);
-    if (wrong_side(p.next_d, p.ng, false) ||
-        !bsdf_sample_finish(batch.f(p.bsdf_slot), batch.pdf(p.bsdf_slot), &bs))
-      return;
+    if (wrong_side(p.next_d, p.ng, false)) return;
+    float pdf = batch.pdf(p.bsdf_slot);
+    if (pg && pg->frac > 0.f) {
+      const float guide_pdf = pg->pdf >= 0.f ? pg->pdf : guide->pdf(pg->dist, p.next_d);
+      pg->bsdf_pdf = pdf;
+      pdf = pg->frac * guide_pdf + (1.f - pg->frac) * pdf;
+    }
+    if (!bsdf_sample_finish(batch.f(p.bsdf_slot), pdf, &bs)) return;
   }
   if (is_zero(bs.weight)) return;
   p.beta *= bs.weight;
@@ -277,6 +321,47 @@ void first_vertex_shares(const PathState* paths, const LightBatch& lights, uint3
   }
 }
 
+// Path guiding: the guide's density of the light sample's direction at the guided lanes'
+// vertices that wait for their BSDF value (after finish_geometry, which sets the area lights'
+// directions), for their MIS weight (LightBatch::finish_contributions).
+void guided_light_pdfs(const GuideField& guide, const PathGuide* guides, LightBatch* lb) {
+  uint32_t guided = 0;
+  for (uint32_t m = lb->waiting; m; m &= m - 1) {
+    const int i = __builtin_ctz(m);
+    const PathGuide& g = guides[i];
+    lb->guide_frac[i] = g.frac;
+    lb->guide_pdf[i] = 0.f;
+    if (!(g.frac > 0.f)) continue;
+    guided |= uint32_t(1) << i;
+    lb->guide_pdf[i] = guide.pdf(g.dist, Vec3(lb->wi[0][i], lb->wi[1][i], lb->wi[2][i]));
+  }
+  // The other waiting lanes of a block of four with a guided lane mix with alpha = 0.
+  lb->guided = 0;
+  for (int i = 0; i < kPacketSize; i += 4)
+    if ((guided >> i) & 0xfu) lb->guided |= 0xfu << i;
+}
+
+// Path guiding's training: each live path that goes on in a direction it sampled with a
+// density records its vertex (render/guiding.h, PathRecorder), at the end of the bounce, when
+// the vertex's own light sample is in its radiance.
+void record_vertices(const PathState* paths, const PathGuide* guides, uint32_t live,
+                     PathRecorder* recorders) {
+  for (uint32_t m = live; m; m &= m - 1) {
+    const int i = __builtin_ctz(m);
+    const PathState& p = paths[i];
+    PathRecorder& r = recorders[i];
+    if (!p.alive || p.prev_delta || r.n >= PathRecorder::kMaxVertices) continue;
+    const bool guided = guides && guides[i].frac > 0.f;
+    r.v[r.n++] = {p.o,
+                  p.d,
+                  p.beta,
+                  p.result.radiance,
+                  p.prev_bsdf_pdf,
+                  guided ? guides[i].bsdf_pdf : p.prev_bsdf_pdf,
+                  std::abs(dot(p.d, p.ng))};
+  }
+}
+
 // Traces the live paths of paths[0, kPacketSize) together, bounce by bounce: the rays of a
 // bounce go to Embree as one packet query and their shadow rays as another, and the BSDF
 // evaluations of the bounce's vertices are computed together. Each path computes exactly what
@@ -284,8 +369,11 @@ void first_vertex_shares(const PathState* paths, const LightBatch& lights, uint3
 // let Embree share traversal between similar rays (a pixel's camera rays, shadow rays towards
 // the same light) and let the shading of independent paths overlap. lobes: the paths' lobe
 // rows (kPacketSize of them), or null when they are off; groups: their light groups likewise.
+// guide: the field that guides the paths and guides their PathGuide (both null: unguided);
+// recorders: the paths' training records (null: none).
 void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
-                 uint32_t max_depth, PathLobes* lobes, PathGroups* groups) {
+                 uint32_t max_depth, PathLobes* lobes, PathGroups* groups,
+                 const GuideField* guide, PathGuide* guides, PathRecorder* recorders) {
   constexpr int kFewLanes = 3;
   static_assert(BsdfEvalBatch::kLanes == kPacketSize, "a batch lane per packet lane");
   static_assert(PixelSampler::kLanes16 == kPacketSize, "a sampler lane per packet lane");
@@ -365,9 +453,10 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       const int i = __builtin_ctz(m);
       shade_vertex_begin(scene, lc, paths[i], found[i] ? &hits[i] : nullptr, bounce, max_depth,
                          disks, &batch, &lights, i, lobes ? lobes + i : nullptr,
-                         groups ? groups + i : nullptr);
+                         groups ? groups + i : nullptr, guide, guides ? guides + i : nullptr);
     }
     lights.finish_geometry(&batch);
+    if (guides) guided_light_pdfs(*guide, guides, &lights);
     batch.evaluate();
     lights.finish_contributions(batch);
     uint32_t with_light = 0, going_on = 0;
@@ -380,22 +469,26 @@ void trace_paths(const Scene& scene, const LightContext& lc, PathState* paths,
       shade_vertex_end_light(paths[i], lights, &shadow, i);
     }
     for (uint32_t m = going_on & live; m; m &= m - 1)
-      shade_vertex_end_bsdf(paths[__builtin_ctz(m)], batch);
+      shade_vertex_end_bsdf(paths[__builtin_ctz(m)], batch, guide,
+                            guides ? guides + __builtin_ctz(m) : nullptr);
     uint32_t shadowed = 0;
     for (int i = 0; i < kPacketSize; ++i) shadowed |= uint32_t(shadow.active[i]) << i;
     if (lobes && bounce == 0) first_vertex_shares(paths, lights, live, shadowed, lobes);
-    if (!shadowed) continue;
-    scene.occluded(shadow, blocked,
-                   scene.has_transparency()
-                       ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Shadow)
-                       : 0);
-    for (; shadowed; shadowed &= shadowed - 1) {
-      const int i = __builtin_ctz(shadowed);
-      PathState& p = paths[i];
-      if (!blocked[i])
-        add_radiance(p, lobes ? lobes + i : nullptr, p.nee, bounce, RadianceSource::LightSample,
-                     groups ? groups + i : nullptr, groups ? groups[i].light_group : 0u);
+    if (shadowed) {
+      scene.occluded(shadow, blocked,
+                     scene.has_transparency()
+                         ? ray_query(pixel.seed(), pixel.pixel(), bounce, RayKind::Shadow)
+                         : 0);
+      for (; shadowed; shadowed &= shadowed - 1) {
+        const int i = __builtin_ctz(shadowed);
+        PathState& p = paths[i];
+        if (!blocked[i])
+          add_radiance(p, lobes ? lobes + i : nullptr, p.nee, bounce,
+                       RadianceSource::LightSample, groups ? groups + i : nullptr,
+                       groups ? groups[i].light_group : 0u);
+      }
     }
+    if (recorders) record_vertices(paths, guides, live, recorders);
   }
 }
 
@@ -482,18 +575,32 @@ void PathLobes::shares(const Vec3 f[kLobeCategories], Vec3 share[kLobeCategories
   }
 }
 
+void PathRecorder::finish(Vec3 radiance, std::vector<GuideRecord>* out) const {
+  for (int k = 0; k < n; ++k) {
+    const Vertex& x = v[k];
+    // The radiance that came back along d: what the path gathered after the vertex over the
+    // throughput it had then, per channel that carried any.
+    const Vec3 after = radiance - x.gathered;
+    float sum = 0.f;
+    for (int c = 0; c < 3; ++c)
+      if (x.beta[c] > 0.f) sum += std::max(0.f, after[c]) / x.beta[c];
+    const float value = sum * (1.f / 3.f) * x.cos / x.pdf;
+    if (!std::isfinite(value)) continue;
+    out->push_back({x.p, x.d, value, x.pdf, x.bsdf_pdf});
+  }
+}
+
 namespace {
 
-// trace_paths with the lobe rows or the light groups on (lobes_out, groups not null): the
-// paths' PathLobes and PathGroups on this function's stack (not on trace_samples', whose
-// frame stays as small as without them); the groups' values in group_values, lane k's from
-// k * groups->count().
-__attribute__((noinline)) void trace_paths_with_outputs(const Scene& scene,
-                                                        const LightContext& lc,
-                                                        PathState* paths, uint32_t max_depth,
-                                                        uint32_t n, LobeValues* lobes_out,
-                                                        const LightGroupMap* groups,
-                                                        Vec3* group_values) {
+// trace_paths with the lobe rows or the light groups on (lobes_out, groups not null), guided
+// (guide not null) or training a guide (guide_records not null): the paths' PathLobes,
+// PathGroups, PathGuide and PathRecorder on this function's stack (not on trace_samples',
+// whose frame stays as small as without them); the groups' values in group_values, lane k's
+// from k * groups->count(); the training records appended to *guide_records.
+__attribute__((noinline)) void trace_paths_with_outputs(
+    const Scene& scene, const LightContext& lc, PathState* paths, uint32_t max_depth,
+    uint32_t n, LobeValues* lobes_out, const LightGroupMap* groups, Vec3* group_values,
+    const GuideField* guide, std::vector<GuideRecord>* guide_records) {
   PathLobes lobes[kPacketSize];
   PathGroups path_groups[kPacketSize];
   if (groups) {
@@ -501,10 +608,28 @@ __attribute__((noinline)) void trace_paths_with_outputs(const Scene& scene,
     std::fill(group_values, group_values + size_t(count) * n, Vec3(0.f, 0.f, 0.f));
     for (uint32_t k = 0; k < n; ++k) path_groups[k] = {groups, group_values + k * count, 0u};
   }
-  trace_paths(scene, lc, paths, max_depth, lobes_out ? lobes : nullptr,
-              groups ? path_groups : nullptr);
+  PathGuide guides[kPacketSize];
+  if (guide_records) {
+    PathRecorder recorders[kPacketSize];
+    trace_paths(scene, lc, paths, max_depth, lobes_out ? lobes : nullptr,
+                groups ? path_groups : nullptr, guide, guide ? guides : nullptr, recorders);
+    for (uint32_t k = 0; k < n; ++k)
+      recorders[k].finish(paths[k].result.radiance, guide_records);
+  } else {
+    trace_paths(scene, lc, paths, max_depth, lobes_out ? lobes : nullptr,
+                groups ? path_groups : nullptr, guide, guide ? guides : nullptr, nullptr);
+  }
   if (lobes_out)
     for (uint32_t k = 0; k < n; ++k) lobes_out[k] = lobes[k].values;
+}
+
+// trace_paths guided by `guide`, without outputs or training: only the paths' PathGuide on this
+// function's stack (trace_paths_with_outputs's PathLobes cost more to make than guiding saves).
+__attribute__((noinline)) void trace_paths_guided(const Scene& scene, const LightContext& lc,
+                                                  PathState* paths, uint32_t max_depth,
+                                                  const GuideField* guide) {
+  PathGuide guides[kPacketSize];
+  trace_paths(scene, lc, paths, max_depth, nullptr, nullptr, guide, guides, nullptr);
 }
 
 }  // namespace
@@ -513,7 +638,8 @@ __attribute__((noinline)) void trace_paths_with_outputs(const Scene& scene,
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                    const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
                    uint32_t n, SampleResult* out, LobeValues* lobes,
-                   const LightGroupMap* groups, Vec3* group_values) {
+                   const LightGroupMap* groups, Vec3* group_values,
+                   std::vector<GuideRecord>* guide_records) {
   if (settings.integrator == IntegratorType::AmbientOcclusion) {
     for (uint32_t k = 0; k < n; ++k) {
       const PathState p = start_path(ctx, scene, settings, sampler, x, y, first + k);
@@ -537,11 +663,17 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
     paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k,
                           batched ? camera_dims : nullptr);
   }
-  if (lobes || groups)
+  // Training or with outputs, or guided: out of line, so that the plain tracer stays as it
+  // was.
+  const GuideField* guide = settings.guide.get();
+  if (lobes || groups || guide_records)
     trace_paths_with_outputs(scene, ctx.lights, paths, path_max_depth(settings), n, lobes,
-                             groups, group_values);
+                             groups, group_values, guide, guide_records);
+  else if (guide)
+    trace_paths_guided(scene, ctx.lights, paths, path_max_depth(settings), guide);
   else
-    trace_paths(scene, ctx.lights, paths, path_max_depth(settings), nullptr, nullptr);
+    trace_paths(scene, ctx.lights, paths, path_max_depth(settings), nullptr, nullptr, nullptr,
+                nullptr, nullptr);
   for (uint32_t k = 0; k < n; ++k) out[k] = paths[k].result;
 }
 

@@ -5,7 +5,9 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
+#include "render/guiding.h"
 #include "render/integrators.h"
 #include "render/light_groups.h"
 #include "render/light_sampling.h"
@@ -54,6 +56,37 @@ struct PathState {
   // KHR_materials_volume: the absorption coefficient of the medium the ray travels in (0:
   // none), and the one the next ray will (a transmission into or out of a volume changes it).
   Vec3 medium, next_medium;
+};
+
+// Path guiding (render/guiding.h) at a path's current vertex, kept beside its PathState only
+// when the render is guided (so that an unguided path's state keeps its size): the
+// probability alpha with which its direction came from the guide (0: not guided), the guide's
+// distribution there, and the guide's density of the sampled direction if the guide sampled
+// it (-1: the BSDF did; its guide density is looked up once the direction is known).
+struct PathGuide {
+  float frac = 0.f;
+  uint32_t dist = 0;
+  float pdf = -1.f;
+  float bsdf_pdf = 0.f;  // the BSDF's own density of the sampled direction (for training)
+};
+
+// Path guiding's training (train_guide, render/guiding.h): the vertices of a path being traced
+// that left a surface in a direction sampled with a density (not a delta lobe), with what the
+// path had gathered by then, so that once the path ends each vertex's incident radiance is
+// what it gathered after, divided by the throughput after the vertex.
+struct PathRecorder {
+  static constexpr int kMaxVertices = 16;  // deeper vertices are not recorded
+  struct Vertex {
+    Vec3 p, d;
+    Vec3 beta;      // throughput after the vertex's BSDF sample
+    Vec3 gathered;  // the path's radiance when the vertex's own light sample was in
+    float pdf = 0.f, bsdf_pdf = 0.f;  // GuideRecord's
+    float cos = 0.f;  // |cos| of d to the vertex's geometric normal
+  };
+  Vertex v[kMaxVertices];
+  int n = 0;
+  // Appends the records of the finished path whose radiance is `radiance` to *out.
+  void finish(Vec3 radiance, std::vector<GuideRecord>* out) const;
 };
 
 // Where a contribution to a sample's radiance comes from: the environment a ray escaped to,
@@ -198,10 +231,13 @@ SampleResult trace_ao(const Scene& scene, const PathState& camera);
 // rows into lobes[0, n) unless lobes is null, and their radiance by light group into
 // group_values[k * groups->count() + g] (sample first + k, group g) unless groups is null (the
 // rows are off; the radiance and everything else is the same bit for bit either way). The ao
-// integrator's lobe rows and light groups are 0.
+// integrator's lobe rows and light groups are 0. Path guiding's training records of the samples
+// are appended to *guide_records unless it is null (render/guiding.h). With settings.guide set,
+// the paths are guided by it.
 void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSettings& settings,
                    const PixelSampler& sampler, uint32_t x, uint32_t y, uint32_t first,
                    uint32_t n, SampleResult* out, LobeValues* lobes = nullptr,
-                   const LightGroupMap* groups = nullptr, Vec3* group_values = nullptr);
+                   const LightGroupMap* groups = nullptr, Vec3* group_values = nullptr,
+                   std::vector<GuideRecord>* guide_records = nullptr);
 
 }  // namespace rf

@@ -7,12 +7,18 @@
 #include <vector>
 
 #include "render/channels.h"
+#include "render/guiding.h"
 
 namespace rf {
 
-Image render_image(const Scene& scene, const RenderSettings& settings, uint32_t spp,
+Image render_image(const Scene& scene, const RenderSettings& given, uint32_t spp,
                    uint32_t threads, RenderStats* stats,
                    const std::function<void(size_t, size_t)>& progress) {
+  const auto t0 = std::chrono::steady_clock::now();
+  RenderSettings settings = given;
+  GuideStats guide_stats;
+  if (settings.guiding && !settings.guide)
+    settings.guide = train_guide(scene, settings, threads, &guide_stats);
   Image image(settings.width, settings.height);
   std::vector<PixelRect> tiles;
   for (uint32_t y = 0; y < settings.height; y += kTileSize)
@@ -23,7 +29,6 @@ Image render_image(const Scene& scene, const RenderSettings& settings, uint32_t 
   std::atomic<uint64_t> rays{0}, nonfinite{0};
   std::mutex progress_mutex;
   size_t done = 0;
-  const auto t0 = std::chrono::steady_clock::now();
   auto worker = [&]() {
     TileBuffer buffer;
     for (;;) {
@@ -47,6 +52,7 @@ Image render_image(const Scene& scene, const RenderSettings& settings, uint32_t 
     stats->rays = rays;
     stats->samples = uint64_t(settings.width) * settings.height * spp;
     stats->nonfinite_samples = nonfinite;
+    stats->guide = guide_stats;
   }
   return image;
 }
