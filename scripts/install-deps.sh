@@ -21,9 +21,12 @@
 #   scripts/install-deps.sh --blender        Blender as a Python module (bpy, PyPI) in its own
 #                                            virtual environment .venv-blender, for the add-on's
 #                                            tests (tests/test_blender_addon.py; `make test`)
+#   scripts/install-deps.sh --mitsuba        Mitsuba 3 (PyPI) in its own virtual environment
+#                                            .venv-mitsuba, for bench/worker_throughput.py
+#                                            --mitsuba (a benchmark, not a test)
 #   scripts/install-deps.sh --print GROUP    print a package group (build, web, runtime-server,
-#                                            runtime-worker, deploy, deploy-pip, blender-pip)
-#                                            and exit
+#                                            runtime-worker, deploy, deploy-pip, blender-pip,
+#                                            mitsuba-pip) and exit
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -72,6 +75,10 @@ KUSTOMIZE_MODULE=sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
 # .venv-blender, apart from .venv: bpy 5.0.1 requires numpy < 2 and OpenImageIO 3.2 (the
 # server's) numpy >= 2. The wheel is ~375 MB (about 1 GB installed). Python 3.11, as Blender 5.0.
 PIP_BLENDER=(bpy==5.0.1)
+# Mitsuba 3, the peer bench/worker_throughput.py --mitsuba times on the Cornell box. 3.5.2: the
+# Dr.Jit of later releases (3.9.1 tried) emits LLVM's fminimum, which Debian 12's LLVM 14 and 15
+# (its JIT backend for the llvm_* variants) cannot select on x86.
+PIP_MITSUBA=(mitsuba==3.5.2 numpy)
 
 SUDO=""
 [ "$(id -u)" -eq 0 ] || SUDO="sudo"
@@ -158,6 +165,19 @@ blender_venv() {
   fi
 }
 
+mitsuba_venv() {
+  apt_install python3 python3-venv libllvm15  # libLLVM-15.so: the llvm_* variants' JIT
+  local stamp
+  stamp=.venv-mitsuba/.installed-$(printf '%s\n' "${PIP_MITSUBA[@]}" | sha256sum | cut -c1-16)
+  if [ ! -f "$stamp" ]; then
+    echo "installing ${PIP_MITSUBA[*]} into .venv-mitsuba"
+    [ -x .venv-mitsuba/bin/python ] || "${PYTHON:-python3}" -m venv .venv-mitsuba
+    .venv-mitsuba/bin/pip install -q "${PIP_MITSUBA[@]}"
+    rm -f .venv-mitsuba/.installed-*
+    touch "$stamp"
+  fi
+}
+
 case "${1:-}" in
   "")
     apt_install "${APT_BUILD[@]}"
@@ -187,6 +207,9 @@ case "${1:-}" in
   --blender)
     blender_venv
     ;;
+  --mitsuba)
+    mitsuba_venv
+    ;;
   --print)
     case "${2:-}" in
       build) printf '%s\n' "${APT_BUILD[@]}" ;;
@@ -196,7 +219,8 @@ case "${1:-}" in
       deploy) printf '%s\n' "${APT_DEPLOY[@]}" ;;
       deploy-pip) printf '%s\n' "${PIP_DEPLOY[@]}" ;;
       blender-pip) printf '%s\n' "${PIP_BLENDER[@]}" ;;
-      *) echo "usage: $0 --print build|web|runtime-server|runtime-worker|deploy|deploy-pip|blender-pip" >&2; exit 2 ;;
+      mitsuba-pip) printf '%s\n' "${PIP_MITSUBA[@]}" ;;
+      *) echo "usage: $0 --print build|web|runtime-server|runtime-worker|deploy|deploy-pip|blender-pip|mitsuba-pip" >&2; exit 2 ;;
     esac
     ;;
   *)
