@@ -213,31 +213,29 @@ def regions(width: int, height: int, grid: int, rects: list[tuple[int, int, int,
     return out
 
 
-def region_mean_and_se(images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Per channel: the mean of the region over the K renders, and its standard error from the
-    per-pixel variance across the renders (pixels independent: sum of variances / n^2)."""
+def pixel_variance(images) -> np.ndarray:
+    """Per pixel (and channel): the unbiased variance of one render across the K renders."""
+    return np.stack(images).var(axis=0, ddof=1)
+
+
+def region_stats(images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel: the mean of the region over the K renders, its standard error (pixels
+    independent: the per-pixel variances summed over n^2), and the variance of one render (the
+    per-pixel variance across the renders, averaged over the region's pixels). Unlike the MSE
+    against Cycles' reference the variance leaves out the bias a model difference between the
+    renderers adds (docs/parity.md), which no amount of sampling removes: 1 / (variance x
+    seconds) is the efficiency of the estimator itself. Needs K >= 2."""
     stack = np.stack(images)  # K x h x w x 3
     k = stack.shape[0]
     n = stack.shape[1] * stack.shape[2]
-    mean = stack.mean(axis=(0, 1, 2))
-    var_one = stack.var(axis=0, ddof=1)  # the variance of one render's pixel
-    se = np.sqrt(var_one.sum(axis=(0, 1)) / k) / n
-    return mean, se
+    var = pixel_variance(stack).mean(axis=(0, 1))
+    return stack.mean(axis=(0, 1, 2)), np.sqrt(var / (k * n)), var
 
 
 def mse(images: list[np.ndarray], reference: np.ndarray) -> np.ndarray:
     """Per channel: the mean squared error of one render against the reference (averaged over
     the K renders and the region's pixels)."""
     return np.mean([((im - reference) ** 2).mean(axis=(0, 1)) for im in images], axis=0)
-
-
-def variance(images: list[np.ndarray]) -> np.ndarray:
-    """Per channel: the variance of one render, from the K renders' spread (the unbiased
-    per-pixel variance across them, averaged over the region's pixels). Unlike the MSE against
-    Cycles' reference it leaves out the bias a model difference between the renderers adds
-    (docs/parity.md), which no amount of sampling removes: 1 / (variance x seconds) is the
-    efficiency of the estimator itself. Needs K >= 2."""
-    return np.stack(images).var(axis=0, ddof=1).mean(axis=(0, 1))
 
 
 def number(x: float) -> float | None:
@@ -293,21 +291,20 @@ def analyse(cyc: dict, wrk: dict, wrk_t: dict, args, rects) -> dict:
     rows = []
     # The reference's own noise adds to both sides' MSE: estimated from Cycles' K renders,
     # scaled by spp / reference_spp.
-    ref_var = np.stack(cyc["images"]).var(axis=0, ddof=1) * args.spp / args.reference_spp
+    ref_var = pixel_variance(cyc["images"]) * args.spp / args.reference_spp
     for name, (x0, y0, x1, y1) in regions(args.width, args.height, args.grid, rects):
 
         def crop(ims, x0=x0, y0=y0, x1=x1, y1=y1):
             return [im[y0:y1, x0:x1] for im in ims]
 
-        w_mean, w_se = region_mean_and_se(crop(wrk["images"]))
-        c_mean, c_se = region_mean_and_se(crop(cyc["images"]))
+        w_mean, w_se, var_w = region_stats(crop(wrk["images"]))
+        c_mean, c_se, var_c = region_stats(crop(cyc["images"]))
+        var_wt = region_stats(crop(wrk_t["images"]))[2]
         ref = cyc["reference"][y0:y1, x0:x1]
         mse_w = mse(crop(wrk["images"]), ref)
         mse_c = mse(crop(cyc["images"]), ref)
         mse_wt = mse(crop(wrk_t["images"]), ref)
         noise_ref = ref_var[y0:y1, x0:x1].mean(axis=(0, 1))
-        var_w, var_c = variance(crop(wrk["images"])), variance(crop(cyc["images"]))
-        var_wt = variance(crop(wrk_t["images"]))
         for i, ch in enumerate(CHANNELS):
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = w_mean[i] / c_mean[i]

@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from cycles_parity import generate_scenes, worker_binary
+from cycles_parity import generate_scenes, pixel_variance, regions, worker_binary
 from support.parity_scenes import REALISTIC, SCENES
 from support.results import write_results
 
@@ -107,22 +107,8 @@ def render(client: Client, scene: Path, settings: dict, seed: int, path: Path) -
     return {"layers": out, "seconds": seconds, "rgb_gap": gap}
 
 
-def pixel_variance(stack: np.ndarray) -> np.ndarray:
-    """Per pixel: the unbiased variance of one render across the K renders (K x h x w)."""
-    return stack.var(axis=0, ddof=1)
-
-
 def share(part: float, whole: float) -> float | None:
     return float(part / whole) if whole > 0 else None
-
-
-def blocks(height: int, width: int, grid: int):
-    """(name, (x0, y0, x1, y1)) of a grid x grid grid, rows from the top, x1 and y1 exclusive."""
-    xs = np.linspace(0, width, grid + 1).round().astype(int)
-    ys = np.linspace(0, height, grid + 1).round().astype(int)
-    for r in range(grid):
-        for c in range(grid):
-            yield f"r{r}c{c}", (int(xs[c]), int(ys[r]), int(xs[c + 1]), int(ys[r + 1]))
 
 
 def analyse(renders: list[dict], grid: int) -> dict:
@@ -173,7 +159,7 @@ def analyse(renders: list[dict], grid: int) -> dict:
     }  # fmt: skip
     figures["blocks"] = []
     h, w = var["image"].shape
-    for name, (x0, y0, x1, y1) in blocks(h, w, grid):
+    for name, (x0, y0, x1, y1) in regions(w, h, grid, [])[1:]:  # [0]: the whole image
         in_block = {lobe: float(var[lobe][y0:y1, x0:x1].sum()) for lobe in LOBE_NAMES}
         largest = max(in_block, key=in_block.get)
         figures["blocks"].append({
@@ -255,7 +241,7 @@ def main() -> dict:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--max-depth", type=int, default=13)
-    parser.add_argument("--grid", type=int, default=4, help="the image's blocks: N x N")
+    parser.add_argument("--grid", type=int, default=4, help="the image's blocks: N x N (N >= 2)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument(
         "--setting",
@@ -272,6 +258,8 @@ def main() -> dict:
             parser.error(f"--{key.replace('_', '-')} must be >= 1")
     if args.renders < 2:
         parser.error("--renders must be >= 2 (the variance is estimated across renders)")
+    if args.grid < 2:
+        parser.error("--grid must be >= 2 (the image split into blocks)")
     unknown = [n for n in args.scenes if n not in SCENES]
     if unknown:
         parser.error(f"not parity scenes: {', '.join(unknown)} (known: {', '.join(SCENES)})")

@@ -152,30 +152,29 @@ deploy_tools() {
   fi
 }
 
-blender_venv() {
-  apt_install "${APT_BUILD[@]}"
-  local stamp
-  stamp=.venv-blender/.installed-$(printf '%s\n' "${PIP_BLENDER[@]}" | sha256sum | cut -c1-16)
+# A virtual environment DIR of its own with the pip packages given, installed once: a stamp
+# named by their hash says it is done (a new list installs again).
+pip_venv() {
+  local dir=$1 stamp
+  shift
+  stamp=$dir/.installed-$(printf '%s\n' "$@" | sha256sum | cut -c1-16)
   if [ ! -f "$stamp" ]; then
-    echo "installing ${PIP_BLENDER[*]} into .venv-blender"
-    [ -x .venv-blender/bin/python ] || "${PYTHON:-python3}" -m venv .venv-blender
-    .venv-blender/bin/pip install -q "${PIP_BLENDER[@]}"
-    rm -f .venv-blender/.installed-*
+    echo "installing $* into $dir"
+    [ -x "$dir/bin/python" ] || "${PYTHON:-python3}" -m venv "$dir"
+    "$dir/bin/pip" install -q "$@"
+    rm -f "$dir"/.installed-*
     touch "$stamp"
   fi
 }
 
+blender_venv() {
+  apt_install "${APT_BUILD[@]}"
+  pip_venv .venv-blender "${PIP_BLENDER[@]}"
+}
+
 mitsuba_venv() {
   apt_install python3 python3-venv libllvm15  # libLLVM-15.so: the llvm_* variants' JIT
-  local stamp
-  stamp=.venv-mitsuba/.installed-$(printf '%s\n' "${PIP_MITSUBA[@]}" | sha256sum | cut -c1-16)
-  if [ ! -f "$stamp" ]; then
-    echo "installing ${PIP_MITSUBA[*]} into .venv-mitsuba"
-    [ -x .venv-mitsuba/bin/python ] || "${PYTHON:-python3}" -m venv .venv-mitsuba
-    .venv-mitsuba/bin/pip install -q "${PIP_MITSUBA[@]}"
-    rm -f .venv-mitsuba/.installed-*
-    touch "$stamp"
-  fi
+  pip_venv .venv-mitsuba "${PIP_MITSUBA[@]}"
 }
 
 case "${1:-}" in

@@ -34,7 +34,6 @@
 #include "renderfarm/v1/scenes.grpc.pb.h"
 #include "renderfarm/v1/workers.grpc.pb.h"
 #include "farm/frames.h"
-#include "farm/guide_cache.h"
 #include "farm/result_packer.h"
 #include "farm/scene_cache.h"
 #include "util/sha256.h"
@@ -46,6 +45,10 @@ namespace rf {
 namespace {
 
 using Clock = std::chrono::steady_clock;
+
+// Path guiding's fields a worker keeps (one per frame of a job; a job's frames are leased
+// mostly in order, a few at a time per worker; each field a few MB at most).
+constexpr size_t kGuideFields = 4;
 
 std::mutex g_log_mutex;
 void log_line(const std::string& message) {
@@ -228,8 +231,9 @@ class Worker {
   std::mutex warnings_mutex_;
   std::map<std::string, std::vector<std::string>> scene_warnings_;
   std::set<std::string> warnings_sent_;
-  // Path guiding's fields by job and frame (settings.guiding).
-  GuideCache guides_;
+  // Path guiding's fields by job and frame (settings.guiding): each trained once by the first
+  // task of its frame while the frame's other tasks wait, the last few kept.
+  SceneCache guides_{kGuideFields};
   // Loaded environment maps by (sha256, intensity, rotation); a handful at most.
   std::mutex env_mutex_;
   std::map<std::string, std::shared_ptr<const Environment>> environments_;
@@ -540,7 +544,7 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
                             std::to_string(task.frame()) + "/" + time + "/" + variant + "/" +
                             std::to_string(settings.seed);
     try {
-      settings.guide = guides_.get(key, [&] {
+      settings.guide = guides_.get_derived<GuideField>(key, [&] {
         GuideStats stats;
         auto field = train_guide(*scene, settings, options_.threads, &stats);
         char line[160];

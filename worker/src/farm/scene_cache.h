@@ -56,6 +56,15 @@ class SceneCache {
   std::shared_ptr<const Scene> get_posed(const std::string& sha256, const std::string& selection,
                                          const std::string& pose_key,
                                          const AnimatedLoader& prepare, const Poser& pose);
+  // A value the worker derives from a scene and keeps the same way (path guiding's fields, in
+  // a SceneCache of their own so that they never evict a scene): key's value, made by make()
+  // once, with the same waiting, failure and eviction rules as get() (no bytes counted).
+  template <typename T>
+  std::shared_ptr<const T> get_derived(const std::string& key,
+                                       const std::function<std::shared_ptr<const T>()>& make) {
+    return std::static_pointer_cast<const T>(
+        get_value(key, "", [&] { return Loaded{make(), 0}; }));
+  }
   size_t size() const;
   // Bytes held by the loaded entries in the cache.
   size_t memory_bytes() const;

@@ -7,7 +7,9 @@
 #include <fstream>
 #include <stdexcept>
 #include <thread>
+#include <vector>
 
+#include "render/guiding.h"
 #include "testing/test_scenes.h"
 
 namespace rf {
@@ -162,6 +164,70 @@ TEST(SceneCache, AFailedPoseIsNotCachedAndKeepsTheAnimatedScene) {
   EXPECT_EQ(prepares, 1);
   EXPECT_EQ(cache.size(), 1u);  // the animated scene only
   std::filesystem::remove(path);
+}
+
+// Derived values (path guiding's fields, farm_client.cpp: a SceneCache of their own, one per
+// frame of a job).
+
+// A field of its own for each call (an empty one: no records).
+std::shared_ptr<const GuideField> empty_field() {
+  std::vector<GuideRecord> none;
+  return std::make_shared<const GuideField>(Vec3(0.f, 0.f, 0.f), Vec3(1.f, 1.f, 1.f), &none);
+}
+
+// Eight tasks of one frame asking at once: one trains, the others get its field.
+TEST(SceneCache, ADerivedValueIsMadeOnceWhileItsOtherCallersWait) {
+  SceneCache cache(4);
+  std::atomic<int> trained{0};
+  std::atomic<bool> release{false};
+  std::vector<std::shared_ptr<const GuideField>> got(8);
+  std::vector<std::thread> tasks;
+  for (int i = 0; i < 8; ++i)
+    tasks.emplace_back([&, i] {
+      got[size_t(i)] = cache.get_derived<GuideField>("job/frame1", [&] {
+        ++trained;
+        while (!release) std::this_thread::yield();  // the others arrive meanwhile
+        return empty_field();
+      });
+    });
+  // Every task is either training or waiting: none can finish before the release.
+  for (const auto& g : got) EXPECT_EQ(g, nullptr);
+  release = true;
+  for (std::thread& t : tasks) t.join();
+  EXPECT_EQ(trained.load(), 1);
+  for (const auto& g : got) EXPECT_EQ(g, got[0]);
+  EXPECT_NE(got[0], nullptr);
+}
+
+TEST(SceneCache, KeepsTheLastDerivedValuesAndMakesAnEvictedOneAgain) {
+  constexpr size_t kEntries = 4;
+  SceneCache cache(kEntries);
+  int trained = 0;
+  const std::function<std::shared_ptr<const GuideField>()> train = [&] {
+    ++trained;
+    return empty_field();
+  };
+  const auto first = cache.get_derived<GuideField>("f0", train);
+  for (size_t k = 1; k <= kEntries; ++k)
+    cache.get_derived<GuideField>("f" + std::to_string(k), train);
+  EXPECT_EQ(cache.size(), kEntries);
+  EXPECT_EQ(trained, int(kEntries) + 1);
+  // The newest are kept...
+  cache.get_derived<GuideField>("f" + std::to_string(kEntries), train);
+  EXPECT_EQ(trained, int(kEntries) + 1);
+  // ... the first was evicted: trained again, a new field.
+  EXPECT_NE(cache.get_derived<GuideField>("f0", train), first);
+  EXPECT_EQ(trained, int(kEntries) + 2);
+}
+
+TEST(SceneCache, AFailedDerivedValueIsMadeAgainByTheNextCaller) {
+  SceneCache cache(4);
+  EXPECT_THROW(cache.get_derived<GuideField>("f", []() -> std::shared_ptr<const GuideField> {
+    throw std::runtime_error("out of memory");
+  }),
+               std::runtime_error);
+  EXPECT_EQ(cache.size(), 0u);
+  EXPECT_NE(cache.get_derived<GuideField>("f", empty_field), nullptr);
 }
 
 }  // namespace

@@ -26,21 +26,11 @@ inline bool split_low(float* u, float p) {
   return false;
 }
 
-
 }  // namespace
 
 Point2 guide_square(Vec3 d) {
-  const float z = std::clamp(d.z, -1.f, 1.f);
-  float phi = std::atan2(d.y, d.x);
-  if (phi < 0.f) phi += 2.f * kPi;
-  return {std::min((z + 1.f) * 0.5f, kOneBelow), std::min(phi * (0.5f / kPi), kOneBelow)};
-}
-
-Vec3 guide_direction(Point2 s) {
-  const float z = 2.f * s.x - 1.f;
-  const float r = std::sqrt(std::max(0.f, 1.f - z * z));
-  const float phi = 2.f * kPi * s.y;
-  return Vec3(r * std::cos(phi), r * std::sin(phi), z);
+  const Point2 s = invert_uniform_sphere(d);
+  return {std::clamp(s.x, 0.f, kOneBelow), std::clamp(s.y, 0.f, kOneBelow)};
 }
 
 float guide_fraction(const BsdfLobes& l) {
@@ -193,8 +183,8 @@ Vec3 GuideField::sample(uint32_t dist, Point2 u, float* pdf) const {
     node = n.child[q];
   }
   *pdf = density * (0.25f / kPi);
-  return guide_direction({std::min(ox + u.x * size, kOneBelow),
-                          std::min(oy + u.y * size, kOneBelow)});
+  return sample_uniform_sphere({std::min(ox + u.x * size, kOneBelow),
+                                std::min(oy + u.y * size, kOneBelow)});
 }
 
 float GuideField::pdf(uint32_t dist, Vec3 d) const {
@@ -216,8 +206,8 @@ float GuideField::pdf(uint32_t dist, Vec3 d) const {
 
 namespace {
 
-// The training pixels: every stride-th pixel in x and y (the centre of each stride x stride
-// block's first pixel), so that width * height / stride^2 * spp <= kMaxPaths.
+// The training pixels: every stride-th pixel in x and y (the first pixel of each stride x
+// stride block), so that width * height / stride^2 * spp <= kMaxPaths.
 uint32_t training_stride(const RenderSettings& settings) {
   const double paths = double(settings.width) * settings.height *
                        GuideTraining::kSamplesPerPixel;
@@ -275,8 +265,6 @@ std::shared_ptr<const GuideField> train_guide(const Scene& scene, const RenderSe
   if (settings.integrator == IntegratorType::AmbientOcclusion) return nullptr;
   const auto t0 = std::chrono::steady_clock::now();
   RenderSettings training = settings;
-  training.guide = nullptr;
-  training.light_groups = nullptr;
   std::shared_ptr<const GuideField> field;
   uint64_t paths = 0, records_total = 0;
   for (uint32_t it = 0; it < GuideTraining::kIterations; ++it) {

@@ -133,11 +133,11 @@ class GuideField {
   uint32_t leaves_ = 0;
 };
 
-// The cylindrical equal-area map of the unit sphere onto [0, 1)^2 (z = 2x - 1, phi = 2 pi y)
-// and back; its Jacobian is constant: a density on the square is 4 pi times the solid-angle
-// density.
+// The quadtrees' square: the cylindrical equal-area map of the sphere (sampling.h's uniform
+// sphere, z = 1 - 2x, phi = 2 pi y; sample_uniform_sphere maps a point back), its coordinates
+// kept in [0, 1) so that every direction falls in a cell. The Jacobian is constant: a density on
+// the square is 4 pi times the solid-angle density.
 Point2 guide_square(Vec3 d);
-Vec3 guide_direction(Point2 s);
 
 // The part of a vertex with lobes l (bsdf_lobes) the guide may take (the leaf's share times
 // this is the probability of sampling the guide; 0: not guided): none where the BSDF has

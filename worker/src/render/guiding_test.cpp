@@ -12,10 +12,12 @@
 #include <vector>
 
 #include "render/guiding.h"
+#include "sampling/sampling.h"
 #include "render/integrators.h"
 #include "render/render.h"
 #include "scene/environment.h"
 #include "testing/chi_square.h"
+#include "testing/references.h"
 #include "testing/test_scenes.h"
 
 namespace rf {
@@ -30,7 +32,7 @@ std::vector<GuideRecord> records_towards(Vec3 towards, float spread, float brigh
   std::vector<GuideRecord> out;
   for (int i = 0; i < count; ++i) {
     const Vec3 p(u(rng), u(rng), u(rng));
-    const Vec3 d = guide_direction({u(rng), u(rng)});
+    const Vec3 d = sample_uniform_sphere({u(rng), u(rng)});
     const bool lit = std::acos(std::clamp(dot(d, towards), -1.f, 1.f)) < spread;
     // Sampled uniformly over the sphere, as a BSDF would (the leaves' shares weigh by it).
     out.push_back({p, d, lit ? bright : dim, 0.25f / kPi, 0.25f / kPi});
@@ -41,7 +43,7 @@ std::vector<GuideRecord> records_towards(Vec3 towards, float spread, float brigh
 TEST(GuideField, SquareMapRoundTrips) {
   for (float x : {0.01f, 0.3f, 0.5f, 0.77f, 0.99f})
     for (float y : {0.02f, 0.25f, 0.5f, 0.9f}) {
-      const Vec3 d = guide_direction({x, y});
+      const Vec3 d = sample_uniform_sphere({x, y});
       EXPECT_NEAR(length(d), 1.f, 1e-5f);
       const Point2 s = guide_square(d);
       EXPECT_NEAR(s.x, x, 1e-5f);
@@ -77,7 +79,7 @@ TEST(GuideField, SamplesFollowTheirDensity) {
   static_assert(GuideField::kMaxQuadDepth <= 10, "the cells' resolution");
   chi.integrate(
       [&](double x, double y) {
-        return 4.0 * kPi * field.pdf(dist, guide_direction({float(x), float(y)}));
+        return 4.0 * kPi * field.pdf(dist, sample_uniform_sphere({float(x), float(y)}));
       },
       16, n);
   const testing::ChiSquareResult r = chi.run();
@@ -95,7 +97,7 @@ TEST(GuideField, DensityIntegratesToOneAndFindsTheLight) {
   double integral = 0.0, in_cone = 0.0;
   for (int i = 0; i < k; ++i)
     for (int j = 0; j < k; ++j) {
-      const Vec3 d = guide_direction({(i + 0.5f) / k, (j + 0.5f) / k});
+      const Vec3 d = sample_uniform_sphere({(i + 0.5f) / k, (j + 0.5f) / k});
       const double p = field.pdf(dist, d) * 4.0 * kPi / (double(k) * k);
       integral += p;
       if (std::acos(std::clamp(dot(d, towards), -1.f, 1.f)) < 0.4f) in_cone += p;
@@ -124,48 +126,18 @@ TEST(GuideField, BuildsTheSameFieldFromTheSameRecords) {
     const uint32_t da = fa.distribution_at(p), db = fb.distribution_at(p);
     ASSERT_EQ(da, db);
     if (da == GuideField::kNone) continue;
-    const Vec3 d = guide_direction({u(rng), u(rng)});
+    const Vec3 d = sample_uniform_sphere({u(rng), u(rng)});
     EXPECT_EQ(fa.pdf(da, d), fb.pdf(db, d));
   }
 }
 
 
+// A Lambert diffuser of grey albedo, emitting `emission` in grey.
 Material lambert(const char* name, float albedo, float emission = 0.f) {
-  Material m;
-  m.name = name;
-  m.albedo = Vec3(albedo, albedo, albedo);
-  m.metallic = 0.f;
-  m.roughness = 1.f;
-  m.specular = 0.f;
-  m.emission = Vec3(emission, emission, emission);
-  return m;
+  return testing::plain_material(name, albedo, 0.f, 1.f, 0.f, 0.f, emission);
 }
 
-struct PixelMean {
-  double mean = 0.0, standard_error = 0.0;
-};
-
-// Per pixel: the mean of spp independent samples and its standard error (gray radiance).
-std::vector<PixelMean> pixel_means(const Scene& scene, const RenderSettings& settings,
-                                   uint32_t spp) {
-  TileBuffer tile;
-  EXPECT_TRUE(render_rect(scene, settings, {0, 0, settings.width, settings.height}, 0, spp,
-                          &tile));
-  EXPECT_EQ(tile.nonfinite_samples, 0u);
-  std::vector<PixelMean> out(tile.rect.pixel_count());
-  for (size_t i = 0; i < out.size(); ++i) {
-    out[i].mean = tile.rgb_sum[3 * i] / spp;
-    out[i].standard_error = std::sqrt(tile.luminance_m2[i] / (spp - 1) / spp);
-  }
-  return out;
-}
-
-// Form factor from a point to the parallel square [-h, h]^2 at height c (Howell's corner
-// formula on its four quadrants): a point under its centre.
-double centre_form_factor(double h, double c) {
-  const double X = h / c, s = std::sqrt(1 + X * X);
-  return 4.0 * (2.0 * X / s * std::atan(X / s)) / (2 * M_PI);
-}
+using testing::PixelStats;
 
 // A Lambert plane under an emissive square, direct light only: light sampling finds the square
 // far better than any guide would (the training's BSDF samples that found it carry small MIS
@@ -184,16 +156,16 @@ TEST(GuidedRendering, PlaneUnderAnEmitterIsTheClosedForm) {
   desc.camera = testing::look_at({0.f, 0.f, 0.5f}, {0.f, 0.f, 0.f}, 0.002f);
   Scene scene(std::move(desc));
   RenderSettings settings;
-  // 32 x 32 pixels: the training's paths are the image's pixels at 4 samples.
+  // 32 x 32 pixels: the training's paths are the image's pixels at 8 samples.
   settings.width = settings.height = 32;
   settings.sampler = SamplerType::Independent;
   settings.max_depth = 1;
   settings.seed = 3;
-  const double expected = rho * L * centre_form_factor(h, c);
-  const std::vector<PixelMean> plain = pixel_means(scene, settings, 256);
+  const double expected = rho * L * testing::form_factor(0, 0, -h, h, -h, h, c);
+  const std::vector<PixelStats> plain = testing::pixel_stats(scene, settings, 256);
   settings.guide = train_guide(scene, settings, 1);
   ASSERT_TRUE(settings.guide);
-  const std::vector<PixelMean> guided = pixel_means(scene, settings, 256);
+  const std::vector<PixelStats> guided = testing::pixel_stats(scene, settings, 256);
   for (size_t i = 0; i < guided.size(); ++i) {
     EXPECT_NEAR(guided[i].mean, expected, 4.0 * guided[i].standard_error);
     EXPECT_NEAR(plain[i].mean, expected, 4.0 * plain[i].standard_error);
@@ -234,12 +206,12 @@ TEST(GuidedRendering, IndirectLightFromASmallPatchIsFoundMoreOften) {
   settings.sampler = SamplerType::Independent;
   settings.max_depth = 2;
   settings.seed = 5;
-  const std::vector<PixelMean> plain = pixel_means(scene, settings, 256);
+  const std::vector<PixelStats> plain = testing::pixel_stats(scene, settings, 256);
   GuideStats stats;
   settings.guide = train_guide(scene, settings, 2, &stats);
   ASSERT_TRUE(settings.guide);
   ASSERT_GT(stats.distributions, 0u);
-  const std::vector<PixelMean> guided = pixel_means(scene, settings, 256);
+  const std::vector<PixelStats> guided = testing::pixel_stats(scene, settings, 256);
   double plain_sum = 0.0, guided_sum = 0.0, plain_var = 0.0, guided_var = 0.0;
   for (size_t i = 0; i < guided.size(); ++i) {
     plain_sum += plain[i].mean;

@@ -12,18 +12,13 @@
 #include "math/estimators.h"
 #include "render/reference.h"
 #include "sampling/samplers.h"
+#include "testing/references.h"
 #include "testing/test_scenes.h"
 
 namespace rf {
 namespace {
 
-// Form factor from a point to a parallel a x b rectangle at height c with the point under a
-// corner (Howell's catalogue, configuration B-3 / the "corner formula").
-double form_factor_corner(double a, double b, double c) {
-  const double X = a / c, Y = b / c;
-  const double sx = std::sqrt(1 + X * X), sy = std::sqrt(1 + Y * Y);
-  return (X / sx * std::atan(Y / sx) + Y / sy * std::atan(X / sy)) / (2 * M_PI);
-}
+using testing::form_factor_corner;
 
 struct Estimate {
   double mean, standard_error;

@@ -168,7 +168,9 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     // Path guiding: the direction from the guide with probability alpha, else from the BSDF
     // (render/guiding.h). The choice splits the direction pair's first coordinate at alpha,
     // each side rescaled to [0, 1): the pair's stratification is shared by both strategies
-    // rather than dealt to them at random.
+    // rather than dealt to them at random. A guided BSDF has no lobe sampled whole (glass,
+    // diffuse BTDF: guide_fraction is 0 there), so its sample always waits for the batch's
+    // f and pdf, which shade_vertex_end_bsdf mixes with the guide's.
     const float part = guide_fraction(bsdf);
     const uint32_t dist = part > 0.f ? guide->distribution_at(sp.above()) : GuideField::kNone;
     if (dist != GuideField::kNone) {
@@ -208,9 +210,6 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
     p.bsdf_slot = batch->add_sampled(lane, bs.wi);
     return;
   }
-  // A lobe sampled whole (never guided: a guided BSDF has none) was chosen with
-  // probability 1 - alpha of what the BSDF alone gives it.
-  if (pg && pg->frac > 0.f) bs.weight = bs.weight / (1.f - pg->frac);
   const Vec3 wi = normalize(frame.to_world(bs.wi));
   if (wrong_side(wi, sp.ng, bs.transmitted)) return;
   p.next_o = bs.transmitted ? sp.below() : sp.above();

@@ -9,42 +9,15 @@
 
 #include "render/integrators.h"
 #include "render/render.h"
+#include "testing/references.h"
 #include "testing/test_scenes.h"
 
 namespace rf {
 namespace {
 
-struct PixelStats {
-  double mean = 0.0, standard_error = 0.0;
-};
+using testing::PixelStats;
 
-// Mean and standard error (per-sample variance / N, valid for the independent sampler) of
-// each pixel; radiance must be gray so that R equals the luminance whose M2 is reported.
-std::vector<PixelStats> render_stats(const Scene& scene, const RenderSettings& settings,
-                                     uint32_t spp) {
-  TileBuffer tile;
-  EXPECT_TRUE(render_rect(scene, settings, {0, 0, settings.width, settings.height}, 0, spp,
-                          &tile));
-  EXPECT_EQ(tile.nonfinite_samples, 0u);
-  std::vector<PixelStats> out(tile.rect.pixel_count());
-  for (size_t i = 0; i < out.size(); ++i) {
-    out[i].mean = tile.rgb_sum[3 * i] / spp;
-    out[i].standard_error = std::sqrt(tile.luminance_m2[i] / (spp - 1) / spp);
-  }
-  return out;
-}
-
-Material furnace_material(const char* name, float base, float metallic, float roughness,
-                          float specular, float transmission) {
-  Material m;
-  m.name = name;
-  m.albedo = Vec3(base, base, base);
-  m.metallic = metallic;
-  m.roughness = roughness;
-  m.specular = specular;
-  m.transmission = transmission;
-  return m;
-}
+using testing::plain_material;
 
 SceneDescription sphere_scene(const Material& m, Vec3 eye, float yfov) {
   SceneDescription desc;
@@ -62,14 +35,14 @@ SceneDescription sphere_scene(const Material& m, Vec3 eye, float yfov) {
 // transmits, the BRDF no longer reflects) render 1 everywhere within the reported error.
 TEST(WhiteFurnace, DiffuseGlassAndRoughMetalSpheresRenderOne) {
   const auto env = Environment::constant({1.f, 1.f, 1.f});
-  Material translucent = furnace_material("translucent", 1.f, 0.f, 1.f, 0.f, 0.f);
+  Material translucent = plain_material("translucent", 1.f, 0.f, 1.f, 0.f, 0.f);
   translucent.diffuse_transmission = 1.f;
   Material half_translucent = translucent;
   half_translucent.name = "half-translucent";
   half_translucent.diffuse_transmission = 0.5f;
-  for (const Material& m : {furnace_material("white", 1.f, 0.f, 1.f, 0.f, 0.f),
-                            furnace_material("glass", 1.f, 0.f, 0.f, 1.f, 1.f),
-                            furnace_material("rough-metal", 1.f, 1.f, 0.7f, 1.f, 0.f),
+  for (const Material& m : {plain_material("white", 1.f, 0.f, 1.f, 0.f, 0.f),
+                            plain_material("glass", 1.f, 0.f, 0.f, 1.f, 1.f),
+                            plain_material("rough-metal", 1.f, 1.f, 0.7f, 1.f, 0.f),
                             translucent, half_translucent}) {
     Scene scene(sphere_scene(m, {0.f, 0.3f, 3.f}, 0.75f));
     RenderSettings settings;
@@ -81,7 +54,7 @@ TEST(WhiteFurnace, DiffuseGlassAndRoughMetalSpheresRenderOne) {
     double sum = 0.0, var = 0.0;
     // The metal's energy compensation is tabulated: allow its 0.3% accuracy.
     const double table = m.metallic > 0.f ? 3e-3 : 1e-5;
-    for (const PixelStats& p : render_stats(scene, settings, 256)) {
+    for (const PixelStats& p : testing::pixel_stats(scene, settings, 256)) {
       EXPECT_NEAR(p.mean, 1.0, 4.0 * p.standard_error + table) << m.name;
       sum += p.mean;
       var += p.standard_error * p.standard_error;
@@ -96,7 +69,7 @@ TEST(WhiteFurnace, DiffuseGlassAndRoughMetalSpheresRenderOne) {
 // samples are coloured (their weights differ per channel), so the error is estimated from the
 // spread of the pixels (independent estimates), not from the luminance M2.
 TEST(WhiteFurnace, DispersiveGlassSphereRendersOneInEveryChannel) {
-  Material m = furnace_material("dispersive-glass", 1.f, 0.f, 0.f, 1.f, 1.f);
+  Material m = plain_material("dispersive-glass", 1.f, 0.f, 0.f, 1.f, 1.f);
   m.dispersion = 1.f;
   Scene scene(sphere_scene(m, {0.f, 0.3f, 3.f}, 0.75f));
   RenderSettings settings;
@@ -131,7 +104,7 @@ TEST(WhiteFurnace, DispersiveGlassSphereRendersOneInEveryChannel) {
 // pixel is at most 1 (no energy created; a wrong radiance scaling shows as 2.25 or 0.44) and
 // the image stays near it.
 TEST(WhiteFurnace, RoughGlassSphereCreatesNoEnergy) {
-  const Material m = furnace_material("rough-glass", 1.f, 0.f, 0.5f, 1.f, 1.f);
+  const Material m = plain_material("rough-glass", 1.f, 0.f, 0.5f, 1.f, 1.f);
   Scene scene(sphere_scene(m, {0.f, 0.3f, 3.f}, 0.75f));
   RenderSettings settings;
   settings.width = settings.height = 8;
@@ -140,7 +113,7 @@ TEST(WhiteFurnace, RoughGlassSphereCreatesNoEnergy) {
   settings.environment = Environment::constant({1.f, 1.f, 1.f});
   settings.seed = 11;
   double sum = 0.0;
-  for (const PixelStats& p : render_stats(scene, settings, 512)) {
+  for (const PixelStats& p : testing::pixel_stats(scene, settings, 512)) {
     EXPECT_LE(p.mean, 1.0 + 4.0 * p.standard_error);
     sum += p.mean;
   }
@@ -164,7 +137,7 @@ TEST(RoughGlass, APunctualLightThroughRoughGlassIsTheBtdfsClosedFormAndMatchesBs
   auto pane = [&](bool point_light) {
     SceneDescription desc;
     desc.source = "rough pane";
-    desc.materials.push_back(furnace_material("rough-glass", 1.f, 0.f, 0.7f, 1.f, 1.f));
+    desc.materials.push_back(plain_material("rough-glass", 1.f, 0.f, 0.7f, 1.f, 1.f));
     testing::add_quad(&desc, {-2, -2, 0}, {2, -2, 0}, {2, 2, 0}, {-2, 2, 0}, 0);
     if (point_light) {
       PunctualLight light;
@@ -190,7 +163,7 @@ TEST(RoughGlass, APunctualLightThroughRoughGlassIsTheBtdfsClosedFormAndMatchesBs
   const double want =
       (1.0 - 0.04) / (M_PI * double(alpha) * double(alpha)) / (0.5 * 0.5) / (double(d) * d);
   const Scene point(pane(true));
-  const PixelStats by_light = render_stats(point, settings, 64)[0];
+  const PixelStats by_light = testing::pixel_stats(point, settings, 64)[0];
   EXPECT_NEAR(by_light.mean, want, 1e-3 * want);
   // The BTDF (radiance) for wo = +z and wi at angle t from -z, in double.
   auto btdf_cos = [&](double t) {
@@ -218,7 +191,7 @@ TEST(RoughGlass, APunctualLightThroughRoughGlassIsTheBtdfsClosedFormAndMatchesBs
   }
   EXPECT_NEAR(btdf_cos(0.0), want, 1e-9 * want);  // the two formulas agree at the centre
   const Scene sphere(pane(false));
-  const PixelStats by_bsdf = render_stats(sphere, settings, 400000)[0];
+  const PixelStats by_bsdf = testing::pixel_stats(sphere, settings, 400000)[0];
   // The sphere is faceted (64 x 128 triangles): 0.5 % of slack for its silhouette.
   EXPECT_NEAR(by_bsdf.mean, sphere_want, 4.0 * by_bsdf.standard_error + 5e-3 * sphere_want)
       << "BSDF sampling: " << by_bsdf.mean << " +- " << by_bsdf.standard_error;
@@ -230,18 +203,18 @@ TEST(RoughGlass, APunctualLightThroughRoughGlassIsTheBtdfsClosedFormAndMatchesBs
 // infinite bounce series gives L = Le (1 + rho + rho^2 + ...) = Le / (1 - rho) = 2.
 TEST(WhiteFurnace, AlbedoHalfSingleBounceAndInfiniteBounceSeries) {
   {
-    Scene scene(sphere_scene(furnace_material("half", 0.5f, 0.f, 1.f, 0.f, 0.f),
+    Scene scene(sphere_scene(plain_material("half", 0.5f, 0.f, 1.f, 0.f, 0.f),
                              {0.f, 0.f, 3.f}, 0.3f));  // every pixel sees the sphere
     RenderSettings settings;
     settings.width = settings.height = 4;
     settings.sampler = SamplerType::Independent;
     settings.environment = Environment::constant({1.f, 1.f, 1.f});
-    for (const PixelStats& p : render_stats(scene, settings, 256))
+    for (const PixelStats& p : testing::pixel_stats(scene, settings, 256))
       EXPECT_NEAR(p.mean, 0.5, 4.0 * p.standard_error + 1e-5);
   }
   SceneDescription desc;
   desc.source = "closed-sphere";
-  Material m = furnace_material("glowing", 0.5f, 0.f, 1.f, 0.f, 0.f);
+  Material m = plain_material("glowing", 0.5f, 0.f, 1.f, 0.f, 0.f);
   m.emission = Vec3(1.f, 1.f, 1.f);
   desc.materials.push_back(m);
   testing::add_sphere(&desc, {0, 0, 0}, 1.f, 0, 16, 32);
@@ -255,7 +228,7 @@ TEST(WhiteFurnace, AlbedoHalfSingleBounceAndInfiniteBounceSeries) {
   settings.sampler = SamplerType::Independent;
   settings.max_depth = 200;  // truncation error 0.5^200: none
   double sum = 0.0, var = 0.0;
-  for (const PixelStats& p : render_stats(scene, settings, 512)) {
+  for (const PixelStats& p : testing::pixel_stats(scene, settings, 512)) {
     EXPECT_NEAR(p.mean, 2.0, 4.0 * p.standard_error + 1e-5);
     sum += p.mean;
     var += p.standard_error * p.standard_error;
@@ -268,7 +241,7 @@ TEST(WhiteFurnace, AlbedoHalfSingleBounceAndInfiniteBounceSeries) {
 // of the BSDF; with the multiple-scattering compensation that albedo is 1 (up to the energy
 // table's accuracy), so the sphere renders 1 too.
 TEST(WhiteFurnace, RoughMetalSphereRendersItsDirectionalAlbedoOfOne) {
-  const Material metal = furnace_material("metal", 1.f, 1.f, 0.6f, 1.f, 0.f);
+  const Material metal = plain_material("metal", 1.f, 1.f, 0.6f, 1.f, 0.f);
   BsdfParams bp;
   bp.base = Vec3(1.f, 1.f, 1.f);
   bp.metallic = 1.f;
@@ -311,21 +284,6 @@ TEST(WhiteFurnace, RoughMetalSphereRendersItsDirectionalAlbedoOfOne) {
   }
 }
 
-// Form factor from a point to a parallel rectangle [x0, x1] x [y0, y1] at height c, by the
-// corner formula (Howell's catalogue) on the four signed corner rectangles.
-double corner(double a, double b, double c) {
-  const double X = a / c, Y = b / c;
-  const double sx = std::sqrt(1 + X * X), sy = std::sqrt(1 + Y * Y);
-  return (X / sx * std::atan(Y / sx) + Y / sy * std::atan(X / sy)) / (2 * M_PI);
-}
-double signed_corner(double a, double b, double c) {
-  return (a < 0 ? -1 : 1) * (b < 0 ? -1 : 1) * corner(std::fabs(a), std::fabs(b), c);
-}
-double form_factor(double px, double py, double x0, double x1, double y0, double y1, double c) {
-  return signed_corner(x1 - px, y1 - py, c) - signed_corner(x0 - px, y1 - py, c) -
-         signed_corner(x1 - px, y0 - py, c) + signed_corner(x0 - px, y0 - py, c);
-}
-
 // The independent sampler's reported error is calibrated: over 256 pixels of a diffuse plane
 // under an emissive square (closed-form irradiance, averaged over each pixel's footprint by
 // quadrature), about 95% of the pixel means lie within two reported standard errors
@@ -335,8 +293,8 @@ TEST(Calibration, IndependentSamplerErrorCoversTheAnalyticValue) {
   const float rho = 0.7f, L = 2.f, c = 1.f;
   SceneDescription desc;
   desc.source = "calibration";
-  desc.materials.push_back(furnace_material("plane", rho, 0.f, 1.f, 0.f, 0.f));
-  Material emitter = furnace_material("emitter", 0.f, 0.f, 1.f, 0.f, 0.f);
+  desc.materials.push_back(plain_material("plane", rho, 0.f, 1.f, 0.f, 0.f));
+  Material emitter = plain_material("emitter", 0.f, 0.f, 1.f, 0.f, 0.f);
   emitter.emission = Vec3(L, L, L);
   desc.materials.push_back(emitter);
   testing::add_quad(&desc, {-20, -20, 0}, {20, -20, 0}, {20, 20, 0}, {-20, 20, 0}, 0);
@@ -350,7 +308,7 @@ TEST(Calibration, IndependentSamplerErrorCoversTheAnalyticValue) {
   settings.max_depth = 1;
   settings.seed = 8;
   const uint32_t spp = 64;
-  const std::vector<PixelStats> stats = render_stats(scene, settings, spp);
+  const std::vector<PixelStats> stats = testing::pixel_stats(scene, settings, spp);
   int within = 0;
   const Camera& cam = scene.camera();
   for (uint32_t y = 0; y < 16; ++y)
@@ -363,7 +321,8 @@ TEST(Calibration, IndependentSamplerErrorCoversTheAnalyticValue) {
           ASSERT_LT(d.z, 0.f);
           const float t = -cam.position.z / d.z;
           const Vec3 p = cam.position + d * t;
-          analytic += rho * L * form_factor(p.x, p.y, -0.5, 0.5, -0.5, 0.5, c) / (sub * sub);
+          analytic +=
+              rho * L * testing::form_factor(p.x, p.y, -0.5, 0.5, -0.5, 0.5, c) / (sub * sub);
         }
       const PixelStats& s = stats[y * 16 + x];
       within += std::fabs(s.mean - analytic) <= 2.0 * s.standard_error;
