@@ -32,7 +32,7 @@ tile t samples in proportion to sigma_t / sqrt(cost_t), Neyman allocation; equal
 is what the noise threshold promises instead.)
 
     .venv/bin/python bench/adaptive_efficiency.py [--shelter-threshold 0.05]
-        [--threshold 0.05] [--sky-threshold 0.02]
+        [--threshold 0.05] [--sky-threshold 0.02] [--adaptive tile|pixel]
 """
 
 from __future__ import annotations
@@ -100,6 +100,7 @@ def compare(
     threshold: float,
     ref_spp: int,
     size: int = 128,
+    adaptive: str = "tile",
     **extra,
 ):
     """Reference, adaptive and uniform renders of one scene; the figures of the comparison."""
@@ -113,6 +114,7 @@ def compare(
         size,
         noise_threshold=threshold,
         max_spp=4096,
+        adaptive=adaptive,
         **extra,
     )
     spp = int(adaptive["progress"]["mean_spp"])
@@ -162,7 +164,15 @@ def main() -> dict:
     parser.add_argument("--shelter-threshold", type=float, default=0.05, help="shelter")
     parser.add_argument("--threshold", type=float, default=0.05, help="Cornell box")
     parser.add_argument("--sky-threshold", type=float, default=0.02, help="box under a sky")
+    parser.add_argument(
+        "--adaptive",
+        choices=("tile", "pixel"),
+        default="tile",
+        help="the adaptive jobs' setting adaptive: per tile (default) or per pixel; pixel writes "
+        "adaptive_efficiency_pixel.json",
+    )
     args = parser.parse_args()
+    mode = {"adaptive": args.adaptive}
     figures = {}
     with tempfile.TemporaryDirectory(prefix="rf-bench-") as data:
         scratch = Path(data)
@@ -172,10 +182,10 @@ def main() -> dict:
             with Client(farm.url, timeout=60) as client:
                 figures["shelter"] = compare(
                     client, scratch, "shelter", shelter, args.shelter_threshold, ref_spp=8192,
-                    size=160,
+                    size=160, **mode,
                 )  # fmt: skip
                 figures["cornell"] = compare(
-                    client, scratch, "cornell", SCENE, args.threshold, ref_spp=4096
+                    client, scratch, "cornell", SCENE, args.threshold, ref_spp=4096, **mode
                 )
                 # The sky scene is cheap per sample: a tighter threshold and a deeper reference
                 # (the reference's own noise must stay well below the threshold).
@@ -187,12 +197,14 @@ def main() -> dict:
                     args.sky_threshold,
                     ref_spp=16384,
                     environment=str(sky_hdr),
+                    **mode,
                 )
     for scene, values in figures.items():
         print(scene)
         for key, value in values.items():
             print(f"  {key:42} {value:.6g}")
-    write_results("adaptive_efficiency", figures)
+    name = "adaptive_efficiency" + ("_pixel" if args.adaptive == "pixel" else "")
+    write_results(name, figures)
     return figures
 
 

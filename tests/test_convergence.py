@@ -91,6 +91,57 @@ def test_adaptive_stopping_meets_the_threshold_and_halving_it_halves_the_error(
     assert 0.4 <= ratio <= 0.65, measured
 
 
+def test_per_pixel_adaptive_stops_each_pixel_near_the_threshold(farm, reference, tmp_path):
+    """settings.adaptive pixel: every pixel gets at least the ramp's 64 samples and then stops
+    on its own error, so the spp layer varies within tiles; the image's measured per-pixel
+    relative error is about the threshold (its RMS below it: a pixel stops when the RMS of its
+    3x3 neighbourhood's estimates is), where per-tile stopping leaves the noisy pixels of a
+    tile far above it; and the variance the EXR reports for a stopped pixel (its own, frozen at
+    its stop) still predicts its error."""
+    ref, ref_var = reference
+    threshold = 0.1
+    measured = {}
+    with Client(farm.url, timeout=60) as client:
+        for adaptive in ("pixel", "tile"):
+            job, ch = render(client, tmp_path, f"{adaptive}-{threshold}", adaptive=adaptive,
+                             noise_threshold=threshold, min_spp=8, max_spp=8192)  # fmt: skip
+            y = luminance(ch)
+            scale = np.maximum(ref, DARK_FLOOR) ** 2
+            err2 = ((y - ref) ** 2 - ref_var) / scale
+            measured[adaptive] = (job, ch, err2)
+    job, ch, err2 = measured["pixel"]
+    spp = ch["spp"].astype(np.float64)
+    assert spp.min() >= 64
+    assert job["progress"]["mean_spp"] == pytest.approx(spp.mean(), rel=1e-6)
+    tiles = spp.reshape(H // TILE, TILE, W // TILE, TILE).transpose(0, 2, 1, 3)
+    varying = [t.max() > 1.5 * t.min() for t in tiles.reshape(-1, TILE, TILE)]
+    assert np.mean(varying) >= 0.5, "pixels of a tile should stop at different counts"
+    # The hardest pixels: the top tenth by relative noise per sample (the reference's variance
+    # of the mean times its 4096 samples, over its brightness).
+    noise = np.sqrt(ref_var * 4096) / np.maximum(ref, DARK_FLOOR)
+    hard = noise >= np.percentile(noise, 90)
+    rms = {k: float(np.sqrt(max(np.mean(v[2]), 0.0))) for k, v in measured.items()}
+    rms_hard = {k: float(np.sqrt(max(np.mean(v[2][hard]), 0.0))) for k, v in measured.items()}
+    print(f"pixel: RMS {rms['pixel']:.4f}, hardest tenth {rms_hard['pixel']:.4f}, mean spp "
+          f"{spp.mean():.0f}; tile: RMS {rms['tile']:.4f}, hardest tenth {rms_hard['tile']:.4f}, "
+          f"mean spp {measured['tile'][0]['progress']['mean_spp']:.0f}")  # fmt: skip
+    assert rms["pixel"] < threshold
+    assert rms_hard["pixel"] < 0.8 * rms_hard["tile"]
+    # The variance the EXR reports still predicts the squared error as well as a tile's does
+    # (sobol's between-batch estimate is conservative: the ratio is below 1 in both).
+    ratio = {}
+    for k, (_, ch, _) in measured.items():
+        var = ch["variance.Y"].astype(np.float64)
+        informative = var > 0
+        err = (luminance(ch) - ref)[informative] ** 2
+        ratio[k] = float(np.mean(err) / np.mean((var + ref_var)[informative]))
+    print(
+        f"measured / predicted squared error: pixel {ratio['pixel']:.3f}, tile {ratio['tile']:.3f}"
+    )
+    assert ratio["pixel"] < 1.0
+    assert 0.5 < ratio["pixel"] / ratio["tile"] < 2.0
+
+
 @pytest.mark.parametrize("sampler", ["independent", "sobol"])
 def test_reported_error_is_calibrated(farm, reference, tmp_path, sampler):
     """Independent samples: the reported sigma is the ordinary sample variance over all the
@@ -115,10 +166,12 @@ def test_reported_error_is_calibrated(farm, reference, tmp_path, sampler):
         assert coverage >= 0.95, coverage
 
 
-def test_one_and_three_workers_give_the_same_image_and_spp(tmp_path):
+@pytest.mark.parametrize("adaptive", ["tile", "pixel"])
+def test_one_and_three_workers_give_the_same_image_and_spp(tmp_path, adaptive):
     """The same adaptive job on 1 worker, then on 3 (different task interleavings): identical
-    RGB (to float32 rounding) and identical per-tile stop decisions."""
-    settings = {"width": 32, "height": 32, "tile_size": 8, "seed": 5}
+    RGB (to float32 rounding) and identical stop decisions, per tile and (adaptive pixel) per
+    pixel, whose masks the workers render."""
+    settings = {"width": 32, "height": 32, "tile_size": 8, "seed": 5, "adaptive": adaptive}
     settings |= {"noise_threshold": 0.1, "min_spp": 4, "max_spp": 2048}
     with LocalFarm(workers=1, data_dir=tmp_path / "farm", threads=1) as farm:
         with Client(farm.url, timeout=60) as client:

@@ -4,7 +4,9 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
     .venv-blender/bin/python bench/support/cycles_render.py CONFIG.json
 
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
-"renders": [{"spp", "seed", "path"}, ...], "environment": null or {"path", "intensity",
+"renders": [{"spp", "seed", "path", "adaptive": optional {"threshold", "min_samples"}: Cycles'
+adaptive sampling on, spp its maximum (bench/adaptive_parity.py)}, ...], "environment": null or
+{"path", "intensity",
 "rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx", "textures": "as_imported"
 or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "gltf",
 "frame": null or the frame F of an animated scene to render, "fps": its frame rate,
@@ -434,6 +436,11 @@ def main() -> dict:
     for render in CONFIG["renders"]:
         scene.cycles.samples = render["spp"]
         scene.cycles.seed = render["seed"]
+        adaptive = render.get("adaptive")
+        scene.cycles.use_adaptive_sampling = adaptive is not None
+        if adaptive is not None:
+            scene.cycles.adaptive_threshold = adaptive["threshold"]
+            scene.cycles.adaptive_min_samples = adaptive["min_samples"]
         scene.render.filepath = render["path"]
         start = time.perf_counter()
         bpy.ops.render.render(write_still=True)

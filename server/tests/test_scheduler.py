@@ -54,8 +54,9 @@ def render(settings, lease):
     )
 
 
-def run_farm(settings, workers, seed, credit=3, reorder=True):
-    """Drive a job to completion with `workers` fake workers completing tasks in random order."""
+def run_farm(settings, workers, seed, credit=3, reorder=True, render=render, leases=None):
+    """Drive a job to completion with `workers` fake workers completing tasks in random order
+    (render(settings, lease): a task's result; leases: a list that gets every lease)."""
     clock = FakeClock()
     sched = Scheduler(clock=clock)
     sched.add_job("j", settings, "scene")
@@ -67,6 +68,8 @@ def run_farm(settings, workers, seed, credit=3, reorder=True):
         for w in range(workers):
             for lease in sched.assign(f"w{w}"):
                 outstanding.append(lease)
+                if leases is not None:
+                    leases.append(lease)
         cancelled = {t for w in range(workers) for t in sched.take_cancellations(f"w{w}")}
         outstanding = [lease for lease in outstanding if lease.task_id not in cancelled]
         if sched.jobs["j"].state.finished:

@@ -554,6 +554,7 @@ class WorkerServicer(workers_pb2_grpc.WorkerServiceServicer):
             skip_aovs=not carries_aovs(lease.sample_start),
             sample_count=lease.sample_count,
             channels=_task_channels_for(job.settings, lease.sample_start),
+            active_pixels=lease.active,
         )
         task.settings.CopyFrom(self._settings_proto(job))
         if job.variants:  # a job of every variant: a still of the tile's variant, by index

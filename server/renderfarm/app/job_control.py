@@ -22,6 +22,7 @@ from typing import Any
 
 from ..domain.continuation import CONTINUE_SETTINGS, continue_plan
 from ..domain.jobspec import ALIASES, JobSettings, parse_settings
+from ..domain.merge import NEVER
 from ..domain.records import JobRun
 from ..domain.scheduler import Scheduler
 from ..domain.states import JobState, check_transition
@@ -213,7 +214,8 @@ class JobControl:
                 bases[index] = t.plan_basis or []
                 continue
             basis = {int(e[0]): tuple(e[1:]) for e in t.plan_basis or []}
-            kept = continue_plan(old, settings, acc.batches, basis)
+            stopped = acc.stop_batch is not None and bool((acc.stop_batch != NEVER).any())
+            kept = continue_plan(old, settings, acc.batches, basis, stopped)
             if kept is None:
                 again.append(index)
                 continue

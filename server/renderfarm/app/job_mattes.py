@@ -14,6 +14,8 @@ import math
 from collections import OrderedDict
 from typing import Any
 
+import numpy as np
+
 from ..domain import channels, cryptomatte
 from ..domain.frames import frame_slot, job_rects, tiles_per_frame
 from ..errors import SettingsError
@@ -83,20 +85,24 @@ class JobMattes:
             )
             acc = band[0][1]
         names = await self.cached_crypto_names(view.scene_sha256)
-        out: dict[str, Any] = {"x": x, "y": y, "samples": acc.samples if acc else 0}
+        samples = 0
+        if acc is not None:  # the pixel's own count (per-pixel adaptive sampling) or the tile's
+            n = acc.pixel_samples()
+            samples = int(n[y - rect.y0, x - rect.x0]) if isinstance(n, np.ndarray) else n
+        out: dict[str, Any] = {"x": x, "y": y, "samples": samples}
         for key, type_name, array in (
             ("objects", "CryptoObject", "crypto_object"),
             ("materials", "CryptoMaterial", "crypto_material"),
             ("assets", "CryptoAsset", "crypto_object"),
         ):
             out[key] = [] if acc is None else _ranked_names(
-                acc, array, type_name, names, x - rect.x0, y - rect.y0
+                acc, array, type_name, names, x - rect.x0, y - rect.y0, samples
             )  # fmt: skip
         return out
 
 
 def _ranked_names(
-    acc, array: str, type_name: str, names: cryptomatte.Names, i: int, j: int
+    acc, array: str, type_name: str, names: cryptomatte.Names, i: int, j: int, samples: int
 ) -> list[dict[str, Any]]:
     pairs = getattr(acc, array).reshape(acc.height, acc.width, -1)[j : j + 1, i : i + 1]
     if type_name == "CryptoAsset":
@@ -110,6 +116,6 @@ def _ranked_names(
             out.append({
                 "name": name,
                 "id": f"{cryptomatte.hash_bits(name):08x}",
-                "coverage": count / max(1, acc.samples),
+                "coverage": count / max(1, samples),
             })  # fmt: skip
     return out

@@ -55,6 +55,9 @@ class Accumulate(StrEnum):
     RANKED = "ranked"
     # Nothing accumulated: computed at output from other rows (the denoised image).
     DERIVED = "derived"
+    # Kept by the server, never on the wire: per-pixel adaptive sampling's state (each pixel's
+    # merged samples and the last batch it renders, merge.TileAccumulator).
+    SERVER = "server"
 
 
 class Display(StrEnum):
@@ -526,6 +529,17 @@ CHANNELS: tuple[Channel, ...] = (
         per_group=True,
     ),
     Channel(
+        "adaptive",
+        "per-pixel adaptive sampling's state (settings.adaptive pixel): each pixel's merged "
+        "samples, float32 (exact to 2^24), and the last batch it renders, int32 (2^31 - 1 while "
+        "it has not stopped); the `spp` layer reads the samples",
+        Accumulate.SERVER,
+        "",
+        (Array("pixel_spp", "<f4"), Array("stop_batch", "<i4")),
+        (),
+        setting="adaptive",
+    ),
+    Channel(
         "denoised",
         "Open Image Denoise of the radiance with the albedo and normal as guides, at output",
         Accumulate.DERIVED,
@@ -564,7 +578,8 @@ def _check_table() -> None:
             raise AssertionError(f"channel {c.name}: window {c.window} is no batch boundary")
         if (c.accumulate is Accumulate.DERIVED) != (not c.store):
             raise AssertionError(f"channel {c.name}: only derived rows store nothing")
-        if (c.accumulate is Accumulate.DERIVED) != (not c.wire_components):
+        on_server = c.accumulate in (Accumulate.DERIVED, Accumulate.SERVER)
+        if on_server != (not c.wire_components):
             raise AssertionError(f"channel {c.name}: every accumulated row is on the wire")
         if (c.accumulate is Accumulate.FIRST) != (c.window == 1):
             raise AssertionError(f"channel {c.name}: first-sample rows have a window of 1")
@@ -670,26 +685,32 @@ def _resolve(c: Channel, groups: tuple[str, ...]) -> Channel:
 
 
 @functools.cache
-def _layout(aovs: tuple[str, ...], denoise: bool, groups: tuple[str, ...]) -> Layout:
+def _layout(
+    aovs: tuple[str, ...], denoise: bool, groups: tuple[str, ...], pixels: bool = False
+) -> Layout:
     rows = tuple(
         _resolve(c, groups) for c in CHANNELS
-        if not c.setting or (c.setting == "denoise" and denoise) or c.aov in aovs
+        if not c.setting or (c.setting == "denoise" and denoise)
+        or (c.setting == "adaptive" and pixels) or c.aov in aovs
     )  # fmt: skip
     on = any(c.per_group for c in rows)
     return Layout(rows, groups if on else ())
 
 
 def layout_for(
-    aovs: str | tuple[str, ...] = (), denoise: bool = False, groups: tuple[str, ...] = ()
+    aovs: str | tuple[str, ...] = (),
+    denoise: bool = False,
+    groups: tuple[str, ...] = (),
+    pixel_adaptive: bool = False,
 ) -> Layout:
     """The layout of a job with these settings: the rows always on, and those its `aovs` (a
-    comma list or the names) and `denoise` turn on; `groups`: its light groups in order (of
-    settings.light_groups; a job with light_groups has at least the environment's, which
-    stands in for them while they are not known)."""
+    comma list or the names), `denoise` and per-pixel adaptive sampling turn on; `groups`: its
+    light groups in order (of settings.light_groups; a job with light_groups has at least the
+    environment's, which stands in for them while they are not known)."""
     names = parse_aovs(aovs) if isinstance(aovs, str) else parse_aovs(",".join(aovs))
     if "light_groups" in names and not groups:
         groups = (ENVIRONMENT_GROUP,)
-    return _layout(names, bool(denoise), tuple(groups))
+    return _layout(names, bool(denoise), tuple(groups), bool(pixel_adaptive))
 
 
 @functools.lru_cache(maxsize=256)
@@ -701,13 +722,22 @@ def group_names(light_groups: str) -> tuple[str, ...]:
 
 def job_layout(settings) -> Layout:
     """The layout of a job's settings (jobspec.JobSettings)."""
-    return layout_for(settings.aovs, settings.denoise, group_names(settings.light_groups))
+    return layout_for(
+        settings.aovs, settings.denoise, group_names(settings.light_groups),
+        pixel_adaptive(settings),
+    )  # fmt: skip
+
+
+def pixel_adaptive(settings) -> bool:
+    """Whether a job samples adaptively per pixel (settings.adaptive pixel; without a noise
+    threshold no pixel stops, but a continue may set one)."""
+    return settings.adaptive == "pixel"
 
 
 # The light group of the environment (domain/light_groups.py), always a job's last.
 ENVIRONMENT_GROUP = "environment"
 # Every row at once (a job with every output on, one light group: the environment).
-EVERY = layout_for(AOV_NAMES, True)
+EVERY = layout_for(AOV_NAMES, True, pixel_adaptive=True)
 
 # Which workers may render a job: a worker says in its Hello the rows it renders
 # (workers.proto, Hello.channels), and the scheduler matches them as tags, this prefix and the
@@ -858,7 +888,7 @@ def cpp_header() -> str:
 # blob from before the header begins with a finite value (results with NaN or inf are refused,
 # scheduler.py), so the two can never be confused.
 MAGIC = bytes.fromhex("0000c07f5246f87f")
-_DTYPES = {"<f4": 1, "<f8": 2, "<u4": 3}
+_DTYPES = {"<f4": 1, "<f8": 2, "<u4": 3, "<i4": 4}
 _DTYPE_OF = {v: k for k, v in _DTYPES.items()}
 
 

@@ -35,7 +35,11 @@ def _new_size(s: JobSettings, batch: int, basis: dict[int, tuple]) -> int | None
 
 
 def continue_plan(
-    old: JobSettings, new: JobSettings, merged: int, basis: dict[int, tuple]
+    old: JobSettings,
+    new: JobSettings,
+    merged: int,
+    basis: dict[int, tuple],
+    pixels_stopped: bool = False,
 ) -> tuple[list[int], dict[int, tuple]] | None:
     """Whether a tile that merged `merged` batches under `old` can carry on under `new` and
     end exactly as a job submitted with `new` from the start (docs/architecture.md,
@@ -44,8 +48,15 @@ def continue_plan(
     (recorded in `basis`). The stop rule needs no replay: with max_spp no lower and the noise
     threshold no higher, `new` stops a tile no earlier than `old` did.
 
+    Per-pixel adaptive sampling (settings.adaptive pixel): which pixels rendered each batch
+    was decided under the old threshold; a lower one would have kept some of them longer. So a
+    tile in which a pixel has stopped (`pixels_stopped`) carries on only under the same
+    threshold (a higher max_spp), where every decision is the same.
+
     Returns (planned sizes from batch max(merged, PLANNED_FROM) on, the basis to keep), or
     None: the tile renders again from its first sample."""
+    if pixels_stopped and new.noise_threshold != old.noise_threshold:
+        return None
     for batch in range(merged):
         size = _old_size(old, batch, basis)
         if size is None or size != _new_size(new, batch, basis):

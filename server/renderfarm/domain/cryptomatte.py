@@ -186,10 +186,10 @@ def names_of_json(raw: bytes) -> Names:
     return Names.of(document if isinstance(document, dict) else {})
 
 
-def exr_values(pairs: np.ndarray, samples: int, ids: dict[int, float]) -> np.ndarray:
+def exr_values(pairs: np.ndarray, samples, ids: dict[int, float]) -> np.ndarray:
     """The EXR values of ranked pairs (h, w, 2 RANKS): (h, w, 2 RANKS) float32, per rank the ID
     of its label's name (0 for an empty slot, or a label without a name) and its coverage,
-    count / samples."""
+    count / samples (a count, or each pixel's, (h, w), with per-pixel adaptive sampling)."""
     p = np.asarray(pairs, np.uint32)
     labels, counts = p[..., 0::2], p[..., 1::2]
     out = np.zeros(p.shape, np.float32)
@@ -201,5 +201,6 @@ def exr_values(pairs: np.ndarray, samples: int, ids: dict[int, float]) -> np.nda
         out[..., 0::2] = np.where(found, values[at], np.float32(0))
     else:
         found = np.zeros(labels.shape, bool)
-    out[..., 1::2] = np.where(found, counts / np.float64(max(1, samples)), 0.0)
+    n = np.maximum(np.asarray(samples, np.float64), 1.0)
+    out[..., 1::2] = np.where(found, counts / (n[..., None] if n.ndim else n), 0.0)
     return out

@@ -131,6 +131,20 @@ class Integrator(StrEnum):
     AO = "ao"
 
 
+class NoiseMetric(StrEnum):
+    """What a noise threshold bounds (proto renderfarm.v1.NoiseMetric)."""
+
+    RELATIVE = "relative"
+    DISPLAY = "display"
+
+
+class Adaptive(StrEnum):
+    """Where a job with a noise threshold decides to stop (proto renderfarm.v1.Adaptive)."""
+
+    TILE = "tile"
+    PIXEL = "pixel"
+
+
 SAMPLERS = tuple(m.value for m in Sampler)
 INTEGRATORS = tuple(m.value for m in Integrator)
 
@@ -205,6 +219,18 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("noise_threshold", float, 0.02,
             "a tile stops once its relative error is below this; 0 renders max_spp everywhere", 8,
             minimum=0.0, maximum=10.0, worker=False),
+    Setting("adaptive", Adaptive, "tile",
+            "with a noise threshold, where sampling stops: tile (a tile stops when the RMS of its "
+            "pixels' relative errors is below the threshold) or pixel (from the 64th sample on, "
+            "each pixel stops when its own error, averaged with its 3x3 neighbours', is below the "
+            "threshold, and its tile when every pixel has; the `spp` layer shows each pixel's "
+            "samples) (docs/usage.md, Adaptive sampling)", 29, worker=False),
+    Setting("noise_metric", NoiseMetric, "relative",
+            "what noise_threshold bounds: relative (a pixel's standard error over its brightness, "
+            "for images that will be graded or composited) or display (the standard error of the "
+            "pixel as a viewer sees it, sRGB-encoded and clipped to 0..1: dark pixels need less, "
+            "pixels brighter than white none; a threshold of 0.002 is half an 8-bit level) "
+            "(docs/usage.md, Adaptive sampling)", 30, worker=False),
     Setting("min_spp", int, 16,
             "samples per pixel a tile renders before it may stop on noise", 9,
             minimum=1, bounded_by="max_spp", worker=False),

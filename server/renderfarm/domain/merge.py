@@ -38,6 +38,10 @@ results a second (bench/server_merge.py). The arithmetic is the
 same; relative_error() states it in numpy, and the tests hold the C loops to it and to the
 statistics of all samples computed at once.
 
+One module although over 500 lines: the accumulator is one class, and its arrays, their
+merge, their means and its checkpoint blobs change together (a row of the channel table reaches
+each of them); per-pixel adaptive sampling's decisions are apart, in pixel_stops.py.
+
 The arrays, their types and their order come from the channel table (channels.py), as a
 job's layout has them (the rows always on and those its settings turn on): the radiance and its
 luminance statistics are merged by the fused kernel, every other row that accumulates (a sum, a
@@ -54,8 +58,9 @@ import math
 import numpy as np
 
 from .. import _kernels
-from . import channels, cryptomatte
+from . import channels, cryptomatte, pixel_stops
 from .channels import Accumulate
+from .pixel_stops import NEVER
 from .tiling import AOV_SAMPLES
 
 DARK_FLOOR = 0.01  # pixels darker than this (linear luminance) are judged on absolute error
@@ -100,6 +105,7 @@ class TileAccumulator:
         "nonfinite",
         "iid",
         "spill",
+        "spp_sum",
     )
 
     # Bytes a pixel of the per-pixel arrays of a job that turns nothing on (76: float64 RGB
@@ -134,6 +140,14 @@ class TileAccumulator:
         self.samples = 0
         self.batches = 0
         self.nonfinite = 0
+        # Samples merged over the tile's pixels (per-pixel adaptive sampling: each pixel's own
+        # count; else samples x pixels), kept while the arrays are out of RAM.
+        self.spp_sum = 0.0
+
+    @property
+    def pixel_adaptive(self) -> bool:
+        """Whether the job samples adaptively per pixel (its layout keeps stop_batch)."""
+        return "stop_batch" in self.layout.array_names()
 
     def zero_arrays(self) -> None:
         """Fresh zero arrays: the statistics of no samples. (The coverage is a count, exact in
@@ -141,6 +155,8 @@ class TileAccumulator:
         at most AOV_SAMPLES samples, which float32 holds to its rounding.)"""
         for a in self.layout.stored():
             setattr(self, a.name, np.zeros(a.shape(self.width, self.height), a.dtype))
+        if self.stop_batch is not None:  # no pixel has stopped
+            self.stop_batch = np.full((self.height, self.width), NEVER, np.int32)
 
     def drop_arrays(self) -> None:
         """Let go of the per-pixel arrays (evicted; spill.TileCache restores them)."""
@@ -189,6 +205,14 @@ class TileAccumulator:
         Returns the merged tile's tile_error(), computed in the same pass."""
         if sample_count <= 0:
             raise ValueError("a batch has at least one sample")
+        # Per-pixel adaptive sampling: the pixels this batch rendered (the others' values are
+        # not read); None: every pixel.
+        active = None
+        if self.stop_batch is not None:
+            active = self.stop_batch >= self.batches
+            if active.all():
+                active = None
+        before = self._idle_state() if active is not None else None
         n_a = float(self.samples)
         # Copy on write: every merge writes new arrays instead of updating in place, so a
         # checkpoint can hold on to the arrays of a snapshot() and serialise them in another
@@ -234,10 +258,49 @@ class TileAccumulator:
             values = batch.get(wire)
             if values is not None:
                 setattr(self, name, cryptomatte.merge_ranked(getattr(self, name), values))
+        if self.pixel_spp is not None:
+            grown = sample_count if active is None else np.where(active, sample_count, 0)
+            self.pixel_spp = np.add(self.pixel_spp, grown, dtype=np.float32)
+        if before is not None:
+            self._keep_idle(before, ~active, sample_count)
         self.samples += sample_count
         self.batches += 1
         self.nonfinite += nonfinite
+        self.spp_sum += sample_count * (
+            self.height * self.width if active is None else int(np.count_nonzero(active))
+        )
+        if before is not None:  # the kernel's error counted the idle pixels' batch of zeros
+            return self.tile_error()
         return math.sqrt(total / (self.height * self.width)) if terms else math.inf
+
+    # Per-pixel adaptive sampling (pixel_stops.py): what an idle pixel keeps of a merge.
+    def _idle_state(self) -> dict:
+        """The arrays an idle pixel keeps, before a merge replaces them (copy on write: the old
+        arrays are never written): those pixel_stops.carry_idle carries over."""
+        names = ["rgb_sum", "lum_mean", "m2_within", "m2_between"]
+        names += [name for _, name, window in _summed(self.layout)
+                  if not (window and self.samples >= window)]  # fmt: skip
+        names += [name for _, name in _ranked(self.layout)]
+        return {n: getattr(self, n) for n in names}
+
+    def _keep_idle(self, before: dict, idle: np.ndarray, sample_count: int) -> None:
+        n_a, n = self.samples, self.samples + sample_count
+        kind_a, k_a = self._error_terms(n_a, self.batches)
+        kind, k = self._error_terms(n, self.batches + 1)
+        m2_scale = k_a / k if kind == kind_a and k > 0 else 1.0
+        ranked = {name for _, name in _ranked(self.layout)}
+        pixel_stops.carry_idle(self, before, idle, n_a, n, m2_scale, ranked)
+
+    def pixel_samples(self) -> np.ndarray | float:
+        """Samples merged per pixel: each pixel's own (per-pixel adaptive sampling) or the
+        tile's count."""
+        return self.pixel_spp.astype(np.float64) if self.pixel_spp is not None else self.samples
+
+    def active_pixels(self, batch: int) -> np.ndarray | None:
+        """The pixels batch `batch` renders (per-pixel adaptive sampling), None: every one."""
+        if self.stop_batch is None:
+            return None
+        return self.stop_batch >= batch
 
     def mean_rgb(self) -> np.ndarray:
         if self.samples == 0:
@@ -456,6 +519,10 @@ class TileAccumulator:
             else:
                 acc._load(cls._LEGACY_AOV_ARRAYS, aovs, "aovs")
         acc.samples, acc.batches, acc.nonfinite = samples, batches, nonfinite
+        acc.spp_sum = (
+            float(acc.pixel_spp.sum(dtype=np.float64)) if acc.pixel_spp is not None
+            else float(samples * pixels)
+        )  # fmt: skip
         return acc
 
     @classmethod

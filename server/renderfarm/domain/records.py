@@ -52,6 +52,9 @@ class Lease:
     rect: Rect
     worker_id: str
     deadline: float
+    # Per-pixel adaptive sampling: the pixels the batch renders (workers.proto,
+    # Task.active_pixels); empty: every pixel.
+    active: bytes = b""
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,9 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-from . import channels
+import numpy as np
+
+from . import channels, pixel_stops
 from .channels import job_layout
 from .frames import job_frames, job_rects, tiles_per_frame
 from .jobspec import JobSettings
@@ -160,10 +162,10 @@ class Scheduler:
             }
             self._register(job, tile)
             tile.next_batch = acc.batches
-            job.samples_merged += acc.samples * tile.rect.pixels
+            job.samples_merged += int(acc.spp_sum)
             if acc.batches:
                 self._use(tile)
-                tile.error = acc.tile_error()
+                tile.error = pixel_stops.tile_error(acc, settings.noise_metric)
                 self._decide_stop(job, tile)
             first = max(tile.merged, PLANNED_FROM)
             tile.plan = {first + i: count for i, count in enumerate((plans or {}).get(index, []))}
@@ -283,9 +285,7 @@ class Scheduler:
         now = self.clock()
         paused = job.paused_at if job.state == JobState.PAUSED else None
         done = job.tiles_stopped
-        mean_spp = sum(t.acc.samples * t.rect.pixels for t in job.tiles) / (
-            job.pixels * job.frame_count
-        )
+        mean_spp = sum(t.acc.spp_sum for t in job.tiles) / (job.pixels * job.frame_count)
         errors = [t.error for t in job.tiles if t.merged]
         error = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf
         if job.started is None:
@@ -321,7 +321,7 @@ class Scheduler:
             state=state,
             tiles_total=len(tiles),
             tiles_done=done,
-            mean_spp=sum(t.acc.samples * t.rect.pixels for t in tiles) / job.pixels,
+            mean_spp=sum(t.acc.spp_sum for t in tiles) / job.pixels,
             error=math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.inf,
         )
 
@@ -626,12 +626,23 @@ class Scheduler:
     ) -> None:
         s = job.settings
         if batch >= PLANNED_FROM and s.noise_threshold > 0 and batch not in tile.plan:
-            count = plan_batch(
-                tile.acc.samples, tile.error, s.noise_threshold, s.min_spp, s.max_spp, before
-            )
+            error = tile.error
+            if tile.acc.pixel_adaptive:
+                # Which pixels render the batch, and its size from theirs: the median of their
+                # smoothed errors (none renders it: no batch).
+                self._use(tile)
+                error = pixel_stops.stop_pixels(
+                    tile.acc, s.noise_threshold, s.min_spp, batch, s.noise_metric
+                )
+            if error is None:
+                count, error = 0, math.inf
+            else:
+                count = plan_batch(
+                    tile.acc.samples, error, s.noise_threshold, s.min_spp, s.max_spp, before
+                )
             tile.plan[batch] = count
             if record:
-                error = tile.error if math.isfinite(tile.error) else None
+                error = error if math.isfinite(error) else None
                 tile.basis[batch] = (count, tile.acc.samples, error, before)
 
     def _plan_ahead(self, job: JobRun, tile: TileState) -> None:
@@ -670,6 +681,12 @@ class Scheduler:
 
     def _lease(self, job: JobRun, tile: TileState, batch: int, slot: WorkerSlot) -> Lease:
         start, count = self._span(job, tile, batch)
+        active = b""
+        if tile.acc.pixel_adaptive and batch >= PLANNED_FROM:
+            self._use(tile)
+            mask = tile.acc.active_pixels(batch)
+            if not mask.all():  # one bit a pixel, row-major, least significant first
+                active = np.packbits(mask.ravel(), bitorder="little").tobytes()
         lease = Lease(
             task_id=f"t{next(self._task_ids)}",
             job_id=job.job_id,
@@ -680,6 +697,7 @@ class Scheduler:
             rect=tile.rect,
             worker_id=slot.worker_id,
             deadline=self.clock() + self.lease_s,
+            active=active,
         )
         tile.requeue.discard(batch)
         tile.next_batch = max(tile.next_batch, batch + 1)
@@ -764,11 +782,14 @@ class Scheduler:
             self._use(tile)
             r = tile.pending.pop(tile.merged)
             tile.aovs_dirty |= carries_aovs(r.sample_start)
+            spp_sum = tile.acc.spp_sum
             tile.error = tile.acc.merge_batch(
                 r.rgb_sum, r.luminance_m2, r.sample_count, r.albedo_sum, r.normal_sum, r.nonfinite,
                 r.coverage_sum, r.extra,
             )  # fmt: skip
-            job.samples_merged += r.sample_count * tile.rect.pixels
+            if job.settings.noise_metric != "relative":
+                tile.error = pixel_stops.tile_error(tile.acc, job.settings.noise_metric)
+            job.samples_merged += int(tile.acc.spp_sum - spp_sum)
             self._record_merge(job)
             tile.dirty = True
             outcome = "merged" if r is result or outcome == "merged" else outcome
@@ -821,6 +842,11 @@ class Scheduler:
         n = tile.acc.samples
         if n >= s.max_spp:
             self._stop_tile(job, tile, StopReason.MAX_SPP)
+        elif tile.acc.pixel_adaptive:
+            # Per pixel: the tile stops when none of its pixels renders the next batch
+            # (stop_pixels decided that from batches 0..merged-2).
+            if not tile.acc.active_pixels(tile.merged).any():
+                self._stop_tile(job, tile, StopReason.CONVERGED)
         elif s.noise_threshold > 0 and n >= s.min_spp and tile.error < s.noise_threshold:
             self._stop_tile(job, tile, StopReason.CONVERGED)
 

@@ -54,6 +54,7 @@ from ..errors import Cancelled
 
 # The channels of every EXR, computed by the fused kernel (those of a job without outputs).
 EXR_CHANNELS = channels.exr_channels()
+_SPP_CHANNEL = EXR_CHANNELS.index("spp")
 LAYERS = tuple(channels.layers())
 # The EXR of a job with settings.denoise: its channels, then the denoised RGB.
 DENOISED_CHANNELS = channels.exr_channels(denoise=True)[len(EXR_CHANNELS) :]
@@ -83,7 +84,7 @@ _OWN_ROWS = frozenset(channels.DEFAULT.names)
 def output_rows(layout: channels.Layout) -> tuple[channels.Channel, ...]:
     """The rows of a job's layout whose EXR channels follow the fused kernel's (the outputs
     of settings.aovs), in table order."""
-    return tuple(c for c in layout.rows if c.name not in _OWN_ROWS and c.store)
+    return tuple(c for c in layout.rows if c.name not in _OWN_ROWS and c.store and c.layers)
 
 
 # A band of tiles and what each one holds: None for a tile with no merged samples.
@@ -97,7 +98,10 @@ def arrays_needed(
     only these)."""
     if fmt == "exr":
         return layout.array_names()
-    return channels.layer_arrays(layer)
+    names = channels.layer_arrays(layer)
+    if "pixel_spp" in layout.array_names() and "pixel_spp" not in names:
+        names += ("pixel_spp",)  # each pixel's count (the spp layer, Cryptomatte coverage)
+    return names
 
 
 @dataclass(frozen=True)
@@ -193,7 +197,9 @@ def _outputs_band(
             if row.accumulate is Accumulate.RANKED:
                 for layer in row.layers:
                     pairs = _ranked_pairs(layer, row, acc, names)
-                    values = cryptomatte.exr_values(pairs, acc.samples, ids[crypto_type(layer)])
+                    values = cryptomatte.exr_values(
+                        pairs, acc.pixel_samples(), ids[crypto_type(layer)]
+                    )
                     t[..., c : c + len(layer.exr)] = values
                     c += len(layer.exr)
                 continue
@@ -221,6 +227,8 @@ def _exr_band(width: int, height: int, tiles: Band) -> np.ndarray:
             acc.normal_sum, acc.coverage_sum, rect.height, rect.width, acc.samples,
             max(1, acc.aov_samples), k, DARK_FLOOR, out, width, rect.x0,
         )  # fmt: skip
+        if acc.pixel_spp is not None:  # per-pixel adaptive sampling: each pixel's own count
+            out[:, rect.x0 : rect.x0 + rect.width, _SPP_CHANNEL] = acc.pixel_spp
     return out
 
 
@@ -230,6 +238,8 @@ def _grey_values(layer: str, acc: TileAccumulator) -> np.ndarray:
     if layer == "variance":
         return np.sqrt(acc.variance_of_mean())
     if layer == "spp":
+        if acc.pixel_spp is not None:  # per-pixel adaptive sampling
+            return acc.pixel_spp.astype(np.float64)
         return np.full((acc.height, acc.width), float(acc.samples))
     if layer == "error":
         return acc.relative_error()
@@ -284,7 +294,8 @@ def _display_tile(
     if _display(layer) is Display.MATTE:  # each label's colour weighted by its coverage
         row = channels.layer_channel(layer)
         pairs = _ranked_pairs(channels.layers()[layer], row, acc, names or cryptomatte.Names.of({}))
-        coverage = pairs[..., 1::2] / float(acc.samples)
+        n = np.maximum(np.asarray(acc.pixel_samples(), np.float64), 1.0)
+        coverage = pairs[..., 1::2] / (n[..., None] if n.ndim else n)
         return (label_colours(pairs[..., 0::2]) * coverage[..., None]).sum(-2)
     if layer == "rgb":
         return acc.rgb_sum / acc.samples

@@ -50,6 +50,13 @@ using Clock = std::chrono::steady_clock;
 // mostly in order, a few at a time per worker; each field a few MB at most).
 constexpr size_t kGuideFields = 4;
 
+// Pixels a Task.active_pixels mask renders (its set bits).
+uint64_t active_count(const std::string& mask) {
+  uint64_t n = 0;
+  for (const char c : mask) n += uint64_t(__builtin_popcount(static_cast<unsigned char>(c)));
+  return n;
+}
+
 std::mutex g_log_mutex;
 void log_line(const std::string& message) {
   std::lock_guard<std::mutex> lock(g_log_mutex);
@@ -475,6 +482,13 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
                        task.rect().height()};
   err = validate_render_request(settings, rect, task.sample_start(), task.sample_count());
   if (!err.empty()) return fail({"task: " + err, false});
+  // Per-pixel adaptive sampling: the pixels this batch renders (workers.proto).
+  const std::string& active = task.active_pixels();
+  if (!active.empty() && active.size() != (size_t(rect.pixel_count()) + 7) / 8)
+    return fail({"task: active_pixels has " + std::to_string(active.size()) +
+                     " bytes, the rect's " + std::to_string(rect.pixel_count()) +
+                     " pixels need " + std::to_string((size_t(rect.pixel_count()) + 7) / 8),
+                 false});
   std::shared_ptr<const Scene> scene;
   const std::string& variant = task.settings().variant();
   try {
@@ -588,7 +602,9 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
   TileBuffer tile;
   const bool rendered =
       !cancel && render_rect(*scene, settings, rect, task.sample_start(), task.sample_count(),
-                             &tile, &cancel, rows, motion ? &*motion : nullptr);
+                             &tile, &cancel, rows, motion ? &*motion : nullptr,
+                             active.empty() ? nullptr
+                                            : reinterpret_cast<const uint8_t*>(active.data()));
   if (running.timed_out->load()) {
     char budget[32];
     std::snprintf(budget, sizeof budget, "%g", options_.task_timeout_s);
@@ -646,7 +662,8 @@ void Worker::run_task(Session& s, const pb::Task& task, const RunningTask& runni
       (task.animated() ? task.scene_sha256() + " " + animation : task.scene_sha256()) +
       variant_key(variant);
   for (const std::string& w : warnings_to_send(task.job_id(), scene_key)) r->add_warnings(w);
-  s.samples += uint64_t(rect.pixel_count()) * task.sample_count();
+  s.samples += uint64_t(active.empty() ? rect.pixel_count() : active_count(active)) *
+               task.sample_count();
   s.rays += tile.rays;
   send_result(s, std::move(result));
 }

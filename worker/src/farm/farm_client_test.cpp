@@ -341,6 +341,18 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
   late.set_skip_aovs(true);
   assign(late);
   ASSERT_TRUE(farm.wait_for([&] { return has("late", true); }));
+  // Per-pixel adaptive sampling: a task naming its pixels renders only those (the 8x6 rect's
+  // pixels 0, 5 and 47: bits of bytes 0 and 5); a mask of the wrong length fails for good.
+  pb::Task masked = make_task("masked", farm.scene_sha, 4);
+  std::string mask(6, '\0');
+  mask[0] = char(0x21);
+  mask[5] = char(0x80);
+  masked.set_active_pixels(mask);
+  assign(masked);
+  pb::Task bad_mask = make_task("badmask", farm.scene_sha, 4);
+  bad_mask.set_active_pixels(std::string(5, '\xff'));
+  assign(bad_mask);
+  ASSERT_TRUE(farm.wait_for([&] { return has("masked", true) && has("badmask", false); }));
 
   stop = true;
   client.join();
@@ -382,6 +394,23 @@ TEST(FarmClient, RendersFetchesCancelsAndStopsGracefully) {
     EXPECT_GT(total, 0.0);
   }
   for (const auto& m : farm.received) {
+    if (m.has_failed() && m.failed().task_id() == "badmask") {
+      EXPECT_FALSE(m.failed().retryable());
+      EXPECT_NE(m.failed().error().find("active_pixels has 5 bytes"), std::string::npos)
+          << m.failed().error();
+      continue;
+    }
+    if (m.has_result() && m.result().task_id() == "masked") {
+      const TileBuffer local = render_locally(farm.scene_bytes, masked);
+      const std::vector<float> got = unpack_f32_le(m.result().rgb_sum());
+      const std::vector<float> whole = as_floats(local.rgb_sum);
+      ASSERT_EQ(got.size(), whole.size());
+      for (size_t i = 0; i < got.size(); ++i) {
+        const size_t pixel = i / 3;
+        const bool on = pixel == 0 || pixel == 5 || pixel == 47;
+        EXPECT_EQ(got[i], on ? whole[i] : 0.f) << "pixel " << pixel;
+      }
+    }
     if (m.has_failed() && m.failed().task_id() != "unknown") {
       EXPECT_EQ(m.failed().task_id(), "bad");
       EXPECT_FALSE(m.failed().retryable());

@@ -281,6 +281,47 @@ TEST(CryptoRows, TheSameTaskGivesTheSameBytes) {
   EXPECT_EQ(plain.sum(Id::Coverage), whole.sum(Id::Coverage));
 }
 
+// Per-pixel adaptive sampling's mask (Task.active_pixels): the pixels it names get exactly the
+// values of an unmasked render (a pixel's samples do not depend on its neighbours), every
+// other pixel is 0 in every row, the ranked ones included.
+TEST(CryptoRows, AMaskRendersOnlyItsPixels) {
+  const std::unique_ptr<Scene> scene = load_ids_scene();
+  const RenderSettings settings = settings_for(IntegratorType::Path);
+  const channels::Set rows = kCryptoRows | channels::bit(Id::Rgb) |
+                             channels::bit(Id::Luminance) | channels::bit(Id::Albedo) |
+                             channels::bit(Id::Coverage);
+  const size_t n = size_t(kWidth) * kHeight;
+  std::vector<uint8_t> mask((n + 7) / 8, 0);
+  std::vector<bool> on(n);
+  for (size_t i = 0; i < n; ++i) {
+    on[i] = (i * 7919u) % 5u < 2u;  // two pixels in five, scattered
+    if (on[i]) mask[i / 8] = uint8_t(mask[i / 8] | (1u << (i % 8)));
+  }
+  TileBuffer whole, part;
+  ASSERT_TRUE(render_rect(*scene, settings, {0, 0, kWidth, kHeight}, 3, 9, &whole, nullptr,
+                          rows));
+  ASSERT_TRUE(render_rect(*scene, settings, {0, 0, kWidth, kHeight}, 3, 9, &part, nullptr, rows,
+                          nullptr, mask.data()));
+  size_t active = 0;
+  for (size_t i = 0; i < n; ++i) {
+    active += on[i] ? 1u : 0u;
+    for (size_t c = 0; c < 3; ++c) {
+      EXPECT_EQ(part.rgb_sum[3 * i + c], on[i] ? whole.rgb_sum[3 * i + c] : 0.0) << i;
+      EXPECT_EQ(part.sum(Id::Albedo)[3 * i + c], on[i] ? whole.sum(Id::Albedo)[3 * i + c] : 0.f);
+    }
+    EXPECT_EQ(part.luminance_m2[i], on[i] ? whole.luminance_m2[i] : 0.0) << i;
+    EXPECT_EQ(part.sum(Id::Coverage)[i], on[i] ? whole.sum(Id::Coverage)[i] : 0.f) << i;
+    for (Id id : {Id::CryptoObject, Id::CryptoMaterial})
+      for (uint32_t k = 0; k < 2 * kPairs; ++k)
+        EXPECT_EQ(part.ranked(id)[2 * kPairs * i + k],
+                  on[i] ? whole.ranked(id)[2 * kPairs * i + k] : 0u)
+            << i;
+  }
+  EXPECT_GT(active, n / 4);
+  EXPECT_LT(active, n / 2);
+  EXPECT_LT(part.rays, whole.rays);  // the stopped pixels were not traced
+}
+
 // Over a task of one sample, a pixel's one pair is that sample's first hit: the Instance row's
 // node label, and the Material row's material label (its 0 for the default material being
 // the ranked row's 0xFFFFFFFF), count 1; nothing where the sample missed.

@@ -114,11 +114,14 @@ std::string validate_render_request(const RenderSettings& settings, PixelRect re
 // (if given) between rows and returns false as soon as it is set; *out is then incomplete.
 // The request must pass validate_render_request, and with the LightGroups row
 // check_light_groups (render/light_groups.h). motion: the Motion row's other poses
-// (render/motion.h); null: a still, whose Motion row is 0.
+// (render/motion.h); null: a still, whose Motion row is 0. active: per-pixel adaptive
+// sampling's mask (workers.proto, Task.active_pixels), one bit per pixel of rect in row-major
+// order, least significant bit first, ceil(pixels / 8) bytes; a pixel whose bit is 0 is not
+// rendered and all its values stay 0. Null: every pixel.
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel = nullptr,
                  uint32_t rows = (uint32_t(1) << channels::kCount) - 1,
-                 const MotionPoses* motion = nullptr);
+                 const MotionPoses* motion = nullptr, const uint8_t* active = nullptr);
 
 }  // namespace rf

@@ -13,7 +13,7 @@ namespace rf {
 bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect rect,
                  uint64_t start, uint32_t count, TileBuffer* out,
                  const std::atomic<bool>* cancel, uint32_t rows,
-                 const MotionPoses* motion) {
+                 const MotionPoses* motion, const uint8_t* active) {
   // The light groups: traced (PathGroups, packet_tracer.h) only when their row is asked for
   // and the settings have groups (without them the row is not rendered); each sample's
   // radiance by group lands here, kPacketSize samples at a time like the results, and is
@@ -64,6 +64,8 @@ bool render_rect(const Scene& scene, const RenderSettings& settings, PixelRect r
       // render whose pixels are very costly within a second.
       if (cancel && cancel->load(std::memory_order_relaxed)) return false;
       const size_t i = size_t(ty) * rect.width + tx;
+      // A pixel adaptive sampling has stopped: its values stay the reset's zeros.
+      if (active && !((active[i / 8] >> (i % 8)) & 1u)) continue;
       double sum[3] = {0.0, 0.0, 0.0};
       RunningStats luminance_stats;
       float acc[channels::kCount * channels::kMaxComponents] = {};

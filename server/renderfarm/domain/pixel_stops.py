@@ -1,0 +1,154 @@
+"""Per-pixel adaptive sampling (settings.adaptive pixel; docs/architecture.md, "Per-pixel
+adaptive sampling"): which pixels of a tile render its next batches, decided from its merged
+batches only, and what a stopped pixel keeps of the batches it sits out; and the error a noise
+threshold bounds under either settings.noise_metric (for tiles too).
+
+A tile's accumulator (merge.TileAccumulator) keeps two arrays for it (the channel table's
+`adaptive` row): stop_batch, the last batch each pixel renders (NEVER while it samples), and
+pixel_spp, each pixel's merged samples. Batch b renders the pixels with stop_batch >= b
+(workers.proto, Task.active_pixels); stops are monotone, so a pixel's samples are always a
+prefix of its sample indices, as with a tile's.
+
+A pixel that has stopped rendered nothing in a batch. Its arrays are carried over so that
+every output stays what it is for a tile of one sample count N (images, previews, the denoiser
+and the EXR read sum / N): an idle pixel's sums are scaled by (N + S) / N, so that a sum over its
+own n samples reads sum_n * N / n, its own mean; its mean luminance is kept, and its M2 scaled
+so that the variance of its mean (M2 times the error terms' k) stays the one it stopped with.
+The ranked rows (Cryptomatte counts) are kept as they are and read against the pixel's own
+count (TileAccumulator.pixel_samples).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# stop_batch of a pixel that has not stopped.
+NEVER = np.iinfo(np.int32).max
+# Pixels stop no earlier than this many samples: the windowed rows (albedo and normal, the
+# first 16) are complete by then, and a pixel's own estimate has a few batches behind it.
+AOV_WINDOW = 16
+
+
+def carry_idle(acc, before: dict, idle: np.ndarray, n_a: int, n: int, m2_scale: float,
+               ranked: set) -> None:  # fmt: skip
+    """After a merge of n - n_a samples a pixel: the idle pixels' values from `before` (the
+    arrays as they were), carried over as the module says."""
+    if n_a < AOV_WINDOW:
+        raise ValueError("a pixel stopped before the AOV window closed")
+    scale = n / n_a
+    for name, old in before.items():
+        new = getattr(acc, name)
+        if name == "lum_mean" or name in ranked:
+            new[idle] = old[idle]
+        elif name in ("m2_within", "m2_between"):
+            new[idle] = old[idle] * m2_scale
+        else:
+            new[idle] = old[idle] * scale
+
+
+def _srgb_slope(x: np.ndarray) -> np.ndarray:
+    """The derivative of the sRGB encoding (IEC 61966-2-1) at linear x, 0 at and above 1 (the
+    display clips there)."""
+    x = np.maximum(x, 0.0)
+    curve = (1.055 / 2.4) * np.power(np.maximum(x, 0.0031308), 1.0 / 2.4 - 1.0)
+    return np.where(x >= 1.0, 0.0, np.where(x <= 0.0031308, 12.92, curve))
+
+
+# Degrees of freedom the tile's pooled estimate counts for in a pixel's (pooled_variance).
+PRIOR_DOF = 8.0
+
+
+def pooled_variance(acc) -> np.ndarray:
+    """Each pixel's variance of the mean, raised toward what its tile says a pixel of its
+    brightness has (never lowered: a pixel noisier than its tile keeps its own estimate):
+    max(s^2, (nu s^2 + nu_0 r^2 m^2) / (nu + nu_0)), with nu its own degrees of freedom
+    (its batches less one), r^2 the mean over the tile's pixels of their squared relative error
+    (the variance of the mean over the brightness squared, as merge's relative error takes it)
+    and m the pixel's mean. A pixel's own estimate from a few batches misses what is rare: a
+    dim floor lit by a caustic that 64 samples do not find looks converged on its own, while
+    its tile's thousand pixels, between them, have found it."""
+    from .merge import DARK_FLOOR  # merge imports this module
+
+    var = acc.variance_of_mean()
+    known = np.isfinite(var)
+    if not known.all() or acc.batches < 2:
+        return var
+    bound = np.maximum(acc.lum_mean - np.sqrt(var), DARK_FLOOR)
+    prior = float(np.mean(var / bound**2)) * np.square(np.maximum(acc.lum_mean, 0.0))
+    dof = float(acc.batches - 1)
+    return np.maximum(var, (dof * var + PRIOR_DOF * prior) / (dof + PRIOR_DOF))
+
+
+def relative_error(acc) -> np.ndarray:
+    """merge's relative error of the pooled_variance()."""
+    from .merge import DARK_FLOOR
+
+    s = np.sqrt(pooled_variance(acc))
+    return s / np.maximum(acc.lum_mean - s, DARK_FLOOR)
+
+
+def display_error(acc, variance: np.ndarray | None = None) -> np.ndarray:
+    """Per pixel, the standard error of its luminance as a viewer sees it, in display units
+    (0..1 of the sRGB-encoded, clipped value): the standard error s of the mean times the
+    encoding's slope at the mean less s (a lower bound of the brightness, as relative_error
+    takes it: where the encoding is steeper, so the bound errs on the side of more samples).
+    0 where even the bound is at or above white (the display clips it); inf where unknown.
+    variance: of each pixel's mean (default: pooled_variance())."""
+    s = np.sqrt(pooled_variance(acc) if variance is None else variance)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(s), s * _srgb_slope(acc.lum_mean - s), np.inf)
+
+
+def pixel_error(acc, metric: str = "relative") -> np.ndarray:
+    """Each pixel's error as settings.noise_metric measures it."""
+    return display_error(acc) if metric == "display" else relative_error(acc)
+
+
+def tile_error(acc, metric: str = "relative") -> float:
+    """A tile's error: the root mean square of its pixels' (inf while any is unknown)."""
+    if metric != "display":
+        return acc.tile_error()
+    e = display_error(acc)
+    return float(np.sqrt(np.mean(np.square(e)))) if np.isfinite(e).all() else math.inf
+
+
+def smoothed_error(acc, threshold: float = math.inf, metric: str = "relative") -> np.ndarray:
+    """Each pixel's relative error, averaged (in its square) over its 3x3 neighbourhood within
+    the tile: a pixel's own estimate has few degrees of freedom (its batches less one), its
+    neighbours' nine times as many, and a pixel next to a noisy one is not let go on its own
+    lucky estimate (as Cycles' adaptive sampling keeps the neighbours of active pixels active).
+    A pixel that has stopped counts at most `threshold`: it was judged done, and its error,
+    frozen, must not keep a neighbour sampling for good. Infinite where any estimate is
+    unknown."""
+    e2 = np.square(pixel_error(acc, metric))
+    if acc.stop_batch is not None and math.isfinite(threshold):
+        e2 = np.where(acc.stop_batch != NEVER, np.minimum(e2, threshold**2), e2)
+    h, w = e2.shape
+    total = np.zeros((h + 2, w + 2))
+    count = np.zeros((h + 2, w + 2))
+    for dy in range(3):
+        for dx in range(3):
+            total[dy : dy + h, dx : dx + w] += e2
+            count[dy : dy + h, dx : dx + w] += 1.0
+    return np.sqrt(total[1:-1, 1:-1] / count[1:-1, 1:-1])
+
+
+def stop_pixels(
+    acc, threshold: float, min_spp: int, batch: int, metric: str = "relative"
+) -> float | None:
+    """Decide, from the merged batches only, which pixels render batch `batch` (the one after
+    the next, planned now): a pixel still sampling stops (its last batch is the next one) once
+    it has min_spp samples and its smoothed_error() is below threshold. Deciding twice from the
+    same state decides the same. Returns the median smoothed error of the pixels that render
+    `batch` (what its size is planned from), None when none does."""
+    error = smoothed_error(acc, threshold, metric)
+    if acc.samples >= min_spp:
+        stop = (acc.stop_batch == NEVER) & (error < threshold)
+        if stop.any():
+            acc.stop_batch = np.where(stop, np.int32(acc.batches), acc.stop_batch)
+    rendering = acc.stop_batch >= batch
+    if not rendering.any():
+        return None
+    return float(np.median(error[rendering]))
