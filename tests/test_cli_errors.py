@@ -25,6 +25,15 @@ from .test_auth import _self_signed
 from .waiting import wait_until
 
 CLI = [sys.executable, "-m", "renderfarm"]
+# The CLI as a terminal starts it, with SIGINT at its default. A test runner started in the
+# background by a non-interactive shell (`make test &`) has SIGINT ignored, its children inherit
+# that, and Python keeps an inherited SIG_IGN: Ctrl-C would then be a no-op, as it should for a
+# background job. exec keeps SIG_DFL, so the child below sees Ctrl-C as a terminal's would.
+CLI_AT_A_TERMINAL = [
+    sys.executable, "-c",
+    "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+    "os.execv(sys.executable, [sys.executable, '-m', 'renderfarm', *sys.argv[1:]])",
+]  # fmt: skip
 TINY = ["--width", "32", "--height", "32", "--tile-size", "16", "--spp", "4"]
 
 
@@ -199,8 +208,19 @@ def _await_stderr(proc: subprocess.Popen, words: str, deadline: float) -> str:
     return seen.decode()
 
 
+def _exit_or_stacks(proc: subprocess.Popen, timeout: float) -> str:
+    """The rest of the process's stderr once it exits; if it does not within timeout, fail
+    with the Python stacks faulthandler (PYTHONFAULTHANDLER) prints on SIGABRT."""
+    try:
+        return proc.communicate(timeout=timeout)[1].decode()
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        stacks = proc.communicate(timeout=30)[1].decode()
+        pytest.fail(f"{proc.args} still running {timeout} s after Ctrl-C:\n{stacks}")
+
+
 def test_ctrl_c_exits_130_quietly_and_render_cancels_its_job(idle_farm, tmp_path):
-    env = _env(RENDERFARM_URL=idle_farm.url)
+    env = _env(RENDERFARM_URL=idle_farm.url, PYTHONFAULTHANDLER="1")
     with Client(idle_farm.url) as client:
         queued = client.submit(CORNELL, settings={"width": 32, "height": 32})
     deadline = time.monotonic() + 120
@@ -218,12 +238,11 @@ def test_ctrl_c_exits_130_quietly_and_render_cancels_its_job(idle_farm, tmp_path
             *TINY,
         ],
     ):
-        proc = subprocess.Popen(CLI + command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                env=env)  # fmt: skip
+        proc = subprocess.Popen(CLI_AT_A_TERMINAL + command, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, env=env)  # fmt: skip
         seen = _await_stderr(proc, "queued", deadline)  # following the job now
         proc.send_signal(signal.SIGINT)
-        _, rest = proc.communicate(timeout=60)
-        stderr = seen + rest.decode()
+        stderr = seen + _exit_or_stacks(proc, 60)
         assert proc.returncode == 130, stderr
         assert "Traceback" not in stderr and "renderfarm:" not in stderr, stderr
     with Client(idle_farm.url) as client:

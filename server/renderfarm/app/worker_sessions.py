@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import psycopg
 from psycopg_pool import PoolTimeout
 
@@ -141,13 +142,18 @@ class WorkerSessions:
     def _take_result(self, session: WorkerSession, task_id: str, result: BatchResult) -> str:
         started = time.perf_counter()
         self.scheduler.task_warnings(session.worker_id, result)  # whatever becomes of the result
+        # The pixels the task rendered: its mask's (per-pixel adaptive sampling) or the rect's.
+        lease = self.scheduler.leases.get(task_id)
+        pixels = result.rect.pixels
+        if lease is not None and lease.active:
+            pixels = int(np.unpackbits(np.frombuffer(lease.active, np.uint8)).sum())
         outcome = self.scheduler.complete(task_id, result)
         if self.metrics is not None:
             self.metrics.merge_seconds.observe(time.perf_counter() - started)
             self.metrics.task_completed(outcome)
             self.metrics.task_seconds.observe(result.render_seconds)
             if outcome in ("merged", "pending"):
-                self.metrics.samples_merged.inc(result.sample_count * result.rect.pixels)
+                self.metrics.samples_merged.inc(result.sample_count * pixels)
         if outcome in ("merged", "pending"):
             self.batches_merged += 1
         session.tasks_done += 1
