@@ -6,13 +6,14 @@ Blender's exporter as bench/cycles_parity.py --realistic does), 320x240, 13 boun
 Per scene:
 1. Cycles (bpy, matched settings as cycles_parity.py sets them) with its adaptive sampling at
    Blender's defaults: threshold 0.01, automatic minimum samples, at most 4096 samples; and two
-   uniform references at --reference-spp (seeds 1000 and 1001).
+   uniform references at --reference-spp (seeds 1000 and 1001). Its mean spp is read from
+   the adaptive render's Debug Sample Count pass.
 2. The farm (embedded PostgreSQL, 2 workers of 1 thread: Cycles gets 2 threads): two uniform
    references at --reference-spp, then the same scene with adaptive pixel (--threshold and
-   --metric: noise_metric display by default, what this benchmark scores), with adaptive tile
-   at the same threshold, and uniform at the pixel job's mean spp. Render time is
-   the server's elapsed_s (first lease to last merge; the workers keep the scene loaded
-   between jobs, so only the first job, a reference, pays its load).
+   --metric: noise_metric display by default, what this benchmark scores), with adaptive
+   pixel_mse and adaptive tile at the same threshold, and uniform at the pixel job's mean spp.
+   Render time is the server's elapsed_s (first lease to last merge; the workers keep the
+   scene loaded between jobs, so only the first job, a reference, pays its load).
 3. Each image is scored on display-referred MSE (the sRGB-encoded image clipped to [0, 1], as a
    PNG or a viewer shows it, in 8-bit levels squared) against its own renderer's reference,
    less the reference's own noise (half the mean squared difference of the two references), so
@@ -73,7 +74,8 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
     kept = scratch / "cycles-result.json"
     renders = [
         {"spp": CYCLES_MAX_SAMPLES, "seed": 1, "path": str(scratch / "cycles-adaptive.exr"),
-         "adaptive": CYCLES_ADAPTIVE},
+         "adaptive": CYCLES_ADAPTIVE,
+         "sample_count_path": str(scratch / "cycles-adaptive-passes.exr")},
         *({"spp": args.reference_spp, "seed": 1000 + k,
            "path": str(scratch / f"cycles-reference-{k}.exr")} for k in range(2)),
     ]  # fmt: skip
@@ -90,7 +92,17 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
                              f"Cycles rendering {scene}")  # fmt: skip
         kept.write_text(json.dumps({"config": config, "result": result}))
     images = [rgb(Path(r["path"])) for r in renders]
-    return {"adaptive": images[0], "seconds": result["seconds"][0], "refs": tuple(images[1:])}
+    return {"adaptive": images[0], "seconds": result["seconds"][0], "refs": tuple(images[1:]),
+            "spp": cycles_mean_spp(Path(renders[0]["sample_count_path"]))}  # fmt: skip
+
+
+def cycles_mean_spp(path: Path) -> float:
+    """The mean over the pixels of Cycles' samples: its Debug Sample Count pass holds each
+    pixel's count over the render's sample count."""
+    from passes_parity import read_parts
+
+    (count,) = [v for k, v in read_parts(path).items() if ".Debug Sample Count." in k]
+    return float(np.mean(count, dtype=np.float64)) * CYCLES_MAX_SAMPLES
 
 
 def render_farm(client: Client, scene: Path, env: dict | None, name: str, scratch: Path,
@@ -139,10 +151,11 @@ def run_scene(client: Client, name: str, files: dict, args, out: Path) -> dict:
         for k in range(2)
     )  # fmt: skip
     runs = {"cycles adaptive": {"image": cyc["adaptive"], "seconds": cyc["seconds"],
-                                "spp": None, "own": cyc["refs"]}}  # fmt: skip
+                                "spp": cyc["spp"], "own": cyc["refs"]}}  # fmt: skip
     adaptive = {"noise_threshold": args.threshold, "noise_metric": args.metric,
                 "max_spp": CYCLES_MAX_SAMPLES}  # fmt: skip
-    for label, mode in (("farm pixel", "pixel"), ("farm tile", "tile")):
+    for label, mode in (("farm pixel", "pixel"), ("farm pixel_mse", "pixel_mse"),
+                        ("farm tile", "tile")):  # fmt: skip
         print(f"{name}: {label} ({args.metric} error, threshold {args.threshold})", flush=True)
         job, image = render_farm(client, scene, env, f"{name}-{mode}-{args.metric}", scratch,
                                  adaptive=mode, **adaptive, **extra)  # fmt: skip

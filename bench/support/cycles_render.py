@@ -5,7 +5,8 @@ bench/cycles_parity.py. Runs inside Blender's Python (the bpy module of .venv-bl
 
 CONFIG: {"scene": glTF path, "width", "height", "max_depth", "threads",
 "renders": [{"spp", "seed", "path", "adaptive": optional {"threshold", "min_samples"}: Cycles'
-adaptive sampling on, spp its maximum (bench/adaptive_parity.py)}, ...], "environment": null or
+adaptive sampling on, spp its maximum (bench/adaptive_parity.py), "sample_count_path": optional,
+a multilayer EXR for the render's passes with its Debug Sample Count}, ...], "environment": null or
 {"path", "intensity",
 "rotation_deg"}, "microfacet": "multi_ggx" (as imported) or "ggx", "textures": "as_imported"
 or "linear", "volume": "as_imported" or "gltf", "anisotropy": "as_imported" or "gltf",
@@ -424,6 +425,24 @@ def enable_passes(scene: bpy.types.Scene) -> dict:
     return groups
 
 
+def save_sample_count(scene: bpy.types.Scene, path: str) -> None:
+    """The last render's passes, its Debug Sample Count among them (each pixel's samples over
+    the render's sample count), into a multilayer EXR at path; the image settings are
+    restored for the renders after it."""
+    settings = scene.render.image_settings
+    # Switching the media type resets the depth and codec (to half floats): every one is kept.
+    kept = ("media_type", "file_format", "color_depth", "color_mode", "exr_codec")
+    before = {name: getattr(settings, name) for name in kept}
+    settings.media_type = "MULTI_LAYER_IMAGE"
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+    bpy.data.images["Render Result"].save_render(filepath=path, scene=scene)
+    for name in kept:
+        setattr(settings, name, before[name])
+    if settings.color_depth != "32":
+        raise RuntimeError("the EXR settings were not restored after the sample count")
+
+
 def main() -> dict:
     scene = import_scene()
     match_settings(scene)
@@ -442,9 +461,13 @@ def main() -> dict:
             scene.cycles.adaptive_threshold = adaptive["threshold"]
             scene.cycles.adaptive_min_samples = adaptive["min_samples"]
         scene.render.filepath = render["path"]
+        counted = render.get("sample_count_path")
+        scene.view_layers[0].cycles.pass_debug_sample_count = bool(counted)
         start = time.perf_counter()
         bpy.ops.render.render(write_still=True)
         seconds.append(time.perf_counter() - start)
+        if counted:
+            save_sample_count(scene, counted)
     lights = lights_as_imported() if CONFIG.get("importer") == "usd" else None
     return {"seconds": seconds, "camera": scene.camera.name, "keys": keys, "lights": lights,
             "light_groups": groups}  # fmt: skip

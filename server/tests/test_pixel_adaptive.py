@@ -163,10 +163,12 @@ def test_pixels_stop_on_their_own_error_and_the_tile_when_all_have():
     assert job.samples_merged == total
 
 
-def test_the_image_is_the_same_from_any_workers_in_any_order():
-    one = run_farm(SETTINGS, workers=1, seed=1, credit=1, reorder=False).jobs["j"]
+@pytest.mark.parametrize("mode", ["pixel", "pixel_mse"])
+def test_the_image_is_the_same_from_any_workers_in_any_order(mode):
+    settings = JobSettings(**{**SETTINGS.to_dict(), "adaptive": mode})
+    one = run_farm(settings, workers=1, seed=1, credit=1, reorder=False).jobs["j"]
     for workers, seed, idle in [(3, 2, 0.0), (4, 5, 123.0)]:
-        many = run_farm(SETTINGS, workers=workers, seed=seed, idle_value=idle).jobs["j"]
+        many = run_farm(settings, workers=workers, seed=seed, idle_value=idle).jobs["j"]
         for a, b in zip(one.tiles, many.tiles, strict=True):
             for name in ("rgb_sum", "m2_between", "pixel_spp", "stop_batch", "coverage_sum"):
                 np.testing.assert_array_equal(getattr(a.acc, name), getattr(b.acc, name))
@@ -325,3 +327,50 @@ def test_pixels_that_miss_a_rare_event_do_not_stop_on_their_lucky_estimate(monke
     print(f"true RMS relative error: pooled {pooled:.3f}, own estimates {own:.3f}")
     assert pooled < 1.5 * settings.noise_threshold
     assert own > 1.5 * pooled
+
+
+def two_levels(settings, rect, start, count):
+    """Uniform noise around 0.5 whose amplitude is 0.1 in the left half of the image and 0.4
+    in the right half: per-sample standard deviations 1 : 4, variances 1 : 16."""
+    u = hashed(settings, rect, start, count)
+    xs = np.arange(rect.x0, rect.x0 + rect.width)[None, None, :]
+    value = 0.5 + np.where(xs < settings.width // 2, 0.1, 0.4) * (u - 0.5)
+    return np.repeat(value[..., None], 3, axis=-1)
+
+
+def test_pixel_mse_gives_each_pixel_samples_in_proportion_to_its_noise():
+    """adaptive pixel stops every pixel at one error, so its samples grow with the variance
+    (16x on the noisy half); pixel_mse stops a pixel with n samples below threshold x
+    sqrt(n / 64), so they grow with the standard deviation (4x: Neyman's allocation). For two
+    halves of standard deviations 1 and 4 that makes the product of the image's MSE and its
+    samples (the inverse of the efficiency at equal cost) 6.25 against 8.5 units: 1.36x."""
+    spp, efficiency = {}, {}
+    for mode in ("pixel", "pixel_mse"):
+        settings = JobSettings(**{**SETTINGS.to_dict(), "noise_threshold": 0.005,
+                                  "max_spp": 8192, "adaptive": mode})  # fmt: skip
+        job = run_farm(settings, workers=2, seed=3, values=two_levels).jobs["j"]
+        image = np.zeros((settings.height, settings.width))
+        counts = np.zeros_like(image)
+        for t in job.tiles:
+            r = t.rect
+            image[r.y0 : r.y0 + r.height, r.x0 : r.x0 + r.width] = (
+                t.acc.rgb_sum / t.acc.samples
+            ) @ LUMA
+            counts[r.y0 : r.y0 + r.height, r.x0 : r.x0 + r.width] = t.acc.pixel_spp
+        half = settings.width // 2
+        spp[mode] = counts[:, half:].mean() / counts[:, :half].mean()
+        mse = np.mean((image - 0.5) ** 2)
+        efficiency[mode] = 1.0 / (mse * counts.sum())
+        assert counts.min() >= pixel_stops.MSE_REFERENCE_SPP
+    print(f"noisy / calm half's samples {spp}; efficiency pixel_mse / pixel "
+          f"{efficiency['pixel_mse'] / efficiency['pixel']:.2f}")  # fmt: skip
+    assert spp["pixel"] > 10.0
+    assert 2.5 < spp["pixel_mse"] < 6.5
+    assert efficiency["pixel_mse"] > 1.15 * efficiency["pixel"]
+
+
+def test_the_pixel_mse_bound_is_the_threshold_until_64_samples_then_grows_as_their_root():
+    assert pixel_stops.mse_bound(0.01, 16) == 0.01
+    assert pixel_stops.mse_bound(0.01, 64) == 0.01
+    assert pixel_stops.mse_bound(0.01, 256) == pytest.approx(0.02)
+    assert pixel_stops.mse_bound(0.01, 4096) == pytest.approx(0.08)

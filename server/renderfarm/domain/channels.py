@@ -730,8 +730,8 @@ def job_layout(settings) -> Layout:
 
 def pixel_adaptive(settings) -> bool:
     """Whether a job samples adaptively per pixel (settings.adaptive pixel; without a noise
-    threshold no pixel stops, but a continue may set one)."""
-    return settings.adaptive == "pixel"
+    threshold no pixel stops, but a continue may set one): adaptive pixel or pixel_mse."""
+    return settings.adaptive in ("pixel", "pixel_mse")
 
 
 # The light group of the environment (domain/light_groups.py), always a job's last.

@@ -143,6 +143,7 @@ class Adaptive(StrEnum):
 
     TILE = "tile"
     PIXEL = "pixel"
+    PIXEL_MSE = "pixel_mse"
 
 
 SAMPLERS = tuple(m.value for m in Sampler)
@@ -221,10 +222,13 @@ SETTINGS: tuple[Setting, ...] = (
             minimum=0.0, maximum=10.0, worker=False),
     Setting("adaptive", Adaptive, "tile",
             "with a noise threshold, where sampling stops: tile (a tile stops when the RMS of its "
-            "pixels' relative errors is below the threshold) or pixel (from the 64th sample on, "
+            "pixels' relative errors is below the threshold), pixel (from the 64th sample on, "
             "each pixel stops when its own error, averaged with its 3x3 neighbours', is below the "
             "threshold, and its tile when every pixel has; the `spp` layer shows each pixel's "
-            "samples) (docs/usage.md, Adaptive sampling)", 29, worker=False),
+            "samples) or pixel_mse (per pixel, the samples where they lower the image's mean "
+            "squared error most for the time: a pixel with n samples stops below threshold x "
+            "sqrt(n / 64), so noisy pixels end noisier than the threshold and the image's "
+            "error is least) (docs/usage.md, Adaptive sampling)", 29, worker=False),
     Setting("noise_metric", NoiseMetric, "relative",
             "what noise_threshold bounds: relative (a pixel's standard error over its brightness, "
             "for images that will be graded or composited) or display (the standard error of the "

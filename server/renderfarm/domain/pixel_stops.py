@@ -56,6 +56,26 @@ def _srgb_slope(x: np.ndarray) -> np.ndarray:
     return np.where(x >= 1.0, 0.0, np.where(x <= 0.0031308, 12.92, curve))
 
 
+# adaptive pixel_mse: the sample count at which a pixel's bound is the threshold itself (the
+# first at which pixels may stop, the schedule's PLANNED_FROM batches).
+MSE_REFERENCE_SPP = 64
+
+
+def mse_bound(threshold: float, samples: int) -> float:
+    """The error below which a pixel with `samples` samples stops under adaptive pixel_mse:
+    threshold x sqrt(samples / MSE_REFERENCE_SPP).
+
+    The mean squared error of an image whose pixel i has variance s_i^2 per sample and n_i
+    samples is the mean of s_i^2 / n_i; for a given number of samples it is least when
+    n_i is proportional to s_i (Neyman's allocation; stopping every pixel at one error makes
+    n_i proportional to s_i^2 instead, and spends most samples on the few noisiest pixels).
+    One more sample lowers pixel i's error^2 = s_i^2 / n_i by about error^2 / n_i; stopping
+    each pixel once that gain is below one common value, error^2 < c n_i, makes n_i
+    proportional to s_i. c is threshold^2 / MSE_REFERENCE_SPP: a pixel stopping at the first
+    sample count it may stop at stops at the threshold, as under adaptive pixel."""
+    return threshold * math.sqrt(max(samples, MSE_REFERENCE_SPP) / MSE_REFERENCE_SPP)
+
+
 # Degrees of freedom the tile's pooled estimate counts for in a pixel's (pooled_variance).
 PRIOR_DOF = 8.0
 
@@ -136,19 +156,29 @@ def smoothed_error(acc, threshold: float = math.inf, metric: str = "relative") -
 
 
 def stop_pixels(
-    acc, threshold: float, min_spp: int, batch: int, metric: str = "relative"
-) -> float | None:
+    acc, threshold: float, min_spp: int, batch: int, metric: str = "relative",
+    mse: bool = False,
+) -> float | None:  # fmt: skip
     """Decide, from the merged batches only, which pixels render batch `batch` (the one after
     the next, planned now): a pixel still sampling stops (its last batch is the next one) once
-    it has min_spp samples and its smoothed_error() is below threshold. Deciding twice from the
-    same state decides the same. Returns the median smoothed error of the pixels that render
-    `batch` (what its size is planned from), None when none does."""
-    error = smoothed_error(acc, threshold, metric)
+    it has min_spp samples and its smoothed_error() is below threshold (mse, adaptive
+    pixel_mse: below mse_bound(threshold, its samples)). Deciding twice from the same state
+    decides the same. Returns the median smoothed error of the pixels that render `batch`
+    (what its size is planned from: with mse, the error that plans the batch the bound needs,
+    as below), None when none does."""
+    bound = mse_bound(threshold, acc.samples) if mse else threshold
+    error = smoothed_error(acc, bound, metric)
     if acc.samples >= min_spp:
-        stop = (acc.stop_batch == NEVER) & (error < threshold)
+        stop = (acc.stop_batch == NEVER) & (error < bound)
         if stop.any():
             acc.stop_batch = np.where(stop, np.int32(acc.batches), acc.stop_batch)
     rendering = acc.stop_batch >= batch
     if not rendering.any():
         return None
-    return float(np.median(error[rendering]))
+    median = float(np.median(error[rendering]))
+    if not mse or not math.isfinite(median):
+        return median
+    # The batch planner takes the error to fall as 1 / sqrt(n) to the threshold: n (e / t)^2
+    # samples. Under the bound, e sqrt(n / n') = t sqrt(n' / 64) at n' = 8 sqrt(n) e / t: the
+    # error e' with n (e' / t)^2 = n' is the geometric mean of e and t^2 / bound.
+    return math.sqrt(median * threshold * threshold / bound)

@@ -632,8 +632,9 @@ class Scheduler:
                 # smoothed errors (none renders it: no batch).
                 self._use(tile)
                 error = pixel_stops.stop_pixels(
-                    tile.acc, s.noise_threshold, s.min_spp, batch, s.noise_metric
-                )
+                    tile.acc, s.noise_threshold, s.min_spp, batch, s.noise_metric,
+                    mse=s.adaptive == "pixel_mse",
+                )  # fmt: skip
             if error is None:
                 count, error = 0, math.inf
             else:
