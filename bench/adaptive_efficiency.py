@@ -32,7 +32,7 @@ tile t samples in proportion to sigma_t / sqrt(cost_t), Neyman allocation; equal
 is what the noise threshold promises instead.)
 
     .venv/bin/python bench/adaptive_efficiency.py [--shelter-threshold 0.05]
-        [--threshold 0.05] [--sky-threshold 0.02] [--adaptive tile|pixel]
+        [--threshold 0.05] [--sky-threshold 0.02] [--adaptive tile|pixel|pixel_mse]
 """
 
 from __future__ import annotations
@@ -166,10 +166,11 @@ def main() -> dict:
     parser.add_argument("--sky-threshold", type=float, default=0.02, help="box under a sky")
     parser.add_argument(
         "--adaptive",
-        choices=("tile", "pixel"),
+        choices=("tile", "pixel", "pixel_mse"),
         default="tile",
-        help="the adaptive jobs' setting adaptive: per tile (default) or per pixel; pixel writes "
-        "adaptive_efficiency_pixel.json",
+        help="the adaptive jobs' setting adaptive: per tile (default), per pixel or per pixel "
+        "by the least MSE; pixel writes adaptive_efficiency_pixel.json, pixel_mse "
+        "adaptive_efficiency_pixel_mse.json",
     )
     args = parser.parse_args()
     mode = {"adaptive": args.adaptive}
@@ -203,7 +204,7 @@ def main() -> dict:
         print(scene)
         for key, value in values.items():
             print(f"  {key:42} {value:.6g}")
-    name = "adaptive_efficiency" + ("_pixel" if args.adaptive == "pixel" else "")
+    name = "adaptive_efficiency" + ("" if args.adaptive == "tile" else f"_{args.adaptive}")
     write_results(name, figures)
     return figures
 

@@ -481,3 +481,14 @@ def test_eta_with_a_noise_threshold_uses_each_tiles_error():
     # need the mean of those, 26 spp.
     job.tiles[0].error, job.tiles[1].error = 0.6, 0.2
     assert sched.progress(job).eta_s == pytest.approx((35 + 15 + 26 + 26) * 256 / 64)
+
+
+def test_eta_under_pixel_mse_lets_the_bound_grow_with_the_samples():
+    settings = JobSettings(width=32, height=32, tile_size=16, noise_threshold=0.1, min_spp=16,
+                           max_spp=64, adaptive="pixel_mse")  # fmt: skip
+    sched, job = _two_first_batches(settings)
+    # A pixel with n samples stops below 0.1 sqrt(n / 64): error 0.6 at 1 spp falls as
+    # 0.6 / sqrt(n) and meets the bound at n = 8 x 0.6 / 0.1 = 48; error 0.2 at n = 16; tiles
+    # 2 and 3, not yet rendered, need their mean, 32.
+    job.tiles[0].error, job.tiles[1].error = 0.6, 0.2
+    assert sched.progress(job).eta_s == pytest.approx((47 + 15 + 32 + 32) * 256 / 64)

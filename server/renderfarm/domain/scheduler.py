@@ -331,7 +331,8 @@ class Scheduler:
 
         A tile still rendering needs max_spp samples, or with a noise threshold the samples at
         which its error would reach the threshold (Monte Carlo error falls as 1/sqrt(samples):
-        n * (error / threshold)^2, within min_spp..max_spp). A tile without an error estimate
+        n * (error / threshold)^2, within min_spp..max_spp; under adaptive pixel_mse, whose bound
+        grows as sqrt(n / 64), sqrt(64 n) error / threshold). A tile without an error estimate
         yet is taken to need what the estimated tiles need on average. A time limit caps it.
         """
         if job.state.finished:
@@ -354,6 +355,9 @@ class Scheduler:
                 needed += (s.max_spp - t.acc.samples) * t.rect.pixels
             elif t.merged and math.isfinite(t.error):
                 target = t.acc.samples * (t.error / s.noise_threshold) ** 2
+                if s.adaptive == "pixel_mse":  # its bound grows too: sqrt(64 n) e / threshold
+                    n = t.acc.samples * pixel_stops.MSE_REFERENCE_SPP
+                    target = math.sqrt(n) * t.error / s.noise_threshold
                 target = min(s.max_spp, max(s.min_spp, t.acc.samples, target))
                 targets.append(target)
                 needed += (target - t.acc.samples) * t.rect.pixels
