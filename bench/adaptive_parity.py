@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 from cycles_parity import SUPPORT, generate_scenes, rgb, run_blender
+from passes_parity import read_parts
 from support.parity_scenes import REALISTIC
 from support.results import write_results
 
@@ -99,8 +100,6 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
 def cycles_mean_spp(path: Path) -> float:
     """The mean over the pixels of Cycles' samples: its Debug Sample Count pass holds each
     pixel's count over the render's sample count."""
-    from passes_parity import read_parts
-
     (count,) = [v for k, v in read_parts(path).items() if ".Debug Sample Count." in k]
     return float(np.mean(count, dtype=np.float64)) * CYCLES_MAX_SAMPLES
 

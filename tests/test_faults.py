@@ -9,14 +9,12 @@ network is covered by tests/test_deploy_multihost.py, which cuts a worker's veth
 
 from __future__ import annotations
 
-import re
 import signal
 import subprocess
 import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import psycopg
 import pytest
@@ -29,6 +27,7 @@ from renderfarm.infra.images import read_exr
 
 from .conftest import CORNELL
 from .mattes import matte
+from .scrape import metric
 from .waiting import wait_until
 
 # Long enough (about 9.4M samples) that a fault injected a second after a fraction of the job
@@ -142,16 +141,6 @@ def submit_when_two_workers(client: Client, until_merged: float, **more) -> dict
         f"{until_merged:.0%} merged",
     )
     return job
-
-
-def metric(url: str, name: str) -> float:
-    text = httpx.get(f"{url}/metrics", timeout=10).text
-    total = 0.0
-    for line in text.splitlines():
-        m = re.match(rf"{re.escape(name)}(\{{[^}}]*\}})? (\S+)$", line)
-        if m:
-            total += float(m.group(2))
-    return total
 
 
 def test_kill_9_one_of_two_workers_mid_job(tmp_path, reference):

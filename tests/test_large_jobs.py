@@ -5,10 +5,8 @@ spill file, to the renderer's own image, and the file goes with the job."""
 
 from __future__ import annotations
 
-import re
 import subprocess
 
-import httpx
 import numpy as np
 import pytest
 
@@ -18,6 +16,7 @@ from renderfarm.v1 import jobs_pb2
 
 from .apihelpers import Apis, Error, cornell_glb
 from .conftest import CORNELL
+from .scrape import metric
 
 LIMITS = {"RENDERFARM_MAX_JOB_MEMORY_MB": "8", "RENDERFARM_TILE_CACHE_MB": "1"}
 # 200 x 120 at 16-pixel tiles: 1.7 MB of accumulators, 18 KB a tile, 104 tiles of which the
@@ -50,13 +49,6 @@ def test_a_job_over_the_memory_limit_is_refused_through_both_apis(small_farm):
     tall = apis.submit_rest(cornell_glb(), "cornell.glb", {"width": 64, "height": 8192}, "tall")
     assert isinstance(tall, Error) and tall.field == "settings.width", tall
     assert not any(j["name"] in ("too big", "tall") for j in apis.client.list()["jobs"])
-
-
-def metric(url: str, name: str) -> float:
-    text = httpx.get(f"{url}/metrics", timeout=10).text
-    match = re.search(rf"^{name} (\S+)$", text, re.MULTILINE)
-    assert match, f"{name} missing from /metrics"
-    return float(match.group(1))
 
 
 def test_a_job_larger_than_the_tile_cache_renders_from_its_spill_file(

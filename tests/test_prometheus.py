@@ -14,6 +14,7 @@ from renderfarm.cli.localfarm import free_port
 from renderfarm.client import Client
 
 from .conftest import CORNELL
+from .scrape import metric
 from .tools import require_tool
 from .waiting import wait_until
 
@@ -60,19 +61,13 @@ def test_promtool_accepts_the_exposition(farm, tmp_path):
     assert checked.returncode == 0, checked.stdout + checked.stderr
 
 
-def _samples_counter(farm) -> float:
-    text = httpx.get(f"{farm.url}/metrics", timeout=10).text
-    (line,) = [x for x in text.splitlines() if x.startswith("renderfarm_samples_merged_total ")]
-    return float(line.split()[1])
-
-
 def test_the_samples_counter_counts_only_the_pixels_a_per_pixel_job_rendered(farm):
     _wait_for_workers(farm)
     with Client(farm.url, timeout=60) as client:
         busy = ("queued", "running")
         wait_until(lambda: not [j for j in client.list()["jobs"] if j["state"] in busy], 120,
                    "the shared farm to finish earlier tests' jobs")  # fmt: skip
-        before = _samples_counter(farm)
+        before = metric(farm.url, "renderfarm_samples_merged_total")
         settings = {"width": 32, "height": 32, "tile_size": 16, "max_spp": 256,
                     "noise_threshold": 0.1, "adaptive": "pixel", "seed": 5}  # fmt: skip
         job = client.submit(CORNELL, settings=settings, name="counted")
@@ -80,7 +75,7 @@ def test_the_samples_counter_counts_only_the_pixels_a_per_pixel_job_rendered(far
     assert done["state"] == "completed"
     merged = done["progress"]["samples_merged"]
     assert merged < 256 * 32 * 32, "no pixel stopped early: the test shows nothing"
-    assert _samples_counter(farm) - before == merged
+    assert metric(farm.url, "renderfarm_samples_merged_total") - before == merged
 
 
 def test_prometheus_scrapes_a_render_and_promql_sees_the_samples_rate(farm, tmp_path):

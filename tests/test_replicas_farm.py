@@ -22,6 +22,7 @@ from renderfarm.client import ApiError, Client
 from renderfarm.infra.embedded_db import EmbeddedPostgres
 
 from .conftest import CORNELL
+from .scrape import metric
 from .waiting import wait_until
 
 SETTINGS = {"width": 64, "height": 64, "tile_size": 16, "max_spp": 512, "noise_threshold": 0}
@@ -63,11 +64,6 @@ def epochs(url: str, job_ids: list[str]) -> list[int]:
     with psycopg.connect(url) as conn:
         rows = dict(conn.execute("SELECT job_id, epoch FROM job_leases").fetchall())
     return [rows[j] for j in job_ids]
-
-
-def metric(farm: LocalFarm, name: str) -> float:
-    text = httpx.get(f"{farm.url}/metrics", timeout=10).text
-    return float(next(x.split()[1] for x in text.splitlines() if x.startswith(name + " ")))
 
 
 def test_kill_9_of_one_of_two_servers_moves_its_job_to_the_other(tmp_path, database):
@@ -157,8 +153,8 @@ def test_a_server_that_joins_takes_its_share_of_the_jobs_with_their_bits(tmp_pat
                     capture_output=True, text=True, timeout=60,
                 )  # fmt: skip
                 handed, lost = (
-                    metric(a, "renderfarm_jobs_handed_off_total"),
-                    metric(a, "renderfarm_jobs_lost_total"),
+                    metric(a.url, "renderfarm_jobs_handed_off_total"),
+                    metric(a.url, "renderfarm_jobs_lost_total"),
                 )
     finally:
         stop_processes(workers)

@@ -12,7 +12,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import psycopg
 from psycopg_pool import PoolTimeout
 
@@ -144,9 +143,7 @@ class WorkerSessions:
         self.scheduler.task_warnings(session.worker_id, result)  # whatever becomes of the result
         # The pixels the task rendered: its mask's (per-pixel adaptive sampling) or the rect's.
         lease = self.scheduler.leases.get(task_id)
-        pixels = result.rect.pixels
-        if lease is not None and lease.active:
-            pixels = int(np.unpackbits(np.frombuffer(lease.active, np.uint8)).sum())
+        pixels = lease.pixels if lease is not None else result.rect.pixels
         outcome = self.scheduler.complete(task_id, result)
         if self.metrics is not None:
             self.metrics.merge_seconds.observe(time.perf_counter() - started)

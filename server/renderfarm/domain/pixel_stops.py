@@ -76,6 +76,16 @@ def mse_bound(threshold: float, samples: int) -> float:
     return threshold * math.sqrt(max(samples, MSE_REFERENCE_SPP) / MSE_REFERENCE_SPP)
 
 
+def mse_samples_needed(error: float, samples: int, threshold: float) -> float:
+    """The samples at which an error of `error` at `samples` samples, falling as 1 / sqrt(n),
+    meets mse_bound(threshold, n): error sqrt(samples / n) = threshold sqrt(n / 64) at
+    n = sqrt(64 samples) error / threshold, where that is 64 or more (the bound grows from
+    there; no pixel stops before 64 samples in any case). What the batch planner and the
+    job's ETA take a pixel_mse tile to need, as they take n (error / threshold)^2 under one
+    threshold."""
+    return math.sqrt(MSE_REFERENCE_SPP * samples) * error / threshold
+
+
 # Degrees of freedom the tile's pooled estimate counts for in a pixel's (pooled_variance).
 PRIOR_DOF = 8.0
 
@@ -164,8 +174,8 @@ def stop_pixels(
     it has min_spp samples and its smoothed_error() is below threshold (mse, adaptive
     pixel_mse: below mse_bound(threshold, its samples)). Deciding twice from the same state
     decides the same. Returns the median smoothed error of the pixels that render `batch`
-    (what its size is planned from: with mse, the error that plans the batch the bound needs,
-    as below), None when none does."""
+    (what its size is planned from: with mse, the error that plans the samples the bound needs,
+    mse_samples_needed()), None when none does."""
     bound = mse_bound(threshold, acc.samples) if mse else threshold
     error = smoothed_error(acc, bound, metric)
     if acc.samples >= min_spp:
@@ -178,7 +188,6 @@ def stop_pixels(
     median = float(np.median(error[rendering]))
     if not mse or not math.isfinite(median):
         return median
-    # The batch planner takes the error to fall as 1 / sqrt(n) to the threshold: n (e / t)^2
-    # samples. Under the bound, e sqrt(n / n') = t sqrt(n' / 64) at n' = 8 sqrt(n) e / t: the
-    # error e' with n (e' / t)^2 = n' is the geometric mean of e and t^2 / bound.
-    return math.sqrt(median * threshold * threshold / bound)
+    # The batch planner asks for n (e / threshold)^2 samples: the error that makes that
+    # mse_samples_needed().
+    return threshold * math.sqrt(mse_samples_needed(median, acc.samples, threshold) / acc.samples)

@@ -55,6 +55,8 @@ class Lease:
     # Per-pixel adaptive sampling: the pixels the batch renders (workers.proto,
     # Task.active_pixels); empty: every pixel.
     active: bytes = b""
+    # How many pixels the batch renders (the rect's, or the mask's).
+    pixels: int = 0
 
 
 @dataclass(frozen=True)

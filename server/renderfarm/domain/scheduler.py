@@ -354,10 +354,12 @@ class Scheduler:
             if s.noise_threshold <= 0:
                 needed += (s.max_spp - t.acc.samples) * t.rect.pixels
             elif t.merged and math.isfinite(t.error):
-                target = t.acc.samples * (t.error / s.noise_threshold) ** 2
-                if s.adaptive == "pixel_mse":  # its bound grows too: sqrt(64 n) e / threshold
-                    n = t.acc.samples * pixel_stops.MSE_REFERENCE_SPP
-                    target = math.sqrt(n) * t.error / s.noise_threshold
+                if s.adaptive == "pixel_mse":  # its bound grows with the samples too
+                    target = pixel_stops.mse_samples_needed(
+                        t.error, t.acc.samples, s.noise_threshold
+                    )
+                else:
+                    target = t.acc.samples * (t.error / s.noise_threshold) ** 2
                 target = min(s.max_spp, max(s.min_spp, t.acc.samples, target))
                 targets.append(target)
                 needed += (target - t.acc.samples) * t.rect.pixels
@@ -686,12 +688,13 @@ class Scheduler:
 
     def _lease(self, job: JobRun, tile: TileState, batch: int, slot: WorkerSlot) -> Lease:
         start, count = self._span(job, tile, batch)
-        active = b""
+        active, pixels = b"", tile.rect.pixels
         if tile.acc.pixel_adaptive and batch >= PLANNED_FROM:
             self._use(tile)
             mask = tile.acc.active_pixels(batch)
             if not mask.all():  # one bit a pixel, row-major, least significant first
                 active = np.packbits(mask.ravel(), bitorder="little").tobytes()
+                pixels = int(np.count_nonzero(mask))
         lease = Lease(
             task_id=f"t{next(self._task_ids)}",
             job_id=job.job_id,
@@ -703,6 +706,7 @@ class Scheduler:
             worker_id=slot.worker_id,
             deadline=self.clock() + self.lease_s,
             active=active,
+            pixels=pixels,
         )
         tile.requeue.discard(batch)
         tile.next_batch = max(tile.next_batch, batch + 1)
