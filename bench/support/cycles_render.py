@@ -439,8 +439,9 @@ def save_sample_count(scene: bpy.types.Scene, path: str) -> None:
     bpy.data.images["Render Result"].save_render(filepath=path, scene=scene)
     for name in kept:
         setattr(settings, name, before[name])
-    if settings.color_depth != "32":
-        raise RuntimeError("the EXR settings were not restored after the sample count")
+    changed = [name for name in kept if getattr(settings, name) != before[name]]
+    if changed:
+        raise RuntimeError(f"image settings not restored after the sample count: {changed}")
 
 
 def main() -> dict:
