@@ -25,6 +25,7 @@ Writes bench/results/adaptive_parity.json and out/adaptive_parity/<scene>.json.
 
     .venv/bin/python bench/adaptive_parity.py [--scene NAME ...] [--threshold 0.04]
         [--metric display|relative] [--reference-spp 1024] [--guiding] [--reuse]
+        [--run pixel|pixel_mse|tile|uniform ...] [--setting KEY=VALUE ...]
         [--out out/adaptive_parity]
 """
 
@@ -41,6 +42,7 @@ from cycles_parity import SUPPORT, generate_scenes, rgb, run_blender
 from passes_parity import read_parts
 from support.parity_scenes import REALISTIC
 from support.results import write_results
+from variance_paths import setting
 
 from renderfarm.cli.localfarm import LocalFarm
 from renderfarm.client import Client
@@ -52,6 +54,8 @@ WIDTH, HEIGHT, MAX_DEPTH = 320, 240, 13
 # minimum samples 0, which Cycles takes as automatic).
 CYCLES_ADAPTIVE = {"threshold": 0.01, "min_samples": 0}
 CYCLES_MAX_SAMPLES = 4096
+# The farm's runs: its adaptive modes, and uniform sampling at the pixel job's mean spp.
+RUNS = ("pixel", "pixel_mse", "tile", "uniform")
 
 
 def display(image: np.ndarray) -> np.ndarray:
@@ -93,28 +97,72 @@ def render_cycles(scene: Path, env: dict | None, name: str, args, out: Path) -> 
                              f"Cycles rendering {scene}")  # fmt: skip
         kept.write_text(json.dumps({"config": config, "result": result}))
     images = [rgb(Path(r["path"])) for r in renders]
+    counts = cycles_spp(Path(renders[0]["sample_count_path"]))
     return {"adaptive": images[0], "seconds": result["seconds"][0], "refs": tuple(images[1:]),
-            "spp": cycles_mean_spp(Path(renders[0]["sample_count_path"]))}  # fmt: skip
+            "spp": float(np.mean(counts)), "spp_map": counts}  # fmt: skip
 
 
-def cycles_mean_spp(path: Path) -> float:
-    """The mean over the pixels of Cycles' samples: its Debug Sample Count pass holds each
-    pixel's count over the render's sample count."""
+def cycles_spp(path: Path) -> np.ndarray:
+    """Cycles' samples per pixel: its Debug Sample Count pass holds each pixel's count over the
+    render's sample count."""
     (count,) = [v for k, v in read_parts(path).items() if ".Debug Sample Count." in k]
-    return float(np.mean(count, dtype=np.float64)) * CYCLES_MAX_SAMPLES
+    return np.asarray(count, dtype=np.float64) * CYCLES_MAX_SAMPLES
+
+
+def pixel_mse(image: np.ndarray, refs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Each pixel's display MSE (8-bit levels squared, averaged over RGB), estimated without
+    bias from two independent references a and b as (x - a)(x - b): its expectation is the
+    image's squared error, the references' own noise cancelling pixel by pixel (a single
+    pixel's estimate may be negative; means over regions are what it is for)."""
+    x, a, b = display(image), display(refs[0]), display(refs[1])
+    return np.mean((x - a) * (x - b), axis=-1)
+
+
+# The regions of allocation(): log2(Cycles' samples / the farm's) of a pixel in each.
+ALLOCATION_REGIONS = (("farm >= 4x Cycles' samples", -np.inf, -2.0),
+                      ("farm 2-4x", -2.0, -1.0), ("within 2x", -1.0, 1.0),
+                      ("Cycles 2-4x", 1.0, 2.0), ("Cycles >= 4x", 2.0, np.inf))  # fmt: skip
+
+
+def allocation(farm: dict, cycles: dict) -> list[dict]:
+    """Where a farm adaptive job and Cycles' adaptive render spend their samples and where
+    their errors are, by region of the ratio of their per-pixel sample counts: per region its
+    share of the pixels, and per side the mean spp, the mean display MSE per pixel
+    (pixel_mse(), each side against its own references) and its shares of the side's samples
+    and of its MSE. Says whether a gap is the allocation (one side's samples where the other
+    spends few) or the noise per sample (equal samples, unequal MSE)."""
+    ratio = np.log2(np.maximum(cycles["spp_map"], 1.0) / np.maximum(farm["spp_map"], 1.0))
+    sides = {
+        "farm": (farm["spp_map"], pixel_mse(farm["image"], farm["own"])),
+        "cycles": (cycles["spp_map"], pixel_mse(cycles["image"], cycles["own"])),
+    }
+    rows = []
+    for label, lo, hi in ALLOCATION_REGIONS:
+        inside = (ratio >= lo) & (ratio < hi) if hi < np.inf else ratio >= lo
+        row = {"region": label, "pixels": float(np.mean(inside))}
+        for side, (spp, mse) in sides.items():
+            total_mse = float(np.sum(mse))
+            row[side] = {
+                "mean_spp": float(np.mean(spp[inside])) if inside.any() else None,
+                "mse_per_pixel": float(np.mean(mse[inside])) if inside.any() else None,
+                "samples_share": float(np.sum(spp[inside]) / np.sum(spp)),
+                "mse_share": float(np.sum(mse[inside]) / total_mse) if total_mse else None,
+            }
+        rows.append(row)
+    return rows
 
 
 def render_farm(client: Client, scene: Path, env: dict | None, name: str, scratch: Path,
                 reuse: bool = False, **settings) -> tuple[dict, np.ndarray]:  # fmt: skip
-    """A farm job; its record and image (reuse: an earlier run's, from the same settings)."""
+    """A farm job; its record and image (reuse: an earlier run's, from the same settings). The
+    record's "spp_map" is the image's per-pixel samples (its EXR's spp channel)."""
     path = scratch / f"{name}.exr"
     record = scratch / f"{name}.json"
     if reuse and path.is_file() and record.is_file():
         job = json.loads(record.read_text())
         if job["settings_asked"] == settings:
             print(f"{name}: an earlier run's image reused", flush=True)
-            ch = read_exr(str(path))
-            return job, np.stack([ch[c] for c in "RGB"], axis=-1).astype(np.float64)
+            return read_farm_image(path, job)
     base = {"width": WIDTH, "height": HEIGHT, "max_depth": MAX_DEPTH, "tile_size": 32,
             "seed": 1}  # fmt: skip
     if env:
@@ -126,7 +174,12 @@ def render_farm(client: Client, scene: Path, env: dict | None, name: str, scratc
         raise SystemExit(f"{name}: the job ended {job['state']}: {job.get('error')}")
     path.write_bytes(client.image(job["id"], "exr"))
     record.write_text(json.dumps({**job, "settings_asked": settings}))
+    return read_farm_image(path, job)
+
+
+def read_farm_image(path: Path, job: dict) -> tuple[dict, np.ndarray]:
     ch = read_exr(str(path))
+    job["spp_map"] = np.asarray(ch["spp"], dtype=np.float64)
     return job, np.stack([ch[c] for c in "RGB"], axis=-1).astype(np.float64)
 
 
@@ -150,22 +203,29 @@ def run_scene(client: Client, name: str, files: dict, args, out: Path) -> dict:
         for k in range(2)
     )  # fmt: skip
     runs = {"cycles adaptive": {"image": cyc["adaptive"], "seconds": cyc["seconds"],
-                                "spp": cyc["spp"], "own": cyc["refs"]}}  # fmt: skip
+                                "spp": cyc["spp"], "own": cyc["refs"],
+                                "spp_map": cyc["spp_map"]}}  # fmt: skip
     adaptive = {"noise_threshold": args.threshold, "noise_metric": args.metric,
-                "max_spp": CYCLES_MAX_SAMPLES}  # fmt: skip
+                "max_spp": CYCLES_MAX_SAMPLES, **dict(args.setting)}  # fmt: skip
     for label, mode in (("farm pixel", "pixel"), ("farm pixel_mse", "pixel_mse"),
                         ("farm tile", "tile")):  # fmt: skip
+        if mode not in args.run:
+            continue
         print(f"{name}: {label} ({args.metric} error, threshold {args.threshold})", flush=True)
         job, image = render_farm(client, scene, env, f"{name}-{mode}-{args.metric}", scratch,
                                  adaptive=mode, **adaptive, **extra)  # fmt: skip
         runs[label] = {"image": image, "seconds": job["progress"]["elapsed_s"],
-                       "spp": job["progress"]["mean_spp"], "own": refs}  # fmt: skip
-    spp = max(1, round(runs["farm pixel"]["spp"]))
-    print(f"{name}: farm uniform ({spp} spp, the pixel job's mean)", flush=True)
-    job, image = render_farm(client, scene, env, f"{name}-uniform-{spp}", scratch,
-                             noise_threshold=0, max_spp=spp, **extra)  # fmt: skip
-    runs["farm uniform"] = {"image": image, "seconds": job["progress"]["elapsed_s"],
-                            "spp": job["progress"]["mean_spp"], "own": refs}  # fmt: skip
+                       "spp": job["progress"]["mean_spp"], "own": refs,
+                       "spp_map": job["spp_map"]}  # fmt: skip
+    if "uniform" in args.run:
+        # At the mean spp of the pixel job, or of the first adaptive job run.
+        first = next(label for label in runs if label.startswith("farm "))
+        spp = max(1, round(runs[first]["spp"]))
+        print(f"{name}: farm uniform ({spp} spp, the {first} job's mean)", flush=True)
+        job, image = render_farm(client, scene, env, f"{name}-uniform-{spp}", scratch,
+                                 noise_threshold=0, max_spp=spp, **extra)  # fmt: skip
+        runs["farm uniform"] = {"image": image, "seconds": job["progress"]["elapsed_s"],
+                                "spp": job["progress"]["mean_spp"], "own": refs}  # fmt: skip
     figures = {}
     for label, run in runs.items():
         own = display_mse(run["image"], run["own"])
@@ -182,7 +242,10 @@ def run_scene(client: Client, name: str, files: dict, args, out: Path) -> dict:
         f["efficiency_vs_cycles_adaptive"] = f["efficiency"] / base if base else None
     result = {"scene": name, "threshold": args.threshold, "noise_metric": args.metric,
               "reference_spp": args.reference_spp, "guiding": args.guiding,
-              "runs": figures}  # fmt: skip
+              "settings": dict(args.setting), "runs": figures,
+              "allocation": {label: allocation(run, runs["cycles adaptive"])
+                             for label, run in runs.items()
+                             if label in ("farm pixel", "farm pixel_mse")}}  # fmt: skip
     (out / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
 
@@ -199,6 +262,25 @@ def print_table(results: list[dict]) -> None:
                   f"{'-' if ratio is None else f'{ratio:.2f}':>29}")  # fmt: skip
 
 
+def print_allocation(results: list[dict]) -> None:
+    for r in results:
+        for label, rows in r["allocation"].items():
+            print(
+                f"\n{r['scene']}: {label} against Cycles adaptive, by region of the ratio of "
+                "their samples per pixel (display MSE per pixel, 8-bit levels squared)"
+            )
+            print(f"{'region':28} {'pixels':>7} {'farm spp':>9} {'MSE/px':>7} {'MSE %':>6} "
+                  f"{'Cycles spp':>10} {'MSE/px':>7} {'MSE %':>6}")  # fmt: skip
+            for row in rows:
+                if not row["pixels"]:
+                    continue
+                f, c = row["farm"], row["cycles"]
+                print(f"{row['region']:28} {row['pixels']:7.1%} {f['mean_spp']:9.0f} "
+                      f"{f['mse_per_pixel']:7.2f} {f['mse_share'] or 0:6.1%} "
+                      f"{c['mean_spp']:10.0f} {c['mse_per_pixel']:7.2f} "
+                      f"{c['mse_share'] or 0:6.1%}")  # fmt: skip
+
+
 def main() -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", action="append", choices=list(REALISTIC),
@@ -212,10 +294,20 @@ def main() -> list[dict]:
                         "run into the same --out (made with the same settings)")  # fmt: skip
     parser.add_argument("--reference-spp", type=int, default=1024)
     parser.add_argument("--guiding", action="store_true", help="path guiding on the farm's jobs")
+    parser.add_argument("--setting", action="append", type=setting, default=[],
+                        metavar="KEY=VALUE",
+                        help="a job setting of the farm's adaptive runs (repeatable; the value "
+                        "JSON when it parses), to measure a change before and after")  # fmt: skip
+    parser.add_argument("--run", action="append", choices=RUNS,
+                        help="a farm run to make (repeatable; default: all four; uniform "
+                        "needs an adaptive run for its spp)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "adaptive_parity")
     args = parser.parse_args()
     if not 0 < args.threshold <= 1:
         parser.error("--threshold must be in (0, 1]")
+    args.run = args.run or list(RUNS)
+    if args.run == ["uniform"]:
+        parser.error("--run uniform takes its spp from an adaptive run: name one too")
     if args.reference_spp < 16:
         parser.error("--reference-spp must be >= 16")
     out = args.out.resolve()
@@ -231,6 +323,7 @@ def main() -> list[dict]:
                     results.append(run_scene(client, name, scenes[name], args, out))
     print()
     print_table(results)
+    print_allocation(results)
     print(f"({time.perf_counter() - start:.0f} s)")
     write_results("adaptive_parity", {r["scene"]: r for r in results})
     return results
