@@ -109,7 +109,7 @@ def cycles_spp(path: Path) -> np.ndarray:
     return np.asarray(count, dtype=np.float64) * CYCLES_MAX_SAMPLES
 
 
-def pixel_mse(image: np.ndarray, refs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+def pixel_display_mse(image: np.ndarray, refs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """Each pixel's display MSE (8-bit levels squared, averaged over RGB), estimated without
     bias from two independent references a and b as (x - a)(x - b): its expectation is the
     image's squared error, the references' own noise cancelling pixel by pixel (a single
@@ -128,25 +128,24 @@ def allocation(farm: dict, cycles: dict) -> list[dict]:
     """Where a farm adaptive job and Cycles' adaptive render spend their samples and where
     their errors are, by region of the ratio of their per-pixel sample counts: per region its
     share of the pixels, and per side the mean spp, the mean display MSE per pixel
-    (pixel_mse(), each side against its own references) and its shares of the side's samples
+    (pixel_display_mse(), each side against its own references) and its shares of the side's samples
     and of its MSE. Says whether a gap is the allocation (one side's samples where the other
     spends few) or the noise per sample (equal samples, unequal MSE)."""
     ratio = np.log2(np.maximum(cycles["spp_map"], 1.0) / np.maximum(farm["spp_map"], 1.0))
-    sides = {
-        "farm": (farm["spp_map"], pixel_mse(farm["image"], farm["own"])),
-        "cycles": (cycles["spp_map"], pixel_mse(cycles["image"], cycles["own"])),
-    }
+    sides = {}
+    for side, run in (("farm", farm), ("cycles", cycles)):
+        mse = pixel_display_mse(run["image"], run["own"])
+        sides[side] = (run["spp_map"], np.sum(run["spp_map"]), mse, float(np.sum(mse)))
     rows = []
     for label, lo, hi in ALLOCATION_REGIONS:
-        inside = (ratio >= lo) & (ratio < hi) if hi < np.inf else ratio >= lo
+        inside = (ratio >= lo) & (ratio < hi)  # the ratio is finite: counts are at least 1
         row = {"region": label, "pixels": float(np.mean(inside))}
-        for side, (spp, mse) in sides.items():
-            total_mse = float(np.sum(mse))
+        for side, (spp, spp_total, mse, mse_total) in sides.items():
             row[side] = {
                 "mean_spp": float(np.mean(spp[inside])) if inside.any() else None,
                 "mse_per_pixel": float(np.mean(mse[inside])) if inside.any() else None,
-                "samples_share": float(np.sum(spp[inside]) / np.sum(spp)),
-                "mse_share": float(np.sum(mse[inside]) / total_mse) if total_mse else None,
+                "samples_share": float(np.sum(spp[inside]) / spp_total),
+                "mse_share": float(np.sum(mse[inside]) / mse_total) if mse_total else None,
             }
         rows.append(row)
     return rows
@@ -306,7 +305,7 @@ def main() -> list[dict]:
     if not 0 < args.threshold <= 1:
         parser.error("--threshold must be in (0, 1]")
     args.run = args.run or list(RUNS)
-    if args.run == ["uniform"]:
+    if set(args.run) == {"uniform"}:
         parser.error("--run uniform takes its spp from an adaptive run: name one too")
     if args.reference_spp < 16:
         parser.error("--reference-spp must be >= 16")

@@ -31,7 +31,7 @@ def test_pixel_mse_is_the_squared_display_error_when_the_references_agree(monkey
     image = truth.copy()
     image[0, 0] = [0.25, 0.2, 0.2]  # one channel off: its squared error over three channels
     image[1, 2] = [2.0, 2.0, 2.0]  # above white: clipped, then the error is 255 - D(0.2)
-    mse = ap.pixel_mse(image, (truth, truth))
+    mse = ap.pixel_display_mse(image, (truth, truth))
     d = srgb_levels(np.array([0.25, 0.2, 2.0]))
     assert mse[0, 0] == pytest.approx((d[0] - d[1]) ** 2 / 3, rel=1e-9)
     assert mse[1, 2] == pytest.approx((255.0 - d[1]) ** 2, rel=1e-9)
@@ -55,7 +55,7 @@ def test_pixel_mse_cancels_the_references_noise(monkeypatch):
 
     refs = tuple(from_levels(level + rng.normal(0.0, 3.0, shape)) for _ in range(2))
     image = from_levels(level + 5.0)
-    assert float(np.mean(ap.pixel_mse(image, refs))) == pytest.approx(25.0, abs=0.3)
+    assert float(np.mean(ap.pixel_display_mse(image, refs))) == pytest.approx(25.0, abs=0.3)
     naive = float(np.mean((srgb_levels(image) - srgb_levels(refs[0])) ** 2))
     assert naive == pytest.approx(25.0 + 9.0, abs=0.5)
 
