@@ -18,8 +18,8 @@ namespace rf {
 struct LightGroups;  // render/light_groups.h
 class GuideField;    // render/guiding.h
 
-// path: unidirectional path tracing, NEE + MIS (power heuristic), Russian roulette after
-//       bounce 3, at most max_depth bounces.
+// path: unidirectional path tracing, NEE + MIS (power heuristic), Russian roulette from
+//       bounce 3 (roulette_survival, render/packet_tracer.h), at most max_depth bounces.
 // direct: the same estimator stopped after one bounce (emission seen directly, plus light
 //       sampled and BSDF sampled direct illumination combined by MIS).
 // ao: ambient occlusion within 10% of the scene diagonal, cosine weighted.

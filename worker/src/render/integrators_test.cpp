@@ -10,6 +10,7 @@
 
 #include "scene/environment.h"
 #include "math/estimators.h"
+#include "render/packet_tracer.h"
 #include "render/reference.h"
 #include "sampling/samplers.h"
 #include "testing/references.h"
@@ -656,6 +657,41 @@ TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceWithRoughGlass) {
 // shadow rays, in the world and in instances).
 TEST(PathIntegrator, PacketTracerEqualsTheScalarReferenceWithTransparentSurfaces) {
   expect_packet_tracer_equals_the_scalar_reference(transparent_cornell_box());
+}
+
+// Russian roulette keeps a path with the square root of its largest throughput channel (at
+// most 0.95), and refractions do not change that chance: a path inside glass at ior 1.5
+// carries radiance scaled by 1 / 1.5^2, which its way out undoes, so it goes on as often as
+// the same path outside.
+TEST(RussianRoulette, SurvivalIsTheSquareRootOfTheThroughputAcrossGlass) {
+  EXPECT_FLOAT_EQ(roulette_survival(Vec3(0.25f, 0.1f, 0.04f), 1.f), 0.5f);
+  EXPECT_FLOAT_EQ(roulette_survival(Vec3(0.01f, 0.16f, 0.f), 1.f), 0.4f);
+  EXPECT_FLOAT_EQ(roulette_survival(Vec3(0.95f, 0.95f, 0.95f), 1.f), 0.95f);
+  EXPECT_FLOAT_EQ(roulette_survival(Vec3(3.f, 1.f, 1.f), 1.f), 0.95f);
+  BsdfParams glass;  // smooth, clear glass of ior 1.5
+  glass.alpha = kMinAlpha;
+  glass.specular = 1.f;
+  glass.transmission = 1.f;
+  glass.ior = 1.5f;
+  const Vec3 beta(0.3f, 0.2f, 0.1f);
+  const Vec3 wo = normalize(Vec3(0.3f, 0.f, 0.9f));
+  const BsdfLobes lobes = bsdf_lobes(glass, wo);
+  // Refracting into the glass (u_fresnel above its reflectance at this angle, about 0.04).
+  BsdfSample in;
+  ASSERT_TRUE(bsdf_sample(glass, lobes, wo, {0.5f, 0.5f}, 0.f, 0.99f, &in));
+  ASSERT_TRUE(in.transmitted);
+  const Vec3 inside = beta * in.weight;
+  EXPECT_NEAR(max_component(inside), 0.3f / 2.25f, 1e-6f);
+  EXPECT_NEAR(roulette_survival(inside, 1.f * in.eta2), std::sqrt(0.3f), 1e-6f);
+  // And out of it again: the throughput is beta's once more, and so is the chance.
+  glass.front = false;
+  const BsdfLobes back = bsdf_lobes(glass, wo);
+  BsdfSample out;
+  ASSERT_TRUE(bsdf_sample(glass, back, wo, {0.5f, 0.5f}, 0.f, 0.99f, &out));
+  ASSERT_TRUE(out.transmitted);
+  EXPECT_NEAR(max_component(inside * out.weight), 0.3f, 1e-6f);
+  EXPECT_NEAR(roulette_survival(inside * out.weight, in.eta2 * out.eta2), std::sqrt(0.3f),
+              1e-6f);
 }
 
 }  // namespace

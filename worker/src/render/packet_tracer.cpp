@@ -127,10 +127,10 @@ void shade_vertex_begin(const Scene& scene, const LightContext& lc, PathState& p
   }
   if (bounce >= max_depth) return;
   const BounceSamples& u = p.u;
-  // Russian roulette after 3 bounces; dividing by the survival probability keeps the
-  // estimator unbiased.
+  // Russian roulette after 3 bounces (roulette_survival); dividing by the survival
+  // probability keeps the estimator unbiased.
   if (bounce >= 3) {
-    const float q = std::min(0.95f, max_component(p.beta));
+    const float q = roulette_survival(p.beta, p.eta_scale);
     if (!(u.get(dim::kRoulette) < q)) return;
     p.beta = p.beta / q;
   }
@@ -261,6 +261,7 @@ void shade_vertex_end_bsdf(PathState& p, const BsdfEvalBatch& batch, const Guide
   }
   if (is_zero(bs.weight)) return;
   p.beta *= bs.weight;
+  p.eta_scale *= bs.eta2;
   p.prev_bsdf_pdf = bs.pdf;
   p.prev_delta = bs.delta;
   p.o = p.next_o;

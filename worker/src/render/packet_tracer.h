@@ -4,6 +4,8 @@
 // path between bounces, the per-render context, the camera ray of a sample.
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <vector>
 
@@ -31,6 +33,10 @@ struct PathState {
   float per_axial = 1.f;
   float time = 0.f;  // motion blur: where in the shutter every ray of the path is, in [0, 1]
   Vec3 beta{1.f, 1.f, 1.f};   // path throughput: product of f cos / pdf so far
+  // The product of the eta^2 of the refractions so far (BsdfSample::eta2): beta times it is
+  // the throughput without the radiance scaling at the interfaces, what Russian roulette
+  // weighs (roulette_survival).
+  float eta_scale = 1.f;
   float wavelength = 0.f;     // nm, from the first dispersive vertex on (0: none yet)
   float prev_bsdf_pdf = 0.f;  // solid-angle pdf of the direction d (bounce > 0)
   bool prev_delta = true;     // camera rays and delta bounces: no light sampling could
@@ -57,6 +63,20 @@ struct PathState {
   // none), and the one the next ray will (a transmission into or out of a volume changes it).
   Vec3 medium, next_medium;
 };
+
+// Russian roulette's probability that a path with throughput beta goes on, its refractions
+// having scaled its radiance by 1 / eta_scale (PathState::eta_scale):
+// min(0.95, sqrt(max(beta) eta_scale)).
+// - eta_scale: inside glass a path carries radiance scaled by 1 / eta^2 (0.44 at ior 1.5),
+//   which its way out undoes; on beta alone the roulette would end the paths inside glass
+//   more than twice as often as those outside (pbrt-v4's etaScale, Mitsuba 3's eta^2).
+// - the square root (Cycles' rule): a path of low throughput goes on more often than in
+//   proportion to it, so that where what follows is bright (a caustic met after a rough
+//   bounce) the survivors' weights 1 / q stay small.
+// Each measured on the realistic suite: docs/parity.md, "Russian roulette against Cycles'".
+inline float roulette_survival(Vec3 beta, float eta_scale) {
+  return std::min(0.95f, std::sqrt(max_component(beta) * eta_scale));
+}
 
 // Path guiding (render/guiding.h) at a path's current vertex, kept beside its PathState only
 // when the render is guided (so that an unguided path's state keeps its size): the

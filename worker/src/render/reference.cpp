@@ -139,7 +139,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     }
     if (bounce >= max_depth) return result;
     if (bounce >= 3) {
-      const float q = std::min(0.95f, max_component(p.beta));
+      const float q = roulette_survival(p.beta, p.eta_scale);
       if (!(u.get(dim::kRoulette) < q)) return result;
       p.beta = p.beta / q;
     }
@@ -177,6 +177,7 @@ SampleResult trace_sample_reference(const Scene& scene, const RenderSettings& se
     if (wrong_side(wi, sp.ng, bs.transmitted)) return result;
     if (is_zero(bs.weight)) return result;
     p.beta *= bs.weight;
+    p.eta_scale *= bs.eta2;
     p.prev_bsdf_pdf = bs.pdf;
     p.prev_delta = bs.delta;
     p.o = bs.transmitted ? sp.below() : sp.above();

@@ -759,6 +759,7 @@ BsdfSampleStep sample_rough_glass(const BsdfParams& p, Vec3 wo, const BsdfDisks&
   out->wi = wi;
   out->delta = true;
   out->pdf = 0.f;
+  if (out->transmitted) out->eta2 = eta * eta;
   out->weight = out->transmitted ? p.base * (scale * g / (eta * eta))
                                  : Vec3(1.f, 1.f, 1.f) * (scale * g);
   return BsdfSampleStep::Done;
@@ -769,6 +770,7 @@ BsdfSampleStep sample_rough_glass(const BsdfParams& p, Vec3 wo, const BsdfDisks&
 BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Vec3 wo,
                                      const BsdfDisks& disks, float u_lobe, float u_fresnel,
                                      BsdfSample* out) {
+  out->eta2 = 1.f;
   if (wo.z <= 0.f) return BsdfSampleStep::Failed;
   out->lobe = SampledLobe::Evaluated;
   float glass_scale = 1.f;
@@ -813,6 +815,7 @@ BsdfSampleStep bsdf_sample_direction(const BsdfParams& p, const BsdfLobes& l, Ve
     // Radiance is scaled by 1/eta^2 across the interface (pbrt-v4, TransportMode::Radiance);
     // the transmitted light is tinted by the base color (glTF transmission).
     out->weight = p.base * (glass_scale / (eta * eta));
+    out->eta2 = eta * eta;
     out->transmitted = true;
     return BsdfSampleStep::Done;
   }

@@ -213,6 +213,9 @@ struct BsdfSample {
   bool delta = false;  // chosen from the glass (specular) lobe
   bool transmitted = false;
   SampledLobe lobe = SampledLobe::Evaluated;
+  // eta^2 of a refraction through the glass lobe (eta the ratio of the indices in the
+  // direction of travel), whose weight scales radiance by 1 / eta2; 1 for every other sample.
+  float eta2 = 1.f;
 };
 
 // The layers (glTF extension texts, implementation sections), on the base f_base below:

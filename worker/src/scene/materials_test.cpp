@@ -315,11 +315,16 @@ TEST(Bsdf, FresnelAndGlass) {
   EXPECT_NEAR(sin_o, 1.5f * sin_t, 1e-5f);
   EXPECT_LT(t.wi.z, 0.f);
   EXPECT_NEAR(t.weight.x, 1.f / (1.5f * 1.5f), 1e-6f);
+  // The scaling is reported beside the weight (Russian roulette undoes it), and only for a
+  // refraction.
+  EXPECT_NEAR(t.eta2, 1.5f * 1.5f, 1e-6f);
+  EXPECT_EQ(r.eta2, 1.f);
   glass.front = false;  // leaving the glass: radiance grows by eta^2 (unless TIR)
   const Vec3 wo2 = normalize(Vec3(0.2f, 0.f, 0.9f));
   ASSERT_TRUE(bsdf_sample(glass, wo2, {0.5f, 0.5f}, 0.f, 0.999f, &t));
   EXPECT_TRUE(t.transmitted);
   EXPECT_NEAR(t.weight.x, 1.5f * 1.5f, 1e-4f);
+  EXPECT_NEAR(t.eta2, 1.f / (1.5f * 1.5f), 1e-6f);
 }
 
 // ---- Diffuse transmission (KHR_materials_diffuse_transmission): the extension's
@@ -566,6 +571,7 @@ TEST(RoughGlass, SamplesFollowWaltersDensityWithWeightFCosOverPdf) {
           w.eval(wod, wid, &f_cos, &pdf);
           ASSERT_GT(pdf, 0.0) << "a sample where the model has no density";
           const double want = f_cos / pdf / (bs.transmitted ? w.eta * w.eta : 1.0);
+          ASSERT_NEAR(bs.eta2, bs.transmitted ? w.eta * w.eta : 1.0, 1e-5);
           ASSERT_NEAR(bs.weight.x, want, 2e-3 * (1.0 + want))
               << "roughness " << roughness << " front " << front << " wi.z " << bs.wi.z;
           double phi = std::atan2(bs.wi.y, bs.wi.x);
