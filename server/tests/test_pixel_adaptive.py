@@ -329,6 +329,51 @@ def test_pixels_that_miss_a_rare_event_do_not_stop_on_their_lucky_estimate(monke
     assert own > 1.5 * pooled
 
 
+# rare_contributions: a base of 0.01 plus contributions of 1.0 met with probability 0.05 a
+# sample in the tiles' top halves (rows 0-7) and 0.5 in their bottom halves.
+RARE_P = {"top": 0.05, "bottom": 0.5}
+
+
+def rare_contributions(settings, rect, start, count):
+    """Light that comes in contributions of one size, met more or less often: a dim top half
+    (mean 0.06) and a bright bottom half (mean 0.51) in every tile, each pixel's variance per
+    sample p (1 - p), about its mean (as for any count)."""
+    u = hashed(settings, rect, start, count)
+    ys = np.arange(rect.y0, rect.y0 + rect.height)[None, :, None]
+    p = np.where(ys % 16 < 8, RARE_P["top"], RARE_P["bottom"])
+    value = 0.01 + np.where(u < p, 1.0, 0.0)
+    return np.repeat(value[..., None], 3, axis=-1)
+
+
+def test_a_tiles_pooled_estimate_shares_its_variance_by_brightness_not_its_square(monkeypatch):
+    """Stopping each pixel at one relative error t takes n = var / (m t)^2 samples: here
+    p (1 - p) / (0.01 + p)^2 over t^2, 13.2 for the dim half against 0.96 for the bright one,
+    13.7x. The pixels' own estimates alone (PRIOR_DOF 0) give about that; the tile's estimate
+    pooled in must not change it much. Shared as one relative error for the tile, it would give
+    the bright half the tile's mean (7.1 against its own 0.96) and the ratio would fall to
+    about 3x; shared in proportion to the brightness (the variance of rare contributions of
+    one size) each half gets about its own."""
+    settings = JobSettings(**{**SETTINGS.to_dict(), "noise_threshold": 0.1, "max_spp": 16384})
+    need = {half: p * (1 - p) / (0.01 + p) ** 2 for half, p in RARE_P.items()}
+    want = need["top"] / need["bottom"]
+    ratio, default = {}, pixel_stops.PRIOR_DOF
+    for prior in (default, 0.0):
+        monkeypatch.setattr(pixel_stops, "PRIOR_DOF", prior)
+        job = run_farm(settings, workers=2, seed=3, values=rare_contributions).jobs["j"]
+        counts = np.zeros((settings.height, settings.width))
+        for t in job.tiles:
+            r = t.rect
+            counts[r.y0 : r.y0 + r.height, r.x0 : r.x0 + r.width] = t.acc.pixel_spp
+        # Rows 0-6 and 9-15: the 3x3 neighbourhoods of rows 7 and 8 hold both halves.
+        ratio[prior] = counts[:7].mean() / counts[9:].mean()
+    pooled, own = ratio[default], ratio[0.0]
+    print(f"dim / bright half's samples: pooled {pooled:.1f}, own estimates {own:.1f}, "
+          f"by the variances {want:.1f}")  # fmt: skip
+    # The batches' sizes round the bright half's count up: its own estimates give 0.6x.
+    assert 0.5 * want < own < 1.5 * want
+    assert 0.75 * own < pooled < 1.5 * own
+
+
 def two_levels(settings, rect, start, count):
     """Uniform noise around 0.5 whose amplitude is 0.1 in the left half of the image and 0.4
     in the right half: per-sample standard deviations 1 : 4, variances 1 : 16."""

@@ -93,12 +93,21 @@ PRIOR_DOF = 8.0
 def pooled_variance(acc) -> np.ndarray:
     """Each pixel's variance of the mean, raised toward what its tile says a pixel of its
     brightness has (never lowered: a pixel noisier than its tile keeps its own estimate):
-    max(s^2, (nu s^2 + nu_0 r^2 m^2) / (nu + nu_0)), with nu its own degrees of freedom
-    (its batches less one), r^2 the mean over the tile's pixels of their squared relative error
-    (the variance of the mean over the brightness squared, as merge's relative error takes it)
-    and m the pixel's mean. A pixel's own estimate from a few batches misses what is rare: a
-    dim floor lit by a caustic that 64 samples do not find looks converged on its own, while
-    its tile's thousand pixels, between them, have found it."""
+    max(s^2, (nu s^2 + nu_0 k m) / (nu + nu_0)), with nu its own degrees of freedom (its
+    batches less one), m the pixel's mean and k the mean over the tile's pixels of their
+    variance of the mean over their brightness (the mean less one standard error, at least
+    merge's DARK_FLOOR, as the relative error bounds it). A pixel's own estimate from a few
+    batches misses what is rare: a dim floor lit by a caustic that 64 samples do not find looks
+    converged on its own, while its tile's thousand pixels, between them, have found it.
+
+    The tile's variance is shared out in proportion to the brightness, not its square: a
+    pixel's light that comes in rare contributions of one size c, met with probability p a
+    sample, has the mean p c and the variance p c^2 (less (p c)^2), its mean times c, so the
+    pixels of a tile where the same caustic, highlight or bounce makes the noise differ in how
+    often they meet it more than in how bright it is. Shared as the square (one relative error
+    for the tile), a tile with one caustic made every bright, smooth pixel of it sample as if
+    it were as noisy as the caustic's dim surroundings (docs/parity.md, "Where the floor's gap
+    ...": the floor's 32 x 32 blocks)."""
     from .merge import DARK_FLOOR  # merge imports this module
 
     var = acc.variance_of_mean()
@@ -106,7 +115,7 @@ def pooled_variance(acc) -> np.ndarray:
     if not known.all() or acc.batches < 2:
         return var
     bound = np.maximum(acc.lum_mean - np.sqrt(var), DARK_FLOOR)
-    prior = float(np.mean(var / bound**2)) * np.square(np.maximum(acc.lum_mean, 0.0))
+    prior = float(np.mean(var / bound)) * np.maximum(acc.lum_mean, 0.0)
     dof = float(acc.batches - 1)
     return np.maximum(var, (dof * var + PRIOR_DOF * prior) / (dof + PRIOR_DOF))
 
