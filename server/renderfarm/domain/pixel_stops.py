@@ -106,8 +106,8 @@ def pooled_variance(acc) -> np.ndarray:
     pixels of a tile where the same caustic, highlight or bounce makes the noise differ in how
     often they meet it more than in how bright it is. Shared as the square (one relative error
     for the tile), a tile with one caustic made every bright, smooth pixel of it sample as if
-    it were as noisy as the caustic's dim surroundings (docs/parity.md, "Where the floor's gap
-    ...": the floor's 32 x 32 blocks)."""
+    it were as noisy as the caustic's dim surroundings (the floor's 32 x 32 blocks in
+    docs/parity.md, "Where the floor's remaining gap is")."""
     from .merge import DARK_FLOOR  # merge imports this module
 
     var = acc.variance_of_mean()

@@ -682,7 +682,7 @@ TEST(RussianRoulette, SurvivalIsTheSquareRootOfTheThroughputAcrossGlass) {
   ASSERT_TRUE(in.transmitted);
   const Vec3 inside = beta * in.weight;
   EXPECT_NEAR(max_component(inside), 0.3f / 2.25f, 1e-6f);
-  EXPECT_NEAR(roulette_survival(inside, 1.f * in.eta2), std::sqrt(0.3f), 1e-6f);
+  EXPECT_NEAR(roulette_survival(inside, in.eta2), std::sqrt(0.3f), 1e-6f);
   // And out of it again: the throughput is beta's once more, and so is the chance.
   glass.front = false;
   const BsdfLobes back = bsdf_lobes(glass, wo);

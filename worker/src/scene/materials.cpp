@@ -938,6 +938,7 @@ bool bsdf_sample_finish(Vec3 f, float pdf, BsdfSample* out) {
   out->pdf = pdf;
   out->delta = false;
   out->transmitted = false;
+  out->eta2 = 1.f;
   out->weight = f * (1.f / pdf);
   return true;
 }

@@ -325,6 +325,11 @@ TEST(Bsdf, FresnelAndGlass) {
   EXPECT_TRUE(t.transmitted);
   EXPECT_NEAR(t.weight.x, 1.5f * 1.5f, 1e-4f);
   EXPECT_NEAR(t.eta2, 1.f / (1.5f * 1.5f), 1e-6f);
+  // A sample completed from its evaluated value (what a guided direction is, in the sample a
+  // path keeps from vertex to vertex) is never a refraction, whatever the last one was.
+  ASSERT_TRUE(bsdf_sample_finish(Vec3(0.2f, 0.2f, 0.2f), 0.5f, &t));
+  EXPECT_FALSE(t.transmitted);
+  EXPECT_EQ(t.eta2, 1.f);
 }
 
 // ---- Diffuse transmission (KHR_materials_diffuse_transmission): the extension's
