@@ -30,6 +30,7 @@
 #include "render/integrators.h"
 #include "render/render.h"
 #include "scene/scene.h"
+#include "scene/textures.h"
 #include "farm/scene_cache.h"
 
 namespace {
@@ -819,6 +820,10 @@ int cmd_connect(const std::vector<std::string>& args) {
           ? size_t(parse_uint("--scene-memory-mb", flags["--scene-memory-mb"], 1, 1u << 30)) *
                 1000000
           : available_memory() / 2;
+  // Textures read into memory for their lookups: at most a quarter of the worker's memory,
+  // and 2 GiB; beyond, they are paged through OpenImageIO's tile cache (scene/textures.h).
+  if (const size_t memory = available_memory())
+    rf::TextureSet::set_texel_budget(std::min(memory / 4, size_t(2) << 30));
   // A task that renders longer than this fails for good (a scene that costs this much per
   // batch is broken or hostile); its render stops at once.
   if (flags.count("--task-timeout-s"))

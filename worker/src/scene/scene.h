@@ -583,11 +583,11 @@ class Scene {
   // Triangles in the world after instancing (world triangles + sum over instances).
   uint64_t world_triangle_count() const;
   // Bytes the scene holds: its triangle meshes and light tables, and everything Embree
-  // allocated for it (BVHs, instance data). Textures are not included: OpenImageIO's
-  // TextureSystem caches tiles in a budget of its own. A pose counts only what is its own
-  // (light tables, deformed meshes, and an estimate of its top-level and deformed BVHs), not
-  // its base, which the poses share; a StaticPart scene counts its Embree allocations up to
-  // the end of its construction.
+  // allocated for it (BVHs, instance data). Textures are not included: their texels are read
+  // at the first lookup, within a budget of their own (TextureSet::set_texel_budget). A pose
+  // counts only what is its own (light tables, deformed meshes, and an estimate of its
+  // top-level and deformed BVHs), not its base, which the poses share; a StaticPart scene
+  // counts its Embree allocations up to the end of its construction.
   size_t memory_bytes() const;
   const SceneStats& stats() const { return desc_.stats; }
   // A pose's deformed meshes (null for other scenes).

@@ -4,6 +4,8 @@
 #include <OpenImageIO/texture.h>
 
 #include <algorithm>
+#include <array>
+#include <cmath>
 #include <atomic>
 #include <cstring>
 #include <iterator>
@@ -114,6 +116,152 @@ bool write_linear_copy(const std::string& encoded, const fs::path& linear) {
   return ok && !ec;
 }
 
+// A texture's finest level held in memory, read whole at its first lookup: a bilinear lookup
+// is then four texel reads, where the TextureSystem's tile cache (for textures beyond the
+// budget below) costs a tile search, its locks and its statistics' clock readings per lookup
+// (half the worker's time on the realistic floor's textures, docs/parity.md). 8-bit images
+// keep their bytes (a texel's value is a table's, 1 / 255 steps or, for sRGB textures, their
+// decoded values: texel by texel before filtering, as the linear copy does); others are read
+// as floats, sRGB ones decoded as they are read.
+struct Texels {
+  int width = 0, height = 0, channels = 0;  // channels: the first min(4, image's) kept
+  std::vector<uint8_t> bytes;               // 8-bit images
+  std::vector<float> floats;                // the others
+  // 8-bit images: the 256 values of a byte in channel c, table[c] (the colour channels of an
+  // sRGB texture decoded, its alpha as it is).
+  std::array<const float*, 4> table{};
+  size_t memory() const { return bytes.size() + floats.size() * sizeof(float); }
+};
+
+// The texels held in memory by all the scenes of this process, and the most they may hold:
+// a texture that would take more goes through the TextureSystem's bounded tile cache.
+std::atomic<size_t> g_texel_bytes{0};
+std::atomic<size_t> g_texel_budget{size_t(2) << 30};
+
+const float* byte_table(bool srgb) {
+  static const auto tables = [] {
+    std::array<std::array<float, 256>, 2> t{};
+    for (int v = 0; v < 256; ++v) {
+      t[0][size_t(v)] = float(v) / 255.f;
+      t[1][size_t(v)] = srgb_to_linear(float(v) / 255.f);
+    }
+    return t;
+  }();
+  return tables[srgb ? 1 : 0].data();
+}
+
+// The image at `path` (its first subimage's finest level), or null if it cannot be read
+// whole here (a data window that is not its display window, a deep image, the budget spent):
+// the caller then goes through the TextureSystem, which handles those.
+std::unique_ptr<Texels> load_texels(const std::string& path, bool srgb) {
+  OIIO::ImageSpec config;
+  config.attribute("oiio:UnassociatedAlpha", 1);  // as the TextureSystem reads it
+  auto in = OIIO::ImageInput::open(path, &config);
+  if (!in) return nullptr;
+  const OIIO::ImageSpec& spec = in->spec();
+  if (spec.deep || spec.depth > 1 || spec.width <= 0 || spec.height <= 0 ||
+      spec.nchannels <= 0 || spec.x != spec.full_x || spec.y != spec.full_y ||
+      spec.width != spec.full_width || spec.height != spec.full_height)
+    return nullptr;
+  auto t = std::make_unique<Texels>();
+  t->width = spec.width;
+  t->height = spec.height;
+  t->channels = std::min(4, spec.nchannels);
+  const bool u8 = spec.format == OIIO::TypeDesc::UINT8;
+  const size_t values = size_t(spec.width) * size_t(spec.height) * size_t(t->channels);
+  const size_t bytes = values * (u8 ? 1 : sizeof(float));
+  size_t held = g_texel_bytes.load();
+  do {
+    if (held + bytes > g_texel_budget.load()) return nullptr;
+  } while (!g_texel_bytes.compare_exchange_weak(held, held + bytes));
+  bool ok;
+  if (u8) {
+    t->bytes.resize(values);
+    ok = in->read_image(0, 0, 0, t->channels, OIIO::TypeDesc::UINT8, t->bytes.data());
+    const int colour = t->channels <= 2 ? 1 : std::min(3, t->channels);
+    for (int c = 0; c < t->channels; ++c) t->table[size_t(c)] = byte_table(srgb && c < colour);
+  } else {
+    t->floats.resize(values);
+    ok = in->read_image(0, 0, 0, t->channels, OIIO::TypeFloat, t->floats.data());
+    if (ok && srgb) {
+      const int colour = t->channels <= 2 ? 1 : std::min(3, t->channels);
+      for (size_t i = 0; i < values; i += size_t(t->channels))
+        for (int c = 0; c < colour; ++c) {
+          float& v = t->floats[i + size_t(c)];
+          v = srgb_to_linear(v);
+        }
+    }
+  }
+  if (!ok) {
+    g_texel_bytes -= bytes;
+    return nullptr;
+  }
+  return t;
+}
+
+// Texel index i of a row or column of n texels under a wrap mode (OpenImageIO's and OpenGL's
+// meanings: periodic, clamped to the edge, mirrored every other period).
+inline int64_t wrap_index(int64_t i, int64_t n, TextureWrap wrap) {
+  if (uint64_t(i) < uint64_t(n)) return i;  // inside the image: every mode's identity
+  switch (wrap) {
+    case TextureWrap::Clamp:
+      return std::clamp<int64_t>(i, 0, n - 1);
+    case TextureWrap::Mirror: {
+      const int64_t m = ((i % (2 * n)) + 2 * n) % (2 * n);
+      return m < n ? m : 2 * n - 1 - m;
+    }
+    case TextureWrap::Repeat:
+      break;
+  }
+  return ((i % n) + n) % n;
+}
+
+// The texel coordinate s * n, kept finite and within what an int64_t holds (a coordinate
+// that far out of [0, 1] is meaningless at float precision anyway).
+inline float texel_coordinate(float s, int n) {
+  const float x = s * float(n);
+  return std::isfinite(x) ? std::clamp(x, -1e15f, 1e15f) : 0.f;
+}
+
+// Channels [0, want) of texel (x, y), added with weight w into out.
+inline void add_texel(const Texels& t, int64_t x, int64_t y, float w, int want, float* out) {
+  const size_t at = (size_t(y) * size_t(t.width) + size_t(x)) * size_t(t.channels);
+  if (!t.bytes.empty())
+    for (int c = 0; c < want; ++c) out[c] += w * t.table[size_t(c)][t.bytes[at + size_t(c)]];
+  else
+    for (int c = 0; c < want; ++c) out[c] += w * t.floats[at + size_t(c)];
+}
+
+// The bilinear blend of the four texels around uv (texel centres at half-integers, as the
+// TextureSystem's), or the closest texel; channels [0, want) into out.
+void texel_lookup(const Texels& t, TextureWrap wrap_s, TextureWrap wrap_t, bool nearest,
+                  Point2 uv, int want, float* out) {
+  for (int c = 0; c < want; ++c) out[c] = 0.f;
+  if (nearest) {
+    const int64_t x = wrap_index(int64_t(std::floor(texel_coordinate(uv.x, t.width))), t.width,
+                                 wrap_s);
+    const int64_t y = wrap_index(int64_t(std::floor(texel_coordinate(uv.y, t.height))),
+                                 t.height, wrap_t);
+    add_texel(t, x, y, 1.f, want, out);
+    return;
+  }
+  const float fx = texel_coordinate(uv.x, t.width) - 0.5f;
+  const float fy = texel_coordinate(uv.y, t.height) - 0.5f;
+  const float x0f = std::floor(fx), y0f = std::floor(fy);
+  const float ax = fx - x0f, ay = fy - y0f;
+  const int64_t x0 = wrap_index(int64_t(x0f), t.width, wrap_s);
+  const int64_t y0 = wrap_index(int64_t(y0f), t.height, wrap_t);
+  // The next texel: periodic, the one after the wrapped first (no second division).
+  const int64_t x1 = wrap_s == TextureWrap::Repeat ? (x0 + 1 == t.width ? 0 : x0 + 1)
+                                                   : wrap_index(int64_t(x0f) + 1, t.width, wrap_s);
+  const int64_t y1 = wrap_t == TextureWrap::Repeat ? (y0 + 1 == t.height ? 0 : y0 + 1)
+                                                   : wrap_index(int64_t(y0f) + 1, t.height, wrap_t);
+  add_texel(t, x0, y0, (1.f - ax) * (1.f - ay), want, out);
+  add_texel(t, x1, y0, ax * (1.f - ay), want, out);
+  add_texel(t, x0, y1, (1.f - ax) * ay, want, out);
+  add_texel(t, x1, y1, ax * ay, want, out);
+}
+
 }  // namespace
 
 struct TextureSet::Entry {
@@ -121,8 +269,9 @@ struct TextureSet::Entry {
   OIIO::TextureSystem::TextureHandle* handle = nullptr;
   int channels = 0;
   TextureWrap wrap_s = TextureWrap::Repeat, wrap_t = TextureWrap::Repeat;
-  // sRGB textures: the linear copy's path, made at the first lookup (std::call_once), whose
-  // handle then replaces the encoded image's. If it cannot be made, lookups decode after
+  // sRGB textures looked up through the TextureSystem (beyond the texel budget): the linear
+  // copy's path, made at the first such lookup (std::call_once), whose handle then replaces
+  // the encoded image's. If it cannot be made, lookups decode after
   // filtering (decode_after), as a last resort that keeps the render going.
   bool nearest = false;  // InterpClosest instead of InterpBilinear
   bool srgb = false;
@@ -130,6 +279,13 @@ struct TextureSet::Entry {
   mutable std::once_flag linear_once;
   mutable OIIO::TextureSystem::TextureHandle* linear_handle = nullptr;
   mutable bool decode_after = false;
+  // The texels in memory (load_texels), read at the first lookup; null: through the
+  // TextureSystem.
+  mutable std::once_flag texels_once;
+  mutable std::unique_ptr<Texels> texels;
+  ~Entry() {
+    if (texels) g_texel_bytes -= texels->memory();
+  }
 };
 
 TextureSet::TextureSet() = default;
@@ -222,6 +378,9 @@ int TextureSet::add_encoded(const std::vector<unsigned char>& bytes, const std::
   return index;
 }
 
+void TextureSet::set_texel_budget(size_t bytes) { g_texel_budget = bytes; }
+size_t TextureSet::texel_bytes() { return g_texel_bytes.load(); }
+
 uint64_t TextureSet::pixels(int texture) const {
   if (texture < 0 || size_t(texture) >= entries_.size()) return 0;
   int resolution[2] = {0, 0};
@@ -246,9 +405,12 @@ bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
   const bool gray = e.channels <= 2;
   const int want = gray ? (n >= 4 && e.channels == 2 ? 2 : 1)
                         : std::min(4, std::max(1, std::min(n, e.channels)));
+  std::call_once(e.texels_once, [&] { e.texels = load_texels(e.filename.string(), e.srgb); });
   OIIO::TextureSystem* ts = texture_system();
   OIIO::TextureSystem::TextureHandle* handle = e.handle;
-  if (e.srgb) {
+  if (e.texels) {
+    texel_lookup(*e.texels, e.wrap_s, e.wrap_t, e.nearest, uv, want, result);
+  } else if (e.srgb) {
     std::call_once(e.linear_once, [&] {
       std::error_code ec;
       if (fs::is_regular_file(e.linear_path, ec) ||
@@ -258,8 +420,8 @@ bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
     });
     if (e.linear_handle) handle = e.linear_handle;
   }
-  if (!ts->texture(handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f, 0.f, 0.f, want,
-                   result))
+  if (!e.texels && !ts->texture(handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f,
+                                0.f, 0.f, want, result))
     return false;
   if (e.decode_after)
     for (int c = 0; c < (gray ? 1 : std::min(3, want)); ++c) result[c] = srgb_to_linear(result[c]);

@@ -1,8 +1,9 @@
-// Image textures of a scene, read through OpenImageIO's TextureSystem (one process-wide,
-// shared instance; MIP levels are generated on demand by its automip option). Images
-// embedded in a glTF file (data: URIs, GLB buffer views) are written once to a
-// content-addressed directory (<tmp>/renderfarm-textures/<sha256>.<ext>) so the
-// TextureSystem can cache and page them like any file.
+// Image textures of a scene, read through OpenImageIO: into memory at their first lookup
+// (TextureSet::lookup), or beyond a memory budget through its TextureSystem (one
+// process-wide, shared instance; MIP levels are generated on demand by its automip
+// option). Images embedded in a glTF file (data: URIs, GLB buffer views) are written once to
+// a content-addressed directory (<tmp>/renderfarm-textures/<sha256>.<ext>) so that both read
+// them like any file.
 #pragma once
 
 #include <memory>
@@ -49,6 +50,14 @@ class TextureSet {
   // (gray, or gray and alpha) give their gray to red, green and blue. Returns false (and
   // leaves out unchanged) if the lookup fails.
   bool lookup(int texture, Point2 uv, int n, float* out) const;
+
+  // A texture's finest level is read whole into memory at its first lookup, and looked up
+  // there (four texel reads for a bilinear lookup), while all the textures this process holds
+  // so stay within a budget (2 GiB unless set); one that would exceed it is looked up through
+  // the TextureSystem's tile cache (1 GiB, paged from the files), as are images whose data
+  // window is not their display window. texel_bytes: what the textures in memory take now.
+  static void set_texel_budget(size_t bytes);
+  static size_t texel_bytes();
 
  private:
   struct Entry;
