@@ -5,6 +5,8 @@
 #include "testing/chi_square.h"
 #include "math/simd.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <functional>
 #include <random>
@@ -278,6 +280,67 @@ TEST(Warps, PiecewiseConstant1D) {
   chi2.integrate([&](double x, double) { return d.pdf(float(x)); }, 1, n);
   const ChiSquareResult result = chi2.run();
   EXPECT_TRUE(result.passed) << result.message;
+}
+
+// The cell search narrowed by the guide table finds what a search of the whole cdf finds (the
+// cdf built here as pbrt's PiecewiseConstant1D builds it), bit for bit, on distributions with
+// empty runs, one bright cell among faint ones, all cells empty, and one cell; at random u and
+// at the guide's bucket bounds and the floats next to them.
+TEST(Warps, PiecewiseConstant1DFindsTheCellTheWholeCdfGives) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> uni(0.f, 1.f);
+  std::vector<std::vector<float>> cases;
+  {
+    std::vector<float> w(37);
+    for (float& x : w) x = uni(rng) < 0.3f ? 0.f : uni(rng);
+    cases.push_back(w);
+    std::vector<float> sun(2048, 1e-3f);
+    sun[1500] = 1e6f;
+    for (size_t i = 100; i < 400; ++i) sun[i] = 0.f;
+    cases.push_back(sun);
+    cases.push_back(std::vector<float>(16, 0.f));
+    cases.push_back({2.f});
+    std::vector<float> ramp(1000);
+    for (size_t i = 0; i < ramp.size(); ++i) ramp[i] = float(i * i % 97);
+    cases.push_back(ramp);
+  }
+  for (const std::vector<float>& w : cases) {
+    const size_t n = w.size();
+    std::vector<double> cdf(n + 1, 0.0);
+    std::vector<float> f(w);
+    for (size_t i = 0; i < n; ++i) cdf[i + 1] = cdf[i] + double(f[i]) / double(n);
+    double integral = cdf[n];
+    if (!(integral > 0.0)) {
+      for (size_t i = 0; i < n; ++i) {
+        f[i] = 1.f;
+        cdf[i + 1] = double(i + 1) / double(n);
+      }
+      integral = 1.0;
+    } else {
+      for (size_t i = 1; i <= n; ++i) cdf[i] /= integral;
+    }
+    std::vector<float> us;
+    for (int k = 0; k < 20000; ++k) us.push_back(uni(rng));
+    for (size_t j = 0; j <= n; ++j) {
+      const float b = float(double(j) / double(n));
+      for (const float u : {std::nextafter(b, 0.f), b, std::nextafter(b, 1.f)})
+        if (u >= 0.f && u < 1.f) us.push_back(u);
+    }
+    const Distribution1D d(w);
+    for (const float u : us) {
+      size_t want = size_t(std::upper_bound(cdf.begin(), cdf.end(), double(u)) - cdf.begin());
+      want = std::min(n - 1, want > 0 ? want - 1 : 0);
+      while (want + 1 < n && f[want] == 0.f) ++want;
+      size_t cell = n;
+      float pdf = 0.f;
+      const float x = d.sample(u, &pdf, &cell);
+      ASSERT_EQ(cell, want) << "u = " << u << " of " << n << " cells";
+      const double width = cdf[want + 1] - cdf[want];
+      const double du = std::clamp(width > 0.0 ? (double(u) - cdf[want]) / width : 0.5, 0.0, 1.0);
+      ASSERT_EQ(x, std::min(float((double(want) + du) / double(n)), 0.99999994f)) << "u = " << u;
+      ASSERT_EQ(pdf, float(double(f[want]) / integral));
+    }
+  }
 }
 
 TEST(Warps, PiecewiseConstant2D) {
