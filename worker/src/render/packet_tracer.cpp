@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <new>
+#include <type_traits>
 
 #include "math/simd.h"
 #include "sampling/sampling.h"
@@ -656,13 +658,18 @@ void trace_samples(const TraceContext& ctx, const Scene& scene, const RenderSett
   for (uint32_t k = 0; k < uint32_t(kPacketSize); ++k) index[k] = first + k;
   float values[8][PixelSampler::kLanes16];
   const bool batched = sampler.value8_lanes(index, dim::kPixelX, values);
-  PathState paths[kPacketSize];
+  // Each path made where it lives (start_path's value constructed in place, not a default
+  // path assigned over, a copy of its whole state a sample); the packet's lanes past n idle.
+  static_assert(std::is_trivially_destructible_v<PathState>, "lanes are never destroyed");
+  alignas(PathState) unsigned char storage[kPacketSize * sizeof(PathState)];
+  PathState* const paths = reinterpret_cast<PathState*>(storage);
   for (uint32_t k = 0; k < n; ++k) {
     float camera_dims[4];
     for (uint32_t d = 0; d < 4; ++d) camera_dims[d] = values[dim::kPixelX + d][k];
-    paths[k] = start_path(ctx, scene, settings, sampler, x, y, first + k,
-                          batched ? camera_dims : nullptr);
+    new (paths + k) PathState(start_path(ctx, scene, settings, sampler, x, y, first + k,
+                                         batched ? camera_dims : nullptr));
   }
+  for (uint32_t k = n; k < uint32_t(kPacketSize); ++k) new (paths + k) PathState();
   // Training or with outputs, or guided: out of line, so that the plain tracer stays as it
   // was.
   const GuideField* guide = settings.guide.get();

@@ -189,9 +189,10 @@ inline float schlick_weight(float c) {
 inline Vec3 dielectric_f0(const BsdfParams& p) {
   const float r = (p.ior - 1.f) / (p.ior + 1.f);
   const float r2 = r * r;
-  Vec3 f0;
-  for (int c = 0; c < 3; ++c) f0[c] = std::min(1.f, r2 * p.specular_color[c]) * p.specular;
-  return f0;
+  // Channel by channel, written out (a loop over Vec3's operator[] goes through memory).
+  return {std::min(1.f, r2 * p.specular_color.x) * p.specular,
+          std::min(1.f, r2 * p.specular_color.y) * p.specular,
+          std::min(1.f, r2 * p.specular_color.z) * p.specular};
 }
 
 // The dielectric Fresnel of the extension's fresnel_mix, weight x (f0 + (1 - f0) fw) per
@@ -199,21 +200,19 @@ inline Vec3 dielectric_f0(const BsdfParams& p) {
 // specular layer.
 inline Vec3 dielectric_fresnel(const BsdfParams& p, const Vec3& f0d, float fw) {
   if (!(p.specular > 0.f)) return {0.f, 0.f, 0.f};
-  Vec3 fd;
-  for (int c = 0; c < 3; ++c) fd[c] = f0d[c] + (p.specular - f0d[c]) * fw;
-  return fd;
+  return {f0d.x + (p.specular - f0d.x) * fw, f0d.y + (p.specular - f0d.y) * fw,
+          f0d.z + (p.specular - f0d.z) * fw};
 }
 
 
 // Kulla & Conty's colored F_ms = F_avg^2 E_avg / (1 - F_avg (1 - E_avg)), with
 // F_avg = f0 + (1 - f0) / 21 for Schlick and f0 = base.
 Vec3 metal_ms_fresnel(const BsdfParams& p, float e_avg) {
-  Vec3 f_ms;
-  for (int c = 0; c < 3; ++c) {
-    const float f_avg = p.base[c] + (1.f - p.base[c]) / 21.f;
-    f_ms[c] = f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
-  }
-  return f_ms;
+  const auto channel = [e_avg](float base) {
+    const float f_avg = base + (1.f - base) / 21.f;
+    return f_avg * f_avg * e_avg / (1.f - f_avg * (1.f - e_avg));
+  };
+  return {channel(p.base.x), channel(p.base.y), channel(p.base.z)};
 }
 
 // m * F_ms * (1 - E(mu_o)) (1 - E(mu_i)) / (pi (1 - E_avg)).
