@@ -12,6 +12,7 @@
 #include <filesystem>
 #include <fstream>
 #include <mutex>
+#include <new>
 #include <unistd.h>
 
 #include "util/sha256.h"
@@ -175,13 +176,20 @@ std::unique_ptr<Texels> load_texels(const std::string& path, bool srgb) {
     if (held + bytes > g_texel_budget.load()) return nullptr;
   } while (!g_texel_bytes.compare_exchange_weak(held, held + bytes));
   bool ok;
+  // Memory refused (a process under a memory limit): the texture goes through the
+  // TextureSystem's bounded cache instead.
+  try {
+    if (u8) t->bytes.resize(values);
+    else t->floats.resize(values);
+  } catch (const std::bad_alloc&) {
+    g_texel_bytes -= bytes;
+    return nullptr;
+  }
   if (u8) {
-    t->bytes.resize(values);
     ok = in->read_image(0, 0, 0, t->channels, OIIO::TypeDesc::UINT8, t->bytes.data());
     const int colour = t->channels <= 2 ? 1 : std::min(3, t->channels);
     for (int c = 0; c < t->channels; ++c) t->table[size_t(c)] = byte_table(srgb && c < colour);
   } else {
-    t->floats.resize(values);
     ok = in->read_image(0, 0, 0, t->channels, OIIO::TypeFloat, t->floats.data());
     if (ok && srgb) {
       const int colour = t->channels <= 2 ? 1 : std::min(3, t->channels);
