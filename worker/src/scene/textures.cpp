@@ -37,6 +37,10 @@ OIIO::TextureSystem* texture_system() {
   return ts;
 }
 
+// The colour channels of an image of nc channels, the ones an sRGB texture encodes: gray
+// (one or two channels: gray and alpha) or RGB; alpha is never encoded.
+int colour_channels(int nc) { return nc <= 2 ? 1 : std::min(3, nc); }
+
 OIIO::TextureOpt::Wrap to_oiio(TextureWrap w) {
   switch (w) {
     case TextureWrap::Clamp:
@@ -84,7 +88,7 @@ bool write_linear_copy(const std::string& encoded, const fs::path& linear) {
   if (!in) return false;
   const OIIO::ImageSpec spec = in->spec();
   const int nc = spec.nchannels;
-  const int colour = nc <= 2 ? 1 : std::min(3, nc);
+  const int colour = colour_channels(nc);
   static std::atomic<uint64_t> counter{0};
   const fs::path tmp = linear.parent_path() /
                        ("." + linear.filename().string() + "." + std::to_string(::getpid()) +
@@ -187,12 +191,12 @@ std::unique_ptr<Texels> load_texels(const std::string& path, bool srgb) {
   }
   if (u8) {
     ok = in->read_image(0, 0, 0, t->channels, OIIO::TypeDesc::UINT8, t->bytes.data());
-    const int colour = t->channels <= 2 ? 1 : std::min(3, t->channels);
-    for (int c = 0; c < t->channels; ++c) t->table[size_t(c)] = byte_table(srgb && c < colour);
+    for (int c = 0; c < t->channels; ++c)
+      t->table[size_t(c)] = byte_table(srgb && c < colour_channels(t->channels));
   } else {
     ok = in->read_image(0, 0, 0, t->channels, OIIO::TypeFloat, t->floats.data());
     if (ok && srgb) {
-      const int colour = t->channels <= 2 ? 1 : std::min(3, t->channels);
+      const int colour = colour_channels(t->channels);
       for (size_t i = 0; i < values; i += size_t(t->channels))
         for (int c = 0; c < colour; ++c) {
           float& v = t->floats[i + size_t(c)];
@@ -399,26 +403,17 @@ uint64_t TextureSet::pixels(int texture) const {
   return uint64_t(std::max(0, resolution[0])) * uint64_t(std::max(0, resolution[1]));
 }
 
-bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
-  if (texture < 0 || size_t(texture) >= entries_.size()) return false;
-  const Entry& e = *entries_[size_t(texture)];
+// Through the TextureSystem (a texture beyond the texel budget): channels [0, want) at uv
+// into result, false if the lookup fails.
+bool TextureSet::cache_lookup(const Entry& e, Point2 uv, int want, float* result) {
   OIIO::TextureOpt opt;
   opt.swrap = to_oiio(e.wrap_s);
   opt.twrap = to_oiio(e.wrap_t);
   opt.interpmode = e.nearest ? OIIO::TextureOpt::InterpClosest : OIIO::TextureOpt::InterpBilinear;
   opt.mipmode = OIIO::TextureOpt::MipModeNoMIP;  // no ray differentials: finest level
-  float result[4] = {1.f, 1.f, 1.f, 1.f};
-  // Gray images (one channel, or gray and alpha) give their gray to red, green and blue; the
-  // alpha of a gray-and-alpha image is its second channel.
-  const bool gray = e.channels <= 2;
-  const int want = gray ? (n >= 4 && e.channels == 2 ? 2 : 1)
-                        : std::min(4, std::max(1, std::min(n, e.channels)));
-  std::call_once(e.texels_once, [&] { e.texels = load_texels(e.filename.string(), e.srgb); });
   OIIO::TextureSystem* ts = texture_system();
   OIIO::TextureSystem::TextureHandle* handle = e.handle;
-  if (e.texels) {
-    texel_lookup(*e.texels, e.wrap_s, e.wrap_t, e.nearest, uv, want, result);
-  } else if (e.srgb) {
+  if (e.srgb) {
     std::call_once(e.linear_once, [&] {
       std::error_code ec;
       if (fs::is_regular_file(e.linear_path, ec) ||
@@ -428,11 +423,29 @@ bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
     });
     if (e.linear_handle) handle = e.linear_handle;
   }
-  if (!e.texels && !ts->texture(handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f,
-                                0.f, 0.f, want, result))
+  if (!ts->texture(handle, ts->get_perthread_info(), opt, uv.x, uv.y, 0.f, 0.f, 0.f, 0.f, want,
+                   result))
     return false;
   if (e.decode_after)
-    for (int c = 0; c < (gray ? 1 : std::min(3, want)); ++c) result[c] = srgb_to_linear(result[c]);
+    for (int c = 0; c < (e.channels <= 2 ? 1 : std::min(3, want)); ++c)
+      result[c] = srgb_to_linear(result[c]);
+  return true;
+}
+
+bool TextureSet::lookup(int texture, Point2 uv, int n, float* out) const {
+  if (texture < 0 || size_t(texture) >= entries_.size()) return false;
+  const Entry& e = *entries_[size_t(texture)];
+  float result[4] = {1.f, 1.f, 1.f, 1.f};
+  // Gray images (one channel, or gray and alpha) give their gray to red, green and blue; the
+  // alpha of a gray-and-alpha image is its second channel.
+  const bool gray = e.channels <= 2;
+  const int want = gray ? (n >= 4 && e.channels == 2 ? 2 : 1)
+                        : std::min(4, std::max(1, std::min(n, e.channels)));
+  std::call_once(e.texels_once, [&] { e.texels = load_texels(e.filename.string(), e.srgb); });
+  if (e.texels)
+    texel_lookup(*e.texels, e.wrap_s, e.wrap_t, e.nearest, uv, want, result);
+  else if (!cache_lookup(e, uv, want, result))
+    return false;
   for (int c = 0; c < n; ++c) {
     if (c == 3) out[c] = gray ? (want == 2 ? result[1] : 1.f) : (want > 3 ? result[3] : 1.f);
     else out[c] = gray ? result[0] : result[std::min(c, want - 1)];

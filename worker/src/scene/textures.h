@@ -61,6 +61,8 @@ class TextureSet {
 
  private:
   struct Entry;
+  // Through the TextureSystem (a texture beyond the texel budget): channels [0, want) at uv.
+  static bool cache_lookup(const Entry& e, Point2 uv, int want, float* result);
   std::vector<std::unique_ptr<Entry>> entries_;
 };
 
