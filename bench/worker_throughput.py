@@ -19,8 +19,13 @@ count): Mitsuba through bench/support/mitsuba_render.py (the same glTF read into
 `principled` BSDFs, `path` integrator, independent sampler), --mitsuba-renders renders each,
 each side's median seconds of sampling (Mitsuba's first render, which compiles its kernels, left
 out; the worker's own figure, which leaves out loading the scene), samples/s and the ratio, and
-which of AVX-512 and AVX2 the CPU has (Mitsuba's JIT and Embree use the widest; the worker's own
-code is built for x86-64-v2). The figures go under "mitsuba" in the JSON.
+which of AVX-512 and AVX2 the CPU has (the worker's own code is built for x86-64-v2). --isa
+native compares both at the widest instruction set the CPU has (the worker with
+RENDERFARM_ISA=native: Embree and its sampler's kernels uncapped; Mitsuba's JIT and Embree as
+they are); --isa avx2 both capped at AVX2, as on a CPU without AVX-512 (the worker at its
+default, RENDERFARM_ISA=avx2; Mitsuba's Dr.Jit compiling for `haswell` with 8-wide vectors and
+its bundled Embree capped through bench/support/embree_isa_shim.c, preloaded); --isa both (the
+default) runs each where the CPU has AVX-512. The figures go under "mitsuba" in the JSON, by ISA.
 
     .venv/bin/python bench/worker_throughput.py [--mitsuba] [--mitsuba-only]
 """
@@ -56,13 +61,24 @@ def cpu_vectors() -> dict:
     return {"avx512f": "avx512f" in flags, "avx2": "avx2" in flags}
 
 
-def compare_mitsuba(binary: Path, python: Path, variant: str, renders: int) -> dict:
-    """The worker and Mitsuba on the Cornell box at #38's settings: median sampling seconds."""
+def build_embree_shim(tmp: str) -> Path:
+    """bench/support/embree_isa_shim.c compiled into tmp (cc)."""
+    out = Path(tmp) / "embree_isa_shim.so"
+    source = ROOT / "bench" / "support" / "embree_isa_shim.c"
+    subprocess.run(["cc", "-O2", "-shared", "-fPIC", "-o", str(out), str(source), "-ldl"],
+                   check=True)  # fmt: skip
+    return out
+
+
+def compare_mitsuba(binary: Path, python: Path, variant: str, renders: int, isa: str) -> dict:
+    """The worker and Mitsuba on the Cornell box at #38's settings, both at instruction set
+    `isa` (native or avx2): median sampling seconds."""
     if not python.exists():
         sys.exit(f"no Mitsuba Python at {python} (scripts/install-deps.sh --mitsuba)")
     scene = ROOT / "examples" / "cornell-box.gltf"
     threads = os.cpu_count() or 1
     worker_s, worker_rate = [], []
+    worker_env = dict(os.environ, RENDERFARM_ISA=isa)
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(renders):
             proc = subprocess.run(
@@ -70,7 +86,7 @@ def compare_mitsuba(binary: Path, python: Path, variant: str, renders: int) -> d
                  "--spp", str(MITSUBA_SPP), "--width", str(MITSUBA_SIZE),
                  "--height", str(MITSUBA_SIZE), "--max-depth", str(MITSUBA_DEPTH),
                  "--threads", str(threads), "--seed", str(k)],
-                capture_output=True, text=True, check=True)  # fmt: skip
+                capture_output=True, text=True, check=True, env=worker_env)  # fmt: skip
             match = WORKER_LINE.search(proc.stderr)
             if not match:
                 sys.exit(f"no timing in the worker's output:\n{proc.stderr}")
@@ -80,20 +96,26 @@ def compare_mitsuba(binary: Path, python: Path, variant: str, renders: int) -> d
         config.write_text(json.dumps({
             "scene": str(scene), "width": MITSUBA_SIZE, "height": MITSUBA_SIZE,
             "spp": MITSUBA_SPP, "max_depth": MITSUBA_DEPTH, "variant": variant,
-            "renders": renders + 1}))  # fmt: skip
+            "renders": renders + 1, "isa": isa}))  # fmt: skip
+        mitsuba_env = dict(os.environ)
+        if isa == "avx2":
+            mitsuba_env.update(LD_PRELOAD=str(build_embree_shim(tmp)), EMBREE_MAX_ISA="avx2")
         proc = subprocess.run(
             [str(python), str(ROOT / "bench" / "support" / "mitsuba_render.py"), str(config)],
-            capture_output=True, text=True, errors="replace")  # fmt: skip
+            capture_output=True, text=True, errors="replace", env=mitsuba_env)  # fmt: skip
         found = re.search(r"^RESULT (.*)$", proc.stdout, re.M)
         if proc.returncode != 0 or not found:
             sys.exit(f"Mitsuba failed (exit {proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+        if isa == "avx2" and "max_isa=avx2" not in proc.stderr:
+            sys.exit(f"Mitsuba's Embree was not capped (no embree_isa_shim line):\n{proc.stderr}")
         result = json.loads(found.group(1))
     samples = MITSUBA_SIZE * MITSUBA_SIZE * MITSUBA_SPP
     mitsuba_s = statistics.median(result["seconds"][1:])
     w_s = statistics.median(worker_s)
     figures = {
         "settings": {"size": MITSUBA_SIZE, "bounces": MITSUBA_DEPTH, "spp": MITSUBA_SPP,
-                     "threads": threads, "variant": variant, "renders": renders},
+                     "threads": threads, "variant": variant, "renders": renders, "isa": isa,
+                     "mitsuba_llvm_target": result.get("llvm_target") or "native"},
         "cpu": cpu_vectors(),
         "worker_seconds": worker_s,
         "mitsuba_seconds": result["seconds"],
@@ -104,7 +126,8 @@ def compare_mitsuba(binary: Path, python: Path, variant: str, renders: int) -> d
     }  # fmt: skip
     cpu = ", ".join(k for k, v in figures["cpu"].items() if v) or "neither AVX2 nor AVX-512"
     print(f"Cornell box {MITSUBA_SIZE}x{MITSUBA_SIZE}, {MITSUBA_DEPTH} bounces, {MITSUBA_SPP} spp, "
-          f"{threads} threads ({cpu}): worker {w_s:.2f} s ({samples / w_s:,.0f} samples/s), "
+          f"{threads} threads ({cpu}; both at {isa}): "
+          f"worker {w_s:.2f} s ({samples / w_s:,.0f} samples/s), "
           f"Mitsuba {variant} {mitsuba_s:.2f} s ({samples / mitsuba_s:,.0f} samples/s; its first "
           f"render {result['seconds'][0]:.2f} s with the JIT): worker / Mitsuba "
           f"{figures['worker_over_mitsuba']:.2f}")  # fmt: skip
@@ -128,15 +151,29 @@ def main() -> dict:
     )
     parser.add_argument("--mitsuba-variant", default="llvm_ad_rgb")
     parser.add_argument("--mitsuba-renders", type=int, default=3)
+    parser.add_argument(
+        "--isa",
+        choices=["native", "avx2", "both"],
+        default="both",
+        help="the instruction set of the Mitsuba comparison (both: native and, on a CPU with "
+        "AVX-512, avx2)",
+    )
     args = parser.parse_args()
+    isas = [args.isa] if args.isa != "both" else ["native"]
+    if args.isa == "both" and cpu_vectors()["avx512f"]:
+        isas.append("avx2")
+
+    def mitsuba() -> dict:
+        return {isa: compare_mitsuba(binary, args.mitsuba_python, args.mitsuba_variant,
+                                     args.mitsuba_renders, isa) for isa in isas}  # fmt: skip
+
     binary = Path(os.environ.get("RENDERFARM_WORKER", ROOT / "build/worker/renderfarm-worker"))
     if not binary.exists():
         sys.exit(f"{binary} not found: build the worker first (make worker)")
     out = ROOT / "bench" / "results" / "worker_throughput.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     if args.mitsuba_only:
-        doc = {"mitsuba": compare_mitsuba(binary, args.mitsuba_python, args.mitsuba_variant,
-                                          args.mitsuba_renders)}  # fmt: skip
+        doc = {"mitsuba": mitsuba()}
         out.write_text(json.dumps(doc, indent=2) + "\n")
         print(f"wrote {out.relative_to(ROOT)}")
         return doc
@@ -179,8 +216,7 @@ def main() -> dict:
         print(line)
     doc["summary"] = summary
     if args.mitsuba:
-        doc["mitsuba"] = compare_mitsuba(binary, args.mitsuba_python, args.mitsuba_variant,
-                                         args.mitsuba_renders)  # fmt: skip
+        doc["mitsuba"] = mitsuba()
     out.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {out.relative_to(ROOT)}")
     return doc

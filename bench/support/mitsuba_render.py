@@ -6,7 +6,10 @@ bench/worker_throughput.py --mitsuba. Runs inside a Python with the mitsuba pack
 
 CONFIG: {"scene": the glTF path, "width", "height", "spp", "max_depth" (the farm's: bounces
 after the camera's hit; Mitsuba's max_depth counts the camera's segment too, so it gets
-max_depth + 1), "variant" (default "llvm_ad_rgb"), "renders" (default 3)}.
+max_depth + 1), "variant" (default "llvm_ad_rgb"), "renders" (default 3), "isa" (default
+"native": Dr.Jit compiles for this CPU; "avx2": for an AVX2 CPU (LLVM's `haswell`, 8-wide
+vectors), as on a CPU without AVX-512; its Embree is capped by the caller, which preloads
+bench/support/embree_isa_shim.c)}.
 
 The glTF is read here with json and numpy alone (Mitsuba reads no glTF): each mesh primitive
 (float32 POSITION, uint16/uint32 indices, in the file's own .bin) becomes a Mitsuba mesh at its
@@ -115,12 +118,44 @@ def scene_dict(mi, config) -> dict:
     return scene
 
 
+def llvm_target_avx2() -> str:
+    """Dr.Jit's LLVM backend set to compile for an AVX2 CPU (jit_llvm_set_target of its core
+    library: `haswell`, with the host's feature flags less every AVX-512 and AMX one, so that
+    the code it chooses by feature (gathers, FMA) is what an AVX2 CPU gets, and 8-wide
+    vectors); returns the target it reports."""
+    import ctypes
+    import os
+
+    import drjit as dr
+
+    x = dr.llvm.Float([1.0, 2.0]) * 2.0  # the LLVM backend initialized (it sets its target)
+    dr.eval(x)
+    core = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+    core.jit_llvm_target_cpu.restype = ctypes.c_char_p
+    core.jit_llvm_target_features.restype = ctypes.c_char_p
+    host = (core.jit_llvm_target_features() or b"").decode().split(",")
+    features = ",".join(
+        "-" + f[1:] if f.startswith(("+avx512", "+amx")) else f for f in host if f
+    )  # fmt: skip
+    if "+avx2" not in features.split(","):
+        sys.exit(f"the host has no AVX2 for Dr.Jit to target: {features}")
+    core.jit_llvm_set_target(b"haswell", features.encode(), ctypes.c_uint32(8))
+    cpu = core.jit_llvm_target_cpu().decode()
+    now = (core.jit_llvm_target_features() or b"").decode()
+    if cpu != "haswell" or "+avx512f" in now.split(","):
+        sys.exit(f"Dr.Jit kept its LLVM target {cpu!r} ({now})")
+    return cpu
+
+
 def main() -> None:
     config = json.loads(Path(sys.argv[1]).read_text())
     import mitsuba as mi
 
     variant = config.get("variant", "llvm_ad_rgb")
     mi.set_variant(variant)
+    target = None
+    if config.get("isa", "native") == "avx2":
+        target = llvm_target_avx2()
     scene = mi.load_dict(scene_dict(mi, config))
     seconds = []
     for k in range(int(config.get("renders", 3))):
@@ -131,7 +166,7 @@ def main() -> None:
     samples = int(config["width"]) * int(config["height"]) * int(config["spp"])
     mean = float(np.asarray(image).mean())
     print("RESULT " + json.dumps({"seconds": seconds, "variant": variant, "samples": samples,
-                                  "mean": mean}))  # fmt: skip
+                                  "mean": mean, "llvm_target": target}))  # fmt: skip
 
 
 if __name__ == "__main__":

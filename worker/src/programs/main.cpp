@@ -32,6 +32,7 @@
 #include "scene/scene.h"
 #include "scene/textures.h"
 #include "farm/scene_cache.h"
+#include "util/isa.h"
 
 namespace {
 
@@ -367,7 +368,8 @@ int cmd_render(const std::vector<std::string>& arguments) {
               << scene->lights().size() << " emissive, " << settings.width << "x"
               << settings.height << ", " << spp << " spp, " << threads << " threads, "
               << rf::sampler_type_name(settings.sampler) << "/"
-              << rf::integrator_type_name(settings.integrator) << "\n";
+              << rf::integrator_type_name(settings.integrator) << ", Embree up to "
+              << rf::isa_cap_name(rf::isa_cap()) << "\n";
     rf::RenderStats stats;
     int last_percent = -1;
     const rf::Image image =
@@ -863,6 +865,9 @@ int cmd_connect(const std::vector<std::string>& args) {
   options.hostname = host;
   options.worker_id = flags.count("--id") ? flags["--id"]
                                           : options.hostname + "-" + std::to_string(getpid());
+  // The instruction set every worker of a farm should share for the same bits (util/isa.h).
+  std::cerr << "renderfarm-worker: Embree's kernels up to " << rf::isa_cap_name(rf::isa_cap())
+            << " (RENDERFARM_ISA)\n";
   struct sigaction sa = {};
   sa.sa_handler = on_stop_signal;
   sigemptyset(&sa.sa_mask);
@@ -887,6 +892,8 @@ int main(int argc, char** argv) {
       std::cout << "renderfarm-worker " << RENDERFARM_VERSION << "\n";
       return 0;
     }
+    // RENDERFARM_ISA (util/isa.h) checked before any work: a bad value fails at start.
+    rf::isa_cap();
     if (cmd == "render") return cmd_render(args);
     if (cmd == "connect") return cmd_connect(args);
     if (cmd == "bench") return cmd_bench(args);

@@ -6,6 +6,8 @@
 
 #include <array>
 
+#include "util/isa.h"
+
 namespace rf {
 
 bool parse_sampler_type(const std::string& name, SamplerType* out) {
@@ -620,8 +622,10 @@ bool has_avx2() {
 // The widest kernel this CPU runs (chosen once).
 Sobol8LanesFn choose_sobol8_lanes() {
 #ifdef RF_LANE_KERNELS_X86
-  if (has_avx512()) return sobol8_lanes_avx512;
-  if (has_avx2()) return sobol8_lanes_avx2;
+  // Within the worker's instruction set cap (util/isa.h), like Embree's kernels: the same
+  // values at every width, but a capped worker runs what a CPU without the wider set would.
+  if (has_avx512() && isa_allows(isa_cap(), IsaCap::Avx512)) return sobol8_lanes_avx512;
+  if (has_avx2() && isa_allows(isa_cap(), IsaCap::Avx2)) return sobol8_lanes_avx2;
 #endif
   return sobol8_lanes_sse;
 }

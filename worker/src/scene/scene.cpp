@@ -11,6 +11,7 @@
 #include <limits>
 
 #include "sampling/samplers.h"
+#include "util/isa.h"
 
 namespace rf {
 
@@ -575,7 +576,10 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
   desc_.textures.clear();
   desc_.textures.shrink_to_fit();
 
-  embree_->device = rtcNewDevice(nullptr);
+  // Embree's kernels capped at the worker's instruction set (util/isa.h: AVX2 unless
+  // RENDERFARM_ISA says otherwise), so that workers on different CPUs find the same hits.
+  const std::string device_config = embree_device_config(isa_cap());
+  embree_->device = rtcNewDevice(device_config.empty() ? nullptr : device_config.c_str());
   if (!embree_->device) throw SceneError(desc_.source + ": cannot create Embree device");
   rtcSetDeviceErrorFunction(embree_->device, embree_error, nullptr);
   rtcSetDeviceMemoryMonitorFunction(embree_->device, count_embree_bytes, &embree_->bytes);
