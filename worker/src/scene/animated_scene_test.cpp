@@ -373,6 +373,55 @@ TEST(AnimationPointerScene, MaterialsLightsCamerasVisibilityAndNodesFollowTheirP
   }
 }
 
+// A pose finds what its hits read of each material from the pose's own values: a quad with
+// texture coordinates whose KHR_materials_anisotropy strength a pointer animates from 0 at t = 0
+// to 1 at t = 2 has no tangent at t = 0 (nothing needs one) and the tangent its uv layout gives
+// (along +x, u running from x = -1 to x = 1 over the node's scale of 3) once the strength is
+// above 0, though the file's own strength is 0.
+TEST(AnimationPointerScene, APosesHitsReadWhatItsAnimatedMaterialsNeed) {
+  Buffer b;
+  constexpr int kFloat = 5126, kUShort = 5123;
+  const int quad_p = b.add(std::vector<float>{-1, 0, -1, -1, 0, 1, 1, 0, 1, 1, 0, -1}, kFloat, 4,
+                           "VEC3");
+  const int quad_uv = b.add(std::vector<float>{0, 0, 0, 1, 1, 1, 1, 0}, kFloat, 4, "VEC2");
+  const int quad_i = b.add(std::vector<uint16_t>{0, 1, 2, 0, 2, 3}, kUShort, 6, "SCALAR");
+  const int times = b.add(std::vector<float>{0, 2}, kFloat, 2, "SCALAR");
+  const int strength = b.add(std::vector<float>{0, 1}, kFloat, 2, "SCALAR");
+  const std::string json = R"({"asset": {"version": "2.0"},
+  "extensionsUsed": ["KHR_animation_pointer", "KHR_materials_anisotropy"],
+  "scene": 0, "scenes": [{"nodes": [0]}],
+  "nodes": [{"mesh": 0, "scale": [3, 1, 3]}],
+  "meshes": [{"primitives": [{"attributes": {"POSITION": )" + std::to_string(quad_p) +
+                           R"(, "TEXCOORD_0": )" + std::to_string(quad_uv) +
+                           R"(}, "indices": )" + std::to_string(quad_i) + R"(, "material": 0}]}],
+  "materials": [{"pbrMetallicRoughness": {"metallicFactor": 1, "roughnessFactor": 0.5},
+                 "extensions": {"KHR_materials_anisotropy": {"anisotropyStrength": 0}}}],
+  "animations": [{"channels": [{"sampler": 0, "target": {"path": "pointer", "extensions":
+      {"KHR_animation_pointer": {"pointer":
+       "/materials/0/extensions/KHR_materials_anisotropy/anisotropyStrength"}}}}],
+    "samplers": [{"input": )" + std::to_string(times) + R"(, "output": )" +
+                           std::to_string(strength) + R"(, "interpolation": "LINEAR"}]}],
+  )" + b.json() + "}";
+  const std::string path = write_scene("anisotropy_pointer.gltf", json);
+  std::vector<std::string> warnings;
+  const AnimatedScene animated(parse_gltf(path, &warnings), LoadOptions{}, &warnings);
+  for (const std::string& w : warnings) ADD_FAILURE() << "unexpected warning: " << w;
+  for (double t : {0.0, 0.5, 1.5}) {
+    const auto pose = animated.pose(t);
+    ASSERT_NEAR(pose->materials()[0].anisotropy, t / 2.0, 1e-6) << t;
+    Hit hit;
+    ASSERT_TRUE(pose->intersect({0.3f, 10.f, 0.2f}, {0.f, -1.f, 0.f}, 100.f, &hit)) << t;
+    if (t == 0.0) {
+      EXPECT_EQ(length(hit.dpdu), 0.f) << "no tangent where nothing needs one";
+    } else {
+      // dp/du: x runs over 2 x 3 world units while u runs over 1.
+      EXPECT_NEAR(hit.dpdu.x, 6.f, 1e-4) << t;
+      EXPECT_NEAR(hit.dpdu.y, 0.f, 1e-4) << t;
+      EXPECT_NEAR(hit.dpdu.z, 0.f, 1e-4) << t;
+    }
+  }
+}
+
 // A pointer to what the file does not have, and a bool animated by anything but STEP, make
 // the file invalid: refused naming the channel or sampler.
 TEST(AnimationPointerScene, InvalidPointersAreRefusedByPath) {

@@ -648,11 +648,21 @@ void Scene::build(std::vector<std::string>* warnings, BvhLayout bvh) {
   }
   rtcSetSceneBuildQuality(embree_->scene, RTC_BUILD_QUALITY_HIGH);
   rtcCommitScene(embree_->scene);
+  find_material_hit_flags();
   if (static_part_) {
     static_embree_bytes_ =
         size_t(std::max<int64_t>(0, embree_->bytes.load(std::memory_order_relaxed)));
   } else {
     finish_lights_and_camera(warnings);
+  }
+}
+
+void Scene::find_material_hit_flags() {
+  material_hit_flags_.resize(desc_.materials.size());
+  for (size_t m = 0; m < desc_.materials.size(); ++m) {
+    const Material& mat = desc_.materials[m];
+    material_hit_flags_[m] = uint8_t((mat.reads_uv() ? kHitReadsUv : 0) |
+                                     (mat.needs_tangent() ? kHitNeedsTangent : 0));
   }
 }
 
@@ -1041,6 +1051,7 @@ Scene::Scene(std::shared_ptr<const Scene> base, std::vector<SceneDescription> st
                     256 * (desc_.instances.size() + 1);
   desc_.meshes.clear();
   desc_.meshes.shrink_to_fit();
+  find_material_hit_flags();
   finish_lights_and_camera(warnings);
   // The camera at every step, if it moves (a scene without a camera frames its bounds at
   // every time alike).
@@ -1381,11 +1392,10 @@ void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u
     if (len > 0.f && std::isfinite(len)) ns = n / len;
   }
   // Tangent for normal mapping, from the uv parameterization of the normal map's set.
-  const Material& mat = desc_.materials[hit->material];
-  const uint32_t set = mat.tangent_map().texcoord;
+  const uint8_t material_flags = material_hit_flags_[hit->material];
   Vec3 dpdu(0.f, 0.f, 0.f);
   float sign = 1.f;
-  const bool reads_uv = mat.reads_uv();
+  const bool reads_uv = material_flags & kHitReadsUv;
   for (int k = 0; k < 2; ++k) {
     if (!(flags & (TriangleMesh::kHasUv0 << k)) || !reads_uv) {
       hit->uv[k] = Point2{0.f, 0.f};
@@ -1396,7 +1406,8 @@ void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u
                         t0.y * b0 + t1.y * hit->b1 + t2.y * hit->b2};
   }
   const TriangleMesh::Tangent* tangent = nullptr;
-  if (mat.needs_tangent() && (flags & TriangleMesh::kHasTangents)) {
+  const bool needs_tangent = material_flags & kHitNeedsTangent;
+  if (needs_tangent && (flags & TriangleMesh::kHasTangents)) {
     // The supplied TANGENT (glTF 3.7.2.1: MikkTSpace only where it is absent), interpolated;
     // the handedness is the first vertex's (glTF: +-1, the same over a triangle).
     const TriangleMesh::Tangent& a = mesh.tangents[vi[0]];
@@ -1408,7 +1419,9 @@ void Scene::complete_hit_at(unsigned geom, unsigned inst, unsigned prim, float u
       tangent = &a;
     }
   }
-  if (!tangent && mat.needs_tangent() && has_uv(mesh, prim, set)) {
+  const uint32_t set =
+      needs_tangent ? desc_.materials[hit->material].tangent_map().texcoord : 0u;
+  if (!tangent && needs_tangent && has_uv(mesh, prim, set)) {
     // Solve [dp1 dp2] = [dpdu dpdv] [du1 du2; dv1 dv2] (pbrt's triangle derivatives).
     const Vec3 dp1 = p1 - p0, dp2 = p2 - p0;
     const Point2 t0 = mesh.uv[set][vi[0]], t1 = mesh.uv[set][vi[1]], t2 = mesh.uv[set][vi[2]];

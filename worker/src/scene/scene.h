@@ -633,6 +633,9 @@ class Scene {
   // The lights, the camera (framing the bounds if the description has none) and their
   // warnings: the end of every constructor.
   void finish_lights_and_camera(std::vector<std::string>* warnings);
+  // material_hit_flags_ of the final materials (the base's, or a pose's with its animated
+  // values).
+  void find_material_hit_flags();
   void build(std::vector<std::string>* warnings, BvhLayout bvh);  // the first two constructors
   // Motion blur: the number of time steps (1: none), per instance its transform at each step
   // (empty: it does not move), per slot the deformed mesh whose vertices move (null: none), and
@@ -676,6 +679,11 @@ class Scene {
   struct Embree;
   std::unique_ptr<Embree> embree_;
   int packet_query_width_ = 8;
+  // Per material (by index): what completing a hit on it reads, Material::reads_uv and
+  // needs_tangent (kHitReadsUv, kHitNeedsTangent), found once the materials are final
+  // (finish_lights_and_camera) rather than from the material's texture slots at every hit.
+  static constexpr uint8_t kHitReadsUv = 1, kHitNeedsTangent = 2;
+  std::vector<uint8_t> material_hit_flags_;
   // emitting_nodes(); last, as it is read only when a task is checked.
   std::vector<uint32_t> emitting_nodes_;
 };
