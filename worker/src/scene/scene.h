@@ -681,7 +681,7 @@ class Scene {
   int packet_query_width_ = 8;
   // Per material (by index): what completing a hit on it reads, Material::reads_uv and
   // needs_tangent (kHitReadsUv, kHitNeedsTangent), found once the materials are final
-  // (finish_lights_and_camera) rather than from the material's texture slots at every hit.
+  // (find_material_hit_flags) rather than from the material's texture slots at every hit.
   static constexpr uint8_t kHitReadsUv = 1, kHitNeedsTangent = 2;
   std::vector<uint8_t> material_hit_flags_;
   // emitting_nodes(); last, as it is read only when a task is checked.
