@@ -27,7 +27,9 @@ kernels (LLVM), the later ones reuse them; the caller takes the later ones' medi
 
 from __future__ import annotations
 
+import ctypes
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -123,9 +125,6 @@ def llvm_target_avx2() -> str:
     library: `haswell`, with the host's feature flags less every AVX-512 and AMX one, so that
     the code it chooses by feature (gathers, FMA) is what an AVX2 CPU gets, and 8-wide
     vectors); returns the target it reports."""
-    import ctypes
-    import os
-
     import drjit as dr
 
     x = dr.llvm.Float([1.0, 2.0]) * 2.0  # the LLVM backend initialized (it sets its target)

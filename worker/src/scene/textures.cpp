@@ -427,7 +427,7 @@ bool TextureSet::cache_lookup(const Entry& e, Point2 uv, int want, float* result
                    result))
     return false;
   if (e.decode_after)
-    for (int c = 0; c < (e.channels <= 2 ? 1 : std::min(3, want)); ++c)
+    for (int c = 0; c < std::min(colour_channels(e.channels), want); ++c)
       result[c] = srgb_to_linear(result[c]);
   return true;
 }

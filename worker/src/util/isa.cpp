@@ -2,25 +2,24 @@
 
 #include <cstdlib>
 #include <stdexcept>
+#include <string>
 
 namespace rf {
 
-const char* isa_cap_name(IsaCap cap) {
-  switch (cap) {
-    case IsaCap::Sse42:
-      return "sse4.2";
-    case IsaCap::Avx2:
-      return "avx2";
-    case IsaCap::Avx512:
-      return "avx512";
-    case IsaCap::Native:
-      return "native";
-  }
-  return "native";
-}
+namespace {
+
+// The caps by name, in IsaCap's order.
+constexpr IsaCap kCaps[] = {IsaCap::Sse42, IsaCap::Avx2, IsaCap::Avx512, IsaCap::Native};
+constexpr const char* kNames[] = {"sse4.2", "avx2", "avx512", "native"};
+static_assert(sizeof kCaps / sizeof kCaps[0] == sizeof kNames / sizeof kNames[0],
+              "a name per cap");
+
+}  // namespace
+
+const char* isa_cap_name(IsaCap cap) { return kNames[int(cap)]; }
 
 bool parse_isa_cap(const std::string& name, IsaCap* out) {
-  for (IsaCap cap : {IsaCap::Sse42, IsaCap::Avx2, IsaCap::Avx512, IsaCap::Native})
+  for (IsaCap cap : kCaps)
     if (name == isa_cap_name(cap)) {
       *out = cap;
       return true;
@@ -31,9 +30,12 @@ bool parse_isa_cap(const std::string& name, IsaCap* out) {
 IsaCap isa_cap_from(const char* value) {
   if (!value || !*value) return IsaCap::Avx2;
   IsaCap cap;
-  if (!parse_isa_cap(value, &cap))
+  if (!parse_isa_cap(value, &cap)) {
+    std::string names;
+    for (const char* name : kNames) names += (names.empty() ? "" : ", ") + std::string(name);
     throw std::invalid_argument(std::string("RENDERFARM_ISA='") + value +
-                                "': expected one of sse4.2, avx2, avx512, native");
+                                "': expected one of " + names);
+  }
   return cap;
 }
 
